@@ -1,0 +1,111 @@
+"""``Drone2D-v0``: a single drone as a Gymnasium env, a thin adapter over the shared dynamics."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium import spaces
+
+from drone_torchrl.envs import dynamics
+from drone_torchrl.envs.drone_env import check_episode_args, make_params
+from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM, TerminationCause
+
+
+class DroneGymEnv(gym.Env):
+    """The Gymnasium twin of :class:`~drone_torchrl.envs.DroneEnv` (same arguments, same manual).
+
+    Observations are float32 numpy arrays of shape ``(6,)``; ``info["termination_cause"]`` is the
+    cause's name (``"NONE"``, ``"OUT_X"``, ``"FLOOR"``, ``"CEILING"``, ``"TILT"``). Resets draw from
+    a ``torch.Generator`` seeded by ``reset(seed=...)`` exactly as ``DroneEnv.set_seed`` does, and
+    steps call :func:`drone_torchrl.envs.dynamics.step` in float32, so the same seed and actions
+    give the same trajectory as ``DroneEnv`` bit for bit.
+    """
+
+    metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 50}
+
+    def __init__(
+        self,
+        *,
+        mass: float = 1.0,
+        motor_distance: float = 1.0,
+        gravity: float = 9.81,
+        dt: float = 0.02,
+        max_steps: int = 300,
+        reset_mode: str = "floor",
+        max_thrust: float | None = None,
+        floor_tolerance: float = 0.05,
+        render_mode: str | None = None,
+    ) -> None:
+        self.params = make_params(mass, motor_distance, gravity, dt, max_thrust, floor_tolerance)
+        check_episode_args(max_steps, reset_mode, render_mode)
+        self.max_steps = int(max_steps)
+        self.reset_mode = reset_mode
+        self.render_mode = render_mode
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(STATE_DIM,), dtype=np.float32)
+        if max_thrust is None:
+            self.action_space = spaces.Box(-np.inf, np.inf, shape=(ACTION_DIM,), dtype=np.float32)
+        else:
+            self.action_space = spaces.Box(0.0, float(max_thrust), shape=(ACTION_DIM,), dtype=np.float32)
+        self._generator = torch.Generator()
+        self._generator.seed()
+        self._state = torch.zeros(STATE_DIM)
+        self._action = torch.zeros(ACTION_DIM)
+        self._steps = 0
+        self._return = 0.0
+        self._cause = TerminationCause.NONE
+        self._renderer = None
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self._generator.manual_seed(int(seed))
+        self._state = dynamics.initial_state((), self.reset_mode, self._generator)
+        self._action = torch.zeros(ACTION_DIM)
+        self._steps, self._return, self._cause = 0, 0.0, TerminationCause.NONE
+        if self.render_mode == "human":
+            self.render()
+        return self._state.numpy().copy(), self._info()
+
+    def step(self, action):
+        action = torch.as_tensor(np.asarray(action, dtype=np.float32))
+        if action.shape != (ACTION_DIM,):
+            raise ValueError(f"action has shape {tuple(action.shape)}; expected ({ACTION_DIM},)")
+        if not bool(torch.isfinite(action).all()):
+            raise ValueError(f"action {action.tolist()} contains NaN or inf; expected finite thrust fractions")
+        self._action = dynamics.clamp_action(action, self.params.max_thrust)
+        self._state, reward, cause = dynamics.step(self._state, self._action, self.params)
+        self._steps += 1
+        self._cause = TerminationCause(int(cause))
+        terminated = self._cause != TerminationCause.NONE
+        truncated = self._steps >= self.max_steps and not terminated
+        self._return += float(reward)
+        if self.render_mode == "human":
+            self.render()
+        return self._state.numpy().copy(), float(reward), terminated, truncated, self._info()
+
+    def _info(self) -> dict[str, Any]:
+        return {"termination_cause": self._cause.name, "step_count": self._steps}
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() called with render_mode=None; pass render_mode='rgb_array' or 'human'")
+            return None
+        from drone_torchrl.envs.rendering import DroneRenderer
+
+        if self._renderer is None:
+            self._renderer = DroneRenderer(self.render_mode, self.params, self.metadata["render_fps"])
+        return self._renderer.draw(
+            state=self._state.numpy(),
+            action=self._action.numpy(),
+            step=self._steps,
+            episode_return=self._return,
+            cause=self._cause,
+        )
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
