@@ -202,7 +202,11 @@ class DroneEnv(EnvBase):
         except (RuntimeError, TypeError) as err:
             raise ValueError(f"device={device!r} is not allowed; expected e.g. 'cpu' or 'cuda:0'") from err
         n_envs = math.prod(batch_size)
-        if isinstance(render_index, bool) or not isinstance(render_index, Integral) or not 0 <= render_index < n_envs:
+        if (
+            isinstance(render_index, bool)
+            or not isinstance(render_index, Integral)
+            or not 0 <= render_index < n_envs
+        ):
             raise ValueError(
                 f"render_index={render_index!r} is not allowed; expected an integer in [0, {n_envs - 1}]"
             )
@@ -248,7 +252,11 @@ class DroneEnv(EnvBase):
             self.action_spec = Unbounded(shape=(*bs, ACTION_DIM), dtype=torch.float32, device=self.device)
         else:
             self.action_spec = Bounded(
-                low=0.0, high=self.max_thrust, shape=(*bs, ACTION_DIM), dtype=torch.float32, device=self.device
+                low=0.0,
+                high=self.max_thrust,
+                shape=(*bs, ACTION_DIM),
+                dtype=torch.float32,
+                device=self.device,
             )
         self.reward_spec = Unbounded(shape=(*bs, 1), dtype=torch.float32, device=self.device)
         flag = Categorical(n=2, shape=(*bs, 1), dtype=torch.bool, device=self.device)
@@ -281,7 +289,9 @@ class DroneEnv(EnvBase):
             self._last_action.zero_()
         else:
             n_reset = int(mask.sum())
-            self._state[mask] = dynamics.initial_state((n_reset,), self.reset_mode, self._generator, self.device)
+            self._state[mask] = dynamics.initial_state(
+                (n_reset,), self.reset_mode, self._generator, self.device
+            )
             self._step_count[mask] = 0
             self._cause[mask] = 0
             self._episode_return[mask] = 0.0
@@ -337,7 +347,7 @@ class DroneEnv(EnvBase):
         if self._renderer is None:
             self._renderer = DroneRenderer(self.render_mode, self.params, self.metadata["render_fps"])
         i = self.render_index if index is None else index
-        flat = lambda t: t.reshape(-1, *t.shape[len(self.batch_size):])[i]  # noqa: E731
+        flat = lambda t: t.reshape(-1, *t.shape[len(self.batch_size) :])[i]  # noqa: E731
         return self._renderer.draw(
             state=flat(self._state).cpu().numpy(),
             action=flat(self._last_action).cpu().numpy(),

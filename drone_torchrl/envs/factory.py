@@ -33,7 +33,9 @@ def make_env(
     ``ParallelEnv`` workers are always started with the ``"spawn"`` method: TorchRL's default, and
     the one that works under Hydra's joblib launcher, whose processes report ``"loky"``.
     """
-    if num_envs is not None and (isinstance(num_envs, bool) or not isinstance(num_envs, Integral) or num_envs < 1):
+    if num_envs is not None and (
+        isinstance(num_envs, bool) or not isinstance(num_envs, Integral) or num_envs < 1
+    ):
         raise ValueError(f"num_envs={num_envs!r} is not allowed; expected None or an integer >= 1")
     if isinstance(num_workers, bool) or not isinstance(num_workers, Integral) or num_workers < 0:
         raise ValueError(f"num_workers={num_workers!r} is not allowed; expected an integer >= 0")

@@ -74,7 +74,9 @@ class DroneGymEnv(gym.Env):
         if action.shape != (ACTION_DIM,):
             raise ValueError(f"action has shape {tuple(action.shape)}; expected ({ACTION_DIM},)")
         if not bool(torch.isfinite(action).all()):
-            raise ValueError(f"action {action.tolist()} contains NaN or inf; expected finite thrust fractions")
+            raise ValueError(
+                f"action {action.tolist()} contains NaN or inf; expected finite thrust fractions"
+            )
         self._action = dynamics.clamp_action(action, self.params.max_thrust)
         self._state, reward, cause = dynamics.step(self._state, self._action, self.params)
         self._steps += 1
