@@ -277,7 +277,7 @@ class DroneEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         mask = None
-        if tensordict is not None and "_reset" in tensordict.keys():
+        if tensordict is not None and "_reset" in tensordict:
             mask = tensordict.get("_reset").reshape(self.batch_size)
         if mask is None or self.batch_size == () or bool(mask.all()):
             self._state = dynamics.initial_state(
