@@ -1,0 +1,129 @@
+"""Where the Hydra configs live, and the checks every config passes before any work starts."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig
+
+from drone_torchrl.envs.drone_env import DroneEnv
+from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
+from drone_torchrl.objectives.reinforce import BASELINES
+
+ENV_ARGS = (
+    "mass",
+    "motor_distance",
+    "gravity",
+    "dt",
+    "max_steps",
+    "reset_mode",
+    "max_thrust",
+    "floor_tolerance",
+)
+
+
+def config_dir() -> str:
+    """Absolute path of the ``conf/`` folder.
+
+    A wheel ships the top-level ``conf/`` as ``drone_torchrl/conf`` (pyproject's package-dir);
+    a source checkout or editable install reads the top-level folder itself.
+    """
+    package = Path(__file__).resolve().parent
+    for candidate in (package / "conf", package.parent / "conf"):
+        if (candidate / "config.yaml").is_file():
+            return str(candidate)
+    raise FileNotFoundError(f"drone_torchrl's conf/ folder is missing (looked in {package} and its parent)")
+
+
+class ConfigError(ValueError):
+    """A config value that is not allowed: the message names the key, the value and what is allowed."""
+
+    @classmethod
+    def of(cls, key: str, value: Any, allowed: str) -> ConfigError:
+        return cls(f"{key}={value!r} is not allowed; expected {allowed}")
+
+
+def _number(
+    cfg: DictConfig,
+    key: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    integer: bool = False,
+) -> None:
+    value = cfg
+    for part in key.split("."):
+        value = value[part]
+    kind = "an integer" if integer else "a number"
+    bounds = []
+    if low is not None:
+        bounds.append(f"{'>' if low_open else '>='} {low}")
+    if high is not None:
+        bounds.append(f"<= {high}")
+    allowed = f"{kind} {' and '.join(bounds)}".strip()
+    numeric = isinstance(value, int | float) and not isinstance(value, bool)
+    if not numeric or (integer and not isinstance(value, int)) or not math.isfinite(value):
+        raise ConfigError.of(key, value, allowed)
+    if low is not None and (value < low or (low_open and value == low)):
+        raise ConfigError.of(key, value, allowed)
+    if high is not None and value > high:
+        raise ConfigError.of(key, value, allowed)
+
+
+def _choice(cfg: DictConfig, key: str, choices: tuple) -> None:
+    section, name = key.split(".")
+    if cfg[section][name] not in choices:
+        raise ConfigError.of(key, cfg[section][name], f"one of {list(choices)}")
+
+
+def env_kwargs(cfg: DictConfig) -> dict[str, Any]:
+    """The ``DroneEnv`` arguments of a config."""
+    return {name: cfg.env[name] for name in ENV_ARGS}
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for the first value that is not allowed."""
+    try:
+        DroneEnv(batch_size=[], device=cfg.device, **env_kwargs(cfg)).close()
+    except ValueError as err:
+        message = str(err)
+        raise ConfigError(message if message.startswith("device=") else f"env.{message}") from None
+    _number(cfg, "env.num_workers", low=0, integer=True)
+    _number(cfg, "seed", low=0, integer=True)
+    _number(cfg, "threads", low=1, integer=True)
+    _number(cfg, "algo.lr", low=0, low_open=True)
+    _number(cfg, "algo.gamma", low=0, high=1)
+    _number(cfg, "algo.episodes", low=1, integer=True)
+    _number(cfg, "algo.episodes_per_update", low=1, integer=True)
+    _number(cfg, "algo.adam_eps", low=0, low_open=True)
+    if cfg.algo.max_grad_norm is not None:
+        _number(cfg, "algo.max_grad_norm", low=0, low_open=True)
+    _choice(cfg, "algo.baseline", BASELINES)
+    for flag in ("discount_weight", "normalize_returns"):
+        if not isinstance(cfg.algo[flag], bool):
+            raise ConfigError.of(f"algo.{flag}", cfg.algo[flag], "true or false")
+    _choice(cfg, "model.distribution", DISTRIBUTIONS)
+    _choice(cfg, "model.activation", tuple(ACTIVATIONS))
+    _number(cfg, "model.min_std", low=0)
+    sizes = cfg.model.hidden_sizes
+    if not sizes or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in sizes):
+        raise ConfigError.of(
+            "model.hidden_sizes", list(sizes) if sizes else sizes, "a non-empty list of integers >= 1"
+        )
+    if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
+        raise ConfigError.of(
+            "model.distribution",
+            "tanh_normal",
+            "'normal' unless env.max_thrust is set (e.g. env.max_thrust=1.0)",
+        )
+    _number(cfg, "checkpoint.every_episodes", low=1, integer=True)
+    _number(cfg, "eval.every_episodes", low=0, integer=True)
+    _number(cfg, "eval.episodes", low=1, integer=True)
+    _number(cfg, "eval.seed", low=0, integer=True)
+    _number(cfg, "metrics.running_mean_window", low=1, integer=True)
+    _number(cfg, "logger.video_fps", low=1, integer=True)
+    if cfg.progress not in (True, False, "auto"):
+        raise ConfigError.of("progress", cfg.progress, "true, false or auto")

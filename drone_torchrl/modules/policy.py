@@ -1,0 +1,98 @@
+"""The paper's policy (section 3.2.1): a shared trunk, a mean head and a std head, as a TorchRL actor."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal
+
+from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM
+
+DISTRIBUTIONS = ("normal", "tanh_normal")
+ACTIVATIONS = {"tanh": nn.Tanh, "relu": nn.ReLU, "elu": nn.ELU}
+
+
+class ThreeNetPolicy(nn.Module):
+    """Shared trunk -> (mean head, std head), the three nets of the paper.
+
+    - shared net: ``len(hidden_sizes)`` hidden layers (paper: two of 32, tanh);
+    - mean net: one linear layer to the two motor commands;
+    - std net: one linear layer, ``softplus`` (the paper's ``log(1 + exp(.))``), plus ``min_std``
+      so the distribution never collapses to zero width.
+    """
+
+    def __init__(
+        self,
+        hidden_sizes: Sequence[int] = (32, 32),
+        activation: str = "tanh",
+        min_std: float = 1e-6,
+        obs_dim: int = STATE_DIM,
+        action_dim: int = ACTION_DIM,
+    ) -> None:
+        super().__init__()
+        layers: list[nn.Module] = []
+        width = obs_dim
+        for size in hidden_sizes:
+            layers += [nn.Linear(width, size), ACTIVATIONS[activation]()]
+            width = size
+        self.shared = nn.Sequential(*layers)
+        self.mean = nn.Linear(width, action_dim)
+        self.std = nn.Linear(width, action_dim)
+        self.min_std = min_std
+
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        features = self.shared(observation)
+        return self.mean(features), nn.functional.softplus(self.std(features)) + self.min_std
+
+
+def make_actor(
+    distribution: str = "normal",
+    hidden_sizes: Sequence[int] = (32, 32),
+    activation: str = "tanh",
+    min_std: float = 1e-6,
+    max_thrust: float | None = None,
+    device: torch.device | str = "cpu",
+) -> ProbabilisticActor:
+    """Build the policy as a ``ProbabilisticActor`` reading ``"observation"``, writing ``"action"``.
+
+    ``distribution="normal"`` (the paper): an independent Normal per motor over unbounded thrust;
+    the log-probability is the SUM over the two motors (a proper joint density; the paper's code,
+    after Gymnasium's REINFORCE tutorial, averaged them, which halves the gradient: an effective
+    learning rate twice the paper's at the same alpha under plain SGD, and the same under Adam
+    up to its epsilon). ``distribution="tanh_normal"``: a ``TanhNormal`` squashed onto
+    ``[0, max_thrust]``, so every sampled thrust is physical (needs ``max_thrust``).
+
+    In ``ExplorationType.DETERMINISTIC`` (evaluation) the action is the mean, or its squashed image.
+    """
+    if distribution not in DISTRIBUTIONS:
+        raise ValueError(
+            f"model.distribution={distribution!r} is not allowed; expected one of {DISTRIBUTIONS}"
+        )
+    if activation not in ACTIVATIONS:
+        raise ValueError(
+            f"model.activation={activation!r} is not allowed; expected one of {tuple(ACTIVATIONS)}"
+        )
+    net = ThreeNetPolicy(hidden_sizes, activation, min_std).to(device)
+    module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    if distribution == "normal":
+        dist_class, dist_kwargs = IndependentNormal, {}
+    else:
+        if max_thrust is None:
+            raise ValueError(
+                "model.distribution='tanh_normal' needs a bounded action: set env.max_thrust (e.g. 1.0)"
+            )
+        # tanh_loc=False keeps the mean head's scale: with True and bounds [0, A] a zero mean maps
+        # near A (TORCHRL_NOTES.md).
+        dist_class = TanhNormal
+        dist_kwargs = {"low": 0.0, "high": float(max_thrust), "tanh_loc": False}
+    return ProbabilisticActor(
+        module,
+        in_keys=["loc", "scale"],
+        out_keys=["action"],
+        distribution_class=dist_class,
+        distribution_kwargs=dist_kwargs,
+        return_log_prob=False,
+    )

@@ -1,0 +1,258 @@
+"""``drone-train``: REINFORCE on the 2D drone, configured by Hydra (``conf/``).
+
+drone-train                                  # the paper: alpha 1e-4, gamma 0.99, 6000 episodes
+drone-train algo.lr=3e-4 seed=1              # any key from the command line
+drone-train experiment=bounded               # positive thrust only (TanhNormal, max_thrust 1)
+drone-train resume=outputs/<date>/<run>      # continue an interrupted run
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections import deque
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf, open_dict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from tqdm import tqdm
+
+from drone_torchrl.checkpoint import (
+    BEST,
+    CHECKPOINT_DIR,
+    LAST,
+    load_checkpoint,
+    resolve_checkpoint,
+    run_dir_of,
+    save_checkpoint,
+)
+from drone_torchrl.config import ConfigError, config_dir, env_kwargs, validate
+from drone_torchrl.envs.dynamics import TerminationCause
+from drone_torchrl.envs.factory import make_env
+from drone_torchrl.evaluation import evaluate, record_video, save_gif
+from drone_torchrl.metrics import EpisodeCSV, cause_counts, episode_stats
+from drone_torchrl.modules.policy import make_actor
+from drone_torchrl.objectives.reinforce import ReinforceLoss
+from drone_torchrl.tb_logger import RunLogger
+
+CSV_NAME = "episodes.csv"
+VIDEO_DIR = "videos"
+
+
+def build_actor(cfg: DictConfig):
+    return make_actor(
+        distribution=cfg.model.distribution,
+        hidden_sizes=list(cfg.model.hidden_sizes),
+        activation=cfg.model.activation,
+        min_std=cfg.model.min_std,
+        max_thrust=cfg.env.max_thrust,
+        device=cfg.device,
+    )
+
+
+def build_loss(cfg: DictConfig, actor) -> ReinforceLoss:
+    return ReinforceLoss(
+        actor,
+        gamma=cfg.algo.gamma,
+        discount_weight=cfg.algo.discount_weight,
+        normalize_returns=cfg.algo.normalize_returns,
+        baseline=cfg.algo.baseline,
+    )
+
+
+def _prepare(cfg: DictConfig) -> tuple[DictConfig, Path, dict | None]:
+    """Validate the config, resolve ``resume``; returns (config to run, run folder, checkpoint or None)."""
+    checkpoint = None
+    if cfg.resume is not None:
+        try:
+            path = resolve_checkpoint(cfg.resume)
+        except FileNotFoundError as err:
+            raise ConfigError(f"resume={cfg.resume!r} is not allowed; {err}") from None
+        checkpoint = load_checkpoint(path)
+        saved = OmegaConf.create(checkpoint["config"])
+        # The run's own config wins; from the command line only the episode budget (to extend a
+        # run) and the process settings are taken.
+        with open_dict(saved):
+            saved.algo.episodes = cfg.algo.episodes
+            for key in ("progress", "threads", "device"):
+                saved[key] = cfg[key]
+            saved.resume = cfg.resume
+        cfg, run_dir = saved, run_dir_of(path)
+    elif HydraConfig.initialized():
+        run_dir = Path(HydraConfig.get().runtime.output_dir)
+    else:
+        raise ConfigError("train(cfg) outside a Hydra app needs resume=<run folder>; use drone-train")
+    validate(cfg)
+    return cfg, run_dir, checkpoint
+
+
+def train(cfg: DictConfig) -> float:
+    """Train one agent; returns the final running-mean return (the metric sweepers optimise)."""
+    cfg, run_dir, checkpoint = _prepare(cfg)
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+
+    env = make_env(
+        num_envs=cfg.algo.episodes_per_update,
+        num_workers=cfg.env.num_workers,
+        device=cfg.device,
+        **env_kwargs(cfg),
+    )
+    env.set_seed(cfg.seed)
+    actor = build_actor(cfg)
+    loss_module = build_loss(cfg, actor)
+    optimizer = torch.optim.Adam(actor.parameters(), lr=cfg.algo.lr, eps=cfg.algo.adam_eps)
+    window = cfg.metrics.running_mean_window
+    recent_returns: deque[float] = deque(maxlen=window)
+    recent_lengths: deque[float] = deque(maxlen=window)
+    episodes_done = updates_done = 0
+    elapsed_before = 0.0
+    best_eval = -float("inf")
+    if checkpoint is not None:
+        actor.load_state_dict(checkpoint["actor"])
+        optimizer.load_state_dict(checkpoint["optimizer"])
+        episodes_done, updates_done = checkpoint["episodes_done"], checkpoint["updates_done"]
+        elapsed_before, best_eval = checkpoint["wall_clock_s"], checkpoint["best_eval_return"]
+        recent_returns.extend(checkpoint["recent_returns"])
+        recent_lengths.extend(checkpoint["recent_lengths"])
+        torch.set_rng_state(checkpoint["torch_rng"])
+        if hasattr(env, "_generator"):
+            env._generator.set_state(checkpoint["env_rng"])
+        else:  # ParallelEnv workers own their generators: reseed deterministically instead.
+            env.set_seed(cfg.seed + episodes_done)
+
+    (run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(cfg, run_dir / "config.yaml")
+    logger = RunLogger(cfg.logger.exp_name, run_dir, purge_step=episodes_done if checkpoint else None)
+    csv_file = EpisodeCSV(run_dir / CSV_NAME, keep_episodes=episodes_done if checkpoint else 0)
+    show = sys.stderr.isatty() if cfg.progress == "auto" else bool(cfg.progress)
+    bar = tqdm(
+        total=cfg.algo.episodes, initial=episodes_done, disable=not show, unit="ep", dynamic_ncols=True
+    )
+
+    def state() -> dict:
+        return {
+            "actor": actor.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "episodes_done": episodes_done,
+            "updates_done": updates_done,
+            "wall_clock_s": elapsed_before + time.perf_counter() - start,
+            "best_eval_return": best_eval,
+            "recent_returns": list(recent_returns),
+            "recent_lengths": list(recent_lengths),
+            "torch_rng": torch.get_rng_state(),
+            "env_rng": env._generator.get_state() if hasattr(env, "_generator") else None,
+            "config": OmegaConf.to_container(cfg, resolve=True),
+        }
+
+    def run_eval() -> float:
+        nonlocal best_eval
+        stats, _ = evaluate(actor, env_kwargs(cfg), cfg.eval.episodes, cfg.eval.seed, cfg.device)
+        mean_return = float(stats["return"].float().mean())
+        logger.log_scalar("eval/return", mean_return, step=episodes_done)
+        logger.log_scalar("eval/length", float(stats["length"].float().mean()), step=episodes_done)
+        logger.log_scalar("eval/time_in_zone", float(stats["time_in_zone"].mean()), step=episodes_done)
+        if cfg.eval.video:
+            frames = record_video(actor, env_kwargs(cfg), cfg.eval.seed, cfg.device)
+            save_gif(frames, run_dir / VIDEO_DIR / f"episode_{episodes_done:06d}.gif", cfg.logger.video_fps)
+            logger.log_frames("eval/video", frames, step=episodes_done, fps=cfg.logger.video_fps)
+        if cfg.checkpoint.keep_best and mean_return > best_eval:
+            best_eval = mean_return
+            save_checkpoint(state(), run_dir / CHECKPOINT_DIR / BEST)
+        return mean_return
+
+    start = time.perf_counter()
+    next_checkpoint = episodes_done + cfg.checkpoint.every_episodes
+    next_eval = episodes_done + cfg.eval.every_episodes if cfg.eval.every_episodes else None
+    try:
+        while episodes_done < cfg.algo.episodes:
+            with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
+                rollout = env.rollout(cfg.env.max_steps, actor, break_when_all_done=True)
+            losses = loss_module(rollout)
+            optimizer.zero_grad(set_to_none=True)
+            losses["loss_reinforce"].backward()
+            max_norm = cfg.algo.max_grad_norm if cfg.algo.max_grad_norm is not None else float("inf")
+            grad_norm = torch.nn.utils.clip_grad_norm_(actor.parameters(), max_norm)
+            optimizer.step()
+            updates_done += 1
+
+            stats = episode_stats(rollout)
+            wall = elapsed_before + time.perf_counter() - start
+            rows = []
+            for i in range(stats["return"].shape[0]):
+                row = {name: stats[name][i].item() for name in stats}
+                row["termination_cause"] = TerminationCause(row["termination_cause"]).name
+                row.update(episode=episodes_done, update=updates_done, wall_clock_s=round(wall, 3))
+                rows.append(row)
+                logger.log_metrics(
+                    {
+                        f"episode/{k}": v
+                        for k, v in row.items()
+                        if k not in ("episode", "update", "termination_cause", "wall_clock_s")
+                    },
+                    step=episodes_done,
+                )
+                recent_returns.append(row["return"])
+                recent_lengths.append(row["length"])
+                episodes_done += 1
+            for name, count in cause_counts(stats["termination_cause"]).items():
+                logger.log_scalar(f"episode/termination_cause/{name}", count, step=episodes_done)
+            csv_file.write(rows)
+            logger.log_metrics(
+                {
+                    "train/loss": losses["loss_reinforce"].item(),
+                    "train/grad_norm": grad_norm.item(),
+                    "policy/std_mean": rollout.get("scale").mean().item(),
+                    "train/running_mean_return": float(np.mean(recent_returns)),
+                    "train/running_mean_length": float(np.mean(recent_lengths)),
+                },
+                step=episodes_done,
+            )
+            bar.update(len(rows))
+            bar.set_postfix_str(
+                f"return({window})={np.mean(recent_returns):.0f} length={np.mean(recent_lengths):.0f}"
+            )
+            if next_eval is not None and episodes_done >= next_eval:
+                run_eval()
+                next_eval += cfg.eval.every_episodes
+            if episodes_done >= next_checkpoint:
+                csv_file.flush()
+                save_checkpoint(state(), run_dir / CHECKPOINT_DIR / LAST)
+                next_checkpoint += cfg.checkpoint.every_episodes
+        final_eval = run_eval()
+        csv_file.flush()
+        save_checkpoint(state(), run_dir / CHECKPOINT_DIR / LAST)
+        final = {
+            "final_return": float(np.mean(recent_returns)),
+            "final_length": float(np.mean(recent_lengths)),
+            "eval_return": final_eval,
+            "wall_clock_s": elapsed_before + time.perf_counter() - start,
+        }
+        logger.log_final_hparams(cfg, final)
+        print(
+            f"{run_dir}: {episodes_done} episodes, running-mean({window}) return {final['final_return']:.1f}, "
+            f"length {final['final_length']:.1f}, eval return {final_eval:.1f}, {final['wall_clock_s']:.0f} s"
+        )
+        return final["final_return"]
+    finally:
+        bar.close()
+        csv_file.close()
+        logger.experiment.close()
+        env.close(raise_if_closed=False)
+
+
+@hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> float:
+    try:
+        return train(cfg)
+    except ConfigError as err:
+        sys.exit(f"drone-train: error: {err}")
+
+
+if __name__ == "__main__":
+    main()
