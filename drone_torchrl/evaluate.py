@@ -1,0 +1,160 @@
+"""``drone-eval``: fly a trained policy (or the PD controller) on seeded episodes and report.
+
+drone-eval checkpoint=outputs/<date>/<run>          # the run's last checkpoint
+drone-eval checkpoint=<run>/checkpoints/best.pt episodes=20
+drone-eval                                          # the PD hover controller alone
+drone-eval env.max_thrust=1.0                       # ... with bounded thrust
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDictBase
+
+from drone_torchrl.checkpoint import load_checkpoint, resolve_checkpoint
+from drone_torchrl.config import ConfigError, config_dir, env_kwargs, validate
+from drone_torchrl.envs import dynamics
+from drone_torchrl.envs.drone_env import DroneEnv
+from drone_torchrl.envs.heuristic import PDController
+from drone_torchrl.evaluation import evaluate, record_video, save_gif
+from drone_torchrl.metrics import cause_counts
+from drone_torchrl.objectives.reinforce import valid_steps
+from drone_torchrl.train import build_actor
+
+PLOT_NAME = "trajectory.png"
+VIDEO_NAME = "episode.gif"
+
+
+def plot_trajectory(rollout: TensorDictBase, path: Path, title: str) -> Path:
+    """x-z path of the first episode over the domain and target zone, and both thrusts over time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    first = rollout[0]
+    valid = valid_steps(first.get(("next", "done"))).squeeze(-1)
+    states = torch.cat([first.get("observation")[:1], first.get(("next", "observation"))[valid]]).numpy()
+    actions = first.get("action")[valid].numpy()
+    fig, (ax_path, ax_thrust) = plt.subplots(1, 2, figsize=(11, 4.5))
+    ax_path.add_patch(
+        plt.Rectangle(
+            (-dynamics.ZONE_X_LIMIT, dynamics.ZONE_Z_MIN),
+            2 * dynamics.ZONE_X_LIMIT,
+            dynamics.ZONE_Z_MAX - dynamics.ZONE_Z_MIN,
+            color="tab:green",
+            alpha=0.2,
+            label="target zone",
+        )
+    )
+    ax_path.plot(states[:, dynamics.X], states[:, dynamics.Z], color="tab:blue", label="path")
+    ax_path.plot(states[0, dynamics.X], states[0, dynamics.Z], "o", color="tab:blue", label="start")
+    ax_path.set(xlim=(-dynamics.X_LIMIT, dynamics.X_LIMIT), ylim=(dynamics.Z_MIN, dynamics.Z_MAX))
+    ax_path.set(xlabel="x [m]", ylabel="z [m]", aspect="equal", title="path")
+    ax_path.grid(alpha=0.3)
+    ax_path.legend(loc="lower right", fontsize=8)
+    steps = np.arange(1, len(actions) + 1)
+    ax_thrust.plot(steps, actions[:, 0], label="left motor")
+    ax_thrust.plot(steps, actions[:, 1], label="right motor")
+    ax_thrust.axhline(0.5, color="gray", ls="--", lw=0.8, label="hover (0.5)")
+    ax_thrust.axhline(0.0, color="black", lw=0.6)
+    ax_thrust.set(xlabel="step", ylabel="thrust / weight", title="motor commands")
+    ax_thrust.grid(alpha=0.3)
+    ax_thrust.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _summary(name: str, stats: dict[str, torch.Tensor], max_return: float) -> dict[str, float]:
+    returns = stats["return"].float()
+    return {
+        "policy": name,
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std(correction=0)),
+        "pct_of_max": 100.0 * float(returns.mean()) / max_return,
+        "length_mean": float(stats["length"].float().mean()),
+        "time_in_zone": float(stats["time_in_zone"].mean()),
+        "negative_thrust_fraction": float(stats["negative_thrust_fraction"].mean()),
+        "causes": cause_counts(stats["termination_cause"]),
+    }
+
+
+def run_eval(cfg: DictConfig) -> dict[str, dict]:
+    """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot."""
+    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
+    for key in ("episodes", "video_fps"):
+        if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 1:
+            raise ConfigError.of(key, cfg[key], "an integer >= 1")
+    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or cfg.seed < 0:
+        raise ConfigError.of("seed", cfg.seed, "an integer >= 0")
+    if cfg.checkpoint is not None:
+        try:
+            path = resolve_checkpoint(cfg.checkpoint)
+        except FileNotFoundError as err:
+            raise ConfigError(f"checkpoint={cfg.checkpoint!r} is not allowed; {err}") from None
+        checkpoint = load_checkpoint(path)
+        run_cfg = OmegaConf.create(checkpoint["config"])
+        run_cfg.device = cfg.device
+        validate(run_cfg)
+        kwargs = env_kwargs(run_cfg)
+        actor = build_actor(run_cfg)
+        actor.load_state_dict(checkpoint["actor"])
+        actor.eval()
+        policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
+    else:
+        kwargs = {name: cfg.env[name] for name in cfg.env if name != "num_workers"}
+        try:
+            DroneEnv(**kwargs).close()  # the env validates its own arguments
+        except ValueError as err:
+            raise ConfigError(f"env.{err}") from None
+        policies = {}
+    params = dynamics.DroneParams(
+        **{k: kwargs[k] for k in ("mass", "motor_distance", "gravity", "dt", "max_thrust", "floor_tolerance")}
+    )
+    policies["PD controller"] = PDController(params)
+    max_return = dynamics.REWARD_IN_ZONE * kwargs["max_steps"]
+
+    results, rollouts = {}, {}
+    for name, policy in policies.items():
+        stats, rollouts[name] = evaluate(policy, kwargs, cfg.episodes, cfg.seed, cfg.device)
+        results[name] = _summary(name, stats, max_return)
+    pd_return = results["PD controller"]["return_mean"]
+    print(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
+    for name, r in results.items():
+        vs_pd = 100.0 * r["return_mean"] / pd_return if pd_return else float("nan")
+        causes = ", ".join(f"{k} {v}" for k, v in r["causes"].items() if v)
+        print(
+            f"{name}: return {r['return_mean']:.1f} +- {r['return_std']:.1f} "
+            f"({r['pct_of_max']:.1f}% of {max_return:.0f}, {vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
+            f"time in zone {100 * r['time_in_zone']:.1f}%, negative thrust {100 * r['negative_thrust_fraction']:.1f}%; "
+            f"episode ends: {causes} (NONE = truncated)"
+        )
+    main_name = next(iter(policies))
+    if cfg.plot:
+        print("plot:", plot_trajectory(rollouts[main_name], out_dir / PLOT_NAME, main_name))
+    if cfg.video:
+        frames = record_video(policies[main_name], kwargs, cfg.seed, cfg.device)
+        print("video:", save_gif(frames, out_dir / VIDEO_NAME, cfg.video_fps))
+    return results
+
+
+@hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    try:
+        run_eval(cfg)
+    except ConfigError as err:
+        sys.exit(f"drone-eval: error: {err}")
+
+
+if __name__ == "__main__":
+    main()
