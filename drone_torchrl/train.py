@@ -64,7 +64,7 @@ def build_loss(cfg: DictConfig, actor) -> ReinforceLoss:
     )
 
 
-def _prepare(cfg: DictConfig) -> tuple[DictConfig, Path, dict | None]:
+def _prepare(cfg: DictConfig, run_dir: Path | None) -> tuple[DictConfig, Path, dict | None]:
     """Validate the config, resolve ``resume``; returns (config to run, run folder, checkpoint or None)."""
     checkpoint = None
     if cfg.resume is not None:
@@ -82,17 +82,18 @@ def _prepare(cfg: DictConfig) -> tuple[DictConfig, Path, dict | None]:
                 saved[key] = cfg[key]
             saved.resume = cfg.resume
         cfg, run_dir = saved, run_dir_of(path)
-    elif HydraConfig.initialized():
+    elif run_dir is None:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
-    else:
-        raise ConfigError("train(cfg) outside a Hydra app needs resume=<run folder>; use drone-train")
     validate(cfg)
     return cfg, run_dir, checkpoint
 
 
-def train(cfg: DictConfig) -> float:
-    """Train one agent; returns the final running-mean return (the metric sweepers optimise)."""
-    cfg, run_dir, checkpoint = _prepare(cfg)
+def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
+    """Train one agent; returns the final running-mean return (the metric sweepers optimise).
+
+    ``run_dir`` defaults to the Hydra job's output folder; with ``resume`` set, the resumed run's.
+    """
+    cfg, run_dir, checkpoint = _prepare(cfg, None if run_dir is None else Path(run_dir))
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)

@@ -1,0 +1,171 @@
+"""drone-train / drone-eval: configs, validation, a smoke run per preset, resume, and learning."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from drone_torchrl.checkpoint import load_checkpoint
+from drone_torchrl.config import ConfigError, config_dir, validate
+from drone_torchrl.metrics import CSV_COLUMNS, read_episode_csv
+from drone_torchrl.train import train
+
+FAST = ["eval.episodes=2", "eval.video=false", "progress=false"]
+
+
+def _cfg(*overrides: str, name: str = "config"):
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        return compose(name, overrides=list(overrides))
+
+
+def test_defaults_are_the_paper():
+    cfg = _cfg()
+    assert cfg.algo.lr == 1e-4 and cfg.algo.gamma == 0.99
+    assert cfg.algo.episodes == 6000 and cfg.algo.episodes_per_update == 1
+    assert cfg.model.distribution == "normal" and cfg.env.max_thrust is None
+    assert list(cfg.model.hidden_sizes) == [32, 32] and cfg.model.activation == "tanh"
+    assert not cfg.algo.discount_weight and not cfg.algo.normalize_returns and cfg.algo.baseline == "none"
+    assert cfg.seed == 0
+    for arg in (
+        "mass",
+        "motor_distance",
+        "gravity",
+        "dt",
+        "max_steps",
+        "reset_mode",
+        "max_thrust",
+        "floor_tolerance",
+    ):
+        assert arg in cfg.env
+    validate(cfg)
+
+
+def test_presets_compose():
+    bounded = _cfg("experiment=bounded")
+    assert bounded.env.max_thrust == 1.0 and bounded.model.distribution == "tanh_normal"
+    assert _cfg("experiment=paper") == _cfg()
+    validate(bounded)
+    ev = _cfg(name="eval")
+    assert ev.checkpoint is None and ev.env.max_steps == 300
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        ("algo.gamma=1.5", "algo.gamma"),
+        ("algo.gamma=-0.1", "algo.gamma"),
+        ("algo.lr=0", "algo.lr"),
+        ("algo.lr=-1e-4", "algo.lr"),
+        ("algo.episodes=0", "algo.episodes"),
+        ("algo.episodes_per_update=0", "algo.episodes_per_update"),
+        ("algo.baseline=critic", "algo.baseline"),
+        ("model.distribution=beta", "model.distribution"),
+        ("model.distribution=tanh_normal", "model.distribution"),
+        ("model.activation=sigmoid", "model.activation"),
+        ("model.hidden_sizes=[]", "model.hidden_sizes"),
+        ("env.mass=-1", "env.mass"),
+        ("env.max_thrust=0", "env.max_thrust"),
+        ("env.reset_mode=sky", "env.reset_mode"),
+        ("env.max_steps=0", "env.max_steps"),
+        ("seed=-3", "seed"),
+        ("eval.episodes=0", "eval.episodes"),
+        ("checkpoint.every_episodes=0", "checkpoint.every_episodes"),
+    ],
+)
+def test_bad_values_are_named(override, key):
+    with pytest.raises(ConfigError, match=rf"^{key.replace('.', '[.]')}="):
+        validate(_cfg(override))
+
+
+def test_cli_bad_value_is_one_line_and_nonzero(tmp_path):
+    for module, override in [
+        ("drone_torchrl.train", "algo.gamma=2"),
+        ("drone_torchrl.train", f"resume={tmp_path}/nope"),
+    ]:
+        proc = subprocess.run(
+            [sys.executable, "-m", module, override, f"hydra.run.dir={tmp_path}/run"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert proc.returncode != 0
+        lines = [line for line in proc.stderr.splitlines() if line.strip()]
+        assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
+        assert override.split("=")[0] in lines[0]
+
+
+@pytest.mark.parametrize("preset", ["paper", "bounded"])
+def test_smoke_run_writes_everything_and_resumes(tmp_path, preset):
+    run = tmp_path / preset
+    cfg = _cfg(
+        f"experiment={preset}",
+        "algo.episodes=6",
+        "algo.episodes_per_update=2",
+        "checkpoint.every_episodes=2",
+        "eval.every_episodes=4",
+        "eval.video=true",
+        "env.max_steps=40",
+        *FAST[:1],
+        "progress=false",
+    )
+    train(cfg, run_dir=run)
+    rows = read_episode_csv(run / "episodes.csv")
+    assert rows["episode"] == [0, 1, 2, 3, 4, 5]
+    assert set(CSV_COLUMNS) <= set(rows)
+    assert all(1 <= n <= 40 for n in rows["length"])
+    assert list((run / "tensorboard").glob("events.out.tfevents.*"))
+    assert list((run / "videos").glob("*.gif"))
+    ckpt = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert ckpt["episodes_done"] == 6 and ckpt["updates_done"] == 3
+    assert OmegaConf.create(ckpt["config"]).model.distribution == cfg.model.distribution
+
+    # Resume from the run folder with a larger budget: the counter carries on, the CSV grows.
+    train(_cfg(f"resume={run}", "algo.episodes=10", "progress=false"))
+    rows = read_episode_csv(run / "episodes.csv")
+    assert rows["episode"] == list(range(10))
+    assert load_checkpoint(run / "checkpoints" / "last.pt")["updates_done"] == 5
+
+
+def test_resume_after_a_kill_repeats_only_episodes_since_the_checkpoint(tmp_path):
+    """A run stopped after its checkpoint at episode 4 and resumed equals one uninterrupted run."""
+    common = ["env.max_steps=30", "checkpoint.every_episodes=4", "eval.every_episodes=0", *FAST]
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    train(_cfg("algo.episodes=8", *common), run_dir=whole)
+    train(_cfg("algo.episodes=4", *common), run_dir=cut)
+    train(_cfg(f"resume={cut}", "algo.episodes=8", "progress=false"))
+    a, b = read_episode_csv(whole / "episodes.csv"), read_episode_csv(cut / "episodes.csv")
+    assert a["return"] == b["return"] and a["length"] == b["length"]
+    wa = load_checkpoint(whole / "checkpoints" / "last.pt")["actor"]
+    wb = load_checkpoint(cut / "checkpoints" / "last.pt")["actor"]
+    assert all(torch.equal(wa[k], wb[k]) for k in wa)
+
+
+def test_drone_eval_compares_with_pd(tmp_path):
+    from drone_torchrl.evaluate import run_eval
+
+    run = tmp_path / "run"
+    train(_cfg("algo.episodes=2", "env.max_steps=20", *FAST), run_dir=run)
+    results = run_eval(_cfg(f"checkpoint={run}", "episodes=3", "video=false", "plot=false", name="eval"))
+    assert set(results) == {"checkpoint (last.pt, episode 2)", "PD controller"}
+    pd = results["PD controller"]
+    assert pd["causes"]["NONE"] == 3  # the PD controller survives every 20-step episode
+    for r in results.values():  # % of the 10 x max_steps ceiling of this 20-step env
+        assert r["pct_of_max"] == pytest.approx(100 * r["return_mean"] / 200)
+
+
+@pytest.mark.slow
+def test_reinforce_learns_to_stay_up(tmp_path):
+    """From the floor with zero-mean thrust the drone hits the floor after ~6 steps (z_n = -g dt^2
+    n(n+1)/2 passes -0.05 m at n = 5); 150 updates at alpha 1e-3 must keep it up several times longer."""
+    run = tmp_path / "learn"
+    train(
+        _cfg("algo.episodes=150", "algo.lr=1e-3", "env.max_steps=60", "eval.every_episodes=0", *FAST),
+        run_dir=run,
+    )
+    lengths = np.array(read_episode_csv(run / "episodes.csv")["length"])
+    assert lengths[:25].mean() < 10
+    assert lengths[-25:].mean() > 25
