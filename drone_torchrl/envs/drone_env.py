@@ -279,23 +279,29 @@ class DroneEnv(EnvBase):
         mask = None
         if tensordict is not None and "_reset" in tensordict:
             mask = tensordict.get("_reset").reshape(self.batch_size)
-        if mask is None or self.batch_size == () or bool(mask.all()):
+        # One count decides between a full and a partial reset (cheaper than mask.all() at large batch).
+        n_reset = None if mask is None or self.batch_size == () else int(mask.sum())
+        if n_reset is None or n_reset == mask.numel():
             self._state = dynamics.initial_state(
                 self.batch_size, self.reset_mode, self._generator, self.device
             )
             self._step_count.zero_()
             self._cause.zero_()
             self._episode_return.zero_()
-            self._last_action.zero_()
+            # Not zero_(): after a step this may be the caller's own action tensor (see _step).
+            self._last_action = torch.zeros_like(self._last_action)
         else:
-            n_reset = int(mask.sum())
-            self._state[mask] = dynamics.initial_state(
+            # Integer indices found once (same rows, same row-major order as boolean-mask writes,
+            # which would search the mask again for every tensor).
+            index = mask.nonzero(as_tuple=True)
+            self._state[index] = dynamics.initial_state(
                 (n_reset,), self.reset_mode, self._generator, self.device
             )
-            self._step_count[mask] = 0
-            self._cause[mask] = 0
-            self._episode_return[mask] = 0.0
-            self._last_action[mask] = 0.0
+            self._step_count[index] = 0
+            self._cause[index] = 0
+            self._episode_return[index] = 0.0
+            # Out of place, for the same reason as above.
+            self._last_action = self._last_action.index_put(index, self._last_action.new_zeros(()))
         if self.render_mode == "human":
             self.render()
         return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
@@ -315,12 +321,14 @@ class DroneEnv(EnvBase):
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
-        finite = torch.isfinite(action).all(-1)
-        if not bool(finite.all()):
-            bad = (~finite).nonzero().tolist()
-            raise ValueError(
-                f"action contains NaN or inf at batch indices {bad}; expected finite thrust fractions"
-            )
+        # Screen with one sum (any NaN/inf entry makes it non-finite); only then find the culprits.
+        if not bool(torch.isfinite(action.sum())):
+            finite = torch.isfinite(action).all(-1)
+            if not bool(finite.all()):
+                bad = (~finite).nonzero().tolist()
+                raise ValueError(
+                    f"action contains NaN or inf at batch indices {bad}; expected finite thrust fractions"
+                )
         action = dynamics.clamp_action(action, self.max_thrust)
         self._state, reward, self._cause = dynamics.step(self._state, action, self.params)
         self._step_count += 1
