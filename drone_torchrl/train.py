@@ -17,6 +17,7 @@ import hydra
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from tqdm import tqdm
@@ -37,6 +38,7 @@ from drone_torchrl.evaluation import evaluate, record_video, save_gif
 from drone_torchrl.metrics import EpisodeCSV, cause_counts, episode_stats
 from drone_torchrl.modules.policy import make_actor
 from drone_torchrl.objectives.reinforce import ReinforceLoss
+from drone_torchrl.sweep import clear_failure, record_failure
 from drone_torchrl.tb_logger import RunLogger
 
 CSV_NAME = "episodes.csv"
@@ -64,28 +66,45 @@ def build_loss(cfg: DictConfig, actor) -> ReinforceLoss:
     )
 
 
+def _command_line_keys() -> set[str] | None:
+    """Keys set on the command line of this Hydra job, or None outside a Hydra app."""
+    if not HydraConfig.initialized():
+        return None
+    return {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
+
+
 def _prepare(cfg: DictConfig, run_dir: Path | None) -> tuple[DictConfig, Path, dict | None]:
-    """Validate the config, resolve ``resume``; returns (config to run, run folder, checkpoint or None)."""
-    checkpoint = None
-    if cfg.resume is not None:
-        try:
-            path = resolve_checkpoint(cfg.resume)
-        except FileNotFoundError as err:
-            raise ConfigError(f"resume={cfg.resume!r} is not allowed; {err}") from None
-        checkpoint = load_checkpoint(path)
-        saved = OmegaConf.create(checkpoint["config"])
-        # The run's own config wins; from the command line only the episode budget (to extend a
-        # run) and the process settings are taken.
-        with open_dict(saved):
-            saved.algo.episodes = cfg.algo.episodes
-            for key in ("progress", "threads", "device"):
-                saved[key] = cfg[key]
-            saved.resume = cfg.resume
-        cfg, run_dir = saved, run_dir_of(path)
-    elif run_dir is None:
+    """Validate the config and find the checkpoint to continue from, if any.
+
+    Returns (config to run, run folder, checkpoint or None). A run continues from a checkpoint when
+    ``resume`` names one, or when its own folder already holds ``checkpoints/last.pt``: that makes
+    re-running a sweep skip finished jobs and resume unfinished ones.
+    """
+    if run_dir is None and cfg.resume is None:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
-    validate(cfg)
-    return cfg, run_dir, checkpoint
+    location = cfg.resume
+    if location is None and (run_dir / CHECKPOINT_DIR / LAST).is_file():
+        location = run_dir
+    if location is None:
+        validate(cfg)
+        return cfg, run_dir, None
+    try:
+        path = resolve_checkpoint(location)
+    except FileNotFoundError as err:
+        raise ConfigError(f"resume={cfg.resume!r} is not allowed; {err}") from None
+    checkpoint = load_checkpoint(path)
+    saved = OmegaConf.create(checkpoint["config"])
+    # The run's own config wins. From the command line only the episode budget (to extend a run)
+    # and the process settings are taken.
+    keys = _command_line_keys()
+    with open_dict(saved):
+        if keys is None or "algo.episodes" in keys:
+            saved.algo.episodes = cfg.algo.episodes
+        for key in ("progress", "threads", "device"):
+            saved[key] = cfg[key]
+        saved.resume = cfg.resume
+    validate(saved)
+    return saved, run_dir_of(path), checkpoint
 
 
 def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
@@ -94,6 +113,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
     ``run_dir`` defaults to the Hydra job's output folder; with ``resume`` set, the resumed run's.
     """
     cfg, run_dir, checkpoint = _prepare(cfg, None if run_dir is None else Path(run_dir))
+    if checkpoint is not None and "final" in checkpoint and checkpoint["episodes_done"] >= cfg.algo.episodes:
+        print(f"{run_dir}: already finished ({checkpoint['episodes_done']} episodes); nothing to do")
+        return checkpoint["final"]["final_return"]
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
@@ -128,6 +150,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
             env.set_seed(cfg.seed + episodes_done)
 
     (run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
+    clear_failure(run_dir)
     OmegaConf.save(cfg, run_dir / "config.yaml")
     logger = RunLogger(cfg.logger.exp_name, run_dir, purge_step=episodes_done if checkpoint else None)
     csv_file = EpisodeCSV(run_dir / CSV_NAME, keep_episodes=episodes_done if checkpoint else 0)
@@ -227,13 +250,13 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
                 next_checkpoint += cfg.checkpoint.every_episodes
         final_eval = run_eval()
         csv_file.flush()
-        save_checkpoint(state(), run_dir / CHECKPOINT_DIR / LAST)
         final = {
             "final_return": float(np.mean(recent_returns)),
             "final_length": float(np.mean(recent_lengths)),
             "eval_return": final_eval,
             "wall_clock_s": elapsed_before + time.perf_counter() - start,
         }
+        save_checkpoint({**state(), "final": final}, run_dir / CHECKPOINT_DIR / LAST)
         logger.log_final_hparams(cfg, final)
         print(
             f"{run_dir}: {episodes_done} episodes, running-mean({window}) return {final['final_return']:.1f}, "
@@ -248,11 +271,23 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
 
 
 @hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")
-def main(cfg: DictConfig) -> float:
+def main(cfg: DictConfig) -> float | None:
+    multirun = HydraConfig.get().mode == RunMode.MULTIRUN
     try:
         return train(cfg)
     except ConfigError as err:
-        sys.exit(f"drone-train: error: {err}")
+        if not multirun:
+            sys.exit(f"drone-train: error: {err}")
+        reason = record_failure(Path(HydraConfig.get().runtime.output_dir), err)
+        print(f"drone-train: job failed: {reason}", file=sys.stderr)
+        return None
+    except Exception as err:
+        if not multirun:
+            raise
+        # In a sweep one failing job must not stop the others: record it, and let the sweep go on.
+        reason = record_failure(Path(HydraConfig.get().runtime.output_dir), err)
+        print(f"drone-train: job failed: {reason}", file=sys.stderr)
+        return None
 
 
 if __name__ == "__main__":

@@ -141,7 +141,8 @@ def step(
     """
     next_state = integrate(state, clamp_action(action, params.max_thrust), params)
     cause = termination_cause(next_state, params.floor_tolerance)
-    return next_state, reward(next_state, cause != TerminationCause.NONE), cause
+    # int(): TorchDynamo turns a comparison with the IntEnum member into a Python bool.
+    return next_state, reward(next_state, cause != int(TerminationCause.NONE)), cause
 
 
 def initial_state(
