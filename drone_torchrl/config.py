@@ -12,6 +12,9 @@ from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
 from drone_torchrl.objectives.reinforce import BASELINES
 
+# torchrl: TorchRL env + ProbabilisticActor rollouts, the reference loop; fused: many agents stepped
+# as one batch on the shared dynamics (drone_torchrl/fused.py), the fast path for studies.
+ENGINES = ("torchrl", "fused")
 ENV_ARGS = (
     "mass",
     "motor_distance",
@@ -91,6 +94,8 @@ def validate(cfg: DictConfig) -> None:
     except ValueError as err:
         message = str(err)
         raise ConfigError(message if message.startswith("device=") else f"env.{message}") from None
+    if cfg.engine not in ENGINES:
+        raise ConfigError.of("engine", cfg.engine, f"one of {list(ENGINES)}")
     _number(cfg, "env.num_workers", low=0, integer=True)
     _number(cfg, "seed", low=0, integer=True)
     _number(cfg, "threads", low=1, integer=True)

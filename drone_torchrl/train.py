@@ -41,6 +41,7 @@ from drone_torchrl.objectives.reinforce import ReinforceLoss
 from drone_torchrl.sweep import clear_failure, record_failure
 from drone_torchrl.tb_logger import RunLogger
 
+ENGINE = "torchrl"
 CSV_NAME = "episodes.csv"
 VIDEO_DIR = "videos"
 
@@ -113,6 +114,15 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
     ``run_dir`` defaults to the Hydra job's output folder; with ``resume`` set, the resumed run's.
     """
     cfg, run_dir, checkpoint = _prepare(cfg, None if run_dir is None else Path(run_dir))
+    if cfg.engine == "fused":
+        from drone_torchrl.fused import train_fused
+
+        (result,) = train_fused([(cfg, run_dir)])
+        if result is None:
+            raise ConfigError((run_dir / "FAILED.txt").read_text().strip().splitlines()[-1])
+        return result
+    if checkpoint is not None and checkpoint.get("engine", ENGINE) != ENGINE:
+        raise ConfigError(f"engine={ENGINE!r} cannot continue {run_dir}: it was written by engine={checkpoint['engine']!r}")
     if checkpoint is not None and "final" in checkpoint and checkpoint["episodes_done"] >= cfg.algo.episodes:
         print(f"{run_dir}: already finished ({checkpoint['episodes_done']} episodes); nothing to do")
         return checkpoint["final"]["final_return"]
@@ -161,6 +171,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
 
     def state() -> dict:
         return {
+            "engine": ENGINE,
             "actor": actor.state_dict(),
             "optimizer": optimizer.state_dict(),
             "episodes_done": episodes_done,

@@ -55,13 +55,18 @@ class ReinforceLoss(LossModule):
             (``w_t``; the paper's code and preset leave it off, ``w_t = 1``).
         normalize_returns: standardise ``G_t`` over the valid steps of the batch.
         baseline: ``"none"`` (paper) or ``"mean"``: subtract the batch mean of ``G_t``.
+        agent_dims: leading batch dims that index independent agents (fused training): every
+            reduction (episode mean, baseline, normalisation) is then per agent, and
+            ``loss_reinforce`` is the sum of the agents' losses. ``gamma`` may then be a tensor
+            with one discount per agent.
 
     Input: a ``[*B, T]`` tensordict with ``observation``, ``action``, ``step_count`` and
     ``("next", "reward" | "done")``. Padded steps are excluded through ``("collector", "mask")``
     when present (TorchRL collectors), otherwise through :func:`valid_steps`.
 
-    Output keys: ``loss_reinforce`` (to minimise), and detached diagnostics ``return_mean``
-    (mean ``G_0`` per episode), ``log_prob_mean``, ``episodes``.
+    Output keys: ``loss_reinforce`` (to minimise), and detached diagnostics ``loss_per_agent``,
+    ``return_mean`` (mean ``G_0`` per episode), ``log_prob_mean``, ``episodes`` (per agent when
+    ``agent_dims > 0``, scalars otherwise).
     """
 
     @dataclass
@@ -79,10 +84,11 @@ class ReinforceLoss(LossModule):
         self,
         actor_network: ProbabilisticTensorDictSequential,
         *,
-        gamma: float = 0.99,
+        gamma: float | torch.Tensor = 0.99,
         discount_weight: bool = False,
         normalize_returns: bool = False,
         baseline: str = "none",
+        agent_dims: int = 0,
     ) -> None:
         if baseline not in BASELINES:
             raise ValueError(f"algo.baseline={baseline!r} is not allowed; expected one of {BASELINES}")
@@ -92,6 +98,7 @@ class ReinforceLoss(LossModule):
         self.discount_weight = discount_weight
         self.normalize_returns = normalize_returns
         self.baseline = baseline
+        self.agent_dims = agent_dims
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -102,29 +109,46 @@ class ReinforceLoss(LossModule):
         done = tensordict.get(("next", keys.done))
         mask = tensordict.get(("collector", "mask"), default=None)
         mask = valid_steps(done) if mask is None else mask.reshape(done.shape)
-        returns = discounted_returns(reward, done & mask, self.gamma).squeeze(-1)
+        n_agent = self.agent_dims
+        gamma = self.gamma
+        if isinstance(gamma, torch.Tensor):  # one discount per agent: [*A] -> [*A, 1, ..., 1]
+            gamma = gamma.reshape(*gamma.shape, *([1] * (reward.ndim - n_agent - 1)))
+        returns = discounted_returns(reward, done & mask, gamma).squeeze(-1)
         mask = mask.squeeze(-1)
         step = tensordict.get(keys.step_count).squeeze(-1)
-        episodes = ((step == 0) & mask).sum().clamp_min(1)
-        episode_return = torch.where((step == 0) & mask, returns, 0.0).sum() / episodes
+        # Sums over everything but the agent dims: each agent's loss is its own episodes' mean,
+        # and the total is the sum over agents, so each agent's gradient is exactly its own.
+        dims = tuple(range(n_agent, returns.ndim))
+
+        def per_agent(x: torch.Tensor) -> torch.Tensor:
+            return torch.where(mask, x, 0.0).sum(dims)
+
+        def broadcast(x: torch.Tensor) -> torch.Tensor:
+            return x.reshape(*x.shape, *([1] * len(dims)))
+
+        starts = (step == 0) & mask
+        episodes = starts.sum(dims).clamp_min(1)
+        steps = mask.sum(dims).clamp_min(1)
+        episode_return = per_agent(torch.where(starts, returns, 0.0)) / episodes
 
         weight = returns
         if self.baseline == "mean" or self.normalize_returns:
-            weight = weight - returns[mask].mean()
+            weight = weight - broadcast(per_agent(returns) / steps)
         if self.normalize_returns:
-            weight = weight / (returns[mask].std(correction=0) + torch.finfo(returns.dtype).eps)
+            std = (per_agent(weight**2) / steps).sqrt()
+            weight = weight / broadcast(std + torch.finfo(returns.dtype).eps)
         if self.discount_weight:
-            weight = weight * self.gamma ** step.to(returns.dtype)
+            weight = weight * gamma ** step.to(returns.dtype)
 
         dist = self.actor_network.get_dist(tensordict)
         log_prob = dist.log_prob(tensordict.get(keys.action))
-        loss = -(weight.detach() * log_prob)
-        loss = torch.where(mask, loss, 0.0).sum() / episodes
+        loss_per_agent = per_agent(-(weight.detach() * log_prob)) / episodes
         return TensorDict(
             {
-                "loss_reinforce": loss,
+                "loss_reinforce": loss_per_agent.sum(),
+                "loss_per_agent": loss_per_agent.detach(),
                 "return_mean": episode_return.detach(),
-                "log_prob_mean": (torch.where(mask, log_prob, 0.0).sum() / mask.sum()).detach(),
+                "log_prob_mean": (per_agent(log_prob) / steps).detach(),
                 "episodes": episodes.detach(),
             },
             batch_size=[],
