@@ -130,5 +130,8 @@ def validate(cfg: DictConfig) -> None:
     _number(cfg, "eval.seed", low=0, integer=True)
     _number(cfg, "metrics.running_mean_window", low=1, integer=True)
     _number(cfg, "logger.video_fps", low=1, integer=True)
+    _number(cfg, "logger.every_updates", low=1, integer=True)
+    if not isinstance(cfg.compile, bool):
+        raise ConfigError.of("compile", cfg.compile, "true or false")
     if cfg.progress not in (True, False, "auto"):
         raise ConfigError.of("progress", cfg.progress, "true, false or auto")

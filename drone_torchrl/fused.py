@@ -46,10 +46,10 @@ from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import make_params
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.evaluation import record_video, save_gif
-from drone_torchrl.metrics import EpisodeCSV, cause_counts, episode_stats
+from drone_torchrl.metrics import EpisodeCSV, episode_stats
 from drone_torchrl.modules.policy import ACTIVATIONS, ThreeNetPolicy
 from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
-from drone_torchrl.tb_logger import RunLogger
+from drone_torchrl.tb_logger import RunLogger, log_update
 
 ENGINE = "fused"
 # Settings that may differ between agents of one batch; everything else must be equal.
@@ -203,6 +203,9 @@ class FusedTrainer:
         self.episodes_per_update = base.algo.episodes_per_update
         self.device = torch.device(base.device)
         self.sampler = _Sampler(base.model.distribution, base.env.max_thrust)
+        # compile=true fuses the step's ~40 small kernels (policy, sampling, physics) into a few;
+        # it costs a one-off compilation per batch shape and changes float rounding slightly.
+        self._step = torch.compile(self._policy_and_physics) if base.compile else self._policy_and_physics
         self.agents = [
             self._make_agent(cfg, Path(run_dir), ckpt)
             for (cfg, run_dir), ckpt in zip(jobs, checkpoints, strict=True)
@@ -248,6 +251,14 @@ class FusedTrainer:
         return agent
 
     # ------------------------------------------------------------------ rollout
+    def _policy_and_physics(
+        self, net: StackedThreeNet, layers: list, state: torch.Tensor, noise: torch.Tensor | None
+    ) -> tuple[torch.Tensor, ...]:
+        """One step of every agent's every episode: ``(action, next_state, reward, cause)``."""
+        loc, scale = net.apply_stacked(layers, state)
+        action = self.sampler(loc, scale, noise)
+        return (action, *dynamics.step(state, action, self.params))
+
     @torch.no_grad()
     def rollout(self, net: StackedThreeNet, start: torch.Tensor, noise: torch.Tensor | None) -> TensorDict:
         """Fly ``start`` (``[A, E, 6]``) until every episode has ended; ``noise`` ``[T, A, E, 2]`` or None
@@ -257,10 +268,8 @@ class FusedTrainer:
         observations, actions, rewards, causes = [], [], [], []
         alive = torch.ones(start.shape[:-1], dtype=torch.bool, device=start.device)
         for t in range(self.max_steps):
-            loc, scale = net.apply_stacked(layers, state)
-            action = self.sampler(loc, scale, None if noise is None else noise[t])
             observations.append(state)
-            state, reward, cause = dynamics.step(state, action, self.params)
+            action, state, reward, cause = self._step(net, layers, state, None if noise is None else noise[t])
             actions.append(action)
             rewards.append(reward)
             causes.append(cause)
@@ -357,8 +366,6 @@ class FusedTrainer:
             rows = []
             for j in range(i * per_agent, (i + 1) * per_agent):
                 row = {name: stats[name][j] for name in stats}
-                metrics = {f"episode/{k}": v for k, v in row.items() if k != "termination_cause"}
-                agent.logger.log_metrics(metrics, step=agent.episodes_done)
                 row["termination_cause"] = TerminationCause(row["termination_cause"]).name
                 row.update(episode=agent.episodes_done, update=agent.updates_done, wall_clock_s=wall)
                 rows.append(row)
@@ -366,19 +373,15 @@ class FusedTrainer:
                 agent.recent_lengths.append(row["length"])
                 agent.episodes_done += 1
             agent.csv.write(rows)
-            causes = torch.tensor([TerminationCause[r["termination_cause"]] for r in rows])
-            for name, count in cause_counts(causes).items():
-                agent.logger.log_scalar(f"episode/termination_cause/{name}", count, step=agent.episodes_done)
-            agent.logger.log_metrics(
-                {
+            if agent.updates_done % agent.cfg.logger.every_updates == 0:
+                train_metrics = {
                     "train/loss": loss_values[i],
                     "train/grad_norm": grad_norms[i],
                     "policy/std_mean": scale[i],
                     "train/running_mean_return": float(np.mean(agent.recent_returns)),
                     "train/running_mean_length": float(np.mean(agent.recent_lengths)),
-                },
-                step=agent.episodes_done,
-            )
+                }
+                log_update(agent.logger, rows, train_metrics, step=agent.episodes_done)
             self._maybe_eval_and_checkpoint(agent)
 
     @staticmethod

@@ -12,6 +12,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import TensorboardLogger
 
+from drone_torchrl.envs.dynamics import TerminationCause
+
 
 class RunLogger(TensorboardLogger):
     """``TensorboardLogger`` writing into ``<run>/<exp_name>``.
@@ -55,6 +57,22 @@ class RunLogger(TensorboardLogger):
             flatten_config(cfg), {f"hparam/{k}": v for k, v in metrics.items()}, run_name="."
         )
         self.experiment.flush()
+
+
+EPISODE_SCALARS = ("return", "length", "time_in_zone", "negative_thrust_fraction")
+
+
+def log_update(
+    logger: RunLogger, rows: list[dict[str, Any]], train_metrics: dict[str, float], step: int
+) -> None:
+    """One update's TensorBoard scalars: each episode's metrics (x axis: its episode index), the
+    number of episodes that ended with each termination cause, and the update's training metrics."""
+    for row in rows:
+        logger.log_metrics({f"episode/{k}": row[k] for k in EPISODE_SCALARS}, step=row["episode"])
+    for cause in TerminationCause:
+        count = sum(1 for row in rows if row["termination_cause"] == cause.name)
+        logger.log_scalar(f"episode/termination_cause/{cause.name}", count, step=step)
+    logger.log_metrics(train_metrics, step=step)
 
 
 def flatten_config(cfg: DictConfig | dict) -> dict[str, Any]:

@@ -35,11 +35,11 @@ from drone_torchrl.config import ConfigError, config_dir, env_kwargs, validate
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.envs.factory import make_env
 from drone_torchrl.evaluation import evaluate, record_video, save_gif
-from drone_torchrl.metrics import EpisodeCSV, cause_counts, episode_stats
+from drone_torchrl.metrics import EpisodeCSV, episode_stats
 from drone_torchrl.modules.policy import make_actor
-from drone_torchrl.objectives.reinforce import ReinforceLoss
+from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
 from drone_torchrl.sweep import clear_failure, record_failure
-from drone_torchrl.tb_logger import RunLogger
+from drone_torchrl.tb_logger import RunLogger, log_update
 
 ENGINE = "torchrl"
 CSV_NAME = "episodes.csv"
@@ -122,7 +122,9 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
             raise ConfigError((run_dir / "FAILED.txt").read_text().strip().splitlines()[-1])
         return result
     if checkpoint is not None and checkpoint.get("engine", ENGINE) != ENGINE:
-        raise ConfigError(f"engine={ENGINE!r} cannot continue {run_dir}: it was written by engine={checkpoint['engine']!r}")
+        raise ConfigError(
+            f"engine={ENGINE!r} cannot continue {run_dir}: it was written by engine={checkpoint['engine']!r}"
+        )
     if checkpoint is not None and "final" in checkpoint and checkpoint["episodes_done"] >= cfg.algo.episodes:
         print(f"{run_dir}: already finished ({checkpoint['episodes_done']} episodes); nothing to do")
         return checkpoint["final"]["final_return"]
@@ -224,30 +226,20 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
                 row["termination_cause"] = TerminationCause(row["termination_cause"]).name
                 row.update(episode=episodes_done, update=updates_done, wall_clock_s=round(wall, 3))
                 rows.append(row)
-                logger.log_metrics(
-                    {
-                        f"episode/{k}": v
-                        for k, v in row.items()
-                        if k not in ("episode", "update", "termination_cause", "wall_clock_s")
-                    },
-                    step=episodes_done,
-                )
                 recent_returns.append(row["return"])
                 recent_lengths.append(row["length"])
                 episodes_done += 1
-            for name, count in cause_counts(stats["termination_cause"]).items():
-                logger.log_scalar(f"episode/termination_cause/{name}", count, step=episodes_done)
             csv_file.write(rows)
-            logger.log_metrics(
-                {
+            if updates_done % cfg.logger.every_updates == 0:
+                valid, scale = valid_steps(rollout.get(("next", "done"))), rollout.get("scale")
+                train_metrics = {
                     "train/loss": losses["loss_reinforce"].item(),
                     "train/grad_norm": grad_norm.item(),
-                    "policy/std_mean": rollout.get("scale").mean().item(),
+                    "policy/std_mean": (scale * valid).sum().item() / (scale.shape[-1] * valid.sum().item()),
                     "train/running_mean_return": float(np.mean(recent_returns)),
                     "train/running_mean_length": float(np.mean(recent_lengths)),
-                },
-                step=episodes_done,
-            )
+                }
+                log_update(logger, rows, train_metrics, step=episodes_done)
             bar.update(len(rows))
             bar.set_postfix_str(
                 f"return({window})={np.mean(recent_returns):.0f} length={np.mean(recent_lengths):.0f}"
