@@ -305,52 +305,54 @@ class FusedTrainer:
     # ------------------------------------------------------------------ training
     def train(self) -> list[dict[str, float]]:
         """Run every agent to its own ``algo.episodes``; returns each agent's final metrics."""
-        episodes = self.episodes_per_update
         while True:
             active = [a for a in self.agents if a.episodes_done < a.cfg.algo.episodes]
             if not active:
                 break
-            net = StackedThreeNet([a.policy for a in active], self.base.model.activation)
-            start = torch.stack(
-                [
-                    dynamics.initial_state((episodes,), self.reset_mode, a.generator, self.device)
-                    for a in active
-                ]
-            )
-            noise = torch.stack(
-                [
-                    torch.randn((self.max_steps, episodes, 2), generator=a.generator, device=self.device)
-                    for a in active
-                ],
-                dim=1,
-            )
-            batch = self.rollout(net, start, noise)
-            gamma = torch.tensor([a.cfg.algo.gamma for a in active], device=self.device)
-            loss_module = ReinforceLoss(
-                _stacked_actor(net, self.base.model.distribution, self.base.env.max_thrust),
-                gamma=gamma,
-                discount_weight=self.base.algo.discount_weight,
-                normalize_returns=self.base.algo.normalize_returns,
-                baseline=self.base.algo.baseline,
-                agent_dims=1,
-            )
-            losses = loss_module(batch)
-            for agent in active:
-                agent.optimizer.zero_grad(set_to_none=True)
-            losses["loss_reinforce"].backward()
-            max_norm = self.base.algo.max_grad_norm
-            grad_norms = [
-                float(
-                    torch.nn.utils.clip_grad_norm_(
-                        a.policy.parameters(), math.inf if max_norm is None else max_norm
-                    )
-                )
-                for a in active
-            ]
-            for agent in active:
-                agent.optimizer.step()
-            self._record(active, batch, losses, grad_norms)
+            self.update(active)
         return [a.final for a in self.agents]
+
+    def update(self, active: list[Agent]) -> int:
+        """One REINFORCE update of every agent in ``active``; returns the env steps they took."""
+        episodes = self.episodes_per_update
+        net = StackedThreeNet([a.policy for a in active], self.base.model.activation)
+        start = torch.stack(
+            [dynamics.initial_state((episodes,), self.reset_mode, a.generator, self.device) for a in active]
+        )
+        noise = torch.stack(
+            [
+                torch.randn((self.max_steps, episodes, 2), generator=a.generator, device=self.device)
+                for a in active
+            ],
+            dim=1,
+        )
+        batch = self.rollout(net, start, noise)
+        gamma = torch.tensor([a.cfg.algo.gamma for a in active], device=self.device)
+        loss_module = ReinforceLoss(
+            _stacked_actor(net, self.base.model.distribution, self.base.env.max_thrust),
+            gamma=gamma,
+            discount_weight=self.base.algo.discount_weight,
+            normalize_returns=self.base.algo.normalize_returns,
+            baseline=self.base.algo.baseline,
+            agent_dims=1,
+        )
+        losses = loss_module(batch)
+        for agent in active:
+            agent.optimizer.zero_grad(set_to_none=True)
+        losses["loss_reinforce"].backward()
+        max_norm = self.base.algo.max_grad_norm
+        grad_norms = [
+            float(
+                torch.nn.utils.clip_grad_norm_(
+                    a.policy.parameters(), math.inf if max_norm is None else max_norm
+                )
+            )
+            for a in active
+        ]
+        for agent in active:
+            agent.optimizer.step()
+        self._record(active, batch, losses, grad_norms)
+        return int(valid_steps(batch.get(("next", "done"))).sum())
 
     def _record(
         self, active: list[Agent], batch: TensorDict, losses: TensorDict, grad_norms: list[float]
