@@ -1,0 +1,192 @@
+"""Sweeps under each Hydra launcher: every job gets its folder, re-running skips finished jobs, and a
+failing job is reported while the others finish.
+
+Each test runs ``python -m drone_torchrl.train -m ...`` as a subprocess. A launcher whose plugin is not
+installed (extras ``joblib``, ``submitit``, ``ray``) is skipped. The Ray test starts a local Ray
+instance and is skipped unless selected with ``-m ray``.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from drone_torchrl.config import config_dir
+from drone_torchrl.sweep import FAILED_FILE, job_status, sweep_jobs
+
+REPO = Path(__file__).resolve().parents[1]
+TINY = ["algo.episodes=3", "env.max_steps=20", "eval.video=false", "eval.episodes=1"]
+GRID = ["algo.lr=1e-3,1e-4", "seed=0,1"]  # 2 settings x 2 seeds
+FAILING_GRID = ["algo.gamma=0.9,7"]  # gamma 7 is rejected by the config check
+
+# launcher id -> (plugin module to require or None, overrides that select it)
+LAUNCHERS = {
+    "basic": (None, []),
+    "fused": (None, ["hydra/launcher=fused"]),
+    "local_parallel": ("hydra_plugins.hydra_joblib_launcher", ["hydra/launcher=local_parallel"]),
+    "local_submitit": ("hydra_plugins.hydra_submitit_launcher", ["hydra/launcher=local_submitit"]),
+    "ray_local": ("hydra_plugins.hydra_ray_launcher", ["hydra/launcher=ray_local"]),
+}
+
+
+def _require(launcher: str, request: pytest.FixtureRequest) -> list[str]:
+    module, overrides = LAUNCHERS[launcher]
+    if launcher == "ray_local" and "ray" not in (request.config.option.markexpr or ""):
+        pytest.skip("starts a local Ray instance; select with -m ray")
+    if module is not None:
+        pytest.importorskip(module)
+    return overrides
+
+
+def _multirun(sweep_dir: Path, *overrides: str, cwd: Path) -> str:
+    """Run a multirun to completion; returns its output plus any per-job logs submitit kept."""
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy", "SDL_AUDIODRIVER": "dummy", "RAY_DEDUP_LOGS": "0"}
+    # Hydra finds launcher plugins by listing hydra_plugins' folders; an editable install's import
+    # hook is not one, so hydra/launcher=fused is only found with the checkout on the path.
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
+    cmd = [
+        sys.executable,
+        "-m",
+        "drone_torchrl.train",
+        "-m",
+        *overrides,
+        *TINY,
+        f"hydra.sweep.dir={sweep_dir}",
+    ]
+    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 0, out
+    # submitit runs jobs in their own processes and keeps their stdout under .submitit/<job id>/.
+    return out + "".join(p.read_text() for p in sorted(sweep_dir.glob(".submitit/*/*_log.*")))
+
+
+def _snapshot(jobs: list[Path]) -> dict[Path, tuple[bytes, int]]:
+    files = [job / name for job in jobs for name in ("episodes.csv", "checkpoints/last.pt")]
+    return {f: (f.read_bytes(), f.stat().st_mtime_ns) for f in files}
+
+
+@pytest.mark.parametrize(
+    "launcher",
+    [
+        "basic",
+        "fused",
+        "local_parallel",
+        # ~20 s per sweep here: submitit starts a process per job, all at once, and polls them.
+        pytest.param("local_submitit", marks=pytest.mark.slow),
+        pytest.param("ray_local", marks=pytest.mark.ray),
+    ],
+)
+def test_sweep_runs_then_skips_finished_jobs(launcher, request, tmp_path):
+    overrides = _require(launcher, request)
+    sweep_dir = tmp_path / "sweep"
+    _multirun(sweep_dir, *overrides, *GRID, cwd=tmp_path)
+
+    jobs = sweep_jobs(sweep_dir)
+    assert len(jobs) == 4, jobs
+    for job in jobs:
+        with open(job / "episodes.csv", newline="") as f:
+            assert len(list(csv.DictReader(f))) == 3, job
+        assert job_status(job)[0] == "finished", (job, job_status(job))
+    before = _snapshot(jobs)
+
+    out = _multirun(sweep_dir, *overrides, *GRID, cwd=tmp_path)
+    assert sweep_jobs(sweep_dir) == jobs
+    for job in jobs:
+        assert f"{job.name}: already finished" in out, out
+    assert out.count("already finished") == 4, out
+    assert _snapshot(jobs) == before  # nothing rewritten
+
+
+@pytest.mark.parametrize(
+    "launcher", ["basic", "fused", "local_parallel", pytest.param("ray_local", marks=pytest.mark.ray)]
+)
+def test_failed_job_is_summarised_and_the_others_finish(launcher, request, tmp_path):
+    overrides = _require(launcher, request)
+    sweep_dir = tmp_path / "sweep"
+    out = _multirun(sweep_dir, *overrides, *FAILING_GRID, cwd=tmp_path)
+
+    jobs = {job.name.split(",")[0]: job for job in sweep_jobs(sweep_dir)}
+    assert set(jobs) == {"algo.gamma=0.9", "algo.gamma=7"}, jobs
+    assert job_status(jobs["algo.gamma=0.9"])[0] == "finished"
+    status, reason = job_status(jobs["algo.gamma=7"])
+    assert status == "failed" and "algo.gamma=7 is not allowed" in reason
+    assert (jobs["algo.gamma=7"] / FAILED_FILE).is_file()
+    assert "1 finished, 1 failed, 0 unfinished" in out, out
+    failed_lines = [line for line in out.splitlines() if "[failed]" in line]
+    assert len(failed_lines) == 1 and jobs["algo.gamma=7"].name in failed_lines[0], out
+    assert "algo.gamma=7 is not allowed" in failed_lines[0]
+
+
+def _compose(*overrides: str):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        return compose("config", overrides=list(overrides), return_hydra_config=True)
+
+
+def test_launcher_presets_extend_the_plugins():
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    launcher = _compose("hydra/launcher=local_parallel", "hydra.launcher.n_jobs=8").hydra.launcher
+    assert launcher._target_.endswith("JoblibLauncher") and launcher.n_jobs == 8
+    assert launcher.prefer == "processes"
+    launcher = _compose("hydra/launcher=local_submitit").hydra.launcher
+    assert launcher._target_.endswith("submitit_launcher.LocalLauncher")
+    assert (launcher.timeout_min, launcher.cpus_per_task) == (1440, 1)
+
+
+def test_slurm_preset_renders_an_sbatch_script(tmp_path, monkeypatch):
+    """The slurm preset and its overrides reach sbatch (rendered here; no SLURM on this machine)."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    import submitit
+    from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
+    from omegaconf import OmegaConf
+
+    cfg = _compose("hydra/launcher=slurm", "hydra.launcher.partition=cpu", "hydra.launcher.mem_gb=2")
+    params = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
+    assert params.pop("_target_").endswith("submitit_launcher.SlurmLauncher")
+    assert (params["cpus_per_task"], params["tasks_per_node"], params["timeout_min"]) == (1, 1, 240)
+    # What SlurmLauncher.launch does with its config, minus the submission.
+    monkeypatch.setattr(submitit.SlurmExecutor, "affinity", staticmethod(lambda: 1))  # no srun here
+    executor = submitit.AutoExecutor(
+        folder=tmp_path, cluster="slurm", slurm_max_num_timeout=params.pop("max_num_timeout")
+    )
+    params.pop("submitit_folder")
+    params["name"] = "drone-train"
+    shared = set(OmegaConf.structured(BaseQueueConf).keys())
+    executor.update_parameters(**{k if k in shared else f"slurm_{k}": v for k, v in params.items()})
+    sbatch = executor._executor._make_submission_file_text("python -u -m submitit.core._submit", "uid")
+    for line in (
+        "#SBATCH --partition=cpu",
+        "#SBATCH --cpus-per-task=1",
+        "#SBATCH --ntasks-per-node=1",
+        "#SBATCH --time=240",
+        "#SBATCH --mem=2GB",
+    ):
+        assert line in sbatch, sbatch
+
+
+def test_parallel_env_starts_inside_a_joblib_worker(tmp_path):
+    """``env.num_workers>0`` under the joblib launcher: its workers' global start method is "loky",
+    which a spawned ParallelEnv worker cannot re-apply unless make_env resets it to "spawn"."""
+    pytest.importorskip("joblib")
+    script = (
+        "import multiprocessing as mp\n"
+        "import joblib.externals.loky.backend.context  # registers 'loky', as in a joblib worker\n"
+        "mp.set_start_method('loky', force=True)\n"
+        "from drone_torchrl.envs.factory import make_env\n"
+        "env = make_env(num_envs=2, num_workers=1)\n"
+        "env.set_seed(0)\n"
+        "print('batch', tuple(env.rollout(3).batch_size)[:2])\n"
+        "env.close()\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "batch (1, 2)" in proc.stdout, proc.stdout
