@@ -17,6 +17,7 @@ import hydra
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
+from hydra.core.plugins import Plugins
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf, open_dict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -40,6 +41,11 @@ from drone_torchrl.modules.policy import make_actor
 from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
 from drone_torchrl.sweep import clear_failure, record_failure
 from drone_torchrl.tb_logger import RunLogger, log_update
+from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
+
+# Hydra finds launcher plugins by listing the hydra_plugins folders; an editable install's import
+# hook is not a folder, so register ours explicitly (harmless for a normal install).
+Plugins.instance().register(FusedLauncher)
 
 ENGINE = "torchrl"
 CSV_NAME = "episodes.csv"

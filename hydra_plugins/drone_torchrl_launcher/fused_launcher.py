@@ -12,9 +12,9 @@ machines, each job then training alone.
 """
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 from hydra.core.config_store import ConfigStore
 from hydra.core.hydra_config import HydraConfig
@@ -31,7 +31,9 @@ class FusedLauncherConf:
     _target_: str = "hydra_plugins.drone_torchrl_launcher.fused_launcher.FusedLauncher"
 
 
-ConfigStore.instance().store(group="hydra/launcher", name="fused", node=FusedLauncherConf, provider="drone_torchrl")
+ConfigStore.instance().store(
+    group="hydra/launcher", name="fused", node=FusedLauncherConf, provider="drone_torchrl"
+)
 
 
 class FusedLauncher(Launcher):
