@@ -1,0 +1,78 @@
+"""pygame frames of both envs: shape, content, thrust arrows, tilt direction."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+
+import drone_torchrl  # noqa: F401  (registers Drone2D-v0)
+from drone_torchrl.envs import DroneEnv
+from drone_torchrl.envs import rendering as R
+
+pytest.importorskip("pygame")
+
+
+def _count(frame: np.ndarray, colour) -> int:
+    return int((frame == np.array(colour, dtype=np.uint8)).all(-1).sum())
+
+
+def _frame(state, action, batch=None):
+    env = DroneEnv(batch_size=batch, render_mode="rgb_array", reset_mode="air")
+    env.reset()
+    env._state = torch.tensor(state, dtype=torch.float32).expand_as(env._state).clone()
+    env._last_action = torch.tensor(action, dtype=torch.float32).expand_as(env._last_action).clone()
+    frame = env.render()
+    env.close()
+    return frame
+
+
+def test_native_frame_shape_and_content():
+    env = DroneEnv(render_mode="rgb_array")
+    env.set_seed(0)
+    env.reset()
+    env.rollout(5, lambda td: td.set("action", torch.full((2,), 0.6)))
+    frame = env.render()
+    env.close()
+    assert frame.shape == (R.FRAME_HEIGHT, R.FRAME_WIDTH, 3) and frame.dtype == np.uint8
+    assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 20  # grid, zone, text, drone: not blank
+    assert _count(frame, R.MOTOR_LEFT_COLOUR) > 0 and _count(frame, R.MOTOR_RIGHT_COLOUR) > 0
+
+
+def test_gym_frame():
+    env = gym.make("Drone2D-v0", render_mode="rgb_array")
+    env.reset(seed=0)
+    frame = env.render()
+    env.close()
+    assert frame.shape == (R.FRAME_HEIGHT, R.FRAME_WIDTH, 3) and frame.dtype == np.uint8
+    assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 20
+
+
+def test_render_index_picks_the_sub_env():
+    env = DroneEnv(batch_size=[2], render_mode="rgb_array", reset_mode="air")
+    env.reset()
+    env._state[1, 0] = 1.2  # sub-env 1 flies to the right
+    left, right = env.render(0), env.render(1)
+    env.close()
+    assert not np.array_equal(left, right)
+
+
+def test_negative_thrust_has_its_own_colour():
+    hover = [0.0, 0.0, 2.7, 0.0, 0.0, 0.0]
+    positive = _frame(hover, [0.8, 0.8])
+    negative = _frame(hover, [-0.8, 0.8])
+    assert _count(positive, R.THRUST_POSITIVE_COLOUR) > 0
+    assert _count(positive, R.THRUST_NEGATIVE_COLOUR) == 0
+    assert _count(negative, R.THRUST_NEGATIVE_COLOUR) > 0
+
+
+def test_positive_alpha_raises_the_right_motor():
+    """alpha is counter-clockwise from the vertical: with alpha > 0 the right motor is higher."""
+    frame = _frame([0.0, 0.0, 2.0, 0.0, 0.4, 0.0], [0.0, 0.0])
+    rows_left = np.nonzero((frame == np.array(R.MOTOR_LEFT_COLOUR, np.uint8)).all(-1))[0]
+    rows_right = np.nonzero((frame == np.array(R.MOTOR_RIGHT_COLOUR, np.uint8)).all(-1))[0]
+    assert rows_right.mean() < rows_left.mean()  # screen rows grow downwards
+
+
+def test_render_without_mode_is_a_clear_error():
+    with pytest.raises(ValueError, match="render_mode"):
+        DroneEnv().render()
