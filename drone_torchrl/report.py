@@ -569,13 +569,17 @@ def summarize(
 def verdict(summaries: Sequence[SettingSummary]) -> str:
     """``"best: algo.lr=0.0001 (2210 +- 150, 73.7% of 3000)"``: the best mean final running-mean return.
 
-    When some runs are unfinished or failed, says the verdict is provisional.
+    Names settings tied with the best, and says the verdict is provisional when some runs are
+    unfinished or failed (their finals are taken where they stopped).
     """
     candidates = [s for s in summaries if s.final_returns]
     if not candidates:
         return "best: none (no episodes yet)"
     best = max(candidates, key=lambda s: s.final_return_mean)
     line = f"best: {best.label} ({best.return_text()}, {best.final_return_pct:.1f}% of {best.ceiling:g})"
+    tied = [s.label for s in candidates if s is not best and s.final_return_mean == best.final_return_mean]
+    if tied:
+        line += f"; tied with {LABEL_SEPARATOR.join(tied)}"
     total = sum(s.seeds_total for s in summaries)
     pending = total - sum(s.seeds_finished for s in summaries)
     if pending:
@@ -782,7 +786,7 @@ def format_table(report: SweepReport) -> str:
         f"return reaches {report.return_threshold:g} at episode",
         "negative thrust",
         "wall-clock per run",
-        "wall-clock total",
+        "wall-clock total (sum over runs)",
         "notes",
     ]
     lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
@@ -820,7 +824,9 @@ def format_report(report: SweepReport, figures: bool = True) -> str:
         f"trailing running means over {report.window} episodes (fewer over the first {report.window - 1}), "
         f"per run, then mean +- std (ddof={STD_DDOF}) over the seeds that reached each episode. "
         "Episodes are counted from 0; crossing episodes are the mean over the seeds that reach the "
-        "threshold. Negative thrust: running-mean fraction of motor commands below zero at the end.",
+        "threshold. Negative thrust: running-mean fraction of motor commands below zero at the end. "
+        "Wall-clock: each run's last wall_clock_s; the total is their sum, which exceeds the elapsed "
+        "time when runs trained side by side (one fused process, parallel launchers).",
         "",
     ]
     for name, value in report.pd_returns.items():

@@ -149,3 +149,230 @@ def test_report_on_a_real_tiny_sweep(tmp_path):
         assert (sweep / "report" / name).stat().st_size > 0
     rows = list(csv.DictReader((sweep / "report" / "summary.csv").open()))
     assert len(rows) == 2
+
+
+# --- settings, partial runs, verdict, PD reference, several sweeps, errors -------------------------
+
+ENV = {
+    "mass": 1.0,
+    "motor_distance": 1.0,
+    "gravity": 9.81,
+    "dt": 0.02,
+    "max_steps": 10,
+    "reset_mode": "floor",
+    "max_thrust": None,
+    "floor_tolerance": 0.05,
+    "num_workers": 0,
+}
+
+
+def _write_job(job, overrides, config, returns, lengths, negative=None, clock=None, finished=True):
+    """A job folder with arbitrary overrides and config (values as Hydra and drone-train write them)."""
+    (job / ".hydra").mkdir(parents=True)
+    OmegaConf.save(OmegaConf.create(list(overrides)), job / ".hydra" / "overrides.yaml")
+    OmegaConf.save(OmegaConf.create(config), job / "config.yaml")
+    negative = negative or [0.5] * len(returns)
+    clock = clock or [float(i + 1) for i in range(len(returns))]
+    with (job / "episodes.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for i, row in enumerate(zip(returns, lengths, negative, clock, strict=True)):
+            r, n, neg, t = row
+            writer.writerow(
+                {
+                    "episode": i,
+                    "update": i + 1,
+                    "return": r,
+                    "length": n,
+                    "time_in_zone": 0.0,
+                    "negative_thrust_fraction": neg,
+                    "termination_cause": "NONE",
+                    "wall_clock_s": t,
+                }
+            )
+    (job / "checkpoints").mkdir()
+    state = {"episodes_done": len(returns)}
+    if finished:
+        state["final"] = {"final_return": float(returns[-1])}
+    torch.save(state, job / "checkpoints" / "last.pt")
+    return job
+
+
+def _config(lr, seed, gamma=0.99, max_steps=10):
+    return {"seed": seed, "algo": {"lr": lr, "gamma": gamma}, "env": {**ENV, "max_steps": max_steps}}
+
+
+def test_settings_normalise_values_and_ignore_non_setting_keys(tmp_path):
+    sweep = tmp_path / "lr"
+    extra = [
+        "+sweep=lr",
+        "algo.episodes=3",
+        "env.max_steps=10",
+        "eval.video=False",
+        "checkpoint.every_episodes=5",
+        "hydra.launcher.n_jobs=2",
+        "progress=false",
+    ]
+    # "1e-3" and "0.001" are the same learning rate: the value is read back from config.yaml
+    for i, (raw, lr) in enumerate([("1e-3", 1e-3), ("0.001", 1e-3), ("1e-4", 1e-4), ("0.0001", 1e-4)]):
+        seed = i % 2
+        _write_job(
+            sweep / f"job{i}",
+            [f"algo.lr={raw}", f"seed={seed}", *extra],
+            _config(lr, seed),
+            [1, 2, 3],
+            [1, 2, 3],
+        )
+    report = build_report(sweep, window=2, pd=False)
+    assert [s.label for s in report.settings] == ["algo.lr=0.0001", "algo.lr=0.001"]
+    assert [[r.seed for r in s.runs] for s in report.settings] == [[0, 1], [0, 1]]
+
+
+def test_labels_keep_only_differing_overrides(tmp_path):
+    grid = tmp_path / "grid"
+    for lr in (1e-3, 1e-4):
+        for gamma in (0.9, 0.99):
+            overrides = [f"algo.lr={lr}", f"algo.gamma={gamma}", "env.max_steps=10", "seed=0"]
+            _write_job(grid / f"{lr}-{gamma}", overrides, _config(lr, 0, gamma), [1.0], [1])
+    labels = [s.label for s in build_report(grid, window=2, pd=False).settings]
+    assert labels == [
+        "algo.lr=0.0001, algo.gamma=0.9",
+        "algo.lr=0.0001, algo.gamma=0.99",
+        "algo.lr=0.001, algo.gamma=0.9",
+        "algo.lr=0.001, algo.gamma=0.99",
+    ]
+    seeds = tmp_path / "seeds"
+    for seed in (0, 1):
+        _write_job(seeds / f"s{seed}", ["algo.lr=0.001", f"seed={seed}"], _config(1e-3, seed), [1.0], [1])
+    assert [s.label for s in build_report(seeds, window=2, pd=False).settings] == ["all"]
+
+
+def test_runs_of_different_lengths_and_a_run_in_progress(tmp_path):
+    sweep = tmp_path / "lr"
+    # window 3. seed 0 (finished): returns [0, 3, 6, 9] -> [0, 1.5, 3, 6]; lengths [4, 10, 10, 10] -> [4, 7, 8, 10]
+    _write_job(
+        sweep / "s0",
+        ["algo.lr=0.001", "seed=0"],
+        _config(1e-3, 0),
+        [0, 3, 6, 9],
+        [4, 10, 10, 10],
+        negative=[0.5] * 4,
+        clock=[1, 2, 3, 4],
+    )
+    # seed 1 (in progress, no final checkpoint): returns [2, 4, 6] -> [2, 3, 4]; lengths all 10
+    job = _write_job(
+        sweep / "s1",
+        ["algo.lr=0.001", "seed=1"],
+        _config(1e-3, 1),
+        [2, 4, 6],
+        [10, 10, 10],
+        negative=[0.1, 0.2, 0.3],
+        clock=[1, 2, 5],
+        finished=False,
+    )
+    with (job / "episodes.csv").open("a") as f:
+        f.write("3,4,12")  # a row still being written is ignored
+    report = build_report(sweep, window=3, return_threshold=3, pd=False)
+    (setting,) = report.settings
+    curve = setting.curve("return", 3)
+    np.testing.assert_allclose(curve.mean, [1, 2.25, 3.5, 6])  # episode 3: only seed 0 has it
+    np.testing.assert_allclose(curve.std, [1, 0.75, 0.5, 0])
+    np.testing.assert_allclose(curve.min, [0, 1.5, 3, 6])
+    np.testing.assert_allclose(curve.max, [2, 3, 4, 6])
+    assert curve.count.tolist() == [2, 2, 2, 1]
+    (row,) = report.summaries
+    assert (row.seeds_finished, row.seeds_total, row.episodes_min, row.episodes_max) == (1, 2, 3, 4)
+    assert row.final_returns == [6, 4]
+    assert (row.final_return_mean, row.final_return_std) == (5, 1)
+    assert row.final_return_pct == pytest.approx(5.0)  # of 10 * 10 steps
+    assert row.length_cap.episodes == [3, 0] and row.length_cap.text() == "2 (2/2 seeds)"
+    assert row.return_threshold.episodes == [2, 1] and row.return_threshold.mean == 1.5
+    assert row.final_negative_thrust == pytest.approx((0.5 + 0.2) / 2)
+    assert (row.wall_clock_mean_s, row.wall_clock_total_s) == (4.5, 9)
+    assert row.notes == ["1 of 2 seeds unfinished, shortest at 3 episodes"]
+    assert report.verdict == "best: all (5.0 +- 1.0, 5.0% of 100); provisional: 1 of 2 runs not finished"
+
+
+def test_verdict_names_the_best_mean_final_return(tmp_path):
+    sweep = tmp_path / "lr"
+    steps = [300] * 4
+    for seed, level in enumerate((2060, 2360)):  # final running means 2060 and 2360: 2210 +- 150
+        _write_job(
+            sweep / f"a{seed}",
+            ["algo.lr=0.0001", f"seed={seed}"],
+            _config(1e-4, seed, max_steps=300),
+            [level] * 4,
+            steps,
+        )
+        _write_job(
+            sweep / f"b{seed}",
+            ["algo.lr=0.001", f"seed={seed}"],
+            _config(1e-3, seed, max_steps=300),
+            [1000] * 4,
+            steps,
+        )
+    report = build_report(sweep, window=2, pd=False)
+    assert report.verdict == "best: algo.lr=0.0001 (2210 +- 150, 73.7% of 3000)"
+    assert [s.length_cap.episodes for s in report.summaries] == [[0, 0], [0, 0]]
+    assert [s.return_threshold.text() for s in report.summaries] == ["0 (2/2 seeds)", "never (0/2 seeds)"]
+
+
+def test_pd_reference_once_per_env_setting_and_several_sweeps(tmp_path, monkeypatch, capsys):
+    from drone_torchrl import report as report_module
+    from drone_torchrl.envs import heuristic
+
+    calls = []
+    real = heuristic.evaluate_pd
+
+    def counting(env_kwargs, episodes, seed):
+        calls.append((env_kwargs, episodes, seed))
+        return real(env_kwargs, episodes=episodes, seed=seed)
+
+    monkeypatch.setattr(heuristic, "evaluate_pd", counting)
+    report_module._pd_return.cache_clear()
+    sweeps = []
+    for name in ("lr", "gamma"):
+        for lr in (1e-3, 1e-4):
+            _write_job(
+                tmp_path / name / f"{lr}", [f"algo.lr={lr}", "seed=0"], _config(lr, 0), [5.0, 7.0], [5, 7]
+            )
+        sweeps.append(str(tmp_path / name))
+    out = tmp_path / "out"
+    try:
+        main([*sweeps, "--out", str(out), "--window", "2"])
+    finally:
+        report_module._pd_return.cache_clear()
+    expected_env = {k: v for k, v in ENV.items() if k != "num_workers"}
+    assert calls == [(expected_env, 100, 0)]  # two sweeps, one env setting: evaluated once
+    for name in ("lr", "gamma"):
+        for figure in ("steps.png", "returns.png"):
+            assert (out / name / figure).read_bytes().startswith(b"\x89PNG")
+        assert len(list(csv.DictReader((out / name / "summary.csv").open()))) == 2
+        md = (out / name / "summary.md").read_text()
+        assert md.startswith("best: algo.lr=") and "PD controller: mean return" in md
+    printed = capsys.readouterr().out
+    assert printed.count("best: algo.lr=") == 2 and "| algo.lr=0.0001 | 1/1 | 2 |" in printed
+
+
+def test_default_output_folder_is_inside_the_sweep(tmp_path):
+    sweep = tmp_path / "lr"
+    _write_job(sweep / "a", ["algo.lr=0.001", "seed=0"], _config(1e-3, 0), [1.0], [1])
+    main([str(sweep), "--no-pd"])
+    assert sorted(p.name for p in (sweep / "report").iterdir()) == [
+        "returns.png",
+        "steps.png",
+        "summary.csv",
+        "summary.md",
+    ]
+
+
+def test_cli_error_for_jobs_without_episodes(tmp_path, capsys):
+    good, empty = tmp_path / "good", tmp_path / "empty"
+    _write_job(good / "a", ["seed=0"], _config(1e-3, 0), [1.0], [1])
+    (empty / "job" / ".hydra").mkdir(parents=True)  # a job that never wrote episodes.csv
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(good), str(empty), "--no-pd"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(empty) in err and "Traceback" not in err
+    assert not (good / "report").exists()  # every folder is checked before any report is written
