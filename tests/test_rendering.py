@@ -16,6 +16,19 @@ def _count(frame: np.ndarray, colour) -> int:
     return int((frame == np.array(colour, dtype=np.uint8)).all(-1).sum())
 
 
+def _zone_pixels(frame: np.ndarray) -> int:
+    """Pixels showing the translucent zone fill over the white domain (pygame rounds the blend)."""
+    alpha = R.ZONE_ALPHA / 255
+    blend = (1 - alpha) * np.array(R.DOMAIN_COLOUR) + alpha * np.array(R.ZONE_COLOUR)
+    return int((np.abs(frame.astype(float) - blend) <= 2).all(-1).sum())
+
+
+def _zone_area_px() -> float:
+    left, top = R.world_to_pixel(-R.ZONE_X_LIMIT, R.ZONE_Z_MAX)
+    right, bottom = R.world_to_pixel(R.ZONE_X_LIMIT, R.ZONE_Z_MIN)
+    return (right - left) * (bottom - top)
+
+
 def _frame(state, action, batch=None):
     env = DroneEnv(batch_size=batch, render_mode="rgb_array", reset_mode="air")
     env.reset()
@@ -36,6 +49,7 @@ def test_native_frame_shape_and_content():
     assert frame.shape == (R.FRAME_HEIGHT, R.FRAME_WIDTH, 3) and frame.dtype == np.uint8
     assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 20  # grid, zone, text, drone: not blank
     assert _count(frame, R.MOTOR_LEFT_COLOUR) > 0 and _count(frame, R.MOTOR_RIGHT_COLOUR) > 0
+    assert _zone_pixels(frame) > 0.5 * _zone_area_px()  # the drone is on the floor, the zone is clear
 
 
 def test_gym_frame():
@@ -45,6 +59,26 @@ def test_gym_frame():
     env.close()
     assert frame.shape == (R.FRAME_HEIGHT, R.FRAME_WIDTH, 3) and frame.dtype == np.uint8
     assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 20
+    assert _zone_pixels(frame) > 0.5 * _zone_area_px()
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning:gymnasium.utils.env_checker")  # unbounded Box spaces (SPEC)
+@pytest.mark.parametrize("render_mode", [None, "rgb_array"])
+def test_gym_env_checker_passes(render_mode):
+    from gymnasium.utils.env_checker import check_env
+
+    env = gym.make("Drone2D-v0", render_mode=render_mode).unwrapped
+    check_env(env)  # calls render() in "rgb_array" mode
+    env.close()
+
+
+def test_human_mode_draws_headless_and_closes():
+    renderer = R.DroneRenderer("human", DroneEnv().params, fps=1000)
+    state = np.array([0.0, 0.0, 2.7, 0.0, 0.1, 0.0], np.float32)
+    for step in range(2):
+        assert renderer.draw(state, np.array([0.5, -0.2]), step, 10.0 * step, R.TerminationCause.NONE) is None
+    renderer.close()
+    renderer.close()  # a second close is harmless
 
 
 def test_render_index_picks_the_sub_env():

@@ -38,14 +38,18 @@ WINDOW_TITLE = "Drone2D"
 # ----------------------------------------------------------------------------- layout (pixels)
 FRAME_WIDTH = 600
 FRAME_HEIGHT = 600
-HEADER_HEIGHT = 60  # text overlay band above the domain
+HEADER_HEIGHT = 56  # text overlay band above the domain
+DOMAIN_TOP_GAP = 10  # room for the top z tick label below the header
 MARGIN_LEFT = 50  # z tick labels
 MARGIN_RIGHT = 50
 MARGIN_BOTTOM = 40  # x tick labels
 GRID_SPACING_M = 1.0
 DOMAIN_WIDTH_PX = FRAME_WIDTH - MARGIN_LEFT - MARGIN_RIGHT
-DOMAIN_HEIGHT_PX = FRAME_HEIGHT - HEADER_HEIGHT - MARGIN_BOTTOM
+DOMAIN_HEIGHT_PX = FRAME_HEIGHT - HEADER_HEIGHT - DOMAIN_TOP_GAP - MARGIN_BOTTOM
 PIXELS_PER_METRE = min(DOMAIN_WIDTH_PX / (2 * X_LIMIT), DOMAIN_HEIGHT_PX / (Z_MAX - Z_MIN))
+# Screen position of the domain's top-left corner (x = -X_LIMIT, z = Z_MAX), centred horizontally.
+DOMAIN_LEFT_PX = MARGIN_LEFT + 0.5 * (DOMAIN_WIDTH_PX - 2 * X_LIMIT * PIXELS_PER_METRE)
+DOMAIN_TOP_PX = HEADER_HEIGHT + DOMAIN_TOP_GAP
 # Pixel coordinates are clipped to this many frames around the picture so a drone flung far
 # away (the state is unbounded after termination) never overflows pygame's integer coordinates.
 PIXEL_CLIP = 10 * max(FRAME_WIDTH, FRAME_HEIGHT)
@@ -100,8 +104,8 @@ TICK_TEXT_COLOUR = (90, 90, 90)
 
 def world_to_pixel(x: float, z: float) -> tuple[float, float]:
     """Screen coordinates of the world point ``(x, z)`` (metres); the screen's y axis points down."""
-    px = MARGIN_LEFT + (x + X_LIMIT) * PIXELS_PER_METRE
-    py = HEADER_HEIGHT + (Z_MAX - z) * PIXELS_PER_METRE
+    px = DOMAIN_LEFT_PX + (x + X_LIMIT) * PIXELS_PER_METRE
+    py = DOMAIN_TOP_PX + (Z_MAX - z) * PIXELS_PER_METRE
     return float(np.clip(px, -PIXEL_CLIP, PIXEL_CLIP)), float(np.clip(py, -PIXEL_CLIP, PIXEL_CLIP))
 
 
