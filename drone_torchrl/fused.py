@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -205,7 +206,8 @@ class FusedTrainer:
         self.sampler = _Sampler(base.model.distribution, base.env.max_thrust)
         # compile=true fuses the step's ~40 small kernels (policy, sampling, physics) into a few;
         # it costs a one-off compilation per batch shape and changes float rounding slightly.
-        self._step = torch.compile(self._policy_and_physics) if base.compile else self._policy_and_physics
+        self._step = self._compiled_step if base.compile else self._policy_and_physics
+        self._compiled = torch.compile(self._policy_and_physics) if base.compile else None
         self.agents = [
             self._make_agent(cfg, Path(run_dir), ckpt)
             for (cfg, run_dir), ckpt in zip(jobs, checkpoints, strict=True)
@@ -251,6 +253,14 @@ class FusedTrainer:
         return agent
 
     # ------------------------------------------------------------------ rollout
+    def _compiled_step(self, *args) -> tuple[torch.Tensor, ...]:
+        try:
+            return self._compiled(*args)
+        except Exception as err:  # noqa: BLE001  (no compiler, unsupported platform, ...)
+            warnings.warn(f"compile=true failed ({type(err).__name__}: {err}); running eager", stacklevel=2)
+            self._step = self._policy_and_physics
+            return self._step(*args)
+
     def _policy_and_physics(
         self, net: StackedThreeNet, layers: list, state: torch.Tensor, noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, ...]:

@@ -20,7 +20,7 @@ from drone_torchrl.config import config_dir
 from drone_torchrl.sweep import FAILED_FILE, job_status, sweep_jobs
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = ["algo.episodes=3", "env.max_steps=20", "eval.video=false", "eval.episodes=1"]
+TINY = ["algo.episodes=3", "env.max_steps=20", "eval.video=false", "eval.episodes=1", "compile=false"]
 GRID = ["algo.lr=1e-3,1e-4", "seed=0,1"]  # 2 settings x 2 seeds
 FAILING_GRID = ["algo.gamma=0.9,7"]  # gamma 7 is rejected by the config check
 

@@ -141,6 +141,7 @@ def test_report_on_a_real_tiny_sweep(tmp_path):
         "env.max_steps=20",
         "eval.video=false",
         "eval.episodes=1",
+        "compile=false",
         f"hydra.sweep.dir={sweep}",
     ]
     subprocess.run(cmd, check=True, capture_output=True, env=env, timeout=300)

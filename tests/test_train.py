@@ -14,7 +14,8 @@ from drone_torchrl.config import ConfigError, config_dir, validate
 from drone_torchrl.metrics import CSV_COLUMNS, read_episode_csv
 from drone_torchrl.train import train
 
-FAST = ["eval.episodes=2", "eval.video=false", "progress=false"]
+FAST = ["eval.episodes=2", "eval.video=false", "progress=false", "compile=false"]
+ENGINES = ["torchrl", "fused"]
 
 
 def _cfg(*overrides: str, name: str = "config"):
@@ -98,10 +99,13 @@ def test_cli_bad_value_is_one_line_and_nonzero(tmp_path):
         assert override.split("=")[0] in lines[0]
 
 
+@pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("preset", ["paper", "bounded"])
-def test_smoke_run_writes_everything_and_resumes(tmp_path, preset):
+def test_smoke_run_writes_everything_and_resumes(tmp_path, preset, engine):
     run = tmp_path / preset
     cfg = _cfg(
+        f"engine={engine}",
+        "compile=false",
         f"experiment={preset}",
         "algo.episodes=6",
         "algo.episodes_per_update=2",
@@ -130,9 +134,16 @@ def test_smoke_run_writes_everything_and_resumes(tmp_path, preset):
     assert load_checkpoint(run / "checkpoints" / "last.pt")["updates_done"] == 5
 
 
-def test_resume_after_a_kill_repeats_only_episodes_since_the_checkpoint(tmp_path):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_resume_after_a_kill_repeats_only_episodes_since_the_checkpoint(tmp_path, engine):
     """A run stopped after its checkpoint at episode 4 and resumed equals one uninterrupted run."""
-    common = ["env.max_steps=30", "checkpoint.every_episodes=4", "eval.every_episodes=0", *FAST]
+    common = [
+        f"engine={engine}",
+        "env.max_steps=30",
+        "checkpoint.every_episodes=4",
+        "eval.every_episodes=0",
+        *FAST,
+    ]
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     train(_cfg("algo.episodes=8", *common), run_dir=whole)
     train(_cfg("algo.episodes=4", *common), run_dir=cut)
@@ -158,12 +169,20 @@ def test_drone_eval_compares_with_pd(tmp_path):
 
 
 @pytest.mark.slow
-def test_reinforce_learns_to_stay_up(tmp_path):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_reinforce_learns_to_stay_up(tmp_path, engine):
     """From the floor with zero-mean thrust the drone hits the floor after ~6 steps (z_n = -g dt^2
     n(n+1)/2 passes -0.05 m at n = 5); 150 updates at alpha 1e-3 must keep it up several times longer."""
     run = tmp_path / "learn"
     train(
-        _cfg("algo.episodes=150", "algo.lr=1e-3", "env.max_steps=60", "eval.every_episodes=0", *FAST),
+        _cfg(
+            f"engine={engine}",
+            "algo.episodes=150",
+            "algo.lr=1e-3",
+            "env.max_steps=60",
+            "eval.every_episodes=0",
+            *FAST,
+        ),
         run_dir=run,
     )
     lengths = np.array(read_episode_csv(run / "episodes.csv")["length"])
@@ -182,7 +201,14 @@ def test_console_scripts_run_from_any_folder(tmp_path):
     env = {**__import__("os").environ, "SDL_VIDEODRIVER": "dummy", "SDL_AUDIODRIVER": "dummy"}
     run = tmp_path / "run"
     proc = subprocess.run(
-        [str(train_cmd), "algo.episodes=2", "env.max_steps=10", "eval.video=false", f"hydra.run.dir={run}"],
+        [
+            str(train_cmd),
+            "compile=false",
+            "algo.episodes=2",
+            "env.max_steps=10",
+            "eval.video=false",
+            f"hydra.run.dir={run}",
+        ],
         cwd=tmp_path,
         capture_output=True,
         text=True,
