@@ -6,7 +6,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
@@ -80,6 +80,23 @@ def _choice(cfg: DictConfig, key: str, choices: tuple) -> None:
     section, name = key.split(".")
     if cfg[section][name] not in choices:
         raise ConfigError.of(key, cfg[section][name], f"one of {list(choices)}")
+
+
+# Keys added after the first runs were saved, with the value those runs behaved as: a checkpoint's
+# config gets them filled in, so old runs can still be evaluated and resumed.
+ADDED_KEYS = {"engine": "torchrl", "compile": False, "logger.every_updates": 1}
+
+
+def run_config(saved: dict[str, Any]) -> DictConfig:
+    """The config stored in a checkpoint, with keys added since filled in (:data:`ADDED_KEYS`)."""
+    cfg = OmegaConf.create(saved)
+    for key, value in ADDED_KEYS.items():
+        if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
+            OmegaConf.update(cfg, key, value, force_add=True)
+    return cfg
+
+
+_ABSENT = object()
 
 
 def env_kwargs(cfg: DictConfig) -> dict[str, Any]:

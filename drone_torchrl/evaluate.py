@@ -15,11 +15,11 @@ import hydra
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from drone_torchrl.checkpoint import load_checkpoint, resolve_checkpoint
-from drone_torchrl.config import ConfigError, config_dir, env_kwargs, validate
+from drone_torchrl.config import ConfigError, config_dir, env_kwargs, run_config, validate
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
@@ -102,13 +102,20 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
             path = resolve_checkpoint(cfg.checkpoint)
         except FileNotFoundError as err:
             raise ConfigError(f"checkpoint={cfg.checkpoint!r} is not allowed; {err}") from None
-        checkpoint = load_checkpoint(path)
-        run_cfg = OmegaConf.create(checkpoint["config"])
-        run_cfg.device = cfg.device
-        validate(run_cfg)
+        try:
+            checkpoint = load_checkpoint(path)
+            run_cfg = run_config(checkpoint["config"])
+            run_cfg.device = cfg.device
+            validate(run_cfg)
+            actor = build_actor(run_cfg)
+            actor.load_state_dict(checkpoint["actor"])
+        except ConfigError:
+            raise
+        except Exception as err:  # noqa: BLE001  (not one of our checkpoints, or a damaged one)
+            raise ConfigError(
+                f"checkpoint={str(path)!r} cannot be used: {type(err).__name__}: {err}"
+            ) from None
         kwargs = env_kwargs(run_cfg)
-        actor = build_actor(run_cfg)
-        actor.load_state_dict(checkpoint["actor"])
         actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:

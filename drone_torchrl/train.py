@@ -32,7 +32,7 @@ from drone_torchrl.checkpoint import (
     run_dir_of,
     save_checkpoint,
 )
-from drone_torchrl.config import ConfigError, config_dir, env_kwargs, validate
+from drone_torchrl.config import ConfigError, config_dir, env_kwargs, run_config, validate
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.envs.factory import make_env
 from drone_torchrl.evaluation import evaluate, record_video, save_gif
@@ -100,7 +100,7 @@ def _prepare(cfg: DictConfig, run_dir: Path | None) -> tuple[DictConfig, Path, d
     except FileNotFoundError as err:
         raise ConfigError(f"resume={cfg.resume!r} is not allowed; {err}") from None
     checkpoint = load_checkpoint(path)
-    saved = OmegaConf.create(checkpoint["config"])
+    saved = run_config(checkpoint["config"])
     # The run's own config wins. From the command line only the episode budget (to extend a run)
     # and the process settings are taken.
     keys = _command_line_keys()

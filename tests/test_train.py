@@ -234,3 +234,21 @@ def test_console_scripts_run_from_any_folder(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert "PD controller: return" in proc.stdout
     assert (tmp_path / "eval" / "trajectory.png").stat().st_size > 0
+
+
+def test_checkpoints_from_before_later_keys_still_evaluate_and_resume(tmp_path):
+    """A checkpoint whose config predates engine/compile/logger.every_updates: filled with the old behaviour."""
+    from drone_torchrl.evaluate import run_eval
+
+    run = tmp_path / "old"
+    train(_cfg("engine=torchrl", "algo.episodes=2", "env.max_steps=20", *FAST), run_dir=run)
+    path = run / "checkpoints" / "last.pt"
+    ckpt = load_checkpoint(path)
+    for key in ("engine", "compile"):
+        del ckpt["config"][key]
+    del ckpt["config"]["logger"]["every_updates"]
+    torch.save(ckpt, path)
+    results = run_eval(_cfg(f"checkpoint={run}", "episodes=2", "video=false", "plot=false", name="eval"))
+    assert "checkpoint (last.pt, episode 2)" in results
+    train(_cfg(f"resume={run}", "algo.episodes=3", "progress=false"))
+    assert load_checkpoint(path)["episodes_done"] == 3
