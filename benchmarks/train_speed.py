@@ -135,7 +135,7 @@ def main() -> None:
 
     print(
         f"\nmedian of {args.repeats} repeats, {args.updates} updates each, torch threads {args.threads}, "
-        f"hovering policies (300-step episodes)\n"
+        "hovering policies\n"
     )
     print("| engine | agents | agent-steps/s | agent-episodes/s | steps/episode | x torchrl loop |")
     print("|---|---|---|---|---|---|")
