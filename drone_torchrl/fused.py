@@ -394,7 +394,18 @@ class FusedTrainer:
                     "train/running_mean_length": float(np.mean(agent.recent_lengths)),
                 }
                 log_update(agent.logger, rows, train_metrics, step=agent.episodes_done)
-            self._maybe_eval_and_checkpoint(agent)
+        # Agents due for an evaluation are flown together, in one batched rollout.
+        due = [
+            a
+            for a in active
+            if a.episodes_done >= a.cfg.algo.episodes
+            or (a.next_eval is not None and a.episodes_done >= a.next_eval)
+        ]
+        if due:
+            for agent, result in zip(due, self.evaluate(due), strict=True):
+                self._after_eval(agent, result)
+        for agent in active:
+            self._checkpoint_or_finish(agent)
 
     @staticmethod
     def _policy_std(batch: TensorDict) -> list[float]:
@@ -426,27 +437,26 @@ class FusedTrainer:
         }
         return [{k: v[i] for k, v in means.items()} for i in range(len(agents))]
 
-    def _maybe_eval_and_checkpoint(self, agent: Agent) -> None:
+    def _after_eval(self, agent: Agent, result: dict[str, float]) -> None:
+        cfg = agent.cfg
+        agent.logger.log_metrics({f"eval/{k}": v for k, v in result.items()}, step=agent.episodes_done)
+        mean_return = result["return"]
+        if cfg.checkpoint.keep_best and mean_return > agent.best_eval:
+            agent.best_eval = mean_return
+            save_checkpoint(agent.checkpoint_state(self._wall(agent)), agent.run_dir / CHECKPOINT_DIR / BEST)
+        if agent.next_eval is not None:
+            agent.next_eval += cfg.eval.every_episodes
+        if agent.episodes_done >= cfg.algo.episodes:
+            agent.final = {
+                "final_return": float(np.mean(agent.recent_returns)),
+                "final_length": float(np.mean(agent.recent_lengths)),
+                "eval_return": mean_return,
+                "wall_clock_s": self._wall(agent),
+            }
+
+    def _checkpoint_or_finish(self, agent: Agent) -> None:
         cfg = agent.cfg
         finished = agent.episodes_done >= cfg.algo.episodes
-        if finished or (agent.next_eval is not None and agent.episodes_done >= agent.next_eval):
-            (result,) = self.evaluate([agent])
-            agent.logger.log_metrics({f"eval/{k}": v for k, v in result.items()}, step=agent.episodes_done)
-            mean_return = result["return"]
-            if cfg.checkpoint.keep_best and mean_return > agent.best_eval:
-                agent.best_eval = mean_return
-                save_checkpoint(
-                    agent.checkpoint_state(self._wall(agent)), agent.run_dir / CHECKPOINT_DIR / BEST
-                )
-            if agent.next_eval is not None:
-                agent.next_eval += cfg.eval.every_episodes
-            if finished:
-                agent.final = {
-                    "final_return": float(np.mean(agent.recent_returns)),
-                    "final_length": float(np.mean(agent.recent_lengths)),
-                    "eval_return": mean_return,
-                    "wall_clock_s": self._wall(agent),
-                }
         if finished:
             if cfg.eval.video:  # one video per agent at the end: rendering is slow next to training
                 actor = agent.standalone_actor()
