@@ -285,11 +285,13 @@ class DroneEnv(EnvBase):
             self._state = dynamics.initial_state(
                 self.batch_size, self.reset_mode, self._generator, self.device
             )
-            self._step_count.zero_()
-            self._cause.zero_()
-            self._episode_return.zero_()
-            # Not zero_(): after a step this may be the caller's own action tensor (see _step).
-            self._last_action = torch.zeros_like(self._last_action)
+            # The counters are replaced, never written in place, so _output can hand them out
+            # without a copy (the last action may even be the caller's own tensor, see _step).
+            self._step_count = torch.zeros_like(self._step_count)
+            self._cause = torch.zeros_like(self._cause)
+            if self.render_mode is not None:
+                self._episode_return = torch.zeros_like(self._episode_return)
+                self._last_action = torch.zeros_like(self._last_action)
         else:
             # Integer indices found once (same rows, same row-major order as boolean-mask writes,
             # which would search the mask again for every tensor).
@@ -297,11 +299,14 @@ class DroneEnv(EnvBase):
             self._state[index] = dynamics.initial_state(
                 (n_reset,), self.reset_mode, self._generator, self.device
             )
-            self._step_count[index] = 0
-            self._cause[index] = 0
-            self._episode_return[index] = 0.0
             # Out of place, for the same reason as above.
-            self._last_action = self._last_action.index_put(index, self._last_action.new_zeros(()))
+            self._step_count = self._step_count.index_put(index, self._step_count.new_zeros(()))
+            self._cause = self._cause.index_put(index, self._cause.new_zeros(()))
+            if self.render_mode is not None:
+                self._episode_return = self._episode_return.index_put(
+                    index, self._episode_return.new_zeros(())
+                )
+                self._last_action = self._last_action.index_put(index, self._last_action.new_zeros(()))
         if self.render_mode == "human":
             self.render()
         return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
@@ -309,8 +314,8 @@ class DroneEnv(EnvBase):
     def _output(self, done: torch.Tensor, terminated=None, truncated=None, reward=None) -> TensorDictBase:
         out = {
             "observation": self._state.clone(),
-            "termination_cause": self._cause.unsqueeze(-1).clone(),
-            "step_count": self._step_count.unsqueeze(-1).clone(),
+            "termination_cause": self._cause.unsqueeze(-1),
+            "step_count": self._step_count.unsqueeze(-1),
             "done": done.unsqueeze(-1),
             "terminated": (done if terminated is None else terminated).unsqueeze(-1),
             "truncated": (done if truncated is None else truncated).unsqueeze(-1),
@@ -331,13 +336,14 @@ class DroneEnv(EnvBase):
                 )
         action = dynamics.clamp_action(action, self.max_thrust)
         self._state, reward, self._cause = dynamics.step(self._state, action, self.params)
-        self._step_count += 1
-        terminated = self._cause != TerminationCause.NONE
+        self._step_count = self._step_count + 1
+        terminated = self._cause != int(TerminationCause.NONE)
         truncated = (self._step_count >= self.max_steps) & ~terminated
-        self._episode_return += reward
-        self._last_action = action
-        if self.render_mode == "human":
-            self.render()
+        if self.render_mode is not None:  # the overlay's return so far and arrows
+            self._episode_return = self._episode_return + reward
+            self._last_action = action
+            if self.render_mode == "human":
+                self.render()
         return self._output(terminated | truncated, terminated, truncated, reward)
 
     # ------------------------------------------------------------------ rendering
