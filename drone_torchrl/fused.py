@@ -26,6 +26,7 @@ rollout engine, so the two engines give different (equally valid) runs for the s
 from __future__ import annotations
 
 import math
+import sys
 import time
 import warnings
 from collections import deque
@@ -40,6 +41,7 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal
+from tqdm import tqdm
 
 from drone_torchrl.checkpoint import BEST, CHECKPOINT_DIR, LAST, save_checkpoint
 from drone_torchrl.config import env_kwargs
@@ -213,6 +215,14 @@ class FusedTrainer:
             for (cfg, run_dir), ckpt in zip(jobs, checkpoints, strict=True)
         ]
         self.start = time.perf_counter()
+        progress = base.progress
+        self.bar = tqdm(
+            total=sum(a.cfg.algo.episodes for a in self.agents),
+            initial=sum(a.episodes_done for a in self.agents),
+            disable=not (sys.stderr.isatty() if progress == "auto" else bool(progress)),
+            unit="ep",
+            dynamic_ncols=True,
+        )
 
     # ------------------------------------------------------------------ set-up
     def _make_agent(self, cfg: DictConfig, run_dir: Path, ckpt: dict | None) -> Agent:
@@ -320,6 +330,7 @@ class FusedTrainer:
             if not active:
                 break
             self.update(active)
+        self.bar.close()
         return [a.final for a in self.agents]
 
     def update(self, active: list[Agent]) -> int:
@@ -394,6 +405,17 @@ class FusedTrainer:
                     "train/running_mean_length": float(np.mean(agent.recent_lengths)),
                 }
                 log_update(agent.logger, rows, train_metrics, step=agent.episodes_done)
+        self.bar.update(len(active) * per_agent)
+        returns = [float(np.mean(a.recent_returns)) for a in active]
+        window = active[0].cfg.metrics.running_mean_window
+        if len(active) == 1:
+            lengths = float(np.mean(active[0].recent_lengths))
+            self.bar.set_postfix_str(f"return({window})={returns[0]:.0f} length={lengths:.0f}", refresh=False)
+        else:
+            self.bar.set_postfix_str(
+                f"{len(active)} agents, return({window}) mean={np.mean(returns):.0f} best={max(returns):.0f}",
+                refresh=False,
+            )
         # Agents due for an evaluation are flown together, in one batched rollout.
         due = [
             a
@@ -483,6 +505,7 @@ class FusedTrainer:
             agent.next_checkpoint += cfg.checkpoint.every_episodes
 
     def close(self) -> None:
+        self.bar.close()
         for agent in self.agents:
             if not agent.final:
                 agent.csv.close()

@@ -252,3 +252,19 @@ def test_checkpoints_from_before_later_keys_still_evaluate_and_resume(tmp_path):
     assert "checkpoint (last.pt, episode 2)" in results
     train(_cfg(f"resume={run}", "algo.episodes=3", "progress=false"))
     assert load_checkpoint(path)["episodes_done"] == 3
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_progress_bar_shows_the_running_mean_return(tmp_path, capsys, engine):
+    fast = [o for o in FAST if not o.startswith("progress")]
+    train(
+        _cfg(f"engine={engine}", "algo.episodes=3", "env.max_steps=10", "progress=true", *fast),
+        run_dir=tmp_path,
+    )
+    err = capsys.readouterr().err
+    assert "3/3" in err and "return(100)=" in err
+    train(
+        _cfg(f"engine={engine}", "algo.episodes=3", "env.max_steps=10", "progress=auto", *fast),
+        run_dir=tmp_path / "q",
+    )
+    assert "return(100)=" not in capsys.readouterr().err  # quiet when stderr is not a terminal
