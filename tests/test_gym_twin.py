@@ -170,7 +170,12 @@ def test_same_seed_same_reset():
     oa, _ = a.reset(seed=7)
     ob, _ = b.reset(seed=7)
     assert np.array_equal(oa, ob)
-    assert not np.array_equal(a.reset()[0], oa)  # the generator moves on between resets
+    # A reset() right after reset(seed=...) keeps the seeded start (so GymEnv.set_seed, which
+    # resets, does not skip it); once steps were taken the generator moves on.
+    assert np.array_equal(a.reset()[0], oa)
+    assert not np.array_equal(a.reset()[0], oa)
+    b.step(np.zeros(2, dtype=np.float32))
+    assert not np.array_equal(b.reset()[0], oa)
     assert not np.array_equal(b.reset(seed=8)[0], oa)
 
 
@@ -195,31 +200,27 @@ def _sequence_policy(actions):
 
 def _gym_twin_trajectory(actions):
     env = DroneGymEnv()
-    env.reset(seed=SEED)  # draw 1, like GymEnv.set_seed below
-    obs, _ = env.reset()  # draw 2: the first episode's start
+    obs, _ = env.reset(seed=SEED)  # draw 1: the first episode's start
     rows = []
     for a in actions:
         nxt, reward, terminated, truncated, info = env.step(a.numpy())
         rows.append((obs, nxt, reward, terminated, truncated, info["termination_cause"]))
-        obs = env.reset()[0] if terminated or truncated else nxt  # draw 3 after the FLOOR
+        obs = env.reset()[0] if terminated or truncated else nxt  # draw 2 after the FLOOR
     return rows
 
 
 def test_native_gym_twin_and_torchrl_gymenv_agree_bit_for_bit():
     """Same seed, same actions, across an episode end and the following reset.
 
-    Seeding alignment: TorchRL's ``GymEnv.set_seed(s)`` calls the wrapped env's ``reset(seed=s)``,
-    which seeds the twin's generator *and draws one start state* (draw 1). ``rollout`` then calls
-    ``reset()`` again (draw 2). ``DroneEnv.set_seed(s)`` only seeds, so the native env makes one
-    extra ``reset()`` after seeding to consume draw 1, and the bare twin calls ``reset(seed=s)``
-    then ``reset()``. All three start their first episode from draw 2 and, after the FLOOR on
-    step 5, the second from draw 3 (auto-reset in the rollouts, ``reset()`` for the twin).
+    Each is seeded the way its users seed it: ``DroneEnv.set_seed(s)`` then a rollout;
+    ``GymEnv.set_seed(s)`` (which calls the twin's ``reset(seed=s)``) then a rollout (whose first
+    ``reset()`` keeps the seeded start); the bare twin ``reset(seed=s)`` then steps and ``reset()``.
+    All three start from draw 1 and, after the FLOOR on step 5, from draw 2.
     """
     actions = _actions()
 
     native = DroneEnv()
     native.set_seed(SEED)
-    draw1 = native.reset()["observation"]
     td_native = native.rollout(T, _sequence_policy(actions), break_when_any_done=False)
 
     wrapped = GymEnv("Drone2D-v0")
@@ -233,7 +234,7 @@ def test_native_gym_twin_and_torchrl_gymenv_agree_bit_for_bit():
     # the episode boundary really is crossed: FLOOR on step 5, reset, second episode starts
     assert td_native["next", "done"][:, 0].nonzero().flatten().tolist()[:1] == [4]
     assert td_native["step_count"][5, 0].item() == 0
-    assert not torch.equal(td_native["observation"][0], draw1)
+    assert not torch.equal(td_native["observation"][5], td_native["observation"][0])
 
     for key in ["observation", ("next", "observation")]:
         assert td_native[key].dtype == td_gym[key].dtype == torch.float32

@@ -21,7 +21,13 @@ class DroneGymEnv(gym.Env):
     cause's name (``"NONE"``, ``"OUT_X"``, ``"FLOOR"``, ``"CEILING"``, ``"TILT"``). Resets draw from
     a ``torch.Generator`` seeded by ``reset(seed=...)`` exactly as ``DroneEnv.set_seed`` does, and
     steps call :func:`drone_torchrl.envs.dynamics.step` in float32, so the same seed and actions
-    give the same trajectory as ``DroneEnv`` bit for bit.
+    give the same trajectory as ``DroneEnv`` bit for bit:
+    ``reset(seed=s)`` + steps + ``reset()`` + ... equals ``DroneEnv.set_seed(s)`` + a rollout.
+
+    One rule makes this hold under TorchRL's ``GymEnv`` too: a ``reset()`` that follows
+    ``reset(seed=s)`` with no step in between returns the same seeded start instead of drawing a
+    new one. ``GymEnv.set_seed(s)`` calls ``reset(seed=s)`` and its rollout then calls ``reset()``;
+    without the rule the seeded start would be skipped.
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 50}
@@ -57,12 +63,19 @@ class DroneGymEnv(gym.Env):
         self._return = 0.0
         self._cause = TerminationCause.NONE
         self._renderer = None
+        self._seeded_start: torch.Tensor | None = None
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         if seed is not None:
             self._generator.manual_seed(int(seed))
-        self._state = dynamics.initial_state((), self.reset_mode, self._generator)
+            self._state = dynamics.initial_state((), self.reset_mode, self._generator)
+            self._seeded_start = self._state.clone()
+        elif self._seeded_start is not None:  # reset(seed=s) then reset(), no step: same start
+            self._state = self._seeded_start
+            self._seeded_start = None
+        else:
+            self._state = dynamics.initial_state((), self.reset_mode, self._generator)
         self._action = torch.zeros(ACTION_DIM)
         self._steps, self._return, self._cause = 0, 0.0, TerminationCause.NONE
         if self.render_mode == "human":
@@ -77,6 +90,7 @@ class DroneGymEnv(gym.Env):
             raise ValueError(
                 f"action {action.tolist()} contains NaN or inf; expected finite thrust fractions"
             )
+        self._seeded_start = None
         self._action = dynamics.clamp_action(action, self.params.max_thrust)
         self._state, reward, cause = dynamics.step(self._state, self._action, self.params)
         self._steps += 1
