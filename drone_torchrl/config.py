@@ -84,7 +84,7 @@ def _choice(cfg: DictConfig, key: str, choices: tuple) -> None:
 
 # Keys added after the first runs were saved, with the value those runs behaved as: a checkpoint's
 # config gets them filled in, so old runs can still be evaluated and resumed.
-ADDED_KEYS = {"engine": "torchrl", "compile": False, "logger.every_updates": 1}
+ADDED_KEYS = {"engine": "torchrl", "compile": False, "logger.every_updates": 1, "logger.video_stride": 1}
 
 
 def run_config(saved: dict[str, Any]) -> DictConfig:
@@ -147,6 +147,7 @@ def validate(cfg: DictConfig) -> None:
     _number(cfg, "eval.seed", low=0, integer=True)
     _number(cfg, "metrics.running_mean_window", low=1, integer=True)
     _number(cfg, "logger.video_fps", low=1, integer=True)
+    _number(cfg, "logger.video_stride", low=1, integer=True)
     _number(cfg, "logger.every_updates", low=1, integer=True)
     if not isinstance(cfg.compile, bool):
         raise ConfigError.of("compile", cfg.compile, "true or false")

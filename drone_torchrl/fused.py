@@ -48,7 +48,7 @@ from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import make_params
 from drone_torchrl.envs.dynamics import TerminationCause
-from drone_torchrl.evaluation import record_video, save_gif
+from drone_torchrl.evaluation import write_eval_video
 from drone_torchrl.metrics import EpisodeCSV, episode_stats
 from drone_torchrl.modules.policy import ACTIVATIONS, ThreeNetPolicy
 from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
@@ -466,6 +466,8 @@ class FusedTrainer:
         if cfg.checkpoint.keep_best and mean_return > agent.best_eval:
             agent.best_eval = mean_return
             save_checkpoint(agent.checkpoint_state(self._wall(agent)), agent.run_dir / CHECKPOINT_DIR / BEST)
+        if cfg.eval.video:
+            write_eval_video(agent.standalone_actor(), cfg, agent.run_dir, agent.episodes_done, agent.logger)
         if agent.next_eval is not None:
             agent.next_eval += cfg.eval.every_episodes
         if agent.episodes_done >= cfg.algo.episodes:
@@ -480,17 +482,6 @@ class FusedTrainer:
         cfg = agent.cfg
         finished = agent.episodes_done >= cfg.algo.episodes
         if finished:
-            if cfg.eval.video:  # one video per agent at the end: rendering is slow next to training
-                actor = agent.standalone_actor()
-                frames = record_video(actor, env_kwargs(cfg), cfg.eval.seed, cfg.device)
-                save_gif(
-                    frames,
-                    agent.run_dir / "videos" / f"episode_{agent.episodes_done:06d}.gif",
-                    cfg.logger.video_fps,
-                )
-                agent.logger.log_frames(
-                    "eval/video", frames, step=agent.episodes_done, fps=cfg.logger.video_fps
-                )
             agent.csv.flush()
             save_checkpoint(
                 {**agent.checkpoint_state(self._wall(agent)), "final": agent.final},

@@ -33,11 +33,11 @@ class RunLogger(TensorboardLogger):
 
         return SummaryWriter(log_dir=str(Path(self.log_dir) / self.exp_name), purge_step=self._purge_step)
 
-    def log_frames(self, name: str, frames: np.ndarray, step: int, fps: int) -> None:
+    def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
         """Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video (needs ``moviepy<2``)."""
         if not self._video_ok:
             return
-        video = torch.from_numpy(frames).permute(0, 3, 1, 2).unsqueeze(0)
+        video = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).unsqueeze(0)
         # moviepy 1.x imports pygame, which opens an audio device unless told not to.
         os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
         try:

@@ -35,7 +35,7 @@ from drone_torchrl.checkpoint import (
 from drone_torchrl.config import ConfigError, config_dir, env_kwargs, run_config, validate
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.envs.factory import make_env
-from drone_torchrl.evaluation import evaluate, record_video, save_gif
+from drone_torchrl.evaluation import evaluate, write_eval_video
 from drone_torchrl.metrics import EpisodeCSV, episode_stats
 from drone_torchrl.modules.policy import make_actor
 from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
@@ -49,7 +49,6 @@ Plugins.instance().register(FusedLauncher)
 
 ENGINE = "torchrl"
 CSV_NAME = "episodes.csv"
-VIDEO_DIR = "videos"
 
 
 def build_actor(cfg: DictConfig):
@@ -201,9 +200,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
         logger.log_scalar("eval/length", float(stats["length"].float().mean()), step=episodes_done)
         logger.log_scalar("eval/time_in_zone", float(stats["time_in_zone"].mean()), step=episodes_done)
         if cfg.eval.video:
-            frames = record_video(actor, env_kwargs(cfg), cfg.eval.seed, cfg.device)
-            save_gif(frames, run_dir / VIDEO_DIR / f"episode_{episodes_done:06d}.gif", cfg.logger.video_fps)
-            logger.log_frames("eval/video", frames, step=episodes_done, fps=cfg.logger.video_fps)
+            write_eval_video(actor, cfg, run_dir, episodes_done, logger)
         if cfg.checkpoint.keep_best and mean_return > best_eval:
             best_eval = mean_return
             save_checkpoint(state(), run_dir / CHECKPOINT_DIR / BEST)

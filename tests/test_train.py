@@ -122,7 +122,7 @@ def test_smoke_run_writes_everything_and_resumes(tmp_path, preset, engine):
     assert set(CSV_COLUMNS) <= set(rows)
     assert all(1 <= n <= 40 for n in rows["length"])
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
-    assert list((run / "videos").glob("*.gif"))
+    assert list((run / "videos").glob("*.mp4"))
     ckpt = load_checkpoint(run / "checkpoints" / "last.pt")
     assert ckpt["episodes_done"] == 6 and ckpt["updates_done"] == 3
     assert OmegaConf.create(ckpt["config"]).model.distribution == cfg.model.distribution
