@@ -8,7 +8,8 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from drone_torchrl.envs.drone_env import DroneEnv
+from drone_torchrl.envs.drone_env import DroneEnv, make_params
+from drone_torchrl.envs.dynamics import DroneParams
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
 from drone_torchrl.objectives.reinforce import BASELINES
 
@@ -97,6 +98,15 @@ def run_config(saved: dict[str, Any]) -> DictConfig:
 
 
 _ABSENT = object()
+
+
+# The DroneEnv arguments that describe the episode rather than the drone.
+EPISODE_ARGS = ("max_steps", "reset_mode")
+
+
+def physics_params(kwargs: dict[str, Any]) -> DroneParams:
+    """The validated physical parameters among ``DroneEnv`` arguments (what the dynamics need)."""
+    return make_params(**{k: v for k, v in kwargs.items() if k not in EPISODE_ARGS})
 
 
 def env_kwargs(cfg: DictConfig) -> dict[str, Any]:

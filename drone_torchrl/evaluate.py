@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from drone_torchrl.checkpoint import load_checkpoint, resolve_checkpoint
-from drone_torchrl.config import ConfigError, config_dir, env_kwargs, run_config, validate
+from drone_torchrl.config import ConfigError, config_dir, env_kwargs, physics_params, run_config, validate
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
@@ -125,10 +125,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         except ValueError as err:
             raise ConfigError(f"env.{err}") from None
         policies = {}
-    params = dynamics.DroneParams(
-        **{k: kwargs[k] for k in ("mass", "motor_distance", "gravity", "dt", "max_thrust", "floor_tolerance")}
-    )
-    policies["PD controller"] = PDController(params)
+    policies["PD controller"] = PDController(physics_params(kwargs))
     max_return = dynamics.REWARD_IN_ZONE * kwargs["max_steps"]
 
     results, rollouts = {}, {}

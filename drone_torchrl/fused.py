@@ -44,9 +44,8 @@ from torchrl.modules import IndependentNormal, ProbabilisticActor, TanhNormal
 from tqdm import tqdm
 
 from drone_torchrl.checkpoint import BEST, CHECKPOINT_DIR, LAST, save_checkpoint
-from drone_torchrl.config import env_kwargs
+from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs import dynamics
-from drone_torchrl.envs.drone_env import make_params
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.evaluation import write_eval_video
 from drone_torchrl.metrics import EpisodeCSV, episode_stats
@@ -198,9 +197,7 @@ class FusedTrainer:
     def __init__(self, jobs: list[tuple[DictConfig, Path]], checkpoints: list[dict | None]) -> None:
         base = jobs[0][0]
         self.base = base
-        self.params = make_params(
-            **{k: v for k, v in env_kwargs(base).items() if k not in ("max_steps", "reset_mode")}
-        )
+        self.params = physics_params(env_kwargs(base))
         self.max_steps = base.env.max_steps
         self.reset_mode = base.env.reset_mode
         self.episodes_per_update = base.algo.episodes_per_update
