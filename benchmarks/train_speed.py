@@ -1,9 +1,10 @@
-"""Training throughput: the TorchRL single-agent loop against the fused engine with 1 ... 128 agents.
+"""Training throughput: the TorchRL reference collector against the vectorised one with 1 ... 128 agents.
 
     python benchmarks/train_speed.py                      # 1, 4, 32, 128 agents, eager
     python benchmarks/train_speed.py --agents 1 32 --compile --updates 20
 
-Every configuration runs the same REINFORCE update (paper settings, one episode per update) on
+Every configuration runs the same loop (``Trainer.update``: collect, REINFORCE loss, Adam, run record
+with CSV and TensorBoard; paper settings, one episode per update); only the collector differs. On
 policies that hover from the air reset: the mean head outputs 0.5 (hover thrust) and the std head a
 small std, so episodes last long (150-250 steps; the table prints the mean), as in the second half
 of a paper run, where the time goes.
@@ -23,14 +24,11 @@ from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from drone_torchrl.config import config_dir, env_kwargs
-from drone_torchrl.envs.factory import make_env
-from drone_torchrl.fused import FusedTrainer
+from drone_torchrl.config import config_dir
 from drone_torchrl.modules.policy import ThreeNetPolicy
-from drone_torchrl.objectives.reinforce import valid_steps
-from drone_torchrl.train import build_actor, build_loss
+from drone_torchrl.training.jobs import prepare
+from drone_torchrl.training.trainer import Trainer
 
 HOVER_THRUST = 0.5  # per motor, as a fraction of the weight
 HOVER_STD = 0.002  # small enough that a hovering drone survives 300 steps from the air reset
@@ -60,48 +58,28 @@ def config(compile_step: bool, threads: int):
         return compose("config", overrides=overrides)
 
 
-def time_torchrl(cfg, updates: int) -> tuple[float, int]:
-    """The training loop of ``drone_torchrl.train`` (engine=torchrl), one agent."""
-    env = make_env(num_envs=cfg.algo.episodes_per_update, **env_kwargs(cfg))
-    env.set_seed(cfg.seed)
-    torch.manual_seed(cfg.seed)
-    actor = build_actor(cfg)
-    hover_policy(actor.module[0].module)
-    loss_module = build_loss(cfg, actor)
-    optimizer = torch.optim.Adam(actor.parameters(), lr=cfg.algo.lr)
-    steps = 0
-    start = time.perf_counter()
-    for _ in range(updates):
-        with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
-            rollout = env.rollout(cfg.env.max_steps, actor, break_when_all_done=True)
-        loss = loss_module(rollout)["loss_reinforce"]
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        steps += int(valid_steps(rollout.get(("next", "done"))).sum())
-    return time.perf_counter() - start, steps
-
-
-def time_fused(cfg, n_agents: int, updates: int, warmup: int) -> tuple[float, int]:
-    """``FusedTrainer.update`` with ``n_agents`` agents (seeds 0..n-1), logging and CSV included."""
+def time_updates(cfg, n_agents: int, updates: int, warmup: int) -> tuple[float, int]:
+    """``Trainer.update`` of ``n_agents`` agents (seeds 0..n-1): seconds for ``updates - 1`` updates
+    after ``warmup`` untimed ones, and the agent-steps they took."""
     with tempfile.TemporaryDirectory() as tmp:
         jobs = []
         for seed in range(n_agents):
             job = copy.deepcopy(cfg)
             job.seed = seed
             job.algo.episodes = warmup + updates
-            jobs.append((job, Path(tmp) / f"agent{seed}"))
-        trainer = FusedTrainer(jobs, [None] * n_agents)
-        for agent in trainer.agents:
-            hover_policy(agent.policy)
+            jobs.append(prepare(job, Path(tmp) / f"agent{seed}"))
+        trainer = Trainer(jobs)
+        for net in trainer.population.nets:
+            hover_policy(net)
+        agents = list(range(n_agents))
         for _ in range(warmup):  # compilation, if any, happens here
-            trainer.update(trainer.agents)
+            trainer.update(agents)
         steps = 0
         start = time.perf_counter()
         for _ in range(updates - 1):
-            steps += trainer.update(trainer.agents)
+            steps += trainer.update(agents)
         elapsed = time.perf_counter() - start
-        steps += trainer.update(trainer.agents)  # the last update closes the runs (final eval): untimed
+        steps += trainer.update(agents)  # the last update closes the runs (final eval): untimed
         trainer.close()
     return elapsed, steps
 
@@ -120,15 +98,17 @@ def main() -> None:
 
     rows = []
     eager = config(False, args.threads)
-    base = [time_torchrl(eager, args.updates) for _ in range(args.repeats)]
+    reference = copy.deepcopy(eager)
+    reference.engine = "torchrl"
+    base = [time_updates(reference, 1, args.updates + 1, 1) for _ in range(args.repeats)]
     base_rate = statistics.median(steps / t for t, steps in base)
     base_eps = statistics.median(args.updates / t for t, _ in base)
-    rows.append(("torchrl loop", 1, base_rate, base_eps))
+    rows.append(("torchrl", 1, base_rate, base_eps))
     variants = [("fused", eager)] + ([("fused+compile", config(True, args.threads))] if args.compile else [])
     for name, cfg in variants:
         warmup = 2 if cfg.compile else 1
         for n in args.agents:
-            runs = [time_fused(cfg, n, args.updates + 1, warmup) for _ in range(args.repeats)]
+            runs = [time_updates(cfg, n, args.updates + 1, warmup) for _ in range(args.repeats)]
             rate = statistics.median(steps / t for t, steps in runs)
             eps = statistics.median(n * args.updates / t for t, _ in runs)
             rows.append((name, n, rate, eps))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -13,9 +14,10 @@ from drone_torchrl.envs.dynamics import DroneParams
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
 from drone_torchrl.objectives.reinforce import BASELINES
 
-# torchrl: TorchRL env + ProbabilisticActor rollouts, the reference loop; fused: many agents stepped
-# as one batch on the shared dynamics (drone_torchrl/fused.py), the fast path for studies.
+# torchrl: TorchRL env + ProbabilisticActor rollouts, the reference collector; fused: many agents
+# stepped as one batch on the shared dynamics, the fast path (drone_torchrl/training/collectors.py).
 ENGINES = ("torchrl", "fused")
+# The DroneEnv arguments a config holds under env.*: the one list of them.
 ENV_ARGS = (
     "mass",
     "motor_distance",
@@ -109,9 +111,9 @@ def physics_params(kwargs: dict[str, Any]) -> DroneParams:
     return make_params(**{k: v for k, v in kwargs.items() if k not in EPISODE_ARGS})
 
 
-def env_kwargs(cfg: DictConfig) -> dict[str, Any]:
-    """The ``DroneEnv`` arguments of a config."""
-    return {name: cfg.env[name] for name in ENV_ARGS}
+def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
+    """The ``DroneEnv`` arguments of a config (a ``DictConfig`` or the plain dict of a saved one)."""
+    return {name: cfg["env"][name] for name in ENV_ARGS}
 
 
 def validate(cfg: DictConfig) -> None:
@@ -124,12 +126,25 @@ def validate(cfg: DictConfig) -> None:
     if cfg.engine not in ENGINES:
         raise ConfigError.of("engine", cfg.engine, f"one of {list(ENGINES)}")
     _number(cfg, "env.num_workers", low=0, integer=True)
+    workers = cfg.env.num_workers
     _number(cfg, "seed", low=0, integer=True)
     _number(cfg, "threads", low=1, integer=True)
     _number(cfg, "algo.lr", low=0, low_open=True)
     _number(cfg, "algo.gamma", low=0, high=1)
     _number(cfg, "algo.episodes", low=1, integer=True)
     _number(cfg, "algo.episodes_per_update", low=1, integer=True)
+    if workers and cfg.engine != "torchrl":
+        raise ConfigError.of(
+            "env.num_workers",
+            workers,
+            f"0 with engine={cfg.engine!r} (only engine=torchrl runs a ParallelEnv)",
+        )
+    if workers and cfg.algo.episodes_per_update % workers:
+        raise ConfigError.of(
+            "env.num_workers",
+            workers,
+            f"a divisor of algo.episodes_per_update={cfg.algo.episodes_per_update} (the episodes are split over the workers)",
+        )
     _number(cfg, "algo.adam_eps", low=0, low_open=True)
     if cfg.algo.max_grad_norm is not None:
         _number(cfg, "algo.max_grad_norm", low=0, low_open=True)

@@ -1,88 +1,118 @@
-"""Deterministic evaluation episodes and videos, shared by ``drone-train`` and ``drone-eval``."""
+"""The evaluator: seeded deterministic episodes, for training, ``drone-eval``, the PD baseline and reports.
+
+Every policy evaluated with the same ``episodes`` and ``seed`` starts from the same states (those
+a ``DroneEnv(batch_size=[episodes])`` seeded with ``seed`` resets to), so returns are comparable
+across policies, runs and engines. Episodes are flown on the shared dynamics
+(:func:`drone_torchrl.envs.rollout.fly`), all policies of a population at once.
+"""
 
 from __future__ import annotations
 
-from pathlib import Path
+import math
 from typing import Any
 
-import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from drone_torchrl.config import env_kwargs
+from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
-from drone_torchrl.metrics import episode_stats
+from drone_torchrl.envs.heuristic import PDController, PDGains
+from drone_torchrl.envs.rollout import StepFn, fly
+from drone_torchrl.episodes import cause_counts, episode_stats
 
-VIDEO_DIR = "videos"
+
+def start_states(env_kwargs: dict[str, Any], episodes: int, seed: int, device: str = "cpu") -> torch.Tensor:
+    """The ``[episodes, 6]`` start states of the evaluation seeded with ``seed``."""
+    env = DroneEnv(batch_size=[episodes], device=device, **env_kwargs)
+    env.set_seed(seed)
+    start = env.reset().get("observation")
+    env.close()
+    return start
+
+
+def policy_step(policy: TensorDictModuleBase, params: dynamics.DroneParams) -> StepFn:
+    """A :data:`StepFn` that asks a TensorDict policy (actor, PD controller) for its deterministic action."""
+
+    def step(state: torch.Tensor, t: int):
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            action = policy(TensorDict({"observation": state}, batch_size=state.shape[:-1])).get("action")
+        return (action, *dynamics.step(state, action, params))
+
+    return step
 
 
 @torch.no_grad()
 def evaluate(
-    policy: Any, env_kwargs: dict[str, Any], episodes: int, seed: int, device: str = "cpu"
+    policy: TensorDictModuleBase | StepFn,
+    env_kwargs: dict[str, Any],
+    episodes: int,
+    seed: int,
+    device: str = "cpu",
+    agents: int | None = None,
 ) -> tuple[dict[str, torch.Tensor], TensorDictBase]:
-    """Fly ``episodes`` seeded episodes side by side with the policy's deterministic action.
+    """Fly ``episodes`` seeded episodes with the policy's deterministic action.
 
-    The same ``seed`` gives the same start states to every policy, so returns are comparable.
-    Returns the per-episode stats (see :func:`~drone_torchrl.metrics.episode_stats`) and the rollout.
+    ``policy`` is a TensorDict module reading ``"observation"`` and writing ``"action"``, or a
+    :data:`StepFn` (the training engines pass their own step, so evaluation uses exactly the
+    arithmetic of training). With ``agents=N`` the same start states are flown by N agents at
+    once (observations ``[N, episodes, 6]``). Returns the per-episode stats
+    (:func:`~drone_torchrl.episodes.episode_stats`, shape ``[episodes]`` or ``[N, episodes]``)
+    and the rollout.
     """
-    env = DroneEnv(batch_size=[episodes], device=device, **env_kwargs)
-    env.set_seed(seed)
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        rollout = env.rollout(env.max_steps, policy, break_when_all_done=True)
+    env = DroneEnv(batch_size=[], device=device, **env_kwargs)  # validates the arguments
+    start = start_states(env_kwargs, episodes, seed, device)
+    if agents is not None:
+        start = start.expand(agents, *start.shape).clone()
+    step = policy_step(policy, env.params) if isinstance(policy, TensorDictModuleBase) else policy
+    rollout = fly(step, start, env.max_steps)
     env.close()
     return episode_stats(rollout), rollout
 
 
-@torch.no_grad()
-def record_video(
-    policy: Any, env_kwargs: dict[str, Any], seed: int, device: str = "cpu", frame_stride: int = 1
-) -> np.ndarray:
-    """Render one deterministic episode: ``uint8`` frames ``[T, H, W, 3]``, the reset frame first,
-    then every ``frame_stride``-th step (drawing is the slow part, so skipped steps are not drawn)."""
-    env = DroneEnv(batch_size=[], device=device, render_mode="rgb_array", **env_kwargs)
-    env.set_seed(seed)
-    frames = []
+def summarize(stats: dict[str, torch.Tensor], max_return: float) -> dict[str, Any]:
+    """Means over the episodes of one policy's stats (1-D tensors).
 
-    def draw(env_: DroneEnv, td: TensorDictBase) -> None:
-        if int(td.get(("next", "step_count"), td.get("step_count"))) % frame_stride == 0:
-            frames.append(env_.render())
-
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        td = env.reset()
-        frames.append(env.render())
-        env.rollout(env.max_steps, policy, tensordict=td, auto_reset=False, callback=draw)
-    env.close()
-    return np.stack(frames)
-
-
-def save_mp4(frames: np.ndarray, path: Path, fps: float) -> Path:
-    """Write frames as an H.264 MP4 (imageio-ffmpeg; about 5x faster to write than a GIF)."""
-    import imageio.v2 as imageio
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(path, list(frames), fps=fps, macro_block_size=1)
-    return path
-
-
-def write_eval_video(policy: Any, cfg: Any, run_dir: Path, step: int, logger: Any) -> Path:
-    """One evaluation video of a training run: ``<run>/videos/episode_<step>.mp4`` and TensorBoard.
-
-    ``logger.video_stride`` thins the frames (the playback rate is divided alike, so it stays real
-    time) and, for TensorBoard only, the pixels: TensorBoard's GIF encoding is the slow part.
+    ``return_mean``, ``return_std`` (population std), ``return_min``, ``pct_of_max`` (of
+    ``max_return``), ``length_mean``, ``time_in_zone``, ``negative_thrust_fraction``,
+    ``terminated_fraction``, ``reached_fraction`` (episodes that end a step inside the zone),
+    ``first_zone_step_mean`` / ``_max`` (over those that do; NaN if none), ``causes``.
     """
-    stride = cfg.logger.video_stride
-    frames = record_video(policy, env_kwargs(cfg), cfg.eval.seed, cfg.device, frame_stride=stride)
-    fps = cfg.logger.video_fps / stride
-    path = save_mp4(frames, run_dir / VIDEO_DIR / f"episode_{step:06d}.mp4", fps)
-    logger.log_frames("eval/video", frames[:, ::stride, ::stride], step=step, fps=fps)
-    return path
+    returns = stats["return"].float()
+    first = stats["first_zone_step"]
+    reached = first > 0
+    causes = stats["termination_cause"]
+    return {
+        "return_mean": float(returns.mean()),
+        "return_std": float(returns.std(correction=0)),
+        "return_min": float(returns.min()),
+        "pct_of_max": 100.0 * float(returns.mean()) / max_return,
+        "length_mean": float(stats["length"].float().mean()),
+        "time_in_zone": float(stats["time_in_zone"].float().mean()),
+        "negative_thrust_fraction": float(stats["negative_thrust_fraction"].float().mean()),
+        "terminated_fraction": float((causes != int(dynamics.TerminationCause.NONE)).float().mean()),
+        "reached_fraction": float(reached.float().mean()),
+        "first_zone_step_mean": float(first[reached].float().mean()) if reached.any() else math.nan,
+        "first_zone_step_max": float(first[reached].max()) if reached.any() else math.nan,
+        "causes": cause_counts(causes),
+    }
 
 
-def save_gif(frames: np.ndarray, path: Path, fps: int) -> Path:
-    """Write frames as an animated GIF (imageio's pillow plugin; duration in milliseconds)."""
-    import imageio.v2 as imageio
+def max_return(env_kwargs: dict[str, Any]) -> float:
+    """The return ceiling ``REWARD_IN_ZONE * max_steps`` (3000 for 300 steps)."""
+    return dynamics.REWARD_IN_ZONE * DroneEnv(batch_size=[], **env_kwargs).max_steps
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(path, list(frames), duration=1000.0 / fps, loop=0)
-    return path
+
+def evaluate_pd(
+    env_kwargs: dict[str, Any] | None = None,
+    episodes: int = 100,
+    seed: int = 0,
+    gains: PDGains | None = None,
+    device: str = "cpu",
+) -> dict[str, Any]:
+    """The PD hover controller's :func:`summarize` over ``episodes`` seeded episodes."""
+    env_kwargs = dict(env_kwargs or {})
+    env = DroneEnv(batch_size=[], **env_kwargs)
+    stats, _ = evaluate(PDController(env.params, gains), env_kwargs, episodes, seed, device)
+    return summarize(stats, dynamics.REWARD_IN_ZONE * env.max_steps)

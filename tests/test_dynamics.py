@@ -1,4 +1,4 @@
-"""The pure physics functions of ``drone_torchrl.envs.dynamics`` against SPEC.md, numbers by hand.
+"""The pure physics functions of ``drone_torchrl.envs.dynamics`` against the paper's model, numbers by hand.
 
 Notation: g = 9.81, dt = 0.02, so g*dt = 0.1962 and g*dt^2 = 0.003924. With the default drone
 (m = 1, motor_distance = 1): r = 0.5, I_yy = 2/5 * 1 * 0.25 = 0.1, r / I_yy = 5.

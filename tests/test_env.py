@@ -1,4 +1,4 @@
-"""``DroneEnv`` (the natively batched TorchRL env) against SPEC.md.
+"""``DroneEnv`` (the natively batched TorchRL env) against the environment's specification (its docstring).
 
 Hand numbers used below (g = 9.81, dt = 0.02, g dt = 0.1962, g dt^2 = 0.003924):
 

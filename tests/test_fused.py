@@ -1,4 +1,4 @@
-"""The fused engine: agents trained in one batch follow the trajectories they follow alone."""
+"""The vectorised collector (engine=fused): agents trained in one population follow the runs they follow alone."""
 
 import numpy as np
 import pytest
@@ -6,12 +6,14 @@ import torch
 from hydra import compose, initialize_config_dir
 from torchrl.modules import TanhNormal
 
-from drone_torchrl.checkpoint import load_checkpoint
-from drone_torchrl.config import config_dir
+from drone_torchrl.config import config_dir, env_kwargs
 from drone_torchrl.evaluation import evaluate
-from drone_torchrl.fused import FusedTrainer, StackedThreeNet, _Sampler, group_key, train_fused
-from drone_torchrl.metrics import read_episode_csv
-from drone_torchrl.modules import ThreeNetPolicy
+from drone_torchrl.io.checkpoint import load_checkpoint
+from drone_torchrl.io.episodes_csv import read_episodes
+from drone_torchrl.modules import ActionSampler, StackedThreeNet, ThreeNetPolicy
+from drone_torchrl.modules.factory import build_actor
+from drone_torchrl.training.jobs import group_key, prepare
+from drone_torchrl.training.trainer import Trainer, train_jobs
 
 COMMON = [
     "engine=fused",
@@ -29,6 +31,10 @@ def _cfg(*overrides):
         return compose("config", overrides=[*COMMON, *overrides])
 
 
+def _train(*jobs):
+    return train_jobs([prepare(cfg, run_dir) for cfg, run_dir in jobs])
+
+
 def test_stacked_nets_equal_each_net_alone():
     torch.manual_seed(0)
     nets = [ThreeNetPolicy() for _ in range(3)]
@@ -42,7 +48,7 @@ def test_stacked_nets_equal_each_net_alone():
 
 def test_tanh_sampler_matches_torchrl_tanh_normal():
     loc, scale, noise = torch.randn(64, 2), torch.rand(64, 2) + 0.1, torch.randn(64, 2) * 3
-    action = _Sampler("tanh_normal", 1.0)(loc, scale, noise)
+    action = ActionSampler("tanh_normal", 1.0)(loc, scale, noise)
     assert bool((action > 0).all() and (action < 1).all())
     dist = TanhNormal(loc, scale, low=0.0, high=1.0, tanh_loc=False)  # what make_actor uses
     assert bool(torch.isfinite(dist.log_prob(action)).all())
@@ -62,14 +68,12 @@ def test_agent_in_a_batch_follows_its_solo_trajectory(tmp_path, preset):
         for i, s in enumerate(settings)
     ]
     assert len({group_key(cfg) for cfg, _ in jobs}) == 1
-    train_fused(jobs)
-    train_fused([(jobs[0][0], tmp_path / "alone")])
-    solo, fused = (
-        read_episode_csv(tmp_path / "alone" / "episodes.csv"),
-        read_episode_csv(tmp_path / "batch0" / "episodes.csv"),
-    )
+    _train(*jobs)
+    _train((jobs[0][0], tmp_path / "alone"))
+    solo, _ = read_episodes(tmp_path / "alone" / "episodes.csv")
+    fused, _ = read_episodes(tmp_path / "batch0" / "episodes.csv")
     assert len(solo["episode"]) == 50
-    assert solo["length"] == fused["length"]
+    np.testing.assert_array_equal(solo["length"], fused["length"])
     np.testing.assert_allclose(solo["return"], fused["return"], rtol=1e-6)
     np.testing.assert_allclose(solo["negative_thrust_fraction"], fused["negative_thrust_fraction"], atol=1e-6)
     a = load_checkpoint(tmp_path / "alone" / "checkpoints" / "last.pt")["actor"]
@@ -77,39 +81,30 @@ def test_agent_in_a_batch_follows_its_solo_trajectory(tmp_path, preset):
     for key in a:
         torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6)
     # The other agents really are different runs.
-    other = read_episode_csv(tmp_path / "batch1" / "episodes.csv")
-    assert other["return"] != fused["return"]
+    other, _ = read_episodes(tmp_path / "batch1" / "episodes.csv")
+    assert not np.array_equal(other["return"], fused["return"])
 
 
-def test_fused_evaluation_equals_the_standard_evaluation(tmp_path):
-    cfg = _cfg("algo.episodes=4", "eval.episodes=5")
-    trainer = FusedTrainer([(cfg, tmp_path / "run")], [None])
-    (fused,) = trainer.evaluate(trainer.agents)
-    from drone_torchrl.config import env_kwargs
-
-    stats, _ = evaluate(
-        trainer.agents[0].standalone_actor(), env_kwargs(cfg), cfg.eval.episodes, cfg.eval.seed
-    )
-    assert fused["return"] == pytest.approx(float(stats["return"].float().mean()))
-    assert fused["length"] == pytest.approx(float(stats["length"].float().mean()))
+def test_population_evaluation_equals_each_actor_alone(tmp_path):
+    """The evaluator flying two agents' stacked step equals it flying each agent's own actor."""
+    cfgs = [_cfg("algo.episodes=4", "eval.episodes=5", f"seed={s}") for s in (0, 1)]
+    trainer = Trainer([prepare(cfg, tmp_path / f"run{i}") for i, cfg in enumerate(cfgs)])
+    kwargs = env_kwargs(cfgs[0])
+    stacked, _ = evaluate(trainer.collector.eval_policy([0, 1]), kwargs, 5, 123, agents=2)
+    for i, cfg in enumerate(cfgs):
+        alone, _ = evaluate(build_actor(cfg, trainer.population.nets[i]), kwargs, 5, 123)
+        torch.testing.assert_close(stacked["return"][i], alone["return"])
+        torch.testing.assert_close(stacked["length"][i], alone["length"])
     trainer.close()
 
 
 def test_fused_resume_equals_an_uninterrupted_run(tmp_path):
     whole, cut = tmp_path / "whole", tmp_path / "cut"
-    train_fused([(_cfg("algo.episodes=12", "checkpoint.every_episodes=6"), whole)])
-    train_fused([(_cfg("algo.episodes=6", "checkpoint.every_episodes=6"), cut)])
-    assert (
-        train_fused([(_cfg("algo.episodes=6", "checkpoint.every_episodes=6"), cut)])[0] is not None
-    )  # finished: skipped
-    train_fused([(_cfg("algo.episodes=12", "checkpoint.every_episodes=6"), cut)])
-    a, b = read_episode_csv(whole / "episodes.csv"), read_episode_csv(cut / "episodes.csv")
-    assert a["episode"] == b["episode"] == list(range(12))
-    assert a["return"] == b["return"]
-
-
-def test_bad_job_is_recorded_and_the_others_train(tmp_path):
-    good, bad = _cfg("algo.episodes=3"), _cfg("algo.episodes=3", "algo.gamma=3")
-    results = train_fused([(good, tmp_path / "good"), (bad, tmp_path / "bad")])
-    assert results[0] is not None and results[1] is None
-    assert "algo.gamma=3" in (tmp_path / "bad" / "FAILED.txt").read_text()
+    _train((_cfg("algo.episodes=12", "checkpoint.every_episodes=6"), whole))
+    _train((_cfg("algo.episodes=6", "checkpoint.every_episodes=6"), cut))
+    (again,) = _train((_cfg("algo.episodes=6", "checkpoint.every_episodes=6"), cut))
+    assert again.final is not None and again.error is None  # finished: skipped
+    _train((_cfg("algo.episodes=12", "checkpoint.every_episodes=6"), cut))
+    (a, _), (b, _) = read_episodes(whole / "episodes.csv"), read_episodes(cut / "episodes.csv")
+    assert a["episode"].tolist() == b["episode"].tolist() == list(range(12))
+    np.testing.assert_array_equal(a["return"], b["return"])

@@ -21,7 +21,7 @@ from drone_torchrl.envs import DroneEnv, DroneGymEnv, TerminationCause
 
 G, DT = 9.81, 0.02
 
-# check_env's advice about infinite Box bounds: SPEC.md makes the observation (and, with
+# check_env's advice about infinite Box bounds: the specification makes the observation (and, with
 # max_thrust=None, the action) unbounded on purpose. Any other warning fails the test.
 EXPECTED_WARNINGS = ("infinity", "symmetric and normalized")
 

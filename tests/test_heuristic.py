@@ -9,7 +9,8 @@ import torch
 
 from drone_torchrl.envs import DroneEnv, dynamics
 from drone_torchrl.envs.drone_env import make_params
-from drone_torchrl.envs.heuristic import PDController, PDGains, evaluate_pd, pd_action
+from drone_torchrl.envs.heuristic import PDController, PDGains, pd_action
+from drone_torchrl.evaluation import evaluate_pd
 
 BATCH = 16
 SEED = 0
@@ -158,5 +159,5 @@ def test_evaluate_pd_summary() -> None:
     assert stats["terminated_fraction"] == 0.0
     assert stats["reached_fraction"] == 1.0
     assert stats["length_mean"] == 100.0
-    assert 0.0 < stats["zone_fraction"] < 1.0
+    assert 0.0 < stats["time_in_zone"] < 1.0
     assert stats["return_mean"] <= 100 * dynamics.REWARD_IN_ZONE

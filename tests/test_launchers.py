@@ -1,7 +1,7 @@
 """Sweeps under each Hydra launcher: every job gets its folder, re-running skips finished jobs, and a
 failing job is reported while the others finish.
 
-Each test runs ``python -m drone_torchrl.train -m ...`` as a subprocess. A launcher whose plugin is not
+Each test runs ``python -m drone_torchrl.apps.train -m ...`` as a subprocess. A launcher whose plugin is not
 installed (extras ``joblib``, ``submitit``, ``ray``) is skipped. The Ray test starts a local Ray
 instance and is skipped unless selected with ``-m ray``.
 """
@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from drone_torchrl.config import config_dir
-from drone_torchrl.sweep import FAILED_FILE, job_status, sweep_jobs
+from drone_torchrl.training.jobs import FAILED_FILE, job_status, sweep_jobs
 
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["algo.episodes=3", "env.max_steps=20", "eval.video=false", "eval.episodes=1", "compile=false"]
@@ -43,8 +43,10 @@ def _require(launcher: str, request: pytest.FixtureRequest) -> list[str]:
     return overrides
 
 
-def _multirun(sweep_dir: Path, *overrides: str, cwd: Path) -> str:
-    """Run a multirun to completion; returns its output plus any per-job logs submitit kept."""
+def _multirun(sweep_dir: Path, *overrides: str, cwd: Path, expect_failure: bool = False) -> str:
+    """Run a multirun to completion; returns its output plus any per-job logs submitit kept.
+
+    A sweep with a failed job must exit non-zero (``expect_failure``), one without must exit 0."""
     env = {**os.environ, "SDL_VIDEODRIVER": "dummy", "SDL_AUDIODRIVER": "dummy", "RAY_DEDUP_LOGS": "0"}
     # Hydra finds launcher plugins by listing hydra_plugins' folders; an editable install's import
     # hook is not one, so hydra/launcher=fused is only found with the checkout on the path.
@@ -52,7 +54,7 @@ def _multirun(sweep_dir: Path, *overrides: str, cwd: Path) -> str:
     cmd = [
         sys.executable,
         "-m",
-        "drone_torchrl.train",
+        "drone_torchrl.apps.train",
         "-m",
         *overrides,
         *TINY,
@@ -60,7 +62,8 @@ def _multirun(sweep_dir: Path, *overrides: str, cwd: Path) -> str:
     ]
     proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
     out = proc.stdout + proc.stderr
-    assert proc.returncode == 0, out
+    assert (proc.returncode != 0) == expect_failure, out
+    assert "Traceback" not in proc.stderr, out
     # submitit runs jobs in their own processes and keeps their stdout under .submitit/<job id>/.
     return out + "".join(p.read_text() for p in sorted(sweep_dir.glob(".submitit/*/*_log.*")))
 
@@ -108,7 +111,7 @@ def test_sweep_runs_then_skips_finished_jobs(launcher, request, tmp_path):
 def test_failed_job_is_summarised_and_the_others_finish(launcher, request, tmp_path):
     overrides = _require(launcher, request)
     sweep_dir = tmp_path / "sweep"
-    out = _multirun(sweep_dir, *overrides, *FAILING_GRID, cwd=tmp_path)
+    out = _multirun(sweep_dir, *overrides, *FAILING_GRID, cwd=tmp_path, expect_failure=True)
 
     jobs = {job.name.split(",")[0]: job for job in sweep_jobs(sweep_dir)}
     assert set(jobs) == {"algo.gamma=0.9", "algo.gamma=7"}, jobs

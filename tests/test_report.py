@@ -7,16 +7,17 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 from omegaconf import OmegaConf
 
-from drone_torchrl.metrics import CSV_COLUMNS
+from drone_torchrl.apps.report import main
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, FORMAT_VERSION, LAST, REQUIRED_KEYS, save_checkpoint
+from drone_torchrl.io.episodes_csv import CSV_COLUMNS
 from drone_torchrl.report import (
     aggregate_over_seeds,
     build_report,
     first_crossing,
-    main,
     running_mean,
+    setting_curve,
     write_report,
 )
 
@@ -36,6 +37,21 @@ def test_aggregate_over_seeds_of_different_lengths():
     np.testing.assert_allclose(stats.mean, [2, 4, 5])
     np.testing.assert_allclose(stats.std, [1, 1, 0])
     assert stats.count.tolist() == [2, 2, 1]
+
+
+def _save_last_checkpoint(job, config, episodes, final):
+    """checkpoints/last.pt with every key load_checkpoint requires; ``final`` is None while unfinished."""
+    state = dict.fromkeys(REQUIRED_KEYS)
+    state.update(
+        format_version=FORMAT_VERSION,
+        engine="torchrl",
+        actor={},
+        optimizer={},
+        episodes_done=episodes,
+        config=config,
+        final=final,
+    )
+    save_checkpoint(state, job / CHECKPOINT_DIR / LAST)
 
 
 def _job(sweep, lr, seed, returns, lengths=None, finished=True, max_steps=300):
@@ -79,11 +95,8 @@ def _job(sweep, lr, seed, returns, lengths=None, finished=True, max_steps=300):
                     "wall_clock_s": 10.0 * (i + 1),
                 }
             )
-    (job / "checkpoints").mkdir()
-    state = {"episodes_done": len(returns)}
-    if finished:
-        state["final"] = {"final_return": float(np.mean(returns))}
-    torch.save(state, job / "checkpoints" / "last.pt")
+    final = {"final_return": float(np.mean(returns))} if finished else None
+    _save_last_checkpoint(job, config, len(returns), final)
     return job
 
 
@@ -133,7 +146,7 @@ def test_report_on_a_real_tiny_sweep(tmp_path):
     cmd = [
         sys.executable,
         "-m",
-        "drone_torchrl.train",
+        "drone_torchrl.apps.train",
         "-m",
         "algo.lr=1e-3,1e-4",
         "seed=0,1",
@@ -191,11 +204,8 @@ def _write_job(job, overrides, config, returns, lengths, negative=None, clock=No
                     "wall_clock_s": t,
                 }
             )
-    (job / "checkpoints").mkdir()
-    state = {"episodes_done": len(returns)}
-    if finished:
-        state["final"] = {"final_return": float(returns[-1])}
-    torch.save(state, job / "checkpoints" / "last.pt")
+    final = {"final_return": float(returns[-1])} if finished else None
+    _save_last_checkpoint(job, config, len(returns), final)
     return job
 
 
@@ -275,7 +285,7 @@ def test_runs_of_different_lengths_and_a_run_in_progress(tmp_path):
         f.write("3,4,12")  # a row still being written is ignored
     report = build_report(sweep, window=3, return_threshold=3, pd=False)
     (setting,) = report.settings
-    curve = setting.curve("return", 3)
+    curve = setting_curve(setting, "return", 3)
     np.testing.assert_allclose(curve.mean, [1, 2.25, 3.5, 6])  # episode 3: only seed 0 has it
     np.testing.assert_allclose(curve.std, [1, 0.75, 0.5, 0])
     np.testing.assert_allclose(curve.min, [0, 1.5, 3, 6])
@@ -319,18 +329,17 @@ def test_verdict_names_the_best_mean_final_return(tmp_path):
 
 
 def test_pd_reference_once_per_env_setting_and_several_sweeps(tmp_path, monkeypatch, capsys):
-    from drone_torchrl import report as report_module
-    from drone_torchrl.envs import heuristic
+    from drone_torchrl.report import stats
 
     calls = []
-    real = heuristic.evaluate_pd
+    real = stats.evaluate_pd
 
     def counting(env_kwargs, episodes, seed):
         calls.append((env_kwargs, episodes, seed))
         return real(env_kwargs, episodes=episodes, seed=seed)
 
-    monkeypatch.setattr(heuristic, "evaluate_pd", counting)
-    report_module._pd_return.cache_clear()
+    monkeypatch.setattr(stats, "evaluate_pd", counting)
+    stats._pd_return.cache_clear()
     sweeps = []
     for name in ("lr", "gamma"):
         for lr in (1e-3, 1e-4):
@@ -342,7 +351,7 @@ def test_pd_reference_once_per_env_setting_and_several_sweeps(tmp_path, monkeypa
     try:
         main([*sweeps, "--out", str(out), "--window", "2"])
     finally:
-        report_module._pd_return.cache_clear()
+        stats._pd_return.cache_clear()
     expected_env = {k: v for k, v in ENV.items() if k != "num_workers"}
     assert calls == [(expected_env, 100, 0)]  # two sweeps, one env setting: evaluated once
     for name in ("lr", "gamma"):

@@ -1,5 +1,6 @@
 """drone-train / drone-eval: configs, validation, a smoke run per preset, resume, and learning."""
 
+import inspect
 import subprocess
 import sys
 
@@ -9,10 +10,11 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from drone_torchrl.checkpoint import load_checkpoint
-from drone_torchrl.config import ConfigError, config_dir, validate
-from drone_torchrl.metrics import CSV_COLUMNS, read_episode_csv
-from drone_torchrl.train import train
+from drone_torchrl.config import ENV_ARGS, ConfigError, config_dir, validate
+from drone_torchrl.envs import DroneEnv
+from drone_torchrl.io.checkpoint import load_checkpoint
+from drone_torchrl.io.episodes_csv import CSV_COLUMNS, read_episodes
+from drone_torchrl.training.trainer import train
 
 FAST = ["eval.episodes=2", "eval.video=false", "progress=false", "compile=false"]
 ENGINES = ["torchrl", "fused"]
@@ -31,17 +33,12 @@ def test_defaults_are_the_paper():
     assert list(cfg.model.hidden_sizes) == [32, 32] and cfg.model.activation == "tanh"
     assert not cfg.algo.discount_weight and not cfg.algo.normalize_returns and cfg.algo.baseline == "none"
     assert cfg.seed == 0
-    for arg in (
-        "mass",
-        "motor_distance",
-        "gravity",
-        "dt",
-        "max_steps",
-        "reset_mode",
-        "max_thrust",
-        "floor_tolerance",
-    ):
-        assert arg in cfg.env
+    # Every DroneEnv argument that describes the drone or the episode is a config key, with the
+    # env's own default (the process settings batch_size/device/render_* are not).
+    params = inspect.signature(DroneEnv.__init__).parameters
+    physical = [n for n in params if n not in ("self", "batch_size", "device", "render_mode", "render_index")]
+    assert list(ENV_ARGS) == physical
+    assert {n: cfg.env[n] for n in physical} == {n: params[n].default for n in physical}
     validate(cfg)
 
 
@@ -84,8 +81,8 @@ def test_bad_values_are_named(override, key):
 
 def test_cli_bad_value_is_one_line_and_nonzero(tmp_path):
     for module, override in [
-        ("drone_torchrl.train", "algo.gamma=2"),
-        ("drone_torchrl.train", f"resume={tmp_path}/nope"),
+        ("drone_torchrl.apps.train", "algo.gamma=2"),
+        ("drone_torchrl.apps.train", f"resume={tmp_path}/nope"),
     ]:
         proc = subprocess.run(
             [sys.executable, "-m", module, override, f"hydra.run.dir={tmp_path}/run"],
@@ -117,8 +114,8 @@ def test_smoke_run_writes_everything_and_resumes(tmp_path, preset, engine):
         "progress=false",
     )
     train(cfg, run_dir=run)
-    rows = read_episode_csv(run / "episodes.csv")
-    assert rows["episode"] == [0, 1, 2, 3, 4, 5]
+    rows = read_episodes(run / "episodes.csv")[0]
+    assert rows["episode"].tolist() == [0, 1, 2, 3, 4, 5]
     assert set(CSV_COLUMNS) <= set(rows)
     assert all(1 <= n <= 40 for n in rows["length"])
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
@@ -129,8 +126,8 @@ def test_smoke_run_writes_everything_and_resumes(tmp_path, preset, engine):
 
     # Resume from the run folder with a larger budget: the counter carries on, the CSV grows.
     train(_cfg(f"resume={run}", "algo.episodes=10", "progress=false"))
-    rows = read_episode_csv(run / "episodes.csv")
-    assert rows["episode"] == list(range(10))
+    rows = read_episodes(run / "episodes.csv")[0]
+    assert rows["episode"].tolist() == list(range(10))
     assert load_checkpoint(run / "checkpoints" / "last.pt")["updates_done"] == 5
 
 
@@ -148,15 +145,15 @@ def test_resume_after_a_kill_repeats_only_episodes_since_the_checkpoint(tmp_path
     train(_cfg("algo.episodes=8", *common), run_dir=whole)
     train(_cfg("algo.episodes=4", *common), run_dir=cut)
     train(_cfg(f"resume={cut}", "algo.episodes=8", "progress=false"))
-    a, b = read_episode_csv(whole / "episodes.csv"), read_episode_csv(cut / "episodes.csv")
-    assert a["return"] == b["return"] and a["length"] == b["length"]
+    a, b = read_episodes(whole / "episodes.csv")[0], read_episodes(cut / "episodes.csv")[0]
+    assert a["return"].tolist() == b["return"].tolist() and a["length"].tolist() == b["length"].tolist()
     wa = load_checkpoint(whole / "checkpoints" / "last.pt")["actor"]
     wb = load_checkpoint(cut / "checkpoints" / "last.pt")["actor"]
     assert all(torch.equal(wa[k], wb[k]) for k in wa)
 
 
 def test_drone_eval_compares_with_pd(tmp_path):
-    from drone_torchrl.evaluate import run_eval
+    from drone_torchrl.comparison import run_eval
 
     run = tmp_path / "run"
     train(_cfg("algo.episodes=2", "env.max_steps=20", *FAST), run_dir=run)
@@ -185,7 +182,7 @@ def test_reinforce_learns_to_stay_up(tmp_path, engine):
         ),
         run_dir=run,
     )
-    lengths = np.array(read_episode_csv(run / "episodes.csv")["length"])
+    lengths = np.array(read_episodes(run / "episodes.csv")[0]["length"])
     assert lengths[:25].mean() < 10
     assert lengths[-25:].mean() > 25
 
@@ -216,7 +213,7 @@ def test_console_scripts_run_from_any_folder(tmp_path):
         env=env,
     )
     assert proc.returncode == 0, proc.stderr
-    assert len(read_episode_csv(run / "episodes.csv")["episode"]) == 2
+    assert len(read_episodes(run / "episodes.csv")[0]["episode"]) == 2
     proc = subprocess.run(
         [
             str(eval_cmd),
@@ -238,7 +235,7 @@ def test_console_scripts_run_from_any_folder(tmp_path):
 
 def test_checkpoints_from_before_later_keys_still_evaluate_and_resume(tmp_path):
     """A checkpoint whose config predates engine/compile/logger.every_updates: filled with the old behaviour."""
-    from drone_torchrl.evaluate import run_eval
+    from drone_torchrl.comparison import run_eval
 
     run = tmp_path / "old"
     train(_cfg("engine=torchrl", "algo.episodes=2", "env.max_steps=20", *FAST), run_dir=run)

@@ -172,7 +172,7 @@ class DroneEnv(EnvBase):
 
     ## Version history
 
-    - v0: first release, SPEC.md of the drone_torchrl project.
+    - v0: first release, the environment this docstring specifies.
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 50}

@@ -1,4 +1,4 @@
-"""Pure, batched tensor functions for the 2D drone (SPEC.md; paper eqs. 2.1-2.4, section 2.2).
+"""Pure, batched tensor functions for the 2D drone (the paper's eqs. 2.1-2.4, section 2.2).
 
 This is the only copy of the physics: :class:`~drone_torchrl.envs.DroneEnv` (TorchRL) and
 :class:`~drone_torchrl.envs.DroneGymEnv` (Gymnasium) both call it. Every function works on any
@@ -41,7 +41,7 @@ RESET_MODES = ("floor", "air")
 
 
 class TerminationCause(IntEnum):
-    """Why an episode terminated (SPEC.md). When several hold, the lowest non-zero code wins."""
+    """Why an episode terminated. When several hold, the lowest non-zero code wins."""
 
     NONE = 0
     OUT_X = 1

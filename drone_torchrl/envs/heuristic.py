@@ -20,14 +20,13 @@ Outputs are thrust fractions of the weight ``[a_l, a_r]``. With a thrust limit t
 itself, keeping the full thrust difference (attitude) and sacrificing collective thrust first.
 
 Use :func:`pd_action` as a plain function, :class:`PDController` as a TorchRL policy
-(``env.rollout(300, PDController(env.params))``), and :func:`evaluate_pd` for seeded statistics.
+(``env.rollout(300, PDController(env.params))``); ``drone_torchrl.evaluation.evaluate_pd`` gives seeded statistics.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -153,58 +152,4 @@ class PDController(TensorDictModuleBase):
         return tensordict
 
 
-def evaluate_pd(
-    env_kwargs: dict[str, Any] | None = None,
-    episodes: int = 100,
-    seed: int = 0,
-    gains: PDGains | None = None,
-) -> dict[str, float]:
-    """Fly ``episodes`` seeded episodes of the PD controller at once and summarise them.
-
-    One ``DroneEnv(batch_size=[episodes], **env_kwargs)`` is seeded with ``seed`` and rolled out
-    for ``max_steps`` steps; each row's first episode is scored (steps after its first ``done``
-    are ignored).
-
-    Returns a dict with ``return_mean``, ``return_std`` (population std over episodes),
-    ``return_min``, ``length_mean``, ``terminated_fraction`` (episodes ended by termination),
-    ``zone_fraction`` (mean fraction of the episode's steps that end inside the zone),
-    ``first_zone_step_mean`` and ``first_zone_step_max`` (1-based step index of the first step
-    that ends inside the zone, over episodes that reach it; NaN if none do) and
-    ``reached_fraction`` (episodes that reach the zone).
-    """
-    from drone_torchrl.envs.drone_env import DroneEnv  # local: drone_env imports nothing from here
-
-    env = DroneEnv(batch_size=[episodes], **(env_kwargs or {}))
-    env.set_seed(seed)
-    policy = PDController(env.params, gains)
-    with torch.no_grad():
-        rollout = env.rollout(env.max_steps, policy, break_when_any_done=False)
-    env.close()
-
-    done = rollout["next", "done"].squeeze(-1)  # [episodes, T]
-    # valid[t]: step t belongs to the first episode, i.e. no done strictly before t.
-    done_before = torch.cumsum(done.to(torch.int64), dim=-1) - done.to(torch.int64)
-    valid = done_before == 0
-    reward = rollout["next", "reward"].squeeze(-1) * valid
-    returns = reward.sum(-1)
-    lengths = valid.sum(-1)
-    in_zone = dynamics.in_target_zone(rollout["next", "observation"]) & valid
-    terminated = (rollout["next", "terminated"].squeeze(-1) & valid).any(-1)
-    reached = in_zone.any(-1)
-    first_step = in_zone.to(torch.int64).argmax(-1).to(torch.float32) + 1.0
-    first_reached = first_step[reached]
-    nan = float("nan")
-    return {
-        "return_mean": float(returns.mean()),
-        "return_std": float(returns.std(unbiased=False)),
-        "return_min": float(returns.min()),
-        "length_mean": float(lengths.float().mean()),
-        "terminated_fraction": float(terminated.float().mean()),
-        "zone_fraction": float((in_zone.sum(-1) / lengths).mean()),
-        "reached_fraction": float(reached.float().mean()),
-        "first_zone_step_mean": float(first_reached.mean()) if reached.any() else nan,
-        "first_zone_step_max": float(first_reached.max()) if reached.any() else nan,
-    }
-
-
-__all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "evaluate_pd", "pd_action"]
+__all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "pd_action"]

@@ -67,25 +67,40 @@ def make_actor(
 
     In ``ExplorationType.DETERMINISTIC`` (evaluation) the action is the mean, or its squashed image.
     """
-    if distribution not in DISTRIBUTIONS:
-        raise ValueError(
-            f"model.distribution={distribution!r} is not allowed; expected one of {DISTRIBUTIONS}"
-        )
     if activation not in ACTIVATIONS:
         raise ValueError(
             f"model.activation={activation!r} is not allowed; expected one of {tuple(ACTIVATIONS)}"
         )
+    check_head(distribution, max_thrust)
     net = ThreeNetPolicy(hidden_sizes, activation, min_std).to(device)
+    return actor_from_net(net, distribution, max_thrust)
+
+
+def check_head(distribution: str, max_thrust: float | None) -> None:
+    """Raise ``ValueError`` for a distribution head that cannot be built."""
+    if distribution not in DISTRIBUTIONS:
+        raise ValueError(
+            f"model.distribution={distribution!r} is not allowed; expected one of {DISTRIBUTIONS}"
+        )
+    if distribution == "tanh_normal" and max_thrust is None:
+        raise ValueError(
+            "model.distribution='tanh_normal' needs a bounded action: set env.max_thrust (e.g. 1.0)"
+        )
+
+
+def actor_from_net(net: nn.Module, distribution: str, max_thrust: float | None) -> ProbabilisticActor:
+    """The distribution head over any module mapping ``observation`` to ``(loc, scale)``.
+
+    Used for one :class:`ThreeNetPolicy` and for the stacked nets of a population alike, so both
+    sample and score actions with the same distribution.
+    """
+    check_head(distribution, max_thrust)
     module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
     if distribution == "normal":
         dist_class, dist_kwargs = IndependentNormal, {}
     else:
-        if max_thrust is None:
-            raise ValueError(
-                "model.distribution='tanh_normal' needs a bounded action: set env.max_thrust (e.g. 1.0)"
-            )
         # tanh_loc=False keeps the mean head's scale: with True and bounds [0, A] a zero mean maps
-        # near A (TORCHRL_NOTES.md).
+        # near A.
         dist_class = TanhNormal
         dist_kwargs = {"low": 0.0, "high": float(max_thrust), "tanh_loc": False}
     return ProbabilisticActor(

@@ -23,7 +23,7 @@ def discounted_returns(reward: torch.Tensor, done: torch.Tensor, gamma: float | 
     Several episodes may follow each other in a row: the sum restarts after every ``done``.
     ``gamma`` may be a float or a tensor broadcastable to ``[*B, 1]`` (one discount per row).
     Same result as ``torchrl.objectives.value.functional.reward2go``, which is about 20x slower
-    on ``[4096, 300]`` (TORCHRL_NOTES.md) and takes only a scalar discount.
+    on ``[4096, 300]`` and takes only a scalar discount.
     """
     returns = torch.empty_like(reward)
     running = torch.zeros_like(reward[..., -1, :])

@@ -1,11 +1,14 @@
-"""``hydra/launcher=fused``: the jobs of a sweep trained side by side by the fused engine.
+"""``hydra/launcher=fused``: the jobs of a sweep trained as populations, each job keeping its own folder.
 
 Hydra's launchers run one job per process (or one after another). REINFORCE on this drone is so
 small that a job spends its time in per-step overhead, not arithmetic, so this launcher gives
 each job its folder, ``.hydra/`` record and log exactly like the basic launcher, and then trains
-all compatible jobs (configs equal but for ``seed``, ``algo.lr``, ``algo.gamma``) as one batch of
-agents with :func:`drone_torchrl.fused.train_fused`. Each job still ends with its own CSV,
-TensorBoard run and checkpoints, so ``drone-report`` and ``resume`` work unchanged.
+all compatible jobs (configs equal but for ``seed``, ``algo.lr``, ``algo.gamma``) as one population
+with ``engine=fused`` (:func:`drone_torchrl.training.trainer.train_jobs`). Each job still ends with
+its own CSV, TensorBoard run and checkpoints, so ``drone-report`` and ``resume`` work unchanged.
+
+A job that fails is reported as failed (Hydra then exits non-zero after printing the sweep summary);
+the other jobs still train.
 
 On a cluster use ``hydra/launcher=submitit_slurm`` (or ``ray``) instead: they spread the jobs over
 machines, each job then training alone.
@@ -19,11 +22,13 @@ from pathlib import Path
 from hydra.core.config_store import ConfigStore
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.utils import JobReturn, JobStatus, configure_log, filter_overrides, run_job, setup_globals
+from hydra.errors import CompactHydraException
 from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, open_dict
 
 log = logging.getLogger(__name__)
+ENGINE = "fused"
 
 
 @dataclass
@@ -34,6 +39,10 @@ class FusedLauncherConf:
 ConfigStore.instance().store(
     group="hydra/launcher", name="fused", node=FusedLauncherConf, provider="drone_torchrl"
 )
+
+
+class JobFailed(CompactHydraException):
+    """A job of a fused sweep that failed: one line (the traceback is in ``<job>/FAILED.txt``)."""
 
 
 class FusedLauncher(Launcher):
@@ -49,20 +58,26 @@ class FusedLauncher(Launcher):
         self.task_function = task_function
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        from drone_torchrl.fused import ENGINE, train_fused
+        from drone_torchrl.training.jobs import prepare, record_failure, sweep_summary
+        from drone_torchrl.training.trainer import Outcome, train_jobs
 
         setup_globals()
         assert self.config is not None and self.hydra_context is not None
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
-        Path(str(self.config.hydra.sweep.dir)).mkdir(parents=True, exist_ok=True)
-        log.info(f"Launching {len(job_overrides)} jobs as one fused batch")
-        jobs: list[tuple[DictConfig, Path]] = []
+        sweep_dir = Path(str(self.config.hydra.sweep.dir))
+        sweep_dir.mkdir(parents=True, exist_ok=True)
+        log.info(f"Launching {len(job_overrides)} jobs as populations (engine={ENGINE})")
+        jobs: list = []
 
         def register(cfg: DictConfig) -> None:
-            # Runs inside Hydra's run_job: the job folder, .hydra/ and log exist; training comes later.
-            with open_dict(cfg):
-                cfg.engine = ENGINE
-            jobs.append((cfg, Path(HydraConfig.get().runtime.output_dir)))
+            # Runs inside Hydra's run_job: the job folder, .hydra/ and log exist, and the job's
+            # command line is known (prepare reads it); training comes later, for all jobs at once.
+            run_dir = Path(HydraConfig.get().runtime.output_dir)
+            try:
+                jobs.append(prepare(cfg, run_dir if cfg.resume is None else None, engine=ENGINE))
+            except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
+                print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
+                jobs.append(Outcome(run_dir, error=err))
 
         returns: list[JobReturn] = []
         for idx, overrides in enumerate(job_overrides, start=initial_job_idx):
@@ -81,8 +96,17 @@ class FusedLauncher(Launcher):
                 )
             )
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
-        results = train_fused(jobs)
-        for ret, value in zip(returns, results, strict=True):
-            ret.return_value = value
-            ret.status = JobStatus.COMPLETED
+        prepared = [j for j in jobs if not isinstance(j, Outcome)]
+        trained = iter(train_jobs(prepared))
+        outcomes = [j if isinstance(j, Outcome) else next(trained) for j in jobs]
+        failed = False
+        for ret, outcome in zip(returns, outcomes, strict=True):
+            if outcome.error is None:
+                ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
+            else:
+                failed = True
+                reason = f"{type(outcome.error).__name__}: {outcome.error}"
+                ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
+        if failed:  # Hydra stops at the first failed job and skips the end-of-sweep callbacks.
+            print(sweep_summary(sweep_dir))
         return returns

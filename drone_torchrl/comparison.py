@@ -1,32 +1,28 @@
-"""``drone-eval``: fly a trained policy (or the PD controller) on seeded episodes and report.
+"""drone-eval's work: fly a checkpoint (or the PD controller) on seeded episodes, compare, and plot.
 
-drone-eval checkpoint=outputs/<date>/<run>          # the run's last checkpoint
-drone-eval checkpoint=<run>/checkpoints/best.pt episodes=20
-drone-eval                                          # the PD hover controller alone
-drone-eval env.max_thrust=1.0                       # ... with bounded thrust
+``run_eval(cfg)`` takes the ``conf/eval.yaml`` config; the command-line shell is
+:mod:`drone_torchrl.apps.evaluate`.
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
-import hydra
 import numpy as np
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
-from drone_torchrl.checkpoint import load_checkpoint, resolve_checkpoint
-from drone_torchrl.config import ConfigError, config_dir, env_kwargs, physics_params, run_config, validate
+from drone_torchrl.config import ConfigError, env_kwargs, physics_params, run_config, validate
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
-from drone_torchrl.evaluation import evaluate, record_video, save_gif
-from drone_torchrl.metrics import cause_counts
+from drone_torchrl.evaluation import evaluate, summarize
+from drone_torchrl.io.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
+from drone_torchrl.io.video import record_video, save_gif
+from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
-from drone_torchrl.train import build_actor
 
 PLOT_NAME = "trajectory.png"
 VIDEO_NAME = "episode.gif"
@@ -75,20 +71,6 @@ def plot_trajectory(rollout: TensorDictBase, path: Path, title: str) -> Path:
     return path
 
 
-def _summary(name: str, stats: dict[str, torch.Tensor], max_return: float) -> dict[str, float]:
-    returns = stats["return"].float()
-    return {
-        "policy": name,
-        "return_mean": float(returns.mean()),
-        "return_std": float(returns.std(correction=0)),
-        "pct_of_max": 100.0 * float(returns.mean()) / max_return,
-        "length_mean": float(stats["length"].float().mean()),
-        "time_in_zone": float(stats["time_in_zone"].mean()),
-        "negative_thrust_fraction": float(stats["negative_thrust_fraction"].mean()),
-        "causes": cause_counts(stats["termination_cause"]),
-    }
-
-
 def run_eval(cfg: DictConfig) -> dict[str, dict]:
     """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot."""
     out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
@@ -104,6 +86,9 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
             raise ConfigError(f"checkpoint={cfg.checkpoint!r} is not allowed; {err}") from None
         try:
             checkpoint = load_checkpoint(path)
+        except CheckpointError as err:
+            raise ConfigError(f"checkpoint={str(path)!r} cannot be used: {err}") from None
+        try:
             run_cfg = run_config(checkpoint["config"])
             run_cfg.device = cfg.device
             validate(run_cfg)
@@ -119,7 +104,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:
-        kwargs = {name: cfg.env[name] for name in cfg.env if name != "num_workers"}
+        kwargs = env_kwargs(cfg)
         try:
             DroneEnv(**kwargs).close()  # the env validates its own arguments
         except ValueError as err:
@@ -131,7 +116,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
     results, rollouts = {}, {}
     for name, policy in policies.items():
         stats, rollouts[name] = evaluate(policy, kwargs, cfg.episodes, cfg.seed, cfg.device)
-        results[name] = _summary(name, stats, max_return)
+        results[name] = {"policy": name, **summarize(stats, max_return)}
     pd_return = results["PD controller"]["return_mean"]
     print(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
     for name, r in results.items():
@@ -150,15 +135,3 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         frames = record_video(policies[main_name], kwargs, cfg.seed, cfg.device)
         print("video:", save_gif(frames, out_dir / VIDEO_NAME, cfg.video_fps))
     return results
-
-
-@hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
-def main(cfg: DictConfig) -> None:
-    try:
-        run_eval(cfg)
-    except ConfigError as err:
-        sys.exit(f"drone-eval: error: {err}")
-
-
-if __name__ == "__main__":
-    main()

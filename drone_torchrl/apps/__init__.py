@@ -1,0 +1,1 @@
+"""The command-line apps: thin ``@hydra.main`` / argparse shells over library functions."""

@@ -1,0 +1,30 @@
+"""``drone-eval``: fly a trained policy (or the PD controller) on seeded episodes and report.
+
+drone-eval checkpoint=outputs/<date>/<run>          # the run's last checkpoint
+drone-eval checkpoint=<run>/checkpoints/best.pt episodes=20
+drone-eval                                          # the PD hover controller alone
+drone-eval env.max_thrust=1.0                       # ... with bounded thrust
+"""
+
+from __future__ import annotations
+
+import sys
+
+import hydra
+from omegaconf import DictConfig
+
+from drone_torchrl.config import ConfigError, config_dir
+
+
+@hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    from drone_torchrl.comparison import run_eval
+
+    try:
+        run_eval(cfg)
+    except ConfigError as err:
+        sys.exit(f"drone-eval: error: {err}")
+
+
+if __name__ == "__main__":
+    main()

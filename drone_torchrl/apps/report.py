@@ -1,0 +1,77 @@
+"""``drone-report``: figures and a summary table of hyper-parameter sweeps (:mod:`drone_torchrl.report`).
+
+drone-report multirun/lr                      # figures + table into multirun/lr/report/
+drone-report multirun/lr multirun/gamma       # one report per sweep, each in <sweep>/report/
+drone-report multirun/lr --out /tmp/lr --window 50 --return-threshold 2500 --no-pd
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from drone_torchrl.report.runs import ReportError, load_runs
+from drone_torchrl.report.stats import DEFAULT_RETURN_THRESHOLD
+from drone_torchrl.report.sweep import build_report, default_window
+from drone_torchrl.report.tables import format_report, output_dirs, write_report
+
+PROG = "drone-report"
+EXIT_ERROR = 2
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text} is not an integer >= 1")
+    return value
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Figures (steps.png, returns.png) and a summary table (summary.md, summary.csv) of sweeps.",
+    )
+    parser.add_argument("sweeps", nargs="+", type=Path, help="sweep folders, e.g. multirun/lr multirun/gamma")
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default: <sweep>/report; with several sweeps: <out>/<sweep name>)",
+    )
+    parser.add_argument(
+        "--window",
+        type=_positive_int,
+        default=None,
+        help="running-mean window in episodes (default: metrics.running_mean_window of conf/config.yaml)",
+    )
+    parser.add_argument(
+        "--return-threshold",
+        type=float,
+        default=DEFAULT_RETURN_THRESHOLD,
+        help=f"report the first episode the running-mean return reaches this (default {DEFAULT_RETURN_THRESHOLD:g})",
+    )
+    parser.add_argument("--no-pd", action="store_true", help="skip the PD controller reference line")
+    return parser.parse_args(argv)
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """``drone-report``: one report per sweep folder; exit code 2 with a one-line error if unusable."""
+    args = parse_args(argv)
+    try:
+        window = default_window() if args.window is None else args.window
+        runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
+        out_dirs = output_dirs(args.sweeps, args.out)
+        for sweep_dir, sweep_runs, out_dir in zip(args.sweeps, runs, out_dirs, strict=True):
+            report = build_report(sweep_dir, window, args.return_threshold, not args.no_pd, sweep_runs)
+            paths = write_report(report, out_dir)
+            print(format_report(report, figures=False))
+            print(f"wrote {', '.join(str(p) for p in paths)}\n")
+    except ReportError as err:
+        print(f"{PROG}: error: {err}", file=sys.stderr)
+        sys.exit(EXIT_ERROR)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,60 @@
+"""``drone-train``: REINFORCE on the 2D drone, configured by Hydra (``conf/``).
+
+drone-train                                  # the paper: alpha 1e-4, gamma 0.99, 6000 episodes
+drone-train algo.lr=3e-4 seed=1              # any key from the command line
+drone-train experiment=bounded               # positive thrust only (TanhNormal, max_thrust 1)
+drone-train resume=outputs/<date>/<run>      # continue an interrupted run
+drone-train -m seed=0,1,2,3 hydra/launcher=fused   # four agents trained as one population
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig
+
+from drone_torchrl.config import ConfigError, config_dir
+from drone_torchrl.io.checkpoint import CheckpointError
+
+
+@hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> float | None:
+    from drone_torchrl.training.trainer import train
+
+    if HydraConfig.get().mode != RunMode.MULTIRUN:
+        try:
+            return train(cfg)
+        except (ConfigError, CheckpointError) as err:
+            sys.exit(f"drone-train: error: {err}")
+    job_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        return train(cfg)
+    except Exception as err:
+        # One failing job must not stop the others: it is recorded in <job>/FAILED.txt, and the
+        # end-of-sweep summary (training.jobs.SweepSummary) lists it and exits non-zero.
+        from drone_torchrl.training.jobs import FAILED_FILE, record_failure
+
+        if not (job_dir / FAILED_FILE).is_file():
+            record_failure(job_dir, err)
+        print(f"drone-train: job failed: {type(err).__name__}: {err}", file=sys.stderr)
+        return None
+
+
+def run() -> None:
+    """Console entry point: registers the population launcher, then runs the Hydra app."""
+    from hydra.core.plugins import Plugins
+
+    from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
+
+    # Hydra finds launcher plugins by listing the hydra_plugins folders; an editable install's import
+    # hook is not a folder, so register ours explicitly (harmless for a normal install).
+    Plugins.instance().register(FusedLauncher)
+    main()
+
+
+if __name__ == "__main__":
+    run()

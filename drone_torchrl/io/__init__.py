@@ -1,0 +1,1 @@
+"""What a run leaves on disk: checkpoints, ``episodes.csv``, TensorBoard events and videos."""

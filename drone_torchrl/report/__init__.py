@@ -1,0 +1,79 @@
+"""Sweep reports: figures and a summary table of hyper-parameter sweeps (the ``drone-report`` CLI).
+
+A report reads only the files a sweep job leaves on disk (``episodes.csv``, ``config.yaml``,
+``.hydra/overrides.yaml`` and ``checkpoints/last.pt``), so it works on sweeps that are still
+running and on jobs trained by any engine writing those files. Modules: :mod:`.runs` (job
+folders, settings), :mod:`.stats` (the numbers), :mod:`.sweep` (one sweep's report),
+:mod:`.figures` and :mod:`.tables` (the files written).
+
+Method:
+
+1. **Settings.** Jobs are grouped by their command-line overrides minus the seed and minus keys
+   that do not change what is trained (``NON_SETTING_KEYS``, ``NON_SETTING_PREFIXES`` of
+   :mod:`.runs`). Values are read back from the job's resolved ``config.yaml`` when the key is
+   there, so ``algo.lr=1e-3`` and ``algo.lr=0.001`` are the same setting. A setting's label keeps
+   only the overrides that differ between settings (``algo.lr=0.001``); a single setting is
+   labelled ``all``.
+2. **Curves.** Per run, the running mean over ``window`` episodes (default
+   ``metrics.running_mean_window`` of ``conf/config.yaml``, the paper's 100) of the episode length,
+   return and negative-thrust fraction. The window is *trailing*, and over the first
+   ``window - 1`` episodes it averages the episodes available so far (pandas'
+   ``rolling(window, min_periods=1)``), which is also what ``drone-train`` logs as its running
+   mean. Consequence: a threshold can be crossed early by a short lucky start; the crossing
+   episodes below are read off exactly these curves. Then, per episode index (0-based, as in
+   ``episodes.csv``), the mean, population std (``ddof=0``), min and max over the seeds that have
+   reached that episode: runs of different lengths (unfinished, failed) contribute where they have
+   data, and the report says how many seeds are unfinished and how far the shortest got.
+3. **Table.** Per setting: seeds finished/total, the final running-mean return (each run's last
+   value; mean +- std over seeds, and as a percentage of the ``10 * max_steps`` ceiling), the first
+   episode at which the running-mean length reaches ``max_steps`` and the running-mean return
+   reaches ``return_threshold`` (mean over the seeds that reach it, and how many do), the final
+   running-mean negative-thrust fraction, and the wall-clock time (each run's last
+   ``wall_clock_s``; mean per run and total). The verdict names the setting with the best mean
+   final running-mean return.
+4. **Figures.** ``steps.png`` and ``returns.png`` like the paper's figures 4.2 and 4.4: one curve per
+   setting with a mean +- std band, the ``max_steps`` cap and the ``10 * max_steps`` ceiling as
+   dashed lines, and the PD hover controller's mean return
+   (:func:`drone_torchrl.evaluation.evaluate_pd`, 100 episodes, seed 0, on the jobs' env settings)
+   as a dotted reference line.
+"""
+
+from drone_torchrl.report.runs import ReportError, Run, Setting, group_runs, load_runs, setting_of
+from drone_torchrl.report.stats import (
+    Crossing,
+    SeedStats,
+    SettingSummary,
+    aggregate_over_seeds,
+    first_crossing,
+    pd_reference,
+    running_mean,
+    setting_curve,
+    summarize,
+    verdict,
+)
+from drone_torchrl.report.sweep import SweepReport, build_report
+from drone_torchrl.report.tables import format_report, format_table, write_report
+
+__all__ = [
+    "Crossing",
+    "ReportError",
+    "Run",
+    "SeedStats",
+    "Setting",
+    "SettingSummary",
+    "SweepReport",
+    "aggregate_over_seeds",
+    "build_report",
+    "first_crossing",
+    "format_report",
+    "format_table",
+    "group_runs",
+    "load_runs",
+    "pd_reference",
+    "running_mean",
+    "setting_curve",
+    "setting_of",
+    "summarize",
+    "verdict",
+    "write_report",
+]

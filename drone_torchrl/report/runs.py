@@ -1,0 +1,273 @@
+"""Reading a sweep's job folders, and grouping their runs into settings.
+
+A report reads only the files a sweep job leaves on disk: ``episodes.csv``
+(:func:`drone_torchrl.io.episodes_csv.read_episodes`), ``config.yaml``, ``.hydra/overrides.yaml``
+and ``checkpoints/last.pt`` (through :func:`drone_torchrl.training.jobs.job_status`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import OmegaConf
+
+from drone_torchrl.config import ENV_ARGS, env_kwargs
+from drone_torchrl.envs.dynamics import REWARD_IN_ZONE
+from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSVError, read_episodes
+from drone_torchrl.training.jobs import job_status, sweep_jobs
+
+CONFIG_FILE = "config.yaml"
+HYDRA_DIR = ".hydra"
+OVERRIDES_FILE = "overrides.yaml"
+
+SEED_KEY = "seed"
+# Overrides that do not define what is trained: the sweep preset and its name, the run length
+# (a longer run is the same setting, further along), bookkeeping, and evaluation/checkpoint knobs.
+NON_SETTING_KEYS = frozenset(
+    {SEED_KEY, "sweep", "sweep_name", "algo.episodes", "progress", "threads", "device", "resume"}
+)
+NON_SETTING_PREFIXES = ("hydra.", "eval.", "checkpoint.")
+OVERRIDE_PREFIXES = "+"  # "+key=value" adds and "++key=value" forces a key: the same setting key
+SINGLE_SETTING_LABEL = "all"
+NO_OVERRIDES_LABEL = "defaults"
+LABEL_SEPARATOR = ", "
+
+# What drone_torchrl.training.jobs.job_status says of a job.
+STATUS_FINISHED = "finished"
+STATUS_FAILED = "failed"
+STATUS_UNFINISHED = "unfinished"
+
+# episodes.csv columns the report uses (drone_torchrl.io.episodes_csv.CSV_COLUMNS).
+COL_RETURN = "return"
+COL_LENGTH = "length"
+COL_NEGATIVE_THRUST = "negative_thrust_fraction"
+COL_WALL_CLOCK = "wall_clock_s"
+
+
+class ReportError(Exception):
+    """A sweep folder that cannot be reported: the message is one line naming the folder or file."""
+
+
+# --------------------------------------------------------------------------------------------------
+# Reading jobs
+
+
+@dataclass
+class Run:
+    """One job folder of a sweep: its overrides, resolved config, status and episode columns."""
+
+    job_dir: Path
+    overrides: list[str]
+    config: dict[str, Any]
+    status: str
+    status_detail: str
+    columns: dict[str, np.ndarray]
+    """Every ``episodes.csv`` column, ordered by episode."""
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def episodes(self) -> int:
+        return int(self.columns[COL_RETURN].size)
+
+    @property
+    def seed(self) -> Any:
+        return self.config.get(SEED_KEY, override_value(self.overrides, SEED_KEY))
+
+    def _required(self, key: str) -> Any:
+        found, value = _lookup(self.config, key)
+        if not found:
+            raise ReportError(f"{self.job_dir}: its config has no {key}")
+        return value
+
+    @property
+    def max_steps(self) -> int:
+        return int(self._required("env.max_steps"))
+
+    @property
+    def env_kwargs(self) -> dict[str, Any]:
+        """The ``DroneEnv`` arguments of the run (:func:`drone_torchrl.config.env_kwargs`)."""
+        for name in ENV_ARGS:  # a config without one of them: a one-line error, not a KeyError
+            self._required(f"env.{name}")
+        return env_kwargs(self.config)
+
+    def wall_clock(self) -> float | None:
+        """The run's last ``wall_clock_s`` (``None`` without episodes)."""
+        return float(self.columns[COL_WALL_CLOCK][-1]) if self.episodes else None
+
+
+def _load_yaml(path: Path) -> Any:
+    cfg = OmegaConf.load(path)
+    try:
+        return OmegaConf.to_container(cfg, resolve=True)
+    except Exception:  # noqa: BLE001 - Hydra-only interpolations (${hydra:...}) stay unresolved
+        return OmegaConf.to_container(cfg, resolve=False)
+
+
+def override_value(overrides: Sequence[str], key: str) -> str | None:
+    """The raw value of ``key`` (or ``+key``/``++key``) among ``key=value`` override strings."""
+    for item in overrides:
+        name, _, value = item.partition("=")
+        if name.lstrip(OVERRIDE_PREFIXES) == key:
+            return value
+    return None
+
+
+def load_run(job_dir: Path) -> Run | None:
+    """Read one job folder; ``None`` if it has no ``episodes.csv`` (not started, or failed early)."""
+    job_dir = Path(job_dir)
+    csv_path = job_dir / CSV_NAME
+    if not csv_path.is_file():
+        return None
+    overrides_path = job_dir / HYDRA_DIR / OVERRIDES_FILE
+    overrides = [str(o) for o in (_load_yaml(overrides_path) or [])] if overrides_path.is_file() else []
+    for config_path in (job_dir / CONFIG_FILE, job_dir / HYDRA_DIR / CONFIG_FILE):
+        if config_path.is_file():
+            config = _load_yaml(config_path)
+            break
+    else:
+        raise ReportError(f"{job_dir} has an {CSV_NAME} but no {CONFIG_FILE}")
+    status, detail = job_status(job_dir)
+    try:
+        columns, notes = read_episodes(csv_path)
+    except EpisodeCSVError as err:
+        raise ReportError(str(err)) from None
+    return Run(job_dir, overrides, config, status, detail, columns, notes)
+
+
+def find_jobs(sweep_dir: Path) -> list[Path]:
+    """Job folders of a sweep (:func:`sweep_jobs`); a single job folder stands for itself."""
+    sweep_dir = Path(sweep_dir)
+    jobs = sweep_jobs(sweep_dir)
+    if not jobs and (sweep_dir / HYDRA_DIR).is_dir():
+        jobs = [sweep_dir]
+    return jobs
+
+
+def load_runs(sweep_dir: Path) -> list[Run]:
+    """Every job of ``sweep_dir`` that has an ``episodes.csv``.
+
+    Raises :class:`ReportError` if the folder does not exist or holds no such job.
+    """
+    sweep_dir = Path(sweep_dir)
+    if not sweep_dir.is_dir():
+        raise ReportError(f"{sweep_dir} does not exist or is not a folder")
+    runs = [run for job in find_jobs(sweep_dir) if (run := load_run(job)) is not None]
+    if not runs:
+        raise ReportError(f"{sweep_dir} holds no job folder with an {CSV_NAME}")
+    if not any(run.episodes for run in runs):
+        raise ReportError(f"{sweep_dir}: its jobs' {CSV_NAME} files hold no episode yet")
+    return runs
+
+
+# --------------------------------------------------------------------------------------------------
+# Settings
+
+
+def _lookup(config: dict[str, Any], key: str) -> tuple[bool, Any]:
+    node: Any = config
+    for part in key.split("."):
+        if not isinstance(node, dict) or part not in node:
+            return False, None
+        node = node[part]
+    return True, node
+
+
+def format_value(value: Any) -> str:
+    """A config value in Hydra's override syntax (``0.0001``, ``5e-05``, ``null``, ``[32,32]``)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, list | tuple):
+        return "[" + ",".join(format_value(v) for v in value) + "]"
+    return str(value)
+
+
+def is_setting_key(key: str) -> bool:
+    """Whether an override key defines a setting (not the seed, the sweep preset, bookkeeping...)."""
+    return key not in NON_SETTING_KEYS and not key.startswith(NON_SETTING_PREFIXES)
+
+
+def setting_of(overrides: Sequence[str], config: dict[str, Any]) -> tuple[tuple[str, str], ...]:
+    """The ``(key, value)`` pairs that define a job's setting, in override order.
+
+    Values come from the resolved config when the key is there (so ``1e-3`` and ``0.001`` agree),
+    else from the override string (config-group choices such as ``experiment=bounded``).
+    """
+    pairs = []
+    for item in overrides:
+        name, _, raw = item.partition("=")
+        key = name.lstrip(OVERRIDE_PREFIXES)
+        if not is_setting_key(key):
+            continue
+        found, value = _lookup(config, key)
+        pairs.append((key, format_value(value) if found else raw))
+    return tuple(pairs)
+
+
+@dataclass
+class Setting:
+    """The runs (one per seed) of one setting, and its label in figures and tables."""
+
+    label: str
+    pairs: tuple[tuple[str, str], ...]
+    runs: list[Run]
+
+    @property
+    def max_steps(self) -> int:
+        return self.runs[0].max_steps
+
+    @property
+    def ceiling(self) -> float:
+        """The highest possible return, ``REWARD_IN_ZONE * max_steps`` (3000 for 300 steps)."""
+        return REWARD_IN_ZONE * self.max_steps
+
+    @property
+    def env_kwargs(self) -> dict[str, Any]:
+        return self.runs[0].env_kwargs
+
+    @property
+    def runs_with_episodes(self) -> list[Run]:
+        return [run for run in self.runs if run.episodes]
+
+
+def _sort_key(value: str | None) -> tuple[int, float, str]:
+    if value is None:
+        return (2, 0.0, "")
+    try:
+        return (0, float(value), "")
+    except ValueError:
+        return (1, 0.0, value)
+
+
+def group_runs(runs: Sequence[Run]) -> list[Setting]:
+    """Group runs by setting (overrides minus the seed and non-setting keys) and label the groups.
+
+    A label lists only the overrides that differ between settings; ``all`` when there is one
+    setting (``defaults`` for a setting without any of the differing overrides). Settings are
+    sorted by their differing values, numerically where they are numbers.
+    """
+    groups: dict[tuple[tuple[str, str], ...], list[Run]] = {}
+    for run in runs:
+        groups.setdefault(setting_of(run.overrides, run.config), []).append(run)
+    keys: list[str] = []
+    for pairs in groups:
+        keys.extend(k for k, _ in pairs if k not in keys)
+    values = [dict(pairs) for pairs in groups]
+    differing = [k for k in keys if len({v.get(k) for v in values}) > 1]
+    settings = []
+    for pairs, members in groups.items():
+        mapping = dict(pairs)
+        label = LABEL_SEPARATOR.join(f"{k}={mapping[k]}" for k in differing if k in mapping)
+        if not label:
+            label = SINGLE_SETTING_LABEL if len(groups) == 1 else NO_OVERRIDES_LABEL
+        members.sort(key=lambda r: _sort_key(str(r.seed)))
+        settings.append(Setting(label, pairs, members))
+    settings.sort(key=lambda s: [_sort_key(dict(s.pairs).get(k)) for k in differing])
+    return settings

@@ -1,0 +1,265 @@
+"""The numbers of a sweep report: running means, statistics over seeds, threshold crossings, the
+summary of each setting, the verdict, and the PD controller's reference return."""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from drone_torchrl.evaluation import evaluate_pd
+from drone_torchrl.report.runs import (
+    COL_LENGTH,
+    COL_NEGATIVE_THRUST,
+    COL_RETURN,
+    LABEL_SEPARATOR,
+    STATUS_FAILED,
+    STATUS_FINISHED,
+    STATUS_UNFINISHED,
+    Setting,
+)
+
+DEFAULT_RETURN_THRESHOLD = 2000.0
+STD_DDOF = 0  # population std over seeds: a single seed has zero spread rather than NaN
+# A running mean "reaches" a threshold within this relative tolerance (float sums of integers).
+CROSSING_RTOL = 1e-9
+
+PD_EPISODES = 100
+PD_SEED = 0
+
+PERCENT = 100.0
+LARGE_VALUE = 100.0  # values at least this large are printed without decimals
+
+
+# --------------------------------------------------------------------------------------------------
+# Curves
+
+
+def running_mean(values: Sequence[float] | np.ndarray, window: int) -> np.ndarray:
+    """Trailing running mean over ``window`` values; the first ``window - 1`` average what exists.
+
+    Same as pandas ``Series.rolling(window, min_periods=1).mean()``:
+    ``running_mean([0, 3, 6, 9], 3) == [0, 1.5, 3, 6]``.
+    """
+    if window < 1:
+        raise ValueError(f"window={window} is not allowed; expected an integer >= 1")
+    x = np.asarray(values, dtype=np.float64)
+    cumulative = np.concatenate(([0.0], np.cumsum(x)))
+    end = np.arange(1, x.size + 1)
+    start = np.maximum(end - window, 0)
+    return (cumulative[end] - cumulative[start]) / (end - start)
+
+
+def first_crossing(values: Sequence[float] | np.ndarray, threshold: float) -> int | None:
+    """Index of the first value ``>= threshold`` (within :data:`CROSSING_RTOL`), or ``None``."""
+    x = np.asarray(values, dtype=np.float64)
+    tolerance = CROSSING_RTOL * max(abs(threshold), 1.0)
+    hits = np.flatnonzero(x >= threshold - tolerance)
+    return int(hits[0]) if hits.size else None
+
+
+@dataclass
+class SeedStats:
+    """Per-episode statistics over the seeds that reached each episode (arrays of equal length)."""
+
+    mean: np.ndarray
+    std: np.ndarray
+    min: np.ndarray
+    max: np.ndarray
+    count: np.ndarray
+    """How many seeds contribute at each episode."""
+
+
+def aggregate_over_seeds(curves: Sequence[np.ndarray]) -> SeedStats:
+    """Mean, std (``ddof=0``), min and max per episode over curves of possibly different lengths.
+
+    Episode ``i`` is summarised over the curves longer than ``i``; the result is as long as the
+    longest curve.
+    """
+    curves = [np.asarray(c, dtype=np.float64) for c in curves if len(c)]
+    if not curves:
+        empty = np.zeros(0)
+        return SeedStats(empty, empty, empty, empty, np.zeros(0, dtype=np.int64))
+    length = max(c.size for c in curves)
+    table = np.full((len(curves), length), np.nan)
+    for row, curve in zip(table, curves, strict=True):
+        row[: curve.size] = curve
+    return SeedStats(
+        mean=np.nanmean(table, 0),
+        std=np.nanstd(table, 0, ddof=STD_DDOF),
+        min=np.nanmin(table, 0),
+        max=np.nanmax(table, 0),
+        count=(~np.isnan(table)).sum(0),
+    )
+
+
+def run_curves(setting: Setting, column: str, window: int) -> list[np.ndarray]:
+    """Running mean of ``column`` of each run of ``setting`` that has episodes."""
+    return [running_mean(r.columns[column], window) for r in setting.runs_with_episodes]
+
+
+def setting_curve(setting: Setting, column: str, window: int) -> SeedStats:
+    """Running mean of ``column`` per run, aggregated per episode over the seeds."""
+    return aggregate_over_seeds(run_curves(setting, column, window))
+
+
+# --------------------------------------------------------------------------------------------------
+# Summary
+
+
+@dataclass
+class Crossing:
+    """When the runs of a setting first reach a threshold."""
+
+    threshold: float
+    episodes: list[int]
+    """First crossing episode of each run that reaches the threshold."""
+    runs: int
+    """Runs considered (those with episodes)."""
+
+    @property
+    def mean(self) -> float | None:
+        return float(np.mean(self.episodes)) if self.episodes else None
+
+    def text(self) -> str:
+        reached = f"({len(self.episodes)}/{self.runs} seeds)"
+        return f"{self.mean:.0f} {reached}" if self.episodes else f"never {reached}"
+
+
+@dataclass
+class SettingSummary:
+    """One row of the summary table."""
+
+    label: str
+    seeds_finished: int
+    seeds_total: int
+    episodes_min: int
+    episodes_max: int
+    max_steps: int
+    ceiling: float
+    final_returns: list[float]
+    length_cap: Crossing
+    return_threshold: Crossing
+    final_negative_thrust: float
+    wall_clock_mean_s: float
+    wall_clock_total_s: float
+    notes: list[str]
+
+    @property
+    def final_return_mean(self) -> float:
+        return float(np.mean(self.final_returns)) if self.final_returns else math.nan
+
+    @property
+    def final_return_std(self) -> float:
+        return float(np.std(self.final_returns, ddof=STD_DDOF)) if self.final_returns else math.nan
+
+    @property
+    def final_return_pct(self) -> float:
+        return PERCENT * self.final_return_mean / self.ceiling
+
+    def return_text(self) -> str:
+        """``"2210 +- 150"``."""
+        return (
+            f"{_number(self.final_return_mean)} +- {_number(self.final_return_std, self.final_return_mean)}"
+        )
+
+
+def _number(value: float, scale: float | None = None) -> str:
+    """No decimals for large numbers (``2210``), one for small ones (``5.7``)."""
+    if value is None or math.isnan(value):
+        return "-"
+    magnitude = abs(value if scale is None else scale)
+    return f"{value:.0f}" if magnitude >= LARGE_VALUE else f"{value:.1f}"
+
+
+def progress_notes(setting: Setting) -> list[str]:
+    """Unfinished and failed seeds, e.g. ``"2 of 4 seeds unfinished, shortest at 1200 episodes"``."""
+    notes = []
+    total = len(setting.runs)
+    unfinished = [r for r in setting.runs if r.status == STATUS_UNFINISHED]
+    failed = [r for r in setting.runs if r.status == STATUS_FAILED]
+    if unfinished:
+        shortest = min(r.episodes for r in unfinished)
+        notes.append(f"{len(unfinished)} of {total} seeds unfinished, shortest at {shortest} episodes")
+    if failed:
+        shortest = min(r.episodes for r in failed)
+        notes.append(f"{len(failed)} of {total} seeds failed, shortest at {shortest} episodes")
+    for run in setting.runs:
+        if not run.episodes:
+            notes.append(f"seed {run.seed} has no episode yet")
+        notes.extend(run.notes)
+    return notes
+
+
+def summarize(
+    setting: Setting, window: int, return_threshold: float = DEFAULT_RETURN_THRESHOLD
+) -> SettingSummary:
+    """The table row of one setting (see the :mod:`drone_torchrl.report` docstring for the definitions)."""
+    lengths = run_curves(setting, COL_LENGTH, window)
+    returns = run_curves(setting, COL_RETURN, window)
+    negative = [c[-1] for c in run_curves(setting, COL_NEGATIVE_THRUST, window)]
+    clocks = [r.wall_clock() for r in setting.runs_with_episodes]
+
+    def crossing(curves: list[np.ndarray], threshold: float) -> Crossing:
+        hits = [first_crossing(c, threshold) for c in curves]
+        return Crossing(threshold, [h for h in hits if h is not None], len(curves))
+
+    episodes = [r.episodes for r in setting.runs]
+    return SettingSummary(
+        label=setting.label,
+        seeds_finished=sum(r.status == STATUS_FINISHED for r in setting.runs),
+        seeds_total=len(setting.runs),
+        episodes_min=min(episodes),
+        episodes_max=max(episodes),
+        max_steps=setting.max_steps,
+        ceiling=setting.ceiling,
+        final_returns=[float(c[-1]) for c in returns],
+        length_cap=crossing(lengths, setting.max_steps),
+        return_threshold=crossing(returns, return_threshold),
+        final_negative_thrust=float(np.mean(negative)) if negative else math.nan,
+        wall_clock_mean_s=float(np.mean(clocks)) if clocks else math.nan,
+        wall_clock_total_s=float(np.sum(clocks)) if clocks else math.nan,
+        notes=progress_notes(setting),
+    )
+
+
+def verdict(summaries: Sequence[SettingSummary]) -> str:
+    """``"best: algo.lr=0.0001 (2210 +- 150, 73.7% of 3000)"``: the best mean final running-mean return.
+
+    Names settings tied with the best, and says the verdict is provisional when some runs are
+    unfinished or failed (their finals are taken where they stopped).
+    """
+    candidates = [s for s in summaries if s.final_returns]
+    if not candidates:
+        return "best: none (no episodes yet)"
+    best = max(candidates, key=lambda s: s.final_return_mean)
+    line = f"best: {best.label} ({best.return_text()}, {best.final_return_pct:.1f}% of {best.ceiling:g})"
+    tied = [s.label for s in candidates if s is not best and s.final_return_mean == best.final_return_mean]
+    if tied:
+        line += f"; tied with {LABEL_SEPARATOR.join(tied)}"
+    total = sum(s.seeds_total for s in summaries)
+    pending = total - sum(s.seeds_finished for s in summaries)
+    if pending:
+        line += f"; provisional: {pending} of {total} runs not finished"
+    return line
+
+
+# --------------------------------------------------------------------------------------------------
+# PD reference
+
+
+@functools.cache
+def _pd_return(env_items: tuple[tuple[str, Any], ...]) -> float:
+    return evaluate_pd(dict(env_items), episodes=PD_EPISODES, seed=PD_SEED)["return_mean"]
+
+
+def pd_reference(env_kwargs: dict[str, Any]) -> float:
+    """Mean return of the PD hover controller (:func:`evaluate_pd`, 100 episodes, seed 0).
+
+    Computed once per distinct env setting in this process (cached).
+    """
+    return _pd_return(tuple(sorted(env_kwargs.items())))

@@ -1,0 +1,72 @@
+"""The report of one sweep folder: its settings, their summaries and the PD references."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from drone_torchrl.config import config_dir
+from drone_torchrl.report.runs import LABEL_SEPARATOR, Run, Setting, group_runs, load_runs
+from drone_torchrl.report.stats import (
+    DEFAULT_RETURN_THRESHOLD,
+    SettingSummary,
+    pd_reference,
+    summarize,
+    verdict,
+)
+
+DEFAULTS_FILE = "config.yaml"  # the package's primary Hydra config, in conf/
+PD_LABEL = "PD controller"
+
+
+@dataclass
+class SweepReport:
+    """Everything reported about one sweep folder."""
+
+    sweep_dir: Path
+    window: int
+    return_threshold: float
+    settings: list[Setting]
+    summaries: list[SettingSummary]
+    pd_returns: dict[str, float]
+    """PD reference return per distinct env setting, keyed by the labels of the settings using it."""
+
+    @property
+    def name(self) -> str:
+        return self.sweep_dir.resolve().name
+
+    @property
+    def verdict(self) -> str:
+        return verdict(self.summaries)
+
+
+def default_window() -> int:
+    """``metrics.running_mean_window`` of the package's ``conf/config.yaml`` (the paper's 100)."""
+    return int(OmegaConf.load(Path(config_dir()) / DEFAULTS_FILE).metrics.running_mean_window)
+
+
+def build_report(
+    sweep_dir: Path,
+    window: int | None = None,
+    return_threshold: float = DEFAULT_RETURN_THRESHOLD,
+    pd: bool = True,
+    runs: Sequence[Run] | None = None,
+) -> SweepReport:
+    """Read a sweep folder (or use its already loaded ``runs``) and compute its settings, table
+    rows and PD references; ``window=None`` is :func:`default_window`."""
+    window = default_window() if window is None else window
+    runs = load_runs(Path(sweep_dir)) if runs is None else runs
+    settings = group_runs(runs)
+    summaries = [summarize(s, window, return_threshold) for s in settings]
+    pd_returns: dict[str, float] = {}
+    if pd:
+        by_env: dict[tuple, list[str]] = {}
+        for s in settings:
+            by_env.setdefault(tuple(sorted(s.env_kwargs.items())), []).append(s.label)
+        for env_items, labels in by_env.items():
+            key = PD_LABEL if len(by_env) == 1 else f"{PD_LABEL} ({LABEL_SEPARATOR.join(labels)})"
+            pd_returns[key] = pd_reference(dict(env_items))
+    return SweepReport(Path(sweep_dir), window, return_threshold, settings, summaries, pd_returns)

@@ -1,0 +1,197 @@
+"""The report's tables and files: ``summary.md`` and ``summary.csv`` next to the figures."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from drone_torchrl.report.figures import RETURNS_FIGURE, STEPS_FIGURE, plot_curves
+from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN
+from drone_torchrl.report.stats import PD_EPISODES, PD_SEED, PERCENT, STD_DDOF
+from drone_torchrl.report.sweep import SweepReport
+
+REPORT_DIR = "report"
+SUMMARY_MD = "summary.md"
+SUMMARY_CSV = "summary.csv"
+
+SECONDS_PER_MINUTE = 60.0
+SECONDS_PER_HOUR = 3600.0
+
+SUMMARY_CSV_COLUMNS = (
+    "setting",
+    "seeds_finished",
+    "seeds_total",
+    "episodes_min",
+    "episodes_max",
+    "final_return_mean",
+    "final_return_std",
+    "return_ceiling",
+    "final_return_pct_of_ceiling",
+    "max_steps",
+    "length_cap_episode_mean",
+    "length_cap_seeds_reached",
+    "return_threshold",
+    "return_threshold_episode_mean",
+    "return_threshold_seeds_reached",
+    "final_negative_thrust_fraction",
+    "wall_clock_mean_s",
+    "wall_clock_total_s",
+    "notes",
+)
+
+
+def summary_rows(report: SweepReport) -> list[dict[str, Any]]:
+    """The summary table as dicts with :data:`SUMMARY_CSV_COLUMNS` (raw numbers; empty = never)."""
+    rows = []
+    for s in report.summaries:
+        rows.append(
+            {
+                "setting": s.label,
+                "seeds_finished": s.seeds_finished,
+                "seeds_total": s.seeds_total,
+                "episodes_min": s.episodes_min,
+                "episodes_max": s.episodes_max,
+                "final_return_mean": s.final_return_mean,
+                "final_return_std": s.final_return_std,
+                "return_ceiling": s.ceiling,
+                "final_return_pct_of_ceiling": s.final_return_pct,
+                "max_steps": s.max_steps,
+                "length_cap_episode_mean": "" if s.length_cap.mean is None else s.length_cap.mean,
+                "length_cap_seeds_reached": len(s.length_cap.episodes),
+                "return_threshold": report.return_threshold,
+                "return_threshold_episode_mean": ""
+                if s.return_threshold.mean is None
+                else s.return_threshold.mean,
+                "return_threshold_seeds_reached": len(s.return_threshold.episodes),
+                "final_negative_thrust_fraction": s.final_negative_thrust,
+                "wall_clock_mean_s": s.wall_clock_mean_s,
+                "wall_clock_total_s": s.wall_clock_total_s,
+                "notes": "; ".join(s.notes),
+            }
+        )
+    return rows
+
+
+def _common(values: set) -> str:
+    return f"{next(iter(values)):g}" if len(values) == 1 else "10 x max_steps"
+
+
+def _duration(seconds: float) -> str:
+    if math.isnan(seconds):
+        return "-"
+    if seconds >= SECONDS_PER_HOUR:
+        return f"{seconds / SECONDS_PER_HOUR:.1f} h"
+    if seconds >= SECONDS_PER_MINUTE:
+        return f"{seconds / SECONDS_PER_MINUTE:.1f} min"
+    return f"{seconds:.1f} s"
+
+
+def format_table(report: SweepReport) -> str:
+    """The summary table in Markdown."""
+    ceiling = _common({s.ceiling for s in report.summaries})
+    cap = _common({s.max_steps for s in report.summaries})
+    header = [
+        "setting",
+        "seeds (finished/total)",
+        "episodes",
+        f"final return (running mean {report.window})",
+        f"% of {ceiling}",
+        f"length reaches {cap} at episode",
+        f"return reaches {report.return_threshold:g} at episode",
+        "negative thrust",
+        "wall-clock per run",
+        "wall-clock total (sum over runs)",
+        "notes",
+    ]
+    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    for s in report.summaries:
+        episodes = (
+            f"{s.episodes_max}" if s.episodes_min == s.episodes_max else f"{s.episodes_min}-{s.episodes_max}"
+        )
+        cells = [
+            s.label,
+            f"{s.seeds_finished}/{s.seeds_total}",
+            episodes,
+            s.return_text(),
+            "-" if math.isnan(s.final_return_pct) else f"{s.final_return_pct:.1f}%",
+            s.length_cap.text(),
+            s.return_threshold.text(),
+            "-" if math.isnan(s.final_negative_thrust) else f"{PERCENT * s.final_negative_thrust:.1f}%",
+            _duration(s.wall_clock_mean_s),
+            _duration(s.wall_clock_total_s),
+            "; ".join(s.notes),
+        ]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def format_report(report: SweepReport, figures: bool = True) -> str:
+    """``summary.md``: the verdict on its first line, then the method, references, the table and
+    (with ``figures``) links to the two figures."""
+    runs = sum(len(s.runs) for s in report.settings)
+    lines = [
+        report.verdict,
+        "",
+        f"# Sweep report: {report.name}",
+        "",
+        f"{report.sweep_dir}: {runs} runs in {len(report.settings)} settings. Curves and finals are "
+        f"trailing running means over {report.window} episodes (fewer over the first {report.window - 1}), "
+        f"per run, then mean +- std (ddof={STD_DDOF}) over the seeds that reached each episode. "
+        "Episodes are counted from 0; crossing episodes are the mean over the seeds that reach the "
+        "threshold. Negative thrust: running-mean fraction of motor commands below zero at the end. "
+        "Wall-clock: each run's last wall_clock_s; the total is their sum, which exceeds the elapsed "
+        "time when runs trained side by side (one fused process, parallel launchers).",
+        "",
+    ]
+    for name, value in report.pd_returns.items():
+        ceilings = {s.ceiling for s in report.settings}
+        share = (
+            f" ({PERCENT * value / next(iter(ceilings)):.1f}% of {_common(ceilings)})"
+            if len(ceilings) == 1
+            else ""
+        )
+        lines.append(f"{name}: mean return {value:.0f}{share} over {PD_EPISODES} episodes, seed {PD_SEED}.")
+    if report.pd_returns:
+        lines.append("")
+    lines += [format_table(report), ""]
+    if figures:
+        lines += [f"![steps]({STEPS_FIGURE})", "", f"![returns]({RETURNS_FIGURE})", ""]
+    return "\n".join(lines)
+
+
+def write_report(report: SweepReport, out_dir: Path) -> list[Path]:
+    """Write ``steps.png``, ``returns.png``, ``summary.md`` and ``summary.csv`` into ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = [
+        plot_curves(report, COL_LENGTH, out_dir / STEPS_FIGURE),
+        plot_curves(report, COL_RETURN, out_dir / RETURNS_FIGURE),
+    ]
+    md = out_dir / SUMMARY_MD
+    md.write_text(format_report(report))
+    table = out_dir / SUMMARY_CSV
+    with table.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=SUMMARY_CSV_COLUMNS)
+        writer.writeheader()
+        writer.writerows(summary_rows(report))
+    return [*paths, md, table]
+
+
+def output_dirs(sweep_dirs: Sequence[Path], out: Path | None) -> list[Path]:
+    """``<sweep>/report`` each; with ``out``: ``out`` for one sweep, ``out/<sweep name>`` for several.
+
+    Sweep folders with the same name get ``-2``, ``-3``... suffixes under ``out``.
+    """
+    if out is None:
+        return [Path(d) / REPORT_DIR for d in sweep_dirs]
+    if len(sweep_dirs) == 1:
+        return [Path(out)]
+    dirs, seen = [], {}
+    for d in sweep_dirs:
+        name = Path(d).resolve().name
+        seen[name] = seen.get(name, 0) + 1
+        dirs.append(Path(out) / (name if seen[name] == 1 else f"{name}-{seen[name]}"))
+    return dirs

@@ -1,0 +1,233 @@
+"""From configs to runs: validation, the resume and fork rules, grouping, and how each job ended.
+
+Hydra cannot resume a multirun by itself. Every job here is idempotent instead: its folder is named
+by its overrides inside a fixed sweep folder, and a job whose folder already holds a checkpoint
+continues from it (finished jobs return at once), so running the same sweep command again skips
+finished jobs and resumes the rest.
+
+Resume rules (:func:`prepare`):
+
+- ``resume=<run folder>`` or ``resume=<run>/checkpoints/last.pt`` continues that run in its folder:
+  the same CSV and TensorBoard run, the episode counter carries on.
+- ``resume=<any other checkpoint>`` (``best.pt``, a copied file) continues from it as a **fork** in
+  a new run folder (the Hydra job's folder): the parent's CSV rows up to the checkpoint are copied,
+  and the parent run is left as it was.
+- The checkpoint's config wins; from the command line only ``algo.episodes`` (to extend a run) and
+  the process settings (``progress``, ``threads``, ``device``) are taken.
+"""
+
+from __future__ import annotations
+
+import sys
+import traceback
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from drone_torchrl.config import ConfigError, run_config, validate
+from drone_torchrl.io.checkpoint import (
+    CHECKPOINT_DIR,
+    LAST,
+    CheckpointError,
+    is_last_of_its_run,
+    load_checkpoint,
+    resolve_checkpoint,
+    run_dir_of,
+)
+from drone_torchrl.training.run import FAILED_FILE
+
+# Settings that may differ between the agents of one population; everything else must be equal.
+PER_AGENT_KEYS = ("seed", "algo.lr", "algo.gamma")
+# Keys taken from the command line when a run continues from a checkpoint.
+PROCESS_KEYS = ("progress", "threads", "device")
+
+
+@dataclass
+class Job:
+    """A run ready to train: its config, its folder, and where it continues from."""
+
+    cfg: DictConfig
+    run_dir: Path
+    checkpoint: dict[str, Any] | None = None
+    parent_dir: Path | None = None
+    """The run a fork continues from (its CSV rows up to the checkpoint are copied)."""
+
+    @property
+    def already_finished(self) -> bool:
+        ckpt = self.checkpoint
+        return (
+            ckpt is not None and ckpt["final"] is not None and ckpt["episodes_done"] >= self.cfg.algo.episodes
+        )
+
+
+def _command_line_keys() -> set[str] | None:
+    """Keys set on the command line of this Hydra job, or None outside a Hydra app."""
+    if not HydraConfig.initialized():
+        return None
+    return {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
+
+
+def _hydra_run_dir() -> Path | None:
+    return Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else None
+
+
+def prepare(cfg: DictConfig, run_dir: str | Path | None = None, engine: str | None = None) -> Job:
+    """Validate ``cfg`` and find what the run continues from; raises :class:`ConfigError` (one line).
+
+    ``run_dir`` defaults to the Hydra job's folder (with ``resume`` of a run's last checkpoint: that
+    run's folder). A run continues from a checkpoint when ``resume`` names one, or when its own
+    folder already holds ``checkpoints/last.pt``. ``engine`` (set by the fused launcher) is the
+    engine the caller will train with; a checkpoint written by another engine is then refused.
+    """
+    run_dir = Path(run_dir) if run_dir is not None else None
+    keys = _command_line_keys()
+    location = cfg.resume
+    if location is None:
+        run_dir = run_dir or _hydra_run_dir()
+        if run_dir is None:
+            raise ConfigError("no run folder: pass run_dir or run inside a Hydra app")
+        if (run_dir / CHECKPOINT_DIR / LAST).is_file():
+            location = run_dir
+    if location is None:
+        if engine is not None:
+            cfg = _with(cfg, engine=engine)
+        validate(cfg)
+        return Job(cfg, run_dir)
+    try:
+        path = resolve_checkpoint(location)
+    except FileNotFoundError as err:
+        raise ConfigError(f"resume={cfg.resume!r} is not allowed; {err}") from None
+    try:
+        checkpoint = load_checkpoint(path)
+    except CheckpointError as err:
+        raise ConfigError(str(err)) from None
+    saved = run_config(checkpoint["config"])
+    requested = engine or (cfg.engine if keys is not None and "engine" in keys else None)
+    if requested is not None and requested != checkpoint["engine"]:
+        raise ConfigError(
+            f"engine={requested!r} cannot continue {path}: it was written by engine={checkpoint['engine']!r}"
+        )
+    with open_dict(saved):
+        if keys is None or "algo.episodes" in keys:
+            saved.algo.episodes = cfg.algo.episodes
+        for key in PROCESS_KEYS:
+            saved[key] = cfg[key]
+        saved.resume = cfg.resume
+        saved.engine = checkpoint["engine"]
+    validate(saved)
+    if is_last_of_its_run(path):
+        return Job(saved, run_dir_of(path), checkpoint)
+    # A fork: continue from an earlier point of the parent run, in a folder of its own.
+    fork_dir = run_dir or _hydra_run_dir()
+    parent = run_dir_of(path)
+    if fork_dir is None or fork_dir.resolve() == parent:
+        raise ConfigError(
+            f"resume={cfg.resume!r} is not the run's {LAST}: it continues as a fork and needs a new run folder"
+        )
+    print(
+        f"resume: {path.name} (episode {checkpoint['episodes_done']}) is not the last checkpoint of {parent}; "
+        f"continuing as a fork in {fork_dir} (the original run is left as it is)"
+    )
+    return Job(saved, fork_dir, _as_fork(checkpoint), parent)
+
+
+def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
+    # A fork has not finished, whatever its parent did after the checkpoint.
+    return {**checkpoint, "final": None}
+
+
+def _with(cfg: DictConfig, **values: Any) -> DictConfig:
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        for key, value in values.items():
+            cfg[key] = value
+    return cfg
+
+
+def group_key(cfg: DictConfig) -> str:
+    """Jobs whose configs agree on everything but :data:`PER_AGENT_KEYS` can train as one population."""
+    container = OmegaConf.to_container(cfg, resolve=True)
+    for dotted in (*PER_AGENT_KEYS, "resume", "progress"):
+        node = container
+        *parents, leaf = dotted.split(".")
+        for part in parents:
+            node = node.get(part, {})
+        node.pop(leaf, None)
+    container.pop("hydra", None)
+    return OmegaConf.to_yaml(OmegaConf.create(container))
+
+
+# ---------------------------------------------------------------------------------------- job status
+
+
+def record_failure(run_dir: Path, error: BaseException) -> str:
+    """Write the traceback into ``<run>/FAILED.txt``; returns the one-line reason."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / FAILED_FILE).write_text("".join(traceback.format_exception(error)))
+    return f"{type(error).__name__}: {error}"
+
+
+def job_status(job_dir: Path) -> tuple[str, str]:
+    """``("finished" | "failed" | "unfinished", detail)`` of one job folder (never raises for a bad file)."""
+    failed = job_dir / FAILED_FILE
+    if failed.is_file():
+        lines = [line for line in failed.read_text().splitlines() if line.strip()]
+        return "failed", lines[-1] if lines else "unknown error"
+    last = job_dir / CHECKPOINT_DIR / LAST
+    if not last.is_file():
+        return "unfinished", "no checkpoint"
+    try:
+        ckpt = load_checkpoint(last)
+    except CheckpointError as err:
+        return "unfinished", f"unreadable checkpoint: {err}"
+    episodes = ckpt["episodes_done"]
+    if ckpt["final"] is not None:
+        return (
+            "finished",
+            f"{episodes} episodes, final running-mean return {ckpt['final']['final_return']:.1f}",
+        )
+    return "unfinished", f"{episodes} episodes so far"
+
+
+def sweep_jobs(sweep_dir: Path) -> list[Path]:
+    """Job folders of a sweep: those holding Hydra's ``.hydra/`` record."""
+    return sorted(
+        p.parent for p in Path(sweep_dir).glob("**/.hydra") if p.is_dir() and p.parent != Path(sweep_dir)
+    )
+
+
+def sweep_summary(sweep_dir: Path) -> str:
+    """Which jobs of a sweep finished, failed (and why) or are unfinished: the end-of-sweep text."""
+    sweep_dir = Path(sweep_dir)
+    rows = [(job.relative_to(sweep_dir), *job_status(job)) for job in sweep_jobs(sweep_dir)]
+    counts = {s: sum(1 for _, status, _ in rows if status == s) for s in ("finished", "failed", "unfinished")}
+    lines = [f"\nsweep {sweep_dir}: " + ", ".join(f"{n} {s}" for s, n in counts.items())]
+    lines += [f"  [{status}] {name}: {detail}" for name, status, detail in rows]
+    if counts["failed"]:
+        lines.append(
+            f"  failed jobs keep their traceback in <job>/{FAILED_FILE}; re-run the same command to retry them"
+        )
+    return "\n".join(lines)
+
+
+def failed_jobs(sweep_dir: Path) -> list[Path]:
+    return [job for job in sweep_jobs(sweep_dir) if (job / FAILED_FILE).is_file()]
+
+
+class SweepSummary(Callback):
+    """Prints the sweep summary at the end of a multirun, and exits non-zero if a job failed.
+
+    Launchers that report a failed job to Hydra as failed (``hydra/launcher=fused``) make Hydra stop
+    before this callback; that launcher prints the summary itself.
+    """
+
+    def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        sweep_dir = Path(config.hydra.sweep.dir)
+        print(sweep_summary(sweep_dir))
+        failed = failed_jobs(sweep_dir)
+        if failed:
+            sys.exit(f"drone-train: {len(failed)} job(s) failed")

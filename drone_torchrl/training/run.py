@@ -1,0 +1,257 @@
+"""The run record: everything one agent's run keeps on disk, in one place for every engine.
+
+A :class:`RunRecord` owns a run folder: the episode counters, ``episodes.csv``, the TensorBoard
+run, the evaluation schedule and its videos, ``best.pt`` and ``last.pt``, the final metrics, and
+what a resumed run picks up again. It is fed finished episodes (however many an update brings,
+from however many envs) and the update's training metrics; it never sees a policy or a batch, so
+every collector and every algorithm shares it.
+
+The learner's own state (policy, optimizer, RNG streams) is handed in as a dict when a checkpoint
+is written: the record adds its counters and the config (see :mod:`drone_torchrl.io.checkpoint`).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from drone_torchrl.config import env_kwargs
+from drone_torchrl.envs.dynamics import TerminationCause
+from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, FORMAT_VERSION, LAST, save_checkpoint
+from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
+from drone_torchrl.io.tb_logger import RunLogger, log_update
+from drone_torchrl.io.video import VIDEO_DIR, record_video, save_mp4
+
+CONFIG_NAME = "config.yaml"
+FAILED_FILE = "FAILED.txt"
+# The per-episode values a collector reports for every finished episode (episode_stats' keys).
+EPISODE_KEYS = ("return", "length", "time_in_zone", "negative_thrust_fraction", "termination_cause")
+
+
+class RunRecord:
+    """One agent's run folder and its bookkeeping.
+
+    Args:
+        cfg: the run's validated config.
+        run_dir: the folder to write (created if needed).
+        engine: the engine that trains it (stored in checkpoints; a run continues with it).
+        checkpoint: the loaded checkpoint to continue from, or None for a fresh run.
+        parent_dir: for a fork (resuming from a checkpoint that is not ``run_dir``'s last), the
+            folder it came from: its ``episodes.csv`` rows up to the checkpoint are copied; the
+            parent is left untouched.
+    """
+
+    def __init__(
+        self,
+        cfg: DictConfig,
+        run_dir: Path,
+        engine: str,
+        checkpoint: dict[str, Any] | None = None,
+        parent_dir: Path | None = None,
+    ) -> None:
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.engine = engine
+        window = cfg.metrics.running_mean_window
+        self.recent_returns: deque[float] = deque(maxlen=window)
+        self.recent_lengths: deque[float] = deque(maxlen=window)
+        self.episodes_done = self.updates_done = 0
+        self.wall_clock_before = 0.0
+        self.best_eval = -math.inf
+        self.final: dict[str, float] | None = None
+        if checkpoint is not None:
+            self.episodes_done, self.updates_done = checkpoint["episodes_done"], checkpoint["updates_done"]
+            self.wall_clock_before = checkpoint["wall_clock_s"]
+            self.best_eval = checkpoint["best_eval_return"]
+            self.recent_returns.extend(checkpoint["recent_returns"])
+            self.recent_lengths.extend(checkpoint["recent_lengths"])
+        self.last_eval_episode: int | None = None
+        self.next_checkpoint = self.episodes_done + cfg.checkpoint.every_episodes
+        every = cfg.eval.every_episodes
+        self.next_eval = self.episodes_done + every if every else None
+
+        (self.run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
+        (self.run_dir / FAILED_FILE).unlink(missing_ok=True)
+        OmegaConf.save(cfg, self.run_dir / CONFIG_NAME)
+        resumed = checkpoint is not None
+        self.logger = RunLogger(
+            cfg.logger.exp_name, self.run_dir, purge_step=self.episodes_done if resumed else None
+        )
+        self.csv = EpisodeCSV(
+            self.run_dir / CSV_NAME,
+            keep_episodes=self.episodes_done,
+            source=None if parent_dir is None else Path(parent_dir) / CSV_NAME,
+        )
+        self.start = time.perf_counter()
+
+    # ------------------------------------------------------------------ state
+    @property
+    def finished(self) -> bool:
+        return self.episodes_done >= self.cfg.algo.episodes
+
+    @property
+    def wall_clock(self) -> float:
+        return self.wall_clock_before + time.perf_counter() - self.start
+
+    @property
+    def running_return(self) -> float:
+        return float(np.mean(self.recent_returns)) if self.recent_returns else math.nan
+
+    @property
+    def running_length(self) -> float:
+        return float(np.mean(self.recent_lengths)) if self.recent_lengths else math.nan
+
+    # ------------------------------------------------------------------ training
+    def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
+        """Book one update: its finished episodes (``EPISODE_KEYS`` -> one value per episode, in the
+        order they finished) and its training metrics (TensorBoard every ``logger.every_updates``)."""
+        self.updates_done += 1
+        wall = round(self.wall_clock, 3)
+        rows = []
+        for values in zip(*(episodes[k] for k in EPISODE_KEYS), strict=True):
+            row = dict(zip(EPISODE_KEYS, values, strict=True))
+            row["termination_cause"] = TerminationCause(int(row["termination_cause"])).name
+            row.update(episode=self.episodes_done, update=self.updates_done, wall_clock_s=wall)
+            rows.append(row)
+            self.recent_returns.append(row["return"])
+            self.recent_lengths.append(row["length"])
+            self.episodes_done += 1
+        self.csv.write(rows)
+        if self.updates_done % self.cfg.logger.every_updates == 0:
+            metrics = {
+                **train_metrics,
+                "train/running_mean_return": self.running_return,
+                "train/running_mean_length": self.running_length,
+            }
+            log_update(self.logger, rows, metrics, step=self.episodes_done)
+
+    # ------------------------------------------------------------------ evaluation
+    @property
+    def eval_due(self) -> bool:
+        """Every ``eval.every_episodes`` episodes, and once at the end (not twice when they coincide)."""
+        if self.last_eval_episode == self.episodes_done:
+            return False
+        periodic = self.next_eval is not None and self.episodes_done >= self.next_eval
+        return periodic or self.finished
+
+    def record_eval(
+        self, result: dict[str, float], learner_state: Callable[[], dict[str, Any]], actor: Any
+    ) -> None:
+        """Book an evaluation (``return``, ``length``, ``time_in_zone`` means): TensorBoard, ``best.pt``
+        when it is the best so far, and a video of ``actor`` when ``eval.video``."""
+        cfg = self.cfg
+        step = self.episodes_done
+        self.logger.log_metrics({f"eval/{k}": v for k, v in result.items()}, step=step)
+        if cfg.checkpoint.keep_best and result["return"] > self.best_eval:
+            self.best_eval = result["return"]
+            save_checkpoint(self._state(learner_state()), self.run_dir / CHECKPOINT_DIR / BEST)
+        if cfg.eval.video:
+            self._video(actor, step)
+        self.last_eval_episode = step
+        if self.next_eval is not None:
+            while self.next_eval <= step:
+                self.next_eval += cfg.eval.every_episodes
+        if self.finished:
+            self.final = {
+                "final_return": self.running_return,
+                "final_length": self.running_length,
+                "eval_return": result["return"],
+                "wall_clock_s": self.wall_clock,
+            }
+
+    def _video(self, actor: Any, step: int) -> Path:
+        """``<run>/videos/episode_<step>.mp4`` and TensorBoard's ``eval/video``.
+
+        ``logger.video_stride`` thins the frames (the playback rate is divided alike, so it stays
+        real time) and, for TensorBoard only, the pixels: its GIF encoding is the slow part.
+        """
+        cfg = self.cfg
+        stride = cfg.logger.video_stride
+        frames = record_video(actor, env_kwargs(cfg), cfg.eval.seed, cfg.device, frame_stride=stride)
+        fps = cfg.logger.video_fps / stride
+        path = save_mp4(frames, self.run_dir / VIDEO_DIR / f"episode_{step:06d}.mp4", fps)
+        self.logger.log_frames("eval/video", frames[:, ::stride, ::stride], step=step, fps=fps)
+        return path
+
+    # ------------------------------------------------------------------ checkpoints
+    @property
+    def checkpoint_due(self) -> bool:
+        return self.finished or self.episodes_done >= self.next_checkpoint
+
+    def _state(self, learner: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "format_version": FORMAT_VERSION,
+            "engine": self.engine,
+            **learner,
+            "episodes_done": self.episodes_done,
+            "updates_done": self.updates_done,
+            "wall_clock_s": self.wall_clock,
+            "best_eval_return": self.best_eval,
+            "recent_returns": list(self.recent_returns),
+            "recent_lengths": list(self.recent_lengths),
+            "config": OmegaConf.to_container(self.cfg, resolve=True),
+            "final": self.final,
+        }
+
+    def save(self, learner: dict[str, Any]) -> None:
+        """Write ``last.pt`` (the CSV is flushed first, so the two agree after a kill); at the end also
+        the final hparams, and close the files."""
+        self.csv.flush()
+        save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
+        while self.next_checkpoint <= self.episodes_done:
+            self.next_checkpoint += self.cfg.checkpoint.every_episodes
+        if self.finished and self.final is not None:
+            self.logger.log_final_hparams(self.cfg, self.final)
+            self.close()
+
+    def close(self) -> None:
+        if not self.csv._file.closed:
+            self.csv.close()
+            self.logger.experiment.close()
+
+    def summary_line(self) -> str:
+        f = self.final or {}
+        return (
+            f"{self.run_dir}: {self.episodes_done} episodes, running-mean({self.cfg.metrics.running_mean_window}) "
+            f"return {f.get('final_return', math.nan):.1f}, length {f.get('final_length', math.nan):.1f}, "
+            f"eval return {f.get('eval_return', math.nan):.1f}, {f.get('wall_clock_s', math.nan):.0f} s"
+        )
+
+
+class Progress:
+    """One progress bar over the episodes of every run trained together, with the running mean."""
+
+    def __init__(self, runs: Sequence[RunRecord], setting: bool | str) -> None:
+        show = sys.stderr.isatty() if setting == "auto" else bool(setting)
+        self.runs = runs
+        self.bar = tqdm(
+            total=sum(r.cfg.algo.episodes for r in runs),
+            initial=sum(r.episodes_done for r in runs),
+            disable=not show,
+            unit="ep",
+            dynamic_ncols=True,
+        )
+
+    def update(self, episodes: int, active: Sequence[RunRecord]) -> None:
+        self.bar.update(episodes)
+        window = active[0].cfg.metrics.running_mean_window
+        returns = [r.running_return for r in active]
+        if len(active) == 1:
+            text = f"return({window})={returns[0]:.0f} length={active[0].running_length:.0f}"
+        else:
+            text = (
+                f"{len(active)} agents, return({window}) mean={np.mean(returns):.0f} best={max(returns):.0f}"
+            )
+        self.bar.set_postfix_str(text, refresh=False)
+
+    def close(self) -> None:
+        self.bar.close()

@@ -1,0 +1,294 @@
+"""One loop, one run record: regressions found in the two-engine code, and the checkpoint format."""
+
+from __future__ import annotations
+
+import ast
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+import drone_torchrl
+from drone_torchrl.config import ConfigError, config_dir
+from drone_torchrl.io.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, save_checkpoint
+from drone_torchrl.io.episodes_csv import read_episodes
+from drone_torchrl.objectives import ReinforceLoss
+from drone_torchrl.training.jobs import job_status, prepare
+from drone_torchrl.training.trainer import Trainer, make_loss, train
+
+ENGINES = ["torchrl", "fused"]
+FAST = ["compile=false", "progress=false", "eval.episodes=2", "eval.video=false", "env.max_steps=30"]
+
+
+def _cfg(*overrides: str, name: str = "config"):
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        return compose(name, overrides=list(overrides))
+
+
+def _snapshot(run: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(run)): p.read_bytes() for p in sorted(run.rglob("*")) if p.is_file()}
+
+
+def _tb_steps(run: Path, tag: str) -> list[int]:
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    return [e.step for e in events.Scalars(tag)] if tag in events.Tags()["scalars"] else []
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_resume_from_best_forks_and_leaves_the_run_alone(tmp_path, engine, capsys):
+    """resume=<run>/checkpoints/best.pt used to continue from last.pt (fused engine) or in the parent's
+    folder. best.pt here is the episode-2 checkpoint: at lr 1e-9 every evaluation scores the same, and
+    best.pt is only replaced by a strictly better one."""
+    run, fork = tmp_path / "run", tmp_path / "fork"
+    common = [
+        f"engine={engine}",
+        "algo.lr=1e-9",
+        "eval.every_episodes=2",
+        "checkpoint.every_episodes=2",
+        *FAST,
+    ]
+    train(_cfg("algo.episodes=8", *common), run_dir=run)
+    best = run / "checkpoints" / "best.pt"
+    assert load_checkpoint(best)["episodes_done"] == 2
+    before = _snapshot(run)
+
+    train(_cfg(f"resume={best}", "algo.episodes=6", "progress=false"), run_dir=fork)
+    assert "continuing as a fork in" in capsys.readouterr().out
+    assert _snapshot(run) == before  # the parent's CSV, TensorBoard and checkpoints are untouched
+    parent, _ = read_episodes(run / "episodes.csv")
+    child, _ = read_episodes(fork / "episodes.csv")
+    assert child["episode"].tolist() == list(range(6))
+    # Same weights, optimizer and RNG streams as the parent at episode 2: the fork replays it.
+    np.testing.assert_array_equal(child["return"], parent["return"][:6])
+    np.testing.assert_array_equal(child["length"], parent["length"][:6])
+    last = load_checkpoint(fork / "checkpoints" / "last.pt")
+    assert last["episodes_done"] == 6 and last["final"] is not None
+    assert _tb_steps(fork, "eval/return") == [4, 6]
+
+
+def test_fork_needs_a_folder_of_its_own(tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("algo.episodes=2", "eval.every_episodes=2", *FAST), run_dir=run)
+    with pytest.raises(ConfigError, match="fork"):
+        prepare(_cfg(f"resume={run / 'checkpoints' / 'best.pt'}"), run_dir=run)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_final_evaluation_is_not_repeated(tmp_path, engine):
+    """algo.episodes a multiple of eval.every_episodes: one evaluation per point, one video each."""
+    run = tmp_path / "run"
+    train(
+        _cfg(f"engine={engine}", "algo.episodes=4", "eval.every_episodes=2", *FAST, "eval.video=true"),
+        run_dir=run,
+    )
+    assert sorted(p.name for p in (run / "videos").iterdir()) == ["episode_000002.mp4", "episode_000004.mp4"]
+    assert _tb_steps(run, "eval/return") == [2, 4]
+
+
+def test_torchrl_engine_with_worker_processes(tmp_path):
+    """env.num_workers=1 with 2 episodes per update used to crash inside TorchRL after the folder was written."""
+    run = tmp_path / "run"
+    cfg = _cfg("engine=torchrl", "env.num_workers=1", "algo.episodes_per_update=2", "algo.episodes=4", *FAST)
+    train(cfg, run_dir=run)
+    rows, _ = read_episodes(run / "episodes.csv")
+    assert rows["episode"].tolist() == [0, 1, 2, 3]
+    assert rows["update"].tolist() == [1, 1, 2, 2]
+    assert all(1 <= n <= 30 for n in rows["length"])
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["env.num_workers=2", "algo.episodes_per_update=3"],
+            "env.num_workers=2 is not allowed; expected a divisor",
+        ),
+        (
+            ["engine=fused", "env.num_workers=1"],
+            "env.num_workers=1 is not allowed; expected 0 with engine='fused'",
+        ),
+    ],
+)
+def test_worker_settings_refused_before_any_work(tmp_path, overrides, message):
+    cfg = _cfg("engine=torchrl", *overrides, *FAST)
+    with pytest.raises(ConfigError, match=message):
+        train(cfg, run_dir=tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("preset", ["paper", "bounded"])
+def test_both_collectors_score_a_stored_rollout_alike(tmp_path, preset):
+    """The TorchRL actor and the stacked population actor give the same loss and gradient on one rollout."""
+    common = [f"experiment={preset}", "algo.episodes_per_update=3", "algo.baseline=mean", *FAST]
+    trainers = {
+        engine: Trainer([prepare(_cfg(f"engine={engine}", *common), tmp_path / engine)]) for engine in ENGINES
+    }
+    batch = trainers["torchrl"].collector.collect([0])  # [1, 3, T], sampled by the TorchRL env + actor
+    assert batch.shape[:2] == (1, 3)
+    results = {}
+    for engine, trainer in trainers.items():
+        cfg = trainer.cfg
+        loss = make_loss(cfg, trainer.collector.actor([0]), trainer.population.gamma)(batch.clone())
+        net = trainer.population.nets[0]
+        net.zero_grad()
+        loss["loss_reinforce"].backward()
+        results[engine] = (loss["loss_reinforce"].detach(), [p.grad.clone() for p in net.parameters()])
+        trainer.close()
+    (loss_a, grads_a), (loss_b, grads_b) = results["torchrl"], results["fused"]
+    assert float(loss_a) != 0.0
+    torch.testing.assert_close(loss_a, loss_b, rtol=1e-5, atol=1e-6)
+    for ga, gb in zip(grads_a, grads_b, strict=True):
+        assert ga.abs().sum() > 0
+        torch.testing.assert_close(ga, gb, rtol=1e-4, atol=1e-6)
+    # ... and the single-agent loss without an agent dim agrees too.
+    trainer = Trainer([prepare(_cfg("engine=torchrl", *common), tmp_path / "plain")])
+    plain = ReinforceLoss(trainer.collector.actor([0]), gamma=trainer.cfg.algo.gamma, baseline="mean")(
+        batch[0].clone()
+    )
+    torch.testing.assert_close(plain["loss_reinforce"].detach(), loss_a, rtol=1e-5, atol=1e-6)
+    trainer.close()
+
+
+# ----------------------------------------------------------------------------------- checkpoints
+
+
+class _Payload:
+    """Unpickling this runs ``open(<marker>, "w")``: what a crafted checkpoint could do."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_checkpoints_are_tensors_and_plain_data(tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("algo.episodes=2", *FAST), run_dir=run)
+    state = torch.load(run / "checkpoints" / "last.pt", weights_only=True)
+    assert state["format_version"] == FORMAT_VERSION == 2
+    assert isinstance(state["config"], dict) and state["config"]["seed"] == 0
+    assert all(v is None or isinstance(v, torch.Tensor) for v in state["rng"].values())
+    assert isinstance(state["rng"]["agent"], torch.Tensor)  # the fused engine's per-agent stream
+
+
+def test_a_crafted_checkpoint_runs_no_code(tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("algo.episodes=2", *FAST), run_dir=run)
+    last = run / "checkpoints" / "last.pt"
+    state = torch.load(last, weights_only=True)
+    marker = tmp_path / "pwned"
+    torch.save({**state, "final": _Payload(marker)}, last)
+
+    with pytest.raises(CheckpointError, match=rf"^{last}.*refusing to unpickle"):
+        load_checkpoint(last)
+    with pytest.raises(ConfigError, match=str(last)):
+        prepare(_cfg(f"resume={run}"))
+    from drone_torchrl.comparison import run_eval
+
+    with pytest.raises(ConfigError, match=str(last)):
+        run_eval(_cfg(f"checkpoint={run}", "episodes=1", "video=false", "plot=false", name="eval"))
+    status, detail = job_status(run)
+    assert status == "unfinished" and "refusing to unpickle" in detail
+    assert not marker.exists()
+
+
+def test_version_1_checkpoints_are_migrated_and_resume(tmp_path):
+    """A checkpoint written before format_version existed (RNG states under *_rng, no final key)."""
+    common = ["engine=fused", "checkpoint.every_episodes=2", "eval.every_episodes=0", *FAST]
+    whole, old = tmp_path / "whole", tmp_path / "old"
+    train(_cfg("algo.episodes=4", *common), run_dir=whole)
+    train(_cfg("algo.episodes=4", *common), run_dir=old)
+    # Rewrite old's episode-2 state in the version-1 layout, as if the run had stopped there.
+    shutil.rmtree(old)
+    train(_cfg("algo.episodes=2", *common), run_dir=old)
+    last = old / "checkpoints" / "last.pt"
+    state = torch.load(last, weights_only=True)
+    rng = state.pop("rng")
+    state.pop("format_version")
+    state.pop("final")
+    state.update(torch_rng=rng["torch"], env_rng=rng["env"], agent_rng=rng["agent"])
+    torch.save(state, last)
+
+    migrated = load_checkpoint(last)
+    assert migrated["format_version"] == FORMAT_VERSION and migrated["final"] is None
+    assert torch.equal(migrated["rng"]["agent"], rng["agent"])
+    train(_cfg(f"resume={old}", "algo.episodes=4", "progress=false"))
+    a, _ = read_episodes(whole / "episodes.csv")
+    b, _ = read_episodes(old / "episodes.csv")
+    np.testing.assert_array_equal(a["return"], b["return"])
+
+
+def test_unknown_checkpoint_versions_are_refused_in_one_line(tmp_path):
+    path = tmp_path / "future.pt"
+    save_checkpoint({"format_version": 99, "actor": {}, "config": {}}, path)
+    with pytest.raises(CheckpointError, match=rf"^{path} has format_version=99; .* reads 1 and 2$"):
+        load_checkpoint(path)
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match=rf"^{garbage} is not a readable checkpoint"):
+        load_checkpoint(garbage)
+
+
+# ----------------------------------------------------------------------------------- layout
+
+
+def _module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Every import (module level or inside functions) between our own modules."""
+    root = Path(drone_torchrl.__file__).resolve().parents[1]
+    files = [*root.joinpath("drone_torchrl").rglob("*.py"), *root.joinpath("hydra_plugins").rglob("*.py")]
+    modules = {_module_name(f, root): f for f in files if "conf" not in f.parts}
+    ours = ("drone_torchrl", "hydra_plugins")
+    graph: dict[str, set[str]] = {name: set() for name in modules}
+    for name, path in modules.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                # "from pkg import sub" imports pkg.sub when that is a module, else pkg itself.
+                targets = [
+                    f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules else node.module
+                    for a in node.names
+                ]
+            else:
+                continue
+            graph[name] |= {t for t in targets if t.startswith(ours) and t in modules and t != name}
+    return graph
+
+
+def test_no_import_cycles():
+    graph = _import_graph()
+    assert "drone_torchrl.training.trainer" in graph and len(graph) > 20
+    state: dict[str, int] = {}
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycle = stack[stack.index(nxt) :] + [nxt] if nxt in stack else [node, nxt]
+                pytest.fail("import cycle: " + " -> ".join(cycle))
+            if nxt not in state:
+                visit(nxt, [*stack, nxt])
+        state[node] = 2
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module, [module])
+
+
+def test_apps_are_imported_by_nothing():
+    graph = _import_graph()
+    apps = {m for m in graph if m.startswith("drone_torchrl.apps.")}
+    assert {"drone_torchrl.apps.train", "drone_torchrl.apps.evaluate", "drone_torchrl.apps.report"} <= apps
+    importers = {m: sorted(a for a in apps if a in deps) for m, deps in graph.items() if apps & deps}
+    assert importers == {}, importers
