@@ -97,7 +97,7 @@ class Trainer:
 
     def update(self, active: list[int]) -> int:
         """One update of the ``active`` agents; returns the env steps they took."""
-        cfg, population, runs = self.cfg, self.population, self.runs
+        population, runs = self.population, self.runs
         batch = self.collector.collect(active)
         losses = self.loss_module(active)(batch)
         population.zero_grad(active)
