@@ -86,7 +86,9 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
         if "Unsupported global" not in str(err):  # not a pickle we could read at all
-            raise CheckpointError(f"{path} is not a readable checkpoint (damaged or not a torch file)") from None
+            raise CheckpointError(
+                f"{path} is not a readable checkpoint (damaged or not a torch file)"
+            ) from None
         raise CheckpointError(
             f"{path} holds Python objects other than tensors and plain data; refusing to unpickle it"
         ) from None

@@ -104,7 +104,7 @@ class Trainer:
         losses["loss_reinforce"].backward()
         grad_norms = population.clip_and_step(active)
 
-        # One host transfer for every agent's episodes and metrics.
+        # Episodes and metrics of all agents come to the host together, once per update.
         episodes = {k: v.tolist() for k, v in episode_stats(batch).items() if k in EPISODE_KEYS}
         loss, norm, std = (t.tolist() for t in (losses["loss_per_agent"], grad_norms, _policy_std(batch)))
         for k, i in enumerate(active):
