@@ -1,14 +1,16 @@
-"""The three-net policy of many agents at once: parameters stacked over a leading agent dim.
+"""The three-net policy of many agents at once: one set of parameters stacked over a leading agent dim.
 
-Each agent keeps its own :class:`~drone_torchrl.modules.ThreeNetPolicy` (its own leaves, so its
-own optimizer); :class:`StackedThreeNet` stacks their weights and applies every agent's net to its
-own observations with batched matrix products (``torch.baddbmm``), one kernel per layer whatever
-the number of agents.
+:class:`StackedThreeNet` holds N agents' :class:`~drone_torchrl.modules.ThreeNetPolicy` weights as
+one ``TensorDictParams`` of ``[N, ...]`` leaves (``TensorDict.from_modules(..., as_module=True)``,
+as TorchRL's ``MultiAgentMLP`` holds its agents), so an optimizer step, a clip or a forward is a
+fixed number of kernels whatever N is. The forward applies every agent's net to its own
+observations with batched matrix products (``torch.baddbmm``), one kernel per layer.
 """
 
 from __future__ import annotations
 
 import torch
+from tensordict import TensorDict
 from torch import nn
 from torchrl.modules import TanhNormal
 
@@ -17,15 +19,17 @@ from drone_torchrl.modules.policy import ACTIVATIONS, ThreeNetPolicy
 Layers = list[tuple[torch.Tensor, torch.Tensor]]
 
 
-def _linears(net: ThreeNetPolicy) -> list[nn.Linear]:
-    return [m for m in net.shared if isinstance(m, nn.Linear)] + [net.mean, net.std]
+def _linear_names(net: ThreeNetPolicy) -> list[str]:
+    shared = [f"shared.{i}" for i, m in enumerate(net.shared) if isinstance(m, nn.Linear)]
+    return [*shared, "mean", "std"]
 
 
 class StackedThreeNet(nn.Module):
-    """Applies A :class:`ThreeNetPolicy` nets at once to ``[A, ..., 6]`` observations.
+    """N :class:`ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., 6]`` observations.
 
-    The parameters stay the agents' own leaves; they are stacked on every call (with gradients
-    for the loss) or once per rollout without (:meth:`stacked` under ``no_grad``).
+    ``nets`` give the architecture and each agent's initial weights (copied; the nets themselves
+    are not used afterwards). ``params`` holds the ``[N, ...]`` leaves, keyed like the net's own
+    parameters (``("shared", "0", "weight")`` for ``shared.0.weight``).
     """
 
     def __init__(self, nets: list[ThreeNetPolicy], activation: str) -> None:
@@ -36,20 +40,24 @@ class StackedThreeNet(nn.Module):
             raise ValueError("stacked nets must share hidden_sizes and min_std")
         if kinds != {(ACTIVATIONS[activation],) * (len(nets[0].shared) // 2)}:
             raise ValueError(f"stacked nets must all use activation={activation!r}")
-        self.nets = nn.ModuleList(nets)
+        self.params = TensorDict.from_modules(*nets, as_module=True)
         self.activation = ACTIVATIONS[activation]()
         self.min_std = nets[0].min_std
-        self.n_hidden = len(_linears(nets[0])) - 2
+        self.linears = [tuple(name.split(".")) for name in _linear_names(nets[0])]
+        self.names = [name for name, _ in nets[0].named_parameters()]
+        self.n_hidden = len(self.linears) - 2
+        hidden = [m.out_features for m in nets[0].shared if isinstance(m, nn.Linear)]
+        self.spec = {"hidden_sizes": hidden, "activation": activation, "min_std": self.min_std}
 
-    def stacked(self) -> Layers:
-        """``[(W^T [A, in, out], b [A, 1, out]), ...]`` for the hidden layers, then mean and std heads."""
-        layers = zip(*(_linears(net) for net in self.nets), strict=True)
+    def __len__(self) -> int:
+        return self.params.batch_size[0]
+
+    def stacked(self, params: TensorDict | None = None) -> Layers:
+        """``[(W^T [N, in, out], b [N, 1, out]), ...]``: hidden layers, then the mean and std heads."""
+        params = self.params if params is None else params
         return [
-            (
-                torch.stack([m.weight for m in group]).transpose(1, 2),
-                torch.stack([m.bias for m in group]).unsqueeze(1),
-            )
-            for group in layers
+            (params.get((*key, "weight")).transpose(1, 2), params.get((*key, "bias")).unsqueeze(1))
+            for key in self.linears
         ]
 
     def apply_stacked(self, layers: Layers, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -65,6 +73,25 @@ class StackedThreeNet(nn.Module):
 
     def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.apply_stacked(self.stacked(), observation)
+
+    # ------------------------------------------------------------------ one agent
+    def agent_state_dict(self, agent: int) -> dict[str, torch.Tensor]:
+        """Agent ``agent``'s weights as a :class:`ThreeNetPolicy` state dict (copies)."""
+        return {name: self.params.get(tuple(name.split(".")))[agent].detach().clone() for name in self.names}
+
+    @torch.no_grad()
+    def load_agent_state_dict(self, agent: int, state: dict[str, torch.Tensor]) -> None:
+        missing = set(self.names) - set(state)
+        if missing:
+            raise KeyError(f"missing policy weights: {sorted(missing)}")
+        for name in self.names:
+            self.params.get(tuple(name.split(".")))[agent] = state[name]
+
+    def agent_net(self, agent: int) -> ThreeNetPolicy:
+        """A standalone copy of agent ``agent``'s policy (for videos and export)."""
+        net = ThreeNetPolicy(**self.spec).to(self.params.device)
+        net.load_state_dict(self.agent_state_dict(agent))
+        return net
 
 
 class ActionSampler:
