@@ -87,7 +87,15 @@ def _choice(cfg: DictConfig, key: str, choices: tuple) -> None:
 
 # Keys added after the first runs were saved, with the value those runs behaved as: a checkpoint's
 # config gets them filled in, so old runs can still be evaluated and resumed.
-ADDED_KEYS = {"engine": "torchrl", "compile": False, "logger.every_updates": 1, "logger.video_stride": 1}
+ADDED_KEYS = {
+    "engine": "torchrl",
+    "compile": False,
+    "logger.every_updates": 1,
+    "logger.video_stride": 1,
+    "algo.optimizer": "adam",
+    "algo.weight_decay": 0.0,
+}
+OPTIMIZERS = ("adam", "adamw")
 
 
 def run_config(saved: dict[str, Any]) -> DictConfig:
@@ -146,6 +154,8 @@ def validate(cfg: DictConfig) -> None:
             f"a divisor of algo.episodes_per_update={cfg.algo.episodes_per_update} (the episodes are split over the workers)",
         )
     _number(cfg, "algo.adam_eps", low=0, low_open=True)
+    _choice(cfg, "algo.optimizer", OPTIMIZERS)
+    _number(cfg, "algo.weight_decay", low=0)
     if cfg.algo.max_grad_norm is not None:
         _number(cfg, "algo.max_grad_norm", low=0, low_open=True)
     _choice(cfg, "algo.baseline", BASELINES)

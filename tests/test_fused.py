@@ -11,7 +11,6 @@ from drone_torchrl.evaluation import evaluate
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.modules import ActionSampler, StackedThreeNet, ThreeNetPolicy
-from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.training.jobs import group_key, prepare
 from drone_torchrl.training.trainer import Trainer, train_jobs
 
@@ -57,32 +56,40 @@ def test_tanh_sampler_matches_torchrl_tanh_normal():
 
 @pytest.mark.parametrize("preset", ["paper", "bounded"])
 def test_agent_in_a_batch_follows_its_solo_trajectory(tmp_path, preset):
-    """50 episodes: the first agent alone and inside a batch of three with other seeds, lrs and gammas."""
-    settings = [
-        ("seed=0", "algo.lr=1e-3", "algo.gamma=0.99"),
+    """50 episodes: seed 0 alone, first of a population of 3 and last of a population of 5, with
+    other seeds, learning rates and discounts beside it."""
+    mine = ("seed=0", "algo.lr=1e-3", "algo.gamma=0.99")
+    others = [
         ("seed=1", "algo.lr=1e-4", "algo.gamma=0.9"),
         ("seed=2", "algo.lr=5e-4", "algo.gamma=0.999"),
+        ("seed=3", "algo.lr=3e-3", "algo.gamma=0.95"),
+        ("seed=4", "algo.lr=1e-3", "algo.gamma=0.5"),
     ]
-    jobs = [
-        (_cfg(f"experiment={preset}", "algo.episodes=50", *s), tmp_path / f"batch{i}")
-        for i, s in enumerate(settings)
-    ]
-    assert len({group_key(cfg) for cfg, _ in jobs}) == 1
-    _train(*jobs)
-    _train((jobs[0][0], tmp_path / "alone"))
+    common = (f"experiment={preset}", "algo.episodes=50")
+    small = [mine, *others[:2]]
+    large = [*others, mine]
+    jobs_small = [(_cfg(*common, *s), tmp_path / f"small{i}") for i, s in enumerate(small)]
+    jobs_large = [(_cfg(*common, *s), tmp_path / f"large{i}") for i, s in enumerate(large)]
+    assert len({group_key(cfg) for cfg, _ in jobs_small + jobs_large}) == 1
+    _train(*jobs_small)
+    _train(*jobs_large)
+    _train((_cfg(*common, *mine), tmp_path / "alone"))
     solo, _ = read_episodes(tmp_path / "alone" / "episodes.csv")
-    fused, _ = read_episodes(tmp_path / "batch0" / "episodes.csv")
     assert len(solo["episode"]) == 50
-    np.testing.assert_array_equal(solo["length"], fused["length"])
-    np.testing.assert_allclose(solo["return"], fused["return"], rtol=1e-6)
-    np.testing.assert_allclose(solo["negative_thrust_fraction"], fused["negative_thrust_fraction"], atol=1e-6)
-    a = load_checkpoint(tmp_path / "alone" / "checkpoints" / "last.pt")["actor"]
-    b = load_checkpoint(tmp_path / "batch0" / "checkpoints" / "last.pt")["actor"]
-    for key in a:
-        torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6)
+    for folder in ("small0", "large4"):
+        fused, _ = read_episodes(tmp_path / folder / "episodes.csv")
+        np.testing.assert_array_equal(solo["length"], fused["length"])
+        np.testing.assert_allclose(solo["return"], fused["return"], rtol=1e-5)
+        np.testing.assert_allclose(
+            solo["negative_thrust_fraction"], fused["negative_thrust_fraction"], atol=1e-6
+        )
+        a = load_checkpoint(tmp_path / "alone" / "checkpoints" / "last.pt")["actor"]
+        b = load_checkpoint(tmp_path / folder / "checkpoints" / "last.pt")["actor"]
+        for key in a:
+            torch.testing.assert_close(a[key], b[key], rtol=1e-5, atol=1e-6)
     # The other agents really are different runs.
-    other, _ = read_episodes(tmp_path / "batch1" / "episodes.csv")
-    assert not np.array_equal(other["return"], fused["return"])
+    other, _ = read_episodes(tmp_path / "small1" / "episodes.csv")
+    assert not np.array_equal(other["return"], solo["return"])
 
 
 def test_population_evaluation_equals_each_actor_alone(tmp_path):
@@ -91,8 +98,8 @@ def test_population_evaluation_equals_each_actor_alone(tmp_path):
     trainer = Trainer([prepare(cfg, tmp_path / f"run{i}") for i, cfg in enumerate(cfgs)])
     kwargs = env_kwargs(cfgs[0])
     stacked, _ = evaluate(trainer.collector.eval_policy([0, 1]), kwargs, 5, 123, agents=2)
-    for i, cfg in enumerate(cfgs):
-        alone, _ = evaluate(build_actor(cfg, trainer.population.nets[i]), kwargs, 5, 123)
+    for i in range(len(cfgs)):
+        alone, _ = evaluate(trainer.population.actor(i), kwargs, 5, 123)
         torch.testing.assert_close(stacked["return"][i], alone["return"])
         torch.testing.assert_close(stacked["length"][i], alone["length"])
     trainer.close()
@@ -108,3 +115,27 @@ def test_fused_resume_equals_an_uninterrupted_run(tmp_path):
     (a, _), (b, _) = read_episodes(whole / "episodes.csv"), read_episodes(cut / "episodes.csv")
     assert a["episode"].tolist() == b["episode"].tolist() == list(range(12))
     np.testing.assert_array_equal(a["return"], b["return"])
+
+
+def test_a_diverged_agent_stops_alone_and_keeps_its_last_finite_checkpoint(tmp_path):
+    """Agent 1's weights turn NaN right after its episode-4 checkpoint: it stops with FAILED.txt at
+    the next update (NaN actions, loss and gradients), the other agents finish, and its last.pt
+    still holds the finite episode-4 weights."""
+    common = ("algo.episodes=10", "checkpoint.every_episodes=2")
+    jobs = [prepare(_cfg(*common, f"seed={s}"), tmp_path / f"agent{s}") for s in range(3)]
+    trainer = Trainer(jobs)
+    for _ in range(4):  # one episode per update: episodes 0..3, checkpoints after episodes 2 and 4
+        trainer.update([0, 1, 2])
+    with torch.no_grad():
+        trainer.population.policy.params.get(("mean", "bias"))[1] = float("nan")
+    finals = trainer.train()
+    assert finals[0] is not None and finals[2] is not None and finals[1] is None
+    failed = (tmp_path / "agent1" / "FAILED.txt").read_text()
+    assert "training diverged at episode 4: non-finite actions and loss and gradients" in failed
+    last = load_checkpoint(tmp_path / "agent1" / "checkpoints" / "last.pt")
+    assert last["episodes_done"] == 4 and last["final"] is None
+    assert all(bool(torch.isfinite(v).all()) for v in last["actor"].values())
+    rows, _ = read_episodes(tmp_path / "agent1" / "episodes.csv")
+    assert rows["episode"].tolist() == [0, 1, 2, 3]  # the diverged update is not recorded
+    for s in (0, 2):
+        assert load_checkpoint(tmp_path / f"agent{s}" / "checkpoints" / "last.pt")["episodes_done"] == 10

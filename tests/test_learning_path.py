@@ -299,14 +299,13 @@ def test_stacked_nets_match_each_net_with_grads(activation, hidden_sizes):
     obs = torch.randn(3, 4, 6, generator=g)
     c1, c2 = torch.randn(3, 4, 2, generator=g), torch.randn(3, 4, 2, generator=g)
 
-    loc, scale = StackedThreeNet(nets, activation)(obs)
+    stacked = StackedThreeNet(nets, activation)
+    loc, scale = stacked(obs)
     assert loc.shape == scale.shape == (3, 4, 2)
     assert bool((scale >= min_std).all())
     torch.testing.assert_close(scale[1], torch.full((4, 2), min_std), rtol=0, atol=1e-5)
     (loc * c1 + scale * c2).sum().backward()
-    stacked_grads = [[p.grad.clone() for p in net.parameters()] for net in nets]
-    for net in nets:
-        net.zero_grad(set_to_none=True)
+    stacked_grads = _agent_grads(stacked, nets)
 
     for k, net in enumerate(nets):
         ref_loc, ref_scale = net(obs[k])
@@ -318,6 +317,14 @@ def test_stacked_nets_match_each_net_with_grads(activation, hidden_sizes):
             torch.testing.assert_close(
                 g_stacked, p.grad, msg=lambda m, k=k, name=name: f"net {k} {name}: {m}"
             )
+
+
+def _agent_grads(stacked: StackedThreeNet, nets: list[ThreeNetPolicy]) -> list[list[torch.Tensor]]:
+    """Each agent's slice of the stacked parameters' gradients, in its own net's parameter order."""
+    return [
+        [stacked.params.get(tuple(name.split("."))).grad[k].clone() for name, _ in net.named_parameters()]
+        for k, net in enumerate(nets)
+    ]
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -363,12 +370,13 @@ def test_per_agent_loss_equals_solo_loss(options):
     batch = torch.stack([_random_rollout([5, 3, 2], 5, seed=1), _random_rollout([4, 5, 1], 5, seed=2)])
     assert batch.batch_size == (2, 3, 5)
 
-    fused_actor = actor_from_net(StackedThreeNet(nets, "tanh"), "normal", None)
+    stacked = StackedThreeNet(nets, "tanh")
+    fused_actor = actor_from_net(stacked, "normal", None)
     out = ReinforceLoss(fused_actor, gamma=gamma, agent_dims=1, **options)(batch)
     assert out["loss_per_agent"].shape == (2,)
     torch.testing.assert_close(out["loss_reinforce"], out["loss_per_agent"].sum())
     out["loss_reinforce"].backward()
-    fused_grads = [[p.grad.clone() for p in net.parameters()] for net in nets]
+    fused_grads = _agent_grads(stacked, nets)
 
     for k, net in enumerate(nets):
         net.zero_grad(set_to_none=True)

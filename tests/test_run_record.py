@@ -16,9 +16,10 @@ import drone_torchrl
 from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.io.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, save_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
+from drone_torchrl.modules import make_actor
 from drone_torchrl.objectives import ReinforceLoss
 from drone_torchrl.training.jobs import job_status, prepare
-from drone_torchrl.training.trainer import Trainer, make_loss, train
+from drone_torchrl.training.trainer import Trainer, train
 
 ENGINES = ["torchrl", "fused"]
 FAST = ["compile=false", "progress=false", "eval.episodes=2", "eval.video=false", "env.max_steps=30"]
@@ -121,36 +122,50 @@ def test_worker_settings_refused_before_any_work(tmp_path, overrides, message):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("preset", ["paper", "bounded"])
-def test_both_collectors_score_a_stored_rollout_alike(tmp_path, preset):
-    """The TorchRL actor and the stacked population actor give the same loss and gradient on one rollout."""
-    common = [f"experiment={preset}", "algo.episodes_per_update=3", "algo.baseline=mean", *FAST]
-    trainers = {
-        engine: Trainer([prepare(_cfg(f"engine={engine}", *common), tmp_path / engine)]) for engine in ENGINES
-    }
-    batch = trainers["torchrl"].collector.collect([0])  # [1, 3, T], sampled by the TorchRL env + actor
+def test_population_loss_equals_the_torchrl_actor_loss(tmp_path, preset, engine):
+    """On one stored rollout (sampled by the TorchRL env + actor), the loop's loss over the stacked
+    population actor equals ReinforceLoss over a plain make_actor() with the same weights: same
+    loss, same gradient."""
+    common = [
+        f"engine={engine}",
+        f"experiment={preset}",
+        "algo.episodes_per_update=3",
+        "algo.baseline=mean",
+        *FAST,
+    ]
+    cfg = _cfg(*common)
+    trainer = Trainer([prepare(cfg, tmp_path / "run")])
+    reference = Trainer([prepare(_cfg(*common, "engine=torchrl"), tmp_path / "ref")])
+    batch = reference.collector.collect([0], [0])  # [1, 3, T]
     assert batch.shape[:2] == (1, 3)
-    results = {}
-    for engine, trainer in trainers.items():
-        cfg = trainer.cfg
-        loss = make_loss(cfg, trainer.collector.actor([0]), trainer.population.gamma)(batch.clone())
-        net = trainer.population.nets[0]
-        net.zero_grad()
-        loss["loss_reinforce"].backward()
-        results[engine] = (loss["loss_reinforce"].detach(), [p.grad.clone() for p in net.parameters()])
-        trainer.close()
-    (loss_a, grads_a), (loss_b, grads_b) = results["torchrl"], results["fused"]
-    assert float(loss_a) != 0.0
-    torch.testing.assert_close(loss_a, loss_b, rtol=1e-5, atol=1e-6)
-    for ga, gb in zip(grads_a, grads_b, strict=True):
-        assert ga.abs().sum() > 0
-        torch.testing.assert_close(ga, gb, rtol=1e-4, atol=1e-6)
-    # ... and the single-agent loss without an agent dim agrees too.
-    trainer = Trainer([prepare(_cfg("engine=torchrl", *common), tmp_path / "plain")])
-    plain = ReinforceLoss(trainer.collector.actor([0]), gamma=trainer.cfg.algo.gamma, baseline="mean")(
-        batch[0].clone()
+    reference.close()
+
+    loss = trainer.loss_module([0])(batch.clone())
+    trainer.population.zero_grad()
+    loss["loss_reinforce"].backward()
+    policy = trainer.population.policy
+
+    actor = make_actor(
+        cfg.model.distribution,
+        list(cfg.model.hidden_sizes),
+        cfg.model.activation,
+        cfg.model.min_std,
+        cfg.env.max_thrust,
     )
-    torch.testing.assert_close(plain["loss_reinforce"].detach(), loss_a, rtol=1e-5, atol=1e-6)
+    actor.module[0].module.load_state_dict(policy.agent_state_dict(0))
+    plain = ReinforceLoss(actor, gamma=cfg.algo.gamma, baseline="mean")(batch[0].clone())
+    plain["loss_reinforce"].backward()
+
+    assert float(plain["loss_reinforce"].detach()) != 0.0
+    torch.testing.assert_close(
+        loss["loss_reinforce"].detach(), plain["loss_reinforce"].detach(), rtol=1e-5, atol=1e-6
+    )
+    for name, param in actor.module[0].module.named_parameters():
+        stacked_grad = policy.params.get(tuple(name.split("."))).grad[0]
+        assert param.grad.abs().sum() > 0
+        torch.testing.assert_close(stacked_grad, param.grad, rtol=1e-4, atol=1e-6)
     trainer.close()
 
 
@@ -167,14 +182,18 @@ class _Payload:
         return (open, (self.marker, "w"))
 
 
-def test_checkpoints_are_tensors_and_plain_data(tmp_path):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_checkpoints_are_tensors_and_plain_data(tmp_path, engine):
     run = tmp_path / "run"
-    train(_cfg("algo.episodes=2", *FAST), run_dir=run)
+    train(_cfg(f"engine={engine}", "algo.episodes=2", *FAST), run_dir=run)
     state = torch.load(run / "checkpoints" / "last.pt", weights_only=True)
     assert state["format_version"] == FORMAT_VERSION == 2
     assert isinstance(state["config"], dict) and state["config"]["seed"] == 0
     assert all(v is None or isinstance(v, torch.Tensor) for v in state["rng"].values())
-    assert isinstance(state["rng"]["agent"], torch.Tensor)  # the fused engine's per-agent stream
+    # The TorchRL collector samples from torch's RNG and the env's generator; the fast path's
+    # counter-based noise needs no state beyond the update count.
+    has_state = {k: v is not None for k, v in state["rng"].items()}
+    assert has_state == {"torch": engine == "torchrl", "env": engine == "torchrl", "agent": False}
 
 
 def test_a_crafted_checkpoint_runs_no_code(tmp_path):
@@ -200,7 +219,7 @@ def test_a_crafted_checkpoint_runs_no_code(tmp_path):
 
 def test_version_1_checkpoints_are_migrated_and_resume(tmp_path):
     """A checkpoint written before format_version existed (RNG states under *_rng, no final key)."""
-    common = ["engine=fused", "checkpoint.every_episodes=2", "eval.every_episodes=0", *FAST]
+    common = ["engine=torchrl", "checkpoint.every_episodes=2", "eval.every_episodes=0", *FAST]
     whole, old = tmp_path / "whole", tmp_path / "old"
     train(_cfg("algo.episodes=4", *common), run_dir=whole)
     train(_cfg("algo.episodes=4", *common), run_dir=old)
@@ -217,7 +236,9 @@ def test_version_1_checkpoints_are_migrated_and_resume(tmp_path):
 
     migrated = load_checkpoint(last)
     assert migrated["format_version"] == FORMAT_VERSION and migrated["final"] is None
-    assert torch.equal(migrated["rng"]["agent"], rng["agent"])
+    assert torch.equal(migrated["rng"]["torch"], rng["torch"]) and torch.equal(
+        migrated["rng"]["env"], rng["env"]
+    )
     train(_cfg(f"resume={old}", "algo.episodes=4", "progress=false"))
     a, _ = read_episodes(whole / "episodes.csv")
     b, _ = read_episodes(old / "episodes.csv")

@@ -19,6 +19,7 @@ from omegaconf import DictConfig
 
 from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.io.checkpoint import CheckpointError
+from drone_torchrl.training.run import TrainingDiverged
 
 
 @hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")
@@ -28,7 +29,7 @@ def main(cfg: DictConfig) -> float | None:
     if HydraConfig.get().mode != RunMode.MULTIRUN:
         try:
             return train(cfg)
-        except (ConfigError, CheckpointError) as err:
+        except (ConfigError, CheckpointError, TrainingDiverged) as err:
             sys.exit(f"drone-train: error: {err}")
     job_dir = Path(HydraConfig.get().runtime.output_dir)
     try:

@@ -161,8 +161,15 @@ def initial_state(
     """
     if mode not in RESET_MODES:
         raise ValueError(f"reset_mode={mode!r} is not allowed; expected one of {RESET_MODES}")
-    noise = torch.rand((*shape, STATE_DIM), generator=generator, device=device, dtype=dtype)
-    noise = (2.0 * noise - 1.0) * RESET_NOISE
+    return states_from_uniform(
+        torch.rand((*shape, STATE_DIM), generator=generator, device=device, dtype=dtype), mode
+    )
+
+
+def states_from_uniform(uniform: torch.Tensor, mode: str) -> torch.Tensor:
+    """Start states ``[*B, 6]`` from uniforms in [0, 1) of the same shape (see :func:`initial_state`)."""
+    noise = (2.0 * uniform - 1.0) * RESET_NOISE
+    device, dtype = uniform.device, uniform.dtype
     if mode == "air":
         centre = torch.zeros(STATE_DIM, device=device, dtype=dtype)
         centre[Z] = ZONE_Z_CENTRE

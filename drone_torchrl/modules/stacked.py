@@ -71,6 +71,9 @@ class StackedThreeNet(nn.Module):
         out_shape = (*shape[:-1], loc.shape[-1])
         return loc.reshape(out_shape), scale.reshape(out_shape)
 
+    def layers(self) -> Layers:
+        return self.stacked()
+
     def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.apply_stacked(self.stacked(), observation)
 
@@ -88,9 +91,13 @@ class StackedThreeNet(nn.Module):
             self.params.get(tuple(name.split(".")))[agent] = state[name]
 
     def agent_net(self, agent: int) -> ThreeNetPolicy:
-        """A standalone copy of agent ``agent``'s policy (for videos and export)."""
-        net = ThreeNetPolicy(**self.spec).to(self.params.device)
-        net.load_state_dict(self.agent_state_dict(agent))
+        """A standalone copy of agent ``agent``'s policy (for videos, checkpoints and export).
+
+        Built on the meta device and then given the weights, so it draws nothing from torch's RNG
+        (the TorchRL collector samples from it: a checkpoint must not change the run)."""
+        with torch.device("meta"):
+            net = ThreeNetPolicy(**self.spec)
+        net.load_state_dict(self.agent_state_dict(agent), assign=True)
         return net
 
 

@@ -10,9 +10,10 @@ and a policy for the evaluator.
   One agent.
 - :class:`VectorisedCollector` (``engine=fused``), the fast path: any number of agents on the
   same :mod:`~drone_torchrl.envs.dynamics`, the policy forward + sampling + physics of one step
-  as one function (optionally ``torch.compile``-d). Each agent draws its start states and its whole
-  episode's action noise from its own ``torch.Generator``, once per update, so an agent's run does
-  not depend on which other agents share the batch.
+  as one function (optionally ``torch.compile``-d). Start states and the whole update's action noise
+  come from the counter-based generator of :mod:`.rng` (a function of each agent's seed and update
+  count), drawn for all agents at once, so an agent's run does not depend on which other agents
+  share the batch.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
+from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
@@ -32,8 +34,21 @@ from drone_torchrl.envs.factory import make_env
 from drone_torchrl.envs.rollout import StepFn, fly
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.modules.policy import actor_from_net
-from drone_torchrl.modules.stacked import ActionSampler, StackedThreeNet
+from drone_torchrl.modules.stacked import ActionSampler
+from drone_torchrl.training import rng
 from drone_torchrl.training.population import Population
+
+
+class _OneAgent(nn.Module):
+    """The only agent of a population, for observations without the agent dim (TorchRL rollouts)."""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        loc, scale = self.net(observation.unsqueeze(0))
+        return loc.squeeze(0), scale.squeeze(0)
 
 
 class TorchRLCollector:
@@ -43,6 +58,7 @@ class TorchRLCollector:
     when that is set. ``break_when_all_done`` stops when the last episode ends; a ``ParallelEnv``
     whose workers hold several drones cannot step part of a worker, so it flies the full
     ``max_steps`` and the steps after each row's first episode are masked like the repeats.
+    Actions are sampled from torch's global RNG, the env's start states from its own generator.
     """
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
@@ -53,20 +69,22 @@ class TorchRLCollector:
         self.env = make_env(num_envs=per_worker, num_workers=workers, device=cfg.device, **env_kwargs(cfg))
         self.env.set_seed(cfg.seed)
         self.cfg = cfg
-        self._actor = build_actor(cfg, population.nets[0])
+        self._loss_actor = build_actor(cfg, population.net([0]))
+        self._actor = build_actor(cfg, _OneAgent(population.net([0])))
         self._stop = (
             {"break_when_all_done": True}
             if workers == 0 or per_worker == 1
             else {"break_when_any_done": False}
         )
 
-    def collect(self, agents: list[int]) -> TensorDictBase:
+    def collect(self, agents: list[int], counters: list[int]) -> TensorDictBase:
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             rollout = self.env.rollout(self.cfg.env.max_steps, self._actor, **self._stop)
         return rollout.reshape(1, -1, rollout.shape[-1])
 
     def actor(self, agents: list[int]) -> ProbabilisticActor:
-        return self._actor
+        """The actor that scores ``[1, E, T]`` batches (the agent dim first)."""
+        return self._loss_actor
 
     def eval_policy(self, agents: list[int]) -> ProbabilisticActor:
         return self._actor
@@ -102,11 +120,6 @@ class VectorisedCollector:
         self.device = torch.device(cfg.device)
         self.sampler = ActionSampler(cfg.model.distribution, cfg.env.max_thrust)
         self._actor: ProbabilisticActor | None = None
-        self.generators = []
-        for agent_cfg in population.cfgs:
-            generator = torch.Generator(device=self.device)
-            generator.manual_seed(agent_cfg.seed)
-            self.generators.append(generator)
         # compile=true fuses the step's ~40 small kernels (policy, sampling, physics) into a few;
         # it costs a one-off compilation per batch shape and changes float rounding slightly.
         self._compiled = torch.compile(self._policy_and_physics) if cfg.compile else None
@@ -121,7 +134,7 @@ class VectorisedCollector:
             return self._step(*args)
 
     def _policy_and_physics(
-        self, net: StackedThreeNet, layers: list, state: torch.Tensor, noise: torch.Tensor | None
+        self, net: nn.Module, layers: list, state: torch.Tensor, noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, ...]:
         """One step of every agent's every episode: ``(action, next_state, reward, cause)``."""
         loc, scale = net.apply_stacked(layers, state)
@@ -129,45 +142,37 @@ class VectorisedCollector:
         return (action, *dynamics.step(state, action, self.params))
 
     def _stepper(self, agents: list[int], noise: torch.Tensor | None) -> StepFn:
-        net = self.population.stacked(agents)
+        net = self.population.net(agents)
         with torch.no_grad():
-            layers = net.stacked()
+            layers = net.layers()
         return lambda state, t: self._step(net, layers, state, None if noise is None else noise[t])
 
-    def collect(self, agents: list[int]) -> TensorDictBase:
-        reset_mode = self.cfg.env.reset_mode
-        start = torch.stack(
-            [
-                dynamics.initial_state((self.episodes,), reset_mode, self.generators[i], self.device)
-                for i in agents
-            ]
-        )
-        noise = torch.stack(
-            [
-                torch.randn(
-                    (self.max_steps, self.episodes, 2), generator=self.generators[i], device=self.device
-                )
-                for i in agents
-            ],
-            dim=1,
-        )
-        return fly(self._stepper(agents, noise), start, self.max_steps)
+    def collect(self, agents: list[int], counters: list[int]) -> TensorDictBase:
+        """The agents' episodes of this update; ``counters`` are their update counts (the noise key)."""
+        seeds = self.population.seeds[agents]
+        counters = torch.tensor(counters, dtype=torch.int64, device=self.device)
+        uniform = rng.uniform(seeds, counters, rng.START_STATES, (self.episodes, dynamics.STATE_DIM))
+        start = dynamics.states_from_uniform(uniform, self.cfg.env.reset_mode)
+        noise = rng.normal(seeds, counters, rng.ACTION_NOISE, (self.max_steps, self.episodes, 2))
+        return fly(self._stepper(agents, noise.transpose(0, 1)), start, self.max_steps)
 
     def actor(self, agents: list[int]) -> ProbabilisticActor:
         """The agents' stacked nets under the config's distribution head (scores ``[A, ...]`` batches)."""
-        return actor_from_net(
-            self.population.stacked(agents), self.cfg.model.distribution, self.cfg.env.max_thrust
-        )
+        net = self.population.net(agents)
+        if self._actor is None or self._actor.module[0].module is not net:
+            self._actor = actor_from_net(net, self.cfg.model.distribution, self.cfg.env.max_thrust)
+        return self._actor
 
     def eval_policy(self, agents: list[int]) -> StepFn:
         """The deterministic step of the agents (the same arithmetic as training, compiled or not)."""
         return self._stepper(agents, None)
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:
-        return {"torch": torch.get_rng_state(), "env": None, "agent": self.generators[agent].get_state()}
+        # Counter-based: the update count in the checkpoint is all the state there is.
+        return {"torch": None, "env": None, "agent": None}
 
     def set_rng_state(self, agent: int, state: dict[str, Any], episodes_done: int) -> None:
-        self.generators[agent].set_state(state["agent"])
+        pass
 
     def close(self) -> None:
         pass

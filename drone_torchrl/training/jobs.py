@@ -41,7 +41,7 @@ from drone_torchrl.io.checkpoint import (
 from drone_torchrl.training.run import FAILED_FILE
 
 # Settings that may differ between the agents of one population; everything else must be equal.
-PER_AGENT_KEYS = ("seed", "algo.lr", "algo.gamma")
+PER_AGENT_KEYS = ("seed", "algo.lr", "algo.gamma", "algo.weight_decay")
 # Keys taken from the command line when a run continues from a checkpoint.
 PROCESS_KEYS = ("progress", "threads", "device")
 

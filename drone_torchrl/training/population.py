@@ -1,9 +1,11 @@
-"""The agents being trained together: their policies, optimizers and discounts. A run is a population of one.
+"""The agents being trained together, as one stacked structure. A run is a population of one.
 
-Agent ``i`` owns ``nets[i]`` (a :class:`~drone_torchrl.modules.ThreeNetPolicy` initialised after
-``torch.manual_seed(seed_i)``, so exactly the weights a single run of that seed starts from) and
-``optimizers[i]`` (Adam at its own learning rate). Learning rates, discounts and seeds may differ
-between agents; everything else is the group's (see :func:`drone_torchrl.training.jobs.group_key`).
+All agents' policy weights live in one :class:`~drone_torchrl.modules.StackedThreeNet` (``[N, ...]``
+parameters), their optimizer state in one :class:`~.optim.PopulationAdam` with per-agent learning
+rate and weight decay, and their discounts and seeds in ``[N]`` tensors. Agent ``i`` starts from
+the weights a single run of its seed starts from (``torch.manual_seed(seed_i)`` then a fresh
+:class:`~drone_torchrl.modules.ThreeNetPolicy`). Learning rates, weight decays, discounts and seeds
+may differ between agents; everything else is the group's (see :func:`.jobs.group_key`).
 """
 
 from __future__ import annotations
@@ -13,59 +15,100 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig
+from torch import nn
 
 from drone_torchrl.modules.factory import build_actor, build_policy
 from drone_torchrl.modules.stacked import StackedThreeNet
+from drone_torchrl.training.optim import PopulationAdam, clip_grad_norms
+
+
+class _Subset(nn.Module):
+    """Some agents of a :class:`StackedThreeNet` (a gather of the stacked weights; gradients flow back)."""
+
+    def __init__(self, stacked: StackedThreeNet, agents: list[int]) -> None:
+        super().__init__()
+        self.stacked = stacked
+        self.register_buffer("index", torch.tensor(agents, device=stacked.params.device), persistent=False)
+
+    def layers(self):
+        return self.stacked.stacked(self.stacked.params[self.index])
+
+    def apply_stacked(self, layers, observation: torch.Tensor):
+        return self.stacked.apply_stacked(layers, observation)
+
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.apply_stacked(self.layers(), observation)
 
 
 class Population:
     def __init__(self, cfgs: list[DictConfig]) -> None:
         self.cfgs = cfgs
         base = cfgs[0]
-        self.activation = base.model.activation
-        self.nets = [build_policy(cfg, seed=cfg.seed) for cfg in cfgs]
-        self.optimizers = [
-            torch.optim.Adam(net.parameters(), lr=cfg.algo.lr, eps=cfg.algo.adam_eps)
-            for net, cfg in zip(self.nets, cfgs, strict=True)
-        ]
-        self.gamma = torch.tensor([cfg.algo.gamma for cfg in cfgs], device=base.device)
+        device = base.device
+        self.policy = StackedThreeNet(
+            [build_policy(cfg, seed=cfg.seed) for cfg in cfgs], base.model.activation
+        )
+        self.optimizer = PopulationAdam(
+            self.policy.params,
+            lr=torch.tensor([cfg.algo.lr for cfg in cfgs], dtype=torch.float64),
+            eps=base.algo.adam_eps,
+            weight_decay=torch.tensor([cfg.algo.weight_decay for cfg in cfgs], dtype=torch.float64),
+            decoupled_weight_decay=base.algo.optimizer == "adamw",
+        )
+        self.gamma = torch.tensor([cfg.algo.gamma for cfg in cfgs], device=device)
+        self.seeds = torch.tensor([cfg.seed for cfg in cfgs], dtype=torch.int64, device=device)
         max_norm = base.algo.max_grad_norm
         self.max_grad_norm = math.inf if max_norm is None else float(max_norm)
-        self._stacked: dict[tuple[int, ...], StackedThreeNet] = {}
+        self._subset: tuple[tuple[int, ...], nn.Module] | None = None
 
     def __len__(self) -> int:
-        return len(self.nets)
+        return len(self.cfgs)
 
-    def stacked(self, agents: list[int]) -> StackedThreeNet:
-        """The agents' nets as one module over a leading agent dim (the agents' own parameters).
-
-        Kept per set of agents: the set changes only when an agent finishes."""
+    def net(self, agents: list[int]) -> nn.Module:
+        """The agents' policies as one module over a leading agent dim (all of them: the stacked net)."""
+        if len(agents) == len(self):
+            return self.policy
         key = tuple(agents)
-        if key not in self._stacked:
-            self._stacked = {key: StackedThreeNet([self.nets[i] for i in agents], self.activation)}
-        return self._stacked[key]
+        if self._subset is None or self._subset[0] != key:
+            self._subset = (key, _Subset(self.policy, agents))
+        return self._subset[1]
 
-    def zero_grad(self, agents: list[int]) -> None:
-        for i in agents:
-            self.optimizers[i].zero_grad(set_to_none=True)
+    def zero_grad(self) -> None:
+        self.optimizer.zero_grad()
 
-    def clip_and_step(self, agents: list[int]) -> torch.Tensor:
-        """Clip each agent's gradient norm to ``algo.max_grad_norm`` and take its Adam step.
+    def clip(self, agents: list[int]) -> torch.Tensor:
+        """Clip each agent's gradient norm to ``algo.max_grad_norm``; returns the ``agents``' norms before."""
+        return clip_grad_norms(self.policy.params, self.max_grad_norm)[agents]
 
-        Returns the agents' gradient norms before clipping (``[A]``, on the device).
-        """
-        norms = [
-            torch.nn.utils.clip_grad_norm_(self.nets[i].parameters(), self.max_grad_norm) for i in agents
-        ]
-        for i in agents:
-            self.optimizers[i].step()
-        return torch.stack(norms)
+    def step(self, agents: list[int], ok: torch.Tensor | None = None) -> None:
+        """The Adam step of ``agents`` where ``ok`` (``[len(agents)]`` bool, on the device) allows."""
+        if len(agents) == len(self) and ok is None:
+            self.optimizer.step()
+            return
+        mask = torch.zeros(len(self), dtype=torch.bool, device=self.seeds.device)
+        mask[agents] = True if ok is None else ok
+        self.optimizer.step(mask)
+
+    @torch.no_grad()
+    def finite(self, agents: list[int]) -> torch.Tensor:
+        """``[len(agents)]`` bool: whether every weight of each agent is finite."""
+        leaves = [p.flatten(1).isfinite().all(1) for p in self.policy.params.values(True, True)]
+        return torch.stack(leaves).all(0)[agents]
 
     def state(self, agent: int) -> dict[str, Any]:
-        """The agent's checkpoint entries: its actor (``make_actor``'s layout) and optimizer."""
-        actor = build_actor(self.cfgs[agent], self.nets[agent])
-        return {"actor": actor.state_dict(), "optimizer": self.optimizers[agent].state_dict()}
+        """The agent's checkpoint entries: its actor (``make_actor``'s layout) and optimizer (``torch.optim.Adam``'s)."""
+        actor = build_actor(self.cfgs[agent], self.policy.agent_net(agent))
+        return {
+            "actor": actor.state_dict(),
+            "optimizer": self.optimizer.agent_state(agent, self.policy.names),
+        }
 
     def load(self, agent: int, checkpoint: dict[str, Any]) -> None:
-        build_actor(self.cfgs[agent], self.nets[agent]).load_state_dict(checkpoint["actor"])
-        self.optimizers[agent].load_state_dict(checkpoint["optimizer"])
+        actor = build_actor(self.cfgs[agent], self.policy.agent_net(agent))  # make_actor's key layout
+        actor.load_state_dict(checkpoint["actor"], assign=True)
+        self.policy.load_agent_state_dict(agent, actor.module[0].module.state_dict())
+        self.optimizer.load_agent_state(agent, self.policy.names, checkpoint["optimizer"])
+
+    def actor(self, agent: int):
+        """A standalone actor of one agent (a copy of its weights: for videos)."""
+        return build_actor(self.cfgs[agent], self.policy.agent_net(agent))

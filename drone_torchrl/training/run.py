@@ -37,6 +37,10 @@ FAILED_FILE = "FAILED.txt"
 EPISODE_KEYS = ("return", "length", "time_in_zone", "negative_thrust_fraction", "termination_cause")
 
 
+class TrainingDiverged(RuntimeError):
+    """A run whose loss, gradients, weights or actions became non-finite (one-line message)."""
+
+
 class RunRecord:
     """One agent's run folder and its bookkeeping.
 
@@ -68,6 +72,7 @@ class RunRecord:
         self.wall_clock_before = 0.0
         self.best_eval = -math.inf
         self.final: dict[str, float] | None = None
+        self.failure: str | None = None
         if checkpoint is not None:
             self.episodes_done, self.updates_done = checkpoint["episodes_done"], checkpoint["updates_done"]
             self.wall_clock_before = checkpoint["wall_clock_s"]
@@ -97,6 +102,16 @@ class RunRecord:
     @property
     def finished(self) -> bool:
         return self.episodes_done >= self.cfg.algo.episodes
+
+    @property
+    def failed(self) -> bool:
+        return self.failure is not None
+
+    def fail(self, reason: str) -> None:
+        """Stop this run: ``FAILED.txt`` says why; its last checkpoint (all finite) is kept as it is."""
+        self.failure = reason
+        (self.run_dir / FAILED_FILE).write_text(f"{TrainingDiverged.__name__}: {reason}\n")
+        self.close()
 
     @property
     def wall_clock(self) -> float:
@@ -144,10 +159,13 @@ class RunRecord:
         return periodic or self.finished
 
     def record_eval(
-        self, result: dict[str, float], learner_state: Callable[[], dict[str, Any]], actor: Any
+        self,
+        result: dict[str, float],
+        learner_state: Callable[[], dict[str, Any]],
+        actor: Callable[[], Any],
     ) -> None:
         """Book an evaluation (``return``, ``length``, ``time_in_zone`` means): TensorBoard, ``best.pt``
-        when it is the best so far, and a video of ``actor`` when ``eval.video``."""
+        when it is the best so far, and a video of ``actor()`` when ``eval.video``."""
         cfg = self.cfg
         step = self.episodes_done
         self.logger.log_metrics({f"eval/{k}": v for k, v in result.items()}, step=step)
@@ -155,7 +173,7 @@ class RunRecord:
             self.best_eval = result["return"]
             save_checkpoint(self._state(learner_state()), self.run_dir / CHECKPOINT_DIR / BEST)
         if cfg.eval.video:
-            self._video(actor, step)
+            self._video(actor(), step)
         self.last_eval_episode = step
         if self.next_eval is not None:
             while self.next_eval <= step:

@@ -26,12 +26,11 @@ from tensordict import TensorDictBase
 from drone_torchrl.config import ConfigError, env_kwargs
 from drone_torchrl.episodes import episode_stats
 from drone_torchrl.evaluation import evaluate
-from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.population import Population
-from drone_torchrl.training.run import EPISODE_KEYS, Progress, RunRecord
+from drone_torchrl.training.run import EPISODE_KEYS, Progress, RunRecord, TrainingDiverged
 
 
 @dataclass
@@ -57,6 +56,17 @@ def make_loss(cfg: DictConfig, actor, gamma: torch.Tensor) -> ReinforceLoss:
         baseline=cfg.algo.baseline,
         agent_dims=1,
     )
+
+
+# What _finite_checks tests, in its row order (then the weights after the step).
+CHECKS = ("actions", "loss", "gradients", "weights")
+
+
+def _finite_checks(batch: TensorDictBase, loss: torch.Tensor, grad_norms: torch.Tensor) -> torch.Tensor:
+    """``[3, A]`` bool: each agent's actions (on its valid steps), loss and gradient are finite."""
+    valid = valid_steps(batch.get(("next", "done")))
+    bad_action = (~batch.get("action").isfinite() & valid).flatten(1).any(1)
+    return torch.stack([~bad_action, loss.isfinite(), grad_norms.isfinite()])
 
 
 def _policy_std(batch: TensorDictBase) -> torch.Tensor:
@@ -89,7 +99,7 @@ class Trainer:
     def train(self) -> list[dict[str, float]]:
         """Run every agent to its own ``algo.episodes``; returns each one's final metrics."""
         try:
-            while active := [i for i, run in enumerate(self.runs) if not run.finished]:
+            while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
                 self.update(active)
         finally:
             self.close()
@@ -98,19 +108,33 @@ class Trainer:
     def update(self, active: list[int]) -> int:
         """One update of the ``active`` agents; returns the env steps they took."""
         population, runs = self.population, self.runs
-        batch = self.collector.collect(active)
+        batch = self.collector.collect(active, [runs[i].updates_done for i in active])
         losses = self.loss_module(active)(batch)
-        population.zero_grad(active)
+        population.zero_grad()
         losses["loss_reinforce"].backward()
-        grad_norms = population.clip_and_step(active)
+        grad_norms = population.clip(active)
+        # An agent whose loss, gradient or actions are not finite does not step, and stops.
+        checks = _finite_checks(batch, losses["loss_per_agent"], grad_norms)
+        population.step(active, checks.all(0))
+        checks = torch.cat([checks, population.finite(active).unsqueeze(0)])
 
         # Episodes and metrics of all agents come to the host together, once per update.
         episodes = {k: v.tolist() for k, v in episode_stats(batch).items() if k in EPISODE_KEYS}
         loss, norm, std = (t.tolist() for t in (losses["loss_per_agent"], grad_norms, _policy_std(batch)))
+        checks = checks.tolist()
         for k, i in enumerate(active):
+            failed = [what for what, ok in zip(CHECKS, (c[k] for c in checks), strict=True) if not ok]
+            if failed:
+                runs[i].fail(
+                    f"training diverged at episode {runs[i].episodes_done}: non-finite {' and '.join(failed)}; "
+                    "lower algo.lr (or set algo.max_grad_norm)"
+                )
+                continue
             metrics = {"train/loss": loss[k], "train/grad_norm": norm[k], "policy/std_mean": std[k]}
             runs[i].record({key: values[k] for key, values in episodes.items()}, metrics)
-        self.progress.update(batch.shape[0] * batch.shape[1], [runs[i] for i in active])
+        active = [i for i in active if not runs[i].failed]
+        if active:
+            self.progress.update(len(active) * batch.shape[1], [runs[i] for i in active])
 
         due = [i for i in active if runs[i].eval_due]
         if due:
@@ -144,7 +168,7 @@ class Trainer:
             self.runs[i].record_eval(
                 {name: values[k] for name, values in means.items()},
                 lambda i=i: self.learner_state(i),
-                build_actor(self.runs[i].cfg, self.population.nets[i]),
+                lambda i=i: self.population.actor(i),
             )
 
     def learner_state(self, agent: int) -> dict:
@@ -176,13 +200,19 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
             groups.setdefault(group_key(job.cfg), []).append(i)
     for members in groups.values():
         try:
-            finals = Trainer([jobs[i] for i in members]).train()
+            trainer = Trainer([jobs[i] for i in members])
+            finals = trainer.train()
         except Exception as err:  # noqa: BLE001  (recorded per job; the other groups go on)
             for i in members:
                 record_failure(jobs[i].run_dir, err)
                 outcomes[i].error = err
             continue
         for i, final in zip(members, finals, strict=True):
+            if final is None:  # the agent diverged (its run record wrote FAILED.txt)
+                outcomes[i].error = TrainingDiverged(trainer.runs[members.index(i)].failure)
+                if len(jobs) > 1:
+                    print(f"{jobs[i].run_dir}: failed: {outcomes[i].error}")
+                continue
             outcomes[i].final = final
             cfg = jobs[i].cfg
             print(
