@@ -26,7 +26,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from drone_torchrl.config import config_dir
-from drone_torchrl.modules.policy import ThreeNetPolicy
+from drone_torchrl.modules.stacked import StackedThreeNet
 from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.trainer import Trainer
 
@@ -34,13 +34,14 @@ HOVER_THRUST = 0.5  # per motor, as a fraction of the weight
 HOVER_STD = 0.002  # small enough that a hovering drone survives 300 steps from the air reset
 
 
-def hover_policy(net: ThreeNetPolicy) -> None:
-    """Make a fresh policy hover: constant mean thrust 0.5, constant small std."""
+def hover_policy(policy: StackedThreeNet) -> None:
+    """Make every agent's fresh policy hover: constant mean thrust 0.5, constant small std."""
+    params = policy.params
     with torch.no_grad():
-        net.mean.weight.zero_()
-        net.mean.bias.fill_(HOVER_THRUST)
-        net.std.weight.zero_()
-        net.std.bias.fill_(math.log(math.expm1(HOVER_STD - net.min_std)))
+        params.get(("mean", "weight")).zero_()
+        params.get(("mean", "bias")).fill_(HOVER_THRUST)
+        params.get(("std", "weight")).zero_()
+        params.get(("std", "bias")).fill_(math.log(math.expm1(HOVER_STD - policy.min_std)))
 
 
 def config(compile_step: bool, threads: int):
@@ -69,8 +70,7 @@ def time_updates(cfg, n_agents: int, updates: int, warmup: int) -> tuple[float, 
             job.algo.episodes = warmup + updates
             jobs.append(prepare(job, Path(tmp) / f"agent{seed}"))
         trainer = Trainer(jobs)
-        for net in trainer.population.nets:
-            hover_policy(net)
+        hover_policy(trainer.population.policy)
         agents = list(range(n_agents))
         for _ in range(warmup):  # compilation, if any, happens here
             trainer.update(agents)
