@@ -94,6 +94,7 @@ ADDED_KEYS = {
     "logger.video_stride": 1,
     "algo.optimizer": "adam",
     "algo.weight_decay": 0.0,
+    "logger.flush_every_s": 10,
 }
 OPTIMIZERS = ("adam", "adamw")
 
@@ -184,6 +185,7 @@ def validate(cfg: DictConfig) -> None:
     _number(cfg, "logger.video_fps", low=1, integer=True)
     _number(cfg, "logger.video_stride", low=1, integer=True)
     _number(cfg, "logger.every_updates", low=1, integer=True)
+    _number(cfg, "logger.flush_every_s", low=0)
     if not isinstance(cfg.compile, bool):
         raise ConfigError.of("compile", cfg.compile, "true or false")
     if cfg.progress not in (True, False, "auto"):

@@ -50,10 +50,12 @@ def run() -> None:
     from hydra.core.plugins import Plugins
 
     from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
+    from hydra_plugins.drone_torchrl_launcher.population_sweeper import PopulationSweeper
 
-    # Hydra finds launcher plugins by listing the hydra_plugins folders; an editable install's import
-    # hook is not a folder, so register ours explicitly (harmless for a normal install).
+    # Hydra finds plugins by listing the hydra_plugins folders; an editable install's import hook
+    # is not a folder, so register ours explicitly (harmless for a normal install).
     Plugins.instance().register(FusedLauncher)
+    Plugins.instance().register(PopulationSweeper)
     main()
 
 

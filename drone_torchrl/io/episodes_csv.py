@@ -23,7 +23,8 @@ TEXT_COLUMNS = ("termination_cause",)
 
 
 class EpisodeCSV:
-    """Appends one row per episode to ``path``.
+    """One row per episode in ``path``, buffered: rows are appended when :meth:`flush` is called, and
+    no file stays open in between (a population of runs holds no file descriptor per run).
 
     ``keep_episodes``: on resume, keep the rows of episodes ``< keep_episodes`` read from ``source``
     (default: ``path`` itself; a fork copies its parent run's rows) and drop the rest, which the
@@ -37,20 +38,24 @@ class EpisodeCSV:
         if keep_episodes and source.exists():
             with source.open(newline="") as f:
                 rows = [row for row in csv.DictReader(f) if int(row["episode"]) < keep_episodes]
-        self._file = self.path.open("w", newline="")
-        self._writer = csv.DictWriter(self._file, fieldnames=CSV_COLUMNS)
-        self._writer.writeheader()
-        self._writer.writerows(rows)
-        self._file.flush()
+        with self.path.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+            writer.writeheader()
+            writer.writerows(rows)
+        self._rows: list[dict[str, object]] = []
 
     def write(self, rows: Iterable[dict[str, object]]) -> None:
-        self._writer.writerows(rows)
+        self._rows.extend(rows)
 
     def flush(self) -> None:
-        self._file.flush()
+        if not self._rows:
+            return
+        with self.path.open("a", newline="") as f:
+            csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerows(self._rows)
+        self._rows.clear()
 
     def close(self) -> None:
-        self._file.close()
+        self.flush()
 
 
 class EpisodeCSVError(ValueError):

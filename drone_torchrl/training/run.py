@@ -96,7 +96,7 @@ class RunRecord:
             keep_episodes=self.episodes_done,
             source=None if parent_dir is None else Path(parent_dir) / CSV_NAME,
         )
-        self.start = time.perf_counter()
+        self.start = self._last_flush = time.perf_counter()
 
     # ------------------------------------------------------------------ state
     @property
@@ -148,6 +148,8 @@ class RunRecord:
                 "train/running_mean_length": self.running_length,
             }
             log_update(self.logger, rows, metrics, step=self.episodes_done)
+        if time.perf_counter() - self._last_flush > self.cfg.logger.flush_every_s:
+            self.flush()
 
     # ------------------------------------------------------------------ evaluation
     @property
@@ -223,7 +225,7 @@ class RunRecord:
     def save(self, learner: dict[str, Any]) -> None:
         """Write ``last.pt`` (the CSV is flushed first, so the two agree after a kill); at the end also
         the final hparams, and close the files."""
-        self.csv.flush()
+        self.flush()  # the CSV holds every episode the checkpoint counts
         save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
         while self.next_checkpoint <= self.episodes_done:
             self.next_checkpoint += self.cfg.checkpoint.every_episodes
@@ -231,10 +233,14 @@ class RunRecord:
             self.logger.log_final_hparams(self.cfg, self.final)
             self.close()
 
+    def flush(self) -> None:
+        """Write the buffered CSV rows and TensorBoard scalars (files are open only while this runs)."""
+        self.csv.flush()
+        self.logger.flush()
+        self._last_flush = time.perf_counter()
+
     def close(self) -> None:
-        if not self.csv._file.closed:
-            self.csv.close()
-            self.logger.experiment.close()
+        self.flush()
 
     def summary_line(self) -> str:
         f = self.final or {}

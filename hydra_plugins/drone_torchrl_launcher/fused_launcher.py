@@ -60,6 +60,7 @@ class FusedLauncher(Launcher):
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         from drone_torchrl.training.jobs import prepare, record_failure, sweep_summary
         from drone_torchrl.training.trainer import Outcome, train_jobs
+        from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
         setup_globals()
         assert self.config is not None and self.hydra_context is not None
@@ -80,9 +81,11 @@ class FusedLauncher(Launcher):
                 jobs.append(Outcome(run_dir, error=err))
 
         returns: list[JobReturn] = []
-        for idx, overrides in enumerate(job_overrides, start=initial_job_idx):
+        configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
+        for idx, (overrides, sweep_config) in enumerate(
+            zip(job_overrides, configs, strict=True), initial_job_idx
+        ):
             log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
-            sweep_config = self.hydra_context.config_loader.load_sweep_config(self.config, list(overrides))
             with open_dict(sweep_config):
                 sweep_config.hydra.job.id = idx
                 sweep_config.hydra.job.num = idx

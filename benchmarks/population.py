@@ -1,0 +1,125 @@
+"""Time per update of the population engine for 1 ... 1024 agents, every episode the full 300 steps.
+
+    python benchmarks/population.py                          # 1, 32, 256, 1024 agents on CPU
+    python benchmarks/population.py --agents 32 1024 --device cuda --compile
+
+One update = collect (every agent's episode, 300 steps: termination is switched off here so that
+the work per update does not depend on how well the agents fly), REINFORCE loss, backward,
+per-agent clipping and Adam, and the run records (CSV rows and TensorBoard scalars buffered every
+update, written at the end). Prints the median time per update over ``--repeats`` runs, the time
+per agent, the share of the update spent in recording, and the ratio to the smallest population
+timed in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+
+from drone_torchrl.config import config_dir
+from drone_torchrl.envs import dynamics
+from drone_torchrl.training import run as run_module
+from drone_torchrl.training.jobs import prepare
+from drone_torchrl.training.trainer import Trainer
+
+
+def never_terminate(state: torch.Tensor, floor_tolerance: float) -> torch.Tensor:
+    return torch.zeros(state.shape[:-1], dtype=torch.int64, device=state.device)
+
+
+def config(device: str, compile_step: bool):
+    overrides = [
+        "env.reset_mode=air",
+        "eval.every_episodes=0",
+        "eval.episodes=1",
+        "eval.video=false",
+        "checkpoint.every_episodes=1000000",
+        "progress=false",
+        "logger.every_updates=1",
+        "logger.flush_every_s=1000000",
+        f"device={device}",
+        f"compile={str(compile_step).lower()}",
+    ]
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        return compose("config", overrides=overrides)
+
+
+def time_population(cfg, agents: int, updates: int, warmup: int) -> tuple[float, float]:
+    """Seconds per update (median over ``updates``) and the recording share of it."""
+    record_time = 0.0
+    original = run_module.RunRecord.record
+
+    def timed_record(self, *args, **kwargs):
+        nonlocal record_time
+        start = time.perf_counter()
+        original(self, *args, **kwargs)
+        record_time += time.perf_counter() - start
+
+    with tempfile.TemporaryDirectory() as tmp:
+        jobs = []
+        for seed in range(agents):
+            job = copy.deepcopy(cfg)
+            job.seed = seed
+            job.algo.episodes = warmup + updates + 1
+            jobs.append(prepare(job, Path(tmp) / f"agent{seed}"))
+        trainer = Trainer(jobs)
+        everyone = list(range(agents))
+        for _ in range(warmup):
+            trainer.update(everyone)
+        times = []
+        run_module.RunRecord.record = timed_record
+        try:
+            for _ in range(updates):
+                if cfg.device.startswith("cuda"):
+                    torch.cuda.synchronize()
+                start = time.perf_counter()
+                trainer.update(everyone)
+                if cfg.device.startswith("cuda"):
+                    torch.cuda.synchronize()
+                times.append(time.perf_counter() - start)
+        finally:
+            run_module.RunRecord.record = original
+        trainer.close()
+    return statistics.median(times), record_time / sum(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--agents", type=int, nargs="+", default=[1, 32, 256, 1024])
+    parser.add_argument("--updates", type=int, default=5, help="timed updates per population")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--compile", action="store_true")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    dynamics.termination_cause = never_terminate  # every episode flies max_steps steps
+    cfg = config(args.device, args.compile)
+    cfg.threads = args.threads
+    device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
+    rows = []
+    for n in args.agents:
+        runs = [time_population(cfg, n, args.updates, 2 if args.compile else 1) for _ in range(args.repeats)]
+        rows.append((n, statistics.median(t for t, _ in runs), statistics.median(s for _, s in runs)))
+    base_n, base_t, _ = rows[0]
+    print(
+        f"\n{device_name}, torch threads {args.threads}, compile={args.compile}, 300-step episodes, "
+        f"one episode per agent per update; median of {args.repeats} runs x {args.updates} updates\n"
+    )
+    print(f"| agents | s / update | ms / agent / update | recording share | x time of {base_n} agent(s) |")
+    print("|---|---|---|---|---|")
+    for n, t, share in rows:
+        print(f"| {n} | {t:.3f} | {1000 * t / n:.2f} | {100 * share:.0f}% | {t / base_t:.1f}x |")
+
+
+if __name__ == "__main__":
+    main()

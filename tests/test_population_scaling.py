@@ -1,0 +1,69 @@
+"""The population engine's work per update does not grow with the number of agents (on the tensor side)."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from drone_torchrl.config import config_dir
+from drone_torchrl.envs import dynamics
+from drone_torchrl.training.jobs import prepare
+from drone_torchrl.training.trainer import Trainer
+
+# Ops that copy a value to the host (item, bool(), nonzero sizes, ...).
+SYNC_OPS = ("_local_scalar_dense", "nonzero", "is_nonzero")
+
+
+class CountOps(TorchDispatchMode):
+    def __init__(self) -> None:
+        super().__init__()
+        self.ops: Counter[str] = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops[func.__name__.split(".")[0]] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def _ops_per_update(tmp_path, agents: int, monkeypatch) -> Counter:
+    monkeypatch.setattr(
+        dynamics,
+        "termination_cause",
+        lambda state, tol: torch.zeros(state.shape[:-1], dtype=torch.int64, device=state.device),
+    )
+    overrides = [
+        "compile=false",
+        "progress=false",
+        "env.max_steps=20",
+        "eval.every_episodes=0",
+        "eval.video=false",
+    ]
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    jobs = []
+    for seed in range(agents):
+        job = cfg.copy()
+        job.seed = seed
+        jobs.append(prepare(job, tmp_path / f"n{agents}" / f"agent{seed}"))
+    trainer = Trainer(jobs)
+    everyone = list(range(agents))
+    trainer.update(everyone)  # first update: lazy set-up
+    with CountOps() as counter:
+        trainer.update(everyone)
+    trainer.close()
+    return counter.ops
+
+
+@pytest.mark.parametrize("agents", [64])
+def test_ops_and_host_syncs_per_update_do_not_grow_with_agents(tmp_path, monkeypatch, agents):
+    one = _ops_per_update(tmp_path, 1, monkeypatch)
+    many = _ops_per_update(tmp_path, agents, monkeypatch)
+    syncs = {op: one[op] for op in SYNC_OPS if one[op]}
+    assert syncs, one  # the rollout's early-stop check does sync, once per step
+    assert {op: many[op] for op in SYNC_OPS if many[op]} == syncs
+    # The same kernels for 64 agents as for one (a reshape of a size-1 dim may add a view).
+    assert abs(sum(many.values()) - sum(one.values())) <= 2, (many - one) + (one - many)
+    assert sum(many.values()) < 150 * 20  # and a bounded number per step of the 20-step episodes
