@@ -21,9 +21,8 @@ import time
 from pathlib import Path
 
 import torch
-from hydra import compose, initialize_config_dir
+import train_speed  # noqa: E402  (the script beside this one: python benchmarks/population.py)
 
-from drone_torchrl.config import config_dir
 from drone_torchrl.envs import dynamics
 from drone_torchrl.training import run as run_module
 from drone_torchrl.training.jobs import prepare
@@ -34,21 +33,12 @@ def never_terminate(state: torch.Tensor, floor_tolerance: float) -> torch.Tensor
     return torch.zeros(state.shape[:-1], dtype=torch.int64, device=state.device)
 
 
-def config(device: str, compile_step: bool):
-    overrides = [
-        "env.reset_mode=air",
-        "eval.every_episodes=0",
-        "eval.episodes=1",
-        "eval.video=false",
-        "checkpoint.every_episodes=1000000",
-        "progress=false",
-        "logger.every_updates=1",
-        "logger.flush_every_s=1000000",
-        f"device={device}",
-        f"compile={str(compile_step).lower()}",
-    ]
-    with initialize_config_dir(config_dir(), version_base="1.3"):
-        return compose("config", overrides=overrides)
+def config(device: str, compile_step: bool, threads: int):
+    """train_speed's benchmark config on ``device``, buffers flushed only at the end."""
+    cfg = train_speed.config(compile_step, threads)
+    cfg.device = device
+    cfg.logger.flush_every_s = 1e9
+    return cfg
 
 
 def time_population(cfg, agents: int, updates: int, warmup: int) -> tuple[float, float]:
@@ -103,8 +93,7 @@ def main() -> None:
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     dynamics.termination_cause = never_terminate  # every episode flies max_steps steps
-    cfg = config(args.device, args.compile)
-    cfg.threads = args.threads
+    cfg = config(args.device, args.compile, args.threads)
     device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     rows = []
     for n in args.agents:
