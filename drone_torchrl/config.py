@@ -36,6 +36,11 @@ def config_dir() -> str:
     A wheel ships the top-level ``conf/`` as ``drone_torchrl/conf`` (pyproject's package-dir);
     a source checkout or editable install reads the top-level folder itself.
     """
+    # The configs name hydra/launcher=fused and hydra/sweeper=population: their schemas must be in
+    # Hydra's ConfigStore before composing, also where Hydra's plugin scan does not see them (an
+    # editable install's hydra_plugins is an import hook, not a folder).
+    import hydra_plugins.drone_torchrl_launcher.schemas  # noqa: F401
+
     package = Path(__file__).resolve().parent
     for candidate in (package / "conf", package.parent / "conf"):
         if (candidate / "config.yaml").is_file():

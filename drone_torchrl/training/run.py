@@ -65,7 +65,11 @@ class RunRecord:
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.engine = engine
-        window = cfg.metrics.running_mean_window
+        # Read per update by every run of a population: plain numbers, not OmegaConf lookups (~20 us each).
+        self.budget = int(cfg.algo.episodes)
+        self.every_updates = int(cfg.logger.every_updates)
+        self.flush_every_s = float(cfg.logger.flush_every_s)
+        self.window = window = int(cfg.metrics.running_mean_window)
         self.recent_returns: deque[float] = deque(maxlen=window)
         self.recent_lengths: deque[float] = deque(maxlen=window)
         self.episodes_done = self.updates_done = 0
@@ -101,7 +105,7 @@ class RunRecord:
     # ------------------------------------------------------------------ state
     @property
     def finished(self) -> bool:
-        return self.episodes_done >= self.cfg.algo.episodes
+        return self.episodes_done >= self.budget
 
     @property
     def failed(self) -> bool:
@@ -141,14 +145,14 @@ class RunRecord:
             self.recent_lengths.append(row["length"])
             self.episodes_done += 1
         self.csv.write(rows)
-        if self.updates_done % self.cfg.logger.every_updates == 0:
+        if self.updates_done % self.every_updates == 0:
             metrics = {
                 **train_metrics,
                 "train/running_mean_return": self.running_return,
                 "train/running_mean_length": self.running_length,
             }
             log_update(self.logger, rows, metrics, step=self.episodes_done)
-        if time.perf_counter() - self._last_flush > self.cfg.logger.flush_every_s:
+        if time.perf_counter() - self._last_flush > self.flush_every_s:
             self.flush()
 
     # ------------------------------------------------------------------ evaluation
@@ -258,7 +262,7 @@ class Progress:
         show = sys.stderr.isatty() if setting == "auto" else bool(setting)
         self.runs = runs
         self.bar = tqdm(
-            total=sum(r.cfg.algo.episodes for r in runs),
+            total=sum(r.budget for r in runs),
             initial=sum(r.episodes_done for r in runs),
             disable=not show,
             unit="ep",
@@ -267,7 +271,7 @@ class Progress:
 
     def update(self, episodes: int, active: Sequence[RunRecord]) -> None:
         self.bar.update(episodes)
-        window = active[0].cfg.metrics.running_mean_window
+        window = active[0].window
         returns = [r.running_return for r in active]
         if len(active) == 1:
             text = f"return({window})={returns[0]:.0f} length={active[0].running_length:.0f}"

@@ -16,10 +16,8 @@ machines, each job then training alone.
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
-from hydra.core.config_store import ConfigStore
 from hydra.core.hydra_config import HydraConfig
 from hydra.core.utils import JobReturn, JobStatus, configure_log, filter_overrides, run_job, setup_globals
 from hydra.errors import CompactHydraException
@@ -27,18 +25,10 @@ from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, open_dict
 
+from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/launcher=fused)
+
 log = logging.getLogger(__name__)
 ENGINE = "fused"
-
-
-@dataclass
-class FusedLauncherConf:
-    _target_: str = "hydra_plugins.drone_torchrl_launcher.fused_launcher.FusedLauncher"
-
-
-ConfigStore.instance().store(
-    group="hydra/launcher", name="fused", node=FusedLauncherConf, provider="drone_torchrl"
-)
 
 
 class JobFailed(CompactHydraException):

@@ -7,24 +7,39 @@ applying them (an unknown key still fails), any other job is composed fully. Eve
 grid expansion, batches, ``max_batch_size``, ``params``, is the basic sweeper's.
 """
 
+import importlib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from typing import Any
 
-from hydra._internal.core_plugins.basic_sweeper import BasicSweeper, BasicSweeperConf
-from hydra.core.config_store import ConfigStore
+from hydra.plugins.sweeper import Sweeper
+from hydra.types import HydraContext, TaskFunction
+from omegaconf import DictConfig
 
-
-@dataclass
-class PopulationSweeperConf(BasicSweeperConf):
-    _target_: str = "hydra_plugins.drone_torchrl_launcher.population_sweeper.PopulationSweeper"
+from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/sweeper=population)
 
 
-ConfigStore.instance().store(
-    group="hydra/sweeper", name="population", node=PopulationSweeperConf, provider="drone_torchrl"
-)
+class PopulationSweeper(Sweeper):
+    """The basic sweeper with a cheaper :meth:`validate_batch_is_legal`.
 
+    It wraps rather than subclasses ``BasicSweeper``: Hydra's plugin scan re-executes its core
+    plugin modules, and ``BasicSweeper.__init__`` calls ``super(BasicSweeper, self)`` with the class
+    the module defines now, which a subclass of the class imported earlier is not.
+    """
 
-class PopulationSweeper(BasicSweeper):
+    def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None) -> None:
+        basic = importlib.import_module("hydra._internal.core_plugins.basic_sweeper").BasicSweeper
+        self._basic = basic(max_batch_size=max_batch_size, params=params)
+        self._basic.validate_batch_is_legal = self.validate_batch_is_legal
+        self.config: DictConfig | None = None
+        self.hydra_context: HydraContext | None = None
+
+    def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
+        self.config, self.hydra_context = config, hydra_context
+        self._basic.setup(hydra_context=hydra_context, task_function=task_function, config=config)
+
+    def sweep(self, arguments: list[str]) -> Any:
+        return self._basic.sweep(arguments)
+
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
