@@ -117,7 +117,7 @@ def main() -> None:
         f"\nmedian of {args.repeats} repeats, {args.updates} updates each, torch threads {args.threads}, "
         "hovering policies\n"
     )
-    print("| engine | agents | agent-steps/s | agent-episodes/s | steps/episode | x torchrl loop |")
+    print("| engine | agents | agent-steps/s | agent-episodes/s | steps/episode | x torchrl |")
     print("|---|---|---|---|---|---|")
     for name, n, rate, eps in rows:
         print(f"| {name} | {n} | {rate:,.0f} | {eps:,.2f} | {rate / eps:.0f} | {rate / base_rate:.1f}x |")
