@@ -53,24 +53,21 @@ class StackedThreeNet(nn.Module):
         return self.params.batch_size[0]
 
     def stacked(self, params: TensorDict | None = None) -> Layers:
-        """``[(W^T [N, in, out], b [N, 1, out]), ...]``: the hidden layers, then the mean and std heads
-        side by side as one layer (one batched product instead of two)."""
+        """``[(W^T [N, in, out], b [N, 1, out]), ...]``: hidden layers, then the mean and std heads."""
         params = self.params if params is None else params
-        layers = [
+        return [
             (params.get((*key, "weight")).transpose(1, 2), params.get((*key, "bias")).unsqueeze(1))
             for key in self.linears
         ]
-        (w_mean, b_mean), (w_std, b_std) = layers[self.n_hidden :]
-        return [*layers[: self.n_hidden], (torch.cat((w_mean, w_std), -1), torch.cat((b_mean, b_std), -1))]
 
     def apply_stacked(self, layers: Layers, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         shape = observation.shape
         h = observation.reshape(shape[0], -1, shape[-1])
         for weight, bias in layers[: self.n_hidden]:
             h = self.activation(torch.baddbmm(bias, h, weight))
-        w_heads, b_heads = layers[self.n_hidden]
-        loc, pre_scale = torch.baddbmm(b_heads, h, w_heads).chunk(2, dim=-1)
-        scale = nn.functional.softplus(pre_scale) + self.min_std
+        (w_mean, b_mean), (w_std, b_std) = layers[self.n_hidden :]
+        loc = torch.baddbmm(b_mean, h, w_mean)
+        scale = nn.functional.softplus(torch.baddbmm(b_std, h, w_std)) + self.min_std
         out_shape = (*shape[:-1], loc.shape[-1])
         return loc.reshape(out_shape), scale.reshape(out_shape)
 
