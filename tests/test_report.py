@@ -386,3 +386,52 @@ def test_cli_error_for_jobs_without_episodes(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and str(empty) in err and "Traceback" not in err
     assert not (good / "report").exists()  # every folder is checked before any report is written
+
+
+def test_landscape_of_a_two_key_grid(tmp_path):
+    """2 learning rates x 2 discounts x 2 seeds, 10-step episodes (ceiling 100): hand-computed cells."""
+    from drone_torchrl.report.landscape import landscape, write_landscape
+
+    sweep = tmp_path / "landscape"
+    # final running mean over the default window = the mean of each run's returns (fewer than 100)
+    runs = {
+        (1e-3, 0.9): ([2000.0, 2000.0], [1000.0, 1000.0]),  # seed means 2000 and 1000
+        (1e-3, 0.99): ([1600.0, 1600.0], [1400.0, 1600.0]),  # 1600 and 1500
+        (1e-4, 0.9): ([100.0, 100.0], [100.0, 300.0]),  # 100 and 200
+        (1e-4, 0.99): ([3000.0, 3000.0], [3000.0, 3000.0]),  # 3000 and 3000
+    }
+    lengths = {(1e-3, 0.9): [10, 10], (1e-3, 0.99): [5, 10], (1e-4, 0.9): [3, 4], (1e-4, 0.99): [10, 10]}
+    for (lr, gamma), per_seed in runs.items():
+        for seed, returns in enumerate(per_seed):
+            _write_job(
+                sweep / f"algo.gamma={gamma},algo.lr={lr},seed={seed}",
+                [f"algo.lr={lr}", f"algo.gamma={gamma}", f"seed={seed}"],
+                _config(lr, seed, gamma=gamma),
+                returns,
+                lengths[(lr, gamma)],
+            )
+    grid = landscape(build_report(sweep, pd=False))
+    assert grid is not None and (grid.x_key, grid.y_key) == ("algo.lr", "algo.gamma")
+    assert grid.x_values == [1e-4, 1e-3] and grid.y_values == [
+        0.9,
+        0.99,
+    ]  # gamma by its horizon -log(1 - gamma)
+    # rows: gamma 0.9, 0.99; columns: lr 1e-4, 1e-3
+    np.testing.assert_allclose(grid.median_return, [[150.0, 1500.0], [3000.0, 1550.0]])
+    np.testing.assert_allclose(grid.zone_fraction, [[0.0, 0.5], [1.0, 1.0]])
+    # running-mean length reaches 10: episode 0 at (1e-3, 0.9) and (1e-4, 0.99); lengths [5, 10] never
+    # (running mean 7.5); [3, 4] never
+    np.testing.assert_array_equal(grid.full_length_episode, [[np.inf, 0.0], [0.0, np.inf]])
+    paths = write_landscape(grid, tmp_path / "out")
+    assert paths[0].stat().st_size > 0
+    rows = list(csv.DictReader(paths[1].open()))
+    assert len(rows) == 4 and {r["median_full_length_episode"] for r in rows} == {"0", "never"}
+
+
+def test_a_one_key_sweep_has_no_landscape(tmp_path):
+    from drone_torchrl.report.landscape import landscape
+
+    sweep = tmp_path / "lr"
+    for i, lr in enumerate([1e-3, 1e-4]):
+        _write_job(sweep / f"job{i}", [f"algo.lr={lr}", "seed=0"], _config(lr, 0), [1.0, 2.0], [1, 2])
+    assert landscape(build_report(sweep, pd=False)) is None

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from drone_torchrl.report.figures import RETURNS_FIGURE, STEPS_FIGURE, plot_curves
+from drone_torchrl.report.landscape import LANDSCAPE_FIGURE, landscape, write_landscape
 from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN
 from drone_torchrl.report.stats import PD_EPISODES, PD_SEED, PERCENT, STD_DDOF
 from drone_torchrl.report.sweep import SweepReport
@@ -163,15 +164,21 @@ def format_report(report: SweepReport, figures: bool = True) -> str:
 
 
 def write_report(report: SweepReport, out_dir: Path) -> list[Path]:
-    """Write ``steps.png``, ``returns.png``, ``summary.md`` and ``summary.csv`` into ``out_dir``."""
+    """Write ``steps.png``, ``returns.png``, ``summary.md`` and ``summary.csv`` into ``out_dir``, and
+    for a two-key grid sweep also ``landscape.png`` and ``landscape.csv`` (:mod:`.landscape`)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = [
         plot_curves(report, COL_LENGTH, out_dir / STEPS_FIGURE),
         plot_curves(report, COL_RETURN, out_dir / RETURNS_FIGURE),
     ]
+    grid = landscape(report)
+    if grid is not None:
+        paths += write_landscape(grid, out_dir)
     md = out_dir / SUMMARY_MD
-    md.write_text(format_report(report))
+    md.write_text(
+        format_report(report) + (f"\n![landscape]({LANDSCAPE_FIGURE})\n" if grid is not None else "")
+    )
     table = out_dir / SUMMARY_CSV
     with table.open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=SUMMARY_CSV_COLUMNS)

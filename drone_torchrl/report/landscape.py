@@ -1,0 +1,191 @@
+"""Heat maps of a two-dimensional grid sweep (e.g. learning rate x discount, ``+sweep=landscape``).
+
+A sweep whose settings differ in exactly two numeric keys, each with at least two values, is a
+grid. Per cell, over its seeds:
+
+- the median final running-mean return;
+- the fraction of seeds that end in the zone: final running-mean return >= :data:`ZONE_RETURN`
+  (1500 of a possible 3000: the drone spends most of the episode hovering in the target zone, a
+  return a crash or a drone that only survives outside the zone, about 300, cannot reach);
+- the median episode at which the running-mean episode length first reaches ``max_steps``
+  (seeds that never do count as never; a cell whose median seed never does shows "never").
+
+The paper's setting (alpha 1e-4, gamma 0.99) is marked where it falls between the grid's values.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drone_torchrl.report.stats import SettingSummary
+from drone_torchrl.report.sweep import SweepReport
+
+ZONE_RETURN = 1500.0
+PAPER_SETTING = {"algo.lr": 1e-4, "algo.gamma": 0.99}
+LANDSCAPE_FIGURE = "landscape.png"
+LANDSCAPE_CSV = "landscape.csv"
+MIN_VALUES_PER_AXIS = 2
+FIGURE_SIZE = (16.0, 5.0)
+FIGURE_DPI = 120
+ANNOTATION_SIZE = 7
+MARKER_SIZE = 14
+NEVER = "never"
+
+
+def _axis_position(key: str, value: float) -> float:
+    """Where a value sits on its axis: -log(1 - gamma) for discounts (the horizon, log-spaced, growing
+    with gamma), log(value) for other positive values."""
+    if key.endswith("gamma"):
+        return -math.log(1.0 - value) if value < 1 else math.inf
+    return math.log(value) if value > 0 else value
+
+
+@dataclass
+class Landscape:
+    x_key: str
+    y_key: str
+    x_values: list[float]
+    y_values: list[float]
+    median_return: np.ndarray  # [len(y), len(x)], NaN where a cell has no run
+    zone_fraction: np.ndarray
+    full_length_episode: np.ndarray  # inf: the median seed never reaches full length
+    seeds: np.ndarray
+
+
+def landscape(report: SweepReport) -> Landscape | None:
+    """The grid of a sweep, or None if its settings are not a two-key numeric grid."""
+    keys: list[str] = []
+    for setting in report.settings:
+        keys.extend(k for k, _ in setting.pairs if k not in keys)
+    values: dict[str, set[float]] = {}
+    for key in keys:
+        try:
+            values[key] = {float(dict(s.pairs)[key]) for s in report.settings}
+        except (KeyError, ValueError):
+            continue
+    axes = [k for k in keys if len(values.get(k, ())) >= MIN_VALUES_PER_AXIS]
+    if len(axes) != 2 or len(report.settings) < MIN_VALUES_PER_AXIS**2:
+        return None
+    x_key, y_key = axes
+    xs = sorted(values[x_key], key=lambda v: _axis_position(x_key, v))
+    ys = sorted(values[y_key], key=lambda v: _axis_position(y_key, v))
+    shape = (len(ys), len(xs))
+    median_return, zone, full, seeds = (np.full(shape, np.nan) for _ in range(4))
+    for setting, summary in zip(report.settings, report.summaries, strict=True):
+        pairs = dict(setting.pairs)
+        cell = ys.index(float(pairs[y_key])), xs.index(float(pairs[x_key]))
+        median_return[cell], zone[cell], full[cell], seeds[cell] = _cell(summary)
+    return Landscape(x_key, y_key, xs, ys, median_return, zone, full, seeds)
+
+
+def _cell(summary: SettingSummary) -> tuple[float, float, float, float]:
+    finals = np.asarray(summary.final_returns, dtype=np.float64)
+    if finals.size == 0:
+        return math.nan, math.nan, math.nan, 0.0
+    reached = summary.length_cap.episodes
+    episodes = np.array(reached + [math.inf] * (summary.length_cap.runs - len(reached)), dtype=np.float64)
+    return (
+        float(np.median(finals)),
+        float(np.mean(finals >= ZONE_RETURN)),
+        float(np.median(episodes)) if episodes.size else math.nan,
+        float(finals.size),
+    )
+
+
+def _format(value: float, kind: str) -> str:
+    if math.isnan(value):
+        return "-"
+    if kind == "fraction":
+        return f"{value:.2f}"
+    if math.isinf(value):
+        return NEVER
+    return f"{value:.0f}"
+
+
+def plot_landscape(grid: Landscape, path: Path) -> Path:
+    """Three heat maps side by side, values written in the cells, the paper's setting marked."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=FIGURE_SIZE)
+    FigureCanvasAgg(fig)
+    panels = [
+        ("median final return (running mean)", grid.median_return, "value", "viridis"),
+        (
+            f"fraction of seeds ending in the zone (return >= {ZONE_RETURN:g})",
+            grid.zone_fraction,
+            "fraction",
+            "magma",
+        ),
+        ("median episode to full-length episodes", grid.full_length_episode, "value", "viridis_r"),
+    ]
+    for i, (title, values, kind, cmap) in enumerate(panels):
+        ax = fig.add_subplot(1, len(panels), i + 1)
+        shown = np.where(np.isinf(values), np.nan, values)
+        image = ax.imshow(shown, origin="lower", cmap=cmap, aspect="auto")
+        fig.colorbar(image, ax=ax, shrink=0.8)
+        for (row, col), value in np.ndenumerate(values):
+            ax.text(
+                col, row, _format(value, kind), ha="center", va="center", fontsize=ANNOTATION_SIZE, color="w"
+            )
+        ax.set_xticks(range(len(grid.x_values)), [f"{v:.3g}" for v in grid.x_values], rotation=45)
+        ax.set_yticks(range(len(grid.y_values)), [f"{v:.5g}" for v in grid.y_values])
+        ax.set_xlabel(grid.x_key)
+        ax.set_ylabel(grid.y_key)
+        ax.set_title(title, fontsize="medium")
+        marker = _paper_marker(grid)
+        if marker is not None:
+            ax.plot(*marker, marker="*", color="red", markersize=MARKER_SIZE, label="the paper's setting")
+            ax.legend(loc="upper left", fontsize="small")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=FIGURE_DPI)
+    return path
+
+
+def _paper_marker(grid: Landscape) -> tuple[float, float] | None:
+    """The paper's setting in cell coordinates (interpolated on each axis), if both keys are its."""
+    if grid.x_key not in PAPER_SETTING or grid.y_key not in PAPER_SETTING:
+        return None
+    coords = []
+    for key, values in ((grid.x_key, grid.x_values), (grid.y_key, grid.y_values)):
+        positions = [_axis_position(key, v) for v in values]
+        coords.append(
+            float(np.interp(_axis_position(key, PAPER_SETTING[key]), positions, range(len(values))))
+        )
+    return coords[0], coords[1]
+
+
+def write_landscape(grid: Landscape, out_dir: Path) -> list[Path]:
+    """``landscape.png`` and ``landscape.csv`` (one row per cell)."""
+    figure = plot_landscape(grid, Path(out_dir) / LANDSCAPE_FIGURE)
+    table = Path(out_dir) / LANDSCAPE_CSV
+    with table.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(
+            [
+                grid.x_key,
+                grid.y_key,
+                "seeds",
+                "median_final_return",
+                "zone_fraction",
+                "median_full_length_episode",
+            ]
+        )
+        for (row, col), seeds in np.ndenumerate(grid.seeds):
+            writer.writerow(
+                [
+                    grid.x_values[col],
+                    grid.y_values[row],
+                    int(seeds) if not math.isnan(seeds) else 0,
+                    grid.median_return[row, col],
+                    grid.zone_fraction[row, col],
+                    _format(grid.full_length_episode[row, col], "value"),
+                ]
+            )
+    return [figure, table]
