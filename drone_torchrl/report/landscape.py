@@ -35,6 +35,9 @@ FIGURE_DPI = 120
 ANNOTATION_SIZE = 7
 MARKER_SIZE = 14
 NEVER = "never"
+NEVER_COLOUR = "lightgrey"
+LUMINANCE = (0.299, 0.587, 0.114)  # ITU-R BT.601 weights of red, green, blue
+DARK_TEXT_ABOVE = 0.5
 
 
 def _axis_position(key: str, value: float) -> float:
@@ -109,11 +112,13 @@ def _format(value: float, kind: str) -> str:
 
 def plot_landscape(grid: Landscape, path: Path) -> Path:
     """Three heat maps side by side, values written in the cells, the paper's setting marked."""
+    import matplotlib
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=FIGURE_SIZE)
     FigureCanvasAgg(fig)
+    marker = _paper_marker(grid)
     panels = [
         ("median final return (running mean)", grid.median_return, "value", "viridis"),
         (
@@ -127,25 +132,39 @@ def plot_landscape(grid: Landscape, path: Path) -> Path:
     for i, (title, values, kind, cmap) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1)
         shown = np.where(np.isinf(values), np.nan, values)
-        image = ax.imshow(shown, origin="lower", cmap=cmap, aspect="auto")
+        colours = matplotlib.colormaps[cmap].with_extremes(bad=NEVER_COLOUR)
+        image = ax.imshow(shown, origin="lower", cmap=colours, aspect="auto")
         fig.colorbar(image, ax=ax, shrink=0.8)
         for (row, col), value in np.ndenumerate(values):
+            cell = shown[row, col]
+            rgb = colours(image.norm(cell))[:3] if np.isfinite(cell) else (1.0, 1.0, 1.0)
+            bright = sum(w * c for w, c in zip(LUMINANCE, rgb, strict=True)) > DARK_TEXT_ABOVE
             ax.text(
-                col, row, _format(value, kind), ha="center", va="center", fontsize=ANNOTATION_SIZE, color="w"
+                col,
+                row,
+                _format(value, kind),
+                ha="center",
+                va="center",
+                fontsize=ANNOTATION_SIZE,
+                color="black" if bright else "white",
             )
         ax.set_xticks(range(len(grid.x_values)), [f"{v:.3g}" for v in grid.x_values], rotation=45)
         ax.set_yticks(range(len(grid.y_values)), [f"{v:.5g}" for v in grid.y_values])
         ax.set_xlabel(grid.x_key)
         ax.set_ylabel(grid.y_key)
         ax.set_title(title, fontsize="medium")
-        marker = _paper_marker(grid)
         if marker is not None:
-            ax.plot(*marker, marker="*", color="red", markersize=MARKER_SIZE, label="the paper's setting")
-            ax.legend(loc="upper left", fontsize="small")
+            ax.plot(*marker, marker="*", color="red", markersize=MARKER_SIZE, markeredgecolor="white")
+    if marker is not None:
+        fig.suptitle(f"red star: the paper's setting ({_paper_label()}); grey: never", fontsize="medium")
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=FIGURE_DPI)
     return path
+
+
+def _paper_label() -> str:
+    return ", ".join(f"{key} {value:g}" for key, value in PAPER_SETTING.items())
 
 
 def _paper_marker(grid: Landscape) -> tuple[float, float] | None:
