@@ -13,8 +13,10 @@ Layout (``format_version`` 2)::
     optimizer       state_dict of the agent's Adam
     episodes_done, updates_done, wall_clock_s, best_eval_return
     recent_returns, recent_lengths   the running-mean windows (lists of floats)
-    rng             {"torch": global RNG, "env": DroneEnv generator, "agent": per-agent generator}
-                    (uint8 tensors, or None where the engine has no such stream)
+    rng             {"torch": global RNG, "env": DroneEnv generator, "agent": None}: uint8 tensors
+                    for the TorchRL collector; all None for the vectorised one, whose counter-based
+                    noise needs only the update count (older files may hold a generator state
+                    under "agent"; it is not used)
     config          the run's resolved config (plain dict)
     final           None while the run goes on; its final metrics once it finished
 """
