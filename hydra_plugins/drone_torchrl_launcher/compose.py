@@ -36,8 +36,14 @@ def _is_plain_value(override: Override, template: DictConfig) -> bool:
     )
 
 
-def sweep_configs(config_loader, master: DictConfig, jobs: Sequence[Sequence[str]]) -> list[DictConfig]:
-    """Each job's config, equal to ``config_loader.load_sweep_config(master, overrides)``."""
+def sweep_configs(
+    config_loader, master: DictConfig, jobs: Sequence[Sequence[str]], check_only: bool = False
+) -> list[DictConfig]:
+    """Each job's config, equal to ``config_loader.load_sweep_config(master, overrides)``.
+
+    ``check_only``: only make sure every job composes (what a sweeper checks before launching);
+    jobs derived from the first are then not built, and the list holds the composed ones only.
+    """
     if not jobs:
         return []
     parser = OverridesParser.create()
@@ -52,6 +58,8 @@ def sweep_configs(config_loader, master: DictConfig, jobs: Sequence[Sequence[str
         same_keys = [o.key_or_group for o in parsed] == [o.key_or_group for o in first_parsed.values()]
         if not (same_keys and all(_is_plain_value(o, template) for o in changed)):
             configs.append(config_loader.load_sweep_config(master, list(overrides)))
+            continue
+        if check_only:
             continue
         cfg = copy.deepcopy(template)
         for override in changed:

@@ -44,4 +44,4 @@ class PopulationSweeper(Sweeper):
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
-        sweep_configs(self.hydra_context.config_loader, self.config, batch)
+        sweep_configs(self.hydra_context.config_loader, self.config, batch, check_only=True)
