@@ -14,7 +14,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
-from drone_torchrl.config import ConfigError, env_kwargs, physics_params, run_config, validate
+from drone_torchrl.config import ConfigError, check_device, env_kwargs, physics_params, run_config, validate
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
@@ -79,6 +79,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
             raise ConfigError.of(key, cfg[key], "an integer >= 1")
     if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or cfg.seed < 0:
         raise ConfigError.of("seed", cfg.seed, "an integer >= 0")
+    check_device(cfg.device)
     if cfg.checkpoint is not None:
         try:
             path = resolve_checkpoint(cfg.checkpoint)

@@ -7,7 +7,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.dynamics import DroneParams
@@ -130,8 +130,21 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     return {name: cfg["env"][name] for name in ENV_ARGS}
 
 
+def check_device(device: Any) -> None:
+    """Raise :class:`ConfigError` for a device torch does not know or this machine does not have."""
+    import torch
+
+    try:
+        kind = torch.device(device).type
+    except (RuntimeError, TypeError):
+        raise ConfigError.of("device", device, "a torch device such as 'cpu' or 'cuda'") from None
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise ConfigError.of("device", device, "'cpu' here (this torch build or machine has no CUDA device)")
+
+
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value that is not allowed."""
+    check_device(cfg.device)
     try:
         DroneEnv(batch_size=[], device=cfg.device, **env_kwargs(cfg)).close()
     except ValueError as err:
@@ -172,9 +185,15 @@ def validate(cfg: DictConfig) -> None:
     _choice(cfg, "model.activation", tuple(ACTIVATIONS))
     _number(cfg, "model.min_std", low=0)
     sizes = cfg.model.hidden_sizes
-    if not sizes or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in sizes):
+    if (
+        not isinstance(sizes, ListConfig | list)
+        or not sizes
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in sizes)
+    ):
         raise ConfigError.of(
-            "model.hidden_sizes", list(sizes) if sizes else sizes, "a non-empty list of integers >= 1"
+            "model.hidden_sizes",
+            list(sizes) if isinstance(sizes, ListConfig | list) else sizes,
+            "a non-empty list of integers >= 1, e.g. [32,32]",
         )
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
         raise ConfigError.of(

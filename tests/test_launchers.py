@@ -193,3 +193,21 @@ def test_parallel_env_starts_inside_a_joblib_worker(tmp_path):
     )
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "batch (1, 2)" in proc.stdout, proc.stdout
+
+
+def test_a_failed_job_does_not_stop_later_batches(tmp_path):
+    """The failing job first, one job per batch: Hydra's basic sweeper used to stop after it."""
+    sweep_dir = tmp_path / "sweep"
+    out = _multirun(
+        sweep_dir,
+        "hydra/launcher=fused",
+        "algo.gamma=7,0.9",
+        "hydra.sweeper.max_batch_size=1",
+        cwd=tmp_path,
+        expect_failure=True,
+    )
+    jobs = {job.name.split(",")[0]: job for job in sweep_jobs(sweep_dir)}
+    assert job_status(jobs["algo.gamma=0.9"])[0] == "finished"
+    assert job_status(jobs["algo.gamma=7"])[0] == "failed"
+    assert "1 finished, 1 failed, 0 unfinished" in out, out
+    assert out.count("algo.gamma=7 is not allowed") <= 3, out  # the job's line, the summary, FAILED.txt's

@@ -389,7 +389,8 @@ def test_cli_error_for_jobs_without_episodes(tmp_path, capsys):
 
 
 def test_landscape_of_a_two_key_grid(tmp_path):
-    """2 learning rates x 2 discounts x 2 seeds, 10-step episodes (ceiling 100): hand-computed cells."""
+    """2 learning rates x 2 discounts x 2 seeds, 300-step episodes (ceiling 3000, "in the zone" from
+    1500): hand-computed cells."""
     from drone_torchrl.report.landscape import landscape, write_landscape
 
     sweep = tmp_path / "landscape"
@@ -400,13 +401,18 @@ def test_landscape_of_a_two_key_grid(tmp_path):
         (1e-4, 0.9): ([100.0, 100.0], [100.0, 300.0]),  # 100 and 200
         (1e-4, 0.99): ([3000.0, 3000.0], [3000.0, 3000.0]),  # 3000 and 3000
     }
-    lengths = {(1e-3, 0.9): [10, 10], (1e-3, 0.99): [5, 10], (1e-4, 0.9): [3, 4], (1e-4, 0.99): [10, 10]}
+    lengths = {
+        (1e-3, 0.9): [300, 300],
+        (1e-3, 0.99): [150, 300],
+        (1e-4, 0.9): [90, 120],
+        (1e-4, 0.99): [300, 300],
+    }
     for (lr, gamma), per_seed in runs.items():
         for seed, returns in enumerate(per_seed):
             _write_job(
                 sweep / f"algo.gamma={gamma},algo.lr={lr},seed={seed}",
                 [f"algo.lr={lr}", f"algo.gamma={gamma}", f"seed={seed}"],
-                _config(lr, seed, gamma=gamma),
+                _config(lr, seed, gamma=gamma, max_steps=300),
                 returns,
                 lengths[(lr, gamma)],
             )
@@ -419,8 +425,8 @@ def test_landscape_of_a_two_key_grid(tmp_path):
     # rows: gamma 0.9, 0.99; columns: lr 1e-4, 1e-3
     np.testing.assert_allclose(grid.median_return, [[150.0, 1500.0], [3000.0, 1550.0]])
     np.testing.assert_allclose(grid.zone_fraction, [[0.0, 0.5], [1.0, 1.0]])
-    # running-mean length reaches 10: episode 0 at (1e-3, 0.9) and (1e-4, 0.99); lengths [5, 10] never
-    # (running mean 7.5); [3, 4] never
+    # running-mean length reaches 300: episode 0 at (1e-3, 0.9) and (1e-4, 0.99); lengths [150, 300]
+    # never (running mean 225); [90, 120] never
     np.testing.assert_array_equal(grid.full_length_episode, [[np.inf, 0.0], [0.0, np.inf]])
     paths = write_landscape(grid, tmp_path / "out")
     assert paths[0].stat().st_size > 0

@@ -31,6 +31,11 @@ def main(cfg: DictConfig) -> float | None:
             return train(cfg)
         except (ConfigError, CheckpointError, TrainingDiverged) as err:
             sys.exit(f"drone-train: error: {err}")
+        except KeyboardInterrupt:
+            run = cfg.resume or HydraConfig.get().runtime.output_dir
+            sys.exit(
+                f"drone-train: interrupted; continue from the last checkpoint with: drone-train resume={run}"
+            )
     job_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         return train(cfg)

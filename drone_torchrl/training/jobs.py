@@ -18,6 +18,7 @@ Resume rules (:func:`prepare`):
 
 from __future__ import annotations
 
+import math
 import sys
 import traceback
 from dataclasses import dataclass
@@ -136,8 +137,9 @@ def prepare(cfg: DictConfig, run_dir: str | Path | None = None, engine: str | No
 
 
 def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
-    # A fork has not finished, whatever its parent did after the checkpoint.
-    return {**checkpoint, "final": None}
+    # A fork has not finished, whatever its parent did after the checkpoint, and its best.pt is the
+    # best of its own evaluations (its folder has none of the parent's checkpoints).
+    return {**checkpoint, "final": None, "best_eval_return": -math.inf}
 
 
 def _with(cfg: DictConfig, **values: Any) -> DictConfig:

@@ -75,6 +75,8 @@ class FusedLauncher(Launcher):
         for idx, (overrides, sweep_config) in enumerate(
             zip(job_overrides, configs, strict=True), initial_job_idx
         ):
+            # Back to Hydra's own logging between jobs (run_job switched to the last job's log file).
+            configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
             log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
             with open_dict(sweep_config):
                 sweep_config.hydra.job.id = idx
@@ -100,6 +102,7 @@ class FusedLauncher(Launcher):
                 failed = True
                 reason = f"{type(outcome.error).__name__}: {outcome.error}"
                 ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
-        if failed:  # Hydra stops at the first failed job and skips the end-of-sweep callbacks.
+        if failed and not str(self.config.hydra.sweeper._target_).endswith("PopulationSweeper"):
+            # Another sweeper stops at the first failed job and skips the end-of-sweep summary.
             print(sweep_summary(sweep_dir))
         return returns

@@ -1,16 +1,22 @@
-"""``hydra/sweeper=population``: Hydra's basic sweeper, checking a batch without composing every job.
+"""``hydra/sweeper=population``: Hydra's basic sweeper, checking a batch without composing every job,
+and going on past failed jobs.
 
-The basic sweeper composes each job's config once to check the batch before launching it (about
-0.4 s a job here). This one checks it through :func:`.compose.sweep_configs`: the first job is
-composed fully, jobs that differ from it only in plain ``key=value`` overrides are checked by
-applying them (an unknown key still fails), any other job is composed fully. Everything else,
-grid expansion, batches, ``max_batch_size``, ``params``, is the basic sweeper's.
+- The basic sweeper composes each job's config once to check the batch before launching it (about
+  0.4 s a job here). This one checks it through :func:`.compose.sweep_configs`: the first job is
+  composed fully, jobs that differ from it only in plain ``key=value`` overrides are checked by
+  applying them (an unknown key still fails), any other job is composed fully.
+- The basic sweeper raises the first failed job's error after its batch, so later batches never run
+  and the end-of-sweep summary is skipped. Here every batch runs; the summary
+  (``SweepSummary``) then lists each job's status and exits non-zero if any failed.
+
+Everything else, grid expansion, batches, ``max_batch_size``, ``params``, is the basic sweeper's.
 """
 
 import importlib
 from collections.abc import Sequence
 from typing import Any
 
+from hydra.core.utils import JobReturn, JobStatus
 from hydra.plugins.sweeper import Sweeper
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig
@@ -36,12 +42,37 @@ class PopulationSweeper(Sweeper):
     def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
         self.config, self.hydra_context = config, hydra_context
         self._basic.setup(hydra_context=hydra_context, task_function=task_function, config=config)
+        self._basic.launcher = _GoOn(self._basic.launcher)
 
     def sweep(self, arguments: list[str]) -> Any:
         return self._basic.sweep(arguments)
+
+    @property
+    def failed(self) -> int:
+        return self._basic.launcher.failed
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
         sweep_configs(self.hydra_context.config_loader, self.config, batch, check_only=True)
+
+
+class _GoOn:
+    """A launcher as the basic sweeper sees it: failed jobs keep their error (Hydra's callbacks and
+    the job folders say FAILED), but do not stop the sweep."""
+
+    def __init__(self, launcher: Any) -> None:
+        self.launcher = launcher
+        self.failed = 0
+
+    def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+        returns = self.launcher.launch(job_overrides, initial_job_idx=initial_job_idx)
+        for ret in returns:
+            if ret.status == JobStatus.FAILED:
+                self.failed += 1
+                ret.status, ret.return_value = JobStatus.COMPLETED, None
+        return returns
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.launcher, name)
