@@ -18,7 +18,7 @@ from drone_torchrl.config import ConfigError, check_device, env_kwargs, physics_
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
-from drone_torchrl.evaluation import evaluate, summarize
+from drone_torchrl.evaluation import evaluate, max_return, summarize
 from drone_torchrl.io.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
 from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
@@ -112,12 +112,12 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
             raise ConfigError(f"env.{err}") from None
         policies = {}
     policies["PD controller"] = PDController(physics_params(kwargs))
-    max_return = dynamics.REWARD_IN_ZONE * kwargs["max_steps"]
+    ceiling = max_return(kwargs)
 
     results, rollouts = {}, {}
     for name, policy in policies.items():
         stats, rollouts[name] = evaluate(policy, kwargs, cfg.episodes, cfg.seed, cfg.device)
-        results[name] = {"policy": name, **summarize(stats, max_return)}
+        results[name] = {"policy": name, **summarize(stats, ceiling)}
     pd_return = results["PD controller"]["return_mean"]
     print(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
     for name, r in results.items():
@@ -125,7 +125,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         causes = ", ".join(f"{k} {v}" for k, v in r["causes"].items() if v)
         print(
             f"{name}: return {r['return_mean']:.1f} +- {r['return_std']:.1f} "
-            f"({r['pct_of_max']:.1f}% of {max_return:.0f}, {vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
+            f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
             f"time in zone {100 * r['time_in_zone']:.1f}%, negative thrust {100 * r['negative_thrust_fraction']:.1f}%; "
             f"episode ends: {causes} (NONE = truncated)"
         )

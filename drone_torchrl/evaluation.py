@@ -16,20 +16,12 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from drone_torchrl.config import physics_params
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController, PDGains
 from drone_torchrl.envs.rollout import StepFn, fly
 from drone_torchrl.episodes import cause_counts, episode_stats
-
-
-def start_states(env_kwargs: dict[str, Any], episodes: int, seed: int, device: str = "cpu") -> torch.Tensor:
-    """The ``[episodes, 6]`` start states of the evaluation seeded with ``seed``."""
-    env = DroneEnv(batch_size=[episodes], device=device, **env_kwargs)
-    env.set_seed(seed)
-    start = env.reset().get("observation")
-    env.close()
-    return start
 
 
 def policy_step(policy: TensorDictModuleBase, params: dynamics.DroneParams) -> StepFn:
@@ -61,8 +53,9 @@ def evaluate(
     (:func:`~drone_torchrl.episodes.episode_stats`, shape ``[episodes]`` or ``[N, episodes]``)
     and the rollout.
     """
-    env = DroneEnv(batch_size=[], device=device, **env_kwargs)  # validates the arguments
-    start = start_states(env_kwargs, episodes, seed, device)
+    env = DroneEnv(batch_size=[episodes], device=device, **env_kwargs)  # validates the arguments
+    env.set_seed(seed)
+    start = env.reset().get("observation")
     if agents is not None:
         start = start.expand(agents, *start.shape).clone()
     step = policy_step(policy, env.params) if isinstance(policy, TensorDictModuleBase) else policy
@@ -113,6 +106,5 @@ def evaluate_pd(
 ) -> dict[str, Any]:
     """The PD hover controller's :func:`summarize` over ``episodes`` seeded episodes."""
     env_kwargs = dict(env_kwargs or {})
-    env = DroneEnv(batch_size=[], **env_kwargs)
-    stats, _ = evaluate(PDController(env.params, gains), env_kwargs, episodes, seed, device)
-    return summarize(stats, dynamics.REWARD_IN_ZONE * env.max_steps)
+    stats, _ = evaluate(PDController(physics_params(env_kwargs), gains), env_kwargs, episodes, seed, device)
+    return summarize(stats, max_return(env_kwargs))

@@ -246,14 +246,6 @@ class RunRecord:
     def close(self) -> None:
         self.flush()
 
-    def summary_line(self) -> str:
-        f = self.final or {}
-        return (
-            f"{self.run_dir}: {self.episodes_done} episodes, running-mean({self.cfg.metrics.running_mean_window}) "
-            f"return {f.get('final_return', math.nan):.1f}, length {f.get('final_length', math.nan):.1f}, "
-            f"eval return {f.get('eval_return', math.nan):.1f}, {f.get('wall_clock_s', math.nan):.0f} s"
-        )
-
 
 class Progress:
     """One progress bar over the episodes of every run trained together, with the running mean."""

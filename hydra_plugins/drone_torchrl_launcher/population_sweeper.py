@@ -47,10 +47,6 @@ class PopulationSweeper(Sweeper):
     def sweep(self, arguments: list[str]) -> Any:
         return self._basic.sweep(arguments)
 
-    @property
-    def failed(self) -> int:
-        return self._basic.launcher.failed
-
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
@@ -64,13 +60,11 @@ class _GoOn:
 
     def __init__(self, launcher: Any) -> None:
         self.launcher = launcher
-        self.failed = 0
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         returns = self.launcher.launch(job_overrides, initial_job_idx=initial_job_idx)
         for ret in returns:
             if ret.status == JobStatus.FAILED:
-                self.failed += 1
                 ret.status, ret.return_value = JobStatus.COMPLETED, None
         return returns
 
