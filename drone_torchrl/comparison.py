@@ -14,7 +14,17 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
-from drone_torchrl.config import ConfigError, check_device, env_kwargs, physics_params, run_config, validate
+from drone_torchrl.config import (
+    MAX_SEED,
+    ConfigError,
+    check_device,
+    check_keys,
+    command_line_keys,
+    env_kwargs,
+    physics_params,
+    run_config,
+    validate,
+)
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
@@ -71,14 +81,30 @@ def plot_trajectory(rollout: TensorDictBase, path: Path, title: str) -> Path:
     return path
 
 
+def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
+    """A checkpoint flies in its own run's env: an ``env.*`` override that differs is refused, not ignored."""
+    keys = command_line_keys() or set()
+    changed = [
+        f"env.{name} {run_env[name]!r} -> {cfg.env[name]!r}"
+        for name in run_env
+        if ("env" in keys or f"env.{name}" in keys) and cfg.env[name] != run_env[name]
+    ]
+    if changed:
+        raise ConfigError(
+            f"checkpoint={str(path)!r} flies in the env it was trained in; the command line changes "
+            f"{'; '.join(changed)}: drop those overrides"
+        )
+
+
 def run_eval(cfg: DictConfig) -> dict[str, dict]:
     """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot."""
     out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
+    check_keys(cfg, "eval")
     for key in ("episodes", "video_fps"):
         if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 1:
             raise ConfigError.of(key, cfg[key], "an integer >= 1")
-    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or cfg.seed < 0:
-        raise ConfigError.of("seed", cfg.seed, "an integer >= 0")
+    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or not 0 <= cfg.seed <= MAX_SEED:
+        raise ConfigError.of("seed", cfg.seed, f"an integer >= 0 and <= {MAX_SEED}")
     check_device(cfg.device)
     if cfg.checkpoint is not None:
         try:
@@ -102,6 +128,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
                 f"checkpoint={str(path)!r} cannot be used: {type(err).__name__}: {err}"
             ) from None
         kwargs = env_kwargs(run_cfg)
+        _refuse_env_overrides(cfg, kwargs, path)
         actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import difflib
+import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -46,6 +48,149 @@ def config_dir() -> str:
         if (candidate / "config.yaml").is_file():
             return str(candidate)
     raise FileNotFoundError(f"drone_torchrl's conf/ folder is missing (looked in {package} and its parent)")
+
+
+# Bounds of values that have no natural limit. A learning rate above 1 only diverges with Adam's
+# unit-scale steps; seeds are signed 64-bit integers in torch.
+MAX_LR = 1.0
+MAX_SEED = 2**63 - 1
+# Groups chosen with ``group=option`` (a file conf/<group>/<option>.yaml); Hydra's own groups
+# (hydra/launcher, hydra/sweeper) are Hydra's to check.
+_HYDRA_PREFIX = "hydra"
+
+
+@functools.cache
+def schema(name: str = "config") -> DictConfig:
+    """Every key a ``conf/<name>.yaml`` config can hold, with its default value.
+
+    The primary file merged with its default group options (not Hydra's settings): what a config
+    composed from it holds, whichever experiment or sweep preset is chosen, since those only set
+    values of these keys.
+    """
+    root = Path(config_dir())
+    primary = OmegaConf.load(root / f"{name}.yaml")
+    merged = OmegaConf.create()
+    for entry in primary.get("defaults", []):
+        if not isinstance(entry, Mapping):
+            continue  # _self_
+        for group, option in entry.items():
+            if group.startswith("override") or group.startswith(_HYDRA_PREFIX):
+                continue
+            node = OmegaConf.load(root / group / f"{option}.yaml")
+            if _is_global(root / group / f"{option}.yaml"):
+                merged.merge_with(node)
+            else:
+                merged[group] = node
+    own = {k: v for k, v in primary.items() if k not in ("defaults", _HYDRA_PREFIX)}
+    merged.merge_with(OmegaConf.create(own))
+    return merged
+
+
+def _is_global(path: Path) -> bool:
+    return any(line.strip() == "# @package _global_" for line in path.read_text().splitlines()[:3])
+
+
+def leaves(node: Any, prefix: str = "") -> dict[str, Any]:
+    """``{"algo.lr": 0.0001, ...}``: every leaf of a config (lists are leaves), Hydra's node left out."""
+    if not isinstance(node, DictConfig | Mapping):
+        return {prefix: OmegaConf.to_container(node) if isinstance(node, ListConfig) else node}
+    out: dict[str, Any] = {}
+    for key in node:
+        if not prefix and key == _HYDRA_PREFIX:
+            continue
+        out.update(leaves(node[key], f"{prefix}.{key}" if prefix else str(key)))
+    return out
+
+
+def command_line_keys() -> set[str] | None:
+    """Keys (and group names) set on the command line of this Hydra job; None outside a Hydra app."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None
+    return {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
+
+
+def _options(group: str) -> list[str]:
+    return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
+
+
+def group_names() -> list[str]:
+    return sorted(p.name for p in Path(config_dir()).iterdir() if p.is_dir() and p.name != _HYDRA_PREFIX)
+
+
+def _unknown(key: str, known: Iterable[str]) -> ConfigError:
+    close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
+    return ConfigError(f"{key} is not a config key{hint}")
+
+
+def check_keys(cfg: DictConfig, name: str = "config") -> None:
+    """Refuse keys the config files do not define (e.g. added with ``+``), and non-booleans for
+    boolean options (``off``, ``no`` or ``1`` are strings or numbers here, not ``false``/``true``)."""
+    known = leaves(schema(name))
+    given = leaves(cfg)
+    for key, value in given.items():
+        if key in known:
+            if isinstance(known[key], bool) and not isinstance(value, bool):
+                raise ConfigError.of(key, value, "true or false")
+            continue
+        # A list or dict default (e.g. model.hidden_sizes) may hold any shape of its own.
+        if not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
+            raise _unknown(key, known)
+
+
+def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
+    """One-line errors for command-line overrides Hydra would reject with several lines, or accept
+    though they make no sense: an unknown key (with or without ``+``), an unknown group option, and
+    a run folder that is a file. Overrides Hydra cannot parse are left to Hydra's own message."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except HydraException:
+        return
+    known = leaves(schema(name))
+    groups = group_names()
+    for override in parsed:
+        key = override.key_or_group
+        if override.is_delete():
+            continue
+        values = (
+            list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+        )
+        if key.split(".")[0].split("/")[0] == _HYDRA_PREFIX:
+            if key in ("hydra.run.dir", "hydra.sweep.dir"):
+                for value in values:
+                    if isinstance(value, str) and Path(value).exists() and not Path(value).is_dir():
+                        raise ConfigError.of(key, value, "a folder (new or existing), not a file")
+            continue
+        if key in groups:
+            options = _options(key)
+            for value in values:
+                if value not in options:
+                    raise ConfigError.of(key, value, f"one of {options}")
+            continue
+        if key not in known and not any(k.startswith(f"{key}.") for k in known):
+            raise _unknown(key, known)
+
+
+def check_command_line(prog: str, name: str) -> None:
+    """:func:`check_overrides` on ``sys.argv``; exits with ``<prog>: error: <message>`` on a bad one.
+
+    Skipped when the command line picks another config (``--config-name``/``--config-dir``...),
+    whose keys the ``conf/`` files do not describe.
+    """
+    import sys
+
+    args = sys.argv[1:]
+    if any(a.startswith(("--config", "-cn", "-cp", "-cd")) for a in args):
+        return
+    try:
+        check_overrides([a for a in args if not a.startswith("-") and "=" in a], name)
+    except ConfigError as err:
+        sys.exit(f"{prog}: error: {err}")
 
 
 class ConfigError(ValueError):
@@ -144,6 +289,7 @@ def check_device(device: Any) -> None:
 
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value that is not allowed."""
+    check_keys(cfg)
     check_device(cfg.device)
     try:
         DroneEnv(batch_size=[], device=cfg.device, **env_kwargs(cfg)).close()
@@ -154,12 +300,18 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError.of("engine", cfg.engine, f"one of {list(ENGINES)}")
     _number(cfg, "env.num_workers", low=0, integer=True)
     workers = cfg.env.num_workers
-    _number(cfg, "seed", low=0, integer=True)
+    _number(cfg, "seed", low=0, high=MAX_SEED, integer=True)
     _number(cfg, "threads", low=1, integer=True)
-    _number(cfg, "algo.lr", low=0, low_open=True)
+    _number(cfg, "algo.lr", low=0, low_open=True, high=MAX_LR)
     _number(cfg, "algo.gamma", low=0, high=1)
     _number(cfg, "algo.episodes", low=1, integer=True)
     _number(cfg, "algo.episodes_per_update", low=1, integer=True)
+    if cfg.algo.episodes % cfg.algo.episodes_per_update:
+        raise ConfigError.of(
+            "algo.episodes",
+            cfg.algo.episodes,
+            f"a multiple of algo.episodes_per_update={cfg.algo.episodes_per_update} (every update trains on that many)",
+        )
     if workers and cfg.engine != "torchrl":
         raise ConfigError.of(
             "env.num_workers",
@@ -172,15 +324,12 @@ def validate(cfg: DictConfig) -> None:
             workers,
             f"a divisor of algo.episodes_per_update={cfg.algo.episodes_per_update} (the episodes are split over the workers)",
         )
-    _number(cfg, "algo.adam_eps", low=0, low_open=True)
+    _number(cfg, "algo.adam_eps", low=0, low_open=True, high=1)
     _choice(cfg, "algo.optimizer", OPTIMIZERS)
-    _number(cfg, "algo.weight_decay", low=0)
+    _number(cfg, "algo.weight_decay", low=0, high=1)
     if cfg.algo.max_grad_norm is not None:
         _number(cfg, "algo.max_grad_norm", low=0, low_open=True)
     _choice(cfg, "algo.baseline", BASELINES)
-    for flag in ("discount_weight", "normalize_returns"):
-        if not isinstance(cfg.algo[flag], bool):
-            raise ConfigError.of(f"algo.{flag}", cfg.algo[flag], "true or false")
     _choice(cfg, "model.distribution", DISTRIBUTIONS)
     _choice(cfg, "model.activation", tuple(ACTIVATIONS))
     _number(cfg, "model.min_std", low=0)
@@ -204,13 +353,16 @@ def validate(cfg: DictConfig) -> None:
     _number(cfg, "checkpoint.every_episodes", low=1, integer=True)
     _number(cfg, "eval.every_episodes", low=0, integer=True)
     _number(cfg, "eval.episodes", low=1, integer=True)
-    _number(cfg, "eval.seed", low=0, integer=True)
+    _number(cfg, "eval.seed", low=0, high=MAX_SEED, integer=True)
     _number(cfg, "metrics.running_mean_window", low=1, integer=True)
     _number(cfg, "logger.video_fps", low=1, integer=True)
     _number(cfg, "logger.video_stride", low=1, integer=True)
     _number(cfg, "logger.every_updates", low=1, integer=True)
     _number(cfg, "logger.flush_every_s", low=0)
-    if not isinstance(cfg.compile, bool):
-        raise ConfigError.of("compile", cfg.compile, "true or false")
+    name = cfg.logger.exp_name
+    if not isinstance(name, str) or name in ("", ".", "..") or Path(name).name != name:
+        raise ConfigError.of(
+            "logger.exp_name", name, "a folder name inside the run folder (no '/' or '..'), e.g. tensorboard"
+        )
     if cfg.progress not in (True, False, "auto"):
         raise ConfigError.of("progress", cfg.progress, "true, false or auto")

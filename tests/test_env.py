@@ -517,7 +517,10 @@ BAD_ARGS = [
     ("dt", float("inf")),
     ("dt", True),
     ("gravity", -9.81),
+    ("gravity", 0.0),  # thrust is a fraction of the weight: nothing could move the drone
+    ("gravity", 100.01),
     ("gravity", True),
+    ("dt", 0.11),
     ("max_steps", 0),
     ("max_steps", -1),
     ("max_steps", 1.5),
@@ -528,6 +531,7 @@ BAD_ARGS = [
     ("max_thrust", -1.0),
     ("max_thrust", True),
     ("floor_tolerance", -0.01),
+    ("floor_tolerance", 1.01),
     ("floor_tolerance", False),
     ("render_mode", "x"),
 ]
@@ -546,7 +550,14 @@ def test_bad_batch_size(value):
 
 
 def test_edge_arguments_are_accepted():
-    env = DroneEnv(gravity=0.0, floor_tolerance=0.0, max_steps=1, batch_size=[1], max_thrust=0.25)
-    assert (env.gravity, env.floor_tolerance, env.max_steps, env.max_thrust) == (0.0, 0.0, 1, 0.25)
+    env = DroneEnv(gravity=100.0, floor_tolerance=0.0, max_steps=1, batch_size=[1], max_thrust=0.25, dt=0.1)
+    assert (env.gravity, env.floor_tolerance, env.max_steps, env.max_thrust, env.dt) == (
+        100.0,
+        0.0,
+        1,
+        0.25,
+        0.1,
+    )
+    assert DroneEnv(floor_tolerance=1.0).floor_tolerance == 1.0
     assert DroneEnv(batch_size=3).batch_size == (3,)
     assert DroneEnv().batch_size == ()

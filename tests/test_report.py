@@ -282,7 +282,7 @@ def test_runs_of_different_lengths_and_a_run_in_progress(tmp_path):
         finished=False,
     )
     with (job / "episodes.csv").open("a") as f:
-        f.write("3,4,12")  # a row still being written is ignored
+        f.write("3,4,12")  # a row still being written is skipped, with a note
     report = build_report(sweep, window=3, return_threshold=3, pd=False)
     (setting,) = report.settings
     curve = setting_curve(setting, "return", 3)
@@ -300,7 +300,8 @@ def test_runs_of_different_lengths_and_a_run_in_progress(tmp_path):
     assert row.return_threshold.episodes == [2, 1] and row.return_threshold.mean == 1.5
     assert row.final_negative_thrust == pytest.approx((0.5 + 0.2) / 2)
     assert (row.wall_clock_mean_s, row.wall_clock_total_s) == (4.5, 9)
-    assert row.notes == ["1 of 2 seeds unfinished, shortest at 3 episodes"]
+    assert row.notes[0] == "1 of 2 seeds unfinished, shortest at 3 episodes"
+    assert row.notes[1:] == [f"{job / 'episodes.csv'}: line 5 is not a complete row; skipped"]
     assert report.verdict == "best: all (5.0 +- 1.0, 5.0% of 100); provisional: 1 of 2 runs not finished"
 
 

@@ -13,7 +13,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
-from drone_torchrl.config import ConfigError, config_dir
+from drone_torchrl.config import ConfigError, check_command_line, config_dir
 
 
 @hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
@@ -26,5 +26,11 @@ def main(cfg: DictConfig) -> None:
         sys.exit(f"drone-eval: error: {err}")
 
 
-if __name__ == "__main__":
+def run() -> None:
+    """Console entry point: checks the command line's keys, then runs the Hydra app."""
+    check_command_line("drone-eval", "eval")
     main()
+
+
+if __name__ == "__main__":
+    run()

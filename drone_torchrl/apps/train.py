@@ -17,7 +17,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from drone_torchrl.config import ConfigError, config_dir
+from drone_torchrl.config import ConfigError, check_command_line, config_dir
 from drone_torchrl.io.checkpoint import CheckpointError
 from drone_torchrl.training.run import TrainingDiverged
 
@@ -61,6 +61,7 @@ def run() -> None:
     # is not a folder, so register ours explicitly (harmless for a normal install).
     Plugins.instance().register(FusedLauncher)
     Plugins.instance().register(PopulationSweeper)
+    check_command_line("drone-train", "config")
     main()
 
 

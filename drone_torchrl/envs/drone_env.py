@@ -24,12 +24,25 @@ from drone_torchrl.envs.dynamics import (
 RENDER_MODES = (None, "human", "rgb_array")
 
 
-def _check_real(name: str, value: object, *, minimum: float, inclusive: bool) -> float:
+# Upper bounds of the physical arguments. Past them the task stops making sense: a step longer
+# than MAX_DT lets a hovering drone cross the 1 m target zone in one or two steps, gravity above
+# MAX_GRAVITY (10x Earth's) makes a 300-step episode a free fall, and a floor tolerance above
+# MAX_FLOOR_TOLERANCE would let the drone sink a quarter of the domain's height before "FLOOR".
+MAX_DT = 0.1
+MAX_GRAVITY = 100.0
+MAX_FLOOR_TOLERANCE = 1.0
+
+
+def _check_real(
+    name: str, value: object, *, minimum: float, inclusive: bool, maximum: float | None = None
+) -> float:
     """Return ``value`` as float, or raise a ValueError naming the argument and the allowed range."""
     allowed = f"a finite number {'>=' if inclusive else '>'} {minimum}"
+    if maximum is not None:
+        allowed += f" and <= {maximum}"
     if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value):
         raise ValueError(f"{name}={value!r} is not allowed; expected {allowed}")
-    if value < minimum or (value == minimum and not inclusive):
+    if value < minimum or (value == minimum and not inclusive) or (maximum is not None and value > maximum):
         raise ValueError(f"{name}={value!r} is not allowed; expected {allowed}")
     return float(value)
 
@@ -46,12 +59,15 @@ def make_params(
     return DroneParams(
         mass=_check_real("mass", mass, minimum=0.0, inclusive=False),
         motor_distance=_check_real("motor_distance", motor_distance, minimum=0.0, inclusive=False),
-        gravity=_check_real("gravity", gravity, minimum=0.0, inclusive=True),
-        dt=_check_real("dt", dt, minimum=0.0, inclusive=False),
+        # Thrust is a fraction of the weight m*g: with g = 0 no motor command could move the drone.
+        gravity=_check_real("gravity", gravity, minimum=0.0, inclusive=False, maximum=MAX_GRAVITY),
+        dt=_check_real("dt", dt, minimum=0.0, inclusive=False, maximum=MAX_DT),
         max_thrust=None
         if max_thrust is None
         else _check_real("max_thrust", max_thrust, minimum=0.0, inclusive=False),
-        floor_tolerance=_check_real("floor_tolerance", floor_tolerance, minimum=0.0, inclusive=True),
+        floor_tolerance=_check_real(
+            "floor_tolerance", floor_tolerance, minimum=0.0, inclusive=True, maximum=MAX_FLOOR_TOLERANCE
+        ),
     )
 
 
@@ -144,16 +160,20 @@ class DroneEnv(EnvBase):
     ## Arguments
 
     - ``batch_size`` (list of int, default ``[]``): number of drones simulated together.
-    - ``mass`` (float > 0, default 1.0 kg).
+    - ``mass`` (float > 0, default 1.0 kg). It has no effect on the motion: as in the paper, the
+      actions are thrusts as fractions of the weight ``m g`` and ``I_yy`` is proportional to ``m``,
+      so the mass cancels out of all three accelerations. It is an argument because the paper
+      lists it.
     - ``motor_distance`` (float > 0, default 1.0 m): diagonal motor-to-motor distance; the lever
       arm is half of it and ``I_yy = 2/5 m r^2``.
-    - ``gravity`` (float >= 0, default 9.81 m/s^2).
-    - ``dt`` (float > 0, default 0.02 s): semi-implicit Euler step (50 Hz).
+    - ``gravity`` (float in (0, 100], default 9.81 m/s^2): not 0, since the thrust is a fraction
+      of the weight.
+    - ``dt`` (float in (0, 0.1], default 0.02 s): semi-implicit Euler step (50 Hz).
     - ``max_steps`` (int >= 1, default 300): truncation length.
     - ``reset_mode`` (``"floor"`` or ``"air"``, default ``"floor"``).
     - ``max_thrust`` (float > 0 or None, default None): per-motor thrust limit as a fraction of the
       weight; ``1.0`` is a thrust-to-weight ratio of 2.
-    - ``floor_tolerance`` (float >= 0, default 0.05 m).
+    - ``floor_tolerance`` (float in [0, 1], default 0.05 m).
     - ``device`` (default ``"cpu"``).
     - ``render_mode`` (``None``, ``"human"`` or ``"rgb_array"``): pygame drawing of sub-env
       ``render_index`` (default 0); ``"human"`` draws after every step, ``render()`` returns an

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import csv
+import math
+import os
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -22,26 +24,62 @@ CSV_COLUMNS = (
 TEXT_COLUMNS = ("termination_cause",)
 
 
+def _parse(row: dict[str, str | None]) -> dict[str, object] | None:
+    """A CSV row as numbers (and the cause's name), or None if it is torn or garbled."""
+    try:
+        parsed = {c: row[c] if c in TEXT_COLUMNS else float(row[c]) for c in CSV_COLUMNS}  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+    numbers = [v for c, v in parsed.items() if c not in TEXT_COLUMNS]
+    if any(not math.isfinite(v) for v in numbers) or any(not parsed[c] for c in TEXT_COLUMNS):
+        return None
+    if None in row:  # more fields than columns: two rows run together
+        return None
+    return parsed
+
+
+def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]]], list[str]]:
+    """The parsable rows of ``path`` (parsed, and as written), and a note for each line left out."""
+    notes: list[str] = []
+    rows = []
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        missing = [c for c in CSV_COLUMNS if c not in (reader.fieldnames or [])]
+        if missing:
+            raise EpisodeCSVError(f"{path} lacks the column(s) {', '.join(missing)}")
+        for row in reader:
+            parsed = _parse(row)
+            if parsed is None:
+                notes.append(f"{path}: line {reader.line_num} is not a complete row; skipped")
+            else:
+                rows.append((parsed, row))
+    return rows, notes
+
+
 class EpisodeCSV:
     """One row per episode in ``path``, buffered: rows are appended when :meth:`flush` is called, and
     no file stays open in between (a population of runs holds no file descriptor per run).
 
     ``keep_episodes``: on resume, keep the rows of episodes ``< keep_episodes`` read from ``source``
     (default: ``path`` itself; a fork copies its parent run's rows) and drop the rest, which the
-    interrupted process wrote after its last checkpoint.
+    interrupted process wrote after its last checkpoint. A row torn by the interruption is dropped
+    too; :attr:`notes` says which lines were.
     """
 
     def __init__(self, path: Path, keep_episodes: int = 0, source: Path | None = None) -> None:
         self.path = Path(path)
         source = self.path if source is None else Path(source)
         rows: list[dict[str, str]] = []
+        self.notes: list[str] = []
         if keep_episodes and source.exists():
-            with source.open(newline="") as f:
-                rows = [row for row in csv.DictReader(f) if int(row["episode"]) < keep_episodes]
-        with self.path.open("w", newline="") as f:
+            read, self.notes = _read_rows(source)
+            rows = [raw for parsed, raw in read if parsed["episode"] < keep_episodes]
+        tmp = self.path.with_name(self.path.name + ".tmp")
+        with tmp.open("w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
             writer.writeheader()
             writer.writerows(rows)
+        os.replace(tmp, self.path)  # a kill here leaves the old file whole, not half of it
         self._rows: list[dict[str, object]] = []
 
     def write(self, rows: Iterable[dict[str, object]]) -> None:
@@ -65,36 +103,21 @@ class EpisodeCSVError(ValueError):
 def read_episodes(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
     """Read ``episodes.csv`` as columns ordered by episode, and notes about what was left out.
 
-    Numbers come back as float64 arrays, ``termination_cause`` as an array of names. Tolerant of
-    a run still writing: reading stops at the first row that does not parse (a line being
-    appended). Duplicate episode indices keep their last row; the rows stop at the first gap in
-    the episode indices (noted).
+    Numbers come back as float64 arrays, ``termination_cause`` as an array of names. A row that
+    does not parse (torn by a kill, a line still being appended, garbage, ``nan``) is skipped with
+    a note, and the rows after it are read; duplicate episode indices keep their last row, and
+    missing episode indices are noted.
     """
     path = Path(path)
-    notes: list[str] = []
-    with path.open(newline="") as f:
-        reader = csv.DictReader(f)
-        missing = [c for c in CSV_COLUMNS if c not in (reader.fieldnames or [])]
-        if missing:
-            raise EpisodeCSVError(f"{path} lacks the column(s) {', '.join(missing)}")
-        by_episode: dict[int, dict[str, object]] = {}
-        for row in reader:
-            try:
-                parsed = {c: row[c] if c in TEXT_COLUMNS else float(row[c]) for c in CSV_COLUMNS}
-            except (TypeError, ValueError):
-                break
-            if any(parsed[c] is None for c in TEXT_COLUMNS):
-                break
-            by_episode[int(parsed["episode"])] = parsed
+    rows, notes = _read_rows(path)
+    by_episode = {int(parsed["episode"]): parsed for parsed, _ in rows}
     ordered = sorted(by_episode)
-    contiguous = 0
-    while contiguous < len(ordered) and ordered[contiguous] == contiguous:
-        contiguous += 1
-    if contiguous < len(ordered):
-        notes.append(f"{path}: episode indices have a gap; using episodes 0-{contiguous - 1}")
-    rows = [by_episode[e] for e in ordered[:contiguous]]
+    missing = sorted(set(range(ordered[-1] + 1)) - set(ordered)) if ordered else []
+    if missing:
+        shown = ", ".join(str(e) for e in missing[:5]) + (", ..." if len(missing) > 5 else "")
+        notes.append(f"{path}: {len(missing)} episode(s) have no row ({shown})")
     columns = {
-        c: np.array([r[c] for r in rows], dtype=object if c in TEXT_COLUMNS else np.float64)
+        c: np.array([by_episode[e][c] for e in ordered], dtype=object if c in TEXT_COLUMNS else np.float64)
         for c in CSV_COLUMNS
     }
     return columns, notes

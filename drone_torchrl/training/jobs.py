@@ -12,8 +12,10 @@ Resume rules (:func:`prepare`):
 - ``resume=<any other checkpoint>`` (``best.pt``, a copied file) continues from it as a **fork** in
   a new run folder (the Hydra job's folder): the parent's CSV rows up to the checkpoint are copied,
   and the parent run is left as it was.
-- The checkpoint's config wins; from the command line only ``algo.episodes`` (to extend a run) and
-  the process settings (``progress``, ``threads``, ``device``) are taken.
+- A continued run keeps its hyper-parameters. From the command line it takes only the budget
+  (``algo.episodes``), logging and checkpointing options and the process settings
+  (:data:`RESUME_KEYS`); a command line that changes any other key is refused, naming each key
+  with the checkpoint's and the command line's value.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import math
 import sys
 import traceback
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +32,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from drone_torchrl.config import ConfigError, run_config, validate
+from drone_torchrl.config import ConfigError, command_line_keys, group_names, leaves, run_config, validate
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
@@ -43,8 +46,20 @@ from drone_torchrl.training.run import FAILED_FILE
 
 # Settings that may differ between the agents of one population; everything else must be equal.
 PER_AGENT_KEYS = ("seed", "algo.lr", "algo.gamma", "algo.weight_decay")
-# Keys taken from the command line when a run continues from a checkpoint.
+# Keys taken from the command line when a run continues from a checkpoint; a key ending in "."
+# stands for every key under it. Changing any other key of a continued run is refused.
 PROCESS_KEYS = ("progress", "threads", "device")
+RESUME_KEYS = (
+    "algo.episodes",
+    *PROCESS_KEYS,
+    "compile",
+    "resume",
+    "sweep_name",
+    "logger.",
+    "checkpoint.",
+    "eval.every_episodes",
+    "eval.video",
+)
 
 
 @dataclass
@@ -65,27 +80,34 @@ class Job:
         )
 
 
-def _command_line_keys() -> set[str] | None:
-    """Keys set on the command line of this Hydra job, or None outside a Hydra app."""
-    if not HydraConfig.initialized():
-        return None
-    return {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
-
-
 def _hydra_run_dir() -> Path | None:
     return Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else None
 
 
-def prepare(cfg: DictConfig, run_dir: str | Path | None = None, engine: str | None = None) -> Job:
+def prepare(
+    cfg: DictConfig,
+    run_dir: str | Path | None = None,
+    engine: str | None = None,
+    requested: Iterable[str] | None = None,
+) -> Job:
     """Validate ``cfg`` and find what the run continues from; raises :class:`ConfigError` (one line).
 
     ``run_dir`` defaults to the Hydra job's folder (with ``resume`` of a run's last checkpoint: that
     run's folder). A run continues from a checkpoint when ``resume`` names one, or when its own
     folder already holds ``checkpoints/last.pt``. ``engine`` (set by the fused launcher) is the
     engine the caller will train with; a checkpoint written by another engine is then refused.
+    ``requested``: the keys the caller sets (default: those of the Hydra command line); a continued
+    run takes those of :data:`RESUME_KEYS` and refuses changes to the others. Without a command
+    line, only ``algo.episodes`` and the process settings are taken from ``cfg``.
     """
     run_dir = Path(run_dir) if run_dir is not None else None
-    keys = _command_line_keys()
+    keys = command_line_keys() if requested is None else {k.split("=", 1)[0].lstrip("+~") for k in requested}
+    if engine is not None and cfg.engine != engine:
+        raise ConfigError.of(
+            "engine",
+            cfg.engine,
+            f"{engine!r} with hydra/launcher={engine} (drop the launcher to use another engine)",
+        )
     location = cfg.resume
     if location is None:
         run_dir = run_dir or _hydra_run_dir()
@@ -112,12 +134,13 @@ def prepare(cfg: DictConfig, run_dir: str | Path | None = None, engine: str | No
         raise ConfigError(
             f"engine={requested!r} cannot continue {path}: it was written by engine={checkpoint['engine']!r}"
         )
+    _refuse_changes(cfg, saved, keys, path)
     with open_dict(saved):
-        if keys is None or "algo.episodes" in keys:
-            saved.algo.episodes = cfg.algo.episodes
-        for key in PROCESS_KEYS:
-            saved[key] = cfg[key]
-        saved.resume = cfg.resume
+        for key, value in leaves(cfg).items():
+            taken = key in (*PROCESS_KEYS, "resume", "algo.episodes") if keys is None else _on(key, keys)
+            taken = taken or key in (*PROCESS_KEYS, "resume")
+            if taken and _resumable(key):
+                OmegaConf.update(saved, key, value, force_add=True)
         saved.engine = checkpoint["engine"]
     validate(saved)
     if is_last_of_its_run(path):
@@ -134,6 +157,41 @@ def prepare(cfg: DictConfig, run_dir: str | Path | None = None, engine: str | No
         f"continuing as a fork in {fork_dir} (the original run is left as it is)"
     )
     return Job(saved, fork_dir, _as_fork(checkpoint), parent)
+
+
+def _resumable(key: str) -> bool:
+    return any(key == k or (k.endswith(".") and key.startswith(k)) for k in RESUME_KEYS)
+
+
+def _on(key: str, keys: set[str]) -> bool:
+    """Whether the command line sets ``key`` (directly, or a list/dict above it)."""
+    return any(key == k or key.startswith(f"{k}.") for k in keys)
+
+
+def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, path: Path) -> None:
+    """Raise :class:`ConfigError` naming every key the command line changes in a continued run.
+
+    Only keys set on the command line count (the config's defaults are not a request); a group
+    choice such as ``experiment=...`` may set any key, so then every key is compared.
+    """
+    if keys is None:
+        return
+    compare_all = any(k in group_names() for k in keys)
+    old = leaves(saved)
+    changed = [
+        f"{key} {old.get(key)!r} -> {value!r}"
+        for key, value in leaves(cfg).items()
+        if key != "engine"
+        and not _resumable(key)
+        and (compare_all or _on(key, keys))
+        and old.get(key) != value
+    ]
+    if changed:
+        raise ConfigError(
+            f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued run keeps its "
+            "hyper-parameters (only algo.episodes, logger.*, checkpoint.*, eval.every_episodes, eval.video "
+            "and process settings may change): drop those overrides or start a new run"
+        )
 
 
 def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:

@@ -100,6 +100,8 @@ class RunRecord:
             keep_episodes=self.episodes_done,
             source=None if parent_dir is None else Path(parent_dir) / CSV_NAME,
         )
+        for note in self.csv.notes:
+            print(f"resume: {note}", file=sys.stderr)
         self.start = self._last_flush = time.perf_counter()
 
     # ------------------------------------------------------------------ state

@@ -30,7 +30,7 @@ from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.population import Population
-from drone_torchrl.training.run import EPISODE_KEYS, Progress, RunRecord, TrainingDiverged
+from drone_torchrl.training.run import EPISODE_KEYS, FAILED_FILE, Progress, RunRecord, TrainingDiverged
 
 
 @dataclass
@@ -196,6 +196,7 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
                 f"{job.run_dir}: already finished ({job.checkpoint['episodes_done']} episodes); nothing to do"
             )
             outcomes[i].final = job.checkpoint["final"]
+            (job.run_dir / FAILED_FILE).unlink(missing_ok=True)  # left by a refused re-run
         else:
             groups.setdefault(group_key(job.cfg), []).append(i)
     for members in groups.values():
