@@ -198,7 +198,14 @@ class ConfigError(ValueError):
 
     @classmethod
     def of(cls, key: str, value: Any, allowed: str) -> ConfigError:
-        return cls(f"{key}={value!r} is not allowed; expected {allowed}")
+        return cls(f"{key}={_as_override(value)} is not allowed; expected {allowed}")
+
+
+def _as_override(value: Any) -> str:
+    # How the user would have typed it: null and true/false, as Hydra writes them.
+    if value is None or isinstance(value, bool):
+        return {None: "null", True: "true", False: "false"}[value]
+    return repr(value)
 
 
 def _number(

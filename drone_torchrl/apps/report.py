@@ -8,9 +8,11 @@ drone-report multirun/lr --out /tmp/lr --window 50 --return-threshold 2500 --no-
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from drone_torchrl.report.runs import ReportError, load_runs
 from drone_torchrl.report.stats import DEFAULT_RETURN_THRESHOLD
@@ -22,14 +24,34 @@ EXIT_ERROR = 2
 
 
 def _positive_int(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
     if value < 1:
-        raise argparse.ArgumentTypeError(f"{text} is not an integer >= 1")
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected an integer >= 1")
     return value
 
 
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected a finite number")
+    return value
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a usage error on one line (like the other commands' errors)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_ERROR, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog=PROG,
         description="Figures (steps.png, returns.png) and a summary table (summary.md, summary.csv) of sweeps.",
     )
@@ -48,7 +70,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--return-threshold",
-        type=float,
+        type=_finite,
         default=DEFAULT_RETURN_THRESHOLD,
         help=f"report the first episode the running-mean return reaches this (default {DEFAULT_RETURN_THRESHOLD:g})",
     )
@@ -60,6 +82,8 @@ def main(argv: Sequence[str] | None = None) -> None:
     """``drone-report``: one report per sweep folder; exit code 2 with a one-line error if unusable."""
     args = parse_args(argv)
     try:
+        if args.out is not None and args.out.exists() and not args.out.is_dir():
+            raise ReportError(f"--out {args.out} is a file; expected a folder (new or existing)")
         window = default_window() if args.window is None else args.window
         runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
         out_dirs = output_dirs(args.sweeps, args.out)

@@ -9,6 +9,7 @@ drone-train -m seed=0,1,2,3 hydra/launcher=fused   # four agents trained as one 
 
 from __future__ import annotations
 
+import shutil
 import sys
 from pathlib import Path
 
@@ -29,7 +30,10 @@ def main(cfg: DictConfig) -> float | None:
     if HydraConfig.get().mode != RunMode.MULTIRUN:
         try:
             return train(cfg)
-        except (ConfigError, CheckpointError, TrainingDiverged) as err:
+        except (ConfigError, CheckpointError) as err:
+            _remove_if_untouched(Path(HydraConfig.get().runtime.output_dir))
+            sys.exit(f"drone-train: error: {err}")
+        except TrainingDiverged as err:
             sys.exit(f"drone-train: error: {err}")
         except KeyboardInterrupt:
             run = cfg.resume or HydraConfig.get().runtime.output_dir
@@ -48,6 +52,13 @@ def main(cfg: DictConfig) -> float | None:
             record_failure(job_dir, err)
         print(f"drone-train: job failed: {type(err).__name__}: {err}", file=sys.stderr)
         return None
+
+
+def _remove_if_untouched(run_dir: Path) -> None:
+    # A refused config trains nothing: the folder Hydra made for it (its .hydra/ record and log)
+    # would only be clutter among the real runs.
+    if run_dir.is_dir() and {p.name for p in run_dir.iterdir()} <= {".hydra", "train.log"}:
+        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def run() -> None:

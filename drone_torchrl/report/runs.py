@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from drone_torchrl.config import ENV_ARGS, env_kwargs
 from drone_torchrl.envs.dynamics import REWARD_IN_ZONE
@@ -99,8 +99,17 @@ class Run:
         return float(self.columns[COL_WALL_CLOCK][-1]) if self.episodes else None
 
 
-def _load_yaml(path: Path) -> Any:
-    cfg = OmegaConf.load(path)
+def _load_yaml(path: Path, kind: type) -> Any:
+    """A YAML file as plain data of ``kind`` (dict or list); :class:`ReportError` if it is not one."""
+    try:
+        cfg = OmegaConf.load(path)
+    except Exception as err:  # noqa: BLE001  (yaml and OmegaConf raise many kinds for a bad file)
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ReportError(f"{path} is not a readable YAML file ({first})") from None
+    if kind is list and isinstance(cfg, DictConfig) and not cfg:
+        return []  # an empty file: no overrides
+    if not isinstance(cfg, DictConfig if kind is dict else ListConfig):
+        raise ReportError(f"{path} does not hold a YAML {'mapping' if kind is dict else 'list'}")
     try:
         return OmegaConf.to_container(cfg, resolve=True)
     except Exception:  # noqa: BLE001 - Hydra-only interpolations (${hydra:...}) stay unresolved
@@ -123,10 +132,10 @@ def load_run(job_dir: Path) -> Run | None:
     if not csv_path.is_file():
         return None
     overrides_path = job_dir / HYDRA_DIR / OVERRIDES_FILE
-    overrides = [str(o) for o in (_load_yaml(overrides_path) or [])] if overrides_path.is_file() else []
+    overrides = [str(o) for o in _load_yaml(overrides_path, list)] if overrides_path.is_file() else []
     for config_path in (job_dir / CONFIG_FILE, job_dir / HYDRA_DIR / CONFIG_FILE):
         if config_path.is_file():
-            config = _load_yaml(config_path)
+            config = _load_yaml(config_path, dict)
             break
     else:
         raise ReportError(f"{job_dir} has an {CSV_NAME} but no {CONFIG_FILE}")

@@ -1,0 +1,451 @@
+"""Every bad input to drone-train, drone-eval and drone-report is refused before any work.
+
+Each row is one bad input. It must give a non-zero exit (here: a ``ConfigError``/``ReportError``
+or exit code 2), a message of one line that names the offending key, flag or file, and write no
+checkpoint, CSV, TensorBoard event file or figure. Most rows run in-process (the same checks the
+commands run first); ``test_end_to_end`` runs a sample through the real console commands to show
+that the one line reaches the terminal without a traceback. The fault tests below the tables
+cover what is not a bad value: a checkpoint that carries code, a diverged run, a failed sweep, a
+torn CSV row.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from drone_torchrl.apps.report import main as report_main
+from drone_torchrl.comparison import run_eval
+from drone_torchrl.config import ConfigError, check_overrides, config_dir
+from drone_torchrl.io.episodes_csv import CSV_COLUMNS
+from drone_torchrl.training.jobs import prepare
+from drone_torchrl.training.trainer import train
+
+# A tiny real run, resumed or evaluated by the rows that need one.
+TINY = [
+    "algo.episodes=2",
+    "env.max_steps=20",
+    "eval.episodes=1",
+    "eval.video=false",
+    "progress=false",
+    "compile=false",
+]
+WRITTEN = ("*.pt", "*.csv", "events.out.tfevents*", "*.gif", "*.mp4", "*.png", "*.md")
+
+
+class Payload:
+    """Unpickling this runs a command: what a crafted checkpoint would do."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (os.system, (f"touch {self.marker}",))
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> dict[str, Path]:
+    """Fixture files: a finished tiny run, and files that are not checkpoints."""
+    root = tmp_path_factory.mktemp("inputs")
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        train(compose("config", overrides=TINY), root / "run")
+    (root / "empty.pt").write_bytes(b"")
+    (root / "corrupt.pt").write_bytes(os.urandom(256))
+    torch.save({"weights": torch.zeros(3)}, root / "foreign.pt")
+    torch.save({"actor": Payload(root / "PWNED"), "config": {}}, root / "payload.pt")
+    (root / "notes.txt").write_text("a file, not a folder\n")
+    (root / "nofolder").mkdir()
+    (root / "v99.pt").write_bytes(b"")
+    state = torch.load(root / "run" / "checkpoints" / "last.pt", weights_only=True)
+    torch.save({**state, "format_version": 99}, root / "v99.pt")
+    return {
+        "run": root / "run",
+        "last": root / "run" / "checkpoints" / "last.pt",
+        "empty": root / "empty.pt",
+        "corrupt": root / "corrupt.pt",
+        "foreign": root / "foreign.pt",
+        "payload": root / "payload.pt",
+        "v99": root / "v99.pt",
+        "file": root / "notes.txt",
+        "emptydir": root / "nofolder",
+        "marker": root / "PWNED",
+    }
+
+
+def _fill(args: list[str], files: dict[str, Path]) -> list[str]:
+    return [a.format(**{k: str(v) for k, v in files.items()}) for a in args]
+
+
+def _written(root: Path) -> set[Path]:
+    return {p for pattern in WRITTEN for p in root.rglob(pattern)}
+
+
+def _one_line(message: str, names: str) -> None:
+    assert "\n" not in message.strip(), message
+    assert "Traceback" not in message, message
+    assert names in message, f"{names!r} not in {message!r}"
+
+
+# ------------------------------------------------------------------------------------- drone-train
+# (overrides, what the message must name)
+TRAIN = [
+    # the optimiser
+    (["algo.lr=0"], "algo.lr"),
+    (["algo.lr=-1e-4"], "algo.lr"),
+    (["algo.lr=abc"], "algo.lr"),
+    (["algo.lr=1e30"], "algo.lr"),  # was accepted and diverged into NaN weights
+    (["algo.lr=1.5"], "algo.lr"),
+    (["algo.lr=nan"], "algo.lr"),
+    (["algo.lr=inf"], "algo.lr"),
+    (["algo.lr=null"], "algo.lr"),
+    (["algo.gamma=1.5"], "algo.gamma"),
+    (["algo.gamma=-0.1"], "algo.gamma"),
+    (["algo.gamma=abc"], "algo.gamma"),
+    (["algo.gamma=null"], "algo.gamma"),
+    (["algo.episodes=0"], "algo.episodes"),
+    (["algo.episodes=-5"], "algo.episodes"),
+    (["algo.episodes=1.5"], "algo.episodes"),
+    (["algo.episodes=10", "algo.episodes_per_update=4"], "algo.episodes"),
+    (["algo.episodes_per_update=0"], "algo.episodes_per_update"),
+    (["algo.episodes_per_update=true"], "algo.episodes_per_update"),
+    (["algo.adam_eps=0"], "algo.adam_eps"),
+    (["algo.adam_eps=2"], "algo.adam_eps"),
+    (["algo.optimizer=sgd"], "algo.optimizer"),
+    (["algo.weight_decay=-1"], "algo.weight_decay"),
+    (["algo.weight_decay=5"], "algo.weight_decay"),
+    (["algo.max_grad_norm=0"], "algo.max_grad_norm"),
+    (["algo.max_grad_norm=-1"], "algo.max_grad_norm"),
+    (["algo.baseline=critic"], "algo.baseline"),
+    (["algo.discount_weight=off"], "algo.discount_weight"),
+    (["algo.discount_weight=1"], "algo.discount_weight"),
+    (["algo.normalize_returns=yes"], "algo.normalize_returns"),
+    (["algo.normalize_returns=no"], "algo.normalize_returns"),
+    # the policy
+    (["model.distribution=beta"], "model.distribution"),
+    (["model.distribution=tanh_normal"], "model.distribution"),  # needs env.max_thrust
+    (["model.activation=sigmoid"], "model.activation"),
+    (["model.min_std=-1"], "model.min_std"),
+    (["model.hidden_sizes=32"], "model.hidden_sizes"),
+    (["model.hidden_sizes=[]"], "model.hidden_sizes"),
+    (["model.hidden_sizes=[0]"], "model.hidden_sizes"),
+    (["model.hidden_sizes=[32,-1]"], "model.hidden_sizes"),
+    (["model.hidden_sizes=[a]"], "model.hidden_sizes"),
+    (["model.hidden_sizes=[1.5]"], "model.hidden_sizes"),
+    # the env
+    (["env.mass=0"], "env.mass"),
+    (["env.mass=-1"], "env.mass"),
+    (["env.gravity=0"], "env.gravity"),  # thrust is a fraction of the weight: nothing moves
+    (["env.gravity=-9.81"], "env.gravity"),
+    (["env.gravity=1000"], "env.gravity"),
+    (["env.dt=0"], "env.dt"),
+    (["env.dt=-0.02"], "env.dt"),
+    (["env.dt=10"], "env.dt"),
+    (["env.max_steps=0"], "env.max_steps"),
+    (["env.max_steps=1.5"], "env.max_steps"),
+    (["env.reset_mode=sky"], "env.reset_mode"),
+    (["env.reset_mode=null"], "env.reset_mode"),
+    (["env.max_thrust=0"], "env.max_thrust"),
+    (["env.max_thrust=-1"], "env.max_thrust"),
+    (["env.max_thrust=abc"], "env.max_thrust"),
+    (["env.floor_tolerance=-1"], "env.floor_tolerance"),
+    (["env.floor_tolerance=100"], "env.floor_tolerance"),
+    (["env.motor_distance=0"], "env.motor_distance"),
+    (["env.num_workers=-1"], "env.num_workers"),
+    (["env.num_workers=2"], "env.num_workers"),  # engine=fused has no worker processes
+    (["engine=torchrl", "env.num_workers=3", "algo.episodes_per_update=2"], "env.num_workers"),
+    # the process
+    (["engine=jax"], "engine"),
+    (["seed=-1"], "seed"),
+    (["seed=1.5"], "seed"),
+    (["seed=abc"], "seed"),
+    (["seed=18446744073709551616"], "seed"),  # beyond 64 bits: was a traceback
+    (["seed=9223372036854775808"], "seed"),
+    (["threads=0"], "threads"),
+    (["threads=abc"], "threads"),
+    (["device=cuda:0" if not torch.cuda.is_available() else "device=cuda:999"], "device"),
+    (["device=tpu"], "device"),
+    (["compile=maybe"], "compile"),
+    (["compile=off"], "compile"),
+    (["progress=sometimes"], "progress"),
+    # checkpoints, evaluation, metrics, logging
+    (["checkpoint.every_episodes=0"], "checkpoint.every_episodes"),
+    (["checkpoint.every_episodes=abc"], "checkpoint.every_episodes"),
+    (["checkpoint.keep_best=no"], "checkpoint.keep_best"),
+    (["eval.every_episodes=-1"], "eval.every_episodes"),
+    (["eval.every_episodes=1.5"], "eval.every_episodes"),
+    (["eval.episodes=0"], "eval.episodes"),
+    (["eval.seed=-1"], "eval.seed"),
+    (["eval.video=off"], "eval.video"),
+    (["metrics.running_mean_window=0"], "metrics.running_mean_window"),
+    (["logger.video_fps=0"], "logger.video_fps"),
+    (["logger.video_stride=0"], "logger.video_stride"),
+    (["logger.every_updates=0"], "logger.every_updates"),
+    (["logger.flush_every_s=-1"], "logger.flush_every_s"),
+    (["logger.exp_name=null"], "logger.exp_name"),  # was a traceback
+    (["logger.exp_name=../../outside"], "logger.exp_name"),  # wrote outside the run folder
+    (["logger.exp_name=/tmp/abs"], "logger.exp_name"),
+    (["logger.exp_name=''"], "logger.exp_name"),
+    # keys and groups that do not exist
+    (["+algo.lrr=1"], "algo.lr"),  # was accepted silently; the hint names the real key
+    (["+foo=1"], "foo"),
+    (["algo.lrr=1"], "algo.lr"),
+    (["+model.hidden=[8]"], "model.hidden"),
+    (["experiment=nope"], "experiment"),
+    (["algo=ppo2"], "algo"),
+    (["hydra.run.dir={file}"], "hydra.run.dir"),  # a run folder that is a file: was a traceback
+    # resume targets
+    (["resume={emptydir}/nothing"], "resume"),
+    (["resume={emptydir}"], "resume"),  # a folder without checkpoints/last.pt
+    (["resume={empty}"], "empty.pt"),
+    (["resume={corrupt}"], "corrupt.pt"),
+    (["resume={foreign}"], "foreign.pt"),
+    (["resume={payload}"], "payload.pt"),
+    (["resume={v99}"], "format_version"),
+    (["resume={file}"], "notes.txt"),
+    # a continued run keeps its hyper-parameters (only the budget and logging may change)
+    (["resume={run}", "algo.lr=0.5"], "algo.lr"),
+    (["resume={run}", "algo.gamma=0.9"], "algo.gamma"),
+    (["resume={run}", "engine=torchrl"], "engine"),
+    (["resume={run}", "experiment=bounded"], "model.distribution"),
+    (["resume={last}", "env.max_steps=300"], "env.max_steps"),
+]
+
+
+@pytest.mark.parametrize(("overrides", "names"), TRAIN, ids=[" ".join(o) for o, _ in TRAIN])
+def test_drone_train_refuses(overrides, names, files, tmp_path):
+    overrides = TINY + _fill(overrides, files)
+    before = _written(files["run"].parent)
+    with pytest.raises(ConfigError) as info:
+        check_overrides(overrides)
+        with initialize_config_dir(config_dir(), version_base="1.3"):
+            cfg = compose("config", overrides=overrides)
+        prepare(cfg, tmp_path / "job", requested=overrides)
+    _one_line(str(info.value), names)
+    assert not (tmp_path / "job").exists()
+    assert _written(files["run"].parent) == before
+    assert not files["marker"].exists()
+
+
+# -------------------------------------------------------------------------------------- drone-eval
+EVAL = [
+    (["checkpoint={emptydir}/nothing"], "checkpoint"),
+    (["checkpoint={emptydir}"], "checkpoint"),
+    (["checkpoint={empty}"], "empty.pt"),
+    (["checkpoint={corrupt}"], "corrupt.pt"),
+    (["checkpoint={foreign}"], "foreign.pt"),
+    (["checkpoint={payload}"], "payload.pt"),
+    (["checkpoint={v99}"], "format_version"),
+    (["episodes=0"], "episodes"),
+    (["episodes=-1"], "episodes"),
+    (["episodes=abc"], "episodes"),
+    (["seed=-1"], "seed"),
+    (["seed=18446744073709551616"], "seed"),
+    (["device=tpu"], "device"),
+    (["video=off"], "video"),
+    (["plot=maybe"], "plot"),
+    (["video_fps=0"], "video_fps"),
+    (["env.gravity=0"], "env.gravity"),
+    (["env.dt=0"], "env.dt"),
+    (["env.max_thrust=-1"], "env.max_thrust"),
+    (["env.reset_mode=sky"], "env.reset_mode"),
+    (["+foo=1"], "foo"),
+    (["+episode=3"], "episodes"),
+]
+
+
+@pytest.mark.parametrize(("overrides", "names"), EVAL, ids=[" ".join(o) for o, _ in EVAL])
+def test_drone_eval_refuses(overrides, names, files, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    quiet = [o for o in ("video=false", "plot=false") if not overrides[0].startswith(o.split("=")[0])]
+    overrides = _fill(overrides, files) + quiet
+    with pytest.raises(ConfigError) as info:
+        check_overrides(overrides, "eval")
+        with initialize_config_dir(config_dir(), version_base="1.3"):
+            cfg = compose("eval", overrides=overrides)
+        run_eval(cfg)
+    _one_line(str(info.value), names)
+    assert not _written(tmp_path)
+    assert not files["marker"].exists()
+
+
+# ------------------------------------------------------------------------------------ drone-report
+def _sweep(root: Path, config: str | None = "seed: 0\n", csv: str | None = None) -> Path:
+    job = root / "sweep" / "seed=0"
+    (job / ".hydra").mkdir(parents=True)
+    (job / ".hydra" / "overrides.yaml").write_text("- seed=0\n")
+    if config is not None:
+        (job / "config.yaml").write_text(config)
+    (job / "episodes.csv").write_text(csv if csv is not None else "episode,return\n0,1\n")
+    return root / "sweep"
+
+
+VALID_CSV = ",".join(CSV_COLUMNS) + "\n0,0,300.0,300,0.0,0.0,NONE,1.0\n"
+REPORT = [
+    (lambda r, f: [str(r / "missing")], "missing"),
+    (lambda r, f: [str(f["file"])], "notes.txt"),
+    (lambda r, f: [str(f["emptydir"])], "nofolder"),  # no job folders
+    (lambda r, f: [str(f["run"].parent), "--window", "0"], "--window"),
+    (lambda r, f: [str(f["run"].parent), "--window", "-3"], "--window"),
+    (lambda r, f: [str(f["run"].parent), "--window", "abc"], "--window"),
+    (lambda r, f: [str(f["run"].parent), "--return-threshold", "abc"], "--return-threshold"),
+    (lambda r, f: [str(f["run"].parent), "--return-threshold", "nan"], "--return-threshold"),
+    (lambda r, f: [str(f["run"].parent), "--return-threshold", "inf"], "--return-threshold"),
+    (lambda r, f: [str(f["run"].parent), "--out", str(f["file"])], "--out"),
+    (lambda r, f: [], "sweeps"),
+    (lambda r, f: [str(f["run"].parent), "--bogus"], "--bogus"),
+    (lambda r, f: [str(_sweep(r, csv=VALID_CSV)), str(r / "missing")], "missing"),  # checked before any work
+    (lambda r, f: [str(_sweep(r, config="a: [1, 2\n"))], "config.yaml"),  # malformed: was a traceback
+    (lambda r, f: [str(_sweep(r, config="- a\n- b\n"))], "config.yaml"),
+    (lambda r, f: [str(_sweep(r, config=None))], "config.yaml"),
+    (lambda r, f: [str(_sweep(r))], "episodes.csv"),  # lacks columns
+]
+
+
+@pytest.mark.parametrize(("argv", "names"), REPORT, ids=[n + str(i) for i, (_, n) in enumerate(REPORT)])
+def test_drone_report_refuses(argv, names, files, tmp_path, capsys):
+    argv = argv(tmp_path, files)
+    before = _written(files["run"].parent)
+    with pytest.raises(SystemExit) as info:
+        report_main(argv)
+    assert info.value.code == 2
+    _one_line(capsys.readouterr().err, names)
+    assert not _written(tmp_path) - {tmp_path / "sweep" / "seed=0" / "episodes.csv"}
+    assert _written(files["run"].parent) == before
+
+
+def test_at_least_100_rows():
+    assert len(TRAIN) + len(EVAL) + len(REPORT) >= 100
+
+
+# ------------------------------------------------------------------------------------- end to end
+def _command(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
+    module = {"drone-train": "train", "drone-eval": "evaluate", "drone-report": "report"}[name]
+    return subprocess.run(
+        [sys.executable, "-m", f"drone_torchrl.apps.{module}", *args],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        cwd=cwd,
+        env={**os.environ, "SDL_VIDEODRIVER": "dummy"},
+    )
+
+
+E2E = [
+    ("drone-train", ["+algo.lrr=1"], "algo.lr"),
+    ("drone-train", ["eval.video=off"], "eval.video"),
+    ("drone-train", ["seed=18446744073709551616"], "seed"),
+    ("drone-train", ["hydra.run.dir={file}"], "hydra.run.dir"),
+    ("drone-train", ["resume={payload}"], "payload.pt"),
+    ("drone-train", ["resume={run}", "algo.lr=0.5"], "algo.lr"),
+    ("drone-train", ["-m", "hydra/launcher=fused", "engine=torchrl", "seed=0"], "engine"),
+    ("drone-eval", ["checkpoint={run}", "env.max_thrust=1.0"], "env.max_thrust"),
+    ("drone-eval", ["episodes=0"], "episodes"),
+    ("drone-report", ["{file}"], "notes.txt"),
+    ("drone-report", ["{run}", "--window", "abc"], "--window"),
+]
+
+
+def test_end_to_end(files, tmp_path):
+    """The real commands: exit != 0, no traceback, the one line on stderr, nothing written."""
+
+    def one(row):
+        name, args, names = row
+        cwd = tmp_path / f"{name}-{E2E.index(row)}"
+        cwd.mkdir()
+        return cwd, _command(name, *(TINY if name == "drone-train" else []), *_fill(args, files), cwd=cwd)
+
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(one, E2E))
+    for (name, args, names), (cwd, proc) in zip(E2E, results, strict=True):
+        where = f"{name} {' '.join(args)}: {proc.stderr}"
+        assert proc.returncode != 0, where
+        assert "Traceback" not in proc.stderr + proc.stdout, where
+        errors = [line for line in proc.stderr.splitlines() if "error" in line]
+        assert len(errors) == 1 and names in errors[0], where
+        assert not _written(cwd), where
+        if name == "drone-train" and args[0] != "-m":
+            assert not (cwd / "outputs").exists() or not any((cwd / "outputs").rglob(".hydra")), where
+    assert not files["marker"].exists()
+
+
+# ------------------------------------------------------------------------------------- fault tests
+def _train(*overrides: str, run_dir: Path, requested: list[str] | None = None) -> float:
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY, *overrides])
+    from drone_torchrl.training.trainer import train_jobs
+
+    (outcome,) = train_jobs([prepare(cfg, run_dir, requested=requested)])
+    assert outcome.error is None, outcome.error
+    return outcome.final_return
+
+
+def test_a_checkpoint_copied_anywhere_resumes_as_a_fork(files, tmp_path, capsys):
+    """A checkpoint outside its run folder continues from its episode in the new run's folder."""
+    copy = tmp_path / "elsewhere" / "model.pt"
+    copy.parent.mkdir()
+    copy.write_bytes(files["last"].read_bytes())
+    _train(f"resume={copy}", "algo.episodes=4", run_dir=tmp_path / "fork")
+    assert "continuing as a fork" in capsys.readouterr().out
+    state = torch.load(tmp_path / "fork" / "checkpoints" / "last.pt", weights_only=True)
+    assert (state["episodes_done"], state["final"] is not None) == (4, True)
+    rows = (tmp_path / "fork" / "episodes.csv").read_text().splitlines()
+    # The copy has no episodes.csv beside it: the fork logs from the checkpoint's episode on.
+    assert [r.split(",")[0] for r in rows[1:]] == ["2", "3"]
+    assert sorted(p.name for p in copy.parent.iterdir()) == ["model.pt"]  # nothing written beside it
+
+
+def test_a_torn_csv_row_is_dropped_on_resume(files, tmp_path, capsys):
+    run = tmp_path / "run"
+    _train("checkpoint.every_episodes=2", "algo.episodes=4", run_dir=run)
+    last = torch.load(run / "checkpoints" / "last.pt", weights_only=True)
+    # As if killed after the episode-2 checkpoint, in the middle of writing episode 3's row.
+    complete = (run / "episodes.csv").read_text().splitlines()[:4]  # header + episodes 0-2
+    (run / "episodes.csv").write_text("\n".join(complete) + "\n3,3,1")
+    torch.save(
+        {**last, "episodes_done": 2, "updates_done": 2, "final": None}, run / "checkpoints" / "last.pt"
+    )
+    _train("checkpoint.every_episodes=2", "algo.episodes=4", run_dir=run)
+    assert "line 5 is not a complete row" in capsys.readouterr().err
+    lines = (run / "episodes.csv").read_text().splitlines()
+    assert [line.split(",")[0] for line in lines[1:]] == ["0", "1", "2", "3"]
+    assert all(len(line.split(",")) == len(CSV_COLUMNS) and "" not in line.split(",") for line in lines)
+
+
+def test_report_skips_unreadable_rows_and_reads_past_them(tmp_path, capsys):
+    from drone_torchrl.io.episodes_csv import read_episodes
+
+    header = ",".join(CSV_COLUMNS)
+    rows = [f"{e},{e},{10.0 * e},{e + 1},0.0,0.0,NONE,{e}.5" for e in range(20)]
+    rows.insert(4, "garbage line")
+    rows.insert(9, "7,7,nan,8,0.0,0.0,NONE,7.5")  # a nan: skipped, never a crash (episode 7 has its row)
+    path = tmp_path / "episodes.csv"
+    path.write_text("\n".join([header, *rows]) + "\n")
+    columns, notes = read_episodes(path)
+    assert columns["episode"].tolist() == list(range(20))  # the garbage hid 16 of 20 episodes before
+    assert columns["return"].tolist() == [10.0 * e for e in range(20)]
+    assert notes == [
+        f"{path}: line 6 is not a complete row; skipped",
+        f"{path}: line 11 is not a complete row; skipped",
+    ]
+
+
+def test_a_finished_job_re_run_with_another_value_is_refused(files, tmp_path):
+    """Re-running a finished run's folder with a changed hyper-parameter names it; nothing is rewritten."""
+    run = tmp_path / "run"
+    _train(run_dir=run)
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY, "algo.gamma=0.9"])
+    with pytest.raises(ConfigError, match=r"algo\.gamma 0\.99 -> 0\.9"):
+        prepare(cfg, run, requested=["algo.gamma=0.9"])
+    assert {p: p.read_bytes() for p in run.rglob("*") if p.is_file()} == before
+    # The budget may change: the same run, extended.
+    _train("algo.episodes=4", run_dir=run, requested=["algo.episodes=4"])
+    assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["episodes_done"] == 4
