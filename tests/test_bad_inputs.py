@@ -449,3 +449,20 @@ def test_a_finished_job_re_run_with_another_value_is_refused(files, tmp_path):
     # The budget may change: the same run, extended.
     _train("algo.episodes=4", run_dir=run, requested=["algo.episodes=4"])
     assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["episodes_done"] == 4
+
+
+def test_a_budget_below_an_unfinished_checkpoint_is_refused_and_one_at_it_finishes(files, tmp_path):
+    """A run killed after its last checkpoint but before its final evaluation: a smaller budget was a
+    KeyError that crashed the whole fused sweep; now it is refused, and the same budget finishes it."""
+    run = tmp_path / "run"
+    _train("algo.episodes=4", "checkpoint.every_episodes=2", run_dir=run)
+    last = run / "checkpoints" / "last.pt"
+    torch.save({**torch.load(last, weights_only=True), "final": None}, last)
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY, f"resume={run}"])
+    with pytest.raises(ConfigError, match=r"^algo\.episodes=2 is not allowed; expected >= 4"):
+        prepare(cfg, requested=["algo.episodes=2"])
+    final = _train(f"resume={run}", run_dir=None, requested=[f"resume={run}"])
+    state = torch.load(last, weights_only=True)
+    assert state["episodes_done"] == 4 and state["final"]["final_return"] == final
+    assert len((run / "episodes.csv").read_text().splitlines()) == 1 + 4  # no episode trained twice

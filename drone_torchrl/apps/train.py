@@ -44,14 +44,16 @@ def main(cfg: DictConfig) -> float | None:
     try:
         return train(cfg)
     except Exception as err:
-        # One failing job must not stop the others: it is recorded in <job>/FAILED.txt, and the
-        # end-of-sweep summary (training.jobs.SweepSummary) lists it and exits non-zero.
+        # The job is recorded in <job>/FAILED.txt and reported to Hydra as FAILED (its callbacks and
+        # launchers see the real status). The default sweeper (hydra/sweeper=population) goes on
+        # with the other jobs; the end-of-sweep summary (training.jobs.SweepSummary) lists it and
+        # exits non-zero.
         from drone_torchrl.training.jobs import FAILED_FILE, record_failure
 
         if not (job_dir / FAILED_FILE).is_file():
             record_failure(job_dir, err)
         print(f"drone-train: job failed: {type(err).__name__}: {err}", file=sys.stderr)
-        return None
+        raise
 
 
 def _remove_if_untouched(run_dir: Path) -> None:

@@ -143,6 +143,11 @@ def prepare(
                 OmegaConf.update(saved, key, value, force_add=True)
         saved.engine = checkpoint["engine"]
     validate(saved)
+    done = checkpoint["episodes_done"]
+    if checkpoint["final"] is None and saved.algo.episodes < done:
+        raise ConfigError.of(
+            "algo.episodes", saved.algo.episodes, f">= {done}: {path} has already trained {done} episodes"
+        )
     if is_last_of_its_run(path):
         return Job(saved, run_dir_of(path), checkpoint)
     # A fork: continue from an earlier point of the parent run, in a folder of its own.

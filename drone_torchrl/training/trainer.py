@@ -99,6 +99,11 @@ class Trainer:
     def train(self) -> list[dict[str, float]]:
         """Run every agent to its own ``algo.episodes``; returns each one's final metrics."""
         try:
+            # Killed after its last checkpoint but before the final evaluation: finish it now.
+            if at_budget := [i for i, run in enumerate(self.runs) if run.finished and run.final is None]:
+                self.evaluate(at_budget)
+                for i in at_budget:
+                    self.runs[i].save(self.learner_state(i))
             while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
                 self.update(active)
         finally:
