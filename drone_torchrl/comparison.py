@@ -153,8 +153,10 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         print(
             f"{name}: return {r['return_mean']:.1f} +- {r['return_std']:.1f} "
             f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
-            f"time in zone {100 * r['time_in_zone']:.1f}%, negative thrust {100 * r['negative_thrust_fraction']:.1f}%; "
-            f"episode ends: {causes} (NONE = truncated)"
+            f"time in zone {100 * r['time_in_zone']:.1f}%, first in the zone at step {r['first_zone_step_mean']:.1f} "
+            f"(reached in {100 * r['reached_fraction']:.0f}%), thrust mean {r['thrust_mean']:.3f} max {r['thrust_max']:.3f} "
+            f"x weight, negative thrust {100 * r['negative_thrust_fraction']:.1f}%; "
+            f"episode ends: {causes} (NONE = truncated; the others are crashes)"
         )
     main_name = next(iter(policies))
     if cfg.plot:

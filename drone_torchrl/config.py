@@ -60,12 +60,12 @@ _HYDRA_PREFIX = "hydra"
 
 
 @functools.cache
-def schema(name: str = "config") -> DictConfig:
+def schema(name: str = "config", algo: str | None = None) -> DictConfig:
     """Every key a ``conf/<name>.yaml`` config can hold, with its default value.
 
-    The primary file merged with its default group options (not Hydra's settings): what a config
-    composed from it holds, whichever experiment or sweep preset is chosen, since those only set
-    values of these keys.
+    The primary file merged with its default group options (``algo``: that option of the algo
+    group instead of the default one), not Hydra's settings: what a config composed from it holds,
+    whichever experiment or sweep preset is chosen, since those only set values of these keys.
     """
     root = Path(config_dir())
     primary = OmegaConf.load(root / f"{name}.yaml")
@@ -76,14 +76,27 @@ def schema(name: str = "config") -> DictConfig:
         for group, option in entry.items():
             if group.startswith("override") or group.startswith(_HYDRA_PREFIX):
                 continue
-            node = OmegaConf.load(root / group / f"{option}.yaml")
-            if _is_global(root / group / f"{option}.yaml"):
-                merged.merge_with(node)
-            else:
-                merged[group] = node
+            if group == "algo" and algo is not None:
+                option = algo
+            _merge_option(merged, root, group, option)
     own = {k: v for k, v in primary.items() if k not in ("defaults", _HYDRA_PREFIX)}
     merged.merge_with(OmegaConf.create(own))
     return merged
+
+
+def _merge_option(merged: DictConfig, root: Path, group: str, option: str) -> None:
+    """Merge ``conf/<group>/<option>.yaml`` (after the options its own defaults list names)."""
+    path = root / group / f"{option}.yaml"
+    node = OmegaConf.load(path)
+    for parent in node.pop("defaults", []):
+        if isinstance(parent, str) and parent != "_self_":
+            _merge_option(merged, root, group, parent)
+    if _is_global(path):
+        merged.merge_with(node)
+    elif group in merged:
+        merged[group].merge_with(node)
+    else:
+        merged[group] = node
 
 
 def _is_global(path: Path) -> bool:
@@ -128,7 +141,7 @@ def _unknown(key: str, known: Iterable[str]) -> ConfigError:
 def check_keys(cfg: DictConfig, name: str = "config") -> None:
     """Refuse keys the config files do not define (e.g. added with ``+``), and non-booleans for
     boolean options (``off``, ``no`` or ``1`` are strings or numbers here, not ``false``/``true``)."""
-    known = leaves(schema(name))
+    known = leaves(schema(name, _algo_option(cfg)))
     given = leaves(cfg)
     for key, value in given.items():
         if key in known:
@@ -138,6 +151,12 @@ def check_keys(cfg: DictConfig, name: str = "config") -> None:
         # A list or dict default (e.g. model.hidden_sizes) may hold any shape of its own.
         if not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
             raise _unknown(key, known)
+
+
+def _algo_option(cfg: Any) -> str | None:
+    """The algo group option whose keys ``cfg.algo`` holds (named by ``algo.name``), if it is one."""
+    algo = OmegaConf.select(cfg, "algo.name", default=None) if isinstance(cfg, DictConfig) else None
+    return algo if isinstance(algo, str) and algo in _options("algo") else None
 
 
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
@@ -151,7 +170,9 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
         parsed = OverridesParser.create().parse_overrides(list(overrides))
     except HydraException:
         return
-    known = leaves(schema(name))
+    chosen = [o.value() for o in parsed if o.key_or_group == "algo" and not o.is_sweep_override()]
+    algo = chosen[-1] if chosen and chosen[-1] in _options("algo") else None
+    known = leaves(schema(name, algo if name == "config" else None))
     groups = group_names()
     for override in parsed:
         key = override.key_or_group
@@ -252,15 +273,26 @@ ADDED_KEYS = {
     "algo.optimizer": "adam",
     "algo.weight_decay": 0.0,
     "logger.flush_every_s": 10,
+    "algo.name": "reinforce",
+    "model.init_std": None,
 }
 OPTIMIZERS = ("adam", "adamw")
+# The training loops: REINFORCE (algo=reinforce, algo=reinforce_plus; both engines, populations)
+# and PPO (algo=ppo; TorchRL's collector, GAE and ClipPPOLoss).
+ALGOS = ("reinforce", "ppo")
+# An initial exploration std past this is no longer "near the mean": thrusts are fractions of the weight.
+MAX_INIT_STD = 10.0
 
 
 def run_config(saved: dict[str, Any]) -> DictConfig:
-    """The config stored in a checkpoint, with keys added since filled in (:data:`ADDED_KEYS`)."""
+    """The config stored in a checkpoint, with keys added since filled in (:data:`ADDED_KEYS`;
+    only those its algorithm has: a PPO run has no REINFORCE optimizer keys)."""
     cfg = OmegaConf.create(saved)
+    if OmegaConf.select(cfg, "algo.name", default=_ABSENT) is _ABSENT:
+        OmegaConf.update(cfg, "algo.name", ADDED_KEYS["algo.name"], force_add=True)
+    known = leaves(schema("config", _algo_option(cfg)))
     for key, value in ADDED_KEYS.items():
-        if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
+        if key in known and OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
             OmegaConf.update(cfg, key, value, force_add=True)
     return cfg
 
@@ -306,12 +338,62 @@ def validate(cfg: DictConfig) -> None:
     if cfg.engine not in ENGINES:
         raise ConfigError.of("engine", cfg.engine, f"one of {list(ENGINES)}")
     _number(cfg, "env.num_workers", low=0, integer=True)
-    workers = cfg.env.num_workers
     _number(cfg, "seed", low=0, high=MAX_SEED, integer=True)
     _number(cfg, "threads", low=1, integer=True)
     _number(cfg, "algo.lr", low=0, low_open=True, high=MAX_LR)
     _number(cfg, "algo.gamma", low=0, high=1)
     _number(cfg, "algo.episodes", low=1, integer=True)
+    _choice(cfg, "algo.name", ALGOS)
+    if cfg.algo.name == "ppo":
+        _validate_ppo(cfg)
+    else:
+        _validate_reinforce(cfg)
+    _choice(cfg, "model.distribution", DISTRIBUTIONS)
+    _choice(cfg, "model.activation", tuple(ACTIVATIONS))
+    _number(cfg, "model.min_std", low=0)
+    _sizes(cfg, "model.hidden_sizes")
+    if cfg.model.init_std is not None:
+        _number(cfg, "model.init_std", low=cfg.model.min_std, low_open=True, high=MAX_INIT_STD)
+    if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
+        raise ConfigError.of(
+            "model.distribution",
+            "tanh_normal",
+            "'normal' unless env.max_thrust is set (e.g. env.max_thrust=1.0)",
+        )
+    _number(cfg, "checkpoint.every_episodes", low=1, integer=True)
+    _number(cfg, "eval.every_episodes", low=0, integer=True)
+    _number(cfg, "eval.episodes", low=1, integer=True)
+    _number(cfg, "eval.seed", low=0, high=MAX_SEED, integer=True)
+    _number(cfg, "metrics.running_mean_window", low=1, integer=True)
+    _number(cfg, "logger.video_fps", low=1, integer=True)
+    _number(cfg, "logger.video_stride", low=1, integer=True)
+    _number(cfg, "logger.every_updates", low=1, integer=True)
+    _number(cfg, "logger.flush_every_s", low=0)
+    name = cfg.logger.exp_name
+    if not isinstance(name, str) or name in ("", ".", "..") or Path(name).name != name:
+        raise ConfigError.of(
+            "logger.exp_name", name, "a folder name inside the run folder (no '/' or '..'), e.g. tensorboard"
+        )
+    if cfg.progress not in (True, False, "auto"):
+        raise ConfigError.of("progress", cfg.progress, "true, false or auto")
+
+
+def _sizes(cfg: DictConfig, key: str) -> None:
+    sizes = OmegaConf.select(cfg, key)
+    if (
+        not isinstance(sizes, ListConfig | list)
+        or not sizes
+        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in sizes)
+    ):
+        raise ConfigError.of(
+            key,
+            list(sizes) if isinstance(sizes, ListConfig | list) else sizes,
+            "a non-empty list of integers >= 1, e.g. [32,32]",
+        )
+
+
+def _validate_reinforce(cfg: DictConfig) -> None:
+    workers = cfg.env.num_workers
     _number(cfg, "algo.episodes_per_update", low=1, integer=True)
     if cfg.algo.episodes % cfg.algo.episodes_per_update:
         raise ConfigError.of(
@@ -337,39 +419,30 @@ def validate(cfg: DictConfig) -> None:
     if cfg.algo.max_grad_norm is not None:
         _number(cfg, "algo.max_grad_norm", low=0, low_open=True)
     _choice(cfg, "algo.baseline", BASELINES)
-    _choice(cfg, "model.distribution", DISTRIBUTIONS)
-    _choice(cfg, "model.activation", tuple(ACTIVATIONS))
-    _number(cfg, "model.min_std", low=0)
-    sizes = cfg.model.hidden_sizes
-    if (
-        not isinstance(sizes, ListConfig | list)
-        or not sizes
-        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in sizes)
-    ):
+
+
+def _validate_ppo(cfg: DictConfig) -> None:
+    if cfg.env.num_workers:
         raise ConfigError.of(
-            "model.hidden_sizes",
-            list(sizes) if isinstance(sizes, ListConfig | list) else sizes,
-            "a non-empty list of integers >= 1, e.g. [32,32]",
+            "env.num_workers", cfg.env.num_workers, "0 with algo=ppo (algo.num_envs drones in one env)"
         )
-    if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
+    _number(cfg, "algo.gae_lambda", low=0, high=1)
+    _number(cfg, "algo.num_envs", low=1, integer=True)
+    _number(cfg, "algo.steps_per_batch", low=1, integer=True)
+    _number(cfg, "algo.epochs", low=1, integer=True)
+    _number(cfg, "algo.minibatch_size", low=1, integer=True)
+    frames = cfg.algo.num_envs * cfg.algo.steps_per_batch
+    if frames % cfg.algo.minibatch_size:
         raise ConfigError.of(
-            "model.distribution",
-            "tanh_normal",
-            "'normal' unless env.max_thrust is set (e.g. env.max_thrust=1.0)",
+            "algo.minibatch_size",
+            cfg.algo.minibatch_size,
+            f"a divisor of algo.num_envs x algo.steps_per_batch = {frames} (the frames of a batch)",
         )
-    _number(cfg, "checkpoint.every_episodes", low=1, integer=True)
-    _number(cfg, "eval.every_episodes", low=0, integer=True)
-    _number(cfg, "eval.episodes", low=1, integer=True)
-    _number(cfg, "eval.seed", low=0, high=MAX_SEED, integer=True)
-    _number(cfg, "metrics.running_mean_window", low=1, integer=True)
-    _number(cfg, "logger.video_fps", low=1, integer=True)
-    _number(cfg, "logger.video_stride", low=1, integer=True)
-    _number(cfg, "logger.every_updates", low=1, integer=True)
-    _number(cfg, "logger.flush_every_s", low=0)
-    name = cfg.logger.exp_name
-    if not isinstance(name, str) or name in ("", ".", "..") or Path(name).name != name:
-        raise ConfigError.of(
-            "logger.exp_name", name, "a folder name inside the run folder (no '/' or '..'), e.g. tensorboard"
-        )
-    if cfg.progress not in (True, False, "auto"):
-        raise ConfigError.of("progress", cfg.progress, "true, false or auto")
+    _number(cfg, "algo.clip_epsilon", low=0, low_open=True, high=1)
+    _number(cfg, "algo.entropy_coeff", low=0)
+    _number(cfg, "algo.critic_coeff", low=0, low_open=True)
+    _number(cfg, "algo.reward_scale", low=0, low_open=True)
+    _number(cfg, "algo.adam_eps", low=0, low_open=True, high=1)
+    if cfg.algo.max_grad_norm is not None:
+        _number(cfg, "algo.max_grad_norm", low=0, low_open=True)
+    _sizes(cfg, "algo.value_hidden_sizes")

@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from tensordict import TensorDictBase
 
-from drone_torchrl.envs.dynamics import TerminationCause, in_target_zone
+from drone_torchrl.envs.dynamics import ACTION_DIM, TerminationCause, in_target_zone
 from drone_torchrl.objectives.reinforce import valid_steps
+
+# What a run record books of each finished episode (one episodes.csv column each).
+EPISODE_KEYS = ("return", "length", "time_in_zone", "negative_thrust_fraction", "termination_cause")
 
 
 def episode_stats(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
@@ -16,7 +21,8 @@ def episode_stats(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
     target zone; ``negative_thrust_fraction``: fraction of motor commands below zero (the paper's
     exploit); ``termination_cause``: the code on the episode's last step (0 when truncated);
     ``first_zone_step``: 1-based step at which the drone first ended a step inside the zone
-    (0 if it never did).
+    (0 if it never did); ``thrust_mean`` / ``thrust_max``: mean and largest motor command of the
+    episode, as a fraction of the weight (0.5 per motor hovers).
     """
     done = rollout.get(("next", "done"))
     valid = valid_steps(done).squeeze(-1)
@@ -24,7 +30,8 @@ def episode_stats(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
     reward = rollout.get(("next", "reward")).squeeze(-1)
     terminated = rollout.get(("next", "terminated")).squeeze(-1)
     zone = in_target_zone(rollout.get(("next", "observation"))) & valid & ~terminated
-    negative = (rollout.get("action") < 0) & valid.unsqueeze(-1)
+    action = rollout.get("action")
+    negative = (action < 0) & valid.unsqueeze(-1)
     last = (length - 1).clamp_min(0).unsqueeze(-1)
     cause = rollout.get(("next", "termination_cause")).squeeze(-1).gather(-1, last).squeeze(-1)
     steps = length.clamp_min(1).to(reward.dtype)
@@ -36,9 +43,51 @@ def episode_stats(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
         "negative_thrust_fraction": negative.sum((-1, -2)) / (steps * negative.shape[-1]),
         "termination_cause": cause,
         "first_zone_step": torch.where(reached, zone.to(torch.int64).argmax(-1) + 1, 0),
+        "thrust_mean": torch.where(valid.unsqueeze(-1), action, 0.0).sum((-1, -2))
+        / (steps * action.shape[-1]),
+        "thrust_max": torch.where(valid.unsqueeze(-1), action, -math.inf).amax((-1, -2)),
     }
 
 
 def cause_counts(causes: torch.Tensor) -> dict[str, int]:
     """How many episodes ended with each :class:`TerminationCause` (``NONE`` = truncated)."""
     return {cause.name: int((causes == cause).sum()) for cause in TerminationCause}
+
+
+class EpisodeTracker:
+    """Per-episode metrics of a stream of ``[N, T]`` collector batches, whose episodes start and end
+    anywhere in a batch and run across batches (auto-reset envs, as TorchRL's collectors give them).
+
+    The same metrics as :func:`episode_stats`, for each episode that ends in a batch, in the order
+    they end (by step, then by env index). Episodes still running carry over to the next batch.
+    """
+
+    def __init__(self, num_envs: int, device: torch.device | str = "cpu") -> None:
+        zeros = torch.zeros(num_envs, device=device)
+        self._return, self._length, self._zone, self._negative = (zeros.clone() for _ in range(4))
+
+    def update(self, batch: TensorDictBase) -> dict[str, list]:
+        reward = batch.get(("next", "reward")).squeeze(-1)
+        done = batch.get(("next", "done")).squeeze(-1)
+        terminated = batch.get(("next", "terminated")).squeeze(-1)
+        zone = in_target_zone(batch.get(("next", "observation"))) & ~terminated
+        negative = (batch.get("action") < 0).sum(-1)
+        cause = batch.get(("next", "termination_cause")).squeeze(-1)
+        ended: dict[str, list] = {k: [] for k in EPISODE_KEYS}
+        for t in range(reward.shape[-1]):
+            self._return += reward[:, t]
+            self._length += 1
+            self._zone += zone[:, t]
+            self._negative += negative[:, t]
+            if not done[:, t].any():
+                continue
+            idx = done[:, t].nonzero().squeeze(-1)
+            length = self._length[idx]
+            ended["return"] += self._return[idx].tolist()
+            ended["length"] += length.to(torch.int64).tolist()
+            ended["time_in_zone"] += (self._zone[idx] / length).tolist()
+            ended["negative_thrust_fraction"] += (self._negative[idx] / (length * ACTION_DIM)).tolist()
+            ended["termination_cause"] += cause[idx, t].tolist()
+            for acc in (self._return, self._length, self._zone, self._negative):
+                acc[idx] = 0
+        return ended

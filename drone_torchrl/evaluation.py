@@ -70,7 +70,8 @@ def summarize(stats: dict[str, torch.Tensor], max_return: float) -> dict[str, An
     ``return_mean``, ``return_std`` (population std), ``return_min``, ``pct_of_max`` (of
     ``max_return``), ``length_mean``, ``time_in_zone``, ``negative_thrust_fraction``,
     ``terminated_fraction``, ``reached_fraction`` (episodes that end a step inside the zone),
-    ``first_zone_step_mean`` / ``_max`` (over those that do; NaN if none), ``causes``.
+    ``first_zone_step_mean`` / ``_max`` (over those that do; NaN if none), ``thrust_mean`` and
+    ``thrust_max`` (motor commands as fractions of the weight), ``causes``.
     """
     returns = stats["return"].float()
     first = stats["first_zone_step"]
@@ -88,6 +89,8 @@ def summarize(stats: dict[str, torch.Tensor], max_return: float) -> dict[str, An
         "reached_fraction": float(reached.float().mean()),
         "first_zone_step_mean": float(first[reached].float().mean()) if reached.any() else math.nan,
         "first_zone_step_max": float(first[reached].max()) if reached.any() else math.nan,
+        "thrust_mean": float(stats["thrust_mean"].float().mean()),
+        "thrust_max": float(stats["thrust_max"].float().max()),
         "causes": cause_counts(causes),
     }
 

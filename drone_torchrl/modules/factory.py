@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import torch
 from omegaconf import DictConfig
-from torchrl.modules import ProbabilisticActor
+from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from drone_torchrl.modules.policy import ThreeNetPolicy, actor_from_net
+from drone_torchrl.modules.policy import ThreeNetPolicy, actor_from_net, init_exploration
+from drone_torchrl.modules.value import make_critic
 
 
 def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
@@ -14,11 +15,21 @@ def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
     if seed is not None:
         torch.manual_seed(seed)
     model = cfg.model
-    return ThreeNetPolicy(list(model.hidden_sizes), model.activation, model.min_std).to(cfg.device)
+    net = ThreeNetPolicy(list(model.hidden_sizes), model.activation, model.min_std)
+    if model.get("init_std") is not None:
+        init_exploration(net, model.init_std)
+    return net.to(cfg.device)
 
 
-def build_actor(cfg: DictConfig, net: torch.nn.Module | None = None) -> ProbabilisticActor:
+def build_critic(cfg: DictConfig) -> ValueOperator:
+    """PPO's value network (``algo.value_hidden_sizes``, the policy's activation) on ``cfg.device``."""
+    return make_critic(list(cfg.algo.value_hidden_sizes), cfg.model.activation, cfg.device)
+
+
+def build_actor(
+    cfg: DictConfig, net: torch.nn.Module | None = None, return_log_prob: bool = False
+) -> ProbabilisticActor:
     """The config's ``ProbabilisticActor`` over ``net`` (default: a fresh :func:`build_policy`)."""
     return actor_from_net(
-        build_policy(cfg) if net is None else net, cfg.model.distribution, cfg.env.max_thrust
+        build_policy(cfg) if net is None else net, cfg.model.distribution, cfg.env.max_thrust, return_log_prob
     )

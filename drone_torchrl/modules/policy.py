@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -48,6 +49,25 @@ class ThreeNetPolicy(nn.Module):
         return self.mean(features), nn.functional.softplus(self.std(features)) + self.min_std
 
 
+def init_exploration(net: ThreeNetPolicy, std: float) -> None:
+    """Start ``net`` near a mean of 0 with exploration noise ``std`` in every state.
+
+    The heads' weights are scaled down 100x (as in PPO implementations that initialise the policy
+    head near zero) and the std head's bias is set so ``softplus(bias) + min_std = std``. PyTorch's
+    default gives a std of about 0.7 that varies with the state, which on a TanhNormal over
+    ``[0, max_thrust]`` flips the drone within a few steps.
+    """
+    if not std > net.min_std:
+        raise ValueError(
+            f"model.init_std={std!r} is not allowed; expected a number > model.min_std={net.min_std}"
+        )
+    with torch.no_grad():
+        net.mean.weight.mul_(0.01)
+        net.mean.bias.zero_()
+        net.std.weight.mul_(0.01)
+        net.std.bias.fill_(math.log(math.expm1(std - net.min_std)))
+
+
 def make_actor(
     distribution: str = "normal",
     hidden_sizes: Sequence[int] = (32, 32),
@@ -88,11 +108,14 @@ def check_head(distribution: str, max_thrust: float | None) -> None:
         )
 
 
-def actor_from_net(net: nn.Module, distribution: str, max_thrust: float | None) -> ProbabilisticActor:
+def actor_from_net(
+    net: nn.Module, distribution: str, max_thrust: float | None, return_log_prob: bool = False
+) -> ProbabilisticActor:
     """The distribution head over any module mapping ``observation`` to ``(loc, scale)``.
 
     Used for one :class:`ThreeNetPolicy` and for the stacked nets of a population alike, so both
-    sample and score actions with the same distribution.
+    sample and score actions with the same distribution. ``return_log_prob``: also write the
+    sampled action's ``"action_log_prob"`` (PPO's importance ratio needs it).
     """
     check_head(distribution, max_thrust)
     module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
@@ -109,5 +132,5 @@ def actor_from_net(net: nn.Module, distribution: str, max_thrust: float | None) 
         out_keys=["action"],
         distribution_class=dist_class,
         distribution_kwargs=dist_kwargs,
-        return_log_prob=False,
+        return_log_prob=return_log_prob,
     )

@@ -26,6 +26,7 @@ from tqdm import tqdm
 
 from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.dynamics import TerminationCause
+from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, FORMAT_VERSION, LAST, save_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
 from drone_torchrl.io.tb_logger import RunLogger, log_update
@@ -34,7 +35,6 @@ from drone_torchrl.io.video import VIDEO_DIR, record_video, save_mp4
 CONFIG_NAME = "config.yaml"
 FAILED_FILE = "FAILED.txt"
 # The per-episode values a collector reports for every finished episode (episode_stats' keys).
-EPISODE_KEYS = ("return", "length", "time_in_zone", "negative_thrust_fraction", "termination_cause")
 
 
 class TrainingDiverged(RuntimeError):

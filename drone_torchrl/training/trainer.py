@@ -24,13 +24,13 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from drone_torchrl.config import ConfigError, env_kwargs
-from drone_torchrl.episodes import episode_stats
+from drone_torchrl.episodes import EPISODE_KEYS, episode_stats
 from drone_torchrl.evaluation import evaluate
 from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.population import Population
-from drone_torchrl.training.run import EPISODE_KEYS, FAILED_FILE, Progress, RunRecord, TrainingDiverged
+from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
 
 
 @dataclass
@@ -206,6 +206,9 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
             groups.setdefault(group_key(job.cfg), []).append(i)
     for members in groups.values():
         try:
+            if jobs[members[0]].cfg.algo.name == "ppo":
+                _train_ppo(jobs, members, outcomes)
+                continue
             trainer = Trainer([jobs[i] for i in members])
             finals = trainer.train()
         except Exception as err:  # noqa: BLE001  (recorded per job; the other groups go on)
@@ -220,13 +223,31 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
                     print(f"{jobs[i].run_dir}: failed: {outcomes[i].error}")
                 continue
             outcomes[i].final = final
-            cfg = jobs[i].cfg
-            print(
-                f"{jobs[i].run_dir}: {cfg.algo.episodes} episodes, running-mean({cfg.metrics.running_mean_window}) "
-                f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
-                f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s"
-            )
+            _report(jobs[i], final)
     return outcomes
+
+
+def _report(job: Job, final: dict[str, float]) -> None:
+    cfg = job.cfg
+    print(
+        f"{job.run_dir}: {cfg.algo.episodes} episodes, running-mean({cfg.metrics.running_mean_window}) "
+        f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
+        f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s"
+    )
+
+
+def _train_ppo(jobs: Sequence[Job], members: list[int], outcomes: list[Outcome]) -> None:
+    """PPO jobs train one after another (each one is a batch of drones already)."""
+    from drone_torchrl.training.ppo import PPOTrainer
+
+    for i in members:
+        trainer = PPOTrainer(jobs[i])
+        final = trainer.train()
+        if final is None:
+            outcomes[i].error = TrainingDiverged(trainer.run.failure)
+        else:
+            outcomes[i].final = final
+            _report(jobs[i], final)
 
 
 def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:

@@ -1,0 +1,143 @@
+"""algo=ppo (TorchRL's collector, GAE and ClipPPOLoss under the run record), and drone-export."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from drone_torchrl.config import config_dir, run_config
+from drone_torchrl.envs import DroneEnv
+from drone_torchrl.episodes import EpisodeTracker, episode_stats
+from drone_torchrl.export import deterministic_policy, export_policy
+from drone_torchrl.io.checkpoint import load_checkpoint
+from drone_torchrl.io.episodes_csv import read_episodes
+from drone_torchrl.modules.factory import build_actor
+from drone_torchrl.training.trainer import train
+
+QUIET = ["eval.video=false", "progress=false", "eval.episodes=2"]
+
+
+def _cfg(*overrides: str):
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+def test_ppo_learns_on_a_small_budget(tmp_path):
+    """The does-it-learn check of SB3's test suite: the last tenth's mean return at least doubles
+    the first tenth's (seed 0, 400 episodes: about 7 s here)."""
+    run = tmp_path / "run"
+    train(_cfg("algo=ppo", "experiment=bounded", "algo.episodes=400", *QUIET), run)
+    returns = read_episodes(run / "episodes.csv")[0]["return"]
+    tenth = len(returns) // 10
+    first, last = returns[:tenth].mean(), returns[-tenth:].mean()
+    assert last >= 2 * first, (first, last)
+    state = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert {"actor", "critic", "optimizer"} <= set(state) and state["final"] is not None
+
+
+def test_episode_tracker_equals_episode_stats_across_batches():
+    """Episodes cut across collector batches are booked whole, with the metrics of episode_stats."""
+    env = DroneEnv(batch_size=[3], max_steps=9, reset_mode="air", dt=0.1)
+    env.set_seed(0)
+    # Drone 0 hovers (truncated every 9 steps), drone 1 spins into a TILT after a few steps, drone 2
+    # climbs at full thrust; episodes end at different steps, across the 5-step batches below.
+    thrust = torch.tensor([[0.5, 0.5], [0.0, 1.5], [1.0, 1.0]])
+
+    def policy(td):
+        return td.set("action", thrust.clone())
+
+    rollout = env.rollout(21, policy, break_when_any_done=False)
+    tracker = EpisodeTracker(3)
+    booked = {k: [] for k in ("return", "length", "termination_cause")}
+    for chunk in rollout.split(5, dim=1):  # batches of 5 steps: episodes straddle them
+        ended = tracker.update(chunk)
+        for k in booked:
+            booked[k] += ended[k]
+    # The reference: cut the rollout into episodes by hand and use episode_stats on each.
+    done = rollout.get(("next", "done")).squeeze(-1)
+    expected = []
+    for t in range(21):
+        for env_i in done[:, t].nonzero().squeeze(-1).tolist():
+            start = max([s + 1 for s in range(t) if done[env_i, s]], default=0)
+            stats = episode_stats(rollout[env_i, start : t + 1].unsqueeze(0))
+            expected.append(
+                (stats["return"].item(), stats["length"].item(), stats["termination_cause"].item())
+            )
+    assert list(zip(*booked.values(), strict=True)) == expected
+    assert len({length for _, length, _ in expected}) >= 2 and len(expected) >= 5
+
+
+def test_ppo_resumes_and_keeps_its_critic(tmp_path):
+    run = tmp_path / "run"
+    train(
+        _cfg(
+            "algo=ppo",
+            "algo.episodes=64",
+            "algo.num_envs=8",
+            "algo.steps_per_batch=32",
+            "algo.minibatch_size=64",
+            *QUIET,
+        ),
+        run,
+    )
+    first = load_checkpoint(run / "checkpoints" / "last.pt")
+    train(_cfg(f"resume={run}", "algo.episodes=128", *QUIET))
+    second = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert second["episodes_done"] >= 128 > first["episodes_done"] >= 64
+    assert second["updates_done"] > first["updates_done"]
+    episodes = read_episodes(run / "episodes.csv")[0]["episode"]
+    assert episodes.tolist() == list(range(second["episodes_done"]))  # none lost, none twice
+    assert not torch.equal(first["critic"]["module.0.weight"], second["critic"]["module.0.weight"])
+
+
+@pytest.mark.parametrize("preset", ["paper", "bounded"])
+def test_exported_policy_runs_with_plain_torch_and_matches_the_actor(tmp_path, preset):
+    """Train briefly, export, load in a fresh interpreter that never imports drone_torchrl, and
+    compare with the actor's deterministic action clamped as the env clamps it."""
+    run = tmp_path / "run"
+    algo = (
+        ["algo.episodes=4", "env.max_steps=30", "compile=false"]
+        if preset == "paper"
+        else [
+            "algo=ppo",
+            "algo.episodes=16",
+            "algo.num_envs=8",
+            "algo.steps_per_batch=16",
+            "algo.minibatch_size=64",
+        ]
+    )
+    train(_cfg(f"experiment={preset}", *algo, *QUIET), run)
+    out = export_policy(run, tmp_path / "policy.pt2")
+    observations = torch.randn(257, 6) * torch.tensor([1.0, 2.0, 1.0, 2.0, 0.3, 1.0]) + torch.tensor(
+        [0, 0, 2.0, 0, 0, 0]
+    )
+    torch.save(observations, tmp_path / "obs.pt")
+    script = (
+        "import sys, torch\n"
+        f"policy = torch.export.load({str(out)!r}).module()\n"
+        f"torch.save(policy(torch.load({str(tmp_path / 'obs.pt')!r})), {str(tmp_path / 'act.pt')!r})\n"
+        "assert 'drone_torchrl' not in sys.modules\n"
+    )
+    subprocess.run([sys.executable, "-c", script], check=True, timeout=120)
+    exported = torch.load(tmp_path / "act.pt")
+
+    state = load_checkpoint(run / "checkpoints" / "last.pt")
+    cfg = run_config(state["config"])
+    actor = build_actor(cfg)
+    actor.load_state_dict(state["actor"])
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        action = actor(TensorDict({"observation": observations}, batch_size=[257]))["action"]
+    if cfg.env.max_thrust is not None:
+        action = action.clamp(0.0, cfg.env.max_thrust)
+        assert exported.min() >= 0 and exported.max() <= cfg.env.max_thrust
+    assert exported.shape == (257, 2) and exported.dtype == torch.float32
+    np.testing.assert_allclose(exported.numpy(), action.numpy(), rtol=1e-5, atol=1e-6)
+    policy, _ = deterministic_policy(run)
+    np.testing.assert_allclose(policy(observations).detach().numpy(), action.numpy(), rtol=1e-6, atol=1e-7)
