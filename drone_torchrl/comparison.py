@@ -15,6 +15,7 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from drone_torchrl.config import (
+    MAX_PARALLEL_EPISODES,
     MAX_SEED,
     ConfigError,
     check_device,
@@ -100,13 +101,20 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
     """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot."""
     out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
     check_keys(cfg, "eval")
-    for key in ("episodes", "video_fps"):
-        if isinstance(cfg[key], bool) or not isinstance(cfg[key], int) or cfg[key] < 1:
-            raise ConfigError.of(key, cfg[key], "an integer >= 1")
+    for key, most in (("episodes", MAX_PARALLEL_EPISODES), ("video_fps", None)):
+        if (
+            isinstance(cfg[key], bool)
+            or not isinstance(cfg[key], int)
+            or cfg[key] < 1
+            or (most and cfg[key] > most)
+        ):
+            raise ConfigError.of(key, cfg[key], "an integer >= 1" + (f" and <= {most}" if most else ""))
     if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or not 0 <= cfg.seed <= MAX_SEED:
         raise ConfigError.of("seed", cfg.seed, f"an integer >= 0 and <= {MAX_SEED}")
     check_device(cfg.device)
     if cfg.checkpoint is not None:
+        if not isinstance(cfg.checkpoint, str) or not cfg.checkpoint.strip():
+            raise ConfigError.of("checkpoint", cfg.checkpoint, "a checkpoint file or a run folder (a path)")
         try:
             path = resolve_checkpoint(cfg.checkpoint)
         except FileNotFoundError as err:

@@ -54,6 +54,15 @@ def config_dir() -> str:
 # unit-scale steps; seeds are signed 64-bit integers in torch.
 MAX_LR = 1.0
 MAX_SEED = 2**63 - 1
+# Episodes flown side by side (an update's, an evaluation's, drone-eval's) live in memory together:
+# about 25 kB each for 300 steps, so 10,000 take a quarter of a GB.
+MAX_PARALLEL_EPISODES = 10_000
+# torch's intra-op threads; far past the cores they only slow it down (and 10^5 crashes it).
+MAX_THREADS = 256
+# What a run writes into its folder: logger.exp_name must not collide with one of them.
+RUN_FOLDER_ENTRIES = frozenset(
+    {"checkpoints", "videos", "episodes.csv", "config.yaml", "FAILED.txt", ".hydra", "train.log"}
+)
 # Groups chosen with ``group=option`` (a file conf/<group>/<option>.yaml); Hydra's own groups
 # (hydra/launcher, hydra/sweeper) are Hydra's to check.
 _HYDRA_PREFIX = "hydra"
@@ -121,7 +130,9 @@ def command_line_keys() -> set[str] | None:
 
     if not HydraConfig.initialized():
         return None
-    return {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
+    # Unresolved: an override's value may be an interpolation that does not resolve (reported later).
+    task = OmegaConf.to_container(HydraConfig.get().overrides.task, resolve=False)
+    return {str(o).split("=", 1)[0].lstrip("+~") for o in task}
 
 
 def _options(group: str) -> list[str]:
@@ -141,8 +152,18 @@ def _unknown(key: str, known: Iterable[str]) -> ConfigError:
 def check_keys(cfg: DictConfig, name: str = "config") -> None:
     """Refuse keys the config files do not define (e.g. added with ``+``), and non-booleans for
     boolean options (``off``, ``no`` or ``1`` are strings or numbers here, not ``false``/``true``)."""
-    known = leaves(schema(name, _algo_option(cfg)))
-    given = leaves(cfg)
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        known = leaves(schema(name, _algo_option(cfg)))
+        given = leaves(cfg)
+    except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
+        key = getattr(err, "full_key", None) or "a config value"
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(f"{key} cannot be read: {first}") from None
+    missing = [k for k in known if k not in given and not any(g.startswith(f"{k}.") for g in given)]
+    if missing:
+        raise ConfigError(f"{missing[0]} is missing (deleted with ~?); every config key needs a value")
     for key, value in given.items():
         if key in known:
             if isinstance(known[key], bool) and not isinstance(value, bool):
@@ -184,8 +205,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
         if key.split(".")[0].split("/")[0] == _HYDRA_PREFIX:
             if key in ("hydra.run.dir", "hydra.sweep.dir"):
                 for value in values:
-                    if isinstance(value, str) and Path(value).exists() and not Path(value).is_dir():
-                        raise ConfigError.of(key, value, "a folder (new or existing), not a file")
+                    _check_folder(key, value)
             continue
         if key in groups:
             options = _options(key)
@@ -195,6 +215,22 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             continue
         if key not in known and not any(k.startswith(f"{key}.") for k in known):
             raise _unknown(key, known)
+
+
+def _check_folder(key: str, value: Any) -> None:
+    """A folder the run can create or write into: not empty, not a file, under a writable folder."""
+    import os
+
+    if not isinstance(value, str) or "${" in value:
+        return  # Hydra's own interpolations (${now:...}) resolve later
+    if not value.strip():
+        raise ConfigError.of(key, value, "a folder path, not an empty string")
+    path = Path(value).expanduser()
+    existing = next(p for p in (path, *path.parents) if p.exists() or p == Path(p.anchor or "."))
+    if existing.exists() and not existing.is_dir():
+        raise ConfigError.of(key, value, f"a folder ({existing} is a file)")
+    if not os.access(existing if existing.exists() else Path.cwd(), os.W_OK):
+        raise ConfigError.of(key, value, f"a folder this user can write ({existing} is not writable)")
 
 
 def check_command_line(prog: str, name: str) -> None:
@@ -227,6 +263,10 @@ def _as_override(value: Any) -> str:
     if value is None or isinstance(value, bool):
         return {None: "null", True: "true", False: "false"}[value]
     return repr(value)
+
+
+def _plain_name(name: Any) -> bool:
+    return isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name
 
 
 def _number(
@@ -339,7 +379,7 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError.of("engine", cfg.engine, f"one of {list(ENGINES)}")
     _number(cfg, "env.num_workers", low=0, integer=True)
     _number(cfg, "seed", low=0, high=MAX_SEED, integer=True)
-    _number(cfg, "threads", low=1, integer=True)
+    _number(cfg, "threads", low=1, high=MAX_THREADS, integer=True)
     _number(cfg, "algo.lr", low=0, low_open=True, high=MAX_LR)
     _number(cfg, "algo.gamma", low=0, high=1)
     _number(cfg, "algo.episodes", low=1, integer=True)
@@ -362,7 +402,7 @@ def validate(cfg: DictConfig) -> None:
         )
     _number(cfg, "checkpoint.every_episodes", low=1, integer=True)
     _number(cfg, "eval.every_episodes", low=0, integer=True)
-    _number(cfg, "eval.episodes", low=1, integer=True)
+    _number(cfg, "eval.episodes", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
     _number(cfg, "eval.seed", low=0, high=MAX_SEED, integer=True)
     _number(cfg, "metrics.running_mean_window", low=1, integer=True)
     _number(cfg, "logger.video_fps", low=1, integer=True)
@@ -370,10 +410,15 @@ def validate(cfg: DictConfig) -> None:
     _number(cfg, "logger.every_updates", low=1, integer=True)
     _number(cfg, "logger.flush_every_s", low=0)
     name = cfg.logger.exp_name
-    if not isinstance(name, str) or name in ("", ".", "..") or Path(name).name != name:
+    if not _plain_name(name) or name in RUN_FOLDER_ENTRIES:
         raise ConfigError.of(
-            "logger.exp_name", name, "a folder name inside the run folder (no '/' or '..'), e.g. tensorboard"
+            "logger.exp_name",
+            name,
+            f"a new folder name inside the run folder (no '/' or '..', none of {sorted(RUN_FOLDER_ENTRIES)}), "
+            "e.g. tensorboard",
         )
+    if not _plain_name(cfg.sweep_name):
+        raise ConfigError.of("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
     if cfg.progress not in (True, False, "auto"):
         raise ConfigError.of("progress", cfg.progress, "true, false or auto")
 
@@ -394,7 +439,7 @@ def _sizes(cfg: DictConfig, key: str) -> None:
 
 def _validate_reinforce(cfg: DictConfig) -> None:
     workers = cfg.env.num_workers
-    _number(cfg, "algo.episodes_per_update", low=1, integer=True)
+    _number(cfg, "algo.episodes_per_update", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
     if cfg.algo.episodes % cfg.algo.episodes_per_update:
         raise ConfigError.of(
             "algo.episodes",
@@ -427,7 +472,7 @@ def _validate_ppo(cfg: DictConfig) -> None:
             "env.num_workers", cfg.env.num_workers, "0 with algo=ppo (algo.num_envs drones in one env)"
         )
     _number(cfg, "algo.gae_lambda", low=0, high=1)
-    _number(cfg, "algo.num_envs", low=1, integer=True)
+    _number(cfg, "algo.num_envs", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
     _number(cfg, "algo.steps_per_batch", low=1, integer=True)
     _number(cfg, "algo.epochs", low=1, integer=True)
     _number(cfg, "algo.minibatch_size", low=1, integer=True)

@@ -192,6 +192,30 @@ TRAIN = [
     (["logger.exp_name=../../outside"], "logger.exp_name"),  # wrote outside the run folder
     (["logger.exp_name=/tmp/abs"], "logger.exp_name"),
     (["logger.exp_name=''"], "logger.exp_name"),
+    (["logger.exp_name=episodes.csv"], "logger.exp_name"),  # collided with the run's CSV mid-run
+    (["logger.exp_name=checkpoints"], "logger.exp_name"),
+    (["sweep_name=../../escape"], "sweep_name"),  # a sweep written outside the working folder
+    (["threads=100000"], "threads"),  # was a segfault
+    (["eval.episodes=100000000"], "eval.episodes"),  # was out of memory after training
+    (["algo.episodes_per_update=100000", "algo.episodes=100000"], "algo.episodes_per_update"),
+    (["~algo.lr"], "algo.lr"),  # a deleted key: was a traceback
+    (["algo.lr=${{oops}}"], "algo.lr"),  # an interpolation to nothing: was a traceback
+    # PPO (algo=ppo)
+    (["algo=ppo", "algo.minibatch_size=1000"], "algo.minibatch_size"),  # must divide 64 x 64
+    (["algo=ppo", "algo.num_envs=0"], "algo.num_envs"),
+    (["algo=ppo", "algo.steps_per_batch=0"], "algo.steps_per_batch"),
+    (["algo=ppo", "algo.epochs=0"], "algo.epochs"),
+    (["algo=ppo", "algo.clip_epsilon=0"], "algo.clip_epsilon"),
+    (["algo=ppo", "algo.gae_lambda=2"], "algo.gae_lambda"),
+    (["algo=ppo", "algo.critic_coeff=0"], "algo.critic_coeff"),
+    (["algo=ppo", "algo.reward_scale=-1"], "algo.reward_scale"),
+    (["algo=ppo", "algo.value_hidden_sizes=[]"], "algo.value_hidden_sizes"),
+    (["algo=ppo", "algo.anneal_lr=off"], "algo.anneal_lr"),
+    (["algo=ppo", "env.num_workers=2"], "env.num_workers"),
+    (["algo=ppo", "+algo.baseline=mean"], "algo.baseline"),  # a REINFORCE key: not PPO's
+    (["algo=ppo", "algo.lr=2"], "algo.lr"),
+    (["model.init_std=0"], "model.init_std"),
+    (["model.init_std=-1"], "model.init_std"),
     # keys and groups that do not exist
     (["+algo.lrr=1"], "algo.lr"),  # was accepted silently; the hint names the real key
     (["+foo=1"], "foo"),
@@ -200,6 +224,8 @@ TRAIN = [
     (["experiment=nope"], "experiment"),
     (["algo=ppo2"], "algo"),
     (["hydra.run.dir={file}"], "hydra.run.dir"),  # a run folder that is a file: was a traceback
+    (["hydra.run.dir={file}/run"], "hydra.run.dir"),  # under a file: was a traceback
+    (["hydra.run.dir=''"], "hydra.run.dir"),  # wrote the run into the current folder
     # resume targets
     (["resume={emptydir}/nothing"], "resume"),
     (["resume={emptydir}"], "resume"),  # a folder without checkpoints/last.pt
@@ -209,6 +235,9 @@ TRAIN = [
     (["resume={payload}"], "payload.pt"),
     (["resume={v99}"], "format_version"),
     (["resume={file}"], "notes.txt"),
+    (["resume=true"], "resume"),  # not a path: was a traceback
+    (["resume=1"], "resume"),
+    (["resume=''"], "resume"),
     # a continued run keeps its hyper-parameters (only the budget and logging may change)
     (["resume={run}", "algo.lr=0.5"], "algo.lr"),
     (["resume={run}", "algo.gamma=0.9"], "algo.gamma"),
@@ -245,6 +274,8 @@ EVAL = [
     (["episodes=0"], "episodes"),
     (["episodes=-1"], "episodes"),
     (["episodes=abc"], "episodes"),
+    (["episodes=100000000"], "episodes"),  # ran out of memory after minutes
+    (["checkpoint=true"], "checkpoint"),  # not a path: was a traceback
     (["seed=-1"], "seed"),
     (["seed=18446744073709551616"], "seed"),
     (["device=tpu"], "device"),
@@ -370,8 +401,8 @@ def test_end_to_end(files, tmp_path):
         errors = [line for line in proc.stderr.splitlines() if "error" in line]
         assert len(errors) == 1 and names in errors[0], where
         assert not _written(cwd), where
-        if name == "drone-train" and args[0] != "-m":
-            assert not (cwd / "outputs").exists() or not any((cwd / "outputs").rglob(".hydra")), where
+        if args[0] != "-m":  # not even an empty run folder (a sweep keeps its failed job's FAILED.txt)
+            assert sorted(p.name for p in cwd.iterdir()) == [], where
     assert not files["marker"].exists()
 
 

@@ -9,11 +9,14 @@ drone-eval env.max_thrust=1.0                       # ... with bounded thrust
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 import hydra
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from drone_torchrl.config import ConfigError, check_command_line, config_dir
+from drone_torchrl.io.folders import remove_if_untouched
 
 
 @hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
@@ -23,6 +26,7 @@ def main(cfg: DictConfig) -> None:
     try:
         run_eval(cfg)
     except ConfigError as err:
+        remove_if_untouched(Path(HydraConfig.get().runtime.output_dir))
         sys.exit(f"drone-eval: error: {err}")
 
 

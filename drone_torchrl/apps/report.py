@@ -95,6 +95,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     except ReportError as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)
         sys.exit(EXIT_ERROR)
+    except OSError as err:  # an output folder that cannot be made or written
+        print(f"{PROG}: error: {err.filename}: {err.strerror}", file=sys.stderr)
+        sys.exit(EXIT_ERROR)
 
 
 if __name__ == "__main__":

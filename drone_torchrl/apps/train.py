@@ -9,7 +9,6 @@ drone-train -m seed=0,1,2,3 hydra/launcher=fused   # four agents trained as one 
 
 from __future__ import annotations
 
-import shutil
 import sys
 from pathlib import Path
 
@@ -20,7 +19,11 @@ from omegaconf import DictConfig
 
 from drone_torchrl.config import ConfigError, check_command_line, config_dir
 from drone_torchrl.io.checkpoint import CheckpointError
+from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.training.run import TrainingDiverged
+
+# The shell's convention for a command stopped by Ctrl-C (128 + SIGINT).
+EXIT_INTERRUPTED = 130
 
 
 @hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")
@@ -28,18 +31,23 @@ def main(cfg: DictConfig) -> float | None:
     from drone_torchrl.training.trainer import train
 
     if HydraConfig.get().mode != RunMode.MULTIRUN:
+        hydra_dir = Path(HydraConfig.get().runtime.output_dir)
         try:
             return train(cfg)
         except (ConfigError, CheckpointError) as err:
-            _remove_if_untouched(Path(HydraConfig.get().runtime.output_dir))
             sys.exit(f"drone-train: error: {err}")
         except TrainingDiverged as err:
             sys.exit(f"drone-train: error: {err}")
         except KeyboardInterrupt:
-            run = cfg.resume or HydraConfig.get().runtime.output_dir
-            sys.exit(
-                f"drone-train: interrupted; continue from the last checkpoint with: drone-train resume={run}"
+            run = cfg.resume or hydra_dir
+            print(
+                f"drone-train: interrupted; continue from the last checkpoint with: drone-train resume={run}",
+                file=sys.stderr,
             )
+            sys.exit(EXIT_INTERRUPTED)
+        finally:
+            # Refused, or resumed in the run's own folder: Hydra's folder for this call holds nothing.
+            remove_if_untouched(hydra_dir)
     job_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         return train(cfg)
@@ -54,13 +62,6 @@ def main(cfg: DictConfig) -> float | None:
             record_failure(job_dir, err)
         print(f"drone-train: job failed: {type(err).__name__}: {err}", file=sys.stderr)
         raise
-
-
-def _remove_if_untouched(run_dir: Path) -> None:
-    # A refused config trains nothing: the folder Hydra made for it (its .hydra/ record and log)
-    # would only be clutter among the real runs.
-    if run_dir.is_dir() and {p.name for p in run_dir.iterdir()} <= {".hydra", "train.log"}:
-        shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def run() -> None:

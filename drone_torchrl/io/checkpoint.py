@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import os
 import pickle
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -85,7 +86,9 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     """
     path = Path(path)
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns before refusing a pickle it will not run
+            warnings.simplefilter("ignore")
+            state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as err:
         if "Unsupported global" not in str(err):  # not a pickle we could read at all
             raise CheckpointError(
@@ -94,8 +97,10 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         raise CheckpointError(
             f"{path} holds Python objects other than tensors and plain data; refusing to unpickle it"
         ) from None
-    except Exception as err:  # noqa: BLE001  (torch.load raises many kinds for a damaged file)
-        raise CheckpointError(f"{path} is not a readable checkpoint ({type(err).__name__})") from None
+    except Exception:  # noqa: BLE001  (torch.load raises many kinds for a damaged file)
+        raise CheckpointError(
+            f"{path} is not a readable checkpoint (empty, truncated, or not a file torch.save wrote)"
+        ) from None
     return migrate(state, path)
 
 

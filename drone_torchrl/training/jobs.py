@@ -120,6 +120,8 @@ def prepare(
             cfg = _with(cfg, engine=engine)
         validate(cfg)
         return Job(cfg, run_dir)
+    if not isinstance(location, str | Path) or not str(location).strip():
+        raise ConfigError.of("resume", location, "a run folder or a checkpoint file (a path)")
     try:
         path = resolve_checkpoint(location)
     except FileNotFoundError as err:

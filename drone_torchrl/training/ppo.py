@@ -122,6 +122,9 @@ class PPOTrainer:
     def update(self, batch) -> dict[str, float]:
         """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's mean metrics."""
         algo = self.cfg.algo
+        if algo.anneal_lr:  # linearly to 0 at the budget, as TorchRL's and CleanRL's PPO do (by frames there)
+            for group in self.optimizer.param_groups:
+                group["lr"] = algo.lr * max(0.0, 1.0 - self.run.episodes_done / self.run.budget)
         batch = batch.clone(False)
         batch.set(("next", "reward"), batch.get(("next", "reward")) * algo.reward_scale)
         with torch.no_grad():

@@ -48,6 +48,7 @@ class FusedLauncher(Launcher):
         self.task_function = task_function
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+        from drone_torchrl.config import ConfigError
         from drone_torchrl.training.jobs import prepare, record_failure, sweep_summary
         from drone_torchrl.training.trainer import Outcome, train_jobs
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
@@ -59,12 +60,18 @@ class FusedLauncher(Launcher):
         sweep_dir.mkdir(parents=True, exist_ok=True)
         log.info(f"Launching {len(job_overrides)} jobs as populations (engine={ENGINE})")
         jobs: list = []
+        folders: list[Path] = []
 
         def register(cfg: DictConfig) -> None:
             # Runs inside Hydra's run_job: the job folder, .hydra/ and log exist, and the job's
             # command line is known (prepare reads it); training comes later, for all jobs at once.
             run_dir = Path(HydraConfig.get().runtime.output_dir)
             try:
+                if run_dir in folders:  # e.g. seed=0,0: two agents would write one folder
+                    raise ConfigError(
+                        f"{run_dir} is also job #{folders.index(run_dir)}'s folder: a duplicate job"
+                    )
+                folders.append(run_dir)
                 jobs.append(prepare(cfg, run_dir if cfg.resume is None else None, engine=ENGINE))
             except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
                 print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
