@@ -141,3 +141,16 @@ def test_exported_policy_runs_with_plain_torch_and_matches_the_actor(tmp_path, p
     np.testing.assert_allclose(exported.numpy(), action.numpy(), rtol=1e-5, atol=1e-6)
     policy, _ = deterministic_policy(run)
     np.testing.assert_allclose(policy(observations).detach().numpy(), action.numpy(), rtol=1e-6, atol=1e-7)
+
+
+def test_algorithm_presets_compose_and_validate():
+    from drone_torchrl.config import validate
+
+    plus = _cfg("algo=reinforce_plus")
+    assert plus.algo.name == "reinforce" and plus.algo.baseline == "mean" and plus.algo.normalize_returns
+    assert plus.algo.episodes % plus.algo.episodes_per_update == 0
+    ppo = _cfg("algo=ppo", "experiment=bounded")
+    assert ppo.algo.name == "ppo" and ppo.model.distribution == "tanh_normal" and ppo.env.max_thrust == 1.0
+    assert (ppo.algo.num_envs * ppo.algo.steps_per_batch) % ppo.algo.minibatch_size == 0
+    for cfg in (plus, ppo, _cfg("algo=ppo"), _cfg("algo=reinforce_plus", "experiment=bounded")):
+        validate(cfg)

@@ -14,7 +14,10 @@ so no episode is lost or counted twice, but the run does not replay the interrup
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import math
+from collections.abc import Iterator
 from typing import Any
 
 import torch
@@ -33,6 +36,17 @@ from drone_torchrl.training.jobs import Job
 from drone_torchrl.training.run import Progress, RunRecord
 
 LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy")
+
+
+@contextlib.contextmanager
+def _quiet(logger_name: str) -> Iterator[None]:
+    logger = logging.getLogger(logger_name)
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
 
 
 class PPOTrainer:
@@ -129,7 +143,8 @@ class PPOTrainer:
         batch.set(("next", "reward"), batch.get(("next", "reward")) * algo.reward_scale)
         with torch.no_grad():
             self.advantage(batch)
-        self.buffer.extend(batch.reshape(-1))
+        with _quiet("torchrl"):  # its storage announces its first allocation at INFO level
+            self.buffer.extend(batch.reshape(-1))
         steps = len(self.buffer) // algo.minibatch_size
         sums: dict[str, torch.Tensor] = {}
         for epoch in range(algo.epochs):
