@@ -112,7 +112,9 @@ def read_episodes(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
     rows, notes = _read_rows(path)
     by_episode = {int(parsed["episode"]): parsed for parsed, _ in rows}
     if len(by_episode) < len(rows):
-        notes.append(f"{path}: {len(rows) - len(by_episode)} episode(s) have more than one row; using the last")
+        notes.append(
+            f"{path}: {len(rows) - len(by_episode)} episode(s) have more than one row; using the last"
+        )
     ordered = sorted(by_episode)
     missing = sorted(set(range(ordered[-1] + 1)) - set(ordered)) if ordered else []
     if missing:
