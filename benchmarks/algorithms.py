@@ -2,7 +2,7 @@
 
     python benchmarks/algorithms.py                      # all three, 4 seeds, their default budgets
     python benchmarks/algorithms.py --algos ppo --seeds 0 1     # a shorter run
-    python benchmarks/algorithms.py --sb3                # also Stable-Baselines3's PPO (pip install stable-baselines3)
+    python benchmarks/algorithms.py --sb3 --sb3-steps 200000   # also SB3's PPO (pip install ".[bench]")
 
 Each algorithm trains with ``experiment=bounded`` (TanhNormal head, thrust in [0, 1] x weight per
 motor) through ``drone-train -m seed=... hydra/launcher=fused``, one algorithm after another, so
@@ -13,9 +13,11 @@ table: env steps and seconds until the running mean reaches full-length episodes
 the final running mean, and the deterministic evaluation of each run's last checkpoint over 100
 seeded episodes (``drone-eval``'s evaluator), with the crashes among them.
 
-With ``--sb3``, Stable-Baselines3's PPO (its defaults, an MLP policy, 8 envs) trains on the
-Gymnasium twin ``Drone2D-v0`` with ``max_thrust=1.0`` for the env-step budget of our PPO's first
-seed, timed in the same run: the reference a user would compare with.
+With ``--sb3`` (``pip install ".[bench]"``), Stable-Baselines3's PPO (its defaults, an MLP policy,
+8 envs) trains on the Gymnasium twin ``Drone2D-v0`` with ``max_thrust=1.0`` for the env-step budget
+of our PPO's first seed (or ``--sb3-steps``), timed in the same run: the reference a user would
+compare with. Its rows compare at equal env steps: the running mean each reached by SB3's last
+step, and the seconds each took to a running mean of 2000.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ ALGOS = ("reinforce", "reinforce_plus", "ppo")
 BOUNDED = {"max_thrust": 1.0}
 FULL_LENGTH = 300
 PD_SHARE = 0.9
+RETURN_MARK = 2000.0
 WINDOW = 100
 EVAL_EPISODES = 100
 
@@ -110,7 +113,7 @@ def _sb3(budget: int, out: Path) -> dict[str, np.ndarray] | None:
         from stable_baselines3.common.callbacks import BaseCallback
         from stable_baselines3.common.env_util import make_vec_env
     except ImportError:
-        print("--sb3: stable-baselines3 is not installed (pip install stable-baselines3); skipped")
+        print('--sb3: stable-baselines3 is not installed (pip install ".[bench]"); skipped')
         return None
     import drone_torchrl.envs  # noqa: F401  (registers Drone2D-v0)
 
@@ -179,7 +182,10 @@ def main() -> None:
     parser.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
     parser.add_argument(
-        "--sb3", action="store_true", help="also train Stable-Baselines3's PPO (optional extra)"
+        "--sb3", action="store_true", help="also train Stable-Baselines3's PPO (pip install '.[bench]')"
+    )
+    parser.add_argument(
+        "--sb3-steps", type=int, default=None, help="SB3's env-step budget (default: our PPO's first seed's)"
     )
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every algorithm")
     args = parser.parse_args()
@@ -194,24 +200,34 @@ def main() -> None:
         results[algo] = _curves(args.out / algo)
         print(f"{algo}: {len(args.seeds)} seeds trained in {seconds:.0f} s")
     if args.sb3 and "ppo" in results:
-        sb3 = _sb3(int(results["ppo"][0]["steps"][-1]), args.out)
+        sb3 = _sb3(args.sb3_steps or int(results["ppo"][0]["steps"][-1]), args.out)
         if sb3 is not None:
             results["sb3 ppo"] = [sb3]
 
     print(f"\nPD controller, bounded thrust, {EVAL_EPISODES} seeded episodes: {pd_return:.1f}")
+    at = int(results["sb3 ppo"][0]["steps"][-1]) if "sb3 ppo" in results else None
     print(
-        "| algorithm | seed | env steps to full length | s to full length | env steps to 90% PD | s to 90% PD "
-        "| final running mean | eval (100 episodes) | crashes |"
+        "| algorithm | seed | steps / s to full length | steps / s to 2000 | steps / s to 90% PD "
+        f"| final running mean |{f' running mean at {at} steps |' if at else ''} eval (100 episodes) | crashes |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|" + ("---|" if at else "") + "---|---|")
     for name, runs in results.items():
         for run in runs:
-            full = _first(run, "length", FULL_LENGTH)
-            pd = _first(run, "return", PD_SHARE * pd_return)
-            evaluated, crashes = _evaluate(run["job"]) if name in ALGOS else (np.nan, -1)
+            cells = [
+                "{:.0f} / {:.1f}".format(*_first(run, key, level))
+                for key, level in (
+                    ("length", FULL_LENGTH),
+                    ("return", RETURN_MARK),
+                    ("return", PD_SHARE * pd_return),
+                )
+            ]
+            if at:
+                cells.append(f"{np.interp(at, run['steps'], run['return']):.1f}")
+            evaluated, crashes = _evaluate(run["job"]) if name in ALGOS else (np.nan, "")
             print(
-                f"| {name} | {run['job'].name} | {full[0]:.0f} | {full[1]:.1f} | {pd[0]:.0f} | {pd[1]:.1f} "
-                f"| {run['return'][-1]:.1f} | {evaluated:.1f} ({100 * evaluated / pd_return:.1f}% of PD) | {crashes} |"
+                f"| {name} | {run['job'].name.rsplit('seed=', 1)[-1]} | {cells[0]} | {cells[1]} | {cells[2]} | {run['return'][-1]:.1f} |"
+                + (f" {cells[3]} |" if at else "")
+                + f" {evaluated:.1f} ({100 * evaluated / pd_return:.1f}% of PD) | {crashes} |"
             )
     path = args.out / "algorithms.png"
     _figure(results, pd_return, path)
