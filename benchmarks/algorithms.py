@@ -162,7 +162,9 @@ def _figure(results: dict[str, list[dict[str, np.ndarray]]], pd_return: float, p
         for name, runs in results.items():
             grid = np.linspace(0, max(r[x][-1] for r in runs), 400)
             band = _band(runs, x, grid)
-            (line,) = ax.plot(grid, np.nanmedian(band, 0), label=f"{name} ({len(runs)} seeds)")
+            (line,) = ax.plot(
+                grid, np.nanmedian(band, 0), label=f"{name} ({len(runs)} seed{'s' if len(runs) > 1 else ''})"
+            )
             ax.fill_between(grid, np.nanmin(band, 0), np.nanmax(band, 0), color=line.get_color(), alpha=0.2)
         ax.axhline(pd_return, color="black", ls="--", lw=1, label=f"PD controller ({pd_return:.0f})")
         ax.set(xlabel=label, ylabel=f"running mean return ({WINDOW} episodes)", xscale="log")

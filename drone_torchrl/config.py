@@ -207,6 +207,11 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                 for value in values:
                     _check_folder(key, value)
             continue
+        if key == "sweep_name":  # names the multirun folder, which Hydra makes before any job runs
+            for value in values:
+                if not _plain_name(value):
+                    raise ConfigError.of(key, value, "a folder name (no '/' or '..'), e.g. lr")
+            continue
         if key in groups:
             options = _options(key)
             for value in values:

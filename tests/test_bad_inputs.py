@@ -376,6 +376,7 @@ E2E = [
     ("drone-train", ["resume={payload}"], "payload.pt"),
     ("drone-train", ["resume={run}", "algo.lr=0.5"], "algo.lr"),
     ("drone-train", ["-m", "hydra/launcher=fused", "engine=torchrl", "seed=0"], "engine"),
+    ("drone-train", ["-m", "seed=0,1", "sweep_name=../../escape"], "sweep_name"),  # wrote outside the folder
     ("drone-eval", ["checkpoint={run}", "env.max_thrust=1.0"], "env.max_thrust"),
     ("drone-eval", ["episodes=0"], "episodes"),
     ("drone-report", ["{file}"], "notes.txt"),
@@ -401,7 +402,10 @@ def test_end_to_end(files, tmp_path):
         errors = [line for line in proc.stderr.splitlines() if "error" in line]
         assert len(errors) == 1 and names in errors[0], where
         assert not _written(cwd), where
-        if args[0] != "-m":  # not even an empty run folder (a sweep keeps its failed job's FAILED.txt)
+        if args[:2] != [
+            "-m",
+            "hydra/launcher=fused",
+        ]:  # no folder (a sweep keeps its failed job's FAILED.txt)
             assert sorted(p.name for p in cwd.iterdir()) == [], where
     assert not files["marker"].exists()
 

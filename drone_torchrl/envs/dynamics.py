@@ -30,6 +30,9 @@ ZONE_X_LIMIT = 0.8
 ZONE_Z_MIN, ZONE_Z_MAX = 2.2, 3.2
 ZONE_Z_CENTRE = 0.5 * (ZONE_Z_MIN + ZONE_Z_MAX)
 
+# Each motor carrying half the weight holds a level drone still: the hover command of both motors.
+HOVER_THRUST = 0.5
+
 # Section 2.2: 0 on the terminating step, 10 per step in the zone, 1 per step elsewhere.
 REWARD_TERMINATED = 0.0
 REWARD_IN_ZONE = 10.0

@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from omegaconf import DictConfig
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
+from drone_torchrl.envs.dynamics import HOVER_THRUST
 from drone_torchrl.modules.policy import ThreeNetPolicy, actor_from_net, init_exploration
 from drone_torchrl.modules.value import make_critic
+
+# How close to the TanhNormal's bounds a starting mean may be (atanh is infinite at +-1).
+TANH_EDGE = 0.99
 
 
 def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
@@ -17,8 +23,21 @@ def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
     model = cfg.model
     net = ThreeNetPolicy(list(model.hidden_sizes), model.activation, model.min_std)
     if model.get("init_std") is not None:
-        init_exploration(net, model.init_std)
+        init_exploration(net, model.init_std, hover_mean(model.distribution, cfg.env.max_thrust))
     return net.to(cfg.device)
+
+
+def hover_mean(distribution: str, max_thrust: float | None) -> float:
+    """The mean head's output at which both motors hover (:data:`HOVER_THRUST` x weight each).
+
+    The Normal head's mean is the command itself; the TanhNormal head maps ``loc`` onto
+    ``[0, max_thrust]`` through ``(tanh(loc) + 1) / 2``, so hovering is ``atanh(2 h / A - 1)``
+    (0 at ``max_thrust=1``), kept inside the open range when ``max_thrust`` cannot hover.
+    """
+    if distribution == "normal":
+        return HOVER_THRUST
+    inside = min(max(2.0 * HOVER_THRUST / max_thrust - 1.0, -TANH_EDGE), TANH_EDGE)
+    return math.atanh(inside)
 
 
 def build_critic(cfg: DictConfig) -> ValueOperator:

@@ -49,13 +49,14 @@ class ThreeNetPolicy(nn.Module):
         return self.mean(features), nn.functional.softplus(self.std(features)) + self.min_std
 
 
-def init_exploration(net: ThreeNetPolicy, std: float) -> None:
-    """Start ``net`` near a mean of 0 with exploration noise ``std`` in every state.
+def init_exploration(net: ThreeNetPolicy, std: float, mean: float = 0.0) -> None:
+    """Start ``net`` at the mean head's output ``mean`` with exploration noise ``std`` in every state.
 
     The heads' weights are scaled down 100x (as in PPO implementations that initialise the policy
-    head near zero) and the std head's bias is set so ``softplus(bias) + min_std = std``. PyTorch's
-    default gives a std of about 0.7 that varies with the state, which on a TanhNormal over
-    ``[0, max_thrust]`` flips the drone within a few steps.
+    head near zero), the mean head's bias is ``mean`` and the std head's bias is set so
+    ``softplus(bias) + min_std = std``. PyTorch's default gives a std of about 0.7 that varies
+    with the state, which on a TanhNormal over ``[0, max_thrust]`` flips the drone within a few
+    steps.
     """
     if not std > net.min_std:
         raise ValueError(
@@ -63,7 +64,7 @@ def init_exploration(net: ThreeNetPolicy, std: float) -> None:
         )
     with torch.no_grad():
         net.mean.weight.mul_(0.01)
-        net.mean.bias.zero_()
+        net.mean.bias.fill_(mean)
         net.std.weight.mul_(0.01)
         net.std.bias.fill_(math.log(math.expm1(std - net.min_std)))
 
