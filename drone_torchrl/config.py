@@ -147,7 +147,9 @@ def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     if key.startswith("algo."):  # another algorithm's key: say whose, not a look-alike of this one's
         owners = [a for a in _options("algo") if key in leaves(schema("config", a))]
         if owners:
-            return ConfigError(f"{key} is not a key of this algo; it belongs to algo={' or algo='.join(owners)}")
+            return ConfigError(
+                f"{key} is not a key of this algo; it belongs to algo={' or algo='.join(owners)}"
+            )
     close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
     return ConfigError(f"{key} is not a config key{hint}")
