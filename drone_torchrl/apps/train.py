@@ -18,7 +18,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from drone_torchrl.config import ConfigError, check_command_line, config_dir
-from drone_torchrl.io.checkpoint import CheckpointError
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.training.run import TrainingDiverged
 
@@ -40,10 +40,11 @@ def main(cfg: DictConfig) -> float | None:
             sys.exit(f"drone-train: error: {err}")
         except KeyboardInterrupt:
             run = cfg.resume or hydra_dir
-            print(
-                f"drone-train: interrupted; continue from the last checkpoint with: drone-train resume={run}",
-                file=sys.stderr,
-            )
+            if cfg.resume or (hydra_dir / CHECKPOINT_DIR / LAST).is_file():
+                hint = f"continue from the last checkpoint with: drone-train resume={run}"
+            else:
+                hint = "no checkpoint was written yet; start it again"
+            print(f"drone-train: interrupted; {hint}", file=sys.stderr)
             sys.exit(EXIT_INTERRUPTED)
         finally:
             # Refused, or resumed in the run's own folder: Hydra's folder for this call holds nothing.
@@ -75,8 +76,12 @@ def run() -> None:
     # is not a folder, so register ours explicitly (harmless for a normal install).
     Plugins.instance().register(FusedLauncher)
     Plugins.instance().register(PopulationSweeper)
-    check_command_line("drone-train", "config")
-    main()
+    try:
+        check_command_line("drone-train", "config")
+        main()
+    except KeyboardInterrupt:  # before Hydra started the run (main() handles it once training runs)
+        print("drone-train: interrupted before training started", file=sys.stderr)
+        sys.exit(EXIT_INTERRUPTED)
 
 
 if __name__ == "__main__":
