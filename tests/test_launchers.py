@@ -22,7 +22,16 @@ from drone_torchrl.training.jobs import FAILED_FILE, job_status, sweep_jobs
 REPO = Path(__file__).resolve().parents[1]
 TINY = ["algo.episodes=3", "env.max_steps=20", "eval.video=false", "eval.episodes=1", "compile=false"]
 GRID = ["algo.lr=1e-3,1e-4", "seed=0,1"]  # 2 settings x 2 seeds
-FAILING_GRID = ["algo.gamma=0.9,7"]  # gamma 7 is rejected by the config check
+FAILING_GRID = ["algo.gamma=0.9,0.95"]  # the 0.95 job's folder is given a damaged checkpoint first
+DAMAGED = "is not a readable checkpoint"
+
+
+def _damage(sweep_dir: Path, *overrides: str, cwd: Path) -> None:
+    """Run the gamma 0.95 job alone, then damage its checkpoint: re-running it fails at run time."""
+    _multirun(sweep_dir, *overrides, "algo.gamma=0.95", cwd=cwd)
+    (job,) = sweep_jobs(sweep_dir)
+    (job / "checkpoints" / "last.pt").write_bytes(b"not a checkpoint")
+
 
 # launcher id -> (plugin module to require or None, overrides that select it)
 LAUNCHERS = {
@@ -111,18 +120,29 @@ def test_sweep_runs_then_skips_finished_jobs(launcher, request, tmp_path):
 def test_failed_job_is_summarised_and_the_others_finish(launcher, request, tmp_path):
     overrides = _require(launcher, request)
     sweep_dir = tmp_path / "sweep"
+    _damage(sweep_dir, *overrides, cwd=tmp_path)
     out = _multirun(sweep_dir, *overrides, *FAILING_GRID, cwd=tmp_path, expect_failure=True)
 
     jobs = {job.name.split(",")[0]: job for job in sweep_jobs(sweep_dir)}
-    assert set(jobs) == {"algo.gamma=0.9", "algo.gamma=7"}, jobs
+    assert set(jobs) == {"algo.gamma=0.9", "algo.gamma=0.95"}, jobs
     assert job_status(jobs["algo.gamma=0.9"])[0] == "finished"
-    status, reason = job_status(jobs["algo.gamma=7"])
-    assert status == "failed" and "algo.gamma=7 is not allowed" in reason
-    assert (jobs["algo.gamma=7"] / FAILED_FILE).is_file()
+    status, reason = job_status(jobs["algo.gamma=0.95"])
+    assert status == "failed" and DAMAGED in reason
+    assert (jobs["algo.gamma=0.95"] / FAILED_FILE).is_file()
     assert "1 finished, 1 failed, 0 unfinished" in out, out
     failed_lines = [line for line in out.splitlines() if "[failed]" in line]
-    assert len(failed_lines) == 1 and jobs["algo.gamma=7"].name in failed_lines[0], out
-    assert "algo.gamma=7 is not allowed" in failed_lines[0]
+    assert len(failed_lines) == 1 and jobs["algo.gamma=0.95"].name in failed_lines[0], out
+    assert DAMAGED in failed_lines[0]
+
+
+@pytest.mark.parametrize("launcher", ["basic", "fused"])
+def test_a_bad_value_in_a_sweep_is_refused_before_any_job(launcher, request, tmp_path):
+    overrides = _require(launcher, request)
+    sweep_dir = tmp_path / "sweep"
+    out = _multirun(sweep_dir, *overrides, "algo.gamma=0.9,7", cwd=tmp_path, expect_failure=True)
+    errors = [line for line in out.splitlines() if "error" in line]
+    assert len(errors) == 1 and errors[0].startswith("drone-train: error: algo.gamma=7 is not allowed"), out
+    assert sweep_jobs(sweep_dir) == [] and not list(sweep_dir.glob("*/episodes.csv"))
 
 
 def _compose(*overrides: str):
@@ -198,16 +218,17 @@ def test_parallel_env_starts_inside_a_joblib_worker(tmp_path):
 def test_a_failed_job_does_not_stop_later_batches(tmp_path):
     """The failing job first, one job per batch: Hydra's basic sweeper used to stop after it."""
     sweep_dir = tmp_path / "sweep"
+    _damage(sweep_dir, "hydra/launcher=fused", cwd=tmp_path)
     out = _multirun(
         sweep_dir,
         "hydra/launcher=fused",
-        "algo.gamma=7,0.9",
+        "algo.gamma=0.95,0.9",
         "hydra.sweeper.max_batch_size=1",
         cwd=tmp_path,
         expect_failure=True,
     )
     jobs = {job.name.split(",")[0]: job for job in sweep_jobs(sweep_dir)}
     assert job_status(jobs["algo.gamma=0.9"])[0] == "finished"
-    assert job_status(jobs["algo.gamma=7"])[0] == "failed"
+    assert job_status(jobs["algo.gamma=0.95"])[0] == "failed"
     assert "1 finished, 1 failed, 0 unfinished" in out, out
-    assert out.count("algo.gamma=7 is not allowed") <= 3, out  # the job's line, the summary, FAILED.txt's
+    assert out.count(DAMAGED) <= 3, out  # the job's line, the summary, FAILED.txt's

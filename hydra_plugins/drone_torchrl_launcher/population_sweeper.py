@@ -4,7 +4,9 @@ and going on past failed jobs.
 - The basic sweeper composes each job's config once to check the batch before launching it (about
   0.4 s a job here). This one checks it through :func:`.compose.sweep_configs`: the first job is
   composed fully, jobs that differ from it only in plain ``key=value`` overrides are checked by
-  applying them (an unknown key still fails), any other job is composed fully.
+  applying them (an unknown key still fails), any other job is composed fully. Each job's values
+  then pass :func:`drone_torchrl.config.validate`: a bad value stops the sweep with one line
+  before any job starts.
 - The basic sweeper raises the first failed job's error after its batch, so later batches never run
   and the end-of-sweep summary is skipped. Here every batch runs; the summary
   (``SweepSummary``) then lists each job's status and exits non-zero if any failed.
@@ -13,6 +15,7 @@ Everything else, grid expansion, batches, ``max_batch_size``, ``params``, is the
 """
 
 import importlib
+import sys
 from collections.abc import Sequence
 from typing import Any
 
@@ -48,10 +51,24 @@ class PopulationSweeper(Sweeper):
         return self._basic.sweep(arguments)
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
+        """Every job composes, and every job's values pass the config checks: a bad value in a
+        sweep is one line before any job folder exists, not a failed job per value."""
+        from omegaconf import open_dict
+
+        from drone_torchrl.config import ConfigError, validate
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
-        sweep_configs(self.hydra_context.config_loader, self.config, batch, check_only=True)
+        configs = sweep_configs(self.hydra_context.config_loader, self.config, batch)
+        for overrides, cfg in zip(batch, configs, strict=True):
+            with open_dict(cfg):
+                del cfg["hydra"]
+            try:
+                validate(cfg)
+            except ConfigError as err:
+                sys.exit(
+                    f"drone-train: error: {err} (in the sweep's job {' '.join(overrides)}; no job was started)"
+                )
 
 
 class _GoOn:
