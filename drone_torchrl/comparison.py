@@ -22,6 +22,7 @@ from drone_torchrl.config import (
     check_keys,
     command_line_keys,
     env_kwargs,
+    open_checkpoint,
     physics_params,
     run_config,
     validate,
@@ -30,7 +31,6 @@ from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
 from drone_torchrl.evaluation import evaluate, max_return, summarize
-from drone_torchrl.io.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
 from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
@@ -113,16 +113,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         raise ConfigError.of("seed", cfg.seed, f"an integer >= 0 and <= {MAX_SEED}")
     check_device(cfg.device)
     if cfg.checkpoint is not None:
-        if not isinstance(cfg.checkpoint, str) or not cfg.checkpoint.strip():
-            raise ConfigError.of("checkpoint", cfg.checkpoint, "a checkpoint file or a run folder (a path)")
-        try:
-            path = resolve_checkpoint(cfg.checkpoint)
-        except FileNotFoundError as err:
-            raise ConfigError(f"checkpoint={cfg.checkpoint!r} is not allowed; {err}") from None
-        try:
-            checkpoint = load_checkpoint(path)
-        except CheckpointError as err:
-            raise ConfigError(f"checkpoint={str(path)!r} cannot be used: {err}") from None
+        path, checkpoint = open_checkpoint("checkpoint", cfg.checkpoint)
         try:
             run_cfg = run_config(checkpoint["config"])
             run_cfg.device = cfg.device

@@ -365,6 +365,23 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     return {name: cfg["env"][name] for name in ENV_ARGS}
 
 
+def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
+    """The checkpoint that config value ``key`` (``resume``, ``checkpoint``) names: a checkpoint file or
+    a run folder. Raises :class:`ConfigError` naming the key for anything that is not a readable one."""
+    from drone_torchrl.io.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
+
+    if not isinstance(location, str | Path) or not str(location).strip():
+        raise ConfigError.of(key, location, "a run folder or a checkpoint file (a path)")
+    try:
+        path = resolve_checkpoint(location)
+    except FileNotFoundError as err:
+        raise ConfigError(f"{key}={str(location)!r} is not allowed; {err}") from None
+    try:
+        return path, load_checkpoint(path)
+    except CheckpointError as err:
+        raise ConfigError(f"{key}={str(path)!r} cannot be used: {err}") from None
+
+
 def check_device(device: Any) -> None:
     """Raise :class:`ConfigError` for a device torch does not know or this machine does not have."""
     import torch

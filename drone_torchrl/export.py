@@ -18,9 +18,8 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from drone_torchrl.config import ConfigError, run_config
+from drone_torchrl.config import ConfigError, open_checkpoint, run_config
 from drone_torchrl.envs.dynamics import STATE_DIM
-from drone_torchrl.io.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
 from drone_torchrl.modules.factory import build_actor, build_policy
 
 
@@ -46,14 +45,7 @@ class DeterministicPolicy(nn.Module):
 
 def deterministic_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, Path]:
     """The deterministic policy of a checkpoint file or run folder (:class:`ConfigError` if unusable)."""
-    try:
-        path = resolve_checkpoint(checkpoint)
-    except FileNotFoundError as err:
-        raise ConfigError(f"checkpoint={str(checkpoint)!r} is not allowed; {err}") from None
-    try:
-        state = load_checkpoint(path)
-    except CheckpointError as err:
-        raise ConfigError(f"checkpoint={str(path)!r} cannot be used: {err}") from None
+    path, state = open_checkpoint("checkpoint", checkpoint)
     cfg = run_config(state["config"])
     cfg.device = "cpu"
     net = build_policy(cfg)

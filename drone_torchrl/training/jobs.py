@@ -32,14 +32,21 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from drone_torchrl.config import ConfigError, command_line_keys, group_names, leaves, run_config, validate
+from drone_torchrl.config import (
+    ConfigError,
+    command_line_keys,
+    group_names,
+    leaves,
+    open_checkpoint,
+    run_config,
+    validate,
+)
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
     CheckpointError,
     is_last_of_its_run,
     load_checkpoint,
-    resolve_checkpoint,
     run_dir_of,
 )
 from drone_torchrl.training.run import FAILED_FILE
@@ -120,16 +127,7 @@ def prepare(
             cfg = _with(cfg, engine=engine)
         validate(cfg)
         return Job(cfg, run_dir)
-    if not isinstance(location, str | Path) or not str(location).strip():
-        raise ConfigError.of("resume", location, "a run folder or a checkpoint file (a path)")
-    try:
-        path = resolve_checkpoint(location)
-    except FileNotFoundError as err:
-        raise ConfigError(f"resume={cfg.resume!r} is not allowed; {err}") from None
-    try:
-        checkpoint = load_checkpoint(path)
-    except CheckpointError as err:
-        raise ConfigError(str(err)) from None
+    path, checkpoint = open_checkpoint("resume", location)
     saved = run_config(checkpoint["config"])
     requested = engine or (cfg.engine if keys is not None and "engine" in keys else None)
     if requested is not None and requested != checkpoint["engine"]:
