@@ -145,7 +145,7 @@ def group_names() -> list[str]:
 
 def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     if key.startswith("algo."):  # another algorithm's key: say whose, not a look-alike of this one's
-        owners = [a for a in _options("algo") if key in leaves(schema("config", a))]
+        owners = [a for a in _options("algo") if key in _schema_leaves("config", a)]
         if owners:
             return ConfigError(
                 f"{key} is not a key of this algo; it belongs to algo={' or algo='.join(owners)}"
@@ -161,7 +161,7 @@ def check_keys(cfg: DictConfig, name: str = "config") -> None:
     from omegaconf.errors import OmegaConfBaseException
 
     try:
-        known = leaves(schema(name, _algo_option(cfg)))
+        known = _schema_leaves(name, _algo_option(cfg))
         given = leaves(cfg)
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
         key = getattr(err, "full_key", None) or "a config value"
@@ -178,6 +178,11 @@ def check_keys(cfg: DictConfig, name: str = "config") -> None:
         # A list or dict default (e.g. model.hidden_sizes) may hold any shape of its own.
         if not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
             raise _unknown(key, known)
+
+
+@functools.cache
+def _schema_leaves(name: str, algo: str | None) -> dict[str, Any]:
+    return leaves(schema(name, algo))
 
 
 def _algo_option(cfg: Any) -> str | None:
@@ -199,7 +204,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
         return
     chosen = [o.value() for o in parsed if o.key_or_group == "algo" and not o.is_sweep_override()]
     algo = chosen[-1] if chosen and chosen[-1] in _options("algo") else None
-    known = leaves(schema(name, algo if name == "config" else None))
+    known = _schema_leaves(name, algo if name == "config" else None)
     groups = group_names()
     for override in parsed:
         key = override.key_or_group
@@ -326,6 +331,7 @@ ADDED_KEYS = {
     "logger.flush_every_s": 10,
     "algo.name": "reinforce",
     "model.init_std": None,
+    "steps_per_call": 1,
 }
 OPTIMIZERS = ("adam", "adamw")
 # The training loops: REINFORCE (algo=reinforce, algo=reinforce_plus; both engines, populations)
@@ -341,7 +347,7 @@ def run_config(saved: dict[str, Any]) -> DictConfig:
     cfg = OmegaConf.create(saved)
     if OmegaConf.select(cfg, "algo.name", default=_ABSENT) is _ABSENT:
         OmegaConf.update(cfg, "algo.name", ADDED_KEYS["algo.name"], force_add=True)
-    known = leaves(schema("config", _algo_option(cfg)))
+    known = _schema_leaves("config", _algo_option(cfg))
     for key, value in ADDED_KEYS.items():
         if key in known and OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
             OmegaConf.update(cfg, key, value, force_add=True)
@@ -408,6 +414,7 @@ def validate(cfg: DictConfig) -> None:
     _number(cfg, "env.num_workers", low=0, integer=True)
     _number(cfg, "seed", low=0, high=MAX_SEED, integer=True)
     _number(cfg, "threads", low=1, high=MAX_THREADS, integer=True)
+    _number(cfg, "steps_per_call", low=1, high=cfg.env.max_steps, integer=True)
     _number(cfg, "algo.lr", low=0, low_open=True, high=MAX_LR)
     _number(cfg, "algo.gamma", low=0, high=1)
     _number(cfg, "algo.episodes", low=1, integer=True)

@@ -169,6 +169,9 @@ TRAIN = [
     (["seed=9223372036854775808"], "seed"),
     (["threads=0"], "threads"),
     (["threads=abc"], "threads"),
+    (["steps_per_call=0"], "steps_per_call"),
+    (["steps_per_call=301"], "steps_per_call"),  # more than env.max_steps
+    (["steps_per_call=2.5"], "steps_per_call"),
     (["device=cuda:0" if not torch.cuda.is_available() else "device=cuda:999"], "device"),
     (["device=tpu"], "device"),
     (["compile=maybe"], "compile"),

@@ -7,6 +7,8 @@ from hydra import compose, initialize_config_dir
 from torchrl.modules import TanhNormal
 
 from drone_torchrl.config import config_dir, env_kwargs
+from drone_torchrl.envs import dynamics
+from drone_torchrl.envs.rollout import chunked, fly
 from drone_torchrl.evaluation import evaluate
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
@@ -139,3 +141,53 @@ def test_a_diverged_agent_stops_alone_and_keeps_its_last_finite_checkpoint(tmp_p
     assert rows["episode"].tolist() == [0, 1, 2, 3]  # the diverged update is not recorded
     for s in (0, 2):
         assert load_checkpoint(tmp_path / f"agent{s}" / "checkpoints" / "last.pt")["episodes_done"] == 10
+
+
+@pytest.mark.parametrize("steps_per_call", [2, 7, 10, 60])
+def test_chunked_rollout_equals_step_by_step(steps_per_call):
+    """``fly`` with k steps a call gives the step-by-step rollout, cut where the last episode ends
+    (mid-chunk for k=7 and 10 here), whatever k is."""
+    torch.manual_seed(0)
+    net = StackedThreeNet([ThreeNetPolicy([8], "tanh", 1e-6) for _ in range(3)], "tanh")
+    params = dynamics.DroneParams()
+    noise = torch.randn(60, 3, 4, 2)
+
+    def step(state, t):
+        loc, scale = net(state)
+        action = loc + scale * noise[t]
+        return (action, *dynamics.step(state, action, params))
+
+    start = dynamics.initial_state((3, 4), "floor", torch.Generator().manual_seed(1))
+    one = fly(chunked(step), start, 60)
+    many = fly(chunked(step), start, 60, steps_per_call)
+    assert 1 < one.shape[-1] < 60 and one.shape[-1] % 7 and one.shape[-1] % 10  # ends mid-chunk
+    assert (one == many).all()
+
+
+def test_steps_per_call_does_not_change_a_run(tmp_path):
+    """Chunks cut where the last episode ends: training and evaluation are the same run (eager)."""
+    common = ("algo.episodes=12", "env.reset_mode=air", "eval.episodes=4")
+    (a,) = _train((_cfg(*common, "steps_per_call=1"), tmp_path / "one"))
+    (b,) = _train((_cfg(*common, "steps_per_call=7"), tmp_path / "seven"))
+    (ea, _), (eb, _) = read_episodes(a.run_dir / "episodes.csv"), read_episodes(b.run_dir / "episodes.csv")
+    assert ea["length"].min() > 7 and len(set(ea["length"])) > 3  # several chunks, ends mid-chunk
+    np.testing.assert_array_equal(ea["return"], eb["return"])
+    np.testing.assert_array_equal(ea["length"], eb["length"])
+    assert a.final["eval_return"] == b.final["eval_return"]
+
+
+@pytest.mark.parametrize("preset", ["paper", "bounded"])
+def test_checkpoint_actor_entries_equal_a_built_actor(preset):
+    """Population.state writes each agent's actor in make_actor's layout (keys, order, values)."""
+    from drone_torchrl.modules.factory import build_actor
+    from drone_torchrl.training.population import Population
+
+    cfgs = [_cfg(f"experiment={preset}", f"seed={s}") for s in range(3)]
+    population = Population(cfgs)
+    for agent in range(3):
+        expected = build_actor(cfgs[agent], population.policy.agent_net(agent)).state_dict()
+        got = population.state(agent)["actor"]
+        assert list(got) == list(expected)
+        for key in expected:
+            torch.testing.assert_close(got[key], expected[key], rtol=0, atol=0)
+        assert not any(got[k].data_ptr() == p.data_ptr() for k in got for p in population.policy.parameters())

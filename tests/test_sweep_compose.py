@@ -6,7 +6,7 @@ import pytest
 from hydra import initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from hydra.types import RunMode
-from omegaconf import OmegaConf
+from omegaconf import OmegaConf, open_dict
 
 from drone_torchrl.config import config_dir
 from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
@@ -52,6 +52,13 @@ def test_derived_configs_equal_full_composition(jobs):
             ), overrides
             assert cfg.hydra.job.override_dirname == full.hydra.job.override_dirname
             assert list(cfg.hydra.overrides.task) == list(overrides)
+        # What the sweeper validates: the same without Hydra's node.
+        for overrides, cfg in zip(jobs, sweep_configs(loader, master, jobs, task_only=True), strict=True):
+            full = loader.load_sweep_config(master, list(overrides))
+            with open_dict(full):
+                del full["hydra"]
+            assert "hydra" not in cfg
+            assert OmegaConf.to_container(cfg, resolve=False) == OmegaConf.to_container(full, resolve=False)
     finally:
         GlobalHydra.instance().clear()
 

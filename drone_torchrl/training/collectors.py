@@ -31,7 +31,7 @@ from torchrl.modules import ProbabilisticActor
 from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.factory import make_env
-from drone_torchrl.envs.rollout import StepFn, fly
+from drone_torchrl.envs.rollout import ChunkFn, fly
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.modules.stacked import ActionSampler
@@ -119,19 +119,21 @@ class VectorisedCollector:
         self.episodes = cfg.algo.episodes_per_update
         self.device = torch.device(cfg.device)
         self.sampler = ActionSampler(cfg.model.distribution, cfg.env.max_thrust)
+        self.steps_per_call = cfg.steps_per_call
         self._actor: ProbabilisticActor | None = None
-        # compile=true fuses the step's ~40 small kernels (policy, sampling, physics) into a few;
-        # it costs a one-off compilation per batch shape and changes float rounding slightly.
-        self._compiled = torch.compile(self._policy_and_physics) if cfg.compile else None
-        self._step = self._compiled_step if cfg.compile else self._policy_and_physics
+        # compile=true fuses the ~40 small kernels of each step (policy, sampling, physics) of a
+        # chunk of steps_per_call steps into one graph; it costs a one-off compilation per batch
+        # shape and changes float rounding slightly.
+        self._compiled = torch.compile(self._steps) if cfg.compile else None
+        self._chunk = self._compiled_steps if cfg.compile else self._steps
 
-    def _compiled_step(self, *args) -> tuple[torch.Tensor, ...]:
+    def _compiled_steps(self, *args) -> tuple[torch.Tensor, ...]:
         try:
             return self._compiled(*args)
         except Exception as err:  # noqa: BLE001  (no compiler, unsupported platform, ...)
             warnings.warn(f"compile=true failed ({type(err).__name__}: {err}); running eager", stacklevel=2)
-            self._step = self._policy_and_physics
-            return self._step(*args)
+            self._chunk = self._steps
+            return self._chunk(*args)
 
     def _policy_and_physics(
         self, net: nn.Module, layers: list, state: torch.Tensor, noise: torch.Tensor | None
@@ -141,11 +143,23 @@ class VectorisedCollector:
         action = self.sampler(loc, scale, noise)
         return (action, *dynamics.step(state, action, self.params))
 
-    def _stepper(self, agents: list[int], noise: torch.Tensor | None) -> StepFn:
+    def _steps(
+        self, net: nn.Module, layers: list, state: torch.Tensor, noise: torch.Tensor | None, k: int
+    ) -> tuple[torch.Tensor, ...]:
+        """``k`` steps (a :data:`~drone_torchrl.envs.rollout.ChunkFn`'s outputs); ``noise`` is ``[k, ...]``."""
+        outputs = []
+        for i in range(k):
+            outputs.append(self._policy_and_physics(net, layers, state, None if noise is None else noise[i]))
+            state = outputs[-1][1]
+        return tuple(torch.stack(column) for column in zip(*outputs, strict=True))
+
+    def _stepper(self, agents: list[int], noise: torch.Tensor | None) -> ChunkFn:
         net = self.population.net(agents)
         with torch.no_grad():
             layers = net.layers()
-        return lambda state, t: self._step(net, layers, state, None if noise is None else noise[t])
+        return lambda state, t, k: self._chunk(
+            net, layers, state, None if noise is None else noise[t : t + k], k
+        )
 
     def collect(self, agents: list[int], counters: list[int]) -> TensorDictBase:
         """The agents' episodes of this update; ``counters`` are their update counts (the noise key)."""
@@ -154,7 +168,7 @@ class VectorisedCollector:
         uniform = rng.uniform(seeds, counters, rng.START_STATES, (self.episodes, dynamics.STATE_DIM))
         start = dynamics.states_from_uniform(uniform, self.cfg.env.reset_mode)
         noise = rng.normal(seeds, counters, rng.ACTION_NOISE, (self.max_steps, self.episodes, 2))
-        return fly(self._stepper(agents, noise.transpose(0, 1)), start, self.max_steps)
+        return fly(self._stepper(agents, noise.transpose(0, 1)), start, self.max_steps, self.steps_per_call)
 
     def actor(self, agents: list[int]) -> ProbabilisticActor:
         """The agents' stacked nets under the config's distribution head (scores ``[A, ...]`` batches)."""
@@ -163,8 +177,8 @@ class VectorisedCollector:
             self._actor = actor_from_net(net, self.cfg.model.distribution, self.cfg.env.max_thrust)
         return self._actor
 
-    def eval_policy(self, agents: list[int]) -> StepFn:
-        """The deterministic step of the agents (the same arithmetic as training, compiled or not)."""
+    def eval_policy(self, agents: list[int]) -> ChunkFn:
+        """The deterministic steps of the agents (the same arithmetic as training, compiled or not)."""
         return self._stepper(agents, None)
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:

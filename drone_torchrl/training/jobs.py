@@ -60,6 +60,7 @@ RESUME_KEYS = (
     "algo.episodes",
     *PROCESS_KEYS,
     "compile",
+    "steps_per_call",
     "resume",
     "sweep_name",
     "logger.",

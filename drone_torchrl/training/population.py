@@ -60,6 +60,8 @@ class Population:
         max_norm = base.algo.max_grad_norm
         self.max_grad_norm = math.inf if max_norm is None else float(max_norm)
         self._subset: tuple[tuple[int, ...], nn.Module] | None = None
+        self._actor_layout: dict[str, str | None] | None = None
+        self._actor_extras: dict[str, torch.Tensor] = {}
 
     def __len__(self) -> int:
         return len(self.cfgs)
@@ -97,11 +99,22 @@ class Population:
 
     def state(self, agent: int) -> dict[str, Any]:
         """The agent's checkpoint entries: its actor (``make_actor``'s layout) and optimizer (``torch.optim.Adam``'s)."""
-        actor = build_actor(self.cfgs[agent], self.policy.agent_net(agent))
-        return {
-            "actor": actor.state_dict(),
-            "optimizer": self.optimizer.agent_state(agent, self.policy.names),
+        if self._actor_layout is None:
+            # Building a ProbabilisticActor per checkpoint costs ~2 ms an agent; its state-dict
+            # layout is the same for every agent of the group, so learn it once.
+            net = self.policy.agent_net(0)
+            names = {id(p): name for name, p in net.named_parameters()}
+            entries = build_actor(self.cfgs[0], net).state_dict(keep_vars=True)
+            self._actor_layout = {key: names.get(id(value)) for key, value in entries.items()}
+            self._actor_extras = {
+                k: v.detach().clone() for k, v in entries.items() if self._actor_layout[k] is None
+            }
+        weights = self.policy.agent_state_dict(agent)
+        actor = {
+            key: weights[name] if name is not None else self._actor_extras[key].clone()
+            for key, name in self._actor_layout.items()
         }
+        return {"actor": actor, "optimizer": self.optimizer.agent_state(agent, self.policy.names)}
 
     def load(self, agent: int, checkpoint: dict[str, Any]) -> None:
         actor = build_actor(self.cfgs[agent], self.policy.agent_net(agent))  # make_actor's key layout

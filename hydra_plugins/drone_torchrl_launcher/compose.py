@@ -24,25 +24,25 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 _MISSING = object()
 
 
-def _is_plain_value(override: Override, template: DictConfig) -> bool:
+def _is_plain_value(override: Override, template: DictConfig, groups: set[str]) -> bool:
     """A ``key=value`` change of a key the config has that is not a config group."""
     key = override.key_or_group
     return (
         override.type == OverrideType.CHANGE
         and override.package is None
         and not override.is_hydra_override()
-        and key not in template.hydra.runtime.choices
+        and key not in groups
         and OmegaConf.select(template, key, default=_MISSING) is not _MISSING
     )
 
 
 def sweep_configs(
-    config_loader, master: DictConfig, jobs: Sequence[Sequence[str]], check_only: bool = False
+    config_loader, master: DictConfig, jobs: Sequence[Sequence[str]], task_only: bool = False
 ) -> list[DictConfig]:
     """Each job's config, equal to ``config_loader.load_sweep_config(master, overrides)``.
 
-    ``check_only``: only make sure every job composes (what a sweeper checks before launching);
-    jobs derived from the first are then not built, and the list holds the composed ones only.
+    ``task_only``: without the ``hydra`` node (what the job's task sees; what a sweeper checks
+    before launching); copying Hydra's own part is four fifths of the cost of deriving a job.
     """
     if not jobs:
         return []
@@ -51,19 +51,23 @@ def sweep_configs(
     template = config_loader.load_sweep_config(master, first)
     first_parsed = {o.input_line: o for o in parser.parse_overrides(first)}
     dirname = template.hydra.job.config.override_dirname
-    configs = [template]
+    groups = set(template.hydra.runtime.choices)
+    task_template = _without_hydra(template) if task_only else template
+    configs = [task_template]
     for overrides in jobs[1:]:
         parsed = parser.parse_overrides(list(overrides))
         changed = [o for o in parsed if o.input_line not in first_parsed]
         same_keys = [o.key_or_group for o in parsed] == [o.key_or_group for o in first_parsed.values()]
-        if not (same_keys and all(_is_plain_value(o, template) for o in changed)):
-            configs.append(config_loader.load_sweep_config(master, list(overrides)))
+        if not (same_keys and all(_is_plain_value(o, task_template, groups) for o in changed)):
+            composed = config_loader.load_sweep_config(master, list(overrides))
+            configs.append(_without_hydra(composed) if task_only else composed)
             continue
-        if check_only:
-            continue
-        cfg = copy.deepcopy(template)
+        cfg = copy.deepcopy(task_template)
         for override in changed:
             OmegaConf.update(cfg, override.key_or_group, override.value(), merge=True)
+        if task_only:
+            configs.append(cfg)
+            continue
         with open_dict(cfg.hydra):
             task = [o.input_line for o in parsed if not o.is_hydra_override()]
             cfg.hydra.overrides.task = task
@@ -75,3 +79,9 @@ def sweep_configs(
             )
         configs.append(cfg)
     return configs
+
+
+def _without_hydra(cfg: DictConfig) -> DictConfig:
+    with open_dict(cfg):
+        del cfg["hydra"]
+    return cfg

@@ -53,16 +53,12 @@ class PopulationSweeper(Sweeper):
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         """Every job composes, and every job's values pass the config checks: a bad value in a
         sweep is one line before any job folder exists, not a failed job per value."""
-        from omegaconf import open_dict
-
         from drone_torchrl.config import ConfigError, validate
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
-        configs = sweep_configs(self.hydra_context.config_loader, self.config, batch)
+        configs = sweep_configs(self.hydra_context.config_loader, self.config, batch, task_only=True)
         for overrides, cfg in zip(batch, configs, strict=True):
-            with open_dict(cfg):
-                del cfg["hydra"]
             try:
                 validate(cfg)
             except ConfigError as err:
