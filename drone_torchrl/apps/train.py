@@ -69,6 +69,7 @@ def run() -> None:
     """Console entry point: registers the population launcher, then runs the Hydra app."""
     from hydra.core.plugins import Plugins
 
+    from hydra_plugins.drone_torchrl_launcher import slurm_launcher
     from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
     from hydra_plugins.drone_torchrl_launcher.population_sweeper import PopulationSweeper
 
@@ -76,6 +77,8 @@ def run() -> None:
     # is not a folder, so register ours explicitly (harmless for a normal install).
     Plugins.instance().register(FusedLauncher)
     Plugins.instance().register(PopulationSweeper)
+    if hasattr(slurm_launcher, "SlurmLauncher"):  # with the submitit extra
+        Plugins.instance().register(slurm_launcher.SlurmLauncher)
     try:
         check_command_line("drone-train", "config")
         main()

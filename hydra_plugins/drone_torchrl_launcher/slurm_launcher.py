@@ -1,0 +1,107 @@
+"""``hydra/launcher=slurm``: one SLURM job per sweep job (Hydra's submitit launcher), waiting for all.
+
+Hydra's submitit launcher ends with ``[job.results()[0] for job in jobs]``: the first job that did
+not finish (cancelled with ``scancel``, out of memory, a node failure) raises while the other jobs
+are still running, so the sweep stops with a traceback and its summary is never printed. This
+launcher submits exactly as that one does, then waits for every job and reports each one that
+did not finish as FAILED: SLURM's state (e.g. ``CANCELLED``) goes into the job's ``FAILED.txt``, the
+end-of-sweep summary lists it, and running the same command again continues it from its
+checkpoint (finished jobs return at once).
+
+A job that reaches its time limit is requeued by submitit (``max_num_timeout`` times; the signal
+comes ``signal_delay_s`` before the limit) and continues from ``<job>/checkpoints/last.pt``.
+
+Needs the ``submitit`` extra; without it this module defines nothing (Hydra imports every module
+of ``hydra_plugins`` when it looks for plugins).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from hydra.core.singleton import Singleton
+from hydra.core.utils import JobReturn, JobStatus, filter_overrides
+from omegaconf import OmegaConf, open_dict
+
+try:
+    from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
+    from hydra_plugins.hydra_submitit_launcher.submitit_launcher import SlurmLauncher as _SubmititSlurm
+except ImportError:  # the submitit extra is not installed
+    _SubmititSlurm = None
+
+log = logging.getLogger(__name__)
+# How often to ask SLURM (through submitit's sacct watcher) whether the jobs are done.
+POLL_S = 2.0
+
+
+if _SubmititSlurm is not None:
+
+    class SlurmLauncher(_SubmititSlurm):
+        """Hydra's submitit SLURM launcher that waits for every job and reports unfinished ones as FAILED."""
+
+        def _executor(self):
+            """The submitit executor with this launcher's parameters (as Hydra's launcher builds it)."""
+            import submitit
+
+            init_keys = {"submitit_folder", "max_num_timeout"}
+            executor = submitit.AutoExecutor(
+                cluster=self._EXECUTOR,
+                folder=self.params["submitit_folder"],
+                **{f"{self._EXECUTOR}_max_num_timeout": self.params["max_num_timeout"]},
+            )
+            base = set(OmegaConf.structured(BaseQueueConf).keys())
+            executor.update_parameters(
+                **{
+                    key if key in base else f"{self._EXECUTOR}_{key}": value
+                    for key, value in self.params.items()
+                    if key not in init_keys
+                }
+            )
+            return executor
+
+        def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+            assert self.config is not None
+            sweep_dir = Path(str(self.config.hydra.sweep.dir))
+            sweep_dir.mkdir(parents=True, exist_ok=True)
+            log.info(f"Submitit '{self._EXECUTOR}' sweep output dir : {sweep_dir}")
+            params = []
+            for idx, overrides in enumerate(job_overrides, initial_job_idx):
+                log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
+                params.append(
+                    (list(overrides), "hydra.sweep.dir", idx, f"job_id_for_{idx}", Singleton.get_state())
+                )
+            jobs = self._executor().map_array(self, *zip(*params, strict=True))
+            log.info(
+                f"Submitted SLURM job(s) {', '.join(sorted({job.job_id.split('_')[0] for job in jobs}))}"
+            )
+            while not all(job.done() for job in jobs):
+                time.sleep(POLL_S)
+            return [
+                self._outcome(job, list(overrides), idx)
+                for idx, (job, overrides) in enumerate(zip(jobs, job_overrides, strict=True), initial_job_idx)
+            ]
+
+        def _outcome(self, job, overrides: list[str], idx: int) -> JobReturn:
+            from submitit.core.utils import UncompletedJobError
+
+            try:
+                return job.results()[0]
+            except UncompletedJobError:
+                pass
+            from drone_torchrl.training.jobs import record_failure
+            from hydra_plugins.drone_torchrl_launcher.fused_launcher import JobFailed
+
+            state = job.state
+            cfg = self.hydra_context.config_loader.load_sweep_config(self.config, overrides)
+            with open_dict(cfg.hydra.job):
+                cfg.hydra.job.num, cfg.hydra.job.id = idx, job.job_id
+            run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
+            error = JobFailed(
+                f"SLURM job {job.job_id} ended {state} before the run finished; "
+                "run the same command again to continue it from its checkpoint"
+            )
+            print(f"{run_dir}: job failed: {record_failure(run_dir, error)}")
+            return JobReturn(overrides=overrides, status=JobStatus.FAILED, _return_value=error)

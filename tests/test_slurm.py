@@ -1,0 +1,157 @@
+"""Sweeps on a real SLURM scheduler (``hydra/launcher=slurm``): submission, requeue on timeout, scancel.
+
+Marked ``slurm``: they need a running one-node cluster (``sudo bash .ci/slurm.sh start``; ``.ci/run``
+runs them as a stage after the default suite) and skip, with the reason, where there is none.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from drone_torchrl.io.episodes_csv import read_episodes
+
+pytestmark = pytest.mark.slurm
+
+UNAVAILABLE = Path(os.environ.get("DRONE_SLURM_DIR", "/tmp/drone-slurm")) / "unavailable"
+BIN = Path(sys.executable).parent
+QUICK = ["compile=false", "eval.video=false", "progress=false", "eval.every_episodes=0"]
+
+
+def _cluster_reason() -> str | None:
+    if UNAVAILABLE.is_file():
+        return f"no SLURM cluster: {UNAVAILABLE.read_text().strip()}"
+    if shutil.which("sinfo") is None:
+        return "no SLURM cluster: sinfo not found (start one with: sudo bash .ci/slurm.sh start)"
+    up = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True)
+    if up.returncode or not re.search(r"idle|mixed|allocated", up.stdout):
+        return f"no SLURM cluster answering sinfo ({(up.stderr or up.stdout).strip()[:200]})"
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason="needs the submitit extra")
+    return None
+
+
+@pytest.fixture(scope="module", autouse=True)
+def cluster(request):
+    if "slurm" not in (request.config.option.markexpr or ""):
+        pytest.skip("SLURM tests run as their own stage: python -m pytest -m slurm (see .ci/run)")
+    reason = _cluster_reason()
+    if reason:
+        pytest.skip(reason)
+
+
+def _train(sweep: Path, *overrides: str, wait: bool = True):
+    cmd = [
+        str(BIN / "drone-train"),
+        "-m",
+        "hydra/launcher=slurm",
+        f"hydra.sweep.dir={sweep}",
+        *QUICK,
+        *overrides,
+    ]
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    if wait:
+        return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=900)
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+
+
+def _sacct(job_id: str) -> dict[str, str]:
+    """``{"12_0": "COMPLETED", ...}``: SLURM's accounting record of an array job's tasks."""
+    out = subprocess.run(
+        ["sacct", "-X", "-n", "-P", "-o", "JobID,State", "-j", job_id],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    return dict(line.split("|")[:2] for line in out.split() if line)
+
+
+def _job_id(output: str) -> str:
+    return re.search(r"Submitted SLURM job\(s\) (\d+)", output).group(1)
+
+
+def test_a_sweep_runs_as_slurm_jobs_and_reports(tmp_path):
+    sweep = tmp_path / "sweep"
+    done = _train(sweep, "seed=0,1,2", "algo.episodes=6")
+    output = done.stdout + done.stderr
+    assert done.returncode == 0, output[-3000:]
+    job = _job_id(output)
+    # The scheduler's view: three array tasks of one job, all completed.
+    assert _sacct(job) == {f"{job}_{i}": "COMPLETED" for i in range(3)}
+    shown = subprocess.run(
+        ["scontrol", "show", "job", job], capture_output=True, text=True, check=True
+    ).stdout
+    assert shown.count("JobState=COMPLETED") == 3
+    assert "sacct" not in output.lower()  # accounting answers: no polling warnings
+    assert "3 finished, 0 failed" in output
+    report = subprocess.run([str(BIN / "drone-report"), str(sweep)], capture_output=True, text=True)
+    assert report.returncode == 0, report.stderr
+    assert "3 runs in 1 settings" in report.stdout or "3 runs" in report.stdout
+    for seed in range(3):
+        (episodes, _) = read_episodes(next(sweep.glob(f"*seed={seed}")) / "episodes.csv")
+        assert episodes["episode"].tolist() == list(range(6))
+
+
+def test_a_job_past_its_time_limit_is_requeued_and_continues(tmp_path):
+    """One minute of SLURM time for about 75 s of training: submitit requeues the job when SLURM
+    signals the limit (10 s before it); it continues from its last checkpoint (every 100 episodes).
+    SLURM holds a requeued job for about two minutes before it starts it again."""
+    sweep = tmp_path / "sweep"
+    every, episodes = 100, 2400
+    done = _train(
+        sweep,
+        "seed=0",
+        f"algo.episodes={episodes}",
+        "env.reset_mode=air",
+        f"checkpoint.every_episodes={every}",
+        "hydra.launcher.timeout_min=1",
+        "hydra.launcher.signal_delay_s=10",
+        "hydra.launcher.max_num_timeout=5",
+    )
+    output = done.stdout + done.stderr
+    assert done.returncode == 0, output[-3000:]
+    run = next(sweep.glob("*seed=0"))
+    logs = "".join(p.read_text() for p in (sweep / ".submitit").rglob("*_log.*"))
+    assert "requeued" in logs.lower() or "Requeu" in logs, logs[-2000:]
+    (rows, notes) = read_episodes(run / "episodes.csv")
+    assert rows["episode"].tolist() == list(range(episodes))  # nothing lost, nothing twice
+    assert not notes
+    assert (run / "checkpoints" / "last.pt").is_file() and not (run / "FAILED.txt").exists()
+
+
+def test_a_cancelled_job_is_reported_failed_and_a_rerun_finishes_it(tmp_path):
+    sweep = tmp_path / "sweep"
+    overrides = ("seed=0,1", "algo.episodes=2000", "env.reset_mode=air", "checkpoint.every_episodes=50")
+    proc = _train(sweep, *overrides, wait=False)
+    long_run = None
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        runs = list(sweep.glob("*seed=1"))
+        if runs and (runs[0] / "checkpoints" / "last.pt").is_file():
+            long_run = runs[0]
+            break
+        time.sleep(0.5)
+    assert long_run is not None, "the long job never wrote a checkpoint"
+    queue = subprocess.run(["squeue", "-h", "-o", "%i %j"], capture_output=True, text=True, check=True).stdout
+    task = next(line.split()[0] for line in queue.splitlines() if line.split()[0].endswith("_1"))
+    subprocess.run(["scancel", task], check=True)
+    output, _ = proc.communicate(timeout=300)
+    assert proc.returncode != 0
+    assert "1 finished, 1 failed" in output, output[-3000:]
+    assert "CANCELLED" in (long_run / "FAILED.txt").read_text()
+    (other, _) = read_episodes(next(sweep.glob("*seed=0")) / "episodes.csv")
+    assert other["episode"].tolist() == list(range(2000))  # the other job finished
+
+    again = _train(sweep, *overrides)
+    output = again.stdout + again.stderr
+    assert again.returncode == 0, output[-3000:]
+    assert "2 finished, 0 failed" in output
+    (rows, _) = read_episodes(long_run / "episodes.csv")
+    assert rows["episode"].tolist() == list(range(2000))
+    assert not (long_run / "FAILED.txt").exists()
