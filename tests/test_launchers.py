@@ -164,25 +164,20 @@ def test_launcher_presets_extend_the_plugins():
 
 
 def test_slurm_preset_renders_an_sbatch_script(tmp_path, monkeypatch):
-    """The slurm preset and its overrides reach sbatch (rendered here; no SLURM on this machine)."""
+    """The slurm preset and its overrides reach sbatch (rendered by our launcher's executor, not submitted)."""
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     import submitit
-    from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
     from omegaconf import OmegaConf
+
+    from hydra_plugins.drone_torchrl_launcher.slurm_launcher import SlurmLauncher
 
     cfg = _compose("hydra/launcher=slurm", "hydra.launcher.partition=cpu", "hydra.launcher.mem_gb=2")
     params = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
-    assert params.pop("_target_").endswith("submitit_launcher.SlurmLauncher")
+    assert params.pop("_target_") == "hydra_plugins.drone_torchrl_launcher.slurm_launcher.SlurmLauncher"
     assert (params["cpus_per_task"], params["tasks_per_node"], params["timeout_min"]) == (1, 1, 240)
-    # What SlurmLauncher.launch does with its config, minus the submission.
     monkeypatch.setattr(submitit.SlurmExecutor, "affinity", staticmethod(lambda: 1))  # no srun here
-    executor = submitit.AutoExecutor(
-        folder=tmp_path, cluster="slurm", slurm_max_num_timeout=params.pop("max_num_timeout")
-    )
-    params.pop("submitit_folder")
-    params["name"] = "drone-train"
-    shared = set(OmegaConf.structured(BaseQueueConf).keys())
-    executor.update_parameters(**{k if k in shared else f"slurm_{k}": v for k, v in params.items()})
+    executor = SlurmLauncher(**{**params, "submitit_folder": str(tmp_path)})._executor()
+    executor.update_parameters(name="drone-train")
     sbatch = executor._executor._make_submission_file_text("python -u -m submitit.core._submit", "uid")
     for line in (
         "#SBATCH --partition=cpu",
