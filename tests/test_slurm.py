@@ -46,11 +46,11 @@ def cluster(request):
         pytest.skip(reason)
 
 
-def _train(sweep: Path, *overrides: str, wait: bool = True):
+def _train(sweep: Path, *overrides: str, wait: bool = True, launcher: str = "slurm"):
     cmd = [
         str(BIN / "drone-train"),
         "-m",
-        "hydra/launcher=slurm",
+        f"hydra/launcher={launcher}",
         f"hydra.sweep.dir={sweep}",
         *QUICK,
         *overrides,
@@ -155,3 +155,36 @@ def test_a_cancelled_job_is_reported_failed_and_a_rerun_finishes_it(tmp_path):
     (rows, _) = read_episodes(long_run / "episodes.csv")
     assert rows["episode"].tolist() == list(range(2000))
     assert not (long_run / "FAILED.txt").exists()
+
+
+def test_a_large_sweep_runs_as_a_few_population_jobs(tmp_path):
+    """hydra/launcher=slurm_population: 64 agents as 2 SLURM jobs of 32, each job folder as if it ran alone."""
+    from hydra import compose, initialize_config_dir
+
+    from drone_torchrl.config import config_dir
+    from drone_torchrl.training.jobs import prepare
+    from drone_torchrl.training.trainer import train_jobs
+
+    sweep = tmp_path / "sweep"
+    start = time.perf_counter()
+    done = _train(
+        sweep,
+        "seed=range(0,64)",
+        "algo.episodes=6",
+        "hydra.launcher.agents_per_job=32",
+        launcher="slurm_population",
+    )
+    output = done.stdout + done.stderr
+    assert done.returncode == 0, output[-3000:]
+    print(f"64 agents as 2 SLURM jobs: {time.perf_counter() - start:.1f} s")
+    job = _job_id(output)
+    assert _sacct(job) == {f"{job}_0": "COMPLETED", f"{job}_1": "COMPLETED"}
+    assert "64 finished, 0 failed" in output
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        for seed in (5, 40):  # one agent of each SLURM job, trained alone here
+            cfg = compose("config", [*QUICK, "algo.episodes=6", f"seed={seed}"])
+            (alone,) = train_jobs([prepare(cfg, tmp_path / f"alone{seed}")])
+            (a, _) = read_episodes(alone.run_dir / "episodes.csv")
+            (b, _) = read_episodes(next(sweep.glob(f"*seed={seed}")) / "episodes.csv")
+            assert a["return"].tolist() == b["return"].tolist()
+            assert a["length"].tolist() == b["length"].tolist()

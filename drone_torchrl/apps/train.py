@@ -79,6 +79,7 @@ def run() -> None:
     Plugins.instance().register(PopulationSweeper)
     if hasattr(slurm_launcher, "SlurmLauncher"):  # with the submitit extra
         Plugins.instance().register(slurm_launcher.SlurmLauncher)
+        Plugins.instance().register(slurm_launcher.SlurmPopulationLauncher)
     try:
         check_command_line("drone-train", "config")
         main()

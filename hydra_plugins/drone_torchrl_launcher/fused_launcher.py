@@ -88,53 +88,65 @@ class FusedLauncher(Launcher):
         self.task_function = task_function
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        from drone_torchrl.config import ConfigError
-        from drone_torchrl.training.jobs import prepare, record_failure, sweep_summary
-        from drone_torchrl.training.trainer import Outcome, train_jobs
-        from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+        from drone_torchrl.training.jobs import sweep_summary
 
         setup_globals()
         assert self.config is not None and self.hydra_context is not None
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
-        sweep_dir = Path(str(self.config.hydra.sweep.dir))
-        sweep_dir.mkdir(parents=True, exist_ok=True)
-        log.info(f"Launching {len(job_overrides)} jobs as populations (engine={ENGINE})")
-        jobs: list = []
-        folders: list[Path] = []
-
-        returns: list[JobReturn] = []
-        configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
-        for idx, (overrides, sweep_config) in enumerate(
-            zip(job_overrides, configs, strict=True), initial_job_idx
-        ):
-            log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
-            ret = _job_folder(self.hydra_context, sweep_config, idx)
-            returns.append(ret)
-            # Training comes later, for all jobs at once; here each job is checked and registered.
-            run_dir = Path(ret.hydra_cfg.hydra.runtime.output_dir)
-            try:
-                if run_dir in folders:  # e.g. seed=0,0: two agents would write one folder
-                    raise ConfigError(
-                        f"{run_dir} is also job #{folders.index(run_dir)}'s folder: a duplicate job"
-                    )
-                folders.append(run_dir)
-                jobs.append(prepare(ret.cfg, run_dir, engine=ENGINE, requested=overrides))
-            except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
-                print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
-                jobs.append(Outcome(run_dir, error=err))
-        prepared = [j for j in jobs if not isinstance(j, Outcome)]
-        trained = iter(train_jobs(prepared))
-        outcomes = [j if isinstance(j, Outcome) else next(trained) for j in jobs]
-        failed = False
-        for ret, outcome in zip(returns, outcomes, strict=True):
-            if outcome.error is None:
-                ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
-            else:
-                failed = True
-                reason = f"{type(outcome.error).__name__}: {outcome.error}"
-                ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
-            self.hydra_context.callbacks.on_job_end(config=ret.cfg, job_return=ret)
+        returns = train_populations(self.hydra_context, self.config, job_overrides, initial_job_idx)
+        failed = any(ret.status == JobStatus.FAILED for ret in returns)
         if failed and not str(self.config.hydra.sweeper._target_).endswith("PopulationSweeper"):
             # Another sweeper stops at the first failed job and skips the end-of-sweep summary.
-            print(sweep_summary(sweep_dir))
+            print(sweep_summary(Path(str(self.config.hydra.sweep.dir))))
         return returns
+
+
+def train_populations(
+    hydra_context: HydraContext,
+    config: DictConfig,
+    job_overrides: Sequence[Sequence[str]],
+    initial_job_idx: int,
+) -> list[JobReturn]:
+    """Set up the jobs' folders and train them, those that can share a population together (in this
+    process); one ``JobReturn`` per job. The fused launcher runs it on this machine, the
+    ``slurm_population`` launcher inside each of its SLURM jobs."""
+    from drone_torchrl.config import ConfigError
+    from drone_torchrl.training.jobs import prepare, record_failure
+    from drone_torchrl.training.trainer import Outcome, train_jobs
+    from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+
+    Path(str(config.hydra.sweep.dir)).mkdir(parents=True, exist_ok=True)
+    log.info(f"Launching {len(job_overrides)} jobs as populations (engine={ENGINE})")
+    jobs: list = []
+    folders: list[Path] = []
+    returns: list[JobReturn] = []
+    configs = sweep_configs(hydra_context.config_loader, config, job_overrides)
+    for idx, (overrides, sweep_config) in enumerate(
+        zip(job_overrides, configs, strict=True), initial_job_idx
+    ):
+        log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
+        ret = _job_folder(hydra_context, sweep_config, idx)
+        returns.append(ret)
+        # Training comes later, for all jobs at once; here each job is checked and registered.
+        run_dir = Path(ret.hydra_cfg.hydra.runtime.output_dir)
+        try:
+            if run_dir in folders:  # e.g. seed=0,0: two agents would write one folder
+                raise ConfigError(
+                    f"{run_dir} is also job #{folders.index(run_dir)}'s folder: a duplicate job"
+                )
+            folders.append(run_dir)
+            jobs.append(prepare(ret.cfg, run_dir, engine=ENGINE, requested=overrides))
+        except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
+            print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
+            jobs.append(Outcome(run_dir, error=err))
+    prepared = [j for j in jobs if not isinstance(j, Outcome)]
+    trained = iter(train_jobs(prepared))
+    outcomes = [j if isinstance(j, Outcome) else next(trained) for j in jobs]
+    for ret, outcome in zip(returns, outcomes, strict=True):
+        if outcome.error is None:
+            ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
+        else:
+            reason = f"{type(outcome.error).__name__}: {outcome.error}"
+            ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
+        hydra_context.callbacks.on_job_end(config=ret.cfg, job_return=ret)
+    return returns

@@ -26,3 +26,24 @@ ConfigStore.instance().store(
 ConfigStore.instance().store(
     group="hydra/sweeper", name="population", node=PopulationSweeperConf, provider="drone_torchrl"
 )
+
+
+try:  # hydra/launcher=slurm_population extends the submitit plugin's SLURM schema (the submitit extra)
+    from hydra_plugins.hydra_submitit_launcher.config import SlurmQueueConf
+except ImportError:
+    SlurmQueueConf = None
+
+if SlurmQueueConf is not None:
+
+    @dataclass
+    class SlurmPopulationConf(SlurmQueueConf):
+        _target_: str = "hydra_plugins.drone_torchrl_launcher.slurm_launcher.SlurmPopulationLauncher"
+        # Sweep jobs trained together as one population in each SLURM job.
+        agents_per_job: int = 32
+
+    ConfigStore.instance().store(
+        group="hydra/launcher",
+        name="submitit_slurm_population",
+        node=SlurmPopulationConf,
+        provider="drone_torchrl",
+    )

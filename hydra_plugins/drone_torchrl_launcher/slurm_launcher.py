@@ -1,4 +1,11 @@
-"""``hydra/launcher=slurm``: one SLURM job per sweep job (Hydra's submitit launcher), waiting for all.
+"""``hydra/launcher=slurm`` and ``slurm_population``: sweeps on a SLURM cluster, waiting for every job.
+
+- ``slurm``: one SLURM job per sweep job (Hydra's submitit launcher, see below).
+- ``slurm_population``: the sweep cut into populations of ``agents_per_job`` jobs, one SLURM job
+  each, which trains its jobs as one population with the fused engine (:func:`.fused_launcher.
+  train_populations`, as ``hydra/launcher=fused`` does on one machine; on the node's GPU with
+  ``device=cuda``). A 256-agent landscape is then 8 cluster jobs of 32 agents instead of 256 jobs of
+  a few seconds of work each. Every job folder is the one it would have alone.
 
 Hydra's submitit launcher ends with ``[job.results()[0] for job in jobs]``: the first job that did
 not finish (cancelled with ``scancel``, out of memory, a node failure) raises while the other jobs
@@ -46,7 +53,7 @@ if _SubmititSlurm is not None:
             """The submitit executor with this launcher's parameters (as Hydra's launcher builds it)."""
             import submitit
 
-            init_keys = {"submitit_folder", "max_num_timeout"}
+            init_keys = {"submitit_folder", "max_num_timeout", "agents_per_job"}
             executor = submitit.AutoExecutor(
                 cluster=self._EXECUTOR,
                 folder=self.params["submitit_folder"],
@@ -73,16 +80,20 @@ if _SubmititSlurm is not None:
                 params.append(
                     (list(overrides), "hydra.sweep.dir", idx, f"job_id_for_{idx}", Singleton.get_state())
                 )
-            jobs = self._executor().map_array(self, *zip(*params, strict=True))
-            log.info(
-                f"Submitted SLURM job(s) {', '.join(sorted({job.job_id.split('_')[0] for job in jobs}))}"
-            )
-            while not all(job.done() for job in jobs):
-                time.sleep(POLL_S)
+            jobs = self._submit(params)
             return [
                 self._outcome(job, list(overrides), idx)
                 for idx, (job, overrides) in enumerate(zip(jobs, job_overrides, strict=True), initial_job_idx)
             ]
+
+        def _submit(self, params: list[tuple]) -> list:
+            """One SLURM array task per entry of ``params`` (arguments of ``self``); waits for all."""
+            jobs = self._executor().map_array(self, *zip(*params, strict=True))
+            ids = ", ".join(sorted({job.job_id.split("_")[0] for job in jobs}))
+            log.info(f"Submitted SLURM job(s) {ids}")
+            while not all(job.done() for job in jobs):
+                time.sleep(POLL_S)
+            return jobs
 
         def _outcome(self, job, overrides: list[str], idx: int) -> JobReturn:
             from submitit.core.utils import UncompletedJobError
@@ -90,7 +101,10 @@ if _SubmititSlurm is not None:
             try:
                 return job.results()[0]
             except UncompletedJobError:
-                pass
+                return self._unfinished(job, overrides, idx)
+
+        def _unfinished(self, job, overrides: list[str], idx: int) -> JobReturn:
+            """A FAILED return (and ``FAILED.txt``) for a job whose SLURM job ended before it finished."""
             from drone_torchrl.training.jobs import record_failure
             from hydra_plugins.drone_torchrl_launcher.fused_launcher import JobFailed
 
@@ -105,3 +119,47 @@ if _SubmititSlurm is not None:
             )
             print(f"{run_dir}: job failed: {record_failure(run_dir, error)}")
             return JobReturn(overrides=overrides, status=JobStatus.FAILED, _return_value=error)
+
+    class SlurmPopulationLauncher(SlurmLauncher):
+        """One SLURM job per population of ``agents_per_job`` sweep jobs, trained by the fused engine."""
+
+        def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+            assert self.config is not None
+            per_job = int(self.params["agents_per_job"])
+            if per_job < 1:
+                from drone_torchrl.config import ConfigError
+
+                raise ConfigError.of("hydra.launcher.agents_per_job", per_job, "an integer >= 1")
+            sweep_dir = Path(str(self.config.hydra.sweep.dir))
+            sweep_dir.mkdir(parents=True, exist_ok=True)
+            groups = [
+                [list(o) for o in job_overrides[start : start + per_job]]
+                for start in range(0, len(job_overrides), per_job)
+            ]
+            log.info(
+                f"Submitit 'slurm' sweep output dir : {sweep_dir}: {len(job_overrides)} jobs as "
+                f"{len(groups)} SLURM job(s) of up to {per_job} agents"
+            )
+            params = [
+                (group, initial_job_idx + k * per_job, Singleton.get_state())
+                for k, group in enumerate(groups)
+            ]
+            returns: list[JobReturn] = []
+            for job, (group, first, _) in zip(self._submit(params), params, strict=True):
+                from submitit.core.utils import UncompletedJobError
+
+                try:
+                    returns.extend(job.results()[0])
+                except UncompletedJobError:
+                    returns.extend(self._unfinished(job, o, first + i) for i, o in enumerate(group))
+            return returns
+
+        def __call__(self, group: list[list[str]], first_idx: int, singleton_state) -> list[JobReturn]:
+            """Inside the SLURM job: the group's folders, then one population (``checkpoint`` requeues it)."""
+            from hydra.core.utils import setup_globals
+
+            from hydra_plugins.drone_torchrl_launcher.fused_launcher import train_populations
+
+            Singleton.set_state(singleton_state)
+            setup_globals()
+            return train_populations(self.hydra_context, self.config, group, first_idx)
