@@ -14,7 +14,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.dynamics import DroneParams
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
-from drone_torchrl.objectives.reinforce import BASELINES
+from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
 
 # torchrl: TorchRL env + ProbabilisticActor rollouts, the reference collector; fused: many agents
 # stepped as one batch on the shared dynamics, the fast path (drone_torchrl/training/collectors.py).
@@ -332,6 +332,7 @@ ADDED_KEYS = {
     "algo.name": "reinforce",
     "model.init_std": None,
     "steps_per_call": 1,
+    "algo.log_prob_reduction": "sum",
 }
 OPTIMIZERS = ("adam", "adamw")
 # The training loops: REINFORCE (algo=reinforce, algo=reinforce_plus; both engines, populations)
@@ -499,6 +500,7 @@ def _validate_reinforce(cfg: DictConfig) -> None:
     if cfg.algo.max_grad_norm is not None:
         _number(cfg, "algo.max_grad_norm", low=0, low_open=True)
     _choice(cfg, "algo.baseline", BASELINES)
+    _choice(cfg, "algo.log_prob_reduction", LOG_PROB_REDUCTIONS)
 
 
 def _validate_ppo(cfg: DictConfig) -> None:

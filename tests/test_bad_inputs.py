@@ -118,6 +118,7 @@ TRAIN = [
     (["algo.adam_eps=0"], "algo.adam_eps"),
     (["algo.adam_eps=2"], "algo.adam_eps"),
     (["algo.optimizer=sgd"], "algo.optimizer"),
+    (["algo.log_prob_reduction=max"], "algo.log_prob_reduction"),
     (["algo.weight_decay=-1"], "algo.weight_decay"),
     (["algo.weight_decay=5"], "algo.weight_decay"),
     (["algo.max_grad_norm=0"], "algo.max_grad_norm"),

@@ -370,6 +370,7 @@ def test_default_output_folder_is_inside_the_sweep(tmp_path):
     _write_job(sweep / "a", ["algo.lr=0.001", "seed=0"], _config(1e-3, 0), [1.0], [1])
     main([str(sweep), "--no-pd"])
     assert sorted(p.name for p in (sweep / "report").iterdir()) == [
+        "finals.png",
         "returns.png",
         "steps.png",
         "summary.csv",

@@ -3,6 +3,7 @@
 drone-report multirun/lr                      # figures + table into multirun/lr/report/
 drone-report multirun/lr multirun/gamma       # one report per sweep, each in <sweep>/report/
 drone-report multirun/lr --out /tmp/lr --window 50 --return-threshold 2500 --no-pd
+drone-report multirun/lr32 multirun/gamma32 --paper-averaging   # also the paper's cumulative averaging
 """
 
 from __future__ import annotations
@@ -14,10 +15,16 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from drone_torchrl.report.runs import ReportError, load_runs
+from drone_torchrl.report.distribution import paper_order
+from drone_torchrl.report.runs import ReportError, group_runs, load_runs
 from drone_torchrl.report.stats import DEFAULT_RETURN_THRESHOLD
 from drone_torchrl.report.sweep import build_report, default_window
-from drone_torchrl.report.tables import format_report, output_dirs, write_report
+from drone_torchrl.report.tables import (
+    format_paper_averaging_section,
+    format_report,
+    output_dirs,
+    write_report,
+)
 
 PROG = "drone-report"
 EXIT_ERROR = 2
@@ -75,6 +82,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help=f"report the first episode the running-mean return reaches this (default {DEFAULT_RETURN_THRESHOLD:g})",
     )
     parser.add_argument("--no-pd", action="store_true", help="skip the PD controller reference line")
+    parser.add_argument(
+        "--paper-averaging",
+        action="store_true",
+        help="also redraw the paper's figures as its code averages them (cumulatively over the settings "
+        "in the paper's order), next to the per-setting curves: paper_averaging.png",
+    )
     return parser.parse_args(argv)
 
 
@@ -87,10 +100,15 @@ def main(argv: Sequence[str] | None = None) -> None:
         window = default_window() if args.window is None else args.window
         runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
         out_dirs = output_dirs(args.sweeps, args.out)
+        if args.paper_averaging:  # every sweep must be one of the paper's grids, before any work
+            for sweep_runs in runs:
+                paper_order(group_runs(sweep_runs))
         for sweep_dir, sweep_runs, out_dir in zip(args.sweeps, runs, out_dirs, strict=True):
             report = build_report(sweep_dir, window, args.return_threshold, not args.no_pd, sweep_runs)
-            paths = write_report(report, out_dir)
+            paths = write_report(report, out_dir, args.paper_averaging)
             print(format_report(report, figures=False))
+            if args.paper_averaging:
+                print(format_paper_averaging_section(report))
             print(f"wrote {', '.join(str(p) for p in paths)}\n")
     except ReportError as err:
         print(f"{PROG}: error: {err}", file=sys.stderr)

@@ -15,6 +15,7 @@ from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
 BASELINES = ("none", "mean")
+LOG_PROB_REDUCTIONS = ("sum", "mean")
 
 
 def discounted_returns(reward: torch.Tensor, done: torch.Tensor, gamma: float | torch.Tensor) -> torch.Tensor:
@@ -55,6 +56,8 @@ class ReinforceLoss(LossModule):
             (``w_t``; the paper's code and preset leave it off, ``w_t = 1``).
         normalize_returns: standardise ``G_t`` over the valid steps of the batch.
         baseline: ``"none"`` (paper) or ``"mean"``: subtract the batch mean of ``G_t``.
+        log_prob_reduction: ``"sum"`` (the paper's text: the joint log-probability of the two
+            motors) or ``"mean"`` (the paper's public code: their mean, half the gradient).
         agent_dims: leading batch dims that index independent agents (fused training): every
             reduction (episode mean, baseline, normalisation) is then per agent, and
             ``loss_reinforce`` is the sum of the agents' losses. ``gamma`` may then be a tensor
@@ -89,9 +92,14 @@ class ReinforceLoss(LossModule):
         normalize_returns: bool = False,
         baseline: str = "none",
         agent_dims: int = 0,
+        log_prob_reduction: str = "sum",
     ) -> None:
         if baseline not in BASELINES:
             raise ValueError(f"algo.baseline={baseline!r} is not allowed; expected one of {BASELINES}")
+        if log_prob_reduction not in LOG_PROB_REDUCTIONS:
+            raise ValueError(
+                f"algo.log_prob_reduction={log_prob_reduction!r} is not allowed; expected one of {LOG_PROB_REDUCTIONS}"
+            )
         super().__init__()
         self.actor_network = actor_network
         self.gamma = gamma
@@ -99,6 +107,7 @@ class ReinforceLoss(LossModule):
         self.normalize_returns = normalize_returns
         self.baseline = baseline
         self.agent_dims = agent_dims
+        self.log_prob_reduction = log_prob_reduction
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         pass
@@ -141,7 +150,10 @@ class ReinforceLoss(LossModule):
             weight = weight * gamma ** step.to(returns.dtype)
 
         dist = self.actor_network.get_dist(tensordict)
-        log_prob = dist.log_prob(tensordict.get(keys.action))
+        action = tensordict.get(keys.action)
+        log_prob = dist.log_prob(action)  # the motors' log-probabilities, summed
+        if self.log_prob_reduction == "mean":
+            log_prob = log_prob / action.shape[-1]
         loss_per_agent = per_agent(-(weight.detach() * log_prob)) / episodes
         return TensorDict(
             {

@@ -23,10 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-from drone_torchrl.report.stats import SettingSummary
+from drone_torchrl.report.stats import ZONE_SHARE, SettingSummary
 from drone_torchrl.report.sweep import SweepReport
 
-ZONE_SHARE = 0.5
 PAPER_SETTING = {"algo.lr": 1e-4, "algo.gamma": 0.99}
 LANDSCAPE_FIGURE = "landscape.png"
 LANDSCAPE_CSV = "landscape.csv"

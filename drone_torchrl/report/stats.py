@@ -24,6 +24,9 @@ from drone_torchrl.report.runs import (
 )
 
 DEFAULT_RETURN_THRESHOLD = 2000.0
+# A seed "ends in the zone" when its final running-mean return is at least this share of the ceiling
+# 10 * max_steps (1500 of 3000: the drone spends about half the episode or more in the zone).
+ZONE_SHARE = 0.5
 STD_DDOF = 0  # population std over seeds: a single seed has zero spread rather than NaN
 # A running mean "reaches" a threshold within this relative tolerance (float sums of integers).
 CROSSING_RTOL = 1e-9

@@ -8,10 +8,22 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from drone_torchrl.report.distribution import (
+    CONFIDENCE,
+    DISTRIBUTION_FIGURE,
+    PAPER_AVERAGING_FIGURE,
+    PAPER_STUDY_SEEDS,
+    distribution,
+    format_distributions,
+    format_paper_averaging,
+    paper_order,
+    plot_distributions,
+    plot_paper_averaging,
+)
 from drone_torchrl.report.figures import RETURNS_FIGURE, STEPS_FIGURE, plot_curves
 from drone_torchrl.report.landscape import LANDSCAPE_FIGURE, landscape, write_landscape
 from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN
-from drone_torchrl.report.stats import PD_EPISODES, PD_SEED, PERCENT, STD_DDOF
+from drone_torchrl.report.stats import PD_EPISODES, PD_SEED, PERCENT, STD_DDOF, ZONE_SHARE
 from drone_torchrl.report.sweep import SweepReport
 
 REPORT_DIR = "report"
@@ -163,21 +175,76 @@ def format_report(report: SweepReport, figures: bool = True) -> str:
     return "\n".join(lines)
 
 
-def write_report(report: SweepReport, out_dir: Path) -> list[Path]:
-    """Write ``steps.png``, ``returns.png``, ``summary.md`` and ``summary.csv`` into ``out_dir``, and
-    for a two-key grid sweep also ``landscape.png`` and ``landscape.csv`` (:mod:`.landscape`)."""
+def format_seeds(report: SweepReport, distributions: list) -> str:
+    """The seeds' distribution per setting (:mod:`.distribution`): its section of ``summary.md``."""
+    return "\n".join(
+        [
+            "## How the seeds end",
+            "",
+            "Final = each run's last running-mean value. CI: percentile bootstrap of the median. Full "
+            "length: the running-mean length reaches the cap. In the zone: final return >= "
+            f"{ZONE_SHARE:g} x the ceiling. Mean of {PAPER_STUDY_SEEDS} seeds: the central "
+            f"{CONFIDENCE:.0%} of the means of {PAPER_STUDY_SEEDS} seeds drawn without replacement "
+            "(what a study with that many seeds could have reported).",
+            "",
+            format_distributions(distributions),
+            "",
+            f"![finals]({DISTRIBUTION_FIGURE})",
+            "",
+        ]
+    )
+
+
+def format_paper_averaging_section(report: SweepReport) -> str:
+    key, ordered = paper_order(report.settings)
+    return "\n".join(
+        [
+            "## As the paper averages",
+            "",
+            f"The paper's analysis code never resets its list of runs between settings: the curve of the "
+            f"k-th {key} setting (in the paper's order) is the mean over the runs of settings 1..k.",
+            "",
+            format_paper_averaging(ordered, report.window),
+            "",
+            f"![paper averaging]({PAPER_AVERAGING_FIGURE})",
+            "",
+        ]
+    )
+
+
+def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = False) -> list[Path]:
+    """Write ``steps.png``, ``returns.png``, ``finals.png``, ``summary.md`` and ``summary.csv`` into
+    ``out_dir``; for a two-key grid sweep also ``landscape.png`` and ``landscape.csv``
+    (:mod:`.landscape`); with ``paper_averaging`` also ``paper_averaging.png``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    distributions = [distribution(s, report.window) for s in report.settings if s.runs_with_episodes]
     paths = [
         plot_curves(report, COL_LENGTH, out_dir / STEPS_FIGURE),
         plot_curves(report, COL_RETURN, out_dir / RETURNS_FIGURE),
+        plot_distributions(
+            distributions,
+            report.name,
+            ZONE_SHARE * max(s.ceiling for s in report.settings),
+            out_dir / DISTRIBUTION_FIGURE,
+        ),
     ]
+    extra = format_seeds(report, distributions)
+    if paper_averaging:
+        _, ordered = paper_order(report.settings)
+        paths.append(
+            plot_paper_averaging(ordered, report.window, report.name, out_dir / PAPER_AVERAGING_FIGURE)
+        )
+        extra += "\n" + format_paper_averaging_section(report)
     grid = landscape(report)
     if grid is not None:
         paths += write_landscape(grid, out_dir)
     md = out_dir / SUMMARY_MD
     md.write_text(
-        format_report(report) + (f"\n![landscape]({LANDSCAPE_FIGURE})\n" if grid is not None else "")
+        format_report(report)
+        + "\n"
+        + extra
+        + (f"\n![landscape]({LANDSCAPE_FIGURE})\n" if grid is not None else "")
     )
     table = out_dir / SUMMARY_CSV
     with table.open("w", newline="") as f:

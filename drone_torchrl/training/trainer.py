@@ -55,6 +55,7 @@ def make_loss(cfg: DictConfig, actor, gamma: torch.Tensor) -> ReinforceLoss:
         normalize_returns=cfg.algo.normalize_returns,
         baseline=cfg.algo.baseline,
         agent_dims=1,
+        log_prob_reduction=cfg.algo.log_prob_reduction,
     )
 
 

@@ -1,0 +1,257 @@
+"""How the seeds of each setting end, beyond mean +- std, and the paper's own way of averaging.
+
+With many seeds per setting the final returns are often bimodal (some seeds hover in the zone, the
+others survive outside it or crash), so a mean over 4 seeds mostly measures which seeds were drawn.
+Per setting, :func:`distribution` gives:
+
+- the median and interquartile range of the final running-mean return, with a bootstrap 95%
+  interval of the median;
+- the median final running-mean episode length;
+- the fraction of seeds that reach full-length episodes (the running-mean length reaches
+  ``max_steps`` at some episode) and the fraction that end in the zone (final running-mean return
+  >= :data:`~drone_torchrl.report.stats.ZONE_SHARE` of the ceiling: 1500 of 3000);
+- the band of 4-seed means (bootstrap: 4 seeds drawn without replacement, as a 4-seed study would
+  draw them): the spread a paper-sized study sees.
+
+:func:`paper_averaged_curves` redraws the paper's figures 4.2 and 4.4 the way its public analysis
+code computes them: the list of runs is never reset between settings, so the curve drawn for the
+k-th setting (in the paper's order) is the mean over the runs of settings 1..k.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, ReportError, Setting
+from drone_torchrl.report.stats import ZONE_SHARE, first_crossing, run_curves
+
+BOOTSTRAP_SAMPLES = 10_000
+BOOTSTRAP_SEED = 0
+CONFIDENCE = 0.95
+PAPER_STUDY_SEEDS = 4
+# The settings in the order the paper's analysis code appends their runs (figures 4.2 and 4.4).
+PAPER_ORDER = {
+    "algo.lr": (5e-5, 1e-4, 5e-4, 1e-3),
+    "algo.gamma": (0.999, 0.99, 0.95, 0.9),
+}
+DISTRIBUTION_FIGURE = "finals.png"
+PAPER_AVERAGING_FIGURE = "paper_averaging.png"
+
+
+@dataclass
+class Distribution:
+    """How the seeds of one setting end (final = the last running-mean value of each run)."""
+
+    label: str
+    final_returns: np.ndarray
+    final_lengths: np.ndarray
+    reached_full_length: int
+    in_zone: int
+    median_ci: tuple[float, float]
+    four_seed_band: tuple[float, float]
+
+    @property
+    def seeds(self) -> int:
+        return int(self.final_returns.size)
+
+    @property
+    def median(self) -> float:
+        return float(np.median(self.final_returns))
+
+    @property
+    def quartiles(self) -> tuple[float, float]:
+        q1, q3 = np.percentile(self.final_returns, [25, 75])
+        return float(q1), float(q3)
+
+
+def _tails() -> tuple[float, float]:
+    return 100 * (1 - CONFIDENCE) / 2, 100 * (1 + CONFIDENCE) / 2
+
+
+def bootstrap_median_ci(values: np.ndarray, rng: np.random.Generator) -> tuple[float, float]:
+    """Percentile bootstrap interval of the median (resampling the seeds with replacement)."""
+    samples = rng.choice(values, size=(BOOTSTRAP_SAMPLES, values.size), replace=True)
+    low, high = np.percentile(np.median(samples, axis=1), _tails())
+    return float(low), float(high)
+
+
+def small_study_band(
+    values: np.ndarray, rng: np.random.Generator, seeds: int = PAPER_STUDY_SEEDS
+) -> tuple[float, float]:
+    """Central interval of the mean of ``seeds`` runs drawn without replacement (a small study's mean)."""
+    if values.size < seeds:
+        return float("nan"), float("nan")
+    draws = np.argsort(rng.random((BOOTSTRAP_SAMPLES, values.size)), axis=1)[:, :seeds]
+    low, high = np.percentile(values[draws].mean(axis=1), _tails())
+    return float(low), float(high)
+
+
+def distribution(setting: Setting, window: int) -> Distribution:
+    """The final-value distribution of ``setting``'s runs that have episodes."""
+    returns = run_curves(setting, COL_RETURN, window)
+    lengths = run_curves(setting, COL_LENGTH, window)
+    if not returns:
+        raise ReportError(f"{setting.label}: no run has episodes")
+    finals = np.array([curve[-1] for curve in returns])
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    return Distribution(
+        label=setting.label,
+        final_returns=finals,
+        final_lengths=np.array([curve[-1] for curve in lengths]),
+        reached_full_length=sum(first_crossing(c, setting.max_steps) is not None for c in lengths),
+        in_zone=int((finals >= ZONE_SHARE * setting.ceiling).sum()),
+        median_ci=bootstrap_median_ci(finals, rng),
+        four_seed_band=small_study_band(finals, rng),
+    )
+
+
+def format_distributions(distributions: Sequence[Distribution]) -> str:
+    """A Markdown table: one row per setting."""
+    lo, hi = _tails()
+    lines = [
+        f"| setting | seeds | median final return [{CONFIDENCE:.0%} CI] | IQR | median final length | "
+        f"reach full length | end in the zone | mean of {PAPER_STUDY_SEEDS} seeds ({lo:g}-{hi:g}%) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for d in distributions:
+        q1, q3 = d.quartiles
+        ci_low, ci_high = d.median_ci
+        band_low, band_high = d.four_seed_band
+        lines.append(
+            f"| {d.label} | {d.seeds} | {d.median:.0f} [{ci_low:.0f}, {ci_high:.0f}] | {q1:.0f}-{q3:.0f} | "
+            f"{np.median(d.final_lengths):.0f} | {d.reached_full_length}/{d.seeds} | {d.in_zone}/{d.seeds} | "
+            f"{band_low:.0f}-{band_high:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def plot_distributions(
+    distributions: Sequence[Distribution], title: str, zone_return: float, path: Path
+) -> Path:
+    """Box plot of each setting's final running-mean returns, every seed drawn as a point."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9.0, 5.0))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    data = [d.final_returns for d in distributions]
+    ax.boxplot(data, whis=(0, 100), widths=0.5)
+    jitter = np.random.default_rng(BOOTSTRAP_SEED)
+    for i, values in enumerate(data, start=1):
+        ax.scatter(i + jitter.uniform(-0.15, 0.15, values.size), values, s=10, alpha=0.6)
+    ax.axhline(zone_return, linestyle="--", color="black", label=f"ends in the zone: >= {zone_return:g}")
+    ax.set_xticks(range(1, len(data) + 1), [d.label for d in distributions], rotation=15, fontsize="small")
+    ax.set_ylabel("final return (running mean)")
+    ax.set_title(f"{title}: final return of every seed (box: quartiles, whiskers: range)")
+    ax.grid(alpha=0.2)
+    ax.legend(loc="best", fontsize="small")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    return path
+
+
+# --------------------------------------------------------------------------------------------------
+# The paper's averaging
+
+
+def paper_order(settings: Sequence[Setting]) -> tuple[str, list[Setting]]:
+    """The swept key and the settings in the paper's order; :class:`ReportError` if it is not a paper grid."""
+    for key, order in PAPER_ORDER.items():
+        values = []
+        for s in settings:
+            value = dict(s.pairs).get(key)
+            values.append(None if value is None else float(value))
+        if None in values or len(set(values)) != len(values):
+            continue
+        ranks = {v: i for i, v in enumerate(order)}
+        if all(v in ranks for v in values):
+            return key, [s for _, s in sorted(zip(values, settings, strict=True), key=lambda p: ranks[p[0]])]
+    raise ReportError(
+        "--paper-averaging needs a sweep over the paper's values of algo.lr "
+        f"{list(PAPER_ORDER['algo.lr'])} or algo.gamma {list(PAPER_ORDER['algo.gamma'])}"
+    )
+
+
+def paper_averaged_curves(settings: Sequence[Setting], column: str, window: int) -> list[np.ndarray]:
+    """Curve k = the mean over the runs of ``settings[0..k]`` (the paper's cumulative list of runs)."""
+    pooled: list[np.ndarray] = []
+    curves = []
+    for setting in settings:
+        pooled.extend(run_curves(setting, column, window))
+        length = min(c.size for c in pooled)
+        curves.append(np.mean([c[:length] for c in pooled], axis=0))
+    return curves
+
+
+def per_setting_curves(settings: Sequence[Setting], column: str, window: int) -> list[np.ndarray]:
+    """Curve k = the mean over the runs of ``settings[k]`` only (what the paper's text describes)."""
+    curves = []
+    for setting in settings:
+        runs = run_curves(setting, column, window)
+        length = min(c.size for c in runs)
+        curves.append(np.mean([c[:length] for c in runs], axis=0))
+    return curves
+
+
+def plot_paper_averaging(settings: Sequence[Setting], window: int, title: str, path: Path) -> Path:
+    """Per-setting means next to the paper's cumulative means, for episode length and return."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(12.0, 8.0))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 2, sharey="row")
+    for row, (column, ylabel) in enumerate(((COL_LENGTH, "steps per episode"), (COL_RETURN, "return"))):
+        for col, (curves, kind) in enumerate(
+            (
+                (per_setting_curves(settings, column, window), "per setting (each setting's own runs)"),
+                (
+                    paper_averaged_curves(settings, column, window),
+                    "as the paper averages (runs of settings 1..k)",
+                ),
+            )
+        ):
+            ax = axes[row][col]
+            for setting, curve in zip(settings, curves, strict=True):
+                ax.plot(np.arange(curve.size), curve, linewidth=1.5, label=setting.label)
+            ax.set_title(f"{kind}", fontsize="medium")
+            ax.set_xlabel("episode")
+            ax.set_ylabel(f"{ylabel} (running mean over {window})")
+            ax.grid(alpha=0.2)
+            ax.legend(loc="best", fontsize="small")
+    fig.suptitle(f"{title}: settings in the paper's order")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    return path
+
+
+def format_paper_averaging(settings: Sequence[Setting], window: int) -> str:
+    """Final values of both averagings (the last point of each curve), one row per setting."""
+    lines = [
+        "| setting (paper's order) | runs pooled | final return: per setting | as the paper averages | "
+        "final length: per setting | as the paper averages |",
+        "|---|---|---|---|---|---|",
+    ]
+    own_r, pooled_r = (
+        per_setting_curves(settings, COL_RETURN, window),
+        paper_averaged_curves(settings, COL_RETURN, window),
+    )
+    own_l, pooled_l = (
+        per_setting_curves(settings, COL_LENGTH, window),
+        paper_averaged_curves(settings, COL_LENGTH, window),
+    )
+    runs = 0
+    for k, setting in enumerate(settings):
+        runs += len(setting.runs_with_episodes)
+        lines.append(
+            f"| {setting.label} | {runs} | {own_r[k][-1]:.0f} | {pooled_r[k][-1]:.0f} | "
+            f"{own_l[k][-1]:.0f} | {pooled_l[k][-1]:.0f} |"
+        )
+    return "\n".join(lines)
