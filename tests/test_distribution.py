@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from test_report import _job
 
 from drone_torchrl.apps.report import main
 from drone_torchrl.report.distribution import (
@@ -12,7 +13,6 @@ from drone_torchrl.report.distribution import (
     small_study_band,
 )
 from drone_torchrl.report.runs import ReportError, group_runs, load_runs
-from test_report import _job
 
 # Returns per run (window 1: the running mean is the raw value), 2 seeds per learning rate.
 RUNS = {
@@ -34,7 +34,12 @@ def _settings(tmp_path, runs=RUNS):
 def test_cumulative_averaging_by_hand(tmp_path):
     key, ordered = paper_order(_settings(tmp_path))
     assert key == "algo.lr"
-    assert [s.label for s in ordered] == ["algo.lr=5e-05", "algo.lr=0.0001", "algo.lr=0.0005", "algo.lr=0.001"]
+    assert [s.label for s in ordered] == [
+        "algo.lr=5e-05",
+        "algo.lr=0.0001",
+        "algo.lr=0.0005",
+        "algo.lr=0.001",
+    ]
     own = per_setting_curves(ordered, "return", 1)
     pooled = paper_averaged_curves(ordered, "return", 1)
     # Per setting: each setting's two runs. As the paper: runs of settings 1..k (2k runs).
@@ -42,7 +47,9 @@ def test_cumulative_averaging_by_hand(tmp_path):
     np.testing.assert_allclose(own[1], [1500, 2000])
     np.testing.assert_allclose(pooled[0], [40, 60])
     np.testing.assert_allclose(pooled[1], [(20 + 60 + 1000 + 2000) / 4, (40 + 80 + 1000 + 3000) / 4])
-    np.testing.assert_allclose(pooled[2], [(20 + 60 + 1000 + 2000 + 100 + 300) / 6, (40 + 80 + 1000 + 3000 + 200 + 400) / 6])
+    np.testing.assert_allclose(
+        pooled[2], [(20 + 60 + 1000 + 2000 + 100 + 300) / 6, (40 + 80 + 1000 + 3000 + 200 + 400) / 6]
+    )
     np.testing.assert_allclose(pooled[3], [(3480 + 10 + 30) / 8, (4720 + 10 + 50) / 8])
 
 
