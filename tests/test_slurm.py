@@ -123,6 +123,12 @@ def test_a_job_past_its_time_limit_is_requeued_and_continues(tmp_path):
     assert rows["episode"].tolist() == list(range(episodes))  # nothing lost, nothing twice
     assert not notes
     assert (run / "checkpoints" / "last.pt").is_file() and not (run / "FAILED.txt").exists()
+    # Each restart continued from a checkpoint and trained again at most one interval.
+    restarts = re.findall(r"continuing from episode (\d+) .*?; (\d+) episode\(s\) logged after it", logs)
+    assert restarts, logs[-2000:]
+    for start, repeated in restarts:
+        assert int(start) % every == 0 and int(repeated) < every
+    print(f"restarts (episode, episodes trained again): {restarts}")
 
 
 def test_a_cancelled_job_is_reported_failed_and_a_rerun_finishes_it(tmp_path):

@@ -71,9 +71,11 @@ class EpisodeCSV:
         source = self.path if source is None else Path(source)
         rows: list[dict[str, str]] = []
         self.notes: list[str] = []
+        self.dropped = 0  # rows of episodes at or after keep_episodes (trained again after a resume)
         if keep_episodes and source.exists():
             read, self.notes = _read_rows(source)
             rows = [raw for parsed, raw in read if parsed["episode"] < keep_episodes]
+            self.dropped = sum(parsed["episode"] >= keep_episodes for parsed, _ in read)
         tmp = self.path.with_name(self.path.name + ".tmp")
         with tmp.open("w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)

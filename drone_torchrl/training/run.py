@@ -102,6 +102,11 @@ class RunRecord:
         )
         for note in self.csv.notes:
             print(f"resume: {note}", file=sys.stderr)
+        if resumed and not self.finished:
+            print(
+                f"{self.run_dir}: continuing from episode {self.episodes_done} (the checkpoint's); "
+                f"{self.csv.dropped} episode(s) logged after it are trained again"
+            )
         self.start = self._last_flush = time.perf_counter()
 
     # ------------------------------------------------------------------ state
