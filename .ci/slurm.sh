@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # A one-node SLURM cluster on this machine, for the tests marked `slurm` (tests/test_slurm.py).
 #
-#   sudo bash .ci/slurm.sh start   # install (Debian/Ubuntu), configure and start it; prints its state
-#   sudo bash .ci/slurm.sh stop    # stop every daemon it started
+#   bash .ci/slurm.sh start   # as root (or with sudo): install (Debian/Ubuntu), configure and start it; prints its state
+#   bash .ci/slurm.sh stop    # stop every daemon it started
 #
 # Debian's slurm-wlm 22.05, munge for authentication, and accounting through slurmdbd on a local
 # MariaDB, so `sacct` answers (submitit polls job states with it; without accounting a cancelled

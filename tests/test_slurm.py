@@ -1,6 +1,6 @@
 """Sweeps on a real SLURM scheduler (``hydra/launcher=slurm``): submission, requeue on timeout, scancel.
 
-Marked ``slurm``: they need a running one-node cluster (``sudo bash .ci/slurm.sh start``; ``.ci/run``
+Marked ``slurm``: they need a running one-node cluster (``bash .ci/slurm.sh start`` as root; ``.ci/run``
 runs them as a stage after the default suite) and skip, with the reason, where there is none.
 """
 
@@ -29,7 +29,7 @@ def _cluster_reason() -> str | None:
     if UNAVAILABLE.is_file():
         return f"no SLURM cluster: {UNAVAILABLE.read_text().strip()}"
     if shutil.which("sinfo") is None:
-        return "no SLURM cluster: sinfo not found (start one with: sudo bash .ci/slurm.sh start)"
+        return "no SLURM cluster: sinfo not found (start one as root with: bash .ci/slurm.sh start)"
     up = subprocess.run(["sinfo", "-h", "-o", "%T"], capture_output=True, text=True)
     if up.returncode or not re.search(r"idle|mixed|allocated", up.stdout):
         return f"no SLURM cluster answering sinfo ({(up.stderr or up.stdout).strip()[:200]})"
