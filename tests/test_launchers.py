@@ -227,3 +227,24 @@ def test_a_failed_job_does_not_stop_later_batches(tmp_path):
     assert job_status(jobs["algo.gamma=0.95"])[0] == "failed"
     assert "1 finished, 1 failed, 0 unfinished" in out, out
     assert out.count(DAMAGED) <= 3, out  # the job's line, the summary, FAILED.txt's
+
+
+def test_slurm_population_refuses_a_bad_agents_per_job():
+    """A bad hydra.launcher.agents_per_job stops the sweep with one line, before any job is submitted."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
+    from omegaconf import OmegaConf
+
+    from hydra_plugins.drone_torchrl_launcher.slurm_launcher import SlurmPopulationLauncher
+
+    for bad in (0, -3):
+        cfg = _compose("hydra/launcher=slurm_population", f"hydra.launcher.agents_per_job={bad}")
+        params = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
+        del params["_target_"]
+        with pytest.raises(
+            SystemExit, match=rf"agents_per_job={bad} is not allowed; expected an integer >= 1"
+        ):
+            SlurmPopulationLauncher(**params)
+    cfg = _compose("hydra/launcher=slurm_population")
+    params = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
+    del params["_target_"]
+    assert SlurmPopulationLauncher(**params).params["agents_per_job"] == 32

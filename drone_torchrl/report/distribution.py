@@ -27,7 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, ReportError, Setting
-from drone_torchrl.report.stats import ZONE_SHARE, first_crossing, run_curves
+from drone_torchrl.report.stats import (
+    ZONE_SHARE,
+    aggregate_over_seeds,
+    first_crossing,
+    run_curves,
+    setting_curve,
+)
 
 BOOTSTRAP_SAMPLES = 10_000
 BOOTSTRAP_SEED = 0
@@ -184,19 +190,13 @@ def paper_averaged_curves(settings: Sequence[Setting], column: str, window: int)
     curves = []
     for setting in settings:
         pooled.extend(run_curves(setting, column, window))
-        length = min(c.size for c in pooled)
-        curves.append(np.mean([c[:length] for c in pooled], axis=0))
+        curves.append(aggregate_over_seeds(pooled).mean)
     return curves
 
 
 def per_setting_curves(settings: Sequence[Setting], column: str, window: int) -> list[np.ndarray]:
     """Curve k = the mean over the runs of ``settings[k]`` only (what the paper's text describes)."""
-    curves = []
-    for setting in settings:
-        runs = run_curves(setting, column, window)
-        length = min(c.size for c in runs)
-        curves.append(np.mean([c[:length] for c in runs], axis=0))
-    return curves
+    return [setting_curve(setting, column, window).mean for setting in settings]
 
 
 def plot_paper_averaging(settings: Sequence[Setting], window: int, title: str, path: Path) -> Path:

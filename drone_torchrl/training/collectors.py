@@ -31,7 +31,7 @@ from torchrl.modules import ProbabilisticActor
 from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.factory import make_env
-from drone_torchrl.envs.rollout import ChunkFn, fly
+from drone_torchrl.envs.rollout import ChunkFn, chunked, fly
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.modules.stacked import ActionSampler
@@ -147,11 +147,9 @@ class VectorisedCollector:
         self, net: nn.Module, layers: list, state: torch.Tensor, noise: torch.Tensor | None, k: int
     ) -> tuple[torch.Tensor, ...]:
         """``k`` steps (a :data:`~drone_torchrl.envs.rollout.ChunkFn`'s outputs); ``noise`` is ``[k, ...]``."""
-        outputs = []
-        for i in range(k):
-            outputs.append(self._policy_and_physics(net, layers, state, None if noise is None else noise[i]))
-            state = outputs[-1][1]
-        return tuple(torch.stack(column) for column in zip(*outputs, strict=True))
+        return chunked(
+            lambda s, i: self._policy_and_physics(net, layers, s, None if noise is None else noise[i])
+        )(state, 0, k)
 
     def _stepper(self, agents: list[int], noise: torch.Tensor | None) -> ChunkFn:
         net = self.population.net(agents)

@@ -25,6 +25,7 @@ of ``hydra_plugins`` when it looks for plugins).
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -123,13 +124,19 @@ if _SubmititSlurm is not None:
     class SlurmPopulationLauncher(SlurmLauncher):
         """One SLURM job per population of ``agents_per_job`` sweep jobs, trained by the fused engine."""
 
+        def __init__(self, **params) -> None:
+            super().__init__(**params)
+            per_job = self.params["agents_per_job"]
+            if isinstance(per_job, bool) or not isinstance(per_job, int) or per_job < 1:
+                # Hydra instantiates the launcher before any job starts: one line, nothing written.
+                sys.exit(
+                    f"drone-train: error: hydra.launcher.agents_per_job={per_job} is not allowed; "
+                    "expected an integer >= 1"
+                )
+
         def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
             assert self.config is not None
-            per_job = int(self.params["agents_per_job"])
-            if per_job < 1:
-                from drone_torchrl.config import ConfigError
-
-                raise ConfigError.of("hydra.launcher.agents_per_job", per_job, "an integer >= 1")
+            per_job = self.params["agents_per_job"]
             sweep_dir = Path(str(self.config.hydra.sweep.dir))
             sweep_dir.mkdir(parents=True, exist_ok=True)
             groups = [
