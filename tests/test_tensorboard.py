@@ -138,3 +138,24 @@ def test_the_evaluation_video_is_there(served):
         f"{base}/data/plugin/images/individualImage?{images[-1]['query']}", timeout=30
     ) as r:
         assert r.read(6) in (b"GIF89a", b"GIF87a")  # TensorBoard's animated video frames
+
+
+@pytest.mark.parametrize(
+    ("step", "scalars"),
+    [
+        (0, [("a", 0.0)]),
+        (7, [("episode/return", 123.456), ("train/loss", -1e-3), ("episode/termination_cause/FLOOR", 3)]),
+        (10**12, [("big", 1e39), ("small", -1e39), ("inf", float("inf"))]),
+        (300, [("t" * 200, 2.5), ("é/ü", -0.0)]),
+    ],
+)
+def test_hand_encoded_scalar_events_decode_as_tensorboards_own(step, scalars):
+    """The logger's scalar events decode to the Event tensorboard's protobuf classes build."""
+    from tensorboard.compat.proto import event_pb2, summary_pb2
+
+    from drone_torchrl.io.tb_logger import scalar_event, scalar_value
+
+    ours = event_pb2.Event.FromString(scalar_event(1.7e9, step, [scalar_value(t, v) for t, v in scalars]))
+    values = [summary_pb2.Summary.Value(tag=t, simple_value=v) for t, v in scalars]
+    assert ours == event_pb2.Event(wall_time=1.7e9, step=step, summary=summary_pb2.Summary(value=values))
+    assert [v.tag for v in ours.summary.value] == [t for t, _ in scalars]

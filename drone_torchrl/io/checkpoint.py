@@ -23,6 +23,7 @@ Layout (``format_version`` 2)::
 
 from __future__ import annotations
 
+import io
 import os
 import pickle
 import warnings
@@ -62,7 +63,11 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(state, tmp)
+    # Serialised in memory and written at once: torch.save's zip writer makes a small write per
+    # record (half of the time for a file of this size).
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    tmp.write_bytes(buffer.getbuffer())
     os.replace(tmp, path)
 
 

@@ -49,6 +49,7 @@ from drone_torchrl.io.checkpoint import (
     load_checkpoint,
     run_dir_of,
 )
+from drone_torchrl.io.yaml_text import to_yaml
 from drone_torchrl.training.run import FAILED_FILE
 
 # Settings that may differ between the agents of one population; everything else must be equal.
@@ -124,8 +125,6 @@ def prepare(
         if (run_dir / CHECKPOINT_DIR / LAST).is_file():
             location = run_dir
     if location is None:
-        if engine is not None:
-            cfg = _with(cfg, engine=engine)
         validate(cfg)
         return Job(cfg, run_dir)
     path, checkpoint = open_checkpoint("resume", location)
@@ -206,14 +205,6 @@ def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
     return {**checkpoint, "final": None, "best_eval_return": -math.inf}
 
 
-def _with(cfg: DictConfig, **values: Any) -> DictConfig:
-    cfg = cfg.copy()
-    with open_dict(cfg):
-        for key, value in values.items():
-            cfg[key] = value
-    return cfg
-
-
 def group_key(cfg: DictConfig) -> str:
     """Jobs whose configs agree on everything but :data:`PER_AGENT_KEYS` can train as one population."""
     container = OmegaConf.to_container(cfg, resolve=True)
@@ -224,7 +215,7 @@ def group_key(cfg: DictConfig) -> str:
             node = node.get(part, {})
         node.pop(leaf, None)
     container.pop("hydra", None)
-    return OmegaConf.to_yaml(OmegaConf.create(container))
+    return to_yaml(container)
 
 
 # ---------------------------------------------------------------------------------------- job status

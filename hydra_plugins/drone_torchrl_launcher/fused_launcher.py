@@ -25,13 +25,13 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-import yaml
 from hydra.core.utils import JobReturn, JobStatus, configure_log, filter_overrides, setup_globals
 from hydra.errors import CompactHydraException
 from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
+from drone_torchrl.io.yaml_text import to_yaml
 from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/launcher=fused)
 
 log = logging.getLogger(__name__)
@@ -42,13 +42,28 @@ class JobFailed(CompactHydraException):
     """A job of a fused sweep that failed: one line (the traceback is in ``<job>/FAILED.txt``)."""
 
 
-# libyaml's emitter where PyYAML has it: the same YAML as OmegaConf.to_yaml, about 5x faster.
-_DUMPER = getattr(yaml, "CSafeDumper", yaml.SafeDumper)
+class _JobReturn(JobReturn):
+    """A ``JobReturn`` whose ``hydra_cfg`` is built from its plain container when first read: nothing
+    here reads it, and building a ``DictConfig`` of Hydra's node took a third of a job's set-up."""
+
+    _hydra_container: dict | None = None
+    _hydra_cfg: DictConfig | None = None
+
+    @property  # type: ignore[override]
+    def hydra_cfg(self) -> DictConfig | None:
+        if self._hydra_cfg is None and self._hydra_container is not None:
+            self._hydra_cfg = OmegaConf.create(self._hydra_container)
+        return self._hydra_cfg
+
+    @hydra_cfg.setter
+    def hydra_cfg(self, value: DictConfig | None) -> None:
+        self._hydra_cfg = value
 
 
-def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> JobReturn:
+def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple[JobReturn, Path]:
     """The job's folder with what Hydra's ``run_job`` writes before it calls the task: ``.hydra/``
-    and the (empty) job log. ``cfg`` (this job's own copy) loses its ``hydra`` node: the returned
+    and the (empty) job log; returns the job's ``JobReturn`` and folder. ``cfg`` (this job's own
+    config; its ``hydra`` node may be shared with other jobs) loses its ``hydra`` node: the returned
     ``JobReturn.cfg`` is the job's config."""
     with read_write(cfg), open_dict(cfg):
         cfg.hydra.job.id = cfg.hydra.job.num = idx
@@ -57,22 +72,22 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> JobRe
         cfg.hydra.runtime.output_dir = output_dir
         log_file = OmegaConf.select(cfg, "hydra.job_logging.handlers.file.filename", default=None)
         hydra_cfg = {"hydra": OmegaConf.to_container(cfg.hydra, resolve=False, enum_to_str=True)}
-        ret = JobReturn(overrides=list(cfg.hydra.overrides.task), working_dir=os.getcwd())
+        ret = _JobReturn(overrides=list(cfg.hydra.overrides.task), working_dir=os.getcwd())
         ret.task_name = cfg.hydra.job.name
         output_subdir = cfg.hydra.output_subdir
         hydra_context.callbacks.on_job_start(config=cfg, task_function=None)
         del cfg["hydra"]
-    ret.cfg, ret.hydra_cfg = cfg, OmegaConf.create(hydra_cfg)
+    ret.cfg, ret._hydra_container = cfg, hydra_cfg
     Path(output_dir).mkdir(parents=True, exist_ok=True)
     if output_subdir is not None:
         record = Path(output_dir) / output_subdir
         record.mkdir(exist_ok=True)
-        (record / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-        (record / "hydra.yaml").write_text(yaml.dump(hydra_cfg, Dumper=_DUMPER, sort_keys=False))
-        (record / "overrides.yaml").write_text(yaml.dump(ret.overrides, Dumper=_DUMPER))
+        (record / "config.yaml").write_text(to_yaml(cfg))
+        (record / "hydra.yaml").write_text(to_yaml(hydra_cfg))
+        (record / "overrides.yaml").write_text(to_yaml(ret.overrides))
     if log_file is not None:
         Path(log_file).touch()
-    return ret
+    return ret, Path(output_dir)
 
 
 class FusedLauncher(Launcher):
@@ -125,10 +140,9 @@ def train_populations(
         zip(job_overrides, configs, strict=True), initial_job_idx
     ):
         log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
-        ret = _job_folder(hydra_context, sweep_config, idx)
+        ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
         returns.append(ret)
         # Training comes later, for all jobs at once; here each job is checked and registered.
-        run_dir = Path(ret.hydra_cfg.hydra.runtime.output_dir)
         try:
             if run_dir in folders:  # e.g. seed=0,0: two agents would write one folder
                 raise ConfigError(
