@@ -162,7 +162,8 @@ def check_keys(cfg: DictConfig, name: str = "config") -> None:
 
     try:
         known = _schema_leaves(name, _algo_option(cfg))
-        given = leaves(cfg)
+        # Resolved at once (~0.2 ms) rather than node by node through OmegaConf (~0.5 ms).
+        given = leaves(OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg)
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
         key = getattr(err, "full_key", None) or "a config value"
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
@@ -413,9 +414,27 @@ def _env_error(device: str, kwargs: tuple[tuple[str, Any], ...]) -> str | None:
     return None
 
 
+class _Plain(dict):
+    """A resolved config as nested dicts with attribute access (``cfg.algo.lr``), for validation:
+    it reads about 150 values, ~7 us each through OmegaConf and a population validates every job."""
+
+    def __getattr__(self, name: str) -> Any:
+        try:
+            return self[name]
+        except KeyError:
+            raise AttributeError(name) from None
+
+
+def _plain(node: Any) -> Any:
+    if isinstance(node, dict):
+        return _Plain((key, _plain(value)) for key, value in node.items())
+    return node
+
+
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value that is not allowed."""
-    check_keys(cfg)
+    check_keys(cfg)  # also reports an interpolation that does not resolve, in one line
+    cfg = _plain(OmegaConf.to_container(cfg, resolve=True))
     check_device(cfg.device)
     kwargs = env_kwargs(cfg)
     try:
@@ -474,7 +493,9 @@ def validate(cfg: DictConfig) -> None:
 
 
 def _sizes(cfg: DictConfig, key: str) -> None:
-    sizes = OmegaConf.select(cfg, key)
+    sizes = cfg
+    for part in key.split("."):
+        sizes = sizes[part]
     if (
         not isinstance(sizes, ListConfig | list)
         or not sizes

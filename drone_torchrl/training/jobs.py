@@ -98,6 +98,7 @@ def prepare(
     run_dir: str | Path | None = None,
     engine: str | None = None,
     requested: Iterable[str] | None = None,
+    validated: bool = False,
 ) -> Job:
     """Validate ``cfg`` and find what the run continues from; raises :class:`ConfigError` (one line).
 
@@ -107,7 +108,8 @@ def prepare(
     engine the caller will train with; a checkpoint written by another engine is then refused.
     ``requested``: the keys the caller sets (default: those of the Hydra command line); a continued
     run takes those of :data:`RESUME_KEYS` and refuses changes to the others. Without a command
-    line, only ``algo.episodes`` and the process settings are taken from ``cfg``.
+    line, only ``algo.episodes`` and the process settings are taken from ``cfg``. ``validated``:
+    ``cfg`` has passed :func:`~drone_torchrl.config.validate` already (a sweeper checked it).
     """
     run_dir = Path(run_dir) if run_dir is not None else None
     keys = command_line_keys() if requested is None else {k.split("=", 1)[0].lstrip("+~") for k in requested}
@@ -125,7 +127,8 @@ def prepare(
         if (run_dir / CHECKPOINT_DIR / LAST).is_file():
             location = run_dir
     if location is None:
-        validate(cfg)
+        if not validated:
+            validate(cfg)
         return Job(cfg, run_dir)
     path, checkpoint = open_checkpoint("resume", location)
     saved = run_config(checkpoint["config"])

@@ -136,6 +136,8 @@ def train_populations(
     folders: list[Path] = []
     returns: list[JobReturn] = []
     configs = sweep_configs(hydra_context.config_loader, config, job_overrides)
+    # The population sweeper has validated every job's config before launching its batch.
+    validated = str(config.hydra.sweeper._target_).endswith("PopulationSweeper")
     for idx, (overrides, sweep_config) in enumerate(
         zip(job_overrides, configs, strict=True), initial_job_idx
     ):
@@ -149,7 +151,7 @@ def train_populations(
                     f"{run_dir} is also job #{folders.index(run_dir)}'s folder: a duplicate job"
                 )
             folders.append(run_dir)
-            jobs.append(prepare(ret.cfg, run_dir, engine=ENGINE, requested=overrides))
+            jobs.append(prepare(ret.cfg, run_dir, engine=ENGINE, requested=overrides, validated=validated))
         except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
             print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
             jobs.append(Outcome(run_dir, error=err))
