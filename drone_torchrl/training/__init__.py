@@ -4,5 +4,6 @@
 - :mod:`.population`: the agents' policies and optimizers (one agent is a population of one);
 - :mod:`.run`: the run record, one per agent (CSV, TensorBoard, checkpoints, evaluation schedule);
 - :mod:`.trainer`: the loop, collect -> loss -> optimizer -> record;
+- :mod:`.memory`: keeping freed memory for reuse (large populations on CPU);
 - :mod:`.jobs`: turning configs (Hydra jobs) into runs: validation, resume and fork rules, grouping.
 """

@@ -29,6 +29,7 @@ from drone_torchrl.evaluation import evaluate
 from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
+from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
 
@@ -84,6 +85,8 @@ class Trainer:
     def __init__(self, jobs: Sequence[Job]) -> None:
         self.cfg = cfg = jobs[0].cfg
         torch.set_num_threads(cfg.threads)
+        if torch.device(cfg.device).type == "cpu":
+            keep_freed_memory()
         self.population = Population([job.cfg for job in jobs])
         self.collector = make_collector(cfg, self.population)
         for i, job in enumerate(jobs):
