@@ -1,22 +1,8 @@
-"""The counter-based generator: an agent's numbers depend on its own key only, and a draw can be made piece by piece."""
+"""The counter-based generator: an agent's numbers depend on its own key only, and are standard."""
 
 import torch
 
 from drone_torchrl.training import rng
-
-
-def test_a_draw_made_piece_by_piece_equals_the_whole_draw():
-    seeds, counters = torch.tensor([0, 5, 7]), torch.tensor([3, 1, 0])
-    whole = rng.normal(seeds, counters, rng.ACTION_NOISE, (300, 4, 2))
-    pieces = [
-        rng.normal(seeds, counters, rng.ACTION_NOISE, (k, 4, 2), first=t)
-        for t, k in ((0, 10), (10, 10), (20, 7), (27, 273))
-    ]
-    assert torch.equal(torch.cat(pieces, 1), whole)
-    uniform = rng.uniform(seeds, counters, rng.START_STATES, (50, 6))
-    assert torch.equal(rng.uniform(seeds, counters, rng.START_STATES, (10, 6), first=20), uniform[:, 20:30])
-    # Another row offset is another piece of the draw, not the same numbers again.
-    assert not torch.equal(pieces[0], pieces[1])
 
 
 def test_an_agents_numbers_do_not_depend_on_the_others():

@@ -19,7 +19,6 @@ and a policy for the evaluator.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -152,11 +151,13 @@ class VectorisedCollector:
             lambda s, i: self._policy_and_physics(net, layers, s, None if noise is None else noise[i])
         )(state, 0, k)
 
-    def _stepper(self, agents: list[int], noise: Callable[[int, int], torch.Tensor] | None) -> ChunkFn:
+    def _stepper(self, agents: list[int], noise: torch.Tensor | None) -> ChunkFn:
         net = self.population.net(agents)
         with torch.no_grad():
             layers = net.layers()
-        return lambda state, t, k: self._chunk(net, layers, state, None if noise is None else noise(t, k), k)
+        return lambda state, t, k: self._chunk(
+            net, layers, state, None if noise is None else noise[t : t + k], k
+        )
 
     def collect(self, agents: list[int], counters: list[int]) -> TensorDictBase:
         """The agents' episodes of this update; ``counters`` are their update counts (the noise key)."""
@@ -164,15 +165,8 @@ class VectorisedCollector:
         counters = torch.tensor(counters, dtype=torch.int64, device=self.device)
         uniform = rng.uniform(seeds, counters, rng.START_STATES, (self.episodes, dynamics.STATE_DIM))
         start = dynamics.states_from_uniform(uniform, self.cfg.env.reset_mode)
-
-        def noise(t: int, k: int) -> torch.Tensor:
-            """Steps ``t .. t + k - 1`` of the update's action noise, ``[k, A, E, 2]``: drawn per chunk,
-            as far as the episodes go, not for all ``env.max_steps`` up front."""
-            return rng.normal(seeds, counters, rng.ACTION_NOISE, (k, self.episodes, 2), first=t).transpose(
-                0, 1
-            )
-
-        return fly(self._stepper(agents, noise), start, self.max_steps, self.steps_per_call)
+        noise = rng.normal(seeds, counters, rng.ACTION_NOISE, (self.max_steps, self.episodes, 2))
+        return fly(self._stepper(agents, noise.transpose(0, 1)), start, self.max_steps, self.steps_per_call)
 
     def actor(self, agents: list[int]) -> ProbabilisticActor:
         """The agents' stacked nets under the config's distribution head (scores ``[A, ...]`` batches)."""

@@ -57,38 +57,26 @@ def mix(x: torch.Tensor) -> torch.Tensor:
     return x ^ _shift_right(x, 31)
 
 
-def _bits(
-    seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...], first: int = 0
-) -> torch.Tensor:
-    """``[N, *shape]`` hashed int64 of each agent's (seed, counter, stream) key and element index;
-    ``first``: the rows ``first, first + 1, ...`` (along ``shape[0]``) of a longer draw."""
+def _bits(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:
+    """``[N, *shape]`` hashed int64 of each agent's (seed, counter, stream) key and element index."""
     seeds = torch.as_tensor(seeds, dtype=torch.int64)
     counters = torch.as_tensor(counters, dtype=torch.int64, device=seeds.device)
     key = mix(mix(seeds) ^ (counters * _UPDATE + _signed(stream * _STREAM)))
-    start = first * math.prod(shape[1:])
-    index = torch.arange(start, start + math.prod(shape), dtype=torch.int64, device=seeds.device)
-    return mix(key.reshape(-1, *([1] * len(shape))) + index.reshape(shape) * GOLDEN)
+    index = torch.arange(math.prod(shape), dtype=torch.int64, device=seeds.device).reshape(shape)
+    return mix(key.reshape(-1, *([1] * len(shape))) + index * GOLDEN)
 
 
-def uniform(
-    seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...], first: int = 0
-) -> torch.Tensor:
-    """Uniforms in (0, 1), float32 ``[N, *shape]``: agent ``i``'s depend only on its seed and counter.
-
-    ``first``: rows ``first ...`` of the draw along ``shape[0]`` (``uniform(..., (k, *rest), first=t)``
-    equals ``uniform(..., (T, *rest))[:, t : t + k]``), so a long draw can be made piece by piece."""
-    top = _shift_right(_bits(seeds, counters, stream, shape, first), 64 - UNIFORM_BITS)
+def uniform(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:
+    """Uniforms in (0, 1), float32 ``[N, *shape]``: agent ``i``'s depend only on its seed and counter."""
+    top = _shift_right(_bits(seeds, counters, stream, shape), 64 - UNIFORM_BITS)
     return (top.to(torch.float32) + 0.5) / float(1 << UNIFORM_BITS)
 
 
-def normal(
-    seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...], first: int = 0
-) -> torch.Tensor:
-    """Standard normals, float32 ``[N, *shape]`` with an even last dim (Box-Muller pairs);
-    ``first`` as in :func:`uniform`."""
+def normal(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:
+    """Standard normals, float32 ``[N, *shape]`` with an even last dim (Box-Muller pairs)."""
     if shape[-1] % 2:
         raise ValueError(f"normal() needs an even last dim, got shape {shape}")
-    u = uniform(seeds, counters, stream, (*shape[:-1], shape[-1] // 2, 2), first)
+    u = uniform(seeds, counters, stream, (*shape[:-1], shape[-1] // 2, 2))
     radius = (-2.0 * u[..., 0].log()).sqrt()
     angle = 2.0 * math.pi * u[..., 1]
     return torch.stack((radius * angle.cos(), radius * angle.sin()), -1).reshape(-1, *shape)

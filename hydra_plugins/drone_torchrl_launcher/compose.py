@@ -6,7 +6,9 @@ launcher composes it again). For a 256-agent grid that is minutes before any tra
 grid differ only in a few plain ``key=value`` overrides, so :func:`sweep_configs` composes the first
 job fully and derives each other job from it by applying its differing overrides with
 ``OmegaConf.update``, exactly as Hydra applies a value override, and by setting the two fields
-Hydra derives from the overrides (``hydra.overrides.task`` and ``hydra.job.override_dirname``).
+Hydra derives from the overrides (``hydra.overrides.task`` and ``hydra.job.override_dirname``) on
+one ``hydra`` node that the derived jobs share, one job at a time (a job needs its node only while
+its folder is set up).
 Any other kind of override (a config group such as ``experiment=bounded``, ``+key``, ``~key``,
 a key the config does not have) makes that job fall back to Hydra's full composition.
 """
