@@ -150,6 +150,10 @@ TRAIN = [
     (["env.dt=10"], "env.dt"),
     (["env.max_steps=0"], "env.max_steps"),
     (["env.max_steps=1.5"], "env.max_steps"),
+    # Equal to values other rows validate (20, 1.0), but a float and a bool: the env check's cache
+    # must not take them for those.
+    (["env.max_steps=20.0"], "env.max_steps"),
+    (["env.mass=true"], "env.mass"),
     (["env.reset_mode=sky"], "env.reset_mode"),
     (["env.reset_mode=null"], "env.reset_mode"),
     (["env.max_thrust=0"], "env.max_thrust"),
@@ -204,6 +208,8 @@ TRAIN = [
     (["algo.episodes_per_update=100000", "algo.episodes=100000"], "algo.episodes_per_update"),
     (["~algo.lr"], "algo.lr"),  # a deleted key: was a traceback
     (["algo.lr=${{oops}}"], "algo.lr"),  # an interpolation to nothing: was a traceback
+    (["logger.exp_name=???"], "logger.exp_name"),  # a missing value
+    (["algo.lr=???"], "algo.lr"),
     # PPO (algo=ppo)
     (["algo=ppo", "algo.minibatch_size=1000"], "algo.minibatch_size"),  # must divide 64 x 64
     (["algo=ppo", "algo.num_envs=0"], "algo.num_envs"),

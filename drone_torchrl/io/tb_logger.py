@@ -25,6 +25,7 @@ import socket
 import struct
 import time
 import warnings
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -81,6 +82,7 @@ def scalar_value(tag: str, value: float) -> bytes:
     if head is None:  # the entry's key, length and tag field: the same for every value of this tag
         inner = _length_delimited(b"\x0a", tag.encode()) + b"\x15"
         head = _VALUE_HEAD[tag] = b"\x0a" + _varint(len(inner) + _FLOAT.size) + inner
+    value = float(value)
     try:
         return head + _FLOAT.pack(value)
     except OverflowError:  # beyond float32: infinity, as protobuf stores it
@@ -112,6 +114,10 @@ class RunLogger:
 
     def log_scalar(self, name: str, value: float, step: int) -> None:
         self._scalars.append((name, value, step))
+
+    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
+        """``(tag, value, step)`` triples, as many as come."""
+        self._scalars.extend(scalars)
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
         self._scalars.extend((name, value, step) for name, value in metrics.items())
@@ -202,9 +208,9 @@ def log_update(
     number of episodes that ended with each termination cause, and the update's training metrics."""
     for row in rows:
         episode = row["episode"]
-        logger._scalars.extend((tag, row[k], episode) for k, tag in _EPISODE_TAGS)
+        logger.log_scalars((tag, row[k], episode) for k, tag in _EPISODE_TAGS)
     causes = [row["termination_cause"] for row in rows]
-    logger._scalars.extend((tag, causes.count(name), step) for name, tag in _CAUSE_TAGS)
+    logger.log_scalars((tag, causes.count(name), step) for name, tag in _CAUSE_TAGS)
     logger.log_metrics(train_metrics, step=step)
 
 

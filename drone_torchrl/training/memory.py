@@ -6,8 +6,9 @@ The loss of a large population works on tensors of tens of MB (``[agents, steps,
 faults every page of those tensors in again: an elementwise op on a 40 MB tensor took 21 ms, 6 ms
 once its memory is reused. PyTorch's CPU allocator does not cache (its tuning guides swap in
 jemalloc or tcmalloc for this); raising glibc's mmap and trim thresholds has the same effect
-without a preloaded library. Peak memory does not change; the process keeps its peak until it
-exits. Elsewhere (macOS, musl, Windows) this does nothing.
+without a preloaded library. The process keeps freed memory until it exits (and the heap grows by
+a block now and then, when a small allocation splits a freed one). Elsewhere (macOS, musl,
+Windows) this does nothing.
 """
 
 from __future__ import annotations
@@ -22,10 +23,13 @@ _M_MMAP_THRESHOLD = -3
 # Allocations below this come from the reusable heap: larger than any tensor of a population's
 # update here (a 4096-agent loss tensor is 160 MB), small enough to leave mmap for true outliers.
 KEEP_BELOW_BYTES = 1 << 30
+# The largest mmap threshold glibc documents (4 MiB x sizeof(long)); older versions refuse more.
+DOCUMENTED_MAX_BYTES = 32 << 20
 
 
 def keep_freed_memory() -> bool:
-    """Raise glibc's mmap and trim thresholds to :data:`KEEP_BELOW_BYTES`; True if it took effect."""
+    """Raise glibc's mmap threshold to :data:`KEEP_BELOW_BYTES` (or, where refused, to
+    :data:`DOCUMENTED_MAX_BYTES`) and its trim threshold alike; True if both took effect."""
     if not sys.platform.startswith("linux"):
         return False
     try:
@@ -34,4 +38,6 @@ def keep_freed_memory() -> bool:
     except (OSError, AttributeError):  # not glibc
         return False
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
-    return bool(mallopt(_M_MMAP_THRESHOLD, KEEP_BELOW_BYTES) and mallopt(_M_TRIM_THRESHOLD, KEEP_BELOW_BYTES))
+    mmap = any(mallopt(_M_MMAP_THRESHOLD, size) for size in (KEEP_BELOW_BYTES, DOCUMENTED_MAX_BYTES))
+    trim = bool(mallopt(_M_TRIM_THRESHOLD, KEEP_BELOW_BYTES))
+    return mmap and trim

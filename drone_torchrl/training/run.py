@@ -35,8 +35,19 @@ from drone_torchrl.io.yaml_text import save_yaml
 
 CONFIG_NAME = "config.yaml"
 FAILED_FILE = "FAILED.txt"
+# TerminationCause code -> name, as the CSV rows hold it.
 _CAUSE_NAMES = {int(cause): cause.name for cause in TerminationCause}
-# The per-episode values a collector reports for every finished episode (episode_stats' keys).
+
+
+def _mean(values: deque[float]) -> float:
+    """The mean (nan when empty). math.fsum, not np.mean: read per update by every run of a
+    population, and np.mean copies the deque into an array first (~5 us)."""
+    if not values:
+        return math.nan
+    try:
+        return math.fsum(values) / len(values)
+    except ValueError:  # inf and -inf: no sum
+        return math.nan
 
 
 class TrainingDiverged(RuntimeError):
@@ -133,15 +144,13 @@ class RunRecord:
     def wall_clock(self) -> float:
         return self.wall_clock_before + time.perf_counter() - self.start
 
-    # math.fsum, not np.mean: read per update by every run of a population (np.mean of a deque
-    # copies it into an array first, ~5 us).
     @property
     def running_return(self) -> float:
-        return math.fsum(self.recent_returns) / len(self.recent_returns) if self.recent_returns else math.nan
+        return _mean(self.recent_returns)
 
     @property
     def running_length(self) -> float:
-        return math.fsum(self.recent_lengths) / len(self.recent_lengths) if self.recent_lengths else math.nan
+        return _mean(self.recent_lengths)
 
     # ------------------------------------------------------------------ training
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:

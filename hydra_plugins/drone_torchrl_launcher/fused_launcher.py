@@ -31,7 +31,7 @@ from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from drone_torchrl.io.yaml_text import to_yaml
+from drone_torchrl.io.yaml_text import save_yaml
 from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/launcher=fused)
 
 log = logging.getLogger(__name__)
@@ -64,7 +64,8 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
     """The job's folder with what Hydra's ``run_job`` writes before it calls the task: ``.hydra/``
     and the (empty) job log; returns the job's ``JobReturn`` and folder. ``cfg`` (this job's own
     config; its ``hydra`` node may be shared with other jobs) loses its ``hydra`` node: the returned
-    ``JobReturn.cfg`` is the job's config."""
+    ``JobReturn.cfg`` is the job's config. Hydra callbacks' ``on_job_start`` get the job's whole
+    config; its ``hydra`` node may be rewritten for the next job afterwards (keep a copy, not it)."""
     with read_write(cfg), open_dict(cfg):
         cfg.hydra.job.id = cfg.hydra.job.num = idx
         subdir = str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
@@ -82,12 +83,18 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
     if output_subdir is not None:
         record = Path(output_dir) / output_subdir
         record.mkdir(exist_ok=True)
-        (record / "config.yaml").write_text(to_yaml(cfg))
-        (record / "hydra.yaml").write_text(to_yaml(hydra_cfg))
-        (record / "overrides.yaml").write_text(to_yaml(ret.overrides))
+        save_yaml(cfg, record / "config.yaml")
+        save_yaml(hydra_cfg, record / "hydra.yaml")
+        save_yaml(ret.overrides, record / "overrides.yaml")
     if log_file is not None:
         Path(log_file).touch()
     return ret, Path(output_dir)
+
+
+def _population_sweeper(config: DictConfig) -> bool:
+    """Whether the sweep runs under ``hydra/sweeper=population``, which validates every job's config
+    before launching its batch and prints the end-of-sweep summary itself."""
+    return str(config.hydra.sweeper._target_).endswith("PopulationSweeper")
 
 
 class FusedLauncher(Launcher):
@@ -108,9 +115,12 @@ class FusedLauncher(Launcher):
         setup_globals()
         assert self.config is not None and self.hydra_context is not None
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
-        returns = train_populations(self.hydra_context, self.config, job_overrides, initial_job_idx)
+        validated = _population_sweeper(self.config)
+        returns = train_populations(
+            self.hydra_context, self.config, job_overrides, initial_job_idx, validated
+        )
         failed = any(ret.status == JobStatus.FAILED for ret in returns)
-        if failed and not str(self.config.hydra.sweeper._target_).endswith("PopulationSweeper"):
+        if failed and not validated:
             # Another sweeper stops at the first failed job and skips the end-of-sweep summary.
             print(sweep_summary(Path(str(self.config.hydra.sweep.dir))))
         return returns
@@ -121,10 +131,12 @@ def train_populations(
     config: DictConfig,
     job_overrides: Sequence[Sequence[str]],
     initial_job_idx: int,
+    validated: bool = False,
 ) -> list[JobReturn]:
     """Set up the jobs' folders and train them, those that can share a population together (in this
     process); one ``JobReturn`` per job. The fused launcher runs it on this machine, the
-    ``slurm_population`` launcher inside each of its SLURM jobs."""
+    ``slurm_population`` launcher inside each of its SLURM jobs. ``validated``: the sweeper has
+    validated every job's config on this machine (then :func:`prepare` does not again)."""
     from drone_torchrl.config import ConfigError
     from drone_torchrl.training.jobs import prepare, record_failure
     from drone_torchrl.training.trainer import Outcome, train_jobs
@@ -136,8 +148,6 @@ def train_populations(
     folders: list[Path] = []
     returns: list[JobReturn] = []
     configs = sweep_configs(hydra_context.config_loader, config, job_overrides)
-    # The population sweeper has validated every job's config before launching its batch.
-    validated = str(config.hydra.sweeper._target_).endswith("PopulationSweeper")
     for idx, (overrides, sweep_config) in enumerate(
         zip(job_overrides, configs, strict=True), initial_job_idx
     ):
