@@ -145,7 +145,7 @@ def train_populations(
     Path(str(config.hydra.sweep.dir)).mkdir(parents=True, exist_ok=True)
     log.info(f"Launching {len(job_overrides)} jobs as populations (engine={ENGINE})")
     jobs: list = []
-    folders: list[Path] = []
+    folders: dict[Path, int] = {}  # run folder -> its job's index (a list lookup is O(jobs))
     returns: list[JobReturn] = []
     configs = sweep_configs(hydra_context.config_loader, config, job_overrides)
     for idx, (overrides, sweep_config) in enumerate(
@@ -157,10 +157,8 @@ def train_populations(
         # Training comes later, for all jobs at once; here each job is checked and registered.
         try:
             if run_dir in folders:  # e.g. seed=0,0: two agents would write one folder
-                raise ConfigError(
-                    f"{run_dir} is also job #{folders.index(run_dir)}'s folder: a duplicate job"
-                )
-            folders.append(run_dir)
+                raise ConfigError(f"{run_dir} is also job #{folders[run_dir]}'s folder: a duplicate job")
+            folders[run_dir] = idx
             jobs.append(prepare(ret.cfg, run_dir, engine=ENGINE, requested=overrides, validated=validated))
         except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
             print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
