@@ -229,6 +229,18 @@ def test_a_failed_job_does_not_stop_later_batches(tmp_path):
     assert out.count(DAMAGED) <= 3, out  # the job's line, the summary, FAILED.txt's
 
 
+def test_a_repeated_job_trains_once_and_reports_its_outcome(tmp_path):
+    """seed=0,0 under the fused launcher: one folder, one agent trained, both jobs report it (the basic
+    launcher would train the first and find the second already finished)."""
+    sweep_dir = tmp_path / "sweep"
+    out = _multirun(sweep_dir, "hydra/launcher=fused", "algo.gamma=0.9,0.9", cwd=tmp_path)
+    (job,) = sweep_jobs(sweep_dir)
+    assert job_status(job)[0] == "finished"
+    assert f"{job}: job #1 is job #0 again (the same folder); trained once" in out, out
+    assert "1 finished, 0 failed, 0 unfinished" in out, out
+    assert out.count(": 3 episodes, running-mean") == 1, out  # trained (and reported) once
+
+
 def test_slurm_population_refuses_a_bad_agents_per_job():
     """A bad hydra.launcher.agents_per_job stops the sweep with one line, before any job is submitted."""
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")

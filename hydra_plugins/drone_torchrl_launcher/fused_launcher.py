@@ -14,7 +14,9 @@ job, about 25 ms a job, a tenth of a second-long sweep of 256 jobs; here nothing
 job until training, so it only needs the files.
 
 A job that fails is reported as failed (Hydra then exits non-zero after printing the sweep summary);
-the other jobs still train.
+the other jobs still train. A job that repeats an earlier one (the same folder, e.g. ``seed=0,0``)
+is trained once and both report its outcome, as with the basic launcher, whose second run would
+find the job finished.
 
 On a cluster use ``hydra/launcher=submitit_slurm`` (or ``ray``) instead: they spread the jobs over
 machines, each job then training alone.
@@ -137,15 +139,16 @@ def train_populations(
     process); one ``JobReturn`` per job. The fused launcher runs it on this machine, the
     ``slurm_population`` launcher inside each of its SLURM jobs. ``validated``: the sweeper has
     validated every job's config on this machine (then :func:`prepare` does not again)."""
-    from drone_torchrl.config import ConfigError
     from drone_torchrl.training.jobs import prepare, record_failure
     from drone_torchrl.training.trainer import Outcome, train_jobs
     from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
     Path(str(config.hydra.sweep.dir)).mkdir(parents=True, exist_ok=True)
     log.info(f"Launching {len(job_overrides)} jobs as populations (engine={ENGINE})")
+    # Per job: its prepared Job, its Outcome if it failed before training, or, for a job that repeats
+    # an earlier one (seed=0,0: the same folder), the earlier one's position: it trains once.
     jobs: list = []
-    folders: dict[Path, int] = {}  # run folder -> its job's index (a list lookup is O(jobs))
+    folders: dict[Path, int] = {}  # run folder -> the Hydra job number that owns it
     returns: list[JobReturn] = []
     configs = sweep_configs(hydra_context.config_loader, config, job_overrides)
     for idx, (overrides, sweep_config) in enumerate(
@@ -154,18 +157,23 @@ def train_populations(
         log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
         ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
         returns.append(ret)
+        if run_dir in folders:
+            print(f"{run_dir}: job #{idx} is job #{folders[run_dir]} again (the same folder); trained once")
+            jobs.append(folders[run_dir] - initial_job_idx)
+            continue
+        folders[run_dir] = idx
         # Training comes later, for all jobs at once; here each job is checked and registered.
         try:
-            if run_dir in folders:  # e.g. seed=0,0: two agents would write one folder
-                raise ConfigError(f"{run_dir} is also job #{folders[run_dir]}'s folder: a duplicate job")
-            folders[run_dir] = idx
             jobs.append(prepare(ret.cfg, run_dir, engine=ENGINE, requested=overrides, validated=validated))
         except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
             print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
             jobs.append(Outcome(run_dir, error=err))
-    prepared = [j for j in jobs if not isinstance(j, Outcome)]
-    trained = iter(train_jobs(prepared))
-    outcomes = [j if isinstance(j, Outcome) else next(trained) for j in jobs]
+    trained = iter(train_jobs([j for j in jobs if not isinstance(j, Outcome | int)]))
+    outcomes: list[Outcome] = []
+    for job in jobs:
+        outcomes.append(
+            outcomes[job] if isinstance(job, int) else job if isinstance(job, Outcome) else next(trained)
+        )
     for ret, outcome in zip(returns, outcomes, strict=True):
         if outcome.error is None:
             ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
