@@ -241,6 +241,20 @@ def test_a_repeated_job_trains_once_and_reports_its_outcome(tmp_path):
     assert out.count(": 3 episodes, running-mean") == 1, out  # trained (and reported) once
 
 
+def test_slurm_population_keeps_the_jobs_of_one_folder_in_one_slurm_job():
+    """Two SLURM jobs must never train one folder at once: a job that repeats an earlier one's folder
+    goes into that job's SLURM job (whose fused launcher trains it once); ``agents_per_job`` counts
+    distinct folders."""
+    from hydra_plugins.drone_torchrl_launcher.slurm_launcher import population_groups
+
+    folders = ["a", "b", "a", "c", "d", "b", "e"]
+    assert population_groups(folders, 2) == [[0, 1, 2, 5], [3, 4], [6]]
+    assert population_groups(folders, 32) == [[0, 1, 2, 3, 4, 5, 6]]
+    assert population_groups(["a", "a", "a"], 1) == [[0, 1, 2]]
+    assert population_groups(list("abc"), 1) == [[0], [1], [2]]
+    assert population_groups([], 4) == []
+
+
 def test_slurm_population_refuses_a_bad_agents_per_job():
     """A bad hydra.launcher.agents_per_job stops the sweep with one line, before any job is submitted."""
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
@@ -248,12 +262,15 @@ def test_slurm_population_refuses_a_bad_agents_per_job():
 
     from hydra_plugins.drone_torchrl_launcher.slurm_launcher import SlurmPopulationLauncher
 
-    for bad in (0, -3):
+    for bad in ("0", "-3", "abc", "2.5", "true"):
         cfg = _compose("hydra/launcher=slurm_population", f"hydra.launcher.agents_per_job={bad}")
         params = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
         del params["_target_"]
+        shown = {"true": "True"}.get(bad, bad)
         with pytest.raises(
-            SystemExit, match=rf"agents_per_job={bad} is not allowed; expected an integer >= 1"
+            SystemExit,
+            match=rf"^drone-train: error: hydra.launcher.agents_per_job={shown} is not allowed; "
+            r"expected an integer >= 1$",
         ):
             SlurmPopulationLauncher(**params)
     cfg = _compose("hydra/launcher=slurm_population")

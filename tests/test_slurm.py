@@ -225,3 +225,27 @@ def test_a_large_sweep_runs_as_a_few_population_jobs(tmp_path):
             (b, _) = read_episodes(next(sweep.glob(f"*seed={seed}")) / "episodes.csv")
             assert a["return"].tolist() == b["return"].tolist()
             assert a["length"].tolist() == b["length"].tolist()
+
+
+def test_a_repeated_job_is_trained_once_under_slurm_population(tmp_path):
+    """seed=0,1,2,0 with agents_per_job=2: the repeat of seed=0 goes into the SLURM job that trains
+    seed=0 (not into the second one, which would train the same folder at the same time)."""
+    sweep = tmp_path / "sweep"
+    done = _train(
+        sweep,
+        "seed=0,1,2,0",
+        "algo.episodes=4",
+        "hydra.launcher.agents_per_job=2",
+        launcher="slurm_population",
+    )
+    output = done.stdout + done.stderr
+    assert done.returncode == 0, output[-3000:]
+    job = _job_id(output)
+    assert _sacct(job) == {f"{job}_0": "COMPLETED", f"{job}_1": "COMPLETED"}
+    assert "3 finished, 0 failed" in output, output[-3000:]
+    (folder,) = sweep.glob("*seed=0")
+    (episodes, notes) = read_episodes(folder / "episodes.csv")
+    assert episodes["episode"].tolist() == [0, 1, 2, 3] and notes == []
+    assert len((folder / "episodes.csv").read_text().splitlines()) == 1 + 4  # header + one row each
+    logs = "".join(p.read_text() for p in sweep.rglob("*_log.out"))
+    assert f"{folder}: job #3 is job #0 again (the same folder); trained once" in logs, logs[-3000:]

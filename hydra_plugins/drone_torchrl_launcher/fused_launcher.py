@@ -62,6 +62,15 @@ class _JobReturn(JobReturn):
         self._hydra_cfg = value
 
 
+def job_output_dir(cfg: DictConfig, idx: int) -> str:
+    """Job number ``idx``'s folder (``hydra.sweep.dir``/``hydra.sweep.subdir``, absolute); sets the
+    job's number and id in ``cfg``'s ``hydra`` node first, as the subdir may name them."""
+    with read_write(cfg), open_dict(cfg):
+        cfg.hydra.job.id = cfg.hydra.job.num = idx
+        subdir = str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
+    return os.path.abspath(os.path.join(str(cfg.hydra.sweep.dir), subdir))
+
+
 def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple[JobReturn, Path]:
     """The job's folder with what Hydra's ``run_job`` writes before it calls the task: ``.hydra/``
     and the (empty) job log; returns the job's ``JobReturn`` and folder. ``cfg`` (this job's own
@@ -69,9 +78,7 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
     ``JobReturn.cfg`` is the job's config. Hydra callbacks' ``on_job_start`` get the job's whole
     config; its ``hydra`` node may be rewritten for the next job afterwards (keep a copy, not it)."""
     with read_write(cfg), open_dict(cfg):
-        cfg.hydra.job.id = cfg.hydra.job.num = idx
-        subdir = str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
-        output_dir = os.path.abspath(os.path.join(str(cfg.hydra.sweep.dir), subdir))
+        output_dir = job_output_dir(cfg, idx)
         cfg.hydra.runtime.output_dir = output_dir
         log_file = OmegaConf.select(cfg, "hydra.job_logging.handlers.file.filename", default=None)
         hydra_cfg = {"hydra": OmegaConf.to_container(cfg.hydra, resolve=False, enum_to_str=True)}
@@ -118,9 +125,8 @@ class FusedLauncher(Launcher):
         assert self.config is not None and self.hydra_context is not None
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
         validated = _population_sweeper(self.config)
-        returns = train_populations(
-            self.hydra_context, self.config, job_overrides, initial_job_idx, validated
-        )
+        numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
+        returns = train_populations(self.hydra_context, self.config, job_overrides, numbers, validated)
         failed = any(ret.status == JobStatus.FAILED for ret in returns)
         if failed and not validated:
             # Another sweeper stops at the first failed job and skips the end-of-sweep summary.
@@ -132,13 +138,14 @@ def train_populations(
     hydra_context: HydraContext,
     config: DictConfig,
     job_overrides: Sequence[Sequence[str]],
-    initial_job_idx: int,
+    job_numbers: Sequence[int],
     validated: bool = False,
 ) -> list[JobReturn]:
     """Set up the jobs' folders and train them, those that can share a population together (in this
     process); one ``JobReturn`` per job. The fused launcher runs it on this machine, the
-    ``slurm_population`` launcher inside each of its SLURM jobs. ``validated``: the sweeper has
-    validated every job's config on this machine (then :func:`prepare` does not again)."""
+    ``slurm_population`` launcher inside each of its SLURM jobs. ``job_numbers``: each job's Hydra
+    job number (``hydra.job.num``). ``validated``: the sweeper has validated every job's config on
+    this machine (then :func:`prepare` does not again)."""
     from drone_torchrl.training.jobs import prepare, record_failure
     from drone_torchrl.training.trainer import Outcome, train_jobs
     from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
@@ -148,20 +155,21 @@ def train_populations(
     # Per job: its prepared Job, its Outcome if it failed before training, or, for a job that repeats
     # an earlier one (seed=0,0: the same folder), the earlier one's position: it trains once.
     jobs: list = []
-    folders: dict[Path, int] = {}  # run folder -> the Hydra job number that owns it
+    folders: dict[Path, int] = {}  # run folder -> the position of the job that owns it
     returns: list[JobReturn] = []
     configs = sweep_configs(hydra_context.config_loader, config, job_overrides)
-    for idx, (overrides, sweep_config) in enumerate(
-        zip(job_overrides, configs, strict=True), initial_job_idx
+    for position, (idx, overrides, sweep_config) in enumerate(
+        zip(job_numbers, job_overrides, configs, strict=True)
     ):
         log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
         ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
         returns.append(ret)
         if run_dir in folders:
-            print(f"{run_dir}: job #{idx} is job #{folders[run_dir]} again (the same folder); trained once")
-            jobs.append(folders[run_dir] - initial_job_idx)
+            first = job_numbers[folders[run_dir]]
+            print(f"{run_dir}: job #{idx} is job #{first} again (the same folder); trained once")
+            jobs.append(folders[run_dir])
             continue
-        folders[run_dir] = idx
+        folders[run_dir] = position
         # Training comes later, for all jobs at once; here each job is checked and registered.
         try:
             jobs.append(prepare(ret.cfg, run_dir, engine=ENGINE, requested=overrides, validated=validated))

@@ -5,6 +5,7 @@ configs needs nothing but this module.
 """
 
 from dataclasses import dataclass
+from typing import Any
 
 from hydra._internal.core_plugins.basic_sweeper import BasicSweeperConf
 from hydra.core.config_store import ConfigStore
@@ -38,8 +39,9 @@ if SlurmQueueConf is not None:
     @dataclass
     class SlurmPopulationConf(SlurmQueueConf):
         _target_: str = "hydra_plugins.drone_torchrl_launcher.slurm_launcher.SlurmPopulationLauncher"
-        # Sweep jobs trained together as one population in each SLURM job.
-        agents_per_job: int = 32
+        # Sweep jobs trained together as one population in each SLURM job. Typed Any so that a bad
+        # value (agents_per_job=abc) reaches the launcher's one-line check, not OmegaConf's type error.
+        agents_per_job: Any = 32
 
     ConfigStore.instance().store(
         group="hydra/launcher",

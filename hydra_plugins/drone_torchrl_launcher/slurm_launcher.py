@@ -5,7 +5,10 @@
   each, which trains its jobs as one population with the fused engine (:func:`.fused_launcher.
   train_populations`, as ``hydra/launcher=fused`` does on one machine; on the node's GPU with
   ``device=cuda``). A 256-agent landscape is then 8 cluster jobs of 32 agents instead of 256 jobs of
-  a few seconds of work each. Every job folder is the one it would have alone.
+  a few seconds of work each. Every job folder is the one it would have alone. Jobs that share a
+  folder (``seed=0,0``, or values of keys left out of folder names such as ``threads``) go into the
+  same SLURM job, which trains that folder once (:func:`population_groups`): two SLURM jobs never
+  write one folder at the same time.
 
 Hydra's submitit launcher ends with ``[job.results()[0] for job in jobs]``: the first job that did
 not finish (cancelled with ``scancel``, out of memory, a node failure) raises while the other jobs
@@ -43,6 +46,23 @@ except ImportError:  # the submitit extra is not installed
 log = logging.getLogger(__name__)
 # How often to ask SLURM (through submitit's sacct watcher) whether the jobs are done.
 POLL_S = 2.0
+
+
+def population_groups(folders: Sequence[str], per_job: int) -> list[list[int]]:
+    """The sweep's jobs (by position) cut into SLURM jobs of up to ``per_job`` distinct folders, in
+    order; a job whose folder an earlier job has goes with that job (which trains the folder once)."""
+    groups: list[list[int]] = []
+    distinct: list[int] = []  # distinct folders per group
+    owner: dict[str, int] = {}  # folder -> its group
+    for position, folder in enumerate(folders):
+        if folder not in owner:
+            if not groups or distinct[-1] == per_job:
+                groups.append([])
+                distinct.append(0)
+            owner[folder] = len(groups) - 1
+            distinct[-1] += 1
+        groups[owner[folder]].append(position)
+    return groups
 
 
 if _SubmititSlurm is not None:
@@ -135,33 +155,42 @@ if _SubmititSlurm is not None:
                 )
 
         def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-            assert self.config is not None
+            from submitit.core.utils import UncompletedJobError
+
+            from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+            from hydra_plugins.drone_torchrl_launcher.fused_launcher import job_output_dir
+
+            assert self.config is not None and self.hydra_context is not None
             per_job = self.params["agents_per_job"]
             sweep_dir = Path(str(self.config.hydra.sweep.dir))
             sweep_dir.mkdir(parents=True, exist_ok=True)
-            groups = [
-                [list(o) for o in job_overrides[start : start + per_job]]
-                for start in range(0, len(job_overrides), per_job)
-            ]
+            numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
+            configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
+            folders = [job_output_dir(cfg, idx) for idx, cfg in zip(numbers, configs, strict=True)]
+            groups = population_groups(folders, per_job)
             log.info(
                 f"Submitit 'slurm' sweep output dir : {sweep_dir}: {len(job_overrides)} jobs as "
                 f"{len(groups)} SLURM job(s) of up to {per_job} agents"
             )
             params = [
-                (group, initial_job_idx + k * per_job, Singleton.get_state())
-                for k, group in enumerate(groups)
+                ([list(job_overrides[i]) for i in group], [numbers[i] for i in group], Singleton.get_state())
+                for group in groups
             ]
-            returns: list[JobReturn] = []
-            for job, (group, first, _) in zip(self._submit(params), params, strict=True):
-                from submitit.core.utils import UncompletedJobError
-
+            returns: list[JobReturn | None] = [None] * len(job_overrides)
+            for job, group, (overrides, group_numbers, _) in zip(
+                self._submit(params), groups, params, strict=True
+            ):
                 try:
-                    returns.extend(job.results()[0])
+                    group_returns = job.results()[0]
                 except UncompletedJobError:
-                    returns.extend(self._unfinished(job, o, first + i) for i, o in enumerate(group))
+                    group_returns = [
+                        self._unfinished(job, o, idx) for o, idx in zip(overrides, group_numbers, strict=True)
+                    ]
+                for position, ret in zip(group, group_returns, strict=True):
+                    returns[position] = ret
             return returns
 
-        def __call__(self, group: list[list[str]], first_idx: int, singleton_state) -> list[JobReturn]:
+        def __call__(self, group: list[list[str]], numbers: list[int], singleton_state) -> list[JobReturn]:
             """Inside the SLURM job: the group's folders, then one population (``checkpoint`` requeues it)."""
             from hydra.core.utils import setup_globals
 
@@ -169,4 +198,4 @@ if _SubmititSlurm is not None:
 
             Singleton.set_state(singleton_state)
             setup_globals()
-            return train_populations(self.hydra_context, self.config, group, first_idx)
+            return train_populations(self.hydra_context, self.config, group, numbers)
