@@ -8,7 +8,8 @@ the work per update does not depend on how well the agents fly), REINFORCE loss,
 per-agent clipping and Adam, and the run records (CSV rows and TensorBoard scalars buffered every
 update, written at the end). Prints the median time per update over ``--repeats`` runs, the time
 per agent, the share of the update spent in recording, and the ratio to the smallest population
-timed in the same run.
+timed in the same run. The populations are timed in turns (one run of each size per round), so
+that a slow spell of a shared machine does not fall on one size only.
 """
 
 from __future__ import annotations
@@ -95,10 +96,16 @@ def main() -> None:
     dynamics.termination_cause = never_terminate  # every episode flies max_steps steps
     cfg = config(args.device, args.compile, args.threads)
     device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
-    rows = []
-    for n in args.agents:
-        runs = [time_population(cfg, n, args.updates, 2 if args.compile else 1) for _ in range(args.repeats)]
-        rows.append((n, statistics.median(t for t, _ in runs), statistics.median(s for _, s in runs)))
+    # The populations take turns, one run each per round: a slow spell of a shared machine then
+    # slows every size alike instead of one, and the ratios between sizes stay meaningful.
+    runs: dict[int, list[tuple[float, float]]] = {n: [] for n in args.agents}
+    for _ in range(args.repeats):
+        for n in args.agents:
+            runs[n].append(time_population(cfg, n, args.updates, 2 if args.compile else 1))
+    rows = [
+        (n, statistics.median(t for t, _ in runs[n]), statistics.median(s for _, s in runs[n]))
+        for n in args.agents
+    ]
     base_n, base_t, _ = rows[0]
     print(
         f"\n{device_name}, torch threads {args.threads}, compile={args.compile}, 300-step episodes, "
