@@ -373,3 +373,14 @@ def test_initial_state_is_seeded_and_layout_independent():
 def test_initial_state_rejects_unknown_mode():
     with pytest.raises(ValueError, match="reset_mode"):
         dynamics.initial_state((2,), "x")
+
+
+def test_start_states_are_drawn_on_the_generators_device_then_moved():
+    """A seed gives the same start states on every device: the numbers come from the (CPU)
+    generator and only then move to the env's device (here the meta device stands in for a GPU)."""
+    generator = torch.Generator().manual_seed(3)
+    states = dynamics.initial_state((4,), "air", generator, device="meta")
+    assert states.device.type == "meta" and states.shape == (4, dynamics.STATE_DIM)
+    reference = torch.Generator().manual_seed(3)
+    torch.rand((4, dynamics.STATE_DIM), generator=reference)  # the same draw on the CPU
+    assert torch.equal(generator.get_state(), reference.get_state())

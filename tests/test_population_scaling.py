@@ -14,8 +14,9 @@ from drone_torchrl.envs import dynamics
 from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.trainer import Trainer
 
-# Ops that copy a value to the host (item, bool(), nonzero sizes, ...).
-SYNC_OPS = ("_local_scalar_dense", "nonzero", "is_nonzero")
+# Ops that copy a value to the host (item, bool(), nonzero sizes, ...), and Tensor.tolist, which
+# copies without passing through the dispatcher (counted by a wrapper).
+SYNC_OPS = ("_local_scalar_dense", "nonzero", "is_nonzero", "tolist")
 
 
 class CountOps(TorchDispatchMode):
@@ -51,8 +52,16 @@ def _ops_per_update(tmp_path, agents: int, monkeypatch) -> Counter:
     trainer = Trainer(jobs)
     everyone = list(range(agents))
     trainer.update(everyone)  # first update: lazy set-up
+    tolist = torch.Tensor.tolist
+
+    def counted_tolist(tensor):
+        counter.ops["tolist"] += 1
+        return tolist(tensor)
+
+    monkeypatch.setattr(torch.Tensor, "tolist", counted_tolist)
     with CountOps() as counter:
         trainer.update(everyone)
+    monkeypatch.setattr(torch.Tensor, "tolist", tolist)
     trainer.close()
     return counter.ops
 
@@ -62,7 +71,9 @@ def test_ops_and_host_syncs_per_update_do_not_grow_with_agents(tmp_path, monkeyp
     one = _ops_per_update(tmp_path, 1, monkeypatch)
     many = _ops_per_update(tmp_path, agents, monkeypatch)
     syncs = {op: one[op] for op in SYNC_OPS if one[op]}
-    assert syncs, one  # the rollout's early-stop check does sync, once per step
+    # The rollout's early-stop check, once per chunk of steps_per_call=10 of the 20 steps, and the
+    # one fetch of the update's episodes and metrics.
+    assert syncs == {"tolist": 20 // 10 + 1}, one
     assert {op: many[op] for op in SYNC_OPS if many[op]} == syncs
     # The same kernels for 64 agents as for one (a reshape of a size-1 dim may add a view).
     assert abs(sum(many.values()) - sum(one.values())) <= 2, (many - one) + (one - many)

@@ -174,7 +174,8 @@ class DroneEnv(EnvBase):
     - ``max_thrust`` (float > 0 or None, default None): per-motor thrust limit as a fraction of the
       weight; ``1.0`` is a thrust-to-weight ratio of 2.
     - ``floor_tolerance`` (float in [0, 1], default 0.05 m).
-    - ``device`` (default ``"cpu"``).
+    - ``device`` (default ``"cpu"``). Start states are drawn from the env's own CPU generator
+      (``set_seed``) and then moved to the device, so a seed gives the same start states on any device.
     - ``render_mode`` (``None``, ``"human"`` or ``"rgb_array"``): pygame drawing of sub-env
       ``render_index`` (default 0); ``"human"`` draws after every step, ``render()`` returns an
       ``H x W x 3`` uint8 frame in ``"rgb_array"`` mode.
@@ -236,7 +237,9 @@ class DroneEnv(EnvBase):
         self.render_mode = render_mode
         self.render_index = int(render_index)
         self._renderer = None
-        self._generator = torch.Generator(device=device)
+        # On the CPU whatever the env's device: a seed then gives the same start states on a GPU
+        # as on the CPU (evaluations stay comparable), and a checkpoint's generator state loads on both.
+        self._generator = torch.Generator()
         self._generator.seed()
         self._make_specs()
         shape = tuple(batch_size)

@@ -160,13 +160,14 @@ def initial_state(
     ``"floor"``: ``x`` and ``alpha`` uniform in +-0.01, everything else zero.
     ``"air"``: every component uniform in +-0.01 around ``(x=0, z=zone centre)``.
     Exactly ``numel(shape) * 6`` numbers are drawn from ``generator`` in both modes, so the same
-    seed gives the same draws whatever the batch layout.
+    seed gives the same draws whatever the batch layout. They are drawn on the generator's device
+    and then moved to ``device``: a CPU generator gives the same start states on every device.
     """
     if mode not in RESET_MODES:
         raise ValueError(f"reset_mode={mode!r} is not allowed; expected one of {RESET_MODES}")
-    return states_from_uniform(
-        torch.rand((*shape, STATE_DIM), generator=generator, device=device, dtype=dtype), mode
-    )
+    draw_on = device if generator is None else generator.device
+    uniform = torch.rand((*shape, STATE_DIM), generator=generator, device=draw_on, dtype=dtype)
+    return states_from_uniform(uniform if device is None else uniform.to(device), mode)
 
 
 def states_from_uniform(uniform: torch.Tensor, mode: str) -> torch.Tensor:

@@ -75,6 +75,8 @@ class PopulationAdam:
         self.betas = betas
         self.eps = eps
         self.decoupled = decoupled_weight_decay
+        # Known once, so the step does not ask the device (a host sync) for every parameter.
+        self._coupled_decay = not decoupled_weight_decay and bool(self.weight_decay.any())
         self.steps = torch.zeros(n, dtype=torch.float64, device=device)
         self.exp_avg = params.detach().clone().zero_()
         self.exp_avg_sq = params.detach().clone().zero_()
@@ -104,7 +106,7 @@ class PopulationAdam:
                 continue
             if self.decoupled:
                 param.mul_(1 - _per_agent(decay, param))
-            elif bool(self.weight_decay.any()):
+            elif self._coupled_decay:
                 grad = grad + _per_agent(self.weight_decay.float(), param) * param
             exp_avg, exp_avg_sq = self.exp_avg.get(key), self.exp_avg_sq.get(key)
             new_avg = exp_avg.lerp(grad, 1 - beta1)

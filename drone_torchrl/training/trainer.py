@@ -79,6 +79,25 @@ def _policy_std(batch: TensorDictBase) -> torch.Tensor:
     return (scale * valid).sum(dims) / (valid.sum(dims) * scale.shape[-1])
 
 
+def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
+    """``tensor.tolist()`` of each tensor (of at least one dim), all copied to the host at once (in float64, which holds
+    every float32, int below 2**53 and bool exactly; ints and bools come back as such)."""
+    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).tolist()
+    out: dict[str, list] = {}
+    start = 0
+    for key, tensor in tensors.items():
+        values = flat[start : start + tensor.numel()]
+        start += tensor.numel()
+        if tensor.dtype == torch.bool:
+            values = [bool(v) for v in values]
+        elif not tensor.is_floating_point():
+            values = [int(v) for v in values]
+        for size in reversed(tensor.shape[1:]):  # regroup the trailing dims, innermost first
+            values = [values[i : i + size] for i in range(0, len(values), size)]
+        out[key] = values
+    return out
+
+
 class Trainer:
     """The jobs of one group (see :func:`~.jobs.group_key`) trained together: one agent or a population."""
 
@@ -127,10 +146,12 @@ class Trainer:
         population.step(active, checks.all(0))
         checks = torch.cat([checks, population.finite(active).unsqueeze(0)])
 
-        # Episodes and metrics of all agents come to the host together, once per update.
-        episodes = {k: v.tolist() for k, v in episode_stats(batch).items() if k in EPISODE_KEYS}
-        loss, norm, std = (t.tolist() for t in (losses["loss_per_agent"], grad_norms, _policy_std(batch)))
-        checks = checks.tolist()
+        # Episodes and metrics of all agents come to the host together: one copy (one sync) per update.
+        stats = {k: v for k, v in episode_stats(batch).items() if k in EPISODE_KEYS}
+        metrics = {"loss": losses["loss_per_agent"], "norm": grad_norms, "std": _policy_std(batch)}
+        host = _to_host({**stats, **metrics, "checks": checks})
+        episodes = {k: host[k] for k in stats}
+        loss, norm, std, checks = host["loss"], host["norm"], host["std"], host["checks"]
         for k, i in enumerate(active):
             failed = [what for what, ok in zip(CHECKS, (c[k] for c in checks), strict=True) if not ok]
             if failed:
