@@ -20,6 +20,9 @@ from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
 # torchrl: TorchRL env + ProbabilisticActor rollouts, the reference collector; fused: many agents
 # stepped as one batch on the shared dynamics, the fast path (drone_torchrl/training/collectors.py).
 ENGINES = ("torchrl", "fused")
+# The device kinds the code runs on. Others fail deep inside (mps has no float64 for the
+# population optimizer's per-agent scalars; meta holds no numbers), so they are refused up front.
+DEVICE_KINDS = ("cpu", "cuda")
 # The DroneEnv arguments a config holds under env.*: the one list of them.
 ENV_ARGS = (
     "mass",
@@ -421,6 +424,8 @@ def check_device(device: Any) -> None:
         kind = torch.device(device).type
     except (RuntimeError, TypeError):
         raise ConfigError.of("device", device, "a torch device such as 'cpu' or 'cuda'") from None
+    if kind not in DEVICE_KINDS:
+        raise ConfigError.of("device", device, "'cpu' or 'cuda' ('cuda:N' for GPU number N)")
     if kind == "cuda" and not torch.cuda.is_available():
         raise ConfigError.of("device", device, "'cpu' here (this torch build or machine has no CUDA device)")
 

@@ -179,6 +179,8 @@ TRAIN = [
     (["steps_per_call=2.5"], "steps_per_call"),
     (["device=cuda:0" if not torch.cuda.is_available() else "device=cuda:999"], "device"),
     (["device=tpu"], "device"),
+    (["device=mps"], "device"),  # a torch device this code does not run on: was a traceback
+    (["device=meta"], "device"),
     (["compile=maybe"], "compile"),
     (["compile=off"], "compile"),
     (["progress=sometimes"], "progress"),
@@ -289,6 +291,7 @@ EVAL = [
     (["seed=-1"], "seed"),
     (["seed=18446744073709551616"], "seed"),
     (["device=tpu"], "device"),
+    (["device=mps"], "device"),
     (["video=off"], "video"),
     (["plot=maybe"], "plot"),
     (["video_fps=0"], "video_fps"),
