@@ -87,8 +87,9 @@ def _snapshot(jobs: list[Path]) -> dict[Path, tuple[bytes, int]]:
     [
         "basic",
         "fused",
-        "local_parallel",
-        # ~20 s per sweep here: submitit starts a process per job, all at once, and polls them.
+        # ~20 s per sweep here: joblib and submitit start a process per job (torch, TorchRL and
+        # Hydra imported in each), so they run with -m slow (.ci/run runs them as a stage).
+        pytest.param("local_parallel", marks=pytest.mark.slow),
         pytest.param("local_submitit", marks=pytest.mark.slow),
         pytest.param("ray_local", marks=pytest.mark.ray),
     ],
@@ -115,7 +116,13 @@ def test_sweep_runs_then_skips_finished_jobs(launcher, request, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "launcher", ["basic", "fused", "local_parallel", pytest.param("ray_local", marks=pytest.mark.ray)]
+    "launcher",
+    [
+        "basic",
+        "fused",
+        pytest.param("local_parallel", marks=pytest.mark.slow),  # a process per job: ~20 s
+        pytest.param("ray_local", marks=pytest.mark.ray),
+    ],
 )
 def test_failed_job_is_summarised_and_the_others_finish(launcher, request, tmp_path):
     overrides = _require(launcher, request)
