@@ -80,8 +80,9 @@ def _policy_std(batch: TensorDictBase) -> torch.Tensor:
 
 
 def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
-    """``tensor.tolist()`` of each tensor (of at least one dim), all copied to the host at once (in float64, which holds
-    every float32, int below 2**53 and bool exactly; ints and bools come back as such)."""
+    """``tensor.tolist()`` of each tensor (of at least one dim), all copied to the host at once:
+    in float64, which holds every float32, int below 2**53 and bool exactly; ints and bools come
+    back as such."""
     flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).tolist()
     out: dict[str, list] = {}
     start = 0
