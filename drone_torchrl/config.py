@@ -63,6 +63,9 @@ MAX_SEED = 2**63 - 1
 MAX_PARALLEL_EPISODES = 10_000
 # torch's intra-op threads; far past the cores they only slow it down (and 10^5 crashes it).
 MAX_THREADS = 256
+# Updates per call of the update function: past a few hundred the Python loop is already negligible,
+# and each call holds its updates' metrics in memory.
+MAX_UPDATES_PER_CALL = 10_000
 # What a run writes into its folder: logger.exp_name must not collide with one of them.
 RUN_FOLDER_ENTRIES = frozenset(
     {"checkpoints", "videos", "episodes.csv", "config.yaml", "FAILED.txt", ".hydra", "train.log"}
@@ -360,6 +363,7 @@ ADDED_KEYS = {
     "model.init_std": None,
     "steps_per_call": 1,
     "algo.log_prob_reduction": "sum",
+    "updates_per_call": 1,
 }
 OPTIMIZERS = ("adam", "adamw")
 # The training loops: REINFORCE (algo=reinforce, algo=reinforce_plus; both engines, populations)
@@ -479,6 +483,7 @@ def validate(cfg: DictConfig) -> None:
     _number(cfg, "seed", low=0, high=MAX_SEED, integer=True)
     _number(cfg, "threads", low=1, high=MAX_THREADS, integer=True)
     _number(cfg, "steps_per_call", low=1, high=cfg.env.max_steps, integer=True)
+    _number(cfg, "updates_per_call", low=1, high=MAX_UPDATES_PER_CALL, integer=True)
     _number(cfg, "algo.lr", low=0, low_open=True, high=MAX_LR)
     _number(cfg, "algo.gamma", low=0, high=1)
     _number(cfg, "algo.episodes", low=1, integer=True)

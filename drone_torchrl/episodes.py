@@ -8,14 +8,17 @@ import torch
 from tensordict import TensorDictBase
 
 from drone_torchrl.envs.dynamics import ACTION_DIM, TerminationCause, in_target_zone
-from drone_torchrl.objectives.reinforce import valid_steps
+from drone_torchrl.envs.rollout import Episodes
 
 # What a run record books of each finished episode (one episodes.csv column each).
 EPISODE_KEYS = ("return", "length", "time_in_zone", "negative_thrust_fraction", "termination_cause")
 
 
-def episode_stats(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
+def episode_stats(rollout: TensorDictBase | Episodes) -> dict[str, torch.Tensor]:
     """Metrics of each row of a ``[*B, T]`` rollout that holds one episode per row (shape ``[*B]`` each).
+
+    ``rollout`` is a tensordict in ``EnvBase.rollout``'s layout (steps after a row's first ``done``
+    are ignored) or :class:`~drone_torchrl.envs.rollout.Episodes`.
 
     ``return``, ``length``; ``time_in_zone``: fraction of the episode's steps that ended inside the
     target zone; ``negative_thrust_fraction``: fraction of motor commands below zero (the paper's
@@ -24,28 +27,37 @@ def episode_stats(rollout: TensorDictBase) -> dict[str, torch.Tensor]:
     (0 if it never did); ``thrust_mean`` / ``thrust_max``: mean and largest motor command of the
     episode, as a fraction of the weight (0.5 per motor hovers).
     """
-    done = rollout.get(("next", "done"))
-    valid = valid_steps(done).squeeze(-1)
-    length = valid.sum(-1)
-    reward = rollout.get(("next", "reward")).squeeze(-1)
-    terminated = rollout.get(("next", "terminated")).squeeze(-1)
-    zone = in_target_zone(rollout.get(("next", "observation"))) & valid & ~terminated
-    action = rollout.get("action")
+    episodes = rollout if isinstance(rollout, Episodes) else Episodes.from_rollout(rollout)
+    valid, length, action = episodes.valid(), episodes.length, episodes.action
+    terminated = episodes.cause != int(TerminationCause.NONE)
+    zone = in_target_zone(episodes.states[..., 1:, :]) & valid & ~terminated
     negative = (action < 0) & valid.unsqueeze(-1)
     last = (length - 1).clamp_min(0).unsqueeze(-1)
-    cause = rollout.get(("next", "termination_cause")).squeeze(-1).gather(-1, last).squeeze(-1)
-    steps = length.clamp_min(1).to(reward.dtype)
+    steps = length.clamp_min(1).to(episodes.reward.dtype)
     reached = zone.any(-1)
     return {
-        "return": torch.where(valid, reward, 0.0).sum(-1),
+        "return": episodes.reward.sum(-1),  # zero after each row's end
         "length": length,
         "time_in_zone": zone.sum(-1) / steps,
         "negative_thrust_fraction": negative.sum((-1, -2)) / (steps * negative.shape[-1]),
-        "termination_cause": cause,
+        "termination_cause": episodes.cause.gather(-1, last).squeeze(-1),
         "first_zone_step": torch.where(reached, zone.to(torch.int64).argmax(-1) + 1, 0),
-        "thrust_mean": torch.where(valid.unsqueeze(-1), action, 0.0).sum((-1, -2))
-        / (steps * action.shape[-1]),
+        "thrust_mean": action.sum((-1, -2)) / (steps * action.shape[-1]),
         "thrust_max": torch.where(valid.unsqueeze(-1), action, -math.inf).amax((-1, -2)),
+    }
+
+
+def counted_metrics(length: torch.Tensor, counts: torch.Tensor) -> dict[str, torch.Tensor]:
+    """:data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies
+    (``[*B, 4]``: :data:`drone_torchrl.kernels.ops.STAT_NAMES`) and the lengths: the same numbers
+    as :func:`episode_stats`."""
+    steps = length.clamp_min(1).to(counts.dtype)
+    return {
+        "return": counts[..., 0],
+        "length": length,
+        "time_in_zone": counts[..., 1] / steps,
+        "negative_thrust_fraction": counts[..., 2] / (steps * ACTION_DIM),
+        "termination_cause": counts[..., 3].to(torch.int64),
     }
 
 

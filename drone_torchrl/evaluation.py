@@ -20,7 +20,7 @@ from drone_torchrl.config import physics_params
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController, PDGains
-from drone_torchrl.envs.rollout import ChunkFn, StepFn, chunked, fly
+from drone_torchrl.envs.rollout import RolloutFn, StepFn, chunked, fly
 from drone_torchrl.episodes import cause_counts, episode_stats
 
 
@@ -37,19 +37,19 @@ def policy_step(policy: TensorDictModuleBase, params: dynamics.DroneParams) -> S
 
 @torch.no_grad()
 def evaluate(
-    policy: TensorDictModuleBase | ChunkFn,
+    policy: TensorDictModuleBase | RolloutFn,
     env_kwargs: dict[str, Any],
     episodes: int,
     seed: int,
     device: str = "cpu",
     agents: int | None = None,
-    steps_per_call: int = 1,
 ) -> tuple[dict[str, torch.Tensor], TensorDictBase]:
     """Fly ``episodes`` seeded episodes with the policy's deterministic action.
 
     ``policy`` is a TensorDict module reading ``"observation"`` and writing ``"action"``, or a
-    :data:`~drone_torchrl.envs.rollout.ChunkFn` flying ``steps_per_call`` steps a call (the training
-    engines pass their own, so evaluation uses exactly the arithmetic of training). With ``agents=N`` the same start states are flown by N agents at
+    :data:`~drone_torchrl.envs.rollout.RolloutFn` flying start states to their episodes' ends with
+    the deterministic action (the training engines pass their own, so evaluation uses exactly the
+    arithmetic of training). With ``agents=N`` the same start states are flown by N agents at
     once (observations ``[N, episodes, 6]``). Returns the per-episode stats
     (:func:`~drone_torchrl.episodes.episode_stats`, shape ``[episodes]`` or ``[N, episodes]``)
     and the rollout.
@@ -60,8 +60,9 @@ def evaluate(
     if agents is not None:
         start = start.expand(agents, *start.shape).clone()
     if isinstance(policy, TensorDictModuleBase):
-        policy = chunked(policy_step(policy, env.params))
-    rollout = fly(policy, start, env.max_steps, steps_per_call)
+        rollout = fly(chunked(policy_step(policy, env.params)), start, env.max_steps)
+    else:
+        rollout = policy(start).as_rollout(env.max_steps)
     env.close()
     return episode_stats(rollout), rollout
 

@@ -99,7 +99,7 @@ def test_population_evaluation_equals_each_actor_alone(tmp_path):
     cfgs = [_cfg("algo.episodes=4", "eval.episodes=5", f"seed={s}") for s in (0, 1)]
     trainer = Trainer([prepare(cfg, tmp_path / f"run{i}") for i, cfg in enumerate(cfgs)])
     kwargs = env_kwargs(cfgs[0])
-    stacked, _ = evaluate(trainer.collector.eval_policy([0, 1]), kwargs, 5, 123, agents=2)
+    stacked, _ = evaluate(trainer.collector.eval_policy(), kwargs, 5, 123, agents=2)
     for i in range(len(cfgs)):
         alone, _ = evaluate(trainer.population.actor(i), kwargs, 5, 123)
         torch.testing.assert_close(stacked["return"][i], alone["return"])
@@ -127,7 +127,7 @@ def test_a_diverged_agent_stops_alone_and_keeps_its_last_finite_checkpoint(tmp_p
     jobs = [prepare(_cfg(*common, f"seed={s}"), tmp_path / f"agent{s}") for s in range(3)]
     trainer = Trainer(jobs)
     for _ in range(4):  # one episode per update: episodes 0..3, checkpoints after episodes 2 and 4
-        trainer.update([0, 1, 2])
+        trainer.step([0, 1, 2], 1)
     with torch.no_grad():
         trainer.population.policy.params.get(("mean", "bias"))[1] = float("nan")
     finals = trainer.train()
@@ -186,7 +186,7 @@ def test_checkpoint_actor_entries_equal_a_built_actor(preset):
     population = Population(cfgs)
     for agent in range(3):
         expected = build_actor(cfgs[agent], population.policy.agent_net(agent)).state_dict()
-        got = population.state(agent)["actor"]
+        got = population.checkpoint_entries(agent)["actor"]
         assert list(got) == list(expected)
         for key in expected:
             torch.testing.assert_close(got[key], expected[key], rtol=0, atol=0)

@@ -321,8 +321,9 @@ def test_stacked_nets_match_each_net_with_grads(activation, hidden_sizes):
 
 def _agent_grads(stacked: StackedThreeNet, nets: list[ThreeNetPolicy]) -> list[list[torch.Tensor]]:
     """Each agent's slice of the stacked parameters' gradients, in its own net's parameter order."""
+    grads = stacked.views(stacked.flat.grad)
     return [
-        [stacked.params.get(tuple(name.split("."))).grad[k].clone() for name, _ in net.named_parameters()]
+        [grads.get(tuple(name.split(".")))[k].clone() for name, _ in net.named_parameters()]
         for k, net in enumerate(nets)
     ]
 

@@ -8,7 +8,7 @@ from drone_torchrl.config import config_dir, validate
 from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.trainer import Trainer
 
-COMMON = ["engine=fused", "compile=false", "eval.video=false", "progress=false", "algo.episodes=4"]
+COMMON = ["engine=fused", "eval.video=false", "progress=false", "algo.episodes=4"]
 
 
 def _trainer(tmp_path, name, *overrides):
@@ -18,32 +18,39 @@ def _trainer(tmp_path, name, *overrides):
 
 
 def _loss_and_weights(trainer):
-    batch = trainer.collector.collect([0], [0])
-    loss = trainer.loss_module([0])(batch)["loss_reinforce"]
-    trainer.population.zero_grad()
-    loss.backward()
-    params = trainer.population.policy.params
-    grads = {k: v.grad.detach().clone() for k, v in params.items(True, True)}
-    trainer.population.step([0])
-    weights = {k: v.detach().clone() for k, v in params.items(True, True)}
-    return batch, loss.detach(), weights, grads
+    """One update of the only agent: its episode lengths, loss, weights after the step and gradient."""
+    state, update = trainer.population.state, trainer.update
+    active = torch.ones(1, dtype=torch.bool)
+    update.begin(state, 1)
+    g = update.gradient(state, 0, active)
+    views = trainer.population.policy.views
+    grads = {k: v.clone() for k, v in views(g.grad).items(True, True)}
+    trainer.population.adam.step(state, g.grad, active)
+    weights = {k: v.detach().clone() for k, v in views(state["params"]).items(True, True)}
+    return g.episodes["length"], g.loss, weights, grads
 
 
+@pytest.mark.parametrize("compiled", ["compile=false", "compile=true"])  # PyTorch, C++ kernels
 @pytest.mark.parametrize("optimizer", ["adam", "adamw"])
-def test_mean_reduction_halves_the_loss_and_adam_takes_the_same_step(tmp_path, optimizer):
+def test_mean_reduction_halves_the_loss_and_adam_takes_the_same_step(tmp_path, optimizer, compiled):
     """Mean over two motors = half the joint log-probability, so half the gradient; Adam's step
     g / (|g| + eps) is then the same up to eps: the preset's optimizer, not this option, differs."""
     decay = "algo.weight_decay=0.01" if optimizer == "adamw" else "algo.weight_decay=0"
     runs = {}
     for reduction in ("sum", "mean"):
         trainer = _trainer(
-            tmp_path, reduction, f"algo.optimizer={optimizer}", decay, f"algo.log_prob_reduction={reduction}"
+            tmp_path,
+            reduction,
+            compiled,
+            f"algo.optimizer={optimizer}",
+            decay,
+            f"algo.log_prob_reduction={reduction}",
         )
         start = {k: v.detach().clone() for k, v in trainer.population.policy.params.items(True, True)}
         runs[reduction] = (*_loss_and_weights(trainer), start)
         trainer.close()
-    (batch_s, loss_s, after_s, grads, start), (batch_m, loss_m, after_m, _, _) = runs["sum"], runs["mean"]
-    assert torch.equal(batch_s["action"], batch_m["action"])  # the same episode
+    (length_s, loss_s, after_s, grads, start), (length_m, loss_m, after_m, _, _) = runs["sum"], runs["mean"]
+    assert torch.equal(length_s, length_m)  # the same episode
     torch.testing.assert_close(loss_m, loss_s / 2, rtol=1e-6, atol=0)
     lr, eps = 1e-4, 1e-8
     for key in start:

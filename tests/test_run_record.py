@@ -14,6 +14,7 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 import drone_torchrl
 from drone_torchrl.config import ConfigError, config_dir
+from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.io.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, save_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.modules import make_actor
@@ -138,14 +139,18 @@ def test_population_loss_equals_the_torchrl_actor_loss(tmp_path, preset, engine)
     cfg = _cfg(*common)
     trainer = Trainer([prepare(cfg, tmp_path / "run")])
     reference = Trainer([prepare(_cfg(*common, "engine=torchrl"), tmp_path / "ref")])
-    batch = reference.collector.collect([0], [0])  # [1, 3, T]
+    batch = reference.collector.collect(0, torch.ones(1, dtype=torch.bool))  # [1, 3, T]
     assert batch.shape[:2] == (1, 3)
     reference.close()
 
-    loss = trainer.loss_module([0])(batch.clone())
-    trainer.population.zero_grad()
+    update, policy = trainer.update, trainer.population.policy
+    if engine == "torchrl":  # ReinforceLoss through the population's ProbabilisticActor
+        loss, _, _ = update._score_rollout(batch.clone())
+    else:  # the same arithmetic on plain tensors, the network and distribution called directly
+        loss, _, _ = update._score_episodes(Episodes.from_rollout(batch))
+    policy.flat.grad = None
     loss["loss_reinforce"].backward()
-    policy = trainer.population.policy
+    grads = policy.views(policy.flat.grad)
 
     actor = make_actor(
         cfg.model.distribution,
@@ -163,7 +168,7 @@ def test_population_loss_equals_the_torchrl_actor_loss(tmp_path, preset, engine)
         loss["loss_reinforce"].detach(), plain["loss_reinforce"].detach(), rtol=1e-5, atol=1e-6
     )
     for name, param in actor.module[0].module.named_parameters():
-        stacked_grad = policy.params.get(tuple(name.split("."))).grad[0]
+        stacked_grad = grads.get(tuple(name.split(".")))[0]
         assert param.grad.abs().sum() > 0
         torch.testing.assert_close(stacked_grad, param.grad, rtol=1e-4, atol=1e-6)
     trainer.close()

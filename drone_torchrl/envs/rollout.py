@@ -15,9 +15,10 @@ its chunk as one graph (``steps_per_call``), which removes the fixed cost of a c
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 
 from drone_torchrl.envs.dynamics import TerminationCause
 
@@ -41,17 +42,123 @@ def chunked(step: StepFn) -> ChunkFn:
     return chunk
 
 
-@torch.no_grad()
+class Episodes(NamedTuple):
+    """One episode per row, as plain tensors: what the fast engine trains on and the metrics read.
+
+    ``states [*B, T + 1, 6]`` (before each step, then after the row's last step),
+    ``action [*B, T, 2]``, ``reward [*B, T]``, ``cause [*B, T]`` (int64 :class:`TerminationCause`
+    codes) and ``length [*B]`` (int64 steps of each row's episode). Entries after a row's end are
+    zeros. :meth:`as_rollout` gives the layout of TorchRL's ``EnvBase.rollout``.
+    """
+
+    states: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    cause: torch.Tensor
+    length: torch.Tensor
+
+    @property
+    def steps(self) -> int:
+        return self.reward.shape[-1]
+
+    def valid(self) -> torch.Tensor:
+        """``[*B, T]`` bool: the steps of each row's episode."""
+        return torch.arange(self.steps, device=self.length.device) < self.length.unsqueeze(-1)
+
+    def last(self) -> torch.Tensor:
+        """``[*B, T]`` bool: each row's last step (none for an empty row)."""
+        return torch.arange(self.steps, device=self.length.device) == (self.length - 1).unsqueeze(-1)
+
+    @classmethod
+    def from_steps(
+        cls,
+        states: torch.Tensor,
+        action: torch.Tensor,
+        reward: torch.Tensor,
+        cause: torch.Tensor,
+        length: torch.Tensor,
+    ) -> Episodes:
+        """Rows of ``length`` steps out of longer buffers (``states[..., length, :]`` is the state after a
+        row's last step): the entries after each row's end are zeroed."""
+        steps = torch.arange(reward.shape[-1] + 1, device=length.device)
+        keep = steps <= length.unsqueeze(-1)  # states: up to the one after the last step
+        valid = keep[..., :-1] & keep[..., 1:]
+        return cls(
+            torch.where(keep.unsqueeze(-1), states, 0.0),
+            torch.where(valid.unsqueeze(-1), action, 0.0),
+            torch.where(valid, reward, 0.0),
+            torch.where(valid, cause, 0),
+            length,
+        )
+
+    @classmethod
+    def from_rollout(cls, rollout: TensorDictBase) -> Episodes:
+        """The first episode of each row of a ``[*B, T]`` rollout (``EnvBase.rollout``'s layout; a row may
+        go on after its first ``done``, repeating or starting a new episode: that part is dropped)."""
+        done = rollout.get(("next", "done")).squeeze(-1)
+        length = ((done.cumsum(-1) - done.to(torch.int64)) == 0).sum(-1)  # up to the first done
+        next_obs = rollout.get(("next", "observation"))
+        states = torch.cat([rollout.get("observation"), next_obs[..., -1:, :]], -2)
+        # The state after each row's last step (the rows that end early may repeat after it).
+        at = length.reshape(*length.shape, 1, 1).expand(*length.shape, 1, states.shape[-1])
+        states = states.scatter(-2, at, next_obs.gather(-2, (at - 1).clamp_min(0)))
+        reward = rollout.get(("next", "reward")).squeeze(-1)
+        cause = rollout.get(("next", "termination_cause")).squeeze(-1)
+        return cls.from_steps(states, rollout.get("action"), reward, cause, length)
+
+    def as_rollout(self, max_steps: int) -> TensorDict:
+        """The ``[*B, T]`` tensordict of ``EnvBase.rollout(..., break_when_all_done=True)``, cut after the
+        longest episode: ``observation``, ``action``, ``step_count`` and ``next`` (``observation``,
+        ``reward``, ``terminated``, ``truncated``, ``done``, ``termination_cause``). A row that did not
+        terminate by step ``max_steps`` is truncated there."""
+        n = max(int(self.length.max()), 1) if self.length.numel() else 1
+        cause = self.cause[..., :n]
+        terminated = cause != int(TerminationCause.NONE)
+        truncated = self.last()[..., :n] & ~terminated & (self.length == max_steps).unsqueeze(-1)
+        batch = [*self.length.shape, n]
+        steps = torch.arange(n, device=cause.device).expand(*batch)
+        column = lambda x: x.unsqueeze(-1)  # noqa: E731
+        following = TensorDict(
+            {
+                "observation": self.states[..., 1 : n + 1, :],
+                "reward": column(self.reward[..., :n]),
+                "terminated": column(terminated),
+                "truncated": column(truncated),
+                "done": column(terminated | truncated),
+                "termination_cause": column(cause),
+            },
+            batch_size=batch,
+        )
+        return TensorDict(
+            {
+                "observation": self.states[..., :n, :],
+                "action": self.action[..., :n, :],
+                "step_count": column(steps),
+                "next": following,
+            },
+            batch_size=batch,
+        )
+
+
+# start states [*B, 6] -> whole episodes, one per row, with the deterministic action.
+RolloutFn = Callable[[torch.Tensor], Episodes]
+
+
 def fly(chunk: ChunkFn, start: torch.Tensor, max_steps: int, steps_per_call: int = 1) -> TensorDict:
+    """:func:`fly_episodes` as :meth:`Episodes.as_rollout`'s ``[*B, T]`` tensordict (``T``: the step
+    the last episode ended at)."""
+    return fly_episodes(chunk, start, max_steps, steps_per_call).as_rollout(max_steps)
+
+
+@torch.no_grad()
+def fly_episodes(chunk: ChunkFn, start: torch.Tensor, max_steps: int, steps_per_call: int = 1) -> Episodes:
     """Fly ``start`` (``[*B, 6]``) until every episode has terminated or ``max_steps`` steps passed.
 
     ``chunk`` flies up to ``steps_per_call`` steps per call (:func:`chunked` turns a
     :data:`StepFn` into one); the steps a chunk flies after the last episode ended are dropped, so
     the result does not depend on ``steps_per_call``. One episode per row: rows that terminated
-    early keep being stepped until the last one ends (as ``break_when_all_done`` repeats them);
-    :func:`~drone_torchrl.objectives.valid_steps` masks those steps. Returns a ``[*B, T]``
-    tensordict with ``observation``, ``action``, ``step_count`` and ``next`` (``observation``,
-    ``reward``, ``terminated``, ``truncated``, ``done``, ``termination_cause``).
+    early keep being stepped until the last one ends, and those steps are then dropped (zeros,
+    after the row's end).
     """
     state = start
     pieces: list[tuple[torch.Tensor, ...]] = []
@@ -69,32 +176,9 @@ def fly(chunk: ChunkFn, start: torch.Tensor, max_steps: int, steps_per_call: int
         pieces.append(tuple(x[:k] for x in (observations, actions, rewards, causes)))
         state, ended, t = states[k - 1], ended_after[k - 1], t + k
     obs, action, reward, cause = (torch.cat(column) for column in zip(*pieces, strict=True))
-    obs, action, reward, cause = (
-        obs.movedim(0, -2),
-        action.movedim(0, -2),
-        reward.movedim(0, -1),
-        cause.movedim(0, -1),
-    )
-    n = cause.shape[-1]
+    states = torch.cat([obs, state.unsqueeze(0)]).movedim(0, -2)
+    cause = cause.movedim(0, -1)
     terminated = cause != int(TerminationCause.NONE)
-    truncated = torch.zeros_like(terminated)
-    if n == max_steps:
-        truncated[..., -1] = ~terminated[..., -1]
-    next_obs = torch.cat([obs[..., 1:, :], state.unsqueeze(-2)], -2)
-    steps = torch.arange(n, device=start.device).expand(*start.shape[:-1], n)
-    return TensorDict(
-        {
-            "observation": obs,
-            "action": action,
-            "step_count": steps.unsqueeze(-1),
-            "next": {
-                "observation": next_obs,
-                "reward": reward.unsqueeze(-1),
-                "terminated": terminated.unsqueeze(-1),
-                "truncated": truncated.unsqueeze(-1),
-                "done": (terminated | truncated).unsqueeze(-1),
-                "termination_cause": cause.unsqueeze(-1),
-            },
-        },
-        batch_size=[*start.shape[:-1], n],
-    )
+    # Each row's episode ends at its first termination (the rows stepped on after it are dropped).
+    length = torch.where(terminated.any(-1), terminated.int().argmax(-1) + 1, cause.shape[-1])
+    return Episodes.from_steps(states, action.movedim(0, -2), reward.movedim(0, -1), cause, length)

@@ -109,6 +109,16 @@ def check_head(distribution: str, max_thrust: float | None) -> None:
         )
 
 
+def distribution_head(distribution: str, max_thrust: float | None) -> tuple[type, dict]:
+    """The TorchRL distribution class and its keyword arguments for the head ``distribution``
+    (``cls(loc, scale, **kwargs)``): what the actor samples from and the losses score with."""
+    check_head(distribution, max_thrust)
+    if distribution == "normal":
+        return IndependentNormal, {}
+    # tanh_loc=False keeps the mean head's scale: with True and bounds [0, A] a zero mean maps near A.
+    return TanhNormal, {"low": 0.0, "high": float(max_thrust), "tanh_loc": False}
+
+
 def actor_from_net(
     net: nn.Module, distribution: str, max_thrust: float | None, return_log_prob: bool = False
 ) -> ProbabilisticActor:
@@ -118,15 +128,8 @@ def actor_from_net(
     sample and score actions with the same distribution. ``return_log_prob``: also write the
     sampled action's ``"action_log_prob"`` (PPO's importance ratio needs it).
     """
-    check_head(distribution, max_thrust)
     module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
-    if distribution == "normal":
-        dist_class, dist_kwargs = IndependentNormal, {}
-    else:
-        # tanh_loc=False keeps the mean head's scale: with True and bounds [0, A] a zero mean maps
-        # near A.
-        dist_class = TanhNormal
-        dist_kwargs = {"low": 0.0, "high": float(max_thrust), "tanh_loc": False}
+    dist_class, dist_kwargs = distribution_head(distribution, max_thrust)
     return ProbabilisticActor(
         module,
         in_keys=["loc", "scale"],

@@ -1,13 +1,19 @@
 """The three-net policy of many agents at once: one set of parameters stacked over a leading agent dim.
 
 :class:`StackedThreeNet` holds N agents' :class:`~drone_torchrl.modules.ThreeNetPolicy` weights as
-one ``TensorDictParams`` of ``[N, ...]`` leaves (``TensorDict.from_modules(..., as_module=True)``,
-as TorchRL's ``MultiAgentMLP`` holds its agents), so an optimizer step, a clip or a forward is a
-fixed number of kernels whatever N is. The forward applies every agent's net to its own
-observations with batched matrix products (``torch.baddbmm``), one kernel per layer.
+one ``[N, P]`` parameter (:attr:`~StackedThreeNet.flat`: each agent's weights and biases one after
+the other, in ``named_parameters()`` order), so an optimizer step, a clip, a finite check or a C++
+kernel call is one operation whatever N and the depth are. :attr:`~StackedThreeNet.params` views
+the same storage as a ``TensorDict`` of ``[N, ...]`` leaves keyed like the net's own parameters
+(``("shared", "0", "weight")`` for ``shared.0.weight``), as ``TensorDict.from_modules`` and TorchRL's
+``MultiAgentMLP`` hold theirs. The PyTorch forward applies every agent's net to its own
+observations with batched matrix products (``torch.baddbmm``), one kernel per layer; the fast
+engine's C++ kernels (:mod:`drone_torchrl.kernels`) read ``flat`` directly.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from tensordict import TensorDict
@@ -28,8 +34,7 @@ class StackedThreeNet(nn.Module):
     """N :class:`ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., 6]`` observations.
 
     ``nets`` give the architecture and each agent's initial weights (copied; the nets themselves
-    are not used afterwards). ``params`` holds the ``[N, ...]`` leaves, keyed like the net's own
-    parameters (``("shared", "0", "weight")`` for ``shared.0.weight``).
+    are not used afterwards).
     """
 
     def __init__(self, nets: list[ThreeNetPolicy], activation: str) -> None:
@@ -40,21 +45,39 @@ class StackedThreeNet(nn.Module):
             raise ValueError("stacked nets must share hidden_sizes and min_std")
         if kinds != {(ACTIVATIONS[activation],) * (len(nets[0].shared) // 2)}:
             raise ValueError(f"stacked nets must all use activation={activation!r}")
-        self.params = TensorDict.from_modules(*nets, as_module=True)
+        first = nets[0]
+        self.names = [name for name, _ in first.named_parameters()]
+        self.shapes = [p.shape for p in first.parameters()]
+        self.flat = nn.Parameter(
+            torch.stack([torch.cat([p.detach().reshape(-1) for p in net.parameters()]) for net in nets])
+        )
+        self.activation_name = activation
         self.activation = ACTIVATIONS[activation]()
-        self.min_std = nets[0].min_std
-        self.linears = [tuple(name.split(".")) for name in _linear_names(nets[0])]
-        self.names = [name for name, _ in nets[0].named_parameters()]
+        self.min_std = first.min_std
+        self.linears = [tuple(name.split(".")) for name in _linear_names(first)]
         self.n_hidden = len(self.linears) - 2
-        hidden = [m.out_features for m in nets[0].shared if isinstance(m, nn.Linear)]
-        self.spec = {"hidden_sizes": hidden, "activation": activation, "min_std": self.min_std}
+        self.hidden_sizes = [m.out_features for m in first.shared if isinstance(m, nn.Linear)]
+        self.spec = {"hidden_sizes": self.hidden_sizes, "activation": activation, "min_std": self.min_std}
 
     def __len__(self) -> int:
-        return self.params.batch_size[0]
+        return self.flat.shape[0]
 
-    def stacked(self, params: TensorDict | None = None) -> Layers:
+    def views(self, flat: torch.Tensor) -> TensorDict:
+        """``flat`` (``[N, P]``, or anything laid out like it: a gradient, Adam's moments) as named ``[N, ...]`` views."""
+        leaves, start = {}, 0
+        for name, shape in zip(self.names, self.shapes, strict=True):
+            size = math.prod(shape)
+            leaves[tuple(name.split("."))] = flat[:, start : start + size].unflatten(1, shape)
+            start += size
+        return TensorDict(leaves, batch_size=flat.shape[:1])
+
+    @property
+    def params(self) -> TensorDict:
+        return self.views(self.flat)
+
+    def stacked(self, flat: torch.Tensor | None = None) -> Layers:
         """``[(W^T [N, in, out], b [N, 1, out]), ...]``: hidden layers, then the mean and std heads."""
-        params = self.params if params is None else params
+        params = self.views(self.flat if flat is None else flat)
         return [
             (params.get((*key, "weight")).transpose(1, 2), params.get((*key, "bias")).unsqueeze(1))
             for key in self.linears
@@ -80,15 +103,15 @@ class StackedThreeNet(nn.Module):
     # ------------------------------------------------------------------ one agent
     def agent_state_dict(self, agent: int) -> dict[str, torch.Tensor]:
         """Agent ``agent``'s weights as a :class:`ThreeNetPolicy` state dict (copies)."""
-        return {name: self.params.get(tuple(name.split(".")))[agent].detach().clone() for name in self.names}
+        params = self.params
+        return {name: params.get(tuple(name.split(".")))[agent].detach().clone() for name in self.names}
 
     @torch.no_grad()
     def load_agent_state_dict(self, agent: int, state: dict[str, torch.Tensor]) -> None:
         missing = set(self.names) - set(state)
         if missing:
             raise KeyError(f"missing policy weights: {sorted(missing)}")
-        for name in self.names:
-            self.params.get(tuple(name.split(".")))[agent] = state[name]
+        self.flat[agent] = torch.cat([state[name].reshape(-1).to(self.flat) for name in self.names])
 
     def agent_net(self, agent: int) -> ThreeNetPolicy:
         """A standalone copy of agent ``agent``'s policy (for videos, checkpoints and export).

@@ -23,16 +23,28 @@ def discounted_returns(reward: torch.Tensor, done: torch.Tensor, gamma: float | 
 
     Several episodes may follow each other in a row: the sum restarts after every ``done``.
     ``gamma`` may be a float or a tensor broadcastable to ``[*B, 1]`` (one discount per row).
-    Same result as ``torchrl.objectives.value.functional.reward2go``, which is about 20x slower
-    on ``[4096, 300]`` and takes only a scalar discount.
+
+    The recursion ``G_t = R_t + a_t G_{t+1}`` (``a_t = gamma``, or 0 at a ``done``) is solved as a
+    parallel suffix scan: after round ``r`` each step holds the composition of the ``2^r`` steps from
+    it, ``G_t = b_t + a_t G_{t+2^r}``, so ``ceil(log2 T)`` rounds of a few whole-tensor operations
+    replace ``T`` sequential ones (9 rounds for 300 steps). Same result as
+    ``torchrl.objectives.value.functional.reward2go`` up to float rounding (the sums are added in
+    another order), which is about 20x slower and takes only a scalar discount.
     """
-    returns = torch.empty_like(reward)
-    running = torch.zeros_like(reward[..., -1, :])
-    keep = (~done).to(reward.dtype)
-    for t in range(reward.shape[-2] - 1, -1, -1):
-        running = reward[..., t, :] + gamma * running * keep[..., t, :]
-        returns[..., t, :] = running
-    return returns
+    gamma = torch.as_tensor(gamma, dtype=reward.dtype, device=reward.device)
+    if gamma.ndim:  # broadcastable to [*B, 1]: add the time dim
+        gamma = gamma.unsqueeze(-2)
+    gain = torch.where(done, 0.0, gamma).expand_as(reward)
+    total = reward
+    steps, shift = reward.shape[-2], 1
+    while shift < steps:
+        # Beyond the last step the return is 0: pad the shifted sums with zeros (and the gains, so
+        # that later rounds keep adding nothing).
+        ahead = torch.nn.functional.pad(total[..., shift:, :], (0, 0, 0, shift))
+        total = total + gain * ahead
+        gain = gain * torch.nn.functional.pad(gain[..., shift:, :], (0, 0, 0, shift))
+        shift *= 2
+    return total
 
 
 def valid_steps(done: torch.Tensor) -> torch.Tensor:
@@ -114,54 +126,78 @@ class ReinforceLoss(LossModule):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         keys = self.tensor_keys
-        reward = tensordict.get(("next", keys.reward))
         done = tensordict.get(("next", keys.done))
         mask = tensordict.get(("collector", "mask"), default=None)
         mask = valid_steps(done) if mask is None else mask.reshape(done.shape)
-        n_agent = self.agent_dims
-        gamma = self.gamma
-        if isinstance(gamma, torch.Tensor):  # one discount per agent: [*A] -> [*A, 1, ..., 1]
-            gamma = gamma.reshape(*gamma.shape, *([1] * (reward.ndim - n_agent - 1)))
-        returns = discounted_returns(reward, done & mask, gamma).squeeze(-1)
-        mask = mask.squeeze(-1)
-        step = tensordict.get(keys.step_count).squeeze(-1)
-        # Sums over everything but the agent dims: each agent's loss is its own episodes' mean,
-        # and the total is the sum over agents, so each agent's gradient is exactly its own.
-        dims = tuple(range(n_agent, returns.ndim))
-
-        def per_agent(x: torch.Tensor) -> torch.Tensor:
-            return torch.where(mask, x, 0.0).sum(dims)
-
-        def broadcast(x: torch.Tensor) -> torch.Tensor:
-            return x.reshape(*x.shape, *([1] * len(dims)))
-
-        starts = (step == 0) & mask
-        episodes = starts.sum(dims).clamp_min(1)
-        steps = mask.sum(dims).clamp_min(1)
-        episode_return = per_agent(torch.where(starts, returns, 0.0)) / episodes
-
-        weight = returns
-        if self.baseline == "mean" or self.normalize_returns:
-            weight = weight - broadcast(per_agent(returns) / steps)
-        if self.normalize_returns:
-            std = (per_agent(weight**2) / steps).sqrt()
-            weight = weight / broadcast(std + torch.finfo(returns.dtype).eps)
-        if self.discount_weight:
-            weight = weight * gamma ** step.to(returns.dtype)
-
-        dist = self.actor_network.get_dist(tensordict)
         action = tensordict.get(keys.action)
-        log_prob = dist.log_prob(action)  # the motors' log-probabilities, summed
+        log_prob = self.actor_network.get_dist(tensordict).log_prob(action)  # the motors', summed
         if self.log_prob_reduction == "mean":
             log_prob = log_prob / action.shape[-1]
-        loss_per_agent = per_agent(-(weight.detach() * log_prob)) / episodes
-        return TensorDict(
-            {
-                "loss_reinforce": loss_per_agent.sum(),
-                "loss_per_agent": loss_per_agent.detach(),
-                "return_mean": episode_return.detach(),
-                "log_prob_mean": (per_agent(log_prob) / steps).detach(),
-                "episodes": episodes.detach(),
-            },
-            batch_size=[],
+        terms = reinforce_terms(
+            log_prob,
+            tensordict.get(("next", keys.reward)).squeeze(-1),
+            done.squeeze(-1),
+            mask.squeeze(-1),
+            tensordict.get(keys.step_count).squeeze(-1),
+            self.gamma,
+            agent_dims=self.agent_dims,
+            baseline=self.baseline,
+            normalize_returns=self.normalize_returns,
+            discount_weight=self.discount_weight,
         )
+        return TensorDict(terms, batch_size=[])
+
+
+def reinforce_terms(
+    log_prob: torch.Tensor,
+    reward: torch.Tensor,
+    done: torch.Tensor,
+    mask: torch.Tensor,
+    step: torch.Tensor,
+    gamma: float | torch.Tensor,
+    *,
+    agent_dims: int = 0,
+    baseline: str = "none",
+    normalize_returns: bool = False,
+    discount_weight: bool = False,
+) -> dict[str, torch.Tensor]:
+    """The arithmetic of :class:`ReinforceLoss` on plain ``[*A, *B, T]`` tensors (``A``: the
+    ``agent_dims`` leading agent dims): the stored actions' ``log_prob`` (already reduced over the
+    motors), ``reward``, ``done``, the ``mask`` of valid steps and each step's index in its episode.
+    ``gamma``: a float or one discount per agent (``[*A]``). Returns :class:`ReinforceLoss`'s outputs.
+    """
+    if isinstance(gamma, torch.Tensor):  # one discount per agent: [*A] -> [*A, 1, ..., 1]
+        gamma = gamma.reshape(*gamma.shape, *([1] * (reward.ndim - agent_dims)))
+    returns = discounted_returns(reward.unsqueeze(-1), (done & mask).unsqueeze(-1), gamma).squeeze(-1)
+    # Sums over everything but the agent dims: each agent's loss is its own episodes' mean,
+    # and the total is the sum over agents, so each agent's gradient is exactly its own.
+    dims = tuple(range(agent_dims, returns.ndim))
+
+    def per_agent(x: torch.Tensor) -> torch.Tensor:
+        return torch.where(mask, x, 0.0).sum(dims)
+
+    def broadcast(x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(*x.shape, *([1] * len(dims)))
+
+    starts = (step == 0) & mask
+    episodes = starts.sum(dims).clamp_min(1)
+    steps = mask.sum(dims).clamp_min(1)
+    episode_return = per_agent(torch.where(starts, returns, 0.0)) / episodes
+
+    weight = returns
+    if baseline == "mean" or normalize_returns:
+        weight = weight - broadcast(per_agent(returns) / steps)
+    if normalize_returns:
+        std = (per_agent(weight**2) / steps).sqrt()
+        weight = weight / broadcast(std + torch.finfo(returns.dtype).eps)
+    if discount_weight:
+        weight = weight * gamma ** step.to(returns.dtype)
+
+    loss_per_agent = per_agent(-(weight.detach() * log_prob)) / episodes
+    return {
+        "loss_reinforce": loss_per_agent.sum(),
+        "loss_per_agent": loss_per_agent.detach(),
+        "return_mean": episode_return.detach(),
+        "log_prob_mean": (per_agent(log_prob) / steps).detach(),
+        "episodes": episodes.detach(),
+    }

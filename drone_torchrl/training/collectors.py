@@ -1,19 +1,22 @@
 """Where a batch of episodes comes from. The two engines differ here and only here.
 
-Both collectors give the loop the same thing for the agents it asks for: a ``[A, E, T]``
-tensordict in the layout of ``EnvBase.rollout`` (``A`` agents, ``E`` episodes each, one episode
-per row, steps after a row's end masked by ``valid_steps``), the actor that scores it for the loss,
-and a policy for the evaluator.
+Both collectors give the update the same thing: a ``[N, E, T]`` tensordict in the layout of
+``EnvBase.rollout`` (``N`` agents, ``E`` episodes each, one episode per row, steps after a row's end
+masked by ``valid_steps``), the actor that scores it for the loss, and a policy for the evaluator.
+An update call of ``k`` updates first calls :meth:`begin`, then :meth:`collect` once per update.
 
 - :class:`TorchRLCollector` (``engine=torchrl``), the reference: ``DroneEnv.rollout`` (or a
   ``ParallelEnv`` of them) with the ``ProbabilisticActor``, sampling from torch's global RNG.
   One agent.
 - :class:`VectorisedCollector` (``engine=fused``), the fast path: any number of agents on the
-  same :mod:`~drone_torchrl.envs.dynamics`, the policy forward + sampling + physics of one step
-  as one function (optionally ``torch.compile``-d). Start states and the whole update's action noise
-  come from the counter-based generator of :mod:`.rng` (a function of each agent's seed and update
-  count), drawn for all agents at once, so an agent's run does not depend on which other agents
-  share the batch.
+  same :mod:`~drone_torchrl.envs.dynamics`. Start states and action noise come from the
+  counter-based generator of :mod:`.rng` (a function of each agent's seed and update count), drawn
+  for all agents and many updates at once, so an agent's run does not depend on which other
+  agents share the batch. With ``compile=true`` on the CPU the episodes are flown by the C++
+  kernel (:mod:`drone_torchrl.kernels`, one call per update) and the loss runs the network through
+  its C++ op; elsewhere (a GPU, or where the kernel cannot be built) the policy forward, sampling
+  and physics of ``steps_per_call`` steps are one ``torch.compile``-d function; with
+  ``compile=false`` the same PyTorch code runs eagerly (the reference the kernels are tested against).
 """
 
 from __future__ import annotations
@@ -31,12 +34,16 @@ from torchrl.modules import ProbabilisticActor
 from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.factory import make_env
-from drone_torchrl.envs.rollout import ChunkFn, chunked, fly
+from drone_torchrl.envs.rollout import ChunkFn, Episodes, RolloutFn, chunked, fly_episodes
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.modules.stacked import ActionSampler
 from drone_torchrl.training import rng
 from drone_torchrl.training.population import Population
+
+# The action noise of one call's updates is drawn at once, in pieces of at most this many numbers
+# (4 bytes each): 100 updates of 32 agents' 300-step episodes take 1.9 M, a 1024-agent update 0.6 M.
+NOISE_PER_DRAW = 1 << 22
 
 
 class _OneAgent(nn.Module):
@@ -69,24 +76,27 @@ class TorchRLCollector:
         self.env = make_env(num_envs=per_worker, num_workers=workers, device=cfg.device, **env_kwargs(cfg))
         self.env.set_seed(cfg.seed)
         self.cfg = cfg
-        self._loss_actor = build_actor(cfg, population.net([0]))
-        self._actor = build_actor(cfg, _OneAgent(population.net([0])))
+        self._loss_actor = build_actor(cfg, population.policy)
+        self._actor = build_actor(cfg, _OneAgent(population.policy))
         self._stop = (
             {"break_when_all_done": True}
             if workers == 0 or per_worker == 1
             else {"break_when_any_done": False}
         )
 
-    def collect(self, agents: list[int], counters: list[int]) -> TensorDictBase:
+    def begin(self, state: TensorDictBase, k: int) -> None:
+        pass
+
+    def collect(self, j: int, active: torch.Tensor) -> TensorDictBase:
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             rollout = self.env.rollout(self.cfg.env.max_steps, self._actor, **self._stop)
         return rollout.reshape(1, -1, rollout.shape[-1])
 
-    def actor(self, agents: list[int]) -> ProbabilisticActor:
+    def actor(self) -> ProbabilisticActor:
         """The actor that scores ``[1, E, T]`` batches (the agent dim first)."""
         return self._loss_actor
 
-    def eval_policy(self, agents: list[int]) -> ProbabilisticActor:
+    def eval_policy(self) -> ProbabilisticActor:
         return self._actor
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:
@@ -109,7 +119,7 @@ class TorchRLCollector:
 
 
 class VectorisedCollector:
-    """Every agent's episodes flown as one batch on the shared dynamics (``[A, E, 6]`` states)."""
+    """Every agent's episodes flown as one batch on the shared dynamics (``[N, E, 6]`` states)."""
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
         self.cfg = cfg
@@ -120,12 +130,17 @@ class VectorisedCollector:
         self.device = torch.device(cfg.device)
         self.sampler = ActionSampler(cfg.model.distribution, cfg.env.max_thrust)
         self.steps_per_call = cfg.steps_per_call
-        self._actor: ProbabilisticActor | None = None
-        # compile=true fuses the ~40 small kernels of each step (policy, sampling, physics) of a
-        # chunk of steps_per_call steps into one graph; it costs a one-off compilation per batch
-        # shape and changes float rounding slightly.
-        self._compiled = torch.compile(self._steps) if cfg.compile else None
-        self._chunk = self._compiled_steps if cfg.compile else self._steps
+        squash = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
+        self.kernel = _kernel_rollout(cfg, population, squash)
+        self.net = population.policy
+        self._actor = actor_from_net(self.net, cfg.model.distribution, cfg.env.max_thrust)
+        # compile=true without the kernels fuses the ~40 small kernels of each step (policy,
+        # sampling, physics) of a chunk of steps_per_call steps into one graph; it costs a one-off
+        # compilation per batch shape and changes float rounding slightly.
+        compiled = cfg.compile and self.kernel is None
+        self._compiled = torch.compile(self._steps) if compiled else None
+        self._chunk = self._compiled_steps if compiled else self._steps
+        self._draws: tuple[torch.Tensor, torch.Tensor, int, int] | None = None
 
     def _compiled_steps(self, *args) -> tuple[torch.Tensor, ...]:
         try:
@@ -136,48 +151,65 @@ class VectorisedCollector:
             return self._chunk(*args)
 
     def _policy_and_physics(
-        self, net: nn.Module, layers: list, state: torch.Tensor, noise: torch.Tensor | None
+        self, layers: list, state: torch.Tensor, noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, ...]:
         """One step of every agent's every episode: ``(action, next_state, reward, cause)``."""
-        loc, scale = net.apply_stacked(layers, state)
+        loc, scale = self.population.policy.apply_stacked(layers, state)
         action = self.sampler(loc, scale, noise)
         return (action, *dynamics.step(state, action, self.params))
 
     def _steps(
-        self, net: nn.Module, layers: list, state: torch.Tensor, noise: torch.Tensor | None, k: int
+        self, layers: list, state: torch.Tensor, noise: torch.Tensor | None, k: int
     ) -> tuple[torch.Tensor, ...]:
         """``k`` steps (a :data:`~drone_torchrl.envs.rollout.ChunkFn`'s outputs); ``noise`` is ``[k, ...]``."""
-        return chunked(
-            lambda s, i: self._policy_and_physics(net, layers, s, None if noise is None else noise[i])
-        )(state, 0, k)
-
-    def _stepper(self, agents: list[int], noise: torch.Tensor | None) -> ChunkFn:
-        net = self.population.net(agents)
-        with torch.no_grad():
-            layers = net.layers()
-        return lambda state, t, k: self._chunk(
-            net, layers, state, None if noise is None else noise[t : t + k], k
+        return chunked(lambda s, i: self._policy_and_physics(layers, s, None if noise is None else noise[i]))(
+            state, 0, k
         )
 
-    def collect(self, agents: list[int], counters: list[int]) -> TensorDictBase:
-        """The agents' episodes of this update; ``counters`` are their update counts (the noise key)."""
-        seeds = self.population.seeds[agents]
-        counters = torch.tensor(counters, dtype=torch.int64, device=self.device)
-        uniform = rng.uniform(seeds, counters, rng.START_STATES, (self.episodes, dynamics.STATE_DIM))
-        start = dynamics.states_from_uniform(uniform, self.cfg.env.reset_mode)
-        noise = rng.normal(seeds, counters, rng.ACTION_NOISE, (self.max_steps, self.episodes, 2))
-        return fly(self._stepper(agents, noise.transpose(0, 1)), start, self.max_steps, self.steps_per_call)
+    def _stepper(self, noise: torch.Tensor | None) -> ChunkFn:
+        """The PyTorch path's chunks; ``noise`` ``[T, N, E, 2]`` (None: the deterministic action)."""
+        with torch.no_grad():
+            layers = self.population.policy.layers()
+        return lambda state, t, k: self._chunk(layers, state, None if noise is None else noise[t : t + k], k)
 
-    def actor(self, agents: list[int]) -> ProbabilisticActor:
-        """The agents' stacked nets under the config's distribution head (scores ``[A, ...]`` batches)."""
-        net = self.population.net(agents)
-        if self._actor is None or self._actor.module[0].module is not net:
-            self._actor = actor_from_net(net, self.cfg.model.distribution, self.cfg.env.max_thrust)
+    def begin(self, state: TensorDictBase, k: int) -> None:
+        """Remember the update counters the next ``k`` updates draw their start states and noise with."""
+        self._seeds, self._counters, self._k = state["seed"], state["counter"].clone(), k
+        self._draws = None
+
+    def _draw(self, j: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Update ``j``'s start states ``[N, E, 6]`` and noise ``[N, T, E, 2]``, drawn for as many of
+        the call's updates at once as :data:`NOISE_PER_DRAW` allows."""
+        if self._draws is None or not self._draws[2] <= j < self._draws[3]:
+            n = len(self._seeds)
+            per_draw = max(1, NOISE_PER_DRAW // (n * self.max_steps * self.episodes * dynamics.ACTION_DIM))
+            last = min(self._k, j + per_draw)
+            offsets = torch.arange(j, last, device=self._counters.device).unsqueeze(1)
+            seeds = self._seeds.repeat(last - j)
+            counters = (self._counters + offsets).reshape(-1)
+            uniform = rng.uniform(seeds, counters, rng.START_STATES, (self.episodes, dynamics.STATE_DIM))
+            start = dynamics.states_from_uniform(uniform, self.cfg.env.reset_mode).unflatten(0, (-1, n))
+            noise = rng.normal(seeds, counters, rng.ACTION_NOISE, (self.max_steps, self.episodes, 2))
+            self._draws = (start, noise.unflatten(0, (-1, n)), j, last)
+        start, noise, first, _ = self._draws
+        return start[j - first], noise[j - first]
+
+    def collect(self, j: int, active: torch.Tensor) -> Episodes:
+        """Update ``j`` of the call's episodes of every agent, by the PyTorch code (the C++ kernels'
+        update draws and flies its own: :class:`~drone_torchrl.kernels.modules.KernelReinforce`).
+        Inactive agents are flown too; the update masks them."""
+        start, noise = self._draw(j)
+        return fly_episodes(self._stepper(noise.transpose(0, 1)), start, self.max_steps, self.steps_per_call)
+
+    def actor(self) -> ProbabilisticActor:
+        """The agents' nets under the config's distribution head (scores ``[N, ...]`` batches)."""
         return self._actor
 
-    def eval_policy(self, agents: list[int]) -> ChunkFn:
-        """The deterministic steps of the agents (the same arithmetic as training, compiled or not)."""
-        return self._stepper(agents, None)
+    def eval_policy(self) -> RolloutFn:
+        """The deterministic episodes of every agent (the same arithmetic as training)."""
+        if self.kernel is not None:
+            return self.kernel
+        return lambda start: fly_episodes(self._stepper(None), start, self.max_steps, self.steps_per_call)
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:
         # Counter-based: the update count in the checkpoint is all the state there is.
@@ -188,6 +220,37 @@ class VectorisedCollector:
 
     def close(self) -> None:
         pass
+
+
+_warned: set[str] = set()
+
+
+def _kernel_rollout(cfg: DictConfig, population: Population, squash_high: float | None):
+    """The C++ kernels' rollout where ``compile=true`` on the CPU and they cover the config, else None
+    (with a warning, once per reason, when ``compile=true`` asked for them on the CPU)."""
+    if not cfg.compile or torch.device(cfg.device).type != "cpu":
+        return None
+    from drone_torchrl.kernels import library, unavailable_reason
+    from drone_torchrl.kernels.ops import check_supported
+
+    policy = population.policy
+    reason = check_supported(
+        dynamics.STATE_DIM, policy.hidden_sizes, policy.activation_name, policy.flat.dtype
+    )
+    if reason is not None:
+        reason = f"the C++ kernels do not cover {reason}"
+    elif library() is None:
+        reason = f"the C++ kernels could not be built ({unavailable_reason()})"
+    if reason is not None:
+        if reason not in _warned:
+            _warned.add(reason)
+            warnings.warn(f"compile=true: {reason}; using torch.compile instead", stacklevel=3)
+        return None
+    from drone_torchrl.kernels.modules import KernelRollout
+
+    return KernelRollout(
+        policy, physics_params(env_kwargs(cfg)), squash_high, cfg.env.max_steps, cfg.env.reset_mode
+    )
 
 
 COLLECTORS = {"torchrl": TorchRLCollector, "fused": VectorisedCollector}

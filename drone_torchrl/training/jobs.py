@@ -62,6 +62,7 @@ RESUME_KEYS = (
     *PROCESS_KEYS,
     "compile",
     "steps_per_call",
+    "updates_per_call",
     "resume",
     "sweep_name",
     "logger.",

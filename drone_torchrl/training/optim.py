@@ -7,13 +7,16 @@ the stacked parameters, and the whole population steps in a fixed number of kern
 arithmetic follows ``torch.optim.Adam`` / ``AdamW`` (``foreach=False``, ``amsgrad=False``), which
 the tests check agent by agent.
 
-Gradient clipping is per agent too: :func:`clip_grad_norms` scales each agent's gradient by
-``max_norm / (norm + 1e-6)`` when its norm exceeds ``max_norm``, as ``clip_grad_norm_`` does.
+Parameters, gradients and moments are ``[N, P]`` tensors (every agent's parameters in one row,
+see :class:`~drone_torchrl.modules.StackedThreeNet`), so a step is about twenty kernels whatever
+N and the depth of the network. Gradient clipping is per agent too: :func:`clip_grad_norms`
+scales each agent's gradient by ``max_norm / (norm + 1e-6)`` when its norm exceeds ``max_norm``,
+as ``clip_grad_norm_`` does.
 """
 
 from __future__ import annotations
 
-import math
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -23,138 +26,181 @@ from tensordict import TensorDictBase
 CLIP_EPS = 1e-6
 
 
-def _per_agent(values: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-    """``[N]`` -> ``[N, 1, ..., 1]`` to broadcast over one stacked parameter."""
-    return values.reshape(values.shape[0], *([1] * (like.ndim - 1)))
+def grad_norms(grad: torch.Tensor) -> torch.Tensor:
+    """Each agent's gradient 2-norm over all its parameters: ``[N]`` from an ``[N, P]`` gradient."""
+    return grad.pow(2).sum(1).sqrt()
 
 
-def grad_norms(params: TensorDictBase) -> torch.Tensor:
-    """Each agent's gradient 2-norm over all its parameters: ``[N]`` (0 where there is no gradient)."""
-    squares = [p.grad.pow(2).flatten(1).sum(1) for p in params.values(True, True) if p.grad is not None]
-    if not squares:
-        return torch.zeros(params.batch_size[0], device=params.device)
-    return torch.stack(squares).sum(0).sqrt()
-
-
-def clip_grad_norms(params: TensorDictBase, max_norm: float) -> torch.Tensor:
-    """Clip each agent's gradient to ``max_norm`` (``inf``: no clipping); returns the norms before."""
-    norms = grad_norms(params)
-    if math.isfinite(max_norm):
-        coef = (max_norm / (norms + CLIP_EPS)).clamp(max=1.0)
-        for p in params.values(True, True):
-            if p.grad is not None:
-                p.grad.mul_(_per_agent(coef, p.grad))
+def clip_grad_norms(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
+    """Clip each agent's row of ``grad`` (``[N, P]``, in place) to ``max_norm`` (``inf``: no clipping);
+    returns the norms before."""
+    norms = grad_norms(grad)
+    if max_norm != float("inf"):
+        grad.mul_((max_norm / (norms + CLIP_EPS)).clamp(max=1.0).unsqueeze(1))
     return norms
 
 
-class PopulationAdam:
-    """Adam (``decoupled_weight_decay=False``) or AdamW (``True``) over ``[N, ...]`` parameters.
+def adam_state(params: torch.Tensor, lr: torch.Tensor, weight_decay: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Fresh Adam entries of a population's state: zero moments and step counts, per-agent hyper-parameters."""
+    n, device = params.shape[0], params.device
+    return {
+        "exp_avg": torch.zeros_like(params, requires_grad=False),
+        "exp_avg_sq": torch.zeros_like(params, requires_grad=False),
+        # float32, as torch.optim.Adam keeps its step counts (exact to 2**24 steps).
+        "adam_steps": torch.zeros(n, dtype=torch.float32, device=device),
+        "lr": torch.as_tensor(lr, dtype=torch.float64, device=device).expand(n).clone(),
+        "weight_decay": torch.as_tensor(weight_decay, dtype=torch.float64, device=device).expand(n).clone(),
+    }
 
-    Args:
-        params: the stacked parameters (leaves with a leading agent dim ``N``).
-        lr, weight_decay: ``[N]`` tensors (or floats), one value per agent.
-        betas, eps: shared by all agents.
-    """
+
+class Adam:
+    """Adam (``decoupled_weight_decay=False``) or AdamW (``True``) over the ``[N, P]`` ``"params"`` of
+    a population's state (``"exp_avg"``, ``"exp_avg_sq"``, ``"adam_steps"``, per-agent ``"lr"`` and
+    ``"weight_decay"``: :func:`adam_state`). ``betas`` and ``eps`` are shared by all agents;
+    ``coupled_decay``: whether any agent has a (coupled) weight decay, known at construction so
+    that the step does not ask the device (a host sync)."""
 
     def __init__(
         self,
-        params: TensorDictBase,
-        lr: torch.Tensor | float,
         betas: tuple[float, float] = (0.9, 0.999),
         eps: float = 1e-8,
-        weight_decay: torch.Tensor | float = 0.0,
         decoupled_weight_decay: bool = False,
+        coupled_decay: bool = False,
     ) -> None:
-        n = params.batch_size[0]
-        device = next(iter(params.values(True, True))).device
-        self.params = params
-        self.lr = torch.as_tensor(lr, dtype=torch.float64, device=device).expand(n).clone()
-        self.weight_decay = (
-            torch.as_tensor(weight_decay, dtype=torch.float64, device=device).expand(n).clone()
-        )
         self.betas = betas
         self.eps = eps
-        self.decoupled = decoupled_weight_decay
-        # Known once, so the step does not ask the device (a host sync) for every parameter.
-        self._coupled_decay = not decoupled_weight_decay and bool(self.weight_decay.any())
-        self.steps = torch.zeros(n, dtype=torch.float64, device=device)
-        self.exp_avg = params.detach().clone().zero_()
-        self.exp_avg_sq = params.detach().clone().zero_()
-
-    def zero_grad(self) -> None:
-        for p in self.params.values(True, True):
-            p.grad = None
+        self.decoupled_weight_decay = decoupled_weight_decay
+        self.coupled_decay = coupled_decay
+        self._rows: tuple | None = None
 
     @torch.no_grad()
-    def step(self, agents: torch.Tensor | None = None) -> None:
-        """One Adam step of the agents where ``agents`` (``[N]`` bool) is true (default: all)."""
-        beta1, beta2 = self.betas
-        if agents is None:
-            self.steps += 1
-            lr = self.lr
+    def step(self, state: TensorDictBase, grad: torch.Tensor, agents: torch.Tensor | None = None) -> None:
+        """One step of the agents where ``agents`` (``[N]`` bool) is true (default: all), in place.
+
+        On the CPU this is PyTorch's own fused Adam kernel (what ``torch.optim.Adam(fused=True)``
+        runs), once per group of agents that share a learning rate and weight decay, each agent's
+        row its own parameter with its own step count; elsewhere the arithmetic below, masked, so
+        that it never asks the device which agents step (a host sync).
+        """
+        if grad.device.type == "cpu":
+            self._fused_step(state, grad, agents)
         else:
-            self.steps += agents.to(self.steps.dtype)
-            lr = torch.where(agents, self.lr, 0.0)  # agents that do not step keep their parameters
+            self._masked_step(state, grad, agents)
+
+    @torch.no_grad()
+    def _masked_step(self, state: TensorDictBase, grad: torch.Tensor, agents: torch.Tensor | None) -> None:
+        beta1, beta2 = self.betas
+        param, exp_avg, exp_avg_sq = state["params"], state["exp_avg"], state["exp_avg_sq"]
+        steps, lr, weight_decay = state["adam_steps"], state["lr"], state["weight_decay"]
+        if agents is None:
+            steps += 1
+        else:
+            steps += agents.to(steps.dtype)
+            lr = torch.where(agents, lr, 0.0)  # agents that do not step keep their parameters
         # Per-agent scalars in float64, as torch.optim.Adam computes them in Python floats.
-        steps = self.steps.clamp(min=1.0)
-        step_size = (lr / (1 - beta1**steps)).float()
-        bias2_sqrt = (1 - beta2**steps).sqrt().float()
-        decay = (lr * self.weight_decay).float()
-        for key, param in self.params.items(True, True):
-            grad = param.grad
-            if grad is None:
+        t = steps.to(torch.float64).clamp(min=1.0)
+        step_size = (lr / (1 - beta1**t)).to(param.dtype).unsqueeze(1)
+        bias2_sqrt = (1 - beta2**t).sqrt().to(param.dtype).unsqueeze(1)
+        if self.decoupled_weight_decay:
+            param.mul_(1 - (lr * weight_decay).to(param.dtype).unsqueeze(1))
+        elif self.coupled_decay:
+            grad = grad + weight_decay.to(param.dtype).unsqueeze(1) * param
+        new_avg = exp_avg.lerp(grad, 1 - beta1)
+        new_sq = exp_avg_sq.mul(beta2).addcmul_(grad, grad, value=1 - beta2)
+        if agents is not None:
+            mask = agents.unsqueeze(1)
+            new_avg = torch.where(mask, new_avg, exp_avg)
+            new_sq = torch.where(mask, new_sq, exp_avg_sq)
+        exp_avg.copy_(new_avg)
+        exp_avg_sq.copy_(new_sq)
+        denom = (exp_avg_sq.sqrt() / bias2_sqrt).add_(self.eps)
+        param.sub_(step_size * (exp_avg / denom))
+
+    def _fused_step(self, state: TensorDictBase, grad: torch.Tensor, agents: torch.Tensor | None) -> None:
+        params = state["params"]
+        if self._rows is None or self._rows[0] is not params:
+            # Row views of the state's tensors, and the agents grouped by learning rate and weight
+            # decay: both fixed for a run, so made once.
+            steps = state["adam_steps"]
+            columns = [t.unbind(0) for t in (params, state["exp_avg"], state["exp_avg_sq"], steps)]
+            groups: dict[tuple[float, float], list[int]] = {}
+            for i, key in enumerate(zip(state["lr"].tolist(), state["weight_decay"].tolist(), strict=True)):
+                groups.setdefault(key, []).append(i)
+            self._rows = (params, steps, columns, groups)
+        _, steps, columns, groups = self._rows
+        if agents is None:
+            steps += 1
+            chosen = None
+        else:
+            steps += agents
+            chosen = agents.tolist()
+        grads = grad.unbind(0)
+        kernel = torch._fused_adamw_ if self.decoupled_weight_decay else torch._fused_adam_
+        for (lr, decay), members in groups.items():
+            members = members if chosen is None else [i for i in members if chosen[i]]
+            if not members:
                 continue
-            if self.decoupled:
-                param.mul_(1 - _per_agent(decay, param))
-            elif self._coupled_decay:
-                grad = grad + _per_agent(self.weight_decay.float(), param) * param
-            exp_avg, exp_avg_sq = self.exp_avg.get(key), self.exp_avg_sq.get(key)
-            new_avg = exp_avg.lerp(grad, 1 - beta1)
-            new_sq = exp_avg_sq.mul(beta2).addcmul_(grad, grad, value=1 - beta2)
-            if agents is not None:
-                mask = _per_agent(agents, param)
-                new_avg, new_sq = torch.where(mask, new_avg, exp_avg), torch.where(mask, new_sq, exp_avg_sq)
-            exp_avg.copy_(new_avg)
-            exp_avg_sq.copy_(new_sq)
-            denom = (exp_avg_sq.sqrt() / _per_agent(bias2_sqrt, param)).add_(self.eps)
-            param.sub_(_per_agent(step_size, param) * (exp_avg / denom))
+            param, exp_avg, exp_avg_sq, step = ([column[i] for i in members] for column in columns)
+            kernel(
+                param, [grads[i] for i in members], exp_avg, exp_avg_sq, [], step,
+                lr=lr, beta1=self.betas[0], beta2=self.betas[1], weight_decay=decay, eps=self.eps,
+                amsgrad=False, maximize=False,
+            )  # fmt: skip
 
     # ------------------------------------------------------------------ one agent's state
-    def agent_state(self, agent: int, names: list[str]) -> dict[str, Any]:
-        """Agent ``agent``'s state in ``torch.optim.Adam.state_dict()``'s layout (params in ``names`` order)."""
+    def agent_state(
+        self,
+        state: TensorDictBase,
+        agent: int,
+        names: list[str],
+        views: Callable[[torch.Tensor], TensorDictBase],
+    ) -> dict[str, Any]:
+        """Agent ``agent``'s optimizer in ``torch.optim.Adam.state_dict()``'s layout (params in
+        ``names`` order; ``views`` splits an ``[N, P]`` tensor into named parameters)."""
         keys = [tuple(name.split(".")) for name in names]
-        state = {
+        exp_avg, exp_avg_sq = views(state["exp_avg"]), views(state["exp_avg_sq"])
+        step = state["adam_steps"][agent].detach().to(torch.float32).cpu()
+        entries = {
             i: {
-                "step": self.steps[agent].detach().to(torch.float32).cpu(),
-                "exp_avg": self.exp_avg.get(key)[agent].clone(),
-                "exp_avg_sq": self.exp_avg_sq.get(key)[agent].clone(),
+                "step": step.clone(),
+                "exp_avg": exp_avg.get(key)[agent].clone(),
+                "exp_avg_sq": exp_avg_sq.get(key)[agent].clone(),
             }
             for i, key in enumerate(keys)
         }
         group = {
-            "lr": float(self.lr[agent]),
+            "lr": float(state["lr"][agent]),
             "betas": self.betas,
             "eps": self.eps,
-            "weight_decay": float(self.weight_decay[agent]),
+            "weight_decay": float(state["weight_decay"][agent]),
             "amsgrad": False,
             "maximize": False,
             "foreach": None,
             "capturable": False,
             "differentiable": False,
             "fused": None,
-            "decoupled_weight_decay": self.decoupled,
+            "decoupled_weight_decay": self.decoupled_weight_decay,
             "params": list(range(len(keys))),
         }
-        return {"state": state, "param_groups": [group]}
+        return {"state": entries, "param_groups": [group]}
 
-    def load_agent_state(self, agent: int, names: list[str], state: dict[str, Any]) -> None:
-        """Load a ``torch.optim.Adam`` (or this class's) state dict of one agent; a fresh optimizer
-        state (no ``state`` entries yet) leaves the agent's moments at zero."""
+    @staticmethod
+    @torch.no_grad()
+    def load_agent_state(
+        state: TensorDictBase,
+        agent: int,
+        names: list[str],
+        views: Callable[[torch.Tensor], TensorDictBase],
+        saved: dict[str, Any],
+    ) -> None:
+        """Load a ``torch.optim.Adam`` (or :meth:`agent_state`) state dict into agent ``agent``; a fresh
+        optimizer state (no ``state`` entries yet) leaves the agent's moments at zero."""
         keys = [tuple(name.split(".")) for name in names]
-        entries = state["state"]
+        exp_avg, exp_avg_sq = views(state["exp_avg"]), views(state["exp_avg_sq"])
+        entries = saved["state"]
         for i, key in enumerate(keys):
             if i not in entries:
                 continue
-            self.exp_avg.get(key)[agent] = entries[i]["exp_avg"]
-            self.exp_avg_sq.get(key)[agent] = entries[i]["exp_avg_sq"]
-            self.steps[agent] = float(entries[i]["step"])
+            exp_avg.get(key)[agent] = entries[i]["exp_avg"]
+            exp_avg_sq.get(key)[agent] = entries[i]["exp_avg_sq"]
+            state["adam_steps"][agent] = float(entries[i]["step"])

@@ -229,6 +229,15 @@ class RunRecord:
         self.logger.log_frames("eval/video", frames[:, ::stride, ::stride], step=step, fps=fps)
         return path
 
+    def updates_until_due(self, episodes_per_update: int) -> int:
+        """How many updates of ``episodes_per_update`` episodes until an evaluation, a checkpoint or
+        the end of the budget falls due (at least 1)."""
+        targets = [self.next_checkpoint, self.budget]
+        if self.next_eval is not None:
+            targets.append(self.next_eval)
+        episodes = min(target - self.episodes_done for target in targets)
+        return max(1, -(-episodes // episodes_per_update))
+
     # ------------------------------------------------------------------ checkpoints
     @property
     def checkpoint_due(self) -> bool:

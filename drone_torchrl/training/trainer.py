@@ -1,16 +1,11 @@
-"""The training loop: collect -> loss -> optimizer -> record, for one agent or a population.
+"""The training loop, the same for one agent or a population and for both REINFORCE engines.
 
-The loop is the same for both engines (``engine=torchrl``: the TorchRL reference collector;
-``engine=fused``: the vectorised one, see :mod:`.collectors`). Each update:
-
-1. the collector flies ``algo.episodes_per_update`` episodes for every active agent:
-   a ``[A, E, T]`` batch;
-2. :class:`~drone_torchrl.objectives.ReinforceLoss` with ``agent_dims=1`` scores the stored actions;
-   each agent's loss is the mean over its own episodes and the total is their sum, so each agent's
-   gradient is exactly its own;
-3. each agent clips its gradient norm and takes its Adam step;
-4. each agent's :class:`~.run.RunRecord` books the finished episodes and metrics; agents due for an
-   evaluation are flown together by the evaluator; checkpoints are written when due.
+Each call of the update (:mod:`.update`) runs ``k`` updates of every active agent and hands back
+their metrics and finished episodes; the loop copies them to the host at once (one sync per call)
+and books them, update by update, in each agent's :class:`~.run.RunRecord`. ``k`` is the number of
+updates until the next evaluation, checkpoint or end of budget of any agent (at most
+``updates_per_call``), so evaluations and checkpoints fall exactly where a one-update loop would
+put them. Agents due for an evaluation are flown together by the evaluator.
 """
 
 from __future__ import annotations
@@ -21,17 +16,15 @@ from pathlib import Path
 
 import torch
 from omegaconf import DictConfig
-from tensordict import TensorDictBase
 
 from drone_torchrl.config import ConfigError, env_kwargs
-from drone_torchrl.episodes import EPISODE_KEYS, episode_stats
 from drone_torchrl.evaluation import evaluate
-from drone_torchrl.objectives.reinforce import ReinforceLoss, valid_steps
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
+from drone_torchrl.training.update import CHECKS, ReinforceUpdate
 
 
 @dataclass
@@ -45,38 +38,6 @@ class Outcome:
     @property
     def final_return(self) -> float | None:
         return None if self.final is None else self.final["final_return"]
-
-
-def make_loss(cfg: DictConfig, actor, gamma: torch.Tensor) -> ReinforceLoss:
-    """The config's REINFORCE loss over ``[A, ...]`` batches, one discount per agent."""
-    return ReinforceLoss(
-        actor,
-        gamma=gamma,
-        discount_weight=cfg.algo.discount_weight,
-        normalize_returns=cfg.algo.normalize_returns,
-        baseline=cfg.algo.baseline,
-        agent_dims=1,
-        log_prob_reduction=cfg.algo.log_prob_reduction,
-    )
-
-
-# What _finite_checks tests, in its row order (then the weights after the step).
-CHECKS = ("actions", "loss", "gradients", "weights")
-
-
-def _finite_checks(batch: TensorDictBase, loss: torch.Tensor, grad_norms: torch.Tensor) -> torch.Tensor:
-    """``[3, A]`` bool: each agent's actions (on its valid steps), loss and gradient are finite."""
-    valid = valid_steps(batch.get(("next", "done")))
-    bad_action = (~batch.get("action").isfinite() & valid).flatten(1).any(1)
-    return torch.stack([~bad_action, loss.isfinite(), grad_norms.isfinite()])
-
-
-def _policy_std(batch: TensorDictBase) -> torch.Tensor:
-    """Mean policy std per agent over the update's valid steps (the loss wrote ``"scale"``)."""
-    scale = batch.get("scale").detach()
-    valid = valid_steps(batch.get(("next", "done")))
-    dims = tuple(range(1, scale.ndim))
-    return (scale * valid).sum(dims) / (valid.sum(dims) * scale.shape[-1])
 
 
 def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
@@ -113,12 +74,13 @@ class Trainer:
             if job.checkpoint is not None:
                 self.population.load(i, job.checkpoint)
                 self.collector.set_rng_state(i, job.checkpoint["rng"], job.checkpoint["episodes_done"])
+        self.update = ReinforceUpdate(cfg, self.population, self.collector)
         self.runs = [
             RunRecord(job.cfg, job.run_dir, cfg.engine, job.checkpoint, job.parent_dir) for job in jobs
         ]
         self.progress = Progress(self.runs, cfg.progress)
-        self._loss: ReinforceLoss | None = None
-        self._loss_agents: list[int] = []
+        self.updates_per_call = int(cfg.updates_per_call)
+        self.episodes_per_update = int(cfg.algo.episodes_per_update)
 
     def train(self) -> list[dict[str, float]]:
         """Run every agent to its own ``algo.episodes``; returns each one's final metrics."""
@@ -129,82 +91,78 @@ class Trainer:
                 for i in at_budget:
                     self.runs[i].save(self.learner_state(i))
             while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
-                self.update(active)
+                self.step(active)
         finally:
             self.close()
         return [run.final for run in self.runs]
 
-    def update(self, active: list[int]) -> int:
-        """One update of the ``active`` agents; returns the env steps they took."""
-        population, runs = self.population, self.runs
-        batch = self.collector.collect(active, [runs[i].updates_done for i in active])
-        losses = self.loss_module(active)(batch)
-        population.zero_grad()
-        losses["loss_reinforce"].backward()
-        grad_norms = population.clip(active)
-        # An agent whose loss, gradient or actions are not finite does not step, and stops.
-        checks = _finite_checks(batch, losses["loss_per_agent"], grad_norms)
-        population.step(active, checks.all(0))
-        checks = torch.cat([checks, population.finite(active).unsqueeze(0)])
-
-        # Episodes and metrics of all agents come to the host together: one copy (one sync) per update.
-        stats = {k: v for k, v in episode_stats(batch).items() if k in EPISODE_KEYS}
-        metrics = {"loss": losses["loss_per_agent"], "norm": grad_norms, "std": _policy_std(batch)}
-        host = _to_host({**stats, **metrics, "checks": checks})
-        episodes = {k: host[k] for k in stats}
-        loss, norm, std, checks = host["loss"], host["norm"], host["std"], host["checks"]
-        for k, i in enumerate(active):
-            failed = [what for what, ok in zip(CHECKS, (c[k] for c in checks), strict=True) if not ok]
-            if failed:
-                runs[i].fail(
-                    f"training diverged at episode {runs[i].episodes_done}: non-finite {' and '.join(failed)}; "
-                    "lower algo.lr (or set algo.max_grad_norm)"
+    def step(self, active: list[int], k: int | None = None) -> int:
+        """``k`` updates of the ``active`` agents (default: as many as nothing falls due in, at most
+        ``updates_per_call``), booked; then the evaluations and checkpoints that are due. Returns
+        the env steps the agents took."""
+        runs = self.runs
+        if k is None:
+            k = min(
+                self.updates_per_call, *(runs[i].updates_until_due(self.episodes_per_update) for i in active)
+            )
+        mask = torch.zeros(len(runs), dtype=torch.bool, device=self.population.state.device)
+        mask[active] = True
+        _, out = self.update(self.population.state, k, mask)
+        host = _to_host({**out.metrics, **out.episodes})  # one copy (one sync) per call
+        trained = host.pop("active")
+        checks = host.pop("checks")
+        episodes = {key: host.pop(key) for key in out.episodes}
+        steps = 0
+        for j in range(k):
+            booked = []
+            for i in active:
+                if not trained[j][i]:
+                    continue
+                failed = [what for what, ok in zip(CHECKS, checks[j][i], strict=True) if not ok]
+                if failed:
+                    runs[i].fail(
+                        f"training diverged at episode {runs[i].episodes_done}: non-finite "
+                        f"{' and '.join(failed)}; lower algo.lr (or set algo.max_grad_norm)"
+                    )
+                    continue
+                runs[i].record(
+                    {key: values[j][i] for key, values in episodes.items()},
+                    {key: values[j][i] for key, values in host.items()},
                 )
-                continue
-            metrics = {"train/loss": loss[k], "train/grad_norm": norm[k], "policy/std_mean": std[k]}
-            runs[i].record({key: values[k] for key, values in episodes.items()}, metrics)
+                steps += sum(episodes["length"][j][i])
+                booked.append(runs[i])
+            if booked:
+                self.progress.update(len(booked) * self.episodes_per_update, booked)
         active = [i for i in active if not runs[i].failed]
-        if active:
-            self.progress.update(len(active) * batch.shape[1], [runs[i] for i in active])
-
-        due = [i for i in active if runs[i].eval_due]
-        if due:
+        if due := [i for i in active if runs[i].eval_due]:
             self.evaluate(due)
         for i in active:
             if runs[i].checkpoint_due:
                 runs[i].save(self.learner_state(i))
-        return sum(sum(lengths) for lengths in episodes["length"])
-
-    def loss_module(self, active: list[int]) -> ReinforceLoss:
-        """The loss over the active agents' actor (rebuilt only when the set of agents changes)."""
-        actor = self.collector.actor(active)
-        if self._loss is None or self._loss.actor_network is not actor or self._loss_agents != active:
-            self._loss = make_loss(self.cfg, actor, self.population.gamma[active])
-            self._loss_agents = list(active)
-        return self._loss
+        return steps
 
     def evaluate(self, agents: list[int]) -> None:
         """Fly the agents' deterministic policies on the evaluation seeds, all at once, and book it."""
         cfg = self.cfg
         stats, _ = evaluate(
-            self.collector.eval_policy(agents),
+            self.collector.eval_policy(),
             env_kwargs(cfg),
             cfg.eval.episodes,
             cfg.eval.seed,
             cfg.device,
-            agents=len(agents),
+            agents=len(self.runs),
         )
         means = {k: stats[k].float().mean(-1).tolist() for k in ("return", "length", "time_in_zone")}
-        for k, i in enumerate(agents):
+        for i in agents:
             self.runs[i].record_eval(
-                {name: values[k] for name, values in means.items()},
+                {name: values[i] for name, values in means.items()},
                 lambda i=i: self.learner_state(i),
                 lambda i=i: self.population.actor(i),
             )
 
     def learner_state(self, agent: int) -> dict:
         """The agent's checkpoint entries that the run record does not own: policy, optimizer, RNG."""
-        return {**self.population.state(agent), "rng": self.collector.rng_state(agent)}
+        return {**self.population.checkpoint_entries(agent), "rng": self.collector.rng_state(agent)}
 
     def close(self) -> None:
         self.progress.close()

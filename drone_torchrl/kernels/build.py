@@ -1,0 +1,134 @@
+"""Compile ``drone_kernels.cpp`` once per machine and load it.
+
+The kernels are plain C++ with a C interface (no PyTorch headers: a build takes a few seconds
+instead of the minute a ``torch.utils.cpp_extension`` build takes), compiled with the machine's C++
+compiler (``$CXX``, else ``c++``/``g++``/``clang++``: the compiler ``torch.compile`` needs on CPU
+anyway) for the machine's own instruction set (``-march=native``) and loaded with ``ctypes``.
+
+There is one build per precision (float32, and float64 when a run asks for it), each a few
+seconds of compilation. The shared library is cached in ``$DRONE_TORCHRL_CACHE`` (default ``~/.cache/drone_torchrl``,
+under ``$XDG_CACHE_HOME`` when set), named by a hash of the source, the compiler, the flags and the
+CPU's model and features: a later run on the same machine loads it in milliseconds, and a home
+folder shared by cluster nodes of different CPUs keeps one build per kind of CPU (a ``-march=native``
+build can crash on another CPU). It is written to a temporary file and renamed into place, so
+concurrent first runs never load a half-written file.
+
+Where no compiler works, :func:`library` returns None and :func:`unavailable_reason` says why;
+the engine then runs its PyTorch path.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+SOURCE = Path(__file__).with_name("drone_kernels.cpp")
+CACHE_ENV = "DRONE_TORCHRL_CACHE"
+# -ffp-contract=fast lets the compiler fuse a*b+c (as PyTorch's own CPU kernels do); no -ffast-math:
+# NaN and inf must propagate so that a diverging run is detected.
+BASE_FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-fno-math-errno", "-ffp-contract=fast", "-pthread")
+ARCH_FLAGS = ("-march=native",)
+BUILD_TIMEOUT_S = 300
+
+_lock = threading.Lock()
+_state: dict[str, object] = {}
+
+
+def cache_dir() -> Path:
+    if os.environ.get(CACHE_ENV):
+        return Path(os.environ[CACHE_ENV])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "drone_torchrl"
+
+
+def _compiler() -> str | None:
+    candidates = [os.environ.get("CXX"), "c++", "g++", "clang++"]
+    return next((found for c in candidates if c and (found := shutil.which(c))), None)
+
+
+def _cpu_signature() -> str:
+    """The CPU's model and feature flags (Linux), else what ``platform`` knows."""
+    try:
+        lines = Path("/proc/cpuinfo").read_text().splitlines()
+        keep = [line for line in lines if line.split(":")[0].strip() in ("model name", "flags", "Features")]
+        return "\n".join(sorted(set(keep)))
+    except OSError:
+        return f"{platform.machine()} {platform.processor()}"
+
+
+def _version(compiler: str) -> str:
+    out = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=60)
+    return out.stdout.splitlines()[0] if out.stdout else compiler
+
+
+def _build(compiler: str, target: Path, precision: tuple[str, ...]) -> str | None:
+    """Compile into ``target``; returns None, or why it failed."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    errors = []
+    for arch in (ARCH_FLAGS, ()):  # some compilers (Apple clang on arm64) refuse -march=native
+        fd, tmp = tempfile.mkstemp(suffix=".so.tmp", dir=target.parent)
+        os.close(fd)
+        cmd = [compiler, *BASE_FLAGS, *precision, *arch, str(SOURCE), "-o", tmp]
+        try:
+            out = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
+            if out.returncode == 0:
+                os.replace(tmp, target)
+                return None
+            errors.append(
+                out.stderr.strip().splitlines()[-1] if out.stderr.strip() else f"exit {out.returncode}"
+            )
+        except (OSError, subprocess.TimeoutExpired) as err:
+            errors.append(str(err))
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+    return f"{compiler} failed: {errors[-1]}"
+
+
+def library(double: bool = False) -> ctypes.CDLL | None:
+    """The loaded kernels for float32 (``double``: float64) tensors, built on first use, or None
+    where they cannot be built."""
+    name = "float64" if double else "float32"
+    precision = (f"-DDK_DOUBLE={int(double)}",)
+    with _lock:
+        if name in _state:
+            return _state[name]  # type: ignore[return-value]
+        lib, reason = None, None
+        compiler = _compiler()
+        if compiler is None:
+            reason = "no C++ compiler found (set CXX, or install g++ or clang++)"
+        else:
+            try:
+                key = hashlib.sha256(
+                    "\n".join(
+                        [
+                            SOURCE.read_text(),
+                            _version(compiler),
+                            " ".join(BASE_FLAGS + precision + ARCH_FLAGS),
+                            _cpu_signature(),
+                        ]
+                    ).encode()
+                ).hexdigest()[:16]
+                path = cache_dir() / f"drone_kernels-{name}-{key}.so"
+                if not path.is_file():
+                    reason = _build(compiler, path, precision)
+                if reason is None:
+                    lib = ctypes.CDLL(str(path))
+                    lib.dk_saved_size.restype = lib.dk_real_bytes.restype = ctypes.c_int64
+                    if lib.dk_real_bytes() != (8 if double else 4):
+                        raise OSError(f"{path} was built for another precision")
+            except (OSError, subprocess.SubprocessError) as err:
+                reason = f"{type(err).__name__}: {err}"
+        _state[name], _state["reason"] = lib, reason
+        return lib
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`library` returned None (None when it loaded, or before it was asked)."""
+    return _state.get("reason")  # type: ignore[return-value]

@@ -1,0 +1,196 @@
+"""The REINFORCE update of a population, behind the contract every training engine follows::
+
+    update(state, k, active) -> (state, UpdateOutput)
+
+- ``state``: the population's :attr:`~.population.Population.state`, a ``TensorDict`` of batch size
+  ``[N]`` (parameters, optimizer state, per-agent hyper-parameters, RNG counters), updated in place;
+- ``k``: how many updates to run in this call; the training loop caps it at the next evaluation,
+  checkpoint or end of budget of any agent, so nothing is due inside a call;
+- ``active``: ``[N]`` bool, the agents to train (finished and failed agents sit out);
+- the output holds ``k`` updates' metrics and finished episodes as ``[k, N, ...]`` tensors, which the
+  loop copies to the host once per call (one sync, however many updates and agents).
+
+One update, for all agents at once: the collector flies every active agent's episodes (with the
+C++ kernel on the CPU: one call), :class:`~drone_torchrl.objectives.ReinforceLoss` scores the
+stored actions (each agent's loss is the mean over its own episodes, the total their sum, so each
+agent's gradient is exactly its own), one backward gives the ``[N, P]`` gradient, each agent clips
+its norm, an agent whose actions, loss or gradient are not finite does not step and drops out of
+the rest of the call, the others take their Adam step.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from omegaconf import DictConfig
+from tensordict import TensorDictBase
+
+from drone_torchrl.envs.rollout import Episodes
+from drone_torchrl.episodes import EPISODE_KEYS, counted_metrics, episode_stats
+from drone_torchrl.modules.policy import distribution_head
+from drone_torchrl.objectives.reinforce import ReinforceLoss, reinforce_terms
+from drone_torchrl.training.optim import clip_grad_norms
+from drone_torchrl.training.population import Population
+
+# What the finite checks test, in their row order (then the weights after the step).
+CHECKS = ("actions", "loss", "gradients", "weights")
+
+
+class UpdateOutput(NamedTuple):
+    """``k`` updates of ``N`` agents: ``metrics`` (``[k, N]`` each: ``"train/loss"``,
+    ``"train/grad_norm"``, ``"policy/std_mean"``; ``"active"`` ``[k, N]`` bool, who was trained in
+    each update; ``"checks"`` ``[k, N, 4]`` bool, see :data:`CHECKS`) and the finished
+    ``episodes`` (``[k, N, E]`` each, :data:`~drone_torchrl.episodes.EPISODE_KEYS`)."""
+
+    metrics: dict[str, torch.Tensor]
+    episodes: dict[str, torch.Tensor]
+
+
+def make_loss(cfg: DictConfig, actor, gamma: torch.Tensor) -> ReinforceLoss:
+    """The config's REINFORCE loss over ``[N, ...]`` batches, one discount per agent."""
+    return ReinforceLoss(actor, gamma=gamma, agent_dims=1, **_loss_options(cfg))
+
+
+def _loss_options(cfg: DictConfig) -> dict:
+    algo = cfg.algo
+    return {
+        "discount_weight": algo.discount_weight,
+        "normalize_returns": algo.normalize_returns,
+        "baseline": algo.baseline,
+        "log_prob_reduction": algo.log_prob_reduction,
+    }
+
+
+class Gradient(NamedTuple):
+    """One update's gradient of every agent and what the loop books of it (``[N]`` unless noted)."""
+
+    grad: torch.Tensor  # [N, P]
+    loss: torch.Tensor
+    std: torch.Tensor
+    actions_finite: torch.Tensor
+    episodes: dict[str, torch.Tensor]  # EPISODE_KEYS -> [N, E]
+
+
+class ReinforceUpdate:
+    """The update of ``population`` with episodes from ``collector`` (either engine's, see :mod:`.collectors`).
+
+    Three ways to the same gradient, tested against each other:
+
+    - ``engine=fused`` with the C++ kernels (``compile=true`` on the CPU): one
+      ``drone_torchrl::reinforce`` call flies the episodes and returns every agent's loss and
+      gradient (:class:`~drone_torchrl.kernels.modules.KernelReinforce`);
+    - ``engine=fused`` without them: the collector's :class:`~drone_torchrl.envs.rollout.Episodes`,
+      scored by :func:`~drone_torchrl.objectives.reinforce.reinforce_terms` with the actor's network
+      and distribution called directly, and autograd;
+    - ``engine=torchrl``: the collector's ``EnvBase.rollout`` tensordicts, scored by
+      :class:`~drone_torchrl.objectives.ReinforceLoss` through the ``ProbabilisticActor``, and autograd.
+    """
+
+    def __init__(self, cfg: DictConfig, population: Population, collector) -> None:
+        self.collector = collector
+        self.adam = population.adam
+        self.max_grad_norm = population.max_grad_norm
+        self.gamma = population.state["gamma"]
+        options = _loss_options(cfg)
+        self.loss = make_loss(cfg, collector.actor(), self.gamma)
+        self.mean_log_prob = options.pop("log_prob_reduction") == "mean"
+        self.options = options
+        self.dist_class, self.dist_kwargs = distribution_head(cfg.model.distribution, cfg.env.max_thrust)
+        self.kernel = None
+        if getattr(collector, "kernel", None) is not None:
+            from drone_torchrl.kernels.modules import KernelReinforce
+
+            flags = {
+                "baseline_mean": options["baseline"] == "mean",
+                "normalize_returns": options["normalize_returns"],
+                "discount_weight": options["discount_weight"],
+                "mean_log_prob": self.mean_log_prob,
+            }
+            self.kernel = KernelReinforce(collector.kernel, cfg.algo.episodes_per_update, flags)
+
+    def begin(self, state: TensorDictBase, k: int) -> None:
+        """Before ``k`` updates from ``state``: their random numbers are keyed by its update counters."""
+        self._seeds, self._counters = state["seed"], state["counter"].clone()
+        if self.kernel is None:
+            self.collector.begin(state, k)
+
+    def gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
+        """Update ``j`` (of those announced to :meth:`begin`)'s episodes and gradient, without a step."""
+        if self.kernel is not None:
+            return self._kernel_gradient(state, j, active)
+        return self._autograd_gradient(state, j, active)
+
+    def _kernel_gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
+        grad, loss, std, finite, length, counts = self.kernel(
+            self._seeds, self._counters + j, self.gamma, active
+        )
+        return Gradient(
+            grad, loss.to(grad.dtype), std.to(grad.dtype), finite, counted_metrics(length, counts)
+        )
+
+    def _autograd_gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
+        params = state["params"]
+        batch = self.collector.collect(j, active)
+        score = self._score_episodes if isinstance(batch, Episodes) else self._score_rollout
+        terms, episodes, std = score(batch)
+        params.grad = None
+        terms["loss_reinforce"].backward()
+        grad, params.grad = params.grad, None
+        valid = episodes.valid().unsqueeze(-1)
+        finite = ~(~episodes.action.isfinite() & valid).flatten(1).any(1)
+        stats = episode_stats(episodes)
+        return Gradient(grad, terms["loss_per_agent"], std, finite, {key: stats[key] for key in EPISODE_KEYS})
+
+    def _score_rollout(self, batch: TensorDictBase) -> tuple[dict, Episodes, torch.Tensor]:
+        """The loss terms, episodes and mean policy std of a TorchRL rollout (``[N, E, T]``)."""
+        terms = self.loss(batch)
+        episodes = Episodes.from_rollout(batch)
+        valid = episodes.valid().unsqueeze(-1)
+        scale = batch.get("scale").detach()  # written by the actor while the loss scored the batch
+        std = (scale * valid).sum((1, 2, 3)) / (valid.sum((1, 2, 3)) * scale.shape[-1])
+        return terms, episodes, std
+
+    def _score_episodes(self, episodes: Episodes) -> tuple[dict, Episodes, torch.Tensor]:
+        """The same as :meth:`_score_rollout` for :class:`Episodes` (``[N, E, T]``)."""
+        loc, scale = self.collector.net(episodes.states[..., :-1, :])
+        action = episodes.action
+        log_prob = self.dist_class(loc, scale, **self.dist_kwargs).log_prob(action)
+        if self.mean_log_prob:
+            log_prob = log_prob / action.shape[-1]
+        valid = episodes.valid()
+        step = torch.arange(episodes.steps, device=valid.device).expand_as(valid)
+        terms = reinforce_terms(
+            log_prob, episodes.reward, episodes.last(), valid, step, self.gamma, agent_dims=1, **self.options
+        )
+        std = (scale.detach() * valid.unsqueeze(-1)).sum((1, 2, 3)) / (valid.sum((1, 2)) * scale.shape[-1])
+        return terms, episodes, std
+
+    def __call__(
+        self, state: TensorDictBase, k: int, active: torch.Tensor
+    ) -> tuple[TensorDictBase, UpdateOutput]:
+        params, counter = state["params"], state["counter"]
+        self.begin(state, k)
+        metrics: list[dict[str, torch.Tensor]] = []
+        stats: list[dict[str, torch.Tensor]] = []
+        for j in range(k):
+            g = self.gradient(state, j, active)
+            grad_norms = clip_grad_norms(g.grad, self.max_grad_norm)
+            checks = torch.stack([g.actions_finite, g.loss.isfinite(), grad_norms.isfinite()])
+            self.adam.step(state, g.grad, active & checks.all(0))
+            with torch.no_grad():
+                checks = torch.cat([checks, params.isfinite().all(1).unsqueeze(0)])
+            counter += active
+            stats.append(g.episodes)
+            metrics.append(
+                {
+                    "train/loss": g.loss,
+                    "train/grad_norm": grad_norms,
+                    "policy/std_mean": g.std,
+                    "active": active,
+                    "checks": checks.T,
+                }
+            )
+            active = active & checks.all(0)
+        stack = lambda rows: {key: torch.stack([row[key] for row in rows]) for key in rows[0]}  # noqa: E731
+        return state, UpdateOutput(stack(metrics), stack(stats))
