@@ -3,7 +3,7 @@
     python benchmarks/train_speed.py                      # 1, 4, 32, 128 agents, eager
     python benchmarks/train_speed.py --agents 1 32 --compile --updates 20
 
-Every configuration runs the same loop (``Trainer.update``: collect, REINFORCE loss, Adam, run record
+Every configuration runs the same loop (``Trainer.step``: collect, REINFORCE loss, Adam, run record
 with CSV and TensorBoard; paper settings, one episode per update); only the collector differs. On
 policies that hover from the air reset: the mean head outputs 0.5 (hover thrust) and the std head a
 small std, so episodes last long (150-250 steps; the table prints the mean), as in the second half
@@ -60,7 +60,7 @@ def config(compile_step: bool, threads: int):
 
 
 def time_updates(cfg, n_agents: int, updates: int, warmup: int) -> tuple[float, int]:
-    """``Trainer.update`` of ``n_agents`` agents (seeds 0..n-1): seconds for ``updates - 1`` updates
+    """``Trainer.step`` of ``n_agents`` agents (seeds 0..n-1): seconds for ``updates - 1`` updates
     after ``warmup`` untimed ones, and the agent-steps they took."""
     with tempfile.TemporaryDirectory() as tmp:
         jobs = []
@@ -73,13 +73,13 @@ def time_updates(cfg, n_agents: int, updates: int, warmup: int) -> tuple[float, 
         hover_policy(trainer.population.policy)
         agents = list(range(n_agents))
         for _ in range(warmup):  # compilation, if any, happens here
-            trainer.update(agents)
+            trainer.step(agents, 1)
         steps = 0
         start = time.perf_counter()
         for _ in range(updates - 1):
-            steps += trainer.update(agents)
+            steps += trainer.step(agents, 1)
         elapsed = time.perf_counter() - start
-        steps += trainer.update(agents)  # the last update closes the runs (final eval): untimed
+        steps += trainer.step(agents, 1)  # the last update closes the runs (final eval): untimed
         trainer.close()
     return elapsed, steps
 

@@ -19,8 +19,7 @@ import torch
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.episodes import counted_metrics, episode_stats
-from drone_torchrl.kernels import build, library
-from drone_torchrl.kernels import ops
+from drone_torchrl.kernels import build, library, ops
 from drone_torchrl.kernels.modules import KernelReinforce, KernelRollout
 from drone_torchrl.modules import ActionSampler, StackedThreeNet, ThreeNetPolicy, make_actor
 from drone_torchrl.modules.policy import init_exploration
@@ -263,3 +262,11 @@ def test_the_build_is_cached_per_source_and_machine(tmp_path):
     stamp = built[0].stat().st_mtime_ns
     subprocess.run([sys.executable, "-c", code], env=env, check=True)
     assert built[0].stat().st_mtime_ns == stamp  # loaded, not built again
+
+
+def test_the_kernels_read_every_constant_python_packs():
+    assert library().dk_env_consts() == len(ops.ENV_CONSTANTS)
+    params = dynamics.DroneParams(max_thrust=2.0, floor_tolerance=0.1)
+    env = dict(zip(ops.ENV_CONSTANTS, ops.env_constants(params, 2.0, "air").tolist(), strict=True))
+    assert env["floor"] == pytest.approx(-0.1) and env["max_thrust"] == env["squash_high"] == 2.0
+    assert env["reset_air"] == 1.0 and env["arm_over_inertia"] == pytest.approx(0.5 / (0.4 * 0.25))

@@ -120,7 +120,8 @@ def library(double: bool = False) -> ctypes.CDLL | None:
                     reason = _build(compiler, path, precision)
                 if reason is None:
                     lib = ctypes.CDLL(str(path))
-                    lib.dk_saved_size.restype = lib.dk_real_bytes.restype = ctypes.c_int64
+                    for function in ("dk_saved_size", "dk_real_bytes", "dk_env_consts"):
+                        getattr(lib, function).restype = ctypes.c_int64
                     if lib.dk_real_bytes() != (8 if double else 4):
                         raise OSError(f"{path} was built for another precision")
             except (OSError, subprocess.SubprocessError) as err:

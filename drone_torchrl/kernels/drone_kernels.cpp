@@ -855,6 +855,9 @@ Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t ac
 
 extern "C" {
 
+// How many drone constants the kernels read (drone_torchrl/kernels/ops.py: ENV_CONSTANTS).
+int64_t dk_env_consts() { return kEnvConsts; }
+
 // Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
 // row's episode terminates or `steps` steps. Writes the states ([rows, steps + 1, 6]: before each
 // step, and after the last), the action, the reward, the termination cause and the return-to-go

@@ -51,41 +51,67 @@ def _lib(dtype: torch.dtype = torch.float32) -> ctypes.CDLL:
     return lib
 
 
+# The drone's constants, in the kernels' order (drone_kernels.cpp: EnvConst).
+ENV_CONSTANTS = (
+    "weight",
+    "mass",
+    "gravity",
+    "dt",
+    "arm_over_inertia",
+    "max_thrust",  # < 0: unbounded
+    "x_limit",
+    "z_min",
+    "z_max",
+    "alpha_limit",
+    "floor",  # z_min - floor_tolerance: below it the floor is hit
+    "zone_x",
+    "zone_z_min",
+    "zone_z_max",
+    "reward_zone",
+    "reward_alive",
+    "reward_terminated",
+    "squash_high",  # the TanhNormal head's upper bound; < 0: the Normal head
+    "reset_air",  # 1: start states drawn around the zone's centre, 0: on the floor
+    "reset_noise",
+    "zone_z_centre",
+)
+
+
 def env_constants(
     params: dynamics.DroneParams,
     squash_high: float | None,
     reset_mode: str = "floor",
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """The drone's constants in the kernel's order (``EnvConst`` in drone_kernels.cpp), float64.
+    """The drone's constants (:data:`ENV_CONSTANTS`), float64.
 
     ``squash_high``: the TanhNormal head's upper bound (actions in ``[0, squash_high]``), or None
     for the Normal head. ``reset_mode``: where the start states drawn in the kernel lie.
     """
-    values = [
-        params.weight,
-        params.mass,
-        params.gravity,
-        params.dt,
-        params.lever_arm / params.inertia,
-        -1.0 if params.max_thrust is None else params.max_thrust,
-        dynamics.X_LIMIT,
-        dynamics.Z_MIN,
-        dynamics.Z_MAX,
-        dynamics.ALPHA_LIMIT,
-        dynamics.Z_MIN - params.floor_tolerance,
-        dynamics.ZONE_X_LIMIT,
-        dynamics.ZONE_Z_MIN,
-        dynamics.ZONE_Z_MAX,
-        dynamics.REWARD_IN_ZONE,
-        dynamics.REWARD_ALIVE,
-        dynamics.REWARD_TERMINATED,
-        -1.0 if squash_high is None else float(squash_high),
-        float(reset_mode == "air"),
-        dynamics.RESET_NOISE,
-        dynamics.ZONE_Z_CENTRE,
-    ]
-    return torch.tensor(values, dtype=torch.float64, device=device)
+    values = {
+        "weight": params.weight,
+        "mass": params.mass,
+        "gravity": params.gravity,
+        "dt": params.dt,
+        "arm_over_inertia": params.lever_arm / params.inertia,
+        "max_thrust": -1.0 if params.max_thrust is None else params.max_thrust,
+        "x_limit": dynamics.X_LIMIT,
+        "z_min": dynamics.Z_MIN,
+        "z_max": dynamics.Z_MAX,
+        "alpha_limit": dynamics.ALPHA_LIMIT,
+        "floor": dynamics.Z_MIN - params.floor_tolerance,
+        "zone_x": dynamics.ZONE_X_LIMIT,
+        "zone_z_min": dynamics.ZONE_Z_MIN,
+        "zone_z_max": dynamics.ZONE_Z_MAX,
+        "reward_zone": dynamics.REWARD_IN_ZONE,
+        "reward_alive": dynamics.REWARD_ALIVE,
+        "reward_terminated": dynamics.REWARD_TERMINATED,
+        "squash_high": -1.0 if squash_high is None else float(squash_high),
+        "reset_air": float(reset_mode == "air"),
+        "reset_noise": dynamics.RESET_NOISE,
+        "zone_z_centre": dynamics.ZONE_Z_CENTRE,
+    }
+    return torch.tensor([values[name] for name in ENV_CONSTANTS], dtype=torch.float64, device=device)
 
 
 # ---------------------------------------------------------------------------------------- the ops

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 
@@ -41,22 +42,19 @@ class Outcome:
 
 
 def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
-    """``tensor.tolist()`` of each tensor (of at least one dim), all copied to the host at once:
-    in float64, which holds every float32, int below 2**53 and bool exactly; ints and bools come
-    back as such."""
-    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).tolist()
+    """``tensor.tolist()`` of each tensor, all copied to the host at once (one sync): in float64,
+    which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such."""
+    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu().numpy()
     out: dict[str, list] = {}
     start = 0
     for key, tensor in tensors.items():
-        values = flat[start : start + tensor.numel()]
+        values = flat[start : start + tensor.numel()].reshape(tensor.shape)
         start += tensor.numel()
         if tensor.dtype == torch.bool:
-            values = [bool(v) for v in values]
+            values = values.astype(bool)
         elif not tensor.is_floating_point():
-            values = [int(v) for v in values]
-        for size in reversed(tensor.shape[1:]):  # regroup the trailing dims, innermost first
-            values = [values[i : i + size] for i in range(0, len(values), size)]
-        out[key] = values
+            values = values.astype(np.int64)
+        out[key] = values.tolist()
     return out
 
 
