@@ -99,7 +99,7 @@ def test_population_evaluation_equals_each_actor_alone(tmp_path):
     cfgs = [_cfg("algo.episodes=4", "eval.episodes=5", f"seed={s}") for s in (0, 1)]
     trainer = Trainer([prepare(cfg, tmp_path / f"run{i}") for i, cfg in enumerate(cfgs)])
     kwargs = env_kwargs(cfgs[0])
-    stacked, _ = evaluate(trainer.collector.eval_policy(), kwargs, 5, 123, agents=2)
+    stacked, _ = evaluate(trainer.learner.eval_policy(), kwargs, 5, 123, agents=2)
     for i in range(len(cfgs)):
         alone, _ = evaluate(trainer.population.actor(i), kwargs, 5, 123)
         torch.testing.assert_close(stacked["return"][i], alone["return"])

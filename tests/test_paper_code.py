@@ -19,7 +19,7 @@ def _trainer(tmp_path, name, *overrides):
 
 def _loss_and_weights(trainer):
     """One update of the only agent: its episode lengths, loss, weights after the step and gradient."""
-    state, update = trainer.population.state, trainer.update
+    state, update = trainer.population.state, trainer.learner.update
     active = torch.ones(1, dtype=torch.bool)
     update.begin(state, 1)
     g = update.gradient(state, 0, active)

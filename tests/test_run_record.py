@@ -139,11 +139,11 @@ def test_population_loss_equals_the_torchrl_actor_loss(tmp_path, preset, engine)
     cfg = _cfg(*common)
     trainer = Trainer([prepare(cfg, tmp_path / "run")])
     reference = Trainer([prepare(_cfg(*common, "engine=torchrl"), tmp_path / "ref")])
-    batch = reference.collector.collect(0, torch.ones(1, dtype=torch.bool))  # [1, 3, T]
+    batch = reference.learner.collector.collect(0, torch.ones(1, dtype=torch.bool))  # [1, 3, T]
     assert batch.shape[:2] == (1, 3)
     reference.close()
 
-    update, policy = trainer.update, trainer.population.policy
+    update, policy = trainer.learner.update, trainer.population.policy
     if engine == "torchrl":  # ReinforceLoss through the population's ProbabilisticActor
         loss, _, _ = update._score_rollout(batch.clone())
     else:  # the same arithmetic on plain tensors, the network and distribution called directly

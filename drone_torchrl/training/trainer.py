@@ -1,11 +1,15 @@
-"""The training loop, the same for one agent or a population and for both REINFORCE engines.
+"""The training loop, the same for one agent or a population, REINFORCE (either engine) or PPO.
 
-Each call of the update (:mod:`.update`) runs ``k`` updates of every active agent and hands back
-their metrics and finished episodes; the loop copies them to the host at once (one sync per call)
-and books them, update by update, in each agent's :class:`~.run.RunRecord`. ``k`` is the number of
-updates until the next evaluation, checkpoint or end of budget of any agent (at most
-``updates_per_call``), so evaluations and checkpoints fall exactly where a one-update loop would
-put them. Agents due for an evaluation are flown together by the evaluator.
+A learner (:class:`~.update.Reinforce`, :class:`~.ppo.PPO`) updates its agents behind one contract,
+``update(state, k, active) -> (state, UpdateOutput)`` (see :mod:`.update`): ``k`` updates of every
+active agent, their metrics and finished episodes handed back at once. The loop copies them to the
+host in one go (one sync per call) and books them, update by update, in each agent's
+:class:`~.run.RunRecord`; an agent whose checks fail stops with ``FAILED.txt``. ``k`` is the number
+of updates until the next evaluation, checkpoint or end of budget of any agent (at most
+``updates_per_call``; 1 for a learner whose updates end a varying number of episodes), so
+evaluations and checkpoints fall exactly where a one-update loop would put them. Agents due for an
+evaluation are flown together by the evaluator. A run killed between its last checkpoint and its
+final evaluation is finished on resume.
 """
 
 from __future__ import annotations
@@ -20,12 +24,10 @@ from omegaconf import DictConfig
 
 from drone_torchrl.config import ConfigError, env_kwargs
 from drone_torchrl.evaluation import evaluate
-from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
-from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
-from drone_torchrl.training.update import CHECKS, ReinforceUpdate
+from drone_torchrl.training.update import Reinforce
 
 
 @dataclass
@@ -58,27 +60,35 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
     return out
 
 
+def learner_class(cfg: DictConfig) -> type:
+    """The learner of ``algo.name``: REINFORCE (:class:`~.update.Reinforce`, either engine) or PPO
+    (:class:`~.ppo.PPO`)."""
+    if cfg.algo.name == "ppo":
+        from drone_torchrl.training.ppo import PPO
+
+        return PPO
+    return Reinforce
+
+
 class Trainer:
-    """The jobs of one group (see :func:`~.jobs.group_key`) trained together: one agent or a population."""
+    """The jobs of one group (see :func:`~.jobs.group_key`) trained together by one learner."""
 
     def __init__(self, jobs: Sequence[Job]) -> None:
         self.cfg = cfg = jobs[0].cfg
         torch.set_num_threads(cfg.threads)
         if torch.device(cfg.device).type == "cpu":
             keep_freed_memory()
-        self.population = Population([job.cfg for job in jobs])
-        self.collector = make_collector(cfg, self.population)
-        for i, job in enumerate(jobs):
-            if job.checkpoint is not None:
-                self.population.load(i, job.checkpoint)
-                self.collector.set_rng_state(i, job.checkpoint["rng"], job.checkpoint["episodes_done"])
-        self.update = ReinforceUpdate(cfg, self.population, self.collector)
+        self.learner = learner_class(cfg)(jobs)
         self.runs = [
             RunRecord(job.cfg, job.run_dir, cfg.engine, job.checkpoint, job.parent_dir) for job in jobs
         ]
         self.progress = Progress(self.runs, cfg.progress)
         self.updates_per_call = int(cfg.updates_per_call)
-        self.episodes_per_update = int(cfg.algo.episodes_per_update)
+
+    @property
+    def population(self):
+        """The REINFORCE learner's population (its agents' stacked state)."""
+        return self.learner.population
 
     def train(self) -> list[dict[str, float]]:
         """Run every agent to its own ``algo.episodes``; returns each one's final metrics."""
@@ -87,7 +97,7 @@ class Trainer:
             if at_budget := [i for i, run in enumerate(self.runs) if run.finished and run.final is None]:
                 self.evaluate(at_budget)
                 for i in at_budget:
-                    self.runs[i].save(self.learner_state(i))
+                    self.runs[i].save(self.learner.checkpoint_entries(i))
             while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
                 self.step(active)
         finally:
@@ -96,75 +106,78 @@ class Trainer:
 
     def step(self, active: list[int], k: int | None = None) -> int:
         """``k`` updates of the ``active`` agents (default: as many as nothing falls due in, at most
-        ``updates_per_call``), booked; then the evaluations and checkpoints that are due. Returns
-        the env steps the agents took."""
-        runs = self.runs
+        ``updates_per_call``; one where the learner cannot tell), booked; then the evaluations and
+        checkpoints that are due. Returns the env steps the agents took."""
+        runs, learner = self.runs, self.learner
+        per_update = learner.episodes_per_update
         if k is None:
-            k = min(
-                self.updates_per_call, *(runs[i].updates_until_due(self.episodes_per_update) for i in active)
+            k = (
+                1
+                if per_update is None
+                else min(self.updates_per_call, *(runs[i].updates_until_due(per_update) for i in active))
             )
-        mask = torch.zeros(len(runs), dtype=torch.bool, device=self.population.state.device)
+        mask = torch.zeros(len(runs), dtype=torch.bool, device=self.cfg.device)
         mask[active] = True
-        _, out = self.update(self.population.state, k, mask)
+        _, out = learner.update(learner.state, k, mask)
         host = _to_host({**out.metrics, **out.episodes})  # one copy (one sync) per call
-        trained = host.pop("active")
-        checks = host.pop("checks")
-        episodes = {key: host.pop(key) for key in out.episodes}
+        trained, checks, valid = host.pop("active"), host.pop("checks"), host.pop("valid", None)
+        episodes = {key: host.pop(key) for key in out.episodes if key != "valid"}
         steps = 0
         for j in range(k):
             booked = []
             for i in active:
                 if not trained[j][i]:
                     continue
-                failed = [what for what, ok in zip(CHECKS, checks[j][i], strict=True) if not ok]
+                failed = [what for what, ok in zip(learner.checks, checks[j][i], strict=True) if not ok]
                 if failed:
                     runs[i].fail(
                         f"training diverged at episode {runs[i].episodes_done}: non-finite "
-                        f"{' and '.join(failed)}; lower algo.lr (or set algo.max_grad_norm)"
+                        f"{' and '.join(failed)}; {learner.advice}"
                     )
                     continue
-                runs[i].record(
-                    {key: values[j][i] for key, values in episodes.items()},
-                    {key: values[j][i] for key, values in host.items()},
-                )
-                steps += sum(episodes["length"][j][i])
-                booked.append(runs[i])
+                ended = {key: values[j][i] for key, values in episodes.items()}
+                if valid is not None:  # a learner whose updates end different numbers of episodes
+                    ended = {
+                        key: [v for v, ok in zip(values, valid[j][i], strict=True) if ok]
+                        for key, values in ended.items()
+                    }
+                runs[i].record(ended, {key: values[j][i] for key, values in host.items()})
+                steps += sum(ended["length"])
+                booked.append((runs[i], len(ended["length"])))
             if booked:
-                self.progress.update(len(booked) * self.episodes_per_update, booked)
+                self.progress.update(sum(n for _, n in booked), [run for run, _ in booked])
         active = [i for i in active if not runs[i].failed]
         if due := [i for i in active if runs[i].eval_due]:
             self.evaluate(due)
         for i in active:
             if runs[i].checkpoint_due:
-                runs[i].save(self.learner_state(i))
+                runs[i].save(learner.checkpoint_entries(i))
         return steps
 
     def evaluate(self, agents: list[int]) -> None:
         """Fly the agents' deterministic policies on the evaluation seeds, all at once, and book it."""
-        cfg = self.cfg
+        cfg, learner = self.cfg, self.learner
         stats, _ = evaluate(
-            self.collector.eval_policy(),
+            learner.eval_policy(),
             env_kwargs(cfg),
             cfg.eval.episodes,
             cfg.eval.seed,
             cfg.device,
-            agents=len(self.runs),
+            agents=learner.eval_agents,
         )
-        means = {k: stats[k].float().mean(-1).tolist() for k in ("return", "length", "time_in_zone")}
+        means = {
+            k: stats[k].float().mean(-1).reshape(-1).tolist() for k in ("return", "length", "time_in_zone")
+        }
         for i in agents:
             self.runs[i].record_eval(
                 {name: values[i] for name, values in means.items()},
-                lambda i=i: self.learner_state(i),
-                lambda i=i: self.population.actor(i),
+                lambda i=i: learner.checkpoint_entries(i),
+                lambda i=i: learner.actor(i),
             )
-
-    def learner_state(self, agent: int) -> dict:
-        """The agent's checkpoint entries that the run record does not own: policy, optimizer, RNG."""
-        return {**self.population.checkpoint_entries(agent), "rng": self.collector.rng_state(agent)}
 
     def close(self) -> None:
         self.progress.close()
-        self.collector.close()
+        self.learner.close()
         for run in self.runs:
             run.close()
 
@@ -186,11 +199,13 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
             (job.run_dir / FAILED_FILE).unlink(missing_ok=True)  # left by a refused re-run
         else:
             groups.setdefault(group_key(job.cfg), []).append(i)
+    # A learner trains up to max_agents jobs at once (PPO: one; REINFORCE: a whole group).
+    batches = []
     for members in groups.values():
+        size = learner_class(jobs[members[0]].cfg).max_agents or len(members)
+        batches += [members[start : start + size] for start in range(0, len(members), size)]
+    for members in batches:
         try:
-            if jobs[members[0]].cfg.algo.name == "ppo":
-                _train_ppo(jobs, members, outcomes)
-                continue
             trainer = Trainer([jobs[i] for i in members])
             finals = trainer.train()
         except Exception as err:  # noqa: BLE001  (recorded per job; the other groups go on)
@@ -216,20 +231,6 @@ def _report(job: Job, final: dict[str, float]) -> None:
         f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
         f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s"
     )
-
-
-def _train_ppo(jobs: Sequence[Job], members: list[int], outcomes: list[Outcome]) -> None:
-    """PPO jobs train one after another (each one is a batch of drones already)."""
-    from drone_torchrl.training.ppo import PPOTrainer
-
-    for i in members:
-        trainer = PPOTrainer(jobs[i])
-        final = trainer.train()
-        if final is None:
-            outcomes[i].error = TrainingDiverged(trainer.run.failure)
-        else:
-            outcomes[i].final = final
-            _report(jobs[i], final)
 
 
 def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:

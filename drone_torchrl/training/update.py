@@ -194,3 +194,46 @@ class ReinforceUpdate:
             active = active & checks.all(0)
         stack = lambda rows: {key: torch.stack([row[key] for row in rows]) for key in rows[0]}  # noqa: E731
         return state, UpdateOutput(stack(metrics), stack(stats))
+
+
+class Reinforce:
+    """REINFORCE as the training loop (:class:`~.trainer.Trainer`) drives it: a group of jobs trained
+    as one population (see :func:`~.jobs.group_key`), with either engine.
+
+    The loop calls :meth:`update` with :attr:`state` and books what it returns; it asks
+    :meth:`eval_policy` (for all :attr:`eval_agents` agents at once), :meth:`checkpoint_entries`
+    and :meth:`actor` (videos) when an evaluation or a checkpoint is due.
+    """
+
+    # Why an agent stops (UpdateOutput's checks, in order) and what to do about it.
+    checks = CHECKS
+    advice = "lower algo.lr (or set algo.max_grad_norm)"
+    max_agents = None  # any number of jobs of one group train together
+
+    def __init__(self, jobs) -> None:
+        from drone_torchrl.training.collectors import make_collector
+
+        cfg = jobs[0].cfg
+        self.population = Population([job.cfg for job in jobs])
+        self.collector = make_collector(cfg, self.population)
+        for i, job in enumerate(jobs):
+            if job.checkpoint is not None:
+                self.population.load(i, job.checkpoint)
+                self.collector.set_rng_state(i, job.checkpoint["rng"], job.checkpoint["episodes_done"])
+        self.update = ReinforceUpdate(cfg, self.population, self.collector)
+        self.state = self.population.state
+        self.episodes_per_update = int(cfg.algo.episodes_per_update)
+        self.eval_agents = len(jobs)
+
+    def eval_policy(self):
+        return self.collector.eval_policy()
+
+    def checkpoint_entries(self, agent: int) -> dict:
+        """The agent's checkpoint entries that the run record does not own: policy, optimizer, RNG."""
+        return {**self.population.checkpoint_entries(agent), "rng": self.collector.rng_state(agent)}
+
+    def actor(self, agent: int):
+        return self.population.actor(agent)
+
+    def close(self) -> None:
+        self.collector.close()
