@@ -93,7 +93,7 @@ def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) 
         finally:
             run_module.RunRecord.record = original
         trainer.close()
-    return statistics.median(times), record_time / sum(times)
+    return statistics.median(times), record_time / (sum(times) * per_call)
 
 
 def main() -> None:

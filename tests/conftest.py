@@ -4,3 +4,12 @@ import os
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+
+
+def pytest_ignore_collect(collection_path, config):
+    """The JAX peer's tests import jax, whose thread pools would then share the whole test process:
+    they are collected only when the slow checks are selected (``-m slow``, CI's second stage)."""
+    if collection_path.name != "test_jax_peer.py":
+        return None
+    expression = config.getoption("markexpr") or ""
+    return not ("slow" in expression and "not slow" not in expression)

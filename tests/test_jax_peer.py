@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("jax")
+pytestmark = pytest.mark.slow  # collected only with -m slow (tests/conftest.py)
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

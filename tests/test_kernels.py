@@ -26,7 +26,9 @@ from drone_torchrl.modules.policy import init_exploration
 from drone_torchrl.objectives.reinforce import ReinforceLoss, discounted_returns
 from drone_torchrl.training import rng
 
-pytestmark = pytest.mark.skipif(library() is None, reason=f"C++ kernels unavailable: {build.unavailable_reason()}")
+pytestmark = pytest.mark.skipif(
+    library() is None, reason=f"C++ kernels unavailable: {build.unavailable_reason()}"
+)
 
 HEADS = {"normal": None, "tanh_normal": 1.0}  # distribution -> the TanhNormal's (and thrust's) bound
 
@@ -44,7 +46,9 @@ def _rollout(stacked, head, max_steps=300, reset_mode="floor", max_thrust="head"
     return KernelRollout(stacked, dynamics.DroneParams(max_thrust=bound), HEADS[head], max_steps, reset_mode)
 
 
-@pytest.mark.parametrize(("head", "activation"), [("normal", "tanh"), ("tanh_normal", "tanh"), ("normal", "elu")])
+@pytest.mark.parametrize(
+    ("head", "activation"), [("normal", "tanh"), ("tanh_normal", "tanh"), ("normal", "elu")]
+)
 def test_every_step_equals_the_pytorch_policy_and_dynamics(head, activation):
     """Each flown step: the action is the stacked net's ``f(loc + scale * noise)`` at the kernel's
     state, and the next state, reward and cause are ``dynamics.step``'s, to float rounding."""
@@ -234,7 +238,10 @@ def test_non_finite_weights_give_non_finite_actions_and_no_crash():
         stacked.flat[1, 5] = math.nan
     flags = dict.fromkeys(ops.LOSS_OPTIONS, False)
     _, loss, _, finite, _, _ = KernelReinforce(_rollout(stacked, "normal"), 1, flags)(
-        torch.arange(3), torch.zeros(3, dtype=torch.int64), torch.full((3,), 0.99), torch.ones(3, dtype=torch.bool)
+        torch.arange(3),
+        torch.zeros(3, dtype=torch.int64),
+        torch.full((3,), 0.99),
+        torch.ones(3, dtype=torch.bool),
     )
     assert finite.tolist() == [True, False, True]
     assert math.isfinite(loss[0]) and math.isfinite(loss[2])
@@ -247,12 +254,17 @@ def test_a_missing_compiler_falls_back_with_one_reason(tmp_path):
         "assert build.library() is None\n"
         "print(build.unavailable_reason())\n"
     )
-    env = {"CXX": str(tmp_path / "no-such-compiler"), "DRONE_TORCHRL_CACHE": str(tmp_path / "cache"), "PATH": ""}
+    env = {
+        "CXX": str(tmp_path / "no-such-compiler"),
+        "DRONE_TORCHRL_CACHE": str(tmp_path / "cache"),
+        "PATH": "",
+    }
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert "no C++ compiler found" in out.stdout
     assert not any((tmp_path / "cache").glob("*.so"))
 
 
+@pytest.mark.slow  # two fresh processes, one of them compiling the kernels: about 20 s
 def test_the_build_is_cached_per_source_and_machine(tmp_path):
     code = "from drone_torchrl.kernels import build\nassert build.library() is not None\n"
     env = {"DRONE_TORCHRL_CACHE": str(tmp_path), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}

@@ -15,9 +15,9 @@ from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.optim import Adam
 from drone_torchrl.training.trainer import Trainer
 
-# Ops that copy a value to the host (item, bool(), nonzero sizes, ...), and Tensor.tolist, which
-# copies without passing through the dispatcher (counted by a wrapper).
-SYNC_OPS = ("_local_scalar_dense", "nonzero", "is_nonzero", "tolist")
+# Ops that copy a value to the host (item, bool(), nonzero sizes, ...), and Tensor.tolist and
+# Tensor.numpy, which copy without passing through the dispatcher (counted by wrappers).
+SYNC_OPS = ("_local_scalar_dense", "nonzero", "is_nonzero", "tolist", "numpy")
 
 
 class CountOps(TorchDispatchMode):
@@ -55,16 +55,21 @@ def _ops_per_update(tmp_path, agents: int, monkeypatch) -> Counter:
     monkeypatch.setattr(Adam, "step", Adam._masked_step)
     everyone = list(range(agents))
     trainer.step(everyone, 1)  # first update: lazy set-up
-    tolist = torch.Tensor.tolist
+    tolist, numpy = torch.Tensor.tolist, torch.Tensor.numpy
 
-    def counted_tolist(tensor):
-        counter.ops["tolist"] += 1
-        return tolist(tensor)
+    def counted(name, method):
+        def call(tensor):
+            counter.ops[name] += 1
+            return method(tensor)
 
-    monkeypatch.setattr(torch.Tensor, "tolist", counted_tolist)
+        return call
+
+    monkeypatch.setattr(torch.Tensor, "tolist", counted("tolist", tolist))
+    monkeypatch.setattr(torch.Tensor, "numpy", counted("numpy", numpy))
     with CountOps() as counter:
         trainer.step(everyone, 1)
     monkeypatch.setattr(torch.Tensor, "tolist", tolist)
+    monkeypatch.setattr(torch.Tensor, "numpy", numpy)
     trainer.close()
     return counter.ops
 
@@ -76,7 +81,7 @@ def test_ops_and_host_syncs_per_update_do_not_grow_with_agents(tmp_path, monkeyp
     syncs = {op: one[op] for op in SYNC_OPS if one[op]}
     # The rollout's early-stop check, once per chunk of steps_per_call=10 of the 20 steps, and the
     # one fetch of the update's episodes and metrics.
-    assert syncs == {"tolist": 20 // 10 + 1}, one
+    assert syncs == {"tolist": 20 // 10, "numpy": 1}, one
     assert {op: many[op] for op in SYNC_OPS if many[op]} == syncs
     # The same kernels for 64 agents as for one (a reshape of a size-1 dim may add a view).
     assert abs(sum(many.values()) - sum(one.values())) <= 2, (many - one) + (one - many)

@@ -74,14 +74,14 @@ class Distribution:
         return float(q1), float(q3)
 
 
-def _tails() -> tuple[float, float]:
+def percentile_tails() -> tuple[float, float]:
     return 100 * (1 - CONFIDENCE) / 2, 100 * (1 + CONFIDENCE) / 2
 
 
 def bootstrap_median_ci(values: np.ndarray, rng: np.random.Generator) -> tuple[float, float]:
     """Percentile bootstrap interval of the median (resampling the seeds with replacement)."""
     samples = rng.choice(values, size=(BOOTSTRAP_SAMPLES, values.size), replace=True)
-    low, high = np.percentile(np.median(samples, axis=1), _tails())
+    low, high = np.percentile(np.median(samples, axis=1), percentile_tails())
     return float(low), float(high)
 
 
@@ -92,7 +92,7 @@ def small_study_band(
     if values.size < seeds:
         return float("nan"), float("nan")
     draws = np.argsort(rng.random((BOOTSTRAP_SAMPLES, values.size)), axis=1)[:, :seeds]
-    low, high = np.percentile(values[draws].mean(axis=1), _tails())
+    low, high = np.percentile(values[draws].mean(axis=1), percentile_tails())
     return float(low), float(high)
 
 
@@ -117,7 +117,7 @@ def distribution(setting: Setting, window: int) -> Distribution:
 
 def format_distributions(distributions: Sequence[Distribution]) -> str:
     """A Markdown table: one row per setting."""
-    lo, hi = _tails()
+    lo, hi = percentile_tails()
     lines = [
         f"| setting | seeds | median final return [{CONFIDENCE:.0%} CI] | IQR | median final length | "
         f"reach full length | end in the zone | mean of {PAPER_STUDY_SEEDS} seeds ({lo:g}-{hi:g}%) |",

@@ -1,22 +1,21 @@
-"""Where a batch of episodes comes from. The two engines differ here and only here.
+"""Where a batch of episodes comes from, for REINFORCE's two engines.
 
-Both collectors give the update the same thing: a ``[N, E, T]`` tensordict in the layout of
-``EnvBase.rollout`` (``N`` agents, ``E`` episodes each, one episode per row, steps after a row's end
-masked by ``valid_steps``), the actor that scores it for the loss, and a policy for the evaluator.
+Both collectors give the update a ``[N, E, T]`` batch for every agent (``N`` agents, ``E`` episodes
+each, one episode per row), the actor that scores it for the loss, and a policy for the evaluator.
 An update call of ``k`` updates first calls :meth:`begin`, then :meth:`collect` once per update.
 
 - :class:`TorchRLCollector` (``engine=torchrl``), the reference: ``DroneEnv.rollout`` (or a
-  ``ParallelEnv`` of them) with the ``ProbabilisticActor``, sampling from torch's global RNG.
-  One agent.
-- :class:`VectorisedCollector` (``engine=fused``), the fast path: any number of agents on the
-  same :mod:`~drone_torchrl.envs.dynamics`. Start states and action noise come from the
-  counter-based generator of :mod:`.rng` (a function of each agent's seed and update count), drawn
-  for all agents and many updates at once, so an agent's run does not depend on which other
-  agents share the batch. With ``compile=true`` on the CPU the episodes are flown by the C++
-  kernel (:mod:`drone_torchrl.kernels`, one call per update) and the loss runs the network through
-  its C++ op; elsewhere (a GPU, or where the kernel cannot be built) the policy forward, sampling
-  and physics of ``steps_per_call`` steps are one ``torch.compile``-d function; with
-  ``compile=false`` the same PyTorch code runs eagerly (the reference the kernels are tested against).
+  ``ParallelEnv`` of them) with the ``ProbabilisticActor``, sampling from torch's global RNG; its
+  batches are tensordicts in ``EnvBase.rollout``'s layout. One agent.
+- :class:`VectorisedCollector` (``engine=fused``): any number of agents on the same
+  :mod:`~drone_torchrl.envs.dynamics`, as :class:`~drone_torchrl.envs.rollout.Episodes`. Start states
+  and action noise come from the counter-based generator of :mod:`.rng` (a function of each agent's
+  seed and update count), drawn for all agents and many updates at once, so an agent's run does not
+  depend on which other agents share the batch. The policy forward, sampling and physics of
+  ``steps_per_call`` steps are one function, ``torch.compile``-d with ``compile=true``. With
+  ``compile=true`` on the CPU the update does not ask it for batches at all: the C++ kernel
+  flies and differentiates the episodes itself (:class:`~drone_torchrl.kernels.modules.KernelReinforce`),
+  and evaluation flies the kernel's deterministic rollout (:attr:`VectorisedCollector.kernel`).
 """
 
 from __future__ import annotations
