@@ -1,6 +1,6 @@
-"""REINFORCE (the paper), REINFORCE+ and PPO with bounded thrust, 4 seeds each, against the PD controller.
+"""REINFORCE (the paper), REINFORCE+, PPO and A2C with bounded thrust, 4 seeds each, against the PD controller.
 
-    python benchmarks/algorithms.py                      # all three, 4 seeds, their default budgets
+    python benchmarks/algorithms.py                      # all four, 4 seeds, their default budgets
     python benchmarks/algorithms.py --algos ppo --seeds 0 1     # a shorter run
     python benchmarks/algorithms.py --sb3 --sb3-steps 200000   # also SB3's PPO (pip install ".[bench]")
 
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-ALGOS = ("reinforce", "reinforce_plus", "ppo")
+ALGOS = ("reinforce", "reinforce_plus", "ppo", "a2c")
 BOUNDED = {"max_thrust": 1.0}
 FULL_LENGTH = 300
 PD_SHARE = 0.9

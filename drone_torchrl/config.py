@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import difflib
 import functools
-import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -12,10 +11,11 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from drone_torchrl import algorithms, loggers
+from drone_torchrl.checks import ConfigError, choice, number, plain_name, sizes
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.dynamics import DroneParams
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
-from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
 
 # torchrl: TorchRL env + ProbabilisticActor rollouts, the reference collector; fused: many agents
 # stepped as one batch on the shared dynamics, the fast path (drone_torchrl/training/collectors.py).
@@ -216,9 +216,20 @@ def _schema_leaves(name: str, algo: str | None) -> dict[str, Any]:
 
 
 def _algo_option(cfg: Any) -> str | None:
-    """The algo group option whose keys ``cfg.algo`` holds (named by ``algo.name``), if it is one."""
+    """The algo group option whose keys ``cfg.algo`` holds, found by its ``algo.name`` (the learner it
+    names): the option of that file name, or else the first whose ``name`` is it (the file name is
+    free: several options may share a learner, as reinforce_plus does)."""
     algo = OmegaConf.select(cfg, "algo.name", default=None) if isinstance(cfg, DictConfig) else None
-    return algo if isinstance(algo, str) and algo in _options("algo") else None
+    return _algo_files().get(algo) if isinstance(algo, str) else None
+
+
+@functools.cache
+def _algo_files() -> dict[str, str]:
+    """``{algo.name: algo group option}``, an option named like its learner first."""
+    files: dict[str, str] = {}
+    for option in sorted(_options("algo"), key=lambda o: o != _schema_leaves("config", o).get("algo.name")):
+        files.setdefault(_schema_leaves("config", option).get("algo.name"), option)
+    return files
 
 
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
@@ -250,7 +261,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             continue
         if key == "sweep_name":  # names the multirun folder, which Hydra makes before any job runs
             for value in values:
-                if not _plain_name(value):
+                if not plain_name(value):
                     raise ConfigError.of(key, value, "a folder name (no '/' or '..'), e.g. lr")
             continue
         if key in groups:
@@ -296,59 +307,6 @@ def check_command_line(prog: str, name: str) -> None:
         sys.exit(f"{prog}: error: {err}")
 
 
-class ConfigError(ValueError):
-    """A config value that is not allowed: the message names the key, the value and what is allowed."""
-
-    @classmethod
-    def of(cls, key: str, value: Any, allowed: str) -> ConfigError:
-        return cls(f"{key}={_as_override(value)} is not allowed; expected {allowed}")
-
-
-def _as_override(value: Any) -> str:
-    # How the user would have typed it: null and true/false, as Hydra writes them.
-    if value is None or isinstance(value, bool):
-        return {None: "null", True: "true", False: "false"}[value]
-    return repr(value)
-
-
-def _plain_name(name: Any) -> bool:
-    return isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name
-
-
-def _number(
-    cfg: Mapping[str, Any],
-    key: str,
-    *,
-    low: float | None = None,
-    high: float | None = None,
-    low_open: bool = False,
-    integer: bool = False,
-) -> None:
-    value = cfg
-    for part in key.split("."):
-        value = value[part]
-    kind = "an integer" if integer else "a number"
-    bounds = []
-    if low is not None:
-        bounds.append(f"{'>' if low_open else '>='} {low}")
-    if high is not None:
-        bounds.append(f"<= {high}")
-    allowed = f"{kind} {' and '.join(bounds)}".strip()
-    numeric = isinstance(value, int | float) and not isinstance(value, bool)
-    if not numeric or (integer and not isinstance(value, int)) or not math.isfinite(value):
-        raise ConfigError.of(key, value, allowed)
-    if low is not None and (value < low or (low_open and value == low)):
-        raise ConfigError.of(key, value, allowed)
-    if high is not None and value > high:
-        raise ConfigError.of(key, value, allowed)
-
-
-def _choice(cfg: Mapping[str, Any], key: str, choices: tuple) -> None:
-    section, name = key.split(".")
-    if cfg[section][name] not in choices:
-        raise ConfigError.of(key, cfg[section][name], f"one of {list(choices)}")
-
-
 # Keys added after the first runs were saved, with the value those runs behaved as: a checkpoint's
 # config gets them filled in, so old runs can still be evaluated and resumed.
 ADDED_KEYS = {
@@ -364,11 +322,8 @@ ADDED_KEYS = {
     "steps_per_call": 1,
     "algo.log_prob_reduction": "sum",
     "updates_per_call": 1,
+    "logger.backend": "tensorboard",
 }
-OPTIMIZERS = ("adam", "adamw")
-# The training loops: REINFORCE (algo=reinforce, algo=reinforce_plus; both engines, populations)
-# and PPO (algo=ppo; TorchRL's collector, GAE and ClipPPOLoss).
-ALGOS = ("reinforce", "ppo")
 # An initial exploration std past this is no longer "near the mean": thrusts are fractions of the weight.
 MAX_INIT_STD = 10.0
 
@@ -415,9 +370,24 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
     except FileNotFoundError as err:
         raise ConfigError(f"{key}={str(location)!r} is not allowed; {err}") from None
     try:
-        return path, load_checkpoint(path)
+        state = load_checkpoint(path)
     except CheckpointError as err:
         raise ConfigError(f"{key}={str(path)!r} cannot be used: {err}") from None
+    name = OmegaConf.select(run_config(state["config"]), "algo.name")
+    try:
+        algorithm = algorithms.get(name)
+    except ConfigError:
+        raise ConfigError(
+            f"{key}={str(path)!r} cannot be used: it was written by algo.name={name!r}, which is not installed "
+            f"(known: {list(algorithms.names())})"
+        ) from None
+    missing = [entry for entry in algorithm.checkpoint_keys if entry not in state]
+    if missing:
+        raise ConfigError(
+            f"{key}={str(path)!r} cannot be used: it lacks {', '.join(missing)} (algo.name={name} writes it): "
+            "a damaged or foreign checkpoint"
+        )
+    return path, state
 
 
 def check_device(device: Any) -> None:
@@ -479,118 +449,46 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(error)
     if cfg.engine not in ENGINES:
         raise ConfigError.of("engine", cfg.engine, f"one of {list(ENGINES)}")
-    _number(cfg, "env.num_workers", low=0, integer=True)
-    _number(cfg, "seed", low=0, high=MAX_SEED, integer=True)
-    _number(cfg, "threads", low=1, high=MAX_THREADS, integer=True)
-    _number(cfg, "steps_per_call", low=1, high=cfg.env.max_steps, integer=True)
-    _number(cfg, "updates_per_call", low=1, high=MAX_UPDATES_PER_CALL, integer=True)
-    _number(cfg, "algo.lr", low=0, low_open=True, high=MAX_LR)
-    _number(cfg, "algo.gamma", low=0, high=1)
-    _number(cfg, "algo.episodes", low=1, integer=True)
-    _choice(cfg, "algo.name", ALGOS)
-    if cfg.algo.name == "ppo":
-        _validate_ppo(cfg)
-    else:
-        _validate_reinforce(cfg)
-    _choice(cfg, "model.distribution", DISTRIBUTIONS)
-    _choice(cfg, "model.activation", tuple(ACTIVATIONS))
-    _number(cfg, "model.min_std", low=0)
-    _sizes(cfg, "model.hidden_sizes")
+    number(cfg, "env.num_workers", low=0, integer=True)
+    number(cfg, "seed", low=0, high=MAX_SEED, integer=True)
+    number(cfg, "threads", low=1, high=MAX_THREADS, integer=True)
+    number(cfg, "steps_per_call", low=1, high=cfg.env.max_steps, integer=True)
+    number(cfg, "updates_per_call", low=1, high=MAX_UPDATES_PER_CALL, integer=True)
+    number(cfg, "algo.lr", low=0, low_open=True, high=MAX_LR)
+    number(cfg, "algo.gamma", low=0, high=1)
+    number(cfg, "algo.episodes", low=1, integer=True)
+    algorithms.get(cfg.algo.name).validate(cfg)
+    loggers.get(cfg.logger.backend).validate(cfg)
+    choice(cfg, "model.distribution", DISTRIBUTIONS)
+    choice(cfg, "model.activation", tuple(ACTIVATIONS))
+    number(cfg, "model.min_std", low=0)
+    sizes(cfg, "model.hidden_sizes")
     if cfg.model.init_std is not None:
-        _number(cfg, "model.init_std", low=cfg.model.min_std, low_open=True, high=MAX_INIT_STD)
+        number(cfg, "model.init_std", low=cfg.model.min_std, low_open=True, high=MAX_INIT_STD)
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
         raise ConfigError.of(
             "model.distribution",
             "tanh_normal",
             "'normal' unless env.max_thrust is set (e.g. env.max_thrust=1.0)",
         )
-    _number(cfg, "checkpoint.every_episodes", low=1, integer=True)
-    _number(cfg, "eval.every_episodes", low=0, integer=True)
-    _number(cfg, "eval.episodes", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
-    _number(cfg, "eval.seed", low=0, high=MAX_SEED, integer=True)
-    _number(cfg, "metrics.running_mean_window", low=1, integer=True)
-    _number(cfg, "logger.video_fps", low=1, integer=True)
-    _number(cfg, "logger.video_stride", low=1, integer=True)
-    _number(cfg, "logger.every_updates", low=1, integer=True)
-    _number(cfg, "logger.flush_every_s", low=0)
+    number(cfg, "checkpoint.every_episodes", low=1, integer=True)
+    number(cfg, "eval.every_episodes", low=0, integer=True)
+    number(cfg, "eval.episodes", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
+    number(cfg, "eval.seed", low=0, high=MAX_SEED, integer=True)
+    number(cfg, "metrics.running_mean_window", low=1, integer=True)
+    number(cfg, "logger.video_fps", low=1, integer=True)
+    number(cfg, "logger.video_stride", low=1, integer=True)
+    number(cfg, "logger.every_updates", low=1, integer=True)
+    number(cfg, "logger.flush_every_s", low=0)
     name = cfg.logger.exp_name
-    if not _plain_name(name) or name in RUN_FOLDER_ENTRIES:
+    if not plain_name(name) or name in RUN_FOLDER_ENTRIES:
         raise ConfigError.of(
             "logger.exp_name",
             name,
             f"a new folder name inside the run folder (no '/' or '..', none of {sorted(RUN_FOLDER_ENTRIES)}), "
             "e.g. tensorboard",
         )
-    if not _plain_name(cfg.sweep_name):
+    if not plain_name(cfg.sweep_name):
         raise ConfigError.of("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
     if cfg.progress not in (True, False, "auto"):
         raise ConfigError.of("progress", cfg.progress, "true, false or auto")
-
-
-def _sizes(cfg: Mapping[str, Any], key: str) -> None:
-    sizes = cfg
-    for part in key.split("."):
-        sizes = sizes[part]
-    if (
-        not isinstance(sizes, list)
-        or not sizes
-        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in sizes)
-    ):
-        raise ConfigError.of(key, sizes, "a non-empty list of integers >= 1, e.g. [32,32]")
-
-
-def _validate_reinforce(cfg: Mapping[str, Any]) -> None:
-    workers = cfg.env.num_workers
-    _number(cfg, "algo.episodes_per_update", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
-    if cfg.algo.episodes % cfg.algo.episodes_per_update:
-        raise ConfigError.of(
-            "algo.episodes",
-            cfg.algo.episodes,
-            f"a multiple of algo.episodes_per_update={cfg.algo.episodes_per_update} (every update trains on that many)",
-        )
-    if workers and cfg.engine != "torchrl":
-        raise ConfigError.of(
-            "env.num_workers",
-            workers,
-            f"0 with engine={cfg.engine!r} (only engine=torchrl runs a ParallelEnv)",
-        )
-    if workers and cfg.algo.episodes_per_update % workers:
-        raise ConfigError.of(
-            "env.num_workers",
-            workers,
-            f"a divisor of algo.episodes_per_update={cfg.algo.episodes_per_update} (the episodes are split over the workers)",
-        )
-    _number(cfg, "algo.adam_eps", low=0, low_open=True, high=1)
-    _choice(cfg, "algo.optimizer", OPTIMIZERS)
-    _number(cfg, "algo.weight_decay", low=0, high=1)
-    if cfg.algo.max_grad_norm is not None:
-        _number(cfg, "algo.max_grad_norm", low=0, low_open=True)
-    _choice(cfg, "algo.baseline", BASELINES)
-    _choice(cfg, "algo.log_prob_reduction", LOG_PROB_REDUCTIONS)
-
-
-def _validate_ppo(cfg: Mapping[str, Any]) -> None:
-    if cfg.env.num_workers:
-        raise ConfigError.of(
-            "env.num_workers", cfg.env.num_workers, "0 with algo=ppo (algo.num_envs drones in one env)"
-        )
-    _number(cfg, "algo.gae_lambda", low=0, high=1)
-    _number(cfg, "algo.num_envs", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
-    _number(cfg, "algo.steps_per_batch", low=1, integer=True)
-    _number(cfg, "algo.epochs", low=1, integer=True)
-    _number(cfg, "algo.minibatch_size", low=1, integer=True)
-    frames = cfg.algo.num_envs * cfg.algo.steps_per_batch
-    if frames % cfg.algo.minibatch_size:
-        raise ConfigError.of(
-            "algo.minibatch_size",
-            cfg.algo.minibatch_size,
-            f"a divisor of algo.num_envs x algo.steps_per_batch = {frames} (the frames of a batch)",
-        )
-    _number(cfg, "algo.clip_epsilon", low=0, low_open=True, high=1)
-    _number(cfg, "algo.entropy_coeff", low=0)
-    _number(cfg, "algo.critic_coeff", low=0, low_open=True)
-    _number(cfg, "algo.reward_scale", low=0, low_open=True)
-    _number(cfg, "algo.adam_eps", low=0, low_open=True, high=1)
-    if cfg.algo.max_grad_norm is not None:
-        _number(cfg, "algo.max_grad_norm", low=0, low_open=True)
-    _sizes(cfg, "algo.value_hidden_sizes")

@@ -226,6 +226,11 @@ TRAIN = [
     (["algo=ppo", "env.num_workers=2"], "env.num_workers"),
     (["algo=ppo", "+algo.baseline=mean"], "algo.baseline"),  # a REINFORCE key: not PPO's
     (["algo=ppo", "algo.lr=2"], "algo.lr"),
+    # A2C (algo=a2c): the on-policy keys; PPO's clipping is not among them
+    (["algo=a2c", "algo.num_envs=0"], "algo.num_envs"),
+    (["algo=a2c", "algo.minibatch_size=1000"], "algo.minibatch_size"),
+    (["algo=a2c", "algo.clip_epsilon=0.1"], "algo.clip_epsilon"),
+    (["algo.name=dqn"], "algo.name"),
     (["model.init_std=0"], "model.init_std"),
     (["model.init_std=-1"], "model.init_std"),
     # keys and groups that do not exist

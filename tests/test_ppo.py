@@ -1,4 +1,5 @@
-"""algo=ppo (TorchRL's collector, GAE and ClipPPOLoss under the run record), and drone-export."""
+"""algo=ppo and algo=a2c (TorchRL's collector, GAE and ClipPPOLoss / A2CLoss under the run record), the
+algorithm registry, and drone-export."""
 
 from __future__ import annotations
 
@@ -74,11 +75,12 @@ def test_episode_tracker_equals_episode_stats_across_batches():
     assert len({length for _, length, _ in expected}) >= 2 and len(expected) >= 5
 
 
-def test_ppo_resumes_and_keeps_its_critic(tmp_path):
+@pytest.mark.parametrize("algo", ["ppo", "a2c"])
+def test_on_policy_runs_resume_and_keep_their_critic(tmp_path, algo):
     run = tmp_path / "run"
     train(
         _cfg(
-            "algo=ppo",
+            f"algo={algo}",
             "algo.episodes=64",
             "algo.num_envs=8",
             "algo.steps_per_batch=32",
@@ -90,7 +92,9 @@ def test_ppo_resumes_and_keeps_its_critic(tmp_path):
     first = load_checkpoint(run / "checkpoints" / "last.pt")
     train(_cfg(f"resume={run}", "algo.episodes=128", *QUIET))
     second = load_checkpoint(run / "checkpoints" / "last.pt")
-    assert second["episodes_done"] >= 128 > first["episodes_done"] >= 64
+    # The batch that reaches the budget is cut at the step its last episode ends: only episodes
+    # ending on that same step (at most num_envs - 1 = 7) pass it.
+    assert 128 <= second["episodes_done"] < 128 + 8 and 64 <= first["episodes_done"] < 64 + 8
     assert second["updates_done"] > first["updates_done"]
     episodes = read_episodes(run / "episodes.csv")[0]["episode"]
     assert episodes.tolist() == list(range(second["episodes_done"]))  # none lost, none twice
@@ -154,3 +158,77 @@ def test_algorithm_presets_compose_and_validate():
     assert (ppo.algo.num_envs * ppo.algo.steps_per_batch) % ppo.algo.minibatch_size == 0
     for cfg in (plus, ppo, _cfg("algo=ppo"), _cfg("algo=reinforce_plus", "experiment=bounded")):
         validate(cfg)
+    assert validate(_cfg("algo=a2c")) is None
+    a2c = _cfg("algo=a2c", "experiment=bounded")
+    assert a2c.algo.name == "a2c" and "clip_epsilon" not in a2c.algo
+
+
+def test_the_registry_names_every_algorithm_and_refuses_others_in_one_line():
+    from drone_torchrl import algorithms
+    from drone_torchrl.algorithms.a2c import A2C
+    from drone_torchrl.algorithms.ppo import PPO
+    from drone_torchrl.algorithms.reinforce import Reinforce
+    from drone_torchrl.checks import ConfigError
+
+    assert algorithms.names() == ("a2c", "ppo", "reinforce")
+    assert [algorithms.get(n).learner for n in algorithms.names()] == [A2C, PPO, Reinforce]
+    with pytest.raises(
+        ConfigError,
+        match=r"^algo.name='dqn' is not allowed; expected one of \['a2c', 'ppo', 'reinforce'\] \(registered in",
+    ):
+        algorithms.get("dqn")
+
+
+@pytest.mark.parametrize("algo", ["ppo", "a2c"])
+def test_a_budget_smaller_than_a_batch_trains_that_many_episodes(tmp_path, algo):
+    """64 drones x 64 steps from the floor end dozens of short episodes in the first batch; a budget
+    of 20 used to train all of them (43), and resuming with 40 then said "finished"."""
+    run = tmp_path / "run"
+    train(_cfg(f"algo={algo}", "algo.episodes=20", *QUIET), run)
+    done = load_checkpoint(run / "checkpoints" / "last.pt")["episodes_done"]
+    assert 20 <= done < 20 + 64
+    rows = read_episodes(run / "episodes.csv")[0]
+    assert rows["episode"].tolist() == list(range(done))
+    # Every episode booked past the budget ended on the cut's last step, the same one as the 20th.
+    train(_cfg(f"resume={run}", "algo.episodes=40", *QUIET))
+    again = load_checkpoint(run / "checkpoints" / "last.pt")["episodes_done"]
+    assert 40 <= again < 40 + 64 and again > done
+    assert read_episodes(run / "episodes.csv")[0]["episode"].tolist() == list(range(again))
+
+
+def test_a_checkpoint_without_its_algorithms_entries_is_refused_in_one_line(tmp_path):
+    from drone_torchrl.config import ConfigError
+    from drone_torchrl.io.checkpoint import save_checkpoint
+
+    run = tmp_path / "run"
+    train(
+        _cfg(
+            "algo=ppo",
+            "algo.episodes=8",
+            "algo.num_envs=8",
+            "algo.steps_per_batch=8",
+            "algo.minibatch_size=64",
+            *QUIET,
+        ),
+        run,
+    )
+    last = run / "checkpoints" / "last.pt"
+    state = load_checkpoint(last)
+    del state["critic"]
+    save_checkpoint(state, last)
+    with pytest.raises(ConfigError, match=r"lacks critic \(algo.name=ppo writes it\)") as error:
+        train(_cfg(f"resume={run}", "algo.episodes=16", *QUIET))
+    assert "\n" not in str(error.value)
+
+
+@pytest.mark.slow  # its default budget, 6000 episodes: about 75 s here
+def test_a2c_learns_to_fly_full_episodes(tmp_path):
+    """algo=a2c with its defaults (seed 0): the last 600 episodes return at least 5x the first 600
+    (which crash after a few dozen steps, about 1 a step), and the last 100 all fly the full 300."""
+    run = tmp_path / "run"
+    train(_cfg("algo=a2c", "experiment=bounded", *QUIET), run)
+    rows = read_episodes(run / "episodes.csv")[0]
+    tenth = len(rows["return"]) // 10
+    first, last = rows["return"][:tenth].mean(), rows["return"][-tenth:].mean()
+    assert last >= 5 * first, (first, last)
+    assert rows["length"][-100:].min() == 300

@@ -73,6 +73,88 @@ def test_resume_from_best_forks_and_leaves_the_run_alone(tmp_path, engine, capsy
     assert _tb_steps(fork, "eval/return") == [4, 6]
 
 
+def _tb_points(run: Path, tag: str) -> dict[int, float]:
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    points = [(e.step, e.value) for e in events.Scalars(tag)]
+    assert len({step for step, _ in points}) == len(points), points  # each step once
+    return dict(points)
+
+
+def test_resume_keeps_the_checkpoints_own_tensorboard_points(tmp_path):
+    """Killed after logging episodes 5-6 past its checkpoint at 4, then resumed to 8: TensorBoard has
+    every step 1..8 once, the checkpoint's own last update and evaluation (step 4) included, and the
+    values after it are the resumed run's (as in one uninterrupted run)."""
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    common = ["logger.every_updates=1", "checkpoint.every_episodes=4", "eval.every_episodes=4", *FAST]
+    train(_cfg("algo.episodes=8", *common), run_dir=whole)
+    train(_cfg("algo.episodes=4", *common), run_dir=cut)
+    at_four = (cut / "checkpoints" / "last.pt").read_bytes()
+    train(_cfg(f"resume={cut}", "algo.episodes=6", "progress=false"))
+    (cut / "checkpoints" / "last.pt").write_bytes(at_four)  # as if killed before the next checkpoint
+    train(_cfg(f"resume={cut}", "algo.episodes=8", "progress=false"))
+    for tag in ("train/running_mean_return", "episode/return", "eval/return"):
+        expected = _tb_points(whole, tag)
+        assert sorted(expected) == ([4, 8] if tag == "eval/return" else list(range(1, 9)))
+        assert _tb_points(cut, tag) == pytest.approx(expected, rel=1e-6), tag
+
+
+def _csv_points(run: Path, tag: str) -> dict[int, float]:
+    import csv
+
+    with (run / "csv" / "scalars.csv").open(newline="") as f:
+        points = [(int(r["step"]), float(r["value"])) for r in csv.DictReader(f) if r["tag"] == tag]
+    assert len({step for step, _ in points}) == len(points), points  # each step once
+    return dict(points)
+
+
+def test_csv_logger_resumes_as_one_uninterrupted_run(tmp_path):
+    """logger=csv: the same kill-and-resume as above; scalars.csv then holds every step once, as the
+    uninterrupted run's does, and hparams.csv the final metrics."""
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    common = [
+        "logger=csv",
+        "logger.every_updates=1",
+        "checkpoint.every_episodes=4",
+        "eval.every_episodes=4",
+        *FAST,
+    ]
+    train(_cfg("algo.episodes=8", *common), run_dir=whole)
+    train(_cfg("algo.episodes=4", *common), run_dir=cut)
+    at_four = (cut / "checkpoints" / "last.pt").read_bytes()
+    train(_cfg(f"resume={cut}", "algo.episodes=6", "progress=false"))
+    (cut / "checkpoints" / "last.pt").write_bytes(at_four)
+    train(_cfg(f"resume={cut}", "algo.episodes=8", "progress=false"))
+    for tag in ("train/running_mean_return", "episode/return", "eval/return"):
+        expected = _csv_points(whole, tag)
+        assert sorted(expected) == ([4, 8] if tag == "eval/return" else list(range(1, 9)))
+        assert _csv_points(cut, tag) == pytest.approx(expected, rel=1e-6), tag
+    assert not (cut / "tensorboard").exists()
+    hparams = (cut / "csv" / "hparams.csv").read_text().splitlines()
+    assert hparams[0] == "key,value" and any(line.startswith("hparam/final_return,") for line in hparams)
+
+
+def test_a_continued_run_keeps_its_logger_backend(tmp_path):
+    run = tmp_path / "run"
+    train(_cfg("algo.episodes=2", *FAST), run_dir=run)
+    with pytest.raises(ConfigError, match=r"logger.backend 'tensorboard' -> 'csv'") as error:
+        prepare(
+            _cfg(f"resume={run}", "algo.episodes=4", "logger=csv"),
+            requested=["logger=csv", "algo.episodes=4"],
+        )
+    assert "\n" not in str(error.value)
+
+
+def test_the_logger_backends_are_registered():
+    from drone_torchrl import loggers
+
+    assert loggers.BACKENDS.names() == ("csv", "tensorboard")
+    with pytest.raises(
+        ConfigError, match=r"^logger.backend='wandb' is not allowed; expected one of \['csv', 'tensorboard'\]"
+    ):
+        loggers.get("wandb")
+
+
 def test_fork_needs_a_folder_of_its_own(tmp_path):
     run = tmp_path / "run"
     train(_cfg("algo.episodes=2", "eval.every_episodes=2", *FAST), run_dir=run)

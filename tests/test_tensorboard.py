@@ -101,7 +101,7 @@ def test_the_readme_scalars_have_points(served):
         points = _get(
             f"{base}/data/plugin/scalars/scalars?run={urllib.request.quote(run)}&tag=episode/return"
         )
-        assert [p[1] for p in points] == [0, 1, 2, 3]  # one per episode, x = its index
+        assert [p[1] for p in points] == [1, 2, 3, 4]  # one per episode, x = episodes done
         evals = _get(f"{base}/data/plugin/scalars/scalars?run={urllib.request.quote(run)}&tag=eval/return")
         assert [p[1] for p in evals] == [2, 4]  # every 2 episodes; the last is the final one
 

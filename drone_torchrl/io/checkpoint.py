@@ -19,6 +19,7 @@ Layout (``format_version`` 2)::
                     under "agent"; it is not used)
     config          the run's resolved config (plain dict)
     final           None while the run goes on; its final metrics once it finished
+    <algorithm's>   what its learner adds (algo=ppo and a2c: ``critic``; see drone_torchrl.algorithms)
 """
 
 from __future__ import annotations

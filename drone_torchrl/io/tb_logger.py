@@ -1,4 +1,4 @@
-"""TensorBoard for many runs at once: buffered scalars, written in batches, no writer held open.
+"""``logger=tensorboard`` (the default backend): buffered scalars, written in batches, no writer held open.
 
 TorchRL's ``TensorboardLogger`` keeps a ``SummaryWriter`` (an open event file and a writer thread)
 for the life of a run and sends every scalar through the thread's queue, about 40 us each. A
@@ -13,8 +13,10 @@ most of the logging time of a population. Videos and the final hparams, a few pe
 a ``SummaryWriter`` opened for the occasion. TensorBoard reads the event files in
 ``<run>/<exp_name>`` as one run.
 
-On resume, the first flush passes ``purge_step``: TensorBoard then drops the events the
-interrupted process logged at or after that step, so the curves do not fold back on themselves.
+Steps count episodes done (see :func:`log_update`). On resume, the first flush passes
+``purge_step``, one past the checkpoint's count: TensorBoard then drops the events the interrupted
+process logged after the checkpoint, so the curves do not fold back on themselves, and keeps the
+checkpoint's own last update and evaluation.
 """
 
 from __future__ import annotations
@@ -27,14 +29,13 @@ import time
 import warnings
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
 
 import google_crc32c
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from drone_torchrl.envs.dynamics import TerminationCause
+from drone_torchrl.loggers import flatten_config
 
 # TFRecord framing (what tensorboard's RecordWriter writes): a masked CRC32C of the length and of the data.
 _CRC_MASK_DELTA = 0xA282EAD8
@@ -193,40 +194,3 @@ class RunLogger:
 
     def close(self) -> None:
         self.flush()
-
-
-EPISODE_SCALARS = ("return", "length", "time_in_zone", "negative_thrust_fraction")
-# Tags made once: log_update runs per agent per update.
-_EPISODE_TAGS = tuple((k, f"episode/{k}") for k in EPISODE_SCALARS)
-_CAUSE_TAGS = tuple((cause.name, f"episode/termination_cause/{cause.name}") for cause in TerminationCause)
-
-
-def log_update(
-    logger: RunLogger, rows: list[dict[str, Any]], train_metrics: dict[str, float], step: int
-) -> None:
-    """One update's TensorBoard scalars: each episode's metrics (x axis: its episode index), the
-    number of episodes that ended with each termination cause, and the update's training metrics."""
-    for row in rows:
-        episode = row["episode"]
-        logger.log_scalars((tag, row[k], episode) for k, tag in _EPISODE_TAGS)
-    causes = [row["termination_cause"] for row in rows]
-    logger.log_scalars((tag, causes.count(name), step) for name, tag in _CAUSE_TAGS)
-    logger.log_metrics(train_metrics, step=step)
-
-
-def flatten_config(cfg: DictConfig | dict) -> dict[str, Any]:
-    """``{"algo.lr": 1e-4, ...}`` with values TensorBoard accepts (lists and None as strings)."""
-    container = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
-    flat: dict[str, Any] = {}
-
-    def walk(prefix: str, node: Any) -> None:
-        if isinstance(node, dict):
-            for key, value in node.items():
-                walk(f"{prefix}.{key}" if prefix else str(key), value)
-        elif isinstance(node, bool | int | float | str):
-            flat[prefix] = node
-        else:
-            flat[prefix] = str(node)
-
-    walk("", container)
-    return flat

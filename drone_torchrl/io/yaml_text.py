@@ -15,14 +15,15 @@ from typing import Any
 
 import yaml
 from omegaconf import Container, OmegaConf
-from omegaconf._utils import get_omega_conf_dumper
+
+from drone_torchrl.compat import omegaconf_str_representer
 
 
 class _Dumper(getattr(yaml, "CDumper", yaml.Dumper)):  # type: ignore[misc]
     pass
 
 
-_Dumper.add_representer(str, get_omega_conf_dumper().str_representer)
+_Dumper.add_representer(str, omegaconf_str_representer())
 
 
 def to_yaml(cfg: Container | dict | list) -> str:

@@ -168,7 +168,13 @@ def prepare(
     return Job(saved, fork_dir, _as_fork(checkpoint), parent)
 
 
+# Keys under RESUME_KEYS' prefixes that a continued run still keeps: its logs stay in one backend.
+FIXED_ON_RESUME = ("logger.backend", "logger.exp_name")
+
+
 def _resumable(key: str) -> bool:
+    if key in FIXED_ON_RESUME:
+        return False
     return any(key == k or (k.endswith(".") and key.startswith(k)) for k in RESUME_KEYS)
 
 
@@ -198,7 +204,8 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
     if changed:
         raise ConfigError(
             f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued run keeps its "
-            "hyper-parameters (only algo.episodes, logger.*, checkpoint.*, eval.every_episodes, eval.video "
+            "hyper-parameters and logger (only algo.episodes, logger.* but logger.backend and exp_name, checkpoint.*, "
+            "eval.every_episodes, eval.video "
             "and process settings may change): drop those overrides or start a new run"
         )
 

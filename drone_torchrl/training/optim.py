@@ -22,6 +22,8 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
+from drone_torchrl.compat import fused_adam
+
 # torch.nn.utils.clip_grad_norm_ adds this to the norm before dividing.
 CLIP_EPS = 1e-6
 
@@ -135,7 +137,7 @@ class Adam:
             steps += agents
             chosen = agents.tolist()
         grads = grad.unbind(0)
-        kernel = torch._fused_adamw_ if self.decoupled_weight_decay else torch._fused_adam_
+        kernel = fused_adam(self.decoupled_weight_decay)
         for (lr, decay), members in groups.items():
             members = members if chosen is None else [i for i in members if chosen[i]]
             if not members:

@@ -29,9 +29,9 @@ from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, FORMAT_VERSION, LAST, save_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
-from drone_torchrl.io.tb_logger import RunLogger, log_update
 from drone_torchrl.io.video import VIDEO_DIR, record_video, save_mp4
 from drone_torchrl.io.yaml_text import save_yaml
+from drone_torchrl.loggers import log_update, make_logger
 
 CONFIG_NAME = "config.yaml"
 FAILED_FILE = "FAILED.txt"
@@ -108,9 +108,7 @@ class RunRecord:
         (self.run_dir / FAILED_FILE).unlink(missing_ok=True)
         save_yaml(cfg, self.run_dir / CONFIG_NAME)
         resumed = checkpoint is not None
-        self.logger = RunLogger(
-            cfg.logger.exp_name, self.run_dir, purge_step=self.episodes_done if resumed else None
-        )
+        self.logger = make_logger(cfg, self.run_dir, self.episodes_done if resumed else None)
         self.csv = EpisodeCSV(
             self.run_dir / CSV_NAME,
             keep_episodes=self.episodes_done,

@@ -1,6 +1,6 @@
-"""The training loop, the same for one agent or a population, REINFORCE (either engine) or PPO.
+"""The training loop, the same for one agent or a population and for every algorithm.
 
-A learner (:class:`~.update.Reinforce`, :class:`~.ppo.PPO`) updates its agents behind one contract,
+A learner (an algorithm's, see :mod:`drone_torchrl.algorithms`) updates its agents behind one contract,
 ``update(state, k, active) -> (state, UpdateOutput)`` (see :mod:`.update`): ``k`` updates of every
 active agent, their metrics and finished episodes handed back at once. The loop copies them to the
 host in one go (one sync per call) and books them, update by update, in each agent's
@@ -22,12 +22,12 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from drone_torchrl import algorithms
 from drone_torchrl.config import ConfigError, env_kwargs
 from drone_torchrl.evaluation import evaluate
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
-from drone_torchrl.training.update import Reinforce
 
 
 @dataclass
@@ -61,13 +61,8 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
 
 
 def learner_class(cfg: DictConfig) -> type:
-    """The learner of ``algo.name``: REINFORCE (:class:`~.update.Reinforce`, either engine) or PPO
-    (:class:`~.ppo.PPO`)."""
-    if cfg.algo.name == "ppo":
-        from drone_torchrl.training.ppo import PPO
-
-        return PPO
-    return Reinforce
+    """The learner of ``algo.name``, from the algorithm registry (:mod:`drone_torchrl.algorithms`)."""
+    return algorithms.get(cfg.algo.name).learner
 
 
 class Trainer:

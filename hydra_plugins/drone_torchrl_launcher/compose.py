@@ -18,10 +18,11 @@ from __future__ import annotations
 import copy
 from collections.abc import Iterator, Sequence
 
-from hydra._internal.config_loader_impl import get_overrides_dirname
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Override, OverrideType
 from omegaconf import DictConfig, OmegaConf, flag_override, open_dict, read_write
+
+from drone_torchrl.compat import overrides_dirname
 
 _MISSING = object()
 
@@ -69,7 +70,7 @@ def sweep_configs(
                 with read_write(hydra), open_dict(hydra):
                     task = [o for o in parsed if not o.is_hydra_override()]
                     hydra.overrides.task = [o.input_line for o in task]
-                    hydra.job.override_dirname = get_overrides_dirname(
+                    hydra.job.override_dirname = overrides_dirname(
                         overrides=task,
                         kv_sep=dirname.kv_sep,
                         item_sep=dirname.item_sep,

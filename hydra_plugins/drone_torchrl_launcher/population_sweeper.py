@@ -14,7 +14,6 @@ and going on past failed jobs.
 Everything else, grid expansion, batches, ``max_batch_size``, ``params``, is the basic sweeper's.
 """
 
-import importlib
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -24,6 +23,7 @@ from hydra.plugins.sweeper import Sweeper
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig
 
+from drone_torchrl.compat import basic_sweeper_class
 from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/sweeper=population)
 
 
@@ -36,7 +36,7 @@ class PopulationSweeper(Sweeper):
     """
 
     def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None) -> None:
-        basic = importlib.import_module("hydra._internal.core_plugins.basic_sweeper").BasicSweeper
+        basic = basic_sweeper_class()
         self._basic = basic(max_batch_size=max_batch_size, params=params)
         self._basic.validate_batch_is_legal = self.validate_batch_is_legal
         self.config: DictConfig | None = None

@@ -7,8 +7,11 @@ configs needs nothing but this module.
 from dataclasses import dataclass
 from typing import Any
 
-from hydra._internal.core_plugins.basic_sweeper import BasicSweeperConf
 from hydra.core.config_store import ConfigStore
+
+from drone_torchrl.compat import basic_sweeper_conf
+
+BasicSweeperConf = basic_sweeper_conf()
 
 
 @dataclass

@@ -37,6 +37,8 @@ from hydra.core.singleton import Singleton
 from hydra.core.utils import JobReturn, JobStatus, filter_overrides
 from omegaconf import OmegaConf, open_dict
 
+from drone_torchrl.compat import submitit_cluster, submitit_params
+
 try:
     from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
     from hydra_plugins.hydra_submitit_launcher.submitit_launcher import SlurmLauncher as _SubmititSlurm
@@ -76,15 +78,15 @@ if _SubmititSlurm is not None:
 
             init_keys = {"submitit_folder", "max_num_timeout", "agents_per_job"}
             executor = submitit.AutoExecutor(
-                cluster=self._EXECUTOR,
-                folder=self.params["submitit_folder"],
-                **{f"{self._EXECUTOR}_max_num_timeout": self.params["max_num_timeout"]},
+                cluster=submitit_cluster(self),
+                folder=submitit_params(self)["submitit_folder"],
+                **{f"{submitit_cluster(self)}_max_num_timeout": submitit_params(self)["max_num_timeout"]},
             )
             base = set(OmegaConf.structured(BaseQueueConf).keys())
             executor.update_parameters(
                 **{
-                    key if key in base else f"{self._EXECUTOR}_{key}": value
-                    for key, value in self.params.items()
+                    key if key in base else f"{submitit_cluster(self)}_{key}": value
+                    for key, value in submitit_params(self).items()
                     if key not in init_keys
                 }
             )
@@ -94,7 +96,7 @@ if _SubmititSlurm is not None:
             assert self.config is not None
             sweep_dir = Path(str(self.config.hydra.sweep.dir))
             sweep_dir.mkdir(parents=True, exist_ok=True)
-            log.info(f"Submitit '{self._EXECUTOR}' sweep output dir : {sweep_dir}")
+            log.info(f"Submitit '{submitit_cluster(self)}' sweep output dir : {sweep_dir}")
             params = []
             for idx, overrides in enumerate(job_overrides, initial_job_idx):
                 log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
@@ -146,7 +148,7 @@ if _SubmititSlurm is not None:
 
         def __init__(self, **params) -> None:
             super().__init__(**params)
-            per_job = self.params["agents_per_job"]
+            per_job = submitit_params(self)["agents_per_job"]
             if isinstance(per_job, bool) or not isinstance(per_job, int) or per_job < 1:
                 # Hydra instantiates the launcher before any job starts: one line, nothing written.
                 sys.exit(
@@ -161,7 +163,7 @@ if _SubmititSlurm is not None:
             from hydra_plugins.drone_torchrl_launcher.fused_launcher import job_output_dir
 
             assert self.config is not None and self.hydra_context is not None
-            per_job = self.params["agents_per_job"]
+            per_job = submitit_params(self)["agents_per_job"]
             sweep_dir = Path(str(self.config.hydra.sweep.dir))
             sweep_dir.mkdir(parents=True, exist_ok=True)
             numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))

@@ -1,13 +1,17 @@
 """PPO on the drone (``algo=ppo``): TorchRL's collector, GAE and ``ClipPPOLoss``, booked by the run record.
 
+:class:`OnPolicy` is the loop every actor-critic algorithm here shares (collector, GAE, minibatch
+epochs, checkpoint entries, the budget); :class:`PPO` gives it ``ClipPPOLoss``, and
+:class:`~drone_torchrl.algorithms.a2c.A2C` gives it ``A2CLoss``.
+
 As in TorchRL's ``sota-implementations/ppo``: a :class:`torchrl.collectors.Collector` flies
 ``algo.num_envs`` drones of one batched :class:`~drone_torchrl.envs.DroneEnv` (auto-reset, so each
 drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` steps; :class:`GAE`
 computes advantages and value targets with the critic; ``algo.epochs`` passes of minibatches drawn
 without replacement from a replay buffer train the three-net actor and the critic with one Adam.
 
-It runs in the same training loop as REINFORCE (:class:`~.trainer.Trainer`, behind the update
-contract of :mod:`.update`): each finished episode goes to the same :class:`~.run.RunRecord`
+It runs in the same training loop as REINFORCE (:class:`~drone_torchrl.training.trainer.Trainer`,
+behind the update contract of :mod:`drone_torchrl.training.update`): each finished episode goes to the same :class:`~.run.RunRecord`
 (``episodes.csv``, TensorBoard, evaluations, ``best.pt``/``last.pt``, resume). Only the drones'
 current episodes are not in a checkpoint: a resumed run starts them afresh (they were not booked,
 so no episode is lost or counted twice, but the run does not replay the interrupted one exactly).
@@ -18,7 +22,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from typing import Any
 
 import torch
@@ -26,18 +30,19 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
-from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 
-from drone_torchrl.config import env_kwargs
+from drone_torchrl.algorithms import Algorithm, register
+from drone_torchrl.checks import ConfigError, number, sizes
+from drone_torchrl.config import MAX_PARALLEL_EPISODES, env_kwargs
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
 from drone_torchrl.training.update import UpdateOutput
 
-LOSS_KEYS = ("loss_objective", "loss_critic", "loss_entropy")
-# What ClipPPOLoss reports besides its losses (booked as train/<name>).
-DIAGNOSTICS = ("entropy", "kl_approx", "clip_fraction")
+# Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
+ADVANTAGE_EPS = 1e-8
 
 
 @contextlib.contextmanager
@@ -51,16 +56,28 @@ def _quiet(logger_name: str) -> Iterator[None]:
         logger.setLevel(level)
 
 
-class PPO:
-    """One PPO run as the training loop (:class:`~.trainer.Trainer`) drives it: collector, loss,
-    optimizer. :meth:`update` follows the engines' contract (:mod:`.update`): ``k`` collector batches,
-    each followed by ``algo.epochs`` passes of minibatches; its episodes are those that ended in
-    each batch (any number: padded, with a ``"valid"`` mask)."""
+class OnPolicy:
+    """One actor-critic run as the training loop (:class:`~drone_torchrl.training.trainer.Trainer`)
+    drives it: collector, GAE, loss, optimizer. :meth:`update` follows the engines' contract
+    (:mod:`drone_torchrl.training.update`): ``k`` collector batches, each followed by ``algo.epochs``
+    passes of minibatches; its episodes are those that ended in each batch (any number: padded, with
+    a ``"valid"`` mask). A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of
+    what its loss reports; the losses summed and booked are the loss's ``loss_*`` outputs."""
 
     max_agents = 1  # one run per learner: it is a batch of drones already
     advice = "lower algo.lr"
     episodes_per_update = None  # the episodes a batch finishes vary: one update per call
     eval_agents = None
+    # What the loss reports besides its losses, booked as train/<name> where the loss has it
+    # (A2CLoss reports no entropy without an entropy bonus).
+    diagnostics: tuple[str, ...] = ()
+    # Standardise the batch's advantages (mean 0, std 1) before the loss sees them; ClipPPOLoss
+    # does it per minibatch itself.
+    normalize_batch_advantage = False
+
+    def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
+        """The algorithm's TorchRL loss over ``actor`` and ``critic``, from ``self.cfg.algo``."""
+        raise NotImplementedError
 
     def __init__(self, jobs) -> None:
         (job,) = jobs
@@ -69,14 +86,7 @@ class PPO:
         torch.manual_seed(cfg.seed)
         self.actor_module = build_actor(cfg, build_policy(cfg, cfg.seed), return_log_prob=True)
         self.critic = build_critic(cfg)
-        self.loss = ClipPPOLoss(
-            self.actor_module,
-            self.critic,
-            clip_epsilon=algo.clip_epsilon,
-            entropy_coeff=algo.entropy_coeff,
-            critic_coeff=algo.critic_coeff,
-            normalize_advantage=True,
-        )
+        self.loss = self.make_loss(self.actor_module, self.critic)
         self.advantage = GAE(
             gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False
         )
@@ -108,10 +118,12 @@ class PPO:
         self.buffer = ReplayBuffer(
             storage=LazyTensorStorage(frames, device=cfg.device),
             sampler=SamplerWithoutReplacement(),
-            batch_size=algo.minibatch_size,
         )
         self.tracker = EpisodeTracker(algo.num_envs, cfg.device)
-        self.checks = tuple(f"train/{k}" for k in (*LOSS_KEYS, *DIAGNOSTICS, "grad_norm"))
+        reported = self.loss.out_keys
+        self.loss_keys = tuple(k for k in reported if k.startswith("loss_"))
+        self.reported = (*self.loss_keys, *(k for k in self.diagnostics if k in reported))
+        self.checks = tuple(f"train/{k}" for k in (*self.reported, "grad_norm"))
 
     def update(
         self, state: TensorDictBase, k: int, active: torch.Tensor
@@ -119,7 +131,7 @@ class PPO:
         metrics: list[dict[str, float]] = []
         episodes: list[dict[str, list]] = []
         for _ in range(k):
-            batch = next(self._batches)
+            batch = self._within_budget(next(self._batches), self.budget - int(state["episodes_done"]))
             ended = self.tracker.update(batch)
             metrics.append(self._learn(batch, int(state["episodes_done"])))
             state["episodes_done"] += len(ended["return"])
@@ -134,6 +146,19 @@ class PPO:
         stats = {key: torch.tensor(padded[key]) for key in EPISODE_KEYS}
         return state, UpdateOutput(out, {**stats, "valid": torch.tensor(valid)})
 
+    @staticmethod
+    def _within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
+        """The batch up to the step at which the budget's last episode ends: a batch of 64 drones x 64
+        steps can finish dozens of short episodes, so without this a budget of 20 would train 43. The
+        steps after it are dropped (the run ends there: the drones' next episodes are not booked), and
+        episodes that end on that same step are booked too, so the budget may be passed by those."""
+        done = batch.get(("next", "done")).reshape(batch.shape[0], batch.shape[1])  # [drones, steps]
+        ended_by = done.sum(0).cumsum(0)
+        if remaining <= 0 or ended_by[-1] <= remaining:
+            return batch
+        last_step = int(torch.searchsorted(ended_by, remaining))  # first step with >= remaining ended
+        return batch[:, : last_step + 1]
+
     def _learn(self, batch, episodes_done: int) -> dict[str, float]:
         """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's mean metrics."""
         algo = self.cfg.algo
@@ -144,14 +169,20 @@ class PPO:
         batch.set(("next", "reward"), batch.get(("next", "reward")) * algo.reward_scale)
         with torch.no_grad():
             self.advantage(batch)
+            if self.normalize_batch_advantage:
+                advantage = batch.get("advantage")
+                batch.set("advantage", (advantage - advantage.mean()) / (advantage.std() + ADVANTAGE_EPS))
+        self.buffer.empty()  # a batch cut at the budget is smaller than the storage
         with _quiet("torchrl"):  # its storage announces its first allocation at INFO level
             self.buffer.extend(batch.reshape(-1))
-        steps = len(self.buffer) // algo.minibatch_size
+        # A batch cut at the budget may hold fewer frames than one minibatch: then one of all of them.
+        size = min(algo.minibatch_size, len(self.buffer))
+        steps = len(self.buffer) // size
         sums: dict[str, torch.Tensor] = {}
         for epoch in range(algo.epochs):
             for _ in range(steps):
-                losses = self.loss(self.buffer.sample())
-                total = sum(losses[k] for k in LOSS_KEYS)
+                losses = self.loss(self.buffer.sample(size))
+                total = sum(losses[k] for k in self.loss_keys)
                 self.optimizer.zero_grad()
                 total.backward()
                 norm = nn.utils.clip_grad_norm_(
@@ -160,7 +191,7 @@ class PPO:
                 self.optimizer.step()
                 if epoch == algo.epochs - 1:
                     for key, value in (
-                        *((k, losses[k]) for k in (*LOSS_KEYS, *DIAGNOSTICS)),
+                        *((k, losses[k]) for k in self.reported),
                         ("grad_norm", norm),
                     ):
                         sums[key] = sums.get(key, 0) + value.detach()
@@ -183,3 +214,67 @@ class PPO:
 
     def close(self) -> None:
         self.collector.shutdown()
+
+
+class PPO(OnPolicy):
+    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages)."""
+
+    diagnostics = ("entropy", "kl_approx", "clip_fraction")
+
+    def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
+        algo = self.cfg.algo
+        return ClipPPOLoss(
+            actor,
+            critic,
+            clip_epsilon=algo.clip_epsilon,
+            entropy_coeff=algo.entropy_coeff,
+            critic_coeff=algo.critic_coeff,
+            normalize_advantage=True,
+        )
+
+
+def validate_on_policy(cfg: Mapping[str, Any]) -> None:
+    """The checks of the keys every :class:`OnPolicy` algorithm has."""
+    name = cfg.algo.name
+    if cfg.env.num_workers:
+        raise ConfigError.of(
+            "env.num_workers",
+            cfg.env.num_workers,
+            f"0 with algo.name={name} (algo.num_envs drones in one env)",
+        )
+    number(cfg, "algo.gae_lambda", low=0, high=1)
+    number(cfg, "algo.num_envs", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
+    number(cfg, "algo.steps_per_batch", low=1, integer=True)
+    number(cfg, "algo.epochs", low=1, integer=True)
+    number(cfg, "algo.minibatch_size", low=1, integer=True)
+    frames = cfg.algo.num_envs * cfg.algo.steps_per_batch
+    if frames % cfg.algo.minibatch_size:
+        raise ConfigError.of(
+            "algo.minibatch_size",
+            cfg.algo.minibatch_size,
+            f"a divisor of algo.num_envs x algo.steps_per_batch = {frames} (the frames of a batch)",
+        )
+    number(cfg, "algo.entropy_coeff", low=0)
+    number(cfg, "algo.critic_coeff", low=0, low_open=True)
+    number(cfg, "algo.reward_scale", low=0, low_open=True)
+    number(cfg, "algo.adam_eps", low=0, low_open=True, high=1)
+    if cfg.algo.max_grad_norm is not None:
+        number(cfg, "algo.max_grad_norm", low=0, low_open=True)
+    sizes(cfg, "algo.value_hidden_sizes")
+
+
+def validate(cfg: Mapping[str, Any]) -> None:
+    """PPO's checks: the on-policy keys and the clipping range."""
+    validate_on_policy(cfg)
+    number(cfg, "algo.clip_epsilon", low=0, low_open=True, high=1)
+
+
+register(
+    Algorithm(
+        "ppo",
+        PPO,
+        validate,
+        checkpoint_keys=("critic",),
+        summary="PPO on TorchRL's collector, GAE and ClipPPOLoss (algo=ppo)",
+    )
+)

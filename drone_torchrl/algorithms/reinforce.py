@@ -1,0 +1,104 @@
+"""REINFORCE (``algo=reinforce``, the paper's; ``algo=reinforce_plus``, the same learner with variance
+reductions): a group of jobs trained as one population, with either engine.
+
+The update itself, the population engine's, is :class:`~drone_torchrl.training.update.ReinforceUpdate`
+(C++ kernels, the PyTorch fast path or TorchRL's reference loop); its loss is
+:class:`~drone_torchrl.objectives.ReinforceLoss`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from drone_torchrl.algorithms import Algorithm, register
+from drone_torchrl.checks import ConfigError, choice, number
+from drone_torchrl.config import MAX_PARALLEL_EPISODES
+from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
+from drone_torchrl.training.collectors import make_collector
+from drone_torchrl.training.population import Population
+from drone_torchrl.training.update import CHECKS, ReinforceUpdate
+
+OPTIMIZERS = ("adam", "adamw")
+
+
+class Reinforce:
+    """REINFORCE as the training loop (:class:`~drone_torchrl.training.trainer.Trainer`) drives it: a group of jobs trained
+    as one population (see :func:`~drone_torchrl.training.jobs.group_key`), with either engine.
+
+    The loop calls :meth:`update` with :attr:`state` and books what it returns; it asks
+    :meth:`eval_policy` (for all :attr:`eval_agents` agents at once), :meth:`checkpoint_entries`
+    and :meth:`actor` (videos) when an evaluation or a checkpoint is due.
+    """
+
+    # Why an agent stops (UpdateOutput's checks, in order) and what to do about it.
+    checks = CHECKS
+    advice = "lower algo.lr (or set algo.max_grad_norm)"
+    max_agents = None  # any number of jobs of one group train together
+
+    def __init__(self, jobs) -> None:
+        cfg = jobs[0].cfg
+        self.population = Population([job.cfg for job in jobs])
+        self.collector = make_collector(cfg, self.population)
+        for i, job in enumerate(jobs):
+            if job.checkpoint is not None:
+                self.population.load(i, job.checkpoint)
+                self.collector.set_rng_state(i, job.checkpoint["rng"], job.checkpoint["episodes_done"])
+        self.update = ReinforceUpdate(cfg, self.population, self.collector)
+        self.state = self.population.state
+        self.episodes_per_update = int(cfg.algo.episodes_per_update)
+        self.eval_agents = len(jobs)
+
+    def eval_policy(self):
+        return self.collector.eval_policy()
+
+    def checkpoint_entries(self, agent: int) -> dict:
+        """The agent's checkpoint entries that the run record does not own: policy, optimizer, RNG."""
+        return {**self.population.checkpoint_entries(agent), "rng": self.collector.rng_state(agent)}
+
+    def actor(self, agent: int):
+        return self.population.actor(agent)
+
+    def close(self) -> None:
+        self.collector.close()
+
+
+def validate(cfg: Mapping[str, Any]) -> None:
+    """The checks of REINFORCE's own keys (and of the engine options it alone uses)."""
+    workers = cfg.env.num_workers
+    number(cfg, "algo.episodes_per_update", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
+    if cfg.algo.episodes % cfg.algo.episodes_per_update:
+        raise ConfigError.of(
+            "algo.episodes",
+            cfg.algo.episodes,
+            f"a multiple of algo.episodes_per_update={cfg.algo.episodes_per_update} (every update trains on that many)",
+        )
+    if workers and cfg.engine != "torchrl":
+        raise ConfigError.of(
+            "env.num_workers",
+            workers,
+            f"0 with engine={cfg.engine!r} (only engine=torchrl runs a ParallelEnv)",
+        )
+    if workers and cfg.algo.episodes_per_update % workers:
+        raise ConfigError.of(
+            "env.num_workers",
+            workers,
+            f"a divisor of algo.episodes_per_update={cfg.algo.episodes_per_update} (the episodes are split over the workers)",
+        )
+    number(cfg, "algo.adam_eps", low=0, low_open=True, high=1)
+    choice(cfg, "algo.optimizer", OPTIMIZERS)
+    number(cfg, "algo.weight_decay", low=0, high=1)
+    if cfg.algo.max_grad_norm is not None:
+        number(cfg, "algo.max_grad_norm", low=0, low_open=True)
+    choice(cfg, "algo.baseline", BASELINES)
+    choice(cfg, "algo.log_prob_reduction", LOG_PROB_REDUCTIONS)
+
+
+register(
+    Algorithm(
+        "reinforce",
+        Reinforce,
+        validate,
+        summary="Monte-Carlo REINFORCE, a population of agents per process (algo=reinforce, algo=reinforce_plus)",
+    )
+)

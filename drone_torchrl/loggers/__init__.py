@@ -1,0 +1,134 @@
+"""Loggers as plug-ins: where a run's scalars, final hyper-parameters and videos go (``logger=...``).
+
+The run record (:class:`~drone_torchrl.training.run.RunRecord`) logs through the :class:`Logger`
+interface only; ``logger.backend`` (set by each ``conf/logger/<option>.yaml``) picks the
+:class:`Backend` that makes one per run. Built in:
+
+- ``logger=tensorboard`` (the default): TensorBoard event files, buffered (:mod:`.tensorboard`).
+- ``logger=csv``: one long-format CSV of scalars per run (:mod:`.csv`).
+
+Every backend buffers: values are kept in memory between flushes (at every checkpoint, evaluation
+and every ``logger.flush_every_s`` seconds) and no file is held open in between, so a population of
+1,024 runs holds no files open while it trains.
+
+Resume: every step is a count of episodes done. When a run continues from a checkpoint at count
+``E``, the backend is told ``E`` and applies its resume rule (each backend's ``resume_rule`` says
+which): the file backends drop what the interrupted process logged after ``E`` and keep the rest.
+The backend of a run cannot change when it continues (one line refuses it).
+
+Adding one: a module here (or in another package, named in the ``drone_torchrl.loggers`` entry-point
+group) that calls :func:`register`, and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard]``
+(the shared keys), ``backend: <name>`` and its own keys; then ``drone-train logger=<option>``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
+
+from drone_torchrl.envs.dynamics import TerminationCause
+from drone_torchrl.registry import Registry
+
+
+class Logger(Protocol):
+    """What the run record calls. Steps are counts of episodes done; values are buffered until :meth:`flush`."""
+
+    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
+        """``(tag, value, step)`` triples, as many as come."""
+
+    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        """``{tag: value}`` at one step."""
+
+    def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
+        """``[T, H, W, 3]`` uint8 frames of an evaluation video (a backend may skip them: the run
+        folder always has the MP4)."""
+
+    def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
+        """The flattened config with the run's final metrics, once, when it finishes."""
+
+    def flush(self) -> None:
+        """Write what is buffered (files are opened only for this)."""
+
+    def close(self) -> None:
+        """Flush; the run logs nothing more."""
+
+
+@dataclass(frozen=True)
+class Backend:
+    """One logger backend.
+
+    Attributes:
+        name: its ``logger.backend``.
+        make: ``make(cfg, run_dir, resumed_at)`` -> the run's :class:`Logger`; ``resumed_at`` is the
+            checkpoint's count of episodes when the run continues (None for a new run).
+        resume_rule: one line saying what happens to values logged after the checkpoint.
+        validate: checks of its own ``logger.*`` keys (one-line ``ConfigError``).
+    """
+
+    name: str
+    make: Callable[[DictConfig, Path, int | None], Logger]
+    resume_rule: str
+    validate: Callable[[Mapping[str, Any]], None] = lambda cfg: None
+
+
+BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
+
+
+def register(backend: Backend) -> Backend:
+    """Add ``backend`` (its module calls this when imported)."""
+    return BACKENDS.register(backend.name, backend)
+
+
+def get(name: Any) -> Backend:
+    """The backend named ``name``; a one-line :class:`~drone_torchrl.checks.ConfigError` otherwise."""
+    return BACKENDS.get(name)
+
+
+def make_logger(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> Logger:
+    """The run's logger, from ``cfg.logger.backend``."""
+    return get(cfg.logger.backend).make(cfg, Path(run_dir), resumed_at)
+
+
+def flatten_config(cfg: DictConfig | dict) -> dict[str, Any]:
+    """``{"algo.lr": 1e-4, ...}`` with values every backend accepts (lists and None as strings)."""
+    container = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
+    flat: dict[str, Any] = {}
+
+    def walk(prefix: str, node: Any) -> None:
+        if isinstance(node, dict):
+            for key, value in node.items():
+                walk(f"{prefix}.{key}" if prefix else str(key), value)
+        elif isinstance(node, bool | int | float | str):
+            flat[prefix] = node
+        else:
+            flat[prefix] = str(node)
+
+    walk("", container)
+    return flat
+
+
+EPISODE_SCALARS = ("return", "length", "time_in_zone", "negative_thrust_fraction")
+# Tags made once: log_update runs per agent per update.
+_EPISODE_TAGS = tuple((k, f"episode/{k}") for k in EPISODE_SCALARS)
+_CAUSE_TAGS = tuple((cause.name, f"episode/termination_cause/{cause.name}") for cause in TerminationCause)
+
+
+def log_update(
+    logger: Logger, rows: list[dict[str, Any]], train_metrics: dict[str, float], step: int
+) -> None:
+    """One update's scalars: each episode's metrics, the number of episodes that ended
+    with each termination cause, and the update's training metrics. Every step is a count of episodes
+    done: an episode's own metrics at its number counted from 1 (the CSV's ``episode`` + 1), the
+    update's at ``step``, the count after its last episode; so a resume from a checkpoint at count
+    ``E`` purges from ``E + 1`` and keeps everything the checkpoint includes."""
+    for row in rows:
+        count = row["episode"] + 1
+        logger.log_scalars((tag, row[k], count) for k, tag in _EPISODE_TAGS)
+    causes = [row["termination_cause"] for row in rows]
+    logger.log_scalars((tag, causes.count(name), step) for name, tag in _CAUSE_TAGS)
+    logger.log_metrics(train_metrics, step=step)

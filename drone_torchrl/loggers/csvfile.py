@@ -1,0 +1,111 @@
+"""``logger=csv``: every scalar as a row of one CSV per run, ``<run>/<logger.exp_name>/scalars.csv``.
+
+Long format, ``step,tag,value`` (a pandas ``pivot`` away from one column per tag), so a new tag
+never rewrites the file, a run holds one file (TorchRL's ``CSVLogger`` holds one open file per tag
+and every value in memory), and the file is open only while a flush appends to it. The final
+hyper-parameters and metrics go to ``hparams.csv`` beside it (``key,value``). Videos are not logged
+here: the run folder's ``videos/`` has them.
+
+Resume: rows after the checkpoint's count of episodes are dropped (the file is rewritten through a
+temporary file and an atomic rename), the others kept, so a continued run's file reads as one
+uninterrupted run's.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+from omegaconf import DictConfig
+
+from drone_torchrl.loggers import Backend, flatten_config, register
+
+SCALARS = "scalars.csv"
+HPARAMS = "hparams.csv"
+HEADER = ("step", "tag", "value")
+
+
+class CSVLogger:
+    """Buffered scalars appended to ``<log_dir>/scalars.csv``."""
+
+    def __init__(self, log_dir: Path, resumed_at: int | None = None) -> None:
+        self.log_dir = Path(log_dir)
+        self.path = self.log_dir / SCALARS
+        self._rows: list[tuple[int, str, float]] = []
+        if resumed_at is not None and self.path.is_file():
+            _keep_until(self.path, resumed_at)
+
+    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
+        self._rows.extend((int(step), tag, value) for tag, value, step in scalars)
+
+    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        self._rows.extend((int(step), tag, value) for tag, value in metrics.items())
+
+    def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
+        """Not kept: the MP4 is in the run folder's ``videos/``."""
+
+    def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        entries = {**flatten_config(cfg), **{f"hparam/{k}": v for k, v in metrics.items()}}
+        _write_atomically(self.log_dir / HPARAMS, ("key", "value"), entries.items())
+
+    def flush(self) -> None:
+        if not self._rows:
+            return
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        new = not self.path.is_file()
+        with self.path.open("a", newline="") as f:
+            writer = csv.writer(f)
+            if new:
+                writer.writerow(HEADER)
+            writer.writerows((step, tag, repr(float(value))) for step, tag, value in self._rows)
+        self._rows.clear()
+
+    def close(self) -> None:
+        self.flush()
+
+
+def _keep_until(path: Path, step: int) -> None:
+    """Rewrite ``path`` with its rows up to ``step`` (a torn last line, from a kill, is dropped too)."""
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))
+    kept = [
+        row
+        for row in rows[1:]
+        if len(row) == len(HEADER) and _step(row[0]) is not None and _step(row[0]) <= step
+    ]
+    _write_atomically(path, HEADER, kept)
+
+
+def _step(text: str) -> int | None:
+    try:
+        return int(text)
+    except ValueError:
+        return None
+
+
+def _write_atomically(path: Path, header: tuple[str, ...], rows: Iterable) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> CSVLogger:
+    return CSVLogger(run_dir / cfg.logger.exp_name, resumed_at)
+
+
+register(
+    Backend(
+        "csv",
+        make,
+        resume_rule="rows logged after the checkpoint are dropped (the file is rewritten), the rest kept",
+    )
+)

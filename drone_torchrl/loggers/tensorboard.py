@@ -1,0 +1,27 @@
+"""``logger=tensorboard`` (the default): :class:`~drone_torchrl.io.tb_logger.RunLogger`, buffered
+TensorBoard event files in ``<run>/<logger.exp_name>``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+from drone_torchrl.io.tb_logger import RunLogger
+from drone_torchrl.loggers import Backend, register
+
+
+def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> RunLogger:
+    # The checkpoint's own last update and evaluation were logged at its count: TensorBoard drops
+    # events from count + 1 on, those the interrupted process logged after the checkpoint.
+    purge = None if resumed_at is None else resumed_at + 1
+    return RunLogger(cfg.logger.exp_name, run_dir, purge_step=purge)
+
+
+register(
+    Backend(
+        "tensorboard",
+        make,
+        resume_rule="events logged after the checkpoint are dropped (TensorBoard's purge_step), the rest kept",
+    )
+)
