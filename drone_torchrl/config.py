@@ -75,14 +75,20 @@ RUN_FOLDER_ENTRIES = frozenset(
 _HYDRA_PREFIX = "hydra"
 
 
+# Groups whose options are plug-ins, each option naming its plug-in under this key: each option
+# may add keys of its own (an algorithm's hyper-parameters, a logger backend's settings).
+PLUGIN_GROUPS = {"algo": "name", "logger": "backend"}
+
+
 @functools.cache
-def schema(name: str = "config", algo: str | None = None) -> DictConfig:
+def schema(name: str = "config", algo: str | None = None, logger: str | None = None) -> DictConfig:
     """Every key a ``conf/<name>.yaml`` config can hold, with its default value.
 
-    The primary file merged with its default group options (``algo``: that option of the algo
-    group instead of the default one), not Hydra's settings: what a config composed from it holds,
-    whichever experiment or sweep preset is chosen, since those only set values of these keys.
+    The primary file merged with its default group options (``algo``, ``logger``: that option of
+    the group instead of the default one), not Hydra's settings: what a config composed from it
+    holds, whichever experiment or sweep preset is chosen, since those only set values of these keys.
     """
+    chosen = {"algo": algo, "logger": logger}
     root = Path(config_dir())
     primary = OmegaConf.load(root / f"{name}.yaml")
     merged = OmegaConf.create()
@@ -92,8 +98,7 @@ def schema(name: str = "config", algo: str | None = None) -> DictConfig:
         for group, option in entry.items():
             if group.startswith("override") or group.startswith(_HYDRA_PREFIX):
                 continue
-            if group == "algo" and algo is not None:
-                option = algo
+            option = chosen.get(group) or option
             _merge_option(merged, root, group, option)
     own = {k: v for k, v in primary.items() if k not in ("defaults", _HYDRA_PREFIX)}
     merged.merge_with(OmegaConf.create(own))
@@ -151,11 +156,12 @@ def group_names() -> list[str]:
 
 
 def _unknown(key: str, known: Iterable[str]) -> ConfigError:
-    if key.startswith("algo."):  # another algorithm's key: say whose, not a look-alike of this one's
-        owners = [a for a in _options("algo") if key in _schema_leaves("config", a)]
+    group = key.split(".")[0]
+    if group in PLUGIN_GROUPS:  # another plug-in's key: say whose, not a look-alike of this one's
+        owners = [o for o in _options(group) if key in _schema_leaves("config", **{group: o})]
         if owners:
             return ConfigError(
-                f"{key} is not a key of this algo; it belongs to algo={' or algo='.join(owners)}"
+                f"{key} is not a key of this {group}; it belongs to {group}={f' or {group}='.join(owners)}"
             )
     close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
@@ -189,7 +195,7 @@ def check_keys(cfg: DictConfig, name: str = "config") -> Mapping:
     Returns the config as resolved plain data (``???`` and interpolations to nothing are refused)."""
 
     try:
-        known = _schema_leaves(name, _algo_option(cfg))
+        known = _schema_leaves(name, **_plugin_options(cfg))
         resolved = _resolved(cfg)
         given = leaves(resolved)
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
@@ -211,24 +217,32 @@ def check_keys(cfg: DictConfig, name: str = "config") -> Mapping:
 
 
 @functools.cache
-def _schema_leaves(name: str, algo: str | None) -> dict[str, Any]:
-    return leaves(schema(name, algo))
+def _schema_leaves(name: str, algo: str | None = None, logger: str | None = None) -> dict[str, Any]:
+    return leaves(schema(name, algo, logger))
 
 
-def _algo_option(cfg: Any) -> str | None:
-    """The algo group option whose keys ``cfg.algo`` holds, found by its ``algo.name`` (the learner it
-    names): the option of that file name, or else the first whose ``name`` is it (the file name is
-    free: several options may share a learner, as reinforce_plus does)."""
-    algo = OmegaConf.select(cfg, "algo.name", default=None) if isinstance(cfg, DictConfig) else None
-    return _algo_files().get(algo) if isinstance(algo, str) else None
+def _plugin_options(cfg: Any) -> dict[str, str | None]:
+    """``{"algo": option, "logger": option}``: the group options whose keys ``cfg`` holds, found by
+    the plug-in each names (``algo.name``, ``logger.backend``): the option of that file name, or else
+    the first that names it (file names are free: several options may share a plug-in, as
+    reinforce_plus shares reinforce's learner)."""
+    out: dict[str, str | None] = {}
+    for group, key in PLUGIN_GROUPS.items():
+        plugin = (
+            OmegaConf.select(cfg, f"{group}.{key}", default=None) if isinstance(cfg, DictConfig) else None
+        )
+        out[group] = _plugin_files(group).get(plugin) if isinstance(plugin, str) else None
+    return out
 
 
 @functools.cache
-def _algo_files() -> dict[str, str]:
-    """``{algo.name: algo group option}``, an option named like its learner first."""
+def _plugin_files(group: str) -> dict[str, str]:
+    """``{plug-in name: group option}`` of a plug-in group, an option named like its plug-in first."""
+    key = f"{group}.{PLUGIN_GROUPS[group]}"
+    named = {option: _schema_leaves("config", **{group: option}).get(key) for option in _options(group)}
     files: dict[str, str] = {}
-    for option in sorted(_options("algo"), key=lambda o: o != _schema_leaves("config", o).get("algo.name")):
-        files.setdefault(_schema_leaves("config", option).get("algo.name"), option)
+    for option in sorted(named, key=lambda o: o != named[o]):
+        files.setdefault(named[option], option)
     return files
 
 
@@ -243,9 +257,11 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
         parsed = OverridesParser.create().parse_overrides(list(overrides))
     except HydraException:
         return
-    chosen = [o.value() for o in parsed if o.key_or_group == "algo" and not o.is_sweep_override()]
-    algo = chosen[-1] if chosen and chosen[-1] in _options("algo") else None
-    known = _schema_leaves(name, algo if name == "config" else None)
+    chosen: dict[str, str | None] = {}
+    for group in PLUGIN_GROUPS:
+        picked = [o.value() for o in parsed if o.key_or_group == group and not o.is_sweep_override()]
+        chosen[group] = picked[-1] if picked and picked[-1] in _options(group) and name == "config" else None
+    known = _schema_leaves(name, **chosen)
     groups = group_names()
     for override in parsed:
         key = override.key_or_group
@@ -334,7 +350,7 @@ def run_config(saved: dict[str, Any]) -> DictConfig:
     cfg = OmegaConf.create(saved)
     if OmegaConf.select(cfg, "algo.name", default=_ABSENT) is _ABSENT:
         OmegaConf.update(cfg, "algo.name", ADDED_KEYS["algo.name"], force_add=True)
-    known = _schema_leaves("config", _algo_option(cfg))
+    known = _schema_leaves("config", **_plugin_options(cfg))
     for key, value in ADDED_KEYS.items():
         if key in known and OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
             OmegaConf.update(cfg, key, value, force_add=True)

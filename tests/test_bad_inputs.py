@@ -231,6 +231,11 @@ TRAIN = [
     (["algo=a2c", "algo.minibatch_size=1000"], "algo.minibatch_size"),
     (["algo=a2c", "algo.clip_epsilon=0.1"], "algo.clip_epsilon"),
     (["algo.name=dqn"], "algo.name"),
+    # logger plug-ins: a backend's own key, and another backend's
+    (["logger=csv", "logger.float_format=abc"], "logger.float_format"),
+    (["logger=csv", "logger.float_format='%d %d'"], "logger.float_format"),
+    (["logger.float_format='%.3g'"], "logger.float_format"),  # logger=csv's key, not tensorboard's
+    (["logger.backend=wandb"], "logger.backend"),
     (["model.init_std=0"], "model.init_std"),
     (["model.init_std=-1"], "model.init_std"),
     # keys and groups that do not exist

@@ -134,6 +134,68 @@ def test_csv_logger_resumes_as_one_uninterrupted_run(tmp_path):
     assert hparams[0] == "key,value" and any(line.startswith("hparam/final_return,") for line in hparams)
 
 
+def test_csv_logger_writes_long_rows_and_its_float_format(tmp_path):
+    from drone_torchrl.loggers.csvfile import CSVLogger
+
+    full, short = CSVLogger(tmp_path / "full"), CSVLogger(tmp_path / "short", float_format="%.3g")
+    for logger in (full, short):
+        logger.log_scalars([("a", 0.123456789, 1), ("b", 2.0, 1)])
+        logger.log_metrics({"a": 1 / 3}, step=2)
+        logger.close()
+    assert (tmp_path / "full" / "scalars.csv").read_text().splitlines() == [
+        "step,tag,value",
+        "1,a,0.123456789",
+        "1,b,2.0",
+        f"2,a,{1 / 3!r}",
+    ]
+    assert (tmp_path / "short" / "scalars.csv").read_text().splitlines()[1:] == [
+        "1,a,0.123",
+        "1,b,2",
+        "2,a,0.333",
+    ]
+
+
+def test_mlflow_logger_keeps_one_run_across_a_resume(tmp_path):
+    """logger=mlflow: the kill-and-resume above; read back through MlflowClient, the MLflow run has
+    every step once with the uninterrupted run's values (REINFORCE retrains the skipped steps
+    exactly), the config as params, the final metrics, and status FINISHED."""
+    pytest.importorskip("mlflow")
+    from mlflow.tracking import MlflowClient
+
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    common = [
+        "logger=mlflow",
+        "logger.every_updates=1",
+        "checkpoint.every_episodes=4",
+        "eval.every_episodes=4",
+        *FAST,
+    ]
+    train(_cfg("algo.episodes=8", *common), run_dir=whole)
+    train(_cfg("algo.episodes=4", *common), run_dir=cut)
+    at_four = (cut / "checkpoints" / "last.pt").read_bytes()
+    train(_cfg(f"resume={cut}", "algo.episodes=6", "progress=false"))
+    (cut / "checkpoints" / "last.pt").write_bytes(at_four)
+    train(_cfg(f"resume={cut}", "algo.episodes=8", "progress=false"))
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
+    (experiment,) = [e for e in client.search_experiments() if e.name == "adhoc"]
+    runs = {r.data.tags["run_dir"]: r for r in client.search_runs([experiment.experiment_id])}
+    assert sorted(runs) == sorted([str(whole), str(cut)])  # one MLflow run each, resumes included
+    for tag in ("train/running_mean_return", "episode/return", "eval/return"):
+        got = {}
+        for run_dir, run in runs.items():
+            history = [(m.step, m.value) for m in client.get_metric_history(run.info.run_id, tag)]
+            assert len({step for step, _ in history}) == len(history), (tag, history)  # each step once
+            got[run_dir] = dict(history)
+        assert sorted(got[str(whole)]) == ([4, 8] if tag == "eval/return" else list(range(1, 9)))
+        if tag == "eval/return":  # append-only: the interrupted process's final evaluation (at 6) stays
+            assert sorted(got[str(cut)]) == [4, 6, 8]
+            del got[str(cut)][6]
+        assert got[str(cut)] == pytest.approx(got[str(whole)], rel=1e-6), tag
+    run = client.get_run(runs[str(cut)].info.run_id)
+    assert run.info.status == "FINISHED" and run.data.params["algo.lr"] == "0.0001"
+    assert "hparam/final_return" in run.data.metrics
+
+
 def test_a_continued_run_keeps_its_logger_backend(tmp_path):
     run = tmp_path / "run"
     train(_cfg("algo.episodes=2", *FAST), run_dir=run)
@@ -148,9 +210,9 @@ def test_a_continued_run_keeps_its_logger_backend(tmp_path):
 def test_the_logger_backends_are_registered():
     from drone_torchrl import loggers
 
-    assert loggers.BACKENDS.names() == ("csv", "tensorboard")
+    assert loggers.BACKENDS.names() == ("csv", "mlflow", "tensorboard")
     with pytest.raises(
-        ConfigError, match=r"^logger.backend='wandb' is not allowed; expected one of \['csv', 'tensorboard'\]"
+        ConfigError, match=r"^logger.backend='wandb' is not allowed; expected one of \['csv', 'mlflow', 'tensorboard'\]"
     ):
         loggers.get("wandb")
 

@@ -140,8 +140,11 @@ class RunLogger:
         now = time.time()
         if self._events is None:
             self.log_dir.mkdir(parents=True, exist_ok=True)
+            # TensorBoard reads a run's event files in name order, and a resumed run's purge only
+            # works if its file comes after the interrupted one's: the name starts with the time in
+            # nanoseconds (whole seconds, as SummaryWriter names them, tie within a second).
             self._events = self.log_dir / (
-                f"events.out.tfevents.{int(now)}.{socket.gethostname()}.{os.getpid()}.{id(self)}"
+                f"events.out.tfevents.{time.time_ns()}.{socket.gethostname()}.{os.getpid()}.{id(self)}"
             )
             records.append(event_pb2.Event(wall_time=now, file_version="brain.Event:2"))
             if self._purge_step is not None:  # what SummaryWriter(purge_step=...) writes

@@ -4,7 +4,8 @@ Long format, ``step,tag,value`` (a pandas ``pivot`` away from one column per tag
 never rewrites the file, a run holds one file (TorchRL's ``CSVLogger`` holds one open file per tag
 and every value in memory), and the file is open only while a flush appends to it. The final
 hyper-parameters and metrics go to ``hparams.csv`` beside it (``key,value``). Videos are not logged
-here: the run folder's ``videos/`` has them.
+here: the run folder's ``videos/`` has them. ``logger.float_format`` (a ``%`` format such as
+``"%.6g"``) shortens the values; by default they are written in full (Python's ``repr``).
 
 Resume: rows after the checkpoint's count of episodes are dropped (the file is rewritten through a
 temporary file and an atomic rename), the others kept, so a continued run's file reads as one
@@ -15,12 +16,14 @@ from __future__ import annotations
 
 import csv
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig
 
+from drone_torchrl.checks import ConfigError
 from drone_torchrl.loggers import Backend, flatten_config, register
 
 SCALARS = "scalars.csv"
@@ -31,8 +34,9 @@ HEADER = ("step", "tag", "value")
 class CSVLogger:
     """Buffered scalars appended to ``<log_dir>/scalars.csv``."""
 
-    def __init__(self, log_dir: Path, resumed_at: int | None = None) -> None:
+    def __init__(self, log_dir: Path, resumed_at: int | None = None, float_format: str | None = None) -> None:
         self.log_dir = Path(log_dir)
+        self.float_format = float_format
         self.path = self.log_dir / SCALARS
         self._rows: list[tuple[int, str, float]] = []
         if resumed_at is not None and self.path.is_file():
@@ -61,7 +65,11 @@ class CSVLogger:
             writer = csv.writer(f)
             if new:
                 writer.writerow(HEADER)
-            writer.writerows((step, tag, repr(float(value))) for step, tag, value in self._rows)
+            fmt = self.float_format
+            writer.writerows(
+                (step, tag, repr(float(value)) if fmt is None else fmt % value)
+                for step, tag, value in self._rows
+            )
         self._rows.clear()
 
     def close(self) -> None:
@@ -99,7 +107,20 @@ def _write_atomically(path: Path, header: tuple[str, ...], rows: Iterable) -> No
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> CSVLogger:
-    return CSVLogger(run_dir / cfg.logger.exp_name, resumed_at)
+    return CSVLogger(run_dir / cfg.logger.exp_name, resumed_at, cfg.logger.float_format)
+
+
+def validate(cfg: Mapping[str, Any]) -> None:
+    """``logger.float_format``: null, or a ``%`` format of one number."""
+    fmt = cfg.logger.float_format
+    if fmt is None:
+        return
+    try:
+        float(fmt % 0.5)
+    except (TypeError, ValueError):
+        raise ConfigError.of(
+            "logger.float_format", fmt, "null or a %-format of one number, e.g. '%.6g'"
+        ) from None
 
 
 register(
@@ -107,5 +128,6 @@ register(
         "csv",
         make,
         resume_rule="rows logged after the checkpoint are dropped (the file is rewritten), the rest kept",
+        validate=validate,
     )
 )

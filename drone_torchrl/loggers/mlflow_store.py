@@ -1,0 +1,165 @@
+"""``logger=mlflow``: each run is an MLflow run (the ``mlflow`` extra: ``pip install ".[mlflow]"``).
+
+Store: ``logger.tracking_uri``, by default an SQLite file beside the run folders,
+``sqlite:///<run folder's parent>/mlflow.db``: one store per sweep (``multirun/<sweep>/mlflow.db``)
+and per day for single runs (``outputs/<date>/mlflow.db``). Any MLflow tracking URI works (a
+server, ``sqlite:///...``). Experiment: ``logger.experiment``, by default the ``sweep_name``.
+Browse with ``mlflow ui --backend-store-uri sqlite:///multirun/lr/mlflow.db`` (the full ``mlflow``
+package) or read with :class:`mlflow.tracking.MlflowClient`.
+
+What is logged: every scalar as a metric with its step (a count of episodes done), the flattened
+config as params when the run starts, the final metrics as ``hparam/*`` metrics when it ends, and
+the run's status (``FINISHED`` when it completes). Videos are not uploaded: the run folder's
+``videos/`` has them. Metrics are buffered and sent in batches of MLflow's largest size at every
+flush; the store's connection is shared by every run of a process, so a population of 1,024 runs
+holds one connection, not 1,024 files.
+
+Resume: MLflow is append-only, so a continued run logs into the same MLflow run (its id is kept in
+``<run>/<logger.exp_name>/run_id``) and skips the steps that run already has (those logged by the
+interrupted process after the checkpoint). REINFORCE's runs retrain those episodes exactly (their
+random numbers are a function of the update count), so the skipped values are the ones it would
+log; PPO and A2C restart their drones' episodes, so there the values kept are the interrupted
+process's. A child run per resume would keep both, but split one run's curves over several MLflow
+runs; continuing keeps one curve per run, as the TensorBoard and CSV backends do.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig
+
+from drone_torchrl.checks import ConfigError
+from drone_torchrl.loggers import Backend, flatten_config, register
+
+RUN_ID_FILE = "run_id"
+STORE_FILE = "mlflow.db"
+# MLflow's limits per log_batch call (metrics, params) and per param value (characters).
+MAX_METRICS_PER_BATCH = 1000
+MAX_PARAMS_PER_BATCH = 100
+MAX_PARAM_CHARS = 6000
+
+
+def _client(tracking_uri: str):
+    try:
+        from mlflow.tracking import MlflowClient
+    except ImportError:
+        raise ConfigError(
+            "logger=mlflow needs MLflow: pip install 'drone_torchrl[mlflow]' (or mlflow)"
+        ) from None
+    return MlflowClient(tracking_uri=tracking_uri)
+
+
+class MLflowLogger:
+    """One drone_torchrl run as one MLflow run, buffered."""
+
+    def __init__(
+        self, tracking_uri: str, experiment: str, run_dir: Path, exp_name: str, resumed_at: int | None
+    ) -> None:
+        self.client = client = _client(tracking_uri)
+        self.folder = Path(run_dir) / exp_name
+        id_file = self.folder / RUN_ID_FILE
+        self._buffer: list = []
+        self._skip_to = -1  # steps <= this are in the store already
+        if id_file.is_file():
+            self.run_id = id_file.read_text().strip()
+            if resumed_at is not None:
+                self._skip_to = self._last_step()
+            client.update_run(self.run_id, status="RUNNING")
+        else:
+            found = client.get_experiment_by_name(experiment)
+            experiment_id = found.experiment_id if found else client.create_experiment(experiment)
+            run = client.create_run(
+                experiment_id, run_name=Path(run_dir).name, tags={"run_dir": str(run_dir)}
+            )
+            self.run_id = run.info.run_id
+            self.folder.mkdir(parents=True, exist_ok=True)
+            tmp = id_file.with_name(RUN_ID_FILE + ".tmp")
+            tmp.write_text(self.run_id + "\n")
+            tmp.replace(id_file)
+
+    def _last_step(self) -> int:
+        keys = self.client.get_run(self.run_id).data.metrics
+        steps = [m.step for key in keys for m in self.client.get_metric_history(self.run_id, key)]
+        return max(steps, default=-1)
+
+    def log_params(self, cfg: DictConfig | dict) -> None:
+        from mlflow.entities import Param
+
+        have = self.client.get_run(self.run_id).data.params
+        params = [
+            Param(key, str(value)[:MAX_PARAM_CHARS])
+            for key, value in flatten_config(cfg).items()
+            if key not in have  # params cannot change in MLflow; a resumed run has them already
+        ]
+        for start in range(0, len(params), MAX_PARAMS_PER_BATCH):
+            self.client.log_batch(self.run_id, params=params[start : start + MAX_PARAMS_PER_BATCH])
+
+    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
+        self._buffer.extend((tag, float(value), int(step)) for tag, value, step in scalars)
+
+    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        self._buffer.extend((tag, float(value), int(step)) for tag, value in metrics.items())
+
+    def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
+        """Not uploaded: the MP4 is in the run folder's ``videos/``."""
+
+    def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
+        # MLflow shows params and metrics side by side already; the final metrics under hparam/*,
+        # as TensorBoard's HPARAMS tab names them. Step 0, as there.
+        self.log_metrics({f"hparam/{k}": v for k, v in metrics.items()}, step=0)
+        self.flush()
+        self.client.set_terminated(self.run_id, status="FINISHED")
+
+    def flush(self) -> None:
+        from mlflow.entities import Metric
+
+        if not self._buffer:
+            return
+        now = int(time.time() * 1000)
+        metrics = [
+            Metric(tag, value, now, step)
+            for tag, value, step in self._buffer
+            if step > self._skip_to or tag.startswith("hparam/")
+        ]
+        self._buffer.clear()
+        for start in range(0, len(metrics), MAX_METRICS_PER_BATCH):
+            self.client.log_batch(self.run_id, metrics=metrics[start : start + MAX_METRICS_PER_BATCH])
+
+    def close(self) -> None:
+        self.flush()
+
+
+def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> MLflowLogger:
+    # MLflow's store announces creating and migrating its tables at INFO level, once per process.
+    for name in ("mlflow.store.db.utils", "alembic"):
+        logging.getLogger(name).setLevel(logging.WARNING)
+    run_dir = Path(run_dir)
+    uri = cfg.logger.tracking_uri or f"sqlite:///{(run_dir.resolve().parent / STORE_FILE)}"
+    experiment = cfg.logger.experiment or cfg.sweep_name
+    logger = MLflowLogger(uri, experiment, run_dir, cfg.logger.exp_name, resumed_at)
+    logger.log_params(cfg)
+    return logger
+
+
+def validate(cfg: Mapping[str, Any]) -> None:
+    """``logger.tracking_uri`` and ``logger.experiment``: null or a non-empty string."""
+    for key in ("tracking_uri", "experiment"):
+        value = cfg.logger[key]
+        if value is not None and (not isinstance(value, str) or not value.strip()):
+            raise ConfigError.of(f"logger.{key}", value, "null or a non-empty string")
+
+
+register(
+    Backend(
+        "mlflow",
+        make,
+        resume_rule="continues the same MLflow run and skips the steps it already has (append-only store)",
+        validate=validate,
+    )
+)
