@@ -212,7 +212,8 @@ def test_the_logger_backends_are_registered():
 
     assert loggers.BACKENDS.names() == ("csv", "mlflow", "tensorboard")
     with pytest.raises(
-        ConfigError, match=r"^logger.backend='wandb' is not allowed; expected one of \['csv', 'mlflow', 'tensorboard'\]"
+        ConfigError,
+        match=r"^logger.backend='wandb' is not allowed; expected one of \['csv', 'mlflow', 'tensorboard'\]",
     ):
         loggers.get("wandb")
 
