@@ -81,18 +81,32 @@ def _tb_points(run: Path, tag: str) -> dict[int, float]:
     return dict(points)
 
 
-def test_resume_keeps_the_checkpoints_own_tensorboard_points(tmp_path):
-    """Killed after logging episodes 5-6 past its checkpoint at 4, then resumed to 8: TensorBoard has
-    every step 1..8 once, the checkpoint's own last update and evaluation (step 4) included, and the
-    values after it are the resumed run's (as in one uninterrupted run)."""
+def _whole_and_killed_then_resumed(tmp_path: Path, *overrides: str) -> tuple[Path, Path]:
+    """Two runs of 8 episodes (checkpoints and evaluations every 4, logs every update): ``whole``
+    uninterrupted; ``cut`` trained to 4, on to 6, put back to its checkpoint at 4 (as if killed
+    after logging episodes 5-6), then resumed to 8."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
-    common = ["logger.every_updates=1", "checkpoint.every_episodes=4", "eval.every_episodes=4", *FAST]
+    common = [
+        "logger.every_updates=1",
+        "checkpoint.every_episodes=4",
+        "eval.every_episodes=4",
+        *FAST,
+        *overrides,
+    ]
     train(_cfg("algo.episodes=8", *common), run_dir=whole)
     train(_cfg("algo.episodes=4", *common), run_dir=cut)
     at_four = (cut / "checkpoints" / "last.pt").read_bytes()
     train(_cfg(f"resume={cut}", "algo.episodes=6", "progress=false"))
     (cut / "checkpoints" / "last.pt").write_bytes(at_four)  # as if killed before the next checkpoint
     train(_cfg(f"resume={cut}", "algo.episodes=8", "progress=false"))
+    return whole, cut
+
+
+def test_resume_keeps_the_checkpoints_own_tensorboard_points(tmp_path):
+    """Killed after logging episodes 5-6 past its checkpoint at 4, then resumed to 8: TensorBoard has
+    every step 1..8 once, the checkpoint's own last update and evaluation (step 4) included, and the
+    values after it are the resumed run's (as in one uninterrupted run)."""
+    whole, cut = _whole_and_killed_then_resumed(tmp_path)
     for tag in ("train/running_mean_return", "episode/return", "eval/return"):
         expected = _tb_points(whole, tag)
         assert sorted(expected) == ([4, 8] if tag == "eval/return" else list(range(1, 9)))
@@ -111,20 +125,7 @@ def _csv_points(run: Path, tag: str) -> dict[int, float]:
 def test_csv_logger_resumes_as_one_uninterrupted_run(tmp_path):
     """logger=csv: the same kill-and-resume as above; scalars.csv then holds every step once, as the
     uninterrupted run's does, and hparams.csv the final metrics."""
-    whole, cut = tmp_path / "whole", tmp_path / "cut"
-    common = [
-        "logger=csv",
-        "logger.every_updates=1",
-        "checkpoint.every_episodes=4",
-        "eval.every_episodes=4",
-        *FAST,
-    ]
-    train(_cfg("algo.episodes=8", *common), run_dir=whole)
-    train(_cfg("algo.episodes=4", *common), run_dir=cut)
-    at_four = (cut / "checkpoints" / "last.pt").read_bytes()
-    train(_cfg(f"resume={cut}", "algo.episodes=6", "progress=false"))
-    (cut / "checkpoints" / "last.pt").write_bytes(at_four)
-    train(_cfg(f"resume={cut}", "algo.episodes=8", "progress=false"))
+    whole, cut = _whole_and_killed_then_resumed(tmp_path, "logger=csv")
     for tag in ("train/running_mean_return", "episode/return", "eval/return"):
         expected = _csv_points(whole, tag)
         assert sorted(expected) == ([4, 8] if tag == "eval/return" else list(range(1, 9)))
@@ -162,20 +163,7 @@ def test_mlflow_logger_keeps_one_run_across_a_resume(tmp_path):
     pytest.importorskip("mlflow")
     from mlflow.tracking import MlflowClient
 
-    whole, cut = tmp_path / "whole", tmp_path / "cut"
-    common = [
-        "logger=mlflow",
-        "logger.every_updates=1",
-        "checkpoint.every_episodes=4",
-        "eval.every_episodes=4",
-        *FAST,
-    ]
-    train(_cfg("algo.episodes=8", *common), run_dir=whole)
-    train(_cfg("algo.episodes=4", *common), run_dir=cut)
-    at_four = (cut / "checkpoints" / "last.pt").read_bytes()
-    train(_cfg(f"resume={cut}", "algo.episodes=6", "progress=false"))
-    (cut / "checkpoints" / "last.pt").write_bytes(at_four)
-    train(_cfg(f"resume={cut}", "algo.episodes=8", "progress=false"))
+    whole, cut = _whole_and_killed_then_resumed(tmp_path, "logger=mlflow")
     client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
     (experiment,) = [e for e in client.search_experiments() if e.name == "adhoc"]
     runs = {r.data.tags["run_dir"]: r for r in client.search_runs([experiment.experiment_id])}
