@@ -13,6 +13,8 @@ What each one is for:
   extends Hydra's basic sweeper, which Hydra ships only under ``hydra._internal``.
 - :func:`overrides_dirname`: ``hydra.job.override_dirname`` for derived jobs, computed exactly as
   Hydra does (``hydra._internal.config_loader_impl``).
+- :func:`hydra_args_parser`: the parser of a Hydra app's flags (``hydra._internal.utils``), so
+  ``drone-train`` reports a bad flag in one line before Hydra prints argparse's usage.
 - :func:`omegaconf_str_representer`: OmegaConf's YAML quoting of strings, reused on libyaml's faster
   emitter (``omegaconf._utils``).
 - :func:`submitit_cluster`, :func:`submitit_params`: the cluster name and parameters of
@@ -83,6 +85,13 @@ def overrides_dirname(overrides: Any, exclude_keys: Any, item_sep: str, kv_sep: 
     from hydra._internal.config_loader_impl import get_overrides_dirname
 
     return get_overrides_dirname(overrides, exclude_keys, item_sep, kv_sep)
+
+
+def hydra_args_parser() -> Any:
+    """The ``argparse`` parser of a Hydra app's command line (``--cfg``, ``-m``, overrides...)."""
+    from hydra._internal.utils import get_args_parser
+
+    return get_args_parser()
 
 
 def omegaconf_str_representer() -> Callable:

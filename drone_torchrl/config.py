@@ -68,7 +68,7 @@ MAX_THREADS = 256
 MAX_UPDATES_PER_CALL = 10_000
 # What a run writes into its folder: logger.exp_name must not collide with one of them.
 RUN_FOLDER_ENTRIES = frozenset(
-    {"checkpoints", "videos", "episodes.csv", "config.yaml", "FAILED.txt", ".hydra", "train.log"}
+    {"checkpoints", "videos", "episodes.csv", "config.yaml", "FAILED.txt", ".hydra", "train.log", ".lock"}
 )
 # Groups chosen with ``group=option`` (a file conf/<group>/<option>.yaml); Hydra's own groups
 # (hydra/launcher, hydra/sweeper) are Hydra's to check.
@@ -249,14 +249,26 @@ def _plugin_files(group: str) -> dict[str, str]:
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
     """One-line errors for command-line overrides Hydra would reject with several lines, or accept
     though they make no sense: an unknown key (with or without ``+``), an unknown group option, and
-    a run folder that is a file. Overrides Hydra cannot parse are left to Hydra's own message."""
+    a run folder that is a file, and an override Hydra cannot parse (its grammar error in one line)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
-    try:
-        parsed = OverridesParser.create().parse_overrides(list(overrides))
-    except HydraException:
-        return
+    parser = OverridesParser.create()
+    parsed = []
+    for override in overrides:
+        try:
+            parsed += parser.parse_overrides([override])
+        except HydraException as err:
+            lines = [
+                line
+                for line in str(err).splitlines()
+                if line.strip() and not line.startswith("Error parsing")
+            ]
+            reason = lines[0] if lines else type(err).__name__
+            raise ConfigError(
+                f"{override} cannot be parsed: {reason} (Hydra's override syntax: key=value, "
+                "key=[a,b] for a list, quote values with special characters)"
+            ) from None
     chosen: dict[str, str | None] = {}
     for group in PLUGIN_GROUPS:
         picked = [o.value() for o in parsed if o.key_or_group == group and not o.is_sweep_override()]

@@ -12,6 +12,7 @@ torn CSV row.
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -62,6 +63,8 @@ def files(tmp_path_factory) -> dict[str, Path]:
     torch.save({"actor": Payload(root / "PWNED"), "config": {}}, root / "payload.pt")
     (root / "notes.txt").write_text("a file, not a folder\n")
     (root / "nofolder").mkdir()
+    (root / "sweep").mkdir()
+    (root / "sweep" / "multirun.yaml").write_text("hydra: {}\n")  # what marks a sweep's folder
     (root / "v99.pt").write_bytes(b"")
     state = torch.load(root / "run" / "checkpoints" / "last.pt", weights_only=True)
     torch.save({**state, "format_version": 99}, root / "v99.pt")
@@ -76,6 +79,7 @@ def files(tmp_path_factory) -> dict[str, Path]:
         "file": root / "notes.txt",
         "emptydir": root / "nofolder",
         "marker": root / "PWNED",
+        "sweep": root / "sweep",
     }
 
 
@@ -96,6 +100,10 @@ def _one_line(message: str, names: str) -> None:
 # ------------------------------------------------------------------------------------- drone-train
 # (overrides, what the message must name)
 TRAIN = [
+    # what Hydra's override grammar cannot parse (was Hydra's multi-line message)
+    (["algo.lr=[1,"], "algo.lr"),
+    (["algo.lr=${{oops"], "algo.lr"),
+    (["model.hidden_sizes=[32,"], "model.hidden_sizes"),
     # the optimiser
     (["algo.lr=0"], "algo.lr"),
     (["algo.lr=-1e-4"], "algo.lr"),
@@ -359,6 +367,8 @@ REPORT = [
     (lambda r, f: [str(_sweep(r, config="- a\n- b\n"))], "config.yaml"),
     (lambda r, f: [str(_sweep(r, config=None))], "config.yaml"),
     (lambda r, f: [str(_sweep(r))], "episodes.csv"),  # lacks columns
+    (lambda r, f: [str(f["run"].parent), "--out", ""], "--out"),  # was the current folder
+    (lambda r, f: [str(f["run"].parent), "--out", "  "], "--out"),
 ]
 
 
@@ -402,6 +412,16 @@ E2E = [
     ("drone-train", ["-m", "seed=0,1", "sweep_name=../../escape"], "sweep_name"),  # wrote outside the folder
     ("drone-eval", ["checkpoint={run}", "env.max_thrust=1.0"], "env.max_thrust"),
     ("drone-eval", ["episodes=0"], "episodes"),
+    # Refused before Hydra writes anything (issue: run folders, signals, the last silent inputs).
+    ("drone-train", ["hydra.run.dir={sweep}/new"], "hydra.run.dir"),  # a run folder inside a sweep folder
+    ("drone-train", ["-m", "resume={run}", "seed=0,1"], "resume"),  # was not refused
+    ("drone-train", ["--cfg", "job", "algo.lr=-1"], "algo.lr"),  # printed without validating
+    ("drone-train", ["--cfg", "all", "model.min_std=-1"], "model.min_std"),
+    ("drone-train", ["algo.lr=[1,"], "algo.lr"),  # Hydra's grammar error: several lines
+    ("drone-train", ["algo.lr=${{oops"], "algo.lr"),
+    ("drone-train", ["--bogus"], "--bogus"),  # argparse's usage text and error
+    ("drone-train", ["seed=0", "--config-name"], "--config-name"),
+    ("drone-train", ["seed=1", "--cfg", "job", "algo.lr=1e-3"], "algo.lr=1e-3"),  # a flag between overrides
     ("drone-report", ["{file}"], "notes.txt"),
     ("drone-report", ["{run}", "--window", "abc"], "--window"),
 ]
@@ -414,7 +434,10 @@ def test_end_to_end(files, tmp_path):
         name, args, names = row
         cwd = tmp_path / f"{name}-{E2E.index(row)}"
         cwd.mkdir()
-        return cwd, _command(name, *(TINY if name == "drone-train" else []), *_fill(args, files), cwd=cwd)
+        # A row that starts with a flag comes before TINY: argparse takes Hydra's overrides as one group.
+        base = TINY if name == "drone-train" else []
+        argv = [*_fill(args, files), *base] if args[0].startswith("-") else [*base, *_fill(args, files)]
+        return cwd, _command(name, *argv, cwd=cwd)
 
     with ThreadPoolExecutor(4) as pool:
         results = list(pool.map(one, E2E))
@@ -507,6 +530,62 @@ def test_a_finished_job_re_run_with_another_value_is_refused(files, tmp_path):
     # The budget may change: the same run, extended.
     _train("algo.episodes=4", run_dir=run, requested=["algo.episodes=4"])
     assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["episodes_done"] == 4
+
+
+def test_a_refused_re_run_in_a_run_s_folder_keeps_its_hydra_record(files, tmp_path):
+    """``drone-train hydra.run.dir=<finished run> <changed key>``: refused in one line, and the run's
+    ``.hydra/`` (how it was started) is not rewritten first, as Hydra would."""
+    run = tmp_path / "run"
+    shutil.copytree(files["run"], run)
+    (run / ".hydra").mkdir()
+    (run / ".hydra" / "overrides.yaml").write_text("- algo.episodes=2\n")
+    before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
+    proc = _command("drone-train", *TINY, f"hydra.run.dir={run}", "algo.gamma=0.5", cwd=tmp_path)
+    assert proc.returncode == 1
+    _one_line(proc.stderr.strip(), "algo.gamma")
+    after = {
+        p: p.read_bytes() for p in run.rglob("*") if p.is_file() and p.name not in ("train.log", ".lock")
+    }
+    assert after == {p: b for p, b in before.items() if p.name not in ("train.log", ".lock")}
+
+
+def test_a_launcher_whose_extra_is_missing_is_one_line(monkeypatch):
+    """hydra/launcher=local_parallel without the joblib extra: Hydra would list its plugins in many lines."""
+    from drone_torchrl.apps import before_hydra
+
+    found = before_hydra.importlib.util.find_spec
+    monkeypatch.setattr(
+        before_hydra.importlib.util,
+        "find_spec",
+        lambda name, *a: None if name == "hydra_plugins.hydra_joblib_launcher" else found(name, *a),
+    )
+    with pytest.raises(ConfigError) as info:
+        before_hydra.check_launcher("local_parallel")
+    _one_line(str(info.value), "hydra/launcher=local_parallel")
+    assert "drone_torchrl[joblib]" in str(info.value)
+    before_hydra.check_launcher("slurm")  # installed here: accepted
+
+
+def test_report_lists_the_jobs_that_failed_before_their_first_episode(files, tmp_path, capsys):
+    """A job that failed before writing episodes.csv has no place in the figures; the report says so."""
+    sweep = tmp_path / "sweep"
+    shutil.copytree(files["run"], sweep / "seed=0")
+    (sweep / "seed=0" / ".hydra").mkdir()
+    (sweep / "seed=0" / ".hydra" / "overrides.yaml").write_text("- seed=0\n")
+    (sweep / "seed=1" / ".hydra").mkdir(parents=True)
+    (sweep / "seed=1" / ".hydra" / "overrides.yaml").write_text("- seed=1\n")
+    (sweep / "seed=1" / "FAILED.txt").write_text(
+        "Traceback ...\nStorageError: cannot write x: No space left\n"
+    )
+    report_main([str(sweep), "--no-pd", "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert "failed before its first episode (not in the report)" in out
+    assert "seed=1: StorageError: cannot write x: No space left" in out
+    shutil.rmtree(sweep / "seed=0")
+    with pytest.raises(SystemExit):
+        report_main([str(sweep), "--no-pd"])
+    err = capsys.readouterr().err
+    _one_line(err.strip(), "1 job(s) failed before their first episode")
 
 
 def test_a_budget_below_an_unfinished_checkpoint_is_refused_and_one_at_it_finishes(files, tmp_path):

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from drone_torchrl.report.distribution import paper_order
-from drone_torchrl.report.runs import ReportError, group_runs, load_runs
+from drone_torchrl.report.runs import ReportError, failed_without_episodes, group_runs, load_runs
 from drone_torchrl.report.stats import DEFAULT_RETURN_THRESHOLD
 from drone_torchrl.report.sweep import build_report, default_window
 from drone_torchrl.report.tables import (
@@ -50,6 +50,13 @@ def _finite(text: str) -> float:
     return value
 
 
+def _folder(text: str) -> Path:
+    # Path("") is the current folder: an empty --out would scatter the report where the command runs.
+    if not text.strip():
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected a folder path")
+    return Path(text)
+
+
 class _Parser(argparse.ArgumentParser):
     """argparse, with a usage error on one line (like the other commands' errors)."""
 
@@ -65,7 +72,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("sweeps", nargs="+", type=Path, help="sweep folders, e.g. multirun/lr multirun/gamma")
     parser.add_argument(
         "--out",
-        type=Path,
+        type=_folder,
         default=None,
         help="output folder (default: <sweep>/report; with several sweeps: <out>/<sweep name>)",
     )
@@ -107,6 +114,8 @@ def main(argv: Sequence[str] | None = None) -> None:
             report = build_report(sweep_dir, window, args.return_threshold, not args.no_pd, sweep_runs)
             paths = write_report(report, out_dir, args.paper_averaging)
             print(format_report(report, figures=False))
+            for job, reason in failed_without_episodes(sweep_dir):
+                print(f"failed before its first episode (not in the report): {job}: {reason}")
             if args.paper_averaging:
                 print(format_paper_averaging_section(report))
             print(f"wrote {', '.join(str(p) for p in paths)}\n")

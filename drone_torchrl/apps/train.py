@@ -20,7 +20,9 @@ from omegaconf import DictConfig
 from drone_torchrl.config import ConfigError, check_command_line, config_dir
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
+from drone_torchrl.io.storage import StorageError
 from drone_torchrl.training.run import TrainingDiverged
+from drone_torchrl.training.signals import TrainingStopped
 
 # The shell's convention for a command stopped by Ctrl-C (128 + SIGINT).
 EXIT_INTERRUPTED = 130
@@ -38,13 +40,12 @@ def main(cfg: DictConfig) -> float | None:
             sys.exit(f"drone-train: error: {err}")
         except TrainingDiverged as err:
             sys.exit(f"drone-train: error: {err}")
+        except StorageError as err:
+            run = Path(cfg.resume) if cfg.resume else hydra_dir
+            sys.exit(f"drone-train: error: {err}; {_continue_hint(run)}")
         except KeyboardInterrupt:
-            run = cfg.resume or hydra_dir
-            if cfg.resume or (hydra_dir / CHECKPOINT_DIR / LAST).is_file():
-                hint = f"continue from the last checkpoint with: drone-train resume={run}"
-            else:
-                hint = "no checkpoint was written yet; start it again"
-            print(f"drone-train: interrupted; {hint}", file=sys.stderr)
+            run = Path(cfg.resume) if cfg.resume else hydra_dir
+            print(f"drone-train: interrupted; {_continue_hint(run)}", file=sys.stderr)
             sys.exit(EXIT_INTERRUPTED)
         finally:
             # Refused, or resumed in the run's own folder: Hydra's folder for this call holds nothing.
@@ -65,6 +66,50 @@ def main(cfg: DictConfig) -> float | None:
         raise
 
 
+def _continue_hint(run: Path) -> str:
+    """How to go on with ``run`` (a run folder, or the checkpoint ``resume`` named)."""
+    if run.is_file() or (run / CHECKPOINT_DIR / LAST).is_file():
+        return f"the last checkpoint is intact; continue with: drone-train resume={run}"
+    return "no checkpoint was written yet; start it again"
+
+
+def _stopped(stop: TrainingStopped) -> None:
+    """The one line of a run stopped by SIGTERM/SIGUSR1, and its exit code (128 + the signal)."""
+    name = stop.args[0]
+    if len(stop.run_dirs) == 1:
+        hint = f"continue with: drone-train resume={stop.run_dirs[0]}"
+    else:
+        hint = "run the same command again to continue them (each job resumes from its checkpoint)"
+    print(f"drone-train: {name}; checkpoint written for {len(stop.run_dirs)} run(s); {hint}", file=sys.stderr)
+    sys.exit(stop.exit_code)
+
+
+def _before_hydra() -> list[Path]:
+    """The command line's one-line checks, and the run folder claimed before Hydra writes into it
+    (:mod:`.before_hydra`); returns the folders claimed. Exits with the message on a bad input."""
+    from drone_torchrl.apps import before_hydra
+
+    args = sys.argv[1:]
+    try:
+        flags = before_hydra.parse_flags("drone-train", args)
+        check_command_line("drone-train", "config")
+        overrides = before_hydra.overrides_of(args)
+        if "hydra/launcher" in overrides:
+            before_hydra.check_launcher(overrides["hydra/launcher"])
+        if flags.multirun:
+            before_hydra.check_multirun(overrides)
+            return []
+        if flags.cfg in ("job", "all") and flags.config_name is None and flags.config_dir is None:
+            before_hydra.check_composed([a for a in flags.overrides])
+        if flags.cfg or flags.info or flags.help or flags.hydra_help:
+            return []  # prints, trains nothing
+        folder, extra = before_hydra.claim_run_folder(overrides)
+    except (ConfigError, StorageError) as err:
+        sys.exit(f"drone-train: error: {err}")
+    sys.argv.extend(extra)
+    return [] if folder is None else [folder]
+
+
 def run() -> None:
     """Console entry point: registers the population launcher, then runs the Hydra app."""
     from hydra.core.plugins import Plugins
@@ -80,12 +125,17 @@ def run() -> None:
     if hasattr(slurm_launcher, "SlurmLauncher"):  # with the submitit extra
         Plugins.instance().register(slurm_launcher.SlurmLauncher)
         Plugins.instance().register(slurm_launcher.SlurmPopulationLauncher)
+    claimed = _before_hydra()
     try:
-        check_command_line("drone-train", "config")
         main()
     except KeyboardInterrupt:  # before Hydra started the run (main() handles it once training runs)
         print("drone-train: interrupted before training started", file=sys.stderr)
         sys.exit(EXIT_INTERRUPTED)
+    except TrainingStopped as stop:
+        _stopped(stop)
+    finally:
+        for folder in claimed:  # a refused command leaves no folder of its own behind
+            remove_if_untouched(folder)
 
 
 if __name__ == "__main__":

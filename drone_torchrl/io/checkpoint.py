@@ -33,6 +33,8 @@ from typing import Any
 
 import torch
 
+from drone_torchrl.io.storage import writing
+
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 BEST = "best.pt"
@@ -62,14 +64,15 @@ class CheckpointError(ValueError):
 def save_checkpoint(state: dict[str, Any], path: Path) -> None:
     """Write ``state`` to ``path`` through a temporary file and an atomic rename."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     # Serialised in memory and written at once: torch.save's zip writer makes a small write per
     # record (half of the time for a file of this size).
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    tmp.write_bytes(buffer.getbuffer())
-    os.replace(tmp, path)
+    with writing(path, tmp):  # a full disk leaves the previous checkpoint whole and no .tmp behind
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_bytes(buffer.getbuffer())
+        os.replace(tmp, path)
 
 
 def resolve_checkpoint(location: str | os.PathLike) -> Path:

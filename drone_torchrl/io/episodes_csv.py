@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from drone_torchrl.io.storage import writing
+
 CSV_NAME = "episodes.csv"
 CSV_COLUMNS = (
     "episode",
@@ -77,11 +79,12 @@ class EpisodeCSV:
             rows = [raw for parsed, raw in read if parsed["episode"] < keep_episodes]
             self.dropped = sum(parsed["episode"] >= keep_episodes for parsed, _ in read)
         tmp = self.path.with_name(self.path.name + ".tmp")
-        with tmp.open("w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
-            writer.writeheader()
-            writer.writerows(rows)
-        os.replace(tmp, self.path)  # a kill here leaves the old file whole, not half of it
+        with writing(self.path, tmp):
+            with tmp.open("w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+                writer.writeheader()
+                writer.writerows(rows)
+            os.replace(tmp, self.path)  # a kill here leaves the old file whole, not half of it
         self._rows: list[dict[str, object]] = []
 
     def write(self, rows: Iterable[dict[str, object]]) -> None:
@@ -90,7 +93,9 @@ class EpisodeCSV:
     def flush(self) -> None:
         if not self._rows:
             return
-        with self.path.open("a", newline="") as f:
+        # A refused append may leave a torn last row: the rows stay buffered, and a resume drops
+        # what follows the checkpoint (the torn row with it).
+        with writing(self.path), self.path.open("a", newline="") as f:
             csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerows(self._rows)
         self._rows.clear()
 

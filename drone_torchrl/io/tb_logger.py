@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
+from drone_torchrl.io.storage import writing
 from drone_torchrl.loggers import flatten_config
 
 # TFRecord framing (what tensorboard's RecordWriter writes): a masked CRC32C of the length and of the data.
@@ -139,7 +140,8 @@ class RunLogger:
         records = []
         now = time.time()
         if self._events is None:
-            self.log_dir.mkdir(parents=True, exist_ok=True)
+            with writing(self.log_dir):
+                self.log_dir.mkdir(parents=True, exist_ok=True)
             # TensorBoard reads a run's event files in name order, and a resumed run's purge only
             # works if its file comes after the interrupted one's: the name starts with the time in
             # nanoseconds (whole seconds, as SummaryWriter names them, tie within a second).
@@ -157,7 +159,7 @@ class RunLogger:
             steps.setdefault(int(step), []).append(scalar_value(name, value))
         data = [record.SerializeToString() for record in records]
         data.extend(scalar_event(now, step, values) for step, values in steps.items())
-        with self._events.open("ab") as f:
+        with writing(self._events), self._events.open("ab") as f:
             f.write(b"".join(tf_record(d) for d in data))
         self._scalars.clear()
         self._summaries.clear()
@@ -179,9 +181,10 @@ class RunLogger:
             self._video_ok = False
             return
         self.flush()  # keep the file order of scalars and video as they were logged
-        writer = self._writer()
-        writer.add_video(name, video, global_step=step, fps=fps)
-        writer.close()
+        with writing(self.log_dir):  # SummaryWriter's thread re-raises a refused write at close()
+            writer = self._writer()
+            writer.add_video(name, video, global_step=step, fps=fps)
+            writer.close()
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         """Flattened config + final metrics, so TensorBoard's HPARAMS tab compares the runs of a sweep.

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 from typing import Any
 
@@ -11,6 +13,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from drone_torchrl.envs.drone_env import DroneEnv
+from drone_torchrl.io.storage import folder_refuses, writing
 
 VIDEO_DIR = "videos"
 
@@ -44,8 +47,20 @@ def save_mp4(frames: np.ndarray, path: Path, fps: float) -> Path:
     """Write frames as an H.264 MP4 (imageio-ffmpeg; about 5x faster to write than a GIF)."""
     import imageio.v2 as imageio
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    imageio.mimsave(path, list(frames), fps=fps, macro_block_size=1)
+    part = path.with_name(path.stem + ".part" + path.suffix)  # ffmpeg picks the container by suffix
+    with writing(path, part):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            # ffmpeg quiet: a refused write reaches Python as a broken pipe, diagnosed below in one line.
+            imageio.mimsave(part, list(frames), fps=fps, macro_block_size=1, ffmpeg_log_level="quiet")
+        except OSError as err:
+            raise OSError(folder_refuses(part.parent, frames.nbytes) or err.errno, str(err)) from None
+        # ffmpeg may also end "successfully" with a file it could not write (empty, or cut short
+        # where the disk filled up): a full or read-only folder after the write means that.
+        refused = folder_refuses(part.parent, 1)
+        if refused is not None or part.stat().st_size == 0:
+            raise OSError(refused or errno.EIO, f"ffmpeg could not write {part}")
+        os.replace(part, path)
     return path
 
 

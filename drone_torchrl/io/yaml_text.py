@@ -10,6 +10,7 @@ Multilingual Plane, such as emoji, and U+0085), which read back the same.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ import yaml
 from omegaconf import Container, OmegaConf
 
 from drone_torchrl.compat import omegaconf_str_representer
+from drone_torchrl.io.storage import writing
 
 
 class _Dumper(getattr(yaml, "CDumper", yaml.Dumper)):  # type: ignore[misc]
@@ -35,5 +37,9 @@ def to_yaml(cfg: Container | dict | list) -> str:
 
 
 def save_yaml(cfg: Container | dict | list, path: str | Path) -> None:
-    """``OmegaConf.save(cfg, path)``, faster (see :func:`to_yaml`)."""
-    Path(path).write_text(to_yaml(cfg), encoding="utf-8")
+    """``OmegaConf.save(cfg, path)``, faster (see :func:`to_yaml`), replacing the file atomically."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    with writing(path, tmp):
+        tmp.write_text(to_yaml(cfg), encoding="utf-8")
+        os.replace(tmp, path)

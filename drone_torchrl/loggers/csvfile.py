@@ -24,6 +24,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.io.storage import writing
 from drone_torchrl.loggers import Backend, flatten_config, register
 
 SCALARS = "scalars.csv"
@@ -52,16 +53,16 @@ class CSVLogger:
         """Not kept: the MP4 is in the run folder's ``videos/``."""
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
-        self.log_dir.mkdir(parents=True, exist_ok=True)
         entries = {**flatten_config(cfg), **{f"hparam/{k}": v for k, v in metrics.items()}}
         _write_atomically(self.log_dir / HPARAMS, ("key", "value"), entries.items())
 
     def flush(self) -> None:
         if not self._rows:
             return
-        self.log_dir.mkdir(parents=True, exist_ok=True)
+        with writing(self.path):
+            self.log_dir.mkdir(parents=True, exist_ok=True)
         new = not self.path.is_file()
-        with self.path.open("a", newline="") as f:
+        with writing(self.path), self.path.open("a", newline="") as f:
             writer = csv.writer(f)
             if new:
                 writer.writerow(HEADER)
@@ -97,13 +98,15 @@ def _step(text: str) -> int | None:
 
 def _write_atomically(path: Path, header: tuple[str, ...], rows: Iterable) -> None:
     tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(header)
-        writer.writerows(rows)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    with writing(path, tmp):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tmp.open("w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(header)
+            writer.writerows(rows)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> CSVLogger:

@@ -156,6 +156,18 @@ def find_jobs(sweep_dir: Path) -> list[Path]:
     return jobs
 
 
+def failed_without_episodes(sweep_dir: Path) -> list[tuple[Path, str]]:
+    """``(job folder, reason)`` of the jobs that failed before writing any episode (a bad value
+    found only in the job, a full disk): they have no ``episodes.csv``, so no place in a figure."""
+    out = []
+    for job in find_jobs(Path(sweep_dir)):
+        if not (job / CSV_NAME).is_file():
+            status, detail = job_status(job)
+            if status == STATUS_FAILED:
+                out.append((job, detail))
+    return out
+
+
 def load_runs(sweep_dir: Path) -> list[Run]:
     """Every job of ``sweep_dir`` that has an ``episodes.csv``.
 
@@ -166,7 +178,13 @@ def load_runs(sweep_dir: Path) -> list[Run]:
         raise ReportError(f"{sweep_dir} does not exist or is not a folder")
     runs = [run for job in find_jobs(sweep_dir) if (run := load_run(job)) is not None]
     if not runs:
-        raise ReportError(f"{sweep_dir} holds no job folder with an {CSV_NAME}")
+        failed = failed_without_episodes(sweep_dir)
+        why = (
+            f" ({len(failed)} job(s) failed before their first episode; {failed[0][0]}: {failed[0][1]})"
+            if failed
+            else ""
+        )
+        raise ReportError(f"{sweep_dir} holds no job folder with an {CSV_NAME}{why}")
     if not any(run.episodes for run in runs):
         raise ReportError(f"{sweep_dir}: its jobs' {CSV_NAME} files hold no episode yet")
     return runs

@@ -41,6 +41,7 @@ from drone_torchrl.config import (
     run_config,
     validate,
 )
+from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
@@ -111,7 +112,23 @@ def prepare(
     run takes those of :data:`RESUME_KEYS` and refuses changes to the others. Without a command
     line, only ``algo.episodes`` and the process settings are taken from ``cfg``. ``validated``:
     ``cfg`` has passed :func:`~drone_torchrl.config.validate` already (a sweeper checked it).
+
+    The job's folder is then this process's (:func:`drone_torchrl.io.run_lock.hold`) until
+    :func:`train_jobs` is done with it; a folder another live process trains is refused
+    (:class:`~drone_torchrl.io.run_lock.RunFolderBusy`).
     """
+    job = _prepare(cfg, run_dir, engine, requested, validated)
+    run_lock.hold(job.run_dir)
+    return job
+
+
+def _prepare(
+    cfg: DictConfig,
+    run_dir: str | Path | None,
+    engine: str | None,
+    requested: Iterable[str] | None,
+    validated: bool,
+) -> Job:
     run_dir = Path(run_dir) if run_dir is not None else None
     keys = command_line_keys() if requested is None else {k.split("=", 1)[0].lstrip("+~") for k in requested}
     if engine is not None and cfg.engine != engine:
@@ -233,10 +250,19 @@ def group_key(cfg: DictConfig) -> str:
 
 
 def record_failure(run_dir: Path, error: BaseException) -> str:
-    """Write the traceback into ``<run>/FAILED.txt``; returns the one-line reason."""
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / FAILED_FILE).write_text("".join(traceback.format_exception(error)))
-    return f"{type(error).__name__}: {error}"
+    """Write the traceback into ``<run>/FAILED.txt``; returns the one-line reason.
+
+    Nothing is written into a folder another process owns (:class:`~drone_torchrl.io.run_lock.RunFolderBusy`),
+    and a disk that refuses ``FAILED.txt`` too leaves the reason to the caller's one line."""
+    reason = f"{type(error).__name__}: {error}"
+    if isinstance(error, run_lock.RunFolderBusy):
+        return reason
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / FAILED_FILE).write_text("".join(traceback.format_exception(error)))
+    except OSError:
+        pass
+    return reason
 
 
 def job_status(job_dir: Path) -> tuple[str, str]:

@@ -27,8 +27,10 @@ from tqdm import tqdm
 from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.episodes import EPISODE_KEYS
+from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, FORMAT_VERSION, LAST, save_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
+from drone_torchrl.io.storage import writing
 from drone_torchrl.io.video import VIDEO_DIR, record_video, save_mp4
 from drone_torchrl.io.yaml_text import save_yaml
 from drone_torchrl.loggers import log_update, make_logger
@@ -104,8 +106,9 @@ class RunRecord:
         every = cfg.eval.every_episodes
         self.next_eval = self.episodes_done + every if every else None
 
-        (self.run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
-        (self.run_dir / FAILED_FILE).unlink(missing_ok=True)
+        with writing(self.run_dir / CHECKPOINT_DIR):
+            (self.run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
+            (self.run_dir / FAILED_FILE).unlink(missing_ok=True)
         save_yaml(cfg, self.run_dir / CONFIG_NAME)
         resumed = checkpoint is not None
         self.logger = make_logger(cfg, self.run_dir, self.episodes_done if resumed else None)
@@ -135,7 +138,9 @@ class RunRecord:
     def fail(self, reason: str) -> None:
         """Stop this run: ``FAILED.txt`` says why; its last checkpoint (all finite) is kept as it is."""
         self.failure = reason
-        (self.run_dir / FAILED_FILE).write_text(f"{TrainingDiverged.__name__}: {reason}\n")
+        path = self.run_dir / FAILED_FILE
+        with writing(path):
+            path.write_text(f"{TrainingDiverged.__name__}: {reason}\n")
         self.close()
 
     @property
@@ -268,9 +273,11 @@ class RunRecord:
             self.close()
 
     def flush(self) -> None:
-        """Write the buffered CSV rows and TensorBoard scalars (files are open only while this runs)."""
+        """Write the buffered CSV rows and TensorBoard scalars (files are open only while this runs),
+        and renew the run folder's lock (what another host reads as "its owner is alive")."""
         self.csv.flush()
         self.logger.flush()
+        run_lock.renew(self.run_dir)
         self._last_flush = time.perf_counter()
 
     def close(self) -> None:

@@ -25,9 +25,11 @@ from omegaconf import DictConfig
 from drone_torchrl import algorithms
 from drone_torchrl.config import ConfigError, env_kwargs
 from drone_torchrl.evaluation import evaluate
+from drone_torchrl.io import run_lock
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
+from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
 
 
 @dataclass
@@ -86,17 +88,28 @@ class Trainer:
         return self.learner.population
 
     def train(self) -> list[dict[str, float]]:
-        """Run every agent to its own ``algo.episodes``; returns each one's final metrics."""
+        """Run every agent to its own ``algo.episodes``; returns each one's final metrics.
+
+        SIGTERM or SIGUSR1 stop it after the update in flight, with a checkpoint of every active
+        agent (:mod:`.signals`)."""
         try:
-            # Killed after its last checkpoint but before the final evaluation: finish it now.
-            if at_budget := [i for i, run in enumerate(self.runs) if run.finished and run.final is None]:
-                self.evaluate(at_budget)
-                for i in at_budget:
-                    self.runs[i].save(self.learner.checkpoint_entries(i))
-            while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
-                self.step(active)
-        finally:
-            self.close()
+            with stop_on_signals() as stop:
+                # Killed after its last checkpoint but before the final evaluation: finish it now.
+                if at_budget := [i for i, run in enumerate(self.runs) if run.finished and run.final is None]:
+                    self.evaluate(at_budget)
+                    for i in at_budget:
+                        self.runs[i].save(self.learner.checkpoint_entries(i))
+                while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
+                    self.step(active)
+                    if stop.signum is not None:
+                        active = [i for i in active if not self.runs[i].failed]
+                        for i in active:
+                            self.runs[i].save(self.learner.checkpoint_entries(i))
+                        raise TrainingStopped(stop.signum, [self.runs[i].run_dir for i in active])
+        except BaseException:
+            self.close(quietly=True)  # the error in flight is the one to report, not a second one
+            raise
+        self.close()
         return [run.final for run in self.runs]
 
     def step(self, active: list[int], k: int | None = None) -> int:
@@ -170,19 +183,34 @@ class Trainer:
                 lambda i=i: learner.actor(i),
             )
 
-    def close(self) -> None:
+    def close(self, quietly: bool = False) -> None:
+        """Flush and close every run; ``quietly``: while another error stops training, a run whose
+        files cannot be written (the same full disk, say) is left as its last checkpoint has it."""
         self.progress.close()
         self.learner.close()
         for run in self.runs:
-            run.close()
+            try:
+                run.close()
+            except OSError:
+                if not quietly:
+                    raise
 
 
 def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     """Train prepared jobs (:func:`~.jobs.prepare`), those that can share a population together.
 
     Finished jobs return at once; a group whose training raises is recorded as failed
-    (``<run>/FAILED.txt``) and the other groups go on.
+    (``<run>/FAILED.txt``) and the other groups go on. Each job's folder is let go when done
+    (:mod:`drone_torchrl.io.run_lock`).
     """
+    try:
+        return _train_jobs(jobs)
+    finally:
+        for job in jobs:
+            run_lock.release(job.run_dir)
+
+
+def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     outcomes = [Outcome(job.run_dir) for job in jobs]
     groups: dict[str, list[int]] = {}
     for i, job in enumerate(jobs):

@@ -146,6 +146,8 @@ def train_populations(
     ``slurm_population`` launcher inside each of its SLURM jobs. ``job_numbers``: each job's Hydra
     job number (``hydra.job.num``). ``validated``: the sweeper has validated every job's config on
     this machine (then :func:`prepare` does not again)."""
+    from drone_torchrl.config import ConfigError
+    from drone_torchrl.io import run_lock
     from drone_torchrl.training.jobs import prepare, record_failure
     from drone_torchrl.training.trainer import Outcome, train_jobs
     from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
@@ -162,6 +164,16 @@ def train_populations(
         zip(job_numbers, job_overrides, configs, strict=True)
     ):
         log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
+        try:
+            # The job's folder is this process's before anything is written into it.
+            run_lock.hold(job_output_dir(sweep_config, idx))
+        except (ConfigError, OSError) as err:
+            print(f"{job_output_dir(sweep_config, idx)}: job not started: {err}")
+            ret, run_dir = _JobReturn(overrides=list(overrides)), Path(job_output_dir(sweep_config, idx))
+            ret.cfg = sweep_config
+            returns.append(ret)
+            jobs.append(Outcome(run_dir, error=err))
+            continue
         ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
         returns.append(ret)
         if run_dir in folders:
@@ -176,7 +188,11 @@ def train_populations(
         except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
             print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
             jobs.append(Outcome(run_dir, error=err))
-    trained = iter(train_jobs([j for j in jobs if not isinstance(j, Outcome | int)]))
+    try:
+        trained = iter(train_jobs([j for j in jobs if not isinstance(j, Outcome | int)]))
+    finally:
+        for run_dir in folders:  # jobs refused before training are let go too
+            run_lock.release(run_dir)
     outcomes: list[Outcome] = []
     for job in jobs:
         outcomes.append(

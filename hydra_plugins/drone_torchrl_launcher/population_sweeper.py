@@ -16,6 +16,7 @@ Everything else, grid expansion, batches, ``max_batch_size``, ``params``, is the
 
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from hydra.core.utils import JobReturn, JobStatus
@@ -48,7 +49,26 @@ class PopulationSweeper(Sweeper):
         self._basic.launcher = _GoOn(self._basic.launcher)
 
     def sweep(self, arguments: list[str]) -> Any:
-        return self._basic.sweep(arguments)
+        """The basic sweeper's sweep, with the sweep folder this process's while it runs: the same
+        sweep command started again while this one is alive is refused in one line, before Hydra
+        writes into the folder (:mod:`drone_torchrl.io.run_lock`; each job folder is also held by the
+        process that trains it, under every launcher)."""
+        from drone_torchrl.config import ConfigError
+        from drone_torchrl.io import run_lock
+        from drone_torchrl.io.folders import remove_if_untouched
+
+        assert self.config is not None
+        sweep_dir = str(self.config.hydra.sweep.dir)
+        try:
+            run_lock.hold(sweep_dir)
+        except (ConfigError, OSError) as err:
+            sys.exit(f"drone-train: error: sweep {err}")
+        try:
+            return self._basic.sweep(arguments)
+        finally:
+            run_lock.release(sweep_dir)
+            # A sweep refused before its first job leaves no folder (Hydra wrote only its multirun.yaml).
+            remove_if_untouched(Path(sweep_dir), also=frozenset({"multirun.yaml"}))
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         """Every job composes, and every job's values pass the config checks: a bad value in a
@@ -58,9 +78,16 @@ class PopulationSweeper(Sweeper):
 
         assert self.config is not None and self.hydra_context is not None
         configs = sweep_configs(self.hydra_context.config_loader, self.config, batch, task_only=True)
+        # The population launchers train with the fused engine only (drone_torchrl.training.jobs.prepare).
+        launcher = str(self.config.hydra.launcher.get("_target_", ""))
+        fused_only = launcher.endswith(("FusedLauncher", "SlurmPopulationLauncher"))
         for overrides, cfg in zip(batch, configs, strict=True):
             try:
                 validate(cfg)
+                if fused_only and cfg.engine != "fused":
+                    raise ConfigError.of(
+                        "engine", cfg.engine, "'fused' with this launcher (drop engine= or the launcher)"
+                    )
             except ConfigError as err:
                 sys.exit(
                     f"drone-train: error: {err} (in the sweep's job {' '.join(overrides)}; no job was started)"

@@ -1,0 +1,150 @@
+"""What ``drone-train`` checks and claims before Hydra starts, when nothing has been written yet.
+
+Hydra writes ``<run>/.hydra/`` and the job log before our code runs, and reports an argument or an
+override it cannot parse in several lines (argparse's usage, Hydra's grammar hint). So the command
+line is checked first, each problem in one line, and the run folder a single run will write is
+claimed (:mod:`drone_torchrl.io.run_lock`) before Hydra touches it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+from pathlib import Path
+
+from drone_torchrl.checks import ConfigError
+from drone_torchrl.compat import hydra_args_parser
+from drone_torchrl.io import run_lock
+from drone_torchrl.io.checkpoint import (
+    CHECKPOINT_DIR,
+    LAST,
+    is_last_of_its_run,
+    resolve_checkpoint,
+    run_dir_of,
+)
+
+# hydra/launcher options and the Hydra plugin each one runs on (with the extra that installs it).
+LAUNCHER_PLUGINS = {
+    "local_parallel": ("hydra_plugins.hydra_joblib_launcher", "joblib"),
+    "joblib": ("hydra_plugins.hydra_joblib_launcher", "joblib"),
+    "local_submitit": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
+    "submitit_local": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
+    "submitit_slurm": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
+    "slurm": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
+    "slurm_population": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
+    "ray_local": ("hydra_plugins.hydra_ray_launcher", "ray"),
+    "ray": ("hydra_plugins.hydra_ray_launcher", "ray"),
+}
+# What marks a folder as a sweep's root (Hydra writes it there when the sweep starts).
+SWEEP_RECORD = "multirun.yaml"
+
+
+def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
+    """Hydra's own command-line flags, parsed with its parser; an unknown or incomplete flag is a
+    one-line :class:`ConfigError` instead of argparse's usage text."""
+    parser = hydra_args_parser()
+    parser.prog = prog
+    parser.exit_on_error = False
+    try:
+        known, unknown = parser.parse_known_args(args)
+    except argparse.ArgumentError as err:
+        raise ConfigError(f"{err} (see {prog} --help)") from None
+    if unknown and unknown[0].startswith("-"):
+        raise ConfigError(f"{unknown[0]} is not an option of {prog} (see {prog} --help)")
+    if unknown:
+        raise ConfigError(
+            f"{unknown[0]} comes after a flag that split the overrides: Hydra reads them as one group, so put "
+            f"flags first (e.g. {prog} -m key=a,b)"
+        )
+    return known
+
+
+def overrides_of(args: list[str]) -> dict[str, str]:
+    """``{key: value}`` of the command line's ``key=value`` overrides (the last one wins, as in Hydra)."""
+    out: dict[str, str] = {}
+    for arg in args:
+        if not arg.startswith("-") and "=" in arg:
+            key, value = arg.split("=", 1)
+            out[key.lstrip("+~")] = value
+    return out
+
+
+def check_launcher(option: str) -> None:
+    """A ``hydra/launcher`` option whose plugin is not installed: one line naming the extra."""
+    plugin = LAUNCHER_PLUGINS.get(option)
+    if plugin is None:
+        return
+    module, extra = plugin
+    try:
+        found = importlib.util.find_spec(module) is not None
+    except ImportError:
+        found = False
+    if not found:
+        raise ConfigError(
+            f"hydra/launcher={option} needs Hydra's launcher plugin, which is not installed: "
+            f"pip install 'drone_torchrl[{extra}]'"
+        )
+
+
+def check_composed(overrides: list[str]) -> None:
+    """The config ``--cfg job`` would print, composed and validated: a bad value is refused as it
+    would be when training, not printed as if it were fine."""
+    from hydra import compose, initialize_config_dir
+
+    from drone_torchrl.config import config_dir, validate
+
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    validate(cfg)
+
+
+def check_multirun(overrides: dict[str, str]) -> None:
+    if "resume" in overrides and overrides["resume"] not in ("null", ""):
+        raise ConfigError(
+            f"resume={overrides['resume']} continues one run and cannot be swept (-m); to continue a sweep, "
+            "run the same sweep command again: its finished jobs are skipped and the others resume"
+        )
+
+
+def sweep_root_above(folder: Path) -> Path | None:
+    """The sweep folder ``folder`` lies inside, if any."""
+    folder = folder.expanduser().resolve()
+    return next((p for p in folder.parents if (p / SWEEP_RECORD).is_file()), None)
+
+
+def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]:
+    """Claim the folder a single run will write before Hydra writes into it; returns the folder
+    claimed (or None) and overrides to add.
+
+    - ``hydra.run.dir=<folder>``: refused inside a sweep folder (unless it is one of its jobs, which
+      then continues); claimed; if it already holds a run, Hydra is told not to rewrite that run's
+      ``.hydra/`` record (``hydra.output_subdir=null``): the record says how the run was started.
+    - ``resume=<run>`` (its last checkpoint): that run's folder is claimed.
+
+    Values Hydra resolves later (``${...}``) and paths that are not usable are left to the checks
+    that report them.
+    """
+    extra: list[str] = []
+    run_dir = overrides.get("hydra.run.dir")
+    if run_dir is not None and run_dir.strip() and "${" not in run_dir:
+        folder = Path(run_dir).expanduser()
+        root = sweep_root_above(folder)
+        if root is not None and not (folder / ".hydra").is_dir():
+            raise ConfigError(
+                f"hydra.run.dir={run_dir} is inside the sweep folder {root}, whose job folders its sweep "
+                "names; give the run a folder outside it"
+            )
+        run_lock.hold(folder)
+        if (folder / CHECKPOINT_DIR / LAST).is_file() and "hydra.output_subdir" not in overrides:
+            extra.append("hydra.output_subdir=null")
+        return folder, extra
+    resume = overrides.get("resume")
+    if resume not in (None, "", "null") and "${" not in resume:
+        try:
+            path = resolve_checkpoint(resume)
+        except (FileNotFoundError, OSError):
+            return None, extra
+        if is_last_of_its_run(path):
+            run_lock.hold(run_dir_of(path))
+            return run_dir_of(path), extra
+    return None, extra

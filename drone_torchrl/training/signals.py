@@ -1,0 +1,66 @@
+"""Stopping a run on request: SIGTERM and SIGUSR1 end training at the next update with a checkpoint.
+
+SLURM sends SIGTERM before it kills a job at its time limit or on preemption (and SIGUSR1, or any
+signal, when asked with ``--signal=B:USR1@<seconds>``); ``kill <pid>`` sends SIGTERM too. While a
+:class:`~drone_torchrl.training.trainer.Trainer` trains, these signals only raise a flag: the loop
+finishes the update in flight, books its episodes, writes every active run's checkpoint and raises
+:class:`TrainingStopped`, and the command exits with ``128 + the signal's number`` (143 for SIGTERM,
+138 for SIGUSR1), the shell's convention for a command ended by a signal. Resuming then trains no
+episode twice and loses none. SIGINT (Ctrl-C) stays Python's ``KeyboardInterrupt``: an immediate
+stop that keeps the last periodic checkpoint.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1)
+
+
+class TrainingStopped(BaseException):
+    """Training ended early on a signal, every active run checkpointed.
+
+    A ``BaseException``, like ``KeyboardInterrupt``: it is not a failure of the job, so the handlers
+    that record failed jobs (``except Exception``) let it pass to the command, which exits with
+    :attr:`exit_code`.
+    """
+
+    def __init__(self, signum: int, run_dirs: list[Path]) -> None:
+        self.signum = signum
+        self.run_dirs = run_dirs
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+class StopRequest:
+    """The signal received while training, if any."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def __call__(self, signum: int, frame: object) -> None:
+        self.signum = signum
+
+
+@contextmanager
+def stop_on_signals() -> Iterator[StopRequest]:
+    """Catch :data:`STOP_SIGNALS` as a :class:`StopRequest` while the block runs (the handlers in
+    place before are restored after). Outside the main thread Python cannot install handlers: the
+    request then never fires and the signals keep their previous meaning."""
+    request = StopRequest()
+    if threading.current_thread() is not threading.main_thread():
+        yield request
+        return
+    previous = {signum: signal.signal(signum, request) for signum in STOP_SIGNALS}
+    try:
+        yield request
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
