@@ -427,6 +427,45 @@ E2E = [
 ]
 
 
+def _clean_refusal(proc: subprocess.CompletedProcess, names: str) -> bool:
+    """A clean one-line refusal: a non-zero exit, no traceback, one error line naming the input."""
+    errors = [line for line in proc.stderr.splitlines() if "error" in line]
+    return (
+        proc.returncode != 0
+        and "Traceback" not in proc.stderr + proc.stdout
+        and len(errors) == 1
+        and names in errors[0]
+    )
+
+
+@pytest.mark.slow
+def test_every_row_through_the_real_commands(files, tmp_path):
+    """The review harness: every drone-train and drone-eval row above and every end-to-end row, run
+    through the real console command; prints how many end in a clean one-line refusal."""
+    cases = [("drone-train", [*TINY, *o], n) for o, n in TRAIN]
+    cases += [("drone-eval", [*o, "video=false", "plot=false"], n) for o, n in EVAL]
+    cases += [(name, args, n) for name, args, n in E2E]
+
+    def one(i):
+        name, args, names = cases[i]
+        cwd = tmp_path / str(i)
+        cwd.mkdir()
+        argv = _fill(args, files)
+        if name == "drone-train" and args in [a for _, a, _ in E2E]:
+            argv = [*argv, *TINY] if args[0].startswith("-") else [*TINY, *argv]
+        return _command(name, *argv, cwd=cwd)
+
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(one, range(len(cases))))
+    unclean = [
+        f"{name} {' '.join(args)}"
+        for (name, args, n), p in zip(cases, results, strict=True)
+        if not _clean_refusal(p, n)
+    ]
+    print(f"review: {len(cases) - len(unclean)} of {len(cases)} bad inputs refused in one clean line")
+    assert unclean == []
+
+
 def test_end_to_end(files, tmp_path):
     """The real commands: exit != 0, no traceback, the one line on stderr, nothing written."""
 
@@ -551,19 +590,19 @@ def test_a_refused_re_run_in_a_run_s_folder_keeps_its_hydra_record(files, tmp_pa
 
 def test_a_launcher_whose_extra_is_missing_is_one_line(monkeypatch):
     """hydra/launcher=local_parallel without the joblib extra: Hydra would list its plugins in many lines."""
-    from drone_torchrl.apps import before_hydra
+    from drone_torchrl import command_line
 
-    found = before_hydra.importlib.util.find_spec
+    found = command_line.importlib.util.find_spec
     monkeypatch.setattr(
-        before_hydra.importlib.util,
+        command_line.importlib.util,
         "find_spec",
         lambda name, *a: None if name == "hydra_plugins.hydra_joblib_launcher" else found(name, *a),
     )
     with pytest.raises(ConfigError) as info:
-        before_hydra.check_launcher("local_parallel")
+        command_line.check_launcher("local_parallel")
     _one_line(str(info.value), "hydra/launcher=local_parallel")
     assert "drone_torchrl[joblib]" in str(info.value)
-    before_hydra.check_launcher("slurm")  # installed here: accepted
+    command_line.check_launcher("slurm")  # installed here: accepted
 
 
 def test_report_lists_the_jobs_that_failed_before_their_first_episode(files, tmp_path, capsys):

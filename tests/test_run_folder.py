@@ -109,6 +109,26 @@ def test_a_folder_is_held_once_and_let_go(tmp_path):
     assert subprocess.run([sys.executable, "-c", flock], capture_output=True, text=True).returncode == 0
 
 
+def test_a_population_holds_more_folders_than_the_soft_open_file_limit(tmp_path):
+    """One lock per agent: with a soft limit of 300 (many systems start at 1024), holding 400
+    folders raises it towards the hard limit, keeping SPARE_DESCRIPTORS free."""
+    import resource
+
+    if resource.getrlimit(resource.RLIMIT_NOFILE)[1] < 400 + run_lock.SPARE_DESCRIPTORS:
+        pytest.skip("this machine's hard open-file limit is below what the test needs")
+    code = (
+        "import resource\n"
+        "from drone_torchrl.io import run_lock\n"
+        "resource.setrlimit(resource.RLIMIT_NOFILE, (300, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))\n"
+        f"for i in range(400): run_lock.hold({str(tmp_path)!r} + f'/job{{i}}')\n"
+        "print(len(run_lock.held()), resource.getrlimit(resource.RLIMIT_NOFILE)[0])\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    held, soft = map(int, proc.stdout.split())
+    assert held == 400 and soft >= 400 + run_lock.SPARE_DESCRIPTORS
+
+
 def test_an_owner_on_another_host_is_honoured_while_it_renews_its_lock(tmp_path, monkeypatch):
     """Where flock does not reach across hosts, the record still refuses while it is fresh, but not
     once it is older than STALE_AFTER_S, nor for the same SLURM job (a requeue)."""

@@ -15,6 +15,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from drone_torchrl import command_line
 from drone_torchrl.config import ConfigError, check_command_line, config_dir
 from drone_torchrl.io.folders import remove_if_untouched
 
@@ -32,6 +33,7 @@ def main(cfg: DictConfig) -> None:
 
 def run() -> None:
     """Console entry point: checks the command line's keys, then runs the Hydra app."""
+    command_line.check_flags("drone-eval")
     check_command_line("drone-eval", "eval")
     main()
 

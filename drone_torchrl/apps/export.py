@@ -13,6 +13,7 @@ import sys
 import hydra
 from omegaconf import DictConfig
 
+from drone_torchrl import command_line
 from drone_torchrl.config import ConfigError, check_command_line, check_keys, config_dir
 
 
@@ -33,6 +34,7 @@ def main(cfg: DictConfig) -> None:
 
 def run() -> None:
     """Console entry point: checks the command line's keys, then runs the Hydra app."""
+    command_line.check_flags("drone-export")
     check_command_line("drone-export", "export")
     main()
 

@@ -86,24 +86,24 @@ def _stopped(stop: TrainingStopped) -> None:
 
 def _before_hydra() -> list[Path]:
     """The command line's one-line checks, and the run folder claimed before Hydra writes into it
-    (:mod:`.before_hydra`); returns the folders claimed. Exits with the message on a bad input."""
-    from drone_torchrl.apps import before_hydra
+    (:mod:`drone_torchrl.command_line`); returns the folders claimed. Exits with the message on a bad input."""
+    from drone_torchrl import command_line
 
     args = sys.argv[1:]
     try:
-        flags = before_hydra.parse_flags("drone-train", args)
+        flags = command_line.parse_flags("drone-train", args)
         check_command_line("drone-train", "config")
-        overrides = before_hydra.overrides_of(args)
+        overrides = command_line.overrides_of(args)
         if "hydra/launcher" in overrides:
-            before_hydra.check_launcher(overrides["hydra/launcher"])
+            command_line.check_launcher(overrides["hydra/launcher"])
         if flags.multirun:
-            before_hydra.check_multirun(overrides)
+            command_line.check_multirun(overrides)
             return []
         if flags.cfg in ("job", "all") and flags.config_name is None and flags.config_dir is None:
-            before_hydra.check_composed([a for a in flags.overrides])
+            command_line.check_composed([a for a in flags.overrides])
         if flags.cfg or flags.info or flags.help or flags.hydra_help:
             return []  # prints, trains nothing
-        folder, extra = before_hydra.claim_run_folder(overrides)
+        folder, extra = command_line.claim_run_folder(overrides)
     except (ConfigError, StorageError) as err:
         sys.exit(f"drone-train: error: {err}")
     sys.argv.extend(extra)

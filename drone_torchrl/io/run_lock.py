@@ -36,6 +36,10 @@ LOCK_NAME = ".lock"
 # minutes is far past any pause of a live run (an evaluation with a video takes seconds).
 STALE_AFTER_S = 300.0
 
+# Open-file slots kept free beside the locks, for what a run opens meanwhile (its CSV and event
+# file while flushing, a video, torch's and Python's own files).
+SPARE_DESCRIPTORS = 256
+
 # Folders this process holds: path -> the open descriptor carrying the lock (closing it releases it).
 _HELD: dict[Path, int] = {}
 
@@ -82,6 +86,7 @@ def hold(folder: str | os.PathLike) -> Path:
         folder.mkdir(parents=True, exist_ok=True)
         # Read-only: a descriptor open for writing would keep the filesystem from being remounted
         # read-only; the record is written through a short-lived one below.
+        _make_room()
         fd = os.open(path, os.O_RDONLY | os.O_CREAT, 0o644)
     try:
         try:
@@ -113,6 +118,27 @@ def hold(folder: str | os.PathLike) -> Path:
         raise
     _HELD[folder] = fd
     return path
+
+
+def _make_room() -> None:
+    """Keep :data:`SPARE_DESCRIPTORS` open-file slots free beside the locks held: a population holds
+    one lock per agent, and many systems start processes at a soft limit of 1024, so the soft limit
+    is raised towards the hard one; past the hard one, one line says what to change."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    needed = len(_HELD) + 1 + SPARE_DESCRIPTORS
+    if needed <= soft:
+        return
+    wanted = max(needed, 2 * soft)
+    if hard != resource.RLIM_INFINITY:
+        wanted = min(wanted, hard)
+    if wanted < needed:
+        raise ConfigError(
+            f"cannot hold {len(_HELD) + 1} run folders in one process: the open-file limit is {hard} "
+            "(ulimit -Hn); raise it, or train fewer agents per process (hydra.launcher.agents_per_job)"
+        )
+    resource.setrlimit(resource.RLIMIT_NOFILE, (wanted, hard))
 
 
 def renew(folder: str | os.PathLike) -> None:

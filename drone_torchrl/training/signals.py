@@ -49,18 +49,27 @@ class StopRequest:
         self.signum = signum
 
 
+_active: list[StopRequest] = []  # the request of the outermost block running now (nested blocks share it)
+
+
 @contextmanager
 def stop_on_signals() -> Iterator[StopRequest]:
     """Catch :data:`STOP_SIGNALS` as a :class:`StopRequest` while the block runs (the handlers in
-    place before are restored after). Outside the main thread Python cannot install handlers: the
-    request then never fires and the signals keep their previous meaning."""
+    place before are restored after). Blocks nest: an inner one shares the outer one's request, so a
+    signal between two trainings of one command is not lost. Outside the main thread Python cannot
+    install handlers: the request then never fires and the signals keep their previous meaning."""
+    if _active:
+        yield _active[0]
+        return
     request = StopRequest()
     if threading.current_thread() is not threading.main_thread():
         yield request
         return
     previous = {signum: signal.signal(signum, request) for signum in STOP_SIGNALS}
+    _active.append(request)
     try:
         yield request
     finally:
+        _active.clear()
         for signum, handler in previous.items():
             signal.signal(signum, handler)

@@ -204,7 +204,8 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     (:mod:`drone_torchrl.io.run_lock`).
     """
     try:
-        return _train_jobs(jobs)
+        with stop_on_signals():  # a signal between two groups stops before the next one starts
+            return _train_jobs(jobs)
     finally:
         for job in jobs:
             run_lock.release(job.run_dir)
@@ -228,6 +229,9 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
         size = learner_class(jobs[members[0]].cfg).max_agents or len(members)
         batches += [members[start : start + size] for start in range(0, len(members), size)]
     for members in batches:
+        with stop_on_signals() as stop:
+            if stop.signum is not None:  # the groups trained so far have written their checkpoints
+                raise TrainingStopped(stop.signum, [])
         try:
             trainer = Trainer([jobs[i] for i in members])
             finals = trainer.train()

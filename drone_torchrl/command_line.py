@@ -59,6 +59,16 @@ def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
     return known
 
 
+def check_flags(prog: str) -> argparse.Namespace:
+    """:func:`parse_flags` on ``sys.argv``; exits with ``<prog>: error: <message>`` on a bad flag."""
+    import sys
+
+    try:
+        return parse_flags(prog, sys.argv[1:])
+    except ConfigError as err:
+        sys.exit(f"{prog}: error: {err}")
+
+
 def overrides_of(args: list[str]) -> dict[str, str]:
     """``{key: value}`` of the command line's ``key=value`` overrides (the last one wins, as in Hydra)."""
     out: dict[str, str] = {}
