@@ -66,8 +66,9 @@ def _drone_train(*args: str, cwd: Path, wait: bool = True) -> subprocess.Popen |
     )
 
 
-def _wait_for_owner(folder: Path, pid: int, proc: subprocess.Popen, also: Path | None = None) -> None:
-    """Until ``folder``'s lock names ``pid`` (and ``also`` exists): the owner is training."""
+def _wait_for_owner(folder: Path, pid: int, proc: subprocess.Popen, also: str | None = None) -> None:
+    """Until ``folder``'s lock names ``pid`` (and a file matching the glob ``also`` exists in it):
+    the owner is training."""
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         assert proc.poll() is None, proc.communicate()
@@ -75,7 +76,7 @@ def _wait_for_owner(folder: Path, pid: int, proc: subprocess.Popen, also: Path |
             owner = json.loads((folder / run_lock.LOCK_NAME).read_text())
         except (OSError, ValueError):
             owner = {}
-        if owner.get("pid") == pid and (also is None or also.exists()):
+        if owner.get("pid") == pid and (also is None or any(folder.glob(also))):
             return
         time.sleep(0.2)
     raise AssertionError(f"{folder} was never locked by {pid}")
@@ -158,7 +159,7 @@ def test_two_processes_on_one_run_folder_then_sigterm_and_resume(tmp_path):
     common = [*QUICK, f"hydra.run.dir={run}"]
     owner = _drone_train(*common, "algo.episodes=1000000", cwd=tmp_path, wait=False)
     try:
-        _wait_for_owner(run, owner.pid, owner, also=run / "episodes.csv")
+        _wait_for_owner(run, owner.pid, owner, also="episodes.csv")
         second = _drone_train(*common, "algo.episodes=1000000", cwd=tmp_path)
         assert second.returncode == 1
         _one_error_line(second.stderr, str(run), f"pid {owner.pid}")
@@ -227,7 +228,7 @@ def test_the_same_sweep_started_twice_at_once(tmp_path):
     first = _drone_train(*args, cwd=tmp_path, wait=False)
     sweep = tmp_path / "multirun" / "adhoc"
     try:
-        _wait_for_owner(sweep, first.pid, first, also=sweep / "seed=1" / "episodes.csv")
+        _wait_for_owner(sweep, first.pid, first, also="*seed=1/episodes.csv")
         second = _drone_train(*args, cwd=tmp_path)
         assert second.returncode == 1
         _one_error_line(second.stderr, str(sweep), f"pid {first.pid}")
@@ -235,8 +236,10 @@ def test_the_same_sweep_started_twice_at_once(tmp_path):
     finally:
         first.kill()
     assert first.returncode == 0, stderr
-    for job in ("seed=0", "seed=1"):
-        assert _episodes(sweep / job) == list(range(60000)) and _rows(sweep / job) == 60000
+    jobs = sorted(p.parent for p in sweep.glob("*/episodes.csv"))
+    assert [job.name.rsplit(",", 1)[-1] for job in jobs] == ["seed=0", "seed=1"]
+    for job in jobs:
+        assert _episodes(job) == list(range(60000)) and _rows(job) == 60000
 
 
 # ------------------------------------------------------------------------------------- storage errors
