@@ -81,6 +81,7 @@ def _checks(name: str, plugins: tuple[tuple[str, str], ...]) -> tuple[tuple[str,
     return tuple((key, tuple(key.split(".")), rule) for key, rule in keys.items() if rule.kind != "free")
 
 
+@functools.cache
 def per_agent_keys(name: str = "config") -> tuple[str, ...]:
     """Keys that may differ between the agents of one population (every plug-in's): all others must be equal."""
     return tuple(key for key, rule in _every_key(name).items() if rule.per_agent)

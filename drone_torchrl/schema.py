@@ -1,8 +1,8 @@
 """The config schema: every key of ``conf/``'s configs as Hydra structured configs, with what each
 key allows and what the code needs to know of it, declared once, beside the key.
 
-Each ``conf/`` file lists its schema first in its defaults list (``/schema/config@_here_``,
-``/schema/algo/ppo@algo``...), so Hydra composes every config onto its dataclass: a YAML key the
+Each ``conf/`` file lists its schema first in its defaults list (``/schema_config@_here_``,
+``/schema_algo_ppo@algo``...), so Hydra composes every config onto its dataclass: a YAML key the
 schema lacks fails the composition, and a schema key a YAML leaves unset stays ``???`` (refused in
 one line by :func:`drone_torchrl.config.check_keys`). The values themselves stay in the YAML files
 with their comments; the dataclasses hold no defaults.
@@ -17,7 +17,7 @@ deleted (OmegaConf refuses deleting fields of a dataclass; ``check_overrides`` s
 
 Plug-in groups (``algo``, ``logger``): the top-level field is a :func:`plugin_group` naming the key
 that names the plug-in (``algo.name``); each plug-in's own schema is stored as
-``schema/<group>/<plug-in>`` (:func:`store_plugin`), and the options of the group (any number per
+``schema_<group>_<plug-in>`` (:func:`store_plugin`), and the options of the group (any number per
 plug-in: ``algo=reinforce_plus`` is REINFORCE's schema with other values) list it in their defaults.
 """
 
@@ -182,7 +182,7 @@ def free(**rule: Any) -> Any:
 
 def plugin_group(key: str, added: str) -> Any:
     """The field of a plug-in group: ``key`` of the group names the plug-in (its schema:
-    ``schema/<group>/<plug-in>``); a config without it is from before plug-ins, as ``added``."""
+    ``schema_<group>_<plug-in>``); a config without it is from before plug-ins, as ``added``."""
     return Rule(plugin_key=key, added=added).field()
 
 
@@ -396,20 +396,24 @@ class MLflowConf(TensorBoardConf):
 
 
 # ------------------------------------------------------------------------ in Hydra's ConfigStore
-SCHEMA_GROUP = "schema"
+# Stored at the root, not in a group: Hydra's --help lists every config group as options to choose,
+# and a schema is not one. conf/ lists them as /schema_config@_here_, /schema_algo_ppo@algo...
+PREFIX = "schema"
 PRIMARY = {"config": TrainConfig, "eval": EvalConfig, "export": ExportConfig}
 
 
+def _store(name: str, node: type) -> None:
+    ConfigStore.instance().store(name=name, node=node, provider="drone_torchrl")
+
+
 def store_plugin(group: str, plugin: str, node: type) -> None:
-    """Store ``node`` as the schema of plug-in ``plugin`` of ``group`` (``schema/algo/ppo``): what
+    """Store ``node`` as the schema of plug-in ``plugin`` of ``group`` (``schema_algo_ppo``): what
     ``conf/<group>/<option>.yaml`` lists first in its defaults, and where the checks find its keys."""
-    ConfigStore.instance().store(
-        group=f"{SCHEMA_GROUP}/{group}", name=plugin, node=node, provider="drone_torchrl"
-    )
+    _store(f"{PREFIX}_{group}_{plugin}", node)
 
 
 for _name, _node in PRIMARY.items():
-    ConfigStore.instance().store(group=SCHEMA_GROUP, name=_name, node=_node, provider="drone_torchrl")
+    _store(f"{PREFIX}_{_name}", _node)
 for _group, _plugin, _node in (
     ("algo", "reinforce", ReinforceConf),
     ("algo", "ppo", PPOConf),
@@ -422,19 +426,19 @@ for _group, _plugin, _node in (
 
 
 # ------------------------------------------------------------------------------ reading it back
-def _stored(path: str) -> type | None:
-    """The dataclass stored at ``path`` in Hydra's ConfigStore (``schema/algo/ppo``), or None."""
-    found = _found.get(path)
+def _stored_names() -> list[str]:
+    """The names of the configs stored at the ConfigStore's root, without ``.yaml``."""
+    return [n.removesuffix(".yaml") for n in ConfigStore.instance().list("") if n.endswith(".yaml")]
+
+
+def _stored(name: str) -> type | None:
+    """The dataclass stored as ``name`` in Hydra's ConfigStore (``schema_algo_ppo``), or None."""
+    found = _found.get(name)
     if found is None:
-        store = ConfigStore.instance()
-        group, _, name = path.rpartition("/")
-        try:
-            if f"{name}.yaml" not in store.list(group):
-                return None
-        except OSError:  # no such group
+        if name not in _stored_names():
             return None
         # Kept: the store copies a node at every load, and a population validates every job.
-        found = _found[path] = OmegaConf.get_type(store.load(f"{path}.yaml").node)
+        found = _found[name] = OmegaConf.get_type(ConfigStore.instance().load(f"{name}.yaml").node)
     return found
 
 
@@ -443,7 +447,7 @@ _found: dict[str, type] = {}
 
 def primary_schema(name: str) -> type:
     """The schema of ``conf/<name>.yaml`` (``config``, ``eval``, ``export``)."""
-    node = _stored(f"{SCHEMA_GROUP}/{name}")
+    node = _stored(f"{PREFIX}_{name}")
     if node is None:
         raise KeyError(f"no schema for conf/{name}.yaml in Hydra's ConfigStore")
     return node
@@ -451,7 +455,7 @@ def primary_schema(name: str) -> type:
 
 def plugin_schema(group: str, plugin: Any) -> type | None:
     """The schema of plug-in ``plugin`` of ``group``, or None if none is stored."""
-    return _stored(f"{SCHEMA_GROUP}/{group}/{plugin}") if isinstance(plugin, str) and plugin else None
+    return _stored(f"{PREFIX}_{group}_{plugin}") if isinstance(plugin, str) and plugin else None
 
 
 @functools.cache
@@ -484,8 +488,5 @@ def fields(node: type, plugins: Mapping[str, type | None], prefix: str = "") -> 
 
 def stored_plugins(group: str) -> list[str]:
     """The plug-ins of ``group`` whose schemas are in the ConfigStore, sorted."""
-    try:
-        names = ConfigStore.instance().list(f"{SCHEMA_GROUP}/{group}")
-    except OSError:  # none stored
-        return []
-    return [name.removesuffix(".yaml") for name in names]
+    prefix = f"{PREFIX}_{group}_"
+    return sorted(n.removeprefix(prefix) for n in _stored_names() if n.startswith(prefix))

@@ -52,9 +52,9 @@ def test_the_other_commands_configs_are_their_schemas(name):
 def test_a_yaml_key_the_schema_lacks_fails_the_composition(tmp_path):
     (tmp_path / "algo").mkdir()
     (tmp_path / "algo" / "typo.yaml").write_text(
-        "defaults:\n  - /schema/algo/reinforce@_here_\n  - _self_\nname: reinforce\nlrr: 0.1\n"
+        "defaults:\n  - /schema_algo_reinforce@_here_\n  - _self_\nname: reinforce\nlrr: 0.1\n"
     )
-    (tmp_path / "config.yaml").write_text("defaults:\n  - /schema/config@_here_\n  - algo: typo\n")
+    (tmp_path / "config.yaml").write_text("defaults:\n  - /schema_config@_here_\n  - algo: typo\n")
     with initialize_config_dir(str(tmp_path), version_base="1.3"), pytest.raises(Exception, match="lrr"):
         compose("config")
 

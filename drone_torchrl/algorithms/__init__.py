@@ -9,7 +9,7 @@ the shared skeleton's and needs nothing from the algorithm.
 
 Adding one, e.g. A2C (see :mod:`.a2c`): write ``drone_torchrl/algorithms/a2c.py`` with its learner,
 ``validate`` and a call of :func:`register`; its keys' schema (a dataclass, each field with its
-bounds or choices) stored with :func:`drone_torchrl.schema.store_plugin` as ``schema/algo/a2c``;
+bounds or choices) stored with :func:`drone_torchrl.schema.store_plugin` as ``schema_algo_a2c``;
 and ``conf/algo/a2c.yaml`` listing that schema first in its defaults, with ``name: a2c`` and its
 keys' values (``# @package _global_`` at the top if it also sets ``model.*`` or other groups' keys);
 then ``drone-train algo=a2c``. The YAML's file name is the option users type; ``algo.name`` names the

@@ -19,7 +19,7 @@ The backend of a run cannot change when it continues (one line refuses it).
 Adding one: a module here (or in another package, named in the ``drone_torchrl.loggers`` entry-point
 group) that calls :func:`register`, its keys' schema (a subclass of
 :class:`drone_torchrl.schema.TensorBoardConf`, stored with :func:`drone_torchrl.schema.store_plugin`),
-and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard, /schema/logger/<name>@_here_]``
+and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard, /schema_logger_<name>@_here_]``
 (the shared keys, then its schema), ``backend: <name>`` and its own keys; then
 ``drone-train logger=<option>``.
 """
