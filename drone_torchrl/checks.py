@@ -1,10 +1,9 @@
 """The one-line checks of config values: :class:`ConfigError` and the number, choice and list checks
-every part of the config (the shared keys, each algorithm's, each logger's) uses."""
+the schema's rules (:mod:`drone_torchrl.schema`) and the cross-field checks use."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -29,47 +28,42 @@ def plain_name(name: Any) -> bool:
     return isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name
 
 
-def number(
-    cfg: Mapping[str, Any],
+def check_number(
     key: str,
+    value: Any,
     *,
     low: float | None = None,
     high: float | None = None,
     low_open: bool = False,
     integer: bool = False,
 ) -> None:
-    """``key`` (dotted) is a finite number (an integer with ``integer``) within the bounds."""
-    value = cfg
-    for part in key.split("."):
-        value = value[part]
+    """``value`` of ``key`` is a finite number (an integer with ``integer``) within the bounds."""
+    numeric = isinstance(value, int | float) and not isinstance(value, bool)
+    if (
+        numeric
+        and (not integer or isinstance(value, int))
+        and math.isfinite(value)
+        and (low is None or value > low or (value == low and not low_open))
+        and (high is None or value <= high)
+    ):
+        return
     kind = "an integer" if integer else "a number"
     bounds = []
     if low is not None:
         bounds.append(f"{'>' if low_open else '>='} {low}")
     if high is not None:
         bounds.append(f"<= {high}")
-    allowed = f"{kind} {' and '.join(bounds)}".strip()
-    numeric = isinstance(value, int | float) and not isinstance(value, bool)
-    if not numeric or (integer and not isinstance(value, int)) or not math.isfinite(value):
-        raise ConfigError.of(key, value, allowed)
-    if low is not None and (value < low or (low_open and value == low)):
-        raise ConfigError.of(key, value, allowed)
-    if high is not None and value > high:
-        raise ConfigError.of(key, value, allowed)
+    raise ConfigError.of(key, value, f"{kind} {' and '.join(bounds)}".strip())
 
 
-def choice(cfg: Mapping[str, Any], key: str, choices: tuple) -> None:
-    """``section.name`` is one of ``choices``."""
-    section, name = key.split(".")
-    if cfg[section][name] not in choices:
-        raise ConfigError.of(key, cfg[section][name], f"one of {list(choices)}")
+def check_choice(key: str, value: Any, choices: tuple, expected: str | None = None) -> None:
+    """``value`` of ``key`` is one of ``choices``."""
+    if value not in choices:
+        raise ConfigError.of(key, value, expected or f"one of {list(choices)}")
 
 
-def sizes(cfg: Mapping[str, Any], key: str) -> None:
-    """``key`` (dotted) is a non-empty list of layer sizes."""
-    value = cfg
-    for part in key.split("."):
-        value = value[part]
+def check_sizes(key: str, value: Any) -> None:
+    """``value`` of ``key`` is a non-empty list of layer sizes."""
     if (
         not isinstance(value, list)
         or not value

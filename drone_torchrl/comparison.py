@@ -15,11 +15,10 @@ from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
 from drone_torchrl.config import (
-    MAX_PARALLEL_EPISODES,
-    MAX_SEED,
     ConfigError,
     check_device,
     check_keys,
+    check_values,
     command_line_keys,
     env_kwargs,
     open_checkpoint,
@@ -100,17 +99,7 @@ def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
 def run_eval(cfg: DictConfig) -> dict[str, dict]:
     """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot."""
     out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
-    check_keys(cfg, "eval")
-    for key, most in (("episodes", MAX_PARALLEL_EPISODES), ("video_fps", None)):
-        if (
-            isinstance(cfg[key], bool)
-            or not isinstance(cfg[key], int)
-            or cfg[key] < 1
-            or (most and cfg[key] > most)
-        ):
-            raise ConfigError.of(key, cfg[key], "an integer >= 1" + (f" and <= {most}" if most else ""))
-    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or not 0 <= cfg.seed <= MAX_SEED:
-        raise ConfigError.of("seed", cfg.seed, f"an integer >= 0 and <= {MAX_SEED}")
+    check_values(check_keys(cfg, "eval"), "eval")  # the keys and the bounds of conf/eval.yaml's schema
     check_device(cfg.device)
     if cfg.checkpoint is not None:
         path, checkpoint = open_checkpoint("checkpoint", cfg.checkpoint)

@@ -11,15 +11,12 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from drone_torchrl import algorithms, loggers
-from drone_torchrl.checks import ConfigError, choice, number, plain_name, sizes
+from drone_torchrl import algorithms, loggers, schema
+from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.dynamics import DroneParams
-from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
+from drone_torchrl.schema import Rule
 
-# torchrl: TorchRL env + ProbabilisticActor rollouts, the reference collector; fused: many agents
-# stepped as one batch on the shared dynamics, the fast path (drone_torchrl/training/collectors.py).
-ENGINES = ("torchrl", "fused")
 # The device kinds the code runs on. Others fail deep inside (mps has no float64 for the
 # population optimizer's per-agent scalars; meta holds no numbers), so they are refused up front.
 DEVICE_KINDS = ("cpu", "cuda")
@@ -42,9 +39,10 @@ def config_dir() -> str:
     A wheel ships the top-level ``conf/`` as ``drone_torchrl/conf`` (pyproject's package-dir);
     a source checkout or editable install reads the top-level folder itself.
     """
-    # The configs name hydra/launcher=fused and hydra/sweeper=population: their schemas must be in
-    # Hydra's ConfigStore before composing, also where Hydra's plugin scan does not see them (an
-    # editable install's hydra_plugins is an import hook, not a folder).
+    # The configs name hydra/launcher=fused and hydra/sweeper=population, and list the schemas of
+    # drone_torchrl.schema (imported above): all must be in Hydra's ConfigStore before composing,
+    # also where Hydra's plugin scan does not see them (an editable install's hydra_plugins is an
+    # import hook, not a folder).
     import hydra_plugins.drone_torchrl_launcher.schemas  # noqa: F401
 
     package = Path(__file__).resolve().parent
@@ -54,18 +52,6 @@ def config_dir() -> str:
     raise FileNotFoundError(f"drone_torchrl's conf/ folder is missing (looked in {package} and its parent)")
 
 
-# Bounds of values that have no natural limit. A learning rate above 1 only diverges with Adam's
-# unit-scale steps; seeds are signed 64-bit integers in torch.
-MAX_LR = 1.0
-MAX_SEED = 2**63 - 1
-# Episodes flown side by side (an update's, an evaluation's, drone-eval's) live in memory together:
-# about 25 kB each for 300 steps, so 10,000 take a quarter of a GB.
-MAX_PARALLEL_EPISODES = 10_000
-# torch's intra-op threads; far past the cores they only slow it down (and 10^5 crashes it).
-MAX_THREADS = 256
-# Updates per call of the update function: past a few hundred the Python loop is already negligible,
-# and each call holds its updates' metrics in memory.
-MAX_UPDATES_PER_CALL = 10_000
 # What a run writes into its folder: logger.exp_name must not collide with one of them.
 RUN_FOLDER_ENTRIES = frozenset(
     {"checkpoints", "videos", "episodes.csv", "config.yaml", "FAILED.txt", ".hydra", "train.log", ".lock"}
@@ -73,55 +59,50 @@ RUN_FOLDER_ENTRIES = frozenset(
 # Groups chosen with ``group=option`` (a file conf/<group>/<option>.yaml); Hydra's own groups
 # (hydra/launcher, hydra/sweeper) are Hydra's to check.
 _HYDRA_PREFIX = "hydra"
-
-
-# Groups whose options are plug-ins, each option naming its plug-in under this key: each option
-# may add keys of its own (an algorithm's hyper-parameters, a logger backend's settings).
-PLUGIN_GROUPS = {"algo": "name", "logger": "backend"}
+# The registry of each plug-in group (drone_torchrl.schema.plugin_groups): its one-line error names
+# the registered plug-ins when a config names another.
+_REGISTRIES = {"algo": algorithms.get, "logger": loggers.get}
 
 
 @functools.cache
-def schema(name: str = "config", algo: str | None = None, logger: str | None = None) -> DictConfig:
-    """Every key a ``conf/<name>.yaml`` config can hold, with its default value.
-
-    The primary file merged with its default group options (``algo``, ``logger``: that option of
-    the group instead of the default one), not Hydra's settings: what a config composed from it
-    holds, whichever experiment or sweep preset is chosen, since those only set values of these keys.
-    """
-    chosen = {"algo": algo, "logger": logger}
-    root = Path(config_dir())
-    primary = OmegaConf.load(root / f"{name}.yaml")
-    merged = OmegaConf.create()
-    for entry in primary.get("defaults", []):
-        if not isinstance(entry, Mapping):
-            continue  # _self_
-        for group, option in entry.items():
-            if group.startswith("override") or group.startswith(_HYDRA_PREFIX):
-                continue
-            option = chosen.get(group) or option
-            _merge_option(merged, root, group, option)
-    own = {k: v for k, v in primary.items() if k not in ("defaults", _HYDRA_PREFIX)}
-    merged.merge_with(OmegaConf.create(own))
-    return merged
+def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
+    """``{"algo.lr": rule, ...}``: every key of a ``conf/<name>.yaml`` config, in order, with its
+    :class:`~drone_torchrl.schema.Rule`, from the schemas in Hydra's ConfigStore. ``plugins``: the
+    plug-in of each plug-in group (``algo="ppo"``; a group not given, or a plug-in without a stored
+    schema, adds no keys)."""
+    nodes = {group: schema.plugin_schema(group, plugin) for group, plugin in plugins.items()}
+    return dict(schema.fields(schema.primary_schema(name), nodes))
 
 
-def _merge_option(merged: DictConfig, root: Path, group: str, option: str) -> None:
-    """Merge ``conf/<group>/<option>.yaml`` (after the options its own defaults list names)."""
-    path = root / group / f"{option}.yaml"
-    node = OmegaConf.load(path)
-    for parent in node.pop("defaults", []):
-        if isinstance(parent, str) and parent != "_self_":
-            _merge_option(merged, root, group, parent)
-    if _is_global(path):
-        merged.merge_with(node)
-    elif group in merged:
-        merged[group].merge_with(node)
-    else:
-        merged[group] = node
+@functools.cache
+def _checks(name: str, plugins: tuple[tuple[str, str], ...]) -> tuple[tuple[str, tuple[str, ...], Rule], ...]:
+    """The rules :func:`check_values` runs: ``(key, its path, rule)``, keys the code checks left out."""
+    keys = schema_keys(name, **dict(plugins))
+    return tuple((key, tuple(key.split(".")), rule) for key, rule in keys.items() if rule.kind != "free")
 
 
-def _is_global(path: Path) -> bool:
-    return any(line.strip() == "# @package _global_" for line in path.read_text().splitlines()[:3])
+@functools.cache
+def per_agent_keys(name: str = "config") -> tuple[str, ...]:
+    """Keys that may differ between the agents of one population (every plug-in's): all others must be equal."""
+    return tuple(key for key, rule in _every_key(name).items() if rule.per_agent)
+
+
+def resume_rule(key: str) -> str:
+    """What a continued run does with ``key`` (:data:`~drone_torchrl.schema.KEPT`, ``IF_SET``,
+    ``BUDGET`` or ``PROCESS``); a key no schema has is kept."""
+    rule = _every_key("config").get(key)
+    return schema.KEPT if rule is None else rule.on_resume
+
+
+@functools.cache
+def _every_key(name: str) -> dict[str, Rule]:
+    """Every key of ``conf/<name>.yaml`` with any plug-in stored in the ConfigStore (each plug-in's
+    rule of a key the plug-ins share is the same)."""
+    out: dict[str, Rule] = {}
+    for group in schema.plugin_groups(name):
+        for plugin in schema.stored_plugins(group):
+            out.update(schema_keys(name, **{group: plugin}))
+    return out or dict(schema_keys(name))
 
 
 def leaves(node: Any, prefix: str = "") -> dict[str, Any]:
@@ -157,8 +138,8 @@ def group_names() -> list[str]:
 
 def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     group = key.split(".")[0]
-    if group in PLUGIN_GROUPS:  # another plug-in's key: say whose, not a look-alike of this one's
-        owners = [o for o in _options(group) if key in _schema_leaves("config", **{group: o})]
+    if group in schema.plugin_groups():  # another plug-in's key: say whose, not a look-alike of this one's
+        owners = [o for o in _options(group) if key in _option_keys(group, o)]
         if owners:
             return ConfigError(
                 f"{key} is not a key of this {group}; it belongs to {group}={f' or {group}='.join(owners)}"
@@ -166,6 +147,36 @@ def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
     return ConfigError(f"{key} is not a config key{hint}")
+
+
+def _option_keys(group: str, option: str) -> dict[str, Rule]:
+    """The keys of the training config with ``group=option`` (its plug-in's)."""
+    try:
+        plugins = _option_plugins("config", ((group, option),))
+    except Exception:  # noqa: BLE001  (an option Hydra cannot compose owns no keys here; Hydra says why)
+        return {}
+    return schema_keys("config", **{group: plugins[group]})
+
+
+@functools.cache
+def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str, str | None]:
+    """``{"algo": "reinforce", "logger": "tensorboard"}``: the plug-in each plug-in group names in
+    ``conf/<name>.yaml`` composed by Hydra with these group options (``(("algo", "reinforce_plus"),)``;
+    the others: the config's defaults). An option's file name is free, so only Hydra knows its
+    plug-in: several options may share one (reinforce_plus is REINFORCE with other values)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    overrides = [f"{group}={option}" for group, option in choices]
+    if GlobalHydra.instance().is_initialized():  # inside a Hydra app (or a test's initialize)
+        cfg = compose(name, overrides=overrides)
+    else:
+        with initialize_config_dir(config_dir(), version_base="1.3"):
+            cfg = compose(name, overrides=overrides)
+    return {
+        group: OmegaConf.select(cfg, f"{group}.{rule.plugin_key}", default=None)
+        for group, rule in schema.plugin_groups(name).items()
+    }
 
 
 def _resolved(cfg: DictConfig | Mapping) -> Mapping:
@@ -189,61 +200,57 @@ def _resolved(cfg: DictConfig | Mapping) -> Mapping:
     return out
 
 
-def check_keys(cfg: DictConfig, name: str = "config") -> Mapping:
-    """Refuse keys the config files do not define (e.g. added with ``+``), and non-booleans for
-    boolean options (``off``, ``no`` or ``1`` are strings or numbers here, not ``false``/``true``).
-    Returns the config as resolved plain data (``???`` and interpolations to nothing are refused)."""
+def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
+    """Refuse keys the schema of ``conf/<name>.yaml`` does not have (e.g. added with ``+``), keys
+    without a value, and plug-ins without a schema. Returns the config as resolved plain data
+    (``???`` and interpolations to nothing are refused)."""
 
     try:
-        known = _schema_leaves(name, **_plugin_options(cfg))
         resolved = _resolved(cfg)
         given = leaves(resolved)
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
         key = getattr(err, "full_key", None) or "a config value"
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"{key} cannot be read: {first}") from None
+    known = schema_keys(name, **_plugins(resolved, name))
     missing = [k for k in known if k not in given and not any(g.startswith(f"{k}.") for g in given)]
     if missing:
         raise ConfigError(f"{missing[0]} is missing (deleted with ~?); every config key needs a value")
-    for key, value in given.items():
-        if key in known:
-            if isinstance(known[key], bool) and not isinstance(value, bool):
-                raise ConfigError.of(key, value, "true or false")
-            continue
-        # A list or dict default (e.g. model.hidden_sizes) may hold any shape of its own.
-        if not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
+    for key in given:
+        # A list or dict value (e.g. model.hidden_sizes) may hold any shape of its own.
+        if key not in known and not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
             raise _unknown(key, known)
     return resolved
 
 
-@functools.cache
-def _schema_leaves(name: str, algo: str | None = None, logger: str | None = None) -> dict[str, Any]:
-    return leaves(schema(name, algo, logger))
-
-
-def _plugin_options(cfg: Any) -> dict[str, str | None]:
-    """``{"algo": option, "logger": option}``: the group options whose keys ``cfg`` holds, found by
-    the plug-in each names (``algo.name``, ``logger.backend``): the option of that file name, or else
-    the first that names it (file names are free: several options may share a plug-in, as
-    reinforce_plus shares reinforce's learner)."""
-    out: dict[str, str | None] = {}
-    for group, key in PLUGIN_GROUPS.items():
-        plugin = (
-            OmegaConf.select(cfg, f"{group}.{key}", default=None) if isinstance(cfg, DictConfig) else None
-        )
-        out[group] = _plugin_files(group).get(plugin) if isinstance(plugin, str) else None
+def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
+    """The plug-in each plug-in group of ``resolved`` names; one that has no schema is refused."""
+    out: dict[str, str] = {}
+    for group, rule in schema.plugin_groups(name).items():
+        section = resolved.get(group)
+        plugin = section.get(rule.plugin_key) if isinstance(section, Mapping) else None
+        if schema.plugin_schema(group, plugin) is None:
+            _REGISTRIES[group](plugin)  # not a registered plug-in: its registry's one-line error
+            raise ConfigError(
+                f"{group}.{rule.plugin_key}={plugin!r} has no config schema: its plug-in must store one "
+                f"with drone_torchrl.schema.store_plugin({group!r}, {plugin!r}, ...)"
+            )
+        out[group] = plugin
     return out
 
 
-@functools.cache
-def _plugin_files(group: str) -> dict[str, str]:
-    """``{plug-in name: group option}`` of a plug-in group, an option named like its plug-in first."""
-    key = f"{group}.{PLUGIN_GROUPS[group]}"
-    named = {option: _schema_leaves("config", **{group: option}).get(key) for option in _options(group)}
-    files: dict[str, str] = {}
-    for option in sorted(named, key=lambda o: o != named[o]):
-        files.setdefault(named[option], option)
-    return files
+def check_values(resolved: Mapping, name: str = "config") -> None:
+    """Every rule of the schema (:mod:`drone_torchrl.schema`) on the resolved config (as nested
+    dicts, keys checked by :func:`check_keys`): the first value a rule refuses raises
+    :class:`ConfigError`."""
+    plugins = tuple(
+        (group, resolved[group][rule.plugin_key]) for group, rule in schema.plugin_groups(name).items()
+    )
+    for key, path, rule in _checks(name, plugins):
+        value = resolved
+        for part in path:
+            value = value[part]
+        rule.check(key, value, resolved)
 
 
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
@@ -269,15 +276,17 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                 f"{override} cannot be parsed: {reason} (Hydra's override syntax: key=value, "
                 "key=[a,b] for a list, quote values with special characters)"
             ) from None
-    chosen: dict[str, str | None] = {}
-    for group in PLUGIN_GROUPS:
-        picked = [o.value() for o in parsed if o.key_or_group == group and not o.is_sweep_override()]
-        chosen[group] = picked[-1] if picked and picked[-1] in _options(group) and name == "config" else None
-    known = _schema_leaves(name, **chosen)
     groups = group_names()
+    known = _override_keys(parsed, name)
+    if known is None:  # Hydra cannot compose these group options: its own message says why
+        return
     for override in parsed:
         key = override.key_or_group
         if override.is_delete():
+            # OmegaConf refuses to delete a field of a nested schema (several lines); a top-level key
+            # would be refused as missing: either way, say it first.
+            if key in known:
+                raise ConfigError(f"{key} cannot be deleted (~{key}); every config key needs a value")
             continue
         values = (
             list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
@@ -300,6 +309,23 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             continue
         if key not in known and not any(k.startswith(f"{key}.") for k in known):
             raise _unknown(key, known)
+
+
+def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
+    """The keys of ``conf/<name>.yaml`` with the plug-in group options the overrides pick (the last
+    plain one of each group that is an option), or None if Hydra cannot compose those."""
+    choices = []
+    for group in schema.plugin_groups(name):
+        picked = [o.value() for o in parsed if o.key_or_group == group and not o.is_sweep_override()]
+        if picked and picked[-1] in _options(group):
+            choices.append((group, picked[-1]))
+    if not schema.plugin_groups(name):
+        return schema_keys(name)
+    try:
+        plugins = _option_plugins(name, tuple(choices))
+    except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
+        return None
+    return schema_keys(name, **plugins)
 
 
 def _check_folder(key: str, value: Any) -> None:
@@ -335,37 +361,20 @@ def check_command_line(prog: str, name: str) -> None:
         sys.exit(f"{prog}: error: {err}")
 
 
-# Keys added after the first runs were saved, with the value those runs behaved as: a checkpoint's
-# config gets them filled in, so old runs can still be evaluated and resumed.
-ADDED_KEYS = {
-    "engine": "torchrl",
-    "compile": False,
-    "logger.every_updates": 1,
-    "logger.video_stride": 1,
-    "algo.optimizer": "adam",
-    "algo.weight_decay": 0.0,
-    "logger.flush_every_s": 10,
-    "algo.name": "reinforce",
-    "model.init_std": None,
-    "steps_per_call": 1,
-    "algo.log_prob_reduction": "sum",
-    "updates_per_call": 1,
-    "logger.backend": "tensorboard",
-}
-# An initial exploration std past this is no longer "near the mean": thrusts are fractions of the weight.
-MAX_INIT_STD = 10.0
-
-
 def run_config(saved: dict[str, Any]) -> DictConfig:
-    """The config stored in a checkpoint, with keys added since filled in (:data:`ADDED_KEYS`;
-    only those its algorithm has: a PPO run has no REINFORCE optimizer keys)."""
+    """The config stored in a checkpoint, with keys added since filled in with the value those runs
+    behaved as (the schema's ``added``; only the keys of its plug-ins: a PPO run has no REINFORCE
+    optimizer keys), so old runs can still be evaluated and resumed."""
     cfg = OmegaConf.create(saved)
-    if OmegaConf.select(cfg, "algo.name", default=_ABSENT) is _ABSENT:
-        OmegaConf.update(cfg, "algo.name", ADDED_KEYS["algo.name"], force_add=True)
-    known = _schema_leaves("config", **_plugin_options(cfg))
-    for key, value in ADDED_KEYS.items():
-        if key in known and OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
-            OmegaConf.update(cfg, key, value, force_add=True)
+    plugins = {}
+    for group, rule in schema.plugin_groups().items():
+        key = f"{group}.{rule.plugin_key}"
+        if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:  # from before plug-ins
+            OmegaConf.update(cfg, key, rule.added, force_add=True)
+        plugins[group] = OmegaConf.select(cfg, key)
+    for key, rule in schema_keys("config", **plugins).items():
+        if rule.is_added and OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
+            OmegaConf.update(cfg, key, rule.added, force_add=True)
     return cfg
 
 
@@ -475,39 +484,15 @@ def validate(cfg: DictConfig) -> None:
         error = _env_error.__wrapped__(cfg.device, kwargs)
     if error is not None:
         raise ConfigError(error)
-    if cfg.engine not in ENGINES:
-        raise ConfigError.of("engine", cfg.engine, f"one of {list(ENGINES)}")
-    number(cfg, "env.num_workers", low=0, integer=True)
-    number(cfg, "seed", low=0, high=MAX_SEED, integer=True)
-    number(cfg, "threads", low=1, high=MAX_THREADS, integer=True)
-    number(cfg, "steps_per_call", low=1, high=cfg.env.max_steps, integer=True)
-    number(cfg, "updates_per_call", low=1, high=MAX_UPDATES_PER_CALL, integer=True)
-    number(cfg, "algo.lr", low=0, low_open=True, high=MAX_LR)
-    number(cfg, "algo.gamma", low=0, high=1)
-    number(cfg, "algo.episodes", low=1, integer=True)
+    check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
     algorithms.get(cfg.algo.name).validate(cfg)
     loggers.get(cfg.logger.backend).validate(cfg)
-    choice(cfg, "model.distribution", DISTRIBUTIONS)
-    choice(cfg, "model.activation", tuple(ACTIVATIONS))
-    number(cfg, "model.min_std", low=0)
-    sizes(cfg, "model.hidden_sizes")
-    if cfg.model.init_std is not None:
-        number(cfg, "model.init_std", low=cfg.model.min_std, low_open=True, high=MAX_INIT_STD)
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
         raise ConfigError.of(
             "model.distribution",
             "tanh_normal",
             "'normal' unless env.max_thrust is set (e.g. env.max_thrust=1.0)",
         )
-    number(cfg, "checkpoint.every_episodes", low=1, integer=True)
-    number(cfg, "eval.every_episodes", low=0, integer=True)
-    number(cfg, "eval.episodes", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
-    number(cfg, "eval.seed", low=0, high=MAX_SEED, integer=True)
-    number(cfg, "metrics.running_mean_window", low=1, integer=True)
-    number(cfg, "logger.video_fps", low=1, integer=True)
-    number(cfg, "logger.video_stride", low=1, integer=True)
-    number(cfg, "logger.every_updates", low=1, integer=True)
-    number(cfg, "logger.flush_every_s", low=0)
     name = cfg.logger.exp_name
     if not plain_name(name) or name in RUN_FOLDER_ENTRIES:
         raise ConfigError.of(
@@ -518,5 +503,3 @@ def validate(cfg: DictConfig) -> None:
         )
     if not plain_name(cfg.sweep_name):
         raise ConfigError.of("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
-    if cfg.progress not in (True, False, "auto"):
-        raise ConfigError.of("progress", cfg.progress, "true, false or auto")

@@ -8,9 +8,11 @@ evaluations, checkpoints and resume, divergence, the one-line errors, sweeps and
 the shared skeleton's and needs nothing from the algorithm.
 
 Adding one, e.g. A2C (see :mod:`.a2c`): write ``drone_torchrl/algorithms/a2c.py`` with its learner,
-``validate`` and a call of :func:`register`, and ``conf/algo/a2c.yaml`` with ``name: a2c`` and its
-keys (``# @package _global_`` at the top if it also sets ``model.*`` or other groups' keys); then
-``drone-train algo=a2c``. The YAML's file name is the option users type; ``algo.name`` names the
+``validate`` and a call of :func:`register`; its keys' schema (a dataclass, each field with its
+bounds or choices) stored with :func:`drone_torchrl.schema.store_plugin` as ``schema_algo_a2c``;
+and ``conf/algo/a2c.yaml`` listing that schema first in its defaults, with ``name: a2c`` and its
+keys' values (``# @package _global_`` at the top if it also sets ``model.*`` or other groups' keys);
+then ``drone-train algo=a2c``. The YAML's file name is the option users type; ``algo.name`` names the
 learner, so several YAMLs can share one (``algo=reinforce_plus`` is ``name: reinforce`` with other
 values). Another package adds algorithms by naming a module in the ``drone_torchrl.algorithms``
 entry-point group, and its YAML in ``conf/algo/`` of a Hydra search path.
@@ -35,9 +37,9 @@ class Algorithm:
         name: its ``algo.name``.
         learner: the learner class; ``learner(jobs)`` trains up to ``learner.max_agents`` prepared
             jobs (None: any number) behind ``update(state, k, active)``.
-        validate: raises :class:`~drone_torchrl.checks.ConfigError` (one line) for a bad value of its
-            own keys; the shared keys are checked before it is called. Gets the resolved config as
-            nested dicts with attribute access.
+        validate: raises :class:`~drone_torchrl.checks.ConfigError` (one line) for values of its keys
+            that do not go together; each key's own bounds and choices (its schema's) are checked
+            before it is called. Gets the resolved config as nested dicts with attribute access.
         checkpoint_keys: entries its learner adds to every checkpoint (a checkpoint without one is
             refused when resumed, in one line).
         summary: one line saying what it is.

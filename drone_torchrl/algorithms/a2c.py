@@ -35,7 +35,7 @@ class A2C(OnPolicy):
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
-    """A2C's keys are the on-policy loop's."""
+    """A2C's rules that relate keys are the on-policy loop's."""
     validate_on_policy(cfg)
 
 

@@ -34,8 +34,8 @@ from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 
 from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.checks import ConfigError, number, sizes
-from drone_torchrl.config import MAX_PARALLEL_EPISODES, env_kwargs
+from drone_torchrl.checks import ConfigError
+from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
@@ -234,7 +234,8 @@ class PPO(OnPolicy):
 
 
 def validate_on_policy(cfg: Mapping[str, Any]) -> None:
-    """The checks of the keys every :class:`OnPolicy` algorithm has."""
+    """The rules of :class:`OnPolicy` that relate keys (each key's bounds are its schema's:
+    drone_torchrl.schema.PPOConf, A2CConf)."""
     name = cfg.algo.name
     if cfg.env.num_workers:
         raise ConfigError.of(
@@ -242,11 +243,6 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
             cfg.env.num_workers,
             f"0 with algo.name={name} (algo.num_envs drones in one env)",
         )
-    number(cfg, "algo.gae_lambda", low=0, high=1)
-    number(cfg, "algo.num_envs", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
-    number(cfg, "algo.steps_per_batch", low=1, integer=True)
-    number(cfg, "algo.epochs", low=1, integer=True)
-    number(cfg, "algo.minibatch_size", low=1, integer=True)
     frames = cfg.algo.num_envs * cfg.algo.steps_per_batch
     if frames % cfg.algo.minibatch_size:
         raise ConfigError.of(
@@ -254,19 +250,11 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
             cfg.algo.minibatch_size,
             f"a divisor of algo.num_envs x algo.steps_per_batch = {frames} (the frames of a batch)",
         )
-    number(cfg, "algo.entropy_coeff", low=0)
-    number(cfg, "algo.critic_coeff", low=0, low_open=True)
-    number(cfg, "algo.reward_scale", low=0, low_open=True)
-    number(cfg, "algo.adam_eps", low=0, low_open=True, high=1)
-    if cfg.algo.max_grad_norm is not None:
-        number(cfg, "algo.max_grad_norm", low=0, low_open=True)
-    sizes(cfg, "algo.value_hidden_sizes")
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
-    """PPO's checks: the on-policy keys and the clipping range."""
+    """PPO's rules that relate keys: the on-policy loop's."""
     validate_on_policy(cfg)
-    number(cfg, "algo.clip_epsilon", low=0, low_open=True, high=1)
 
 
 register(

@@ -12,14 +12,10 @@ from collections.abc import Mapping
 from typing import Any
 
 from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.checks import ConfigError, choice, number
-from drone_torchrl.config import MAX_PARALLEL_EPISODES
-from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
+from drone_torchrl.checks import ConfigError
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.update import CHECKS, ReinforceUpdate
-
-OPTIMIZERS = ("adam", "adamw")
 
 
 class Reinforce:
@@ -64,9 +60,9 @@ class Reinforce:
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
-    """The checks of REINFORCE's own keys (and of the engine options it alone uses)."""
+    """REINFORCE's rules that relate keys (each key's bounds are its schema's, drone_torchrl.schema.ReinforceConf),
+    and those of the engine options it alone uses."""
     workers = cfg.env.num_workers
-    number(cfg, "algo.episodes_per_update", low=1, high=MAX_PARALLEL_EPISODES, integer=True)
     if cfg.algo.episodes % cfg.algo.episodes_per_update:
         raise ConfigError.of(
             "algo.episodes",
@@ -85,13 +81,6 @@ def validate(cfg: Mapping[str, Any]) -> None:
             workers,
             f"a divisor of algo.episodes_per_update={cfg.algo.episodes_per_update} (the episodes are split over the workers)",
         )
-    number(cfg, "algo.adam_eps", low=0, low_open=True, high=1)
-    choice(cfg, "algo.optimizer", OPTIMIZERS)
-    number(cfg, "algo.weight_decay", low=0, high=1)
-    if cfg.algo.max_grad_norm is not None:
-        number(cfg, "algo.max_grad_norm", low=0, low_open=True)
-    choice(cfg, "algo.baseline", BASELINES)
-    choice(cfg, "algo.log_prob_reduction", LOG_PROB_REDUCTIONS)
 
 
 register(

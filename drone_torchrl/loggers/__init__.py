@@ -17,8 +17,11 @@ which): the file backends drop what the interrupted process logged after ``E`` a
 The backend of a run cannot change when it continues (one line refuses it).
 
 Adding one: a module here (or in another package, named in the ``drone_torchrl.loggers`` entry-point
-group) that calls :func:`register`, and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard]``
-(the shared keys), ``backend: <name>`` and its own keys; then ``drone-train logger=<option>``.
+group) that calls :func:`register`, its keys' schema (a subclass of
+:class:`drone_torchrl.schema.TensorBoardConf`, stored with :func:`drone_torchrl.schema.store_plugin`),
+and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard, /schema_logger_<name>@_here_]``
+(the shared keys, then its schema), ``backend: <name>`` and its own keys; then
+``drone-train logger=<option>``.
 """
 
 from __future__ import annotations
@@ -67,7 +70,8 @@ class Backend:
         make: ``make(cfg, run_dir, resumed_at)`` -> the run's :class:`Logger`; ``resumed_at`` is the
             checkpoint's count of episodes when the run continues (None for a new run).
         resume_rule: one line saying what happens to values logged after the checkpoint.
-        validate: checks of its own ``logger.*`` keys (one-line ``ConfigError``).
+        validate: checks of its own ``logger.*`` keys that its schema's bounds and choices do not
+            cover (one-line ``ConfigError``).
     """
 
     name: str

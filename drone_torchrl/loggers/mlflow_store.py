@@ -27,9 +27,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig
@@ -147,19 +146,10 @@ def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> MLflowLogger
     return logger
 
 
-def validate(cfg: Mapping[str, Any]) -> None:
-    """``logger.tracking_uri`` and ``logger.experiment``: null or a non-empty string."""
-    for key in ("tracking_uri", "experiment"):
-        value = cfg.logger[key]
-        if value is not None and (not isinstance(value, str) or not value.strip()):
-            raise ConfigError.of(f"logger.{key}", value, "null or a non-empty string")
-
-
 register(
     Backend(
         "mlflow",
         make,
         resume_rule="continues the same MLflow run and skips the steps it already has (append-only store)",
-        validate=validate,
     )
 )

@@ -13,8 +13,8 @@ Resume rules (:func:`prepare`):
   a new run folder (the Hydra job's folder): the parent's CSV rows up to the checkpoint are copied,
   and the parent run is left as it was.
 - A continued run keeps its hyper-parameters. From the command line it takes only the budget
-  (``algo.episodes``), logging and checkpointing options and the process settings
-  (:data:`RESUME_KEYS`); a command line that changes any other key is refused, naming each key
+  (``algo.episodes``), logging and checkpointing options and the process settings (each key's
+  ``on_resume`` in :mod:`drone_torchrl.schema`); a command line that changes any other key is refused, naming each key
   with the checkpoint's and the command line's value.
 """
 
@@ -38,6 +38,8 @@ from drone_torchrl.config import (
     group_names,
     leaves,
     open_checkpoint,
+    per_agent_keys,
+    resume_rule,
     run_config,
     validate,
 )
@@ -51,26 +53,8 @@ from drone_torchrl.io.checkpoint import (
     run_dir_of,
 )
 from drone_torchrl.io.yaml_text import to_yaml
+from drone_torchrl.schema import BUDGET, KEPT, PROCESS
 from drone_torchrl.training.run import FAILED_FILE
-
-# Settings that may differ between the agents of one population; everything else must be equal.
-PER_AGENT_KEYS = ("seed", "algo.lr", "algo.gamma", "algo.weight_decay")
-# Keys taken from the command line when a run continues from a checkpoint; a key ending in "."
-# stands for every key under it. Changing any other key of a continued run is refused.
-PROCESS_KEYS = ("progress", "threads", "device")
-RESUME_KEYS = (
-    "algo.episodes",
-    *PROCESS_KEYS,
-    "compile",
-    "steps_per_call",
-    "updates_per_call",
-    "resume",
-    "sweep_name",
-    "logger.",
-    "checkpoint.",
-    "eval.every_episodes",
-    "eval.video",
-)
 
 
 @dataclass
@@ -109,8 +93,8 @@ def prepare(
     folder already holds ``checkpoints/last.pt``. ``engine`` (set by the fused launcher) is the
     engine the caller will train with; a checkpoint written by another engine is then refused.
     ``requested``: the keys the caller sets (default: those of the Hydra command line); a continued
-    run takes those of :data:`RESUME_KEYS` and refuses changes to the others. Without a command
-    line, only ``algo.episodes`` and the process settings are taken from ``cfg``. ``validated``:
+    run takes those the schema lets change on resume and refuses changes to the others. Without a
+    command line, only the budget (``algo.episodes``) and the process settings are taken from ``cfg``. ``validated``:
     ``cfg`` has passed :func:`~drone_torchrl.config.validate` already (a sweeper checked it).
 
     The job's folder is then this process's (:func:`drone_torchrl.io.run_lock.hold`) until
@@ -158,9 +142,8 @@ def _prepare(
     _refuse_changes(cfg, saved, keys, path)
     with open_dict(saved):
         for key, value in leaves(cfg).items():
-            taken = key in (*PROCESS_KEYS, "resume", "algo.episodes") if keys is None else _on(key, keys)
-            taken = taken or key in (*PROCESS_KEYS, "resume")
-            if taken and _resumable(key):
+            rule = resume_rule(key)
+            if rule == PROCESS or (rule == BUDGET if keys is None else rule != KEPT and _on(key, keys)):
                 OmegaConf.update(saved, key, value, force_add=True)
         saved.engine = checkpoint["engine"]
     validate(saved)
@@ -185,16 +168,6 @@ def _prepare(
     return Job(saved, fork_dir, _as_fork(checkpoint), parent)
 
 
-# Keys under RESUME_KEYS' prefixes that a continued run still keeps: its logs stay in one backend.
-FIXED_ON_RESUME = ("logger.backend", "logger.exp_name")
-
-
-def _resumable(key: str) -> bool:
-    if key in FIXED_ON_RESUME:
-        return False
-    return any(key == k or (k.endswith(".") and key.startswith(k)) for k in RESUME_KEYS)
-
-
 def _on(key: str, keys: set[str]) -> bool:
     """Whether the command line sets ``key`` (directly, or a list/dict above it)."""
     return any(key == k or key.startswith(f"{k}.") for k in keys)
@@ -214,7 +187,7 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
         f"{key} {old.get(key)!r} -> {value!r}"
         for key, value in leaves(cfg).items()
         if key != "engine"
-        and not _resumable(key)
+        and resume_rule(key) == KEPT
         and (compare_all or _on(key, keys))
         and old.get(key) != value
     ]
@@ -234,9 +207,10 @@ def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
 
 
 def group_key(cfg: DictConfig) -> str:
-    """Jobs whose configs agree on everything but :data:`PER_AGENT_KEYS` can train as one population."""
+    """Jobs whose configs agree on everything but their per-agent keys (the schema's ``per_agent``)
+    can train as one population."""
     container = OmegaConf.to_container(cfg, resolve=True)
-    for dotted in (*PER_AGENT_KEYS, "resume", "progress"):
+    for dotted in (*per_agent_keys(), "resume", "progress"):
         node = container
         *parents, leaf = dotted.split(".")
         for part in parents:

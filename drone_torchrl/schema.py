@@ -1,0 +1,492 @@
+"""The config schema: every key of ``conf/``'s configs as Hydra structured configs, with what each
+key allows and what the code needs to know of it, declared once, beside the key.
+
+Each ``conf/`` file lists its schema first in its defaults list (``/schema_config@_here_``,
+``/schema_algo_ppo@algo``...), so Hydra composes every config onto its dataclass: a YAML key the
+schema lacks fails the composition, and a schema key a YAML leaves unset stays ``???`` (refused in
+one line by :func:`drone_torchrl.config.check_keys`). The values themselves stay in the YAML files
+with their comments; the dataclasses hold no defaults.
+
+Every field is typed ``Any`` on purpose: OmegaConf's typed nodes convert what they can (``off`` to
+``False``, ``1`` to ``1.0``, ``123`` to ``"123"``) and refuse the rest with a multi-line error during
+composition. ``Any`` keeps each value as the user typed it, and the field's :class:`Rule` (its kind
+and bounds, in the field's metadata) refuses it in one line that names the key. Struct mode still
+holds: a key the schema lacks cannot be set without ``+`` (which
+:func:`~drone_torchrl.config.check_overrides` refuses first), and a key of a nested schema cannot be
+deleted (OmegaConf refuses deleting fields of a dataclass; ``check_overrides`` says so first).
+
+Plug-in groups (``algo``, ``logger``): the top-level field is a :func:`plugin_group` naming the key
+that names the plug-in (``algo.name``); each plug-in's own schema is stored as
+``schema_<group>_<plug-in>`` (:func:`store_plugin`), and the options of the group (any number per
+plug-in: ``algo=reinforce_plus`` is REINFORCE's schema with other values) list it in their defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, OmegaConf
+
+from drone_torchrl.checks import ConfigError, check_choice, check_number, check_sizes
+from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
+from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
+
+# ------------------------------------------------------------------------------------ the bounds
+# Bounds of values that have no natural limit. A learning rate above 1 only diverges with Adam's
+# unit-scale steps; seeds are signed 64-bit integers in torch.
+MAX_LR = 1.0
+MAX_SEED = 2**63 - 1
+# Episodes flown side by side (an update's, an evaluation's, drone-eval's) live in memory together:
+# about 25 kB each for 300 steps, so 10,000 take a quarter of a GB.
+MAX_PARALLEL_EPISODES = 10_000
+# torch's intra-op threads; far past the cores they only slow it down (and 10^5 crashes it).
+MAX_THREADS = 256
+# Updates per call of the update function: past a few hundred the Python loop is already negligible,
+# and each call holds its updates' metrics in memory.
+MAX_UPDATES_PER_CALL = 10_000
+# An initial exploration std past this is no longer "near the mean": thrusts are fractions of the weight.
+MAX_INIT_STD = 10.0
+# torchrl: TorchRL env + ProbabilisticActor rollouts, the reference collector; fused: many agents
+# stepped as one batch on the shared dynamics, the fast path (drone_torchrl/training/collectors.py).
+ENGINES = ("torchrl", "fused")
+# REINFORCE's optimizers: adam (the paper's text), adamw (decoupled weight decay, the paper's code).
+OPTIMIZERS = ("adam", "adamw")
+
+# ------------------------------------------------------------------ what a continued run does
+# A run continued from a checkpoint keeps the checkpoint's value of a key, unless the key says:
+KEPT = "kept"
+IF_SET = "if set"  # taken from the command line when it sets the key (logging, checkpointing...)
+BUDGET = "budget"  # also taken from the config without a command line (the episode budget)
+PROCESS = "process"  # always the current config's: where and how this process runs
+
+# The metadata key of a field's rule.
+RULE = "drone_torchrl"
+# "Not added in a later format": the key was in the first runs' configs.
+_ORIGINAL = object()
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What one key allows and what the code needs to know of it.
+
+    Attributes:
+        kind: ``number``, ``integer``, ``flag`` (true or false), ``choice``, ``sizes`` (a non-empty
+            list of layer sizes), ``text`` (a non-empty string) or ``free`` (checked by code: the
+            env's arguments, paths, folder names, devices).
+        low, high: bounds; a string is another key whose value is the bound (``env.max_steps``).
+        low_open: ``low`` itself is not allowed.
+        optional: null is allowed too.
+        choices: the values a ``choice`` allows.
+        expected: what the one-line error says is allowed, where the kind's own words do not fit.
+        per_agent: may differ between the agents of one population (every other key must be equal).
+        on_resume: :data:`KEPT`, :data:`IF_SET`, :data:`BUDGET` or :data:`PROCESS`.
+        added: the value runs saved before the key existed behaved as (a checkpoint's config gets it
+            filled in); absent for keys the first runs had.
+        plugin_key: of a plug-in group's field: the key of the group that names the plug-in.
+    """
+
+    kind: str = "free"
+    low: float | str | None = None
+    high: float | str | None = None
+    low_open: bool = False
+    optional: bool = False
+    choices: tuple = ()
+    expected: str | None = None
+    per_agent: bool = False
+    on_resume: str = KEPT
+    added: Any = _ORIGINAL
+    plugin_key: str | None = None
+
+    @property
+    def is_added(self) -> bool:
+        return self.added is not _ORIGINAL
+
+    def check(self, key: str, value: Any, cfg: Mapping[str, Any]) -> None:
+        """Raise :class:`ConfigError` (one line) if ``value`` of ``key`` breaks the rule; ``cfg`` (the
+        resolved config as nested dicts) gives the bounds that are other keys."""
+        kind = self.kind
+        if kind == "free" or (self.optional and value is None):
+            return
+        if kind == "number" or kind == "integer":
+            check_number(
+                key,
+                value,
+                low=_bound(self.low, cfg),
+                high=_bound(self.high, cfg),
+                low_open=self.low_open,
+                integer=kind == "integer",
+            )
+        elif kind == "flag":
+            if not isinstance(value, bool):
+                raise ConfigError.of(key, value, "true or false")
+        elif kind == "choice":
+            check_choice(key, value, self.choices, self.expected)
+        elif kind == "sizes":
+            check_sizes(key, value)
+        elif kind == "text":
+            if not isinstance(value, str) or not value.strip():
+                raise ConfigError.of(
+                    key, value, "null or a non-empty string" if self.optional else "a non-empty string"
+                )
+        else:
+            raise AssertionError(f"unknown rule kind {kind!r} of {key}")
+
+    def field(self) -> Any:
+        """A dataclass field of this rule, its value to come from the YAML files."""
+        return field(default=MISSING, metadata={RULE: self})
+
+
+def _bound(bound: float | str | None, cfg: Mapping[str, Any]) -> float | None:
+    if not isinstance(bound, str):
+        return bound
+    value: Any = cfg
+    for part in bound.split("."):
+        value = value[part]
+    return value
+
+
+# Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``.
+def a_number(**rule: Any) -> Any:
+    return Rule("number", **rule).field()
+
+
+def an_integer(**rule: Any) -> Any:
+    return Rule("integer", **rule).field()
+
+
+def a_flag(**rule: Any) -> Any:
+    return Rule("flag", **rule).field()
+
+
+def one_of(choices: tuple, **rule: Any) -> Any:
+    return Rule("choice", choices=tuple(choices), **rule).field()
+
+
+def layer_sizes(**rule: Any) -> Any:
+    return Rule("sizes", **rule).field()
+
+
+def a_text(**rule: Any) -> Any:
+    return Rule("text", **rule).field()
+
+
+def free(**rule: Any) -> Any:
+    """A key the code checks itself (the env's arguments, paths, folder names, devices)."""
+    return Rule(**rule).field()
+
+
+def plugin_group(key: str, added: str) -> Any:
+    """The field of a plug-in group: ``key`` of the group names the plug-in (its schema:
+    ``schema_<group>_<plug-in>``); a config without it is from before plug-ins, as ``added``."""
+    return Rule(plugin_key=key, added=added).field()
+
+
+# ------------------------------------------------------------------------- the shared groups
+@dataclass
+class EnvConf:
+    """``env.*``: the DroneEnv arguments (the env checks them itself: make_params holds their bounds)."""
+
+    mass: Any = free()
+    motor_distance: Any = free()
+    gravity: Any = free()
+    dt: Any = free()
+    max_steps: Any = free()
+    reset_mode: Any = free()
+    max_thrust: Any = free()
+    floor_tolerance: Any = free()
+    num_workers: Any = an_integer(low=0)
+
+
+@dataclass
+class ModelConf:
+    """``model.*``: the three-net policy."""
+
+    distribution: Any = one_of(DISTRIBUTIONS)
+    hidden_sizes: Any = layer_sizes()
+    activation: Any = one_of(tuple(ACTIVATIONS))
+    min_std: Any = a_number(low=0)
+    init_std: Any = a_number(low="model.min_std", low_open=True, high=MAX_INIT_STD, optional=True, added=None)
+
+
+@dataclass
+class CheckpointConf:
+    every_episodes: Any = an_integer(low=1, on_resume=IF_SET)
+    keep_best: Any = a_flag(on_resume=IF_SET)
+
+
+@dataclass
+class PeriodicEvalConf:
+    """``eval.*`` of a training run."""
+
+    every_episodes: Any = an_integer(low=0, on_resume=IF_SET)
+    episodes: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
+    seed: Any = an_integer(low=0, high=MAX_SEED)
+    video: Any = a_flag(on_resume=IF_SET)
+
+
+@dataclass
+class MetricsConf:
+    running_mean_window: Any = an_integer(low=1)
+
+
+# ---------------------------------------------------------------------- the primary configs
+# Field order is the composed config's key order (what --cfg job prints and config.yaml saves):
+# the order of conf/config.yaml's defaults list, then its own keys.
+@dataclass
+class TrainConfig:
+    """``conf/config.yaml``: drone-train."""
+
+    env: EnvConf = field(default_factory=EnvConf)
+    model: ModelConf = field(default_factory=ModelConf)
+    algo: Any = plugin_group("name", added="reinforce")
+    logger: Any = plugin_group("backend", added="tensorboard")
+    seed: Any = an_integer(low=0, high=MAX_SEED, per_agent=True)
+    engine: Any = one_of(ENGINES, added="torchrl")
+    compile: Any = a_flag(on_resume=IF_SET, added=False)
+    steps_per_call: Any = an_integer(low=1, high="env.max_steps", on_resume=IF_SET, added=1)
+    updates_per_call: Any = an_integer(low=1, high=MAX_UPDATES_PER_CALL, on_resume=IF_SET, added=1)
+    device: Any = free(on_resume=PROCESS)
+    threads: Any = an_integer(low=1, high=MAX_THREADS, on_resume=PROCESS)
+    resume: Any = free(on_resume=PROCESS)
+    progress: Any = one_of((True, False, "auto"), expected="true, false or auto", on_resume=PROCESS)
+    sweep_name: Any = free(on_resume=IF_SET)
+    checkpoint: CheckpointConf = field(default_factory=CheckpointConf)
+    eval: PeriodicEvalConf = field(default_factory=PeriodicEvalConf)
+    metrics: MetricsConf = field(default_factory=MetricsConf)
+
+
+@dataclass
+class EvalConfig:
+    """``conf/eval.yaml``: drone-eval."""
+
+    env: EnvConf = field(default_factory=EnvConf)
+    checkpoint: Any = free()
+    episodes: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
+    seed: Any = an_integer(low=0, high=MAX_SEED)
+    device: Any = free()
+    video: Any = a_flag()
+    plot: Any = a_flag()
+    video_fps: Any = an_integer(low=1)
+
+
+@dataclass
+class ExportConfig:
+    """``conf/export.yaml``: drone-export."""
+
+    checkpoint: Any = free()
+    output: Any = free()
+
+
+# --------------------------------------------------------------------------------- algorithms
+# Keys several algorithms share: one rule each.
+LR = Rule("number", low=0, low_open=True, high=MAX_LR, per_agent=True)
+GAMMA = Rule("number", low=0, high=1, per_agent=True)
+EPISODES = Rule("integer", low=1, on_resume=BUDGET)
+ADAM_EPS = Rule("number", low=0, low_open=True, high=1)
+MAX_GRAD_NORM = Rule("number", low=0, low_open=True, optional=True)
+# The on-policy loop's (drone_torchrl/algorithms/ppo.py: OnPolicy), PPO's and A2C's.
+ANNEAL_LR = Rule("flag")
+GAE_LAMBDA = Rule("number", low=0, high=1)
+NUM_ENVS = Rule("integer", low=1, high=MAX_PARALLEL_EPISODES)
+STEPS_PER_BATCH = Rule("integer", low=1)
+EPOCHS = Rule("integer", low=1)
+MINIBATCH_SIZE = Rule("integer", low=1)
+ENTROPY_COEFF = Rule("number", low=0)
+CRITIC_COEFF = Rule("number", low=0, low_open=True)
+REWARD_SCALE = Rule("number", low=0, low_open=True)
+VALUE_HIDDEN_SIZES = Rule("sizes")
+
+
+@dataclass
+class ReinforceConf:
+    """``algo.*`` of ``algo.name=reinforce`` (``algo=reinforce``, ``algo=reinforce_plus``)."""
+
+    name: Any = free()
+    lr: Any = LR.field()
+    gamma: Any = GAMMA.field()
+    episodes: Any = EPISODES.field()
+    episodes_per_update: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
+    adam_eps: Any = ADAM_EPS.field()
+    max_grad_norm: Any = MAX_GRAD_NORM.field()
+    discount_weight: Any = a_flag()
+    normalize_returns: Any = a_flag()
+    baseline: Any = one_of(BASELINES)
+    optimizer: Any = one_of(OPTIMIZERS, added="adam")
+    log_prob_reduction: Any = one_of(LOG_PROB_REDUCTIONS, added="sum")
+    weight_decay: Any = a_number(low=0, high=1, per_agent=True, added=0.0)
+
+
+@dataclass
+class PPOConf:
+    """``algo.*`` of ``algo.name=ppo``."""
+
+    name: Any = free()
+    lr: Any = LR.field()
+    anneal_lr: Any = ANNEAL_LR.field()
+    gamma: Any = GAMMA.field()
+    gae_lambda: Any = GAE_LAMBDA.field()
+    episodes: Any = EPISODES.field()
+    num_envs: Any = NUM_ENVS.field()
+    steps_per_batch: Any = STEPS_PER_BATCH.field()
+    epochs: Any = EPOCHS.field()
+    minibatch_size: Any = MINIBATCH_SIZE.field()
+    clip_epsilon: Any = a_number(low=0, low_open=True, high=1)
+    entropy_coeff: Any = ENTROPY_COEFF.field()
+    critic_coeff: Any = CRITIC_COEFF.field()
+    reward_scale: Any = REWARD_SCALE.field()
+    max_grad_norm: Any = MAX_GRAD_NORM.field()
+    adam_eps: Any = ADAM_EPS.field()
+    value_hidden_sizes: Any = VALUE_HIDDEN_SIZES.field()
+
+
+@dataclass
+class A2CConf:
+    """``algo.*`` of ``algo.name=a2c``: PPO's keys but the clipping."""
+
+    name: Any = free()
+    lr: Any = LR.field()
+    anneal_lr: Any = ANNEAL_LR.field()
+    gamma: Any = GAMMA.field()
+    gae_lambda: Any = GAE_LAMBDA.field()
+    episodes: Any = EPISODES.field()
+    num_envs: Any = NUM_ENVS.field()
+    steps_per_batch: Any = STEPS_PER_BATCH.field()
+    epochs: Any = EPOCHS.field()
+    minibatch_size: Any = MINIBATCH_SIZE.field()
+    entropy_coeff: Any = ENTROPY_COEFF.field()
+    critic_coeff: Any = CRITIC_COEFF.field()
+    reward_scale: Any = REWARD_SCALE.field()
+    max_grad_norm: Any = MAX_GRAD_NORM.field()
+    adam_eps: Any = ADAM_EPS.field()
+    value_hidden_sizes: Any = VALUE_HIDDEN_SIZES.field()
+
+
+# ------------------------------------------------------------------------------------ loggers
+# A continued run keeps its logs in one backend and folder; the other logger keys may change.
+@dataclass
+class TensorBoardConf:
+    """``logger.*`` of ``logger.backend=tensorboard``; every backend has these keys."""
+
+    backend: Any = free()
+    exp_name: Any = free()
+    video_fps: Any = an_integer(low=1, on_resume=IF_SET)
+    video_stride: Any = an_integer(low=1, on_resume=IF_SET, added=1)
+    every_updates: Any = an_integer(low=1, on_resume=IF_SET, added=1)
+    flush_every_s: Any = a_number(low=0, on_resume=IF_SET, added=10)
+
+
+@dataclass
+class CSVConf(TensorBoardConf):
+    """``logger.*`` of ``logger.backend=csv`` (the %-format is checked by drone_torchrl/loggers/csvfile.py)."""
+
+    float_format: Any = free(on_resume=IF_SET)
+
+
+@dataclass
+class MLflowConf(TensorBoardConf):
+    """``logger.*`` of ``logger.backend=mlflow``."""
+
+    tracking_uri: Any = a_text(optional=True, on_resume=IF_SET)
+    experiment: Any = a_text(optional=True, on_resume=IF_SET)
+
+
+# ------------------------------------------------------------------------ in Hydra's ConfigStore
+# Stored at the root, not in a group: Hydra's --help lists every config group as options to choose,
+# and a schema is not one. conf/ lists them as /schema_config@_here_, /schema_algo_ppo@algo...
+PREFIX = "schema"
+PRIMARY = {"config": TrainConfig, "eval": EvalConfig, "export": ExportConfig}
+
+
+def _store(name: str, node: type) -> None:
+    ConfigStore.instance().store(name=name, node=node, provider="drone_torchrl")
+
+
+def store_plugin(group: str, plugin: str, node: type) -> None:
+    """Store ``node`` as the schema of plug-in ``plugin`` of ``group`` (``schema_algo_ppo``): what
+    ``conf/<group>/<option>.yaml`` lists first in its defaults, and where the checks find its keys."""
+    _store(f"{PREFIX}_{group}_{plugin}", node)
+
+
+for _name, _node in PRIMARY.items():
+    _store(f"{PREFIX}_{_name}", _node)
+for _group, _plugin, _node in (
+    ("algo", "reinforce", ReinforceConf),
+    ("algo", "ppo", PPOConf),
+    ("algo", "a2c", A2CConf),
+    ("logger", "tensorboard", TensorBoardConf),
+    ("logger", "csv", CSVConf),
+    ("logger", "mlflow", MLflowConf),
+):
+    store_plugin(_group, _plugin, _node)
+
+
+# ------------------------------------------------------------------------------ reading it back
+def _stored_names() -> list[str]:
+    """The names of the configs stored at the ConfigStore's root, without ``.yaml``."""
+    return [n.removesuffix(".yaml") for n in ConfigStore.instance().list("") if n.endswith(".yaml")]
+
+
+def _stored(name: str) -> type | None:
+    """The dataclass stored as ``name`` in Hydra's ConfigStore (``schema_algo_ppo``), or None."""
+    found = _found.get(name)
+    if found is None:
+        if name not in _stored_names():
+            return None
+        # Kept: the store copies a node at every load, and a population validates every job.
+        found = _found[name] = OmegaConf.get_type(ConfigStore.instance().load(f"{name}.yaml").node)
+    return found
+
+
+_found: dict[str, type] = {}
+
+
+def primary_schema(name: str) -> type:
+    """The schema of ``conf/<name>.yaml`` (``config``, ``eval``, ``export``)."""
+    node = _stored(f"{PREFIX}_{name}")
+    if node is None:
+        raise KeyError(f"no schema for conf/{name}.yaml in Hydra's ConfigStore")
+    return node
+
+
+def plugin_schema(group: str, plugin: Any) -> type | None:
+    """The schema of plug-in ``plugin`` of ``group``, or None if none is stored."""
+    return _stored(f"{PREFIX}_{group}_{plugin}") if isinstance(plugin, str) and plugin else None
+
+
+@functools.cache
+def plugin_groups(name: str = "config") -> dict[str, Rule]:
+    """``{"algo": rule, "logger": rule}``: the plug-in groups of a primary config (``rule.plugin_key``
+    names the plug-in)."""
+    return {
+        f.name: rule
+        for f in dataclasses.fields(primary_schema(name))
+        if (rule := f.metadata.get(RULE)) is not None and rule.plugin_key
+    }
+
+
+def fields(node: type, plugins: Mapping[str, type | None], prefix: str = "") -> Iterator[tuple[str, Rule]]:
+    """``("algo.lr", rule)`` for every key of schema ``node`` in order, each plug-in group's keys
+    those of its schema in ``plugins`` (a group whose schema is None has no keys)."""
+    for f in dataclasses.fields(node):
+        key = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(f.default_factory):  # a section: env, model, checkpoint...
+            yield from fields(f.default_factory, plugins, f"{key}.")
+            continue
+        rule = f.metadata.get(RULE, Rule())
+        if rule.plugin_key:
+            plugin = plugins.get(f.name)
+            if plugin is not None:
+                yield from fields(plugin, plugins, f"{key}.")
+            continue
+        yield key, rule
+
+
+def stored_plugins(group: str) -> list[str]:
+    """The plug-ins of ``group`` whose schemas are in the ConfigStore, sorted."""
+    prefix = f"{PREFIX}_{group}_"
+    return sorted(n.removeprefix(prefix) for n in _stored_names() if n.startswith(prefix))

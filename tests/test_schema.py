@@ -1,0 +1,155 @@
+"""The config schema (drone_torchrl/schema.py) and the YAML files agree, and the facts the code
+reads from it are those it had as lists before."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from drone_torchrl import schema
+from drone_torchrl.config import (
+    ConfigError,
+    check_overrides,
+    config_dir,
+    leaves,
+    per_agent_keys,
+    resume_rule,
+    run_config,
+    schema_keys,
+)
+
+
+def _options(group: str) -> list[str]:
+    return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [[f"{group}={option}"] for group in ("algo", "logger") for option in _options(group)]
+    + [["experiment=bounded"], ["experiment=paper_code"], ["+sweep=landscape"], ["+sweep=gamma32"]],
+    ids=str,
+)
+def test_every_option_sets_exactly_its_schemas_keys(overrides):
+    """What Hydra composes has a value for every key of the schema and no other key."""
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    composed = leaves(cfg)
+    assert not [key for key in composed if OmegaConf.is_missing(cfg, key)]
+    keys = schema_keys("config", algo=cfg.algo.name, logger=cfg.logger.backend)
+    assert list(composed) == list(keys)  # the same keys, in the schema's order
+
+
+@pytest.mark.parametrize("name", ["eval", "export"])
+def test_the_other_commands_configs_are_their_schemas(name):
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose(name)
+    assert list(leaves(cfg)) == list(schema_keys(name))
+
+
+def test_a_yaml_key_the_schema_lacks_fails_the_composition(tmp_path):
+    (tmp_path / "algo").mkdir()
+    (tmp_path / "algo" / "typo.yaml").write_text(
+        "defaults:\n  - /schema_algo_reinforce@_here_\n  - _self_\nname: reinforce\nlrr: 0.1\n"
+    )
+    (tmp_path / "config.yaml").write_text("defaults:\n  - /schema_config@_here_\n  - algo: typo\n")
+    with initialize_config_dir(str(tmp_path), version_base="1.3"), pytest.raises(Exception, match="lrr"):
+        compose("config")
+
+
+def test_per_agent_keys():
+    assert set(per_agent_keys()) == {"seed", "algo.lr", "algo.gamma", "algo.weight_decay"}
+
+
+# What a continued run did with each key before the rules were the schema's (RESUME_KEYS,
+# PROCESS_KEYS and FIXED_ON_RESUME of drone_torchrl/training/jobs.py).
+PROCESS_KEYS = ("progress", "threads", "device", "resume")
+RESUME_KEYS = (
+    "algo.episodes",
+    "compile",
+    "steps_per_call",
+    "updates_per_call",
+    "sweep_name",
+    "logger.",
+    "checkpoint.",
+    "eval.every_episodes",
+    "eval.video",
+)
+FIXED_ON_RESUME = ("logger.backend", "logger.exp_name")
+
+
+def test_resume_rules_are_those_of_the_lists_they_replace():
+    every = {}
+    for algo in schema.stored_plugins("algo"):
+        for logger in schema.stored_plugins("logger"):
+            every.update(schema_keys("config", algo=algo, logger=logger))
+    shared = {"algo.clip_epsilon", "algo.weight_decay", "logger.float_format", "logger.tracking_uri"}
+    assert shared <= set(every)
+    for key in every:
+        listed = key not in FIXED_ON_RESUME and any(
+            key == k or (k.endswith(".") and key.startswith(k)) for k in RESUME_KEYS
+        )
+        expected = (
+            schema.PROCESS
+            if key in PROCESS_KEYS
+            else schema.BUDGET
+            if key == "algo.episodes"
+            else schema.IF_SET
+            if listed
+            else schema.KEPT
+        )
+        assert resume_rule(key) == expected, key
+
+
+# The keys added since the first runs, with the value those runs behaved as (ADDED_KEYS of
+# drone_torchrl/config.py before the rules were the schema's).
+ADDED_KEYS = {
+    "engine": "torchrl",
+    "compile": False,
+    "logger.every_updates": 1,
+    "logger.video_stride": 1,
+    "algo.optimizer": "adam",
+    "algo.weight_decay": 0.0,
+    "logger.flush_every_s": 10,
+    "algo.name": "reinforce",
+    "model.init_std": None,
+    "steps_per_call": 1,
+    "algo.log_prob_reduction": "sum",
+    "updates_per_call": 1,
+    "logger.backend": "tensorboard",
+}
+
+
+@pytest.mark.parametrize("algo", ["reinforce", "ppo"])
+def test_an_old_runs_config_gets_the_added_keys(algo):
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = OmegaConf.to_container(compose("config", overrides=[f"algo={algo}"]), resolve=True)
+    now = leaves(cfg)
+    old = dict(cfg)
+    for key in ADDED_KEYS:
+        section, _, leaf = key.rpartition(".")
+        (old[section] if section else old).pop(leaf, None)
+    if algo != "reinforce":
+        old["algo"]["name"] = algo
+    filled = leaves(run_config(old))
+    expected = {key: value for key, value in ADDED_KEYS.items() if key in now} | {"algo.name": algo}
+    assert {key: filled[key] for key in expected} == expected
+    assert set(filled) == set(now)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "names"),
+    [
+        (["~logger.every_updates"], "logger.every_updates"),
+        (["algo=ppo", "~algo.clip_epsilon"], "algo.clip_epsilon"),
+        (["~seed"], "seed"),
+        (["algo=reinforce_plus", "algo.gae_lambda=0.9"], "algo=a2c or algo=ppo"),
+        (["logger=mlflow", "logger.float_format=x"], "logger=csv"),
+    ],
+)
+def test_overrides_hydra_would_refuse_in_several_lines_are_one(overrides, names):
+    with pytest.raises(ConfigError) as info:
+        check_overrides(overrides)
+    assert "\n" not in str(info.value) and names in str(info.value)
