@@ -322,8 +322,8 @@ class ReinforceConf:
 
 
 @dataclass
-class PPOConf:
-    """``algo.*`` of ``algo.name=ppo``."""
+class OnPolicyConf:
+    """``algo.*`` every on-policy algorithm has (the loop of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
 
     name: Any = free()
     lr: Any = LR.field()
@@ -335,7 +335,6 @@ class PPOConf:
     steps_per_batch: Any = STEPS_PER_BATCH.field()
     epochs: Any = EPOCHS.field()
     minibatch_size: Any = MINIBATCH_SIZE.field()
-    clip_epsilon: Any = a_number(low=0, low_open=True, high=1)
     entropy_coeff: Any = ENTROPY_COEFF.field()
     critic_coeff: Any = CRITIC_COEFF.field()
     reward_scale: Any = REWARD_SCALE.field()
@@ -345,25 +344,15 @@ class PPOConf:
 
 
 @dataclass
-class A2CConf:
-    """``algo.*`` of ``algo.name=a2c``: PPO's keys but the clipping."""
+class PPOConf(OnPolicyConf):
+    """``algo.*`` of ``algo.name=ppo``: the on-policy keys and the clipping range."""
 
-    name: Any = free()
-    lr: Any = LR.field()
-    anneal_lr: Any = ANNEAL_LR.field()
-    gamma: Any = GAMMA.field()
-    gae_lambda: Any = GAE_LAMBDA.field()
-    episodes: Any = EPISODES.field()
-    num_envs: Any = NUM_ENVS.field()
-    steps_per_batch: Any = STEPS_PER_BATCH.field()
-    epochs: Any = EPOCHS.field()
-    minibatch_size: Any = MINIBATCH_SIZE.field()
-    entropy_coeff: Any = ENTROPY_COEFF.field()
-    critic_coeff: Any = CRITIC_COEFF.field()
-    reward_scale: Any = REWARD_SCALE.field()
-    max_grad_norm: Any = MAX_GRAD_NORM.field()
-    adam_eps: Any = ADAM_EPS.field()
-    value_hidden_sizes: Any = VALUE_HIDDEN_SIZES.field()
+    clip_epsilon: Any = a_number(low=0, low_open=True, high=1)
+
+
+@dataclass
+class A2CConf(OnPolicyConf):
+    """``algo.*`` of ``algo.name=a2c``: the on-policy keys."""
 
 
 # ------------------------------------------------------------------------------------ loggers
