@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import functools
 from collections.abc import Iterable, Mapping
@@ -20,17 +21,9 @@ from drone_torchrl.schema import Rule
 # The device kinds the code runs on. Others fail deep inside (mps has no float64 for the
 # population optimizer's per-agent scalars; meta holds no numbers), so they are refused up front.
 DEVICE_KINDS = ("cpu", "cuda")
-# The DroneEnv arguments a config holds under env.*: the one list of them.
-ENV_ARGS = (
-    "mass",
-    "motor_distance",
-    "gravity",
-    "dt",
-    "max_steps",
-    "reset_mode",
-    "max_thrust",
-    "floor_tolerance",
-)
+# The DroneEnv arguments a config holds under env.*: the env schema's keys but the TorchRL
+# collector's worker count (drone_torchrl.schema.EnvConf is the one list of them).
+ENV_ARGS = tuple(f.name for f in dataclasses.fields(schema.EnvConf) if f.name not in schema.ENV_NON_ARGS)
 
 
 def config_dir() -> str:

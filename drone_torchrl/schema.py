@@ -187,6 +187,10 @@ def plugin_group(key: str, added: str) -> Any:
 
 
 # ------------------------------------------------------------------------- the shared groups
+# env.* keys that are not DroneEnv arguments: the TorchRL collector's worker processes.
+ENV_NON_ARGS = ("num_workers",)
+
+
 @dataclass
 class EnvConf:
     """``env.*``: the DroneEnv arguments (the env checks them itself: make_params holds their bounds)."""
