@@ -349,7 +349,7 @@ def check_command_line(prog: str, name: str) -> None:
     if any(a.startswith(("--config", "-cn", "-cp", "-cd")) for a in args):
         return
     try:
-        check_overrides([a for a in args if not a.startswith("-") and "=" in a], name)
+        check_overrides([a for a in args if not a.startswith("-") and ("=" in a or a.startswith("~"))], name)
     except ConfigError as err:
         sys.exit(f"{prog}: error: {err}")
 
