@@ -33,10 +33,14 @@ def config_dir() -> str:
     a source checkout or editable install reads the top-level folder itself.
     """
     # The configs name hydra/launcher=fused and hydra/sweeper=population, and list the schemas of
-    # drone_torchrl.schema (imported above): all must be in Hydra's ConfigStore before composing,
-    # also where Hydra's plugin scan does not see them (an editable install's hydra_plugins is an
-    # import hook, not a folder).
+    # drone_torchrl.schema (imported above) and of every plug-in (each algorithm and logger module
+    # stores its own when imported: discovered here): all must be in Hydra's ConfigStore before
+    # composing, also where Hydra's plugin scan does not see them (an editable install's
+    # hydra_plugins is an import hook, not a folder).
     import hydra_plugins.drone_torchrl_launcher.schemas  # noqa: F401
+
+    algorithms.names()
+    loggers.BACKENDS.names()
 
     package = Path(__file__).resolve().parent
     for candidate in (package / "conf", package.parent / "conf"):

@@ -34,7 +34,6 @@ from omegaconf import MISSING, OmegaConf
 
 from drone_torchrl.checks import ConfigError, check_choice, check_number, check_sizes
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
-from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
 
 # ------------------------------------------------------------------------------------ the bounds
 # Bounds of values that have no natural limit. A learning rate above 1 only diverges with Adam's
@@ -306,59 +305,6 @@ REWARD_SCALE = Rule("number", low=0, low_open=True)
 VALUE_HIDDEN_SIZES = Rule("sizes")
 
 
-@dataclass
-class ReinforceConf:
-    """``algo.*`` of ``algo.name=reinforce`` (``algo=reinforce``, ``algo=reinforce_plus``)."""
-
-    name: Any = free()
-    lr: Any = LR.field()
-    gamma: Any = GAMMA.field()
-    episodes: Any = EPISODES.field()
-    episodes_per_update: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
-    adam_eps: Any = ADAM_EPS.field()
-    max_grad_norm: Any = MAX_GRAD_NORM.field()
-    discount_weight: Any = a_flag()
-    normalize_returns: Any = a_flag()
-    baseline: Any = one_of(BASELINES)
-    optimizer: Any = one_of(OPTIMIZERS, added="adam")
-    log_prob_reduction: Any = one_of(LOG_PROB_REDUCTIONS, added="sum")
-    weight_decay: Any = a_number(low=0, high=1, per_agent=True, added=0.0)
-
-
-@dataclass
-class OnPolicyConf:
-    """``algo.*`` every on-policy algorithm has (the loop of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
-
-    name: Any = free()
-    lr: Any = LR.field()
-    anneal_lr: Any = ANNEAL_LR.field()
-    gamma: Any = GAMMA.field()
-    gae_lambda: Any = GAE_LAMBDA.field()
-    episodes: Any = EPISODES.field()
-    num_envs: Any = NUM_ENVS.field()
-    steps_per_batch: Any = STEPS_PER_BATCH.field()
-    epochs: Any = EPOCHS.field()
-    minibatch_size: Any = MINIBATCH_SIZE.field()
-    entropy_coeff: Any = ENTROPY_COEFF.field()
-    critic_coeff: Any = CRITIC_COEFF.field()
-    reward_scale: Any = REWARD_SCALE.field()
-    max_grad_norm: Any = MAX_GRAD_NORM.field()
-    adam_eps: Any = ADAM_EPS.field()
-    value_hidden_sizes: Any = VALUE_HIDDEN_SIZES.field()
-
-
-@dataclass
-class PPOConf(OnPolicyConf):
-    """``algo.*`` of ``algo.name=ppo``: the on-policy keys and the clipping range."""
-
-    clip_epsilon: Any = a_number(low=0, low_open=True, high=1)
-
-
-@dataclass
-class A2CConf(OnPolicyConf):
-    """``algo.*`` of ``algo.name=a2c``: the on-policy keys."""
-
-
 # ------------------------------------------------------------------------------------ loggers
 # A continued run keeps its logs in one backend and folder; the other logger keys may change.
 @dataclass
@@ -371,21 +317,6 @@ class TensorBoardConf:
     video_stride: Any = an_integer(low=1, on_resume=IF_SET, added=1)
     every_updates: Any = an_integer(low=1, on_resume=IF_SET, added=1)
     flush_every_s: Any = a_number(low=0, on_resume=IF_SET, added=10)
-
-
-@dataclass
-class CSVConf(TensorBoardConf):
-    """``logger.*`` of ``logger.backend=csv`` (the %-format is checked by drone_torchrl/loggers/csvfile.py)."""
-
-    float_format: Any = free(on_resume=IF_SET)
-
-
-@dataclass
-class MLflowConf(TensorBoardConf):
-    """``logger.*`` of ``logger.backend=mlflow``."""
-
-    tracking_uri: Any = a_text(optional=True, on_resume=IF_SET)
-    experiment: Any = a_text(optional=True, on_resume=IF_SET)
 
 
 # ------------------------------------------------------------------------ in Hydra's ConfigStore
@@ -407,15 +338,9 @@ def store_plugin(group: str, plugin: str, node: type) -> None:
 
 for _name, _node in PRIMARY.items():
     _store(f"{PREFIX}_{_name}", _node)
-for _group, _plugin, _node in (
-    ("algo", "reinforce", ReinforceConf),
-    ("algo", "ppo", PPOConf),
-    ("algo", "a2c", A2CConf),
-    ("logger", "tensorboard", TensorBoardConf),
-    ("logger", "csv", CSVConf),
-    ("logger", "mlflow", MLflowConf),
-):
-    store_plugin(_group, _plugin, _node)
+# Each plug-in stores its own schema where it registers itself (drone_torchrl/algorithms/a2c.py:
+# store_plugin("algo", "a2c", A2CConf)); drone_torchrl.config.config_dir() discovers every plug-in
+# before Hydra composes.
 
 
 # ------------------------------------------------------------------------------ reading it back

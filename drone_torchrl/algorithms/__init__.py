@@ -8,7 +8,7 @@ evaluations, checkpoints and resume, divergence, the one-line errors, sweeps and
 the shared skeleton's and needs nothing from the algorithm.
 
 Adding one, e.g. A2C (see :mod:`.a2c`): write ``drone_torchrl/algorithms/a2c.py`` with its learner,
-``validate`` and a call of :func:`register`; its keys' schema (a dataclass, each field with its
+``validate`` and a call of :func:`register`, and its keys' schema (a dataclass, each field with its
 bounds or choices) stored with :func:`drone_torchrl.schema.store_plugin` as ``schema_algo_a2c``;
 and ``conf/algo/a2c.yaml`` listing that schema first in its defaults, with ``name: a2c`` and its
 keys' values (``# @package _global_`` at the top if it also sets ``model.*`` or other groups' keys);

@@ -12,13 +12,15 @@ Everything but the loss (collector, GAE, the episode budget, checkpoints, resume
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from torch import nn
 from torchrl.objectives import A2CLoss, LossModule
 
 from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.algorithms.ppo import OnPolicy, validate_on_policy
+from drone_torchrl.algorithms.ppo import OnPolicy, OnPolicyConf, validate_on_policy
+from drone_torchrl.schema import store_plugin
 
 
 class A2C(OnPolicy):
@@ -38,6 +40,13 @@ def validate(cfg: Mapping[str, Any]) -> None:
     """A2C's rules that relate keys are the on-policy loop's."""
     validate_on_policy(cfg)
 
+
+@dataclass
+class A2CConf(OnPolicyConf):
+    """``algo.*`` of ``algo.name=a2c``: the on-policy keys."""
+
+
+store_plugin("algo", "a2c", A2CConf)
 
 register(
     Algorithm(

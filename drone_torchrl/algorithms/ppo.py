@@ -23,6 +23,7 @@ import contextlib
 import logging
 import math
 from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -39,6 +40,26 @@ from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
+from drone_torchrl.schema import (
+    ADAM_EPS,
+    ANNEAL_LR,
+    CRITIC_COEFF,
+    ENTROPY_COEFF,
+    EPISODES,
+    EPOCHS,
+    GAE_LAMBDA,
+    GAMMA,
+    LR,
+    MAX_GRAD_NORM,
+    MINIBATCH_SIZE,
+    NUM_ENVS,
+    REWARD_SCALE,
+    STEPS_PER_BATCH,
+    VALUE_HIDDEN_SIZES,
+    a_number,
+    free,
+    store_plugin,
+)
 from drone_torchrl.training.update import UpdateOutput
 
 # Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
@@ -235,7 +256,7 @@ class PPO(OnPolicy):
 
 def validate_on_policy(cfg: Mapping[str, Any]) -> None:
     """The rules of :class:`OnPolicy` that relate keys (each key's bounds are its schema's:
-    drone_torchrl.schema.PPOConf, A2CConf)."""
+    PPOConf here, A2CConf in a2c.py)."""
     name = cfg.algo.name
     if cfg.env.num_workers:
         raise ConfigError.of(
@@ -256,6 +277,37 @@ def validate(cfg: Mapping[str, Any]) -> None:
     """PPO's rules that relate keys: the on-policy loop's."""
     validate_on_policy(cfg)
 
+
+@dataclass
+class OnPolicyConf:
+    """``algo.*`` every on-policy algorithm has (the loop of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
+
+    name: Any = free()
+    lr: Any = LR.field()
+    anneal_lr: Any = ANNEAL_LR.field()
+    gamma: Any = GAMMA.field()
+    gae_lambda: Any = GAE_LAMBDA.field()
+    episodes: Any = EPISODES.field()
+    num_envs: Any = NUM_ENVS.field()
+    steps_per_batch: Any = STEPS_PER_BATCH.field()
+    epochs: Any = EPOCHS.field()
+    minibatch_size: Any = MINIBATCH_SIZE.field()
+    entropy_coeff: Any = ENTROPY_COEFF.field()
+    critic_coeff: Any = CRITIC_COEFF.field()
+    reward_scale: Any = REWARD_SCALE.field()
+    max_grad_norm: Any = MAX_GRAD_NORM.field()
+    adam_eps: Any = ADAM_EPS.field()
+    value_hidden_sizes: Any = VALUE_HIDDEN_SIZES.field()
+
+
+@dataclass
+class PPOConf(OnPolicyConf):
+    """``algo.*`` of ``algo.name=ppo``: the on-policy keys and the clipping range."""
+
+    clip_epsilon: Any = a_number(low=0, low_open=True, high=1)
+
+
+store_plugin("algo", "ppo", PPOConf)
 
 register(
     Algorithm(

@@ -9,10 +9,27 @@ The update itself, the population engine's, is :class:`~drone_torchrl.training.u
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
+from drone_torchrl.schema import (
+    ADAM_EPS,
+    EPISODES,
+    GAMMA,
+    LR,
+    MAX_GRAD_NORM,
+    MAX_PARALLEL_EPISODES,
+    OPTIMIZERS,
+    a_flag,
+    a_number,
+    an_integer,
+    free,
+    one_of,
+    store_plugin,
+)
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.update import CHECKS, ReinforceUpdate
@@ -60,7 +77,7 @@ class Reinforce:
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
-    """REINFORCE's rules that relate keys (each key's bounds are its schema's, drone_torchrl.schema.ReinforceConf),
+    """REINFORCE's rules that relate keys (each key's bounds are its schema's, ReinforceConf above),
     and those of the engine options it alone uses."""
     workers = cfg.env.num_workers
     if cfg.algo.episodes % cfg.algo.episodes_per_update:
@@ -82,6 +99,27 @@ def validate(cfg: Mapping[str, Any]) -> None:
             f"a divisor of algo.episodes_per_update={cfg.algo.episodes_per_update} (the episodes are split over the workers)",
         )
 
+
+@dataclass
+class ReinforceConf:
+    """``algo.*`` of ``algo.name=reinforce`` (``algo=reinforce``, ``algo=reinforce_plus``)."""
+
+    name: Any = free()
+    lr: Any = LR.field()
+    gamma: Any = GAMMA.field()
+    episodes: Any = EPISODES.field()
+    episodes_per_update: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
+    adam_eps: Any = ADAM_EPS.field()
+    max_grad_norm: Any = MAX_GRAD_NORM.field()
+    discount_weight: Any = a_flag()
+    normalize_returns: Any = a_flag()
+    baseline: Any = one_of(BASELINES)
+    optimizer: Any = one_of(OPTIMIZERS, added="adam")
+    log_prob_reduction: Any = one_of(LOG_PROB_REDUCTIONS, added="sum")
+    weight_decay: Any = a_number(low=0, high=1, per_agent=True, added=0.0)
+
+
+store_plugin("algo", "reinforce", ReinforceConf)
 
 register(
     Algorithm(

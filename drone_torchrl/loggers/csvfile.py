@@ -17,6 +17,7 @@ from __future__ import annotations
 import csv
 import os
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,7 @@ from omegaconf import DictConfig
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.storage import writing
 from drone_torchrl.loggers import Backend, flatten_config, register
+from drone_torchrl.schema import IF_SET, TensorBoardConf, free, store_plugin
 
 SCALARS = "scalars.csv"
 HPARAMS = "hparams.csv"
@@ -125,6 +127,15 @@ def validate(cfg: Mapping[str, Any]) -> None:
             "logger.float_format", fmt, "null or a %-format of one number, e.g. '%.6g'"
         ) from None
 
+
+@dataclass
+class CSVConf(TensorBoardConf):
+    """``logger.*`` of ``logger.backend=csv`` (the %-format is checked by drone_torchrl/loggers/csvfile.py)."""
+
+    float_format: Any = free(on_resume=IF_SET)
+
+
+store_plugin("logger", "csv", CSVConf)
 
 register(
     Backend(

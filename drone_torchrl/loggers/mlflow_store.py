@@ -28,13 +28,16 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.loggers import Backend, flatten_config, register
+from drone_torchrl.schema import IF_SET, TensorBoardConf, a_text, store_plugin
 
 RUN_ID_FILE = "run_id"
 STORE_FILE = "mlflow.db"
@@ -145,6 +148,16 @@ def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> MLflowLogger
     logger.log_params(cfg)
     return logger
 
+
+@dataclass
+class MLflowConf(TensorBoardConf):
+    """``logger.*`` of ``logger.backend=mlflow``."""
+
+    tracking_uri: Any = a_text(optional=True, on_resume=IF_SET)
+    experiment: Any = a_text(optional=True, on_resume=IF_SET)
+
+
+store_plugin("logger", "mlflow", MLflowConf)
 
 register(
     Backend(

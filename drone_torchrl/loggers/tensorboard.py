@@ -9,6 +9,7 @@ from omegaconf import DictConfig
 
 from drone_torchrl.io.tb_logger import RunLogger
 from drone_torchrl.loggers import Backend, register
+from drone_torchrl.schema import TensorBoardConf, store_plugin
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> RunLogger:
@@ -17,6 +18,9 @@ def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> RunLogger:
     purge = None if resumed_at is None else resumed_at + 1
     return RunLogger(cfg.logger.exp_name, run_dir, purge_step=purge)
 
+
+# Its keys are the ones every backend has: drone_torchrl.schema.TensorBoardConf.
+store_plugin("logger", "tensorboard", TensorBoardConf)
 
 register(
     Backend(
