@@ -108,8 +108,7 @@ def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
         return "optimum: not derived for these settings (max_thrust below the hover thrust)"
     return (
         f"optimum: the best achievable return of each of these episodes is {optimum.best_return:.0f} "
-        f"(in the zone from step {optimum.first_zone_step}, {optimum.zone_steps} of {optimum.steps} steps; "
-        "docs/optimum.md)"
+        f"({optimum.describe()}; docs/optimum.md)"
     )
 
 

@@ -96,6 +96,14 @@ class Optimum:
             return self.zone_steps == 0  # the zone is out of reach; hovering earns the 1s
         return self.steps - self.first_zone_step + 1 == self.zone_steps
 
+    def describe(self) -> str:
+        """How the bound is made up, e.g. ``"in the zone from step 35, 266 of 300 steps"``."""
+        if self.zone_steps == 0:
+            return f"the zone is out of reach in {self.steps} steps: surviving them is the best"
+        if not self.exact:
+            return f"at most {self.zone_steps} of {self.steps} steps in the zone, an upper bound no plan staying there reaches"
+        return f"in the zone from step {self.first_zone_step}, {self.zone_steps} of {self.steps} steps"
+
 
 def collective_limit(params: DroneParams, tilt: float = 0.0) -> float | None:
     """The largest vertical thrust ``c`` (multiple of the weight): ``2 max_thrust cos(tilt)``, or

@@ -182,8 +182,8 @@ def format_report(report: SweepReport, figures: bool = True) -> str:
     for name, best in report.optima.items():
         lines.append(
             f"{name}: {best.best_return:g}, the best achievable return of every episode from these starts "
-            f"({best.zone_steps} of {best.steps} steps in the zone, from step {best.first_zone_step}; "
-            "see docs/optimum.md of drone_torchrl). '% of optimum' divides the final return by it."
+            f"({best.describe()}; see docs/optimum.md of drone_torchrl). '% of optimum' divides the final "
+            "return by it."
         )
     if report.pd_returns or report.optima:
         lines.append("")
