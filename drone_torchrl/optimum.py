@@ -101,7 +101,10 @@ class Optimum:
         if self.zone_steps == 0:
             return f"the zone is out of reach in {self.steps} steps: surviving them is the best"
         if not self.exact:
-            return f"at most {self.zone_steps} of {self.steps} steps in the zone, an upper bound no plan staying there reaches"
+            return (
+                f"at most {self.zone_steps} of {self.steps} steps in the zone, "
+                "an upper bound no plan staying there reaches"
+            )
         return f"in the zone from step {self.first_zone_step}, {self.zone_steps} of {self.steps} steps"
 
 
@@ -308,6 +311,7 @@ def optimum(
     """
     plan = earliest_zone_step(params, steps, start, zone_z, domain_z)
     if params.max_thrust is None:
+        # c_1 alone puts z_1 anywhere and c_2 stops the drone there: the LPs find k* = 1, N = steps.
         zone_steps = 0 if plan is None else steps - plan.first_zone_step + 1
     else:
         zone_steps = max_zone_steps(params, steps, start, zone_z)
