@@ -29,10 +29,11 @@ from drone_torchrl.config import (
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
-from drone_torchrl.evaluation import evaluate, max_return, summarize
+from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
 from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
+from drone_torchrl.optimum import Optimum
 
 PLOT_NAME = "trajectory.png"
 VIDEO_NAME = "episode.gif"
@@ -96,6 +97,21 @@ def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
         )
 
 
+def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
+    """The line that says what the best achievable return of these episodes is (docs/optimum.md)."""
+    if physics_params(kwargs).max_thrust is None:
+        return (
+            f"optimum: with unbounded thrust the best achievable return is the ceiling {ceiling:.0f} (a thrust "
+            "pulse of hundreds of weights on step 1 puts the drone in the zone), so the PD controller is the reference"
+        )
+    if optimum is None:
+        return "optimum: not derived for these settings (max_thrust below the hover thrust)"
+    return (
+        f"optimum: the best achievable return of each of these episodes is {optimum.best_return:.0f} "
+        f"({optimum.describe()}; docs/optimum.md)"
+    )
+
+
 def run_eval(cfg: DictConfig) -> dict[str, dict]:
     """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot."""
     out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
@@ -128,19 +144,23 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         policies = {}
     policies["PD controller"] = PDController(physics_params(kwargs))
     ceiling = max_return(kwargs)
+    optimum = reference_optimum(kwargs)
+    best = None if optimum is None else optimum.best_return
 
     results, rollouts = {}, {}
     for name, policy in policies.items():
         stats, rollouts[name] = evaluate(policy, kwargs, cfg.episodes, cfg.seed, cfg.device)
-        results[name] = {"policy": name, **summarize(stats, ceiling)}
+        results[name] = {"policy": name, **summarize(stats, ceiling, best)}
     pd_return = results["PD controller"]["return_mean"]
     print(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
+    print(optimum_line(kwargs, optimum, ceiling))
     for name, r in results.items():
         vs_pd = 100.0 * r["return_mean"] / pd_return if pd_return else float("nan")
+        vs_optimum = "" if best is None else f"{r['pct_of_optimum']:.1f}% of the optimum {best:.0f}, "
         causes = ", ".join(f"{k} {v}" for k, v in r["causes"].items() if v)
         print(
             f"{name}: return {r['return_mean']:.1f} +- {r['return_std']:.1f} "
-            f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
+            f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_optimum}{vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
             f"time in zone {100 * r['time_in_zone']:.1f}%, first in the zone at step {r['first_zone_step_mean']:.1f} "
             f"(reached in {100 * r['reached_fraction']:.0f}%), thrust mean {r['thrust_mean']:.3f} max {r['thrust_max']:.3f} "
             f"x weight, negative thrust {100 * r['negative_thrust_fraction']:.1f}%; "

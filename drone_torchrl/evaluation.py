@@ -22,6 +22,7 @@ from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController, PDGains
 from drone_torchrl.envs.rollout import RolloutFn, StepFn, chunked, fly
 from drone_torchrl.episodes import cause_counts, episode_stats
+from drone_torchrl.optimum import Optimum, env_optimum
 
 
 def policy_step(policy: TensorDictModuleBase, params: dynamics.DroneParams) -> StepFn:
@@ -67,12 +68,15 @@ def evaluate(
     return episode_stats(rollout), rollout
 
 
-def summarize(stats: dict[str, torch.Tensor], max_return: float) -> dict[str, Any]:
+def summarize(
+    stats: dict[str, torch.Tensor], max_return: float, optimum: float | None = None
+) -> dict[str, Any]:
     """Means over the episodes of one policy's stats (1-D tensors).
 
     ``return_mean``, ``return_std`` (population std), ``return_min``, ``pct_of_max`` (of
-    ``max_return``), ``length_mean``, ``time_in_zone``, ``negative_thrust_fraction``,
-    ``terminated_fraction``, ``reached_fraction`` (episodes that end a step inside the zone),
+    ``max_return``), ``pct_of_optimum`` (of ``optimum``, the best achievable return of each of these
+    episodes, :func:`reference_optimum`; NaN without one), ``length_mean``, ``time_in_zone``,
+    ``negative_thrust_fraction``, ``terminated_fraction``, ``reached_fraction`` (episodes that end a step inside the zone),
     ``first_zone_step_mean`` / ``_max`` (over those that do; NaN if none), ``thrust_mean`` and
     ``thrust_max`` (motor commands as fractions of the weight), ``causes``.
     """
@@ -85,6 +89,7 @@ def summarize(stats: dict[str, torch.Tensor], max_return: float) -> dict[str, An
         "return_std": float(returns.std(correction=0)),
         "return_min": float(returns.min()),
         "pct_of_max": 100.0 * float(returns.mean()) / max_return,
+        "pct_of_optimum": math.nan if optimum is None else 100.0 * float(returns.mean()) / optimum,
         "length_mean": float(stats["length"].float().mean()),
         "time_in_zone": float(stats["time_in_zone"].float().mean()),
         "negative_thrust_fraction": float(stats["negative_thrust_fraction"].float().mean()),
@@ -101,6 +106,19 @@ def summarize(stats: dict[str, torch.Tensor], max_return: float) -> dict[str, An
 def max_return(env_kwargs: dict[str, Any]) -> float:
     """The return ceiling ``REWARD_IN_ZONE * max_steps`` (3000 for 300 steps)."""
     return dynamics.REWARD_IN_ZONE * DroneEnv(batch_size=[], **env_kwargs).max_steps
+
+
+def reference_optimum(env_kwargs: dict[str, Any]) -> Optimum | None:
+    """The best achievable return of the env's episodes (:func:`drone_torchrl.optimum.env_optimum`)
+    where it is the reference for returns: with bounded thrust. ``None`` with unbounded thrust (the
+    bound is the ceiling ``10 * max_steps``, reached only by a thrust pulse of hundreds of weights,
+    so the PD controller is the practical reference) and where the bound is not derived."""
+    env = DroneEnv(batch_size=[], **env_kwargs)  # validates the arguments
+    params, max_steps, reset_mode = env.params, env.max_steps, env.reset_mode
+    env.close()
+    if params.max_thrust is None:
+        return None
+    return env_optimum(params, max_steps, reset_mode)
 
 
 def evaluate_pd(

@@ -443,3 +443,40 @@ def test_a_one_key_sweep_has_no_landscape(tmp_path):
     for i, lr in enumerate([1e-3, 1e-4]):
         _write_job(sweep / f"job{i}", [f"algo.lr={lr}", "seed=0"], _config(lr, 0), [1.0, 2.0], [1, 2])
     assert landscape(build_report(sweep, pd=False)) is None
+
+
+def test_bounded_thrust_returns_show_their_share_of_the_optimum(tmp_path):
+    """With max_thrust=1 the table, the CSV, the verdict and summary.md give each final return as a
+    percentage of the best achievable return (2694, drone_torchrl.optimum); unbounded settings do not."""
+    sweep = tmp_path / "thrust"
+    for seed in (0, 1):
+        for thrust in (1.0, None):
+            config = _config(1e-3, seed, max_steps=300)
+            config["env"]["max_thrust"] = thrust
+            _write_job(
+                sweep / f"{thrust},{seed}",
+                [f"env.max_thrust={thrust}", f"seed={seed}"],
+                config,
+                [2000.0 + 694.0 * seed] * 3,
+                [300] * 3,
+            )
+    report = build_report(sweep, window=2, pd=False)
+    bounded, unbounded = sorted(report.summaries, key=lambda s: s.optimum is None)
+    assert bounded.optimum == 2694.0 and unbounded.optimum is None
+    assert bounded.final_return_pct_of_optimum == pytest.approx(100 * 2347 / 2694)
+    assert list(report.optima) == ["optimum (env.max_thrust=1.0)"]
+    assert report.verdict.startswith("best: ")
+    paths = write_report(report, tmp_path / "out")
+    md = next(p for p in paths if p.name == "summary.md").read_text()
+    assert "| % of optimum |" in md and f"| {100 * 2347 / 2694:.1f}% of 2694 |" in md
+    assert (
+        "optimum (env.max_thrust=1.0): 2694, the best achievable return of every episode from these starts (in the zone from step 35, 266 of 300 steps;"
+        in md
+    )
+    assert (
+        "| median, % of optimum |" in md and f"| {100 * 2347 / 2694:.1f}% of 2694 |\n" in md
+    )  # the seeds' table
+    rows = list(csv.DictReader(next(p for p in paths if p.name == "summary.csv").open()))
+    by_label = {row["setting"]: row for row in rows}
+    assert float(by_label["env.max_thrust=1.0"]["optimum_return"]) == 2694.0
+    assert by_label["env.max_thrust=null"]["final_return_pct_of_optimum"] == ""

@@ -140,8 +140,10 @@ class DroneEnv(EnvBase):
     ## Rewards
 
     On the state after each step: ``0`` if the step terminated the episode, ``10`` inside the
-    target zone (all bounds inclusive), ``1`` anywhere else. An episode's maximum return is
-    ``10 * max_steps`` (3000 by default), not reachable since the drone starts on the floor.
+    target zone (all bounds inclusive), ``1`` anywhere else. An episode's return is at most
+    ``10 * max_steps`` (3000 by default). From the floor with bounded thrust the best achievable
+    return is lower (2694 with ``max_thrust=1``: :mod:`drone_torchrl.optimum`); with unbounded
+    thrust only a pulse of hundreds of weights on the first step reaches 3000.
 
     ## Starting state
 

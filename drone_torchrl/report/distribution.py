@@ -11,7 +11,9 @@ Per setting, :func:`distribution` gives:
   ``max_steps`` at some episode) and the fraction that end in the zone (final running-mean return
   >= :data:`~drone_torchrl.report.stats.ZONE_SHARE` of the ceiling: 1500 of 3000);
 - the band of 4-seed means (bootstrap: 4 seeds drawn without replacement, as a 4-seed study would
-  draw them): the spread a paper-sized study sees.
+  draw them): the spread a paper-sized study sees;
+- with bounded thrust, the median as a share of the best achievable return
+  (:func:`~drone_torchrl.report.stats.optimum_return`).
 
 :func:`paper_averaged_curves` redraws the paper's figures 4.2 and 4.4 the way its public analysis
 code computes them: the list of runs is never reset between settings, so the curve drawn for the
@@ -28,9 +30,11 @@ import numpy as np
 
 from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, ReportError, Setting
 from drone_torchrl.report.stats import (
+    PERCENT,
     ZONE_SHARE,
     aggregate_over_seeds,
     first_crossing,
+    optimum_return,
     run_curves,
     setting_curve,
 )
@@ -59,6 +63,8 @@ class Distribution:
     in_zone: int
     median_ci: tuple[float, float]
     four_seed_band: tuple[float, float]
+    optimum: float | None = None
+    """The best achievable return of the setting's episodes (bounded thrust; else ``None``)."""
 
     @property
     def seeds(self) -> int:
@@ -112,6 +118,7 @@ def distribution(setting: Setting, window: int) -> Distribution:
         in_zone=int((finals >= ZONE_SHARE * setting.ceiling).sum()),
         median_ci=bootstrap_median_ci(finals, rng),
         four_seed_band=small_study_band(finals, rng),
+        optimum=optimum_return(setting.env_kwargs),
     )
 
 
@@ -120,8 +127,9 @@ def format_distributions(distributions: Sequence[Distribution]) -> str:
     lo, hi = percentile_tails()
     lines = [
         f"| setting | seeds | median final return [{CONFIDENCE:.0%} CI] | IQR | median final length | "
-        f"reach full length | end in the zone | mean of {PAPER_STUDY_SEEDS} seeds ({lo:g}-{hi:g}%) |",
-        "|---|---|---|---|---|---|---|---|",
+        f"reach full length | end in the zone | mean of {PAPER_STUDY_SEEDS} seeds ({lo:g}-{hi:g}%) | "
+        "median, % of optimum |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for d in distributions:
         q1, q3 = d.quartiles
@@ -130,7 +138,9 @@ def format_distributions(distributions: Sequence[Distribution]) -> str:
         lines.append(
             f"| {d.label} | {d.seeds} | {d.median:.0f} [{ci_low:.0f}, {ci_high:.0f}] | {q1:.0f}-{q3:.0f} | "
             f"{np.median(d.final_lengths):.0f} | {d.reached_full_length}/{d.seeds} | {d.in_zone}/{d.seeds} | "
-            f"{band_low:.0f}-{band_high:.0f} |"
+            f"{band_low:.0f}-{band_high:.0f} | "
+            + ("-" if d.optimum is None else f"{PERCENT * d.median / d.optimum:.1f}% of {d.optimum:g}")
+            + " |"
         )
     return "\n".join(lines)
 

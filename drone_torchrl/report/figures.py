@@ -19,6 +19,7 @@ BAND_ALPHA = 0.2
 LINE_WIDTH = 1.5
 REFERENCE_COLOR = "black"
 PD_COLOR = "dimgray"
+OPTIMUM_COLOR = "darkred"
 
 
 def _legend_label(setting: Setting) -> str:
@@ -52,6 +53,10 @@ def plot_curves(report: SweepReport, column: str, path: Path) -> Path:
             ax.axhline(ceiling, linestyle="--", color=REFERENCE_COLOR, label=f"ceiling: {ceiling:g}")
         for name, value in report.pd_returns.items():
             ax.axhline(value, linestyle=":", color=PD_COLOR, label=f"{name}: {value:.0f}")
+        for name, best in report.optima.items():
+            ax.axhline(
+                best.best_return, linestyle="-.", color=OPTIMUM_COLOR, label=f"{name}: {best.best_return:.0f}"
+            )
         ylabel, what = "return per episode", "Return"
     ax.set_xlabel("episode")
     ax.set_ylabel(f"{ylabel} (running mean over {report.window})")

@@ -1,5 +1,6 @@
 """The numbers of a sweep report: running means, statistics over seeds, threshold crossings, the
-summary of each setting, the verdict, and the PD controller's reference return."""
+summary of each setting, the verdict, the PD controller's reference return and the best achievable
+return (:mod:`drone_torchrl.optimum`)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from drone_torchrl.evaluation import evaluate_pd
+from drone_torchrl.evaluation import evaluate_pd, reference_optimum
+from drone_torchrl.optimum import Optimum
 from drone_torchrl.report.runs import (
     COL_LENGTH,
     COL_NEGATIVE_THRUST,
@@ -151,6 +153,8 @@ class SettingSummary:
     wall_clock_mean_s: float
     wall_clock_total_s: float
     notes: list[str]
+    optimum: float | None = None
+    """The best achievable return of every episode of the setting (bounded thrust; else ``None``)."""
 
     @property
     def final_return_mean(self) -> float:
@@ -163,6 +167,11 @@ class SettingSummary:
     @property
     def final_return_pct(self) -> float:
         return PERCENT * self.final_return_mean / self.ceiling
+
+    @property
+    def final_return_pct_of_optimum(self) -> float:
+        """The final return as a percentage of :attr:`optimum` (NaN without one)."""
+        return math.nan if self.optimum is None else PERCENT * self.final_return_mean / self.optimum
 
     def return_text(self) -> str:
         """``"2210 +- 150"``."""
@@ -227,11 +236,13 @@ def summarize(
         wall_clock_mean_s=float(np.mean(clocks)) if clocks else math.nan,
         wall_clock_total_s=float(np.sum(clocks)) if clocks else math.nan,
         notes=progress_notes(setting),
+        optimum=optimum_return(setting.env_kwargs),
     )
 
 
 def verdict(summaries: Sequence[SettingSummary]) -> str:
-    """``"best: algo.lr=0.0001 (2210 +- 150, 73.7% of 3000)"``: the best mean final running-mean return.
+    """``"best: algo.lr=0.0001 (2210 +- 150, 73.7% of 3000)"``: the best mean final running-mean return
+    (with bounded thrust also its share of the optimum: ``..., 82.0% of the optimum 2694)``).
 
     Names settings tied with the best, and says the verdict is provisional when some runs are
     unfinished or failed (their finals are taken where they stopped).
@@ -240,7 +251,10 @@ def verdict(summaries: Sequence[SettingSummary]) -> str:
     if not candidates:
         return "best: none (no episodes yet)"
     best = max(candidates, key=lambda s: s.final_return_mean)
-    line = f"best: {best.label} ({best.return_text()}, {best.final_return_pct:.1f}% of {best.ceiling:g})"
+    share = f"{best.final_return_pct:.1f}% of {best.ceiling:g}"
+    if best.optimum is not None:
+        share += f", {best.final_return_pct_of_optimum:.1f}% of the optimum {best.optimum:g}"
+    line = f"best: {best.label} ({best.return_text()}, {share})"
     tied = [s.label for s in candidates if s is not best and s.final_return_mean == best.final_return_mean]
     if tied:
         line += f"; tied with {LABEL_SEPARATOR.join(tied)}"
@@ -266,3 +280,24 @@ def pd_reference(env_kwargs: dict[str, Any]) -> float:
     Computed once per distinct env setting in this process (cached).
     """
     return _pd_return(tuple(sorted(env_kwargs.items())))
+
+
+# --------------------------------------------------------------------------------------------------
+# The optimum
+
+
+@functools.cache
+def _optimum(env_items: tuple[tuple[str, Any], ...]) -> Optimum | None:
+    return reference_optimum(dict(env_items))
+
+
+def optimum_reference(env_kwargs: dict[str, Any]) -> Optimum | None:
+    """The best achievable return of every episode in this env with bounded thrust
+    (:func:`drone_torchrl.evaluation.reference_optimum`), or ``None``. Cached per env setting."""
+    return _optimum(tuple(sorted(env_kwargs.items())))
+
+
+def optimum_return(env_kwargs: dict[str, Any]) -> float | None:
+    """:func:`optimum_reference`'s best return, or ``None``."""
+    found = optimum_reference(env_kwargs)
+    return None if found is None else found.best_return

@@ -1,18 +1,20 @@
-"""The report of one sweep folder: its settings, their summaries and the PD references."""
+"""The report of one sweep folder: its settings, their summaries, the PD references and the optima."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
 from drone_torchrl.config import config_dir
+from drone_torchrl.optimum import Optimum
 from drone_torchrl.report.runs import LABEL_SEPARATOR, Run, Setting, group_runs, load_runs
 from drone_torchrl.report.stats import (
     DEFAULT_RETURN_THRESHOLD,
     SettingSummary,
+    optimum_reference,
     pd_reference,
     summarize,
     verdict,
@@ -20,6 +22,7 @@ from drone_torchrl.report.stats import (
 
 DEFAULTS_FILE = "config.yaml"  # the package's primary Hydra config, in conf/
 PD_LABEL = "PD controller"
+OPTIMUM_LABEL = "optimum"
 
 
 @dataclass
@@ -33,6 +36,11 @@ class SweepReport:
     summaries: list[SettingSummary]
     pd_returns: dict[str, float]
     """PD reference return per distinct env setting, keyed by the labels of the settings using it."""
+    optima: dict[str, Optimum] = field(default_factory=dict)
+    """The best achievable return per distinct env setting with bounded thrust (``"optimum"``, or
+    ``"optimum (<labels>)"`` when the settings differ in their env)."""
+    pd_optima: dict[str, float] = field(default_factory=dict)
+    """The best achievable return of the env of each PD reference that has one (keys of ``pd_returns``)."""
 
     @property
     def name(self) -> str:
@@ -56,17 +64,26 @@ def build_report(
     runs: Sequence[Run] | None = None,
 ) -> SweepReport:
     """Read a sweep folder (or use its already loaded ``runs``) and compute its settings, table
-    rows and PD references; ``window=None`` is :func:`default_window`."""
+    rows, PD references (``pd``) and optima; ``window=None`` is :func:`default_window`."""
     window = default_window() if window is None else window
     runs = load_runs(Path(sweep_dir)) if runs is None else runs
     settings = group_runs(runs)
     summaries = [summarize(s, window, return_threshold) for s in settings]
     pd_returns: dict[str, float] = {}
-    if pd:
-        by_env: dict[tuple, list[str]] = {}
-        for s in settings:
-            by_env.setdefault(tuple(sorted(s.env_kwargs.items())), []).append(s.label)
-        for env_items, labels in by_env.items():
-            key = PD_LABEL if len(by_env) == 1 else f"{PD_LABEL} ({LABEL_SEPARATOR.join(labels)})"
-            pd_returns[key] = pd_reference(dict(env_items))
-    return SweepReport(Path(sweep_dir), window, return_threshold, settings, summaries, pd_returns)
+    optima: dict[str, Optimum] = {}
+    pd_optima: dict[str, float] = {}
+    by_env: dict[tuple, list[str]] = {}
+    for s in settings:
+        by_env.setdefault(tuple(sorted(s.env_kwargs.items())), []).append(s.label)
+    for env_items, labels in by_env.items():
+        suffix = "" if len(by_env) == 1 else f" ({LABEL_SEPARATOR.join(labels)})"
+        best = optimum_reference(dict(env_items))
+        if best is not None:
+            optima[OPTIMUM_LABEL + suffix] = best
+        if pd:
+            pd_returns[PD_LABEL + suffix] = pd_reference(dict(env_items))
+            if best is not None:
+                pd_optima[PD_LABEL + suffix] = best.best_return
+    return SweepReport(
+        Path(sweep_dir), window, return_threshold, settings, summaries, pd_returns, optima, pd_optima
+    )

@@ -43,6 +43,8 @@ SUMMARY_CSV_COLUMNS = (
     "final_return_std",
     "return_ceiling",
     "final_return_pct_of_ceiling",
+    "optimum_return",
+    "final_return_pct_of_optimum",
     "max_steps",
     "length_cap_episode_mean",
     "length_cap_seeds_reached",
@@ -71,6 +73,8 @@ def summary_rows(report: SweepReport) -> list[dict[str, Any]]:
                 "final_return_std": s.final_return_std,
                 "return_ceiling": s.ceiling,
                 "final_return_pct_of_ceiling": s.final_return_pct,
+                "optimum_return": "" if s.optimum is None else s.optimum,
+                "final_return_pct_of_optimum": "" if s.optimum is None else s.final_return_pct_of_optimum,
                 "max_steps": s.max_steps,
                 "length_cap_episode_mean": "" if s.length_cap.mean is None else s.length_cap.mean,
                 "length_cap_seeds_reached": len(s.length_cap.episodes),
@@ -112,6 +116,7 @@ def format_table(report: SweepReport) -> str:
         "episodes",
         f"final return (running mean {report.window})",
         f"% of {ceiling}",
+        "% of optimum",
         f"length reaches {cap} at episode",
         f"return reaches {report.return_threshold:g} at episode",
         "negative thrust",
@@ -130,6 +135,9 @@ def format_table(report: SweepReport) -> str:
             episodes,
             s.return_text(),
             "-" if math.isnan(s.final_return_pct) else f"{s.final_return_pct:.1f}%",
+            "-"
+            if math.isnan(s.final_return_pct_of_optimum)
+            else f"{s.final_return_pct_of_optimum:.1f}% of {s.optimum:g}",
             s.length_cap.text(),
             s.return_threshold.text(),
             "-" if math.isnan(s.final_negative_thrust) else f"{PERCENT * s.final_negative_thrust:.1f}%",
@@ -159,15 +167,25 @@ def format_report(report: SweepReport, figures: bool = True) -> str:
         "time when runs trained side by side (one fused process, parallel launchers).",
         "",
     ]
+    ceilings = {s.ceiling for s in report.settings}
     for name, value in report.pd_returns.items():
-        ceilings = {s.ceiling for s in report.settings}
-        share = (
-            f" ({PERCENT * value / next(iter(ceilings)):.1f}% of {_common(ceilings)})"
+        shares = (
+            [f"{PERCENT * value / next(iter(ceilings)):.1f}% of {_common(ceilings)}"]
             if len(ceilings) == 1
-            else ""
+            else []
         )
+        optimum = report.pd_optima.get(name)
+        if optimum is not None:
+            shares.append(f"{PERCENT * value / optimum:.1f}% of the optimum {optimum:g}")
+        share = f" ({', '.join(shares)})" if shares else ""
         lines.append(f"{name}: mean return {value:.0f}{share} over {PD_EPISODES} episodes, seed {PD_SEED}.")
-    if report.pd_returns:
+    for name, best in report.optima.items():
+        lines.append(
+            f"{name}: {best.best_return:g}, the best achievable return of every episode from these starts "
+            f"({best.describe()}; see docs/optimum.md of drone_torchrl). '% of optimum' divides the final "
+            "return by it."
+        )
+    if report.pd_returns or report.optima:
         lines.append("")
     lines += [format_table(report), ""]
     if figures:

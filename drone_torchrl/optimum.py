@@ -1,0 +1,414 @@
+"""The best achievable return of an episode, computed exactly, and an optimal thrust sequence.
+
+The reward counts the steps that end inside the target zone (10 each) and the other steps the
+drone survives (1 each). Only the vertical motion decides when the drone can be in the zone, and
+the vertical motion is linear in the *vertical thrust* ``c = cos(alpha) (a_l + a_r)`` (thrust as a
+multiple of the weight): ``z_dot += (c - 1) g dt; z += z_dot dt`` (semi-implicit Euler, the
+env's own recursion). With each motor in ``[0, max_thrust]`` and ``|alpha| <= pi/3`` while alive,
+``c`` lies in ``[0, 2 max_thrust]``, so the vertical problem with ``c`` free in that interval is
+a relaxation: the most zone steps it allows bounds every policy. ``docs/optimum.md`` derives it.
+
+- :func:`zone_margin` solves one linear program (SciPy's HiGHS): the largest margin by which a
+  vertical plan can stay inside the zone from a given step to the end, surviving the steps before.
+- :func:`earliest_zone_step` finds the first step from which the drone can be in the zone for the
+  rest of the episode (a sequence of those LPs, bisected: the margin only grows with the step).
+- :func:`max_zone_steps` is one mixed-integer program that counts the zone steps of any thrust
+  sequence, without assuming the drone stays once in: the upper bound.
+- :func:`optimum` puts them together (:class:`Optimum`); :func:`env_optimum` does it for the
+  starts an env resets to (``"floor"``: all share ``z = z_dot = 0``; ``"air"``: a box of starts).
+- :func:`fly_plan` replays a vertical plan on the full 2D dynamics (:func:`dynamics.step`) and then
+  hands over to the PD controller, which levels the drone and holds it in the zone.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy import sparse
+from scipy.optimize import Bounds, LinearConstraint, linprog, milp
+
+from drone_torchrl.envs import dynamics
+from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, Z_DOT, DroneParams, Z
+from drone_torchrl.envs.heuristic import PDGains, pd_action
+from drone_torchrl.envs.rollout import Episodes, chunked, fly_episodes
+
+ZONE_Z = (dynamics.ZONE_Z_MIN, dynamics.ZONE_Z_MAX)
+DOMAIN_Z = (dynamics.Z_MIN, dynamics.Z_MAX)
+# The reward of a step in the zone beyond that of any other surviving step (10 - 1).
+ZONE_BONUS = dynamics.REWARD_IN_ZONE - dynamics.REWARD_ALIVE
+FLOOR_START = (0.0, 0.0)  # (z, z_dot) of every floor start
+# HiGHS solves to about 1e-9 here; a margin above -this counts as feasible (m).
+MARGIN_TOLERANCE = 1e-7
+MILP_TIME_LIMIT_S = 60.0
+
+Start = tuple[float, float]
+"""A vertical start state ``(z, z_dot)``."""
+
+
+@dataclass(frozen=True)
+class VerticalPlan:
+    """A vertical thrust sequence and the vertical states it flies through (arrays of ``steps``).
+
+    ``collective[t - 1]`` is the vertical thrust ``c`` of step ``t`` (multiple of the weight);
+    ``z[t - 1]`` and ``z_dot[t - 1]`` the state after step ``t``. ``margin``: the least distance (m)
+    between the zone's limits and ``z`` over the steps from ``first_zone_step`` on.
+    """
+
+    first_zone_step: int
+    collective: np.ndarray
+    z: np.ndarray
+    z_dot: np.ndarray
+    margin: float
+
+    @property
+    def apex_step(self) -> int:
+        """The first step, from the zone entry on, that ends with ``z_dot <= 0`` (the top of the climb)."""
+        after = np.flatnonzero(self.z_dot[self.first_zone_step - 1 :] <= 0.0)
+        return self.first_zone_step + int(after[0]) if after.size else len(self.z)
+
+
+@dataclass(frozen=True)
+class Optimum:
+    """The best achievable return of an episode of ``steps`` steps (see :func:`optimum`)."""
+
+    steps: int
+    zone_steps: int
+    """The most steps that can end in the zone (the upper bound)."""
+    first_zone_step: int
+    """The earliest step from which the drone can stay in the zone to the end (0: never)."""
+    plan: VerticalPlan | None
+    """A vertical plan that enters at ``first_zone_step`` and stays (the largest margin), or ``None``."""
+
+    @property
+    def best_return(self) -> float:
+        """``steps`` rewards of at least 1, ``zone_steps`` of them 10: the bound on any episode's return."""
+        return dynamics.REWARD_ALIVE * self.steps + ZONE_BONUS * self.zone_steps
+
+    @property
+    def exact(self) -> bool:
+        """Whether the bound is reached in the vertical problem: entering at ``first_zone_step`` and
+        staying gives ``zone_steps`` steps in the zone (for a drone that can hover)."""
+        if self.first_zone_step == 0:
+            return self.zone_steps == 0  # the zone is out of reach; hovering earns the 1s
+        return self.steps - self.first_zone_step + 1 == self.zone_steps
+
+    def describe(self) -> str:
+        """How the bound is made up, e.g. ``"in the zone from step 35, 266 of 300 steps"``."""
+        if self.zone_steps == 0:
+            return f"the zone is out of reach in {self.steps} steps: surviving them is the best"
+        if not self.exact:
+            return (
+                f"at most {self.zone_steps} of {self.steps} steps in the zone, "
+                "an upper bound no plan staying there reaches"
+            )
+        return f"in the zone from step {self.first_zone_step}, {self.zone_steps} of {self.steps} steps"
+
+
+def collective_limit(params: DroneParams, tilt: float = 0.0) -> float | None:
+    """The largest vertical thrust ``c`` (multiple of the weight): ``2 max_thrust cos(tilt)``, or
+    ``None`` (unbounded) when the thrust is; ``tilt`` is a roll angle that the drone keeps."""
+    if params.max_thrust is None:
+        return None
+    return ACTION_DIM * params.max_thrust * math.cos(tilt)
+
+
+def _recursion(
+    params: DroneParams, steps: int, start: Start, extra: int
+) -> tuple[sparse.csr_array, np.ndarray]:
+    """The semi-implicit Euler recursion as ``2 steps`` linear equalities ``A x = b``.
+
+    Variables ``x = [c_1..c_T, z_dot_1..z_dot_T, z_1..z_T, extra...]``:
+    ``z_dot_t - z_dot_{t-1} - g dt c_t = -g dt`` and ``z_t - z_{t-1} - dt z_dot_t = 0``, with the
+    start's ``(z_0, z_dot_0)`` moved to the right-hand side of the rows of step 1.
+    """
+    g, dt, n = params.gravity, params.dt, steps
+    eye = sparse.eye_array(n, format="csr")
+    previous = sparse.eye_array(n, k=-1, format="csr")
+    zero = sparse.csr_array((n, n))
+    pad = sparse.csr_array((n, extra))
+    velocity = sparse.hstack([-g * dt * eye, eye - previous, zero, pad])
+    position = sparse.hstack([zero, -dt * eye, eye - previous, pad])
+    b_velocity = np.full(n, -g * dt)
+    b_position = np.zeros(n)
+    b_velocity[0] += start[1]
+    b_position[0] += start[0]
+    return sparse.vstack([velocity, position], format="csr"), np.concatenate([b_velocity, b_position])
+
+
+def _limits(params: DroneParams, domain_z: tuple[float, float]) -> tuple[float, float]:
+    """The heights at which the drone survives: the floor counts as hit only below ``-floor_tolerance``."""
+    return domain_z[0] - params.floor_tolerance, domain_z[1]
+
+
+def zone_margin(
+    params: DroneParams,
+    steps: int,
+    first_zone_step: int,
+    start: Start = FLOOR_START,
+    zone_z: tuple[float, float] = ZONE_Z,
+    domain_z: tuple[float, float] = DOMAIN_Z,
+    thrust_cap: float | None = None,
+) -> VerticalPlan | None:
+    """The vertical plan that stays in the zone from ``first_zone_step`` through ``steps`` with the
+    largest margin (one LP; the margin is negative where the zone cannot be held from that step).
+
+    Every step keeps ``z`` inside the domain (the floor with its tolerance); the steps from
+    ``first_zone_step`` on keep ``zone_z[0] + margin <= z <= zone_z[1] - margin``; ``c`` lies in
+    ``[0, thrust_cap]`` (``thrust_cap=None``: :func:`collective_limit`, and free when the thrust is
+    unbounded). Returns ``None`` if even the domain cannot be kept.
+    """
+    if not 1 <= first_zone_step <= steps:
+        raise ValueError(f"first_zone_step={first_zone_step} is not allowed; expected 1..{steps}")
+    n = steps
+    cap = collective_limit(params) if thrust_cap is None else thrust_cap
+    a_eq, b_eq = _recursion(params, n, start, extra=1)
+    # Zone rows for t >= first_zone_step:  -z_t + margin <= -z_min  and  z_t + margin <= z_max.
+    held = np.arange(first_zone_step - 1, n)
+    rows = np.arange(held.size)
+    z_col = 2 * n + held
+    margin_col = np.full(held.size, 3 * n)
+    ones = np.ones(held.size)
+    a_ub = sparse.csr_array(
+        (
+            np.concatenate([-ones, ones, ones, ones]),
+            (
+                np.concatenate([rows, rows, rows + held.size, rows + held.size]),
+                np.concatenate([z_col, margin_col, z_col, margin_col]),
+            ),
+        ),
+        shape=(2 * held.size, 3 * n + 1),
+    )
+    b_ub = np.concatenate([np.full(held.size, -zone_z[0]), np.full(held.size, zone_z[1])])
+    low, high = _limits(params, domain_z)
+    bounds = [(0.0, cap) if cap is not None else (None, None)] * n + [(None, None)] * n + [(low, high)] * n
+    bounds.append((None, None))
+    objective = np.zeros(3 * n + 1)
+    objective[-1] = -1.0  # maximise the margin
+    result = linprog(objective, A_ub=a_ub, b_ub=b_ub, A_eq=a_eq, b_eq=b_eq, bounds=bounds, method="highs")
+    if result.status != 0:
+        return None
+    x = result.x
+    return VerticalPlan(first_zone_step, x[:n], x[2 * n : 3 * n], x[n : 2 * n], float(x[-1]))
+
+
+def earliest_zone_step(
+    params: DroneParams,
+    steps: int,
+    start: Start = FLOOR_START,
+    zone_z: tuple[float, float] = ZONE_Z,
+    domain_z: tuple[float, float] = DOMAIN_Z,
+    thrust_cap: float | None = None,
+) -> VerticalPlan | None:
+    """The largest-margin plan of the earliest step ``k`` from which the drone can be in the zone at
+    every step through ``steps`` (``None``: no such step).
+
+    A sequence of :func:`zone_margin` LPs, bisected on ``k``: holding the zone from ``k`` asks for
+    more than holding it from ``k + 1``, so the margin never decreases with ``k``.
+    """
+
+    def holds(k: int) -> VerticalPlan | None:
+        plan = zone_margin(params, steps, k, start, zone_z, domain_z, thrust_cap)
+        return plan if plan is not None and plan.margin >= -MARGIN_TOLERANCE else None
+
+    best = holds(steps)
+    if best is None:
+        return None
+    low, high = 1, steps  # holds(high); find the smallest k that holds
+    while low < high:
+        middle = (low + high) // 2
+        plan = holds(middle)
+        if plan is None:
+            low = middle + 1
+        else:
+            high, best = middle, plan
+    return best
+
+
+def _height_range(params: DroneParams, steps: int, start: Start, cap: float) -> tuple[np.ndarray, np.ndarray]:
+    """The lowest and highest ``z`` after each step over all ``c`` in ``[0, cap]`` (``z`` grows with every ``c_t``)."""
+
+    def fly(collective: float) -> np.ndarray:
+        z, z_dot, out = start[0], start[1], np.empty(steps)
+        for t in range(steps):
+            z_dot += (collective - 1.0) * params.gravity * params.dt
+            z += z_dot * params.dt
+            out[t] = z
+        return out
+
+    return fly(0.0), fly(cap)
+
+
+def max_zone_steps(
+    params: DroneParams,
+    steps: int,
+    start: Start = FLOOR_START,
+    zone_z: tuple[float, float] = ZONE_Z,
+) -> int:
+    """The most steps whose end state can lie in the zone, over every vertical thrust sequence with
+    ``c`` in ``[0, 2 max_thrust]`` (one MILP; bounded thrust only).
+
+    Nothing else is assumed: the drone may leave the zone and come back, and the domain is not
+    enforced (so trajectories that end in a crash are counted too). One binary per step says "in
+    the zone"; big-M rows with each step's reachable height range switch the zone bounds on.
+    """
+    cap = collective_limit(params)
+    if cap is None:
+        raise ValueError(
+            "max_zone_steps needs bounded thrust (max_thrust); with unbounded thrust every step can be in the zone"
+        )
+    n = steps
+    a_eq, b_eq = _recursion(params, n, start, extra=n)
+    z_low, z_high = _height_range(params, n, start, cap)
+    big_low = np.maximum(zone_z[0] - z_low, 0.0)  # -z_t + M b_t <= -z_min + M
+    big_high = np.maximum(z_high - zone_z[1], 0.0)  # z_t + M b_t <= z_max + M
+    eye = sparse.eye_array(n, format="csr")
+    zero = sparse.csr_array((n, n))
+    rows = sparse.vstack(
+        [
+            sparse.hstack([zero, zero, -eye, sparse.diags_array(big_low)]),
+            sparse.hstack([zero, zero, eye, sparse.diags_array(big_high)]),
+        ],
+        format="csr",
+    )
+    upper = np.concatenate([big_low - zone_z[0], big_high + zone_z[1]])
+    inf = np.inf
+    lower_bounds = np.concatenate([np.zeros(n), np.full(2 * n, -inf), np.zeros(n)])
+    upper_bounds = np.concatenate([np.full(n, cap), np.full(2 * n, inf), np.ones(n)])
+    objective = np.concatenate([np.zeros(3 * n), -np.ones(n)])
+    result = milp(
+        objective,
+        constraints=[LinearConstraint(a_eq, b_eq, b_eq), LinearConstraint(rows, -inf, upper)],
+        integrality=np.concatenate([np.zeros(3 * n), np.ones(n)]),
+        bounds=Bounds(lower_bounds, upper_bounds),
+        options={"mip_rel_gap": 0.0, "time_limit": MILP_TIME_LIMIT_S},
+    )
+    if result.status == 0:
+        return round(-result.fun)
+    # Out of time: HiGHS's dual bound still bounds the count from above.
+    bound = getattr(result, "mip_dual_bound", None)
+    if bound is None or not math.isfinite(bound):
+        raise RuntimeError(f"the zone-step MILP failed: {result.message}")
+    return min(n, math.floor(-bound + MARGIN_TOLERANCE))
+
+
+def optimum(
+    params: DroneParams,
+    steps: int,
+    start: Start = FLOOR_START,
+    zone_z: tuple[float, float] = ZONE_Z,
+    domain_z: tuple[float, float] = DOMAIN_Z,
+) -> Optimum:
+    """The best achievable return from the vertical start ``start`` (see :class:`Optimum`).
+
+    Bounded thrust: the count of :func:`max_zone_steps` (MILP) bounds the return; the earliest
+    entry to stay (:func:`earliest_zone_step`, LPs) shows which plan reaches it. Unbounded thrust:
+    no limit on ``c``, so the zone is held from the first step (a thrust pulse of several hundred
+    weights); the bound is then the ceiling ``10 * steps``.
+    """
+    plan = earliest_zone_step(params, steps, start, zone_z, domain_z)
+    if params.max_thrust is None:
+        # c_1 alone puts z_1 anywhere and c_2 stops the drone there: the LPs find k* = 1, N = steps.
+        zone_steps = 0 if plan is None else steps - plan.first_zone_step + 1
+    else:
+        zone_steps = max_zone_steps(params, steps, start, zone_z)
+    first = 0 if plan is None else plan.first_zone_step
+    return Optimum(steps, zone_steps, first, plan)
+
+
+def start_box(reset_mode: str) -> list[Start]:
+    """The vertical start states of ``reset_mode``: the floor start, or the corners of the air box
+    (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE` of the zone's centre and of rest)."""
+    if reset_mode == "floor":
+        return [FLOOR_START]
+    if reset_mode == "air":
+        noise = dynamics.RESET_NOISE
+        centre = dynamics.ZONE_Z_CENTRE
+        return [(centre + dz, dv) for dz in (-noise, noise) for dv in (-noise, noise)]
+    raise ValueError(f"reset_mode={reset_mode!r} is not allowed; expected one of {dynamics.RESET_MODES}")
+
+
+@functools.cache
+def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum | None:
+    """The best achievable return of every episode that starts as ``reset_mode`` resets, or ``None``
+    where it is not derived.
+
+    ``"floor"``: every start has ``z = z_dot = 0`` (``x`` and ``alpha`` do not enter the vertical
+    problem), so one :func:`optimum` serves all. ``"air"``: the set of vertical starts from which the
+    zone can be held from step 1 on is convex (the projection of the LP's feasible set), so if every
+    corner of the start box holds it, every air start does, and the bound is the ceiling
+    ``10 * max_steps``; otherwise ``None``. ``None`` too when ``max_thrust`` is below the hover
+    thrust (the drone cannot stay up, and how long it survives is outside this model). Cached:
+    computed once per argument set in a process.
+    """
+    if params.max_thrust is not None and params.max_thrust < HOVER_THRUST:
+        return None
+    corners = start_box(reset_mode)
+    if len(corners) == 1:
+        return optimum(params, max_steps, corners[0])
+    plans = [zone_margin(params, max_steps, 1, corner) for corner in corners]
+    if any(plan is None or plan.margin < -MARGIN_TOLERANCE for plan in plans):
+        return None
+    return Optimum(max_steps, max_steps, 1, None)
+
+
+def fly_plan(
+    start: torch.Tensor,
+    params: DroneParams,
+    max_steps: int,
+    zone_z: tuple[float, float] = ZONE_Z,
+    domain_z: tuple[float, float] = DOMAIN_Z,
+    gains: PDGains | None = None,
+) -> tuple[Episodes, VerticalPlan]:
+    """Replay an optimal vertical plan from the floor starts ``start`` (``[B, 6]``) through
+    :func:`dynamics.step`; returns the episodes (:func:`~drone_torchrl.episodes.episode_stats`
+    reads them) and the plan.
+
+    Up to the top of the climb (:attr:`VerticalPlan.apex_step`) both motors get ``c_t / (2 cos
+    alpha)``: with equal thrusts and ``alpha_dot = 0`` the roll angle stays at its start value, so
+    the vertical motion is the plan's exactly. The plan is solved with ``c`` at most ``2 max_thrust
+    cos(max |alpha_0|)``, so that command never exceeds ``max_thrust``. Afterwards the PD controller
+    (``gains``) levels the drone, brings ``x`` back and holds the zone. The first zone step is
+    :func:`earliest_zone_step`'s for the tilted limit; where it differs from the level one the
+    bound is not reached (and the caller sees it in the returns).
+    """
+    if not torch.all(start[..., Z] == FLOOR_START[0]) or not torch.all(start[..., Z_DOT] == FLOOR_START[1]):
+        raise ValueError("fly_plan replays floor starts (z = z_dot = 0)")
+    tilt = float(start[..., ALPHA].abs().max())
+    plan = earliest_zone_step(
+        params, max_steps, FLOOR_START, zone_z, domain_z, thrust_cap=collective_limit(params, tilt)
+    )
+    if plan is None:
+        raise ValueError("the zone cannot be held from any step with these parameters")
+    collective = torch.as_tensor(plan.collective, dtype=start.dtype, device=start.device)
+    hand_over = plan.apex_step
+
+    def step(state: torch.Tensor, t: int) -> tuple[torch.Tensor, ...]:
+        if t < hand_over:
+            motor = collective[t] / (ACTION_DIM * torch.cos(state[..., ALPHA]))
+            action = motor.unsqueeze(-1).expand(*motor.shape, ACTION_DIM)
+        else:
+            action = pd_action(state, params, gains)
+        return (action, *dynamics.step(state, action, params))
+
+    return fly_episodes(chunked(step), start, max_steps), plan
+
+
+__all__ = [
+    "DOMAIN_Z",
+    "FLOOR_START",
+    "ZONE_Z",
+    "Optimum",
+    "VerticalPlan",
+    "collective_limit",
+    "earliest_zone_step",
+    "env_optimum",
+    "fly_plan",
+    "max_zone_steps",
+    "optimum",
+    "start_box",
+    "zone_margin",
+]
