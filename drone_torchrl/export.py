@@ -1,26 +1,104 @@
-"""A trained policy as a standalone file: ``torch.export`` of its deterministic action.
+"""A trained policy as a standalone file: its deterministic action as a ``torch.export`` program
+(``.pt2``, plain torch) or an ONNX model (``.onnx``, onnxruntime or any ONNX runtime).
 
-The exported program maps a float32 observation batch ``[B, 6]`` in the env's state layout
+Both map a float32 observation batch ``[B, 6]`` in the env's state layout
 (``x, x_dot, z, z_dot, alpha, alpha_dot``) to the motor commands ``[B, 2]`` (left, right) as
 fractions of the weight, exactly what the env applies: the Normal head's mean, or the TanhNormal
 head's deterministic action (``ExplorationType.DETERMINISTIC``: the squashed mean), clamped to
-``[0, max_thrust]`` when thrust is bounded. It needs plain torch only::
+``[0, max_thrust]`` when thrust is bounded. The batch dimension is dynamic::
 
     policy = torch.export.load("policy.pt2").module()
-    thrust = policy(observation)          # observation: float32 [B, 6]
+    thrust = policy(observation)                                   # torch float32 [B, 6]
+
+    session = onnxruntime.InferenceSession("policy.onnx")
+    thrust = session.run(None, {"observation": observation})[0]    # numpy float32 [B, 6]
+
+The ONNX model is converted from the same ``torch.export`` program the ``.pt2`` holds, by torch's
+own exporter in its supported mode (``torch.onnx.export(..., dynamo=True)``, torch's default since
+2.9; it needs onnxscript). The TorchScript-based exporter (``dynamo=False``) is deprecated and warns
+on every use. onnx, onnxruntime and onnxscript are the ``onnx`` extra, never needed for ``.pt2``.
+
+Every file is checked before it takes the output's name: run by its own runtime
+(``torch.export.load``, onnxruntime), it must reproduce the checkpoint's TorchRL actor (its
+deterministic action, clamped as the env clamps it) on :func:`check_observations` within
+:data:`TOLERANCE`; otherwise :class:`ExportError` and nothing is written.
 """
 
 from __future__ import annotations
 
+import contextlib
+import importlib.util
+import itertools
+import logging
 import os
+import statistics
+import time
+import warnings
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import torch
+from tensordict import TensorDict
 from torch import nn
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import ProbabilisticActor
 
-from drone_torchrl.config import ConfigError, open_checkpoint, run_config
-from drone_torchrl.envs.dynamics import STATE_DIM
+from drone_torchrl.config import ConfigError, check_keys, check_values, open_checkpoint, run_config
+from drone_torchrl.envs.dynamics import (
+    ALPHA_LIMIT,
+    STATE_DIM,
+    STATE_NAMES,
+    X_LIMIT,
+    Z_MAX,
+    Z_MIN,
+    ZONE_Z_CENTRE,
+    clamp_action,
+)
 from drone_torchrl.modules.factory import build_actor, build_policy
+from drone_torchrl.modules.policy import actor_from_net
+from drone_torchrl.schema import EXPORT_FORMATS
+
+# The largest difference (max abs, in fractions of the weight) an exported file may have from the
+# actor on check_observations(). The same float32 layers evaluated by other kernels (onnxruntime's
+# GEMM and tanh) differ by 1e-7 to 1e-6; a wrong head, a missing clamp or a stale weight by 1e-2 or
+# more. 1e-4 of the weight is far below anything the drone feels.
+TOLERANCE = 1e-4
+# The ONNX operator set written. The policy needs only Gemm, its activation (Tanh, Relu, Elu), Add,
+# Mul and Clip, all in 18, which onnxruntime reads since 1.14 (2023): more runtimes than torch's
+# default (20) reach.
+ONNX_OPSET = 18
+# What format=onnx imports: the onnx extra (pyproject.toml).
+ONNX_MODULES = ("onnx", "onnxruntime", "onnxscript")
+ONNX_EXTRA = "pip install 'drone_torchrl[onnx]'"
+# The ONNX model's input and output names.
+ONNX_INPUT, ONNX_OUTPUT = "observation", "thrust"
+# The runtime that runs each format, as the latency figures name it.
+RUNTIMES = {"pt2": "torch.export", "onnx": "onnxruntime"}
+
+# check_observations(): CHECK_RANDOM states drawn uniformly within CHECK_SPAN of CHECK_CENTRE (twice
+# the domain where it has bounds: x +-2, z 0..4, alpha +-pi/3; velocities past any an episode
+# reaches), the box's 64 corners, the floor start, hovering in the zone, and each component (and all
+# of them) at +-CHECK_EXTREME, far outside any state (a tanh trunk saturates).
+CHECK_SEED = 0
+CHECK_RANDOM = 1024
+CHECK_CENTRE = (0.0, 0.0, 0.5 * (Z_MIN + Z_MAX), 0.0, 0.0, 0.0)
+CHECK_SPAN = (2 * X_LIMIT, 10.0, Z_MAX - Z_MIN, 10.0, 2 * ALPHA_LIMIT, 20.0)
+CHECK_EXTREME = 1e3
+# Hovering in the zone's centre: one of the checked observations, and the one the latency is timed on.
+HOVER_OBSERVATION = (0.0, 0.0, ZONE_Z_CENTRE, 0.0, 0.0, 0.0)
+
+# Latency: the median over LATENCY_REPEATS repeats of the mean time of LATENCY_CALLS calls, after
+# LATENCY_WARMUP untimed calls; one thread (a controller's one core, and no thread pool to wake).
+LATENCY_REPEATS = 21
+LATENCY_CALLS = 200
+LATENCY_WARMUP = 50
+US_PER_S = 1e6
+
+
+class ExportError(RuntimeError):
+    """An exported file that does not reproduce the actor (one line); nothing was written."""
 
 
 class DeterministicPolicy(nn.Module):
@@ -29,6 +107,7 @@ class DeterministicPolicy(nn.Module):
     def __init__(self, net: nn.Module, distribution: str, max_thrust: float | None) -> None:
         super().__init__()
         self.net = net
+        self.distribution = distribution
         self.squash = distribution == "tanh_normal"
         self.max_thrust = max_thrust
 
@@ -43,29 +122,295 @@ class DeterministicPolicy(nn.Module):
         return loc
 
 
-def deterministic_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, Path]:
-    """The deterministic policy of a checkpoint file or run folder (:class:`ConfigError` if unusable)."""
+@dataclass
+class Exported:
+    """What :func:`export_policy` wrote and how it compared with the actor."""
+
+    path: Path
+    format: str
+    max_abs_diff: float  # the written file against the actor, on ``checked`` observations
+    checked: int
+    policy: DeterministicPolicy = field(repr=False)  # the eager policy it was exported from
+
+
+# ------------------------------------------------------------------------------ what to write
+def resolve_output(format: str | None, output: Any) -> tuple[str, Path]:
+    """The format and the file of ``format=`` and ``output=`` (:class:`ConfigError` if they do not
+    fit): the output's suffix is the format's (``.pt2``, ``.onnx``); a null format is the suffix's,
+    a null output ``policy.<format>``."""
+    suffixes = {f".{name}": name for name in EXPORT_FORMATS}
+    if format is not None and format not in EXPORT_FORMATS:
+        raise ConfigError.of(
+            "format", format, f"one of {list(EXPORT_FORMATS)}, or null (from the output's suffix)"
+        )
+    if output is None:
+        format = format or EXPORT_FORMATS[0]
+        return format, Path(f"policy.{format}")
+    if not isinstance(output, str | os.PathLike) or not str(output).strip():
+        raise ConfigError.of("output", output, "a file path such as policy.pt2 or policy.onnx")
+    path = Path(output)
+    if path.is_dir():
+        raise ConfigError.of("output", str(output), "a file path such as policy.pt2, not a folder")
+    named = suffixes.get(path.suffix.lower())
+    if format is None and named is None:
+        raise ConfigError.of(
+            "output",
+            str(output),
+            f"a file name ending in {' or '.join(suffixes)} (its suffix names the format)",
+        )
+    if format is not None and named != format:
+        raise ConfigError.of(
+            "output", str(output), f"a file name ending in .{format}, to match format={format}"
+        )
+    return named, path
+
+
+def _installed(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):
+        return False
+
+
+def check_onnx_extra() -> None:
+    """format=onnx without the onnx extra: one line naming it (:class:`ConfigError`)."""
+    missing = [name for name in ONNX_MODULES if not _installed(name)]
+    if missing:
+        raise ConfigError(f"format=onnx needs {', '.join(missing)}, not installed here: {ONNX_EXTRA}")
+
+
+# ------------------------------------------------------------------------------- the policy
+def policy_and_actor(
+    net: nn.Module, distribution: str, max_thrust: float | None
+) -> tuple[DeterministicPolicy, ProbabilisticActor]:
+    """The exported policy over ``net`` and the TorchRL actor it must reproduce (both eval mode)."""
+    policy = DeterministicPolicy(net, distribution, max_thrust).eval()
+    return policy, actor_from_net(net, distribution, max_thrust).eval()
+
+
+def load_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, ProbabilisticActor, Path]:
+    """The deterministic policy and the actor of a checkpoint file or run folder (:class:`ConfigError`
+    if unusable), on the CPU."""
     path, state = open_checkpoint("checkpoint", checkpoint)
     cfg = run_config(state["config"])
     cfg.device = "cpu"
     net = build_policy(cfg)
     build_actor(cfg, net).load_state_dict(state["actor"])  # the actor's keys; the net holds the weights
-    return DeterministicPolicy(net, cfg.model.distribution, cfg.env.max_thrust).eval(), path
+    return (*policy_and_actor(net, cfg.model.distribution, cfg.env.max_thrust), path)
 
 
-def export_policy(checkpoint: str | os.PathLike, output: str | os.PathLike) -> Path:
-    """Write the deterministic policy of ``checkpoint`` to ``output`` (``torch.export``, ``.pt2``)."""
-    output = Path(output)
-    if output.is_dir():
-        raise ConfigError.of("output", str(output), "a file path such as policy.pt2, not a folder")
-    policy, _ = deterministic_policy(checkpoint)
+def deterministic_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, Path]:
+    """The deterministic policy of a checkpoint file or run folder (:class:`ConfigError` if unusable)."""
+    policy, _, path = load_policy(checkpoint)
+    return policy, path
+
+
+def actor_commands(
+    actor: ProbabilisticActor, observation: torch.Tensor, max_thrust: float | None
+) -> torch.Tensor:
+    """The motor commands the env applies when ``actor`` acts deterministically: the reference."""
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = actor(TensorDict({"observation": observation}, batch_size=observation.shape[:1]))
+    return clamp_action(td["action"], max_thrust)
+
+
+def check_observations() -> torch.Tensor:
+    """The float32 observations ``[N, 6]`` every export is checked on (fixed: seeded draws, corners,
+    extremes; see :data:`CHECK_SPAN`)."""
+    centre, span = torch.tensor(CHECK_CENTRE), torch.tensor(CHECK_SPAN)
+    generator = torch.Generator().manual_seed(CHECK_SEED)
+    uniform = 2.0 * torch.rand(CHECK_RANDOM, STATE_DIM, generator=generator) - 1.0
+    corners = torch.tensor(list(itertools.product((-1.0, 1.0), repeat=STATE_DIM)))
+    axes = torch.cat([torch.eye(STATE_DIM), torch.ones(1, STATE_DIM)])
+    edges = [
+        torch.zeros(1, STATE_DIM),  # the floor start
+        torch.tensor([HOVER_OBSERVATION]),
+        centre + span * corners,
+        CHECK_EXTREME * axes,
+        -CHECK_EXTREME * axes,
+    ]
+    return torch.cat([centre + span * uniform, *edges]).to(torch.float32)
+
+
+# ------------------------------------------------------------------------------- writing
+@contextlib.contextmanager
+def _quiet_onnx_exporter() -> Iterator[None]:
+    """torch.onnx's exporter logs a warning for each torchvision operator it cannot register and
+    torch.export's pytree warns about its own deprecations: noise on drone-export's terminal."""
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            yield
+    finally:
+        logger.setLevel(level)
+
+
+def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
+    """What the ONNX model says about itself (its metadata_props)."""
+    return {
+        ONNX_INPUT: f"float32 [B, {STATE_DIM}]: {', '.join(STATE_NAMES)}",
+        ONNX_OUTPUT: "float32 [B, 2]: left, right motor commands, fractions of the weight",
+        "distribution": policy.distribution,
+        "max_thrust": "none" if policy.max_thrust is None else repr(float(policy.max_thrust)),
+        "written_by": "drone_torchrl drone-export",
+    }
+
+
+def write_program(policy: DeterministicPolicy, path: str | os.PathLike, format: str) -> None:
+    """Write ``policy`` to ``path`` as ``format`` (``pt2`` or ``onnx``), unchecked (see :func:`export_policy`)."""
     policy.requires_grad_(False)  # an inference program: no autograd graph in its outputs
     example = torch.zeros(2, STATE_DIM)
     batch = torch.export.Dim("batch")
     with torch.no_grad():
         program = torch.export.export(policy, (example,), dynamic_shapes=({0: batch},))
+    if format == "pt2":
+        torch.export.save(program, path)
+        return
+    with _quiet_onnx_exporter():
+        onnx_program = torch.onnx.export(
+            program,
+            (example,),
+            dynamo=True,
+            opset_version=ONNX_OPSET,
+            input_names=[ONNX_INPUT],
+            output_names=[ONNX_OUTPUT],
+            external_data=False,
+            verbose=False,
+        )
+    onnx_program.model.doc_string = "drone_torchrl policy: observations [B, 6] -> the motor commands [B, 2] the env applies (deterministic)"
+    onnx_program.model.metadata_props.update(_metadata(policy))
+    onnx_program.save(path, external_data=False)  # one file: the weights inside
+    import onnx
+
+    onnx.checker.check_model(os.fspath(path), full_check=True)
+
+
+# ------------------------------------------------------------------------------- running
+def onnx_session(path: str | os.PathLike, threads: int = 1) -> Any:
+    """An onnxruntime CPU session of ``path`` on ``threads`` threads."""
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = options.inter_op_num_threads = threads
+    options.log_severity_level = 3  # errors only
+    return onnxruntime.InferenceSession(os.fspath(path), options, providers=["CPUExecutionProvider"])
+
+
+def load_program(path: str | os.PathLike, format: str) -> Callable[[torch.Tensor], torch.Tensor]:
+    """The file ``path`` run by its own runtime, as a function of a float32 observation batch."""
+    if format == "pt2":
+        module = torch.export.load(path).module()
+
+        def run(observation: torch.Tensor) -> torch.Tensor:
+            with torch.no_grad():
+                return module(observation)
+
+        return run
+    session = onnx_session(path)
+    return lambda observation: torch.from_numpy(session.run(None, {ONNX_INPUT: observation.numpy()})[0])
+
+
+def export_policy(
+    checkpoint: str | os.PathLike, output: str | os.PathLike | None = None, format: str | None = None
+) -> Exported:
+    """Write the deterministic policy of ``checkpoint`` to ``output`` as ``format`` (see
+    :func:`resolve_output`), checked against the checkpoint's actor: :class:`ConfigError` for bad
+    arguments (before any work), :class:`ExportError` for a file that does not reproduce the actor
+    (nothing is written)."""
+    format, output = resolve_output(format, output)
+    if format == "onnx":
+        check_onnx_extra()
+    policy, actor, path = load_policy(checkpoint)
+    observations = check_observations()
+    expected = actor_commands(actor, observations, policy.max_thrust)
+    if not torch.isfinite(expected).all():
+        raise ExportError(f"checkpoint={str(path)!r} gives commands that are not numbers (diverged weights?)")
     output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(output.name + ".tmp.pt2")
-    torch.export.save(program, tmp)
-    os.replace(tmp, output)  # never a half-written file under the final name
-    return output
+    tmp = output.with_name(f"{output.name}.tmp.{format}")
+    try:
+        write_program(policy, tmp, format)
+        got = load_program(tmp, format)(observations)
+        if got.shape != expected.shape or got.dtype != torch.float32:
+            raise ExportError(
+                f"the {format} program returns {got.dtype} {list(got.shape)}, not float32 {list(expected.shape)}"
+            )
+        difference = (got - expected).abs().max().item()
+        if not difference <= TOLERANCE:  # NaN too
+            raise ExportError(
+                f"the {format} program differs from the actor by up to {difference:.3g} on "
+                f"{len(observations)} observations (tolerance {TOLERANCE:g}); {output} not written"
+            )
+        os.replace(tmp, output)  # never a half-written or unchecked file under the final name
+    finally:
+        tmp.unlink(missing_ok=True)
+    return Exported(output, format, difference, len(observations), policy)
+
+
+def run_export(cfg: Mapping[str, Any]) -> Exported:
+    """drone-export's work on its composed config (``conf/export.yaml``): the keys and values first."""
+    resolved = check_keys(cfg, "export")
+    check_values(resolved, "export")
+    format, output = resolve_output(resolved["format"], resolved["output"])
+    if format == "onnx":
+        check_onnx_extra()
+    if resolved["checkpoint"] is None:
+        raise ConfigError.of("checkpoint", None, "a checkpoint file or a run folder")
+    return export_policy(resolved["checkpoint"], output, format)
+
+
+# ------------------------------------------------------------------------------- latency
+@contextlib.contextmanager
+def one_thread() -> Iterator[None]:
+    """torch on one intra-op thread (restored after)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
+def median_us(
+    call: Callable[[], Any],
+    repeats: int = LATENCY_REPEATS,
+    calls: int = LATENCY_CALLS,
+    warmup: int = LATENCY_WARMUP,
+) -> float:
+    """The median over ``repeats`` of the mean time of one ``call()`` in ``calls``, in microseconds."""
+    for _ in range(warmup):
+        call()
+    per_call = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(calls):
+            call()
+        per_call.append((time.perf_counter() - start) / calls * US_PER_S)
+    return statistics.median(per_call)
+
+
+def forward_passes(
+    policy: DeterministicPolicy, files: Mapping[str, str | os.PathLike], batch: int = 1
+) -> dict[str, Callable[[], Any]]:
+    """One forward pass of ``batch`` observations (hovering in the zone) each: the eager policy
+    (``eager torch``) and each file in ``files`` (format -> path) in its runtime (:data:`RUNTIMES`)."""
+    observation = torch.tensor([HOVER_OBSERVATION]).expand(batch, STATE_DIM).contiguous()
+    passes: dict[str, Callable[[], Any]] = {}
+    for format, path in files.items():
+        if format == "onnx":
+            session, feed = onnx_session(path), {ONNX_INPUT: observation.numpy()}
+            passes[RUNTIMES[format]] = lambda session=session, feed=feed: session.run(None, feed)
+        else:
+            module = torch.export.load(path).module()
+            passes[RUNTIMES[format]] = lambda module=module: module(observation)
+    passes["eager torch"] = lambda: policy(observation)
+    return passes
+
+
+def latencies(passes: Mapping[str, Callable[[], Any]], **timing: int) -> dict[str, float]:
+    """:func:`median_us` of each pass, on one thread and in inference mode (torch's)."""
+    with one_thread(), torch.inference_mode():
+        return {name: median_us(call, **timing) for name, call in passes.items()}

@@ -55,6 +55,9 @@ MAX_INIT_STD = 10.0
 ENGINES = ("torchrl", "fused")
 # REINFORCE's optimizers: adam (the paper's text), adamw (decoupled weight decay, the paper's code).
 OPTIMIZERS = ("adam", "adamw")
+# drone-export's file formats: a torch.export program (plain torch) or an ONNX model (onnxruntime and
+# other ONNX runtimes; the onnx extra). Each is also the output's file suffix (drone_torchrl/export.py).
+EXPORT_FORMATS = ("pt2", "onnx")
 
 # ------------------------------------------------------------------ what a continued run does
 # A run continued from a checkpoint keeps the checkpoint's value of a key, unless the key says:
@@ -282,6 +285,11 @@ class ExportConfig:
     """``conf/export.yaml``: drone-export."""
 
     checkpoint: Any = free()
+    format: Any = one_of(
+        EXPORT_FORMATS,
+        optional=True,
+        expected=f"one of {list(EXPORT_FORMATS)}, or null (from the output's suffix)",
+    )
     output: Any = free()
 
 

@@ -1,4 +1,4 @@
-"""Every bad input to drone-train, drone-eval and drone-report is refused before any work.
+"""Every bad input to drone-train, drone-eval, drone-report and drone-export is refused before any work.
 
 Each row is one bad input. It must give a non-zero exit (here: a ``ConfigError``/``ReportError``
 or exit code 2), a message of one line that names the offending key, flag or file, and write no
@@ -25,6 +25,7 @@ from hydra import compose, initialize_config_dir
 from drone_torchrl.apps.report import main as report_main
 from drone_torchrl.comparison import run_eval
 from drone_torchrl.config import ConfigError, check_overrides, config_dir
+from drone_torchrl.export import run_export
 from drone_torchrl.io.episodes_csv import CSV_COLUMNS
 from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.trainer import train
@@ -38,7 +39,7 @@ TINY = [
     "progress=false",
     "compile=false",
 ]
-WRITTEN = ("*.pt", "*.csv", "events.out.tfevents*", "*.gif", "*.mp4", "*.png", "*.md")
+WRITTEN = ("*.pt", "*.csv", "events.out.tfevents*", "*.gif", "*.mp4", "*.png", "*.md", "*.pt2", "*.onnx*")
 
 
 class Payload:
@@ -337,6 +338,47 @@ def test_drone_eval_refuses(overrides, names, files, tmp_path, monkeypatch):
     assert not files["marker"].exists()
 
 
+# ------------------------------------------------------------------------------------ drone-export
+EXPORT = [
+    ([], "checkpoint"),  # no checkpoint named
+    (["checkpoint=true"], "checkpoint"),
+    (["checkpoint={emptydir}/nothing"], "checkpoint"),
+    (["checkpoint={corrupt}"], "corrupt.pt"),
+    (["checkpoint={payload}"], "payload.pt"),
+    (["checkpoint={v99}"], "format_version"),
+    (["checkpoint={run}", "format=zip"], "format"),
+    (["checkpoint={run}", "format=ONNX"], "format"),
+    (["checkpoint={run}", "format=true"], "format"),
+    (["checkpoint={run}", "format=[onnx]"], "format"),
+    (["checkpoint={run}", "format=onnx", "output=policy.pt2"], "output"),  # the suffix names the format
+    (["checkpoint={run}", "format=pt2", "output=policy.onnx"], "output"),
+    (["checkpoint={run}", "output=policy.zip"], "output"),  # no format to infer
+    (["checkpoint={run}", "output=policy"], "output"),
+    (["checkpoint={run}", "format=pt2", "output=policy"], "output"),
+    (["checkpoint={run}", "output={emptydir}"], "output"),  # a folder
+    (["checkpoint={run}", "output=''"], "output"),
+    (["checkpoint={run}", "output=1"], "output"),
+    (["checkpoint={run}", "+foo=1"], "foo"),
+    (["checkpoint={run}", "formats=onnx"], "format"),  # the hint names the real key
+]
+
+
+@pytest.mark.parametrize(("overrides", "names"), EXPORT, ids=[" ".join(o) or "none" for o, _ in EXPORT])
+def test_drone_export_refuses(overrides, names, files, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    overrides = _fill(overrides, files)
+    before = _written(files["run"].parent)
+    with pytest.raises(ConfigError) as info:
+        check_overrides(overrides, "export")
+        with initialize_config_dir(config_dir(), version_base="1.3"):
+            cfg = compose("export", overrides=overrides)
+        run_export(cfg)
+    _one_line(str(info.value), names)
+    assert list(tmp_path.iterdir()) == []
+    assert _written(files["run"].parent) == before
+    assert not files["marker"].exists()
+
+
 # ------------------------------------------------------------------------------------ drone-report
 def _sweep(root: Path, config: str | None = "seed: 0\n", csv: str | None = None) -> Path:
     job = root / "sweep" / "seed=0"
@@ -385,12 +427,17 @@ def test_drone_report_refuses(argv, names, files, tmp_path, capsys):
 
 
 def test_at_least_100_rows():
-    assert len(TRAIN) + len(EVAL) + len(REPORT) >= 100
+    assert len(TRAIN) + len(EVAL) + len(REPORT) + len(EXPORT) >= 100
 
 
 # ------------------------------------------------------------------------------------- end to end
 def _command(name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
-    module = {"drone-train": "train", "drone-eval": "evaluate", "drone-report": "report"}[name]
+    module = {
+        "drone-train": "train",
+        "drone-eval": "evaluate",
+        "drone-report": "report",
+        "drone-export": "export",
+    }[name]
     return subprocess.run(
         [sys.executable, "-m", f"drone_torchrl.apps.{module}", *args],
         capture_output=True,
@@ -424,6 +471,8 @@ E2E = [
     ("drone-train", ["seed=1", "--cfg", "job", "algo.lr=1e-3"], "algo.lr=1e-3"),  # a flag between overrides
     ("drone-report", ["{file}"], "notes.txt"),
     ("drone-report", ["{run}", "--window", "abc"], "--window"),
+    ("drone-export", ["checkpoint={run}", "format=zip"], "format"),
+    ("drone-export", ["checkpoint={run}", "format=onnx", "output=policy.pt2"], "output"),
 ]
 
 
@@ -442,13 +491,14 @@ def _clean_refusal(proc: subprocess.CompletedProcess, names: str) -> bool:
 
 @pytest.mark.slow
 def test_every_row_through_the_real_commands(files, tmp_path):
-    """The review harness: every drone-train and drone-eval row above and every end-to-end row, run
+    """The review harness: every drone-train, drone-eval and drone-export row above and every end-to-end row, run
     through the real console command; prints how many end in a clean one-line refusal."""
     cases = [("drone-train", [*TINY, *o], n) for o, n in TRAIN]
     quiet = ("video=false", "plot=false")  # as test_drone_eval_refuses: unless the row sets the key
     cases += [
         ("drone-eval", [*o, *(q for q in quiet if not o[0].startswith(q.split("=")[0]))], n) for o, n in EVAL
     ]
+    cases += [("drone-export", o, n) for o, n in EXPORT]
     cases += [(name, args, n) for name, args, n in E2E]
 
     def one(i):

@@ -119,7 +119,7 @@ def test_exported_policy_runs_with_plain_torch_and_matches_the_actor(tmp_path, p
         ]
     )
     train(_cfg(f"experiment={preset}", *algo, *QUIET), run)
-    out = export_policy(run, tmp_path / "policy.pt2")
+    out = export_policy(run, tmp_path / "policy.pt2").path
     observations = torch.randn(257, 6) * torch.tensor([1.0, 2.0, 1.0, 2.0, 0.3, 1.0]) + torch.tensor(
         [0, 0, 2.0, 0, 0, 0]
     )

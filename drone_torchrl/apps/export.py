@@ -1,9 +1,14 @@
-"""``drone-export``: a checkpoint's deterministic policy as a standalone ``torch.export`` file.
+"""``drone-export``: a checkpoint's deterministic policy as a standalone file, a ``torch.export``
+program (``.pt2``) or an ONNX model (``.onnx``, the ``onnx`` extra).
 
 drone-export checkpoint=outputs/<date>/<run> output=policy.pt2
+drone-export checkpoint=outputs/<date>/<run> output=policy.onnx      # or format=onnx
 drone-export checkpoint=<run>/checkpoints/best.pt output=best.pt2
 
-Load it with plain torch: ``torch.export.load("policy.pt2").module()(observation)``.
+Load a .pt2 with plain torch: ``torch.export.load("policy.pt2").module()(observation)``; an .onnx
+with onnxruntime: ``InferenceSession("policy.onnx").run(None, {"observation": observation})``.
+It prints the file's largest difference from the actor (checked before it is written) and the
+latency of one forward pass (batch 1) in its runtime and in eager torch.
 """
 
 from __future__ import annotations
@@ -14,22 +19,29 @@ import hydra
 from omegaconf import DictConfig
 
 from drone_torchrl import command_line
-from drone_torchrl.config import ConfigError, check_command_line, check_keys, config_dir
+from drone_torchrl.config import ConfigError, check_command_line, config_dir
 
 
 @hydra.main(config_path=config_dir(), config_name="export", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    from drone_torchrl.export import export_policy
+    from drone_torchrl import export
 
     try:
-        check_keys(cfg, "export")
-        if cfg.checkpoint is None:
-            raise ConfigError.of("checkpoint", None, "a checkpoint file or a run folder")
-        if not isinstance(cfg.output, str) or not cfg.output:
-            raise ConfigError.of("output", cfg.output, "a file path such as policy.pt2")
-        print(f"wrote {export_policy(cfg.checkpoint, cfg.output)}")
-    except ConfigError as err:
+        exported = export.run_export(cfg)
+    except (ConfigError, export.ExportError) as err:
         sys.exit(f"drone-export: error: {err}")
+    print(f"wrote {exported.path}")
+    print(
+        f"checked: largest difference from the actor {exported.max_abs_diff:.2g} on {exported.checked} "
+        f"observations (tolerance {export.TOLERANCE:g})"
+    )
+    times = export.latencies(export.forward_passes(exported.policy, {exported.format: exported.path}))
+    figures = ", ".join(f"{name} {us:.1f} us" for name, us in times.items())
+    runtime = export.RUNTIMES[exported.format]
+    print(
+        f"latency of one forward pass, batch 1, one thread (median of {export.LATENCY_REPEATS} x "
+        f"{export.LATENCY_CALLS} calls): {figures}; {runtime} / eager {times[runtime] / times['eager torch']:.2f}"
+    )
 
 
 def run() -> None:
