@@ -61,6 +61,8 @@ def evaluate(
     if agents is not None:
         start = start.expand(agents, *start.shape).clone()
     if isinstance(policy, TensorDictModuleBase):
+        if callable(reset := getattr(policy, "reset", None)):
+            reset()  # a stateful controller (the PID's integrals) starts new episodes
         rollout = fly(chunked(policy_step(policy, env.params)), start, env.max_steps)
     else:
         rollout = policy(start).as_rollout(env.max_steps)
