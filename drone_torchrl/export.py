@@ -1,13 +1,14 @@
 """A trained policy as a standalone file: ``torch.export`` of its deterministic action.
 
-The exported program maps a float32 observation batch ``[B, 6]`` in the env's state layout
-(``x, x_dot, z, z_dot, alpha, alpha_dot``) to the motor commands ``[B, 2]`` (left, right) as
+The exported program maps an observation batch ``[B, 6]`` in the env's state layout
+(``x, x_dot, z, z_dot, alpha, alpha_dot``) and dtype (float32; float64 for a run with
+``env.dtype=float64``, whose weights are float64) to the motor commands ``[B, 2]`` (left, right) as
 fractions of the weight, exactly what the env applies: the Normal head's mean, or the TanhNormal
 head's deterministic action (``ExplorationType.DETERMINISTIC``: the squashed mean), clamped to
 ``[0, max_thrust]`` when thrust is bounded. It needs plain torch only::
 
     policy = torch.export.load("policy.pt2").module()
-    thrust = policy(observation)          # observation: float32 [B, 6]
+    thrust = policy(observation)          # observation: float32 [B, 6] (the run's env.dtype)
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ def export_policy(checkpoint: str | os.PathLike, output: str | os.PathLike) -> P
         raise ConfigError.of("output", str(output), "a file path such as policy.pt2, not a folder")
     policy, _ = deterministic_policy(checkpoint)
     policy.requires_grad_(False)  # an inference program: no autograd graph in its outputs
-    example = torch.zeros(2, STATE_DIM)
+    example = torch.zeros(2, STATE_DIM, dtype=next(policy.parameters()).dtype)
     batch = torch.export.Dim("batch")
     with torch.no_grad():
         program = torch.export.export(policy, (example,), dynamic_shapes=({0: batch},))
