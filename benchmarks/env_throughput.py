@@ -209,9 +209,9 @@ def _compilable_step(
     ``torch.where``. The values are identical in eager mode; :func:`compiled_step` checks that.
     """
     next_state = dynamics.integrate(state, dynamics.clamp_action(action, params.max_thrust), params)
-    cause = dynamics.termination_cause(next_state, params.floor_tolerance)
+    cause = dynamics.termination_cause(next_state, params)
     terminated = cause != int(dynamics.TerminationCause.NONE)
-    return next_state, dynamics.reward(next_state, terminated), cause
+    return next_state, dynamics.reward(next_state, terminated, params), cause
 
 
 def _same_as_eager(step_fn: StepFn, max_thrust: float | None) -> bool:

@@ -34,7 +34,7 @@ from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.trainer import Trainer
 
 
-def never_terminate(state: torch.Tensor, floor_tolerance: float) -> torch.Tensor:
+def never_terminate(state: torch.Tensor, params: dynamics.DroneParams) -> torch.Tensor:
     return torch.zeros(state.shape[:-1], dtype=torch.int64, device=state.device)
 
 

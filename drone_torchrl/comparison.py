@@ -39,8 +39,11 @@ PLOT_NAME = "trajectory.png"
 VIDEO_NAME = "episode.gif"
 
 
-def plot_trajectory(rollout: TensorDictBase, path: Path, title: str) -> Path:
-    """x-z path of the first episode over the domain and target zone, and both thrusts over time."""
+def plot_trajectory(
+    rollout: TensorDictBase, path: Path, title: str, params: dynamics.DroneParams | None = None
+) -> Path:
+    """x-z path of the first episode over the domain and target zone of ``params`` (default: the
+    paper's), and both thrusts over time."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -50,12 +53,13 @@ def plot_trajectory(rollout: TensorDictBase, path: Path, title: str) -> Path:
     valid = valid_steps(first.get(("next", "done"))).squeeze(-1)
     states = torch.cat([first.get("observation")[:1], first.get(("next", "observation"))[valid]]).numpy()
     actions = first.get("action")[valid].numpy()
+    p = dynamics.DroneParams() if params is None else params
     fig, (ax_path, ax_thrust) = plt.subplots(1, 2, figsize=(11, 4.5))
     ax_path.add_patch(
         plt.Rectangle(
-            (-dynamics.ZONE_X_LIMIT, dynamics.ZONE_Z_MIN),
-            2 * dynamics.ZONE_X_LIMIT,
-            dynamics.ZONE_Z_MAX - dynamics.ZONE_Z_MIN,
+            (-p.zone_x_limit, p.zone_z_min),
+            2 * p.zone_x_limit,
+            p.zone_z_max - p.zone_z_min,
             color="tab:green",
             alpha=0.2,
             label="target zone",
@@ -63,7 +67,7 @@ def plot_trajectory(rollout: TensorDictBase, path: Path, title: str) -> Path:
     )
     ax_path.plot(states[:, dynamics.X], states[:, dynamics.Z], color="tab:blue", label="path")
     ax_path.plot(states[0, dynamics.X], states[0, dynamics.Z], "o", color="tab:blue", label="start")
-    ax_path.set(xlim=(-dynamics.X_LIMIT, dynamics.X_LIMIT), ylim=(dynamics.Z_MIN, dynamics.Z_MAX))
+    ax_path.set(xlim=(-p.x_limit, p.x_limit), ylim=(p.z_min, p.z_max))
     ax_path.set(xlabel="x [m]", ylabel="z [m]", aspect="equal", title="path")
     ax_path.grid(alpha=0.3)
     ax_path.legend(loc="lower right", fontsize=8)
@@ -168,7 +172,8 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         )
     main_name = next(iter(policies))
     if cfg.plot:
-        print("plot:", plot_trajectory(rollouts[main_name], out_dir / PLOT_NAME, main_name))
+        plot = plot_trajectory(rollouts[main_name], out_dir / PLOT_NAME, main_name, physics_params(kwargs))
+        print("plot:", plot)
     if cfg.video:
         frames = record_video(policies[main_name], kwargs, cfg.seed, cfg.device)
         print("video:", save_gif(frames, out_dir / VIDEO_NAME, cfg.video_fps))

@@ -24,6 +24,13 @@ DEVICE_KINDS = ("cpu", "cuda")
 # The DroneEnv arguments a config holds under env.*: the env schema's keys but the TorchRL
 # collector's worker count (drone_torchrl.schema.EnvConf is the one list of them).
 ENV_ARGS = tuple(f.name for f in dataclasses.fields(schema.EnvConf) if f.name not in schema.ENV_NON_ARGS)
+# Those added after the first runs, with the value the runs saved before them behaved as: a saved
+# config (a checkpoint's, a run folder's config.yaml) without one of them gets it (env_kwargs).
+ENV_ADDED = {
+    f.name: f.metadata[schema.RULE].added
+    for f in dataclasses.fields(schema.EnvConf)
+    if f.name in ENV_ARGS and f.metadata[schema.RULE].is_added
+}
 
 
 def config_dir() -> str:
@@ -378,18 +385,22 @@ def run_config(saved: dict[str, Any]) -> DictConfig:
 _ABSENT = object()
 
 
-# The DroneEnv arguments that describe the episode rather than the drone.
+# The DroneEnv arguments that describe the episode rather than the drone, and the precision: the
+# others are DroneParams' (the physics and the arena, what the dynamics need).
 EPISODE_ARGS = ("max_steps", "reset_mode")
+NOT_PARAMS = (*EPISODE_ARGS, "dtype")
 
 
 def physics_params(kwargs: dict[str, Any]) -> DroneParams:
-    """The validated physical parameters among ``DroneEnv`` arguments (what the dynamics need)."""
-    return make_params(**{k: v for k, v in kwargs.items() if k not in EPISODE_ARGS})
+    """The validated physical parameters and arena among ``DroneEnv`` arguments (what the dynamics need)."""
+    return make_params(**{k: v for k, v in kwargs.items() if k not in NOT_PARAMS})
 
 
 def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
-    """The ``DroneEnv`` arguments of a config (a ``DictConfig`` or the plain dict of a saved one)."""
-    return {name: cfg["env"][name] for name in ENV_ARGS}
+    """The ``DroneEnv`` arguments of a config (a ``DictConfig`` or the plain dict of a saved one); a
+    saved config from before an argument existed gets its :data:`ENV_ADDED` value."""
+    env = cfg["env"]
+    return {name: env[name] if name in env else ENV_ADDED[name] for name in ENV_ARGS}
 
 
 def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:

@@ -7,8 +7,16 @@ import math
 import torch
 from tensordict import TensorDictBase
 
-from drone_torchrl.envs.dynamics import ACTION_DIM, TerminationCause, in_target_zone
+from drone_torchrl.envs.dynamics import ACTION_DIM, REWARD_IN_ZONE, TerminationCause
 from drone_torchrl.envs.rollout import Episodes
+
+
+def _in_zone(reward: torch.Tensor) -> torch.Tensor:
+    """The steps that ended inside the target zone without terminating: those the env rewarded with
+    :data:`~drone_torchrl.envs.dynamics.REWARD_IN_ZONE` (it alone knows its zone, bounds and dtype;
+    the other rewards, 1 and 0, differ from it)."""
+    return reward == REWARD_IN_ZONE
+
 
 # What a run record books of each finished episode (one episodes.csv column each).
 EPISODE_KEYS = ("return", "length", "time_in_zone", "negative_thrust_fraction", "termination_cause")
@@ -30,7 +38,7 @@ def episode_stats(rollout: TensorDictBase | Episodes) -> dict[str, torch.Tensor]
     episodes = rollout if isinstance(rollout, Episodes) else Episodes.from_rollout(rollout)
     valid, length, action = episodes.valid(), episodes.length, episodes.action
     terminated = episodes.cause != int(TerminationCause.NONE)
-    zone = in_target_zone(episodes.states[..., 1:, :]) & valid & ~terminated
+    zone = _in_zone(episodes.reward) & valid & ~terminated
     negative = (action < 0) & valid.unsqueeze(-1)
     last = (length - 1).clamp_min(0).unsqueeze(-1)
     steps = length.clamp_min(1).to(episodes.reward.dtype)
@@ -82,7 +90,7 @@ class EpisodeTracker:
         reward = batch.get(("next", "reward")).squeeze(-1)
         done = batch.get(("next", "done")).squeeze(-1)
         terminated = batch.get(("next", "terminated")).squeeze(-1)
-        zone = in_target_zone(batch.get(("next", "observation"))) & ~terminated
+        zone = _in_zone(reward) & ~terminated
         negative = (batch.get("action") < 0).sum(-1)
         cause = batch.get(("next", "termination_cause")).squeeze(-1)
         ended: dict[str, list] = {k: [] for k in EPISODE_KEYS}

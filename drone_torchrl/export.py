@@ -1,8 +1,9 @@
 """A trained policy as a standalone file: its deterministic action as a ``torch.export`` program
 (``.pt2``, plain torch) or an ONNX model (``.onnx``, onnxruntime or any ONNX runtime).
 
-Both map a float32 observation batch ``[B, 6]`` in the env's state layout
-(``x, x_dot, z, z_dot, alpha, alpha_dot``) to the motor commands ``[B, 2]`` (left, right) as
+Both map an observation batch ``[B, 6]`` in the env's state layout
+(``x, x_dot, z, z_dot, alpha, alpha_dot``) and dtype (float32; float64 for a run with
+``env.dtype=float64``, whose weights are float64) to the motor commands ``[B, 2]`` (left, right) as
 fractions of the weight, exactly what the env applies: the Normal head's mean, or the TanhNormal
 head's deterministic action (``ExplorationType.DETERMINISTIC``: the squashed mean), clamped to
 ``[0, max_thrust]`` when thrust is bounded. The batch dimension is dynamic::
@@ -249,11 +250,17 @@ def _quiet_onnx_exporter() -> Iterator[None]:
         logger.setLevel(level)
 
 
+def _dtype(policy: DeterministicPolicy) -> torch.dtype:
+    """The policy's dtype: float32, or float64 for a run with ``env.dtype=float64``."""
+    return next(policy.parameters()).dtype
+
+
 def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
     """What the ONNX model says about itself (its metadata_props)."""
+    dtype = str(_dtype(policy)).removeprefix("torch.")
     return {
-        ONNX_INPUT: f"float32 [B, {STATE_DIM}]: {', '.join(STATE_NAMES)}",
-        ONNX_OUTPUT: "float32 [B, 2]: left, right motor commands, fractions of the weight",
+        ONNX_INPUT: f"{dtype} [B, {STATE_DIM}]: {', '.join(STATE_NAMES)}",
+        ONNX_OUTPUT: f"{dtype} [B, 2]: left, right motor commands, fractions of the weight",
         "distribution": policy.distribution,
         "max_thrust": "none" if policy.max_thrust is None else repr(float(policy.max_thrust)),
         "written_by": "drone_torchrl drone-export",
@@ -263,7 +270,7 @@ def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
 def write_program(policy: DeterministicPolicy, path: str | os.PathLike, format: str) -> None:
     """Write ``policy`` to ``path`` as ``format`` (``pt2`` or ``onnx``), unchecked (see :func:`export_policy`)."""
     policy.requires_grad_(False)  # an inference program: no autograd graph in its outputs
-    example = torch.zeros(2, STATE_DIM)
+    example = torch.zeros(2, STATE_DIM, dtype=_dtype(policy))
     batch = torch.export.Dim("batch")
     with torch.no_grad():
         program = torch.export.export(policy, (example,), dynamic_shapes=({0: batch},))
@@ -301,7 +308,7 @@ def onnx_session(path: str | os.PathLike, threads: int = 1) -> Any:
 
 
 def load_program(path: str | os.PathLike, format: str) -> Callable[[torch.Tensor], torch.Tensor]:
-    """The file ``path`` run by its own runtime, as a function of a float32 observation batch."""
+    """The file ``path`` run by its own runtime, as a function of an observation batch (the policy's dtype)."""
     if format == "pt2":
         module = torch.export.load(path).module()
 
@@ -325,7 +332,7 @@ def export_policy(
     if format == "onnx":
         check_onnx_extra()
     policy, actor, path = load_policy(checkpoint)
-    observations = check_observations()
+    observations = check_observations().to(_dtype(policy))
     expected = actor_commands(actor, observations, policy.max_thrust)
     if not torch.isfinite(expected).all():
         raise ExportError(f"checkpoint={str(path)!r} gives commands that are not numbers (diverged weights?)")
@@ -334,9 +341,10 @@ def export_policy(
     try:
         write_program(policy, tmp, format)
         got = load_program(tmp, format)(observations)
-        if got.shape != expected.shape or got.dtype != torch.float32:
+        if got.shape != expected.shape or got.dtype != expected.dtype:
             raise ExportError(
-                f"the {format} program returns {got.dtype} {list(got.shape)}, not float32 {list(expected.shape)}"
+                f"the {format} program returns {got.dtype} {list(got.shape)}, "
+                f"not {expected.dtype} {list(expected.shape)}"
             )
         difference = (got - expected).abs().max().item()
         if not difference <= TOLERANCE:  # NaN too
@@ -397,7 +405,9 @@ def forward_passes(
 ) -> dict[str, Callable[[], Any]]:
     """One forward pass of ``batch`` observations (hovering in the zone) each: the eager policy
     (``eager torch``) and each file in ``files`` (format -> path) in its runtime (:data:`RUNTIMES`)."""
-    observation = torch.tensor([HOVER_OBSERVATION]).expand(batch, STATE_DIM).contiguous()
+    observation = (
+        torch.tensor([HOVER_OBSERVATION], dtype=_dtype(policy)).expand(batch, STATE_DIM).contiguous()
+    )
     passes: dict[str, Callable[[], Any]] = {}
     for format, path in files.items():
         if format == "onnx":

@@ -319,14 +319,16 @@ def optimum(
     return Optimum(steps, zone_steps, first, plan)
 
 
-def start_box(reset_mode: str) -> list[Start]:
-    """The vertical start states of ``reset_mode``: the floor start, or the corners of the air box
-    (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE` of the zone's centre and of rest)."""
+def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]:
+    """The vertical start states of ``reset_mode``: the floor start (at ``params.z_min``), or the
+    corners of the air box (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE` of the zone's
+    centre and of rest)."""
+    params = DroneParams() if params is None else params
     if reset_mode == "floor":
-        return [FLOOR_START]
+        return [(params.z_min, FLOOR_START[1])]
     if reset_mode == "air":
         noise = dynamics.RESET_NOISE
-        centre = dynamics.ZONE_Z_CENTRE
+        centre = params.zone_z_centre
         return [(centre + dz, dv) for dz in (-noise, noise) for dv in (-noise, noise)]
     raise ValueError(f"reset_mode={reset_mode!r} is not allowed; expected one of {dynamics.RESET_MODES}")
 
@@ -341,15 +343,18 @@ def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum
     zone can be held from step 1 on is convex (the projection of the LP's feasible set), so if every
     corner of the start box holds it, every air start does, and the bound is the ceiling
     ``10 * max_steps``; otherwise ``None``. ``None`` too when ``max_thrust`` is below the hover
-    thrust (the drone cannot stay up, and how long it survives is outside this model). Cached:
-    computed once per argument set in a process.
+    thrust (the drone cannot stay up, and how long it survives is outside this model). The zone
+    and the domain are ``params``' (the env's arguments). With ``bounds="strict"`` the LPs still
+    allow a height exactly on a bound, so the number bounds the return from above but may not be
+    reached (the zone is open then). Cached: computed once per argument set in a process.
     """
     if params.max_thrust is not None and params.max_thrust < HOVER_THRUST:
         return None
-    corners = start_box(reset_mode)
+    corners = start_box(reset_mode, params)
+    zone_z, domain_z = (params.zone_z_min, params.zone_z_max), (params.z_min, params.z_max)
     if len(corners) == 1:
-        return optimum(params, max_steps, corners[0])
-    plans = [zone_margin(params, max_steps, 1, corner) for corner in corners]
+        return optimum(params, max_steps, corners[0], zone_z, domain_z)
+    plans = [zone_margin(params, max_steps, 1, corner, zone_z, domain_z) for corner in corners]
     if any(plan is None or plan.margin < -MARGIN_TOLERANCE for plan in plans):
         return None
     return Optimum(max_steps, max_steps, 1, None)

@@ -33,6 +33,17 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 from drone_torchrl.checks import ConfigError, check_choice, check_number, check_sizes
+from drone_torchrl.envs.dynamics import (
+    ALPHA_LIMIT,
+    BOUNDS_MODES,
+    DTYPES,
+    X_LIMIT,
+    Z_MAX,
+    Z_MIN,
+    ZONE_X_LIMIT,
+    ZONE_Z_MAX,
+    ZONE_Z_MIN,
+)
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
 
 # ------------------------------------------------------------------------------------ the bounds
@@ -195,7 +206,9 @@ ENV_NON_ARGS = ("num_workers",)
 
 @dataclass
 class EnvConf:
-    """``env.*``: the DroneEnv arguments (the env checks them itself: make_params holds their bounds)."""
+    """``env.*``: the DroneEnv arguments (the env checks them itself: make_params and check_arena
+    hold their bounds, and how the arena's keys relate). The arena, ``bounds`` and ``dtype`` came
+    after the first runs: a checkpoint or run folder without them gets the paper's values."""
 
     mass: Any = free()
     motor_distance: Any = free()
@@ -205,6 +218,15 @@ class EnvConf:
     reset_mode: Any = free()
     max_thrust: Any = free()
     floor_tolerance: Any = free()
+    x_limit: Any = free(added=X_LIMIT)
+    z_min: Any = free(added=Z_MIN)
+    z_max: Any = free(added=Z_MAX)
+    alpha_limit: Any = free(added=ALPHA_LIMIT)
+    zone_x_limit: Any = free(added=ZONE_X_LIMIT)
+    zone_z_min: Any = free(added=ZONE_Z_MIN)
+    zone_z_max: Any = free(added=ZONE_Z_MAX)
+    bounds: Any = one_of(BOUNDS_MODES, added="inclusive")
+    dtype: Any = one_of(tuple(DTYPES), added="float32")
     num_workers: Any = an_integer(low=0)
 
 

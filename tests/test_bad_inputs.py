@@ -171,6 +171,29 @@ TRAIN = [
     (["env.floor_tolerance=-1"], "env.floor_tolerance"),
     (["env.floor_tolerance=100"], "env.floor_tolerance"),
     (["env.motor_distance=0"], "env.motor_distance"),
+    # the arena: the zone inside the domain, each range the right way round, sizes positive
+    (["env.zone_x_limit=3.0"], "env.zone_x_limit"),  # wider than the domain (x_limit 2)
+    (["env.x_limit=0.5"], "env.zone_x_limit"),  # a domain narrower than the zone
+    (["env.zone_x_limit=0"], "env.zone_x_limit"),
+    (["env.zone_x_limit=-0.6"], "env.zone_x_limit"),
+    (["env.x_limit=0"], "env.x_limit"),
+    (["env.x_limit=inf"], "env.x_limit"),
+    (["env.z_min=4.0"], "env.z_max"),  # z_min >= z_max
+    (["env.z_max=-1"], "env.z_max"),
+    (["env.z_min=abc"], "env.z_min"),
+    (["env.zone_z_min=3.2"], "env.zone_z_max"),  # an empty zone: zone_z_min >= zone_z_max
+    (["env.zone_z_min=3.5", "env.zone_z_max=3.0"], "env.zone_z_max"),
+    (["env.zone_z_max=4.5"], "env.zone_z_max"),  # above the ceiling
+    (["env.zone_z_min=-0.5"], "env.zone_z_min"),  # below the floor
+    (["env.z_max=3.0"], "env.zone_z_max"),  # a ceiling through the zone
+    (["env.alpha_limit=0"], "env.alpha_limit"),
+    (["env.alpha_limit=4"], "env.alpha_limit"),  # past pi
+    (["env.alpha_limit=null"], "env.alpha_limit"),
+    (["env.bounds=open"], "env.bounds"),
+    (["env.bounds=true"], "env.bounds"),
+    (["env.dtype=float16"], "env.dtype"),
+    (["env.dtype=double"], "env.dtype"),
+    (["env.dtype=64"], "env.dtype"),
     (["env.num_workers=-1"], "env.num_workers"),
     (["env.num_workers=2"], "env.num_workers"),  # engine=fused has no worker processes
     (["engine=torchrl", "env.num_workers=3", "algo.episodes_per_update=2"], "env.num_workers"),
@@ -318,6 +341,10 @@ EVAL = [
     (["env.dt=0"], "env.dt"),
     (["env.max_thrust=-1"], "env.max_thrust"),
     (["env.reset_mode=sky"], "env.reset_mode"),
+    (["env.zone_x_limit=2.5"], "env.zone_x_limit"),
+    (["env.zone_z_min=3.2"], "env.zone_z_max"),
+    (["env.bounds=closed"], "env.bounds"),
+    (["env.dtype=float16"], "env.dtype"),
     (["+foo=1"], "foo"),
     (["+episode=3"], "episodes"),
 ]

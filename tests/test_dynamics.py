@@ -198,7 +198,8 @@ def test_step_clamps_when_bounded_and_not_when_unbounded():
 
 
 def cause_of(dtype=torch.float32, floor_tolerance=0.05, **kw) -> int:
-    return int(dynamics.termination_cause(state(dtype=dtype, **kw), floor_tolerance))
+    params = DroneParams(floor_tolerance=floor_tolerance)
+    return int(dynamics.termination_cause(state(dtype=dtype, **kw), params))
 
 
 def f32_next(value: float, direction: float) -> float:
@@ -275,7 +276,7 @@ def _lowest_code_cases():
 def test_lowest_code_wins_batched():
     cases = _lowest_code_cases()
     states = torch.stack([state(**kw) for kw, _ in cases]).reshape(3, 4, 6)
-    causes = dynamics.termination_cause(states, 0.05)
+    causes = dynamics.termination_cause(states, DroneParams())
     assert causes.shape == (3, 4) and causes.dtype == torch.int64
     assert causes.flatten().tolist() == [c for _, c in cases]
     # spot checks of the rule written out
@@ -306,18 +307,20 @@ def test_lowest_code_wins_batched():
 )
 def test_target_zone_inclusive(kw, inside, dtype):
     s = state(dtype=dtype, **kw)
-    assert bool(dynamics.in_target_zone(s)) is inside
-    r = dynamics.reward(s, torch.tensor(False))
+    paper = DroneParams()
+    assert bool(dynamics.in_target_zone(s, paper)) is inside
+    r = dynamics.reward(s, torch.tensor(False), paper)
     assert r.item() == (10.0 if inside else 1.0)
     assert r.dtype == dtype
     # the terminating step earns 0, inside the zone or not
-    assert dynamics.reward(s, torch.tensor(True)).item() == 0.0
+    assert dynamics.reward(s, torch.tensor(True), paper).item() == 0.0
 
 
 def test_target_zone_just_outside_float32():
-    assert not bool(dynamics.in_target_zone(state(x=f32_next(0.8, 1.0), z=2.7)))
-    assert not bool(dynamics.in_target_zone(state(z=f32_next(2.2, 0.0))))
-    assert not bool(dynamics.in_target_zone(state(z=f32_next(3.2, 4.0))))
+    paper = DroneParams()
+    assert not bool(dynamics.in_target_zone(state(x=f32_next(0.8, 1.0), z=2.7), paper))
+    assert not bool(dynamics.in_target_zone(state(z=f32_next(2.2, 0.0)), paper))
+    assert not bool(dynamics.in_target_zone(state(z=f32_next(3.2, 4.0)), paper))
 
 
 def test_step_returns_state_reward_cause():

@@ -534,6 +534,24 @@ BAD_ARGS = [
     ("floor_tolerance", 1.01),
     ("floor_tolerance", False),
     ("render_mode", "x"),
+    ("x_limit", 0.0),
+    ("x_limit", float("inf")),
+    ("z_max", 0.0),  # not above z_min
+    ("z_min", float("nan")),
+    ("alpha_limit", 0.0),
+    ("alpha_limit", 3.2),
+    ("zone_x_limit", 2.5),  # outside the domain
+    ("zone_x_limit", 0.0),
+    ("zone_z_min", -0.1),  # below the floor
+    ("zone_z_min", 4.0),
+    ("zone_z_max", 2.2),  # not above zone_z_min
+    ("zone_z_max", 4.1),  # above the ceiling
+    ("zone_z_max", True),
+    ("bounds", "exclusive"),
+    ("bounds", None),
+    ("dtype", "float16"),
+    ("dtype", torch.float16),
+    ("dtype", "double"),
 ]
 
 

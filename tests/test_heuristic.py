@@ -46,7 +46,7 @@ def entry_step_budget(max_thrust: float | None, gains: PDGains, env: DroneEnv) -
     if max_thrust is not None:
         accel_up = min(accel_up, (2.0 * max_thrust - 1.0) * g)
         accel_down = min(accel_down, g)
-    t = bang_bang_entry_time(accel_up, accel_down, gains.z_target, dynamics.ZONE_Z_MIN)
+    t = bang_bang_entry_time(accel_up, accel_down, env.params.zone_z_centre, env.params.zone_z_min)
     return math.ceil(CLIMB_SLACK * t / env.params.dt)
 
 
@@ -76,7 +76,7 @@ def test_pd_climbs_into_zone_and_stays(max_thrust: float | None) -> None:
     # Enters the zone within the budget and never leaves it afterwards.
     gains = PDGains()
     budget = entry_step_budget(max_thrust, gains, env)
-    in_zone = dynamics.in_target_zone(td["next", "observation"])
+    in_zone = dynamics.in_target_zone(td["next", "observation"], env.params)
     assert in_zone.any(-1).all()
     first = in_zone.to(torch.int64).argmax(-1)  # 0-based index of the first step ending in the zone
     assert int(first.max()) + 1 <= budget
@@ -117,9 +117,15 @@ def test_pd_action_is_batched_over_any_shape() -> None:
 def test_pd_action_hovers_at_the_set_point() -> None:
     gains = PDGains()
     state = torch.zeros(dynamics.STATE_DIM)
-    state[dynamics.X], state[dynamics.Z] = gains.x_target, gains.z_target
+    state[dynamics.X], state[dynamics.Z] = gains.x_target, make_params().zone_z_centre  # z_target None
     action = pd_action(state, make_params())
     torch.testing.assert_close(action, torch.tensor([0.5, 0.5]))
+    # the set point follows the params' zone, unless the gains name one
+    higher = make_params(zone_z_min=3.0, zone_z_max=3.6)
+    state[dynamics.Z] = 3.3
+    torch.testing.assert_close(pd_action(state, higher), torch.tensor([0.5, 0.5]))
+    state[dynamics.Z] = 1.0
+    torch.testing.assert_close(pd_action(state, higher, PDGains(z_target=1.0)), torch.tensor([0.5, 0.5]))
 
 
 def test_pd_action_signs() -> None:
@@ -127,7 +133,7 @@ def test_pd_action_signs() -> None:
     sin(-alpha) T/m, and alpha_ddot = r/I (T_r - T_l) < 0 needs T_r < T_l. Below the target it
     must push more than its weight."""
     params = make_params()
-    gains = PDGains()
+    gains = PDGains(z_target=params.zone_z_centre)
     state = torch.zeros(dynamics.STATE_DIM)
     state[dynamics.Z] = gains.z_target
     state[dynamics.X] = gains.x_target - 1.0

@@ -23,9 +23,10 @@ def _zone_pixels(frame: np.ndarray) -> int:
     return int((np.abs(frame.astype(float) - blend) <= 2).all(-1).sum())
 
 
-def _zone_area_px() -> float:
-    left, top = R.world_to_pixel(-R.ZONE_X_LIMIT, R.ZONE_Z_MAX)
-    right, bottom = R.world_to_pixel(R.ZONE_X_LIMIT, R.ZONE_Z_MIN)
+def _zone_area_px(params=None) -> float:
+    p = params or DroneEnv().params
+    left, top = R.world_to_pixel(-p.zone_x_limit, p.zone_z_max, p)
+    right, bottom = R.world_to_pixel(p.zone_x_limit, p.zone_z_min, p)
     return (right - left) * (bottom - top)
 
 
@@ -50,6 +51,23 @@ def test_native_frame_shape_and_content():
     assert len(np.unique(frame.reshape(-1, 3), axis=0)) > 20  # grid, zone, text, drone: not blank
     assert _count(frame, R.MOTOR_LEFT_COLOUR) > 0 and _count(frame, R.MOTOR_RIGHT_COLOUR) > 0
     assert _zone_pixels(frame) > 0.5 * _zone_area_px()  # the drone is on the floor, the zone is clear
+
+
+def test_the_frame_draws_the_envs_own_zone_and_domain():
+    """A wider domain and a smaller, lower zone: the zone fill covers that zone's area in the frame
+    scaled to the domain (not the paper's), and the default frame's is larger."""
+    arena = {"x_limit": 3.0, "zone_x_limit": 0.4, "zone_z_min": 1.0, "zone_z_max": 1.5}
+    env = DroneEnv(render_mode="rgb_array", **arena)
+    env.set_seed(0)
+    env.reset()
+    frame = env.render()
+    env.close()
+    area, paper_area = _zone_area_px(env.params), _zone_area_px()
+    assert area < 0.25 * paper_area
+    assert 0.5 * area < _zone_pixels(frame) <= 1.05 * area
+    left, _ = R.world_to_pixel(-3.0, 0.0, env.params)
+    right, _ = R.world_to_pixel(3.0, 0.0, env.params)
+    assert left >= R.MARGIN_LEFT and right <= R.FRAME_WIDTH - R.MARGIN_RIGHT  # the domain fits
 
 
 def test_gym_frame():

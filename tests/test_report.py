@@ -10,6 +10,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from drone_torchrl.apps.report import main
+from drone_torchrl.config import ENV_ADDED
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, FORMAT_VERSION, LAST, REQUIRED_KEYS, save_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_COLUMNS
 from drone_torchrl.report import (
@@ -353,7 +354,8 @@ def test_pd_reference_once_per_env_setting_and_several_sweeps(tmp_path, monkeypa
         main([*sweeps, "--out", str(out), "--window", "2"])
     finally:
         stats._pd_return.cache_clear()
-    expected_env = {k: v for k, v in ENV.items() if k != "num_workers"}
+    # Run folders from before the arena, bounds and dtype keys: evaluated with the values they ran with.
+    expected_env = {**{k: v for k, v in ENV.items() if k != "num_workers"}, **ENV_ADDED}
     assert calls == [(expected_env, 100, 0)]  # two sweeps, one env setting: evaluated once
     for name in ("lr", "gamma"):
         for figure in ("steps.png", "returns.png"):

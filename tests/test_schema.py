@@ -119,6 +119,15 @@ ADDED_KEYS = {
     "algo.log_prob_reduction": "sum",
     "updates_per_call": 1,
     "logger.backend": "tensorboard",
+    "env.x_limit": 2.0,
+    "env.z_min": 0.0,
+    "env.z_max": 4.0,
+    "env.alpha_limit": 1.0471975511965976,  # pi/3
+    "env.zone_x_limit": 0.8,
+    "env.zone_z_min": 2.2,
+    "env.zone_z_max": 3.2,
+    "env.bounds": "inclusive",
+    "env.dtype": "float32",
 }
 
 

@@ -242,8 +242,8 @@ def step(
         )
     force = internal.draw.wind + internal.gust
     next_state = integrate(state, thrust * internal.draw.gain, force, internal.draw.mass_ratio, params)
-    cause = dynamics.termination_cause(next_state, params.floor_tolerance)
-    reward = dynamics.reward(next_state, cause != int(dynamics.TerminationCause.NONE))
+    cause = dynamics.termination_cause(next_state, params)
+    reward = dynamics.reward(next_state, cause != int(dynamics.TerminationCause.NONE), params)
     gust = internal.gust
     if disturbance.gust:
         decay = math.exp(-params.dt / disturbance.gust_time)

@@ -15,8 +15,17 @@ from torchrl.envs import EnvBase
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.dynamics import (
     ACTION_DIM,
+    ALPHA_LIMIT,
+    BOUNDS_MODES,
+    DTYPES,
     RESET_MODES,
     STATE_DIM,
+    X_LIMIT,
+    Z_MAX,
+    Z_MIN,
+    ZONE_X_LIMIT,
+    ZONE_Z_MAX,
+    ZONE_Z_MIN,
     DroneParams,
     TerminationCause,
 )
@@ -47,6 +56,74 @@ def _check_real(
     return float(value)
 
 
+Bound = tuple[str, float]  # a named bound: ("z_min", 0.0)
+
+
+def _check_range(
+    name: str,
+    value: object,
+    low: Bound | None = None,
+    high: Bound | None = None,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> float:
+    """``value`` as float if finite and within the named bounds, else a ValueError naming the
+    argument and the bounds (``expected a finite number > z_min (0.0)``)."""
+    label = lambda bound: bound[0] if bound[0][0].isdigit() else f"{bound[0]} ({bound[1]!r})"  # noqa: E731
+    parts = []
+    if low is not None:
+        parts.append(f"{'>' if low_open else '>='} {label(low)}")
+    if high is not None:
+        parts.append(f"{'<' if high_open else '<='} {label(high)}")
+    ok = isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low[1] or (value == low[1] and not low_open)
+    if ok and high is not None:
+        ok = value < high[1] or (value == high[1] and not high_open)
+    if not ok:
+        allowed = "a finite number" + (" " + " and ".join(parts) if parts else "")
+        raise ValueError(f"{name}={value!r} is not allowed; expected {allowed}")
+    return float(value)
+
+
+def check_arena(
+    x_limit: float = X_LIMIT,
+    z_min: float = Z_MIN,
+    z_max: float = Z_MAX,
+    alpha_limit: float = ALPHA_LIMIT,
+    zone_x_limit: float = ZONE_X_LIMIT,
+    zone_z_min: float = ZONE_Z_MIN,
+    zone_z_max: float = ZONE_Z_MAX,
+    bounds: str = "inclusive",
+) -> dict[str, float | str]:
+    """Validate the domain and the target zone, returned as floats (and ``bounds``): positive
+    half-widths, ``z_min < z_max``, a tilt limit in (0, pi], and a zone of positive size inside
+    the domain (its edges may lie on the domain's)."""
+    zero = ("0", 0.0)
+    x_limit = _check_range("x_limit", x_limit, zero, low_open=True)
+    z_min = _check_range("z_min", z_min)
+    z_max = _check_range("z_max", z_max, ("z_min", z_min), low_open=True)
+    alpha_limit = _check_range("alpha_limit", alpha_limit, zero, ("pi", math.pi), low_open=True)
+    zone_x_limit = _check_range("zone_x_limit", zone_x_limit, zero, ("x_limit", x_limit), low_open=True)
+    zone_z_min = _check_range("zone_z_min", zone_z_min, ("z_min", z_min), ("z_max", z_max), high_open=True)
+    zone_z_max = _check_range(
+        "zone_z_max", zone_z_max, ("zone_z_min", zone_z_min), ("z_max", z_max), low_open=True
+    )
+    if bounds not in BOUNDS_MODES:
+        raise ValueError(f"bounds={bounds!r} is not allowed; expected one of {BOUNDS_MODES}")
+    return {
+        "x_limit": x_limit,
+        "z_min": z_min,
+        "z_max": z_max,
+        "alpha_limit": alpha_limit,
+        "zone_x_limit": zone_x_limit,
+        "zone_z_min": zone_z_min,
+        "zone_z_max": zone_z_max,
+        "bounds": bounds,
+    }
+
+
 def make_params(
     mass: float = 1.0,
     motor_distance: float = 1.0,
@@ -54,8 +131,10 @@ def make_params(
     dt: float = 0.02,
     max_thrust: float | None = None,
     floor_tolerance: float = 0.05,
+    **arena: float | str,
 ) -> DroneParams:
-    """Validate the physical arguments shared by both envs and bundle them."""
+    """Validate the physical and arena arguments shared by both envs and bundle them (``arena``:
+    the keyword arguments of :func:`check_arena`, each defaulting to the paper's)."""
     return DroneParams(
         mass=_check_real("mass", mass, minimum=0.0, inclusive=False),
         motor_distance=_check_real("motor_distance", motor_distance, minimum=0.0, inclusive=False),
@@ -68,7 +147,16 @@ def make_params(
         floor_tolerance=_check_real(
             "floor_tolerance", floor_tolerance, minimum=0.0, inclusive=True, maximum=MAX_FLOOR_TOLERANCE
         ),
+        **check_arena(**arena),
     )
+
+
+def check_dtype(dtype: object) -> torch.dtype:
+    """The torch dtype of ``dtype`` (``"float32"``, ``"float64"`` or the torch dtype itself)."""
+    for name, value in DTYPES.items():
+        if dtype == name or dtype is value:
+            return value
+    raise ValueError(f"dtype={dtype!r} is not allowed; expected one of {tuple(DTYPES)}")
 
 
 def check_episode_args(max_steps: object, reset_mode: object, render_mode: object) -> None:
@@ -105,14 +193,15 @@ class DroneEnv(EnvBase):
     a rigid body in the vertical X-Z plane driven by a left and a right motor (eqs. 2.1-2.4).
     It starts on the floor and must fly into the target zone ``|x| <= 0.8 m``,
     ``2.2 <= z <= 3.2 m`` and hover there without leaving the 4 m x 4 m domain or tilting past
-    60 degrees. The environment is natively batched: ``batch_size=[N]`` simulates N independent
+    60 degrees (the paper's text; every one of these numbers is an argument, see "Arena" below).
+    The environment is natively batched: ``batch_size=[N]`` simulates N independent
     drones with one tensor operation per step, and done sub-environments are reset on their own
     through TorchRL's ``"_reset"`` mask. The physics lives in
     :mod:`drone_torchrl.envs.dynamics`, shared with the Gymnasium twin ``Drone2D-v0``.
 
     ## Action space
 
-    ``"action"``, float32, shape ``[*batch, 2]``: ``[a_l, a_r]``, each motor's thrust as a
+    ``"action"``, float32 (``dtype``), shape ``[*batch, 2]``: ``[a_l, a_r]``, each motor's thrust as a
     fraction of the drone's weight, ``T = a * m * g``; ``a_l = a_r = 0.5`` hovers level.
 
     - ``max_thrust=None`` (the paper): unbounded; negative thrust is applied as is.
@@ -123,15 +212,15 @@ class DroneEnv(EnvBase):
 
     ## Observation space
 
-    ``"observation"``, float32, shape ``[*batch, 6]``, SI units, angles in radians:
+    ``"observation"``, float32 (``dtype``), shape ``[*batch, 6]``, SI units, angles in radians:
 
-    | index | name        | meaning                                         | termination bound |
+    | index | name        | meaning                                         | termination bound (default) |
     |-------|-------------|-------------------------------------------------|-------------------|
-    | 0     | ``x``         | horizontal position (m, right positive)        | ``[-2, 2]``          |
+    | 0     | ``x``         | horizontal position (m, right positive)        | ``[-x_limit, x_limit]`` (``[-2, 2]``) |
     | 1     | ``x_dot``     | horizontal velocity (m/s)                      | none              |
-    | 2     | ``z``         | altitude (m, up positive)                      | ``[-floor_tolerance, 4]`` |
+    | 2     | ``z``         | altitude (m, up positive)                      | ``[z_min - floor_tolerance, z_max]`` (``[-0.05, 4]``) |
     | 3     | ``z_dot``     | vertical velocity (m/s)                        | none              |
-    | 4     | ``alpha``     | roll from the vertical (rad, counter-clockwise)| ``[-pi/3, pi/3]``     |
+    | 4     | ``alpha``     | roll from the vertical (rad, counter-clockwise)| ``[-alpha_limit, alpha_limit]`` (``[-pi/3, pi/3]``) |
     | 5     | ``alpha_dot`` | roll rate (rad/s)                              | none              |
 
     Also in every reset and step output: ``"termination_cause"`` (int64, ``[*batch, 1]``, a
@@ -140,23 +229,30 @@ class DroneEnv(EnvBase):
     ## Rewards
 
     On the state after each step: ``0`` if the step terminated the episode, ``10`` inside the
-    target zone (all bounds inclusive), ``1`` anywhere else. An episode's return is at most
-    ``10 * max_steps`` (3000 by default). From the floor with bounded thrust the best achievable
-    return is lower (2694 with ``max_thrust=1``: :mod:`drone_torchrl.optimum`); with unbounded
-    thrust only a pulse of hundreds of weights on the first step reaches 3000.
+    target zone (``|x| <= zone_x_limit``, ``zone_z_min <= z <= zone_z_max``,
+    ``|alpha| <= alpha_limit``; ``<`` each with ``bounds="strict"``), ``1`` anywhere else. Rewards
+    are in ``dtype``. An episode's return is at most ``10 * max_steps`` (3000 by default). From the
+    floor with bounded thrust the best achievable return is lower (2694 with ``max_thrust=1`` and
+    the default arena: :mod:`drone_torchrl.optimum`); with unbounded thrust only a pulse of hundreds
+    of weights on the first step reaches 3000.
 
     ## Starting state
 
-    ``reset_mode="floor"``: ``z`` and all velocities are 0; ``x`` and ``alpha`` are uniform in
-    +-0.01. ``reset_mode="air"``: every component uniform in +-0.01 around ``x=0, z=2.7 m``.
+    ``reset_mode="floor"``: ``z = z_min`` (0, the floor) and all velocities are 0; ``x`` and
+    ``alpha`` are uniform in +-0.01. ``reset_mode="air"``: every component uniform in +-0.01 around
+    ``x=0`` and the zone's centre height (2.7 m). The uniforms are drawn in float32 whatever
+    ``dtype``, so a seed gives the same start states in float32 and float64 (up to the float64
+    centre).
 
     ## Episode end
 
     Termination (``"terminated"``), checked on the state after the step, with
-    ``"termination_cause"`` (lowest code wins when several hold): ``1 OUT_X`` ``|x| > 2``;
-    ``2 FLOOR`` ``z < -floor_tolerance``; ``3 CEILING`` ``z > 4``; ``4 TILT`` ``|alpha| > pi/3``.
-    Bounds are inclusive; the floor alone has a tolerance so a drone spooling up on the ground is
-    not ended at once. Truncation (``"truncated"``): the step that brings the episode's step count
+    ``"termination_cause"`` (lowest code wins when several hold): ``1 OUT_X`` ``|x| > x_limit``;
+    ``2 FLOOR`` ``z < z_min - floor_tolerance``; ``3 CEILING`` ``z > z_max``; ``4 TILT``
+    ``|alpha| > alpha_limit`` (defaults: 2, -0.05, 4, pi/3). Bounds are inclusive by default (a
+    state on a bound is inside); with ``bounds="strict"`` each ``>`` is ``>=`` and the floor's
+    ``<`` is ``<=``. The floor alone has a tolerance so a drone spooling up on the ground is not
+    ended at once. Truncation (``"truncated"``): the step that brings the episode's step count
     to ``max_steps``, unless that step also terminated. ``"done" = terminated | truncated``.
 
     ## Arguments
@@ -176,6 +272,32 @@ class DroneEnv(EnvBase):
     - ``max_thrust`` (float > 0 or None, default None): per-motor thrust limit as a fraction of the
       weight; ``1.0`` is a thrust-to-weight ratio of 2.
     - ``floor_tolerance`` (float in [0, 1], default 0.05 m).
+    - ``dtype`` (``"float32"`` or ``"float64"``, or the torch dtype; default ``"float32"``): the
+      precision of the state, the physics, the observations, the rewards and the specs. float64
+      integrates the same equations in double precision (the paper's public code computes in
+      numpy's float64); actions of another dtype are converted to it. Trajectories agree with
+      float32's to float32 rounding over short horizons and drift apart later (chaotic flights).
+
+    Arena (the paper's Table 2.1 by default; lengths in m, angles in rad). Each changes the
+    termination bounds, the target zone (and so the reward), the start height and the drawing:
+
+    - ``x_limit`` (float > 0, default 2.0): the domain is ``|x| <= x_limit``.
+    - ``z_min``, ``z_max`` (floats, ``z_min < z_max``, default 0.0 and 4.0): the floor (where
+      ``"floor"`` resets start; hit below ``z_min - floor_tolerance``) and the ceiling.
+    - ``alpha_limit`` (float in (0, pi], default pi/3): the tilt bound, of the domain and the zone.
+    - ``zone_x_limit`` (float in (0, x_limit], default 0.8): the zone's half-width, ``|x| <= zone_x_limit``.
+    - ``zone_z_min``, ``zone_z_max`` (floats, ``z_min <= zone_z_min < zone_z_max <= z_max``,
+      default 2.2 and 3.2): the zone's heights; ``"air"`` resets start at their midpoint.
+    - ``bounds`` (``"inclusive"`` or ``"strict"``, default ``"inclusive"``): how a state exactly on
+      a bound counts. Inclusive (the paper's text): inside the domain and inside the zone.
+      Strict (the paper's public code, ``-0.6 < x < 0.6`` style): outside both, so it terminates,
+      or earns 1 instead of 10. Bounds are compared in ``dtype``: in float32 the nearest float32 to
+      0.8 is "on" the bound 0.8.
+
+    The paper's public code differs from its text: ``zone_x_limit=0.6 bounds=strict dtype=float64``.
+
+    More:
+
     - ``device`` (default ``"cpu"``). Start states are drawn from the env's own CPU generator
       (``set_seed``) and then moved to the device, so a seed gives the same start states on any device.
     - ``render_mode`` (``None``, ``"human"`` or ``"rgb_array"``): pygame drawing of sub-env
@@ -195,7 +317,8 @@ class DroneEnv(EnvBase):
 
     ## Version history
 
-    - v0: first release, the environment this docstring specifies.
+    - v0: first release, the environment this docstring specifies. The arena arguments, ``bounds``
+      and ``dtype`` came later; their defaults are the first release's behaviour.
     """
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 50}
@@ -213,12 +336,37 @@ class DroneEnv(EnvBase):
         reset_mode: str = "floor",
         max_thrust: float | None = None,
         floor_tolerance: float = 0.05,
+        x_limit: float = X_LIMIT,
+        z_min: float = Z_MIN,
+        z_max: float = Z_MAX,
+        alpha_limit: float = ALPHA_LIMIT,
+        zone_x_limit: float = ZONE_X_LIMIT,
+        zone_z_min: float = ZONE_Z_MIN,
+        zone_z_max: float = ZONE_Z_MAX,
+        bounds: str = "inclusive",
+        dtype: str | torch.dtype = "float32",
         device: torch.device | str = "cpu",
         render_mode: str | None = None,
         render_index: int = 0,
     ) -> None:
         batch_size = _check_batch_size(batch_size)
-        self.params = make_params(mass, motor_distance, gravity, dt, max_thrust, floor_tolerance)
+        self.params = make_params(
+            mass,
+            motor_distance,
+            gravity,
+            dt,
+            max_thrust,
+            floor_tolerance,
+            x_limit=x_limit,
+            z_min=z_min,
+            z_max=z_max,
+            alpha_limit=alpha_limit,
+            zone_x_limit=zone_x_limit,
+            zone_z_min=zone_z_min,
+            zone_z_max=zone_z_max,
+            bounds=bounds,
+        )
+        self.dtype = check_dtype(dtype)
         check_episode_args(max_steps, reset_mode, render_mode)
         try:
             device = torch.device(device)
@@ -245,12 +393,12 @@ class DroneEnv(EnvBase):
         self._generator.seed()
         self._make_specs()
         shape = tuple(batch_size)
-        self._state = torch.zeros((*shape, STATE_DIM), device=device)
+        self._state = torch.zeros((*shape, STATE_DIM), device=device, dtype=self.dtype)
         self._step_count = torch.zeros(shape, dtype=torch.int64, device=device)
         self._cause = torch.zeros(shape, dtype=torch.int64, device=device)
         # Kept only for the render overlay: the last applied action and the return so far.
-        self._last_action = torch.zeros((*shape, ACTION_DIM), device=device)
-        self._episode_return = torch.zeros(shape, device=device)
+        self._last_action = torch.zeros((*shape, ACTION_DIM), device=device, dtype=self.dtype)
+        self._episode_return = torch.zeros(shape, device=device, dtype=self.dtype)
 
     # Convenience views of the parameters, named like the constructor arguments.
     mass = property(lambda self: self.params.mass)
@@ -259,11 +407,19 @@ class DroneEnv(EnvBase):
     dt = property(lambda self: self.params.dt)
     max_thrust = property(lambda self: self.params.max_thrust)
     floor_tolerance = property(lambda self: self.params.floor_tolerance)
+    x_limit = property(lambda self: self.params.x_limit)
+    z_min = property(lambda self: self.params.z_min)
+    z_max = property(lambda self: self.params.z_max)
+    alpha_limit = property(lambda self: self.params.alpha_limit)
+    zone_x_limit = property(lambda self: self.params.zone_x_limit)
+    zone_z_min = property(lambda self: self.params.zone_z_min)
+    zone_z_max = property(lambda self: self.params.zone_z_max)
+    bounds = property(lambda self: self.params.bounds)
 
     def _make_specs(self) -> None:
         bs = self.batch_size
         self.observation_spec = Composite(
-            observation=Unbounded(shape=(*bs, STATE_DIM), dtype=torch.float32, device=self.device),
+            observation=Unbounded(shape=(*bs, STATE_DIM), dtype=self.dtype, device=self.device),
             termination_cause=Bounded(
                 low=0, high=max(TerminationCause), shape=(*bs, 1), dtype=torch.int64, device=self.device
             ),
@@ -274,16 +430,16 @@ class DroneEnv(EnvBase):
             device=self.device,
         )
         if self.max_thrust is None:
-            self.action_spec = Unbounded(shape=(*bs, ACTION_DIM), dtype=torch.float32, device=self.device)
+            self.action_spec = Unbounded(shape=(*bs, ACTION_DIM), dtype=self.dtype, device=self.device)
         else:
             self.action_spec = Bounded(
                 low=0.0,
                 high=self.max_thrust,
                 shape=(*bs, ACTION_DIM),
-                dtype=torch.float32,
+                dtype=self.dtype,
                 device=self.device,
             )
-        self.reward_spec = Unbounded(shape=(*bs, 1), dtype=torch.float32, device=self.device)
+        self.reward_spec = Unbounded(shape=(*bs, 1), dtype=self.dtype, device=self.device)
         flag = Categorical(n=2, shape=(*bs, 1), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(
             done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=bs, device=self.device
@@ -308,7 +464,7 @@ class DroneEnv(EnvBase):
         n_reset = None if mask is None or self.batch_size == () else int(mask.sum())
         if n_reset is None or n_reset == mask.numel():
             self._state = dynamics.initial_state(
-                self.batch_size, self.reset_mode, self._generator, self.device
+                self.batch_size, self.reset_mode, self._generator, self.device, self.dtype, self.params
             )
             # The counters are replaced, never written in place, so _output can hand them out
             # without a copy (the last action may even be the caller's own tensor, see _step).
@@ -322,7 +478,7 @@ class DroneEnv(EnvBase):
             # which would search the mask again for every tensor).
             index = mask.nonzero(as_tuple=True)
             self._state[index] = dynamics.initial_state(
-                (n_reset,), self.reset_mode, self._generator, self.device
+                (n_reset,), self.reset_mode, self._generator, self.device, self.dtype, self.params
             )
             # Out of place, for the same reason as above.
             self._step_count = self._step_count.index_put(index, self._step_count.new_zeros(()))
@@ -359,7 +515,7 @@ class DroneEnv(EnvBase):
                 raise ValueError(
                     f"action contains NaN or inf at batch indices {bad}; expected finite thrust fractions"
                 )
-        action = dynamics.clamp_action(action, self.max_thrust)
+        action = dynamics.clamp_action(action.to(self.dtype), self.max_thrust)
         self._state, reward, self._cause = dynamics.step(self._state, action, self.params)
         self._step_count = self._step_count + 1
         terminated = self._cause != int(TerminationCause.NONE)

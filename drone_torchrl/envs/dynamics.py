@@ -21,14 +21,22 @@ ACTION_DIM = 2
 STATE_NAMES = ("x", "x_dot", "z", "z_dot", "alpha", "alpha_dot")
 X, X_DOT, Z, Z_DOT, ALPHA, ALPHA_DOT = range(STATE_DIM)
 
-# Domain and target zone of the paper's Table 2.1 (angles converted to radians). They define the
-# task, not the agent, so they live here rather than in the configs.
+# Domain and target zone of the paper's Table 2.1 (angles converted to radians): the defaults of
+# DroneParams, whose fields (the env's arguments) the dynamics read.
 X_LIMIT = 2.0
 Z_MIN, Z_MAX = 0.0, 4.0
 ALPHA_LIMIT = math.pi / 3
 ZONE_X_LIMIT = 0.8
 ZONE_Z_MIN, ZONE_Z_MAX = 2.2, 3.2
 ZONE_Z_CENTRE = 0.5 * (ZONE_Z_MIN + ZONE_Z_MAX)
+
+# How a state exactly on a bound counts. "inclusive" (the paper's text and the default): inside,
+# both for the domain (no termination) and for the target zone. "strict" (the paper's public code,
+# `-0.6 < x < 0.6` style): outside of both.
+BOUNDS_MODES = ("inclusive", "strict")
+
+# The precisions the physics runs in (env argument ``dtype``), by name.
+DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
 # Each motor carrying half the weight holds a level drone still: the hover command of both motors.
 HOVER_THRUST = 0.5
@@ -55,7 +63,10 @@ class TerminationCause(IntEnum):
 
 @dataclass(frozen=True)
 class DroneParams:
-    """Physical parameters of one drone; see :class:`~drone_torchrl.envs.DroneEnv` for meaning."""
+    """The drone's physical parameters and its task's arena (domain, target zone, how a state on a
+    bound counts): everything :func:`step` needs. See :class:`~drone_torchrl.envs.DroneEnv` for the
+    meaning of each; the defaults are the paper's. Validated by
+    :func:`drone_torchrl.envs.drone_env.make_params`."""
 
     mass: float = 1.0
     motor_distance: float = 1.0
@@ -63,6 +74,29 @@ class DroneParams:
     dt: float = 0.02
     max_thrust: float | None = None
     floor_tolerance: float = 0.05
+    x_limit: float = X_LIMIT
+    z_min: float = Z_MIN
+    z_max: float = Z_MAX
+    alpha_limit: float = ALPHA_LIMIT
+    zone_x_limit: float = ZONE_X_LIMIT
+    zone_z_min: float = ZONE_Z_MIN
+    zone_z_max: float = ZONE_Z_MAX
+    bounds: str = "inclusive"
+
+    @property
+    def strict(self) -> bool:
+        """A state exactly on a bound is outside (of the domain: terminates; of the zone: not in it)."""
+        return self.bounds == "strict"
+
+    @property
+    def zone_z_centre(self) -> float:
+        """The target zone's centre height: where ``reset_mode="air"`` starts."""
+        return 0.5 * (self.zone_z_min + self.zone_z_max)
+
+    @property
+    def floor(self) -> float:
+        """The height below which (or on which, with strict bounds) the floor is hit."""
+        return self.z_min - self.floor_tolerance
 
     @property
     def lever_arm(self) -> float:
@@ -108,30 +142,41 @@ def integrate(state: torch.Tensor, action: torch.Tensor, params: DroneParams) ->
     )
 
 
-def termination_cause(state: torch.Tensor, floor_tolerance: float) -> torch.Tensor:
+def termination_cause(state: torch.Tensor, params: DroneParams) -> torch.Tensor:
     """Cause code (int64, shape ``[*B]``) for each state; ``0`` when inside the domain.
 
-    Bounds are inclusive; the floor is hit only below ``-floor_tolerance``. Checks are applied
-    from the highest code to the lowest so that the lowest non-zero code wins.
+    Inclusive bounds: a state on a bound is inside; strict bounds (``params.bounds``): it is out.
+    The floor is hit only below ``z_min - floor_tolerance`` (or on it, strict). Checks are applied
+    from the highest code to the lowest so that the lowest non-zero code wins. A bound is compared
+    in the state's dtype (the nearest float32 to 0.8 is "on" 0.8 in float32).
     """
     x, z, alpha = state[..., X], state[..., Z], state[..., ALPHA]
+    # above(v, b): v beyond the upper bound b; below(v, b): v beyond the lower bound b.
+    above, below = (torch.ge, torch.le) if params.strict else (torch.gt, torch.lt)
     cause = torch.zeros(state.shape[:-1], dtype=torch.int64, device=state.device)
-    cause = torch.where(alpha.abs() > ALPHA_LIMIT, int(TerminationCause.TILT), cause)
-    cause = torch.where(z > Z_MAX, int(TerminationCause.CEILING), cause)
-    cause = torch.where(z < Z_MIN - floor_tolerance, int(TerminationCause.FLOOR), cause)
-    cause = torch.where(x.abs() > X_LIMIT, int(TerminationCause.OUT_X), cause)
+    cause = torch.where(above(alpha.abs(), params.alpha_limit), int(TerminationCause.TILT), cause)
+    cause = torch.where(above(z, params.z_max), int(TerminationCause.CEILING), cause)
+    cause = torch.where(below(z, params.floor), int(TerminationCause.FLOOR), cause)
+    cause = torch.where(above(x.abs(), params.x_limit), int(TerminationCause.OUT_X), cause)
     return cause
 
 
-def in_target_zone(state: torch.Tensor) -> torch.Tensor:
-    """True where the state is inside the target zone (all three bounds, inclusive)."""
+def in_target_zone(state: torch.Tensor, params: DroneParams) -> torch.Tensor:
+    """True where the state is inside the target zone: ``|x| <= zone_x_limit``,
+    ``zone_z_min <= z <= zone_z_max`` and ``|alpha| <= alpha_limit`` (``<`` each with strict bounds)."""
     x, z, alpha = state[..., X], state[..., Z], state[..., ALPHA]
-    return (x.abs() <= ZONE_X_LIMIT) & (z >= ZONE_Z_MIN) & (z <= ZONE_Z_MAX) & (alpha.abs() <= ALPHA_LIMIT)
+    within, over = (torch.lt, torch.gt) if params.strict else (torch.le, torch.ge)
+    return (
+        within(x.abs(), params.zone_x_limit)
+        & over(z, params.zone_z_min)
+        & within(z, params.zone_z_max)
+        & within(alpha.abs(), params.alpha_limit)
+    )
 
 
-def reward(state: torch.Tensor, terminated: torch.Tensor) -> torch.Tensor:
-    """Section 2.2 reward for the state after a step (float, shape ``[*B]``)."""
-    alive = torch.where(in_target_zone(state), REWARD_IN_ZONE, REWARD_ALIVE)
+def reward(state: torch.Tensor, terminated: torch.Tensor, params: DroneParams) -> torch.Tensor:
+    """Section 2.2 reward for the state after a step (the state's dtype, shape ``[*B]``)."""
+    alive = torch.where(in_target_zone(state, params), REWARD_IN_ZONE, REWARD_ALIVE)
     return torch.where(terminated, REWARD_TERMINATED, alive).to(state.dtype)
 
 
@@ -143,9 +188,9 @@ def step(
     The action is clamped into ``[0, max_thrust]`` when the drone's thrust is bounded.
     """
     next_state = integrate(state, clamp_action(action, params.max_thrust), params)
-    cause = termination_cause(next_state, params.floor_tolerance)
+    cause = termination_cause(next_state, params)
     # int(): TorchDynamo turns a comparison with the IntEnum member into a Python bool.
-    return next_state, reward(next_state, cause != int(TerminationCause.NONE)), cause
+    return next_state, reward(next_state, cause != int(TerminationCause.NONE), params), cause
 
 
 def initial_state(
@@ -154,30 +199,47 @@ def initial_state(
     generator: torch.Generator | None = None,
     device: torch.device | str | None = None,
     dtype: torch.dtype = torch.float32,
+    params: DroneParams | None = None,
 ) -> torch.Tensor:
-    """Sample start states of shape ``[*shape, 6]`` (section 2.1 item 2).
+    """Sample start states of shape ``[*shape, 6]`` (section 2.1 item 2) in ``dtype``.
 
-    ``"floor"``: ``x`` and ``alpha`` uniform in +-0.01, everything else zero.
+    ``"floor"``: ``x`` and ``alpha`` uniform in +-0.01, ``z = z_min`` (the floor), the rest zero.
     ``"air"``: every component uniform in +-0.01 around ``(x=0, z=zone centre)``.
-    Exactly ``numel(shape) * 6`` numbers are drawn from ``generator`` in both modes, so the same
-    seed gives the same draws whatever the batch layout. They are drawn on the generator's device
-    and then moved to ``device``: a CPU generator gives the same start states on every device.
+    ``params`` gives the floor and the zone (default: the paper's).
+    Exactly ``numel(shape) * 6`` float32 uniforms are drawn from ``generator`` in both modes and
+    in either dtype, so the same seed gives the same draws whatever the batch layout, and float64
+    start states are the float32 ones up to the exact centre (:func:`states_from_uniform`). They are
+    drawn on the generator's device and then moved to ``device``: a CPU generator gives the same
+    start states on every device.
     """
     if mode not in RESET_MODES:
         raise ValueError(f"reset_mode={mode!r} is not allowed; expected one of {RESET_MODES}")
     draw_on = device if generator is None else generator.device
-    uniform = torch.rand((*shape, STATE_DIM), generator=generator, device=draw_on, dtype=dtype)
-    return states_from_uniform(uniform if device is None else uniform.to(device), mode)
+    uniform = torch.rand((*shape, STATE_DIM), generator=generator, device=draw_on, dtype=torch.float32)
+    return states_from_uniform(uniform if device is None else uniform.to(device), mode, params, dtype)
 
 
-def states_from_uniform(uniform: torch.Tensor, mode: str) -> torch.Tensor:
-    """Start states ``[*B, 6]`` from uniforms in [0, 1) of the same shape (see :func:`initial_state`)."""
-    noise = (2.0 * uniform - 1.0) * RESET_NOISE
-    device, dtype = uniform.device, uniform.dtype
+def states_from_uniform(
+    uniform: torch.Tensor, mode: str, params: DroneParams | None = None, dtype: torch.dtype | None = None
+) -> torch.Tensor:
+    """Start states ``[*B, 6]`` from uniforms in [0, 1) of the same shape (see :func:`initial_state`).
+
+    The +-0.01 noise is computed in the uniforms' dtype (float32: what the C++ kernels compute),
+    then converted to ``dtype`` (default: the uniforms') and added to the start point in ``dtype``:
+    ``z = z_min`` ("floor") or the zone's centre ("air") of ``params`` (default: the paper's).
+    """
+    params = _PAPER if params is None else params
+    dtype = uniform.dtype if dtype is None else dtype
+    device = uniform.device
+    noise = ((2.0 * uniform - 1.0) * RESET_NOISE).to(dtype)
+    base = torch.zeros(STATE_DIM, device=device, dtype=dtype)
     if mode == "air":
-        centre = torch.zeros(STATE_DIM, device=device, dtype=dtype)
-        centre[Z] = ZONE_Z_CENTRE
-        return noise + centre
+        base[Z] = params.zone_z_centre
+        return noise + base
     keep = torch.zeros(STATE_DIM, device=device, dtype=dtype)
     keep[X] = keep[ALPHA] = 1.0
-    return noise * keep
+    base[Z] = params.z_min
+    return noise * keep + base
+
+
+_PAPER = DroneParams()

@@ -10,18 +10,31 @@ import torch
 from gymnasium import spaces
 
 from drone_torchrl.envs import dynamics
-from drone_torchrl.envs.drone_env import check_episode_args, make_params
-from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM, TerminationCause
+from drone_torchrl.envs.drone_env import check_dtype, check_episode_args, make_params
+from drone_torchrl.envs.dynamics import (
+    ACTION_DIM,
+    ALPHA_LIMIT,
+    STATE_DIM,
+    X_LIMIT,
+    Z_MAX,
+    Z_MIN,
+    ZONE_X_LIMIT,
+    ZONE_Z_MAX,
+    ZONE_Z_MIN,
+    TerminationCause,
+)
 
 
 class DroneGymEnv(gym.Env):
     """The Gymnasium twin of :class:`~drone_torchrl.envs.DroneEnv` (same arguments, same manual).
 
-    Observations are float32 numpy arrays of shape ``(6,)``; ``info["termination_cause"]`` is the
+    Observations are numpy arrays of shape ``(6,)`` in ``dtype`` (float32 by default, float64 with
+    ``dtype="float64"``; the spaces too); ``info["termination_cause"]`` is the
     cause's name (``"NONE"``, ``"OUT_X"``, ``"FLOOR"``, ``"CEILING"``, ``"TILT"``). Resets draw from
     a ``torch.Generator`` seeded by ``reset(seed=...)`` exactly as ``DroneEnv.set_seed`` does, and
-    steps call :func:`drone_torchrl.envs.dynamics.step` in float32, so the same seed and actions
-    give the same trajectory as ``DroneEnv`` bit for bit:
+    steps call :func:`drone_torchrl.envs.dynamics.step` in ``dtype`` with the same arena (zone,
+    domain, ``bounds``), so the same seed, arguments and actions give the same trajectory as
+    ``DroneEnv`` bit for bit:
     ``reset(seed=s)`` + steps + ``reset()`` + ... equals ``DroneEnv.set_seed(s)`` + a rollout.
 
     One rule makes this hold under TorchRL's ``GymEnv`` too: a ``reset()`` that follows
@@ -43,22 +56,49 @@ class DroneGymEnv(gym.Env):
         reset_mode: str = "floor",
         max_thrust: float | None = None,
         floor_tolerance: float = 0.05,
+        x_limit: float = X_LIMIT,
+        z_min: float = Z_MIN,
+        z_max: float = Z_MAX,
+        alpha_limit: float = ALPHA_LIMIT,
+        zone_x_limit: float = ZONE_X_LIMIT,
+        zone_z_min: float = ZONE_Z_MIN,
+        zone_z_max: float = ZONE_Z_MAX,
+        bounds: str = "inclusive",
+        dtype: str | torch.dtype = "float32",
         render_mode: str | None = None,
     ) -> None:
-        self.params = make_params(mass, motor_distance, gravity, dt, max_thrust, floor_tolerance)
+        self.params = make_params(
+            mass,
+            motor_distance,
+            gravity,
+            dt,
+            max_thrust,
+            floor_tolerance,
+            x_limit=x_limit,
+            z_min=z_min,
+            z_max=z_max,
+            alpha_limit=alpha_limit,
+            zone_x_limit=zone_x_limit,
+            zone_z_min=zone_z_min,
+            zone_z_max=zone_z_max,
+            bounds=bounds,
+        )
+        self.dtype = check_dtype(dtype)
         check_episode_args(max_steps, reset_mode, render_mode)
         self.max_steps = int(max_steps)
         self.reset_mode = reset_mode
         self.render_mode = render_mode
-        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(STATE_DIM,), dtype=np.float32)
+        np_dtype = np.float64 if self.dtype == torch.float64 else np.float32
+        self._np_dtype = np_dtype
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(STATE_DIM,), dtype=np_dtype)
         if max_thrust is None:
-            self.action_space = spaces.Box(-np.inf, np.inf, shape=(ACTION_DIM,), dtype=np.float32)
+            self.action_space = spaces.Box(-np.inf, np.inf, shape=(ACTION_DIM,), dtype=np_dtype)
         else:
-            self.action_space = spaces.Box(0.0, float(max_thrust), shape=(ACTION_DIM,), dtype=np.float32)
+            self.action_space = spaces.Box(0.0, float(max_thrust), shape=(ACTION_DIM,), dtype=np_dtype)
         self._generator = torch.Generator()
         self._generator.seed()
-        self._state = torch.zeros(STATE_DIM)
-        self._action = torch.zeros(ACTION_DIM)
+        self._state = torch.zeros(STATE_DIM, dtype=self.dtype)
+        self._action = torch.zeros(ACTION_DIM, dtype=self.dtype)
         self._steps = 0
         self._return = 0.0
         self._cause = TerminationCause.NONE
@@ -69,21 +109,24 @@ class DroneGymEnv(gym.Env):
         super().reset(seed=seed)
         if seed is not None:
             self._generator.manual_seed(int(seed))
-            self._state = dynamics.initial_state((), self.reset_mode, self._generator)
+            self._state = self._start()
             self._seeded_start = self._state.clone()
         elif self._seeded_start is not None:  # reset(seed=s) then reset(), no step: same start
             self._state = self._seeded_start
             self._seeded_start = None
         else:
-            self._state = dynamics.initial_state((), self.reset_mode, self._generator)
-        self._action = torch.zeros(ACTION_DIM)
+            self._state = self._start()
+        self._action = torch.zeros(ACTION_DIM, dtype=self.dtype)
         self._steps, self._return, self._cause = 0, 0.0, TerminationCause.NONE
         if self.render_mode == "human":
             self.render()
         return self._state.numpy().copy(), self._info()
 
+    def _start(self) -> torch.Tensor:
+        return dynamics.initial_state((), self.reset_mode, self._generator, None, self.dtype, self.params)
+
     def step(self, action):
-        action = torch.as_tensor(np.asarray(action, dtype=np.float32))
+        action = torch.as_tensor(np.asarray(action, dtype=self._np_dtype))
         if action.shape != (ACTION_DIM,):
             raise ValueError(f"action has shape {tuple(action.shape)}; expected ({ACTION_DIM},)")
         if not bool(torch.isfinite(action).all()):

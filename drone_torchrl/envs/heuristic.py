@@ -32,12 +32,20 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from drone_torchrl.envs import dynamics
-from drone_torchrl.envs.dynamics import STATE_DIM, ZONE_Z_CENTRE, DroneParams
+from drone_torchrl.envs.dynamics import STATE_DIM, DroneParams
 
-# The collective thrust is divided by cos(alpha); below this cosine (the termination tilt, 60 deg)
-# the correction is held constant so a nearly flipped drone does not ask for unbounded thrust.
-MIN_COS_ALPHA = math.cos(dynamics.ALPHA_LIMIT)
+# The collective thrust is divided by cos(alpha); below the cosine of the termination tilt
+# (params.alpha_limit, 60 deg by default) the correction is held constant so a nearly flipped drone
+# does not ask for unbounded thrust, and never below MIN_COS_ALPHA (84 deg) whatever the tilt limit.
+MIN_COS_ALPHA = 0.1
+# The desired tilt stays within this share of the tilt limit (a tighter limit than the paper's
+# 60 deg then tightens gains.max_tilt).
+MAX_TILT_SHARE = 0.5
+
+
+def min_cos_alpha(params: DroneParams) -> float:
+    """The smallest ``cos(alpha)`` the collective thrust is divided by (see :data:`MIN_COS_ALPHA`)."""
+    return max(math.cos(params.alpha_limit), MIN_COS_ALPHA)
 
 
 @dataclass(frozen=True)
@@ -55,8 +63,8 @@ class PDGains:
     ``max_thrust=1`` the climb is close to the bang-bang limit (net upward acceleration at most g).
     """
 
-    z_target: float = ZONE_Z_CENTRE
-    """Altitude set point (m); the zone centre by default."""
+    z_target: float | None = None
+    """Altitude set point (m); None: the centre height of the params' target zone (2.7 m by default)."""
     x_target: float = 0.0
     """Horizontal set point (m)."""
     kp_z: float = 64.0
@@ -73,7 +81,8 @@ class PDGains:
     kd_x: float = 0.4
     """Horizontal velocity to desired tilt (damping)."""
     max_tilt: float = 0.35
-    """Limit of the desired tilt (rad), well inside the 60 deg termination bound."""
+    """Limit of the desired tilt (rad), well inside the 60 deg termination bound (and never more
+    than half of ``params.alpha_limit``)."""
     kp_alpha: float = 400.0
     """Attitude proportional gain."""
     kd_alpha: float = 40.0
@@ -85,7 +94,8 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
 
     Args:
         observation: ``[x, x_dot, z, z_dot, alpha, alpha_dot]`` with any leading batch shape.
-        params: the drone's physical parameters (mass, gravity, lever arm, inertia, thrust limit).
+        params: the drone's physical parameters (mass, gravity, lever arm, inertia, thrust limit)
+            and arena (the zone's centre is the default set point; the tilt limit).
         gains: targets and gains; ``PDGains()`` when omitted.
 
     When ``params.max_thrust`` is set, each motor's command is clipped into ``[0, max_thrust]``
@@ -97,14 +107,16 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
     x, x_dot, z, z_dot, alpha, alpha_dot = observation.unbind(-1)
 
     # 1. Altitude: desired vertical acceleration, then the collective thrust (fraction of weight).
-    accel_z = gains.kp_z * (gains.z_target - z) - gains.kd_z * z_dot
+    z_target = params.zone_z_centre if gains.z_target is None else gains.z_target
+    accel_z = gains.kp_z * (z_target - z) - gains.kd_z * z_dot
     accel_z = accel_z.clamp(-gains.max_accel_z, gains.max_accel_z)
-    cos_alpha = torch.cos(alpha).clamp_min(MIN_COS_ALPHA)
+    cos_alpha = torch.cos(alpha).clamp_min(min_cos_alpha(params))
     collective = (1.0 + accel_z / params.gravity) / cos_alpha
 
     # 2. Horizontal position -> desired tilt. x_ddot = -sin(alpha) T/m: tilt the opposite way.
     push = gains.kp_x * (gains.x_target - x) - gains.kd_x * x_dot
-    alpha_target = (-push).clamp(-gains.max_tilt, gains.max_tilt)
+    max_tilt = min(gains.max_tilt, MAX_TILT_SHARE * params.alpha_limit)
+    alpha_target = (-push).clamp(-max_tilt, max_tilt)
 
     # 3. Attitude: desired angular acceleration -> thrust difference a_r - a_l (fraction of weight).
     accel_alpha = gains.kp_alpha * (alpha_target - alpha) - gains.kd_alpha * alpha_dot
@@ -152,4 +164,4 @@ class PDController(TensorDictModuleBase):
         return tensordict
 
 
-__all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "pd_action"]
+__all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "min_cos_alpha", "pd_action"]

@@ -61,11 +61,11 @@ class PIDController(TensorDictModuleBase):
         """The commands for ``observation`` ``[..., >= 6]``; then the integrals take this step's error."""
         state = observation[..., :STATE_DIM]
         gains, pd = self.gains, self.gains.pd
-        z_target = pd.z_target if pd.z_target is not None else _zone_centre(self.params)
+        z_target = pd.z_target if pd.z_target is not None else self.params.zone_z_centre
         if self.integral is None:
             self.integral = state.new_zeros((*state.shape[:-1], 2))
-        shift_x = _ratio(gains.ki_x, pd.kp_x) * self.integral[..., 0]
-        shift_z = _ratio(gains.ki_z, pd.kp_z) * self.integral[..., 1]
+        shift_x = gains.ki_x / pd.kp_x * self.integral[..., 0]
+        shift_z = gains.ki_z / pd.kp_z * self.integral[..., 1]
         moved = replace(pd, x_target=pd.x_target + shift_x, z_target=z_target + shift_z)
         action = pd_action(state, self.params, moved)
         error = torch.stack((pd.x_target - state[..., X], z_target - state[..., Z]), -1)
@@ -73,13 +73,3 @@ class PIDController(TensorDictModuleBase):
         limit = limit.unsqueeze(-1) if limit.dim() else limit
         self.integral = torch.minimum(torch.maximum(self.integral + error * self.params.dt, -limit), limit)
         return action
-
-
-def _ratio(ki: float | torch.Tensor, kp: float | torch.Tensor) -> float | torch.Tensor:
-    return ki / kp
-
-
-def _zone_centre(params: DroneParams) -> float:
-    from drone_torchrl.envs import dynamics
-
-    return getattr(params, "zone_z_centre", dynamics.ZONE_Z_CENTRE)

@@ -1,7 +1,7 @@
 """pygame drawing of one 2D drone, shared by :class:`~drone_torchrl.envs.DroneEnv` and ``Drone2D-v0``.
 
-The frame shows the 4 m x 4 m domain with a 1 m grid and axis labels, the target zone as a
-translucent rectangle, the drone as a bar of length ``motor_distance`` rotated by ``alpha`` with its
+The frame shows the domain (the env's ``x_limit``, ``z_min``, ``z_max``: 4 m x 4 m by default),
+scaled to fit, with a 1 m grid and axis labels, the target zone (the env's) as a translucent rectangle, the drone as a bar of length ``motor_distance`` rotated by ``alpha`` with its
 two motors, each motor's thrust as an arrow along the body's up-axis (length proportional to the
 thrust fraction; a negative thrust is drawn in another colour and points down relative to the
 body) and a header with the step, the return so far, the termination cause and the thrusts.
@@ -15,22 +15,11 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
-from drone_torchrl.envs.dynamics import (
-    ALPHA,
-    X_LIMIT,
-    Z_MAX,
-    Z_MIN,
-    ZONE_X_LIMIT,
-    ZONE_Z_MAX,
-    ZONE_Z_MIN,
-    DroneParams,
-    TerminationCause,
-    X,
-    Z,
-)
+from drone_torchrl.envs.dynamics import ALPHA, DroneParams, TerminationCause, X, Z
 
 RENDER_MODES = ("human", "rgb_array")
 WINDOW_TITLE = "Drone2D"
@@ -44,11 +33,9 @@ MARGIN_LEFT = 50  # z tick labels
 MARGIN_RIGHT = 50
 MARGIN_BOTTOM = 40  # x tick labels
 GRID_SPACING_M = 1.0
+# The area the domain is fitted into (keeping its aspect ratio, centred horizontally).
 DOMAIN_WIDTH_PX = FRAME_WIDTH - MARGIN_LEFT - MARGIN_RIGHT
 DOMAIN_HEIGHT_PX = FRAME_HEIGHT - HEADER_HEIGHT - DOMAIN_TOP_GAP - MARGIN_BOTTOM
-PIXELS_PER_METRE = min(DOMAIN_WIDTH_PX / (2 * X_LIMIT), DOMAIN_HEIGHT_PX / (Z_MAX - Z_MIN))
-# Screen position of the domain's top-left corner (x = -X_LIMIT, z = Z_MAX), centred horizontally.
-DOMAIN_LEFT_PX = MARGIN_LEFT + 0.5 * (DOMAIN_WIDTH_PX - 2 * X_LIMIT * PIXELS_PER_METRE)
 DOMAIN_TOP_PX = HEADER_HEIGHT + DOMAIN_TOP_GAP
 # Pixel coordinates are clipped to this many frames around the picture so a drone flung far
 # away (the state is unbounded after termination) never overflows pygame's integer coordinates.
@@ -102,11 +89,39 @@ TERMINATED_TEXT_COLOUR = (160, 0, 0)
 TICK_TEXT_COLOUR = (90, 90, 90)
 
 
-def world_to_pixel(x: float, z: float) -> tuple[float, float]:
-    """Screen coordinates of the world point ``(x, z)`` (metres); the screen's y axis points down."""
-    px = DOMAIN_LEFT_PX + (x + X_LIMIT) * PIXELS_PER_METRE
-    py = DOMAIN_TOP_PX + (Z_MAX - z) * PIXELS_PER_METRE
-    return float(np.clip(px, -PIXEL_CLIP, PIXEL_CLIP)), float(np.clip(py, -PIXEL_CLIP, PIXEL_CLIP))
+@dataclass(frozen=True)
+class Layout:
+    """Where the world lands in a frame: the domain of ``params`` fitted into the drawing area."""
+
+    params: DroneParams
+
+    @property
+    def pixels_per_metre(self) -> float:
+        p = self.params
+        return min(DOMAIN_WIDTH_PX / (2 * p.x_limit), DOMAIN_HEIGHT_PX / (p.z_max - p.z_min))
+
+    @property
+    def left_px(self) -> float:
+        """Screen x of the domain's left edge (``x = -x_limit``), centred horizontally."""
+        return MARGIN_LEFT + 0.5 * (DOMAIN_WIDTH_PX - 2 * self.params.x_limit * self.pixels_per_metre)
+
+    def to_pixel(self, x: float, z: float) -> tuple[float, float]:
+        """Screen coordinates of the world point ``(x, z)`` (metres); the screen's y axis points down."""
+        px = self.left_px + (x + self.params.x_limit) * self.pixels_per_metre
+        py = DOMAIN_TOP_PX + (self.params.z_max - z) * self.pixels_per_metre
+        return float(np.clip(px, -PIXEL_CLIP, PIXEL_CLIP)), float(np.clip(py, -PIXEL_CLIP, PIXEL_CLIP))
+
+
+def world_to_pixel(x: float, z: float, params: DroneParams | None = None) -> tuple[float, float]:
+    """Screen coordinates of the world point ``(x, z)`` in the frame of ``params``' domain (default:
+    the paper's)."""
+    return Layout(DroneParams() if params is None else params).to_pixel(x, z)
+
+
+def _ticks(low: float, high: float) -> list[float]:
+    """The grid lines' positions in ``[low, high]``: the multiples of :data:`GRID_SPACING_M`."""
+    first, last = math.ceil(low / GRID_SPACING_M), math.floor(high / GRID_SPACING_M)
+    return [k * GRID_SPACING_M for k in range(first, last + 1)]
 
 
 def _import_pygame():
@@ -135,6 +150,7 @@ class DroneRenderer:
         self._pygame = pygame
         self.render_mode = render_mode
         self.params = params
+        self.layout = Layout(params)
         self.fps = int(fps)
         pygame.font.init()
         self._font = pygame.font.Font(None, FONT_SIZE)
@@ -153,17 +169,17 @@ class DroneRenderer:
     def _draw_background(self):
         """Margins, domain, grid, axis labels, floor and target zone: the same in every frame."""
         pygame = self._pygame
+        p, to_pixel = self.params, self.layout.to_pixel
         surface = pygame.Surface((FRAME_WIDTH, FRAME_HEIGHT))
         surface.fill(MARGIN_COLOUR)
-        left, top = world_to_pixel(-X_LIMIT, Z_MAX)
-        right, bottom = world_to_pixel(X_LIMIT, Z_MIN)
+        left, top = to_pixel(-p.x_limit, p.z_max)
+        right, bottom = to_pixel(p.x_limit, p.z_min)
         domain = pygame.Rect(round(left), round(top), round(right - left), round(bottom - top))
         surface.fill(DOMAIN_COLOUR, domain)
 
-        n_x = round(2 * X_LIMIT / GRID_SPACING_M)
-        for k in range(n_x + 1):
-            x = -X_LIMIT + k * GRID_SPACING_M
-            px, _ = world_to_pixel(x, Z_MIN)
+        x_ticks, z_ticks = _ticks(-p.x_limit, p.x_limit), _ticks(p.z_min, p.z_max)
+        for x in x_ticks:
+            px, _ = to_pixel(x, p.z_min)
             pygame.draw.line(surface, GRID_COLOUR, (px, top), (px, bottom), GRID_LINE_WIDTH)
             self._blit_text(
                 surface,
@@ -173,10 +189,8 @@ class DroneRenderer:
                 (px, bottom + TICK_LABEL_GAP_PX),
                 "midtop",
             )
-        n_z = round((Z_MAX - Z_MIN) / GRID_SPACING_M)
-        for k in range(n_z + 1):
-            z = Z_MIN + k * GRID_SPACING_M
-            _, py = world_to_pixel(-X_LIMIT, z)
+        for z in z_ticks:
+            _, py = to_pixel(-p.x_limit, z)
             pygame.draw.line(surface, GRID_COLOUR, (left, py), (right, py), GRID_LINE_WIDTH)
             self._blit_text(
                 surface,
@@ -187,7 +201,7 @@ class DroneRenderer:
                 "midright",
             )
         # Axis titles sit between the last two tick labels of each axis.
-        title_x, _ = world_to_pixel(X_LIMIT - 0.5 * GRID_SPACING_M, Z_MIN)
+        title_x, _ = to_pixel(x_ticks[-1] - 0.5 * GRID_SPACING_M if x_ticks else 0.0, p.z_min)
         self._blit_text(
             surface,
             self._tick_font,
@@ -196,7 +210,7 @@ class DroneRenderer:
             (title_x, bottom + TICK_LABEL_GAP_PX),
             "midtop",
         )
-        _, title_z = world_to_pixel(-X_LIMIT, Z_MAX - 0.5 * GRID_SPACING_M)
+        _, title_z = to_pixel(-p.x_limit, (z_ticks[-1] if z_ticks else p.z_max) - 0.5 * GRID_SPACING_M)
         self._blit_text(
             surface,
             self._tick_font,
@@ -206,8 +220,8 @@ class DroneRenderer:
             "midright",
         )
 
-        zone_left, zone_top = world_to_pixel(-ZONE_X_LIMIT, ZONE_Z_MAX)
-        zone_right, zone_bottom = world_to_pixel(ZONE_X_LIMIT, ZONE_Z_MIN)
+        zone_left, zone_top = to_pixel(-p.zone_x_limit, p.zone_z_max)
+        zone_right, zone_bottom = to_pixel(p.zone_x_limit, p.zone_z_min)
         zone = pygame.Rect(
             round(zone_left), round(zone_top), round(zone_right - zone_left), round(zone_bottom - zone_top)
         )
@@ -254,8 +268,9 @@ class DroneRenderer:
         # Screen frame: y points down, so the world z component flips sign.
         right_s = right_w * (1.0, -1.0)
         up_s = up_w * (1.0, -1.0)
-        centre = np.array(world_to_pixel(x, z))
-        half_length = self.params.lever_arm * PIXELS_PER_METRE
+        centre = np.array(self.layout.to_pixel(x, z))
+        pixels_per_metre = self.layout.pixels_per_metre
+        half_length = self.params.lever_arm * pixels_per_metre
         motors = (centre - right_s * half_length, centre + right_s * half_length)
 
         for motor, thrust in zip(motors, action, strict=True):
@@ -263,7 +278,7 @@ class DroneRenderer:
             colour = THRUST_NEGATIVE_COLOUR if thrust < 0 else THRUST_POSITIVE_COLOUR
             length_m = min(abs(thrust) * THRUST_ARROW_M_PER_UNIT, THRUST_ARROW_MAX_M)
             direction = up_s if thrust >= 0 else -up_s
-            self._draw_arrow(motor, direction, length_m * PIXELS_PER_METRE, colour)
+            self._draw_arrow(motor, direction, length_m * pixels_per_metre, colour)
 
         normal = up_s * (0.5 * BODY_THICKNESS_PX)
         left_motor, right_motor = motors

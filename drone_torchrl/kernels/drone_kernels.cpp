@@ -394,7 +394,8 @@ enum EnvConst {
   kWeight, kMass, kGravity, kDt, kArmOverInertia, kMaxThrust /* < 0: unbounded */, kXLimit, kZMin, kZMax,
   kAlphaLimit, kFloor /* z_min - floor_tolerance */, kZoneX, kZoneZMin, kZoneZMax, kRewardZone, kRewardAlive,
   kRewardTerminated, kSquashHigh /* tanh_normal's high; < 0: normal head */,
-  kResetAir /* 1: start around the zone's centre; 0: on the floor */, kResetNoise, kZoneZCentre, kEnvConsts
+  kResetAir /* 1: start around the zone's centre; 0: on the floor */, kResetNoise, kZoneZCentre,
+  kStrict /* 1: a state on a bound is outside (the domain and the zone); 0: inside */, kEnvConsts
 };
 
 // ------------------------------------------------------------------------------------------------
@@ -513,7 +514,14 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
   const S high = env[kSquashHigh], half = high / S(2);
   const S min_std = net.min_std;
   const S squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe tanh
-  (void)z_min;
+  // dynamics.termination_cause: beyond an upper (lower) bound is > (<), or >= (<=) with strict
+  // bounds. dynamics.in_target_zone: within an upper (lower) bound is <= (>=), or < (>) strict.
+  // (Each written out: a negated comparison would count NaN as inside the zone.)
+  const bool strict = env[kStrict] > 0;
+  const auto above = [strict](Vec<S> v, S bound) { return strict ? v >= bound : v > bound; };
+  const auto below = [strict](Vec<S> v, S bound) { return strict ? v <= bound : v < bound; };
+  const auto under = [strict](Vec<S> v, S bound) { return strict ? v < bound : v <= bound; };
+  const auto over = [strict](Vec<S> v, S bound) { return strict ? v > bound : v >= bound; };
   Block<S> block(net);
   const int64_t T = a.steps;
   for (int64_t b = first; b < last; b++) {
@@ -544,10 +552,13 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
         noise_key[l] = stream_key(seed, counter, kActionNoise);
         const uint64_t start_key = stream_key(seed, counter, kStartStates);
         for (int k = 0; k < kStateDim; k++) {  // dynamics.states_from_uniform
+          // The noise in float32, then the start point (the zone's centre or the floor) in S.
+          const bool air = env[kResetAir] > 0;
           const float u = uniform(start_key, episode[l] * kStateDim + k);
           const float jitter = (2.0f * u - 1.0f) * static_cast<float>(env[kResetNoise]);
-          const bool kept = env[kResetAir] > 0 || k == 0 || k == 4;  // floor: x and alpha only
-          s[k][l] = !kept ? S(0) : k == 2 && env[kResetAir] > 0 ? jitter + static_cast<float>(env[kZoneZCentre]) : jitter;
+          const bool kept = air || k == 0 || k == 4;  // floor: x and alpha only
+          const S base = k != 2 ? S(0) : air ? S(env[kZoneZCentre]) : z_min;
+          s[k][l] = (kept ? S(jitter) : S(0)) + base;
         }
       } else {
         for (int k = 0; k < kStateDim; k++) s[k][l] = start[row * kStateDim + k];
@@ -610,11 +621,12 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
       n[4] = s[4] + n[5] * dt;
       const Vec<S> ax = vabs(n[0]), aa = vabs(n[4]);
       // The lowest non-zero code wins: assign from the highest down.
-      auto cause = (aa > alpha_limit) & kTilt;
-      cause = (n[2] > z_max) ? kCeiling : cause;
-      cause = (n[2] < floor) ? kFloorHit : cause;
-      cause = (ax > x_limit) ? kOutX : cause;
-      const auto zone = (ax <= zone_x) & (n[2] >= zone_z_min) & (n[2] <= zone_z_max) & (aa <= alpha_limit);
+      auto cause = above(aa, alpha_limit) & kTilt;
+      cause = above(n[2], z_max) ? kCeiling : cause;
+      cause = below(n[2], floor) ? kFloorHit : cause;
+      cause = above(ax, x_limit) ? kOutX : cause;
+      const auto zone =
+          under(ax, zone_x) & over(n[2], zone_z_min) & under(n[2], zone_z_max) & under(aa, alpha_limit);
       Vec<S> r = zone ? splat(r_zone) : splat(r_alive);
       r = cause != 0 ? splat(r_term) : r;
       any = false;

@@ -74,6 +74,7 @@ ENV_CONSTANTS = (
     "reset_air",  # 1: start states drawn around the zone's centre, 0: on the floor
     "reset_noise",
     "zone_z_centre",
+    "strict",  # 1: a state exactly on a bound is outside (the domain and the zone); 0: inside
 )
 
 
@@ -83,7 +84,8 @@ def env_constants(
     reset_mode: str = "floor",
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """The drone's constants (:data:`ENV_CONSTANTS`), float64.
+    """The drone's constants (:data:`ENV_CONSTANTS`), float64: its physics and its arena (domain,
+    target zone, ``bounds``) from ``params``.
 
     ``squash_high``: the TanhNormal head's upper bound (actions in ``[0, squash_high]``), or None
     for the Normal head. ``reset_mode``: where the start states drawn in the kernel lie.
@@ -95,21 +97,22 @@ def env_constants(
         "dt": params.dt,
         "arm_over_inertia": params.lever_arm / params.inertia,
         "max_thrust": -1.0 if params.max_thrust is None else params.max_thrust,
-        "x_limit": dynamics.X_LIMIT,
-        "z_min": dynamics.Z_MIN,
-        "z_max": dynamics.Z_MAX,
-        "alpha_limit": dynamics.ALPHA_LIMIT,
-        "floor": dynamics.Z_MIN - params.floor_tolerance,
-        "zone_x": dynamics.ZONE_X_LIMIT,
-        "zone_z_min": dynamics.ZONE_Z_MIN,
-        "zone_z_max": dynamics.ZONE_Z_MAX,
+        "x_limit": params.x_limit,
+        "z_min": params.z_min,
+        "z_max": params.z_max,
+        "alpha_limit": params.alpha_limit,
+        "floor": params.floor,
+        "zone_x": params.zone_x_limit,
+        "zone_z_min": params.zone_z_min,
+        "zone_z_max": params.zone_z_max,
         "reward_zone": dynamics.REWARD_IN_ZONE,
         "reward_alive": dynamics.REWARD_ALIVE,
         "reward_terminated": dynamics.REWARD_TERMINATED,
         "squash_high": -1.0 if squash_high is None else float(squash_high),
         "reset_air": float(reset_mode == "air"),
         "reset_noise": dynamics.RESET_NOISE,
-        "zone_z_centre": dynamics.ZONE_Z_CENTRE,
+        "zone_z_centre": params.zone_z_centre,
+        "strict": float(params.strict),
     }
     return torch.tensor([values[name] for name in ENV_CONSTANTS], dtype=torch.float64, device=device)
 

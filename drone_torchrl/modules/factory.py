@@ -8,7 +8,7 @@ import torch
 from omegaconf import DictConfig
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from drone_torchrl.envs.dynamics import HOVER_THRUST
+from drone_torchrl.envs.dynamics import DTYPES, HOVER_THRUST
 from drone_torchrl.modules.policy import ThreeNetPolicy, actor_from_net, init_exploration
 from drone_torchrl.modules.value import make_critic
 
@@ -16,15 +16,26 @@ from drone_torchrl.modules.value import make_critic
 TANH_EDGE = 0.99
 
 
+def model_dtype(cfg: DictConfig) -> torch.dtype:
+    """The precision of a run's networks: its env's (``env.dtype``).
+
+    The whole model runs in the env's dtype rather than casting at the policy boundary, so a
+    float64 run is float64 end to end: observations, actions, log-probabilities, returns, the loss,
+    the gradients and the weights (its checkpoints hold float64 weights)."""
+    return DTYPES[cfg.env.dtype]
+
+
 def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
-    """A fresh three-net policy on ``cfg.device``; with ``seed``, initialised after ``torch.manual_seed(seed)``."""
+    """A fresh three-net policy on ``cfg.device`` in :func:`model_dtype`; with ``seed``, initialised
+    after ``torch.manual_seed(seed)`` (in float32, then converted: a seed starts from the same
+    weights in either precision)."""
     if seed is not None:
         torch.manual_seed(seed)
     model = cfg.model
     net = ThreeNetPolicy(list(model.hidden_sizes), model.activation, model.min_std)
     if model.get("init_std") is not None:
         init_exploration(net, model.init_std, hover_mean(model.distribution, cfg.env.max_thrust))
-    return net.to(cfg.device)
+    return net.to(device=cfg.device, dtype=model_dtype(cfg))
 
 
 def hover_mean(distribution: str, max_thrust: float | None) -> float:
@@ -42,7 +53,7 @@ def hover_mean(distribution: str, max_thrust: float | None) -> float:
 
 def build_critic(cfg: DictConfig) -> ValueOperator:
     """PPO's value network (``algo.value_hidden_sizes``, the policy's activation) on ``cfg.device``."""
-    return make_critic(list(cfg.algo.value_hidden_sizes), cfg.model.activation, cfg.device)
+    return make_critic(list(cfg.algo.value_hidden_sizes), cfg.model.activation, cfg.device, model_dtype(cfg))
 
 
 def build_actor(

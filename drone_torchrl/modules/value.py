@@ -12,9 +12,13 @@ from drone_torchrl.modules.policy import ACTIVATIONS
 
 
 def make_critic(
-    hidden_sizes: Sequence[int] = (64, 64), activation: str = "tanh", device: torch.device | str = "cpu"
+    hidden_sizes: Sequence[int] = (64, 64),
+    activation: str = "tanh",
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
 ) -> ValueOperator:
-    """A ``ValueOperator`` reading ``"observation"`` and writing ``"state_value"``."""
+    """A ``ValueOperator`` reading ``"observation"`` and writing ``"state_value"``, in ``dtype``
+    (the env's: initialised in float32, then converted)."""
     net = MLP(
         in_features=STATE_DIM,
         out_features=1,
@@ -22,4 +26,4 @@ def make_critic(
         activation_class=ACTIVATIONS[activation],
         device=device,
     )
-    return ValueOperator(net, in_keys=["observation"])
+    return ValueOperator(net.to(dtype), in_keys=["observation"])

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from drone_torchrl.config import ENV_ARGS, env_kwargs
+from drone_torchrl.config import ENV_ADDED, ENV_ARGS, env_kwargs
 from drone_torchrl.envs.dynamics import REWARD_IN_ZONE
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSVError, read_episodes
 from drone_torchrl.training.jobs import job_status, sweep_jobs
@@ -89,9 +89,11 @@ class Run:
 
     @property
     def env_kwargs(self) -> dict[str, Any]:
-        """The ``DroneEnv`` arguments of the run (:func:`drone_torchrl.config.env_kwargs`)."""
+        """The ``DroneEnv`` arguments of the run (:func:`drone_torchrl.config.env_kwargs`; a run from
+        before an argument existed gets the value it ran with, :data:`~drone_torchrl.config.ENV_ADDED`)."""
         for name in ENV_ARGS:  # a config without one of them: a one-line error, not a KeyError
-            self._required(f"env.{name}")
+            if name not in ENV_ADDED:
+                self._required(f"env.{name}")
         return env_kwargs(self.config)
 
     def wall_clock(self) -> float | None:

@@ -34,7 +34,7 @@ from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.factory import make_env
 from drone_torchrl.envs.rollout import ChunkFn, Episodes, RolloutFn, chunked, fly_episodes
-from drone_torchrl.modules.factory import build_actor
+from drone_torchrl.modules.factory import build_actor, model_dtype
 from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.modules.stacked import ActionSampler
 from drone_torchrl.training import rng
@@ -127,6 +127,7 @@ class VectorisedCollector:
         self.max_steps = cfg.env.max_steps
         self.episodes = cfg.algo.episodes_per_update
         self.device = torch.device(cfg.device)
+        self.dtype = model_dtype(cfg)  # the env's: states, noise and the nets (float64 end to end)
         self.sampler = ActionSampler(cfg.model.distribution, cfg.env.max_thrust)
         self.steps_per_call = cfg.steps_per_call
         squash = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
@@ -187,8 +188,10 @@ class VectorisedCollector:
             seeds = self._seeds.repeat(last - j)
             counters = (self._counters + offsets).reshape(-1)
             uniform = rng.uniform(seeds, counters, rng.START_STATES, (self.episodes, dynamics.STATE_DIM))
-            start = dynamics.states_from_uniform(uniform, self.cfg.env.reset_mode).unflatten(0, (-1, n))
+            start = dynamics.states_from_uniform(uniform, self.cfg.env.reset_mode, self.params, self.dtype)
+            start = start.unflatten(0, (-1, n))
             noise = rng.normal(seeds, counters, rng.ACTION_NOISE, (self.max_steps, self.episodes, 2))
+            noise = noise.to(self.dtype)  # drawn in float32, as the C++ kernels draw it
             self._draws = (start, noise.unflatten(0, (-1, n)), j, last)
         start, noise, first, _ = self._draws
         return start[j - first], noise[j - first]
