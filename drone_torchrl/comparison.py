@@ -26,7 +26,7 @@ from drone_torchrl.config import (
     run_config,
     validate,
 )
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
 from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
@@ -87,18 +87,36 @@ def plot_trajectory(
 
 
 def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
-    """A checkpoint flies in its own run's env: an ``env.*`` override that differs is refused, not ignored."""
+    """A checkpoint flies in its own run's env: an ``env.*`` override that differs is refused, not
+    ignored. The disturbances are the evaluation's conditions (:func:`_flown_env`), not the run's."""
     keys = command_line_keys() or set()
     changed = [
         f"env.{name} {run_env[name]!r} -> {cfg.env[name]!r}"
         for name in run_env
-        if ("env" in keys or f"env.{name}" in keys) and cfg.env[name] != run_env[name]
+        if name != "disturbance"
+        and ("env" in keys or f"env.{name}" in keys)
+        and cfg.env[name] != run_env[name]
     ]
     if changed:
         raise ConfigError(
             f"checkpoint={str(path)!r} flies in the env it was trained in; the command line changes "
             f"{'; '.join(changed)}: drop those overrides"
         )
+
+
+def _flown_env(cfg: DictConfig, run_env: dict, path: Path) -> dict:
+    """The run's env under the disturbances drone-eval was asked for (``disturbance=...``), keeping
+    the run's ``observed_actions``: the policy's input layout, not a condition."""
+    asked = env_kwargs(cfg)["disturbance"]
+    trained = disturbances.make(run_env["disturbance"]).observed_actions
+    if asked["observed_actions"] != trained and "env.disturbance.observed_actions" in (
+        command_line_keys() or set()
+    ):
+        raise ConfigError(
+            f"checkpoint={str(path)!r} reads {trained} past command(s) in its observations; "
+            f"env.disturbance.observed_actions={asked['observed_actions']} cannot change that: drop the override"
+        )
+    return {**run_env, "disturbance": {**asked, "observed_actions": trained}}
 
 
 def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
@@ -108,6 +126,8 @@ def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
             f"optimum: with unbounded thrust the best achievable return is the ceiling {ceiling:.0f} (a thrust "
             "pulse of hundreds of weights on step 1 puts the drone in the zone), so the PD controller is the reference"
         )
+    if optimum is None and disturbances.make(kwargs.get("disturbance")).active:
+        return "optimum: derived for the nominal drone only, not under disturbances; the PD controller is the reference"
     if optimum is None:
         return "optimum: not derived for these settings (max_thrust below the hover thrust)"
     return (
@@ -137,6 +157,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
             ) from None
         kwargs = env_kwargs(run_cfg)
         _refuse_env_overrides(cfg, kwargs, path)
+        kwargs = _flown_env(cfg, kwargs, path)
         actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:

@@ -27,9 +27,12 @@ ENV_ARGS = tuple(f.name for f in dataclasses.fields(schema.EnvConf) if f.name no
 # Those added after the first runs, with the value the runs saved before them behaved as: a saved
 # config (a checkpoint's, a run folder's config.yaml) without one of them gets it (env_kwargs).
 ENV_ADDED = {
-    f.name: f.metadata[schema.RULE].added
-    for f in dataclasses.fields(schema.EnvConf)
-    if f.name in ENV_ARGS and f.metadata[schema.RULE].is_added
+    "disturbance": None,  # a section (env.disturbance.*): a config from before it flew the nominal drone
+    **{
+        f.name: rule.added
+        for f in dataclasses.fields(schema.EnvConf)
+        if f.name in ENV_ARGS and (rule := f.metadata.get(schema.RULE)) is not None and rule.is_added
+    },
 }
 
 
@@ -385,10 +388,11 @@ def run_config(saved: dict[str, Any]) -> DictConfig:
 _ABSENT = object()
 
 
-# The DroneEnv arguments that describe the episode rather than the drone, and the precision: the
-# others are DroneParams' (the physics and the arena, what the dynamics need).
+# The DroneEnv arguments that describe the episode rather than the drone, the precision and the
+# disturbances (drawn per episode around the nominal drone): the others are DroneParams' (the
+# physics and the arena, what the dynamics need).
 EPISODE_ARGS = ("max_steps", "reset_mode")
-NOT_PARAMS = (*EPISODE_ARGS, "dtype")
+NOT_PARAMS = (*EPISODE_ARGS, "dtype", "disturbance")
 
 
 def physics_params(kwargs: dict[str, Any]) -> DroneParams:
@@ -400,7 +404,10 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     """The ``DroneEnv`` arguments of a config (a ``DictConfig`` or the plain dict of a saved one); a
     saved config from before an argument existed gets its :data:`ENV_ADDED` value."""
     env = cfg["env"]
-    return {name: env[name] if name in env else ENV_ADDED[name] for name in ENV_ARGS}
+    kwargs = {name: env[name] if name in env else ENV_ADDED[name] for name in ENV_ARGS}
+    if isinstance(kwargs["disturbance"], DictConfig):  # the env takes a plain mapping
+        kwargs["disturbance"] = OmegaConf.to_container(kwargs["disturbance"])
+    return kwargs
 
 
 def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:

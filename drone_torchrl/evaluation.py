@@ -17,7 +17,7 @@ from tensordict.nn import TensorDictModuleBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from drone_torchrl.config import physics_params
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController, PDGains
 from drone_torchrl.envs.rollout import RolloutFn, StepFn, chunked, fly
@@ -29,11 +29,39 @@ def policy_step(policy: TensorDictModuleBase, params: dynamics.DroneParams) -> S
     """A :data:`StepFn` that asks a TensorDict policy (actor, PD controller) for its deterministic action."""
 
     def step(state: torch.Tensor, t: int):
-        with set_exploration_type(ExplorationType.DETERMINISTIC):
-            action = policy(TensorDict({"observation": state}, batch_size=state.shape[:-1])).get("action")
-        return (action, *dynamics.step(state, action, params))
+        return (action := _act(policy, state), *dynamics.step(state, action, params))
 
     return step
+
+
+def disturbed_step(
+    policy: TensorDictModuleBase,
+    params: dynamics.DroneParams,
+    disturbance: disturbances.Disturbance,
+    keys: torch.Tensor,
+) -> StepFn:
+    """:func:`policy_step` under ``disturbance``, the episodes' draws following ``keys`` (``[*B]``):
+    the policy sees :func:`~drone_torchrl.envs.disturbances.observe`'s observation, the drone flies
+    :func:`~drone_torchrl.envs.disturbances.step` (what ``DroneEnv`` does with the same keys)."""
+    internal = None  # drawn at the first step, in the state's batch shape and dtype
+
+    def step(state: torch.Tensor, t: int):
+        nonlocal internal
+        if internal is None:
+            internal = disturbances.start(disturbance, keys.expand(state.shape[:-1]), state.dtype)
+        action = _act(policy, disturbances.observe(disturbance, state, internal, t))
+        next_state, reward, cause, internal = disturbances.step(
+            disturbance, state, action, internal, t, params
+        )
+        return action, next_state, reward, cause
+
+    return step
+
+
+def _act(policy: TensorDictModuleBase, observation: torch.Tensor) -> torch.Tensor:
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = TensorDict({"observation": observation}, batch_size=observation.shape[:-1])
+        return policy(td).get("action")
 
 
 @torch.no_grad()
@@ -57,13 +85,22 @@ def evaluate(
     """
     env = DroneEnv(batch_size=[episodes], device=device, **env_kwargs)  # validates the arguments
     env.set_seed(seed)
-    start = env.reset().get("observation")
+    env.reset()
+    start, keys = env.state, env.episode_keys
     if agents is not None:
         start = start.expand(agents, *start.shape).clone()
     if isinstance(policy, TensorDictModuleBase):
         if callable(reset := getattr(policy, "reset", None)):
             reset()  # a stateful controller (the PID's integrals) starts new episodes
-        rollout = fly(chunked(policy_step(policy, env.params)), start, env.max_steps)
+        if keys is None:
+            step = policy_step(policy, env.params)
+        else:
+            step = disturbed_step(policy, env.params, env.disturbance, keys)
+        rollout = fly(chunked(step), start, env.max_steps)
+    elif keys is not None:
+        raise ValueError(
+            "disturbances need a TensorDict policy: the training engines' own rollouts fly nominal drones"
+        )
     else:
         rollout = policy(start).as_rollout(env.max_steps)
     env.close()
@@ -114,11 +151,13 @@ def reference_optimum(env_kwargs: dict[str, Any]) -> Optimum | None:
     """The best achievable return of the env's episodes (:func:`drone_torchrl.optimum.env_optimum`)
     where it is the reference for returns: with bounded thrust. ``None`` with unbounded thrust (the
     bound is the ceiling ``10 * max_steps``, reached only by a thrust pulse of hundreds of weights,
-    so the PD controller is the practical reference) and where the bound is not derived."""
+    so the PD controller is the practical reference), under disturbances (the bound is the nominal
+    drone's) and where the bound is not derived."""
     env = DroneEnv(batch_size=[], **env_kwargs)  # validates the arguments
     params, max_steps, reset_mode = env.params, env.max_steps, env.reset_mode
+    disturbed = env.disturbance.active
     env.close()
-    if params.max_thrust is None:
+    if params.max_thrust is None or disturbed:
         return None
     return env_optimum(params, max_steps, reset_mode)
 

@@ -33,6 +33,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
 from drone_torchrl.checks import ConfigError, check_choice, check_number, check_sizes
+from drone_torchrl.envs.disturbances import MAX_GAIN_SPREAD, MAX_MASS_SPREAD, MAX_STEPS_BACK, Disturbance
 from drone_torchrl.envs.dynamics import (
     ALPHA_LIMIT,
     BOUNDS_MODES,
@@ -204,6 +205,27 @@ def plugin_group(key: str, added: str) -> Any:
 ENV_NON_ARGS = ("num_workers",)
 
 
+_NOMINAL = Disturbance()
+
+
+@dataclass
+class DisturbanceConf:
+    """``env.disturbance.*``: wind, gusts, mass and motor mismatch, lag, delay, observation noise
+    (drone_torchrl/envs/disturbances.py says each one's physics; presets: ``disturbance=none|mild|strong``).
+    They came after the first runs: a config without them flew the nominal drone."""
+
+    wind: Any = a_number(low=0, added=_NOMINAL.wind)
+    gust: Any = a_number(low=0, added=_NOMINAL.gust)
+    gust_time: Any = a_number(low=0, low_open=True, added=_NOMINAL.gust_time)
+    mass: Any = a_number(low=0, high=MAX_MASS_SPREAD, added=_NOMINAL.mass)
+    motor_gain: Any = a_number(low=0, high=MAX_GAIN_SPREAD, added=_NOMINAL.motor_gain)
+    motor_lag: Any = a_number(low=0, added=_NOMINAL.motor_lag)
+    noise_position: Any = a_number(low=0, added=_NOMINAL.noise_position)
+    noise_angle: Any = a_number(low=0, added=_NOMINAL.noise_angle)
+    action_delay: Any = an_integer(low=0, high=MAX_STEPS_BACK, added=_NOMINAL.action_delay)
+    observed_actions: Any = an_integer(low=0, high=MAX_STEPS_BACK, added=_NOMINAL.observed_actions)
+
+
 @dataclass
 class EnvConf:
     """``env.*``: the DroneEnv arguments (the env checks them itself: make_params and check_arena
@@ -227,6 +249,7 @@ class EnvConf:
     zone_z_max: Any = free(added=ZONE_Z_MAX)
     bounds: Any = one_of(BOUNDS_MODES, added="inclusive")
     dtype: Any = one_of(tuple(DTYPES), added="float32")
+    disturbance: DisturbanceConf = field(default_factory=DisturbanceConf)
     num_workers: Any = an_integer(low=0)
 
 

@@ -34,6 +34,7 @@ class SearchSpace:
     damping: tuple[float, float] = (0.5, 1.5)  # both loops (PD: 1, critical)
     kp_x: tuple[float, float] = (0.1, 1.2)  # rad/m (PD: 0.4)
     kd_x: tuple[float, float] = (0.1, 1.2)  # rad/(m/s) (PD: 0.4)
+    max_tilt: tuple[float, float] = (0.2, 0.6)  # rad (PD: 0.35); at most half the tilt limit
     ki_x: tuple[float, float] = (0.01, 1.0)  # rad/(m s); 0 in a quarter of the candidates
     ki_z: tuple[float, float] = (0.5, 40.0)  # (m/s^2)/(m s); 0 in a quarter of the candidates
     candidates: int = 64  # per round
@@ -41,6 +42,9 @@ class SearchSpace:
     narrowing: float = 0.25  # the next round's log-range, as a share of the previous one's
     seed: int = 1000  # of the tuning episodes (evaluations use seed 0 by default)
     episodes: int = 100
+
+
+SEARCHED = ("altitude_frequency", "attitude_frequency", "damping", "kp_x", "kd_x", "max_tilt", "ki_x", "ki_z")
 
 
 def _log_uniform(low: float, high: float, n: int, generator: torch.Generator) -> torch.Tensor:
@@ -52,7 +56,7 @@ def _sample(space: SearchSpace, centre: dict[str, float] | None, generator: torc
     """``space.candidates`` values of each searched quantity; around ``centre`` after the first round."""
     n = space.candidates
     out = {}
-    for name in ("altitude_frequency", "attitude_frequency", "damping", "kp_x", "kd_x", "ki_x", "ki_z"):
+    for name in SEARCHED:
         low, high = getattr(space, name)
         if centre is not None and centre[name] > 0:
             half = space.narrowing * 0.5 * math.log(high / low)
@@ -77,6 +81,7 @@ def _gains(values: dict[str, torch.Tensor]) -> PIDGains:
         kd_alpha=col(2 * zeta * wa),
         kp_x=col(values["kp_x"]),
         kd_x=col(values["kd_x"]),
+        max_tilt=col(values["max_tilt"]),
     )
     return PIDGains(pd=pd, ki_x=col(values["ki_x"]), ki_z=col(values["ki_z"]))
 
@@ -89,6 +94,7 @@ def _nominal() -> dict[str, float]:
         "damping": pd.kd_z / (2 * math.sqrt(pd.kp_z)),
         "kp_x": pd.kp_x,
         "kd_x": pd.kd_x,
+        "max_tilt": pd.max_tilt,
         "ki_x": 0.0,
         "ki_z": 0.0,
     }

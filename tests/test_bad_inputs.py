@@ -194,6 +194,17 @@ TRAIN = [
     (["env.dtype=float16"], "env.dtype"),
     (["env.dtype=double"], "env.dtype"),
     (["env.dtype=64"], "env.dtype"),
+    # disturbances (conf/disturbance/, drone_torchrl/envs/disturbances.py)
+    (["disturbance=gale"], "disturbance"),
+    (["env.disturbance.wind=-0.1"], "env.disturbance.wind"),
+    (["env.disturbance.mass=0.95"], "env.disturbance.mass"),  # a drone of 5% of its mass
+    (["env.disturbance.motor_gain=1"], "env.disturbance.motor_gain"),  # a dead motor
+    (["env.disturbance.gust_time=0"], "env.disturbance.gust_time"),
+    (["env.disturbance.action_delay=1.5"], "env.disturbance.action_delay"),
+    (["env.disturbance.observed_actions=26"], "env.disturbance.observed_actions"),
+    (["env.disturbance.noise_angle=nan"], "env.disturbance.noise_angle"),
+    (["env.disturbance.gusts=0.1"], "env.disturbance.gust"),  # did you mean
+    (["disturbance=mild"], "env.disturbance"),  # the population engine flies the nominal drone
     (["env.num_workers=-1"], "env.num_workers"),
     (["env.num_workers=2"], "env.num_workers"),  # engine=fused has no worker processes
     (["engine=torchrl", "env.num_workers=3", "algo.episodes_per_update=2"], "env.num_workers"),
@@ -318,6 +329,8 @@ def test_drone_train_refuses(overrides, names, files, tmp_path):
 
 # -------------------------------------------------------------------------------------- drone-eval
 EVAL = [
+    (["disturbance=gale"], "disturbance"),
+    (["env.disturbance.motor_lag=-0.02"], "env.disturbance.motor_lag"),
     (["checkpoint={emptydir}/nothing"], "checkpoint"),
     (["checkpoint={emptydir}"], "checkpoint"),
     (["checkpoint={empty}"], "empty.pt"),

@@ -159,7 +159,7 @@ def test_gust_force_enters_like_the_wind():
 
 
 def test_episode_draws_cover_their_ranges_and_follow_the_key_not_the_position():
-    d = dist.PRESETS["strong"]
+    d = dist.Disturbance(**STRONG)
     keys = torch.arange(5000) * 7919
     draw = dist.draw_episode(d, keys)
     assert draw.wind.abs().max().item() <= 0.3 and draw.wind.abs().max().item() > 0.29
@@ -186,9 +186,86 @@ def test_bad_magnitudes_are_refused_in_one_line(field, value):
         dist.Disturbance(**{field: value})
 
 
+def _preset(name: str) -> dict:
+    """conf/disturbance/<name>.yaml as composed (the presets live in the configs only)."""
+    from hydra import compose, initialize_config_dir
+
+    from drone_torchrl.config import config_dir, env_kwargs
+
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        return env_kwargs(compose("eval", [f"disturbance={name}"]))["disturbance"]
+
+
 def test_presets():
-    assert not dist.PRESETS["none"].active
-    mild, strong = dist.PRESETS["mild"], dist.PRESETS["strong"]
-    assert mild.active and strong.active
+    presets = {name: dist.make(_preset(name)) for name in ("none", "mild", "strong")}
+    assert not presets["none"].active and presets["none"] == dist.Disturbance()
+    mild, strong = presets["mild"], presets["strong"]
+    assert mild.active and strong.active and mild.action_delay == 1 and strong.action_delay == 2
     # A 30% heavier drone with a 15% weaker motor still lifts itself with max_thrust 1.
     assert 2 * (1 - strong.motor_gain) / (1 + strong.mass) > 1
+
+
+STRONG = {"wind": 0.3, "gust": 0.15, "mass": 0.3, "motor_gain": 0.15, "motor_lag": 0.05,
+          "noise_position": 0.03, "noise_angle": 0.03, "action_delay": 2}  # fmt: skip
+
+
+def test_the_env_and_the_evaluator_fly_the_same_disturbed_episodes():
+    from drone_torchrl.envs import DroneEnv
+    from drone_torchrl.envs.heuristic import PDController
+    from drone_torchrl.evaluation import evaluate
+
+    env = DroneEnv(batch_size=[6], max_thrust=1.0, disturbance=STRONG)
+    env.set_seed(3)
+    td = env.rollout(300, PDController(env.params), break_when_any_done=False)
+    stats, _ = evaluate(PDController(env.params), {"max_thrust": 1.0, "disturbance": STRONG}, 6, 3)
+    lengths = stats["length"].tolist()
+    env_returns = [td["next", "reward"][i, :n].sum().item() for i, n in enumerate(lengths)]
+    assert env_returns == stats["return"].tolist()
+    # The disturbances matter: the nominal drone flies other episodes (PD holds all 300 steps there).
+    nominal, _ = evaluate(PDController(env.params), {"max_thrust": 1.0}, 6, 3)
+    assert nominal["length"].tolist() == [300] * 6 and lengths != [300] * 6
+
+
+def test_episode_keys_follow_the_seed_not_the_batch_layout():
+    from drone_torchrl.envs import DroneEnv
+
+    flat = DroneEnv(batch_size=[6], disturbance={"wind": 0.1})
+    grid = DroneEnv(batch_size=[2, 3], disturbance={"wind": 0.1})
+    flat.set_seed(5)
+    grid.set_seed(5)
+    flat.reset()
+    grid.reset()
+    assert torch.equal(grid.episode_keys.reshape(-1), flat.episode_keys)
+    assert torch.equal(grid.state.reshape(-1, 6), flat.state)
+    # A nominal env draws no keys, so its start states do not change with this feature.
+    plain = DroneEnv(batch_size=[6])
+    plain.set_seed(5)
+    plain.reset()
+    assert plain.episode_keys is None and torch.equal(plain.state, flat.state)
+
+
+def test_a_partial_reset_draws_new_episodes_for_the_reset_rows_only():
+    from tensordict import TensorDict
+
+    from drone_torchrl.envs import DroneEnv
+
+    env = DroneEnv(batch_size=[4], disturbance={"wind": 0.2, "mass": 0.2})
+    env.set_seed(0)
+    env.reset()
+    before = env.episode_keys
+    mask = torch.tensor([[True], [False], [True], [False]])
+    env.reset(TensorDict({"_reset": mask}, batch_size=[4]))
+    after = env.episode_keys
+    assert torch.equal(after[1::2], before[1::2]) and (after[0::2] != before[0::2]).all()
+
+
+def test_observed_actions_reach_the_specs_and_the_networks():
+    from torchrl.envs.utils import check_env_specs
+
+    from drone_torchrl.envs import DroneEnv
+
+    env = DroneEnv(batch_size=[3], disturbance={"observed_actions": 2, "action_delay": 1})
+    check_env_specs(env)
+    assert env.observation_spec["observation"].shape == (3, 10)
+    td = env.rand_step(env.reset())
+    assert torch.equal(td["next", "observation"][:, 6:8], td["action"])

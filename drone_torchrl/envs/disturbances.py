@@ -43,8 +43,9 @@ position in it, and the engine that flies it: only the key must match.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 
@@ -110,6 +111,7 @@ MAX_MASS_SPREAD = 0.9
 MAX_GAIN_SPREAD = 0.9
 # Commands remembered for the delay or offered to the policy; 25 steps is half a second at 50 Hz.
 MAX_STEPS_BACK = 25
+FIELDS = tuple(f.name for f in fields(Disturbance))
 # Fields that change what the policy sees, not the physics.
 _LAYOUT = ("observed_actions", "gust_time")
 
@@ -122,23 +124,24 @@ def _check(name: str, value: object, low: float, high: float, *, low_open: bool 
         raise ValueError(f"{name}={value!r} is not allowed; expected a finite number {bound}")
 
 
-# The evaluation presets (disturbance=none|mild|strong). Magnitudes: wind as a fraction of the
-# weight (0.1 is a steady breeze for a small quadcopter, 0.3 a strong wind that needs a ~17 deg lean
-# to hold position), mass +-10% / +-30% (a payload or battery), motor gains +-5% / +-15% (worn or
-# mismatched props), lag 20 ms / 50 ms (small / large ESC-motor time constants), noise 1 cm /
-# 0.01 rad and 3 cm / 0.03 rad (good / poor state estimate), 1 / 2 steps of delay (20 / 40 ms of
-# latency at 50 Hz).
-PRESETS: dict[str, Disturbance] = {
-    "none": Disturbance(),
-    "mild": Disturbance(
-        wind=0.1, gust=0.1, mass=0.1, motor_gain=0.05, motor_lag=0.02,
-        noise_position=0.01, noise_angle=0.01, action_delay=1,
-    ),
-    "strong": Disturbance(
-        wind=0.3, gust=0.3, mass=0.3, motor_gain=0.15, motor_lag=0.05,
-        noise_position=0.03, noise_angle=0.03, action_delay=2,
-    ),
-}  # fmt: skip
+def make(disturbance: Disturbance | Mapping[str, Any] | None) -> Disturbance:
+    """A :class:`Disturbance` from itself, a mapping of its fields (a config's ``env.disturbance``) or
+    ``None`` (no disturbance); an unknown field raises a one-line ``ValueError``."""
+    if disturbance is None:
+        return Disturbance()
+    if isinstance(disturbance, Disturbance):
+        return disturbance
+    if not isinstance(disturbance, Mapping):
+        raise ValueError(
+            f"disturbance={disturbance!r} is not allowed; expected a mapping of {FIELDS} or None"
+        )
+    unknown = sorted(set(disturbance) - set(FIELDS))
+    if unknown:
+        raise ValueError(f"disturbance.{unknown[0]} is not a disturbance; expected one of {FIELDS}")
+    try:
+        return Disturbance(**disturbance)
+    except ValueError as err:  # named as the env argument's field: disturbance.wind=...
+        raise ValueError(f"disturbance.{err}") from None
 
 
 class EpisodeDraw(NamedTuple):
@@ -164,6 +167,17 @@ class Internal(NamedTuple):
     thrust: torch.Tensor
     pending: torch.Tensor
     issued: torch.Tensor
+
+
+def replace_rows(internal: Internal, index: tuple[torch.Tensor, ...], fresh: Internal) -> Internal:
+    """``internal`` with the rows ``index`` (integer indices of the batch) replaced by ``fresh``'s."""
+
+    def put(old: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+        return old.index_put(index, new)
+
+    draw = EpisodeDraw(*(put(o, n) for o, n in zip(internal.draw, fresh.draw, strict=True)))
+    rest = (put(o, n) for o, n in zip(internal[2:], fresh[2:], strict=True))
+    return Internal(put(internal.key, fresh.key), draw, *rest)
 
 
 def draw_episode(
@@ -284,9 +298,13 @@ def integrate(
     )
 
 
-def episode_keys(generator: torch.Generator, shape: tuple[int, ...] | torch.Size) -> torch.Tensor:
-    """Fresh episode keys (int64 ``[*shape]``) from a generator: one draw per episode, in row-major order."""
-    return torch.randint(-(2**63), 2**63 - 1, tuple(shape), generator=generator, dtype=torch.int64)
+def episode_keys(
+    generator: torch.Generator, shape: tuple[int, ...] | torch.Size, device: torch.device | str | None = None
+) -> torch.Tensor:
+    """Fresh episode keys (int64 ``[*shape]``) from a CPU generator, one draw per episode in row-major
+    order (so the same seed gives the same keys whatever the batch layout), moved to ``device``."""
+    keys = torch.randint(-(2**63), 2**63 - 1, tuple(shape), generator=generator, dtype=torch.int64)
+    return keys if device is None else keys.to(device)
 
 
 def _uniform(

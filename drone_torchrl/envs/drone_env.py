@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from numbers import Integral, Real
+from typing import Any
 
 import numpy as np
 import torch
@@ -12,7 +13,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.dynamics import (
     ACTION_DIM,
     ALPHA_LIMIT,
@@ -255,6 +256,18 @@ class DroneEnv(EnvBase):
     ended at once. Truncation (``"truncated"``): the step that brings the episode's step count
     to ``max_steps``, unless that step also terminated. ``"done" = terminated | truncated``.
 
+    ## Disturbances and model mismatch
+
+    ``disturbance`` (a :class:`~drone_torchrl.envs.disturbances.Disturbance` or a mapping of its
+    fields; none by default) adds wind with gusts, a true mass off the nominal one, motor gain
+    asymmetry, first-order motor lag, an action delay and observation noise, each drawn per drone
+    and per episode (see :mod:`drone_torchrl.envs.disturbances` for each one's physics). Rewards
+    and terminations use the true state; ``"observation"`` is what the drone measures (with
+    ``observed_actions=k`` followed by its last ``k`` commands, ``6 + 2k`` entries). Each episode
+    draws one key from the env's generator right after its start state, and all its disturbances
+    follow from that key: the same seed gives the same disturbances wherever an episode sits in the
+    batch and on every engine that flies it (the evaluator's included).
+
     ## Arguments
 
     - ``batch_size`` (list of int, default ``[]``): number of drones simulated together.
@@ -345,6 +358,7 @@ class DroneEnv(EnvBase):
         zone_z_max: float = ZONE_Z_MAX,
         bounds: str = "inclusive",
         dtype: str | torch.dtype = "float32",
+        disturbance: disturbances.Disturbance | Mapping[str, Any] | None = None,
         device: torch.device | str = "cpu",
         render_mode: str | None = None,
         render_index: int = 0,
@@ -367,6 +381,9 @@ class DroneEnv(EnvBase):
             bounds=bounds,
         )
         self.dtype = check_dtype(dtype)
+        self.disturbance = disturbances.make(disturbance)
+        # Nominal envs keep the plain step (and draw nothing more from the generator than before).
+        self._disturbed = self.disturbance.active or self.disturbance.observed_actions > 0
         check_episode_args(max_steps, reset_mode, render_mode)
         try:
             device = torch.device(device)
@@ -399,6 +416,7 @@ class DroneEnv(EnvBase):
         # Kept only for the render overlay: the last applied action and the return so far.
         self._last_action = torch.zeros((*shape, ACTION_DIM), device=device, dtype=self.dtype)
         self._episode_return = torch.zeros(shape, device=device, dtype=self.dtype)
+        self._internal = self._start_disturbances(shape) if self._disturbed else None
 
     # Convenience views of the parameters, named like the constructor arguments.
     mass = property(lambda self: self.params.mass)
@@ -419,7 +437,9 @@ class DroneEnv(EnvBase):
     def _make_specs(self) -> None:
         bs = self.batch_size
         self.observation_spec = Composite(
-            observation=Unbounded(shape=(*bs, STATE_DIM), dtype=self.dtype, device=self.device),
+            observation=Unbounded(
+                shape=(*bs, self.disturbance.observation_dim), dtype=self.dtype, device=self.device
+            ),
             termination_cause=Bounded(
                 low=0, high=max(TerminationCause), shape=(*bs, 1), dtype=torch.int64, device=self.device
             ),
@@ -450,6 +470,16 @@ class DroneEnv(EnvBase):
         """A copy of the physical state, shape ``[*batch, 6]``."""
         return self._state.clone()
 
+    @property
+    def episode_keys(self) -> torch.Tensor | None:
+        """The current episodes' disturbance keys (int64 ``[*batch]``), ``None`` without disturbances."""
+        return None if self._internal is None else self._internal.key.clone()
+
+    def _start_disturbances(self, shape: tuple[int, ...]) -> disturbances.Internal:
+        """Fresh episodes' disturbances: one key per episode, drawn right after its start state."""
+        keys = disturbances.episode_keys(self._generator, shape, self.device)
+        return disturbances.start(self.disturbance, keys, self.dtype)
+
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
             self._generator.seed()
@@ -470,6 +500,8 @@ class DroneEnv(EnvBase):
             # without a copy (the last action may even be the caller's own tensor, see _step).
             self._step_count = torch.zeros_like(self._step_count)
             self._cause = torch.zeros_like(self._cause)
+            if self._disturbed:
+                self._internal = self._start_disturbances(tuple(self.batch_size))
             if self.render_mode is not None:
                 self._episode_return = torch.zeros_like(self._episode_return)
                 self._last_action = torch.zeros_like(self._last_action)
@@ -483,6 +515,9 @@ class DroneEnv(EnvBase):
             # Out of place, for the same reason as above.
             self._step_count = self._step_count.index_put(index, self._step_count.new_zeros(()))
             self._cause = self._cause.index_put(index, self._cause.new_zeros(()))
+            if self._disturbed:
+                fresh = self._start_disturbances((n_reset,))
+                self._internal = disturbances.replace_rows(self._internal, index, fresh)
             if self.render_mode is not None:
                 self._episode_return = self._episode_return.index_put(
                     index, self._episode_return.new_zeros(())
@@ -493,8 +528,14 @@ class DroneEnv(EnvBase):
         return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
 
     def _output(self, done: torch.Tensor, terminated=None, truncated=None, reward=None) -> TensorDictBase:
+        if self._disturbed:  # what the policy sees: noisy positions, past commands
+            observation = disturbances.observe(
+                self.disturbance, self._state, self._internal, self._step_count
+            )
+        else:
+            observation = self._state.clone()
         out = {
-            "observation": self._state.clone(),
+            "observation": observation,
             "termination_cause": self._cause.unsqueeze(-1),
             "step_count": self._step_count.unsqueeze(-1),
             "done": done.unsqueeze(-1),
@@ -515,8 +556,19 @@ class DroneEnv(EnvBase):
                 raise ValueError(
                     f"action contains NaN or inf at batch indices {bad}; expected finite thrust fractions"
                 )
-        action = dynamics.clamp_action(action.to(self.dtype), self.max_thrust)
-        self._state, reward, self._cause = dynamics.step(self._state, action, self.params)
+        if self._disturbed:
+            self._state, reward, self._cause, self._internal = disturbances.step(
+                self.disturbance,
+                self._state,
+                action.to(self.dtype),
+                self._internal,
+                self._step_count,
+                self.params,
+            )
+            action = dynamics.clamp_action(action.to(self.dtype), self.max_thrust)
+        else:
+            action = dynamics.clamp_action(action.to(self.dtype), self.max_thrust)
+            self._state, reward, self._cause = dynamics.step(self._state, action, self.params)
         self._step_count = self._step_count + 1
         terminated = self._cause != int(TerminationCause.NONE)
         truncated = (self._step_count >= self.max_steps) & ~terminated

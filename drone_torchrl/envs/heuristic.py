@@ -115,8 +115,11 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
 
     # 2. Horizontal position -> desired tilt. x_ddot = -sin(alpha) T/m: tilt the opposite way.
     push = gains.kp_x * (gains.x_target - x) - gains.kd_x * x_dot
-    max_tilt = min(gains.max_tilt, MAX_TILT_SHARE * params.alpha_limit)
-    alpha_target = (-push).clamp(-max_tilt, max_tilt)
+    # torch.clamp: the gains may be tensors (a batch of candidate controllers, drone_torchrl.tuning).
+    max_tilt = torch.as_tensor(gains.max_tilt, dtype=push.dtype, device=push.device).clamp(
+        max=MAX_TILT_SHARE * params.alpha_limit
+    )
+    alpha_target = torch.maximum(torch.minimum(-push, max_tilt), -max_tilt)
 
     # 3. Attitude: desired angular acceleration -> thrust difference a_r - a_l (fraction of weight).
     accel_alpha = gains.kp_alpha * (alpha_target - alpha) - gains.kd_alpha * alpha_dot
@@ -160,7 +163,8 @@ class PDController(TensorDictModuleBase):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         observation = tensordict.get(self.in_keys[0])
-        tensordict.set(self.out_keys[0], pd_action(observation, self.params, self.gains))
+        # Past the 6 state entries an observation may carry the last commands (observed_actions).
+        tensordict.set(self.out_keys[0], pd_action(observation[..., :STATE_DIM], self.params, self.gains))
         return tensordict
 
 

@@ -8,7 +8,7 @@ import torch
 from omegaconf import DictConfig
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from drone_torchrl.envs.dynamics import DTYPES, HOVER_THRUST
+from drone_torchrl.envs.dynamics import ACTION_DIM, DTYPES, HOVER_THRUST, STATE_DIM
 from drone_torchrl.modules.policy import ThreeNetPolicy, actor_from_net, init_exploration
 from drone_torchrl.modules.value import make_critic
 
@@ -25,6 +25,13 @@ def model_dtype(cfg: DictConfig) -> torch.dtype:
     return DTYPES[cfg.env.dtype]
 
 
+def observation_dim(cfg: DictConfig) -> int:
+    """Entries of the run's observations: the 6 state entries and ``env.disturbance.observed_actions``
+    past commands (2 each)."""
+    disturbance = cfg.env.get("disturbance")
+    return STATE_DIM + ACTION_DIM * (0 if disturbance is None else disturbance.observed_actions)
+
+
 def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
     """A fresh three-net policy on ``cfg.device`` in :func:`model_dtype`; with ``seed``, initialised
     after ``torch.manual_seed(seed)`` (in float32, then converted: a seed starts from the same
@@ -32,7 +39,7 @@ def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
     if seed is not None:
         torch.manual_seed(seed)
     model = cfg.model
-    net = ThreeNetPolicy(list(model.hidden_sizes), model.activation, model.min_std)
+    net = ThreeNetPolicy(list(model.hidden_sizes), model.activation, model.min_std, observation_dim(cfg))
     if model.get("init_std") is not None:
         init_exploration(net, model.init_std, hover_mean(model.distribution, cfg.env.max_thrust))
     return net.to(device=cfg.device, dtype=model_dtype(cfg))
@@ -53,7 +60,13 @@ def hover_mean(distribution: str, max_thrust: float | None) -> float:
 
 def build_critic(cfg: DictConfig) -> ValueOperator:
     """PPO's value network (``algo.value_hidden_sizes``, the policy's activation) on ``cfg.device``."""
-    return make_critic(list(cfg.algo.value_hidden_sizes), cfg.model.activation, cfg.device, model_dtype(cfg))
+    return make_critic(
+        list(cfg.algo.value_hidden_sizes),
+        cfg.model.activation,
+        cfg.device,
+        model_dtype(cfg),
+        observation_dim(cfg),
+    )
 
 
 def build_actor(

@@ -16,11 +16,12 @@ def make_critic(
     activation: str = "tanh",
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float32,
+    observation_dim: int = STATE_DIM,
 ) -> ValueOperator:
     """A ``ValueOperator`` reading ``"observation"`` and writing ``"state_value"``, in ``dtype``
     (the env's: initialised in float32, then converted)."""
     net = MLP(
-        in_features=STATE_DIM,
+        in_features=observation_dim,
         out_features=1,
         num_cells=list(hidden_sizes),
         activation_class=ACTIVATIONS[activation],
