@@ -269,3 +269,22 @@ def test_observed_actions_reach_the_specs_and_the_networks():
     assert env.observation_spec["observation"].shape == (3, 10)
     td = env.rand_step(env.reset())
     assert torch.equal(td["next", "observation"][:, 6:8], td["action"])
+
+
+def test_the_gymnasium_twin_flies_the_env_s_disturbed_episodes():
+    from drone_torchrl.envs import DroneEnv, DroneGymEnv
+
+    env = DroneEnv(batch_size=[], max_thrust=1.0, disturbance={**STRONG, "observed_actions": 1})
+    twin = DroneGymEnv(max_thrust=1.0, disturbance={**STRONG, "observed_actions": 1})
+    env.set_seed(11)
+    td = env.reset()
+    obs, _ = twin.reset(seed=11)
+    assert twin.observation_space.shape == (8,)
+    actions = torch.rand(40, 2, generator=torch.Generator().manual_seed(0)) * 0.4 + 0.4
+    for action in actions:
+        assert torch.equal(td["observation"], torch.from_numpy(obs))
+        td = env.step(td.set("action", action))["next"]
+        obs, reward, terminated, _, _ = twin.step(action.numpy())
+        assert reward == td["reward"].item() and terminated == td["terminated"].item()
+        if terminated:
+            break

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -9,7 +10,7 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.drone_env import check_dtype, check_episode_args, make_params
 from drone_torchrl.envs.dynamics import (
     ACTION_DIM,
@@ -65,6 +66,7 @@ class DroneGymEnv(gym.Env):
         zone_z_max: float = ZONE_Z_MAX,
         bounds: str = "inclusive",
         dtype: str | torch.dtype = "float32",
+        disturbance: disturbances.Disturbance | Mapping[str, Any] | None = None,
         render_mode: str | None = None,
     ) -> None:
         self.params = make_params(
@@ -84,13 +86,17 @@ class DroneGymEnv(gym.Env):
             bounds=bounds,
         )
         self.dtype = check_dtype(dtype)
+        self.disturbance = disturbances.make(disturbance)
+        self._disturbed = self.disturbance.active or self.disturbance.observed_actions > 0
+        self._internal: disturbances.Internal | None = None
         check_episode_args(max_steps, reset_mode, render_mode)
         self.max_steps = int(max_steps)
         self.reset_mode = reset_mode
         self.render_mode = render_mode
         np_dtype = np.float64 if self.dtype == torch.float64 else np.float32
         self._np_dtype = np_dtype
-        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(STATE_DIM,), dtype=np_dtype)
+        obs_dim = self.disturbance.observation_dim
+        self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=np_dtype)
         if max_thrust is None:
             self.action_space = spaces.Box(-np.inf, np.inf, shape=(ACTION_DIM,), dtype=np_dtype)
         else:
@@ -103,27 +109,38 @@ class DroneGymEnv(gym.Env):
         self._return = 0.0
         self._cause = TerminationCause.NONE
         self._renderer = None
-        self._seeded_start: torch.Tensor | None = None
+        self._seeded_start: tuple[torch.Tensor, disturbances.Internal | None] | None = None
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         if seed is not None:
             self._generator.manual_seed(int(seed))
-            self._state = self._start()
-            self._seeded_start = self._state.clone()
+            self._state, self._internal = self._start()
+            self._seeded_start = (self._state.clone(), self._internal)
         elif self._seeded_start is not None:  # reset(seed=s) then reset(), no step: same start
-            self._state = self._seeded_start
+            self._state, self._internal = self._seeded_start
             self._seeded_start = None
         else:
-            self._state = self._start()
+            self._state, self._internal = self._start()
         self._action = torch.zeros(ACTION_DIM, dtype=self.dtype)
         self._steps, self._return, self._cause = 0, 0.0, TerminationCause.NONE
         if self.render_mode == "human":
             self.render()
-        return self._state.numpy().copy(), self._info()
+        return self._observation(), self._info()
 
-    def _start(self) -> torch.Tensor:
-        return dynamics.initial_state((), self.reset_mode, self._generator, None, self.dtype, self.params)
+    def _start(self) -> tuple[torch.Tensor, disturbances.Internal | None]:
+        """A start state and, when disturbed, its episode's key drawn right after it (as DroneEnv)."""
+        state = dynamics.initial_state((), self.reset_mode, self._generator, None, self.dtype, self.params)
+        if not self._disturbed:
+            return state, None
+        keys = disturbances.episode_keys(self._generator, ())
+        return state, disturbances.start(self.disturbance, keys, self.dtype)
+
+    def _observation(self) -> np.ndarray:
+        if self._internal is None:
+            return self._state.numpy().copy()
+        t = torch.tensor(self._steps)
+        return disturbances.observe(self.disturbance, self._state, self._internal, t).numpy().copy()
 
     def step(self, action):
         action = torch.as_tensor(np.asarray(action, dtype=self._np_dtype))
@@ -135,7 +152,13 @@ class DroneGymEnv(gym.Env):
             )
         self._seeded_start = None
         self._action = dynamics.clamp_action(action, self.params.max_thrust)
-        self._state, reward, cause = dynamics.step(self._state, self._action, self.params)
+        if self._internal is None:
+            self._state, reward, cause = dynamics.step(self._state, self._action, self.params)
+        else:
+            t = torch.tensor(self._steps)
+            self._state, reward, cause, self._internal = disturbances.step(
+                self.disturbance, self._state, action, self._internal, t, self.params
+            )
         self._steps += 1
         self._cause = TerminationCause(int(cause))
         terminated = self._cause != TerminationCause.NONE
@@ -143,7 +166,7 @@ class DroneGymEnv(gym.Env):
         self._return += float(reward)
         if self.render_mode == "human":
             self.render()
-        return self._state.numpy().copy(), float(reward), terminated, truncated, self._info()
+        return self._observation(), float(reward), terminated, truncated, self._info()
 
     def _info(self) -> dict[str, Any]:
         return {"termination_cause": self._cause.name, "step_count": self._steps}

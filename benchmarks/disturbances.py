@@ -1,0 +1,150 @@
+"""Flight under disturbances: the PD controller, a PID tuned per condition, PPO and PPO trained under them.
+
+    python benchmarks/disturbances.py --train                  # train both PPO runs (seed 0), then the table
+    python benchmarks/disturbances.py --nominal RUN --randomised RUN [--seeds-eval 100]
+
+For each condition of ``conf/disturbance/`` (``none``, ``mild``, ``strong``), with bounded thrust
+(``experiment=bounded``: ``max_thrust=1``), every controller flies the same 100 seeded episodes
+(evaluation seed 0: the same start states and, per condition, the same disturbance draws):
+
+- **PD**: the nominal PD controller (its gains were designed for the perfect model);
+- **PID, tuned**: :func:`drone_torchrl.tuning.tune_pid` for that condition on its own seeds (1000),
+  so RL is compared with the best classical controller this search finds for that condition;
+- **PPO**: ``drone-train algo=ppo experiment=bounded`` (trained on the nominal drone);
+- **PPO, randomised**: the same trained under ``disturbance=strong`` (domain randomisation: every
+  episode draws its disturbances), with the last 2 commands in its observation.
+
+Each row: mean return, crashes (episodes that ended before ``max_steps``), and the mean first step
+in the zone over the episodes that reach it. Timings: the tuning per condition and each training.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+CONDITIONS = ("none", "mild", "strong")
+EPISODES = 100
+SEED = 0
+BOUNDED = ["algo=ppo", "experiment=bounded"]
+# The randomised run: the strong preset during training, the last 2 commands observed (lag and delay
+# make the state alone non-Markov), and twice the nominal budget (its early episodes are short).
+RANDOMISED = ["disturbance=strong", "env.disturbance.observed_actions=2", "algo.episodes=6000"]
+
+
+def _train(out: Path, name: str, overrides: list[str], seed: int) -> tuple[Path, float]:
+    run = out / f"{name}_s{seed}"
+    cmd = [
+        str(Path(sys.executable).parent / "drone-train"),
+        *BOUNDED,
+        *overrides,
+        f"seed={seed}",
+        f"hydra.run.dir={run}",
+        "eval.video=false",
+        "progress=false",
+    ]
+    start = time.perf_counter()
+    with open(out / f"{name}_s{seed}.log", "w") as log:
+        subprocess.run(
+            cmd,
+            check=True,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env={**os.environ, "SDL_VIDEODRIVER": "dummy"},
+        )
+    return run, time.perf_counter() - start
+
+
+def _condition(name: str) -> dict:
+    """The env arguments of ``experiment=bounded disturbance=<name>`` (composed from conf/)."""
+    from hydra import compose, initialize_config_dir
+
+    from drone_torchrl.config import config_dir, env_kwargs
+
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        return env_kwargs(compose("config", ["experiment=bounded", f"disturbance={name}"]))
+
+
+def _actor(run: Path):
+    from drone_torchrl.config import env_kwargs, run_config
+    from drone_torchrl.io.checkpoint import load_checkpoint
+    from drone_torchrl.modules.factory import build_actor
+
+    state = load_checkpoint(run / "checkpoints" / "last.pt")
+    cfg = run_config(state["config"])
+    actor = build_actor(cfg)
+    actor.load_state_dict(state["actor"])
+    return actor.eval(), env_kwargs(cfg)["disturbance"]["observed_actions"]
+
+
+def _row(stats: dict, max_steps: int) -> tuple[float, int, float]:
+    returns, first = stats["return"].float(), stats["first_zone_step"].float()
+    reached = first > 0
+    crashes = int((stats["length"] < max_steps).sum())
+    return float(returns.mean()), crashes, float(first[reached].mean()) if reached.any() else float("nan")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--train", action="store_true", help="train both PPO runs first (seed 0)")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds with --train")
+    parser.add_argument(
+        "--nominal", type=Path, nargs="*", default=[], help="PPO run folders trained nominally"
+    )
+    parser.add_argument(
+        "--randomised", type=Path, nargs="*", default=[], help="PPO run folders trained under disturbances"
+    )
+    parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks/disturbances"))
+    args = parser.parse_args()
+
+    from drone_torchrl.config import physics_params
+    from drone_torchrl.envs.heuristic import PDController
+    from drone_torchrl.envs.pid import PIDController
+    from drone_torchrl.evaluation import evaluate
+    from drone_torchrl.tuning import tune_pid
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    nominal, randomised = list(args.nominal), list(args.randomised)
+    if args.train:
+        for seed in args.seeds:
+            run, seconds = _train(args.out, "ppo", [], seed)
+            print(f"trained {run}: {seconds:.0f} s")
+            nominal.append(run)
+            run, seconds = _train(args.out, "ppo_randomised", RANDOMISED, seed)
+            print(f"trained {run}: {seconds:.0f} s")
+            randomised.append(run)
+
+    policies = {}
+    for label, runs in (("PPO", nominal), ("PPO, randomised", randomised)):
+        for run in runs:
+            policies[f"{label} ({run.name})"] = _actor(run)
+
+    print(
+        f"\n{EPISODES} seeded episodes (seed {SEED}), max_thrust 1: return / crashes / first step in the zone\n"
+    )
+    print("| condition | controller | return | crashes | first zone step |")
+    print("|---|---|---|---|---|")
+    for condition in CONDITIONS:
+        kwargs = _condition(condition)
+        params = physics_params(kwargs)
+        start = time.perf_counter()
+        gains, record = tune_pid(kwargs)
+        tuning = time.perf_counter() - start
+        rows = {
+            "PD": (PDController(params), 0),
+            f"PID, tuned ({tuning:.0f} s)": (PIDController(params, gains), 0),
+        }
+        rows.update(policies)
+        for name, (policy, observed) in rows.items():
+            flown = {**kwargs, "disturbance": {**kwargs["disturbance"], "observed_actions": observed}}
+            stats, _ = evaluate(policy, flown, EPISODES, SEED)
+            mean, crashes, first = _row(stats, kwargs["max_steps"])
+            print(f"| {condition} | {name} | {mean:.1f} | {crashes} | {first:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
