@@ -49,6 +49,7 @@ from torchrl.modules import ProbabilisticActor
 from drone_torchrl.config import ConfigError, check_keys, check_values, open_checkpoint, run_config
 from drone_torchrl.envs.dynamics import (
     ALPHA_LIMIT,
+    HOVER_THRUST,
     STATE_DIM,
     STATE_NAMES,
     X_LIMIT,
@@ -215,9 +216,10 @@ def actor_commands(
     return clamp_action(td["action"], max_thrust)
 
 
-def check_observations() -> torch.Tensor:
-    """The float32 observations ``[N, 6]`` every export is checked on (fixed: seeded draws, corners,
-    extremes; see :data:`CHECK_SPAN`)."""
+def check_observations(observation_dim: int = STATE_DIM) -> torch.Tensor:
+    """The float32 observations ``[N, observation_dim]`` every export is checked on (fixed: seeded
+    draws, corners, extremes; see :data:`CHECK_SPAN`). Past the 6 state entries (a run with
+    ``env.disturbance.observed_actions``) come past commands, seeded uniforms in [0, 1]."""
     centre, span = torch.tensor(CHECK_CENTRE), torch.tensor(CHECK_SPAN)
     generator = torch.Generator().manual_seed(CHECK_SEED)
     uniform = 2.0 * torch.rand(CHECK_RANDOM, STATE_DIM, generator=generator) - 1.0
@@ -230,7 +232,14 @@ def check_observations() -> torch.Tensor:
         CHECK_EXTREME * axes,
         -CHECK_EXTREME * axes,
     ]
-    return torch.cat([centre + span * uniform, *edges]).to(torch.float32)
+    states = torch.cat([centre + span * uniform, *edges]).to(torch.float32)
+    commands = torch.rand(len(states), observation_dim - STATE_DIM, generator=generator)
+    return torch.cat([states, commands], -1)
+
+
+def observation_dim(policy: DeterministicPolicy) -> int:
+    """Entries of the policy's observations: its first layer's inputs (6, plus 2 per observed command)."""
+    return next(m for m in policy.modules() if isinstance(m, nn.Linear)).in_features
 
 
 # ------------------------------------------------------------------------------- writing
@@ -259,7 +268,8 @@ def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
     """What the ONNX model says about itself (its metadata_props)."""
     dtype = str(_dtype(policy)).removeprefix("torch.")
     return {
-        ONNX_INPUT: f"{dtype} [B, {STATE_DIM}]: {', '.join(STATE_NAMES)}",
+        ONNX_INPUT: f"{dtype} [B, {observation_dim(policy)}]: {', '.join(STATE_NAMES)}"
+        + (", then the last commands (newest first)" if observation_dim(policy) > STATE_DIM else ""),
         ONNX_OUTPUT: f"{dtype} [B, 2]: left, right motor commands, fractions of the weight",
         "distribution": policy.distribution,
         "max_thrust": "none" if policy.max_thrust is None else repr(float(policy.max_thrust)),
@@ -270,7 +280,7 @@ def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
 def write_program(policy: DeterministicPolicy, path: str | os.PathLike, format: str) -> None:
     """Write ``policy`` to ``path`` as ``format`` (``pt2`` or ``onnx``), unchecked (see :func:`export_policy`)."""
     policy.requires_grad_(False)  # an inference program: no autograd graph in its outputs
-    example = torch.zeros(2, STATE_DIM, dtype=_dtype(policy))
+    example = torch.zeros(2, observation_dim(policy), dtype=_dtype(policy))
     batch = torch.export.Dim("batch")
     with torch.no_grad():
         program = torch.export.export(policy, (example,), dynamic_shapes=({0: batch},))
@@ -332,7 +342,7 @@ def export_policy(
     if format == "onnx":
         check_onnx_extra()
     policy, actor, path = load_policy(checkpoint)
-    observations = check_observations().to(_dtype(policy))
+    observations = check_observations(observation_dim(policy)).to(_dtype(policy))
     expected = actor_commands(actor, observations, policy.max_thrust)
     if not torch.isfinite(expected).all():
         raise ExportError(f"checkpoint={str(path)!r} gives commands that are not numbers (diverged weights?)")
@@ -405,9 +415,8 @@ def forward_passes(
 ) -> dict[str, Callable[[], Any]]:
     """One forward pass of ``batch`` observations (hovering in the zone) each: the eager policy
     (``eager torch``) and each file in ``files`` (format -> path) in its runtime (:data:`RUNTIMES`)."""
-    observation = (
-        torch.tensor([HOVER_OBSERVATION], dtype=_dtype(policy)).expand(batch, STATE_DIM).contiguous()
-    )
+    hover = [*HOVER_OBSERVATION, *[HOVER_THRUST] * (observation_dim(policy) - STATE_DIM)]
+    observation = torch.tensor([hover], dtype=_dtype(policy)).expand(batch, len(hover)).contiguous()
     passes: dict[str, Callable[[], Any]] = {}
     for format, path in files.items():
         if format == "onnx":
