@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from drone_torchrl.config import ENV_ARGS, ConfigError, config_dir, validate
-from drone_torchrl.envs import DroneEnv
+from drone_torchrl.envs import DroneEnv, disturbances
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_COLUMNS, read_episodes
 from drone_torchrl.training.trainer import train
@@ -38,7 +38,11 @@ def test_defaults_are_the_paper():
     params = inspect.signature(DroneEnv.__init__).parameters
     physical = [n for n in params if n not in ("self", "batch_size", "device", "render_mode", "render_index")]
     assert list(ENV_ARGS) == physical
-    assert {n: cfg.env[n] for n in physical} == {n: params[n].default for n in physical}
+    defaults = {n: params[n].default for n in physical if n != "disturbance"}
+    assert {n: cfg.env[n] for n in defaults} == defaults
+    # The env's default disturbance (None) is the nominal drone, which disturbance=none spells out.
+    assert params["disturbance"].default is None
+    assert disturbances.make(dict(cfg.env.disturbance)) == disturbances.Disturbance()
     validate(cfg)
 
 

@@ -5,6 +5,7 @@ return (:mod:`drone_torchrl.optimum`)."""
 from __future__ import annotations
 
 import functools
+import json
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -269,9 +270,15 @@ def verdict(summaries: Sequence[SettingSummary]) -> str:
 # PD reference
 
 
+def env_key(env_kwargs: dict[str, Any]) -> str:
+    """An env setting as a hashable key (JSON: the arguments hold a mapping, env.disturbance);
+    ``json.loads`` gives the arguments back."""
+    return json.dumps(env_kwargs, sort_keys=True)
+
+
 @functools.cache
-def _pd_return(env_items: tuple[tuple[str, Any], ...]) -> float:
-    return evaluate_pd(dict(env_items), episodes=PD_EPISODES, seed=PD_SEED)["return_mean"]
+def _pd_return(env_json: str) -> float:
+    return evaluate_pd(json.loads(env_json), episodes=PD_EPISODES, seed=PD_SEED)["return_mean"]
 
 
 def pd_reference(env_kwargs: dict[str, Any]) -> float:
@@ -279,7 +286,7 @@ def pd_reference(env_kwargs: dict[str, Any]) -> float:
 
     Computed once per distinct env setting in this process (cached).
     """
-    return _pd_return(tuple(sorted(env_kwargs.items())))
+    return _pd_return(env_key(env_kwargs))
 
 
 # --------------------------------------------------------------------------------------------------
@@ -287,14 +294,14 @@ def pd_reference(env_kwargs: dict[str, Any]) -> float:
 
 
 @functools.cache
-def _optimum(env_items: tuple[tuple[str, Any], ...]) -> Optimum | None:
-    return reference_optimum(dict(env_items))
+def _optimum(env_json: str) -> Optimum | None:
+    return reference_optimum(json.loads(env_json))
 
 
 def optimum_reference(env_kwargs: dict[str, Any]) -> Optimum | None:
     """The best achievable return of every episode in this env with bounded thrust
     (:func:`drone_torchrl.evaluation.reference_optimum`), or ``None``. Cached per env setting."""
-    return _optimum(tuple(sorted(env_kwargs.items())))
+    return _optimum(env_key(env_kwargs))
 
 
 def optimum_return(env_kwargs: dict[str, Any]) -> float | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -14,6 +15,7 @@ from drone_torchrl.report.runs import LABEL_SEPARATOR, Run, Setting, group_runs,
 from drone_torchrl.report.stats import (
     DEFAULT_RETURN_THRESHOLD,
     SettingSummary,
+    env_key,
     optimum_reference,
     pd_reference,
     summarize,
@@ -72,16 +74,17 @@ def build_report(
     pd_returns: dict[str, float] = {}
     optima: dict[str, Optimum] = {}
     pd_optima: dict[str, float] = {}
-    by_env: dict[tuple, list[str]] = {}
+    by_env: dict[str, list[str]] = {}
     for s in settings:
-        by_env.setdefault(tuple(sorted(s.env_kwargs.items())), []).append(s.label)
-    for env_items, labels in by_env.items():
+        by_env.setdefault(env_key(s.env_kwargs), []).append(s.label)
+    for env_json, labels in by_env.items():
         suffix = "" if len(by_env) == 1 else f" ({LABEL_SEPARATOR.join(labels)})"
-        best = optimum_reference(dict(env_items))
+        env = json.loads(env_json)
+        best = optimum_reference(env)
         if best is not None:
             optima[OPTIMUM_LABEL + suffix] = best
         if pd:
-            pd_returns[PD_LABEL + suffix] = pd_reference(dict(env_items))
+            pd_returns[PD_LABEL + suffix] = pd_reference(env)
             if best is not None:
                 pd_optima[PD_LABEL + suffix] = best.best_return
     return SweepReport(
