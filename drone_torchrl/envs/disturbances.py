@@ -280,7 +280,7 @@ def integrate(
     ``x'' = g (sin(-alpha) (a_l + a_r) + force) / ratio``, ``z'' = g cos(alpha) (a_l + a_r) / ratio - g``,
     ``alpha'' = g (a_r - a_l) / (0.4 r ratio)``; the Euler step is the nominal one.
     """
-    x, x_dot, z, z_dot, alpha, alpha_dot = state.unbind(-1)
+    alpha = state[..., ALPHA]
     g = params.gravity
     total = thrust[..., 0] + thrust[..., 1]
     x_ddot = g * (torch.sin(-alpha) * total + force) / mass_ratio
@@ -289,13 +289,7 @@ def integrate(
     alpha_ddot = (
         (thrust[..., 1] - thrust[..., 0]) * params.weight * params.lever_arm / (params.inertia * mass_ratio)
     )
-    dt = params.dt
-    x_dot = x_dot + x_ddot * dt
-    z_dot = z_dot + z_ddot * dt
-    alpha_dot = alpha_dot + alpha_ddot * dt
-    return torch.stack(
-        (x + x_dot * dt, x_dot, z + z_dot * dt, z_dot, alpha + alpha_dot * dt, alpha_dot), dim=-1
-    )
+    return dynamics.euler(state, x_ddot, z_ddot, alpha_ddot, params.dt)
 
 
 def episode_keys(

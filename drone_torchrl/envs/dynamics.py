@@ -126,14 +126,22 @@ def integrate(state: torch.Tensor, action: torch.Tensor, params: DroneParams) ->
     ``action`` is ``[a_l, a_r]``, thrust as a fraction of the weight (already clamped).
     Accelerations use the state before the step; positions use the new velocities.
     """
-    x, x_dot, z, z_dot, alpha, alpha_dot = state.unbind(-1)
+    alpha = state[..., ALPHA]
     thrust_left = action[..., 0] * params.weight
     thrust_right = action[..., 1] * params.weight
     total = thrust_left + thrust_right
     x_ddot = torch.sin(-alpha) * total / params.mass
     z_ddot = torch.cos(alpha) * total / params.mass - params.gravity
     alpha_ddot = (thrust_right - thrust_left) * (params.lever_arm / params.inertia)
-    dt = params.dt
+    return euler(state, x_ddot, z_ddot, alpha_ddot, params.dt)
+
+
+def euler(
+    state: torch.Tensor, x_ddot: torch.Tensor, z_ddot: torch.Tensor, alpha_ddot: torch.Tensor, dt: float
+) -> torch.Tensor:
+    """The semi-implicit Euler update of ``state`` with the given accelerations: velocities first,
+    then positions with the new velocities."""
+    x, x_dot, z, z_dot, alpha, alpha_dot = state.unbind(-1)
     x_dot = x_dot + x_ddot * dt
     z_dot = z_dot + z_ddot * dt
     alpha_dot = alpha_dot + alpha_ddot * dt
