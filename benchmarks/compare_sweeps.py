@@ -3,6 +3,7 @@ seeds in the zone of each, and the difference with its bootstrap interval.
 
     python benchmarks/compare_sweeps.py multirun/before multirun/after
     python benchmarks/compare_sweeps.py old/lr32 new/lr32 --settings "algo.lr=0.0001" "algo.lr=0.001"
+    python benchmarks/compare_sweeps.py multirun/lr32 multirun/one_lr_zone --pair "algo.lr=5e-05" all
 
 Made to check a change of engine that is allowed to change float rounding (and so each seed's
 run) but not the statistics: the sweeps' runs are read by ``drone-report``'s reader, each run's
@@ -50,9 +51,22 @@ def main() -> None:
     parser.add_argument("before", type=Path)
     parser.add_argument("after", type=Path)
     parser.add_argument("--settings", nargs="*", help="setting labels to compare (default: all in both)")
+    parser.add_argument(
+        "--pair",
+        nargs=2,
+        action="append",
+        metavar=("BEFORE", "AFTER"),
+        help="compare setting BEFORE of the first sweep with setting AFTER of the second (labels differ: "
+        "a sweep of one setting labels it 'all'); repeatable",
+    )
     args = parser.parse_args()
     window = default_window()
     old, new = finals(args.before, window), finals(args.after, window)
+    if args.pair:
+        missing = [b for b, _ in args.pair if b not in old] + [a for _, a in args.pair if a not in new]
+        if missing:
+            parser.error(f"no such setting: {', '.join(missing)}")
+        new = {b: new[a] for b, a in args.pair}
     labels = [label for label in old if label in new and (not args.settings or label in args.settings)]
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     median = lambda x: np.median(x, axis=-1)  # noqa: E731

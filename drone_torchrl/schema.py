@@ -45,7 +45,7 @@ from drone_torchrl.envs.dynamics import (
     ZONE_Z_MAX,
     ZONE_Z_MIN,
 )
-from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS
+from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS, MAX_DISTRIBUTION_EPS
 
 # ------------------------------------------------------------------------------------ the bounds
 # Bounds of values that have no natural limit. A learning rate above 1 only diverges with Adam's
@@ -262,6 +262,7 @@ class ModelConf:
     activation: Any = one_of(tuple(ACTIVATIONS))
     min_std: Any = a_number(low=0)
     init_std: Any = a_number(low="model.min_std", low_open=True, high=MAX_INIT_STD, optional=True, added=None)
+    distribution_eps: Any = a_number(low=0, high=MAX_DISTRIBUTION_EPS, added=0.0)
 
 
 @dataclass

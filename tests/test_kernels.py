@@ -33,9 +33,11 @@ pytestmark = pytest.mark.skipif(
 HEADS = {"normal": None, "tanh_normal": 1.0}  # distribution -> the TanhNormal's (and thrust's) bound
 
 
-def _stacked(n: int, head: str, hidden=(32, 32), activation="tanh", std=0.3, seed=0) -> StackedThreeNet:
+def _stacked(
+    n: int, head: str, hidden=(32, 32), activation="tanh", std=0.3, seed=0, eps=0.0
+) -> StackedThreeNet:
     torch.manual_seed(seed)
-    nets = [ThreeNetPolicy(hidden, activation) for _ in range(n)]
+    nets = [ThreeNetPolicy(hidden, activation, distribution_eps=eps) for _ in range(n)]
     for net in nets:  # a policy that flies tens of steps, not one that falls at once
         init_exploration(net, std, 0.5 if head == "normal" else 0.0)
     return StackedThreeNet(nets, activation)
@@ -47,13 +49,15 @@ def _rollout(stacked, head, max_steps=300, reset_mode="floor", max_thrust="head"
 
 
 @pytest.mark.parametrize(
-    ("head", "activation"), [("normal", "tanh"), ("tanh_normal", "tanh"), ("normal", "elu")]
+    ("head", "activation", "eps"),
+    [("normal", "tanh", 0.0), ("tanh_normal", "tanh", 0.0), ("normal", "elu", 0.0), ("normal", "tanh", 1e-2)],
 )
-def test_every_step_equals_the_pytorch_policy_and_dynamics(head, activation):
+def test_every_step_equals_the_pytorch_policy_and_dynamics(head, activation, eps):
     """Each flown step: the action is the stacked net's ``f(loc + scale * noise)`` at the kernel's
-    state, and the next state, reward and cause are ``dynamics.step``'s, to float rounding."""
+    state, and the next state, reward and cause are ``dynamics.step``'s, to float rounding
+    (also with ``distribution_eps``, the kernel's own shift of the mean and the std)."""
     n, e, steps = 3, 4, 300
-    stacked = _stacked(n, head, activation=activation, std=0.1)
+    stacked = _stacked(n, head, activation=activation, std=0.1, eps=eps)
     flyer = _rollout(stacked, head, steps)
     start = dynamics.initial_state((n, e), "floor", torch.Generator().manual_seed(1))
     noise = torch.randn(n, e, steps, 2, generator=torch.Generator().manual_seed(2))
@@ -134,7 +138,10 @@ def _torchrl_gradient(stacked, head, episodes, gamma, options, active):
     """ReinforceLoss over a plain make_actor() per agent (the TorchRL reference), with autograd."""
     losses, grads = [], []
     for agent in range(len(stacked)):
-        actor = make_actor(head, stacked.hidden_sizes, stacked.activation_name, stacked.min_std, HEADS[head])
+        actor = make_actor(
+            head, stacked.hidden_sizes, stacked.activation_name, stacked.min_std, HEADS[head],
+            distribution_eps=stacked.distribution_eps,
+        )  # fmt: skip
         actor.module[0].module.load_state_dict(stacked.agent_state_dict(agent))
         batch = Episodes(*(x[agent] for x in episodes)).as_rollout(300)
         loss_module = ReinforceLoss(actor, gamma=float(gamma[agent]), **options)
@@ -156,12 +163,17 @@ OPTIONS = [
 ]
 
 
-@pytest.mark.parametrize(("head", "options"), list(itertools.product(HEADS, OPTIONS)))
-def test_update_kernel_loss_and_gradient_equal_torchrl_reinforce_loss(head, options):
+@pytest.mark.parametrize(
+    ("head", "options", "eps"),
+    [(head, options, 0.0) for head, options in itertools.product(HEADS, OPTIONS)]
+    + [("normal", {"log_prob_reduction": "mean"}, 1e-2)],
+)
+def test_update_kernel_loss_and_gradient_equal_torchrl_reinforce_loss(head, options, eps):
     """On the episodes the update kernel flies (the same as KernelRollout with the same RNG keys),
-    its loss and gradient equal ReinforceLoss + autograd agent by agent; an inactive agent gets zeros."""
+    its loss and gradient equal ReinforceLoss + autograd agent by agent; an inactive agent gets zeros.
+    With ``distribution_eps`` too (the paper's code's ``Normal(mu + eps, sigma + eps)``)."""
     n, e = 4, 3
-    stacked = _stacked(n, head)
+    stacked = _stacked(n, head, eps=eps)
     flyer = _rollout(stacked, head)
     flags = {
         "baseline_mean": options.get("baseline") == "mean",

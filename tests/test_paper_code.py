@@ -1,4 +1,5 @@
-"""experiment=paper_code's options: the motors' log-probabilities averaged (algo.log_prob_reduction=mean)."""
+"""experiment=paper_code's options: the motors' log-probabilities averaged (algo.log_prob_reduction=mean),
+and the rest of the public code's departures from the text the preset sets."""
 
 import pytest
 import torch
@@ -71,3 +72,22 @@ def test_paper_code_preset():
     validate(cfg)
     assert (cfg.algo.optimizer, cfg.algo.weight_decay, cfg.algo.log_prob_reduction) == ("adamw", 0.01, "mean")
     assert (cfg.algo.lr, cfg.algo.gamma, cfg.model.distribution) == (1e-4, 0.99, "normal")
+    # The environment of the public code: zone x in +-0.6, strict bounds, float64 physics.
+    assert (cfg.env.zone_x_limit, cfg.env.bounds, cfg.env.dtype) == (0.6, "strict", "float64")
+    # Normal(mu + 1e-6, softplus(.) + 1e-6): the eps on both, no separate std floor.
+    assert (cfg.model.distribution_eps, cfg.model.min_std) == (1e-6, 0.0)
+
+
+def test_paper_code_preset_trains_on_both_engines(tmp_path):
+    """experiment=paper_code's update on the C++ kernels equals the PyTorch engine's (float64, eps)."""
+    runs = {}
+    for compiled in ("compile=false", "compile=true"):
+        trainer = _trainer(tmp_path, compiled.replace("=", "_"), "experiment=paper_code", compiled)
+        assert trainer.population.policy.distribution_eps == 1e-6
+        runs[compiled] = _loss_and_weights(trainer)
+        trainer.close()
+    (length_p, loss_p, after_p, _), (length_k, loss_k, after_k, _) = runs.values()
+    assert torch.equal(length_p, length_k)
+    torch.testing.assert_close(loss_k, loss_p, rtol=1e-6, atol=1e-9)
+    for key in after_p:
+        torch.testing.assert_close(after_k[key], after_p[key], rtol=1e-6, atol=1e-9)

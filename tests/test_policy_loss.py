@@ -27,6 +27,44 @@ def test_three_nets_shapes_and_std_floor():
     assert bool((scale >= 0.25).all())
 
 
+@pytest.mark.parametrize("eps", [1e-6, 1e-2])
+def test_distribution_eps_is_normal_of_mu_plus_eps_and_sigma_plus_eps(eps):
+    """model.distribution_eps: the actor's distribution is exactly the paper's code's
+    ``Normal(mu + eps, sigma + eps)`` over the same net's ``mu`` and ``sigma`` (min_std 0 there: its
+    std is ``softplus`` only); its log-probabilities of the same actions, and their gradients in
+    the weights, are those of that Normal."""
+    torch.manual_seed(0)
+    plain = make_actor("normal", min_std=0.0)
+    shifted = make_actor("normal", min_std=0.0, distribution_eps=eps)
+    shifted.load_state_dict(plain.state_dict())
+    td = _obs(64)
+    net = plain.module[0].module
+    mu = net.mean(net.shared(td["observation"]))
+    sigma = nn.functional.softplus(net.std(net.shared(td["observation"])))
+    out = shifted(td.clone())
+    torch.testing.assert_close(out["loc"], mu + eps, rtol=0, atol=0)
+    torch.testing.assert_close(out["scale"], sigma + eps, rtol=0, atol=0)
+    reference = torch.distributions.Normal(mu + eps, sigma + eps)
+    action = out["action"]
+    log_prob = shifted.get_dist(out).log_prob(action)
+    torch.testing.assert_close(log_prob, reference.log_prob(action).sum(-1), rtol=0, atol=0)
+    # The gradient of the log-probability is that of the Normal(mu + eps, sigma + eps) reference.
+    grads = torch.autograd.grad(log_prob.sum(), list(shifted.parameters()))
+    expected = torch.autograd.grad(reference.log_prob(action.detach()).sum(), list(plain.parameters()))
+    for got, want in zip(grads, expected, strict=True):
+        torch.testing.assert_close(got, want)
+    # Not the plain Normal(mu, sigma): the eps moves the density.
+    assert not torch.equal(log_prob, torch.distributions.Normal(mu, sigma).log_prob(action).sum(-1))
+    # eps = 0 is the plain net, bit for bit.
+    assert torch.equal(plain(td.clone())["loc"], mu)
+
+
+@pytest.mark.parametrize("bad", [-1e-6, 0.5, float("nan"), float("inf"), True, "x"])
+def test_distribution_eps_out_of_range_is_refused(bad):
+    with pytest.raises(ValueError, match="model.distribution_eps"):
+        ThreeNetPolicy(distribution_eps=bad)
+
+
 def test_normal_actor_is_unbounded_and_sums_log_prob_over_motors():
     actor = make_actor("normal")
     td = actor(_obs(256))

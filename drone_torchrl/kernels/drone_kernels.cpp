@@ -230,6 +230,8 @@ struct Net {
   int hidden[kMaxLayers];
   int activation;
   double min_std;
+  // Added to the mean and to the std (ThreeNetPolicy's distribution_eps): Normal(mu + eps, sigma + eps).
+  double dist_eps;
   // Where each layer's weight [out, in] starts in the flat vector (its bias follows it): the hidden
   // layers, then the mean head, then the std head. And each layer's input width.
   int offset[kMaxLayers + 2];
@@ -512,7 +514,7 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
   const S floor = env[kFloor], zone_x = env[kZoneX], zone_z_min = env[kZoneZMin], zone_z_max = env[kZoneZMax];
   const S r_zone = env[kRewardZone], r_alive = env[kRewardAlive], r_term = env[kRewardTerminated];
   const S high = env[kSquashHigh], half = high / S(2);
-  const S min_std = net.min_std;
+  const S min_std = net.min_std, dist_eps = net.dist_eps;
   const S squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe tanh
   // dynamics.termination_cause: beyond an upper (lower) bound is > (<), or >= (<=) with strict
   // bounds. dynamics.in_target_zone: within an upper (lower) bound is <= (>=), or < (>) strict.
@@ -569,6 +571,8 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
       for (int k = 0; k < kStateDim; k++) block.x[k] = s[k];
       Vec<S> loc[kActionDim], pre[kActionDim], act[kActionDim];
       forward(net, block.w.data(), block.x.data(), block.acts.data(), loc, pre);
+      if (dist_eps != 0)
+        for (int m = 0; m < kActionDim; m++) loc[m] = loc[m] + dist_eps;  // kept (saved) shifted
       Vec<S> z[kActionDim]{};
       if (a.rng) {  // rng.normal: one Box-Muller pair per step and episode, its two outputs the two motors
         F u1, u2;
@@ -592,7 +596,7 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
       }
       for (int m = 0; m < kActionDim; m++) {
         Vec<S> u = loc[m];
-        if (stochastic) u = loc[m] + (softplus(pre[m]) + min_std) * z[m];
+        if (stochastic) u = loc[m] + (softplus(pre[m]) + min_std + dist_eps) * z[m];
         if (high > 0) {
           Vec<S> th = tanh_v(u);
           th = clamp(th, -squash_lim, squash_lim);
@@ -708,7 +712,7 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
   const int64_t E = a.episodes, T = a.steps;
   const Saved layout = Saved::of(net, E, T, L);
   const int p = net.params, act_w = net.activations > 0 ? net.activations : 1;
-  const S min_std = net.min_std, high = a.env[kSquashHigh], half = high / S(2);
+  const S min_std = net.min_std, dist_eps = net.dist_eps, high = a.env[kSquashHigh], half = high / S(2);
   const S squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe atanh
   const S half_log_2pi = S(0.91893853320467274178);                    // log(sqrt(2 pi))
   const S eps = sizeof(S) == 4 ? S(1.1920928955078125e-07) : S(2.220446049250313e-16);  // finfo eps
@@ -779,7 +783,7 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
       V* d_pre = d_loc + kActionDim;
       for (int m = 0; m < kActionDim; m++) {
         const V pre = blk[layout.pre() + m], loc = blk[layout.loc() + m], action = blk[layout.action() + m];
-        const V scale = softplus(pre) + min_std;
+        const V scale = softplus(pre) + min_std + dist_eps;
         V sample = action;
         if (high > 0) {  // TanhNormal: the Normal sample the action came from, as TorchRL inverts it
           const V y = clamp((action - half) / half, -squash_lim, squash_lim);
@@ -841,12 +845,14 @@ void parallel_blocks(int64_t blocks, int threads, Fn fn) {
   for (auto& th : pool) th.join();
 }
 
-Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation, double min_std) {
+Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation, double min_std,
+             double dist_eps) {
   Net net{};
   net.in_dim = static_cast<int>(in_dim);
   net.n_hidden = static_cast<int>(n_hidden);
   net.activation = static_cast<int>(activation);
   net.min_std = min_std;
+  net.dist_eps = dist_eps;
   int off = 0, in = net.in_dim;
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n = l < net.n_hidden ? static_cast<int>(hidden[l]) : kActionDim;
@@ -876,11 +882,11 @@ int64_t dk_env_consts() { return kEnvConsts; }
 // of every step flown, each row's length and its Stat counts; entries after a row's end are left
 // as they were (the caller zero-fills). Tensors hold Real numbers (the build's precision).
 void dk_rollout(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
-                double min_std, int64_t rows, int64_t episodes, int64_t steps, const void* params,
+                double min_std, double dist_eps, int64_t rows, int64_t episodes, int64_t steps, const void* params,
                 const void* start, const void* noise, const int64_t* rng, const uint8_t* active, const double* env,
                 const double* gamma, void* obs, void* action, void* reward, int64_t* cause, int64_t* length,
                 void* returns, double* stats) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std);
+  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
   RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     active,  env,
                 gamma, obs,      action, reward, cause,  length, returns, stats,  nullptr};
   const int64_t blocks = (rows + lanes<Real>() - 1) / lanes<Real>();
@@ -890,11 +896,11 @@ void dk_rollout(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t
 // One REINFORCE update's episodes and gradient for every active agent: the rollout of dk_rollout
 // (start states and noise drawn from rng), then reinforce_agents. options: LossOptions' four flags.
 void dk_reinforce(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
-                  double min_std, int64_t agents, int64_t episodes, int64_t steps, const void* params,
+                  double min_std, double dist_eps, int64_t agents, int64_t episodes, int64_t steps, const void* params,
                   const int64_t* rng, const uint8_t* active, const double* env, const double* gamma,
                   const int64_t* options, void* reward, int64_t* cause, int64_t* length, void* returns,
                   double* stats, void* saved, void* grad, double* loss, double* std_mean, uint8_t* actions_finite) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std);
+  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
   const int64_t rows = agents * episodes;
   RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     active, env,
                 gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,  saved};
@@ -907,7 +913,7 @@ void dk_reinforce(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64
 // The size of dk_reinforce's saved buffer, in scalars.
 int64_t dk_saved_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t agents, int64_t episodes,
                       int64_t steps) {
-  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0);
+  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
   const Saved layout = Saved::of(net, episodes, steps, lanes<Real>());
   return agents * layout.blocks * layout.width * lanes<Real>();
 }

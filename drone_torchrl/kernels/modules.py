@@ -61,7 +61,7 @@ class KernelRollout:
         gamma = torch.ones(n, dtype=torch.float64)  # the returns-to-go are not used here
         states, action, reward, cause, length, _, _ = ops.rollout(
             flat.detach(), start, noise, rng, active, self.env, gamma, self.hidden, self.activation,
-            self.stacked.min_std, self.max_steps,
+            self.stacked.min_std, self.max_steps, self.stacked.distribution_eps,
         )  # fmt: skip
         steps = max(int(length.max()), 1)  # the longest episode; the rest of the buffers is zeros
         return Episodes(
@@ -96,5 +96,5 @@ class KernelReinforce:
         keys = torch.stack([seed, counter], -1).unsqueeze(1).expand(-1, self.episodes, -1)
         return ops.reinforce(
             r.stacked.flat.detach(), keys, active, r.env, gamma, self.options, r.hidden, r.activation,
-            r.stacked.min_std, r.max_steps,
+            r.stacked.min_std, r.max_steps, r.stacked.distribution_eps,
         )  # fmt: skip

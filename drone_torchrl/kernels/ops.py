@@ -124,11 +124,12 @@ def env_constants(
 _LIB = torch.library.Library("drone_torchrl", "DEF")
 _LIB.define(
     "rollout(Tensor params, Tensor? start, Tensor? noise, Tensor? rng, Tensor active, Tensor env, Tensor gamma, "
-    "int[] hidden, int activation, float min_std, int steps) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
+    "int[] hidden, int activation, float min_std, int steps, float dist_eps=0.0) "
+    "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
 )
 _LIB.define(
     "reinforce(Tensor params, Tensor rng, Tensor active, Tensor env, Tensor gamma, int[] options, int[] hidden, "
-    "int activation, float min_std, int steps) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
+    "int activation, float min_std, int steps, float dist_eps=0.0) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
 )
 
 
@@ -144,6 +145,7 @@ def _rollout(
     activation: int,
     min_std: float,
     steps: int,
+    dist_eps: float = 0.0,
 ) -> tuple[torch.Tensor, ...]:
     n, episodes = _rows(start, rng, active)
     states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=params.dtype)
@@ -167,6 +169,7 @@ def _rollout(
         _sizes(hidden),
         _i64(activation),
         ctypes.c_double(min_std),
+        ctypes.c_double(dist_eps),
         _i64(n * episodes),
         _i64(episodes),
         _i64(steps),
@@ -186,7 +189,9 @@ def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Te
     return active.shape[0], rng.shape[1]
 
 
-def _rollout_fake(params, start, noise, rng, active, env, gamma, hidden, activation, min_std, steps):
+def _rollout_fake(
+    params, start, noise, rng, active, env, gamma, hidden, activation, min_std, steps, dist_eps=0.0
+):
     n, episodes = _rows(start, rng, active)
     new = params.new_empty
     return (
@@ -211,6 +216,7 @@ def _reinforce(
     activation: int,
     min_std: float,
     steps: int,
+    dist_eps: float = 0.0,
 ) -> tuple[torch.Tensor, ...]:
     n, episodes = rng.shape[:2]
     dtype = params.dtype
@@ -240,6 +246,7 @@ def _reinforce(
         sizes,
         _i64(activation),
         ctypes.c_double(min_std),
+        ctypes.c_double(dist_eps),
         _i64(n),
         _i64(episodes),
         _i64(steps),
@@ -249,7 +256,9 @@ def _reinforce(
     return grad, loss, std_mean, actions_finite, length, counts
 
 
-def _reinforce_fake(params, rng, active, env, gamma, options, hidden, activation, min_std, steps):
+def _reinforce_fake(
+    params, rng, active, env, gamma, options, hidden, activation, min_std, steps, dist_eps=0.0
+):
     n, episodes = rng.shape[:2]
     scalar = params.new_empty(n, dtype=torch.float64)
     return (
@@ -280,6 +289,7 @@ def rollout(
     activation: int,
     min_std: float,
     steps: int,
+    dist_eps: float = 0.0,
 ) -> tuple[torch.Tensor, ...]:
     """``drone_torchrl::rollout``: fly every active agent's ``E`` episodes until each ends or ``steps`` pass.
 
@@ -296,6 +306,8 @@ def rollout(
         env: :func:`env_constants`.
         gamma: ``[N]``, each agent's discount for the returns-to-go.
         hidden, activation, min_std: the network (:data:`ACTIVATION_CODES`).
+        dist_eps: added to the mean and to the std, ``Normal(mu + eps, sigma + eps)``
+            (:class:`~drone_torchrl.modules.ThreeNetPolicy`'s ``distribution_eps``).
 
     Returns ``states [N, E, steps + 1, 6]`` (before each step, then after the last),
     ``action [N, E, steps, 2]``, ``reward [N, E, steps]``, ``cause [N, E, steps]`` (int64
@@ -304,7 +316,7 @@ def rollout(
     and ``stats [N, E, 4]`` float64 (:data:`STAT_NAMES`); entries after an episode's end hold zeros.
     """
     return torch.ops.drone_torchrl.rollout(
-        params, start, noise, rng, active, env, gamma, list(hidden), activation, min_std, steps
+        params, start, noise, rng, active, env, gamma, list(hidden), activation, min_std, steps, dist_eps
     )
 
 
@@ -323,6 +335,7 @@ def reinforce(
     activation: int,
     min_std: float,
     steps: int,
+    dist_eps: float = 0.0,
 ) -> tuple[torch.Tensor, ...]:
     """``drone_torchrl::reinforce``: one REINFORCE update's episodes and gradient for every active agent.
 
@@ -337,7 +350,7 @@ def reinforce(
     ``counts [N, E, 4]`` (:data:`STAT_NAMES`).
     """
     return torch.ops.drone_torchrl.reinforce(
-        params, rng, active, env, gamma, list(options), list(hidden), activation, min_std, steps
+        params, rng, active, env, gamma, list(options), list(hidden), activation, min_std, steps, dist_eps
     )
 
 

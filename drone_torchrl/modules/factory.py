@@ -39,7 +39,13 @@ def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
     if seed is not None:
         torch.manual_seed(seed)
     model = cfg.model
-    net = ThreeNetPolicy(list(model.hidden_sizes), model.activation, model.min_std, observation_dim(cfg))
+    net = ThreeNetPolicy(
+        list(model.hidden_sizes),
+        model.activation,
+        model.min_std,
+        observation_dim(cfg),
+        distribution_eps=model.get("distribution_eps", 0.0),
+    )
     if model.get("init_std") is not None:
         init_exploration(net, model.init_std, hover_mean(model.distribution, cfg.env.max_thrust))
     return net.to(device=cfg.device, dtype=model_dtype(cfg))

@@ -23,6 +23,11 @@ class ThreeNetPolicy(nn.Module):
     - mean net: one linear layer to the two motor commands;
     - std net: one linear layer, ``softplus`` (the paper's ``log(1 + exp(.))``), plus ``min_std``
       so the distribution never collapses to zero width.
+
+    ``distribution_eps`` (default 0) is then added to both outputs: the policy is
+    ``Normal(mu + eps, sigma + eps)``, as the paper's public code builds it (with ``eps = 1e-6``).
+    Its gradients are those of ``mu`` and ``sigma``; it only moves the mean by ``eps`` and widens the
+    std by ``eps``.
     """
 
     def __init__(
@@ -32,8 +37,10 @@ class ThreeNetPolicy(nn.Module):
         min_std: float = 1e-6,
         obs_dim: int = STATE_DIM,
         action_dim: int = ACTION_DIM,
+        distribution_eps: float = 0.0,
     ) -> None:
         super().__init__()
+        check_distribution_eps(distribution_eps)
         layers: list[nn.Module] = []
         width = obs_dim
         for size in hidden_sizes:
@@ -43,10 +50,34 @@ class ThreeNetPolicy(nn.Module):
         self.mean = nn.Linear(width, action_dim)
         self.std = nn.Linear(width, action_dim)
         self.min_std = min_std
+        self.distribution_eps = float(distribution_eps)
 
     def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         features = self.shared(observation)
-        return self.mean(features), nn.functional.softplus(self.std(features)) + self.min_std
+        loc, scale = self.mean(features), nn.functional.softplus(self.std(features)) + self.min_std
+        return shift_distribution(loc, scale, self.distribution_eps)
+
+
+# The largest model.distribution_eps accepted: a numerical guard (the paper's code uses 1e-6), not a knob
+# that moves the mean by a meaningful fraction of a motor command.
+MAX_DISTRIBUTION_EPS = 1e-2
+
+
+def check_distribution_eps(eps: float) -> None:
+    """Raise ``ValueError`` unless ``0 <= eps <= MAX_DISTRIBUTION_EPS`` (finite)."""
+    if isinstance(eps, bool) or not isinstance(eps, int | float) or not 0 <= eps <= MAX_DISTRIBUTION_EPS:
+        raise ValueError(
+            f"model.distribution_eps={eps!r} is not allowed; expected a number in [0, {MAX_DISTRIBUTION_EPS}]"
+        )
+
+
+def shift_distribution(
+    loc: torch.Tensor, scale: torch.Tensor, eps: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(loc + eps, scale + eps)``: the paper's code's ``Normal(mu + eps, sigma + eps)``; unchanged at 0."""
+    if eps == 0:
+        return loc, scale
+    return loc + eps, scale + eps
 
 
 def init_exploration(net: ThreeNetPolicy, std: float, mean: float = 0.0) -> None:
@@ -76,6 +107,7 @@ def make_actor(
     min_std: float = 1e-6,
     max_thrust: float | None = None,
     device: torch.device | str = "cpu",
+    distribution_eps: float = 0.0,
 ) -> ProbabilisticActor:
     """Build the policy as a ``ProbabilisticActor`` reading ``"observation"``, writing ``"action"``.
 
@@ -93,7 +125,7 @@ def make_actor(
             f"model.activation={activation!r} is not allowed; expected one of {tuple(ACTIVATIONS)}"
         )
     check_head(distribution, max_thrust)
-    net = ThreeNetPolicy(hidden_sizes, activation, min_std).to(device)
+    net = ThreeNetPolicy(hidden_sizes, activation, min_std, distribution_eps=distribution_eps).to(device)
     return actor_from_net(net, distribution, max_thrust)
 
 

@@ -20,7 +20,7 @@ from tensordict import TensorDict
 from torch import nn
 from torchrl.modules import TanhNormal
 
-from drone_torchrl.modules.policy import ACTIVATIONS, ThreeNetPolicy
+from drone_torchrl.modules.policy import ACTIVATIONS, ThreeNetPolicy, shift_distribution
 
 Layers = list[tuple[torch.Tensor, torch.Tensor]]
 
@@ -41,8 +41,8 @@ class StackedThreeNet(nn.Module):
         super().__init__()
         shapes = {tuple(p.shape for p in net.parameters()) for net in nets}
         kinds = {tuple(type(m) for m in net.shared if not isinstance(m, nn.Linear)) for net in nets}
-        if len(shapes) > 1 or len({net.min_std for net in nets}) > 1:
-            raise ValueError("stacked nets must share hidden_sizes and min_std")
+        if len(shapes) > 1 or len({(net.min_std, net.distribution_eps) for net in nets}) > 1:
+            raise ValueError("stacked nets must share hidden_sizes, min_std and distribution_eps")
         if kinds != {(ACTIVATIONS[activation],) * (len(nets[0].shared) // 2)}:
             raise ValueError(f"stacked nets must all use activation={activation!r}")
         first = nets[0]
@@ -54,10 +54,16 @@ class StackedThreeNet(nn.Module):
         self.activation_name = activation
         self.activation = ACTIVATIONS[activation]()
         self.min_std = first.min_std
+        self.distribution_eps = first.distribution_eps
         self.linears = [tuple(name.split(".")) for name in _linear_names(first)]
         self.n_hidden = len(self.linears) - 2
         self.hidden_sizes = [m.out_features for m in first.shared if isinstance(m, nn.Linear)]
-        self.spec = {"hidden_sizes": self.hidden_sizes, "activation": activation, "min_std": self.min_std}
+        self.spec = {
+            "hidden_sizes": self.hidden_sizes,
+            "activation": activation,
+            "min_std": self.min_std,
+            "distribution_eps": self.distribution_eps,
+        }
 
     def __len__(self) -> int:
         return self.flat.shape[0]
@@ -91,6 +97,7 @@ class StackedThreeNet(nn.Module):
         (w_mean, b_mean), (w_std, b_std) = layers[self.n_hidden :]
         loc = torch.baddbmm(b_mean, h, w_mean)
         scale = nn.functional.softplus(torch.baddbmm(b_std, h, w_std)) + self.min_std
+        loc, scale = shift_distribution(loc, scale, self.distribution_eps)
         out_shape = (*shape[:-1], loc.shape[-1])
         return loc.reshape(out_shape), scale.reshape(out_shape)
 
