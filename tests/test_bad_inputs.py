@@ -210,7 +210,6 @@ TRAIN = [
     (["env.disturbance.observed_actions=26"], "env.disturbance.observed_actions"),
     (["env.disturbance.noise_angle=nan"], "env.disturbance.noise_angle"),
     (["env.disturbance.gusts=0.1"], "env.disturbance.gust"),  # did you mean
-    (["disturbance=mild"], "env.disturbance"),  # the population engine flies the nominal drone
     (["env.num_workers=-1"], "env.num_workers"),
     (["env.num_workers=2"], "env.num_workers"),  # engine=fused has no worker processes
     (["engine=torchrl", "env.num_workers=3", "algo.episodes_per_update=2"], "env.num_workers"),

@@ -6,13 +6,15 @@ import torch
 from hydra import compose, initialize_config_dir
 from torchrl.modules import TanhNormal
 
-from drone_torchrl.config import config_dir, env_kwargs
-from drone_torchrl.envs import dynamics
+from drone_torchrl.config import config_dir, env_kwargs, physics_params
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.rollout import chunked, fly
 from drone_torchrl.evaluation import evaluate
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.modules import ActionSampler, StackedThreeNet, ThreeNetPolicy
+from drone_torchrl.objectives import ReinforceLoss
+from drone_torchrl.training import rng
 from drone_torchrl.training.jobs import group_key, prepare
 from drone_torchrl.training.trainer import Trainer, train_jobs
 
@@ -56,7 +58,11 @@ def test_tanh_sampler_matches_torchrl_tanh_normal():
     torch.testing.assert_close(action, 0.5 * (torch.tanh(loc + scale * noise) + 1))
 
 
-@pytest.mark.parametrize("preset", ["paper", "bounded"])
+# Domain randomisation in the population engine: every disturbance, and the last 2 commands observed.
+DISTURBED = ("experiment=bounded", "disturbance=strong", "env.disturbance.observed_actions=2")
+
+
+@pytest.mark.parametrize("preset", [("experiment=paper",), ("experiment=bounded",), DISTURBED])
 def test_agent_in_a_batch_follows_its_solo_trajectory(tmp_path, preset):
     """50 episodes: seed 0 alone, first of a population of 3 and last of a population of 5, with
     other seeds, learning rates and discounts beside it."""
@@ -67,7 +73,7 @@ def test_agent_in_a_batch_follows_its_solo_trajectory(tmp_path, preset):
         ("seed=3", "algo.lr=3e-3", "algo.gamma=0.95"),
         ("seed=4", "algo.lr=1e-3", "algo.gamma=0.5"),
     ]
-    common = (f"experiment={preset}", "algo.episodes=50")
+    common = (*preset, "algo.episodes=50")
     small = [mine, *others[:2]]
     large = [*others, mine]
     jobs_small = [(_cfg(*common, *s), tmp_path / f"small{i}") for i, s in enumerate(small)]
@@ -94,9 +100,10 @@ def test_agent_in_a_batch_follows_its_solo_trajectory(tmp_path, preset):
     assert not np.array_equal(other["return"], solo["return"])
 
 
-def test_population_evaluation_equals_each_actor_alone(tmp_path):
+@pytest.mark.parametrize("preset", [(), DISTURBED])
+def test_population_evaluation_equals_each_actor_alone(tmp_path, preset):
     """The evaluator flying two agents' stacked step equals it flying each agent's own actor."""
-    cfgs = [_cfg("algo.episodes=4", "eval.episodes=5", f"seed={s}") for s in (0, 1)]
+    cfgs = [_cfg(*preset, "algo.episodes=4", "eval.episodes=5", f"seed={s}") for s in (0, 1)]
     trainer = Trainer([prepare(cfg, tmp_path / f"run{i}") for i, cfg in enumerate(cfgs)])
     kwargs = env_kwargs(cfgs[0])
     stacked, _ = evaluate(trainer.learner.eval_policy(), kwargs, 5, 123, agents=2)
@@ -191,3 +198,46 @@ def test_checkpoint_actor_entries_equal_a_built_actor(preset):
         for key in expected:
             torch.testing.assert_close(got[key], expected[key], rtol=0, atol=0)
         assert not any(got[k].data_ptr() == p.data_ptr() for k in got for p in population.policy.parameters())
+
+
+def test_disturbed_episodes_follow_their_keys_and_the_loss_scores_what_the_policy_saw(tmp_path):
+    """Under domain randomisation the population engine's episode ``e`` of agent ``i`` in update ``u``
+    flies the disturbances of key ``rng.keys(seed_i, u, EPISODE_KEYS)[e]``: replaying its stored
+    commands through ``disturbances.step`` gives its observations, rewards and causes exactly. The
+    loss scores those observations (noisy, with past commands), as ReinforceLoss does on them."""
+    cfgs = [_cfg(*DISTURBED, "algo.episodes_per_update=4", "env.max_steps=40", f"seed={s}") for s in (3, 8)]
+    trainer = Trainer([prepare(cfg, tmp_path / f"run{i}") for i, cfg in enumerate(cfgs)])
+    learner, state = trainer.learner, trainer.population.state
+    state["counter"] += torch.tensor([5, 2])  # two agents at different updates
+    learner.update.begin(state, 1)
+    episodes = learner.collector.collect(0, torch.ones(2, dtype=torch.bool))
+    assert episodes.observation.shape == (2, 4, episodes.steps, 10)  # 6 + 2 x 2 entries
+
+    kwargs = env_kwargs(cfgs[0])
+    disturbance, params = disturbances.make(kwargs["disturbance"]), physics_params(kwargs)
+    keys = rng.keys(state["seed"], state["counter"], rng.EPISODE_KEYS, (4,))
+    internal = disturbances.start(disturbance, keys)
+    s, valid = episodes.states[..., 0, :], episodes.valid()
+    for t in range(episodes.steps):
+        seen = disturbances.observe(disturbance, s, internal, t)
+        s, reward, cause, internal = disturbances.step(
+            disturbance, s, episodes.action[..., t, :], internal, t, params
+        )
+        v = valid[..., t]
+        torch.testing.assert_close(seen[v], episodes.observation[..., t, :][v])
+        torch.testing.assert_close(s[v], episodes.states[..., t + 1, :][v])
+        assert torch.equal(reward[v], episodes.reward[..., t][v]) and torch.equal(
+            cause[v], episodes.cause[..., t][v]
+        )
+    # The disturbances acted: the noisy positions differ from the states, the past commands are there.
+    assert (episodes.observation[..., 1, :6] != episodes.states[..., 1, :]).any()
+    torch.testing.assert_close(episodes.observation[..., 1, 6:8], episodes.action[..., 0, :])
+
+    terms, _, _ = learner.update._score_episodes(episodes)
+    batch = episodes.as_rollout(40)
+    batch["observation"] = episodes.observation[..., : batch.shape[-1], :]
+    for agent in range(2):
+        actor = trainer.population.actor(agent)
+        plain = ReinforceLoss(actor, gamma=cfgs[agent].algo.gamma)(batch[agent].clone())
+        torch.testing.assert_close(terms["loss_per_agent"][agent], plain["loss_reinforce"].detach())
+    trainer.close()

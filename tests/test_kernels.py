@@ -143,7 +143,7 @@ def _torchrl_gradient(stacked, head, episodes, gamma, options, active):
             distribution_eps=stacked.distribution_eps,
         )  # fmt: skip
         actor.module[0].module.load_state_dict(stacked.agent_state_dict(agent))
-        batch = Episodes(*(x[agent] for x in episodes)).as_rollout(300)
+        batch = Episodes(*(x[agent] for x in episodes[:5])).as_rollout(300)  # states .. length
         loss_module = ReinforceLoss(actor, gamma=float(gamma[agent]), **options)
         out = loss_module(batch)
         out["loss_reinforce"].backward()

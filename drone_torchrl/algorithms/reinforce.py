@@ -14,7 +14,6 @@ from typing import Any
 
 from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.envs.disturbances import Disturbance
 from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
 from drone_torchrl.schema import (
     ADAM_EPS,
@@ -81,14 +80,6 @@ def validate(cfg: Mapping[str, Any]) -> None:
     """REINFORCE's rules that relate keys (each key's bounds are its schema's, ReinforceConf above),
     and those of the engine options it alone uses."""
     workers = cfg.env.num_workers
-    if cfg.engine == "fused" and (changed := _disturbed_key(cfg.env.get("disturbance"))):
-        key, value = changed
-        raise ConfigError.of(
-            f"env.disturbance.{key}",
-            value,
-            f"{getattr(Disturbance(), key)!r} with engine='fused' (the population engine flies the nominal "
-            "drone; train under disturbances with engine=torchrl or algo=ppo)",
-        )
     if cfg.algo.episodes % cfg.algo.episodes_per_update:
         raise ConfigError.of(
             "algo.episodes",
@@ -107,15 +98,6 @@ def validate(cfg: Mapping[str, Any]) -> None:
             workers,
             f"a divisor of algo.episodes_per_update={cfg.algo.episodes_per_update} (the episodes are split over the workers)",
         )
-
-
-def _disturbed_key(disturbance: Mapping[str, Any] | None) -> tuple[str, Any] | None:
-    """The first ``env.disturbance`` key off its nominal value, if any."""
-    nominal = Disturbance()
-    for key, value in (disturbance or {}).items():
-        if value != getattr(nominal, key):
-            return key, value
-    return None
 
 
 @dataclass

@@ -48,7 +48,9 @@ class Episodes(NamedTuple):
     ``states [*B, T + 1, 6]`` (before each step, then after the row's last step),
     ``action [*B, T, 2]``, ``reward [*B, T]``, ``cause [*B, T]`` (int64 :class:`TerminationCause`
     codes) and ``length [*B]`` (int64 steps of each row's episode). Entries after a row's end are
-    zeros. :meth:`as_rollout` gives the layout of TorchRL's ``EnvBase.rollout``.
+    zeros. ``observation [*B, T, D]`` is what the policy saw before each step where that is not the
+    state (disturbed drones: noisy positions, past commands), else ``None``. :meth:`as_rollout`
+    gives the layout of TorchRL's ``EnvBase.rollout``.
     """
 
     states: torch.Tensor
@@ -56,6 +58,11 @@ class Episodes(NamedTuple):
     reward: torch.Tensor
     cause: torch.Tensor
     length: torch.Tensor
+    observation: torch.Tensor | None = None
+
+    def inputs(self) -> torch.Tensor:
+        """What the policy saw before each step, ``[*B, T, D]``."""
+        return self.states[..., :-1, :] if self.observation is None else self.observation
 
     @property
     def steps(self) -> int:

@@ -31,7 +31,7 @@ def _linear_names(net: ThreeNetPolicy) -> list[str]:
 
 
 class StackedThreeNet(nn.Module):
-    """N :class:`ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., 6]`` observations.
+    """N :class:`ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., D]`` observations.
 
     ``nets`` give the architecture and each agent's initial weights (copied; the nets themselves
     are not used afterwards).
@@ -63,6 +63,7 @@ class StackedThreeNet(nn.Module):
             "activation": activation,
             "min_std": self.min_std,
             "distribution_eps": self.distribution_eps,
+            "obs_dim": first.shared[0].in_features,  # 6, or 6 + 2k with past commands observed
         }
 
     def __len__(self) -> int:

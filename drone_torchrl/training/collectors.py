@@ -31,7 +31,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from drone_torchrl.config import env_kwargs, physics_params
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.factory import make_env
 from drone_torchrl.envs.rollout import ChunkFn, Episodes, RolloutFn, chunked, fly_episodes
 from drone_torchrl.modules.factory import build_actor, model_dtype
@@ -130,17 +130,22 @@ class VectorisedCollector:
         self.dtype = model_dtype(cfg)  # the env's: states, noise and the nets (float64 end to end)
         self.sampler = ActionSampler(cfg.model.distribution, cfg.env.max_thrust)
         self.steps_per_call = cfg.steps_per_call
+        kwargs = env_kwargs(cfg)
+        self.disturbance = disturbances.make(kwargs["disturbance"])
+        # Nominal drones fly dynamics.step on their states; disturbed ones (domain randomisation)
+        # carry their episodes' draws and fly disturbances.step on what the policy observes.
+        self.disturbed = self.disturbance.active or self.disturbance.observed_actions > 0
         squash = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
-        self.kernel = _kernel_rollout(cfg, population, squash)
+        self.kernel = None if self.disturbed else _kernel_rollout(cfg, population, squash)
         self.net = population.policy
         self._actor = actor_from_net(self.net, cfg.model.distribution, cfg.env.max_thrust)
         # compile=true without the kernels fuses the ~40 small kernels of each step (policy,
         # sampling, physics) of a chunk of steps_per_call steps into one graph; it costs a one-off
         # compilation per batch shape and changes float rounding slightly.
-        compiled = cfg.compile and self.kernel is None
+        compiled = cfg.compile and self.kernel is None and not self.disturbed
         self._compiled = torch.compile(self._steps) if compiled else None
         self._chunk = self._compiled_steps if compiled else self._steps
-        self._draws: tuple[torch.Tensor, torch.Tensor, int, int] | None = None
+        self._draws: tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, int] | None = None
 
     def _compiled_steps(self, *args) -> tuple[torch.Tensor, ...]:
         try:
@@ -172,15 +177,39 @@ class VectorisedCollector:
             layers = self.population.policy.layers()
         return lambda state, t, k: self._chunk(layers, state, None if noise is None else noise[t : t + k], k)
 
+    def _disturbed_stepper(
+        self, noise: torch.Tensor | None, keys: torch.Tensor
+    ) -> tuple[ChunkFn, list[torch.Tensor]]:
+        """Chunks of disturbed drones whose episodes have keys ``keys`` (``[N, E]``), and the list
+        their steps append the policy's observations to (``[N, E, 6 + 2k]`` each)."""
+        with torch.no_grad():
+            layers = self.population.policy.layers()
+        internal = disturbances.start(self.disturbance, keys, self.dtype)
+        observations: list[torch.Tensor] = []
+
+        def step(state: torch.Tensor, t: int) -> tuple[torch.Tensor, ...]:
+            nonlocal internal
+            observation = disturbances.observe(self.disturbance, state, internal, t)
+            observations.append(observation)
+            loc, scale = self.population.policy.apply_stacked(layers, observation)
+            action = self.sampler(loc, scale, None if noise is None else noise[t])
+            next_state, reward, cause, internal = disturbances.step(
+                self.disturbance, state, action, internal, t, self.params
+            )
+            return action, next_state, reward, cause
+
+        return chunked(step), observations
+
     def begin(self, state: TensorDictBase, k: int) -> None:
         """Remember the update counters the next ``k`` updates draw their start states and noise with."""
         self._seeds, self._counters, self._k = state["seed"], state["counter"].clone(), k
         self._draws = None
 
-    def _draw(self, j: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Update ``j``'s start states ``[N, E, 6]`` and noise ``[N, T, E, 2]``, drawn for as many of
-        the call's updates at once as :data:`NOISE_PER_DRAW` allows."""
-        if self._draws is None or not self._draws[2] <= j < self._draws[3]:
+    def _draw(self, j: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Update ``j``'s start states ``[N, E, 6]``, noise ``[N, T, E, 2]`` and episode keys ``[N, E]``
+        (the disturbances'), drawn for as many of the call's updates at once as
+        :data:`NOISE_PER_DRAW` allows."""
+        if self._draws is None or not self._draws[-2] <= j < self._draws[-1]:
             n = len(self._seeds)
             per_draw = max(1, NOISE_PER_DRAW // (n * self.max_steps * self.episodes * dynamics.ACTION_DIM))
             last = min(self._k, j + per_draw)
@@ -192,25 +221,35 @@ class VectorisedCollector:
             start = start.unflatten(0, (-1, n))
             noise = rng.normal(seeds, counters, rng.ACTION_NOISE, (self.max_steps, self.episodes, 2))
             noise = noise.to(self.dtype)  # drawn in float32, as the C++ kernels draw it
-            self._draws = (start, noise.unflatten(0, (-1, n)), j, last)
-        start, noise, first, _ = self._draws
-        return start[j - first], noise[j - first]
+            keys = rng.keys(seeds, counters, rng.EPISODE_KEYS, (self.episodes,))
+            self._draws = (start, noise.unflatten(0, (-1, n)), keys.unflatten(0, (-1, n)), j, last)
+        start, noise, keys, first, _ = self._draws
+        return start[j - first], noise[j - first], keys[j - first]
 
     def collect(self, j: int, active: torch.Tensor) -> Episodes:
         """Update ``j`` of the call's episodes of every agent, by the PyTorch code (the C++ kernels'
         update draws and flies its own: :class:`~drone_torchrl.kernels.modules.KernelReinforce`).
         Inactive agents are flown too; the update masks them."""
-        start, noise = self._draw(j)
-        return fly_episodes(self._stepper(noise.transpose(0, 1)), start, self.max_steps, self.steps_per_call)
+        start, noise, keys = self._draw(j)
+        noise = noise.transpose(0, 1)
+        if not self.disturbed:
+            return fly_episodes(self._stepper(noise), start, self.max_steps, self.steps_per_call)
+        chunk, observations = self._disturbed_stepper(noise, keys)
+        episodes = fly_episodes(chunk, start, self.max_steps, self.steps_per_call)
+        seen = torch.stack(observations[: episodes.steps], -2)  # the steps fly_episodes kept
+        return episodes._replace(observation=torch.where(episodes.valid().unsqueeze(-1), seen, 0.0))
 
     def actor(self) -> ProbabilisticActor:
         """The agents' nets under the config's distribution head (scores ``[N, ...]`` batches)."""
         return self._actor
 
-    def eval_policy(self) -> RolloutFn:
-        """The deterministic episodes of every agent (the same arithmetic as training)."""
+    def eval_policy(self) -> RolloutFn | ProbabilisticActor:
+        """The deterministic episodes of every agent (the same arithmetic as training); under
+        disturbances the agents' actor, which the evaluator flies through the disturbed env."""
         if self.kernel is not None:
             return self.kernel
+        if self.disturbed:
+            return self._actor
         return lambda start: fly_episodes(self._stepper(None), start, self.max_steps, self.steps_per_call)
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:

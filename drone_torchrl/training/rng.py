@@ -43,6 +43,7 @@ UNIFORM_BITS = 24
 # Streams: independent sequences per purpose.
 START_STATES = 1
 ACTION_NOISE = 2
+EPISODE_KEYS = 3  # the keys of the episodes' disturbances (drone_torchrl.envs.disturbances)
 
 
 def _shift_right(x: torch.Tensor, bits: int) -> torch.Tensor:
@@ -64,6 +65,11 @@ def _bits(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple
     key = mix(mix(seeds) ^ (counters * _UPDATE + _signed(stream * _STREAM)))
     index = torch.arange(math.prod(shape), dtype=torch.int64, device=seeds.device).reshape(shape)
     return mix(key.reshape(-1, *([1] * len(shape))) + index * GOLDEN)
+
+
+def keys(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:
+    """64-bit keys, int64 ``[N, *shape]``: the raw hashes, to seed counter-based draws of their own."""
+    return _bits(seeds, counters, stream, shape)
 
 
 def uniform(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:

@@ -153,7 +153,7 @@ class ReinforceUpdate:
 
     def _score_episodes(self, episodes: Episodes) -> tuple[dict, Episodes, torch.Tensor]:
         """The same as :meth:`_score_rollout` for :class:`Episodes` (``[N, E, T]``)."""
-        loc, scale = self.collector.net(episodes.states[..., :-1, :])
+        loc, scale = self.collector.net(episodes.inputs())
         action = episodes.action
         log_prob = self.dist_class(loc, scale, **self.dist_kwargs).log_prob(action)
         if self.mean_log_prob:
