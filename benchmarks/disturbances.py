@@ -1,7 +1,8 @@
 """Flight under disturbances: the PD controller, a PID tuned per condition, PPO and PPO trained under them.
 
     python benchmarks/disturbances.py --train                  # train both PPO runs (seed 0), then the table
-    python benchmarks/disturbances.py --nominal RUN --randomised RUN [--seeds-eval 100]
+    python benchmarks/disturbances.py --train --population --seeds 0 1 2 3   # and REINFORCE+ randomised
+    python benchmarks/disturbances.py --nominal RUN --randomised RUN
 
 For each condition of ``conf/disturbance/`` (``none``, ``mild``, ``strong``), with bounded thrust
 (``experiment=bounded``: ``max_thrust=1``), every controller flies the same 100 seeded episodes
@@ -12,7 +13,9 @@ For each condition of ``conf/disturbance/`` (``none``, ``mild``, ``strong``), wi
   so RL is compared with the best classical controller this search finds for that condition;
 - **PPO**: ``drone-train algo=ppo experiment=bounded`` (trained on the nominal drone);
 - **PPO, randomised**: ``drone-train experiment=randomised``, trained under ``disturbance=strong``
-  (domain randomisation: every episode draws its disturbances), the last 2 commands observed.
+  (domain randomisation: every episode draws its disturbances), the last 2 commands observed;
+- with ``--population``, **REINFORCE+, randomised**: the same preset with ``algo=reinforce_plus``,
+  the seeds trained as one population of the fused engine (``hydra/launcher=fused``).
 
 Each row: mean return, crashes (episodes that ended before ``max_steps``), and the mean first step
 in the zone over the episodes that reach it. Timings: the tuning per condition and each training.
@@ -33,20 +36,25 @@ SEED = 0
 NOMINAL = ["algo=ppo", "experiment=bounded"]
 # The strong preset during training, the last 2 commands observed, twice the budget.
 RANDOMISED = ["experiment=randomised"]
+# The same preset on the population engine: REINFORCE+ agents trained side by side.
+POPULATION = ["-m", "experiment=randomised", "algo=reinforce_plus", "hydra/launcher=fused"]
 
 
-def _train(out: Path, name: str, overrides: list[str], seed: int) -> tuple[Path, float]:
-    run = out / f"{name}_s{seed}"
+def _train(out: Path, name: str, overrides: list[str], seeds: list[int]) -> tuple[list[Path], float]:
+    """Train ``seeds`` (one run, or one sweep with ``-m`` in ``overrides``): the run folders and seconds."""
+    sweep = overrides[0] == "-m"
+    folder = out / (name if sweep else f"{name}_s{seeds[0]}")
+    where = [f"hydra.sweep.dir={folder}", f"hydra.sweep.subdir={name}_s${{seed}}"]
     cmd = [
         str(Path(sys.executable).parent / "drone-train"),
         *overrides,
-        f"seed={seed}",
-        f"hydra.run.dir={run}",
+        f"seed={','.join(map(str, seeds))}",
+        *(where if sweep else [f"hydra.run.dir={folder}"]),
         "eval.video=false",
         "progress=false",
     ]
     start = time.perf_counter()
-    with open(out / f"{name}_s{seed}.log", "w") as log:
+    with open(folder.with_suffix(".log"), "w") as log:
         subprocess.run(
             cmd,
             check=True,
@@ -54,7 +62,8 @@ def _train(out: Path, name: str, overrides: list[str], seed: int) -> tuple[Path,
             stderr=subprocess.STDOUT,
             env={**os.environ, "SDL_VIDEODRIVER": "dummy"},
         )
-    return run, time.perf_counter() - start
+    runs = sorted(p.parent for p in folder.glob(f"{name}_s*/config.yaml")) if sweep else [folder]
+    return runs, time.perf_counter() - start
 
 
 def _condition(name: str) -> dict:
@@ -68,6 +77,7 @@ def _condition(name: str) -> dict:
 
 
 def _actor(run: Path):
+    """The run's last actor and the number of past commands it observes."""
     from drone_torchrl.config import env_kwargs, run_config
     from drone_torchrl.io.checkpoint import load_checkpoint
     from drone_torchrl.modules.factory import build_actor
@@ -94,7 +104,10 @@ def main() -> None:
         "--nominal", type=Path, nargs="*", default=[], help="PPO run folders trained nominally"
     )
     parser.add_argument(
-        "--randomised", type=Path, nargs="*", default=[], help="PPO run folders trained under disturbances"
+        "--randomised", type=Path, nargs="*", default=[], help="run folders trained under disturbances"
+    )
+    parser.add_argument(
+        "--population", action="store_true", help="with --train: also REINFORCE+ randomised (fused engine)"
     )
     parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks/disturbances"))
     args = parser.parse_args()
@@ -109,17 +122,21 @@ def main() -> None:
     nominal, randomised = list(args.nominal), list(args.randomised)
     if args.train:
         for seed in args.seeds:
-            run, seconds = _train(args.out, "ppo", NOMINAL, seed)
-            print(f"trained {run}: {seconds:.0f} s")
-            nominal.append(run)
-            run, seconds = _train(args.out, "ppo_randomised", RANDOMISED, seed)
-            print(f"trained {run}: {seconds:.0f} s")
-            randomised.append(run)
+            for name, overrides, runs in (
+                ("ppo", NOMINAL, nominal),
+                ("ppo_randomised", RANDOMISED, randomised),
+            ):
+                (run,), seconds = _train(args.out, name, overrides, [seed])
+                print(f"trained {run}: {seconds:.0f} s")
+                runs.append(run)
+        if args.population:
+            runs, seconds = _train(args.out, "reinforce_plus_randomised", POPULATION, args.seeds)
+            print(f"trained {len(runs)} agents as one population in {args.out}: {seconds:.0f} s")
+            randomised.extend(runs)
 
     policies = {}
-    for label, runs in (("PPO", nominal), ("PPO, randomised", randomised)):
-        for run in runs:
-            policies[f"{label} ({run.name})"] = _actor(run)
+    for run in (*nominal, *randomised):
+        policies[run.name] = _actor(run)
 
     print(
         f"\n{EPISODES} seeded episodes (seed {SEED}), max_thrust 1: return / crashes / first step in the zone\n"
