@@ -241,3 +241,21 @@ def test_disturbed_episodes_follow_their_keys_and_the_loss_scores_what_the_polic
         plain = ReinforceLoss(actor, gamma=cfgs[agent].algo.gamma)(batch[agent].clone())
         torch.testing.assert_close(terms["loss_per_agent"][agent], plain["loss_reinforce"].detach())
     trainer.close()
+
+
+@pytest.mark.slow  # torch.compile of the disturbed chunk: about a minute on 2 cores with a cold cache
+def test_compiled_disturbed_chunks_fly_the_eager_episodes(tmp_path):
+    """compile=true fuses the disturbed steps too: the same episodes as eager, to float rounding."""
+    flown = {}
+    for compiled in ("compile=false", "compile=true"):
+        cfg = _cfg(*DISTURBED, compiled, "algo.episodes_per_update=4", "env.max_steps=20", "steps_per_call=5")
+        trainer = Trainer([prepare(cfg, tmp_path / compiled)])
+        trainer.learner.update.begin(trainer.population.state, 1)
+        collector = trainer.learner.collector
+        flown[compiled] = collector.collect(0, torch.ones(1, dtype=torch.bool))
+        assert (collector._chunk == collector._eager) == (compiled == "compile=false")  # no fallback
+        trainer.close()
+    eager, compiled = flown.values()
+    assert torch.equal(eager.length, compiled.length) and torch.equal(eager.cause, compiled.cause)
+    for name in ("states", "action", "reward", "observation"):
+        torch.testing.assert_close(getattr(compiled, name), getattr(eager, name), rtol=1e-5, atol=1e-5)

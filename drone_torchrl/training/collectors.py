@@ -140,11 +140,12 @@ class VectorisedCollector:
         self.net = population.policy
         self._actor = actor_from_net(self.net, cfg.model.distribution, cfg.env.max_thrust)
         # compile=true without the kernels fuses the ~40 small kernels of each step (policy,
-        # sampling, physics) of a chunk of steps_per_call steps into one graph; it costs a one-off
-        # compilation per batch shape and changes float rounding slightly.
-        compiled = cfg.compile and self.kernel is None and not self.disturbed
-        self._compiled = torch.compile(self._steps) if compiled else None
-        self._chunk = self._compiled_steps if compiled else self._steps
+        # sampling, physics; ~80 with disturbances) of a chunk of steps_per_call steps into one
+        # graph; it costs a one-off compilation per batch shape and changes float rounding slightly.
+        compiled = cfg.compile and self.kernel is None
+        self._eager = self._disturbed_steps if self.disturbed else self._steps
+        self._compiled = torch.compile(self._eager) if compiled else None
+        self._chunk = self._compiled_steps if compiled else self._eager
         self._draws: tuple[torch.Tensor, torch.Tensor, torch.Tensor, int, int] | None = None
 
     def _compiled_steps(self, *args) -> tuple[torch.Tensor, ...]:
@@ -152,7 +153,7 @@ class VectorisedCollector:
             return self._compiled(*args)
         except Exception as err:  # noqa: BLE001  (no compiler, unsupported platform, ...)
             warnings.warn(f"compile=true failed ({type(err).__name__}: {err}); running eager", stacklevel=2)
-            self._chunk = self._steps
+            self._chunk = self._eager
             return self._chunk(*args)
 
     def _policy_and_physics(
@@ -177,28 +178,47 @@ class VectorisedCollector:
             layers = self.population.policy.layers()
         return lambda state, t, k: self._chunk(layers, state, None if noise is None else noise[t : t + k], k)
 
+    def _disturbed_steps(
+        self,
+        layers: list,
+        state: torch.Tensor,
+        internal: disturbances.Internal,
+        noise: torch.Tensor,
+        t: torch.Tensor,
+        k: int,
+    ) -> tuple[torch.Tensor, ...]:
+        """``k`` steps of disturbed drones from step ``t`` (a tensor, so one compiled graph serves every
+        chunk): the :data:`~drone_torchrl.envs.rollout.ChunkFn`'s outputs, then the observations
+        ``[k, ...]`` and the internal state after the last step."""
+        outputs = []
+        for i in range(k):
+            observation = disturbances.observe(self.disturbance, state, internal, t + i)
+            loc, scale = self.population.policy.apply_stacked(layers, observation)
+            action = self.sampler(loc, scale, noise[i])
+            state, reward, cause, internal = disturbances.step(
+                self.disturbance, state, action, internal, t + i, self.params
+            )
+            outputs.append((action, state, reward, cause, observation))
+        return *(torch.stack(column) for column in zip(*outputs, strict=True)), internal
+
     def _disturbed_stepper(
-        self, noise: torch.Tensor | None, keys: torch.Tensor
+        self, noise: torch.Tensor, keys: torch.Tensor
     ) -> tuple[ChunkFn, list[torch.Tensor]]:
         """Chunks of disturbed drones whose episodes have keys ``keys`` (``[N, E]``), and the list
-        their steps append the policy's observations to (``[N, E, 6 + 2k]`` each)."""
+        their chunks append the policy's observations to (``[k, N, E, 6 + 2k]`` each)."""
         with torch.no_grad():
             layers = self.population.policy.layers()
         internal = disturbances.start(self.disturbance, keys, self.dtype)
         observations: list[torch.Tensor] = []
 
-        def step(state: torch.Tensor, t: int) -> tuple[torch.Tensor, ...]:
+        def chunk(state: torch.Tensor, t: int, k: int) -> tuple[torch.Tensor, ...]:
             nonlocal internal
-            observation = disturbances.observe(self.disturbance, state, internal, t)
-            observations.append(observation)
-            loc, scale = self.population.policy.apply_stacked(layers, observation)
-            action = self.sampler(loc, scale, None if noise is None else noise[t])
-            next_state, reward, cause, internal = disturbances.step(
-                self.disturbance, state, action, internal, t, self.params
-            )
-            return action, next_state, reward, cause
+            step = torch.tensor(t, device=state.device)
+            *flown, seen, internal = self._chunk(layers, state, internal, noise[t : t + k], step, k)
+            observations.append(seen)
+            return tuple(flown)
 
-        return chunked(step), observations
+        return chunk, observations
 
     def begin(self, state: TensorDictBase, k: int) -> None:
         """Remember the update counters the next ``k`` updates draw their start states and noise with."""
@@ -236,7 +256,7 @@ class VectorisedCollector:
             return fly_episodes(self._stepper(noise), start, self.max_steps, self.steps_per_call)
         chunk, observations = self._disturbed_stepper(noise, keys)
         episodes = fly_episodes(chunk, start, self.max_steps, self.steps_per_call)
-        seen = torch.stack(observations[: episodes.steps], -2)  # the steps fly_episodes kept
+        seen = torch.cat(observations)[: episodes.steps].movedim(0, -2)  # the steps fly_episodes kept
         return episodes._replace(observation=torch.where(episodes.valid().unsqueeze(-1), seen, 0.0))
 
     def actor(self) -> ProbabilisticActor:
