@@ -102,6 +102,11 @@ class Disturbance:
         return any(getattr(self, f.name) != f.default for f in fields(self) if f.name not in _LAYOUT)
 
     @property
+    def nominal(self) -> bool:
+        """The nominal drone with its 6-entry observation: nothing to draw or carry per episode."""
+        return not self.active and self.observed_actions == 0
+
+    @property
     def observation_dim(self) -> int:
         return dynamics.STATE_DIM + ACTION_DIM * self.observed_actions
 

@@ -383,7 +383,7 @@ class DroneEnv(EnvBase):
         self.dtype = check_dtype(dtype)
         self.disturbance = disturbances.make(disturbance)
         # Nominal envs keep the plain step (and draw nothing more from the generator than before).
-        self._disturbed = self.disturbance.active or self.disturbance.observed_actions > 0
+        self._disturbed = not self.disturbance.nominal
         check_episode_args(max_steps, reset_mode, render_mode)
         try:
             device = torch.device(device)

@@ -87,7 +87,7 @@ class DroneGymEnv(gym.Env):
         )
         self.dtype = check_dtype(dtype)
         self.disturbance = disturbances.make(disturbance)
-        self._disturbed = self.disturbance.active or self.disturbance.observed_actions > 0
+        self._disturbed = not self.disturbance.nominal
         self._internal: disturbances.Internal | None = None
         check_episode_args(max_steps, reset_mode, render_mode)
         self.max_steps = int(max_steps)

@@ -16,6 +16,9 @@ An update call of ``k`` updates first calls :meth:`begin`, then :meth:`collect` 
   ``compile=true`` on the CPU the update does not ask it for batches at all: the C++ kernel
   flies and differentiates the episodes itself (:class:`~drone_torchrl.kernels.modules.KernelReinforce`),
   and evaluation flies the kernel's deterministic rollout (:attr:`VectorisedCollector.kernel`).
+  Under ``env.disturbance.*`` (domain randomisation) each episode also gets a counter-based key for
+  its disturbances, the drones fly :mod:`~drone_torchrl.envs.disturbances` in PyTorch (compiled with
+  ``compile=true``; the kernels fly the nominal drone only) and the batch keeps what the policy saw.
 """
 
 from __future__ import annotations
@@ -134,7 +137,7 @@ class VectorisedCollector:
         self.disturbance = disturbances.make(kwargs["disturbance"])
         # Nominal drones fly dynamics.step on their states; disturbed ones (domain randomisation)
         # carry their episodes' draws and fly disturbances.step on what the policy observes.
-        self.disturbed = self.disturbance.active or self.disturbance.observed_actions > 0
+        self.disturbed = not self.disturbance.nominal
         squash = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
         self.kernel = None if self.disturbed else _kernel_rollout(cfg, population, squash)
         self.net = population.policy
