@@ -278,6 +278,9 @@ TRAIN = [
     (["algo=a2c", "algo.num_envs=0"], "algo.num_envs"),
     (["algo=a2c", "algo.minibatch_size=1000"], "algo.minibatch_size"),
     (["algo=a2c", "algo.clip_epsilon=0.1"], "algo.clip_epsilon"),
+    (["algo=a2c", "algo.loss_critic_type=huber"], "algo.loss_critic_type"),
+    (["algo=a2c", "algo.advantage_scaling=whiten"], "algo.advantage_scaling"),
+    (["algo=a2c", "algo.critic_max_grad_norm=0"], "algo.critic_max_grad_norm"),
     (["algo.name=dqn"], "algo.name"),
     # logger plug-ins: a backend's own key, and another backend's
     (["logger=csv", "logger.float_format=abc"], "logger.float_format"),

@@ -6,34 +6,72 @@ the advantages (``gae_lambda`` 1 would be plain n-step returns), and one gradien
 policy-gradient, value and entropy losses follows per batch (``epochs: 1``, one minibatch of the
 whole batch; more of either turns it towards PPO without the clipping that makes that safe).
 Everything but the loss (collector, GAE, the episode budget, checkpoints, resume) is
-:class:`~drone_torchrl.algorithms.ppo.OnPolicy`'s, shared with PPO.
+:class:`~drone_torchrl.algorithms.ppo.OnPolicy`'s, shared with PPO. Three keys of its own change
+the value loss (``algo.loss_critic_type``), what the loss sees of the batch's advantages
+(``algo.advantage_scaling``) and whether the critic's gradients are clipped on their own
+(``algo.critic_max_grad_norm``); their defaults (smooth L1, standardised, one shared clip) are the
+updates A2C made before they existed, to the bit.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import torch
 from torch import nn
 from torchrl.objectives import A2CLoss, LossModule
 
 from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.algorithms.ppo import OnPolicy, OnPolicyConf, validate_on_policy
-from drone_torchrl.schema import store_plugin
+from drone_torchrl.algorithms.ppo import ADVANTAGE_EPS, OnPolicy, OnPolicyConf, validate_on_policy
+from drone_torchrl.schema import a_number, one_of, store_plugin
+
+# A2CLoss's value losses (torchrl.objectives.utils.distance_loss): |d|, d^2, Huber with delta 1.
+CRITIC_LOSSES = ("l1", "l2", "smooth_l1")
+# What the batch's advantages become before the loss: mean 0 and std 1, mean 0, or as GAE gave them.
+ADVANTAGE_SCALINGS = ("standardize", "center", "none")
 
 
 class A2C(OnPolicy):
     """A2C: TorchRL's ``A2CLoss`` (advantage-weighted log-probabilities, a value loss, an entropy bonus)."""
 
     diagnostics = ("entropy",)
-    # A2CLoss weighs log-probabilities by the raw advantages; standardised per batch (as SB3's A2C
-    # offers and PPO does per minibatch) the step size no longer follows the returns' scale.
-    normalize_batch_advantage = True
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         algo = self.cfg.algo
-        return A2CLoss(actor, critic, entropy_coeff=algo.entropy_coeff, critic_coeff=algo.critic_coeff)
+        return A2CLoss(
+            actor,
+            critic,
+            entropy_coeff=algo.entropy_coeff,
+            critic_coeff=algo.critic_coeff,
+            loss_critic_type=algo.loss_critic_type,
+        )
+
+    def scale_advantage(self, advantage: torch.Tensor) -> torch.Tensor:
+        """``algo.advantage_scaling``: A2CLoss weighs log-probabilities by these."""
+        scaling = self.cfg.algo.advantage_scaling
+        if scaling == "none":
+            return advantage
+        centred = advantage - advantage.mean()
+        # advantage.std(), not centred.std(): the same number, rounded as the loop's standardisation.
+        return centred if scaling == "center" else centred / (advantage.std() + ADVANTAGE_EPS)
+
+    def clip_gradients(self) -> torch.Tensor:
+        """``algo.max_grad_norm`` on the actor and ``algo.critic_max_grad_norm`` on the critic, each on
+        its own (null: ``max_grad_norm`` on both together, the loop's); books the norm of both."""
+        algo = self.cfg.algo
+        if algo.critic_max_grad_norm is None:
+            return super().clip_gradients()
+        norms = [
+            nn.utils.clip_grad_norm_(net.parameters(), math.inf if limit is None else limit)
+            for net, limit in (
+                (self.actor_module, algo.max_grad_norm),
+                (self.critic, algo.critic_max_grad_norm),
+            )
+        ]
+        return torch.stack(norms).norm()
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
@@ -43,7 +81,14 @@ def validate(cfg: Mapping[str, Any]) -> None:
 
 @dataclass
 class A2CConf(OnPolicyConf):
-    """``algo.*`` of ``algo.name=a2c``: the on-policy keys."""
+    """``algo.*`` of ``algo.name=a2c``: the on-policy keys, the value loss, the advantages' scaling
+    and the critic's own gradient clip."""
+
+    # Each ``added=``: what runs saved before the key existed did (A2CLoss's default critic loss,
+    # standardised advantages, one clip and one learning rate for both nets).
+    loss_critic_type: Any = one_of(CRITIC_LOSSES, added="smooth_l1")
+    advantage_scaling: Any = one_of(ADVANTAGE_SCALINGS, added="standardize")
+    critic_max_grad_norm: Any = a_number(low=0, low_open=True, optional=True, added=None)
 
 
 store_plugin("algo", "a2c", A2CConf)

@@ -83,7 +83,9 @@ class OnPolicy:
     (:mod:`drone_torchrl.training.update`): ``k`` collector batches, each followed by ``algo.epochs``
     passes of minibatches; its episodes are those that ended in each batch (any number: padded, with
     a ``"valid"`` mask). A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of
-    what its loss reports; the losses summed and booked are the loss's ``loss_*`` outputs."""
+    what its loss reports; the losses summed and booked are the loss's ``loss_*`` outputs. It may
+    also change what the loss sees of the batch's advantages (:meth:`scale_advantage`) and how the
+    gradients are clipped before each step (:meth:`clip_gradients`)."""
 
     max_agents = 1  # one run per learner: it is a batch of drones already
     advice = "lower algo.lr"
@@ -99,6 +101,19 @@ class OnPolicy:
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         """The algorithm's TorchRL loss over ``actor`` and ``critic``, from ``self.cfg.algo``."""
         raise NotImplementedError
+
+    def scale_advantage(self, advantage: torch.Tensor) -> torch.Tensor:
+        """The batch's advantages as the loss sees them: standardised (mean 0, std 1) where
+        :attr:`normalize_batch_advantage` says so, else as GAE gave them."""
+        if not self.normalize_batch_advantage:
+            return advantage
+        return (advantage - advantage.mean()) / (advantage.std() + ADVANTAGE_EPS)
+
+    def clip_gradients(self) -> torch.Tensor:
+        """Clip the loss's gradients before the optimizer's step (``algo.max_grad_norm`` on all of
+        its parameters together); the norm returned is booked as ``train/grad_norm``."""
+        limit = self.cfg.algo.max_grad_norm
+        return nn.utils.clip_grad_norm_(self.loss.parameters(), math.inf if limit is None else limit)
 
     def __init__(self, jobs) -> None:
         (job,) = jobs
@@ -190,9 +205,7 @@ class OnPolicy:
         batch.set(("next", "reward"), batch.get(("next", "reward")) * algo.reward_scale)
         with torch.no_grad():
             self.advantage(batch)
-            if self.normalize_batch_advantage:
-                advantage = batch.get("advantage")
-                batch.set("advantage", (advantage - advantage.mean()) / (advantage.std() + ADVANTAGE_EPS))
+            batch.set("advantage", self.scale_advantage(batch.get("advantage")))
         self.buffer.empty()  # a batch cut at the budget is smaller than the storage
         with _quiet("torchrl"):  # its storage announces its first allocation at INFO level
             self.buffer.extend(batch.reshape(-1))
@@ -206,9 +219,7 @@ class OnPolicy:
                 total = sum(losses[k] for k in self.loss_keys)
                 self.optimizer.zero_grad()
                 total.backward()
-                norm = nn.utils.clip_grad_norm_(
-                    self.loss.parameters(), algo.max_grad_norm if algo.max_grad_norm is not None else math.inf
-                )
+                norm = self.clip_gradients()
                 self.optimizer.step()
                 if epoch == algo.epochs - 1:
                     for key, value in (
