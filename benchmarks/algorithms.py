@@ -2,6 +2,7 @@
 
     python benchmarks/algorithms.py                      # all four, 4 seeds, their default budgets
     python benchmarks/algorithms.py --algos ppo --seeds 0 1     # a shorter run
+    python benchmarks/algorithms.py --reuse       # train only the algorithms not in --out yet
     python benchmarks/algorithms.py --sb3 --sb3-steps 200000   # also SB3's PPO (pip install ".[bench]")
 
 Each algorithm trains with ``experiment=bounded`` (TanhNormal head, thrust in [0, 1] x weight per
@@ -189,6 +190,11 @@ def main() -> None:
     parser.add_argument(
         "--sb3-steps", type=int, default=None, help="SB3's env-step budget (default: our PPO's first seed's)"
     )
+    parser.add_argument(
+        "--reuse",
+        action="store_true",
+        help="an algorithm whose sweep is in --out already is not trained again",
+    )
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every algorithm")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
@@ -198,9 +204,12 @@ def main() -> None:
     pd_return = evaluate_pd(BOUNDED, EVAL_EPISODES, 0)["return_mean"]
     results: dict[str, list[dict[str, np.ndarray]]] = {}
     for algo in args.algos:
-        seconds = _train(algo, args.seeds, args.out, args.overrides)
+        if args.reuse and (args.out / algo).is_dir():
+            print(f"{algo}: the runs in {args.out / algo} (--reuse)")
+        else:
+            seconds = _train(algo, args.seeds, args.out, args.overrides)
+            print(f"{algo}: {len(args.seeds)} seeds trained in {seconds:.0f} s")
         results[algo] = _curves(args.out / algo)
-        print(f"{algo}: {len(args.seeds)} seeds trained in {seconds:.0f} s")
     if args.sb3 and "ppo" in results:
         sb3 = _sb3(args.sb3_steps or int(results["ppo"][0]["steps"][-1]), args.out)
         if sb3 is not None:
