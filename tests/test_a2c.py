@@ -115,17 +115,24 @@ def test_without_a_critic_clip_both_nets_share_max_grad_norm():
     assert (actor**2 + critic**2) ** 0.5 == pytest.approx(0.5, rel=1e-4)
 
 
-def test_the_defaults_update_as_a2c_did_before_its_keys_existed():
-    """Smooth L1, standardised advantages (rounded as the loop rounds them) and one shared clip."""
-    from drone_torchrl.algorithms.ppo import ADVANTAGE_EPS
+def test_runs_saved_before_the_keys_existed_keep_their_updates():
+    """A checkpoint's config without the keys gets their ``added`` values: smooth L1, standardised
+    advantages (rounded as the loop rounds them) and one shared clip, what A2C did then."""
+    from dataclasses import fields
 
-    learner = _learner()
-    algo = learner.cfg.algo
-    assert (algo.loss_critic_type, algo.advantage_scaling, algo.critic_max_grad_norm) == (
+    from drone_torchrl.algorithms.a2c import A2CConf
+    from drone_torchrl.algorithms.ppo import ADVANTAGE_EPS
+    from drone_torchrl.schema import RULE
+
+    added = {f.name: f.metadata[RULE].added for f in fields(A2CConf)}
+    assert (added["loss_critic_type"], added["advantage_scaling"], added["critic_max_grad_norm"]) == (
         "smooth_l1",
         "standardize",
         None,
     )
+    learner = _learner(*(f"algo.{key}={'null' if added[key] is None else added[key]}" for key in
+                         ("loss_critic_type", "advantage_scaling", "critic_max_grad_norm")))  # fmt: skip
+    assert learner.loss.loss_critic_type == "smooth_l1"
     advantage = torch.randn(256, 1, generator=torch.Generator().manual_seed(0)) * 7 + 3
     learner.close()
     expected = (advantage - advantage.mean()) / (advantage.std() + ADVANTAGE_EPS)
