@@ -1,5 +1,7 @@
-"""algo=a2c's own keys: the critic's loss, the advantages' scaling and the critic's own gradient clip,
-each checked against its formula on one collected batch (no learning curves)."""
+"""algo=a2c: registered and composed as one plug-in, one update moves the policy the way A2C's
+objective says, and its own keys (the critic's loss, the advantages' scaling and the critic's own
+gradient clip), each checked against its formula on one collected batch (no learning curves; the
+on-policy loop's own tests run for A2C too, in tests/test_ppo.py)."""
 
 from __future__ import annotations
 
@@ -13,6 +15,47 @@ from drone_torchrl.training.jobs import Job
 
 QUIET = ["eval.video=false", "progress=false", "eval.episodes=2"]
 SMALL = ["algo.num_envs=8", "algo.steps_per_batch=8", "algo.minibatch_size=64"]
+
+
+def test_a2c_is_a_registered_plug_in_with_its_own_keys():
+    from drone_torchrl.algorithms.a2c import A2C
+    from drone_torchrl.config import validate
+
+    assert algorithms.get("a2c").learner is A2C
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=["algo=a2c", "experiment=bounded"])
+    assert validate(cfg) is None
+    assert cfg.algo.name == "a2c" and "clip_epsilon" not in cfg.algo and "loss_critic_type" in cfg.algo
+
+
+def test_an_a2c_update_moves_the_policy_up_its_advantage_weighted_log_probabilities():
+    """One A2C update on a collected batch, as the loop makes it: the batch's log-probabilities
+    change in the direction of their standardised advantages (the first-order change of A2C's
+    objective, sum of advantage x change of log-probability, is positive; a loss of the wrong
+    sign makes it negative). This checks the algorithm, not a learning curve (benchmarks/algorithms.py
+    measures that)."""
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=["algo=a2c", "experiment=bounded", *QUIET])
+    learner = algorithms.get("a2c").learner([Job(cfg, run_dir=None)])
+    batch = next(learner._batches)
+    scaled = batch.clone()
+    scaled.set(("next", "reward"), scaled.get(("next", "reward")) * cfg.algo.reward_scale)
+    with torch.no_grad():
+        learner.advantage(scaled)
+        advantage = scaled.get("advantage").squeeze(-1)
+        advantage = (advantage - advantage.mean()) / advantage.std()
+
+        def log_prob():
+            dist = learner.actor_module.get_dist(batch.clone())
+            return dist.log_prob(batch.get("action"))
+
+        before = log_prob()
+    learner._learn(batch, 0)
+    with torch.no_grad():
+        change = log_prob() - before
+    learner.close()
+    assert change.abs().max() > 0
+    assert float((advantage * change).sum()) > 0
 
 
 def _learner(*overrides: str):
