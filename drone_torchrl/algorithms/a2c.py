@@ -55,7 +55,7 @@ class A2C(OnPolicy):
         if scaling == "none":
             return advantage
         centred = advantage - advantage.mean()
-        # advantage.std(), not centred.std(): the same number, rounded as the loop's standardisation.
+        # advantage.std(), not centred.std(): the same number, rounded as A2C's updates before the key.
         return centred if scaling == "center" else centred / (advantage.std() + ADVANTAGE_EPS)
 
     def clip_gradients(self) -> torch.Tensor:

@@ -94,20 +94,15 @@ class OnPolicy:
     # What the loss reports besides its losses, booked as train/<name> where the loss has it
     # (A2CLoss reports no entropy without an entropy bonus).
     diagnostics: tuple[str, ...] = ()
-    # Standardise the batch's advantages (mean 0, std 1) before the loss sees them; ClipPPOLoss
-    # does it per minibatch itself.
-    normalize_batch_advantage = False
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         """The algorithm's TorchRL loss over ``actor`` and ``critic``, from ``self.cfg.algo``."""
         raise NotImplementedError
 
     def scale_advantage(self, advantage: torch.Tensor) -> torch.Tensor:
-        """The batch's advantages as the loss sees them: standardised (mean 0, std 1) where
-        :attr:`normalize_batch_advantage` says so, else as GAE gave them."""
-        if not self.normalize_batch_advantage:
-            return advantage
-        return (advantage - advantage.mean()) / (advantage.std() + ADVANTAGE_EPS)
+        """The batch's advantages as the loss sees them: as GAE gave them here (ClipPPOLoss
+        standardises each minibatch itself); A2C standardises the batch's."""
+        return advantage
 
     def clip_gradients(self) -> torch.Tensor:
         """Clip the loss's gradients before the optimizer's step (``algo.max_grad_norm`` on all of
