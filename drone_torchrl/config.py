@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import functools
+import itertools
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -319,20 +320,32 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
 
 
 def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
-    """The keys of ``conf/<name>.yaml`` with the plug-in group options the overrides pick (the last
-    plain one of each group that is an option), or None if Hydra cannot compose those."""
-    choices = []
-    for group in schema.plugin_groups(name):
-        picked = [o.value() for o in parsed if o.key_or_group == group and not o.is_sweep_override()]
-        if picked and picked[-1] in _options(group):
-            choices.append((group, picked[-1]))
+    """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick (the last
+    plain one of each group, or every option a sweep names; an option of any group may pick the
+    plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``), or None if Hydra cannot compose
+    those. Over a sweep, the keys every one of its jobs has."""
     if not schema.plugin_groups(name):
         return schema_keys(name)
-    try:
-        plugins = _option_plugins(name, tuple(choices))
-    except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
-        return None
-    return schema_keys(name, **plugins)
+    groups = group_names()
+    picks: dict[str, list[str]] = {}
+    for override in parsed:
+        group = override.key_or_group
+        if group not in groups or override.is_delete():
+            continue
+        values = (
+            list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+        )
+        options = [v for v in values if v in _options(group)]
+        if options:
+            picks[group] = options
+    known: dict[str, Rule] | None = None
+    for combination in itertools.product(*([(g, o) for o in opts] for g, opts in picks.items())):
+        try:
+            keys = schema_keys(name, **_option_plugins(name, combination))
+        except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
+            return None
+        known = keys if known is None else {k: rule for k, rule in known.items() if k in keys}
+    return known
 
 
 def _check_folder(key: str, value: Any) -> None:

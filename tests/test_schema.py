@@ -162,3 +162,18 @@ def test_overrides_hydra_would_refuse_in_several_lines_are_one(overrides, names)
     with pytest.raises(ConfigError) as info:
         check_overrides(overrides)
     assert "\n" not in str(info.value) and names in str(info.value)
+
+
+def test_a_key_of_the_plug_in_an_experiment_picks_is_accepted():
+    # experiment=hover_optimal picks algo=ppo: its keys are this run's keys (they were refused as
+    # "not a key of this algo" when only algo= on the command line picked the plug-in).
+    check_overrides(["experiment=hover_optimal", "algo.num_envs=256"])
+    check_overrides(["algo=a2c,ppo", "algo.num_envs=256"])  # a sweep: both jobs have it
+    with pytest.raises(ConfigError, match="algo.num_envs is not a key of this algo"):
+        check_overrides(["experiment=bounded", "algo.num_envs=256"])  # bounded keeps REINFORCE
+
+
+@pytest.mark.parametrize("sweep", ["algo=reinforce,ppo", "experiment=bounded,hover_optimal"])
+def test_a_sweep_accepts_only_keys_every_one_of_its_jobs_has(sweep):
+    with pytest.raises(ConfigError, match="algo.num_envs is not a key of this algo"):
+        check_overrides([sweep, "algo.num_envs=256"])
