@@ -128,3 +128,35 @@ def test_positive_alpha_raises_the_right_motor():
 def test_render_without_mode_is_a_clear_error():
     with pytest.raises(ValueError, match="render_mode"):
         DroneEnv().render()
+
+
+
+def test_a_gif_holds_every_frame_exactly_at_the_clip_s_rate(tmp_path):
+    from PIL import Image, ImageSequence
+
+    from drone_torchrl.io.video import gif_bytes, save_gif
+
+    # Twelve frames of a drone flying random commands: fewer colours than a GIF palette holds, so
+    # the one palette chosen from a sample of frames must give back every pixel of every frame.
+    env = DroneEnv(render_mode="rgb_array", reset_mode="air")
+    env.set_seed(3)
+    env.reset()
+    frames = [env.render()]
+    for _ in range(11):
+        env.rand_step()
+        frames.append(env.render())
+    env.close()
+    frames = np.stack(frames)
+    assert all(not np.array_equal(a, b) for a, b in zip(frames[:-1], frames[1:]))  # the drone moves
+    assert len(np.unique(frames.reshape(-1, 3), axis=0)) <= 256
+    path = save_gif(frames, tmp_path / "clip.gif", fps=25)
+    assert path.read_bytes() == gif_bytes(frames, 25)
+    with Image.open(path) as gif:
+        assert gif.info["loop"] == 0
+        decoded = []
+        for frame in ImageSequence.Iterator(gif):
+            assert frame.info["duration"] == 40  # ms: 25 frames a second
+            decoded.append(np.asarray(frame.convert("RGB")))
+    assert len(decoded) == len(frames)
+    for got, want in zip(decoded, frames):
+        np.testing.assert_array_equal(got, want)

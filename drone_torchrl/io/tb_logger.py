@@ -9,8 +9,8 @@ as TensorBoard records (tensorboard's own ``Event`` protos, one per step holding
 scalars, as ``tf.summary.merge_all`` writes them; no thread), opening the file only for that. The
 records' CRC32C checksums come from ``google-crc32c`` (C, about 0.1 us a record): tensorboard's
 ``RecordWriter`` computes them in pure Python when TensorFlow is absent, about 7 us per record and
-most of the logging time of a population. Videos and the final hparams, a few per run, go through
-a ``SummaryWriter`` opened for the occasion. TensorBoard reads the event files in
+most of the logging time of a population. Videos and the final hparams, a few per run, are
+tensorboard's ``Summary`` protos in the same file. TensorBoard reads the event files in
 ``<run>/<exp_name>`` as one run.
 
 Steps count episodes done (see :func:`log_update`). On resume, the first flush passes
@@ -26,16 +26,15 @@ import os
 import socket
 import struct
 import time
-import warnings
 from collections.abc import Iterable
 from pathlib import Path
 
 import google_crc32c
 import numpy as np
-import torch
 from omegaconf import DictConfig
 
 from drone_torchrl.io.storage import writing
+from drone_torchrl.io.video import gif_bytes
 from drone_torchrl.loggers import flatten_config
 
 # TFRecord framing (what tensorboard's RecordWriter writes): a masked CRC32C of the length and of the data.
@@ -110,9 +109,8 @@ class RunLogger:
         self.log_dir = Path(log_dir) / exp_name
         self._purge_step = purge_step
         self._scalars: list[tuple[str, float, int]] = []
-        self._summaries: list = []  # ready-made Summary protos (hparams)
+        self._summaries: list = []  # (step, a ready-made Summary proto): videos, hparams
         self._events: Path | None = None
-        self._video_ok = True
 
     def log_scalar(self, name: str, value: float, step: int) -> None:
         self._scalars.append((name, value, step))
@@ -123,13 +121,6 @@ class RunLogger:
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
         self._scalars.extend((name, value, step) for name, value in metrics.items())
-
-    def _writer(self):
-        from torch.utils.tensorboard import SummaryWriter
-
-        writer = SummaryWriter(log_dir=str(self.log_dir), purge_step=self._purge_step)
-        self._purge_step = None
-        return writer
 
     def flush(self) -> None:
         """Append the buffered scalars to this logger's event file (opened only for this)."""
@@ -153,7 +144,9 @@ class RunLogger:
                 start = event_pb2.SessionLog(status=event_pb2.SessionLog.START)
                 records.append(event_pb2.Event(wall_time=now, step=self._purge_step, session_log=start))
                 self._purge_step = None
-        records.extend(event_pb2.Event(wall_time=now, step=0, summary=summary) for summary in self._summaries)
+        records.extend(
+            event_pb2.Event(wall_time=now, step=step, summary=summary) for step, summary in self._summaries
+        )
         steps: dict[int, list[bytes]] = {}
         for name, value, step in self._scalars:
             steps.setdefault(int(step), []).append(scalar_value(name, value))
@@ -165,26 +158,17 @@ class RunLogger:
         self._summaries.clear()
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
-        """Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video (needs ``moviepy<2``)."""
-        if not self._video_ok:
-            return
-        video = torch.from_numpy(np.ascontiguousarray(frames)).permute(0, 3, 1, 2).unsqueeze(0)
-        # moviepy 1.x imports pygame, which opens an audio device unless told not to.
-        os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
-        try:
-            import moviepy.editor  # noqa: F401  (torch's add_video needs the 1.x module)
-        except ImportError:
-            warnings.warn(
-                "TensorBoard videos need moviepy<2 (pip install 'moviepy<2'); the MP4 files are still written",
-                stacklevel=2,
-            )
-            self._video_ok = False
-            return
-        self.flush()  # keep the file order of scalars and video as they were logged
-        with writing(self.log_dir):  # SummaryWriter's thread re-raises a refused write at close()
-            writer = self._writer()
-            writer.add_video(name, video, global_step=step, fps=fps)
-            writer.close()
+        """Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video: an animated GIF in an image
+        summary, the record ``SummaryWriter.add_video`` writes, with the GIF from
+        :func:`~drone_torchrl.io.video.gif_bytes` (add_video's moviepy took 3-10 s a video here)."""
+        from tensorboard.compat.proto.summary_pb2 import Summary
+
+        _, height, width, channels = frames.shape
+        image = Summary.Image(
+            height=height, width=width, colorspace=channels, encoded_image_string=gif_bytes(frames, fps)
+        )
+        self._summaries.append((step, Summary(value=[Summary.Value(tag=name, image=image)])))
+        self.flush()
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         """Flattened config + final metrics, so TensorBoard's HPARAMS tab compares the runs of a sweep.
@@ -194,7 +178,7 @@ class RunLogger:
         from torch.utils.tensorboard.summary import hparams
 
         final = {f"hparam/{k}": v for k, v in metrics.items()}
-        self._summaries.extend(hparams(flatten_config(cfg), final))
+        self._summaries.extend((0, summary) for summary in hparams(flatten_config(cfg), final))
         self.log_metrics(final, step=0)
         self.flush()
 

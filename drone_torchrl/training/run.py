@@ -222,7 +222,7 @@ class RunRecord:
         """``<run>/videos/episode_<step>.mp4`` and TensorBoard's ``eval/video``.
 
         ``logger.video_stride`` thins the frames (the playback rate is divided alike, so it stays
-        real time) and, for TensorBoard only, the pixels: its GIF encoding is the slow part.
+        real time) and, for TensorBoard only, the pixels (a GIF there, 4x smaller).
         """
         cfg = self.cfg
         stride = cfg.logger.video_stride
