@@ -30,18 +30,28 @@ def record_video(
     same ``seed`` starts."""
     env = DroneEnv(batch_size=[], device=device, render_mode="rgb_array", **env_kwargs)
     env.set_seed(seed)
-    frames = []
+    # Each frame is copied once into one array sized for the longest episode (a list stacked at the
+    # end holds every frame twice: a training video is 160 MB, and its page faults cost seconds here).
+    frames: np.ndarray | None = None
+    count = 0
+
+    def keep(frame: np.ndarray) -> None:
+        nonlocal frames, count
+        if frames is None:
+            frames = np.empty((env.max_steps // frame_stride + 1, *frame.shape), dtype=frame.dtype)
+        frames[count] = frame
+        count += 1
 
     def draw(env_: DroneEnv, td: TensorDictBase) -> None:
         if int(td.get(("next", "step_count"), td.get("step_count"))) % frame_stride == 0:
-            frames.append(env_.render())
+            keep(env_.render())
 
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
-        frames.append(env.render())
+        keep(env.render())
         env.rollout(env.max_steps, policy, tensordict=td, auto_reset=False, callback=draw)
     env.close()
-    return np.stack(frames)
+    return frames[:count]
 
 
 def save_mp4(frames: np.ndarray, path: Path, fps: float) -> Path:
