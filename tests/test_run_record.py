@@ -451,3 +451,18 @@ def test_apps_are_imported_by_nothing():
     assert {"drone_torchrl.apps.train", "drone_torchrl.apps.evaluate", "drone_torchrl.apps.report"} <= apps
     importers = {m: sorted(a for a in apps if a in deps) for m, deps in graph.items() if apps & deps}
     assert importers == {}, importers
+
+
+@pytest.mark.parametrize(("overrides", "optimum"), [(["experiment=bounded"], 2694.0), ([], None)])
+def test_evaluations_give_the_share_of_the_optimum_with_bounded_thrust(tmp_path, overrides, optimum):
+    run = tmp_path / "run"
+    train(_cfg(*overrides, "algo.episodes=4", "eval.every_episodes=2", *FAST[:-1]), run_dir=run)
+    events = EventAccumulator(str(run / "tensorboard"), size_guidance={"scalars": 0})
+    events.Reload()
+    returns = [e.value for e in events.Scalars("eval/return")]
+    assert len(returns) == 2
+    if optimum is None:  # unbounded thrust: the bound is the ceiling, PD the reference
+        assert "eval/pct_of_optimum" not in events.Tags()["scalars"]
+        return
+    shares = [e.value for e in events.Scalars("eval/pct_of_optimum")]
+    np.testing.assert_allclose(shares, [100 * r / optimum for r in returns], rtol=1e-6)

@@ -24,7 +24,7 @@ from omegaconf import DictConfig
 
 from drone_torchrl import algorithms
 from drone_torchrl.config import ConfigError, env_kwargs
-from drone_torchrl.evaluation import evaluate
+from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
@@ -176,6 +176,9 @@ class Trainer:
         means = {
             k: stats[k].float().mean(-1).reshape(-1).tolist() for k in ("return", "length", "time_in_zone")
         }
+        optimum = reference_optimum(env_kwargs(cfg))  # bounded thrust only; cached per env
+        if optimum is not None:
+            means["pct_of_optimum"] = [100.0 * r / optimum.best_return for r in means["return"]]
         for i in agents:
             self.runs[i].record_eval(
                 {name: values[i] for name, values in means.items()},
