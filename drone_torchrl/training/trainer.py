@@ -14,6 +14,7 @@ final evaluation is finished on resume.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ from drone_torchrl import algorithms
 from drone_torchrl.config import ConfigError, env_kwargs
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
+from drone_torchrl.optimum import Optimum
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
@@ -81,6 +83,12 @@ class Trainer:
         ]
         self.progress = Progress(self.runs, cfg.progress)
         self.updates_per_call = int(cfg.updates_per_call)
+
+    @functools.cached_property
+    def optimum(self) -> Optimum | None:
+        """The best achievable return of the evaluation episodes (bounded thrust only), found at the
+        first evaluation and kept: the env is the same for every evaluation of the run."""
+        return reference_optimum(env_kwargs(self.cfg))
 
     @property
     def population(self):
@@ -176,9 +184,8 @@ class Trainer:
         means = {
             k: stats[k].float().mean(-1).reshape(-1).tolist() for k in ("return", "length", "time_in_zone")
         }
-        optimum = reference_optimum(env_kwargs(cfg))  # bounded thrust only; cached per env
-        if optimum is not None:
-            means["pct_of_optimum"] = [100.0 * r / optimum.best_return for r in means["return"]]
+        if self.optimum is not None:
+            means["pct_of_optimum"] = [100.0 * r / self.optimum.best_return for r in means["return"]]
         for i in agents:
             self.runs[i].record_eval(
                 {name: values[i] for name, values in means.items()},
