@@ -713,7 +713,12 @@ def test_a_launcher_whose_extra_is_missing_is_one_line(monkeypatch):
         command_line.check_launcher("local_parallel")
     _one_line(str(info.value), "hydra/launcher=local_parallel")
     assert "drone_torchrl[joblib]" in str(info.value)
-    command_line.check_launcher("slurm")  # installed here: accepted
+    # An installed plugin is accepted; the README's install (".[test]") has no submitit extra.
+    if found("hydra_plugins.hydra_submitit_launcher") is not None:
+        command_line.check_launcher("slurm")
+    else:
+        with pytest.raises(ConfigError, match=r"drone_torchrl\[submitit\]"):
+            command_line.check_launcher("slurm")
 
 
 def test_report_lists_the_jobs_that_failed_before_their_first_episode(files, tmp_path, capsys):
