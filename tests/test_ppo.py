@@ -81,12 +81,14 @@ def test_episode_tracker_equals_episode_stats_across_batches():
     assert len({length for _, length, _ in expected}) >= 2 and len(expected) >= 5
 
 
+@pytest.mark.parametrize("collector", ["torchrl", "fused"])
 @pytest.mark.parametrize("algo", ON_POLICY)
-def test_on_policy_runs_resume_and_keep_their_critic(tmp_path, algo):
+def test_on_policy_runs_resume_and_keep_their_critic(tmp_path, algo, collector):
     run = tmp_path / "run"
     train(
         _cfg(
             f"algo={algo}",
+            f"algo.collector={collector}",
             "algo.episodes=64",
             "algo.num_envs=8",
             "algo.steps_per_batch=32",
@@ -182,12 +184,13 @@ def test_the_registry_names_every_algorithm_and_refuses_others_in_one_line():
         algorithms.get("dqn")
 
 
+@pytest.mark.parametrize("collector", ["torchrl", "fused"])
 @pytest.mark.parametrize("algo", ON_POLICY)
-def test_a_budget_smaller_than_a_batch_trains_that_many_episodes(tmp_path, algo):
+def test_a_budget_smaller_than_a_batch_trains_that_many_episodes(tmp_path, algo, collector):
     """64 drones x 64 steps from the floor end dozens of short episodes in the first batch; a budget
     of 20 used to train all of them (43), and resuming with 40 then said "finished"."""
     run = tmp_path / "run"
-    train(_cfg(f"algo={algo}", "algo.episodes=20", *QUIET), run)
+    train(_cfg(f"algo={algo}", f"algo.collector={collector}", "algo.episodes=20", *QUIET), run)
     done = load_checkpoint(run / "checkpoints" / "last.pt")["episodes_done"]
     assert 20 <= done < 20 + 64
     rows = read_episodes(run / "episodes.csv")[0]

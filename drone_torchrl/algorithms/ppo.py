@@ -37,6 +37,7 @@ from torchrl.objectives.value import GAE
 from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import env_kwargs
+from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
@@ -58,9 +59,15 @@ from drone_torchrl.schema import (
     VALUE_HIDDEN_SIZES,
     a_number,
     free,
+    one_of,
     store_plugin,
 )
+from drone_torchrl.training.segments import FusedSegments
 from drone_torchrl.training.update import UpdateOutput
+
+# Who flies the batches (algo.collector): TorchRL's Collector over DroneEnv, or the fused engine's
+# rollout in the same layout (drone_torchrl.training.segments.FusedSegments; the nominal drone only).
+COLLECTORS = ("torchrl", "fused")
 
 # Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
 ADVANTAGE_EPS = 1e-8
@@ -115,36 +122,46 @@ class OnPolicy:
         cfg = self.cfg = job.cfg
         algo = cfg.algo
         torch.manual_seed(cfg.seed)
-        self.actor_module = build_actor(cfg, build_policy(cfg, cfg.seed), return_log_prob=True)
+        net = build_policy(cfg, cfg.seed)
+        self.actor_module = build_actor(cfg, net, return_log_prob=True)
         self.critic = build_critic(cfg)
         self.loss = self.make_loss(self.actor_module, self.critic)
         self.advantage = GAE(
             gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False
         )
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=algo.lr, eps=algo.adam_eps)
-        self.env = DroneEnv(batch_size=[algo.num_envs], device=cfg.device, **env_kwargs(cfg))
-        self.env.set_seed(cfg.seed)
+        frames = algo.num_envs * algo.steps_per_batch
+        self.fused = algo.collector == "fused"
+        if self.fused:
+            self.collector = FusedSegments(cfg, self.actor_module, net)
+            self._generator = self.collector.generator
+        else:
+            self.env = DroneEnv(batch_size=[algo.num_envs], device=cfg.device, **env_kwargs(cfg))
+            self.env.set_seed(cfg.seed)
+            self._generator = self.env._generator
         checkpoint = job.checkpoint
         if checkpoint is not None:
             self.actor_module.load_state_dict(checkpoint["actor"])
             self.critic.load_state_dict(checkpoint["critic"])
             self.optimizer.load_state_dict(checkpoint["optimizer"])
             torch.set_rng_state(checkpoint["rng"]["torch"])
-            self.env._generator.set_state(checkpoint["rng"]["env"])
+            self._generator.set_state(checkpoint["rng"]["env"])
+            if self.fused:
+                self.collector.restart()
         # The loop's state: the episodes booked (for the learning-rate schedule). The weights and
         # Adam's moments live in TorchRL's loss module and torch.optim.Adam.
         done = 0 if checkpoint is None else checkpoint["episodes_done"]
         self.state = TensorDict({"episodes_done": torch.tensor([done])}, batch_size=[1])
         self.budget = algo.episodes
-        frames = algo.num_envs * algo.steps_per_batch
-        self.collector = Collector(
-            self.env,
-            self.actor_module,
-            frames_per_batch=frames,
-            total_frames=-1,
-            device=cfg.device,
-            auto_register_policy_transforms=False,
-        )
+        if not self.fused:  # made after the checkpoint: it resets the env from the restored generator
+            self.collector = Collector(
+                self.env,
+                self.actor_module,
+                frames_per_batch=frames,
+                total_frames=-1,
+                device=cfg.device,
+                auto_register_policy_transforms=False,
+            )
         self._batches = iter(self.collector)
         self.buffer = ReplayBuffer(
             storage=LazyTensorStorage(frames, device=cfg.device),
@@ -236,11 +253,12 @@ class OnPolicy:
             "actor": self.actor_module.state_dict(),
             "critic": self.critic.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "rng": {"torch": torch.get_rng_state(), "env": self.env._generator.get_state(), "agent": None},
+            "rng": {"torch": torch.get_rng_state(), "env": self._generator.get_state(), "agent": None},
         }
 
     def close(self) -> None:
-        self.collector.shutdown()
+        if not self.fused:
+            self.collector.shutdown()
 
 
 class PPO(OnPolicy):
@@ -270,6 +288,12 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
             cfg.env.num_workers,
             f"0 with algo.name={name} (algo.num_envs drones in one env)",
         )
+    if cfg.algo.collector == "fused" and not disturbances.make(cfg.env.disturbance).nominal:
+        raise ConfigError.of(
+            "algo.collector",
+            "fused",
+            "torchrl under env.disturbance.* (the fused engine flies the nominal drone only)",
+        )
     frames = cfg.algo.num_envs * cfg.algo.steps_per_batch
     if frames % cfg.algo.minibatch_size:
         raise ConfigError.of(
@@ -294,6 +318,7 @@ class OnPolicyConf:
     gamma: Any = GAMMA.field()
     gae_lambda: Any = GAE_LAMBDA.field()
     episodes: Any = EPISODES.field()
+    collector: Any = one_of(COLLECTORS, added="torchrl")
     num_envs: Any = NUM_ENVS.field()
     steps_per_batch: Any = STEPS_PER_BATCH.field()
     epochs: Any = EPOCHS.field()

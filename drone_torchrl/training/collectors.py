@@ -39,7 +39,7 @@ from drone_torchrl.envs.factory import make_env
 from drone_torchrl.envs.rollout import ChunkFn, Episodes, RolloutFn, chunked, fly_episodes
 from drone_torchrl.modules.factory import build_actor, model_dtype
 from drone_torchrl.modules.policy import actor_from_net
-from drone_torchrl.modules.stacked import ActionSampler
+from drone_torchrl.modules.stacked import ActionSampler, StackedThreeNet
 from drone_torchrl.training import rng
 from drone_torchrl.training.population import Population
 
@@ -139,7 +139,9 @@ class VectorisedCollector:
         # carry their episodes' draws and fly disturbances.step on what the policy observes.
         self.disturbed = not self.disturbance.nominal
         squash = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
-        self.kernel = None if self.disturbed else _kernel_rollout(cfg, population, squash)
+        self.kernel = (
+            None if self.disturbed else kernel_rollout(cfg, population.policy, squash, cfg.env.max_steps)
+        )
         self.net = population.policy
         self._actor = actor_from_net(self.net, cfg.model.distribution, cfg.env.max_thrust)
         # compile=true without the kernels fuses the ~40 small kernels of each step (policy,
@@ -289,15 +291,21 @@ class VectorisedCollector:
 _warned: set[str] = set()
 
 
-def _kernel_rollout(cfg: DictConfig, population: Population, squash_high: float | None):
-    """The C++ kernels' rollout where ``compile=true`` on the CPU and they cover the config, else None
-    (with a warning, once per reason, when ``compile=true`` asked for them on the CPU)."""
+def kernel_rollout(
+    cfg: DictConfig,
+    policy: StackedThreeNet,
+    squash_high: float | None,
+    max_steps: int,
+    fallback: str = "torch.compile",
+):
+    """The C++ kernels' rollout of ``policy`` (``max_steps`` steps at most) where ``compile=true`` on
+    the CPU and they cover the config, else None (with a warning, once per reason, when
+    ``compile=true`` asked for them on the CPU, naming the caller's ``fallback``)."""
     if not cfg.compile or torch.device(cfg.device).type != "cpu":
         return None
     from drone_torchrl.kernels import library, unavailable_reason
     from drone_torchrl.kernels.ops import check_supported
 
-    policy = population.policy
     reason = check_supported(
         dynamics.STATE_DIM, policy.hidden_sizes, policy.activation_name, policy.flat.dtype
     )
@@ -308,13 +316,11 @@ def _kernel_rollout(cfg: DictConfig, population: Population, squash_high: float 
     if reason is not None:
         if reason not in _warned:
             _warned.add(reason)
-            warnings.warn(f"compile=true: {reason}; using torch.compile instead", stacklevel=3)
+            warnings.warn(f"compile=true: {reason}; using {fallback} instead", stacklevel=3)
         return None
     from drone_torchrl.kernels.modules import KernelRollout
 
-    return KernelRollout(
-        policy, physics_params(env_kwargs(cfg)), squash_high, cfg.env.max_steps, cfg.env.reset_mode
-    )
+    return KernelRollout(policy, physics_params(env_kwargs(cfg)), squash_high, max_steps, cfg.env.reset_mode)
 
 
 COLLECTORS = {"torchrl": TorchRLCollector, "fused": VectorisedCollector}

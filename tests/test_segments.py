@@ -1,0 +1,120 @@
+"""algo.collector=fused: the on-policy batches the fused engine flies
+(drone_torchrl/training/segments.py) are the TorchRL collector's: the env's physics on every frame,
+auto-reset, truncation at env.max_steps, episodes carried across batches."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from drone_torchrl.checks import ConfigError
+from drone_torchrl.config import config_dir, env_kwargs, physics_params, validate
+from drone_torchrl.envs import dynamics
+from drone_torchrl.episodes import EpisodeTracker
+from drone_torchrl.modules.factory import build_actor, build_policy
+from drone_torchrl.training.segments import FusedSegments
+
+MAX_STEPS = 40
+
+
+def _cfg(*overrides: str):
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        return compose(
+            "config",
+            overrides=[
+                "algo=ppo",
+                "experiment=bounded",
+                "algo.collector=fused",
+                "algo.num_envs=16",
+                "algo.steps_per_batch=32",
+                f"env.max_steps={MAX_STEPS}",
+                *overrides,
+            ],
+        )
+
+
+def _batches(cfg, n: int):
+    torch.manual_seed(cfg.seed)
+    net = build_policy(cfg, cfg.seed)
+    segments = FusedSegments(cfg, build_actor(cfg, net, return_log_prob=True), net)
+    return [next(segments) for _ in range(n)], segments
+
+
+def test_every_frame_is_one_step_of_the_dynamics_with_auto_reset():
+    """Each frame is dynamics.step of its observation and action; a drone goes on from where its
+    last frame left it (across batches too) unless that frame ended its episode: then it starts on
+    the floor at step 0. Episodes end by a crash (terminated) or at env.max_steps (truncated)."""
+    cfg = _cfg()
+    params = physics_params(env_kwargs(cfg))
+    batches, _ = _batches(cfg, 4)
+    whole = torch.cat(batches, dim=1)  # [16 drones, 4 x 32 steps]
+    obs, action = whole["observation"], whole["action"]
+    state, reward, cause = dynamics.step(obs, dynamics.clamp_action(action, cfg.env.max_thrust), params)
+    following = whole["next"]
+    torch.testing.assert_close(following["observation"], state, atol=2e-5, rtol=1e-5)
+    torch.testing.assert_close(following["reward"].squeeze(-1), reward)
+    assert torch.equal(following["termination_cause"].squeeze(-1), cause)
+    terminated = following["terminated"].squeeze(-1)
+    truncated = following["truncated"].squeeze(-1)
+    steps = whole["step_count"].squeeze(-1)
+    assert torch.equal(terminated, cause != int(dynamics.TerminationCause.NONE))
+    assert torch.equal(truncated, (steps + 1 == MAX_STEPS) & ~terminated)
+    assert torch.equal(following["done"].squeeze(-1), terminated | truncated)
+    assert bool((action >= 0).all()) and bool((action <= cfg.env.max_thrust).all())
+    # Both ways to end an episode happen here, and some episodes straddle a batch boundary.
+    assert int(terminated.sum()) >= 3 and int(truncated.sum()) >= 3
+    done = following["done"].squeeze(-1)[:, :-1]
+    goes_on = ~done
+    assert torch.equal(obs[:, 1:][goes_on], following["observation"][:, :-1][goes_on])
+    assert torch.equal(steps[:, 1:][goes_on], steps[:, :-1][goes_on] + 1)
+    fresh = obs[:, 1:][done]  # a new episode on the floor: x and alpha within 0.01, at rest
+    assert len(fresh) >= 6 and bool((steps[:, 1:][done] == 0).all())
+    assert bool((fresh[:, 1] == params.z_min).all()) and bool((fresh[:, [0, 4]].abs() <= 0.01).all())
+    assert bool((fresh[:, [2, 3, 5]] == 0).all())
+    assert bool((steps[:, 0] == 0).all())  # the first batch starts every drone's first episode
+
+
+def test_log_probs_are_the_actor_density_of_each_action():
+    """PPO's ratio starts at 1: the stored log-probability is the actor's for the action flown."""
+    cfg = _cfg()
+    (batch,), segments = _batches(cfg, 1)
+    dist = segments.actor.get_dist(batch.select("observation"))
+    stored = batch[segments.log_prob_key]
+    torch.testing.assert_close(stored, dist.log_prob(batch["action"]))
+    assert stored.shape == (16, 32) and bool(stored.isfinite().all())
+
+
+def test_the_kernel_flies_what_the_pytorch_rollout_flies():
+    """compile=true (the C++ kernel) and compile=false (the PyTorch rollout) give the same batches
+    for the same seed, to float rounding."""
+    kernel, _ = _batches(_cfg("compile=true"), 2)
+    eager, _ = _batches(_cfg("compile=false"), 2)
+    for a, b in zip(kernel, eager, strict=True):
+        assert torch.equal(a["next", "done"], b["next", "done"])
+        torch.testing.assert_close(a["action"], b["action"], atol=1e-4, rtol=1e-4)
+        torch.testing.assert_close(a["next", "observation"], b["next", "observation"], atol=1e-4, rtol=1e-4)
+
+
+def test_the_tracker_books_each_episode_once_with_its_return():
+    """EpisodeTracker over the batches books every finished episode; their returns add up to the
+    rewards of the frames before the last episode end of each drone."""
+    cfg = _cfg()
+    batches, _ = _batches(cfg, 3)
+    tracker = EpisodeTracker(16)
+    booked = []
+    for batch in batches:
+        booked += tracker.update(batch)["return"]
+    whole = torch.cat(batches, dim=1)
+    done = whole["next", "done"].squeeze(-1)
+    reward = whole["next", "reward"].squeeze(-1)
+    last_end = torch.where(done.any(-1), done.shape[-1] - 1 - done.flip(-1).int().argmax(-1), -1)
+    before = torch.arange(done.shape[-1]) <= last_end.unsqueeze(-1)
+    assert len(booked) == int(done.sum())
+    assert sum(booked) == pytest.approx(float(reward[before].sum()), rel=1e-6)
+
+
+def test_fused_batches_are_refused_under_disturbances_in_one_line():
+    cfg = _cfg("disturbance=mild")
+    with pytest.raises(ConfigError, match=r"^algo.collector='fused' is not allowed; expected torchrl under"):
+        validate(cfg)
