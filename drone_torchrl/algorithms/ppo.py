@@ -9,6 +9,8 @@ As in TorchRL's ``sota-implementations/ppo``: a :class:`torchrl.collectors.Colle
 drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` steps; :class:`GAE`
 computes advantages and value targets with the critic; ``algo.epochs`` passes of minibatches drawn
 without replacement from a replay buffer train the three-net actor and the critic with one Adam.
+With ``algo.collector=fused`` the same batches are flown by the fused engine
+(:class:`~drone_torchrl.training.segments.FusedSegments`: the C++ kernel on the CPU), 8-19x faster.
 
 It runs in the same training loop as REINFORCE (:class:`~drone_torchrl.training.trainer.Trainer`,
 behind the update contract of :mod:`drone_torchrl.training.update`): each finished episode goes to the same :class:`~.run.RunRecord`
