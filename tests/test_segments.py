@@ -13,6 +13,7 @@ from drone_torchrl.config import config_dir, env_kwargs, physics_params, validat
 from drone_torchrl.envs import dynamics
 from drone_torchrl.episodes import EpisodeTracker
 from drone_torchrl.modules.factory import build_actor, build_policy
+from drone_torchrl.modules.stacked import ActionSampler
 from drone_torchrl.training.segments import FusedSegments
 
 MAX_STEPS = 40
@@ -75,14 +76,34 @@ def test_every_frame_is_one_step_of_the_dynamics_with_auto_reset():
     assert bool((steps[:, 0] == 0).all())  # the first batch starts every drone's first episode
 
 
-def test_log_probs_are_the_actor_density_of_each_action():
-    """PPO's ratio starts at 1: the stored log-probability is the actor's for the action flown."""
+def _noise(segments: FusedSegments, batch) -> torch.Tensor:
+    """The standard normals behind each action under the net's current weights: the TanhNormal
+    head's squash inverted, centred by its loc and scaled by its std."""
+    loc, scale = segments.net(batch["observation"])
+    squash = ActionSampler("tanh_normal", segments.cfg.env.max_thrust).squash
+    z = (squash.inv(batch["action"]) - loc) / scale
+    return z[z.isfinite()]
+
+
+def test_actions_are_draws_of_the_current_policy_and_log_probs_are_its_density():
+    """What PPO's ratio needs: each action is loc + std x N(0, 1) squashed, for the net's weights
+    at the time of the batch (the learner changes them between batches), and the stored
+    log-probability is the actor's density of that action."""
     cfg = _cfg()
-    (batch,), segments = _batches(cfg, 1)
-    dist = segments.actor.get_dist(batch.select("observation"))
-    stored = batch[segments.log_prob_key]
-    torch.testing.assert_close(stored, dist.log_prob(batch["action"]))
-    assert stored.shape == (16, 32) and bool(stored.isfinite().all())
+    torch.manual_seed(cfg.seed)
+    net = build_policy(cfg, cfg.seed)
+    segments = FusedSegments(cfg, build_actor(cfg, net, return_log_prob=True), net)
+    for change in (0.0, 0.3):  # the second batch flies a policy with a higher mean command
+        with torch.no_grad():
+            net.mean.bias += change
+        batch = next(segments)
+        z = _noise(segments, batch)
+        assert z.numel() >= 0.95 * batch["action"].numel()  # a few saturated commands cannot be inverted
+        assert abs(float(z.mean())) < 0.1 and abs(float(z.std()) - 1) < 0.1, (z.mean(), z.std())
+        dist = segments.actor.get_dist(batch.select("observation"))
+        stored = batch[segments.log_prob_key]
+        torch.testing.assert_close(stored, dist.log_prob(batch["action"]))
+        assert stored.shape == (16, 32) and bool(stored.isfinite().all())
 
 
 def test_the_kernel_flies_what_the_pytorch_rollout_flies():

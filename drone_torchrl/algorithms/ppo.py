@@ -10,7 +10,8 @@ drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` ste
 computes advantages and value targets with the critic; ``algo.epochs`` passes of minibatches drawn
 without replacement from a replay buffer train the three-net actor and the critic with one Adam.
 With ``algo.collector=fused`` the same batches are flown by the fused engine
-(:class:`~drone_torchrl.training.segments.FusedSegments`: the C++ kernel on the CPU), 8-19x faster.
+(:class:`~drone_torchrl.training.segments.FusedSegments`: the C++ kernel on the CPU), collected
+8-19x faster (README: Benchmarks).
 
 It runs in the same training loop as REINFORCE (:class:`~drone_torchrl.training.trainer.Trainer`,
 behind the update contract of :mod:`drone_torchrl.training.update`): each finished episode goes to the same :class:`~.run.RunRecord`
@@ -69,7 +70,7 @@ from drone_torchrl.training.update import UpdateOutput
 
 # Who flies the batches (algo.collector): TorchRL's Collector over DroneEnv, or the fused engine's
 # rollout in the same layout (drone_torchrl.training.segments.FusedSegments; the nominal drone only).
-COLLECTORS = ("torchrl", "fused")
+ON_POLICY_COLLECTORS = ("torchrl", "fused")
 
 # Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
 ADVANTAGE_EPS = 1e-8
@@ -320,7 +321,7 @@ class OnPolicyConf:
     gamma: Any = GAMMA.field()
     gae_lambda: Any = GAE_LAMBDA.field()
     episodes: Any = EPISODES.field()
-    collector: Any = one_of(COLLECTORS, added="torchrl")
+    collector: Any = one_of(ON_POLICY_COLLECTORS, added="torchrl")
     num_envs: Any = NUM_ENVS.field()
     steps_per_batch: Any = STEPS_PER_BATCH.field()
     epochs: Any = EPOCHS.field()

@@ -24,7 +24,7 @@ An update call of ``k`` updates first calls :meth:`begin`, then :meth:`collect` 
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from omegaconf import DictConfig
@@ -42,6 +42,9 @@ from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.modules.stacked import ActionSampler, StackedThreeNet
 from drone_torchrl.training import rng
 from drone_torchrl.training.population import Population
+
+if TYPE_CHECKING:  # for the annotation only: kernel_rollout imports it where it is used
+    from drone_torchrl.kernels.modules import KernelRollout
 
 # The action noise of one call's updates is drawn at once, in pieces of at most this many numbers
 # (4 bytes each): 100 updates of 32 agents' 300-step episodes take 1.9 M, a 1024-agent update 0.6 M.
@@ -138,9 +141,10 @@ class VectorisedCollector:
         # Nominal drones fly dynamics.step on their states; disturbed ones (domain randomisation)
         # carry their episodes' draws and fly disturbances.step on what the policy observes.
         self.disturbed = not self.disturbance.nominal
-        squash = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
         self.kernel = (
-            None if self.disturbed else kernel_rollout(cfg, population.policy, squash, cfg.env.max_steps)
+            None
+            if self.disturbed
+            else kernel_rollout(cfg, population.policy, squash_bound(cfg), cfg.env.max_steps)
         )
         self.net = population.policy
         self._actor = actor_from_net(self.net, cfg.model.distribution, cfg.env.max_thrust)
@@ -291,13 +295,19 @@ class VectorisedCollector:
 _warned: set[str] = set()
 
 
+def squash_bound(cfg: DictConfig) -> float | None:
+    """The TanhNormal head's upper bound on the motor commands (``env.max_thrust``), or None for
+    the Normal head: what the kernels squash their samples onto."""
+    return cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
+
+
 def kernel_rollout(
     cfg: DictConfig,
     policy: StackedThreeNet,
     squash_high: float | None,
     max_steps: int,
     fallback: str = "torch.compile",
-):
+) -> KernelRollout | None:
     """The C++ kernels' rollout of ``policy`` (``max_steps`` steps at most) where ``compile=true`` on
     the CPU and they cover the config, else None (with a warning, once per reason, when
     ``compile=true`` asked for them on the CPU, naming the caller's ``fallback``)."""

@@ -7,7 +7,7 @@ carrying an unfinished one over to the next batch, as a ``[num_envs, steps_per_b
 with the env's keys and the actor's log-probability of each action. Here the drones are flown by
 the fused engine's rollout (the C++ kernel on the CPU where it is built, else the PyTorch rollout
 of the same arithmetic), a few calls of a few milliseconds each, where the collector steps the env
-and the actor through TorchRL one step at a time (about 107 ms a batch of 4096 frames on 2 cores).
+and the actor through TorchRL one step at a time (``benchmarks/ppo_collectors.py`` times both).
 
 Why written here: TorchRL's collectors step an ``EnvBase``, whose fixed cost per step is larger
 than the whole step of 64 drones; the kernel flies many steps per call but not an ``EnvBase``. The
@@ -15,7 +15,8 @@ layout, the keys and the semantics (``done`` = ``terminated | truncated``, trunc
 ``env.max_steps``, auto-reset) are the collector's, so GAE, the loss, the episode tracker and the
 budget read both alike. Start states come from the env's own sampler
 (:func:`~drone_torchrl.envs.dynamics.initial_state`) and the action noise from one generator seeded
-with the run's seed, whose state a checkpoint keeps.
+with the run's seed, whose state a checkpoint keeps: the same layout and semantics as the
+collector's batches, from different random draws.
 """
 
 from __future__ import annotations
@@ -33,16 +34,19 @@ from drone_torchrl.envs.rollout import Episodes, chunked, fly_episodes
 from drone_torchrl.modules.factory import model_dtype
 from drone_torchrl.modules.policy import ThreeNetPolicy
 from drone_torchrl.modules.stacked import ActionSampler, StackedThreeNet
-from drone_torchrl.training.collectors import kernel_rollout
+from drone_torchrl.training.collectors import kernel_rollout, squash_bound
 
 
 class FusedSegments:
     """Batches of ``[num_envs, steps_per_batch]`` steps of the actor's net, as TorchRL's collector
-    gives them (see the module's docstring). Iterate to get the batches."""
+    gives them (see the module's docstring). Iterate to get the batches.
+
+    ``net`` is the :class:`ThreeNetPolicy` inside ``actor`` (the learner trains it): its weights
+    are copied into the kernel's flat layout at every batch, and ``actor`` scores the actions."""
 
     def __init__(self, cfg: DictConfig, actor: ProbabilisticActor, net: ThreeNetPolicy) -> None:
         algo = cfg.algo
-        self.actor, self.net = actor, net
+        self.cfg, self.actor, self.net = cfg, actor, net
         self.num_envs, self.steps = algo.num_envs, algo.steps_per_batch
         self.max_steps = cfg.env.max_steps
         self.reset_mode = cfg.env.reset_mode
@@ -50,8 +54,9 @@ class FusedSegments:
         self.dtype = model_dtype(cfg)
         self.device = torch.device(cfg.device)
         self.stacked = StackedThreeNet([net], cfg.model.activation).to(self.device)
-        squash = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
-        self.kernel = kernel_rollout(cfg, self.stacked, squash, self.steps, fallback="the PyTorch rollout")
+        self.kernel = kernel_rollout(
+            cfg, self.stacked, squash_bound(cfg), self.steps, fallback="the PyTorch rollout"
+        )
         self.sampler = ActionSampler(cfg.model.distribution, cfg.env.max_thrust)
         self.steps_per_call = cfg.steps_per_call
         self.log_prob_key = actor.log_prob_keys[0]
@@ -103,8 +108,7 @@ class FusedSegments:
         step_count = torch.zeros_like(cause)
         filled = torch.zeros(n, dtype=torch.int64, device=self.device)
         while int(filled.min()) < steps:
-            # Every call flies a whole batch's steps (the kernel's buffers have one length); each
-            # drone keeps what it needs.
+            # Every call flies a whole batch's steps (the kernel's buffers have one length).
             noise = torch.randn(n, steps, dynamics.ACTION_DIM, generator=self.generator, dtype=torch.float32)
             flown = self._fly(self.state, noise.to(self.device, self.dtype))
             # Each drone keeps the steps it needs, up to its episode's end or its time limit.
