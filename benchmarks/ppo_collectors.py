@@ -5,8 +5,10 @@
     python benchmarks/ppo_collectors.py model.hidden_sizes=[32,32]          # Hydra overrides
 
 Times one batch of each collector (``next(...)`` on the learner's own iterator, so the actor's
-log-probabilities are included) and one learning step on it (GAE and the minibatch epochs of
-``OnPolicy._learn``), medians over ``--repeats`` batches after ``--warmup``. The policy is the run's
+log-probabilities are included; the learner's private ``_batches`` and ``_learn`` are the two
+halves of its update) and one learning step on it (GAE and the minibatch epochs of
+``OnPolicy._learn``), medians over ``--repeats`` batches after ``--warmup`` (learning: over
+``--learn-repeats``). The policy is the run's
 fresh one (short episodes from the floor) or a checkpoint's (full-length ones). Prints milliseconds
 per batch and the fused collector's speed-up over TorchRL's, timed in the same run.
 """
@@ -17,25 +19,27 @@ import argparse
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
 
 from drone_torchrl import algorithms
+from drone_torchrl.algorithms.ppo import OnPolicy
 from drone_torchrl.config import config_dir
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.training.jobs import prepare
 
 
-def _learner(collector: str, overrides: list[str], run_dir: Path):
+def _learner(collector: str, overrides: list[str], run_dir: Path) -> OnPolicy:
     with initialize_config_dir(config_dir(), version_base="1.3"):
         cfg = compose("config", overrides=[*overrides, f"algo.collector={collector}"])
     job = prepare(cfg, run_dir)
     return algorithms.get(cfg.algo.name).learner([job])
 
 
-def _median_ms(fn, warmup: int, repeats: int) -> float:
+def _median_ms(fn: Callable[[], object], warmup: int, repeats: int) -> float:
     for _ in range(warmup):
         fn()
     times = []
@@ -52,6 +56,7 @@ def main() -> None:
     parser.add_argument("--checkpoint", default=None, help="a run folder or .pt whose actor flies")
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--warmup", type=int, default=3)
+    parser.add_argument("--learn-repeats", type=int, default=5, help="learning steps timed (each ~0.1 s)")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("overrides", nargs="*", help="Hydra overrides of the run's config")
     args = parser.parse_args()
@@ -69,7 +74,7 @@ def main() -> None:
             batches = learner._batches
             collect = _median_ms(lambda b=batches: next(b), args.warmup, args.repeats)
             batch = next(batches)
-            learn = _median_ms(lambda lr=learner, b=batch: lr._learn(b, 0), 1, max(3, args.repeats // 4))
+            learn = _median_ms(lambda lr=learner, b=batch: lr._learn(b, 0), 1, args.learn_repeats)
             done = batch.get(("next", "done")).sum().item()
             rows[collector] = (collect, learn, done)
             learner.close()
