@@ -8,9 +8,9 @@ Times one batch of each collector (``next(...)`` on the learner's own iterator, 
 log-probabilities are included; the learner's private ``_batches`` and ``_learn`` are the two
 halves of its update) and one learning step on it (GAE and the minibatch epochs of
 ``OnPolicy._learn``), medians over ``--repeats`` batches after ``--warmup`` (learning: over
-``--learn-repeats``). The policy is the run's
-fresh one (short episodes from the floor) or a checkpoint's (full-length ones). Prints milliseconds
-per batch and the fused collector's speed-up over TorchRL's, timed in the same run.
+``--learn-repeats``). The policy is the run's fresh one (short episodes from the floor) or a
+checkpoint's (full-length ones). Prints milliseconds per batch and the fused collector's speed-up
+over TorchRL's, timed in the same run.
 """
 
 from __future__ import annotations
