@@ -168,10 +168,7 @@ class VectorisedCollector:
     def _policy_and_physics(
         self, layers: list, state: torch.Tensor, noise: torch.Tensor | None
     ) -> tuple[torch.Tensor, ...]:
-        """One step of every agent's every episode: ``(action, next_state, reward, cause)``."""
-        loc, scale = self.population.policy.apply_stacked(layers, state)
-        action = self.sampler(loc, scale, noise)
-        return (action, *dynamics.step(state, action, self.params))
+        return policy_step(self.population.policy, layers, self.sampler, self.params, state, noise)
 
     def _steps(
         self, layers: list, state: torch.Tensor, noise: torch.Tensor | None, k: int
@@ -290,6 +287,21 @@ class VectorisedCollector:
 
     def close(self) -> None:
         pass
+
+
+def policy_step(
+    policy: StackedThreeNet,
+    layers: list,
+    sampler: ActionSampler,
+    params: dynamics.DroneParams,
+    state: torch.Tensor,
+    noise: torch.Tensor | None,
+) -> tuple[torch.Tensor, ...]:
+    """One step of every agent's every drone (``state`` ``[N, ..., 6]``) on the nominal dynamics:
+    ``(action, next_state, reward, cause)``; ``noise`` None gives the deterministic action."""
+    loc, scale = policy.apply_stacked(layers, state)
+    action = sampler(loc, scale, noise)
+    return (action, *dynamics.step(state, action, params))
 
 
 _warned: set[str] = set()

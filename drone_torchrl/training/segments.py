@@ -34,7 +34,7 @@ from drone_torchrl.envs.rollout import Episodes, chunked, fly_episodes
 from drone_torchrl.modules.factory import model_dtype
 from drone_torchrl.modules.policy import ThreeNetPolicy
 from drone_torchrl.modules.stacked import ActionSampler, StackedThreeNet
-from drone_torchrl.training.collectors import kernel_rollout, squash_bound
+from drone_torchrl.training.collectors import kernel_rollout, policy_step, squash_bound
 
 
 class FusedSegments:
@@ -79,17 +79,16 @@ class FusedSegments:
     def _fly(self, start: torch.Tensor, noise: torch.Tensor) -> Episodes:
         """Each row from ``start`` ``[E, 6]`` with ``noise`` ``[E, steps, 2]`` until it terminates or
         ``steps`` steps pass."""
+        start, noise = start.unsqueeze(0), noise.unsqueeze(0)  # the one agent's dim
         if self.kernel is not None:
-            flown = self.kernel(start.unsqueeze(0), noise.unsqueeze(0))
-            return Episodes(*(x[0] for x in flown[:5]))
-        layers = self.stacked.layers()
-
-        def step(state: torch.Tensor, i: int) -> tuple[torch.Tensor, ...]:
-            loc, scale = self.stacked.apply_stacked(layers, state.unsqueeze(0))
-            action = self.sampler(loc[0], scale[0], noise[:, i])
-            return (action, *dynamics.step(state, action, self.params))
-
-        return fly_episodes(chunked(step), start, noise.shape[1], self.steps_per_call)
+            flown = self.kernel(start, noise)
+        else:
+            layers = self.stacked.layers()
+            chunk = chunked(
+                lambda s, i: policy_step(self.stacked, layers, self.sampler, self.params, s, noise[:, :, i])
+            )
+            flown = fly_episodes(chunk, start, noise.shape[2], self.steps_per_call)
+        return Episodes(*(x[0] for x in flown[:5]))
 
     def __iter__(self) -> FusedSegments:
         return self
@@ -125,8 +124,8 @@ class FusedSegments:
             step_count[r, col] = self.t[r] + c
             last = (used - 1).clamp_min(0)
             ends = flown.cause[rows, last] != int(TerminationCause.NONE)
-            ended_here = (used > 0) & (used == flown.length) & ends
-            timed_out = (used > 0) & ~ended_here & (self.t + used >= self.max_steps)
+            ended_here = (used == flown.length) & ends  # never for a drone whose batch is full (used 0)
+            timed_out = ~ended_here & (self.t + used >= self.max_steps)
             at = filled + last
             terminated[rows[ended_here], at[ended_here]] = True
             truncated[rows[timed_out], at[timed_out]] = True
