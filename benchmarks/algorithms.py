@@ -1,6 +1,7 @@
-"""REINFORCE (the paper), REINFORCE+, PPO and A2C with bounded thrust, 4 seeds each, against the PD controller.
+"""Every algorithm option (``conf/algo/*``: REINFORCE, REINFORCE+, PPO, A2C, ...) with bounded thrust, 4
+seeds each, against the PD controller.
 
-    python benchmarks/algorithms.py                      # all four, 4 seeds, their default budgets
+    python benchmarks/algorithms.py                      # every algorithm, 4 seeds, their default budgets
     python benchmarks/algorithms.py --algos ppo --seeds 0 1     # a shorter run
     python benchmarks/algorithms.py --reuse       # train only the algorithms not in --out yet
     python benchmarks/algorithms.py --sb3 --sb3-steps 200000   # also SB3's PPO (pip install ".[bench]")
@@ -32,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-ALGOS = ("reinforce", "reinforce_plus", "ppo", "a2c")
+from drone_torchrl.config import group_options
+
 BOUNDED = {"max_thrust": 1.0}
 FULL_LENGTH = 300
 PD_SHARE = 0.9
@@ -177,12 +179,15 @@ def _figure(results: dict[str, list[dict[str, np.ndarray]]], pd_return: float, p
     plt.close(fig)
 
 
-def main() -> None:
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    # Every option of the algo group (conf/algo/*.yaml): each registered algorithm, some with several
+    # (reinforce_plus is REINFORCE), so a new one is benchmarked without an edit here.
+    algos = group_options("algo")
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/algorithms"))
-    parser.add_argument("--algos", nargs="+", choices=ALGOS, default=list(ALGOS))
+    parser.add_argument("--algos", nargs="+", choices=algos, default=algos)
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
     parser.add_argument(
         "--sb3", action="store_true", help="also train Stable-Baselines3's PPO (pip install '.[bench]')"
@@ -196,7 +201,11 @@ def main() -> None:
         help="an algorithm whose sweep is in --out already is not trained again",
     )
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every algorithm")
-    args = parser.parse_args()
+    return parser.parse_args(argv)
+
+
+def main() -> None:
+    args = parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
 
     from drone_torchrl.evaluation import evaluate_pd
@@ -234,7 +243,7 @@ def main() -> None:
             ]
             if at:
                 cells.append(f"{np.interp(at, run['steps'], run['return']):.1f}")
-            evaluated, crashes = _evaluate(run["job"]) if name in ALGOS else (np.nan, "")
+            evaluated, crashes = _evaluate(run["job"]) if name in args.algos else (np.nan, "")
             print(
                 f"| {name} | {run['job'].name.rsplit('seed=', 1)[-1]} | {cells[0]} | {cells[1]} | {cells[2]} | {run['return'][-1]:.1f} |"
                 + (f" {cells[3]} |" if at else "")

@@ -140,6 +140,24 @@ def _options(group: str) -> list[str]:
     return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
 
 
+def group_options(group: str) -> list[str]:
+    """The options of config group ``group`` (``algo`` -> ``["a2c", "ppo", ...]``: its YAML files), sorted."""
+    return _options(group)
+
+
+def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
+    """``{"reinforce": ["reinforce", "reinforce_plus"], ...}``: the plug-in each option of plug-in group
+    ``group`` chooses, with the options that choose it (an option Hydra cannot compose is left out)."""
+    out: dict[str, list[str]] = {}
+    for option in _options(group):
+        try:
+            plugin = _option_plugins(name, ((group, option),))[group]
+        except Exception:  # noqa: BLE001  (a broken option file: Hydra says why when it is used)
+            continue
+        out.setdefault(plugin, []).append(option)
+    return out
+
+
 def group_names() -> list[str]:
     return sorted(p.name for p in Path(config_dir()).iterdir() if p.is_dir() and p.name != _HYDRA_PREFIX)
 
@@ -285,6 +303,10 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                 "key=[a,b] for a list, quote values with special characters)"
             ) from None
     groups = group_names()
+    plugin_keys = {f"{group}.{rule.plugin_key}": group for group, rule in schema.plugin_groups(name).items()}
+    for override in parsed:
+        if override.key_or_group in plugin_keys and not override.is_delete():
+            raise _plugin_key_set(override, plugin_keys[override.key_or_group], name)
     known = _override_keys(parsed, name)
     if known is None:  # Hydra cannot compose these group options: its own message says why
         return
@@ -317,6 +339,19 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             continue
         if key not in known and not any(k.startswith(f"{key}.") for k in known):
             raise _unknown(key, known)
+
+
+def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
+    """The one line for ``algo.name=ppo``: the plug-in comes with its keys, so it is chosen with its
+    group (``algo=ppo``), which sets the key; setting the key alone leaves the other plug-in's keys."""
+    values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+    value = values[0]
+    options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
+    how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
+    return ConfigError(
+        f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, with its "
+        f"plug-in's keys); choose it with {how}"
+    )
 
 
 def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
@@ -514,7 +549,7 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(error)
     check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
     algorithms.get(cfg.algo.name).validate(cfg)
-    loggers.get(cfg.logger.backend).validate(cfg)
+    loggers.check_backend(cfg)
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
         raise ConfigError.of(
             "model.distribution",

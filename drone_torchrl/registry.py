@@ -10,12 +10,15 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
+import re
 from importlib import metadata
 from typing import Generic, TypeVar
 
 from drone_torchrl.checks import ConfigError
 
 T = TypeVar("T")
+# What a plug-in may be called.
+NAME = re.compile(r"[a-z][a-z0-9_]*")
 
 
 class Registry(Generic[T]):
@@ -33,7 +36,11 @@ class Registry(Generic[T]):
         self._discovered = False
 
     def register(self, name: str, item: T) -> T:
-        """Add ``item`` as ``name``; another item of the same name is refused."""
+        """Add ``item`` as ``name``; another item of the same name is refused, and so is a name that
+        is not lowercase letters, digits and ``_`` starting with a letter (it is typed on command
+        lines and names folders and config keys)."""
+        if not isinstance(name, str) or not NAME.fullmatch(name):
+            raise ValueError(f"{self.key}={name!r} cannot be registered: a name is {NAME.pattern}")
         known = self._items.get(name)
         if known is not None and known != item:
             raise ValueError(f"two plug-ins are registered as {self.key}={name}: {known!r} and {item!r}")

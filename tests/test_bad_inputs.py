@@ -22,6 +22,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from drone_torchrl import loggers
 from drone_torchrl.apps.report import main as report_main
 from drone_torchrl.comparison import run_eval
 from drone_torchrl.config import ConfigError, check_overrides, config_dir
@@ -288,7 +289,10 @@ TRAIN = [
     (["logger=csv", "logger.float_format=abc"], "logger.float_format"),
     (["logger=csv", "logger.float_format='%d %d'"], "logger.float_format"),
     (["logger.float_format='%.3g'"], "logger.float_format"),  # logger=csv's key, not tensorboard's
-    (["logger.backend=wandb"], "logger.backend"),
+    (["logger.backend='no such-backend'"], "logger.backend"),  # a name no plug-in can be registered as
+    # a plug-in is chosen with its group: its name key alone said another key was "missing"
+    (["algo.name=ppo"], "algo=ppo"),
+    (["logger.backend=csv"], "logger=csv"),
     (["model.init_std=0"], "model.init_std"),
     (["model.init_std=-1"], "model.init_std"),
     # keys and groups that do not exist
@@ -335,6 +339,35 @@ def test_drone_train_refuses(overrides, names, files, tmp_path):
     assert not (tmp_path / "job").exists()
     assert _written(files["run"].parent) == before
     assert not files["marker"].exists()
+
+
+@pytest.mark.parametrize(
+    ("override", "choose"),
+    [("algo.name=ppo", "algo=ppo"), ("algo.name=a2c", "algo=a2c"), ("logger.backend=csv", "logger=csv")],
+)
+def test_a_plugin_is_chosen_with_its_group_not_its_name_key(override, choose):
+    """``algo.name=ppo`` kept REINFORCE's keys and named one of PPO's as missing; the one line now says
+    what to type instead."""
+    with pytest.raises(ConfigError) as info:
+        check_overrides([override])
+    _one_line(str(info.value), choose)
+    assert str(info.value).startswith(override.split("=")[0])
+
+
+@pytest.mark.parametrize("backend", [b for b in loggers.BACKENDS.names() if loggers.get(b).extra])
+def test_a_logger_whose_extra_is_missing_is_one_line(backend, monkeypatch, tmp_path):
+    """Refused before any work, naming the extra (``logger=mlflow`` failed when its run started)."""
+    import importlib.util
+
+    extra = loggers.get(backend).extra
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == extra else find_spec(name, *a))
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=[*TINY, f"logger={backend}"])
+    with pytest.raises(ConfigError) as info:
+        prepare(cfg, tmp_path / "job")
+    _one_line(str(info.value), f"pip install 'drone_torchrl[{extra}]'")
+    assert not (tmp_path / "job").exists()
 
 
 # -------------------------------------------------------------------------------------- drone-eval
@@ -515,6 +548,8 @@ E2E = [
     ("drone-train", ["--cfg", "job", "algo.lr=-1"], "algo.lr"),  # printed without validating
     ("drone-train", ["--cfg", "all", "model.min_std=-1"], "model.min_std"),
     ("drone-train", ["algo.lr=[1,"], "algo.lr"),  # Hydra's grammar error: several lines
+    ("drone-train", ["algo.name=ppo"], "algo=ppo"),  # said algo.anneal_lr was missing
+    ("drone-train", ["logger.backend=csv"], "logger=csv"),  # said logger.float_format was missing
     ("drone-train", ["algo.lr=${{oops"], "algo.lr"),
     ("drone-train", ["--bogus"], "--bogus"),  # argparse's usage text and error
     ("drone-train", ["seed=0", "--config-name"], "--config-name"),

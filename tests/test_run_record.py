@@ -195,15 +195,22 @@ def test_a_continued_run_keeps_its_logger_backend(tmp_path):
     assert "\n" not in str(error.value)
 
 
+# A name no plug-in can have (the registries take lowercase identifiers only): unknown for good.
+UNREGISTRABLE = "no such-backend"
+
+
 def test_the_logger_backends_are_registered():
     from drone_torchrl import loggers
+    from drone_torchrl.config import options_by_plugin
 
-    assert loggers.BACKENDS.names() == ("csv", "mlflow", "tensorboard")
-    with pytest.raises(
-        ConfigError,
-        match=r"^logger.backend='wandb' is not allowed; expected one of \['csv', 'mlflow', 'tensorboard'\]",
-    ):
-        loggers.get("wandb")
+    names = loggers.BACKENDS.names()
+    assert "tensorboard" in names and list(names) == sorted(names)
+    assert sorted(options_by_plugin("logger")) == list(names)  # each has its conf/logger option
+    with pytest.raises(ConfigError, match=rf"^logger.backend='{UNREGISTRABLE}' is not allowed; expected one of "):
+        loggers.get(UNREGISTRABLE)
+    with pytest.raises(ValueError, match="cannot be registered"):
+        loggers.register(loggers.Backend(UNREGISTRABLE, make=None, resume_rule=""))
+    assert str(list(names)) in str(pytest.raises(ConfigError, loggers.get, UNREGISTRABLE).value)
 
 
 def test_fork_needs_a_folder_of_its_own(tmp_path):
@@ -466,3 +473,54 @@ def test_evaluations_give_the_share_of_the_optimum_with_bounded_thrust(tmp_path,
         return
     shares = [e.value for e in events.Scalars("eval/pct_of_optimum")]
     np.testing.assert_allclose(shares, [100 * r / optimum for r in returns], rtol=1e-6)
+
+
+class _ClosingSpy:
+    """Wraps a run's real logger and notes each ``close`` and how the run ended."""
+
+    closed: list[tuple[str, str]] = []
+
+    def __init__(self, logger, run_dir: Path) -> None:
+        self.logger, self.run_dir = logger, run_dir
+
+    def __getattr__(self, name):
+        return getattr(self.logger, name)
+
+    def close(self, status: str) -> None:
+        _ClosingSpy.closed.append((self.run_dir.name, status))
+        self.logger.close(status)
+
+
+def test_every_run_closes_its_logger_once_saying_how_it_ended(tmp_path, monkeypatch):
+    """RunRecord.close() flushed the logger but never closed it, so a backend holding a run open (W&B's
+    service, MLflow's RUNNING status) was never finished, least of all on a failed or stopped run.
+    Three agents trained together: agent 1 diverges (its weights turn NaN), agent 2 finishes its
+    budget, agent 0 is stopped by SIGTERM afterwards; each logger is closed once, told which."""
+    import os
+    import signal
+
+    from drone_torchrl.training import run as run_module
+    from drone_torchrl.training.signals import TrainingStopped
+
+    real = run_module.make_logger
+    monkeypatch.setattr(run_module, "make_logger", lambda cfg, d, at: _ClosingSpy(real(cfg, d, at), d))
+    _ClosingSpy.closed = []
+    jobs = [
+        prepare(_cfg(f"algo.episodes={budget}", "checkpoint.every_episodes=2", *FAST, f"seed={s}"), tmp_path / f"a{s}")
+        for s, budget in enumerate((12, 12, 4))
+    ]
+    trainer = Trainer(jobs)
+    trainer.step([0, 1, 2], 1)
+    with torch.no_grad():
+        trainer.population.policy.params.get(("mean", "bias"))[1] = float("nan")
+    record = run_module.RunRecord.record
+
+    def record_and_stop(self, episodes, metrics):
+        record(self, episodes, metrics)
+        if self.run_dir.name == "a0" and self.updates_done == 8:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(run_module.RunRecord, "record", record_and_stop)
+    with pytest.raises(TrainingStopped):
+        trainer.train()
+    assert sorted(_ClosingSpy.closed) == [("a0", "stopped"), ("a1", "failed"), ("a2", "finished")]

@@ -99,6 +99,6 @@ register(
         A2C,
         validate,
         checkpoint_keys=("critic",),
-        summary="A2C on TorchRL's collector, GAE and A2CLoss (algo=a2c)",
+        summary="A2C on TorchRL's collector, GAE and A2CLoss",
     )
 )

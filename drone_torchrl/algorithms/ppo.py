@@ -349,6 +349,6 @@ register(
         PPO,
         validate,
         checkpoint_keys=("critic",),
-        summary="PPO on TorchRL's collector, GAE and ClipPPOLoss (algo=ppo)",
+        summary="PPO on TorchRL's collector, GAE and ClipPPOLoss",
     )
 )

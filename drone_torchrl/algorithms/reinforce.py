@@ -126,6 +126,6 @@ register(
         "reinforce",
         Reinforce,
         validate,
-        summary="Monte-Carlo REINFORCE, a population of agents per process (algo=reinforce, algo=reinforce_plus)",
+        summary="Monte-Carlo REINFORCE (the paper; `reinforce_plus`: with its usual variance reductions), a population of agents per process",
     )
 )

@@ -182,5 +182,6 @@ class RunLogger:
         self.log_metrics(final, step=0)
         self.flush()
 
-    def close(self) -> None:
+    def close(self, status: str = "finished") -> None:
+        """Flush (the event file is open only while a flush writes; ``status`` changes nothing)."""
         self.flush()

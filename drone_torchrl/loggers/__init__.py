@@ -5,7 +5,8 @@ interface only; ``logger.backend`` (set by each ``conf/logger/<option>.yaml``) p
 :class:`Backend` that makes one per run. Built in:
 
 - ``logger=tensorboard`` (the default): TensorBoard event files, buffered (:mod:`.tensorboard`).
-- ``logger=csv``: one long-format CSV of scalars per run (:mod:`.csv`).
+- ``logger=csv``: one long-format CSV of scalars per run (:mod:`.csvfile`).
+- ``logger=mlflow``: an MLflow run per run (:mod:`.mlflow_store`, the ``mlflow`` extra).
 
 Every backend buffers: values are kept in memory between flushes (at every checkpoint, evaluation
 and every ``logger.flush_every_s`` seconds) and no file is held open in between, so a population of
@@ -26,16 +27,25 @@ and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard, /schema_logger_
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from drone_torchrl.checks import ConfigError
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.registry import Registry
+
+# How a run's logging ended (what :meth:`Logger.close` is told): it trained its whole budget; it
+# failed (diverged, or an error stopped it); or it stopped to be continued (a signal, Ctrl-C).
+RunStatus = Literal["finished", "failed", "stopped"]
+FINISHED: RunStatus = "finished"
+FAILED: RunStatus = "failed"
+STOPPED: RunStatus = "stopped"
 
 
 class Logger(Protocol):
@@ -57,8 +67,9 @@ class Logger(Protocol):
     def flush(self) -> None:
         """Write what is buffered (files are opened only for this)."""
 
-    def close(self) -> None:
-        """Flush; the run logs nothing more."""
+    def close(self, status: RunStatus) -> None:
+        """Flush and finish: the run logs nothing more in this process (called once, also when
+        the run failed or was stopped; ``status`` says which, for a backend that records it)."""
 
 
 @dataclass(frozen=True)
@@ -72,12 +83,17 @@ class Backend:
         resume_rule: one line saying what happens to values logged after the checkpoint.
         validate: checks of its own ``logger.*`` keys that its schema's bounds and choices do not
             cover (one-line ``ConfigError``).
+        summary: one line saying what it writes where.
+        extra: the package extra it needs (``pip install "drone_torchrl[<extra>]"``), named as the
+            module it imports, or None.
     """
 
     name: str
     make: Callable[[DictConfig, Path, int | None], Logger]
     resume_rule: str
     validate: Callable[[Mapping[str, Any]], None] = lambda cfg: None
+    summary: str = ""
+    extra: str | None = None
 
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
@@ -91,6 +107,16 @@ def register(backend: Backend) -> Backend:
 def get(name: Any) -> Backend:
     """The backend named ``name``; a one-line :class:`~drone_torchrl.checks.ConfigError` otherwise."""
     return BACKENDS.get(name)
+
+
+def check_backend(cfg: Mapping[str, Any]) -> None:
+    """Refuse, in one line, a backend whose extra is not installed, then run its own checks."""
+    backend = get(cfg.logger.backend)
+    if backend.extra is not None and importlib.util.find_spec(backend.extra) is None:
+        raise ConfigError(
+            f"logger={backend.name} needs the {backend.extra} extra: pip install 'drone_torchrl[{backend.extra}]'"
+        )
+    backend.validate(cfg)
 
 
 def make_logger(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> Logger:

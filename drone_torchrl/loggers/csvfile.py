@@ -26,7 +26,7 @@ from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.storage import writing
-from drone_torchrl.loggers import Backend, flatten_config, register
+from drone_torchrl.loggers import FINISHED, Backend, RunStatus, flatten_config, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, free, store_plugin
 
 SCALARS = "scalars.csv"
@@ -75,7 +75,7 @@ class CSVLogger:
             )
         self._rows.clear()
 
-    def close(self) -> None:
+    def close(self, status: RunStatus = FINISHED) -> None:
         self.flush()
 
 
@@ -143,5 +143,6 @@ register(
         make,
         resume_rule="rows logged after the checkpoint are dropped (the file is rewritten), the rest kept",
         validate=validate,
+        summary="every scalar as a `step,tag,value` row of `<run>/csv/scalars.csv`; final metrics in `hparams.csv`",
     )
 )

@@ -9,7 +9,8 @@ package) or read with :class:`mlflow.tracking.MlflowClient`.
 
 What is logged: every scalar as a metric with its step (a count of episodes done), the flattened
 config as params when the run starts, the final metrics as ``hparam/*`` metrics when it ends, and
-the run's status (``FINISHED`` when it completes). Videos are not uploaded: the run folder's
+the run's status (``FINISHED`` when it completes, ``FAILED`` when it fails, ``KILLED`` when a signal
+stops it to be continued). Videos are not uploaded: the run folder's
 ``videos/`` has them. Metrics are buffered and sent in batches of MLflow's largest size at every
 flush; the store's connection is shared by every run of a process, so a population of 1,024 runs
 holds one connection, not 1,024 files.
@@ -36,7 +37,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.loggers import Backend, flatten_config, register
+from drone_torchrl.loggers import FAILED, FINISHED, Backend, RunStatus, flatten_config, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, a_text, store_plugin
 
 RUN_ID_FILE = "run_id"
@@ -45,6 +46,8 @@ STORE_FILE = "mlflow.db"
 MAX_METRICS_PER_BATCH = 1000
 MAX_PARAMS_PER_BATCH = 100
 MAX_PARAM_CHARS = 6000
+# MLflow's run status for how a run ended; any other (stopped, to be continued) is KILLED.
+_STATUSES = {FINISHED: "FINISHED", FAILED: "FAILED"}
 
 
 def _client(tracking_uri: str):
@@ -115,8 +118,6 @@ class MLflowLogger:
         # MLflow shows params and metrics side by side already; the final metrics under hparam/*,
         # as TensorBoard's HPARAMS tab names them. Step 0, as there.
         self.log_metrics({f"hparam/{k}": v for k, v in metrics.items()}, step=0)
-        self.flush()
-        self.client.set_terminated(self.run_id, status="FINISHED")
 
     def flush(self) -> None:
         from mlflow.entities import Metric
@@ -133,8 +134,10 @@ class MLflowLogger:
         for start in range(0, len(metrics), MAX_METRICS_PER_BATCH):
             self.client.log_batch(self.run_id, metrics=metrics[start : start + MAX_METRICS_PER_BATCH])
 
-    def close(self) -> None:
+    def close(self, status: RunStatus) -> None:
         self.flush()
+        # A run stopped by a signal is continued later (update_run sets RUNNING again).
+        self.client.set_terminated(self.run_id, status=_STATUSES.get(status, "KILLED"))
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> MLflowLogger:
@@ -164,5 +167,7 @@ register(
         "mlflow",
         make,
         resume_rule="continues the same MLflow run and skips the steps it already has (append-only store)",
+        summary="an MLflow run per run in a tracking store (SQLite beside the runs by default)",
+        extra="mlflow",
     )
 )

@@ -27,5 +27,6 @@ register(
         "tensorboard",
         make,
         resume_rule="events logged after the checkpoint are dropped (TensorBoard's purge_step), the rest kept",
+        summary="TensorBoard event files in `<run>/tensorboard/`: scalars, evaluation videos, hparams (the default)",
     )
 )

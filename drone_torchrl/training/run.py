@@ -33,7 +33,7 @@ from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
 from drone_torchrl.io.storage import writing
 from drone_torchrl.io.video import VIDEO_DIR, record_video, save_mp4
 from drone_torchrl.io.yaml_text import save_yaml
-from drone_torchrl.loggers import log_update, make_logger
+from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, log_update, make_logger
 
 CONFIG_NAME = "config.yaml"
 FAILED_FILE = "FAILED.txt"
@@ -95,6 +95,7 @@ class RunRecord:
         self.best_eval = -math.inf
         self.final: dict[str, float] | None = None
         self.failure: str | None = None
+        self._closed = False
         if checkpoint is not None:
             self.episodes_done, self.updates_done = checkpoint["episodes_done"], checkpoint["updates_done"]
             self.wall_clock_before = checkpoint["wall_clock_s"]
@@ -281,7 +282,15 @@ class RunRecord:
         self._last_flush = time.perf_counter()
 
     def close(self) -> None:
-        self.flush()
+        """Flush and finish the logger, once: told whether the run finished, failed or stopped (a
+        backend with a service or open run, as W&B and MLflow have, records it)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.csv.flush()
+        status = FAILED if self.failed else FINISHED if self.final is not None else STOPPED
+        self.logger.close(status)
+        run_lock.renew(self.run_dir)
 
 
 class Progress:

@@ -78,9 +78,14 @@ class Trainer:
         if torch.device(cfg.device).type == "cpu":
             keep_freed_memory()
         self.learner = learner_class(cfg)(jobs)
-        self.runs = [
-            RunRecord(job.cfg, job.run_dir, cfg.engine, job.checkpoint, job.parent_dir) for job in jobs
-        ]
+        self.runs: list[RunRecord] = []
+        try:
+            for job in jobs:
+                self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.engine, job.checkpoint, job.parent_dir))
+        except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
+            self.progress = Progress([], False)
+            self.close(quietly=True)
+            raise
         self.progress = Progress(self.runs, cfg.progress)
         self.updates_per_call = int(cfg.updates_per_call)
 
@@ -201,7 +206,7 @@ class Trainer:
         for run in self.runs:
             try:
                 run.close()
-            except OSError:
+            except Exception:  # noqa: BLE001  (a logger's own error, when another one is reported)
                 if not quietly:
                     raise
 
