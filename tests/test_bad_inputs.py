@@ -289,6 +289,10 @@ TRAIN = [
     (["logger=csv", "logger.float_format=abc"], "logger.float_format"),
     (["logger=csv", "logger.float_format='%d %d'"], "logger.float_format"),
     (["logger.float_format='%.3g'"], "logger.float_format"),  # logger=csv's key, not tensorboard's
+    (["logger=wandb", "logger.mode=cloud"], "logger.mode"),  # its schema's: refused with or without W&B
+    (["logger=wandb", "logger.project=''"], "logger.project"),
+    (["logger=wandb", "logger.project=null"], "logger.project"),
+    (["logger.project=drone"], "logger.project"),  # logger=wandb's key, not tensorboard's
     (["logger.backend='no such-backend'"], "logger.backend"),  # a name no plug-in can be registered as
     # a plug-in is chosen with its group: its name key alone said another key was "missing"
     (["algo.name=ppo"], "algo=ppo"),

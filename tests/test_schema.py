@@ -77,7 +77,8 @@ RESUME_KEYS = (
     "eval.every_episodes",
     "eval.video",
 )
-FIXED_ON_RESUME = ("logger.backend", "logger.exp_name")
+# logger=wandb's project and entity hold its run id: a continued run keeps them (added with it).
+FIXED_ON_RESUME = ("logger.backend", "logger.exp_name", "logger.project", "logger.entity")
 
 
 def test_resume_rules_are_those_of_the_lists_they_replace():

@@ -7,6 +7,7 @@ interface only; ``logger.backend`` (set by each ``conf/logger/<option>.yaml``) p
 - ``logger=tensorboard`` (the default): TensorBoard event files, buffered (:mod:`.tensorboard`).
 - ``logger=csv``: one long-format CSV of scalars per run (:mod:`.csvfile`).
 - ``logger=mlflow``: an MLflow run per run (:mod:`.mlflow_store`, the ``mlflow`` extra).
+- ``logger=wandb``: a Weights & Biases run per run (:mod:`.wandb_run`, the ``wandb`` extra).
 
 Every backend buffers: values are kept in memory between flushes (at every checkpoint, evaluation
 and every ``logger.flush_every_s`` seconds) and no file is held open in between, so a population of
