@@ -260,7 +260,7 @@ def step(
             command - internal.thrust
         )
     force = internal.draw.wind + internal.gust
-    next_state = integrate(state, thrust * internal.draw.gain, force, internal.draw.mass_ratio, params)
+    next_state = dynamics.integrate(state, thrust * internal.draw.gain, params, force, internal.draw.mass_ratio)
     cause = dynamics.termination_cause(next_state, params)
     reward = dynamics.reward(next_state, cause != int(dynamics.TerminationCause.NONE), params)
     gust = internal.gust
@@ -269,32 +269,6 @@ def step(
         n = _normal(internal.key, t, STEP_STREAM, _STEP_NORMALS, state.dtype)
         gust = gust * decay + disturbance.gust * math.sqrt(1.0 - decay * decay) * n[..., 0]
     return next_state, reward, cause, Internal(internal.key, internal.draw, gust, thrust, pending, issued)
-
-
-def integrate(
-    state: torch.Tensor,
-    thrust: torch.Tensor,
-    force: torch.Tensor,
-    mass_ratio: torch.Tensor,
-    params: DroneParams,
-) -> torch.Tensor:
-    """:func:`.dynamics.integrate` with a horizontal force and a true mass off the nominal one.
-
-    ``thrust`` ``[*B, 2]`` and ``force`` ``[*B]`` are fractions of the nominal weight ``m0 g``;
-    ``mass_ratio`` ``[*B]`` is ``m / m0``. The accelerations are
-    ``x'' = g (sin(-alpha) (a_l + a_r) + force) / ratio``, ``z'' = g cos(alpha) (a_l + a_r) / ratio - g``,
-    ``alpha'' = g (a_r - a_l) / (0.4 r ratio)``; the Euler step is the nominal one.
-    """
-    alpha = state[..., ALPHA]
-    g = params.gravity
-    total = thrust[..., 0] + thrust[..., 1]
-    x_ddot = g * (torch.sin(-alpha) * total + force) / mass_ratio
-    z_ddot = g * torch.cos(alpha) * total / mass_ratio - g
-    # r / I = r / (2/5 m r^2) with m = ratio m0, times the thrust difference (a_r - a_l) m0 g.
-    alpha_ddot = (
-        (thrust[..., 1] - thrust[..., 0]) * params.weight * params.lever_arm / (params.inertia * mass_ratio)
-    )
-    return dynamics.euler(state, x_ddot, z_ddot, alpha_ddot, params.dt)
 
 
 def episode_keys(

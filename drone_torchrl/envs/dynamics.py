@@ -120,27 +120,42 @@ def clamp_action(action: torch.Tensor, max_thrust: float | None) -> torch.Tensor
     return action.clamp(0.0, max_thrust)
 
 
-def integrate(state: torch.Tensor, action: torch.Tensor, params: DroneParams) -> torch.Tensor:
+def integrate(
+    state: torch.Tensor,
+    action: torch.Tensor,
+    params: DroneParams,
+    force: torch.Tensor | None = None,
+    mass_ratio: torch.Tensor | None = None,
+) -> torch.Tensor:
     """One semi-implicit Euler step of eqs. 2.1-2.3.
 
-    ``action`` is ``[a_l, a_r]``, thrust as a fraction of the weight (already clamped).
-    Accelerations use the state before the step; positions use the new velocities.
+    ``action`` is ``[a_l, a_r]``, thrust as a fraction of the nominal weight ``m0 g`` (already
+    clamped). Accelerations use the state before the step; positions use the new velocities.
+
+    Model mismatch (:mod:`.disturbances`): ``force`` ``[*B]`` is a horizontal force as a fraction of
+    the nominal weight, ``mass_ratio`` ``[*B]`` the true mass over the nominal one (the inertia
+    follows it, ``I = 2/5 m r^2``). Then ``x'' = g (sin(-alpha) (a_l + a_r) + force) / ratio``,
+    ``z'' = g cos(alpha) (a_l + a_r) / ratio - g`` and ``alpha'' = (a_r - a_l) m0 g r / (I0 ratio)``.
+    Without them (the paper's drone) the same equations are computed as the spec writes them, in
+    thrusts ``T = a m g`` (the arithmetic the C++ kernels round alike).
     """
     alpha = state[..., ALPHA]
-    thrust_left = action[..., 0] * params.weight
-    thrust_right = action[..., 1] * params.weight
-    total = thrust_left + thrust_right
-    x_ddot = torch.sin(-alpha) * total / params.mass
-    z_ddot = torch.cos(alpha) * total / params.mass - params.gravity
-    alpha_ddot = (thrust_right - thrust_left) * (params.lever_arm / params.inertia)
-    return euler(state, x_ddot, z_ddot, alpha_ddot, params.dt)
-
-
-def euler(
-    state: torch.Tensor, x_ddot: torch.Tensor, z_ddot: torch.Tensor, alpha_ddot: torch.Tensor, dt: float
-) -> torch.Tensor:
-    """The semi-implicit Euler update of ``state`` with the given accelerations: velocities first,
-    then positions with the new velocities."""
+    if force is None and mass_ratio is None:
+        thrust_left = action[..., 0] * params.weight
+        thrust_right = action[..., 1] * params.weight
+        total = thrust_left + thrust_right
+        x_ddot = torch.sin(-alpha) * total / params.mass
+        z_ddot = torch.cos(alpha) * total / params.mass - params.gravity
+        alpha_ddot = (thrust_right - thrust_left) * (params.lever_arm / params.inertia)
+    else:
+        g = params.gravity
+        ratio = torch.ones_like(alpha) if mass_ratio is None else mass_ratio
+        push = torch.zeros_like(alpha) if force is None else force
+        total = action[..., 0] + action[..., 1]
+        x_ddot = g * (torch.sin(-alpha) * total + push) / ratio
+        z_ddot = g * torch.cos(alpha) * total / ratio - g
+        alpha_ddot = (action[..., 1] - action[..., 0]) * params.weight * params.lever_arm / (params.inertia * ratio)
+    dt = params.dt
     x, x_dot, z, z_dot, alpha, alpha_dot = state.unbind(-1)
     x_dot = x_dot + x_ddot * dt
     z_dot = z_dot + z_ddot * dt
