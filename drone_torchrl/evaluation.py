@@ -2,8 +2,9 @@
 
 Every policy evaluated with the same ``episodes`` and ``seed`` starts from the same states (those
 a ``DroneEnv(batch_size=[episodes])`` seeded with ``seed`` resets to), so returns are comparable
-across policies, runs and engines. Episodes are flown on the shared dynamics
-(:func:`drone_torchrl.envs.rollout.fly`), all policies of a population at once.
+across policies, runs and backends. A TensorDict policy (an actor, a controller) is flown by the
+reference (:func:`drone_torchrl.envs.rollout.fly_reference`: ``DroneEnv`` and TorchRL's rollout);
+the fast engine passes its own deterministic rollout, all agents of a population at once.
 """
 
 from __future__ import annotations
@@ -12,56 +13,16 @@ import math
 from typing import Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from drone_torchrl.config import physics_params
-from drone_torchrl.envs import disturbances, dynamics
+from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController, PDGains
-from drone_torchrl.envs.rollout import RolloutFn, StepFn, chunked, fly
+from drone_torchrl.envs.rollout import RolloutFn, fly_reference
 from drone_torchrl.episodes import cause_counts, episode_stats
 from drone_torchrl.optimum import Optimum, env_optimum
-
-
-def policy_step(policy: TensorDictModuleBase, params: dynamics.DroneParams) -> StepFn:
-    """A :data:`StepFn` that asks a TensorDict policy (actor, PD controller) for its deterministic action."""
-
-    def step(state: torch.Tensor, t: int):
-        return (action := _act(policy, state), *dynamics.step(state, action, params))
-
-    return step
-
-
-def disturbed_step(
-    policy: TensorDictModuleBase,
-    params: dynamics.DroneParams,
-    disturbance: disturbances.Disturbance,
-    keys: torch.Tensor,
-) -> StepFn:
-    """:func:`policy_step` under ``disturbance``, the episodes' draws following ``keys`` (``[*B]``):
-    the policy sees :func:`~drone_torchrl.envs.disturbances.observe`'s observation, the drone flies
-    :func:`~drone_torchrl.envs.disturbances.step` (what ``DroneEnv`` does with the same keys)."""
-    internal = None  # drawn at the first step, in the state's batch shape and dtype
-
-    def step(state: torch.Tensor, t: int):
-        nonlocal internal
-        if internal is None:
-            internal = disturbances.start(disturbance, keys.expand(state.shape[:-1]), state.dtype)
-        action = _act(policy, disturbances.observe(disturbance, state, internal, t))
-        next_state, reward, cause, internal = disturbances.step(
-            disturbance, state, action, internal, t, params
-        )
-        return action, next_state, reward, cause
-
-    return step
-
-
-def _act(policy: TensorDictModuleBase, observation: torch.Tensor) -> torch.Tensor:
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
-        td = TensorDict({"observation": observation}, batch_size=observation.shape[:-1])
-        return policy(td).get("action")
 
 
 @torch.no_grad()
@@ -87,23 +48,15 @@ def evaluate(
     env.set_seed(seed)
     env.reset()
     start, keys = env.state, env.episode_keys
+    env.close()
     if agents is not None:
         start = start.expand(agents, *start.shape).clone()
+        keys = None if keys is None else keys.expand(agents, *keys.shape).clone()
     if isinstance(policy, TensorDictModuleBase):
-        if callable(reset := getattr(policy, "reset", None)):
-            reset()  # a stateful controller (the PID's integrals) starts new episodes
-        if keys is None:
-            step = policy_step(policy, env.params)
-        else:
-            step = disturbed_step(policy, env.params, env.disturbance, keys)
-        rollout = fly(chunked(step), start, env.max_steps)
-    elif keys is not None:
-        raise ValueError(
-            "disturbances need a TensorDict policy: the training engines' own rollouts fly nominal drones"
-        )
+        episodes = fly_reference(policy, start, keys, device, **env_kwargs)
     else:
-        rollout = policy(start).as_rollout(env.max_steps)
-    env.close()
+        episodes = policy(start) if keys is None else policy(start, keys)
+    rollout = episodes.as_rollout(env.max_steps)
     return episode_stats(rollout), rollout
 
 

@@ -22,6 +22,7 @@ a relaxation: the most zone steps it allows bounds every policy. ``docs/optimum.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -30,11 +31,13 @@ import numpy as np
 import torch
 from scipy import sparse
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
 
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, Z_DOT, DroneParams, Z
 from drone_torchrl.envs.heuristic import PDGains, pd_action
-from drone_torchrl.envs.rollout import Episodes, chunked, fly_episodes
+from drone_torchrl.envs.rollout import Episodes, fly_reference
 
 ZONE_Z = (dynamics.ZONE_Z_MIN, dynamics.ZONE_Z_MAX)
 DOMAIN_Z = (dynamics.Z_MIN, dynamics.Z_MAX)
@@ -388,18 +391,30 @@ def fly_plan(
     )
     if plan is None:
         raise ValueError("the zone cannot be held from any step with these parameters")
-    collective = torch.as_tensor(plan.collective, dtype=start.dtype, device=start.device)
-    hand_over = plan.apex_step
+    policy = _PlanPolicy(torch.as_tensor(plan.collective, dtype=start.dtype), plan.apex_step, params, gains)
+    dtype = "float64" if start.dtype == torch.float64 else "float32"
+    episodes = fly_reference(policy, start, max_steps=max_steps, dtype=dtype, **dataclasses.asdict(params))
+    return episodes, plan
 
-    def step(state: torch.Tensor, t: int) -> tuple[torch.Tensor, ...]:
-        if t < hand_over:
-            motor = collective[t] / (ACTION_DIM * torch.cos(state[..., ALPHA]))
-            action = motor.unsqueeze(-1).expand(*motor.shape, ACTION_DIM)
-        else:
-            action = pd_action(state, params, gains)
-        return (action, *dynamics.step(state, action, params))
 
-    return fly_episodes(chunked(step), start, max_steps), plan
+class _PlanPolicy(TensorDictModuleBase):
+    """The plan's commands until its hand-over step, then the PD controller: a TensorDict policy."""
+
+    def __init__(
+        self, collective: torch.Tensor, hand_over: int, params: DroneParams, gains: PDGains | None
+    ) -> None:
+        super().__init__()
+        self.collective, self.hand_over, self.params, self.gains = collective, hand_over, params, gains
+        self.in_keys, self.out_keys = ["observation", "step_count"], ["action"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        state = tensordict.get("observation")
+        t = tensordict.get("step_count").squeeze(-1)
+        motor = self.collective[t.clamp_max(len(self.collective) - 1)] / (ACTION_DIM * torch.cos(state[..., ALPHA]))
+        planned = motor.unsqueeze(-1).expand(*motor.shape, ACTION_DIM)
+        pd = pd_action(state, self.params, self.gains)
+        tensordict.set("action", torch.where((t < self.hand_over).unsqueeze(-1), planned, pd))
+        return tensordict
 
 
 __all__ = [

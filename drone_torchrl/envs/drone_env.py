@@ -449,6 +449,8 @@ class DroneEnv(EnvBase):
             shape=bs,
             device=self.device,
         )
+        if self._disturbed:  # the observation is a measurement: the true state too, for the record
+            self.observation_spec["state"] = Unbounded(shape=(*bs, STATE_DIM), dtype=self.dtype, device=self.device)
         if self.max_thrust is None:
             self.action_spec = Unbounded(shape=(*bs, ACTION_DIM), dtype=self.dtype, device=self.device)
         else:
@@ -474,6 +476,25 @@ class DroneEnv(EnvBase):
     def episode_keys(self) -> torch.Tensor | None:
         """The current episodes' disturbance keys (int64 ``[*batch]``), ``None`` without disturbances."""
         return None if self._internal is None else self._internal.key.clone()
+
+    def reset_to(self, state: torch.Tensor, keys: torch.Tensor | None = None) -> TensorDictBase:
+        """Start every drone's episode from ``state`` (``[*batch, 6]``) instead of drawing a start; under
+        disturbances ``keys`` (int64 ``[*batch]``) are the episodes' disturbance keys. Returns the reset
+        output: give it to ``rollout(..., auto_reset=False, tensordict=...)``. What the evaluator uses to
+        fly one set of start states under several policies, and tests to fly another engine's draws."""
+        shape = tuple(self.batch_size)
+        if tuple(state.shape) != (*shape, STATE_DIM):
+            raise ValueError(f"state has shape {tuple(state.shape)}; expected {(*shape, STATE_DIM)}")
+        if self._disturbed and (keys is None or tuple(keys.shape) != shape):
+            raise ValueError(f"a disturbed env needs int64 episode keys of shape {shape}")
+        self._state = state.to(self.device, self.dtype).clone()
+        self._step_count = torch.zeros_like(self._step_count)
+        self._cause = torch.zeros_like(self._cause)
+        if self._disturbed:
+            self._internal = disturbances.start(self.disturbance, keys.to(self.device), self.dtype)
+        self._episode_return = torch.zeros_like(self._episode_return)
+        self._last_action = torch.zeros_like(self._last_action)
+        return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
 
     def _start_disturbances(self, shape: tuple[int, ...]) -> disturbances.Internal:
         """Fresh episodes' disturbances: one key per episode, drawn right after its start state."""
@@ -542,6 +563,8 @@ class DroneEnv(EnvBase):
             "terminated": (done if terminated is None else terminated).unsqueeze(-1),
             "truncated": (done if truncated is None else truncated).unsqueeze(-1),
         }
+        if self._disturbed:
+            out["state"] = self._state.clone()
         if reward is not None:
             out["reward"] = reward.unsqueeze(-1)
         return TensorDict(out, batch_size=self.batch_size, device=self.device)

@@ -19,7 +19,10 @@ from typing import NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.dynamics import TerminationCause
 
 # state [*B, 6], step index -> (action [*B, 2], next state [*B, 6], reward [*B], cause [*B])
@@ -104,14 +107,20 @@ class Episodes(NamedTuple):
         go on after its first ``done``, repeating or starting a new episode: that part is dropped)."""
         done = rollout.get(("next", "done")).squeeze(-1)
         length = ((done.cumsum(-1) - done.to(torch.int64)) == 0).sum(-1)  # up to the first done
-        next_obs = rollout.get(("next", "observation"))
-        states = torch.cat([rollout.get("observation"), next_obs[..., -1:, :]], -2)
+        # A disturbed env's observation is a measurement; its "state" entry is the true state.
+        key = "state" if "state" in rollout else "observation"
+        next_obs = rollout.get(("next", key))
+        states = torch.cat([rollout.get(key), next_obs[..., -1:, :]], -2)
         # The state after each row's last step (the rows that end early may repeat after it).
         at = length.reshape(*length.shape, 1, 1).expand(*length.shape, 1, states.shape[-1])
         states = states.scatter(-2, at, next_obs.gather(-2, (at - 1).clamp_min(0)))
         reward = rollout.get(("next", "reward")).squeeze(-1)
         cause = rollout.get(("next", "termination_cause")).squeeze(-1)
-        return cls.from_steps(states, rollout.get("action"), reward, cause, length)
+        episodes = cls.from_steps(states, rollout.get("action"), reward, cause, length)
+        if key == "state":
+            seen = rollout.get("observation")
+            episodes = episodes._replace(observation=torch.where(episodes.valid().unsqueeze(-1), seen, 0.0))
+        return episodes
 
     def as_rollout(self, max_steps: int) -> TensorDict:
         """The ``[*B, T]`` tensordict of ``EnvBase.rollout(..., break_when_all_done=True)``, cut after the
@@ -189,3 +198,31 @@ def fly_episodes(chunk: ChunkFn, start: torch.Tensor, max_steps: int, steps_per_
     # Each row's episode ends at its first termination (the rows stepped on after it are dropped).
     length = torch.where(terminated.any(-1), terminated.int().argmax(-1) + 1, cause.shape[-1])
     return Episodes.from_steps(states, action.movedim(0, -2), reward.movedim(0, -1), cause, length)
+
+
+@torch.no_grad()
+def fly_reference(
+    policy: TensorDictModuleBase,
+    start: torch.Tensor,
+    keys: torch.Tensor | None = None,
+    device: str | torch.device = "cpu",
+    **env_kwargs,
+) -> Episodes:
+    """The deterministic episodes of a TensorDict policy (an actor, the PD or PID controller, a
+    replayed plan) from ``start`` (``[*B, 6]``; under disturbances with episode ``keys`` ``[*B]``),
+    flown by the reference: a ``DroneEnv(batch_size=B, **env_kwargs)`` and TorchRL's rollout, one
+    episode per row."""
+    env = DroneEnv(batch_size=list(start.shape[:-1]), device=device, **env_kwargs)
+    if callable(reset := getattr(policy, "reset", None)):
+        reset()  # a stateful controller (the PID's integrals) starts new episodes
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        rollout = env.rollout(
+            env.max_steps,
+            policy,
+            auto_reset=False,
+            tensordict=env.reset_to(start, keys),
+            break_when_any_done=False,
+            break_when_all_done=True,
+        )
+    env.close()
+    return Episodes.from_rollout(rollout)
