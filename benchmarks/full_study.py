@@ -67,7 +67,7 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, help="the compilation caches (default: <out>/cache)")
     parser.add_argument("--cold", action="store_true", help="empty the compilation caches first")
     parser.add_argument("--peer", action="store_true", help="also time the JAX peer's study")
-    parser.add_argument("overrides", nargs="*", help="Hydra overrides for both sweeps, e.g. compile=true")
+    parser.add_argument("overrides", nargs="*", help="Hydra overrides for both sweeps, e.g. eval.video=false")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     cache = (args.cache or args.out / "cache").resolve()

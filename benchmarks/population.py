@@ -3,12 +3,12 @@
     python benchmarks/population.py                          # 1, 16, 32, 256, 1024 agents, CPU
     python benchmarks/population.py --agents 32 1024 --device cuda
 
-One update = every agent's episode (300 steps: termination is switched off here, in the PyTorch
-dynamics and in the C++ kernels' bounds alike, so that the work per update does not depend on how
-well the agents fly), REINFORCE loss and gradient, per-agent clipping and Adam, and the run records
-(CSV rows and TensorBoard scalars buffered every update, written at the end). ``--per-call``
-updates run per call of the update (the training loop runs up to ``updates_per_call``).
-``compile=true`` (the default; ``--eager`` for false) is the C++ kernels on the CPU.
+One update = every agent's episode (300 steps: termination is switched off here, in the C++
+kernels' bounds, so that the work per update does not depend on how well the agents fly),
+REINFORCE loss and gradient, per-agent clipping and Adam, and the run records (CSV rows and
+TensorBoard scalars buffered every update, written at the end), on the fast engine (backend=fast).
+``--per-call`` updates run per call of the update (the training loop runs up to
+``trainer.MAX_UPDATES_PER_CALL``).
 Prints the median time per update over ``--repeats`` runs, the time per agent, the share of the
 update spent in recording, and the ratio to the smallest population timed in the same run. The
 populations are timed in turns (one run of each size per round), so that a slow spell of a shared
@@ -28,14 +28,9 @@ from pathlib import Path
 import torch
 import train_speed  # noqa: E402  (the script beside this one: python benchmarks/population.py)
 
-from drone_torchrl.envs import dynamics
 from drone_torchrl.training import run as run_module
 from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.trainer import Trainer
-
-
-def never_terminate(state: torch.Tensor, params: dynamics.DroneParams) -> torch.Tensor:
-    return torch.zeros(state.shape[:-1], dtype=torch.int64, device=state.device)
 
 
 def unbounded_constants(*args, **kwargs) -> torch.Tensor:
@@ -49,9 +44,9 @@ def unbounded_constants(*args, **kwargs) -> torch.Tensor:
     return env
 
 
-def config(device: str, compile_step: bool, threads: int):
-    """train_speed's benchmark config on ``device``, buffers flushed only at the end."""
-    cfg = train_speed.config(compile_step, threads)
+def config(device: str, threads: int):
+    """train_speed's benchmark config on ``device`` (backend=fast), buffers flushed only at the end."""
+    cfg = train_speed.config("fast", threads)
     cfg.device = device
     cfg.logger.flush_every_s = 1e9
     return cfg
@@ -106,17 +101,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--eager", action="store_true", help="compile=false: the PyTorch update")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    # Every episode flies max_steps steps, in the PyTorch dynamics and in the kernels.
-    dynamics.termination_cause = never_terminate
+    # Every episode flies max_steps steps.
     global _env_constants
     from drone_torchrl.kernels import ops
 
     _env_constants = ops.env_constants
     ops.env_constants = unbounded_constants
-    cfg = config(args.device, not args.eager, args.threads)
+    cfg = config(args.device, args.threads)
     device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     # The populations take turns, one run each per round: a slow spell of a shared machine then
     # slows every size alike instead of one, and the ratios between sizes stay meaningful.
@@ -130,7 +123,7 @@ def main() -> None:
     ]
     base_n, base_t, _ = rows[0]
     print(
-        f"\n{device_name}, torch threads {args.threads}, compile={not args.eager}, 300-step episodes, "
+        f"\n{device_name}, torch threads {args.threads}, backend=fast, 300-step episodes, "
         f"one episode per agent per update; median of {args.repeats} runs x {args.updates} calls "
         f"of {args.per_call} updates\n"
     )

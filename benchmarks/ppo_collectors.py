@@ -1,4 +1,4 @@
-"""PPO's batches: TorchRL's Collector over DroneEnv against the fused engine's (``algo.collector``).
+"""PPO's batches: TorchRL's Collector over DroneEnv (backend=reference) against the fast engine's.
 
     python benchmarks/ppo_collectors.py                       # hover_optimal's 64 drones x 64 steps
     python benchmarks/ppo_collectors.py --checkpoint outputs/<date>/<time>   # a trained policy
@@ -9,8 +9,8 @@ log-probabilities are included; the learner's private ``_batches`` and ``_learn`
 halves of its update) and one learning step on it (GAE and the minibatch epochs of
 ``OnPolicy._learn``), medians over ``--repeats`` batches after ``--warmup`` (learning: over
 ``--learn-repeats``). The policy is the run's fresh one (short episodes from the floor) or a
-checkpoint's (full-length ones). Prints milliseconds per batch and the fused collector's speed-up
-over TorchRL's, timed in the same run.
+checkpoint's (full-length ones). Prints milliseconds per batch and the fast engine's speed-up over
+TorchRL's collector, timed in the same run.
 """
 
 from __future__ import annotations
@@ -32,9 +32,9 @@ from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.training.jobs import prepare
 
 
-def _learner(collector: str, overrides: list[str], run_dir: Path) -> OnPolicy:
+def _learner(backend: str, overrides: list[str], run_dir: Path) -> OnPolicy:
     with initialize_config_dir(config_dir(), version_base="1.3"):
-        cfg = compose("config", overrides=[*overrides, f"algo.collector={collector}"])
+        cfg = compose("config", overrides=[*overrides, f"backend={backend}"])
     job = prepare(cfg, run_dir)
     return algorithms.get(cfg.algo.name).learner([job])
 
@@ -64,7 +64,7 @@ def main() -> None:
     overrides = [f"experiment={args.experiment}", "eval.video=false", "progress=false", *args.overrides]
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for collector in ("torchrl", "fused"):
+        for collector in ("reference", "fast"):
             learner = _learner(collector, overrides, Path(tmp) / collector)
             if args.checkpoint is not None:
                 path = Path(args.checkpoint)
@@ -87,8 +87,8 @@ def main() -> None:
     for name, (collect, learn, done) in rows.items():
         print(f"{name:<10} {collect:>11.1f} {learn:>9.1f} {done:>15.0f}")
     print(
-        f"fused collection: {rows['torchrl'][0] / rows['fused'][0]:.1f}x TorchRL's Collector; "
-        f"a batch with learning: {sum(rows['torchrl'][:2]) / sum(rows['fused'][:2]):.2f}x"
+        f"fast collection: {rows['reference'][0] / rows['fast'][0]:.1f}x TorchRL's Collector; "
+        f"a batch with learning: {sum(rows['reference'][:2]) / sum(rows['fast'][:2]):.2f}x"
     )
 
 

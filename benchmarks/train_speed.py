@@ -1,15 +1,15 @@
-"""Training throughput: the TorchRL reference collector against the vectorised one with 1 ... 128 agents.
+"""Training throughput: the reference backend (TorchRL, one agent) against the fast one with 1 ... 128 agents.
 
-    python benchmarks/train_speed.py                      # 1, 4, 32, 128 agents, eager
-    python benchmarks/train_speed.py --agents 1 32 --compile --updates 20
+    python benchmarks/train_speed.py                      # 1, 4, 32, 128 agents
+    python benchmarks/train_speed.py --agents 1 32 --updates 20
 
-Every configuration runs the same loop (``Trainer.step``: collect, REINFORCE loss, Adam, run record
-with CSV and TensorBoard; paper settings, one episode per update); only the collector differs. On
+Every configuration runs the same loop (``Trainer.step``: episodes, REINFORCE loss, Adam, run record
+with CSV and TensorBoard; paper settings, one episode per update); only the backend differs. On
 policies that hover from the air reset: the mean head outputs 0.5 (hover thrust) and the std head a
 small std, so episodes last long (150-250 steps; the table prints the mean), as in the second half
 of a paper run, where the time goes.
 Rates count agent-steps (every agent's own env steps) and agent-episodes per second of wall clock,
-medians over ``--repeats``; ratios are to the TorchRL single-agent loop timed in the same run.
+medians over ``--repeats``; ratios are to the reference's single-agent loop timed in the same run.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ def hover_policy(policy: StackedThreeNet) -> None:
         params.get(("std", "bias")).fill_(math.log(math.expm1(HOVER_STD - policy.min_std)))
 
 
-def config(compile_step: bool, threads: int):
+def config(backend: str, threads: int):
     overrides = [
         "env.reset_mode=air",
         "eval.every_episodes=0",
@@ -52,7 +52,7 @@ def config(compile_step: bool, threads: int):
         "eval.video=false",
         "checkpoint.every_episodes=1000000",
         "progress=false",
-        f"compile={str(compile_step).lower()}",
+        f"backend={backend}",
         f"threads={threads}",
     ]
     with initialize_config_dir(config_dir(), version_base="1.3"):
@@ -92,32 +92,27 @@ def main() -> None:
     parser.add_argument("--updates", type=int, default=10, help="timed updates per configuration")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--compile", action="store_true", help="also time the fused engine with compile=true")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
 
     rows = []
-    eager = config(False, args.threads)
-    reference = copy.deepcopy(eager)
-    reference.engine = "torchrl"
+    reference = config("reference", args.threads)
     base = [time_updates(reference, 1, args.updates + 1, 1) for _ in range(args.repeats)]
     base_rate = statistics.median(steps / t for t, steps in base)
     base_eps = statistics.median(args.updates / t for t, _ in base)
-    rows.append(("torchrl", 1, base_rate, base_eps))
-    variants = [("fused", eager)] + ([("fused+compile", config(True, args.threads))] if args.compile else [])
-    for name, cfg in variants:
-        warmup = 2 if cfg.compile else 1
-        for n in args.agents:
-            runs = [time_updates(cfg, n, args.updates + 1, warmup) for _ in range(args.repeats)]
-            rate = statistics.median(steps / t for t, steps in runs)
-            eps = statistics.median(n * args.updates / t for t, _ in runs)
-            rows.append((name, n, rate, eps))
+    rows.append(("reference", 1, base_rate, base_eps))
+    fast = config("fast", args.threads)
+    for n in args.agents:
+        runs = [time_updates(fast, n, args.updates + 1, 1) for _ in range(args.repeats)]
+        rate = statistics.median(steps / t for t, steps in runs)
+        eps = statistics.median(n * args.updates / t for t, _ in runs)
+        rows.append(("fast", n, rate, eps))
 
     print(
         f"\nmedian of {args.repeats} repeats, {args.updates} updates each, torch threads {args.threads}, "
         "hovering policies\n"
     )
-    print("| engine | agents | agent-steps/s | agent-episodes/s | steps/episode | x torchrl |")
+    print("| backend | agents | agent-steps/s | agent-episodes/s | steps/episode | x reference |")
     print("|---|---|---|---|---|---|")
     for name, n, rate, eps in rows:
         print(f"| {name} | {n} | {rate:,.0f} | {eps:,.2f} | {rate / eps:.0f} | {rate / base_rate:.1f}x |")

@@ -12,6 +12,7 @@ import argparse
 import importlib.util
 from pathlib import Path
 
+from drone_torchrl import migrations
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
@@ -105,6 +106,7 @@ def check_composed(overrides: list[str]) -> None:
 
     with initialize_config_dir(config_dir(), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
+    migrations.apply_legacy(cfg)
     validate(cfg)
 
 

@@ -13,8 +13,9 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from drone_torchrl import algorithms, loggers, schema
+from drone_torchrl import algorithms, loggers, migrations, schema
 from drone_torchrl.checks import ConfigError, plain_name
+from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.dynamics import DroneParams
 from drone_torchrl.schema import Rule
@@ -35,6 +36,10 @@ ENV_ADDED = {
         if f.name in ENV_ARGS and (rule := f.metadata.get(schema.RULE)) is not None and rule.is_added
     },
 }
+
+
+# Resolvers the configs use (registered at import: every process that composes imports this module).
+OmegaConf.register_new_resolver("drone_torchrl.job_dirname", migrations.job_dirname, replace=True)
 
 
 def config_dir() -> str:
@@ -321,6 +326,8 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
         values = (
             list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
         )
+        if key.startswith(f"{migrations.LEGACY}.") and migrations.is_old_key(key.split(".", 1)[1]):
+            continue  # an old key, passed on as +legacy.<key> (drone_torchrl.migrations.legacy_arguments)
         if key.split(".")[0].split("/")[0] == _HYDRA_PREFIX:
             if key in ("hydra.run.dir", "hydra.sweep.dir"):
                 for value in values:
@@ -417,10 +424,12 @@ def check_command_line(prog: str, name: str) -> None:
 
 
 def run_config(saved: dict[str, Any]) -> DictConfig:
-    """The config stored in a checkpoint, with keys added since filled in with the value those runs
-    behaved as (the schema's ``added``; only the keys of its plug-ins: a PPO run has no REINFORCE
-    optimizer keys), so old runs can still be evaluated and resumed."""
-    cfg = OmegaConf.create(saved)
+    """The config stored in a checkpoint, in today's keys: those replaced since read as their new ones
+    (:func:`drone_torchrl.migrations.migrate_config`: ``engine`` as ``backend``...), and keys added
+    since filled in with the value those runs behaved as (the schema's ``added``; only the keys of
+    its plug-ins: a PPO run has no REINFORCE optimizer keys), so old runs can still be evaluated and
+    resumed."""
+    cfg = OmegaConf.create(migrations.migrate_config(saved))
     plugins = {}
     for group, rule in schema.plugin_groups().items():
         key = f"{group}.{rule.plugin_key}"
@@ -548,6 +557,18 @@ def validate(cfg: DictConfig) -> None:
     if error is not None:
         raise ConfigError(error)
     check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
+    if cfg.backend == migrations.FAST:
+        from drone_torchrl.kernels.coverage import fast_refusal
+
+        reason = fast_refusal(
+            cfg.device,
+            cfg.model.hidden_sizes,
+            cfg.model.activation,
+            cfg.env.dtype,
+            disturbances.make(env_kwargs(cfg)["disturbance"]),
+        )
+        if reason is not None:
+            raise ConfigError(f"backend=fast cannot take {reason}; backend=reference takes every option")
     algorithms.get(cfg.algo.name).validate(cfg)
     loggers.check_backend(cfg)
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:

@@ -410,7 +410,9 @@ class _PlanPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         state = tensordict.get("observation")
         t = tensordict.get("step_count").squeeze(-1)
-        motor = self.collective[t.clamp_max(len(self.collective) - 1)] / (ACTION_DIM * torch.cos(state[..., ALPHA]))
+        motor = self.collective[t.clamp_max(len(self.collective) - 1)] / (
+            ACTION_DIM * torch.cos(state[..., ALPHA])
+        )
         planned = motor.unsqueeze(-1).expand(*motor.shape, ACTION_DIM)
         pd = pd_action(state, self.params, self.gains)
         tensordict.set("action", torch.where((t < self.hand_over).unsqueeze(-1), planned, pd))

@@ -45,6 +45,7 @@ from drone_torchrl.envs.dynamics import (
     ZONE_Z_MAX,
     ZONE_Z_MIN,
 )
+from drone_torchrl.migrations import BACKENDS, REFERENCE
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS, MAX_DISTRIBUTION_EPS
 
 # ------------------------------------------------------------------------------------ the bounds
@@ -57,14 +58,8 @@ MAX_SEED = 2**63 - 1
 MAX_PARALLEL_EPISODES = 10_000
 # torch's intra-op threads; far past the cores they only slow it down (and 10^5 crashes it).
 MAX_THREADS = 256
-# Updates per call of the update function: past a few hundred the Python loop is already negligible,
-# and each call holds its updates' metrics in memory.
-MAX_UPDATES_PER_CALL = 10_000
 # An initial exploration std past this is no longer "near the mean": thrusts are fractions of the weight.
 MAX_INIT_STD = 10.0
-# torchrl: TorchRL env + ProbabilisticActor rollouts, the reference collector; fused: many agents
-# stepped as one batch on the shared dynamics, the fast path (drone_torchrl/training/collectors.py).
-ENGINES = ("torchrl", "fused")
 # REINFORCE's optimizers: adam (the paper's text), adamw (decoupled weight decay, the paper's code).
 OPTIMIZERS = ("adam", "adamw")
 # drone-export's file formats: a torch.export program (plain torch) or an ONNX model (onnxruntime and
@@ -298,10 +293,9 @@ class TrainConfig:
     algo: Any = plugin_group("name", added="reinforce")
     logger: Any = plugin_group("backend", added="tensorboard")
     seed: Any = an_integer(low=0, high=MAX_SEED, per_agent=True)
-    engine: Any = one_of(ENGINES, added="torchrl")
-    compile: Any = a_flag(on_resume=IF_SET, added=False)
-    steps_per_call: Any = an_integer(low=1, high="env.max_steps", on_resume=IF_SET, added=1)
-    updates_per_call: Any = an_integer(low=1, high=MAX_UPDATES_PER_CALL, on_resume=IF_SET, added=1)
+    # A run continues with the backend that wrote it (their random draws differ); configs saved
+    # before the key existed name it through engine/algo.collector (drone_torchrl/migrations.py).
+    backend: Any = one_of(BACKENDS, added=REFERENCE)
     device: Any = free(on_resume=PROCESS)
     threads: Any = an_integer(low=1, high=MAX_THREADS, on_resume=PROCESS)
     resume: Any = free(on_resume=PROCESS)

@@ -38,7 +38,6 @@ TINY = [
     "eval.episodes=1",
     "eval.video=false",
     "progress=false",
-    "compile=false",
 ]
 WRITTEN = ("*.pt", "*.csv", "events.out.tfevents*", "*.gif", "*.mp4", "*.png", "*.md", "*.pt2", "*.onnx*")
 
@@ -212,10 +211,10 @@ TRAIN = [
     (["env.disturbance.noise_angle=nan"], "env.disturbance.noise_angle"),
     (["env.disturbance.gusts=0.1"], "env.disturbance.gust"),  # did you mean
     (["env.num_workers=-1"], "env.num_workers"),
-    (["env.num_workers=2"], "env.num_workers"),  # engine=fused has no worker processes
-    (["engine=torchrl", "env.num_workers=3", "algo.episodes_per_update=2"], "env.num_workers"),
+    (["env.num_workers=2"], "env.num_workers"),  # backend=fast has no worker processes
+    (["backend=reference", "env.num_workers=3", "algo.episodes_per_update=2"], "env.num_workers"),
     # the process
-    (["engine=jax"], "engine"),
+    (["backend=jax"], "backend"),
     (["seed=-1"], "seed"),
     (["seed=1.5"], "seed"),
     (["seed=abc"], "seed"),
@@ -223,15 +222,10 @@ TRAIN = [
     (["seed=9223372036854775808"], "seed"),
     (["threads=0"], "threads"),
     (["threads=abc"], "threads"),
-    (["steps_per_call=0"], "steps_per_call"),
-    (["steps_per_call=301"], "steps_per_call"),  # more than env.max_steps
-    (["steps_per_call=2.5"], "steps_per_call"),
     (["device=cuda:0" if not torch.cuda.is_available() else "device=cuda:999"], "device"),
     (["device=tpu"], "device"),
     (["device=mps"], "device"),  # a torch device this code does not run on: was a traceback
     (["device=meta"], "device"),
-    (["compile=maybe"], "compile"),
-    (["compile=off"], "compile"),
     (["progress=sometimes"], "progress"),
     # checkpoints, evaluation, metrics, logging
     (["checkpoint.every_episodes=0"], "checkpoint.every_episodes"),
@@ -273,8 +267,7 @@ TRAIN = [
     (["algo=ppo", "algo.value_hidden_sizes=[]"], "algo.value_hidden_sizes"),
     (["algo=ppo", "algo.anneal_lr=off"], "algo.anneal_lr"),
     (["algo=ppo", "env.num_workers=2"], "env.num_workers"),
-    (["algo=ppo", "algo.collector=jax"], "algo.collector"),
-    (["algo=ppo", "algo.collector=fused", "disturbance=mild"], "algo.collector"),  # nominal drone only
+    (["algo=ppo", "backend=fast", "disturbance=mild"], "backend"),  # its kernels: the nominal drone
     (["algo=ppo", "+algo.baseline=mean"], "algo.baseline"),  # a REINFORCE key: not PPO's
     (["algo=ppo", "algo.lr=2"], "algo.lr"),
     # A2C (algo=a2c): the on-policy keys; PPO's clipping is not among them
@@ -324,7 +317,7 @@ TRAIN = [
     # a continued run keeps its hyper-parameters (only the budget and logging may change)
     (["resume={run}", "algo.lr=0.5"], "algo.lr"),
     (["resume={run}", "algo.gamma=0.9"], "algo.gamma"),
-    (["resume={run}", "engine=torchrl"], "engine"),
+    (["resume={run}", "backend=reference"], "backend"),
     (["resume={run}", "experiment=bounded"], "model.distribution"),
     (["resume={last}", "env.max_steps=300"], "env.max_steps"),
 ]
@@ -365,7 +358,9 @@ def test_a_logger_whose_extra_is_missing_is_one_line(backend, monkeypatch, tmp_p
 
     extra = loggers.get(backend).extra
     find_spec = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == extra else find_spec(name, *a))
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == extra else find_spec(name, *a)
+    )
     with initialize_config_dir(config_dir(), version_base="1.3"):
         cfg = compose("config", overrides=[*TINY, f"logger={backend}"])
     with pytest.raises(ConfigError) as info:
@@ -542,7 +537,9 @@ E2E = [
     ("drone-train", ["hydra.run.dir={file}"], "hydra.run.dir"),
     ("drone-train", ["resume={payload}"], "payload.pt"),
     ("drone-train", ["resume={run}", "algo.lr=0.5"], "algo.lr"),
-    ("drone-train", ["-m", "hydra/launcher=fused", "engine=torchrl", "seed=0"], "engine"),
+    ("drone-train", ["engine=jax"], "engine"),  # an old key with a value it never took
+    ("drone-train", ["algo=ppo", "algo.collector=jax"], "algo.collector"),
+    ("drone-train", ["engine=torchrl", "backend=fast"], "backend"),  # the old key and the new one
     ("drone-train", ["-m", "seed=0,1", "sweep_name=../../escape"], "sweep_name"),  # wrote outside the folder
     ("drone-eval", ["checkpoint={run}", "env.max_thrust=1.0"], "env.max_thrust"),
     ("drone-eval", ["episodes=0"], "episodes"),

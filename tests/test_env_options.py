@@ -1,5 +1,5 @@
-"""The env's arena, ``bounds`` and ``dtype`` arguments on every engine: DroneEnv, the Gymnasium twin,
-the C++ kernels of the fast engine, and the training engines built from a config.
+"""The env's arena, ``bounds`` and ``dtype`` arguments on both backends: DroneEnv, the Gymnasium twin,
+the C++ kernels of the fast engine, and the learners built from a config.
 
 The boundary cases are hand-made states exactly on a bound, stepped once with the hover command
 (both motors at half the weight): with ``alpha = 0`` and no velocity that step leaves the state
@@ -96,7 +96,7 @@ def test_states_on_a_bound_in_the_gym_twin(bounds, dtype):
     causes, rewards = _expected(bounds)
     for state, cause, reward in zip(_states(dtype), causes, rewards, strict=True):
         env.reset(seed=0)
-        env._state = state.clone()
+        env.env._state = state.clone()  # the one drone of the DroneEnv it adapts
         obs, r, terminated, _, info = env.step([HOVER, HOVER])
         assert (info["termination_cause"], r, terminated) == (C(cause).name, reward, cause != 0)
         assert obs.dtype == env.observation_space.dtype == str(dtype).removeprefix("torch.")
@@ -172,9 +172,10 @@ def test_a_seed_gives_the_same_starts_in_both_envs_and_both_precisions(reset_mod
 @needs_kernels
 @pytest.mark.parametrize("dtype", DTYPES)
 @pytest.mark.parametrize("reset_mode", ["floor", "air"])
-def test_the_kernels_draw_the_fused_engines_starts_bit_for_bit(reset_mode, dtype):
-    """The fast engine draws its start states in the kernel; its PyTorch path (and the collector's
-    draw) from rng.uniform: the same states with the arena's floor and zone, in either precision."""
+def test_the_kernels_draw_the_fast_engines_starts_bit_for_bit(reset_mode, dtype):
+    """The fast engine draws its start states in the kernel, as rng.uniform and
+    dynamics.states_from_uniform define them: the same states with the arena's floor and zone, in
+    either precision."""
     params = physics_params(ARENA)
     seeds, counters, e = torch.tensor([0, 5]), torch.tensor([3, 0]), 4
     flyer = KernelRollout(_hover_policy(2, dtype), params, None, max_steps=1, reset_mode=reset_mode)
@@ -261,39 +262,33 @@ def _config(*overrides: str):
         return compose("config", overrides=["env.max_steps=30", "algo.episodes_per_update=2", *overrides])
 
 
-@pytest.mark.parametrize("compile_", [True, False], ids=["kernels", "pytorch"])
-def test_the_fused_engine_trains_in_float64_end_to_end(compile_):
+@needs_kernels
+def test_the_fast_engine_trains_in_float64_end_to_end():
     """env.dtype=float64: the weights, the flown episodes (states, rewards) and the update's loss
-    and gradient are float64, with the C++ kernels and with the PyTorch code."""
-    from drone_torchrl.training.collectors import VectorisedCollector
+    and gradient are float64 on the C++ engine, with the arena's zone and bounds."""
+    from drone_torchrl.training.collectors import FastCollector
     from drone_torchrl.training.population import Population
     from drone_torchrl.training.update import ReinforceUpdate
 
-    options = ["env.dtype=float64", "env.zone_x_limit=0.6", "env.bounds=strict"]
-    cfg = _config(*options, f"compile={str(compile_).lower()}")
+    cfg = _config("env.dtype=float64", "env.zone_x_limit=0.6", "env.bounds=strict", "backend=fast")
     population = Population([cfg])
-    collector = VectorisedCollector(cfg, population)
-    assert (collector.kernel is not None) == (compile_ and library() is not None)
+    collector = FastCollector(cfg, population)
     assert population.state["params"].dtype == torch.float64
-    assert collector.params.zone_x_limit == 0.6 and collector.params.strict
     update = ReinforceUpdate(cfg, population, collector)
     active = torch.ones(1, dtype=torch.bool)
     update.begin(population.state, 1)
     gradient = update.gradient(population.state, 0, active)
     assert gradient.grad.dtype == gradient.loss.dtype == torch.float64
-    if collector.kernel is None:
-        episodes = collector.collect(0, active)
-    else:
-        start = dynamics.initial_state((1, 2), "floor", torch.Generator().manual_seed(0), dtype=torch.float64)
-        episodes = collector.kernel(start)
+    start = dynamics.initial_state((1, 2), "floor", torch.Generator().manual_seed(0), dtype=torch.float64)
+    episodes = collector.kernel(start)
     assert episodes.states.dtype == episodes.reward.dtype == episodes.action.dtype == torch.float64
 
 
-def test_the_torchrl_engine_flies_float64():
+def test_the_reference_flies_float64():
     from drone_torchrl.training.collectors import TorchRLCollector
     from drone_torchrl.training.population import Population
 
-    cfg = _config("env.dtype=float64", "engine=torchrl")
+    cfg = _config("env.dtype=float64", "backend=reference")
     population = Population([cfg])
     batch = TorchRLCollector(cfg, population).collect(0, torch.ones(1, dtype=torch.bool))
     for key in ("observation", "action", ("next", "reward"), ("next", "observation")):

@@ -44,7 +44,7 @@ def _checkpoint(path: Path, *overrides: str, seed: int = 0) -> Path:
     state = dict.fromkeys(REQUIRED_KEYS)
     state.update(
         format_version=FORMAT_VERSION,
-        engine="fused",
+        backend="fast",
         actor=build_actor(cfg, net).state_dict(),
         optimizer={},
         episodes_done=0,

@@ -20,7 +20,7 @@ from drone_torchrl.config import config_dir
 from drone_torchrl.training.jobs import FAILED_FILE, job_status, sweep_jobs
 
 REPO = Path(__file__).resolve().parents[1]
-TINY = ["algo.episodes=3", "env.max_steps=20", "eval.video=false", "eval.episodes=1", "compile=false"]
+TINY = ["algo.episodes=3", "env.max_steps=20", "eval.video=false", "eval.episodes=1"]
 GRID = ["algo.lr=1e-3,1e-4", "seed=0,1"]  # 2 settings x 2 seeds
 FAILING_GRID = ["algo.gamma=0.9,0.95"]  # the 0.95 job's folder is given a damaged checkpoint first
 DAMAGED = "is not a readable checkpoint"

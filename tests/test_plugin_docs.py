@@ -40,6 +40,8 @@ def test_the_algorithms_benchmark_takes_every_algorithm_option(monkeypatch):
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     real = config._options
-    monkeypatch.setattr(config, "_options", lambda group: [*real(group), *(["sac"] if group == "algo" else [])])
+    monkeypatch.setattr(
+        config, "_options", lambda group: [*real(group), *(["sac"] if group == "algo" else [])]
+    )
     assert module.parse_args([]).algos == [*real("algo"), "sac"]
     assert module.parse_args(["--algos", "sac"]).algos == ["sac"]

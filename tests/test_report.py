@@ -45,7 +45,7 @@ def _save_last_checkpoint(job, config, episodes, final):
     state = dict.fromkeys(REQUIRED_KEYS)
     state.update(
         format_version=FORMAT_VERSION,
-        engine="torchrl",
+        backend="reference",
         actor={},
         optimizer={},
         episodes_done=episodes,
@@ -155,7 +155,6 @@ def test_report_on_a_real_tiny_sweep(tmp_path):
         "env.max_steps=20",
         "eval.video=false",
         "eval.episodes=1",
-        "compile=false",
         f"hydra.sweep.dir={sweep}",
     ]
     subprocess.run(cmd, check=True, capture_output=True, env=env, timeout=300)

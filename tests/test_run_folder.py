@@ -184,12 +184,15 @@ def test_two_processes_on_one_run_folder_then_sigterm_and_resume(tmp_path):
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGUSR1])
-def test_a_signal_stops_a_population_after_the_update_with_checkpoints(tmp_path, signum):
+def test_a_signal_stops_a_population_after_the_update_with_checkpoints(tmp_path, signum, monkeypatch):
     """In process: the signal arrives while update 37 is booked; training stops after that call
     with every agent's checkpoint at the episodes its CSV holds, and resuming completes 0..N-1."""
+    from drone_torchrl.training import trainer as trainer_module
+
+    monkeypatch.setattr(trainer_module, "MAX_UPDATES_PER_CALL", 10)  # calls of 10 updates: 31..40
     budget = 400
     dirs = [tmp_path / f"agent{s}" for s in range(2)]
-    cfgs = [_cfg(f"algo.episodes={budget}", f"seed={s}", "updates_per_call=10") for s in range(2)]
+    cfgs = [_cfg(f"algo.episodes={budget}", f"seed={s}") for s in range(2)]
     record = run_module.RunRecord.record
     before = signal.getsignal(signum)
 

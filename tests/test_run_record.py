@@ -1,4 +1,4 @@
-"""One loop, one run record: regressions found in the two-engine code, and the checkpoint format."""
+"""One loop, one run record: regressions found in the two backends' code, and the checkpoint format."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 
 import drone_torchrl
 from drone_torchrl.config import ConfigError, config_dir
-from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.io.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, save_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.modules import make_actor
@@ -22,8 +21,8 @@ from drone_torchrl.objectives import ReinforceLoss
 from drone_torchrl.training.jobs import job_status, prepare
 from drone_torchrl.training.trainer import Trainer, train
 
-ENGINES = ["torchrl", "fused"]
-FAST = ["compile=false", "progress=false", "eval.episodes=2", "eval.video=false", "env.max_steps=30"]
+BACKENDS = ["reference", "fast"]
+FAST = ["progress=false", "eval.episodes=2", "eval.video=false", "env.max_steps=30"]
 
 
 def _cfg(*overrides: str, name: str = "config"):
@@ -41,14 +40,14 @@ def _tb_steps(run: Path, tag: str) -> list[int]:
     return [e.step for e in events.Scalars(tag)] if tag in events.Tags()["scalars"] else []
 
 
-@pytest.mark.parametrize("engine", ENGINES)
-def test_resume_from_best_forks_and_leaves_the_run_alone(tmp_path, engine, capsys):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_resume_from_best_forks_and_leaves_the_run_alone(tmp_path, backend, capsys):
     """resume=<run>/checkpoints/best.pt used to continue from last.pt (fused engine) or in the parent's
     folder. best.pt here is the episode-2 checkpoint: at lr 1e-9 every evaluation scores the same, and
     best.pt is only replaced by a strictly better one."""
     run, fork = tmp_path / "run", tmp_path / "fork"
     common = [
-        f"engine={engine}",
+        f"backend={backend}",
         "algo.lr=1e-9",
         "eval.every_episodes=2",
         "checkpoint.every_episodes=2",
@@ -206,7 +205,9 @@ def test_the_logger_backends_are_registered():
     names = loggers.BACKENDS.names()
     assert "tensorboard" in names and list(names) == sorted(names)
     assert sorted(options_by_plugin("logger")) == list(names)  # each has its conf/logger option
-    with pytest.raises(ConfigError, match=rf"^logger.backend='{UNREGISTRABLE}' is not allowed; expected one of "):
+    with pytest.raises(
+        ConfigError, match=rf"^logger.backend='{UNREGISTRABLE}' is not allowed; expected one of "
+    ):
         loggers.get(UNREGISTRABLE)
     with pytest.raises(ValueError, match="cannot be registered"):
         loggers.register(loggers.Backend(UNREGISTRABLE, make=None, resume_rule=""))
@@ -220,22 +221,24 @@ def test_fork_needs_a_folder_of_its_own(tmp_path):
         prepare(_cfg(f"resume={run / 'checkpoints' / 'best.pt'}"), run_dir=run)
 
 
-@pytest.mark.parametrize("engine", ENGINES)
-def test_final_evaluation_is_not_repeated(tmp_path, engine):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_final_evaluation_is_not_repeated(tmp_path, backend):
     """algo.episodes a multiple of eval.every_episodes: one evaluation per point, one video each."""
     run = tmp_path / "run"
     train(
-        _cfg(f"engine={engine}", "algo.episodes=4", "eval.every_episodes=2", *FAST, "eval.video=true"),
+        _cfg(f"backend={backend}", "algo.episodes=4", "eval.every_episodes=2", *FAST, "eval.video=true"),
         run_dir=run,
     )
     assert sorted(p.name for p in (run / "videos").iterdir()) == ["episode_000002.mp4", "episode_000004.mp4"]
     assert _tb_steps(run, "eval/return") == [2, 4]
 
 
-def test_torchrl_engine_with_worker_processes(tmp_path):
+def test_reference_backend_with_worker_processes(tmp_path):
     """env.num_workers=1 with 2 episodes per update used to crash inside TorchRL after the folder was written."""
     run = tmp_path / "run"
-    cfg = _cfg("engine=torchrl", "env.num_workers=1", "algo.episodes_per_update=2", "algo.episodes=4", *FAST)
+    cfg = _cfg(
+        "backend=reference", "env.num_workers=1", "algo.episodes_per_update=2", "algo.episodes=4", *FAST
+    )
     train(cfg, run_dir=run)
     rows, _ = read_episodes(run / "episodes.csv")
     assert rows["episode"].tolist() == [0, 1, 2, 3]
@@ -251,26 +254,25 @@ def test_torchrl_engine_with_worker_processes(tmp_path):
             "env.num_workers=2 is not allowed; expected a divisor",
         ),
         (
-            ["engine=fused", "env.num_workers=1"],
-            "env.num_workers=1 is not allowed; expected 0 with engine='fused'",
+            ["backend=fast", "env.num_workers=1"],
+            "env.num_workers=1 is not allowed; expected 0 with backend=fast",
         ),
     ],
 )
 def test_worker_settings_refused_before_any_work(tmp_path, overrides, message):
-    cfg = _cfg("engine=torchrl", *overrides, *FAST)
+    cfg = _cfg("backend=reference", *overrides, *FAST)
     with pytest.raises(ConfigError, match=message):
         train(cfg, run_dir=tmp_path / "run")
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("preset", ["paper", "bounded"])
-def test_population_loss_equals_the_torchrl_actor_loss(tmp_path, preset, engine):
+def test_population_loss_equals_the_torchrl_actor_loss(tmp_path, preset):
     """On one stored rollout (sampled by the TorchRL env + actor), the loop's loss over the stacked
     population actor equals ReinforceLoss over a plain make_actor() with the same weights: same
-    loss, same gradient."""
+    loss, same gradient. (The fast engine's loss and gradient: tests/test_kernels.py.)"""
     common = [
-        f"engine={engine}",
+        "backend=reference",
         f"experiment={preset}",
         "algo.episodes_per_update=3",
         "algo.baseline=mean",
@@ -278,16 +280,10 @@ def test_population_loss_equals_the_torchrl_actor_loss(tmp_path, preset, engine)
     ]
     cfg = _cfg(*common)
     trainer = Trainer([prepare(cfg, tmp_path / "run")])
-    reference = Trainer([prepare(_cfg(*common, "engine=torchrl"), tmp_path / "ref")])
-    batch = reference.learner.collector.collect(0, torch.ones(1, dtype=torch.bool))  # [1, 3, T]
+    batch = trainer.learner.collector.collect(0, torch.ones(1, dtype=torch.bool))  # [1, 3, T]
     assert batch.shape[:2] == (1, 3)
-    reference.close()
-
     update, policy = trainer.learner.update, trainer.population.policy
-    if engine == "torchrl":  # ReinforceLoss through the population's ProbabilisticActor
-        loss, _, _ = update._score_rollout(batch.clone())
-    else:  # the same arithmetic on plain tensors, the network and distribution called directly
-        loss, _, _ = update._score_episodes(Episodes.from_rollout(batch))
+    loss, _, _ = update._score_rollout(batch.clone())  # ReinforceLoss through the population's actor
     policy.flat.grad = None
     loss["loss_reinforce"].backward()
     grads = policy.views(policy.flat.grad)
@@ -327,18 +323,18 @@ class _Payload:
         return (open, (self.marker, "w"))
 
 
-@pytest.mark.parametrize("engine", ENGINES)
-def test_checkpoints_are_tensors_and_plain_data(tmp_path, engine):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_checkpoints_are_tensors_and_plain_data(tmp_path, backend):
     run = tmp_path / "run"
-    train(_cfg(f"engine={engine}", "algo.episodes=2", *FAST), run_dir=run)
+    train(_cfg(f"backend={backend}", "algo.episodes=2", *FAST), run_dir=run)
     state = torch.load(run / "checkpoints" / "last.pt", weights_only=True)
-    assert state["format_version"] == FORMAT_VERSION == 2
+    assert state["format_version"] == FORMAT_VERSION == 3
     assert isinstance(state["config"], dict) and state["config"]["seed"] == 0
     assert all(v is None or isinstance(v, torch.Tensor) for v in state["rng"].values())
     # The TorchRL collector samples from torch's RNG and the env's generator; the fast path's
     # counter-based noise needs no state beyond the update count.
     has_state = {k: v is not None for k, v in state["rng"].items()}
-    assert has_state == {"torch": engine == "torchrl", "env": engine == "torchrl", "agent": False}
+    assert has_state == {"torch": backend == "reference", "env": backend == "reference", "agent": False}
 
 
 def test_a_crafted_checkpoint_runs_no_code(tmp_path):
@@ -364,7 +360,7 @@ def test_a_crafted_checkpoint_runs_no_code(tmp_path):
 
 def test_version_1_checkpoints_are_migrated_and_resume(tmp_path):
     """A checkpoint written before format_version existed (RNG states under *_rng, no final key)."""
-    common = ["engine=torchrl", "checkpoint.every_episodes=2", "eval.every_episodes=0", *FAST]
+    common = ["backend=reference", "checkpoint.every_episodes=2", "eval.every_episodes=0", *FAST]
     whole, old = tmp_path / "whole", tmp_path / "old"
     train(_cfg("algo.episodes=4", *common), run_dir=whole)
     train(_cfg("algo.episodes=4", *common), run_dir=old)
@@ -376,6 +372,7 @@ def test_version_1_checkpoints_are_migrated_and_resume(tmp_path):
     rng = state.pop("rng")
     state.pop("format_version")
     state.pop("final")
+    state.pop("backend")  # version 1 had no engine key either (the reference's loop was the only one)
     state.update(torch_rng=rng["torch"], env_rng=rng["env"], agent_rng=rng["agent"])
     torch.save(state, last)
 
@@ -393,7 +390,7 @@ def test_version_1_checkpoints_are_migrated_and_resume(tmp_path):
 def test_unknown_checkpoint_versions_are_refused_in_one_line(tmp_path):
     path = tmp_path / "future.pt"
     save_checkpoint({"format_version": 99, "actor": {}, "config": {}}, path)
-    with pytest.raises(CheckpointError, match=rf"^{path} has format_version=99; .* reads 1 and 2$"):
+    with pytest.raises(CheckpointError, match=rf"^{path} has format_version=99; .* reads 1 to 3$"):
         load_checkpoint(path)
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"not a checkpoint")
@@ -506,7 +503,10 @@ def test_every_run_closes_its_logger_once_saying_how_it_ended(tmp_path, monkeypa
     monkeypatch.setattr(run_module, "make_logger", lambda cfg, d, at: _ClosingSpy(real(cfg, d, at), d))
     _ClosingSpy.closed = []
     jobs = [
-        prepare(_cfg(f"algo.episodes={budget}", "checkpoint.every_episodes=2", *FAST, f"seed={s}"), tmp_path / f"a{s}")
+        prepare(
+            _cfg(f"algo.episodes={budget}", "checkpoint.every_episodes=2", *FAST, f"seed={s}"),
+            tmp_path / f"a{s}",
+        )
         for s, budget in enumerate((12, 12, 4))
     ]
     trainer = Trainer(jobs)

@@ -68,9 +68,6 @@ def test_per_agent_keys():
 PROCESS_KEYS = ("progress", "threads", "device", "resume")
 RESUME_KEYS = (
     "algo.episodes",
-    "compile",
-    "steps_per_call",
-    "updates_per_call",
     "sweep_name",
     "logger.",
     "checkpoint.",
@@ -107,8 +104,7 @@ def test_resume_rules_are_those_of_the_lists_they_replace():
 # The keys added since the first runs, with the value those runs behaved as (ADDED_KEYS of
 # drone_torchrl/config.py before the rules were the schema's).
 ADDED_KEYS = {
-    "engine": "torchrl",
-    "compile": False,
+    "backend": "reference",  # engine before it (drone_torchrl/migrations.py); the first runs: torchrl
     "logger.every_updates": 1,
     "logger.video_stride": 1,
     "algo.optimizer": "adam",
@@ -116,9 +112,7 @@ ADDED_KEYS = {
     "logger.flush_every_s": 10,
     "algo.name": "reinforce",
     "model.init_std": None,
-    "steps_per_call": 1,
     "algo.log_prob_reduction": "sum",
-    "updates_per_call": 1,
     "logger.backend": "tensorboard",
     "env.x_limit": 2.0,
     "env.z_min": 0.0,

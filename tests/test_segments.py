@@ -1,4 +1,4 @@
-"""algo.collector=fused: the on-policy batches the fused engine flies
+"""backend=fast: the on-policy batches the fast engine flies
 (drone_torchrl/training/segments.py) are the TorchRL collector's: the env's physics on every frame,
 auto-reset, truncation at env.max_steps, episodes carried across batches."""
 
@@ -26,7 +26,7 @@ def _cfg(*overrides: str):
             overrides=[
                 "algo=ppo",
                 "experiment=bounded",
-                "algo.collector=fused",
+                "backend=fast",
                 "algo.num_envs=16",
                 "algo.steps_per_batch=32",
                 f"env.max_steps={MAX_STEPS}",
@@ -106,17 +106,6 @@ def test_actions_are_draws_of_the_current_policy_and_log_probs_are_its_density()
         assert stored.shape == (16, 32) and bool(stored.isfinite().all())
 
 
-def test_the_kernel_flies_what_the_pytorch_rollout_flies():
-    """compile=true (the C++ kernel) and compile=false (the PyTorch rollout) give the same batches
-    for the same seed, to float rounding."""
-    kernel, _ = _batches(_cfg("compile=true"), 2)
-    eager, _ = _batches(_cfg("compile=false"), 2)
-    for a, b in zip(kernel, eager, strict=True):
-        assert torch.equal(a["next", "done"], b["next", "done"])
-        torch.testing.assert_close(a["action"], b["action"], atol=1e-4, rtol=1e-4)
-        torch.testing.assert_close(a["next", "observation"], b["next", "observation"], atol=1e-4, rtol=1e-4)
-
-
 def test_the_tracker_books_each_episode_once_with_its_return():
     """EpisodeTracker over the batches books every finished episode; their returns add up to the
     rewards of the frames before the last episode end of each drone."""
@@ -135,7 +124,9 @@ def test_the_tracker_books_each_episode_once_with_its_return():
     assert sum(booked) == pytest.approx(float(reward[before].sum()), rel=1e-6)
 
 
-def test_fused_batches_are_refused_under_disturbances_in_one_line():
+def test_fast_batches_are_refused_under_disturbances_in_one_line():
     cfg = _cfg("disturbance=mild")
-    with pytest.raises(ConfigError, match=r"^algo.collector='fused' is not allowed; expected torchrl under"):
+    with pytest.raises(
+        ConfigError, match=r"^backend=fast cannot take env.disturbance.\* .*backend=reference"
+    ):
         validate(cfg)

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.slurm
 
 UNAVAILABLE = Path(os.environ.get("DRONE_SLURM_DIR", "/tmp/drone-slurm")) / "unavailable"
 BIN = Path(sys.executable).parent
-QUICK = ["compile=false", "eval.video=false", "progress=false", "eval.every_episodes=0"]
+QUICK = ["eval.video=false", "progress=false", "eval.every_episodes=0"]
 
 
 def _cluster_reason() -> str | None:

@@ -57,7 +57,7 @@ def served(tmp_path_factory):
         [
             sys.executable, "-m", "drone_torchrl.apps.train", "-m", *GRID, "hydra/launcher=fused",
             f"hydra.sweep.dir={sweep}", "algo.episodes=4", "env.max_steps=30", "eval.every_episodes=2",
-            "eval.episodes=1", "compile=false", "progress=false", "logger.flush_every_s=0",
+            "eval.episodes=1", "progress=false", "logger.flush_every_s=0",
         ],
         check=True, capture_output=True, text=True, timeout=300, cwd=root,
     )  # fmt: skip

@@ -16,8 +16,8 @@ from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_COLUMNS, read_episodes
 from drone_torchrl.training.trainer import train
 
-FAST = ["eval.episodes=2", "eval.video=false", "progress=false", "compile=false"]
-ENGINES = ["torchrl", "fused"]
+FAST = ["eval.episodes=2", "eval.video=false", "progress=false"]
+BACKENDS = ["reference", "fast"]
 
 
 def _cfg(*overrides: str, name: str = "config"):
@@ -100,13 +100,12 @@ def test_cli_bad_value_is_one_line_and_nonzero(tmp_path):
         assert override.split("=")[0] in lines[0]
 
 
-@pytest.mark.parametrize("engine", ENGINES)
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("preset", ["paper", "bounded"])
-def test_smoke_run_writes_everything_and_resumes(tmp_path, preset, engine):
+def test_smoke_run_writes_everything_and_resumes(tmp_path, preset, backend):
     run = tmp_path / preset
     cfg = _cfg(
-        f"engine={engine}",
-        "compile=false",
+        f"backend={backend}",
         f"experiment={preset}",
         "algo.episodes=6",
         "algo.episodes_per_update=2",
@@ -135,11 +134,11 @@ def test_smoke_run_writes_everything_and_resumes(tmp_path, preset, engine):
     assert load_checkpoint(run / "checkpoints" / "last.pt")["updates_done"] == 5
 
 
-@pytest.mark.parametrize("engine", ENGINES)
-def test_resume_after_a_kill_repeats_only_episodes_since_the_checkpoint(tmp_path, engine):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_resume_after_a_kill_repeats_only_episodes_since_the_checkpoint(tmp_path, backend):
     """A run stopped after its checkpoint at episode 4 and resumed equals one uninterrupted run."""
     common = [
-        f"engine={engine}",
+        f"backend={backend}",
         "env.max_steps=30",
         "checkpoint.every_episodes=4",
         "eval.every_episodes=0",
@@ -170,14 +169,14 @@ def test_drone_eval_compares_with_pd(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("engine", ENGINES)
-def test_reinforce_learns_to_stay_up(tmp_path, engine):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_reinforce_learns_to_stay_up(tmp_path, backend):
     """From the floor with zero-mean thrust the drone hits the floor after ~6 steps (z_n = -g dt^2
     n(n+1)/2 passes -0.05 m at n = 5); 150 updates at alpha 1e-3 must keep it up several times longer."""
     run = tmp_path / "learn"
     train(
         _cfg(
-            f"engine={engine}",
+            f"backend={backend}",
             "algo.episodes=150",
             "algo.lr=1e-3",
             "env.max_steps=60",
@@ -204,7 +203,6 @@ def test_console_scripts_run_from_any_folder(tmp_path):
     proc = subprocess.run(
         [
             str(train_cmd),
-            "compile=false",
             "algo.episodes=2",
             "env.max_steps=10",
             "eval.video=false",
@@ -238,15 +236,15 @@ def test_console_scripts_run_from_any_folder(tmp_path):
 
 
 def test_checkpoints_from_before_later_keys_still_evaluate_and_resume(tmp_path):
-    """A checkpoint whose config predates engine/compile/logger.every_updates: filled with the old behaviour."""
+    """A checkpoint whose config predates backend (and engine) and logger.every_updates: filled with the
+    old behaviour (the reference's loop, one update per log)."""
     from drone_torchrl.comparison import run_eval
 
     run = tmp_path / "old"
-    train(_cfg("engine=torchrl", "algo.episodes=2", "env.max_steps=20", *FAST), run_dir=run)
+    train(_cfg("backend=reference", "algo.episodes=2", "env.max_steps=20", *FAST), run_dir=run)
     path = run / "checkpoints" / "last.pt"
     ckpt = load_checkpoint(path)
-    for key in ("engine", "compile"):
-        del ckpt["config"][key]
+    del ckpt["config"]["backend"]
     del ckpt["config"]["logger"]["every_updates"]
     torch.save(ckpt, path)
     results = run_eval(_cfg(f"checkpoint={run}", "episodes=2", "video=false", "plot=false", name="eval"))
@@ -255,17 +253,17 @@ def test_checkpoints_from_before_later_keys_still_evaluate_and_resume(tmp_path):
     assert load_checkpoint(path)["episodes_done"] == 3
 
 
-@pytest.mark.parametrize("engine", ENGINES)
-def test_progress_bar_shows_the_running_mean_return(tmp_path, capsys, engine):
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_progress_bar_shows_the_running_mean_return(tmp_path, capsys, backend):
     fast = [o for o in FAST if not o.startswith("progress")]
     train(
-        _cfg(f"engine={engine}", "algo.episodes=3", "env.max_steps=10", "progress=true", *fast),
+        _cfg(f"backend={backend}", "algo.episodes=3", "env.max_steps=10", "progress=true", *fast),
         run_dir=tmp_path,
     )
     err = capsys.readouterr().err
     assert "3/3" in err and "return(100)=" in err
     train(
-        _cfg(f"engine={engine}", "algo.episodes=3", "env.max_steps=10", "progress=auto", *fast),
+        _cfg(f"backend={backend}", "algo.episodes=3", "env.max_steps=10", "progress=auto", *fast),
         run_dir=tmp_path / "q",
     )
     assert "return(100)=" not in capsys.readouterr().err  # quiet when stderr is not a terminal

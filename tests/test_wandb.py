@@ -237,6 +237,8 @@ def test_online_without_credentials_is_refused_before_any_work(tmp_path, monkeyp
     monkeypatch.delenv("WANDB_API_KEY", raising=False)
     monkeypatch.setenv("HOME", str(tmp_path))  # no ~/.netrc
     monkeypatch.setenv("NETRC", str(tmp_path / "no-netrc"))
-    with pytest.raises(ConfigError, match=r"^logger=wandb in online mode needs W&B credentials.*logger.mode=offline"):
+    with pytest.raises(
+        ConfigError, match=r"^logger=wandb in online mode needs W&B credentials.*logger.mode=offline"
+    ):
         validate(_wandb_cfg("logger.mode=online"))
     validate(_wandb_cfg("logger.mode=offline"))  # offline needs none

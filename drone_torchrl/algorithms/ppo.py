@@ -9,9 +9,8 @@ As in TorchRL's ``sota-implementations/ppo``: a :class:`torchrl.collectors.Colle
 drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` steps; :class:`GAE`
 computes advantages and value targets with the critic; ``algo.epochs`` passes of minibatches drawn
 without replacement from a replay buffer train the three-net actor and the critic with one Adam.
-With ``algo.collector=fused`` the same batches are flown by the fused engine
-(:class:`~drone_torchrl.training.segments.FusedSegments`: the C++ kernel on the CPU), collected
-8-19x faster (README: Benchmarks).
+With ``backend=fast`` the same batches are flown by the C++ engine
+(:class:`~drone_torchrl.training.segments.FusedSegments`), collected 8-19x faster (README: Benchmarks).
 
 It runs in the same training loop as REINFORCE (:class:`~drone_torchrl.training.trainer.Trainer`,
 behind the update contract of :mod:`drone_torchrl.training.update`): each finished episode goes to the same :class:`~.run.RunRecord`
@@ -40,9 +39,9 @@ from torchrl.objectives.value import GAE
 from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import env_kwargs
-from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
+from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
 from drone_torchrl.schema import (
     ADAM_EPS,
@@ -62,15 +61,10 @@ from drone_torchrl.schema import (
     VALUE_HIDDEN_SIZES,
     a_number,
     free,
-    one_of,
     store_plugin,
 )
 from drone_torchrl.training.segments import FusedSegments
 from drone_torchrl.training.update import UpdateOutput
-
-# Who flies the batches (algo.collector): TorchRL's Collector over DroneEnv, or the fused engine's
-# rollout in the same layout (drone_torchrl.training.segments.FusedSegments; the nominal drone only).
-ON_POLICY_COLLECTORS = ("torchrl", "fused")
 
 # Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
 ADVANTAGE_EPS = 1e-8
@@ -97,7 +91,11 @@ class OnPolicy:
     also change what the loss sees of the batch's advantages (:meth:`scale_advantage`) and how the
     gradients are clipped before each step (:meth:`clip_gradients`)."""
 
-    max_agents = 1  # one run per learner: it is a batch of drones already
+    @staticmethod
+    def max_agents(cfg) -> int:
+        """One run per learner: it is a batch of drones already."""
+        return 1
+
     advice = "lower algo.lr"
     episodes_per_update = None  # the episodes a batch finishes vary: one update per call
     eval_agents = None
@@ -134,7 +132,7 @@ class OnPolicy:
         )
         self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=algo.lr, eps=algo.adam_eps)
         frames = algo.num_envs * algo.steps_per_batch
-        self.fused = algo.collector == "fused"
+        self.fused = cfg.backend == FAST
         if self.fused:
             self.collector = FusedSegments(cfg, self.actor_module, net)
             self._generator = self.collector.generator
@@ -291,12 +289,6 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
             cfg.env.num_workers,
             f"0 with algo.name={name} (algo.num_envs drones in one env)",
         )
-    if cfg.algo.collector == "fused" and not disturbances.make(cfg.env.disturbance).nominal:
-        raise ConfigError.of(
-            "algo.collector",
-            "fused",
-            "torchrl under env.disturbance.* (the fused engine flies the nominal drone only)",
-        )
     frames = cfg.algo.num_envs * cfg.algo.steps_per_batch
     if frames % cfg.algo.minibatch_size:
         raise ConfigError.of(
@@ -321,7 +313,6 @@ class OnPolicyConf:
     gamma: Any = GAMMA.field()
     gae_lambda: Any = GAE_LAMBDA.field()
     episodes: Any = EPISODES.field()
-    collector: Any = one_of(ON_POLICY_COLLECTORS, added="torchrl")
     num_envs: Any = NUM_ENVS.field()
     steps_per_batch: Any = STEPS_PER_BATCH.field()
     epochs: Any = EPOCHS.field()

@@ -14,6 +14,7 @@ from typing import Any
 
 from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.migrations import FAST
 from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
 from drone_torchrl.schema import (
     ADAM_EPS,
@@ -37,7 +38,7 @@ from drone_torchrl.training.update import CHECKS, ReinforceUpdate
 
 class Reinforce:
     """REINFORCE as the training loop (:class:`~drone_torchrl.training.trainer.Trainer`) drives it: a group of jobs trained
-    as one population (see :func:`~drone_torchrl.training.jobs.group_key`), with either engine.
+    as one population (see :func:`~drone_torchrl.training.jobs.group_key`), on either backend.
 
     The loop calls :meth:`update` with :attr:`state` and books what it returns; it asks
     :meth:`eval_policy` (for all :attr:`eval_agents` agents at once), :meth:`checkpoint_entries`
@@ -47,7 +48,11 @@ class Reinforce:
     # Why an agent stops (UpdateOutput's checks, in order) and what to do about it.
     checks = CHECKS
     advice = "lower algo.lr (or set algo.max_grad_norm)"
-    max_agents = None  # any number of jobs of one group train together
+
+    @staticmethod
+    def max_agents(cfg) -> int | None:
+        """The jobs of one group trained together: any number on the fast engine, one on the reference."""
+        return None if cfg.backend == FAST else 1
 
     def __init__(self, jobs) -> None:
         cfg = jobs[0].cfg
@@ -86,11 +91,11 @@ def validate(cfg: Mapping[str, Any]) -> None:
             cfg.algo.episodes,
             f"a multiple of algo.episodes_per_update={cfg.algo.episodes_per_update} (every update trains on that many)",
         )
-    if workers and cfg.engine != "torchrl":
+    if workers and cfg.backend == FAST:
         raise ConfigError.of(
             "env.num_workers",
             workers,
-            f"0 with engine={cfg.engine!r} (only engine=torchrl runs a ParallelEnv)",
+            "0 with backend=fast (only backend=reference runs a ParallelEnv)",
         )
     if workers and cfg.algo.episodes_per_update % workers:
         raise ConfigError.of(

@@ -17,6 +17,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from drone_torchrl import migrations
 from drone_torchrl.config import ConfigError, check_command_line, config_dir
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
@@ -89,7 +90,14 @@ def _before_hydra() -> list[Path]:
     (:mod:`drone_torchrl.command_line`); returns the folders claimed. Exits with the message on a bad input."""
     from drone_torchrl import command_line
 
-    args = sys.argv[1:]
+    try:
+        # Old keys (engine=, compile=, ...) work, each with a note naming today's (drone_torchrl.migrations).
+        args, notes = migrations.legacy_arguments(sys.argv[1:])
+    except ValueError as err:
+        sys.exit(f"drone-train: error: {err}")
+    for note in notes:
+        print(f"drone-train: {note}", file=sys.stderr)
+    sys.argv[1:] = args
     try:
         flags = command_line.parse_flags("drone-train", args)
         check_command_line("drone-train", "config")

@@ -260,7 +260,9 @@ def step(
             command - internal.thrust
         )
     force = internal.draw.wind + internal.gust
-    next_state = dynamics.integrate(state, thrust * internal.draw.gain, params, force, internal.draw.mass_ratio)
+    next_state = dynamics.integrate(
+        state, thrust * internal.draw.gain, params, force, internal.draw.mass_ratio
+    )
     cause = dynamics.termination_cause(next_state, params)
     reward = dynamics.reward(next_state, cause != int(dynamics.TerminationCause.NONE), params)
     gust = internal.gust

@@ -450,7 +450,9 @@ class DroneEnv(EnvBase):
             device=self.device,
         )
         if self._disturbed:  # the observation is a measurement: the true state too, for the record
-            self.observation_spec["state"] = Unbounded(shape=(*bs, STATE_DIM), dtype=self.dtype, device=self.device)
+            self.observation_spec["state"] = Unbounded(
+                shape=(*bs, STATE_DIM), dtype=self.dtype, device=self.device
+            )
         if self.max_thrust is None:
             self.action_spec = Unbounded(shape=(*bs, ACTION_DIM), dtype=self.dtype, device=self.device)
         else:

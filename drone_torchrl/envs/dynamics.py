@@ -154,7 +154,9 @@ def integrate(
         total = action[..., 0] + action[..., 1]
         x_ddot = g * (torch.sin(-alpha) * total + push) / ratio
         z_ddot = g * torch.cos(alpha) * total / ratio - g
-        alpha_ddot = (action[..., 1] - action[..., 0]) * params.weight * params.lever_arm / (params.inertia * ratio)
+        alpha_ddot = (
+            (action[..., 1] - action[..., 0]) * params.weight * params.lever_arm / (params.inertia * ratio)
+        )
     dt = params.dt
     x, x_dot, z, z_dot, alpha, alpha_dot = state.unbind(-1)
     x_dot = x_dot + x_ddot * dt

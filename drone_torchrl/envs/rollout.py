@@ -1,15 +1,10 @@
-"""Fly a batch of drones on the pure dynamics, without ``EnvBase``: the fast path's rollout.
+"""Episodes as plain tensors, one per row: what the fast engine returns, the reference's rollouts read
+as, and the evaluator's, the metrics' and the plots' common layout.
 
-TorchRL's fixed cost per ``EnvBase.step`` (about 0.15-0.35 ms here) is larger than the whole step
-of a small policy on a few hundred drones, so the fast training path and the evaluator call the
-physics of :mod:`drone_torchrl.envs.dynamics` directly. The result has the layout of
-``EnvBase.rollout(..., break_when_all_done=True)`` on :class:`~drone_torchrl.envs.DroneEnv`, so the
-loss, the episode metrics and the plots read both alike.
-
-Steps come in chunks: a :data:`ChunkFn` flies ``k`` steps per call, and the loop asks the device
-whether every episode has ended once per chunk, not once per step. The training engine compiles
-its chunk as one graph (``steps_per_call``), which removes the fixed cost of a compiled call
-(guards, wrappers: about 40 us) from all but one step in ``k``.
+:class:`Episodes` converts from and to the layout of TorchRL's ``EnvBase.rollout(...,
+break_when_all_done=True)`` on :class:`~drone_torchrl.envs.DroneEnv`, so the loss, the episode
+metrics and the plots read both engines' episodes alike. :func:`fly_reference` flies a TensorDict
+policy through the reference (a ``DroneEnv`` and TorchRL's rollout) into this layout.
 """
 
 from __future__ import annotations
@@ -24,25 +19,6 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.dynamics import TerminationCause
-
-# state [*B, 6], step index -> (action [*B, 2], next state [*B, 6], reward [*B], cause [*B])
-StepFn = Callable[[torch.Tensor, int], tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
-# state [*B, 6], first step index t, steps k -> the k steps' (actions [k, *B, 2], states after each
-# step [k, *B, 6], rewards [k, *B], causes [k, *B])
-ChunkFn = Callable[[torch.Tensor, int, int], tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]
-
-
-def chunked(step: StepFn) -> ChunkFn:
-    """A :data:`ChunkFn` that calls ``step`` once per step (the same arithmetic, step by step)."""
-
-    def chunk(state: torch.Tensor, t: int, k: int) -> tuple[torch.Tensor, ...]:
-        outputs = []
-        for i in range(k):
-            action, state, reward, cause = step(state, t + i)
-            outputs.append((action, state, reward, cause))
-        return tuple(torch.stack(column) for column in zip(*outputs, strict=True))
-
-    return chunk
 
 
 class Episodes(NamedTuple):
@@ -158,46 +134,6 @@ class Episodes(NamedTuple):
 
 # start states [*B, 6] -> whole episodes, one per row, with the deterministic action.
 RolloutFn = Callable[[torch.Tensor], Episodes]
-
-
-def fly(chunk: ChunkFn, start: torch.Tensor, max_steps: int, steps_per_call: int = 1) -> TensorDict:
-    """:func:`fly_episodes` as :meth:`Episodes.as_rollout`'s ``[*B, T]`` tensordict (``T``: the step
-    the last episode ended at)."""
-    return fly_episodes(chunk, start, max_steps, steps_per_call).as_rollout(max_steps)
-
-
-@torch.no_grad()
-def fly_episodes(chunk: ChunkFn, start: torch.Tensor, max_steps: int, steps_per_call: int = 1) -> Episodes:
-    """Fly ``start`` (``[*B, 6]``) until every episode has terminated or ``max_steps`` steps passed.
-
-    ``chunk`` flies up to ``steps_per_call`` steps per call (:func:`chunked` turns a
-    :data:`StepFn` into one); the steps a chunk flies after the last episode ended are dropped, so
-    the result does not depend on ``steps_per_call``. One episode per row: rows that terminated
-    early keep being stepped until the last one ends, and those steps are then dropped (zeros,
-    after the row's end).
-    """
-    state = start
-    pieces: list[tuple[torch.Tensor, ...]] = []
-    ended = torch.zeros(start.shape[:-1], dtype=torch.bool, device=start.device)
-    t, all_ended = 0, [False]
-    while t < max_steps and True not in all_ended:
-        k = min(steps_per_call, max_steps - t)
-        actions, states, rewards, causes = chunk(state, t, k)
-        observations = torch.cat([state.unsqueeze(0), states[:-1]])
-        # An episode that terminated stays ended even if its repeated steps come back in bounds.
-        ended_after = (causes != int(TerminationCause.NONE)).cummax(0).values | ended
-        all_ended = ended_after.flatten(1).all(1).tolist()  # the one host sync per chunk
-        if True in all_ended:
-            k = all_ended.index(True) + 1
-        pieces.append(tuple(x[:k] for x in (observations, actions, rewards, causes)))
-        state, ended, t = states[k - 1], ended_after[k - 1], t + k
-    obs, action, reward, cause = (torch.cat(column) for column in zip(*pieces, strict=True))
-    states = torch.cat([obs, state.unsqueeze(0)]).movedim(0, -2)
-    cause = cause.movedim(0, -1)
-    terminated = cause != int(TerminationCause.NONE)
-    # Each row's episode ends at its first termination (the rows stepped on after it are dropped).
-    length = torch.where(terminated.any(-1), terminated.int().argmax(-1) + 1, cause.shape[-1])
-    return Episodes.from_steps(states, action.movedim(0, -2), reward.movedim(0, -1), cause, length)
 
 
 @torch.no_grad()

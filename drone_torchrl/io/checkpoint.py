@@ -5,10 +5,10 @@ RNG states as uint8 tensors), so ``torch.load(weights_only=True)`` reads it and 
 cannot run code. ``format_version`` says which layout it has; older layouts are migrated when
 loaded (:func:`migrate`), anything else is refused with a one-line :class:`CheckpointError`.
 
-Layout (``format_version`` 2)::
+Layout (``format_version`` 3)::
 
-    format_version  2
-    engine          "fused" | "torchrl": the engine that wrote it (a run continues with it)
+    format_version  3
+    backend         "fast" | "reference": the backend that wrote it (a run continues with it)
     actor           state_dict of the ProbabilisticActor (make_actor's layout)
     optimizer       state_dict of the agent's Adam
     episodes_done, updates_done, wall_clock_s, best_eval_return
@@ -33,16 +33,17 @@ from typing import Any
 
 import torch
 
+from drone_torchrl import migrations
 from drone_torchrl.io.storage import writing
 
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 BEST = "best.pt"
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
 # Keys every checkpoint of the current format holds.
 REQUIRED_KEYS = (
     "format_version",
-    "engine",
+    "backend",
     "actor",
     "optimizer",
     "episodes_done",
@@ -117,7 +118,9 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
     """Bring a loaded checkpoint to the current layout, or refuse it.
 
     Version 1 (no ``format_version`` key; written before it existed) kept the RNG states as
-    ``torch_rng`` / ``env_rng`` / ``agent_rng`` and had no ``final`` key while unfinished.
+    ``torch_rng`` / ``env_rng`` / ``agent_rng`` and had no ``final`` key while unfinished. Versions
+    1 and 2 named the implementation ``engine`` (and PPO's ``algo.collector`` in the config), which
+    ``backend`` replaced (:mod:`drone_torchrl.migrations`).
     """
     if not isinstance(state, dict) or "actor" not in state or "config" not in state:
         raise CheckpointError(f"{path} is not a drone_torchrl checkpoint (no actor or config)")
@@ -130,11 +133,16 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
             "agent": state.pop("agent_rng", None),
         }
         state.setdefault("final", None)
-        state.setdefault("engine", "torchrl")  # the only engine before the engine key existed
+        version = 2
+    if version == 2:
+        state = dict(state)
+        config = state["config"] if isinstance(state["config"], dict) else {}
+        algo = config.get("algo") if isinstance(config.get("algo"), dict) else {}
+        state["backend"] = migrations.backend_of(state.pop("engine", None), algo.get("collector"))
         state["format_version"] = version = FORMAT_VERSION
     if version != FORMAT_VERSION:
         raise CheckpointError(
-            f"{path} has format_version={version!r}; this version of drone_torchrl reads 1 and {FORMAT_VERSION}"
+            f"{path} has format_version={version!r}; this version of drone_torchrl reads 1 to {FORMAT_VERSION}"
         )
     missing = [key for key in REQUIRED_KEYS if key not in state]
     if missing:

@@ -55,7 +55,7 @@ STEP_METRIC = "episodes"
 MODES = ("online", "offline", "disabled")
 # W&B's own rules for project and entity names: at most 128 characters, none of these.
 MAX_NAME_CHARS = 128
-FORBIDDEN_CHARS = '/\\#?%:'
+FORBIDDEN_CHARS = "/\\#?%:"
 
 
 class WandbLogger:
@@ -157,8 +157,11 @@ def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> WandbLogger:
 def _check_name(key: str, value: Any, optional: bool) -> None:
     if value is None and optional:
         return
-    if not isinstance(value, str) or not value.strip() or len(value) > MAX_NAME_CHARS or any(
-        c in value for c in FORBIDDEN_CHARS
+    if (
+        not isinstance(value, str)
+        or not value.strip()
+        or len(value) > MAX_NAME_CHARS
+        or any(c in value for c in FORBIDDEN_CHARS)
     ):
         expected = f"a W&B name of 1 to {MAX_NAME_CHARS} characters without any of {FORBIDDEN_CHARS!r}"
         raise ConfigError.of(key, value, f"null or {expected}" if optional else expected)

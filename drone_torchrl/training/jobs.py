@@ -32,6 +32,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from drone_torchrl import migrations
 from drone_torchrl.config import (
     ConfigError,
     command_line_keys,
@@ -82,7 +83,6 @@ def _hydra_run_dir() -> Path | None:
 def prepare(
     cfg: DictConfig,
     run_dir: str | Path | None = None,
-    engine: str | None = None,
     requested: Iterable[str] | None = None,
     validated: bool = False,
 ) -> Job:
@@ -90,8 +90,7 @@ def prepare(
 
     ``run_dir`` defaults to the Hydra job's folder (with ``resume`` of a run's last checkpoint: that
     run's folder). A run continues from a checkpoint when ``resume`` names one, or when its own
-    folder already holds ``checkpoints/last.pt``. ``engine`` (set by the fused launcher) is the
-    engine the caller will train with; a checkpoint written by another engine is then refused.
+    folder already holds ``checkpoints/last.pt``; it continues with the backend that wrote it.
     ``requested``: the keys the caller sets (default: those of the Hydra command line); a continued
     run takes those the schema lets change on resume and refuses changes to the others. Without a
     command line, only the budget (``algo.episodes``) and the process settings are taken from ``cfg``. ``validated``:
@@ -101,7 +100,7 @@ def prepare(
     :func:`train_jobs` is done with it; a folder another live process trains is refused
     (:class:`~drone_torchrl.io.run_lock.RunFolderBusy`).
     """
-    job = _prepare(cfg, run_dir, engine, requested, validated)
+    job = _prepare(cfg, run_dir, requested, validated)
     run_lock.hold(job.run_dir)
     return job
 
@@ -109,18 +108,16 @@ def prepare(
 def _prepare(
     cfg: DictConfig,
     run_dir: str | Path | None,
-    engine: str | None,
     requested: Iterable[str] | None,
     validated: bool,
 ) -> Job:
+    migrations.apply_legacy(cfg)  # old keys from the command line, as today's
     run_dir = Path(run_dir) if run_dir is not None else None
     keys = command_line_keys() if requested is None else {k.split("=", 1)[0].lstrip("+~") for k in requested}
-    if engine is not None and cfg.engine != engine:
-        raise ConfigError.of(
-            "engine",
-            cfg.engine,
-            f"{engine!r} with hydra/launcher={engine} (drop the launcher to use another engine)",
-        )
+    if keys is not None:  # an old key that picked the implementation asks for a backend
+        legacy = {k for k in keys if k.startswith(f"{migrations.LEGACY}.")}
+        picked = {f"{migrations.LEGACY}.{k}" for k in migrations.REPLACED} & legacy
+        keys = (keys - legacy) | ({"backend"} if picked else set())
     location = cfg.resume
     if location is None:
         run_dir = run_dir or _hydra_run_dir()
@@ -134,10 +131,10 @@ def _prepare(
         return Job(cfg, run_dir)
     path, checkpoint = open_checkpoint("resume", location)
     saved = run_config(checkpoint["config"])
-    requested = engine or (cfg.engine if keys is not None and "engine" in keys else None)
-    if requested is not None and requested != checkpoint["engine"]:
+    requested = cfg.backend if keys is not None and "backend" in keys else None
+    if requested is not None and requested != checkpoint["backend"]:
         raise ConfigError(
-            f"engine={requested!r} cannot continue {path}: it was written by engine={checkpoint['engine']!r}"
+            f"backend={requested!r} cannot continue {path}: it was written by backend={checkpoint['backend']!r}"
         )
     _refuse_changes(cfg, saved, keys, path)
     with open_dict(saved):
@@ -145,7 +142,7 @@ def _prepare(
             rule = resume_rule(key)
             if rule == PROCESS or (rule == BUDGET if keys is None else rule != KEPT and _on(key, keys)):
                 OmegaConf.update(saved, key, value, force_add=True)
-        saved.engine = checkpoint["engine"]
+        saved.backend = checkpoint["backend"]
     validate(saved)
     done = checkpoint["episodes_done"]
     if checkpoint["final"] is None and saved.algo.episodes < done:
@@ -186,7 +183,7 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
     changed = [
         f"{key} {old.get(key)!r} -> {value!r}"
         for key, value in leaves(cfg).items()
-        if key != "engine"
+        if key != "backend"
         and resume_rule(key) == KEPT
         and (compare_all or _on(key, keys))
         and old.get(key) != value

@@ -62,7 +62,7 @@ class RunRecord:
     Args:
         cfg: the run's validated config.
         run_dir: the folder to write (created if needed).
-        engine: the engine that trains it (stored in checkpoints; a run continues with it).
+        backend: the backend that trains it (stored in checkpoints; a run continues with it).
         checkpoint: the loaded checkpoint to continue from, or None for a fresh run.
         parent_dir: for a fork (resuming from a checkpoint that is not ``run_dir``'s last), the
             folder it came from: its ``episodes.csv`` rows up to the checkpoint are copied; the
@@ -73,7 +73,7 @@ class RunRecord:
         self,
         cfg: DictConfig,
         run_dir: Path,
-        engine: str,
+        backend: str,
         checkpoint: dict[str, Any] | None = None,
         parent_dir: Path | None = None,
     ) -> None:
@@ -82,7 +82,7 @@ class RunRecord:
         # OmegaConf.to_container takes ~1 ms, and the config does not change during a run).
         self.config = OmegaConf.to_container(cfg, resolve=True)
         self.run_dir = Path(run_dir)
-        self.engine = engine
+        self.backend = backend
         # Read per update by every run of a population: plain numbers, not OmegaConf lookups (~20 us each).
         self.budget = int(cfg.algo.episodes)
         self.every_updates = int(cfg.logger.every_updates)
@@ -250,7 +250,7 @@ class RunRecord:
     def _state(self, learner: dict[str, Any]) -> dict[str, Any]:
         return {
             "format_version": FORMAT_VERSION,
-            "engine": self.engine,
+            "backend": self.backend,
             **learner,
             "episodes_done": self.episodes_done,
             "updates_done": self.updates_done,

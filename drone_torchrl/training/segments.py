@@ -1,12 +1,11 @@
-"""The on-policy algorithms' batches flown by the fused engine (``algo.collector=fused``).
+"""The on-policy algorithms' batches flown by the fast engine (``backend=fast``).
 
 What :class:`torchrl.collectors.Collector` gives :class:`~drone_torchrl.algorithms.ppo.OnPolicy`
 over a batched :class:`~drone_torchrl.envs.DroneEnv`: ``num_envs`` drones flown side by side for
 ``steps_per_batch`` steps, each starting a new episode as soon as one ends (auto-reset) and
 carrying an unfinished one over to the next batch, as a ``[num_envs, steps_per_batch]`` tensordict
 with the env's keys and the actor's log-probability of each action. Here the drones are flown by
-the fused engine's rollout (the C++ kernel on the CPU where it is built, else the PyTorch rollout
-of the same arithmetic), a few calls of a few milliseconds each, where the collector steps the env
+the C++ engine's rollout, a few calls of a few milliseconds each, where the collector steps the env
 and the actor through TorchRL one step at a time (``benchmarks/ppo_collectors.py`` times both).
 
 Why written here: TorchRL's collectors step an ``EnvBase``, whose fixed cost per step is larger
@@ -30,11 +29,11 @@ from torchrl.modules import ProbabilisticActor
 from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.dynamics import TerminationCause
-from drone_torchrl.envs.rollout import Episodes, chunked, fly_episodes
+from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.modules.factory import model_dtype
 from drone_torchrl.modules.policy import ThreeNetPolicy
-from drone_torchrl.modules.stacked import ActionSampler, StackedThreeNet
-from drone_torchrl.training.collectors import kernel_rollout, policy_step, squash_bound
+from drone_torchrl.modules.stacked import StackedThreeNet
+from drone_torchrl.training.collectors import kernel_rollout, squash_bound
 
 
 class FusedSegments:
@@ -54,11 +53,7 @@ class FusedSegments:
         self.dtype = model_dtype(cfg)
         self.device = torch.device(cfg.device)
         self.stacked = StackedThreeNet([net], cfg.model.activation).to(self.device)
-        self.kernel = kernel_rollout(
-            cfg, self.stacked, squash_bound(cfg), self.steps, fallback="the PyTorch rollout"
-        )
-        self.sampler = ActionSampler(cfg.model.distribution, cfg.env.max_thrust)
-        self.steps_per_call = cfg.steps_per_call
+        self.kernel = kernel_rollout(cfg, self.stacked, squash_bound(cfg), self.steps)
         self.log_prob_key = actor.log_prob_keys[0]
         # Start states and action noise, drawn on the CPU as DroneEnv draws its start states.
         self.generator = torch.Generator()
@@ -79,15 +74,7 @@ class FusedSegments:
     def _fly(self, start: torch.Tensor, noise: torch.Tensor) -> Episodes:
         """Each row from ``start`` ``[E, 6]`` with ``noise`` ``[E, steps, 2]`` until it terminates or
         ``steps`` steps pass."""
-        start, noise = start.unsqueeze(0), noise.unsqueeze(0)  # the one agent's dim
-        if self.kernel is not None:
-            flown = self.kernel(start, noise)
-        else:
-            layers = self.stacked.layers()
-            chunk = chunked(
-                lambda s, i: policy_step(self.stacked, layers, self.sampler, self.params, s, noise[:, :, i])
-            )
-            flown = fly_episodes(chunk, start, noise.shape[2], self.steps_per_call)
+        flown = self.kernel(start.unsqueeze(0), noise.unsqueeze(0))  # the one agent's dim
         return Episodes(*(x[0] for x in flown[:5]))
 
     def __iter__(self) -> FusedSegments:

@@ -6,7 +6,7 @@ active agent, their metrics and finished episodes handed back at once. The loop 
 host in one go (one sync per call) and books them, update by update, in each agent's
 :class:`~.run.RunRecord`; an agent whose checks fail stops with ``FAILED.txt``. ``k`` is the number
 of updates until the next evaluation, checkpoint or end of budget of any agent (at most
-``updates_per_call``; 1 for a learner whose updates end a varying number of episodes), so
+:data:`MAX_UPDATES_PER_CALL`; 1 for a learner whose updates end a varying number of episodes), so
 evaluations and checkpoints fall exactly where a one-update loop would put them. Agents due for an
 evaluation are flown together by the evaluator. A run killed between its last checkpoint and its
 final evaluation is finished on resume.
@@ -32,6 +32,12 @@ from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
+
+# Updates per call of a learner's update at most: the loop copies a call's metrics and episodes to
+# the host at once, so this bounds what they hold in memory; results do not depend on it (a call
+# never runs past an evaluation, checkpoint or the end of a budget). It was the config key
+# updates_per_call.
+MAX_UPDATES_PER_CALL = 100
 
 
 @dataclass
@@ -81,13 +87,12 @@ class Trainer:
         self.runs: list[RunRecord] = []
         try:
             for job in jobs:
-                self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.engine, job.checkpoint, job.parent_dir))
+                self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
             self.progress = Progress([], False)
             self.close(quietly=True)
             raise
         self.progress = Progress(self.runs, cfg.progress)
-        self.updates_per_call = int(cfg.updates_per_call)
 
     @functools.cached_property
     def optimum(self) -> Optimum | None:
@@ -127,7 +132,7 @@ class Trainer:
 
     def step(self, active: list[int], k: int | None = None) -> int:
         """``k`` updates of the ``active`` agents (default: as many as nothing falls due in, at most
-        ``updates_per_call``; one where the learner cannot tell), booked; then the evaluations and
+        :data:`MAX_UPDATES_PER_CALL`; one where the learner cannot tell), booked; then the evaluations and
         checkpoints that are due. Returns the env steps the agents took."""
         runs, learner = self.runs, self.learner
         per_update = learner.episodes_per_update
@@ -135,7 +140,7 @@ class Trainer:
             k = (
                 1
                 if per_update is None
-                else min(self.updates_per_call, *(runs[i].updates_until_due(per_update) for i in active))
+                else min(MAX_UPDATES_PER_CALL, *(runs[i].updates_until_due(per_update) for i in active))
             )
         mask = torch.zeros(len(runs), dtype=torch.bool, device=self.cfg.device)
         mask[active] = True
@@ -241,7 +246,8 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     # A learner trains up to max_agents jobs at once (PPO: one; REINFORCE: a whole group).
     batches = []
     for members in groups.values():
-        size = learner_class(jobs[members[0]].cfg).max_agents or len(members)
+        cfg = jobs[members[0]].cfg
+        size = learner_class(cfg).max_agents(cfg) or len(members)
         batches += [members[start : start + size] for start in range(0, len(members), size)]
     for members in batches:
         with stop_on_signals() as stop:

@@ -10,9 +10,9 @@
 - the output holds ``k`` updates' metrics and finished episodes as ``[k, N, ...]`` tensors, which the
   loop copies to the host once per call (one sync, however many updates and agents).
 
-One update, for all agents at once: the collector flies every active agent's episodes (with the
-C++ kernel on the CPU: one call), :class:`~drone_torchrl.objectives.ReinforceLoss` scores the
-stored actions (each agent's loss is the mean over its own episodes, the total their sum, so each
+One update, for all agents at once: the fast engine flies and differentiates every active agent's
+episodes in one C++ call; the reference collector's rollout is scored by
+:class:`~drone_torchrl.objectives.ReinforceLoss` on the stored actions (each agent's loss is the mean over its own episodes, the total their sum, so each
 agent's gradient is exactly its own), one backward gives the ``[N, P]`` gradient, each agent clips
 its norm, an agent whose actions, loss or gradient are not finite does not step and drops out of
 the rest of the call, the others take their Adam step.
@@ -28,8 +28,8 @@ from tensordict import TensorDictBase
 
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.episodes import EPISODE_KEYS, counted_metrics, episode_stats
-from drone_torchrl.modules.policy import distribution_head
-from drone_torchrl.objectives.reinforce import ReinforceLoss, reinforce_terms
+from drone_torchrl.kernels.modules import KernelReinforce
+from drone_torchrl.objectives.reinforce import ReinforceLoss
 from drone_torchrl.training.optim import clip_grad_norms
 from drone_torchrl.training.population import Population
 
@@ -73,17 +73,13 @@ class Gradient(NamedTuple):
 
 
 class ReinforceUpdate:
-    """The update of ``population`` with episodes from ``collector`` (either engine's, see :mod:`.collectors`).
+    """The update of ``population`` with episodes from ``collector`` (either backend's, see :mod:`.collectors`).
 
-    Three ways to the same gradient, tested against each other:
+    Two ways to the same gradient, tested equal (tests/test_kernels.py):
 
-    - ``engine=fused`` with the C++ kernels (``compile=true`` on the CPU): one
-      ``drone_torchrl::reinforce`` call flies the episodes and returns every agent's loss and
-      gradient (:class:`~drone_torchrl.kernels.modules.KernelReinforce`);
-    - ``engine=fused`` without them: the collector's :class:`~drone_torchrl.envs.rollout.Episodes`,
-      scored by :func:`~drone_torchrl.objectives.reinforce.reinforce_terms` with the actor's network
-      and distribution called directly, and autograd;
-    - ``engine=torchrl``: the collector's ``EnvBase.rollout`` tensordicts, scored by
+    - ``backend=fast``: one ``drone_torchrl::reinforce`` call flies the episodes and returns every
+      agent's loss and gradient (:class:`~drone_torchrl.kernels.modules.KernelReinforce`);
+    - ``backend=reference``: the collector's ``EnvBase.rollout`` tensordicts, scored by
       :class:`~drone_torchrl.objectives.ReinforceLoss` through the ``ProbabilisticActor``, and autograd.
     """
 
@@ -92,20 +88,15 @@ class ReinforceUpdate:
         self.adam = population.adam
         self.max_grad_norm = population.max_grad_norm
         self.gamma = population.state["gamma"]
-        options = _loss_options(cfg)
         self.loss = make_loss(cfg, collector.actor(), self.gamma)
-        self.mean_log_prob = options.pop("log_prob_reduction") == "mean"
-        self.options = options
-        self.dist_class, self.dist_kwargs = distribution_head(cfg.model.distribution, cfg.env.max_thrust)
         self.kernel = None
-        if getattr(collector, "kernel", None) is not None:
-            from drone_torchrl.kernels.modules import KernelReinforce
-
+        if getattr(collector, "kernel", None) is not None:  # backend=fast
+            options = _loss_options(cfg)
             flags = {
                 "baseline_mean": options["baseline"] == "mean",
                 "normalize_returns": options["normalize_returns"],
                 "discount_weight": options["discount_weight"],
-                "mean_log_prob": self.mean_log_prob,
+                "mean_log_prob": options["log_prob_reduction"] == "mean",
             }
             self.kernel = KernelReinforce(collector.kernel, cfg.algo.episodes_per_update, flags)
 
@@ -131,9 +122,7 @@ class ReinforceUpdate:
 
     def _autograd_gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
         params = state["params"]
-        batch = self.collector.collect(j, active)
-        score = self._score_episodes if isinstance(batch, Episodes) else self._score_rollout
-        terms, episodes, std = score(batch)
+        terms, episodes, std = self._score_rollout(self.collector.collect(j, active))
         params.grad = None
         terms["loss_reinforce"].backward()
         grad, params.grad = params.grad, None
@@ -149,21 +138,6 @@ class ReinforceUpdate:
         valid = episodes.valid().unsqueeze(-1)
         scale = batch.get("scale").detach()  # written by the actor while the loss scored the batch
         std = (scale * valid).sum((1, 2, 3)) / (valid.sum((1, 2, 3)) * scale.shape[-1])
-        return terms, episodes, std
-
-    def _score_episodes(self, episodes: Episodes) -> tuple[dict, Episodes, torch.Tensor]:
-        """The same as :meth:`_score_rollout` for :class:`Episodes` (``[N, E, T]``)."""
-        loc, scale = self.collector.net(episodes.inputs())
-        action = episodes.action
-        log_prob = self.dist_class(loc, scale, **self.dist_kwargs).log_prob(action)
-        if self.mean_log_prob:
-            log_prob = log_prob / action.shape[-1]
-        valid = episodes.valid()
-        step = torch.arange(episodes.steps, device=valid.device).expand_as(valid)
-        terms = reinforce_terms(
-            log_prob, episodes.reward, episodes.last(), valid, step, self.gamma, agent_dims=1, **self.options
-        )
-        std = (scale.detach() * valid.unsqueeze(-1)).sum((1, 2, 3)) / (valid.sum((1, 2)) * scale.shape[-1])
         return terms, episodes, std
 
     def __call__(

@@ -5,7 +5,8 @@ small that a job spends its time in per-step overhead, not arithmetic, so this l
 each job its folder, ``.hydra/`` record (``config.yaml``, ``hydra.yaml``, ``overrides.yaml``) and
 log file like the basic launcher, and then trains all compatible jobs (configs equal but for
 ``seed``, ``algo.lr``, ``algo.gamma``, ``algo.weight_decay``) as one population with
-``engine=fused`` (:func:`drone_torchrl.training.trainer.train_jobs`). Each job still ends with its
+``backend=fast`` (:func:`drone_torchrl.training.trainer.train_jobs`; a learner that trains one agent
+at a time, PPO's or the reference's, trains them one after another). Each job still ends with its
 own CSV, TensorBoard run and checkpoints, so ``drone-report`` and ``resume`` work unchanged.
 
 It sets the folders up itself (:func:`_job_folder`) instead of through Hydra's ``run_job``: that
@@ -37,7 +38,6 @@ from drone_torchrl.io.yaml_text import save_yaml
 from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/launcher=fused)
 
 log = logging.getLogger(__name__)
-ENGINE = "fused"
 
 
 class JobFailed(CompactHydraException):
@@ -153,7 +153,7 @@ def train_populations(
     from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
     Path(str(config.hydra.sweep.dir)).mkdir(parents=True, exist_ok=True)
-    log.info(f"Launching {len(job_overrides)} jobs as populations (engine={ENGINE})")
+    log.info(f"Launching {len(job_overrides)} jobs as populations")
     # Per job: its prepared Job, its Outcome if it failed before training, or, for a job that repeats
     # an earlier one (seed=0,0: the same folder), the earlier one's position: it trains once.
     jobs: list = []
@@ -184,7 +184,7 @@ def train_populations(
         folders[run_dir] = position
         # Training comes later, for all jobs at once; here each job is checked and registered.
         try:
-            jobs.append(prepare(ret.cfg, run_dir, engine=ENGINE, requested=overrides, validated=validated))
+            jobs.append(prepare(ret.cfg, run_dir, requested=overrides, validated=validated))
         except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
             print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
             jobs.append(Outcome(run_dir, error=err))

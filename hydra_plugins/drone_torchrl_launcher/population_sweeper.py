@@ -73,21 +73,16 @@ class PopulationSweeper(Sweeper):
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         """Every job composes, and every job's values pass the config checks: a bad value in a
         sweep is one line before any job folder exists, not a failed job per value."""
+        from drone_torchrl import migrations
         from drone_torchrl.config import ConfigError, validate
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
         configs = sweep_configs(self.hydra_context.config_loader, self.config, batch, task_only=True)
-        # The population launchers train with the fused engine only (drone_torchrl.training.jobs.prepare).
-        launcher = str(self.config.hydra.launcher.get("_target_", ""))
-        fused_only = launcher.endswith(("FusedLauncher", "SlurmPopulationLauncher"))
         for overrides, cfg in zip(batch, configs, strict=True):
             try:
+                migrations.apply_legacy(cfg)
                 validate(cfg)
-                if fused_only and cfg.engine != "fused":
-                    raise ConfigError.of(
-                        "engine", cfg.engine, "'fused' with this launcher (drop engine= or the launcher)"
-                    )
             except ConfigError as err:
                 sys.exit(
                     f"drone-train: error: {err} (in the sweep's job {' '.join(overrides)}; no job was started)"

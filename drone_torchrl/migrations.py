@@ -1,0 +1,137 @@
+"""Settings earlier versions had, and what each means now: the one place saved configs, checkpoints and
+command lines are read through.
+
+Until ``backend`` existed, three keys picked an implementation: ``engine`` (``fused`` or ``torchrl``),
+``compile`` (the fused engine's C++ kernels or ``torch.compile``, else eager PyTorch) and PPO/A2C's
+``algo.collector`` (``fused`` or ``torchrl``); ``steps_per_call`` and ``updates_per_call`` tuned
+the fused engine's PyTorch path and its calls. ``backend`` replaces them: ``fast`` (the C++ engine)
+where ``engine=fused`` or ``algo.collector=fused`` ran, ``reference`` (TorchRL) where ``torchrl``
+did. ``compile``, ``steps_per_call`` and ``updates_per_call`` pick nothing any more (the fast engine
+is compiled C++, flies whole episodes per call, and the loop calls it as often as nothing falls
+due), so they are dropped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+FAST, REFERENCE = "fast", "reference"
+BACKENDS = (REFERENCE, FAST)
+# What an engine or on-policy collector name meant, as a backend.
+_AS_BACKEND = {"fused": FAST, "torchrl": REFERENCE}
+# The keys that picked an implementation, and the one that picks it now.
+REPLACED = ("engine", "algo.collector")
+DROPPED = ("compile", "steps_per_call", "updates_per_call")
+# A config saved before ``engine`` existed ran TorchRL's loop.
+ORIGINAL_ENGINE = "torchrl"
+
+
+def backend_of(engine: Any = None, collector: Any = None) -> str:
+    """The backend an old run trained with: its on-policy ``algo.collector`` if it had one (PPO and
+    A2C's batches), else its ``engine``."""
+    if collector is not None:
+        return _AS_BACKEND.get(collector, REFERENCE)
+    return _AS_BACKEND.get(ORIGINAL_ENGINE if engine is None else engine, REFERENCE)
+
+
+def migrate_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    """A saved config (plain nested dicts) in today's keys: ``backend`` from ``engine`` and
+    ``algo.collector``, the dropped keys removed. A config that has ``backend`` is returned as it is."""
+    out = dict(config)
+    algo = dict(out.get("algo") or {})
+    collector = algo.pop("collector", None)
+    engine = out.pop("engine", None)
+    for key in DROPPED:
+        out.pop(key, None)
+    if "algo" in out:
+        out["algo"] = algo
+    if "backend" not in out:
+        out["backend"] = backend_of(engine, collector)
+    return out
+
+
+# Old keys typed on the command line are passed to Hydra as ``+legacy.<key>=<value>``: Hydra composes
+# them (the keys themselves are gone from the config), the job folder keeps the name the old key
+# gave it (:func:`job_dirname`), and :func:`apply_legacy` turns them into today's keys before any check.
+LEGACY = "legacy"
+_PREFIX = f"+{LEGACY}."
+
+
+def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
+    """The command line with each old-key override ``key=value`` passed as ``+legacy.key=value``, and
+    the notes to print (one line each). A value the old key never took, or a command line that sets
+    both an old key and ``backend`` (which one would win is not obvious), raises ``ValueError``."""
+    out, notes, replaced = [], [], []
+    for arg in args:
+        key, sep, value = arg.partition("=")
+        if arg.startswith("-") or not sep or not is_old_key(key):
+            out.append(arg)
+            continue
+        new, note = migrate_override(key, value)
+        notes.append(note)
+        replaced += [key] if new is not None else []
+        out.append(f"{_PREFIX}{arg}")
+    if replaced and any(a.partition("=")[0].lstrip("+") == "backend" for a in args):
+        raise ValueError(
+            f"{replaced[0]}= and backend= are both given: backend replaced {replaced[0]}; drop {replaced[0]}="
+        )
+    return out, notes
+
+
+def apply_legacy(cfg: Any) -> None:
+    """Turn a composed config's ``legacy`` node (old keys from the command line) into today's keys,
+    in place: ``engine``/``algo.collector`` set ``backend``, the dropped keys go; the node is removed."""
+    from omegaconf import open_dict
+
+    legacy = cfg.get(LEGACY) if hasattr(cfg, "get") else None
+    if legacy is None:
+        return
+    engine = legacy.get("engine")
+    algo = legacy.get("algo") or {}
+    collector = algo.get("collector") if hasattr(algo, "get") else None
+    with open_dict(cfg):
+        if engine is not None or collector is not None:
+            cfg.backend = backend_of(engine, collector)
+        del cfg[LEGACY]
+
+
+def job_dirname(override_dirname: str) -> str:
+    """A sweep job's folder name: Hydra's ``override_dirname`` with old keys named as they were typed
+    (``compile=True``, not ``+legacy.compile=True``), so a sweep started before ``backend`` existed
+    finds its job folders when its command is run again."""
+    if _PREFIX not in override_dirname:
+        return override_dirname
+    items, depth, start = [], 0, 0
+    for i, char in enumerate(override_dirname):  # split at the commas between overrides, not in lists
+        depth += (char in "[{(") - (char in "]})")
+        if char == "," and depth == 0:
+            items.append(override_dirname[start:i])
+            start = i + 1
+    items.append(override_dirname[start:])
+    return ",".join(sorted(item.removeprefix(_PREFIX) for item in items))
+
+
+def migrate_override(key: str, value: str) -> tuple[str | None, str]:
+    """A command-line override of an old key as today's (``("backend=fast", note)``), or
+    ``(None, note)`` for a dropped one; the note is the one line to print."""
+    if key in REPLACED:
+        backend = _AS_BACKEND.get(str(value).strip())
+        if backend is None:
+            choices = " or ".join(f"{old} (backend={new})" for old, new in _AS_BACKEND.items())
+            raise ValueError(f"{key}={value!r} is not allowed; expected {choices}")
+        return (
+            f"backend={backend}",
+            f"note: {key}={value} is now backend={backend} (the key that picks the implementation)",
+        )
+    if key in DROPPED:
+        return None, (
+            f"note: {key}={value} is ignored: it tuned the fused engine's PyTorch path, which backend=fast "
+            "(compiled C++, whole episodes per call) replaced"
+        )
+    raise KeyError(key)
+
+
+def is_old_key(key: str) -> bool:
+    """Whether ``key`` is one of the keys :func:`migrate_override` reads."""
+    return key in REPLACED or key in DROPPED
