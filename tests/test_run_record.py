@@ -15,7 +15,13 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 import drone_torchrl
 from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.envs.rollout import Episodes
-from drone_torchrl.io.checkpoint import FORMAT_VERSION, CheckpointError, load_checkpoint, save_checkpoint
+from drone_torchrl.io.checkpoint import (
+    DIGEST_KEY,
+    FORMAT_VERSION,
+    CheckpointError,
+    load_checkpoint,
+    save_checkpoint,
+)
 from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.modules import make_actor
 from drone_torchrl.objectives import ReinforceLoss
@@ -369,6 +375,7 @@ def test_version_1_checkpoints_are_migrated_and_resume(tmp_path):
     rng = state.pop("rng")
     state.pop("format_version")
     state.pop("final")
+    state.pop(DIGEST_KEY)  # written since; a version-1 file has none
     state.update(torch_rng=rng["torch"], env_rng=rng["env"], agent_rng=rng["agent"])
     torch.save(state, last)
 
