@@ -30,7 +30,7 @@ from typing import Any
 STORAGE_ERRNOS = frozenset(
     {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG, errno.ENAMETOOLONG}
 )
-# POSIX's smallest NAME_MAX and PATH_MAX of Linux: for a file system that does not say (pathconf fails).
+# Linux's NAME_MAX and PATH_MAX (limits.h), in bytes: for a file system that does not say (pathconf fails).
 DEFAULT_NAME_MAX = 255
 DEFAULT_PATH_MAX = 4096
 # Characters of an overlong name shown in a message (the rest is elided).
