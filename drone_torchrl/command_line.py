@@ -23,6 +23,7 @@ from drone_torchrl.io.checkpoint import (
     resolve_checkpoint,
     run_dir_of,
 )
+from drone_torchrl.io.folders import check_fork_folder
 
 # hydra/launcher options and the Hydra plugin each one runs on (with the extra that installs it).
 LAUNCHER_PLUGINS = {
@@ -132,11 +133,21 @@ def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]
       then continues); claimed; if it already holds a run, Hydra is told not to rewrite that run's
       ``.hydra/`` record (``hydra.output_subdir=null``): the record says how the run was started.
     - ``resume=<run>`` (its last checkpoint): that run's folder is claimed.
+    - ``resume=<another checkpoint>`` (a fork) with ``hydra.run.dir=<folder>``: refused unless the
+      folder is new or empty (:func:`~drone_torchrl.io.folders.check_fork_folder`), before its lock
+      is taken: another run's folder stays byte for byte.
 
     Values Hydra resolves later (``${...}``) and paths that are not usable are left to the checks
     that report them.
     """
     extra: list[str] = []
+    resume = overrides.get("resume")
+    path = None
+    if resume not in (None, "", "null") and "${" not in resume:
+        try:
+            path = resolve_checkpoint(resume)
+        except (FileNotFoundError, OSError):
+            path = None
     run_dir = overrides.get("hydra.run.dir")
     if run_dir is not None and run_dir.strip() and "${" not in run_dir:
         folder = Path(run_dir).expanduser()
@@ -146,17 +157,13 @@ def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]
                 f"hydra.run.dir={run_dir} is inside the sweep folder {root}, whose job folders its sweep "
                 "names; give the run a folder outside it"
             )
+        if path is not None and not is_last_of_its_run(path):
+            check_fork_folder(folder, resume)
         run_lock.hold(folder)
         if (folder / CHECKPOINT_DIR / LAST).is_file() and "hydra.output_subdir" not in overrides:
             extra.append("hydra.output_subdir=null")
         return folder, extra
-    resume = overrides.get("resume")
-    if resume not in (None, "", "null") and "${" not in resume:
-        try:
-            path = resolve_checkpoint(resume)
-        except (FileNotFoundError, OSError):
-            return None, extra
-        if is_last_of_its_run(path):
-            run_lock.hold(run_dir_of(path))
-            return run_dir_of(path), extra
+    if path is not None and is_last_of_its_run(path):
+        run_lock.hold(run_dir_of(path))
+        return run_dir_of(path), extra
     return None, extra

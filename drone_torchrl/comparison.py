@@ -18,6 +18,7 @@ from drone_torchrl.config import (
     ConfigError,
     check_device,
     check_keys,
+    check_networks,
     check_values,
     command_line_keys,
     env_kwargs,
@@ -30,6 +31,7 @@ from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
 from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
+from drone_torchrl.io.storage import write_figure
 from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
@@ -81,9 +83,10 @@ def plot_trajectory(
     ax_thrust.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    try:
+        return write_figure(fig, path, dpi=100)
+    finally:
+        plt.close(fig)
 
 
 def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
@@ -147,6 +150,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
             run_cfg = run_config(checkpoint["config"])
             run_cfg.device = cfg.device
             validate(run_cfg)
+            check_networks("checkpoint", path, checkpoint, run_cfg)
             actor = build_actor(run_cfg)
             actor.load_state_dict(checkpoint["actor"])
         except ConfigError:

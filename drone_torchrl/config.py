@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import difflib
 import functools
@@ -55,8 +56,7 @@ def config_dir() -> str:
     # hydra_plugins is an import hook, not a folder).
     import hydra_plugins.drone_torchrl_launcher.schemas  # noqa: F401
 
-    algorithms.names()
-    loggers.BACKENDS.names()
+    _discover_plugins()
 
     package = Path(__file__).resolve().parent
     for candidate in (package / "conf", package.parent / "conf"):
@@ -65,6 +65,10 @@ def config_dir() -> str:
     raise FileNotFoundError(f"drone_torchrl's conf/ folder is missing (looked in {package} and its parent)")
 
 
+# Free space a run folder needs before Hydra starts: Hydra writes its record (.hydra/, three YAML
+# files) and the job's log there before any of our code runs, and fails in many lines when it
+# cannot; a tmpfs takes a 4 KiB page per file. 1 MiB holds them and the first checkpoint or plot.
+HYDRA_ROOM = 1 << 20
 # What a run writes into its folder: logger.exp_name must not collide with one of them.
 RUN_FOLDER_ENTRIES = frozenset(
     {"checkpoints", "videos", "episodes.csv", "config.yaml", "FAILED.txt", ".hydra", "train.log", ".lock"}
@@ -83,8 +87,16 @@ def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
     :class:`~drone_torchrl.schema.Rule`, from the schemas in Hydra's ConfigStore. ``plugins``: the
     plug-in of each plug-in group (``algo="ppo"``; a group not given, or a plug-in without a stored
     schema, adds no keys)."""
+    _discover_plugins()  # a plug-in not imported yet has no stored schema: its keys would be missing
     nodes = {group: schema.plugin_schema(group, plugin) for group, plugin in plugins.items()}
     return dict(schema.fields(schema.primary_schema(name), nodes))
+
+
+def _discover_plugins() -> None:
+    """Import every algorithm and logger plug-in (each stores its schema when imported): the cached
+    key lists above must not be made before they are (a caller that asks before any app ran)."""
+    algorithms.names()
+    loggers.BACKENDS.names()
 
 
 @functools.cache
@@ -111,6 +123,7 @@ def resume_rule(key: str) -> str:
 def _every_key(name: str) -> dict[str, Rule]:
     """Every key of ``conf/<name>.yaml`` with any plug-in stored in the ConfigStore (each plug-in's
     rule of a key the plug-ins share is the same)."""
+    _discover_plugins()
     out: dict[str, Rule] = {}
     for group in schema.plugin_groups(name):
         for plugin in schema.stored_plugins(group):
@@ -335,8 +348,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             continue
         if key == "sweep_name":  # names the multirun folder, which Hydra makes before any job runs
             for value in values:
-                if not plain_name(value):
-                    raise ConfigError.of(key, value, "a folder name (no '/' or '..'), e.g. lr")
+                _check_folder_name(key, value, "a folder name (no '/' or '..'), e.g. lr")
             continue
         if key in groups:
             options = _options(key)
@@ -390,20 +402,50 @@ def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
     return known
 
 
+def _check_folder_name(key: str, value: Any, expected: str) -> None:
+    """``value`` of ``key`` names one folder (:func:`plain_name`; else the message asks for
+    ``expected``) no longer than the working folder's file system allows (where run and sweep
+    folders go by default)."""
+    from drone_torchrl.io.storage import name_too_long
+
+    if not plain_name(value):
+        raise ConfigError.of(key, value, expected)
+    if (too_long := name_too_long(value)) is not None:
+        raise ConfigError.of(key, value, f"a folder name this file system takes ({too_long})")
+
+
 def _check_folder(key: str, value: Any) -> None:
-    """A folder the run can create or write into: not empty, not a file, under a writable folder."""
+    """A folder the run can create or write into: not empty, not a file, a name the file system
+    takes, under a folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`)."""
     import os
 
-    if not isinstance(value, str) or "${" in value:
-        return  # Hydra's own interpolations (${now:...}) resolve later
+    from drone_torchrl.io.storage import unwritable
+
+    if not isinstance(value, str):
+        return
     if not value.strip():
         raise ConfigError.of(key, value, "a folder path, not an empty string")
-    path = Path(value).expanduser()
-    existing = next(p for p in (path, *path.parents) if p.exists() or p == Path(p.anchor or "."))
-    if existing.exists() and not existing.is_dir():
-        raise ConfigError.of(key, value, f"a folder ({existing} is a file)")
-    if not os.access(existing if existing.exists() else Path.cwd(), os.W_OK):
-        raise ConfigError.of(key, value, f"a folder this user can write ({existing} is not writable)")
+    # Hydra's own interpolations (${now:...}) resolve later: the folders above them are checked.
+    literal = value.split("${")[0]
+    why = unwritable(value if literal == value else os.path.dirname(literal) or ".", HYDRA_ROOM)
+    if why is not None:
+        raise ConfigError.of(key, value, f"a folder this user can write ({why})")
+
+
+def check_default_folder(name: str, args: Iterable[str]) -> None:
+    """The folder Hydra makes and writes its record into before any of our code runs, when ``args``
+    name none: the default of ``hydra.run.dir`` (``hydra.sweep.dir`` with ``-m``) in
+    ``conf/<name>.yaml``, e.g. ``outputs/<date>/<time>``. A read-only or full working folder is
+    refused in one line (it was Hydra's traceback). For commands that train or fly (not for
+    ``--cfg``, ``--help``), which write there."""
+    args = list(args)
+    key = "hydra.sweep.dir" if {"-m", "--multirun"} & set(args) else "hydra.run.dir"
+    if any(a.split("=", 1)[0].lstrip("+") == key for a in args):
+        return  # checked with the other overrides
+    node: Any = OmegaConf.to_container(OmegaConf.load(Path(config_dir()) / f"{name}.yaml"), resolve=False)
+    for part in key.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    _check_folder(key, node)
 
 
 def check_command_line(prog: str, name: str) -> None:
@@ -499,6 +541,29 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
     return path, state
 
 
+def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig) -> None:
+    """The checkpoint's weights fit the networks of ``cfg`` (its run's config, validated): its actor
+    and, for an algorithm that keeps one among its checkpoint entries, its critic, each tensor of the
+    shape they have. :class:`ConfigError` naming the key, the file and the first tensor that differs;
+    the networks are built on the meta device (shapes only: no memory, no time)."""
+    import torch
+
+    from drone_torchrl.io.checkpoint import CheckpointError, check_weights
+    from drone_torchrl.modules.factory import build_actor, build_critic
+
+    meta = copy.deepcopy(cfg)
+    meta.device = "meta"
+    with torch.device("meta"):
+        networks = {"actor": build_actor(meta)}
+        if "critic" in algorithms.get(cfg.algo.name).checkpoint_keys:  # PPO's and A2C's value network
+            networks["critic"] = build_critic(meta)
+    try:
+        for entry, module in networks.items():
+            check_weights(module, state[entry], path, entry)
+    except CheckpointError as err:
+        raise ConfigError(f"{key}={str(path)!r} cannot be used: {err}") from None
+
+
 def check_device(device: Any) -> None:
     """Raise :class:`ConfigError` for a device torch does not know or this machine does not have."""
     import torch
@@ -578,12 +643,11 @@ def validate(cfg: DictConfig) -> None:
             "'normal' unless env.max_thrust is set (e.g. env.max_thrust=1.0)",
         )
     name = cfg.logger.exp_name
-    if not plain_name(name) or name in RUN_FOLDER_ENTRIES:
-        raise ConfigError.of(
-            "logger.exp_name",
-            name,
-            f"a new folder name inside the run folder (no '/' or '..', none of {sorted(RUN_FOLDER_ENTRIES)}), "
-            "e.g. tensorboard",
-        )
-    if not plain_name(cfg.sweep_name):
-        raise ConfigError.of("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
+    expected = (
+        f"a new folder name inside the run folder (no '/' or '..', none of {sorted(RUN_FOLDER_ENTRIES)}), "
+        "e.g. tensorboard"
+    )
+    if isinstance(name, str) and name in RUN_FOLDER_ENTRIES:
+        raise ConfigError.of("logger.exp_name", name, expected)
+    _check_folder_name("logger.exp_name", name, expected)
+    _check_folder_name("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")

@@ -19,16 +19,19 @@ own exporter in its supported mode (``torch.onnx.export(..., dynamo=True)``, tor
 2.9; it needs onnxscript). The TorchScript-based exporter (``dynamo=False``) is deprecated and warns
 on every use. onnx, onnxruntime and onnxscript are the ``onnx`` extra, never needed for ``.pt2``.
 
-Every file is checked before it takes the output's name: run by its own runtime
+Every file is made and checked in memory before it is written: run by its own runtime
 (``torch.export.load``, onnxruntime), it must reproduce the checkpoint's TorchRL actor (its
 deterministic action, clamped as the env clamps it) on :func:`check_observations` within
-:data:`TOLERANCE`; otherwise :class:`ExportError` and nothing is written.
+:data:`TOLERANCE`; otherwise :class:`ExportError` and nothing is written. Then it is written at
+once, through a temporary file and a rename: a full or read-only disk is a one-line
+:class:`~drone_torchrl.io.storage.StorageError`, and nothing partial is left.
 """
 
 from __future__ import annotations
 
 import contextlib
 import importlib.util
+import io
 import itertools
 import logging
 import os
@@ -46,7 +49,14 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
-from drone_torchrl.config import ConfigError, check_keys, check_values, open_checkpoint, run_config
+from drone_torchrl.config import (
+    ConfigError,
+    check_keys,
+    check_networks,
+    check_values,
+    open_checkpoint,
+    run_config,
+)
 from drone_torchrl.envs.dynamics import (
     ALPHA_LIMIT,
     HOVER_THRUST,
@@ -58,6 +68,7 @@ from drone_torchrl.envs.dynamics import (
     ZONE_Z_CENTRE,
     clamp_action,
 )
+from drone_torchrl.io.storage import name_too_long, unwritable, write_atomically
 from drone_torchrl.modules.factory import build_actor, build_policy
 from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.schema import EXPORT_FORMATS
@@ -151,6 +162,9 @@ def resolve_output(format: str | None, output: Any) -> tuple[str, Path]:
     if not isinstance(output, str | os.PathLike) or not str(output).strip():
         raise ConfigError.of("output", output, "a file path such as policy.pt2 or policy.onnx")
     path = Path(output)
+    too_long = name_too_long(path)
+    if too_long is not None:
+        raise ConfigError.of("output", str(output), f"a file name this file system takes ({too_long})")
     if path.is_dir():
         raise ConfigError.of("output", str(output), "a file path such as policy.pt2, not a folder")
     named = suffixes.get(path.suffix.lower())
@@ -196,6 +210,7 @@ def load_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, Pro
     path, state = open_checkpoint("checkpoint", checkpoint)
     cfg = run_config(state["config"])
     cfg.device = "cpu"
+    check_networks("checkpoint", path, state, cfg)
     net = build_policy(cfg)
     build_actor(cfg, net).load_state_dict(state["actor"])  # the actor's keys; the net holds the weights
     return (*policy_and_actor(net, cfg.model.distribution, cfg.env.max_thrust), path)
@@ -277,16 +292,20 @@ def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
     }
 
 
-def write_program(policy: DeterministicPolicy, path: str | os.PathLike, format: str) -> None:
-    """Write ``policy`` to ``path`` as ``format`` (``pt2`` or ``onnx``), unchecked (see :func:`export_policy`)."""
+def program_bytes(policy: DeterministicPolicy, format: str) -> bytes:
+    """``policy`` as the bytes of a ``format`` file (``pt2`` or ``onnx``), unchecked (see
+    :func:`export_policy`). Made in memory: nothing reaches the disk before the file is checked, and
+    then it is written at once (:func:`~drone_torchrl.io.storage.write_atomically`; torch's and
+    onnx's own writers abort the process, in C++, on a full disk)."""
     policy.requires_grad_(False)  # an inference program: no autograd graph in its outputs
     example = torch.zeros(2, observation_dim(policy), dtype=_dtype(policy))
     batch = torch.export.Dim("batch")
     with torch.no_grad():
         program = torch.export.export(policy, (example,), dynamic_shapes=({0: batch},))
     if format == "pt2":
-        torch.export.save(program, path)
-        return
+        buffer = io.BytesIO()
+        torch.export.save(program, buffer)
+        return buffer.getvalue()
     with _quiet_onnx_exporter():
         onnx_program = torch.onnx.export(
             program,
@@ -300,34 +319,42 @@ def write_program(policy: DeterministicPolicy, path: str | os.PathLike, format: 
         )
     onnx_program.model.doc_string = "drone_torchrl policy: observations [B, 6] -> the motor commands [B, 2] the env applies (deterministic)"
     onnx_program.model.metadata_props.update(_metadata(policy))
-    onnx_program.save(path, external_data=False)  # one file: the weights inside
+    data = onnx_program.model_proto.SerializeToString()  # one file: the weights inside
     import onnx
 
-    onnx.checker.check_model(os.fspath(path), full_check=True)
+    onnx.checker.check_model(data, full_check=True)
+    return data
+
+
+def write_program(policy: DeterministicPolicy, path: str | os.PathLike, format: str) -> None:
+    """Write ``policy`` to ``path`` as ``format`` (``pt2`` or ``onnx``), unchecked (see :func:`export_policy`)."""
+    write_atomically(path, program_bytes(policy, format))
 
 
 # ------------------------------------------------------------------------------- running
-def onnx_session(path: str | os.PathLike, threads: int = 1) -> Any:
-    """An onnxruntime CPU session of ``path`` on ``threads`` threads."""
+def onnx_session(source: str | os.PathLike | bytes, threads: int = 1) -> Any:
+    """An onnxruntime CPU session of ``source`` (a file, or its bytes) on ``threads`` threads."""
     import onnxruntime
 
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads = options.inter_op_num_threads = threads
     options.log_severity_level = 3  # errors only
-    return onnxruntime.InferenceSession(os.fspath(path), options, providers=["CPUExecutionProvider"])
+    model = source if isinstance(source, bytes) else os.fspath(source)
+    return onnxruntime.InferenceSession(model, options, providers=["CPUExecutionProvider"])
 
 
-def load_program(path: str | os.PathLike, format: str) -> Callable[[torch.Tensor], torch.Tensor]:
-    """The file ``path`` run by its own runtime, as a function of an observation batch (the policy's dtype)."""
+def load_program(source: str | os.PathLike | bytes, format: str) -> Callable[[torch.Tensor], torch.Tensor]:
+    """The file ``source`` (a path, or its bytes) run by its own runtime, as a function of an
+    observation batch (the policy's dtype)."""
     if format == "pt2":
-        module = torch.export.load(path).module()
+        module = torch.export.load(io.BytesIO(source) if isinstance(source, bytes) else source).module()
 
         def run(observation: torch.Tensor) -> torch.Tensor:
             with torch.no_grad():
                 return module(observation)
 
         return run
-    session = onnx_session(path)
+    session = onnx_session(source)
     return lambda observation: torch.from_numpy(session.run(None, {ONNX_INPUT: observation.numpy()})[0])
 
 
@@ -341,30 +368,28 @@ def export_policy(
     format, output = resolve_output(format, output)
     if format == "onnx":
         check_onnx_extra()
+    refused = unwritable(output.parent)
+    if refused is not None:
+        raise ConfigError.of("output", str(output), f"a file in a folder this user can write ({refused})")
     policy, actor, path = load_policy(checkpoint)
     observations = check_observations(observation_dim(policy)).to(_dtype(policy))
     expected = actor_commands(actor, observations, policy.max_thrust)
     if not torch.isfinite(expected).all():
         raise ExportError(f"checkpoint={str(path)!r} gives commands that are not numbers (diverged weights?)")
-    output.parent.mkdir(parents=True, exist_ok=True)
-    tmp = output.with_name(f"{output.name}.tmp.{format}")
-    try:
-        write_program(policy, tmp, format)
-        got = load_program(tmp, format)(observations)
-        if got.shape != expected.shape or got.dtype != expected.dtype:
-            raise ExportError(
-                f"the {format} program returns {got.dtype} {list(got.shape)}, "
-                f"not {expected.dtype} {list(expected.shape)}"
-            )
-        difference = (got - expected).abs().max().item()
-        if not difference <= TOLERANCE:  # NaN too
-            raise ExportError(
-                f"the {format} program differs from the actor by up to {difference:.3g} on "
-                f"{len(observations)} observations (tolerance {TOLERANCE:g}); {output} not written"
-            )
-        os.replace(tmp, output)  # never a half-written or unchecked file under the final name
-    finally:
-        tmp.unlink(missing_ok=True)
+    data = program_bytes(policy, format)
+    got = load_program(data, format)(observations)
+    if got.shape != expected.shape or got.dtype != expected.dtype:
+        raise ExportError(
+            f"the {format} program returns {got.dtype} {list(got.shape)}, "
+            f"not {expected.dtype} {list(expected.shape)}"
+        )
+    difference = (got - expected).abs().max().item()
+    if not difference <= TOLERANCE:  # NaN too
+        raise ExportError(
+            f"the {format} program differs from the actor by up to {difference:.3g} on "
+            f"{len(observations)} observations (tolerance {TOLERANCE:g}); {output} not written"
+        )
+    write_atomically(output, data)  # never a half-written or unchecked file under the final name
     return Exported(output, format, difference, len(observations), policy)
 
 

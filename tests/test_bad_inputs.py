@@ -11,24 +11,31 @@ torn CSV row.
 
 from __future__ import annotations
 
+import hashlib
+import math
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from test_run_folder import Disk, small_disk  # noqa: F401  (a fixture: a tmpfs to fill or make read-only)
 
 from drone_torchrl import loggers
 from drone_torchrl.apps.report import main as report_main
 from drone_torchrl.comparison import run_eval
 from drone_torchrl.config import ConfigError, check_overrides, config_dir
 from drone_torchrl.export import run_export
-from drone_torchrl.io.episodes_csv import CSV_COLUMNS
-from drone_torchrl.training.jobs import prepare
+from drone_torchrl.io.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from drone_torchrl.io.episodes_csv import CSV_COLUMNS, read_episodes
+from drone_torchrl.io.run_lock import release
+from drone_torchrl.training.jobs import job_status, prepare
 from drone_torchrl.training.trainer import train
 
 # A tiny real run, resumed or evaluated by the rows that need one.
@@ -39,7 +46,20 @@ TINY = [
     "eval.video=false",
     "progress=false",
 ]
+# ... and an algo=ppo one: a critic, and the TorchRL collector's RNG states.
+PPO_TINY = [
+    "algo=ppo",
+    "algo.num_envs=2",
+    "algo.steps_per_batch=20",
+    "algo.minibatch_size=20",
+    "algo.epochs=1",
+]
 WRITTEN = ("*.pt", "*.csv", "events.out.tfevents*", "*.gif", "*.mp4", "*.png", "*.md", "*.pt2", "*.onnx*")
+# A path component no file system takes (NAME_MAX is 255 bytes on Linux's).
+LONG_NAME = "x" * 300
+# The ZIP local file header (APPNOTE 4.3.7): its fixed size, and where the lengths of the name and
+# the extra field (16-bit little-endian) are in it; the record's bytes follow those two.
+ZIP_HEADER_SIZE, ZIP_NAME_LENGTH_AT, ZIP_EXTRA_LENGTH_AT = 30, 26, 28
 
 
 class Payload:
@@ -52,12 +72,80 @@ class Payload:
         return (os.system, (f"touch {self.marker}",))
 
 
+def storages(path: Path) -> dict[str, tuple[int, int]]:
+    """Where each tensor storage of a checkpoint file lies: its zip record (``<archive>/data/<n>``)
+    -> (offset of its first byte in the file, its size)."""
+    raw = path.read_bytes()
+    out = {}
+    with zipfile.ZipFile(path) as archive:
+        for info in archive.infolist():
+            if info.filename.rsplit("/", 2)[-2:-1] == ["data"]:
+                at = info.header_offset
+                name = int.from_bytes(raw[at + ZIP_NAME_LENGTH_AT : at + ZIP_NAME_LENGTH_AT + 2], "little")
+                extra = int.from_bytes(raw[at + ZIP_EXTRA_LENGTH_AT : at + ZIP_EXTRA_LENGTH_AT + 2], "little")
+                out[info.filename] = (at + ZIP_HEADER_SIZE + name + extra, info.file_size)
+    return out
+
+
+def flipped(source: Path, record: str, target: Path) -> Path:
+    """A copy of ``source`` with one bit flipped in the middle of the storage ``record``: what a bad
+    disk sector or a bit flip in transit does."""
+    start, size = storages(source)[record]
+    data = bytearray(source.read_bytes())
+    data[start + size // 2] ^= 0x01
+    target.write_bytes(data)
+    return target
+
+
+def _edited(source: Path, target: Path, edit) -> Path:
+    """``source`` loaded, changed by ``edit(state)`` and saved as a checkpoint (with a digest of the
+    changed tensors: what a hand-edited file or one written by a buggy tool is)."""
+    state = torch.load(source, weights_only=True)
+    edit(state)
+    save_checkpoint(state, target)
+    return target
+
+
+def _put(tree, *path_and_value) -> None:
+    """Set the entry at ``path`` of a nested checkpoint to ``value``; in a tensor, its first element."""
+    *path, value = path_and_value
+    for key in path[:-1]:
+        tree = tree[key]
+    if isinstance(tree[path[-1]], torch.Tensor):
+        tree[path[-1]].view(-1)[0] = value
+    else:
+        tree[path[-1]] = value
+
+
+def _snapshot(root: Path) -> dict[Path, str]:
+    """Every file under ``root`` (hidden ones, .hydra/, tensorboard/ included) and its sha256."""
+    return {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
 @pytest.fixture(scope="module")
 def files(tmp_path_factory) -> dict[str, Path]:
-    """Fixture files: a finished tiny run, and files that are not checkpoints."""
+    """Fixture files: a finished tiny run (and a second one, B, with Hydra's record), files that
+    are not checkpoints, and damaged or edited checkpoints."""
     root = tmp_path_factory.mktemp("inputs")
     with initialize_config_dir(config_dir(), version_base="1.3"):
         train(compose("config", overrides=TINY), root / "run")
+        train(compose("config", overrides=[*TINY, "seed=1"]), root / "other")
+        train(compose("config", overrides=[*TINY, *PPO_TINY]), root / "ppo")
+    (root / "other" / ".hydra").mkdir()
+    (root / "other" / ".hydra" / "overrides.yaml").write_text("- seed=1\n")
+    shutil.copy(root / "other" / "config.yaml", root / "other" / ".hydra" / "config.yaml")
+    (root / "other" / "train.log").write_text("[2025-01-01 00:00:00,000][HYDRA] run B\n")
+    last, ppo = root / "run" / "checkpoints" / "last.pt", root / "ppo" / "checkpoints" / "last.pt"
+    first_tensor = min(storages(last), key=lambda record: int(record.rsplit("/", 1)[1]))
+    flipped(last, first_tensor, root / "flipped.pt")  # the actor's first weight
+    for name, key, value in (("negative", "episodes_done", -5), ("fractional", "updates_done", 2.5)):
+        torch.save({**torch.load(last, weights_only=True), key: value}, root / f"{name}.pt")
+    torch.save({**torch.load(last, weights_only=True), "episodes_done": True}, root / "boolean.pt")
+    _edited(last, root / "nan.pt", lambda s: _put(s, "actor", next(iter(s["actor"])), math.nan))
+    _edited(last, root / "adam_inf.pt", lambda s: _put(s, "optimizer", "state", 0, "exp_avg_sq", math.inf))
+    _edited(ppo, root / "critic_nan.pt", lambda s: _put(s, "critic", next(iter(s["critic"])), math.nan))
+    _edited(last, root / "shapes.pt", lambda s: _put(s, "config", "model", "hidden_sizes", [16]))
+    _edited(ppo, root / "critic_shapes.pt", lambda s: _put(s, "config", "algo", "value_hidden_sizes", [16]))
     (root / "empty.pt").write_bytes(b"")
     (root / "corrupt.pt").write_bytes(os.urandom(256))
     torch.save({"weights": torch.zeros(3)}, root / "foreign.pt")
@@ -81,7 +169,26 @@ def files(tmp_path_factory) -> dict[str, Path]:
         "emptydir": root / "nofolder",
         "marker": root / "PWNED",
         "sweep": root / "sweep",
+        "best": root / "run" / "checkpoints" / "best.pt",
+        "other": root / "other",
+        "ppo": root / "ppo",
+        "long": root / LONG_NAME,
+        **{name: root / f"{name}.pt" for name in DAMAGED},
     }
+
+
+# Damaged or edited checkpoints of the fixture (see files()): name -> what the refusal must name.
+DAMAGED = {
+    "flipped": "flipped.pt",  # one bit of the actor's first weight
+    "negative": "episodes_done=-5",
+    "fractional": "updates_done=2.5",
+    "boolean": "episodes_done=true",
+    "nan": "nan.pt",  # a NaN in the actor
+    "adam_inf": "adam_inf.pt",  # an inf among Adam's moments
+    "critic_nan": "critic_nan.pt",  # a NaN in PPO's critic
+    "shapes": "module.0.module.shared.0.weight",  # a config whose model.hidden_sizes the weights are not
+    "critic_shapes": "critic/module.0.weight",  # ... whose algo.value_hidden_sizes
+}
 
 
 def _fill(args: list[str], files: dict[str, Path]) -> list[str]:
@@ -320,21 +427,34 @@ TRAIN = [
     (["resume={run}", "backend=reference"], "backend"),
     (["resume={run}", "experiment=bounded"], "model.distribution"),
     (["resume={last}", "env.max_steps=300"], "env.max_steps"),
+    # A fork into another run's folder: overwrote run B (its checkpoints, CSV, config; issue 34).
+    (["resume={best}", "hydra.run.dir={other}"], "hydra.run.dir"),
+    (["resume={best}", "hydra.run.dir={run}"], "hydra.run.dir"),  # into its own parent
+    # Checkpoints that are damaged or hold what no run saves (each was loaded, flown or trained on).
+    *[([f"resume={{{name}}}"], names) for name, names in DAMAGED.items()],
+    # Names the file system refuses (ENAMETOOLONG tracebacks).
+    (["hydra.run.dir={long}"], "hydra.run.dir"),
+    (["hydra.run.dir={long}/run"], "hydra.run.dir"),
+    ([f"logger.exp_name={LONG_NAME}"], "logger.exp_name"),
+    ([f"sweep_name={LONG_NAME}"], "sweep_name"),
+    (["resume={long}"], "resume"),
 ]
 
 
 @pytest.mark.parametrize(("overrides", "names"), TRAIN, ids=[" ".join(o) for o, _ in TRAIN])
 def test_drone_train_refuses(overrides, names, files, tmp_path):
     overrides = TINY + _fill(overrides, files)
-    before = _written(files["run"].parent)
+    # The job's folder: hydra.run.dir's, as in the command, else a new one.
+    run_dir = next((Path(o.split("=", 1)[1]) for o in overrides if o.startswith("hydra.run.dir=")), None)
+    before = _snapshot(files["run"].parent)
     with pytest.raises(ConfigError) as info:
         check_overrides(overrides)
         with initialize_config_dir(config_dir(), version_base="1.3"):
             cfg = compose("config", overrides=overrides)
-        prepare(cfg, tmp_path / "job", requested=overrides)
+        prepare(cfg, run_dir or tmp_path / "job", requested=overrides)
     _one_line(str(info.value), names)
     assert not (tmp_path / "job").exists()
-    assert _written(files["run"].parent) == before
+    assert _snapshot(files["run"].parent) == before  # byte for byte: nothing written, nothing lost
     assert not files["marker"].exists()
 
 
@@ -402,6 +522,11 @@ EVAL = [
     (["env.dtype=float16"], "env.dtype"),
     (["+foo=1"], "foo"),
     (["+episode=3"], "episodes"),
+    # Damaged or edited checkpoints: flown (damaged weights silently; NaN: "thrust mean nan"), or a
+    # size-mismatch traceback.
+    *[([f"checkpoint={{{name}}}"], names) for name, names in DAMAGED.items()],
+    (["checkpoint={long}"], "checkpoint"),  # ENAMETOOLONG tracebacks
+    (["hydra.run.dir={long}"], "hydra.run.dir"),
 ]
 
 
@@ -410,6 +535,7 @@ def test_drone_eval_refuses(overrides, names, files, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     quiet = [o for o in ("video=false", "plot=false") if not overrides[0].startswith(o.split("=")[0])]
     overrides = _fill(overrides, files) + quiet
+    before = _snapshot(files["run"].parent)
     with pytest.raises(ConfigError) as info:
         check_overrides(overrides, "eval")
         with initialize_config_dir(config_dir(), version_base="1.3"):
@@ -417,6 +543,7 @@ def test_drone_eval_refuses(overrides, names, files, tmp_path, monkeypatch):
         run_eval(cfg)
     _one_line(str(info.value), names)
     assert not _written(tmp_path)
+    assert _snapshot(files["run"].parent) == before
     assert not files["marker"].exists()
 
 
@@ -442,6 +569,11 @@ EXPORT = [
     (["checkpoint={run}", "output=1"], "output"),
     (["checkpoint={run}", "+foo=1"], "foo"),
     (["checkpoint={run}", "formats=onnx"], "format"),  # the hint names the real key
+    # Damaged or edited checkpoints: exported (damaged weights silently), or a traceback.
+    *[([f"checkpoint={{{name}}}"], names) for name, names in DAMAGED.items()],
+    (["checkpoint={long}"], "checkpoint"),  # ENAMETOOLONG tracebacks
+    (["checkpoint={run}", "output={long}.pt2"], "output"),
+    (["checkpoint={run}", "output={long}/policy.onnx"], "output"),
 ]
 
 
@@ -449,7 +581,7 @@ EXPORT = [
 def test_drone_export_refuses(overrides, names, files, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     overrides = _fill(overrides, files)
-    before = _written(files["run"].parent)
+    before = _snapshot(files["run"].parent)
     with pytest.raises(ConfigError) as info:
         check_overrides(overrides, "export")
         with initialize_config_dir(config_dir(), version_base="1.3"):
@@ -457,17 +589,17 @@ def test_drone_export_refuses(overrides, names, files, tmp_path, monkeypatch):
         run_export(cfg)
     _one_line(str(info.value), names)
     assert list(tmp_path.iterdir()) == []
-    assert _written(files["run"].parent) == before
+    assert _snapshot(files["run"].parent) == before
     assert not files["marker"].exists()
 
 
 # ------------------------------------------------------------------------------------ drone-report
-def _sweep(root: Path, config: str | None = "seed: 0\n", csv: str | None = None) -> Path:
+def _sweep(root: Path, config: str | bytes | None = "seed: 0\n", csv: str | None = None) -> Path:
     job = root / "sweep" / "seed=0"
     (job / ".hydra").mkdir(parents=True)
     (job / ".hydra" / "overrides.yaml").write_text("- seed=0\n")
     if config is not None:
-        (job / "config.yaml").write_text(config)
+        (job / "config.yaml").write_bytes(config if isinstance(config, bytes) else config.encode())
     (job / "episodes.csv").write_text(csv if csv is not None else "episode,return\n0,1\n")
     return root / "sweep"
 
@@ -493,19 +625,22 @@ REPORT = [
     (lambda r, f: [str(_sweep(r))], "episodes.csv"),  # lacks columns
     (lambda r, f: [str(f["run"].parent), "--out", ""], "--out"),  # was the current folder
     (lambda r, f: [str(f["run"].parent), "--out", "  "], "--out"),
+    (lambda r, f: [str(f["run"]), "--out", str(f["long"])], "--out"),  # ENAMETOOLONG, after the work
+    (lambda r, f: [str(f["run"]), "--out", str(f["long"] / "report")], "--out"),
+    (lambda r, f: [str(_sweep(r, config=b"seed: 0\nnote: caf\xe9\n"))], "config.yaml"),  # not UTF-8
 ]
 
 
 @pytest.mark.parametrize(("argv", "names"), REPORT, ids=[n + str(i) for i, (_, n) in enumerate(REPORT)])
 def test_drone_report_refuses(argv, names, files, tmp_path, capsys):
     argv = argv(tmp_path, files)
-    before = _written(files["run"].parent)
+    before = _snapshot(files["run"].parent)
     with pytest.raises(SystemExit) as info:
         report_main(argv)
     assert info.value.code == 2
     _one_line(capsys.readouterr().err, names)
     assert not _written(tmp_path) - {tmp_path / "sweep" / "seed=0" / "episodes.csv"}
-    assert _written(files["run"].parent) == before
+    assert _snapshot(files["run"].parent) == before
 
 
 def test_at_least_100_rows():
@@ -559,6 +694,14 @@ E2E = [
     ("drone-report", ["{run}", "--window", "abc"], "--window"),
     ("drone-export", ["checkpoint={run}", "format=zip"], "format"),
     ("drone-export", ["checkpoint={run}", "format=onnx", "output=policy.pt2"], "output"),
+    # Issue 34, one of each class (all its TRAIN, EVAL and EXPORT rows run through the real commands
+    # in the slow stage): a fork into another run's folder (it was overwritten), a damaged and a
+    # reshaped checkpoint (flown silently; a size-mismatch traceback), names too long (ENAMETOOLONG).
+    ("drone-train", ["resume={best}", "hydra.run.dir={other}"], "hydra.run.dir"),
+    ("drone-eval", ["checkpoint={flipped}"], "flipped.pt"),
+    ("drone-eval", ["checkpoint={shapes}"], "module.0.module.shared.0.weight"),
+    ("drone-train", [f"logger.exp_name={LONG_NAME}"], "logger.exp_name"),
+    ("drone-report", ["{run}", "--out", "{long}"], "--out"),
 ]
 
 
@@ -796,3 +939,237 @@ def test_a_budget_below_an_unfinished_checkpoint_is_refused_and_one_at_it_finish
     state = torch.load(last, weights_only=True)
     assert state["episodes_done"] == 4 and state["final"]["final_return"] == final
     assert len((run / "episodes.csv").read_text().splitlines()) == 1 + 4  # no episode trained twice
+
+
+# ------------------------------------------------------------------- issue 34: files and checkpoints
+def test_a_fork_into_another_run_s_folder_leaves_it_byte_for_byte(files, tmp_path):
+    """``drone-train resume=<run A>/checkpoints/best.pt hydra.run.dir=<run B>`` continued A as a fork
+    inside B and replaced B's checkpoints, CSV and config (exit 0). Refused in one line, in-process
+    and through the real command, and every file of B (.hydra/, tensorboard/, .lock) is unchanged."""
+    run_b = tmp_path / "B"
+    shutil.copytree(files["other"], run_b)
+    before = _snapshot(run_b)
+    assert {".hydra", "checkpoints", "episodes.csv", "config.yaml", "tensorboard"} <= {
+        p.name for p in run_b.iterdir()
+    }
+    overrides = [*TINY, f"resume={files['best']}"]
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    with pytest.raises(ConfigError) as info:
+        prepare(cfg, run_b, requested=overrides)
+    _one_line(str(info.value), f"hydra.run.dir={run_b}")
+    proc = _command("drone-train", *overrides, f"hydra.run.dir={run_b}", cwd=tmp_path)
+    assert proc.returncode == 1 and "continues as a fork" in proc.stderr, proc.stderr
+    _one_line(proc.stderr.strip(), "hydra.run.dir")
+    assert _snapshot(run_b) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["B"]  # no folder of the refused command's
+    # A new or empty folder takes the fork.
+    (tmp_path / "empty").mkdir()
+    assert prepare(cfg, tmp_path / "empty", requested=overrides).parent_dir == files["run"]
+    release(tmp_path / "empty")
+
+
+@pytest.mark.parametrize("run", ["run", "ppo"])
+def test_a_flipped_byte_in_any_tensor_is_refused_on_load(files, tmp_path, run):
+    """One bit flipped inside each tensor's storage of a real checkpoint (``torch.load`` reads it
+    without noticing) is refused in one line naming the file: by the digest written with the
+    tensors, and in a checkpoint from before the digest, by the zip's CRC-32 of the record."""
+    last = files[run] / "checkpoints" / "last.pt"
+    state = torch.load(last, weights_only=True)
+    records = storages(last)
+    tensors = [t for entry in ("actor", "critic") for t in state.get(entry, {}).values()]
+    assert len(records) >= len(tensors) >= 8  # every weight has a storage of its own, and more (Adam, RNG)
+    old = tmp_path / "old.pt"  # as written before the digest existed
+    torch.save({k: v for k, v in state.items() if k != "tensor_sha256"}, old)
+    load_checkpoint(last), load_checkpoint(old)  # intact: both load
+    for source in (last, old):
+        for record in storages(source):
+            damaged = flipped(source, record, tmp_path / "damaged.pt")
+            with pytest.raises(CheckpointError) as info:
+                load_checkpoint(damaged)
+            _one_line(str(info.value), f"{damaged}: ")
+            assert "damaged file" in str(info.value)
+
+
+@pytest.mark.parametrize("name", [n for n in DAMAGED if n not in ("flipped", "shapes", "critic_shapes")])
+def test_counters_and_weights_are_checked_on_load(files, name):
+    """Counters a run cannot have (episodes_done=-5, 2.5, true) and NaN or infinite weights in the
+    actor, Adam's moments or the critic: refused on load, in one line naming the file and what."""
+    with pytest.raises(CheckpointError) as info:
+        load_checkpoint(files[name])
+    _one_line(str(info.value), str(files[name]))
+    what = {
+        "nan": "tensor actor/",
+        "adam_inf": "tensor optimizer/state/0/exp_avg_sq",
+        "critic_nan": "tensor critic/",
+    }
+    assert what.get(name, DAMAGED[name]) in str(info.value)
+
+
+@pytest.mark.parametrize("name", ["shapes", "critic_shapes"])
+def test_a_checkpoint_of_other_shapes_is_refused_naming_the_first_tensor(files, tmp_path, monkeypatch, name):
+    """Weights of other shapes than the checkpoint's config describes were a multi-line ``size
+    mismatch`` traceback: drone-eval, drone-export and resume refuse them in one line naming the
+    file, the first tensor and both shapes."""
+    monkeypatch.chdir(tmp_path)
+    tensor, shapes = {
+        "shapes": ("actor/module.0.module.shared.0.weight", "[32, 6], but the networks its config describes"),
+        "critic_shapes": ("critic/module.0.weight", "[64, 6], but the networks its config describes"),
+    }[name]
+    path = str(files[name])
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        commands = [
+            lambda: run_eval(compose("eval", overrides=[f"checkpoint={path}", "video=false", "plot=false"])),
+            lambda: run_export(compose("export", overrides=[f"checkpoint={path}"])),
+            lambda: prepare(compose("config", overrides=[f"resume={path}"]), tmp_path / "job"),
+        ]
+        for command in commands:
+            with pytest.raises(ConfigError) as info:
+                command()
+            _one_line(str(info.value), path)
+            assert f"the tensor {tensor} has shape {shapes}" in str(info.value)
+            assert "need [16, 6]" in str(info.value)
+    assert list(tmp_path.iterdir()) == []
+
+
+def _refused(proc: subprocess.CompletedProcess, *words: str) -> str:
+    """A one-line refusal naming ``words``: non-zero exit, no traceback."""
+    assert proc.returncode not in (0, -signal.SIGABRT), proc.stderr
+    assert "Traceback" not in proc.stderr + proc.stdout, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "error" in lines[0], proc.stderr
+    for word in words:
+        assert word in lines[0], proc.stderr
+    return lines[0]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("how", ["full", "read-only"])
+def test_eval_export_report_on_a_full_or_read_only_disk_are_one_line(files, small_disk, tmp_path, how):  # noqa: F811
+    """drone-eval, drone-export and drone-report writing into a full or read-only folder: OSError
+    tracebacks (and ``drone-export`` on a full disk aborted in C++, exit -6). Refused in one line
+    before any work, nothing written; a read-only or full working folder too (Hydra's own folder)."""
+    disk = Disk(small_disk, how)
+    disk.break_()
+    try:
+        run = files["run"]
+        _refused(
+            _command("drone-export", f"checkpoint={run}", f"output={small_disk}/p.pt2", cwd=tmp_path),
+            "output",
+        )
+        _refused(
+            _command("drone-export", f"checkpoint={run}", f"output={small_disk}/sub/p.onnx", cwd=tmp_path),
+            "output",
+        )
+        _refused(
+            _command("drone-eval", f"checkpoint={run}", f"hydra.run.dir={small_disk}/eval", cwd=tmp_path),
+            "hydra.run.dir",
+        )
+        _refused(_command("drone-eval", f"checkpoint={run}", "episodes=2", cwd=small_disk), "hydra.run.dir")
+        _refused(_command("drone-train", *TINY, cwd=small_disk), "hydra.run.dir")
+        _refused(_command("drone-report", str(run), "--out", f"{small_disk}/report", cwd=tmp_path), "--out")
+        left = sorted(p.name for p in small_disk.iterdir())
+    finally:
+        disk.repair()
+    assert left == ([] if how == "read-only" else ["filler", "filler2"])
+    assert [p.name for p in tmp_path.iterdir()] == ["disk"]  # the tmpfs's mount point, nothing else
+
+
+def test_a_write_that_runs_out_of_room_leaves_no_partial_file(files, small_disk, tmp_path, capsys):  # noqa: F811
+    """A disk with a page free passes the checks before the work, then fills up under the write:
+    one line naming the file, and no partial or temporary file (drone-export: exit -6 before)."""
+    disk = Disk(small_disk, "full", room=4096)
+    disk.break_()
+    try:
+        run = files["run"]
+        for output in ("p.pt2", "sub/p.onnx"):
+            line = _refused(
+                _command("drone-export", f"checkpoint={run}", f"output={small_disk / output}", cwd=tmp_path),
+                f"cannot write {small_disk / output}",
+            )
+            assert "No space left on device (ENOSPC)" in line
+        with pytest.raises(SystemExit):
+            report_main([str(files["other"]), "--no-pd", "--out", str(small_disk / "report")])
+        line = capsys.readouterr().err
+        _one_line(line, f"cannot write {small_disk / 'report'}/")
+        assert "(ENOSPC)" in line
+        left = sorted(str(p.relative_to(small_disk)) for p in small_disk.rglob("*") if p.is_file())
+    finally:
+        disk.repair()
+    assert left == ["filler", "filler2"]
+    assert [p.name for p in tmp_path.iterdir()] == ["disk"]
+
+
+# Stops drone-export with SIGTERM in the middle: once the program is serialised (the .pt2 was
+# written straight into a temporary file beside the output), or half-way through writing the file.
+SIGTERM_EXPORT = """
+import os, pathlib, signal, sys, time
+import torch
+
+def stop():
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(30)
+
+if sys.argv[1] == "serialised":
+    save = torch.export.save
+    def save(*args, save=save, **kwargs):
+        save(*args, **kwargs)
+        stop()
+    torch.export.save = save
+else:
+    def write_half(self, data):
+        with open(self, "wb") as f:
+            f.write(bytes(data)[: len(data) // 2])
+        stop()
+    pathlib.Path.write_bytes = write_half
+sys.argv = ["drone-export", f"checkpoint={sys.argv[2]}", "output=out/policy.pt2"]
+from drone_torchrl.apps.export import run
+run()
+"""
+
+
+@pytest.mark.parametrize("when", ["serialised", "writing"])
+def test_sigterm_during_an_export_leaves_no_file(files, tmp_path, when):
+    """SIGTERM during drone-export left a partial file (``policy.pt2.tmp.pt2``): the export exits
+    143 with one line, and its folder holds nothing."""
+    script = tmp_path / "stop.py"
+    script.write_text(SIGTERM_EXPORT)
+    (tmp_path / "cwd").mkdir()
+    proc = subprocess.run(
+        [sys.executable, str(script), when, str(files["run"])],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        cwd=tmp_path / "cwd",
+    )
+    left = [str(p.relative_to(tmp_path / "cwd")) for p in (tmp_path / "cwd").rglob("*") if p.is_file()]
+    assert (proc.returncode, left) == (128 + signal.SIGTERM, []), proc.stderr
+    assert proc.stderr.strip() == "drone-export: stopped by SIGTERM; nothing written"
+
+
+def test_a_row_that_is_not_utf8_is_skipped_by_the_report_and_dropped_on_resume(files, tmp_path, capsys):
+    """A byte that is not UTF-8 in episodes.csv was a UnicodeDecodeError in drone-report and on
+    resume: the row is skipped with a note, like any unreadable row; a FAILED.txt that is not UTF-8
+    still says the job failed."""
+    job = tmp_path / "sweep" / "seed_0"  # no '=': resume= names it on the command line
+    shutil.copytree(files["run"], job, ignore=shutil.ignore_patterns(".lock"))
+    (job / ".hydra").mkdir()
+    (job / ".hydra" / "overrides.yaml").write_text("- seed=0\n")
+    csv_path = job / "episodes.csv"
+    lines = csv_path.read_bytes().splitlines(keepends=True)
+    cause = len(CSV_COLUMNS) - 2  # termination_cause: text, which parsed whatever it held
+    fields = lines[2].split(b",")
+    fields[cause] = fields[cause][:2] + b"\xff" + fields[cause][2:]
+    lines[2] = b",".join(fields)  # episode 1
+    csv_path.write_bytes(b"".join(lines))
+    note = f"{csv_path}: line 3 is not UTF-8 text; skipped"
+    columns, notes = read_episodes(csv_path)
+    assert columns["episode"].tolist() == [0.0] and notes == [note]
+    report_main([str(tmp_path / "sweep"), "--no-pd", "--out", str(tmp_path / "report")])
+    assert note in capsys.readouterr().out
+    _train(f"resume={job}", "algo.episodes=4", run_dir=None, requested=[f"resume={job}", "algo.episodes=4"])
+    assert f"resume: {note}" in capsys.readouterr().err
+    text = csv_path.read_bytes().decode("utf-8")  # all of it UTF-8 again
+    assert [line.split(",")[0] for line in text.splitlines()[1:]] == ["0", "2", "3"]
+    (job / "FAILED.txt").write_bytes(b"Traceback ...\nStorageError: cannot write caf\xe9\n")
+    assert job_status(job) == ("failed", "StorageError: cannot write caf\ufffd")

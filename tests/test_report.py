@@ -49,6 +49,7 @@ def _save_last_checkpoint(job, config, episodes, final):
         actor={},
         optimizer={},
         episodes_done=episodes,
+        updates_done=episodes,  # a counter load_checkpoint checks (an integer >= 0)
         config=config,
         final=final,
     )

@@ -265,10 +265,11 @@ def small_disk(tmp_path):
 
 
 class Disk:
-    """Breaks the tmpfs (filled up, or remounted read-only) and repairs it."""
+    """Breaks the tmpfs (filled up, or remounted read-only) and repairs it. ``room``: bytes left free
+    when filling it up (rounded to pages), for writes that start and then run out of space."""
 
-    def __init__(self, mount: Path, how: str) -> None:
-        self.mount, self.how, self.broken = mount, how, False
+    def __init__(self, mount: Path, how: str, room: int = 0) -> None:
+        self.mount, self.how, self.room, self.broken = mount, how, room, False
 
     def break_(self) -> None:
         if self.broken:
@@ -277,12 +278,13 @@ class Disk:
         if self.how == "read-only":
             subprocess.run(["mount", "-o", "remount,ro", str(self.mount)], check=True)
             return
+        reserve = self.mount / "reserve"
+        reserve.write_bytes(b"\0" * self.room)  # freed once the rest is full
         chunk = b"\0" * (1 << 20)
-        with open(self.mount / "filler", "wb") as f:
+        with open(self.mount / "filler", "wb", buffering=0) as f:  # nothing left to flush at close
             try:
                 while True:
                     f.write(chunk)
-                    f.flush()
             except OSError as err:
                 assert err.errno == errno.ENOSPC
                 # What is left is less than a page per file: fill it byte by byte.
@@ -292,6 +294,7 @@ class Disk:
                             g.write(b"\0" * 512)
                     except OSError:
                         pass
+        reserve.unlink()
 
     def repair(self) -> None:
         if self.how == "read-only":

@@ -63,6 +63,18 @@ def test_per_agent_keys():
     assert set(per_agent_keys()) == {"seed", "algo.lr", "algo.gamma", "algo.weight_decay"}
 
 
+def test_the_key_lists_do_not_depend_on_what_was_imported_first():
+    """In a fresh process the cached key lists were made from the schemas stored so far: asked before
+    any plug-in module was imported they lacked every algo.* key (so a resume rule, a per-agent key
+    or a migrated config read wrong, depending on test order)."""
+    import subprocess
+    import sys
+
+    code = "from drone_torchrl.config import per_agent_keys; print(sorted(per_agent_keys()))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == str(sorted(["seed", "algo.lr", "algo.gamma", "algo.weight_decay"]))
+
+
 # What a continued run did with each key before the rules were the schema's (RESUME_KEYS,
 # PROCESS_KEYS and FIXED_ON_RESUME of drone_torchrl/training/jobs.py).
 PROCESS_KEYS = ("progress", "threads", "device", "resume")

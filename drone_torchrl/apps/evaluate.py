@@ -16,8 +16,9 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from drone_torchrl import command_line
-from drone_torchrl.config import ConfigError, check_command_line, config_dir
+from drone_torchrl.config import ConfigError, check_command_line, check_default_folder, config_dir
 from drone_torchrl.io.folders import remove_if_untouched
+from drone_torchrl.io.storage import StorageError
 
 
 @hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
@@ -26,15 +27,24 @@ def main(cfg: DictConfig) -> None:
 
     try:
         run_eval(cfg)
-    except ConfigError as err:
+    except (ConfigError, StorageError) as err:
+        # Refused, or its plot or video refused by the disk: the folder keeps no half of the output.
         remove_if_untouched(Path(HydraConfig.get().runtime.output_dir))
         sys.exit(f"drone-eval: error: {err}")
 
 
 def run() -> None:
-    """Console entry point: checks the command line's keys, then runs the Hydra app."""
-    command_line.check_flags("drone-eval")
+    """Console entry point: checks the command line's keys and the folder Hydra will write, then
+    runs the Hydra app."""
+    flags = command_line.check_flags("drone-eval")
     check_command_line("drone-eval", "eval")
+    if not (
+        flags.cfg or flags.info or flags.help or flags.hydra_help or flags.config_name or flags.config_dir
+    ):
+        try:
+            check_default_folder("eval", sys.argv[1:])
+        except ConfigError as err:
+            sys.exit(f"drone-eval: error: {err}")
     main()
 
 

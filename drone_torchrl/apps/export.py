@@ -20,6 +20,8 @@ from omegaconf import DictConfig
 
 from drone_torchrl import command_line
 from drone_torchrl.config import ConfigError, check_command_line, config_dir
+from drone_torchrl.io.storage import StorageError
+from drone_torchrl.training.signals import Interrupted, interrupt_on_signals
 
 
 @hydra.main(config_path=config_dir(), config_name="export", version_base="1.3")
@@ -27,9 +29,13 @@ def main(cfg: DictConfig) -> None:
     from drone_torchrl import export
 
     try:
-        exported = export.run_export(cfg)
-    except (ConfigError, export.ExportError) as err:
+        with interrupt_on_signals():  # SIGTERM while writing: no partial or temporary file left
+            exported = export.run_export(cfg)
+    except (ConfigError, export.ExportError, StorageError) as err:
         sys.exit(f"drone-export: error: {err}")
+    except Interrupted as stop:
+        print(f"drone-export: {stop}; nothing written", file=sys.stderr)
+        sys.exit(stop.exit_code)
     print(f"wrote {exported.path}")
     print(
         f"checked: largest difference from the actor {exported.max_abs_diff:.2g} on {exported.checked} "

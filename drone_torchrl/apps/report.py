@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
 
+from drone_torchrl.io.storage import StorageError, unwritable
 from drone_torchrl.report.distribution import paper_order
 from drone_torchrl.report.runs import ReportError, failed_without_episodes, group_runs, load_runs
 from drone_torchrl.report.stats import DEFAULT_RETURN_THRESHOLD
@@ -54,6 +55,11 @@ def _folder(text: str) -> Path:
     # Path("") is the current folder: an empty --out would scatter the report where the command runs.
     if not text.strip():
         raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected a folder path")
+    refused = unwritable(text)  # before the sweeps are read
+    if refused is not None:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is not allowed; expected a folder this user can write ({refused})"
+        )
     return Path(text)
 
 
@@ -107,6 +113,9 @@ def main(argv: Sequence[str] | None = None) -> None:
         window = default_window() if args.window is None else args.window
         runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
         out_dirs = output_dirs(args.sweeps, args.out)
+        for out_dir in out_dirs:  # before any figure is drawn
+            if (refused := unwritable(out_dir)) is not None:
+                raise ReportError(f"cannot write the report into {out_dir}: {refused}")
         if args.paper_averaging:  # every sweep must be one of the paper's grids, before any work
             for sweep_runs in runs:
                 paper_order(group_runs(sweep_runs))
@@ -119,7 +128,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             if args.paper_averaging:
                 print(format_paper_averaging_section(report))
             print(f"wrote {', '.join(str(p) for p in paths)}\n")
-    except ReportError as err:
+    except (ReportError, StorageError) as err:  # StorageError: a figure or table the disk refused
         print(f"{PROG}: error: {err}", file=sys.stderr)
         sys.exit(EXIT_ERROR)
     except OSError as err:  # an output folder that cannot be made or written

@@ -18,7 +18,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from drone_torchrl import migrations
-from drone_torchrl.config import ConfigError, check_command_line, config_dir
+from drone_torchrl.config import ConfigError, check_command_line, check_default_folder, config_dir
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
@@ -104,13 +104,16 @@ def _before_hydra() -> list[Path]:
         overrides = command_line.overrides_of(args)
         if "hydra/launcher" in overrides:
             command_line.check_launcher(overrides["hydra/launcher"])
+        prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
+        if not prints and flags.config_name is None and flags.config_dir is None:
+            check_default_folder("config", args)
         if flags.multirun:
             command_line.check_multirun(overrides)
             return []
         if flags.cfg in ("job", "all") and flags.config_name is None and flags.config_dir is None:
             command_line.check_composed([a for a in flags.overrides])
-        if flags.cfg or flags.info or flags.help or flags.hydra_help:
-            return []  # prints, trains nothing
+        if prints:
+            return []
         folder, extra = command_line.claim_run_folder(overrides)
     except (ConfigError, StorageError) as err:
         sys.exit(f"drone-train: error: {err}")

@@ -20,21 +20,35 @@ Layout (``format_version`` 3)::
     config          the run's resolved config (plain dict)
     final           None while the run goes on; its final metrics once it finished
     <algorithm's>   what its learner adds (algo=ppo and a2c: ``critic``; see drone_torchrl.algorithms)
+    tensor_sha256   {"actor/<key>": sha256 of that tensor's dtype, shape and bytes, ...}: every
+                    tensor above, written by :func:`save_checkpoint`
+
+What is loaded is checked (:func:`load_checkpoint`), since ``torch.load`` reads damaged bytes
+without noticing: each tensor against its digest, every record of the file against the CRC-32
+its zip archive keeps, the counters (``episodes_done``, ``updates_done``: integers >= 0) and every
+floating-point tensor (finite: a run never saves diverged weights). Checkpoints written before the
+digest existed have none and still load; their zip CRCs are checked all the same. Tensors whose
+shapes the run's config does not make are refused when they are loaded into its networks
+(:func:`check_weights`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import io
 import os
 import pickle
 import warnings
+import zipfile
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from drone_torchrl import migrations
-from drone_torchrl.io.storage import writing
+from drone_torchrl.checks import ConfigError, check_number
+from drone_torchrl.io.storage import name_too_long, write_atomically
 
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
@@ -56,6 +70,14 @@ REQUIRED_KEYS = (
     "config",
     "final",
 )
+# The digest of every tensor of a checkpoint (see the layout above).
+DIGEST_KEY = "tensor_sha256"
+# Counters a checkpoint carries on (integers >= 0).
+COUNTERS = ("episodes_done", "updates_done")
+# What a damaged checkpoint's message suggests.
+OTHER_CHECKPOINT = "use another checkpoint (the run's best.pt or last.pt, or a copy)"
+# Bytes read at a time when checking the zip's CRC-32s.
+CRC_CHUNK = 1 << 20
 
 
 class CheckpointError(ValueError):
@@ -63,22 +85,48 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(state: dict[str, Any], path: Path) -> None:
-    """Write ``state`` to ``path`` through a temporary file and an atomic rename."""
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + ".tmp")
+    """Write ``state`` and the digest of its tensors to ``path`` through a temporary file and an
+    atomic rename."""
+    state = {key: value for key, value in state.items() if key != DIGEST_KEY}
+    state[DIGEST_KEY] = tensor_digests(state)
     # Serialised in memory and written at once: torch.save's zip writer makes a small write per
     # record (half of the time for a file of this size).
     buffer = io.BytesIO()
     torch.save(state, buffer)
-    with writing(path, tmp):  # a full disk leaves the previous checkpoint whole and no .tmp behind
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp.write_bytes(buffer.getbuffer())
-        os.replace(tmp, path)
+    # A full disk leaves the previous checkpoint whole and no .tmp behind.
+    write_atomically(path, buffer.getbuffer())
+
+
+def tensors(state: Any, prefix: str = "") -> Iterator[tuple[str, torch.Tensor]]:
+    """Every tensor of a checkpoint's nested dicts and lists, with its path (``actor/<key>``,
+    ``optimizer/state/0/exp_avg``), in the order they are stored."""
+    if isinstance(state, torch.Tensor):
+        yield prefix, state
+    elif isinstance(state, Mapping):
+        for key, value in state.items():
+            yield from tensors(value, f"{prefix}/{key}" if prefix else str(key))
+    elif isinstance(state, list | tuple):
+        for i, value in enumerate(state):
+            yield from tensors(value, f"{prefix}/{i}" if prefix else str(i))
+
+
+def tensor_digests(state: Mapping[str, Any]) -> dict[str, str]:
+    """sha256 of each tensor's dtype, shape and bytes, by its path (:func:`tensors`)."""
+    digests = {}
+    for where, tensor in tensors(state):
+        data = tensor.detach().to("cpu").contiguous().reshape(-1)
+        digest = hashlib.sha256(f"{data.dtype} {list(tensor.shape)}".encode())
+        digest.update(data.view(torch.uint8).numpy().data if data.numel() else b"")
+        digests[where] = digest.hexdigest()
+    return digests
 
 
 def resolve_checkpoint(location: str | os.PathLike) -> Path:
     """A checkpoint file, or a run folder holding ``checkpoints/last.pt``; ``FileNotFoundError`` otherwise."""
     path = Path(location).expanduser()
+    too_long = name_too_long(path)
+    if too_long is not None:  # is_dir() would raise ENAMETOOLONG
+        raise FileNotFoundError(f"{location!s} cannot name a file: {too_long}")
     if path.is_dir():
         path = path / CHECKPOINT_DIR / LAST
     if not path.is_file():
@@ -89,10 +137,13 @@ def resolve_checkpoint(location: str | os.PathLike) -> Path:
 
 
 def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """Read a checkpoint with ``weights_only=True`` and migrate it to :data:`FORMAT_VERSION`.
+    """Read a checkpoint with ``weights_only=True``, check it and migrate it to :data:`FORMAT_VERSION`.
 
     Raises :class:`CheckpointError` (one line, naming the file) for a file that is not a
-    checkpoint, holds Python objects other than tensors and plain data, or has an unknown version.
+    checkpoint, holds Python objects other than tensors and plain data, has an unknown version,
+    is damaged (a tensor that does not match its digest, a record that does not match its zip
+    CRC-32), or holds counters or weights no run saves (see the module's docstring). A checkpoint
+    written before the digest existed has none: its tensors are checked by the zip's CRCs only.
     """
     path = Path(path)
     try:
@@ -111,7 +162,53 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         raise CheckpointError(
             f"{path} is not a readable checkpoint (empty, truncated, or not a file torch.save wrote)"
         ) from None
+    if isinstance(state, dict):
+        _check_digest(state, path)
+    _check_archive(path)
     return migrate(state, path)
+
+
+def _check_digest(state: dict[str, Any], path: Path) -> None:
+    """Each tensor against the digest :func:`save_checkpoint` wrote with it (none in older files)."""
+    saved = state.pop(DIGEST_KEY, None)
+    if saved is None:
+        return
+    if not isinstance(saved, dict):
+        raise CheckpointError(f"{path}: its {DIGEST_KEY} is not a digest of each tensor: a damaged file")
+    digests = tensor_digests(state)
+    for where in [*digests, *(w for w in saved if w not in digests)]:
+        if digests.get(where) == saved.get(where):
+            continue
+        if where not in digests:
+            what = "is missing"
+        elif where not in saved:
+            what = "has no digest"
+        else:
+            what = "does not match the digest written with it"
+        raise CheckpointError(f"{path}: the tensor {where} {what}: a damaged file; {OTHER_CHECKPOINT}")
+
+
+def _check_archive(path: Path) -> None:
+    """Every record of the zip archive against the CRC-32 stored with it (``torch.load`` does not
+    check them). A record stored without one (CRC 0: ``torch.serialization.config.save.compute_crc32``
+    off) and files in torch's legacy format, which are not zip archives, are not checked."""
+    try:
+        archive = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, OSError):
+        return
+    with archive:
+        for info in archive.infolist():
+            if info.CRC == 0:
+                continue
+            try:
+                with archive.open(info) as record:
+                    while record.read(CRC_CHUNK):
+                        pass
+            except (zipfile.BadZipFile, OSError, EOFError):
+                raise CheckpointError(
+                    f"{path}: its record {info.filename} does not match the checksum stored with it: a damaged "
+                    f"file; {OTHER_CHECKPOINT}"
+                ) from None
 
 
 def migrate(state: Any, path: Path) -> dict[str, Any]:
@@ -147,7 +244,45 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
     missing = [key for key in REQUIRED_KEYS if key not in state]
     if missing:
         raise CheckpointError(f"{path} lacks {', '.join(missing)}: a damaged or foreign checkpoint")
+    for key in COUNTERS:
+        try:
+            check_number(key, state[key], low=0, integer=True)
+        except ConfigError as err:
+            raise CheckpointError(f"{path}: {err}; a damaged or hand-edited checkpoint") from None
+    for where, tensor in tensors(state):
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            raise CheckpointError(
+                f"{path}: the tensor {where} holds NaN or infinite values (a run never saves diverged "
+                "weights): a damaged or hand-edited checkpoint"
+            )
     return state
+
+
+def check_weights(module: torch.nn.Module, weights: Any, path: Path, entry: str) -> None:
+    """``weights`` (the checkpoint's ``entry``) holds the tensors ``module`` has, of their shapes, and
+    no others: what ``module.load_state_dict(weights)`` needs. :class:`CheckpointError` naming the
+    file and the first tensor that differs otherwise (``load_state_dict`` lists them all, over many
+    lines). ``module`` may live on the meta device: only its shapes are read."""
+    expected = module.state_dict()
+    if not isinstance(weights, Mapping):
+        raise CheckpointError(f"{path}: its {entry} is not a state dict: a damaged or foreign checkpoint")
+    for key, tensor in expected.items():
+        saved = weights.get(key)
+        if not isinstance(saved, torch.Tensor):
+            raise CheckpointError(
+                f"{path}: {entry} lacks the tensor {key} that its config's networks have: a damaged or foreign checkpoint"
+            )
+        if saved.shape != tensor.shape:
+            raise CheckpointError(
+                f"{path}: the tensor {entry}/{key} has shape {list(saved.shape)}, but the networks its config "
+                f"describes (model.*, algo.*) need {list(tensor.shape)}: a checkpoint of another model, or a hand-edited config"
+            )
+    unknown = [key for key in weights if key not in expected]
+    if unknown:
+        raise CheckpointError(
+            f"{path}: {entry} holds the tensor {unknown[0]}, which its config's networks do not have: a "
+            "damaged or foreign checkpoint"
+        )
 
 
 def run_dir_of(checkpoint: Path) -> Path:

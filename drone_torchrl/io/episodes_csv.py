@@ -7,6 +7,7 @@ import math
 import os
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any, TextIO
 
 import numpy as np
 
@@ -26,6 +27,24 @@ CSV_COLUMNS = (
 TEXT_COLUMNS = ("termination_cause",)
 
 
+def open_csv(path: Path) -> TextIO:
+    """``path`` opened for :mod:`csv` to read: UTF-8, and a byte that is not UTF-8 (a damaged file)
+    read as a lone surrogate instead of raising, so one bad row costs that row (:func:`is_text`)."""
+    return Path(path).open(newline="", encoding="utf-8", errors="surrogateescape")
+
+
+def is_text(fields: Iterable[Any]) -> bool:
+    """Whether a row read through :func:`open_csv` was UTF-8 text (its fields, lists of extra fields
+    and ``None`` for missing ones)."""
+    for field in fields:
+        for value in field if isinstance(field, list) else [field]:
+            try:
+                (value or "").encode("utf-8")
+            except UnicodeEncodeError:
+                return False
+    return True
+
+
 def _parse(row: dict[str, str | None]) -> dict[str, object] | None:
     """A CSV row as numbers (and the cause's name), or None if it is torn or garbled."""
     try:
@@ -41,17 +60,20 @@ def _parse(row: dict[str, str | None]) -> dict[str, object] | None:
 
 
 def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]]], list[str]]:
-    """The parsable rows of ``path`` (parsed, and as written), and a note for each line left out."""
+    """The parsable rows of ``path`` (parsed, and as written), and a note for each line left out
+    (torn, garbled, or bytes that are not UTF-8)."""
     notes: list[str] = []
     rows = []
-    with path.open(newline="") as f:
+    with open_csv(path) as f:
         reader = csv.DictReader(f)
         missing = [c for c in CSV_COLUMNS if c not in (reader.fieldnames or [])]
         if missing:
             raise EpisodeCSVError(f"{path} lacks the column(s) {', '.join(missing)}")
         for row in reader:
             parsed = _parse(row)
-            if parsed is None:
+            if not is_text(row.values()):
+                notes.append(f"{path}: line {reader.line_num} is not UTF-8 text; skipped")
+            elif parsed is None:
                 notes.append(f"{path}: line {reader.line_num} is not a complete row; skipped")
             else:
                 rows.append((parsed, row))
@@ -111,8 +133,8 @@ def read_episodes(path: Path) -> tuple[dict[str, np.ndarray], list[str]]:
     """Read ``episodes.csv`` as columns ordered by episode, and notes about what was left out.
 
     Numbers come back as float64 arrays, ``termination_cause`` as an array of names. A row that
-    does not parse (torn by a kill, a line still being appended, garbage, ``nan``) is skipped with
-    a note, and the rows after it are read; duplicate episode indices keep their last row, and
+    does not parse (torn by a kill, a line still being appended, garbage, ``nan``, bytes that are
+    not UTF-8) is skipped with a note, and the rows after it are read; duplicate episode indices keep their last row, and
     missing episode indices are noted.
     """
     path = Path(path)

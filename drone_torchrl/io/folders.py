@@ -1,10 +1,11 @@
-"""Run folders a command made but did not use."""
+"""Run folders a command made but did not use, and the folders a fork may train in."""
 
 from __future__ import annotations
 
 import shutil
 from pathlib import Path
 
+from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.run_lock import LOCK_NAME
 
 # What a run folder holds before the command's own code runs: Hydra's record and log, and the
@@ -32,3 +33,20 @@ def remove_if_untouched(run_dir: Path, root: Path | None = None, also: frozenset
         if parent == root or root not in parent.parents or any(parent.iterdir()):
             break
         parent.rmdir()
+
+
+def check_fork_folder(folder: Path, resume: str, also: frozenset[str] = frozenset({LOCK_NAME})) -> None:
+    """A fork (``resume=`` a checkpoint that is not its run's ``last.pt``) trains in a folder of its
+    own: ``folder`` must be new, or hold nothing but entries named in ``also`` (a lock left behind;
+    inside the Hydra job: what Hydra wrote for it, :data:`HYDRA_ENTRIES`). Anything else is another
+    run, which the fork would overwrite: :class:`ConfigError` before anything is written."""
+    try:
+        entries = sorted(p.name for p in Path(folder).iterdir() if p.name not in also)
+    except (FileNotFoundError, NotADirectoryError):
+        return  # new; a file is refused by the folder checks
+    if entries:
+        raise ConfigError(
+            f"hydra.run.dir={folder} is not allowed; expected a new or empty folder: it holds {', '.join(entries[:3])}"
+            f"{', ...' if len(entries) > 3 else ''}, and resume={resume} continues as a fork, which would "
+            f"overwrite them (to continue the run in that folder: drone-train resume={folder})"
+        )

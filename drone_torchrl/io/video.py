@@ -14,7 +14,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from drone_torchrl.envs.drone_env import DroneEnv
-from drone_torchrl.io.storage import folder_refuses, writing
+from drone_torchrl.io.storage import folder_refuses, write_atomically, writing
 
 VIDEO_DIR = "videos"
 
@@ -125,10 +125,4 @@ def gif_bytes(frames: np.ndarray, fps: float) -> bytes:
 
 def save_gif(frames: np.ndarray, path: Path, fps: float) -> Path:
     """Write frames as an animated GIF (:func:`gif_bytes`), atomically."""
-    data = gif_bytes(frames, fps)
-    part = path.with_name(path.name + ".part")
-    with writing(path, part):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        part.write_bytes(data)
-        os.replace(part, path)
-    return path
+    return write_atomically(path, gif_bytes(frames, fps))

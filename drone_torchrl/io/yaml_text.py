@@ -10,7 +10,6 @@ Multilingual Plane, such as emoji, and U+0085), which read back the same.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +17,7 @@ import yaml
 from omegaconf import Container, OmegaConf
 
 from drone_torchrl.compat import omegaconf_str_representer
-from drone_torchrl.io.storage import writing
+from drone_torchrl.io.storage import write_atomically
 
 
 class _Dumper(getattr(yaml, "CDumper", yaml.Dumper)):  # type: ignore[misc]
@@ -38,8 +37,4 @@ def to_yaml(cfg: Container | dict | list) -> str:
 
 def save_yaml(cfg: Container | dict | list, path: str | Path) -> None:
     """``OmegaConf.save(cfg, path)``, faster (see :func:`to_yaml`), replacing the file atomically."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with writing(path, tmp):
-        tmp.write_text(to_yaml(cfg), encoding="utf-8")
-        os.replace(tmp, path)
+    write_atomically(path, to_yaml(cfg).encode("utf-8"))

@@ -25,6 +25,7 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.io.episodes_csv import is_text, open_csv
 from drone_torchrl.io.storage import writing
 from drone_torchrl.loggers import FINISHED, Backend, RunStatus, flatten_config, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, free, store_plugin
@@ -80,13 +81,14 @@ class CSVLogger:
 
 
 def _keep_until(path: Path, step: int) -> None:
-    """Rewrite ``path`` with its rows up to ``step`` (a torn last line, from a kill, is dropped too)."""
-    with path.open(newline="") as f:
+    """Rewrite ``path`` with its rows up to ``step`` (a torn last line, from a kill, and a row that is
+    not UTF-8 text are dropped too)."""
+    with open_csv(path) as f:
         rows = list(csv.reader(f))
     kept = [
         row
         for row in rows[1:]
-        if len(row) == len(HEADER) and _step(row[0]) is not None and _step(row[0]) <= step
+        if len(row) == len(HEADER) and is_text(row) and _step(row[0]) is not None and _step(row[0]) <= step
     ]
     _write_atomically(path, HEADER, kept)
 

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drone_torchrl.io.storage import write_figure
 from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, ReportError, Setting
 from drone_torchrl.report.stats import (
     PERCENT,
@@ -167,9 +168,7 @@ def plot_distributions(
     ax.grid(alpha=0.2)
     ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    return path
+    return write_figure(fig, path, dpi=120)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -237,9 +236,7 @@ def plot_paper_averaging(settings: Sequence[Setting], window: int, title: str, p
             ax.legend(loc="best", fontsize="small")
     fig.suptitle(f"{title}: settings in the paper's order")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    return path
+    return write_figure(fig, path, dpi=120)
 
 
 def format_paper_averaging(settings: Sequence[Setting], window: int) -> str:

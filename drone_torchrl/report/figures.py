@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drone_torchrl.io.storage import write_figure
 from drone_torchrl.report.runs import COL_LENGTH, STATUS_FINISHED, Setting
 from drone_torchrl.report.stats import setting_curve
 from drone_torchrl.report.sweep import SweepReport
@@ -64,6 +65,4 @@ def plot_curves(report: SweepReport, column: str, path: Path) -> Path:
     ax.grid(alpha=BAND_ALPHA)
     ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=FIGURE_DPI)
-    return path
+    return write_figure(fig, path, dpi=FIGURE_DPI)

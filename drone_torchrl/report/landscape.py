@@ -17,12 +17,14 @@ The paper's setting (alpha 1e-4, gamma 0.99) is marked where it falls between th
 from __future__ import annotations
 
 import csv
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from drone_torchrl.io.storage import write_atomically, write_figure
 from drone_torchrl.report.stats import ZONE_SHARE, SettingSummary
 from drone_torchrl.report.sweep import SweepReport
 
@@ -159,9 +161,7 @@ def plot_landscape(grid: Landscape, path: Path) -> Path:
     if marker is not None:
         fig.suptitle(f"red star: the paper's setting ({_paper_label()}); grey: never", fontsize="medium")
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=FIGURE_DPI)
-    return path
+    return write_figure(fig, path, dpi=FIGURE_DPI)
 
 
 def _paper_label() -> str:
@@ -185,27 +185,28 @@ def write_landscape(grid: Landscape, out_dir: Path) -> list[Path]:
     """``landscape.png`` and ``landscape.csv`` (one row per cell)."""
     figure = plot_landscape(grid, Path(out_dir) / LANDSCAPE_FIGURE)
     table = Path(out_dir) / LANDSCAPE_CSV
-    with table.open("w", newline="") as f:
-        writer = csv.writer(f)
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    writer.writerow(
+        [
+            grid.x_key,
+            grid.y_key,
+            "seeds",
+            "median_final_return",
+            "zone_fraction",
+            "median_full_length_episode",
+        ]
+    )
+    for (row, col), seeds in np.ndenumerate(grid.seeds):
         writer.writerow(
             [
-                grid.x_key,
-                grid.y_key,
-                "seeds",
-                "median_final_return",
-                "zone_fraction",
-                "median_full_length_episode",
+                grid.x_values[col],
+                grid.y_values[row],
+                int(seeds) if not math.isnan(seeds) else 0,
+                grid.median_return[row, col],
+                grid.zone_fraction[row, col],
+                _format(grid.full_length_episode[row, col], "value"),
             ]
         )
-        for (row, col), seeds in np.ndenumerate(grid.seeds):
-            writer.writerow(
-                [
-                    grid.x_values[col],
-                    grid.y_values[row],
-                    int(seeds) if not math.isnan(seeds) else 0,
-                    grid.median_return[row, col],
-                    grid.zone_fraction[row, col],
-                    _format(grid.full_length_episode[row, col], "value"),
-                ]
-            )
+    write_atomically(table, text.getvalue().encode())
     return [figure, table]

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import csv
+import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from drone_torchrl.io.storage import write_atomically
 from drone_torchrl.report.distribution import (
     CONFIDENCE,
     DISTRIBUTION_FIGURE,
@@ -235,7 +237,6 @@ def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = Fal
     ``out_dir``; for a two-key grid sweep also ``landscape.png`` and ``landscape.csv``
     (:mod:`.landscape`); with ``paper_averaging`` also ``paper_averaging.png``."""
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     distributions = [distribution(s, report.window) for s in report.settings if s.runs_with_episodes]
     paths = [
         plot_curves(report, COL_LENGTH, out_dir / STEPS_FIGURE),
@@ -258,17 +259,15 @@ def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = Fal
     if grid is not None:
         paths += write_landscape(grid, out_dir)
     md = out_dir / SUMMARY_MD
-    md.write_text(
-        format_report(report)
-        + "\n"
-        + extra
-        + (f"\n![landscape]({LANDSCAPE_FIGURE})\n" if grid is not None else "")
-    )
+    summary = format_report(report) + "\n" + extra
+    summary += f"\n![landscape]({LANDSCAPE_FIGURE})\n" if grid is not None else ""
+    write_atomically(md, summary.encode())
     table = out_dir / SUMMARY_CSV
-    with table.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=SUMMARY_CSV_COLUMNS)
-        writer.writeheader()
-        writer.writerows(summary_rows(report))
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=SUMMARY_CSV_COLUMNS)
+    writer.writeheader()
+    writer.writerows(summary_rows(report))
+    write_atomically(table, text.getvalue().encode())
     return [*paths, md, table]
 
 

@@ -11,7 +11,8 @@ Resume rules (:func:`prepare`):
   the same CSV and TensorBoard run, the episode counter carries on.
 - ``resume=<any other checkpoint>`` (``best.pt``, a copied file) continues from it as a **fork** in
   a new run folder (the Hydra job's folder): the parent's CSV rows up to the checkpoint are copied,
-  and the parent run is left as it was.
+  and the parent run is left as it was. A folder that holds anything (another run) is refused:
+  the fork would overwrite it.
 - A continued run keeps its hyper-parameters. From the command line it takes only the budget
   (``algo.episodes``), logging and checkpointing options and the process settings (each key's
   ``on_resume`` in :mod:`drone_torchrl.schema`); a command line that changes any other key is refused, naming each key
@@ -35,6 +36,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from drone_torchrl import migrations
 from drone_torchrl.config import (
     ConfigError,
+    check_networks,
     command_line_keys,
     group_names,
     leaves,
@@ -53,6 +55,7 @@ from drone_torchrl.io.checkpoint import (
     load_checkpoint,
     run_dir_of,
 )
+from drone_torchrl.io.folders import HYDRA_ENTRIES, check_fork_folder
 from drone_torchrl.io.yaml_text import to_yaml
 from drone_torchrl.schema import BUDGET, KEPT, PROCESS
 from drone_torchrl.training.run import FAILED_FILE
@@ -144,6 +147,7 @@ def _prepare(
                 OmegaConf.update(saved, key, value, force_add=True)
         saved.backend = checkpoint["backend"]
     validate(saved)
+    check_networks("resume", path, checkpoint, saved)
     done = checkpoint["episodes_done"]
     if checkpoint["final"] is None and saved.algo.episodes < done:
         raise ConfigError.of(
@@ -154,10 +158,13 @@ def _prepare(
     # A fork: continue from an earlier point of the parent run, in a folder of its own.
     fork_dir = run_dir or _hydra_run_dir()
     parent = run_dir_of(path)
-    if fork_dir is None or fork_dir.resolve() == parent:
+    if fork_dir is None:
         raise ConfigError(
             f"resume={cfg.resume!r} is not the run's {LAST}: it continues as a fork and needs a new run folder"
         )
+    # A new or empty folder (the Hydra job's holds its record, log and lock): never another run's,
+    # nor the parent's.
+    check_fork_folder(fork_dir, cfg.resume, HYDRA_ENTRIES)
     print(
         f"resume: {path.name} (episode {checkpoint['episodes_done']}) is not the last checkpoint of {parent}; "
         f"continuing as a fork in {fork_dir} (the original run is left as it is)"
@@ -240,7 +247,8 @@ def job_status(job_dir: Path) -> tuple[str, str]:
     """``("finished" | "failed" | "unfinished", detail)`` of one job folder (never raises for a bad file)."""
     failed = job_dir / FAILED_FILE
     if failed.is_file():
-        lines = [line for line in failed.read_text().splitlines() if line.strip()]
+        text = failed.read_text(encoding="utf-8", errors="replace")  # a damaged file still says failed
+        lines = [line for line in text.splitlines() if line.strip()]
         return "failed", lines[-1] if lines else "unknown error"
     last = job_dir / CHECKPOINT_DIR / LAST
     if not last.is_file():

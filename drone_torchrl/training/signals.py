@@ -8,6 +8,10 @@ finishes the update in flight, books its episodes, writes every active run's che
 138 for SIGUSR1), the shell's convention for a command ended by a signal. Resuming then trains no
 episode twice and loses none. SIGINT (Ctrl-C) stays Python's ``KeyboardInterrupt``: an immediate
 stop that keeps the last periodic checkpoint.
+
+Work with nothing to checkpoint (``drone-export``) stops at once instead (:func:`interrupt_on_signals`):
+the signal raises :class:`Interrupted`, so the temporary files of a write in flight are removed
+(:func:`drone_torchrl.io.storage.writing`) rather than left behind by a process the OS ended.
 """
 
 from __future__ import annotations
@@ -71,5 +75,37 @@ def stop_on_signals() -> Iterator[StopRequest]:
         yield request
     finally:
         _active.clear()
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+class Interrupted(BaseException):
+    """A stop signal received inside :func:`interrupt_on_signals`: raised where the program was, so
+    ``finally`` blocks and :func:`~drone_torchrl.io.storage.writing` clean up on the way out."""
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+def _interrupt(signum: int, frame: object) -> None:
+    raise Interrupted(signum)
+
+
+@contextmanager
+def interrupt_on_signals() -> Iterator[None]:
+    """:data:`STOP_SIGNALS` raise :class:`Interrupted` while the block runs (the handlers in place
+    before are restored after; outside the main thread they keep their meaning)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, _interrupt) for signum in STOP_SIGNALS}
+    try:
+        yield
+    finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
