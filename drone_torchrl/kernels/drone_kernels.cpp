@@ -1026,16 +1026,18 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
       }
       for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
     }
-    // Returns-to-go of each row's episode, last step first (the loss's discounted_returns).
+    // Returns-to-go of each row's episode, last step first (the loss's discounted_returns), summed
+    // in float64: hundreds of rounded additions in float32 drift by a few 1e-5, which normalised
+    // returns then weigh against every log-probability.
     for (int l = 0; l < count; l++) {
       const int64_t row = row0 + l;
-      const S discount = a.gamma[agent[l]];
+      const double discount = a.gamma[agent[l]];
       S* out = static_cast<S*>(a.returns) + row * T;
-      S running = 0;
+      double running = 0;
       for (int64_t t = a.length[row] - 1; t >= 0; t--) {
         running = reward[row * T + t] + discount * running;
-        out[t] = running;
-        if (saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
+        out[t] = S(running);
+        if (saved) slot(agent[l], episode[l] * T + t, layout.ret()) = S(running);
       }
     }
   }
@@ -1103,25 +1105,25 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
       for (int k = 0; k < layout.width; k++)
         saved[b * layout.width + k] = mask != 0 ? saved[b * layout.width + k] : V{};
     }
-    S mean = 0, std = 0;
+    S mean = 0, std = 0;  // of the returns, summed in float64 (see rollout_blocks)
     if (o.baseline_mean || o.normalize_returns) {
-      S total = 0;
+      double total = 0;
       for (int64_t b = 0; b < used; b++)
         for (int l = 0; l < L; l++) total += saved[b * layout.width + layout.ret()][l];
-      mean = total / S(steps);
+      mean = S(total / double(steps));
       if (o.normalize_returns) {
-        S squares = 0;
+        double squares = 0;
         for (int64_t b = 0; b < used; b++) {
           const V mask = valid(b);
           const V centred = (saved[b * layout.width + layout.ret()] - mean) * mask;
-          for (int l = 0; l < L; l++) squares += centred[l] * centred[l];
+          for (int l = 0; l < L; l++) squares += double(centred[l]) * centred[l];
         }
-        std = std::sqrt(squares / S(steps));
+        std = S(std::sqrt(squares / double(steps)));
       }
     }
     const S gamma = a.gamma[n], per_episode = S(1) / S(episodes);
     const S reduce = o.mean_log_prob ? S(1) / S(kActionDim) : S(1);
-    S loss = 0, std_sum = 0;
+    double loss = 0, std_sum = 0;  // sums of hundreds of terms: float64 whatever S
     bool finite = true;
     for (int64_t b = 0; b < used; b++) {
       const V* blk = saved + b * layout.width;
