@@ -1,9 +1,9 @@
 """The fast engine's kernels under disturbances against the nominal drone, and against an older commit.
 
     python benchmarks/kernel_disturbances.py                  # this checkout, and d88f933's kernels
-    python benchmarks/kernel_disturbances.py --against main --repeats 30 --rounds 3
+    python benchmarks/kernel_disturbances.py --against main --repeats 10 --rounds 4
 
-Prints the median time of one ``KernelReinforce`` update (``4 x 1`` and ``32 x 1`` agents x
+Prints the median (and least) time of one ``KernelReinforce`` update (``4 x 1`` and ``32 x 1`` agents x
 episodes, 300 steps each) for the nominal drone, ``disturbance=strong`` and each disturbance key
 alone, with the ratio to nominal; the median time of one ``KernelSegments`` call (64 drones x 64
 steps) nominal and strong; the nominal update of the ``--against`` commit's kernels, measured in the
@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -59,11 +60,17 @@ def _unbounded(env, ops):
     return env
 
 
-def _times(fn, repeats: int) -> list[float]:
-    """Seconds of each of ``repeats`` calls of ``fn``, after three warm-up calls."""
-    timer = timeit.Timer(fn)
-    timer.repeat(3, 1)
-    return timer.repeat(repeats, 1)
+def _times(calls: dict[str, object], repeats: int) -> dict[str, list[float]]:
+    """Seconds of ``repeats`` calls of each of ``calls``, after three warm-up calls: the calls take
+    turns, one each per pass, so a slow spell of a shared machine slows them all alike."""
+    timers = {name: timeit.Timer(fn) for name, fn in calls.items()}
+    for timer in timers.values():
+        timer.repeat(3, 1)
+    times: dict[str, list[float]] = {name: [] for name in calls}
+    for _ in range(repeats):
+        for name, timer in timers.items():
+            times[name] += timer.repeat(1, 1)
+    return times
 
 
 def _update(agents: int, episodes: int, disturbance: dict | None):
@@ -127,17 +134,16 @@ def worker(repeats: int, nominal_only: bool) -> dict[str, list]:
     import drone_torchrl
 
     torch.set_num_threads(1)
-    out: dict[str, list] = {"_file": [str(Path(drone_torchrl.__file__).parent)]}
     conditions = {"nominal": None} if nominal_only else {"nominal": None, "strong": STRONG, **ALONE}
-    for agents, episodes in SIZES:
-        for name, disturbance in conditions.items():
-            out[f"update {agents}x{episodes} {name}"] = _times(
-                _update(agents, episodes, disturbance), repeats
-            )
+    calls = {
+        f"update {agents}x{episodes} {name}": _update(agents, episodes, disturbance)
+        for agents, episodes in SIZES
+        for name, disturbance in conditions.items()
+    }
     if not nominal_only:
         for name, disturbance in {"nominal": None, "strong": STRONG}.items():
-            out[f"segments {SEGMENT_DRONES}x{SEGMENT_STEPS} {name}"] = _times(_segments(disturbance), repeats)
-    return out
+            calls[f"segments {SEGMENT_DRONES}x{SEGMENT_STEPS} {name}"] = _segments(disturbance)
+    return {"_file": [str(Path(drone_torchrl.__file__).parent)], **_times(calls, repeats)}
 
 
 def _export(ref: str, into: Path) -> Path:
@@ -160,27 +166,21 @@ def _run_worker(tree: Path | None, repeats: int, nominal_only: bool) -> dict[str
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def build_seconds(source: Path, repeats: int = 3) -> float:
-    """Median seconds of a cold float32 build of ``source`` with build.py's flags."""
+def build_seconds(source: Path, repeats: int = 3) -> tuple[float, float]:
+    """Median wall-clock and CPU seconds of a cold float32 build of ``source`` with build.py's flags
+    (the CPU time hardly depends on what else the machine runs)."""
     from drone_torchrl.kernels import build
 
-    compiler = build._compiler()
-    times = []
+    flags = [*build.BASE_FLAGS, "-DDK_DOUBLE=0", *build.ARCH_FLAGS]
+    wall, cpu = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(repeats):
-            cmd = [
-                compiler,
-                *build.BASE_FLAGS,
-                "-DDK_DOUBLE=0",
-                *build.ARCH_FLAGS,
-                str(source),
-                "-o",
-                f"{tmp}/k.so",
-            ]
-            start = time.perf_counter()
-            subprocess.run(cmd, check=True)
-            times.append(time.perf_counter() - start)
-    return statistics.median(times)
+            before, start = resource.getrusage(resource.RUSAGE_CHILDREN), time.perf_counter()
+            subprocess.run([build._compiler(), *flags, str(source), "-o", f"{tmp}/k.so"], check=True)
+            after = resource.getrusage(resource.RUSAGE_CHILDREN)
+            wall.append(time.perf_counter() - start)
+            cpu.append(after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime)
+    return statistics.median(wall), statistics.median(cpu)
 
 
 def main() -> None:
@@ -189,10 +189,10 @@ def main() -> None:
     )
     parser.add_argument("--against", default="d88f933", help="the commit whose nominal kernels to time too")
     parser.add_argument(
-        "--repeats", type=int, default=20, help="timed calls per round (after 3 warm-up calls)"
+        "--repeats", type=int, default=5, help="timed passes per round (after 3 warm-up calls)"
     )
     parser.add_argument(
-        "--rounds", type=int, default=2, help="rounds, alternating this checkout and --against"
+        "--rounds", type=int, default=6, help="rounds, alternating this checkout and --against"
     )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--nominal-only", action="store_true", help=argparse.SUPPRESS)
@@ -200,29 +200,35 @@ def main() -> None:
     if args.worker:
         print(json.dumps(worker(args.repeats, args.nominal_only)))
         return
-    times: dict[str, dict[str, list[float]]] = {"this": {}, "against": {}}
+    times: dict[str, dict[str, list]] = {"this": {}, "against": {}}
     with tempfile.TemporaryDirectory() as tmp:
         old = _export(args.against, Path(tmp))
         for _ in range(args.rounds):
             for who, tree, nominal_only in (("this", None, False), ("against", old, True)):
                 for key, values in _run_worker(tree, args.repeats, nominal_only).items():
                     times[who].setdefault(key, []).extend(values)
-        old_build = build_seconds(old / "drone_torchrl/kernels/drone_kernels.cpp")
-    new_build = build_seconds(ROOT / "drone_torchrl/kernels/drone_kernels.cpp")
-    median_ms = {
-        who: {k: 1e3 * statistics.median(v) for k, v in t.items() if not k.startswith("_")}
+        builds = {args.against: build_seconds(old / "drone_torchrl/kernels/drone_kernels.cpp")}
+    builds["this checkout"] = build_seconds(ROOT / "drone_torchrl/kernels/drone_kernels.cpp")
+    ms = {
+        who: {k: (1e3 * statistics.median(v), 1e3 * min(v)) for k, v in t.items() if not k.startswith("_")}
         for who, t in times.items()
     }
     print(
-        f"medians of {args.rounds * args.repeats} calls, one thread; this checkout: {times['this']['_file'][0]}"
+        f"{args.rounds * args.repeats} calls each, one thread, median (min) ms; this checkout: {times['this']['_file'][0]}"
     )
-    for key, ms in median_ms["this"].items():
-        base = median_ms["this"][key.rsplit(" ", 1)[0] + " nominal"]
-        print(f"  {key:<40} {ms:8.3f} ms  {ms / base:5.2f}x nominal")
-    print(f"nominal update, {args.against}'s kernels ({times['against']['_file'][0]}):")
-    for key, ms in median_ms["against"].items():
-        print(f"  {key:<40} {ms:8.3f} ms  (this checkout {median_ms['this'][key] / ms:5.2f}x)")
-    print(f"cold float32 build: {args.against} {old_build:.1f} s, this checkout {new_build:.1f} s")
+    for key, (median, least) in ms["this"].items():
+        base, base_min = ms["this"][key.rsplit(" ", 1)[0] + " nominal"]
+        print(
+            f"  {key:<32} {median:7.3f} ({least:7.3f})  {median / base:5.2f}x ({least / base_min:5.2f}x) nominal"
+        )
+    print(f"nominal, {args.against}'s kernels ({times['against']['_file'][0]}):")
+    for key, (median, least) in ms["against"].items():
+        this, this_min = ms["this"][key]
+        print(
+            f"  {key:<32} {median:7.3f} ({least:7.3f})  this checkout {this / median:5.2f}x ({this_min / least:5.2f}x)"
+        )
+    for who, (wall, cpu) in builds.items():
+        print(f"cold float32 build, {who}: {wall:.1f} s wall, {cpu:.1f} s CPU (median of 3)")
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ Each equality test's docstring names a mutation of ``drone_kernels.cpp`` that it
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -123,6 +124,23 @@ def test_every_disturbed_step_equals_the_reference(condition, head, dtype):
     assert torch.equal(episodes.reward[valid], reward[valid])
     assert torch.equal(episodes.cause[valid], cause[valid])
     assert episodes.observation is None if d.nominal else episodes.observation.shape[-1] == d.observation_dim
+
+
+def test_deterministic_disturbed_episodes_fly_the_mean_action():
+    """Without noise (the evaluator's episodes) the action is the mean at what the policy saw."""
+    d = disturbances.make({**dataclasses.asdict(_preset("strong")), "observed_actions": 2})
+    stacked = _stacked(2, "tanh_normal", d, torch.float32)
+    flyer = KernelRollout(
+        stacked, dynamics.DroneParams(max_thrust=MAX_THRUST), MAX_THRUST, 100, disturbance=d
+    )
+    generator = torch.Generator().manual_seed(0)
+    start = dynamics.initial_state((2, 3), "floor", generator)
+    episodes = flyer(start, keys=disturbances.episode_keys(generator, (2, 3)))
+    with torch.no_grad():
+        loc, _ = stacked(episodes.observation)
+    valid = episodes.valid()
+    _close(episodes.action[valid], (0.5 * MAX_THRUST * (torch.tanh(loc) + 1.0))[valid])
+    assert bool((episodes.observation[..., 6:][valid] != 0).any())  # the commands it saw
 
 
 def test_episode_keys_drawn_in_the_kernel_are_training_rng_s():
@@ -270,11 +288,12 @@ def test_segments_equal_drone_env_under_the_collector_s_auto_reset(monkeypatch, 
     drawn at ``t``, not ``t + 1``); a new episode keeping the last one's motor lag (the carried
     thrust not reset)."""
     d, dtype = _disturbance(condition), DTYPES[dtype]
-    n, steps = 8, SEGMENT_STEPS
+    n, steps = 11, SEGMENT_STEPS  # not a multiple of the 8 (4) lanes
     stacked = _stacked(1, head, d, dtype, mean=0.25 if head == "normal" else -0.55)
     generator = torch.Generator().manual_seed(3)
     noise = torch.randn(n, steps, 2, generator=generator, dtype=dtype)
-    noise[: n // 2] += 2.0  # these drones climb (and are truncated), the others sink through the floor
+    noise[: n // 2] += 2.0  # these drones climb (and are truncated),
+    noise[n // 2 :] -= 1.0  # these sink through the floor
     fresh = dynamics.initial_state((n, steps + 1), "floor", generator, dtype=dtype)
     fresh_keys = disturbances.episode_keys(generator, (n, steps + 1))
     expected = _env_segments(
@@ -339,3 +358,28 @@ def test_the_kernels_read_every_disturbance_constant_python_packs():
     for hidden in ([], [7], [32, 32], [5, 9, 3]):
         for in_dim in (6, 10):
             assert ops.input_dim(ops.param_count(in_dim, hidden), hidden) == in_dim
+
+
+def test_the_fake_implementations_give_the_real_shapes_and_dtypes():
+    """What torch.compile traces (the ops' fake implementations) is what they return, observation
+    widths included.
+
+    Mutation caught (in ops.py): the fake segments outputs in another order than the real ones."""
+    d = disturbances.Disturbance(wind=0.1, action_delay=2, observed_actions=2)
+    flat = StackedThreeNet([ThreeNetPolicy((16, 16), "tanh", obs_dim=10)], "tanh").flat.detach()
+    env, dc = ops.env_constants(dynamics.DroneParams(max_thrust=1.0), None), ops.disturbance_constants(d)
+    n, steps, net = 5, 4, ([16, 16], 0, 1e-6)
+    carried = (torch.zeros(n, 6), torch.full((n,), -1), torch.zeros(n, dtype=torch.int64), torch.zeros(n),
+               torch.full((n, 2), 0.5), torch.full((n, 2, 2), 0.5), torch.zeros(n, 2, 2))  # fmt: skip
+    draws = (torch.randn(n, steps, 2), torch.zeros(n, steps, 6), torch.randint(0, 99, (n, steps)))
+    key_pairs = torch.tensor([[[1, 2], [1, 3]]])
+    calls = {
+        "segments": (flat[0], *carried, *draws, 7, env, dc, *net, 0.0),
+        "rollout": (flat, None, None, key_pairs, torch.ones(1, dtype=torch.bool), env, torch.ones(1), *net, 20,
+                    0.0, dc, None, True),
+        "reinforce": (flat, key_pairs, torch.ones(1, dtype=torch.bool), env, torch.ones(1), [1, 1, 0, 0], *net,
+                      20, 0.0, dc),
+    }  # fmt: skip
+    for name, args in calls.items():
+        op = getattr(torch.ops.drone_torchrl, name).default
+        torch.library.opcheck(op, args, test_utils=("test_schema", "test_faketensor"))

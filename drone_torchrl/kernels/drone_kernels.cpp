@@ -17,12 +17,12 @@
 // - the CPU loops (the end of this file) call them with V a GCC vector of 8 float32 (or 4 float64)
 //   drones, one per SIMD lane; every lane runs the same instructions, so a drone's numbers do not
 //   depend on its lane or block (an agent's run is the same alone and inside any population);
-// - a CUDA kernel (one thread per drone) calls them with V = float or double.
+// - a CUDA kernel (one thread per drone) will call them with V = float or double.
 // So those functions use no vector-only idiom: lanes through lane()/set_lane(), masks through
 // select()/both()/lane_any(), elementary functions through overloads (float32 polynomials for
-// vectors, the C library for scalars). `build.py` proves it on every test run: it compiles this
-// file with -DDK_SCALAR_CHECK, which leaves out every vector type and instantiates each of them
-// with V = float and V = double (the end of this file).
+// vectors, the C library for scalars). build.scalar_check() (a test runs it) proves it: it
+// compiles this file with -DDK_SCALAR_CHECK, which leaves out every vector type and instantiates
+// each of them with V = float and V = double (the end of this file).
 //
 // Parameters of one agent are one flat vector in ThreeNetPolicy.named_parameters() order:
 // for each hidden layer weight [out, in] then bias [out], then the mean head (weight [2, h], bias
@@ -1246,7 +1246,8 @@ void segment_blocks(const Net& net, const SegmentArgs& a, int64_t first, int64_t
         set_lane(dr.gust, l, in(a.gust, r));
         for (int m = 0; m < kActionDim; m++) {
           set_lane(dr.thrust[m], l, in(a.thrust, r * kActionDim + m));
-          for (int j = 0; j < delay; j++) set_lane(dr.pending[j][m], l, in(a.pending, (r * delay + j) * kActionDim + m));
+          for (int j = 0; j < delay; j++)
+            set_lane(dr.pending[j][m], l, in(a.pending, (r * delay + j) * kActionDim + m));
           for (int j = 0; j < observed; j++)
             set_lane(dr.issued[j][m], l, in(a.issued, (r * observed + j) * kActionDim + m));
         }
@@ -1369,6 +1370,7 @@ Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t ac
 }
 
 constexpr int64_t lanes() { return lanes_of<Vec<Real>>(); }
+constexpr int64_t blocks_of(int64_t rows) { return (rows + lanes() - 1) / lanes(); }
 
 }  // namespace
 
@@ -1392,7 +1394,7 @@ void dk_rollout(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t
   const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
   RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
                 gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
-  parallel_blocks((rows + lanes() - 1) / lanes(), threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
+  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
 }
 
 // One REINFORCE update's episodes and gradient for every active agent: the rollout of dk_rollout
@@ -1409,7 +1411,7 @@ void dk_reinforce(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64
   RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
                 gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
   GradArgs g{&a, {options[0], options[1], options[2], options[3]}, grad, loss, std_mean, actions_finite};
-  parallel_blocks((rows + lanes() - 1) / lanes(), threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
+  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
   parallel_blocks(agents, threads, [&](int64_t f, int64_t l) { reinforce_agents<Real>(net, g, f, l); });
 }
 
@@ -1435,7 +1437,7 @@ void dk_segments(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_
                 thrust,     pending,   issued,    noise,      fresh,      fresh_keys, env,        dist,
                 obs,        action,    reward,    next_obs,   cause,      terminated, truncated,  step_count,
                 state_out,  t_out,     key_out,   gust_out,   thrust_out, pending_out, issued_out};
-  parallel_blocks((n + lanes() - 1) / lanes(), threads, [&](int64_t f, int64_t l) { segment_blocks<Real>(net, a, f, l); });
+  parallel_blocks(blocks_of(n), threads, [&](int64_t f, int64_t l) { segment_blocks<Real>(net, a, f, l); });
 }
 
 // 4 (float32) or 8 (float64): the precision of this build's tensors, in bytes.

@@ -473,14 +473,14 @@ def _segments_fake(
     disturbance, hidden, activation, min_std, dist_eps=0.0,
 ):  # fmt: skip
     n, steps = noise.shape[:2]
-    obs = params.new_empty(n, steps, input_dim(params.shape[-1], hidden))
-    flags = params.new_empty(n, steps, dtype=torch.bool)
-    counts = params.new_empty(n, steps, dtype=torch.int64)
+    real = params.new_empty
+    obs = real(n, steps, input_dim(params.shape[-1], hidden))
+    flags = real(n, steps, dtype=torch.bool)
+    counts = real(n, steps, dtype=torch.int64)
     return (
-        obs, torch.empty_like(obs), params.new_empty(n, steps, dynamics.ACTION_DIM), params.new_empty(n, steps),
-        torch.empty_like(counts), flags, torch.empty_like(flags), counts, torch.empty_like(state),
-        torch.empty_like(t), torch.empty_like(key), torch.empty_like(gust), torch.empty_like(thrust),
-        torch.empty_like(pending), torch.empty_like(issued),
+        obs, real(n, steps, dynamics.ACTION_DIM), real(n, steps), torch.empty_like(obs), torch.empty_like(counts),
+        flags, torch.empty_like(flags), counts, real(state.shape), real(n, dtype=torch.int64),
+        real(n, dtype=torch.int64), real(gust.shape), real(thrust.shape), real(pending.shape), real(issued.shape),
     )  # fmt: skip
 
 
