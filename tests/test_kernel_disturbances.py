@@ -330,22 +330,35 @@ def test_the_single_source_functions_compile_for_scalar_lanes():
     assert build.scalar_check() is None
 
 
+BAD = {"wind": 0.1}  # a disturbed drone (its keys are needed)
+
+
 @pytest.mark.parametrize(
-    ("change", "message"),
+    ("obs_dim", "disturbance", "keys", "message"),
     [
-        ({"obs_dim": 8}, r"^params of 484 values do not fit the policy of 6 inputs"),
-        ({"keys": "none"}, r"^drone_torchrl::rollout under disturbances needs episode keys or rng keys$"),
+        (
+            8,
+            BAD,
+            True,
+            r"^params of 484 values do not fit the policy of 6 inputs and hidden sizes \[16, 16\]",
+        ),
+        (6, BAD, False, r"^drone_torchrl::rollout under disturbances needs episode keys or rng keys$"),
+        (6, "short", True, r"^disturbance of shape \[9\]; expected \[10\] \(ops.disturbance_constants\)$"),
+        (6, "long delay", True, r"^action_delay and observed_actions \(26, 0\) are not allowed; expected"),
     ],
 )
-def test_the_ops_refuse_what_they_cannot_fly_in_one_line(change, message):
-    d = disturbances.Disturbance(wind=0.1)
-    stacked = StackedThreeNet([ThreeNetPolicy((16, 16), "tanh", obs_dim=change.get("obs_dim", 6))], "tanh")
-    start = torch.zeros(1, 1, 6)
+def test_the_ops_refuse_what_they_cannot_fly_in_one_line(obs_dim, disturbance, keys, message):
+    constants = ops.disturbance_constants(BAD)
+    if disturbance == "short":
+        constants = constants[:-1]
+    elif disturbance == "long delay":
+        constants[ops.DISTURBANCE_CONSTANTS.index("action_delay")] = disturbances.MAX_STEPS_BACK + 1
+    stacked = StackedThreeNet([ThreeNetPolicy((16, 16), "tanh", obs_dim=obs_dim)], "tanh")
     with pytest.raises(ValueError, match=message):
         ops.rollout(
-            stacked.flat.detach(), start, None, None, torch.ones(1, dtype=torch.bool),
+            stacked.flat.detach(), torch.zeros(1, 1, 6), None, None, torch.ones(1, dtype=torch.bool),
             ops.env_constants(dynamics.DroneParams(), None), torch.ones(1), [16, 16], 0, 1e-6, 10,
-            disturbance=ops.disturbance_constants(d),
+            disturbance=constants, keys=torch.zeros(1, 1, dtype=torch.int64) if keys else None,
         )  # fmt: skip
 
 

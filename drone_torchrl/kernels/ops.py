@@ -133,8 +133,9 @@ _GUST_TIME = DISTURBANCE_CONSTANTS.index("gust_time")
 def disturbance_constants(
     disturbance: disturbances.Disturbance | Mapping[str, Any] | None, device: torch.device | str = "cpu"
 ) -> torch.Tensor:
-    """The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64; all zeros (or None
-    where the ops take it) is the nominal drone, which the kernels fly as fast as ever."""
+    """The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64. Magnitudes all zero
+    (the gusts' time scale aside), or None, is the nominal drone, which the kernels fly as fast as
+    ever."""
     d = disturbances.make(disturbance)
     return torch.tensor(
         [float(getattr(d, name)) for name in DISTURBANCE_CONSTANTS], dtype=torch.float64, device=device
@@ -181,6 +182,16 @@ def input_dim(params: int, hidden: Sequence[int]) -> int:
 
 def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.Tensor | None) -> int:
     """The policy's input width, which must be what it sees under ``disturbance``."""
+    if disturbance is not None and tuple(disturbance.shape) != (len(DISTURBANCE_CONSTANTS),):
+        raise ValueError(
+            f"disturbance of shape {list(disturbance.shape)}; expected [{len(DISTURBANCE_CONSTANTS)}] "
+            "(ops.disturbance_constants)"
+        )
+    if not all(0 <= k <= disturbances.MAX_STEPS_BACK for k in steps_back(disturbance)):
+        raise ValueError(
+            f"action_delay and observed_actions {steps_back(disturbance)} are not allowed; expected "
+            f"integers in [0, {disturbances.MAX_STEPS_BACK}] (the kernels' command memory)"
+        )
     in_dim = observation_dim(disturbance)
     if params.shape[-1] != param_count(in_dim, hidden):
         raise ValueError(
