@@ -766,16 +766,20 @@ DK_HD inline void drone_step(const EnvParams<ScalarOf<V>>& e, const DistParams<S
                              const V* act, V gust_n, V* next, V* reward, V* cause, V* zone) {
   using S = ScalarOf<V>;
   V sin_a, cos_a;
-  sincos_v(dr.s[4], &sin_a, &cos_a);
   if (d.nominal) {
     V a_l = act[0], a_r = act[1];
     if (e.bounded) {
       a_l = clamp(a_l, S(0), e.max_thrust);
       a_r = clamp(a_r, S(0), e.max_thrust);
     }
+    // In this order (the compiler's fused multiply-adds follow it): nominal episodes bit for bit
+    // those of the kernels before disturbances.
     const V thrust_l = a_l * e.weight, thrust_r = a_r * e.weight, total = thrust_l + thrust_r;
-    euler(dr.s, -sin_a * total / e.mass, cos_a * total / e.mass - e.gravity, (thrust_r - thrust_l) * e.arm_over_inertia,
-          e.dt, next);
+    sincos_v(dr.s[4], &sin_a, &cos_a);
+    const V x_ddot = -sin_a * total / e.mass;
+    const V z_ddot = cos_a * total / e.mass - e.gravity;
+    const V alpha_ddot = (thrust_r - thrust_l) * e.arm_over_inertia;
+    euler(dr.s, x_ddot, z_ddot, alpha_ddot, e.dt, next);
   } else {
     for (int j = d.observed - 1; j > 0; j--)
       for (int m = 0; m < kActionDim; m++) dr.issued[j][m] = dr.issued[j - 1][m];
@@ -793,6 +797,7 @@ DK_HD inline void drone_step(const EnvParams<ScalarOf<V>>& e, const DistParams<S
       dr.thrust[m] = d.lagged ? dr.thrust[m] + d.lag * (command[m] - dr.thrust[m]) : command[m];
     }
     const V a_l = dr.thrust[0] * dr.gain[0], a_r = dr.thrust[1] * dr.gain[1], total = a_l + a_r;
+    sincos_v(dr.s[4], &sin_a, &cos_a);
     const V force = dr.wind + dr.gust;
     // x'' = g (sin(-alpha) total + force) / ratio, z'' = g cos(alpha) total / ratio - g,
     // alpha'' = (a_r - a_l) m0 g r / (I0 ratio) (the inertia follows the mass).
@@ -1026,18 +1031,16 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
       }
       for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
     }
-    // Returns-to-go of each row's episode, last step first (the loss's discounted_returns), summed
-    // in float64: hundreds of rounded additions in float32 drift by a few 1e-5, which normalised
-    // returns then weigh against every log-probability.
+    // Returns-to-go of each row's episode, last step first (the loss's discounted_returns).
     for (int l = 0; l < count; l++) {
       const int64_t row = row0 + l;
-      const double discount = a.gamma[agent[l]];
+      const S discount = a.gamma[agent[l]];
       S* out = static_cast<S*>(a.returns) + row * T;
-      double running = 0;
+      S running = 0;
       for (int64_t t = a.length[row] - 1; t >= 0; t--) {
         running = reward[row * T + t] + discount * running;
-        out[t] = S(running);
-        if (saved) slot(agent[l], episode[l] * T + t, layout.ret()) = S(running);
+        out[t] = running;
+        if (saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
       }
     }
   }
@@ -1105,25 +1108,25 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
       for (int k = 0; k < layout.width; k++)
         saved[b * layout.width + k] = mask != 0 ? saved[b * layout.width + k] : V{};
     }
-    S mean = 0, std = 0;  // of the returns, summed in float64 (see rollout_blocks)
+    S mean = 0, std = 0;
     if (o.baseline_mean || o.normalize_returns) {
-      double total = 0;
+      S total = 0;
       for (int64_t b = 0; b < used; b++)
         for (int l = 0; l < L; l++) total += saved[b * layout.width + layout.ret()][l];
-      mean = S(total / double(steps));
+      mean = total / S(steps);
       if (o.normalize_returns) {
-        double squares = 0;
+        S squares = 0;
         for (int64_t b = 0; b < used; b++) {
           const V mask = valid(b);
           const V centred = (saved[b * layout.width + layout.ret()] - mean) * mask;
-          for (int l = 0; l < L; l++) squares += double(centred[l]) * centred[l];
+          for (int l = 0; l < L; l++) squares += centred[l] * centred[l];
         }
-        std = S(std::sqrt(squares / double(steps)));
+        std = std::sqrt(squares / S(steps));
       }
     }
     const S gamma = a.gamma[n], per_episode = S(1) / S(episodes);
     const S reduce = o.mean_log_prob ? S(1) / S(kActionDim) : S(1);
-    double loss = 0, std_sum = 0;  // sums of hundreds of terms: float64 whatever S
+    S loss = 0, std_sum = 0;
     bool finite = true;
     for (int64_t b = 0; b < used; b++) {
       const V* blk = saved + b * layout.width;
@@ -1140,14 +1143,13 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
       V scale[kActionDim];
       const V log_prob = log_prob_backward(env, blk + layout.loc(), blk + layout.pre(), blk + layout.action(),
                                            coef * reduce, d_loc, d_pre, scale);
-      for (int l = 0; l < L; l++) {
-        if (mask[l] == 0) continue;
-        loss += coef[l] * reduce * log_prob[l];
-        for (int m = 0; m < kActionDim; m++) {
+      for (int m = 0; m < kActionDim; m++)
+        for (int l = 0; l < L; l++) {
+          if (mask[l] == 0) continue;
           std_sum += scale[m][l];
           finite = finite && std::isfinite(blk[layout.action() + m][l]);
         }
-      }
+      for (int l = 0; l < L; l++) loss += mask[l] != 0 ? coef[l] * reduce * log_prob[l] : S(0);
       backward_deltas(net, static_cast<const S*>(a.params) + n * p, blk + layout.acts(), d_loc, d_pre,
                       &deltas[b * act_w]);
     }
