@@ -8,7 +8,8 @@ episodes, 300 steps each) for the nominal drone, ``disturbance=strong`` and each
 alone, with the ratio to nominal; the median time of one ``KernelSegments`` call (64 drones x 64
 steps) nominal and strong; the nominal update of the ``--against`` commit's kernels, measured in the
 same run (the rounds alternate between the two checkouts, so a slow spell of a shared machine slows
-both alike); and the cold build time of both sources with ``build.py``'s flags.
+both alike), and whether one nominal update's outputs are bit for bit the same in both; and the
+cold build time of both sources with ``build.py``'s flags.
 
 One thread (``torch.set_num_threads(1)``). The arena's bounds are moved to infinity, so every
 episode flies all 300 steps whatever its disturbances: the times compare the work per step, not
@@ -18,6 +19,7 @@ how soon a random policy crashes.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import resource
@@ -143,7 +145,36 @@ def worker(repeats: int, nominal_only: bool) -> dict[str, list]:
     if not nominal_only:
         for name, disturbance in {"nominal": None, "strong": STRONG}.items():
             calls[f"segments {SEGMENT_DRONES}x{SEGMENT_STEPS} {name}"] = _segments(disturbance)
-    return {"_file": [str(Path(drone_torchrl.__file__).parent)], **_times(calls, repeats)}
+    return {
+        "_file": [str(Path(drone_torchrl.__file__).parent)],
+        "_digest": [_digest()],
+        **_times(calls, repeats),
+    }
+
+
+def _digest() -> str:
+    """A hash of one nominal update's every output (gradient, loss, std, lengths, counts), in the
+    paper's arena: the same hash means the same numbers, bit for bit."""
+    import torch
+
+    from drone_torchrl.envs import dynamics
+    from drone_torchrl.kernels import modules
+    from drone_torchrl.modules import StackedThreeNet, ThreeNetPolicy
+
+    torch.manual_seed(0)
+    stacked = StackedThreeNet([ThreeNetPolicy([32, 32], "tanh") for _ in range(8)], "tanh")
+    rollout = modules.KernelRollout(stacked, dynamics.DroneParams(), None, STEPS)
+    flags = {
+        "baseline_mean": True,
+        "normalize_returns": True,
+        "discount_weight": False,
+        "mean_log_prob": False,
+    }
+    update = modules.KernelReinforce(rollout, 4, flags)
+    out = update(
+        torch.arange(8), torch.arange(8) * 3, torch.full((8,), 0.99), torch.ones(8, dtype=torch.bool)
+    )
+    return hashlib.sha256(b"".join(x.numpy().tobytes() for x in out)).hexdigest()[:16]
 
 
 def _export(ref: str, into: Path) -> Path:
@@ -221,7 +252,10 @@ def main() -> None:
         print(
             f"  {key:<32} {median:7.3f} ({least:7.3f})  {median / base:5.2f}x ({least / base_min:5.2f}x) nominal"
         )
-    print(f"nominal, {args.against}'s kernels ({times['against']['_file'][0]}):")
+    same = times["this"]["_digest"][0] == times["against"]["_digest"][0]
+    print(
+        f"nominal, {args.against}'s kernels ({times['against']['_file'][0]}); one update's outputs bit for bit the same: {same}"
+    )
     for key, (median, least) in ms["against"].items():
         this, this_min = ms["this"][key]
         print(
