@@ -55,7 +55,7 @@ def evaluate(
     if isinstance(policy, TensorDictModuleBase):
         episodes = fly_reference(policy, start, keys, device, **env_kwargs)
     else:
-        episodes = policy(start) if keys is None else policy(start, keys)
+        episodes = policy(start) if keys is None else policy(start, keys=keys)
     rollout = episodes.as_rollout(env.max_steps)
     return episode_stats(rollout), rollout
 

@@ -374,7 +374,6 @@ TRAIN = [
     (["algo=ppo", "algo.value_hidden_sizes=[]"], "algo.value_hidden_sizes"),
     (["algo=ppo", "algo.anneal_lr=off"], "algo.anneal_lr"),
     (["algo=ppo", "env.num_workers=2"], "env.num_workers"),
-    (["algo=ppo", "backend=fast", "disturbance=mild"], "backend"),  # its kernels: the nominal drone
     (["algo=ppo", "+algo.baseline=mean"], "algo.baseline"),  # a REINFORCE key: not PPO's
     (["algo=ppo", "algo.lr=2"], "algo.lr"),
     # A2C (algo=a2c): the on-policy keys; PPO's clipping is not among them

@@ -259,6 +259,31 @@ def test_a_partial_reset_draws_new_episodes_for_the_reset_rows_only():
     assert torch.equal(after[1::2], before[1::2]) and (after[0::2] != before[0::2]).all()
 
 
+def test_a_done_step_s_next_observation_survives_the_auto_reset():
+    """With a disturbance that adds nothing to what the drone sees (wind alone), the observation was
+    the env's state tensor itself: the auto-reset of a crashed drone then overwrote the next
+    observation of its last step with the new episode's start (z 0.0 where it fell below -0.05),
+    what PPO's GAE bootstraps from."""
+    from tensordict import TensorDict
+
+    from drone_torchrl.envs import DroneEnv
+
+    env = DroneEnv(batch_size=[2], disturbance={"wind": 0.1})
+    env.set_seed(0)
+    td = env.reset()
+    action = torch.tensor([[0.0, 0.0], [0.5, 0.5]])  # drone 0 falls, drone 1 holds
+    for _ in range(20):
+        out, td = env.step_and_maybe_reset(td.set("action", action))
+        if bool(out["next", "done"][0]):
+            break
+    assert int(out["next", "termination_cause"][0]) == int(dynamics.TerminationCause.FLOOR)
+    terminal = out["next", "observation"][0]
+    assert float(terminal[Z]) < -0.05
+    torch.testing.assert_close(terminal, out["next", "state"][0])
+    assert float(td["observation"][0, Z]) == 0.0  # the new episode starts on the floor
+    assert isinstance(td, TensorDict)
+
+
 def test_observed_actions_reach_the_specs_and_the_networks():
     from torchrl.envs.utils import check_env_specs
 

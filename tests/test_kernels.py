@@ -119,7 +119,7 @@ def test_returns_and_counts_equal_the_python_definitions():
     start = dynamics.initial_state((n, e), "floor", torch.Generator().manual_seed(3))
     noise = torch.randn(n, e, steps, 2, generator=torch.Generator().manual_seed(4))
     gamma = torch.tensor([0.99, 0.9, 0.5], dtype=torch.float64)
-    states, action, reward, cause, length, returns, counts = ops.rollout(
+    states, action, reward, cause, length, returns, counts, _ = ops.rollout(
         stacked.flat.detach(), start, noise, None, torch.ones(n, dtype=torch.bool), flyer.env, gamma,
         flyer.hidden, flyer.activation, stacked.min_std, steps,
     )  # fmt: skip

@@ -54,7 +54,11 @@ def test_tanh_sampler_matches_torchrl_tanh_normal():
     torch.testing.assert_close(action, 0.5 * (torch.tanh(loc + scale * noise) + 1))
 
 
-@pytest.mark.parametrize("preset", [("experiment=paper",), ("experiment=bounded",)])
+# Domain randomisation on the fast engine: every disturbance, and the last 2 commands observed.
+DISTURBED = ("experiment=bounded", "disturbance=strong", "env.disturbance.observed_actions=2")
+
+
+@pytest.mark.parametrize("preset", [("experiment=paper",), ("experiment=bounded",), DISTURBED])
 def test_agent_in_a_batch_follows_its_solo_trajectory(tmp_path, preset):
     """50 episodes: seed 0 alone, first of a population of 3 and last of a population of 5, with
     other seeds, learning rates and discounts beside it."""
@@ -92,7 +96,7 @@ def test_agent_in_a_batch_follows_its_solo_trajectory(tmp_path, preset):
     assert not np.array_equal(other["return"], solo["return"])
 
 
-@pytest.mark.parametrize("preset", [(), ("experiment=bounded",)])
+@pytest.mark.parametrize("preset", [(), ("experiment=bounded",), DISTURBED])
 def test_population_evaluation_equals_each_actor_alone(tmp_path, preset):
     """The evaluator flying two agents on the fast engine equals it flying each agent's own actor
     through the reference (DroneEnv and TorchRL's rollout)."""

@@ -8,7 +8,6 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import config_dir, env_kwargs, physics_params, validate
 from drone_torchrl.envs import dynamics
 from drone_torchrl.episodes import EpisodeTracker
@@ -124,9 +123,18 @@ def test_the_tracker_books_each_episode_once_with_its_return():
     assert sum(booked) == pytest.approx(float(reward[before].sum()), rel=1e-6)
 
 
-def test_fast_batches_are_refused_under_disturbances_in_one_line():
-    cfg = _cfg("disturbance=mild")
-    with pytest.raises(
-        ConfigError, match=r"^backend=fast cannot take env.disturbance.\* .*backend=reference"
-    ):
-        validate(cfg)
+def test_fast_batches_fly_the_disturbed_drone_with_what_the_policy_saw():
+    """Under env.disturbance.* the batches hold the observation the policy saw: with
+    observed_actions=2, a drone that goes on from step j sees at j + 1 the command it issued at j
+    first among its past commands, and a new episode starts with none (zeros)."""
+    cfg = _cfg("disturbance=mild", "env.disturbance.observed_actions=2", "algo.minibatch_size=256")
+    validate(cfg)
+    (batch,), _ = _batches(cfg, 1)
+    obs, action = batch["observation"], batch["action"]
+    assert obs.shape == (16, 32, 10)
+    done = batch["next", "done"].squeeze(-1)
+    going_on = ~done[:, :-1]
+    torch.testing.assert_close(obs[:, 1:, 6:8][going_on], action[:, :-1][going_on])
+    fresh = batch["step_count"].squeeze(-1) == 0
+    assert bool(fresh.any()) and bool((obs[fresh][:, 6:] == 0).all())
+    assert bool(done.any())  # some episodes end inside the batch

@@ -555,6 +555,8 @@ class DroneEnv(EnvBase):
             observation = disturbances.observe(
                 self.disturbance, self._state, self._internal, self._step_count
             )
+            if observation is self._state:  # nothing added: a partial reset writes into the state
+                observation = observation.clone()
         else:
             observation = self._state.clone()
         out = {

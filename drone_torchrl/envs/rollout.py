@@ -132,8 +132,9 @@ class Episodes(NamedTuple):
         )
 
 
-# start states [*B, 6] -> whole episodes, one per row, with the deterministic action.
-RolloutFn = Callable[[torch.Tensor], Episodes]
+# start states [*B, 6] (and, under disturbances, keys=[*B] episode keys) -> whole episodes, one
+# per row, with the deterministic action (the fast engine's KernelRollout).
+RolloutFn = Callable[..., Episodes]
 
 
 @torch.no_grad()

@@ -15,6 +15,10 @@ concurrent first runs never load a half-written file.
 
 Where no compiler works, :func:`library` returns None and :func:`unavailable_reason` says why;
 the engine then runs its PyTorch path.
+
+:func:`scalar_check` compiles the source once more, syntax only (under a second), with
+``-DDK_SCALAR_CHECK``: the single-source step functions with one drone per thread (``V = float``,
+``double``) and no vector type in sight, as a CUDA kernel will call them.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ CACHE_ENV = "DRONE_TORCHRL_CACHE"
 BASE_FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-fno-math-errno", "-ffp-contract=fast", "-pthread")
 ARCH_FLAGS = ("-march=native",)
 BUILD_TIMEOUT_S = 300
+SCALAR_CHECK_FLAGS = ("-std=c++17", "-fsyntax-only", "-Wall", "-Werror", "-DDK_SCALAR_CHECK")
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -133,3 +138,18 @@ def library(double: bool = False) -> ctypes.CDLL | None:
 def unavailable_reason() -> str | None:
     """Why :func:`library` returned None (None when it loaded, or before it was asked)."""
     return _state.get("reason")  # type: ignore[return-value]
+
+
+def scalar_check() -> str | None:
+    """Compile the kernels' single-source functions for scalar lanes (``-DDK_SCALAR_CHECK``): None,
+    or the compiler's first complaint (a vector-only idiom crept into a ``DK_HD`` function)."""
+    compiler = _compiler()
+    if compiler is None:
+        return "no C++ compiler found (set CXX, or install g++ or clang++)"
+    out = subprocess.run(
+        [compiler, *SCALAR_CHECK_FLAGS, str(SOURCE)], capture_output=True, text=True, timeout=BUILD_TIMEOUT_S
+    )
+    if out.returncode == 0:
+        return None
+    errors = [line for line in out.stderr.splitlines() if "error" in line]
+    return (errors or out.stderr.strip().splitlines() or [f"exit {out.returncode}"])[0]

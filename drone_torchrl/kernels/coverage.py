@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import torch
 
 from drone_torchrl.envs import disturbances
-from drone_torchrl.envs.dynamics import DTYPES, STATE_DIM
+from drone_torchrl.envs.dynamics import DTYPES
 from drone_torchrl.kernels.build import library, unavailable_reason
 from drone_torchrl.kernels.ops import check_supported
 
@@ -27,9 +27,7 @@ def fast_refusal(
     use (a few seconds once per machine, then cached)."""
     if torch.device(device).type != "cpu":
         return f"device={device!r} (its kernels run on the CPU; the CUDA build is not there yet)"
-    if not disturbance.nominal:
-        return "env.disturbance.* (its kernels fly the nominal drone)"
-    reason = check_supported(STATE_DIM, list(hidden_sizes), activation, DTYPES[dtype])
+    reason = check_supported(disturbance.observation_dim, list(hidden_sizes), activation, DTYPES[dtype])
     if reason is not None:
         return reason
     if library(double=DTYPES[dtype] == torch.float64) is None:

@@ -1,21 +1,28 @@
-// CPU kernels of the fast engine: whole-episode rollouts of many agents' three-net policies on the
-// drone's dynamics (sampling included), and one REINFORCE update's loss gradient through them.
-// Built and loaded by drone_torchrl/kernels/build.py and exposed as torch.library ops by
-// drone_torchrl/kernels/ops.py; the PyTorch code they replace (envs/dynamics.py,
-// modules/stacked.py, training/rng.py, objectives/reinforce.py) stays the reference they are
-// tested against.
+// The fast engine: whole-episode rollouts of many agents' three-net policies on the drone's
+// dynamics (disturbances, sampling included), one REINFORCE update's loss gradient through them,
+// and PPO/A2C's auto-resetting segments. Built and loaded by drone_torchrl/kernels/build.py and
+// exposed as torch.library ops by drone_torchrl/kernels/ops.py; the PyTorch code they replace
+// (envs/dynamics.py, envs/disturbances.py, modules/stacked.py, training/rng.py,
+// objectives/reinforce.py, envs/drone_env.py) stays the reference they are tested against.
 //
 // Why hand-written: per update the engine evaluates a 6-32-32-4 network up to 300 times in a
 // sequential loop for each agent and then differentiates it over the stored steps. PyTorch runs
 // each of those as dozens of dispatcher calls on tiny tensors (5-20 us each on a 2-core machine),
-// and torch.compile needs half a minute of compilation per process to fuse them (with new
-// compilations as episode lengths change). Here one call does a whole update's rollout and
-// gradient in SIMD registers.
+// and torch.compile needs half a minute of compilation per process to fuse them. Here one call
+// does a whole update's rollout and gradient in SIMD registers.
 //
-// Layout: 8 float32 (or 4 float64) rows are processed together, one per SIMD lane, with GCC's
-// vector extensions (portable: the compiler picks the machine's instructions). Every lane runs
-// the same instructions, so a row's numbers do not depend on which lane or block it falls in:
-// an agent's rollout and gradient are the same alone and inside any population.
+// One definition, two targets. Each drone's step (physics with its disturbances, termination,
+// reward), its observation, the policy's forward pass and sample, and the REINFORCE backward are
+// written once below, as DK_HD functions templated on the lane type V:
+// - the CPU loops (the end of this file) call them with V a GCC vector of 8 float32 (or 4 float64)
+//   drones, one per SIMD lane; every lane runs the same instructions, so a drone's numbers do not
+//   depend on its lane or block (an agent's run is the same alone and inside any population);
+// - a CUDA kernel (one thread per drone) will call them with V = float or double.
+// So those functions use no vector-only idiom: lanes through lane()/set_lane(), masks through
+// select()/both()/lane_any(), elementary functions through overloads (float32 polynomials for
+// vectors, the C library for scalars). build.scalar_check() (a test runs it) proves it: it
+// compiles this file with -DDK_SCALAR_CHECK, which leaves out every vector type and instantiates
+// each of them with V = float and V = double (the end of this file).
 //
 // Parameters of one agent are one flat vector in ThreeNetPolicy.named_parameters() order:
 // for each hidden layer weight [out, in] then bias [out], then the mean head (weight [2, h], bias
@@ -24,24 +31,103 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
-#include <thread>
 #include <type_traits>
+
+#if defined(__CUDACC__)
+#define DK_HD __host__ __device__
+#else
+#define DK_HD
+#endif
+// The CPU engine (vector types, threads, the C interface): not in a CUDA build or the scalar check.
+#if !defined(__CUDACC__) && !defined(DK_SCALAR_CHECK)
+#define DK_CPU 1
+#include <thread>
 #include <vector>
+#else
+#define DK_CPU 0
+#endif
 
 namespace {
 
-constexpr int kVectorBytes = 32;
-
-// One build per precision (drone_torchrl/kernels/build.py compiles float64 only when a run asks
-// for it): the scalar type of every tensor the C interface takes.
-#ifndef DK_DOUBLE
-#define DK_DOUBLE 0
-#endif
-using Real = std::conditional_t<DK_DOUBLE != 0, double, float>;
 constexpr int kMaxLayers = 16;
 constexpr int kMaxWidth = 1024;
 constexpr int kStateDim = 6;
 constexpr int kActionDim = 2;
+constexpr int kMaxBack = 25;  // disturbances.MAX_STEPS_BACK: the longest delay and command memory
+
+// ------------------------------------------------------------------------------------------------
+// Lanes. V is a scalar (one drone) or, on the CPU, a GCC vector (one drone per lane).
+
+template <class V>
+struct LaneTraits {
+  using Scalar = V;
+  using Float = float;  // float32 lanes at least as many as V's (the training RNG's Box-Muller)
+  static constexpr int kLanes = 1;
+};
+template <class V>
+using ScalarOf = typename LaneTraits<V>::Scalar;
+template <class V>
+using FloatOf = typename LaneTraits<V>::Float;
+template <class V>
+DK_HD constexpr int lanes_of() {
+  return LaneTraits<V>::kLanes;
+}
+
+template <class V>
+DK_HD inline V splat(ScalarOf<V> x) {
+  return V{} + x;
+}
+DK_HD inline float lane(float x, int) { return x; }
+DK_HD inline double lane(double x, int) { return x; }
+DK_HD inline void set_lane(float& x, int, float v) { x = v; }
+DK_HD inline void set_lane(double& x, int, double v) { x = v; }
+DK_HD inline bool lane_any(bool m) { return m; }
+// A mask is what a comparison gives: bool for scalars, a vector of 0 / -1 for vectors.
+template <class M, class V>
+DK_HD inline V select(M m, V a, V b) {
+  return m ? a : b;
+}
+template <class M>
+DK_HD inline M both(M a, M b) {
+  return a & b;
+}
+
+template <class V>
+DK_HD inline V vabs(V a) {
+  return select(a < 0, -a, a);
+}
+
+// Like torch.clamp: NaN stays NaN (a plain min/max would replace it by a bound).
+template <class V, class S>
+DK_HD inline V clamp(V x, S lo, S hi) {
+  return select(x < lo, V{} + lo, select(x > hi, V{} + hi, x));
+}
+
+// Elementary functions on scalars: the C library (a CUDA build maps them to its own).
+DK_HD inline float exp_v(float x) { return std::exp(x); }
+DK_HD inline double exp_v(double x) { return std::exp(x); }
+DK_HD inline float log_v(float x) { return std::log(x); }
+DK_HD inline double log_v(double x) { return std::log(x); }
+DK_HD inline float log1p_v(float x) { return std::log1p(x); }
+DK_HD inline double log1p_v(double x) { return std::log1p(x); }
+DK_HD inline float tanh_v(float x) { return std::tanh(x); }
+DK_HD inline double tanh_v(double x) { return std::tanh(x); }
+DK_HD inline float sqrt_v(float x) { return std::sqrt(x); }
+DK_HD inline double sqrt_v(double x) { return std::sqrt(x); }
+DK_HD inline void sincos_v(float x, float* s, float* c) {
+  *s = std::sin(x);
+  *c = std::cos(x);
+}
+DK_HD inline void sincos_v(double x, double* s, double* c) {
+  *s = std::sin(x);
+  *c = std::cos(x);
+}
+
+#if DK_CPU
+// ------------------------------------------------------------------------------------------------
+// GCC's vector extensions (portable: the compiler picks the machine's instructions).
+
+constexpr int kVectorBytes = 32;
 
 // GCC's vector extensions cannot take a template parameter's type directly: one typedef each.
 template <class S>
@@ -56,35 +142,35 @@ struct VecOf<double> {
 };
 template <class S>
 using Vec = typename VecOf<S>::type;
-
-template <class S>
-constexpr int lanes() {
-  return kVectorBytes / sizeof(S);
-}
-
-template <class S>
-inline Vec<S> splat(S x) {
-  return Vec<S>{} + x;
-}
-
-// Helpers are templates over the vector type V (a Vec<S> cannot deduce S).
-template <class V>
-inline V vabs(V a) {
-  return a < 0 ? -a : a;
-}
-
-// Like torch.clamp: NaN stays NaN (a plain min/max would replace it by a bound).
-template <class V, class S>
-inline V clamp(V x, S lo, S hi) {
-  return x < lo ? V{} + lo : (x > hi ? V{} + hi : x);
-}
-
-// ------------------------------------------------------------------------------------------------
-// Elementary functions on vectors. float32: polynomial approximations within a few ulp (Cephes'
-// and Eigen's coefficients), so they vectorise; float64: the C library per lane.
-
 using F = Vec<float>;
+using D = Vec<double>;
 using I32 = int32_t __attribute__((vector_size(kVectorBytes)));
+
+template <>
+struct LaneTraits<F> {
+  using Scalar = float;
+  using Float = F;
+  static constexpr int kLanes = 8;
+};
+template <>
+struct LaneTraits<D> {
+  using Scalar = double;
+  using Float = F;  // lanes 4-7 unused
+  static constexpr int kLanes = 4;
+};
+inline float lane(F x, int l) { return x[l]; }
+inline double lane(D x, int l) { return x[l]; }
+inline void set_lane(F& x, int l, float v) { x[l] = v; }
+inline void set_lane(D& x, int l, double v) { x[l] = v; }
+template <class M>
+inline bool lane_any(M m) {
+  bool any = false;
+  for (unsigned l = 0; l < sizeof(M) / sizeof(m[0]); l++) any = any || m[l];
+  return any;
+}
+
+// float32: polynomial approximations within a few ulp (Cephes' and Eigen's coefficients), so they
+// vectorise; float64: the C library per lane.
 
 inline F exp_f(F x0) {
   F x = clamp(x0, -87.3365448f, 88.0f);
@@ -95,7 +181,7 @@ inline F exp_f(F x0) {
   x = x - fn * 0.693359375f;
   x = x - fn * -2.12194440e-4f;
   F z = x * x;
-  F y = splat(1.9875691500e-4f);
+  F y = splat<F>(1.9875691500e-4f);
   y = y * x + 1.3981999507e-3f;
   y = y * x + 8.3334519073e-3f;
   y = y * x + 4.1665795894e-2f;
@@ -120,7 +206,7 @@ inline F log_f(F x) {
   e -= small & 1;
   m = small ? m + m - 1.0f : m - 1.0f;
   F z = m * m;
-  F y = splat(7.0376836292e-2f);
+  F y = splat<F>(7.0376836292e-2f);
   y = y * m - 1.1514610310e-1f;
   y = y * m + 1.1676998740e-1f;
   y = y * m - 1.2420140846e-1f;
@@ -152,7 +238,7 @@ inline F tanh_f(F x) {
   // Eigen's rational approximation (ptanh_float), exact to a few ulp over [-7.9, 7.9].
   x = clamp(x, -7.90531110763549805f, 7.90531110763549805f);
   F x2 = x * x;
-  F p = splat(-2.76076847742355e-16f);
+  F p = splat<F>(-2.76076847742355e-16f);
   p = p * x2 + 2.00018790482477e-13f;
   p = p * x2 - 8.60467152213735e-11f;
   p = p * x2 + 5.12229709037114e-08f;
@@ -160,7 +246,7 @@ inline F tanh_f(F x) {
   p = p * x2 + 6.37261928875436e-04f;
   p = p * x2 + 4.89352455891786e-03f;
   p = p * x;
-  F q = splat(1.19825839466702e-06f);
+  F q = splat<F>(1.19825839466702e-06f);
   q = q * x2 + 1.18534705686654e-04f;
   q = q * x2 + 2.26843463243900e-03f;
   q = q * x2 + 4.89352518554385e-03f;
@@ -170,7 +256,7 @@ inline F tanh_f(F x) {
 // sin and cos (Cephes sinf/cosf: reduction by pi/4 in three parts, then the octant's polynomial).
 inline void sincos_f(F x0, F* s, F* c) {
   F x = x0;
-  F sign_s = x < 0 ? splat(-1.0f) : splat(1.0f);
+  F sign_s = x < 0 ? splat<F>(-1.0f) : splat<F>(1.0f);
   x = vabs(x);
   I32 j = __builtin_convertvector(x * 1.27323954473516f, I32);
   j = (j + 1) & ~1;
@@ -184,14 +270,12 @@ inline void sincos_f(F x0, F* s, F* c) {
   F sv = swap ? pc : ps;
   F cv = swap ? ps : pc;
   sign_s = ((j & 4) != 0) ? -sign_s : sign_s;
-  F sign_c = (((j - 2) & 4) != 0) ? splat(1.0f) : splat(-1.0f);
+  F sign_c = (((j - 2) & 4) != 0) ? splat<F>(1.0f) : splat<F>(-1.0f);
   *s = sv * sign_s;
   *c = cv * sign_c;
   // Beyond 8192 the three-part reduction loses digits: those lanes (and NaN) go to the C library.
   const auto far = !(vabs(x0) < 8192.0f);
-  bool any_far = false;
-  for (int l = 0; l < 8; l++) any_far = any_far || far[l];
-  if (any_far)
+  if (lane_any(far))
     for (int l = 0; l < 8; l++)
       if (far[l]) {
         (*s)[l] = std::sin(x0[l]);
@@ -199,25 +283,93 @@ inline void sincos_f(F x0, F* s, F* c) {
       }
 }
 
-template <class S, class Fn>
-inline Vec<S> per_lane(Vec<S> x, Fn fn) {
-  for (int l = 0; l < lanes<S>(); l++) x[l] = fn(x[l]);
+template <class Fn>
+inline D per_lane(D x, Fn fn) {
+  for (int l = 0; l < 4; l++) x[l] = fn(x[l]);
   return x;
 }
 
-inline Vec<double> exp_v(Vec<double> x) { return per_lane<double>(x, [](double v) { return std::exp(v); }); }
-inline Vec<double> log1p_v(Vec<double> x) { return per_lane<double>(x, [](double v) { return std::log1p(v); }); }
-inline Vec<double> tanh_v(Vec<double> x) { return per_lane<double>(x, [](double v) { return std::tanh(v); }); }
-inline void sincos_v(Vec<double> x, Vec<double>* s, Vec<double>* c) {
-  *s = per_lane<double>(x, [](double v) { return std::sin(v); });
-  *c = per_lane<double>(x, [](double v) { return std::cos(v); });
+inline D exp_v(D x) { return per_lane(x, [](double v) { return std::exp(v); }); }
+inline D log_v(D x) { return per_lane(x, [](double v) { return std::log(v); }); }
+inline D log1p_v(D x) { return per_lane(x, [](double v) { return std::log1p(v); }); }
+inline D tanh_v(D x) { return per_lane(x, [](double v) { return std::tanh(v); }); }
+inline D sqrt_v(D x) { return per_lane(x, [](double v) { return std::sqrt(v); }); }
+inline void sincos_v(D x, D* s, D* c) {
+  *s = per_lane(x, [](double v) { return std::sin(v); });
+  *c = per_lane(x, [](double v) { return std::cos(v); });
 }
-inline Vec<double> log_v(Vec<double> x) { return per_lane<double>(x, [](double v) { return std::log(v); }); }
 inline F exp_v(F x) { return exp_f(x); }
 inline F log_v(F x) { return log_f(x); }
 inline F log1p_v(F x) { return log1p_f(x); }
 inline F tanh_v(F x) { return tanh_f(x); }
+inline F sqrt_v(F x) { return sqrt_f(x); }
 inline void sincos_v(F x, F* s, F* c) { sincos_f(x, s, c); }
+#endif  // DK_CPU
+
+// ------------------------------------------------------------------------------------------------
+// The counter-based random numbers of drone_torchrl/training/rng.py (SplitMix64's finaliser on
+// (seed, counter, stream, index)): the same 64-bit integers, so the same uniforms exactly;
+// the normals' Box-Muller arithmetic (log, cos, sin) agrees with PyTorch's to a few ulp.
+
+constexpr uint64_t kGolden = 0x9E3779B97F4A7C15ull, kMix1 = 0xBF58476D1CE4E5B9ull, kMix2 = 0x94D049BB133111EBull;
+constexpr uint64_t kUpdate = 0xD1B54A32D192ED03ull, kStream = 0xAEF17502108EF2D9ull;
+// rng.START_STATES, rng.ACTION_NOISE, rng.EPISODE_KEYS; disturbances.EPISODE_STREAM, STEP_STREAM.
+constexpr uint64_t kStartStates = 1, kActionNoise = 2, kEpisodeKeys = 3, kEpisodeStream = 11, kStepStream = 12;
+constexpr int kUniformBits = 24;
+
+DK_HD inline uint64_t mix(uint64_t x) {
+  x = (x ^ (x >> 30)) * kMix1;
+  x = (x ^ (x >> 27)) * kMix2;
+  return x ^ (x >> 31);
+}
+
+// The stream of (seed, counter, stream), from mix(seed) (which an episode's draws compute once).
+DK_HD inline uint64_t mixed_stream_key(uint64_t mixed_seed, uint64_t counter, uint64_t stream) {
+  return mix(mixed_seed ^ (counter * kUpdate + stream * kStream));
+}
+
+DK_HD inline uint64_t stream_key(uint64_t seed, uint64_t counter, uint64_t stream) {
+  return mixed_stream_key(mix(seed), counter, stream);
+}
+
+// rng.uniform's element `index` of the stream `key`: in (0, 1), exact in float32.
+DK_HD inline float uniform(uint64_t key, uint64_t index) {
+  const uint64_t top = mix(key + index * kGolden) >> (64 - kUniformBits);
+  return (static_cast<float>(top) + 0.5f) / static_cast<float>(1u << kUniformBits);
+}
+
+// rng.keys(seed, counter, EPISODE_KEYS, (E,)) element `episode`: an episode's disturbance key.
+DK_HD inline uint64_t episode_key(uint64_t seed, uint64_t counter, uint64_t episode) {
+  return mix(stream_key(seed, counter, kEpisodeKeys) + episode * kGolden);
+}
+
+// Box-Muller in V's precision: (r cos(2 pi u2), r sin(2 pi u2)), r = sqrt(-2 log u1).
+template <class V>
+DK_HD inline void box_muller(V u1, V u2, V* c, V* s) {
+  using S = ScalarOf<V>;
+  const V radius = sqrt_v(S(-2) * log_v(u1));
+  sincos_v(S(6.28318530717958647692) * u2, s, c);
+  *c = radius * *c;
+  *s = radius * *s;
+}
+
+// rng.normal(seed, counter, ACTION_NOISE, (T, E, 2))'s pair `pair[l]` (t * E + episode) of each
+// lane's stream noise_key[l]: the two motors' standard normals, in float32 as PyTorch draws them.
+template <class V>
+DK_HD inline void action_normals(const uint64_t* noise_key, const uint64_t* pair, V* z) {
+  using FV = FloatOf<V>;
+  FV u1 = splat<FV>(0.5f), u2 = splat<FV>(0.5f);
+  for (int l = 0; l < lanes_of<V>(); l++) {
+    set_lane(u1, l, uniform(noise_key[l], 2 * pair[l]));
+    set_lane(u2, l, uniform(noise_key[l], 2 * pair[l] + 1));
+  }
+  FV z0, z1;
+  box_muller(u1, u2, &z0, &z1);
+  for (int l = 0; l < lanes_of<V>(); l++) {
+    set_lane(z[0], l, lane(z0, l));
+    set_lane(z[1], l, lane(z1, l));
+  }
+}
 
 // ------------------------------------------------------------------------------------------------
 // The network.
@@ -239,37 +391,37 @@ struct Net {
   int params;
   int activations;  // hidden outputs of one row
 
-  int last() const { return width[n_hidden]; }
-  int out(int l) const { return l < n_hidden ? hidden[l] : kActionDim; }
+  DK_HD int last() const { return width[n_hidden]; }
+  DK_HD int out(int l) const { return l < n_hidden ? hidden[l] : kActionDim; }
 };
 
 template <class V>
-inline V activate(V x, int activation) {
+DK_HD inline V activate(V x, int activation) {
   if (activation == kTanh) return tanh_v(x);
-  if (activation == kRelu) return x < 0 ? V{} : x;
-  return x > 0 ? x : exp_v(x) - 1;  // elu, alpha 1
+  if (activation == kRelu) return select(x < 0, V{}, x);
+  return select(x > 0, x, exp_v(x) - 1);  // elu, alpha 1
 }
 
 // The derivative of the activation from its output y.
 template <class V>
-inline V activation_grad(V y, int activation) {
+DK_HD inline V activation_grad(V y, int activation) {
   if (activation == kTanh) return 1 - y * y;
-  if (activation == kRelu) return y > 0 ? V{} + 1 : V{};
-  return y > 0 ? V{} + 1 : y + 1;
+  if (activation == kRelu) return select(y > 0, V{} + 1, V{});
+  return select(y > 0, V{} + 1, y + 1);
 }
 
 // torch.nn.functional.softplus (beta 1, threshold 20).
 template <class V>
-inline V softplus(V x) {
-  return x > 20 ? x : log1p_v(exp_v(x));
+DK_HD inline V softplus(V x) {
+  return select(x > 20, x, log1p_v(exp_v(x)));
 }
 
 // out[o] = bias[o] + sum_i w[o * in + i] * x[i] for o < n, summed in order of i. Eight outputs at a
 // time: eight independent accumulator chains keep the FMA units busy (one chain per output would
-// wait on each FMA's latency). W is a vector (each lane its own agent's weights) or a scalar (every
+// wait on each FMA's latency). W is V (each lane its own agent's weights) or its scalar (every
 // lane the same agent); per lane the arithmetic is the same.
 template <class V, class W>
-inline void matvec(const W* w, const W* bias, const V* x, int in, int n, V* out) {
+DK_HD inline void matvec(const W* w, const W* bias, const V* x, int in, int n, V* out) {
   constexpr int kTile = 8;
   int o = 0;
   for (; o + kTile <= n; o += kTile) {
@@ -290,7 +442,7 @@ inline void matvec(const W* w, const W* bias, const V* x, int in, int n, V* out)
 
 // out[i] = sum_o w[o * in + i] * d[o] for i < in (the transposed product of matvec), eight at a time.
 template <class V, class W>
-inline void matvec_t(const W* w, const V* d, int n, int in, V* out) {
+DK_HD inline void matvec_t(const W* w, const V* d, int n, int in, V* out) {
   constexpr int kTile = 8;
   int i = 0;
   for (; i + kTile <= in; i += kTile) {
@@ -308,10 +460,10 @@ inline void matvec_t(const W* w, const V* d, int n, int in, V* out) {
   }
 }
 
-// The forward pass of a block of rows from inputs x: the hidden outputs (acts, layer after layer),
-// loc, and the std head's pre-activation.
+// The forward pass from inputs x: the hidden outputs (acts, layer after layer), loc, and the std
+// head's pre-activation.
 template <class V, class W>
-inline void forward(const Net& net, const W* w, const V* x, V* acts, V* loc, V* pre_std) {
+DK_HD inline void forward(const Net& net, const W* w, const V* x, V* acts, V* loc, V* pre_std) {
   const V* input = x;
   V* out = acts;
   for (int l = 0; l < net.n_hidden; l++) {
@@ -328,11 +480,11 @@ inline void forward(const Net& net, const W* w, const V* x, V* acts, V* loc, V* 
   }
 }
 
-// The backward of one block, first pass: the gradient of every hidden layer's pre-activation
+// The backward of one step, first pass: the gradient of every hidden layer's pre-activation
 // (deltas, layer after layer like acts) from d_loc and d_pre (the std head's pre-activation).
 template <class V, class W>
-inline void backward_deltas(const Net& net, const W* w, const V* acts, const V* d_loc, const V* d_pre,
-                            V* deltas) {
+DK_HD inline void backward_deltas(const Net& net, const W* w, const V* acts, const V* d_loc, const V* d_pre,
+                                  V* deltas) {
   if (net.n_hidden == 0) return;
   int act_offset[kMaxLayers], aoff = 0;
   for (int l = 0; l < net.n_hidden; l++) {
@@ -359,19 +511,19 @@ inline void backward_deltas(const Net& net, const W* w, const V* acts, const V* 
   }
 }
 
-// The backward's second pass for one layer: grad_w[o, i] += sum over blocks of d[o] * in[i] (per lane),
-// grad_b[o] += sum of d[o], over `blocks` blocks whose vectors are `d_stride` and `in_stride` apart.
+// The backward's second pass for one layer: grad_w[o, i] += sum over steps of d[o] * in[i] (per lane),
+// grad_b[o] += sum of d[o], over `steps` steps whose vectors are `d_stride` and `in_stride` apart.
 // Four by four outputs and inputs at a time, so each loaded vector feeds four FMAs.
 template <class V>
-inline void weight_grad(const V* d, int d_stride, const V* in, int in_stride, int n, int n_in, int64_t blocks,
-                        V* grad_w, V* grad_b) {
+DK_HD inline void weight_grad(const V* d, int d_stride, const V* in, int in_stride, int n, int n_in, int64_t steps,
+                              V* grad_w, V* grad_b) {
   constexpr int kTile = 4;
   for (int o0 = 0; o0 < n; o0 += kTile) {
     const int no = n - o0 < kTile ? n - o0 : kTile;
     for (int i0 = 0; i0 < n_in; i0 += kTile) {
       const int ni = n_in - i0 < kTile ? n_in - i0 : kTile;
       V acc[kTile][kTile] = {};
-      for (int64_t b = 0; b < blocks; b++) {
+      for (int64_t b = 0; b < steps; b++) {
         const V* db = d + b * d_stride + o0;
         const V* ib = in + b * in_stride + i0;
         for (int a = 0; a < no; a++)
@@ -382,14 +534,15 @@ inline void weight_grad(const V* d, int d_stride, const V* in, int in_stride, in
     }
     for (int a = 0; a < no; a++) {
       V acc = V{};
-      for (int64_t b = 0; b < blocks; b++) acc += d[b * d_stride + o0 + a];
+      for (int64_t b = 0; b < steps; b++) acc += d[b * d_stride + o0 + a];
       grad_b[o0 + a] += acc;
     }
   }
 }
 
 // ------------------------------------------------------------------------------------------------
-// The drone (envs/dynamics.py; eqs. 2.1-2.3 of the paper, semi-implicit Euler).
+// The drone (envs/dynamics.py; eqs. 2.1-2.3 of the paper, semi-implicit Euler) and its
+// disturbances (envs/disturbances.py).
 
 // Env constants, in the order drone_torchrl/kernels/ops.py packs them.
 enum EnvConst {
@@ -400,46 +553,312 @@ enum EnvConst {
   kStrict /* 1: a state on a bound is outside (the domain and the zone); 0: inside */, kEnvConsts
 };
 
-// ------------------------------------------------------------------------------------------------
-// The counter-based random numbers of drone_torchrl/training/rng.py (SplitMix64's finaliser on
-// (seed, update counter, stream, index)): the same 64-bit integers, so the same uniforms exactly;
-// the normals' Box-Muller arithmetic (log, cos, sin) agrees with PyTorch's to a few ulp.
-
-constexpr uint64_t kGolden = 0x9E3779B97F4A7C15ull, kMix1 = 0xBF58476D1CE4E5B9ull, kMix2 = 0x94D049BB133111EBull;
-constexpr uint64_t kUpdate = 0xD1B54A32D192ED03ull, kStream = 0xAEF17502108EF2D9ull;
-constexpr uint64_t kStartStates = 1, kActionNoise = 2;  // rng.START_STATES, rng.ACTION_NOISE
-constexpr int kUniformBits = 24;
-
-inline uint64_t mix(uint64_t x) {
-  x = (x ^ (x >> 30)) * kMix1;
-  x = (x ^ (x >> 27)) * kMix2;
-  return x ^ (x >> 31);
-}
-
-inline uint64_t stream_key(uint64_t seed, uint64_t counter, uint64_t stream) {
-  return mix(mix(seed) ^ (counter * kUpdate + stream * kStream));
-}
-
-// rng.uniform's element `index` of the stream `key`: in (0, 1), exact in float32.
-inline float uniform(uint64_t key, uint64_t index) {
-  const uint64_t top = mix(key + index * kGolden) >> (64 - kUniformBits);
-  return (static_cast<float>(top) + 0.5f) / static_cast<float>(1u << kUniformBits);
-}
+// Disturbance magnitudes, in the order of disturbances.FIELDS (ops.DISTURBANCE_CONSTANTS).
+enum DistConst {
+  kWind, kGust, kGustTime, kMassSpread, kMotorGain, kMotorLag, kNoisePosition, kNoiseAngle, kActionDelay,
+  kObservedActions, kDistConsts
+};
 
 // TerminationCause codes.
 constexpr int kOutX = 1, kFloorHit = 2, kCeiling = 3, kTilt = 4;
+constexpr double kHover = 0.5;  // dynamics.HOVER_THRUST
+constexpr int kEpisodeUniforms = 4;  // disturbances._EPISODE_UNIFORMS: wind, mass, two gains
+
+template <class S>
+struct EnvParams {
+  S weight, mass, gravity, dt, arm_over_inertia, max_thrust, x_limit, z_min, z_max, alpha_limit, floor;
+  S zone_x, zone_z_min, zone_z_max, r_zone, r_alive, r_term, high, half, log_half, squash_lim;
+  S min_std, dist_eps;
+  bool bounded, strict;
+};
+
+template <class S>
+DK_HD inline EnvParams<S> env_params(const double* env, const Net& net) {
+  EnvParams<S> e;
+  e.weight = env[kWeight], e.mass = env[kMass], e.gravity = env[kGravity], e.dt = env[kDt];
+  e.arm_over_inertia = env[kArmOverInertia], e.max_thrust = env[kMaxThrust], e.bounded = env[kMaxThrust] >= 0;
+  e.x_limit = env[kXLimit], e.z_min = env[kZMin], e.z_max = env[kZMax], e.alpha_limit = env[kAlphaLimit];
+  e.floor = env[kFloor], e.zone_x = env[kZoneX], e.zone_z_min = env[kZoneZMin], e.zone_z_max = env[kZoneZMax];
+  e.r_zone = env[kRewardZone], e.r_alive = env[kRewardAlive], e.r_term = env[kRewardTerminated];
+  e.high = env[kSquashHigh], e.half = env[kSquashHigh] / 2, e.log_half = e.high > 0 ? std::log(e.half) : 0;
+  e.squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe tanh and atanh
+  e.min_std = net.min_std, e.dist_eps = net.dist_eps;
+  e.strict = env[kStrict] > 0;
+  return e;
+}
+
+// The disturbances' magnitudes and the per-step coefficients they imply (Python's float64 arithmetic).
+template <class S>
+struct DistParams {
+  bool nominal;  // the paper's drone: nothing drawn, carried or observed beyond the state
+  bool gusty, noisy, lagged;
+  int delay, observed;
+  S wind, gust, mass, motor_gain, noise_position, noise_angle, gust_decay, gust_scale, lag;
+};
+
+template <class S>
+DK_HD inline DistParams<S> dist_params(const double* c, double dt) {
+  DistParams<S> d{};
+  d.nominal = true;
+  if (c == nullptr) return d;
+  for (int k = 0; k < kDistConsts; k++) d.nominal = d.nominal && (k == kGustTime || c[k] == 0);
+  d.wind = c[kWind], d.gust = c[kGust], d.mass = c[kMassSpread], d.motor_gain = c[kMotorGain];
+  d.noise_position = c[kNoisePosition], d.noise_angle = c[kNoiseAngle];
+  d.gusty = c[kGust] != 0, d.noisy = c[kNoisePosition] != 0 || c[kNoiseAngle] != 0, d.lagged = c[kMotorLag] != 0;
+  d.delay = static_cast<int>(c[kActionDelay]), d.observed = static_cast<int>(c[kObservedActions]);
+  const double decay = d.gusty ? std::exp(-dt / c[kGustTime]) : 0.0;
+  d.gust_decay = decay;
+  d.gust_scale = c[kGust] * std::sqrt(1.0 - decay * decay);
+  d.lag = d.lagged ? 1.0 - std::exp(-dt / c[kMotorLag]) : 0.0;
+  return d;
+}
+
+// One drone per lane: its physical state, its episode's draws and what a disturbed drone carries
+// (disturbances.EpisodeDraw and Internal).
+template <class V>
+struct Drone {
+  V s[kStateDim];
+  V wind, mass_ratio, gain[kActionDim];
+  V gust, thrust[kActionDim];
+  V pending[kMaxBack][kActionDim];  // commands issued, not yet acting, oldest first
+  V issued[kMaxBack][kActionDim];   // the last commands issued, newest first
+  uint64_t key[lanes_of<V>()];      // each lane's episode key
+  uint64_t mixed[lanes_of<V>()];    // mix(key): the first half of every stream key of the episode
+};
+
+// dynamics.states_from_uniform of the uniforms of stream start_key's row `episode` (component k):
+// the jitter in float32, then the start point (the zone's centre or the floor) in S.
+template <class S>
+DK_HD inline S start_component(const double* env, uint64_t start_key, uint64_t episode, int k) {
+  const bool air = env[kResetAir] > 0;
+  const float u = uniform(start_key, episode * kStateDim + k);
+  const float jitter = (2.0f * u - 1.0f) * static_cast<float>(env[kResetNoise]);
+  const bool kept = air || k == 0 || k == 4;  // floor: x and alpha only
+  const S base = k != 2 ? S(0) : air ? S(env[kZoneZCentre]) : S(env[kZMin]);
+  return (kept ? S(jitter) : S(0)) + base;
+}
+
+// disturbances.draw_episode and disturbances.start: each lane's episode's draws and initial
+// internal state from its key (dr.key). The physical state is left alone.
+template <class V>
+DK_HD inline void start_episode(const DistParams<ScalarOf<V>>& d, Drone<V>& dr) {
+  using S = ScalarOf<V>;
+  V u[kEpisodeUniforms + 2];
+  for (int l = 0; l < lanes_of<V>(); l++) {
+    dr.mixed[l] = mix(dr.key[l]);
+    const uint64_t k = mixed_stream_key(dr.mixed[l], 0, kEpisodeStream);
+    for (int i = 0; i < kEpisodeUniforms + 2; i++) set_lane(u[i], l, S(uniform(k, i)));
+  }
+  V spread[kEpisodeUniforms];
+  for (int i = 0; i < kEpisodeUniforms; i++) spread[i] = S(2) * u[i] - S(1);
+  dr.wind = d.wind * spread[0];
+  dr.mass_ratio = S(1) + d.mass * spread[1];
+  for (int m = 0; m < kActionDim; m++) dr.gain[m] = S(1) + d.motor_gain * spread[2 + m];
+  V first, second;  // the normal pair of uniforms 4 and 5: the stationary law's first gust
+  box_muller(u[kEpisodeUniforms], u[kEpisodeUniforms + 1], &first, &second);
+  dr.gust = d.gust * first;
+  for (int m = 0; m < kActionDim; m++) {
+    dr.thrust[m] = splat<V>(S(kHover));
+    for (int j = 0; j < d.delay; j++) dr.pending[j][m] = splat<V>(S(kHover));
+    for (int j = 0; j < d.observed; j++) dr.issued[j][m] = V{};
+  }
+}
+
+// disturbances._normal(key, t, STEP_STREAM, 4) of each lane (t[l] its episode's step): n[0] the
+// gust's innovation, n[1..3] the noise on x, z and alpha. Only the pairs in use are drawn.
+template <class V>
+DK_HD inline void step_normals(const DistParams<ScalarOf<V>>& d, const Drone<V>& dr, const int64_t* t, V* n) {
+  using S = ScalarOf<V>;
+  const int pairs = d.noisy ? 2 : d.gusty ? 1 : 0;
+  if (pairs == 0) return;
+  V u[4];
+  for (int l = 0; l < lanes_of<V>(); l++) {
+    const uint64_t k = mixed_stream_key(dr.mixed[l], static_cast<uint64_t>(t[l]), kStepStream);
+    for (int i = 0; i < 2 * pairs; i++) set_lane(u[i], l, S(uniform(k, i)));
+  }
+  for (int p = 0; p < pairs; p++) box_muller(u[2 * p], u[2 * p + 1], &n[2 * p], &n[2 * p + 1]);
+}
+
+// disturbances.observe: what the policy sees (in_dim values) of the state, with n the step's normals.
+template <class V>
+DK_HD inline void observe(const DistParams<ScalarOf<V>>& d, const Drone<V>& dr, const V* n, V* obs) {
+  for (int k = 0; k < kStateDim; k++) obs[k] = dr.s[k];
+  if (d.noisy) {
+    obs[0] = dr.s[0] + d.noise_position * n[1];
+    obs[2] = dr.s[2] + d.noise_position * n[2];
+    obs[4] = dr.s[4] + d.noise_angle * n[3];
+  }
+  for (int j = 0; j < d.observed; j++)
+    for (int m = 0; m < kActionDim; m++) obs[kStateDim + j * kActionDim + m] = dr.issued[j][m];
+}
+
+// The policy at inputs x: hidden outputs (acts), loc (shifted by dist_eps), the std head's
+// pre-activation, and the action f(loc + scale * z) (z null: the deterministic f(loc)), where f is
+// the identity (Normal head) or TorchRL's TanhNormal squash onto [0, high].
+template <class V, class W>
+DK_HD inline void policy_step(const Net& net, const EnvParams<ScalarOf<V>>& e, const W* w, const V* x, V* acts,
+                              const V* z, V* loc, V* pre, V* act) {
+  forward(net, w, x, acts, loc, pre);
+  for (int m = 0; m < kActionDim; m++) {
+    if (e.dist_eps != 0) loc[m] = loc[m] + e.dist_eps;
+    V u = loc[m];
+    if (z) u = loc[m] + (softplus(pre[m]) + e.min_std + e.dist_eps) * z[m];
+    if (e.high > 0) u = e.half + e.half * clamp(tanh_v(u), -e.squash_lim, e.squash_lim);
+    act[m] = u;
+  }
+}
+
+// dynamics.termination_cause: beyond an upper (lower) bound is > (<), or >= (<=) with strict
+// bounds. dynamics.in_target_zone: within an upper (lower) bound is <= (>=), or < (>) strict.
+// (Each written out: a negated comparison would count NaN as inside the zone.)
+template <class V, class S>
+DK_HD inline auto above(bool strict, V v, S bound) {
+  return strict ? v >= bound : v > bound;
+}
+template <class V, class S>
+DK_HD inline auto below(bool strict, V v, S bound) {
+  return strict ? v <= bound : v < bound;
+}
+template <class V, class S>
+DK_HD inline auto under(bool strict, V v, S bound) {
+  return strict ? v < bound : v <= bound;
+}
+template <class V, class S>
+DK_HD inline auto over(bool strict, V v, S bound) {
+  return strict ? v > bound : v >= bound;
+}
+
+// The termination cause (a TerminationCause code as a number), the reward and whether the state
+// is in the target zone (1 or 0), of the state n after a step (dynamics.termination_cause, reward).
+template <class V>
+DK_HD inline void judge(const EnvParams<ScalarOf<V>>& e, const V* n, V* reward, V* cause, V* zone) {
+  using S = ScalarOf<V>;
+  const bool st = e.strict;
+  const V ax = vabs(n[0]), aa = vabs(n[4]);
+  // The lowest non-zero code wins: assign from the highest down.
+  V c = select(above(st, aa, e.alpha_limit), splat<V>(S(kTilt)), V{});
+  c = select(above(st, n[2], e.z_max), splat<V>(S(kCeiling)), c);
+  c = select(below(st, n[2], e.floor), splat<V>(S(kFloorHit)), c);
+  c = select(above(st, ax, e.x_limit), splat<V>(S(kOutX)), c);
+  const auto in = both(both(under(st, ax, e.zone_x), over(st, n[2], e.zone_z_min)),
+                       both(under(st, n[2], e.zone_z_max), under(st, aa, e.alpha_limit)));
+  *reward = select(c != S(0), splat<V>(e.r_term), select(in, splat<V>(e.r_zone), splat<V>(e.r_alive)));
+  *cause = c;
+  *zone = select(in, splat<V>(S(1)), V{});
+}
+
+// The semi-implicit Euler step: velocities first, then positions with the new velocities.
+template <class V>
+DK_HD inline void euler(const V* s, V x_ddot, V z_ddot, V alpha_ddot, ScalarOf<V> dt, V* n) {
+  n[1] = s[1] + x_ddot * dt;
+  n[3] = s[3] + z_ddot * dt;
+  n[5] = s[5] + alpha_ddot * dt;
+  n[0] = s[0] + n[1] * dt;
+  n[2] = s[2] + n[3] * dt;
+  n[4] = s[4] + n[5] * dt;
+}
+
+// One step of each lane's drone from dr.s under the commands act just issued: disturbances.step
+// (dynamics.step for the nominal drone): the next state, reward, cause and zone (judge), and the
+// drone's internal state advanced (dr.s is left for the caller). gust_n: the step's gust normal.
+template <class V>
+DK_HD inline void drone_step(const EnvParams<ScalarOf<V>>& e, const DistParams<ScalarOf<V>>& d, Drone<V>& dr,
+                             const V* act, V gust_n, V* next, V* reward, V* cause, V* zone) {
+  using S = ScalarOf<V>;
+  V sin_a, cos_a;
+  if (d.nominal) {
+    V a_l = act[0], a_r = act[1];
+    if (e.bounded) {
+      a_l = clamp(a_l, S(0), e.max_thrust);
+      a_r = clamp(a_r, S(0), e.max_thrust);
+    }
+    // In this order (the compiler's fused multiply-adds follow it): nominal episodes bit for bit
+    // those of the kernels before disturbances.
+    const V thrust_l = a_l * e.weight, thrust_r = a_r * e.weight, total = thrust_l + thrust_r;
+    sincos_v(dr.s[4], &sin_a, &cos_a);
+    const V x_ddot = -sin_a * total / e.mass;
+    const V z_ddot = cos_a * total / e.mass - e.gravity;
+    const V alpha_ddot = (thrust_r - thrust_l) * e.arm_over_inertia;
+    euler(dr.s, x_ddot, z_ddot, alpha_ddot, e.dt, next);
+  } else {
+    for (int j = d.observed - 1; j > 0; j--)
+      for (int m = 0; m < kActionDim; m++) dr.issued[j][m] = dr.issued[j - 1][m];
+    V command[kActionDim];
+    for (int m = 0; m < kActionDim; m++) {
+      if (d.observed > 0) dr.issued[0][m] = act[m];
+      command[m] = act[m];
+      if (d.delay > 0) {
+        command[m] = dr.pending[0][m];
+        for (int j = 0; j + 1 < d.delay; j++) dr.pending[j][m] = dr.pending[j + 1][m];
+        dr.pending[d.delay - 1][m] = act[m];
+      }
+      if (e.bounded) command[m] = clamp(command[m], S(0), e.max_thrust);
+      // With a lag the motors' thrust follows the command; without, it is the command.
+      dr.thrust[m] = d.lagged ? dr.thrust[m] + d.lag * (command[m] - dr.thrust[m]) : command[m];
+    }
+    const V a_l = dr.thrust[0] * dr.gain[0], a_r = dr.thrust[1] * dr.gain[1], total = a_l + a_r;
+    sincos_v(dr.s[4], &sin_a, &cos_a);
+    const V force = dr.wind + dr.gust;
+    // x'' = g (sin(-alpha) total + force) / ratio, z'' = g cos(alpha) total / ratio - g,
+    // alpha'' = (a_r - a_l) m0 g r / (I0 ratio) (the inertia follows the mass).
+    euler(dr.s, e.gravity * (-sin_a * total + force) / dr.mass_ratio,
+          e.gravity * cos_a * total / dr.mass_ratio - e.gravity,
+          (a_r - a_l) * e.weight * e.arm_over_inertia / dr.mass_ratio, e.dt, next);
+    if (d.gusty) dr.gust = dr.gust * d.gust_decay + d.gust_scale * gust_n;
+  }
+  judge(e, next, reward, cause, zone);
+}
+
+// The log-probability log pi(action) of the stored actions under Normal(loc, scale) (or TorchRL's
+// TanhNormal: the sample the action came from, as TorchRL inverts it, and the squash's log-det),
+// summed over the motors, and coef times its derivatives in loc and in the std head's
+// pre-activation (the REINFORCE loss' backward into the heads). scale: the policy's std.
+template <class V>
+DK_HD inline V log_prob_backward(const EnvParams<ScalarOf<V>>& e, const V* loc, const V* pre, const V* action,
+                                 V coef, V* d_loc, V* d_pre, V* scale) {
+  using S = ScalarOf<V>;
+  const S half_log_2pi = S(0.91893853320467274178);  // log(sqrt(2 pi))
+  V log_prob{};
+  for (int m = 0; m < kActionDim; m++) {
+    scale[m] = softplus(pre[m]) + e.min_std + e.dist_eps;
+    V sample = action[m];
+    if (e.high > 0) {
+      const V y = clamp((action[m] - e.half) / e.half, -e.squash_lim, e.squash_lim);
+      sample = S(0.5) * (log1p_v(y) - log1p_v(-y));  // atanh
+      // log |d action / d sample| of the tanh and the affine map (TanhTransform's formula).
+      log_prob -= S(2) * (S(0.69314718055994530942) - sample - softplus(S(-2) * sample)) + e.log_half;
+    }
+    const V z = (sample - loc[m]) / scale[m];
+    log_prob += S(-0.5) * z * z - log_v(scale[m]) - half_log_2pi;
+    d_loc[m] = coef * z / scale[m];
+    const V d_scale = coef * (z * z - S(1)) / scale[m];
+    const V ex = exp_v(pre[m]);  // softplus' (beta 1, threshold 20): sigmoid below the threshold
+    d_pre[m] = select(pre[m] > S(20), d_scale, d_scale * ex / (ex + S(1)));
+  }
+  return log_prob;
+}
+
+#if DK_CPU
+// ------------------------------------------------------------------------------------------------
+// The CPU engine: blocks of lanes<V> drones, threads over blocks.
+
+// One build per precision (build.py compiles float64 only when a run asks for it): the scalar type
+// of every tensor the C interface takes.
+#ifndef DK_DOUBLE
+#define DK_DOUBLE 0
+#endif
+using Real = std::conditional_t<DK_DOUBLE != 0, double, float>;
 
 template <class S>
 struct Block {
   std::vector<Vec<S>> w, acts, x;
-  explicit Block(const Net& net)
-      : w(net.params), acts(net.activations > 0 ? net.activations : 1), x(net.in_dim) {}
+  explicit Block(const Net& net) : w(net.params), acts(net.activations > 0 ? net.activations : 1), x(net.in_dim) {}
 };
 
 template <class S>
 void pack_weights(const Net& net, const S* params, const int64_t* agent, int count, Vec<S>* w) {
   const int p = net.params;
-  for (int l = 0; l < lanes<S>(); l++) {
+  for (int l = 0; l < lanes_of<Vec<S>>(); l++) {
     const S* src = params + agent[l < count ? l : 0] * p;
     for (int k = 0; k < p; k++) w[k][l] = src[k];
   }
@@ -449,10 +868,12 @@ struct RolloutArgs {
   int64_t rows, episodes, steps;
   const void* params;
   const void* start;
-  const void* noise;  // null: deterministic (the mean action), unless rng is given
+  const void* noise;   // null: deterministic (the mean action), unless rng is given
   const int64_t* rng;  // [rows, 2]: the row's agent's seed and update counter; start and noise are then drawn here
+  const int64_t* keys;  // [rows]: each episode's disturbance key; null: drawn from rng
   const uint8_t* active;
   const double* env;
+  const double* dist;   // the disturbance's magnitudes (DistConst); null: the nominal drone
   const double* gamma;  // [agents]: the discount of each agent's returns-to-go
   void* obs;
   void* action;
@@ -461,6 +882,7 @@ struct RolloutArgs {
   int64_t* length;
   void* returns;  // [rows, steps]: sum_{k >= t} gamma^(k - t) reward_k over the row's episode
   double* stats;  // [rows, kStats]
+  void* seen;     // [rows, steps, in_dim]: what the policy saw (null: not kept)
   // Optional: what the REINFORCE gradient needs of every step, in lane vectors per agent (Saved).
   void* saved;
 };
@@ -494,38 +916,26 @@ enum Stat { kReturn, kZoneSteps, kNegative, kLastCause, kStats };
 
 template <class S>
 void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t last) {
-  constexpr int L = lanes<S>();
+  using V = Vec<S>;
+  constexpr int L = lanes_of<V>();
   const S* params = static_cast<const S*>(a.params);
   const S* start = static_cast<const S*>(a.start);
   const S* noise = static_cast<const S*>(a.noise);
   S* obs = static_cast<S*>(a.obs);
   S* action = static_cast<S*>(a.action);
   S* reward = static_cast<S*>(a.reward);
+  S* seen = static_cast<S*>(a.seen);
   S* saved = static_cast<S*>(a.saved);
   const Saved layout = Saved::of(net, a.episodes, a.steps, L);
   // The scalar of vector k of agent n's step r in the saved buffer.
   auto slot = [&](int64_t n, int64_t r, int k) -> S& {
     return saved[((n * layout.blocks + r / L) * layout.width + k) * L + r % L];
   };
-  const double* env = a.env;
-  const S weight = env[kWeight], mass = env[kMass], gravity = env[kGravity], dt = env[kDt];
-  const S arm_over_inertia = env[kArmOverInertia], max_thrust = env[kMaxThrust];
-  const S x_limit = env[kXLimit], z_min = env[kZMin], z_max = env[kZMax], alpha_limit = env[kAlphaLimit];
-  const S floor = env[kFloor], zone_x = env[kZoneX], zone_z_min = env[kZoneZMin], zone_z_max = env[kZoneZMax];
-  const S r_zone = env[kRewardZone], r_alive = env[kRewardAlive], r_term = env[kRewardTerminated];
-  const S high = env[kSquashHigh], half = high / S(2);
-  const S min_std = net.min_std, dist_eps = net.dist_eps;
-  const S squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe tanh
-  // dynamics.termination_cause: beyond an upper (lower) bound is > (<), or >= (<=) with strict
-  // bounds. dynamics.in_target_zone: within an upper (lower) bound is <= (>=), or < (>) strict.
-  // (Each written out: a negated comparison would count NaN as inside the zone.)
-  const bool strict = env[kStrict] > 0;
-  const auto above = [strict](Vec<S> v, S bound) { return strict ? v >= bound : v > bound; };
-  const auto below = [strict](Vec<S> v, S bound) { return strict ? v <= bound : v < bound; };
-  const auto under = [strict](Vec<S> v, S bound) { return strict ? v < bound : v <= bound; };
-  const auto over = [strict](Vec<S> v, S bound) { return strict ? v > bound : v >= bound; };
+  const EnvParams<S> e = env_params<S>(a.env, net);
+  const DistParams<S> d = dist_params<S>(a.dist, a.env[kDt]);
   Block<S> block(net);
-  const int64_t T = a.steps;
+  Drone<V> dr{};
+  const int64_t T = a.steps, in_dim = net.in_dim;
   for (int64_t b = first; b < last; b++) {
     const int64_t row0 = b * L;
     const int count = static_cast<int>(row0 + L <= a.rows ? L : a.rows - row0);
@@ -543,7 +953,6 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
     for (int l = 0; l < L; l++) any = any || live[l];
     if (!any) continue;
     pack_weights<S>(net, params, agent, L, block.w.data());
-    Vec<S> s[kStateDim];
     // The stream keys of each lane's agent, and the row's episode index within its agent.
     uint64_t noise_key[L], episode[L];
     for (int l = 0; l < L; l++) {
@@ -553,103 +962,54 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
         const uint64_t seed = a.rng[2 * row], counter = a.rng[2 * row + 1];
         noise_key[l] = stream_key(seed, counter, kActionNoise);
         const uint64_t start_key = stream_key(seed, counter, kStartStates);
-        for (int k = 0; k < kStateDim; k++) {  // dynamics.states_from_uniform
-          // The noise in float32, then the start point (the zone's centre or the floor) in S.
-          const bool air = env[kResetAir] > 0;
-          const float u = uniform(start_key, episode[l] * kStateDim + k);
-          const float jitter = (2.0f * u - 1.0f) * static_cast<float>(env[kResetNoise]);
-          const bool kept = air || k == 0 || k == 4;  // floor: x and alpha only
-          const S base = k != 2 ? S(0) : air ? S(env[kZoneZCentre]) : z_min;
-          s[k][l] = (kept ? S(jitter) : S(0)) + base;
-        }
+        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start_component<S>(a.env, start_key, episode[l], k));
+        dr.key[l] = a.keys ? a.keys[row] : episode_key(seed, counter, episode[l]);
       } else {
-        for (int k = 0; k < kStateDim; k++) s[k][l] = start[row * kStateDim + k];
+        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start[row * kStateDim + k]);
+        dr.key[l] = a.keys ? a.keys[row] : 0;
       }
     }
+    if (!d.nominal) start_episode(d, dr);
     const bool stochastic = noise || a.rng;
+    V n[4] = {};
     for (int64_t t = 0; t < T && any; t++) {
-      for (int k = 0; k < kStateDim; k++) block.x[k] = s[k];
-      Vec<S> loc[kActionDim], pre[kActionDim], act[kActionDim];
-      forward(net, block.w.data(), block.x.data(), block.acts.data(), loc, pre);
-      if (dist_eps != 0)
-        for (int m = 0; m < kActionDim; m++) loc[m] = loc[m] + dist_eps;  // kept (saved) shifted
-      Vec<S> z[kActionDim]{};
-      if (a.rng) {  // rng.normal: one Box-Muller pair per step and episode, its two outputs the two motors
-        F u1, u2;
-        for (int l = 0; l < 8; l++) {
-          const int lane = l < L ? l : 0;
-          const uint64_t pair = static_cast<uint64_t>(t) * a.episodes + episode[lane];
-          u1[l] = uniform(noise_key[lane], 2 * pair);
-          u2[l] = uniform(noise_key[lane], 2 * pair + 1);
-        }
-        const F radius = sqrt_f(-2.0f * log_f(u1));
-        F sin_a, cos_a;
-        sincos_f(6.28318530717958647692f * u2, &sin_a, &cos_a);
-        const F z0 = radius * cos_a, z1 = radius * sin_a;
-        for (int l = 0; l < L; l++) {
-          z[0][l] = z0[l];
-          z[1][l] = z1[l];
-        }
+      int64_t steps[L];
+      uint64_t pair[L];
+      for (int l = 0; l < L; l++) {
+        steps[l] = t;
+        pair[l] = static_cast<uint64_t>(t) * a.episodes + episode[l];
+      }
+      step_normals(d, dr, steps, n);
+      observe(d, dr, n, block.x.data());
+      V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
+      if (a.rng) {
+        action_normals(noise_key, pair, z);
       } else if (noise) {
         for (int m = 0; m < kActionDim; m++)
           for (int l = 0; l < L; l++) z[m][l] = live[l] ? noise[((row0 + l) * T + t) * kActionDim + m] : S(0);
       }
-      for (int m = 0; m < kActionDim; m++) {
-        Vec<S> u = loc[m];
-        if (stochastic) u = loc[m] + (softplus(pre[m]) + min_std + dist_eps) * z[m];
-        if (high > 0) {
-          Vec<S> th = tanh_v(u);
-          th = clamp(th, -squash_lim, squash_lim);
-          u = half + half * th;
-        }
-        act[m] = u;
-      }
-      // dynamics.step: clamp, integrate, termination cause, reward.
-      Vec<S> a_l = act[0], a_r = act[1];
-      if (max_thrust >= 0) {
-        a_l = clamp(a_l, S(0), max_thrust);
-        a_r = clamp(a_r, S(0), max_thrust);
-      }
-      const Vec<S> thrust_l = a_l * weight, thrust_r = a_r * weight, total = thrust_l + thrust_r;
-      Vec<S> sin_a, cos_a;
-      sincos_v(s[4], &sin_a, &cos_a);
-      const Vec<S> x_ddot = -sin_a * total / mass;
-      const Vec<S> z_ddot = cos_a * total / mass - gravity;
-      const Vec<S> alpha_ddot = (thrust_r - thrust_l) * arm_over_inertia;
-      Vec<S> n[kStateDim];
-      n[1] = s[1] + x_ddot * dt;
-      n[3] = s[3] + z_ddot * dt;
-      n[5] = s[5] + alpha_ddot * dt;
-      n[0] = s[0] + n[1] * dt;
-      n[2] = s[2] + n[3] * dt;
-      n[4] = s[4] + n[5] * dt;
-      const Vec<S> ax = vabs(n[0]), aa = vabs(n[4]);
-      // The lowest non-zero code wins: assign from the highest down.
-      auto cause = above(aa, alpha_limit) & kTilt;
-      cause = above(n[2], z_max) ? kCeiling : cause;
-      cause = below(n[2], floor) ? kFloorHit : cause;
-      cause = above(ax, x_limit) ? kOutX : cause;
-      const auto zone =
-          under(ax, zone_x) & over(n[2], zone_z_min) & under(n[2], zone_z_max) & under(aa, alpha_limit);
-      Vec<S> r = zone ? splat(r_zone) : splat(r_alive);
-      r = cause != 0 ? splat(r_term) : r;
+      policy_step(net, e, block.w.data(), block.x.data(), block.acts.data(), stochastic ? z : nullptr, loc, pre, act);
+      V next[kStateDim], r, cause, zone;
+      drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
       any = false;
       for (int l = 0; l < count; l++) {
         if (!live[l]) continue;
         const int64_t row = row0 + l, at = row * T + t, state_at = row * (T + 1) + t;
         if (obs) {
           for (int k = 0; k < kStateDim; k++) {
-            obs[state_at * kStateDim + k] = s[k][l];
-            obs[(state_at + 1) * kStateDim + k] = n[k][l];
+            obs[state_at * kStateDim + k] = dr.s[k][l];
+            obs[(state_at + 1) * kStateDim + k] = next[k][l];
           }
         }
+        if (seen)
+          for (int k = 0; k < in_dim; k++) seen[at * in_dim + k] = block.x[k][l];
         if (action) {
           action[at * kActionDim] = act[0][l];
           action[at * kActionDim + 1] = act[1][l];
         }
         if (saved) {
           const int64_t r_agent = episode[l] * T + t;
-          for (int k = 0; k < kStateDim; k++) slot(agent[l], r_agent, layout.x() + k) = s[k][l];
+          for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, layout.x() + k) = block.x[k][l];
           for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = block.acts[k][l];
           for (int m = 0; m < kActionDim; m++) {
             slot(agent[l], r_agent, layout.loc() + m) = loc[m][l];
@@ -657,18 +1017,19 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
             slot(agent[l], r_agent, layout.action() + m) = act[m][l];
           }
         }
+        const int64_t code = static_cast<int64_t>(cause[l]);
         reward[at] = r[l];
-        a.cause[at] = cause[l];
+        a.cause[at] = code;
         a.length[row] = t + 1;
         double* stat = a.stats + row * kStats;
         stat[kReturn] += r[l];
-        stat[kZoneSteps] += zone[l] && cause[l] == 0;
+        stat[kZoneSteps] += zone[l] != 0 && code == 0;
         stat[kNegative] += (act[0][l] < 0) + (act[1][l] < 0);
-        stat[kLastCause] = cause[l];
-        live[l] = cause[l] == 0;
+        stat[kLastCause] = code;
+        live[l] = code == 0;
         any = any || live[l];
       }
-      for (int k = 0; k < kStateDim; k++) s[k] = n[k];
+      for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
     }
     // Returns-to-go of each row's episode, last step first (the loss's discounted_returns).
     for (int l = 0; l < count; l++) {
@@ -699,22 +1060,21 @@ struct GradArgs {
   uint8_t* actions_finite;  // [agents]
 };
 
-// The REINFORCE loss of each agent (ReinforceLoss: -sum_t w_t log pi(a_t | s_t) over its valid
+// The REINFORCE loss of each agent (ReinforceLoss: -sum_t w_t log pi(a_t | o_t) over its valid
 // steps, divided by its episodes) and its gradient, from the steps the rollout saved: the
-// log-probability's derivatives in loc and scale, then the network's backward through the saved
-// hidden outputs (backward_deltas per block, weight_grad over the blocks). No forward pass again.
+// log-probability's derivatives in loc and scale (log_prob_backward), then the network's backward
+// through the saved hidden outputs (backward_deltas per block, weight_grad over the blocks). No
+// forward pass again.
 template <class S>
 void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t last) {
-  constexpr int L = lanes<S>();
   using V = Vec<S>;
+  constexpr int L = lanes_of<V>();
   const RolloutArgs& a = *g.roll;
   const LossOptions& o = g.options;
   const int64_t E = a.episodes, T = a.steps;
   const Saved layout = Saved::of(net, E, T, L);
+  const EnvParams<S> env = env_params<S>(a.env, net);
   const int p = net.params, act_w = net.activations > 0 ? net.activations : 1;
-  const S min_std = net.min_std, dist_eps = net.dist_eps, high = a.env[kSquashHigh], half = high / S(2);
-  const S squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe atanh
-  const S half_log_2pi = S(0.91893853320467274178);                    // log(sqrt(2 pi))
   const S eps = sizeof(S) == 4 ? S(1.1920928955078125e-07) : S(2.220446049250313e-16);  // finfo eps
   std::vector<V> deltas(layout.blocks * act_w), heads(layout.blocks * 2 * kActionDim), grad(p);
   for (int64_t n = first; n < last; n++) {
@@ -778,31 +1138,17 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
         for (int l = 0; l < L; l++) w[l] *= std::pow(gamma, S((b * L + l) % T));
       }
       const V coef = -w * per_episode * mask;  // d loss / d log pi at each step
-      V log_prob{};
       V* d_loc = &heads[b * 2 * kActionDim];
       V* d_pre = d_loc + kActionDim;
-      for (int m = 0; m < kActionDim; m++) {
-        const V pre = blk[layout.pre() + m], loc = blk[layout.loc() + m], action = blk[layout.action() + m];
-        const V scale = softplus(pre) + min_std + dist_eps;
-        V sample = action;
-        if (high > 0) {  // TanhNormal: the Normal sample the action came from, as TorchRL inverts it
-          const V y = clamp((action - half) / half, -squash_lim, squash_lim);
-          sample = S(0.5) * (log1p_v(y) - log1p_v(-y));  // atanh
-          // log |d action / d sample| of the tanh and the affine map (TanhTransform's formula).
-          log_prob -= S(2) * (S(0.69314718055994530942) - sample - softplus(-S(2) * sample)) + std::log(half);
-        }
-        const V z = (sample - loc) / scale;
-        log_prob += -S(0.5) * z * z - log_v(scale) - half_log_2pi;
-        d_loc[m] = coef * reduce * z / scale;
-        const V d_scale = coef * reduce * (z * z - S(1)) / scale;
-        const V e = exp_v(pre);  // softplus' (beta 1, threshold 20): sigmoid below the threshold
-        d_pre[m] = pre > S(20) ? d_scale : d_scale * e / (e + S(1));
+      V scale[kActionDim];
+      const V log_prob = log_prob_backward(env, blk + layout.loc(), blk + layout.pre(), blk + layout.action(),
+                                           coef * reduce, d_loc, d_pre, scale);
+      for (int m = 0; m < kActionDim; m++)
         for (int l = 0; l < L; l++) {
           if (mask[l] == 0) continue;
-          std_sum += scale[l];
-          finite = finite && std::isfinite(action[l]);
+          std_sum += scale[m][l];
+          finite = finite && std::isfinite(blk[layout.action() + m][l]);
         }
-      }
       for (int l = 0; l < L; l++) loss += mask[l] != 0 ? coef[l] * reduce * log_prob[l] : S(0);
       backward_deltas(net, static_cast<const S*>(a.params) + n * p, blk + layout.acts(), d_loc, d_pre,
                       &deltas[b * act_w]);
@@ -829,6 +1175,162 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
     g.loss[n] = loss;
     g.std_mean[n] = std_sum / S(steps * kActionDim);
     g.actions_finite[n] = finite;
+  }
+}
+
+// PPO/A2C's segments: n drones of one agent, `steps` steps each, auto-reset, state carried across
+// calls (DroneEnv under TorchRL's collector; see ops.segments).
+struct SegmentArgs {
+  int64_t n, steps, max_steps;
+  const void* params;  // [P]
+  // Carried in: state [n, 6], t [n] (< 0: a new episode starts at step 0), key [n], gust [n],
+  // thrust [n, 2], pending [n, delay, 2], issued [n, observed, 2].
+  const void* state;
+  const int64_t* t;
+  const int64_t* key;
+  const void* gust;
+  const void* thrust;
+  const void* pending;
+  const void* issued;
+  const void* noise;           // [n, steps, 2]
+  const void* fresh;           // [n, steps, 6]
+  const int64_t* fresh_keys;   // [n, steps]; null: the nominal drone
+  const double* env;
+  const double* dist;
+  // Per step: [n, steps, ...].
+  void* obs;
+  void* action;
+  void* reward;
+  void* next_obs;
+  int64_t* cause;
+  uint8_t* terminated;
+  uint8_t* truncated;
+  int64_t* step_count;
+  // Carried out, laid out as carried in.
+  void* state_out;
+  int64_t* t_out;
+  int64_t* key_out;
+  void* gust_out;
+  void* thrust_out;
+  void* pending_out;
+  void* issued_out;
+};
+
+template <class S>
+void segment_blocks(const Net& net, const SegmentArgs& a, int64_t first, int64_t last) {
+  using V = Vec<S>;
+  constexpr int L = lanes_of<V>();
+  const S* w = static_cast<const S*>(a.params);  // one agent: every lane reads the same weights
+  const EnvParams<S> e = env_params<S>(a.env, net);
+  const DistParams<S> d = dist_params<S>(a.dist, a.env[kDt]);
+  const int64_t J = a.steps, in_dim = net.in_dim, delay = d.delay, observed = d.observed;
+  std::vector<V> acts(net.activations > 0 ? net.activations : 1), x(in_dim);
+  Drone<V> dr{}, fresh{};
+  auto in = [](const void* p, int64_t i) { return static_cast<const S*>(p)[i]; };
+  auto out = [](void* p, int64_t i) -> S& { return static_cast<S*>(p)[i]; };
+  for (int64_t b = first; b < last; b++) {
+    const int64_t row0 = b * L;
+    const int count = static_cast<int>(row0 + L <= a.n ? L : a.n - row0);
+    int64_t row[L], t[L];
+    bool restart[L];
+    for (int l = 0; l < L; l++) {
+      row[l] = row0 + (l < count ? l : 0);
+      const int64_t r = row[l];
+      t[l] = a.t[r];
+      restart[l] = t[l] < 0;
+      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.state, r * kStateDim + k));
+      dr.key[l] = static_cast<uint64_t>(a.key[r]);
+    }
+    if (!d.nominal) {
+      start_episode(d, dr);  // the episode's draws; its internal state is the carried one
+      for (int l = 0; l < L; l++) {
+        const int64_t r = row[l];
+        set_lane(dr.gust, l, in(a.gust, r));
+        for (int m = 0; m < kActionDim; m++) {
+          set_lane(dr.thrust[m], l, in(a.thrust, r * kActionDim + m));
+          for (int j = 0; j < delay; j++)
+            set_lane(dr.pending[j][m], l, in(a.pending, (r * delay + j) * kActionDim + m));
+          for (int j = 0; j < observed; j++)
+            set_lane(dr.issued[j][m], l, in(a.issued, (r * observed + j) * kActionDim + m));
+        }
+      }
+    }
+    V n[4] = {};
+    bool seen = false;  // x holds the observation at t (the last step's next observation)
+    for (int64_t j = 0; j < J; j++) {
+      bool any_restart = false;
+      for (int l = 0; l < L; l++) any_restart = any_restart || restart[l];
+      if (any_restart) {  // new episodes from step j: start state fresh[., j], key fresh_keys[., j]
+        for (int l = 0; l < L; l++) {
+          fresh.key[l] = restart[l] && a.fresh_keys ? a.fresh_keys[row[l] * J + j] : dr.key[l];
+        }
+        if (!d.nominal) start_episode(d, fresh);
+        for (int l = 0; l < L; l++) {
+          if (!restart[l]) continue;
+          t[l] = 0;
+          restart[l] = false;
+          for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.fresh, (row[l] * J + j) * kStateDim + k));
+          dr.key[l] = fresh.key[l];
+          dr.mixed[l] = fresh.mixed[l];
+          set_lane(dr.wind, l, lane(fresh.wind, l));
+          set_lane(dr.mass_ratio, l, lane(fresh.mass_ratio, l));
+          set_lane(dr.gust, l, lane(fresh.gust, l));
+          for (int m = 0; m < kActionDim; m++) {
+            set_lane(dr.gain[m], l, lane(fresh.gain[m], l));
+            set_lane(dr.thrust[m], l, lane(fresh.thrust[m], l));
+            for (int i = 0; i < delay; i++) set_lane(dr.pending[i][m], l, lane(fresh.pending[i][m], l));
+            for (int i = 0; i < observed; i++) set_lane(dr.issued[i][m], l, lane(fresh.issued[i][m], l));
+          }
+        }
+        seen = false;
+      }
+      if (!seen) {
+        step_normals(d, dr, t, n);
+        observe(d, dr, n, x.data());
+      }
+      V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
+      for (int m = 0; m < kActionDim; m++)
+        for (int l = 0; l < L; l++) z[m][l] = in(a.noise, (row[l] * J + j) * kActionDim + m);
+      policy_step(net, e, w, x.data(), acts.data(), z, loc, pre, act);
+      for (int l = 0; l < count; l++) {
+        const int64_t at = row[l] * J + j;
+        for (int k = 0; k < in_dim; k++) out(a.obs, at * in_dim + k) = x[k][l];
+        a.step_count[at] = t[l];
+      }
+      V next[kStateDim], r, cause, zone;
+      drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
+      for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
+      for (int l = 0; l < L; l++) t[l] += 1;
+      // What the env returns: the observation of the state after the step, at its step count.
+      step_normals(d, dr, t, n);
+      observe(d, dr, n, x.data());
+      seen = true;
+      for (int l = 0; l < count; l++) {
+        const int64_t at = row[l] * J + j;
+        const int64_t code = static_cast<int64_t>(cause[l]);
+        const bool terminated = code != 0, truncated = !terminated && t[l] >= a.max_steps;
+        for (int k = 0; k < in_dim; k++) out(a.next_obs, at * in_dim + k) = x[k][l];
+        for (int m = 0; m < kActionDim; m++) out(a.action, at * kActionDim + m) = act[m][l];
+        out(a.reward, at) = r[l];
+        a.cause[at] = code;
+        a.terminated[at] = terminated;
+        a.truncated[at] = truncated;
+        restart[l] = terminated || truncated;
+      }
+    }
+    for (int l = 0; l < count; l++) {
+      const int64_t r = row[l];
+      for (int k = 0; k < kStateDim; k++) out(a.state_out, r * kStateDim + k) = dr.s[k][l];
+      a.t_out[r] = restart[l] ? -1 : t[l];
+      a.key_out[r] = static_cast<int64_t>(dr.key[l]);
+      out(a.gust_out, r) = d.nominal ? S(0) : dr.gust[l];
+      for (int m = 0; m < kActionDim; m++) {
+        out(a.thrust_out, r * kActionDim + m) = d.nominal ? S(kHover) : dr.thrust[m][l];
+        for (int i = 0; i < delay; i++) out(a.pending_out, (r * delay + i) * kActionDim + m) = dr.pending[i][m][l];
+        for (int i = 0; i < observed; i++)
+          out(a.issued_out, (r * observed + i) * kActionDim + m) = dr.issued[i][m][l];
+      }
+    }
   }
 }
 
@@ -869,44 +1371,49 @@ Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t ac
   return net;
 }
 
+constexpr int64_t lanes() { return lanes_of<Vec<Real>>(); }
+constexpr int64_t blocks_of(int64_t rows) { return (rows + lanes() - 1) / lanes(); }
+
 }  // namespace
 
 extern "C" {
 
-// How many drone constants the kernels read (drone_torchrl/kernels/ops.py: ENV_CONSTANTS).
+// How many drone and disturbance constants the kernels read (ops.ENV_CONSTANTS, DISTURBANCE_CONSTANTS).
 int64_t dk_env_consts() { return kEnvConsts; }
+int64_t dk_disturbance_consts() { return kDistConsts; }
 
 // Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
 // row's episode terminates or `steps` steps. Writes the states ([rows, steps + 1, 6]: before each
 // step, and after the last), the action, the reward, the termination cause and the return-to-go
-// of every step flown, each row's length and its Stat counts; entries after a row's end are left
-// as they were (the caller zero-fills). Tensors hold Real numbers (the build's precision).
+// of every step flown, each row's length and its Stat counts, and (seen, when not null) what the
+// policy saw; entries after a row's end are left as they were (the caller zero-fills). Tensors
+// hold Real numbers (the build's precision). in_dim: 6 + 2 * the disturbance's observed_actions.
 void dk_rollout(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
                 double min_std, double dist_eps, int64_t rows, int64_t episodes, int64_t steps, const void* params,
-                const void* start, const void* noise, const int64_t* rng, const uint8_t* active, const double* env,
-                const double* gamma, void* obs, void* action, void* reward, int64_t* cause, int64_t* length,
-                void* returns, double* stats) {
+                const void* start, const void* noise, const int64_t* rng, const int64_t* keys, const uint8_t* active,
+                const double* env, const double* dist, const double* gamma, void* obs, void* action, void* reward,
+                int64_t* cause, int64_t* length, void* returns, double* stats, void* seen) {
   const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     active,  env,
-                gamma, obs,      action, reward, cause,  length, returns, stats,  nullptr};
-  const int64_t blocks = (rows + lanes<Real>() - 1) / lanes<Real>();
-  parallel_blocks(blocks, threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
+  RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
+                gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
+  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
 }
 
 // One REINFORCE update's episodes and gradient for every active agent: the rollout of dk_rollout
-// (start states and noise drawn from rng), then reinforce_agents. options: LossOptions' four flags.
+// (start states, noise and disturbance keys drawn from rng), then reinforce_agents. options:
+// LossOptions' four flags.
 void dk_reinforce(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
                   double min_std, double dist_eps, int64_t agents, int64_t episodes, int64_t steps, const void* params,
-                  const int64_t* rng, const uint8_t* active, const double* env, const double* gamma,
-                  const int64_t* options, void* reward, int64_t* cause, int64_t* length, void* returns,
-                  double* stats, void* saved, void* grad, double* loss, double* std_mean, uint8_t* actions_finite) {
+                  const int64_t* rng, const uint8_t* active, const double* env, const double* dist,
+                  const double* gamma, const int64_t* options, void* reward, int64_t* cause, int64_t* length,
+                  void* returns, double* stats, void* saved, void* grad, double* loss, double* std_mean,
+                  uint8_t* actions_finite) {
   const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
   const int64_t rows = agents * episodes;
-  RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     active, env,
-                gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,  saved};
+  RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
+                gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
   GradArgs g{&a, {options[0], options[1], options[2], options[3]}, grad, loss, std_mean, actions_finite};
-  parallel_blocks((rows + lanes<Real>() - 1) / lanes<Real>(), threads,
-                  [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
+  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
   parallel_blocks(agents, threads, [&](int64_t f, int64_t l) { reinforce_agents<Real>(net, g, f, l); });
 }
 
@@ -914,11 +1421,56 @@ void dk_reinforce(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64
 int64_t dk_saved_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t agents, int64_t episodes,
                       int64_t steps) {
   const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
-  const Saved layout = Saved::of(net, episodes, steps, lanes<Real>());
-  return agents * layout.blocks * layout.width * lanes<Real>();
+  const Saved layout = Saved::of(net, episodes, steps, lanes());
+  return agents * layout.blocks * layout.width * lanes();
+}
+
+// `steps` steps of n drones of one agent with auto-reset (ops.segments documents the tensors).
+void dk_segments(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
+                 double min_std, double dist_eps, int64_t n, int64_t steps, int64_t max_steps, const void* params,
+                 const void* state, const int64_t* t, const int64_t* key, const void* gust, const void* thrust,
+                 const void* pending, const void* issued, const void* noise, const void* fresh,
+                 const int64_t* fresh_keys, const double* env, const double* dist, void* obs, void* action,
+                 void* reward, void* next_obs, int64_t* cause, uint8_t* terminated, uint8_t* truncated,
+                 int64_t* step_count, void* state_out, int64_t* t_out, int64_t* key_out, void* gust_out,
+                 void* thrust_out, void* pending_out, void* issued_out) {
+  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
+  SegmentArgs a{n,          steps,     max_steps, params,     state,      t,          key,        gust,
+                thrust,     pending,   issued,    noise,      fresh,      fresh_keys, env,        dist,
+                obs,        action,    reward,    next_obs,   cause,      terminated, truncated,  step_count,
+                state_out,  t_out,     key_out,   gust_out,   thrust_out, pending_out, issued_out};
+  parallel_blocks(blocks_of(n), threads, [&](int64_t f, int64_t l) { segment_blocks<Real>(net, a, f, l); });
 }
 
 // 4 (float32) or 8 (float64): the precision of this build's tensors, in bytes.
 int64_t dk_real_bytes() { return sizeof(Real); }
 
 }  // extern "C"
+
+#else  // !DK_CPU
+
+// The scalar check (-DDK_SCALAR_CHECK): every single-source function with V = float and V = double,
+// compiled without the vector types, as a CUDA kernel (one thread per drone) will call them.
+#define DK_INSTANTIATE(V)                                                                                      \
+  template void action_normals<V>(const uint64_t*, const uint64_t*, V*);                                       \
+  template void forward<V, V>(const Net&, const V*, const V*, V*, V*, V*);                                     \
+  template void backward_deltas<V, V>(const Net&, const V*, const V*, const V*, const V*, V*);                 \
+  template void weight_grad<V>(const V*, int, const V*, int, int, int, int64_t, V*, V*);                       \
+  template EnvParams<V> env_params<V>(const double*, const Net&);                                              \
+  template DistParams<V> dist_params<V>(const double*, double);                                                \
+  template V start_component<V>(const double*, uint64_t, uint64_t, int);                                      \
+  template void start_episode<V>(const DistParams<V>&, Drone<V>&);                                             \
+  template void step_normals<V>(const DistParams<V>&, const Drone<V>&, const int64_t*, V*);                    \
+  template void observe<V>(const DistParams<V>&, const Drone<V>&, const V*, V*);                               \
+  template void policy_step<V, V>(const Net&, const EnvParams<V>&, const V*, const V*, V*, const V*, V*, V*,   \
+                                  V*);                                                                         \
+  template void drone_step<V>(const EnvParams<V>&, const DistParams<V>&, Drone<V>&, const V*, V, V*, V*, V*,   \
+                              V*);                                                                             \
+  template V log_prob_backward<V>(const EnvParams<V>&, const V*, const V*, const V*, V, V*, V*, V*);
+DK_INSTANTIATE(float)
+DK_INSTANTIATE(double)
+#undef DK_INSTANTIATE
+
+}  // namespace
+
+#endif  // DK_CPU

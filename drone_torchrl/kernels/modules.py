@@ -4,16 +4,25 @@
 - :class:`KernelRollout`: whole episodes through ``drone_torchrl::rollout``, as
   :class:`~drone_torchrl.envs.rollout.Episodes` (what :func:`~drone_torchrl.envs.rollout.fly_episodes`
   returns for the PyTorch code).
+- :class:`KernelSegments`: PPO/A2C's auto-resetting batches through ``drone_torchrl::segments``,
+  the drones' state carried from call to call.
+
+Each flies the drone with the env's disturbances (:mod:`drone_torchrl.envs.disturbances`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from typing import Any, NamedTuple
+
 import torch
 
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.kernels import ops
 from drone_torchrl.modules.stacked import StackedThreeNet
+
+DisturbanceArg = disturbances.Disturbance | Mapping[str, Any] | None
 
 
 class KernelRollout:
@@ -26,6 +35,7 @@ class KernelRollout:
         squash_high: the TanhNormal head's upper bound, or None for the Normal head.
         max_steps: the episode length limit.
         reset_mode: where start states drawn from ``rng`` lie (``env.reset_mode``).
+        disturbance: the env's disturbances (``env.disturbance``; None: the nominal drone).
     """
 
     def __init__(
@@ -35,12 +45,15 @@ class KernelRollout:
         squash_high: float | None,
         max_steps: int,
         reset_mode: str = "floor",
+        disturbance: DisturbanceArg = None,
     ) -> None:
         self.stacked = stacked
         self.hidden = list(stacked.hidden_sizes)
         self.activation = ops.ACTIVATION_CODES[stacked.activation_name]
         self.env = ops.env_constants(params, squash_high, reset_mode)
         self.max_steps = max_steps
+        self.nominal = disturbances.make(disturbance).nominal
+        self.disturbance = None if self.nominal else ops.disturbance_constants(disturbance)
 
     @torch.no_grad()
     def __call__(
@@ -49,19 +62,23 @@ class KernelRollout:
         noise: torch.Tensor | None = None,
         active: torch.Tensor | None = None,
         rng: torch.Tensor | None = None,
+        keys: torch.Tensor | None = None,
     ) -> Episodes:
         """Each agent's episodes from ``start`` (``[N, E, 6]``) with ``noise`` (``[N, E, max_steps, 2]``;
         None: the deterministic action), or with start states and noise drawn from ``rng``
-        (``[N, E, 2]``: seed and update counter, see ``drone_torchrl::rollout``). ``active``: ``[N]``
-        bool (default: all). Returns ``[N, E, T]`` episodes, ``T`` the longest; inactive agents' rows are empty."""
+        (``[N, E, 2]``: seed and update counter, see ``drone_torchrl::rollout``). ``keys``: ``[N, E]``
+        the episodes' disturbance keys (None: drawn from ``rng``). ``active``: ``[N]`` bool (default:
+        all). Returns ``[N, E, T]`` episodes, ``T`` the longest; inactive agents' rows are empty.
+        Under disturbances their ``observation`` is what the policy saw."""
         flat = self.stacked.flat
         n = flat.shape[0]
         if active is None:
             active = torch.ones(n, dtype=torch.bool)
         gamma = torch.ones(n, dtype=torch.float64)  # the returns-to-go are not used here
-        states, action, reward, cause, length, _, _ = ops.rollout(
+        states, action, reward, cause, length, _, _, seen = ops.rollout(
             flat.detach(), start, noise, rng, active, self.env, gamma, self.hidden, self.activation,
-            self.stacked.min_std, self.max_steps, self.stacked.distribution_eps,
+            self.stacked.min_std, self.max_steps, self.stacked.distribution_eps, self.disturbance, keys,
+            not self.nominal,
         )  # fmt: skip
         steps = max(int(length.max()), 1)  # the longest episode; the rest of the buffers is zeros
         return Episodes(
@@ -70,6 +87,7 @@ class KernelRollout:
             reward[..., :steps],
             cause[..., :steps],
             length,
+            None if self.nominal else seen[..., :steps, :],
         )
 
 
@@ -77,7 +95,7 @@ class KernelReinforce:
     """One REINFORCE update's gradient of every agent by the C++ kernel (``drone_torchrl::reinforce``).
 
     Args:
-        rollout: the agents' :class:`KernelRollout` (network, drone, episode limit).
+        rollout: the agents' :class:`KernelRollout` (network, drone, disturbances, episode limit).
         episodes: episodes per agent per update.
         options: the loss options, :data:`drone_torchrl.kernels.ops.LOSS_OPTIONS` -> bool.
     """
@@ -96,5 +114,81 @@ class KernelReinforce:
         keys = torch.stack([seed, counter], -1).unsqueeze(1).expand(-1, self.episodes, -1)
         return ops.reinforce(
             r.stacked.flat.detach(), keys, active, r.env, gamma, self.options, r.hidden, r.activation,
-            r.stacked.min_std, r.max_steps, r.stacked.distribution_eps,
+            r.stacked.min_std, r.max_steps, r.stacked.distribution_eps, r.disturbance,
         )  # fmt: skip
+
+
+class Segment(NamedTuple):
+    """One call's steps of each drone, ``[n, steps, ...]``: the env's keys of TorchRL's collector
+    (``observation``, ``action``, ``step_count`` and ``next``'s ``observation``, ``reward``,
+    ``termination_cause``, ``terminated``, ``truncated``)."""
+
+    observation: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    next_observation: torch.Tensor
+    cause: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    step_count: torch.Tensor
+
+
+class Carried(NamedTuple):
+    """What each drone carries from one call to the next (see ``drone_torchrl::segments``):
+    ``t = -1`` where a new episode starts at the next call's first step."""
+
+    state: torch.Tensor
+    t: torch.Tensor
+    key: torch.Tensor
+    gust: torch.Tensor
+    thrust: torch.Tensor
+    pending: torch.Tensor
+    issued: torch.Tensor
+
+
+class KernelSegments:
+    """``n`` drones of one agent flown by the C++ kernel with auto-reset, each call ``steps`` more
+    steps (``drone_torchrl::segments``): TorchRL's collector over a batched
+    :class:`~drone_torchrl.envs.DroneEnv`, given the same draws.
+
+    Args:
+        rollout: the agent's :class:`KernelRollout` (one agent: network, drone, disturbances;
+            its ``max_steps`` truncates the episodes).
+        n: the drones.
+    """
+
+    def __init__(self, rollout: KernelRollout, n: int) -> None:
+        self.rollout = rollout
+        self.n = n
+        self.delay, self.observed = ops.steps_back(rollout.disturbance)
+        self.restart()
+
+    def restart(self) -> None:
+        """Every drone starts a new episode at the next call."""
+        dtype, n, a = self.rollout.stacked.flat.dtype, self.n, dynamics.ACTION_DIM
+        hover = torch.full((n, a), dynamics.HOVER_THRUST, dtype=dtype)
+        self.carried = Carried(
+            torch.zeros(n, dynamics.STATE_DIM, dtype=dtype),
+            torch.full((n,), -1, dtype=torch.int64),
+            torch.zeros(n, dtype=torch.int64),
+            torch.zeros(n, dtype=dtype),
+            hover,
+            hover.unsqueeze(1).expand(n, self.delay, a).clone(),
+            torch.zeros(n, self.observed, a, dtype=dtype),
+        )
+
+    @torch.no_grad()
+    def __call__(
+        self, noise: torch.Tensor, fresh: torch.Tensor, fresh_keys: torch.Tensor | None = None
+    ) -> Segment:
+        """The next ``steps`` steps of every drone: ``noise`` ``[n, steps, 2]`` standard normals of
+        the actions, ``fresh`` ``[n, steps, 6]`` and ``fresh_keys`` ``[n, steps]`` the start state
+        and episode key of a drone that starts a new episode at that step (keys: None for the
+        nominal drone)."""
+        r = self.rollout
+        out = ops.segments(
+            r.stacked.flat.detach()[0], *self.carried, noise, fresh, fresh_keys, r.max_steps, r.env,
+            r.disturbance, r.hidden, r.activation, r.stacked.min_std, r.stacked.distribution_eps,
+        )  # fmt: skip
+        self.carried = Carried(*out[len(Segment._fields) :])
+        return Segment(*out[: len(Segment._fields)])

@@ -1,13 +1,18 @@
-"""The C++ kernels as ``torch.library`` custom ops (CPU): the fast engine's rollout and network.
+"""The C++ kernels as ``torch.library`` custom ops (CPU): the fast engine.
 
 - ``drone_torchrl::rollout``: whole episodes of many agents' stochastic (or deterministic) policies
-  on the drone's dynamics, each row until its episode ends: what
-  :func:`drone_torchrl.envs.rollout.fly` computes with :mod:`~drone_torchrl.envs.dynamics` and
-  :class:`~drone_torchrl.modules.StackedThreeNet`, in one call.
+  on the drone, each row until its episode ends: what :class:`~drone_torchrl.envs.DroneEnv` and
+  :class:`~drone_torchrl.modules.StackedThreeNet` compute, in one call.
 - ``drone_torchrl::reinforce``: one REINFORCE update's episodes (the rollout above) and each
   agent's loss and gradient, the arithmetic of :class:`~drone_torchrl.objectives.ReinforceLoss`
   (tested against it), back-propagated through the hidden outputs the rollout kept.
+- ``drone_torchrl::segments``: PPO/A2C's batches, ``n`` drones of one agent flown a number of
+  steps with auto-reset and their state carried across calls: what TorchRL's collector gives over
+  :class:`~drone_torchrl.envs.DroneEnv` (tested against it).
 
+Each takes the drone (:func:`env_constants`) and its disturbances (:func:`disturbance_constants`,
+the physics of :mod:`drone_torchrl.envs.disturbances`: wind, gusts, mass, motor gains, lag, delay,
+observation noise, observed commands); the policy then sees ``6 + 2 * observed_actions`` values.
 Being ``torch.library`` ops, they have fake (meta) implementations and trace as single opaque
 nodes under ``torch.compile(fullgraph=True)``. Parameters are each agent's flat vector
 (:attr:`StackedThreeNet.flat <drone_torchrl.modules.StackedThreeNet.flat>`).
@@ -16,11 +21,12 @@ nodes under ``torch.compile(fullgraph=True)``. Parameters are each agent's flat 
 from __future__ import annotations
 
 import ctypes
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.kernels.build import library, unavailable_reason
 
 ACTIVATION_CODES = {"tanh": 0, "relu": 1, "elu": 2}
@@ -32,7 +38,7 @@ MAX_LAYERS = 16
 MAX_WIDTH = 1024
 DTYPES = (torch.float32, torch.float64)
 
-_i64 = ctypes.c_int64
+_c64 = ctypes.c_int64
 _ptr = ctypes.c_void_p
 
 
@@ -41,7 +47,7 @@ def _p(tensor: torch.Tensor | None) -> ctypes.c_void_p:
 
 
 def _sizes(hidden: Sequence[int]) -> ctypes.Array:
-    return (_i64 * max(len(hidden), 1))(*hidden)
+    return (_c64 * max(len(hidden), 1))(*hidden)
 
 
 def _lib(dtype: torch.dtype = torch.float32) -> ctypes.CDLL:
@@ -117,6 +123,84 @@ def env_constants(
     return torch.tensor([values[name] for name in ENV_CONSTANTS], dtype=torch.float64, device=device)
 
 
+# The disturbance's magnitudes, in the kernels' order (drone_kernels.cpp: DistConst).
+DISTURBANCE_CONSTANTS = disturbances.FIELDS
+_OBSERVED = DISTURBANCE_CONSTANTS.index("observed_actions")
+_DELAY = DISTURBANCE_CONSTANTS.index("action_delay")
+_GUST_TIME = DISTURBANCE_CONSTANTS.index("gust_time")
+
+
+def disturbance_constants(
+    disturbance: disturbances.Disturbance | Mapping[str, Any] | None, device: torch.device | str = "cpu"
+) -> torch.Tensor:
+    """The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64. Magnitudes all zero
+    (the gusts' time scale aside), or None, is the nominal drone, which the kernels fly as fast as
+    ever."""
+    d = disturbances.make(disturbance)
+    return torch.tensor(
+        [float(getattr(d, name)) for name in DISTURBANCE_CONSTANTS], dtype=torch.float64, device=device
+    )
+
+
+def _nominal(disturbance: torch.Tensor | None) -> bool:
+    if disturbance is None:
+        return True
+    magnitudes = disturbance.clone()
+    magnitudes[_GUST_TIME] = 0.0  # the gusts' time scale alone changes nothing
+    return not bool(magnitudes.any())
+
+
+def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
+    """``(action_delay, observed_actions)`` of ``disturbance`` (:func:`disturbance_constants`):
+    the commands each drone keeps in flight and those it observes."""
+    if disturbance is None:
+        return 0, 0
+    return int(disturbance[_DELAY]), int(disturbance[_OBSERVED])
+
+
+def observation_dim(disturbance: torch.Tensor | None) -> int:
+    """What the policy sees under ``disturbance`` (:func:`disturbance_constants`): ``6 + 2k``."""
+    return dynamics.STATE_DIM + dynamics.ACTION_DIM * steps_back(disturbance)[1]
+
+
+def param_count(in_dim: int, hidden: Sequence[int]) -> int:
+    """The flat parameter count of a network with ``in_dim`` inputs and ``hidden`` sizes."""
+    widths = [in_dim, *hidden]
+    layers = sum(a * b + b for a, b in zip(widths, widths[1:], strict=False))
+    return layers + 2 * (dynamics.ACTION_DIM * widths[-1] + dynamics.ACTION_DIM)
+
+
+def input_dim(params: int, hidden: Sequence[int]) -> int:
+    """The input width of the network whose flat parameters have ``params`` values (the inverse of
+    :func:`param_count`; the fake implementations infer the observation's width from it)."""
+    if not hidden:
+        heads = 2 * dynamics.ACTION_DIM
+        return (params - heads) // heads
+    first = hidden[0]  # param_count(in, hidden) = in * first + first + what follows the first layer
+    return (params - first - param_count(first, hidden[1:])) // first
+
+
+def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.Tensor | None) -> int:
+    """The policy's input width, which must be what it sees under ``disturbance``."""
+    if disturbance is not None and tuple(disturbance.shape) != (len(DISTURBANCE_CONSTANTS),):
+        raise ValueError(
+            f"disturbance of shape {list(disturbance.shape)}; expected [{len(DISTURBANCE_CONSTANTS)}] "
+            "(ops.disturbance_constants)"
+        )
+    if not all(0 <= k <= disturbances.MAX_STEPS_BACK for k in steps_back(disturbance)):
+        raise ValueError(
+            f"action_delay and observed_actions {steps_back(disturbance)} are not allowed; expected "
+            f"integers in [0, {disturbances.MAX_STEPS_BACK}] (the kernels' command memory)"
+        )
+    in_dim = observation_dim(disturbance)
+    if params.shape[-1] != param_count(in_dim, hidden):
+        raise ValueError(
+            f"params of {params.shape[-1]} values do not fit the policy of {in_dim} inputs and hidden "
+            f"sizes {list(hidden)} that the disturbance implies; expected {param_count(in_dim, hidden)}"
+        )
+    return in_dim
+
+
 # ---------------------------------------------------------------------------------------- the ops
 # Defined with torch.library's low-level API: a call costs ~20 us, a third of what the
 # torch.library.custom_op decorator's checks cost, and each op is called once or twice per update.
@@ -124,13 +208,30 @@ def env_constants(
 _LIB = torch.library.Library("drone_torchrl", "DEF")
 _LIB.define(
     "rollout(Tensor params, Tensor? start, Tensor? noise, Tensor? rng, Tensor active, Tensor env, Tensor gamma, "
-    "int[] hidden, int activation, float min_std, int steps, float dist_eps=0.0) "
-    "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
+    "int[] hidden, int activation, float min_std, int steps, float dist_eps=0.0, Tensor? disturbance=None, "
+    "Tensor? keys=None, bool observations=False) "
+    "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
 )
 _LIB.define(
     "reinforce(Tensor params, Tensor rng, Tensor active, Tensor env, Tensor gamma, int[] options, int[] hidden, "
-    "int activation, float min_std, int steps, float dist_eps=0.0) -> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
+    "int activation, float min_std, int steps, float dist_eps=0.0, Tensor? disturbance=None) "
+    "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
 )
+_LIB.define(
+    "segments(Tensor params, Tensor state, Tensor t, Tensor key, Tensor gust, Tensor thrust, Tensor pending, "
+    "Tensor issued, Tensor noise, Tensor fresh, Tensor? fresh_keys, int max_steps, Tensor env, "
+    "Tensor? disturbance, int[] hidden, int activation, float min_std, float dist_eps=0.0) "
+    "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, "
+    "Tensor, Tensor)"
+)
+
+
+def _f64(tensor: torch.Tensor | None) -> torch.Tensor | None:
+    return None if tensor is None else tensor.to(torch.float64).contiguous()
+
+
+def _i64(tensor: torch.Tensor | None) -> torch.Tensor | None:
+    return None if tensor is None else tensor.to(torch.int64).contiguous()
 
 
 def _rollout(
@@ -146,37 +247,46 @@ def _rollout(
     min_std: float,
     steps: int,
     dist_eps: float = 0.0,
+    disturbance: torch.Tensor | None = None,
+    keys: torch.Tensor | None = None,
+    observations: bool = False,
 ) -> tuple[torch.Tensor, ...]:
     n, episodes = _rows(start, rng, active)
-    states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=params.dtype)
-    action = torch.zeros(n, episodes, steps, dynamics.ACTION_DIM, dtype=params.dtype)
-    reward = torch.zeros(n, episodes, steps, dtype=params.dtype)
+    in_dim = _check_net(params, hidden, disturbance)
+    if keys is None and rng is None and not _nominal(disturbance):
+        raise ValueError("drone_torchrl::rollout under disturbances needs episode keys or rng keys")
+    dtype = params.dtype
+    states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=dtype)
+    action = torch.zeros(n, episodes, steps, dynamics.ACTION_DIM, dtype=dtype)
+    reward = torch.zeros(n, episodes, steps, dtype=dtype)
     cause = torch.zeros(n, episodes, steps, dtype=torch.int64)
     length = torch.zeros(n, episodes, dtype=torch.int64)
-    returns = torch.zeros(n, episodes, steps, dtype=params.dtype)
+    returns = torch.zeros(n, episodes, steps, dtype=dtype)
     stats = torch.empty(n, episodes, STATS, dtype=torch.float64)
+    seen = torch.zeros(n, episodes, steps, in_dim, dtype=dtype) if observations else params.new_zeros(0)
     params = params.contiguous()
-    start = None if start is None else start.to(params.dtype).contiguous()
-    noise = None if noise is None else noise.to(params.dtype).contiguous()
-    rng = None if rng is None else rng.to(torch.int64).contiguous()
+    start = None if start is None else start.to(dtype).contiguous()
+    noise = None if noise is None else noise.to(dtype).contiguous()
     active = active.to(torch.uint8).contiguous()
-    env = env.to(torch.float64).contiguous()
-    gamma = gamma.to(torch.float64).contiguous()
-    _lib(params.dtype).dk_rollout(
-        _i64(torch.get_num_threads()),
-        _i64(dynamics.STATE_DIM),
-        _i64(len(hidden)),
+    # Bound to names: a pointer is only valid while its tensor lives.
+    rng, keys, env, gamma = _i64(rng), _i64(keys), _f64(env), _f64(gamma)
+    disturbance = None if _nominal(disturbance) else _f64(disturbance)
+    _lib(dtype).dk_rollout(
+        _c64(torch.get_num_threads()),
+        _c64(in_dim),
+        _c64(len(hidden)),
         _sizes(hidden),
-        _i64(activation),
+        _c64(activation),
         ctypes.c_double(min_std),
         ctypes.c_double(dist_eps),
-        _i64(n * episodes),
-        _i64(episodes),
-        _i64(steps),
-        *(_p(t) for t in (params, start, noise, rng, active, env, gamma)),
+        _c64(n * episodes),
+        _c64(episodes),
+        _c64(steps),
+        *(_p(t) for t in (params, start, noise, rng, keys, active, env, disturbance, gamma)),
         *(_p(t) for t in (states, action, reward, cause, length, returns, stats)),
+        _p(seen if observations else None),
     )
-    return states, action, reward, cause, length, returns, stats
+    return states, action, reward, cause, length, returns, stats, seen
 
 
 def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Tensor) -> tuple[int, int]:
@@ -190,10 +300,12 @@ def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Te
 
 
 def _rollout_fake(
-    params, start, noise, rng, active, env, gamma, hidden, activation, min_std, steps, dist_eps=0.0
-):
+    params, start, noise, rng, active, env, gamma, hidden, activation, min_std, steps, dist_eps=0.0,
+    disturbance=None, keys=None, observations=False,
+):  # fmt: skip
     n, episodes = _rows(start, rng, active)
     new = params.new_empty
+    in_dim = input_dim(params.shape[-1], hidden)
     return (
         new(n, episodes, steps + 1, dynamics.STATE_DIM),
         new(n, episodes, steps, dynamics.ACTION_DIM),
@@ -202,6 +314,7 @@ def _rollout_fake(
         new(n, episodes, dtype=torch.int64),
         new(n, episodes, steps),
         new(n, episodes, STATS, dtype=torch.float64),
+        new(n, episodes, steps, in_dim) if observations else new(0),
     )
 
 
@@ -217,8 +330,10 @@ def _reinforce(
     min_std: float,
     steps: int,
     dist_eps: float = 0.0,
+    disturbance: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, ...]:
     n, episodes = rng.shape[:2]
+    in_dim = _check_net(params, hidden, disturbance)
     dtype = params.dtype
     reward = torch.empty(n, episodes, steps, dtype=dtype)
     returns = torch.empty_like(reward)
@@ -227,37 +342,47 @@ def _reinforce(
     counts = torch.empty(n, episodes, STATS, dtype=torch.float64)
     lib = _lib(dtype)
     sizes = _sizes(hidden)
-    size = lib.dk_saved_size(
-        _i64(dynamics.STATE_DIM), _i64(len(hidden)), sizes, _i64(n), _i64(episodes), _i64(steps)
-    )
+    size = lib.dk_saved_size(_c64(in_dim), _c64(len(hidden)), sizes, _c64(n), _c64(episodes), _c64(steps))
     saved = torch.empty(size, dtype=dtype)
     grad = torch.empty_like(params)
     loss = torch.empty(n, dtype=torch.float64)
     std_mean = torch.empty_like(loss)
     actions_finite = torch.empty(n, dtype=torch.bool)
-    params, rng = params.contiguous(), rng.to(torch.int64).contiguous()
     active = active.to(torch.uint8).contiguous()
-    env, gamma = env.to(torch.float64).contiguous(), gamma.to(torch.float64).contiguous()
     flags = torch.tensor(list(options), dtype=torch.int64)
+    params, rng, env, gamma = params.contiguous(), _i64(rng), _f64(env), _f64(gamma)
+    disturbance = None if _nominal(disturbance) else _f64(disturbance)
     lib.dk_reinforce(
-        _i64(torch.get_num_threads()),
-        _i64(dynamics.STATE_DIM),
-        _i64(len(hidden)),
+        _c64(torch.get_num_threads()),
+        _c64(in_dim),
+        _c64(len(hidden)),
         sizes,
-        _i64(activation),
+        _c64(activation),
         ctypes.c_double(min_std),
         ctypes.c_double(dist_eps),
-        _i64(n),
-        _i64(episodes),
-        _i64(steps),
-        *(_p(t) for t in (params, rng, active, env, gamma, flags, reward, cause, length, returns, counts)),
+        _c64(n),
+        _c64(episodes),
+        _c64(steps),
+        *(_p(t) for t in (params, rng, active, env, disturbance, gamma, flags, reward, cause, length)),
+        *(_p(t) for t in (returns, counts)),
         *(_p(t) for t in (saved, grad, loss, std_mean, actions_finite)),
     )
     return grad, loss, std_mean, actions_finite, length, counts
 
 
 def _reinforce_fake(
-    params, rng, active, env, gamma, options, hidden, activation, min_std, steps, dist_eps=0.0
+    params,
+    rng,
+    active,
+    env,
+    gamma,
+    options,
+    hidden,
+    activation,
+    min_std,
+    steps,
+    dist_eps=0.0,
+    disturbance=None,
 ):
     n, episodes = rng.shape[:2]
     scalar = params.new_empty(n, dtype=torch.float64)
@@ -271,10 +396,111 @@ def _reinforce_fake(
     )
 
 
+def _segment_shapes(
+    state: torch.Tensor, noise: torch.Tensor, disturbance: torch.Tensor | None, in_dim: int
+) -> dict[str, tuple[int, ...]]:
+    n, steps = noise.shape[:2]
+    delay, observed = steps_back(disturbance)
+    a, s = dynamics.ACTION_DIM, dynamics.STATE_DIM
+    return {
+        "state": (n, s), "t": (n,), "key": (n,), "gust": (n,), "thrust": (n, a), "pending": (n, delay, a),
+        "issued": (n, observed, a), "noise": (n, steps, a), "fresh": (n, steps, s), "fresh_keys": (n, steps),
+        "obs": (n, steps, in_dim), "action": (n, steps, a), "step": (n, steps),
+    }  # fmt: skip
+
+
+def _segments(
+    params: torch.Tensor,
+    state: torch.Tensor,
+    t: torch.Tensor,
+    key: torch.Tensor,
+    gust: torch.Tensor,
+    thrust: torch.Tensor,
+    pending: torch.Tensor,
+    issued: torch.Tensor,
+    noise: torch.Tensor,
+    fresh: torch.Tensor,
+    fresh_keys: torch.Tensor | None,
+    max_steps: int,
+    env: torch.Tensor,
+    disturbance: torch.Tensor | None,
+    hidden: Sequence[int],
+    activation: int,
+    min_std: float,
+    dist_eps: float = 0.0,
+) -> tuple[torch.Tensor, ...]:
+    in_dim = _check_net(params, hidden, disturbance)
+    shapes = _segment_shapes(state, noise, disturbance, in_dim)
+    given = {"state": state, "t": t, "key": key, "gust": gust, "thrust": thrust, "pending": pending}
+    given |= {"issued": issued, "fresh": fresh, "fresh_keys": fresh_keys}
+    for name, tensor in given.items():
+        if tensor is not None and tuple(tensor.shape) != shapes[name]:
+            raise ValueError(
+                f"drone_torchrl::segments: {name} of shape {list(tensor.shape)}; expected {list(shapes[name])}"
+            )
+    nominal = _nominal(disturbance)
+    if fresh_keys is None and not nominal:
+        raise ValueError("drone_torchrl::segments under disturbances needs fresh_keys")
+    dtype = params.dtype
+    n, steps = shapes["step"]
+    obs = torch.empty(shapes["obs"], dtype=dtype)
+    next_obs = torch.empty_like(obs)
+    action = torch.empty(shapes["action"], dtype=dtype)
+    reward = torch.empty(n, steps, dtype=dtype)
+    cause = torch.empty(n, steps, dtype=torch.int64)
+    terminated = torch.empty(n, steps, dtype=torch.bool)
+    truncated = torch.empty_like(terminated)
+    step_count = torch.empty_like(cause)
+    carried = [torch.empty(shapes[k], dtype=dtype) for k in ("state",)]
+    carried += [torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)]
+    carried += [torch.empty(shapes[k], dtype=dtype) for k in ("gust", "thrust", "pending", "issued")]
+    # Bound to names: a pointer is only valid while its tensor lives.
+    state, gust, thrust, pending, issued, noise, fresh = (
+        x.to(dtype).contiguous() for x in (state, gust, thrust, pending, issued, noise, fresh)
+    )
+    params, t, key, fresh_keys, env = params.contiguous(), _i64(t), _i64(key), _i64(fresh_keys), _f64(env)
+    disturbance = None if nominal else _f64(disturbance)
+    _lib(dtype).dk_segments(
+        _c64(torch.get_num_threads()),
+        _c64(in_dim),
+        _c64(len(hidden)),
+        _sizes(hidden),
+        _c64(activation),
+        ctypes.c_double(min_std),
+        ctypes.c_double(dist_eps),
+        _c64(n),
+        _c64(steps),
+        _c64(max_steps),
+        *(_p(x) for x in (params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys)),
+        _p(env),
+        _p(disturbance),
+        *(_p(x) for x in (obs, action, reward, next_obs, cause, terminated, truncated, step_count, *carried)),
+    )
+    return obs, action, reward, next_obs, cause, terminated, truncated, step_count, *carried
+
+
+def _segments_fake(
+    params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys, max_steps, env,
+    disturbance, hidden, activation, min_std, dist_eps=0.0,
+):  # fmt: skip
+    n, steps = noise.shape[:2]
+    real = params.new_empty
+    obs = real(n, steps, input_dim(params.shape[-1], hidden))
+    flags = real(n, steps, dtype=torch.bool)
+    counts = real(n, steps, dtype=torch.int64)
+    return (
+        obs, real(n, steps, dynamics.ACTION_DIM), real(n, steps), torch.empty_like(obs), torch.empty_like(counts),
+        flags, torch.empty_like(flags), counts, real(state.shape), real(n, dtype=torch.int64),
+        real(n, dtype=torch.int64), real(gust.shape), real(thrust.shape), real(pending.shape), real(issued.shape),
+    )  # fmt: skip
+
+
 _LIB.impl("rollout", _rollout, "CPU")
 _LIB.impl("reinforce", _reinforce, "CPU")
+_LIB.impl("segments", _segments, "CPU")
 torch.library.register_fake("drone_torchrl::rollout", _rollout_fake, lib=_LIB)
 torch.library.register_fake("drone_torchrl::reinforce", _reinforce_fake, lib=_LIB)
+torch.library.register_fake("drone_torchrl::segments", _segments_fake, lib=_LIB)
 
 
 def rollout(
@@ -290,34 +516,45 @@ def rollout(
     min_std: float,
     steps: int,
     dist_eps: float = 0.0,
+    disturbance: torch.Tensor | None = None,
+    keys: torch.Tensor | None = None,
+    observations: bool = False,
 ) -> tuple[torch.Tensor, ...]:
     """``drone_torchrl::rollout``: fly every active agent's ``E`` episodes until each ends or ``steps`` pass.
 
     Args:
-        params: ``[N, P]`` flat parameters.
+        params: ``[N, P]`` flat parameters (a policy of :func:`observation_dim` inputs).
         start: ``[N, E, 6]`` start states (None with ``rng``).
         noise: ``[N, E, steps, 2]`` standard normals (``action = f(loc + scale * noise)``), or None
             for the deterministic action (or with ``rng``).
         rng: ``[N, E, 2]`` int64, each agent's seed and update counter (the same for its ``E``
-            rows): the start states and the action noise are then drawn inside the kernel, exactly
-            where :mod:`drone_torchrl.training.rng` draws them (``uniform`` bit for bit, ``normal``
-            to float rounding), and only for the steps flown.
+            rows): the start states, the action noise and the episode keys are then drawn inside
+            the kernel, exactly where :mod:`drone_torchrl.training.rng` draws them (``uniform`` and
+            ``keys`` bit for bit, ``normal`` to float rounding), and only for the steps flown.
         active: ``[N]`` bool; inactive agents fly nothing (length 0).
         env: :func:`env_constants`.
         gamma: ``[N]``, each agent's discount for the returns-to-go.
         hidden, activation, min_std: the network (:data:`ACTIVATION_CODES`).
         dist_eps: added to the mean and to the std, ``Normal(mu + eps, sigma + eps)``
             (:class:`~drone_torchrl.modules.ThreeNetPolicy`'s ``distribution_eps``).
+        disturbance: :func:`disturbance_constants` (None: the nominal drone).
+        keys: ``[N, E]`` int64 episode keys of the disturbances (as
+            :func:`drone_torchrl.envs.disturbances.start` takes them); None: element ``e`` of
+            ``rng.keys(seed, counter, rng.EPISODE_KEYS, (E,))``.
+        observations: also return what the policy saw.
 
-    Returns ``states [N, E, steps + 1, 6]`` (before each step, then after the last),
-    ``action [N, E, steps, 2]``, ``reward [N, E, steps]``, ``cause [N, E, steps]`` (int64
+    Returns ``states [N, E, steps + 1, 6]`` (the true states, before each step, then after the
+    last), ``action [N, E, steps, 2]``, ``reward [N, E, steps]``, ``cause [N, E, steps]`` (int64
     :class:`TerminationCause` codes), ``length [N, E]`` (int64), ``returns [N, E, steps]`` (each
-    step's discounted return-to-go, :func:`~drone_torchrl.objectives.reinforce.discounted_returns`)
-    and ``stats [N, E, 4]`` float64 (:data:`STAT_NAMES`); entries after an episode's end hold zeros.
+    step's discounted return-to-go, :func:`~drone_torchrl.objectives.reinforce.discounted_returns`),
+    ``stats [N, E, 4]`` float64 (:data:`STAT_NAMES`) and, with ``observations``, what the policy
+    saw before each step ``[N, E, steps, observation_dim]`` (else an empty tensor); entries after
+    an episode's end hold zeros.
     """
     return torch.ops.drone_torchrl.rollout(
-        params, start, noise, rng, active, env, gamma, list(hidden), activation, min_std, steps, dist_eps
-    )
+        params, start, noise, rng, active, env, gamma, list(hidden), activation, min_std, steps, dist_eps,
+        disturbance, keys, observations,
+    )  # fmt: skip
 
 
 # The loss options drone_torchrl::reinforce takes, in its order (drone_kernels.cpp: LossOptions).
@@ -336,28 +573,87 @@ def reinforce(
     min_std: float,
     steps: int,
     dist_eps: float = 0.0,
+    disturbance: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, ...]:
     """``drone_torchrl::reinforce``: one REINFORCE update's episodes and gradient for every active agent.
 
     The episodes of :func:`rollout` with ``rng`` (``[N, E, 2]``: each agent's seed and update
-    counter), then each agent's loss, the ``loss_per_agent`` of
+    counter) and ``disturbance``, then each agent's loss, the ``loss_per_agent`` of
     :func:`~drone_torchrl.objectives.reinforce.reinforce_terms` (``options``: the four flags of
     :data:`LOSS_OPTIONS`; ``gamma`` ``[N]``), and its gradient in the parameters, back-propagated
-    through the hidden outputs the rollout kept (no second forward pass). Inactive agents get zeros.
+    through the hidden outputs the rollout kept at the observations the policy saw (no second
+    forward pass). Inactive agents get zeros.
 
     Returns ``grad [N, P]``, ``loss [N]`` and ``std_mean [N]`` (float64: the policy's mean std over
     the valid steps and motors), ``actions_finite [N]`` (bool), ``length [N, E]`` and
     ``counts [N, E, 4]`` (:data:`STAT_NAMES`).
     """
     return torch.ops.drone_torchrl.reinforce(
-        params, rng, active, env, gamma, list(options), list(hidden), activation, min_std, steps, dist_eps
-    )
+        params, rng, active, env, gamma, list(options), list(hidden), activation, min_std, steps, dist_eps,
+        disturbance,
+    )  # fmt: skip
+
+
+def segments(
+    params: torch.Tensor,
+    state: torch.Tensor,
+    t: torch.Tensor,
+    key: torch.Tensor,
+    gust: torch.Tensor,
+    thrust: torch.Tensor,
+    pending: torch.Tensor,
+    issued: torch.Tensor,
+    noise: torch.Tensor,
+    fresh: torch.Tensor,
+    fresh_keys: torch.Tensor | None,
+    max_steps: int,
+    env: torch.Tensor,
+    disturbance: torch.Tensor | None,
+    hidden: Sequence[int],
+    activation: int,
+    min_std: float,
+    dist_eps: float = 0.0,
+) -> tuple[torch.Tensor, ...]:
+    """``drone_torchrl::segments``: ``n`` drones of one agent flown ``steps`` steps with auto-reset.
+
+    What TorchRL's collector gives over a batched :class:`~drone_torchrl.envs.DroneEnv` (``done =
+    terminated | truncated``, a new episode as soon as one ends), given the same draws.
+
+    Args:
+        params: ``[P]`` the agent's flat parameters.
+        state, t, key, gust, thrust, pending, issued: the carried state of each drone (what the
+            last call returned): the physical state ``[n, 6]``, its episode's step count ``[n]``
+            (int64; ``-1``: its episode ended, a new one starts at this call's step 0), its
+            episode key ``[n]`` (int64) and its disturbances' internal state
+            (:class:`drone_torchrl.envs.disturbances.Internal`): ``gust [n]``, ``thrust [n, 2]``,
+            ``pending [n, action_delay, 2]``, ``issued [n, observed_actions, 2]``. A first call
+            passes ``t = -1`` everywhere (the other values are then not read).
+        noise: ``[n, steps, 2]`` standard normals of the actions.
+        fresh, fresh_keys: ``[n, steps, 6]`` start states and ``[n, steps]`` int64 episode keys:
+            a drone that starts a new episode at step ``j`` starts from ``fresh[d, j]`` with key
+            ``fresh_keys[d, j]`` (None: the nominal drone, which draws nothing).
+        max_steps: the episodes' truncation (``env.max_steps``).
+        env, disturbance: :func:`env_constants`, :func:`disturbance_constants` (None: nominal).
+        hidden, activation, min_std, dist_eps: the network, as for :func:`rollout`.
+
+    Returns, per step ``[n, steps, ...]``: the observation the policy saw, the action, the reward,
+    the next observation (what the env returns after the step: at the step count after it, with
+    its noise; after an episode's last step, the terminal state's), the termination cause (int64),
+    terminated and truncated (bool: the step count reached ``max_steps`` without terminating) and
+    the step count before the step (int64); then the carried state after the last step, as the
+    inputs lay it out (``t = -1`` where the last step ended the episode).
+    """
+    return torch.ops.drone_torchrl.segments(
+        params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys, max_steps, env,
+        disturbance, list(hidden), activation, min_std, dist_eps,
+    )  # fmt: skip
 
 
 def check_supported(in_dim: int, hidden: Sequence[int], activation: str, dtype: torch.dtype) -> str | None:
     """None where the kernels cover this network, else why not."""
-    if in_dim != dynamics.STATE_DIM:
-        return f"observations of {in_dim} values (the kernel flies the {dynamics.STATE_DIM}-value state)"
+    observed, odd = divmod(in_dim - dynamics.STATE_DIM, dynamics.ACTION_DIM)
+    if odd or not 0 <= observed <= disturbances.MAX_STEPS_BACK:
+        return f"observations of {in_dim} values (the kernel's policies see 6 + 2 * observed_actions)"
     if activation not in ACTIVATION_CODES:
         return f"activation {activation!r}"
     if len(hidden) > MAX_LAYERS or any(not 0 < h <= MAX_WIDTH for h in hidden):

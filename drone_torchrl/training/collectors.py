@@ -8,8 +8,8 @@
   differentiated inside one kernel call
   (:class:`~drone_torchrl.kernels.modules.KernelReinforce`, :mod:`.update`), with start states and
   action noise from the counter-based generator of :mod:`.rng` (a function of each agent's seed and
-  update count), so an agent's run does not depend on which other agents share the batch; the
-  evaluator flies the kernel's deterministic rollout.
+  update count; under disturbances each episode's key too), so an agent's run does not depend on
+  which other agents share the batch; the evaluator flies the kernel's deterministic rollout.
 
 An update call of ``k`` updates first calls :meth:`begin`, then :meth:`collect` once per update
 (the reference's; the fast engine's update does not ask for batches).
@@ -150,7 +150,10 @@ def kernel_rollout(
     """The C++ engine's rollout of ``policy`` (``max_steps`` steps at most) for the config's drone.
     The config passed :func:`drone_torchrl.config.validate`, which refuses what the kernels do not
     fly (:func:`drone_torchrl.kernels.coverage.fast_refusal`)."""
-    return KernelRollout(policy, physics_params(env_kwargs(cfg)), squash_high, max_steps, cfg.env.reset_mode)
+    kwargs = env_kwargs(cfg)
+    return KernelRollout(
+        policy, physics_params(kwargs), squash_high, max_steps, cfg.env.reset_mode, kwargs["disturbance"]
+    )
 
 
 def make_collector(cfg: DictConfig, population: Population) -> TorchRLCollector | FastCollector:
