@@ -18,6 +18,7 @@ from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.dynamics import DroneParams
 from drone_torchrl.schema import Rule
+from drone_torchrl.training import memory_estimate
 
 # The device kinds the code runs on. Others fail deep inside (mps has no float64 for the
 # population optimizer's per-agent scalars; meta holds no numbers), so they are refused up front.
@@ -639,7 +640,9 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(error)
     check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
     algorithms.get(cfg.algo.name).validate(cfg)
-    loggers.get(cfg.logger.backend).validate(cfg)
+    backend = loggers.get(cfg.logger.backend)
+    loggers.require(backend)  # after the values: a bad value is named whether or not the extra is there
+    backend.validate(cfg)
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
         raise ConfigError.of(
             "model.distribution",
@@ -656,3 +659,11 @@ def validate(cfg: DictConfig) -> None:
         )
     if not plain_name(cfg.sweep_name):
         raise ConfigError.of("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
+    check_memory(cfg)  # last: every value is allowed; does the run fit in this machine?
+
+
+def check_memory(cfg: Mapping[str, Any], agents: int = 1) -> None:
+    """Refuse in one line a config whose memory (:mod:`drone_torchrl.training.memory_estimate`), with
+    ``agents`` runs trained together in one process, exceeds what this machine has free."""
+    learner = algorithms.get(cfg["algo"]["name"]).memory
+    memory_estimate.check(memory_estimate.estimate(cfg, agents, learner), cfg["device"])

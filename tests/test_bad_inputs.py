@@ -760,3 +760,45 @@ def test_a_budget_below_an_unfinished_checkpoint_is_refused_and_one_at_it_finish
     state = torch.load(last, weights_only=True)
     assert state["episodes_done"] == 4 and state["final"]["final_return"] == final
     assert len((run / "episodes.csv").read_text().splitlines()) == 1 + 4  # no episode trained twice
+
+
+@pytest.mark.slow  # two real processes, about 30 s on 2 cores
+def test_two_runs_that_open_a_new_mlflow_store_together_both_complete(tmp_path):
+    """Two processes that start together on a new SQLite store: the second died while MLflow created the
+    tables (``duplicate column name: step``, or alembic's ``expected to match one row``) and its run was
+    lost. Both complete now, each an MLflow run with every episode's step once."""
+    pytest.importorskip("mlflow")
+    from mlflow.tracking import MlflowClient
+
+    store = tmp_path / "mlflow.db"
+    args = [
+        *TINY,
+        "algo.episodes=4",
+        "eval.every_episodes=0",
+        "logger=mlflow",
+        f"logger.tracking_uri=sqlite:///{store}",
+    ]
+    runs = [tmp_path / name for name in ("a", "b")]
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "drone_torchrl.apps.train", *args, f"hydra.run.dir={run}"],
+            cwd=tmp_path,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for run in runs
+    ]
+    results = [proc.communicate(timeout=180) for proc in procs]
+    for proc, (_, err) in zip(procs, results, strict=True):
+        assert proc.returncode == 0, err[-2000:]
+    client = MlflowClient(tracking_uri=f"sqlite:///{store}")
+    (experiment,) = [e for e in client.search_experiments() if e.name == "adhoc"]
+    found = {r.data.tags["run_dir"]: r for r in client.search_runs([experiment.experiment_id])}
+    assert sorted(found) == sorted(str(run) for run in runs)
+    for run in found.values():
+        assert run.info.status == "FINISHED"
+        steps = [m.step for m in client.get_metric_history(run.info.run_id, "episode/return")]
+        assert sorted(steps) == [1, 2, 3, 4]  # every episode once

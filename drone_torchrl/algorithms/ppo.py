@@ -65,6 +65,7 @@ from drone_torchrl.schema import (
     one_of,
     store_plugin,
 )
+from drone_torchrl.training.memory_estimate import on_policy_parts
 from drone_torchrl.training.segments import FusedSegments
 from drone_torchrl.training.update import UpdateOutput
 
@@ -350,5 +351,6 @@ register(
         validate,
         checkpoint_keys=("critic",),
         summary="PPO on TorchRL's collector, GAE and ClipPPOLoss (algo=ppo)",
+        memory=on_policy_parts,
     )
 )

@@ -31,6 +31,7 @@ from drone_torchrl.schema import (
     store_plugin,
 )
 from drone_torchrl.training.collectors import make_collector
+from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.update import CHECKS, ReinforceUpdate
 
@@ -127,5 +128,6 @@ register(
         Reinforce,
         validate,
         summary="Monte-Carlo REINFORCE, a population of agents per process (algo=reinforce, algo=reinforce_plus)",
+        memory=reinforce_parts,
     )
 )

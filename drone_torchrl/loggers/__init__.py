@@ -26,6 +26,7 @@ and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard, /schema_logger_
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +35,7 @@ from typing import Any, Protocol
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from drone_torchrl.checks import ConfigError
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.registry import Registry
 
@@ -72,12 +74,26 @@ class Backend:
         resume_rule: one line saying what happens to values logged after the checkpoint.
         validate: checks of its own ``logger.*`` keys that its schema's bounds and choices do not
             cover (one-line ``ConfigError``).
+        needs: ``(module, extra)``: the package it imports that the plain install lacks, and the
+            extra of ``drone_torchrl`` that installs it; without it a config is refused before any
+            work (:func:`require`), naming the extra.
     """
 
     name: str
     make: Callable[[DictConfig, Path, int | None], Logger]
     resume_rule: str
     validate: Callable[[Mapping[str, Any]], None] = lambda cfg: None
+    needs: tuple[str, str] | None = None
+
+    @property
+    def installed(self) -> bool:
+        """Whether what it :attr:`needs` can be imported."""
+        return self.needs is None or importlib.util.find_spec(self.needs[0]) is not None
+
+    def missing(self) -> str:
+        """The one line saying what to install for it."""
+        module, extra = self.needs or ("", "")
+        return f"logger.backend={self.name} needs {module}, which is not installed: pip install 'drone_torchrl[{extra}]'"
 
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
@@ -91,6 +107,12 @@ def register(backend: Backend) -> Backend:
 def get(name: Any) -> Backend:
     """The backend named ``name``; a one-line :class:`~drone_torchrl.checks.ConfigError` otherwise."""
     return BACKENDS.get(name)
+
+
+def require(backend: Backend) -> None:
+    """Raise the one-line :class:`~drone_torchrl.checks.ConfigError` of a backend that is not installed."""
+    if not backend.installed:
+        raise ConfigError(backend.missing())
 
 
 def make_logger(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> Logger:
