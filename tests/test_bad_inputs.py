@@ -11,6 +11,7 @@ torn CSV row.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import shutil
 import subprocess
@@ -99,6 +100,11 @@ def _one_line(message: str, names: str) -> None:
 
 
 # ------------------------------------------------------------------------------------- drone-train
+def MLFLOW_OR(names: str) -> str:  # noqa: N802  (read as a constant in the tables)
+    """What a logger=mlflow row's message names: ``names``, or the extra when MLflow is not installed."""
+    return names if importlib.util.find_spec("mlflow") is not None else "drone_torchrl[mlflow]"
+
+
 # (overrides, what the message must name)
 TRAIN = [
     # what Hydra's override grammar cannot parse (was Hydra's multi-line message)
@@ -319,6 +325,58 @@ TRAIN = [
     (["resume={run}", "engine=torchrl"], "engine"),
     (["resume={run}", "experiment=bounded"], "model.distribution"),
     (["resume={last}", "env.max_steps=300"], "env.max_steps"),
+    # Issue 34, the config side. A preset made for one algorithm, with another (was Hydra's
+    # ConfigKeyError in several lines); experiment=paper_code takes any algorithm (test_paper_code.py).
+    (["experiment=hover_optimal", "algo=reinforce"], "experiment=bounded algo=reinforce"),
+    (["experiment=hover_optimal", "algo=reinforce_plus"], "experiment=bounded algo=reinforce_plus"),
+    (["experiment=randomised", "algo=reinforce"], "experiment=bounded algo=reinforce"),
+    (["experiment=randomised", "algo=a2c"], "experiment=bounded algo=a2c"),  # was accepted silently
+    (["experiment=hover_optimal", "algo=a2c"], "experiment=bounded algo=a2c"),
+    # A config section (or Hydra group) set to null, a scalar or a list, or deleted (was Hydra's
+    # merge error in several lines, or a traceback for hydra/launcher)
+    (["env.disturbance=null"], "env.disturbance"),
+    (["env.disturbance=5"], "env.disturbance"),
+    (["env.disturbance=[]"], "env.disturbance"),
+    (["env.disturbance={{gale:1}}"], "env.disturbance.gale"),
+    (["eval=null"], "eval"),
+    (["checkpoint=5"], "checkpoint"),
+    (["metrics=[]"], "metrics"),
+    (["~env.disturbance"], "env.disturbance"),
+    (["~algo"], "algo"),
+    (["hydra/launcher=null"], "hydra/launcher"),
+    (["hydra/sweeper=[]"], "hydra/sweeper"),
+    (["algo=null"], "algo"),
+    (["model=3"], "model"),
+    (["logger=[]"], "logger"),
+    # Numbers no float32 holds, and physical bounds (were overflow tracebacks, NaN "diverged" runs
+    # that blamed algo.lr, or episodes that ended at their first step)
+    (["env.max_thrust=1e300"], "env.max_thrust"),
+    (["env.mass=1e300"], "env.mass"),
+    (["env.mass=1e-40"], "env.mass"),
+    (["env.motor_distance=1e-30"], "env.motor_distance"),
+    (["env.x_limit=1e300"], "env.x_limit"),
+    (["env.z_min=-1e300"], "env.z_min"),
+    (["env.disturbance.wind=1e300"], "env.disturbance.wind"),
+    (["env.disturbance.noise_angle=1e300"], "env.disturbance.noise_angle"),
+    (["env.disturbance.motor_lag=1e300"], "env.disturbance.motor_lag"),
+    (["model.min_std=1e300"], "model.min_std"),
+    (["algo.max_grad_norm=1e300"], "algo.max_grad_norm"),
+    (["algo=ppo", "algo.reward_scale=1e39"], "algo.reward_scale"),
+    (["algo.lr=1" + "0" * 400], "algo.lr"),  # an int no float holds: was an OverflowError traceback
+    # Counts no int64 holds (were accepted)
+    (["algo.episodes=99999999999999999999"], "algo.episodes"),
+    (["env.max_steps=99999999999999999999"], "env.max_steps"),
+    (["checkpoint.every_episodes=99999999999999999999"], "checkpoint.every_episodes"),
+    (["metrics.running_mean_window=99999999999999999999"], "metrics.running_mean_window"),
+    # Sizes no memory holds (were an allocator traceback after start-up, or the process killed)
+    (["algo=ppo", "algo.steps_per_batch=1000000000"], "algo.steps_per_batch"),
+    (["model.hidden_sizes=[1000000,1000000]"], "model.hidden_sizes"),
+    (["env.max_steps=1000000000000", "eval.video=false"], "env.max_steps"),
+    (["eval.episodes=10000", "env.max_steps=1000000000", "eval.video=false"], "eval.episodes"),
+    (["eval.video=true", "env.max_steps=1000000000"], "eval.video=false"),  # its frames
+    # MLflow (without the extra: refused naming it)
+    (["logger=mlflow", "logger.tracking_uri=foo://bar"], MLFLOW_OR("logger.tracking_uri")),
+    (["logger=mlflow", "logger.tracking_uri=sqlite:////nonexistent/x.db"], MLFLOW_OR("logger.tracking_uri")),
 ]
 
 
@@ -339,6 +397,11 @@ def test_drone_train_refuses(overrides, names, files, tmp_path):
 
 # -------------------------------------------------------------------------------------- drone-eval
 EVAL = [
+    (["env.max_thrust=1e300"], "env.max_thrust"),
+    (["env.mass=1e-40"], "env.mass"),
+    (["env.max_steps=1000000000000"], "env.max_steps"),  # its rollouts: no memory holds them
+    (["video=true", "env.max_steps=1000000000"], "video=false"),  # its GIF's frames
+    (["env.disturbance=null"], "env.disturbance"),
     (["disturbance=gale"], "disturbance"),
     (["env.disturbance.motor_lag=-0.02"], "env.disturbance.motor_lag"),
     (["checkpoint={emptydir}/nothing"], "checkpoint"),
@@ -523,6 +586,16 @@ E2E = [
     ("drone-report", ["{run}", "--window", "abc"], "--window"),
     ("drone-export", ["checkpoint={run}", "format=zip"], "format"),
     ("drone-export", ["checkpoint={run}", "format=onnx", "output=policy.pt2"], "output"),
+    # Issue 34, the config side.
+    ("drone-train", ["experiment=hover_optimal", "algo=reinforce"], "experiment=bounded algo=reinforce"),
+    ("drone-train", ["env.disturbance=null"], "env.disturbance"),
+    ("drone-train", ["hydra/launcher=null"], "hydra/launcher"),  # was a traceback
+    ("drone-train", ["env.max_thrust=1e300"], "env.max_thrust"),
+    ("drone-train", ["algo.episodes=99999999999999999999"], "algo.episodes"),
+    ("drone-train", ["algo=ppo", "algo.steps_per_batch=1000000000"], "algo.steps_per_batch"),
+    ("drone-train", ["model.hidden_sizes=[1000000,1000000]"], "model.hidden_sizes"),
+    ("drone-train", ["logger=mlflow", "logger.tracking_uri=foo://bar"], MLFLOW_OR("logger.tracking_uri")),
+    ("drone-eval", ["env.max_steps=1000000000", "video=true"], "video=false"),
 ]
 
 
@@ -802,3 +875,30 @@ def test_two_runs_that_open_a_new_mlflow_store_together_both_complete(tmp_path):
         assert run.info.status == "FINISHED"
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "episode/return")]
         assert sorted(steps) == [1, 2, 3, 4]  # every episode once
+
+
+def test_a_logger_whose_extra_is_missing_is_refused_at_validation(monkeypatch):
+    """logger=mlflow (any backend that needs an extra) where its package is not installed: refused in
+    one line naming the extra before any work (was an ImportError-turned-error once the run had
+    started, after its folder was made)."""
+    from drone_torchrl import loggers
+    from drone_torchrl.config import _option_plugins, _options, validate
+
+    needing = {}
+    for option in _options("logger"):
+        backend = loggers.get(_option_plugins("config", (("logger", option),))["logger"])
+        if backend.needs is not None:
+            needing[option] = backend.needs
+    assert "mlflow" in needing
+    found = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util,
+        "find_spec",
+        lambda name, *a: None if name in {m for m, _ in needing.values()} else found(name, *a),
+    )
+    for option, (_, extra) in needing.items():
+        with initialize_config_dir(config_dir(), version_base="1.3"):
+            cfg = compose("config", overrides=[*TINY, f"logger={option}"])
+        with pytest.raises(ConfigError) as info:
+            validate(cfg)
+        _one_line(str(info.value), f"pip install 'drone_torchrl[{extra}]'")

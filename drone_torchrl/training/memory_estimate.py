@@ -43,7 +43,9 @@ agents and ``T`` = ``env.max_steps``. The parts:
 - **evaluation** (``eval.episodes`` of each agent, ``T`` steps): a rollout's bytes per drone-step
   and its tensordict's three flags (bool) and two counters (int64); with ``eval.video`` the frames
   of one episode, ``(T / logger.video_stride + 1)`` x 600 x 600 x 3 bytes, and a quarter more for
-  the thinned copy TensorBoard gets (host memory, also with ``device=cuda``).
+  the thinned copy TensorBoard gets (host memory, also with ``device=cuda``). ``drone-eval`` keeps
+  the rollouts of the checkpoint's policy and the PD controller's, and its GIF's frames
+  (:func:`evaluation_parts`).
 
 Each part is sized for the longest case (every episode lasting ``T`` steps, every batch whole),
 without what the libraries allocate for themselves (tens of MB). ``tests/test_memory_estimate.py``
@@ -225,15 +227,37 @@ def estimate(
     parts = {"the policy's weights": Part(weights, "lower model.hidden_sizes")}
     if learner is not None:
         parts.update(learner(cfg, agents))
-    evaluated = agents * cfg["eval"]["episodes"] * steps
-    eval_step = rollout_bytes(b) + EVAL_FLAG_BYTES + EVAL_INT_BYTES
-    parts["evaluation"] = Part(evaluated * eval_step, "lower eval.episodes or env.max_steps")
-    if cfg["eval"]["video"]:
-        frames = steps // cfg["logger"]["video_stride"] + 1
-        video = math.ceil(frames * FRAME_BYTES * (1 + THINNED_COPY))
-        advice = "set eval.video=false, raise logger.video_stride or lower env.max_steps"
-        parts["an evaluation video"] = Part(video, advice, host=True)
+    video = cfg["logger"]["video_stride"] if cfg["eval"]["video"] else None
+    parts.update(
+        evaluation_parts(
+            b,
+            agents * cfg["eval"]["episodes"],
+            steps,
+            video,
+            "lower eval.episodes or env.max_steps",
+            "set eval.video=false, raise logger.video_stride or lower env.max_steps",
+        )
+    )
     return MemoryEstimate(parts)
+
+
+def evaluation_parts(
+    b: int, episodes: int, max_steps: int, video_stride: int | None, advice: str, video_advice: str
+) -> dict[str, Part]:
+    """``episodes`` evaluation episodes of ``max_steps`` steps (every agent's, or every policy's that
+    ``drone-eval`` keeps), and the frames of a video of one episode (``video_stride``: the steps
+    drawn; None: no video). ``advice`` and ``video_advice`` name the keys that size them."""
+    parts = {
+        "evaluation": Part(
+            episodes * max_steps * (rollout_bytes(b) + EVAL_FLAG_BYTES + EVAL_INT_BYTES), advice
+        )
+    }
+    if video_stride is not None:
+        frames = max_steps // video_stride + 1
+        parts["an evaluation video"] = Part(
+            math.ceil(frames * FRAME_BYTES * (1 + THINNED_COPY)), video_advice, host=True
+        )
+    return parts
 
 
 def available_ram() -> tuple[int, str] | None:
