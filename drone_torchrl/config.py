@@ -587,7 +587,7 @@ def check_device(device: Any) -> None:
 
     try:
         kind = torch.device(device).type
-    except (RuntimeError, TypeError):
+    except (RuntimeError, TypeError, ValueError, OverflowError):  # ValueError: an index past int64
         raise ConfigError.of("device", device, "a torch device such as 'cpu' or 'cuda'") from None
     if kind not in DEVICE_KINDS:
         raise ConfigError.of("device", device, "'cpu' or 'cuda' ('cuda:N' for GPU number N)")
