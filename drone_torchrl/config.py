@@ -79,6 +79,7 @@ def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
     :class:`~drone_torchrl.schema.Rule`, from the schemas in Hydra's ConfigStore. ``plugins``: the
     plug-in of each plug-in group (``algo="ppo"``; a group not given, or a plug-in without a stored
     schema, adds no keys)."""
+    config_dir()  # every plug-in's schema in the ConfigStore first: this result is cached
     nodes = {group: schema.plugin_schema(group, plugin) for group, plugin in plugins.items()}
     return dict(schema.fields(schema.primary_schema(name), nodes))
 
@@ -107,6 +108,7 @@ def resume_rule(key: str) -> str:
 def _every_key(name: str) -> dict[str, Rule]:
     """Every key of ``conf/<name>.yaml`` with any plug-in stored in the ConfigStore (each plug-in's
     rule of a key the plug-ins share is the same)."""
+    config_dir()  # every plug-in's schema in the ConfigStore first: this result is cached
     out: dict[str, Rule] = {}
     for group in schema.plugin_groups(name):
         for plugin in schema.stored_plugins(group):
