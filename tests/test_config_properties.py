@@ -161,8 +161,12 @@ RELATED = {
         st.sampled_from(_divisors(cfg.algo.num_envs * cfg.algo.steps_per_batch)),
         {},
     ),
+    # (the frames of a batch, an int64 count like every other)
     "algo.num_envs": lambda cfg: (None, lambda v: {"algo.minibatch_size": v * cfg.algo.steps_per_batch}),
-    "algo.steps_per_batch": lambda cfg: (None, lambda v: {"algo.minibatch_size": v * cfg.algo.num_envs}),
+    "algo.steps_per_batch": lambda cfg: (
+        st.integers(min_value=1, max_value=INT64_MAX // cfg.algo.num_envs),
+        lambda v: {"algo.minibatch_size": v * cfg.algo.num_envs},
+    ),
     # REINFORCE's budget is a multiple of the episodes of an update
     "algo.episodes_per_update": lambda cfg: (None, lambda v: {"algo.episodes": v}),
     # steps_per_call <= env.max_steps
@@ -230,7 +234,7 @@ def test_every_value_inside_its_documented_range_is_accepted(data, monkeypatch_m
     key = data.draw(st.sampled_from(RANGED), label="key")
     cfg = _base(key)
     strategy, related = RELATED[key](cfg) if key in RELATED else (None, None)
-    value = data.draw(strategy or _in_range(key), label="value")
+    value = data.draw(_in_range(key) if strategy is None else strategy, label="value")
     extra = {} if related is None else related(value) if callable(related) else related
     if key == "model.distribution" and value == "tanh_normal":
         extra["env.max_thrust"] = 1.0  # as its message says: tanh_normal needs a thrust bound
@@ -247,7 +251,9 @@ def monkeypatch_module():
 
 
 def test_every_key_has_a_range_or_a_reason():
-    """A new key gets a documented range here (its rule's, or ENV_RANGES/TEXT_RANGES) or a reason in LEFT_OUT."""
+    """A new key gets a documented range here (its rule's, or ENV_RANGES/TEXT_RANGES) or a reason in
+    LEFT_OUT; the keys are every plug-in's."""
+    assert {"algo.num_envs", "algo.baseline", "logger.float_format", "logger.tracking_uri"} <= set(KEYS)
     free = [
         k for k, r in KEYS.items() if r.kind == "free" and k not in {**ENV_RANGES, **TEXT_RANGES, **LEFT_OUT}
     ]

@@ -8,6 +8,7 @@ The update itself, the population engine's, is :class:`~drone_torchrl.training.u
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -30,7 +31,7 @@ from drone_torchrl.schema import (
     one_of,
     store_plugin,
 )
-from drone_torchrl.training.collectors import make_collector
+from drone_torchrl.training.collectors import NOISE_PER_DRAW, make_collector
 from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.update import CHECKS, ReinforceUpdate
@@ -128,6 +129,6 @@ register(
         Reinforce,
         validate,
         summary="Monte-Carlo REINFORCE, a population of agents per process (algo=reinforce, algo=reinforce_plus)",
-        memory=reinforce_parts,
+        memory=functools.partial(reinforce_parts, noise_per_draw=NOISE_PER_DRAW),
     )
 )

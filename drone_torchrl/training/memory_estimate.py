@@ -25,7 +25,7 @@ agents and ``T`` = ``env.max_steps``. The parts:
 - **REINFORCE's update** (E = ``algo.episodes_per_update`` episodes of each agent, buffered to
   ``T`` steps): ``A E T`` drone-steps of a rollout, what the policy saw (``D b``), the action noise
   (``2 (4 + b)`` per drone-step: drawn in float32, then cast, for as many of a call's
-  ``updates_per_call`` updates as ``NOISE_PER_DRAW`` numbers hold, at least one), and the loss's autograd graph through the trunk
+  ``updates_per_call`` updates as the collector's ``NOISE_PER_DRAW`` numbers hold, at least one), and the loss's autograd graph through the trunk
   (:func:`graph_bytes`): the forward pass keeps each layer's activation for the backward pass
   (``H b``), and the backward pass holds, at the widest layer ``h``, the gradients of its output,
   of its pre-activation and of its input (``3 h b``); with the heads' and the distribution's
@@ -170,10 +170,9 @@ def graph_bytes(hidden: Sequence[int], b: int) -> int:
     return (sum(hidden) + BACKWARD_COPIES * max(hidden)) * b
 
 
-def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
-    """REINFORCE's update: ``A x algo.episodes_per_update x env.max_steps`` drone-steps."""
-    from drone_torchrl.training.collectors import NOISE_PER_DRAW  # imports the config's checks
-
+def reinforce_parts(cfg: Mapping[str, Any], agents: int, noise_per_draw: int) -> dict[str, Part]:
+    """REINFORCE's update: ``A x algo.episodes_per_update x env.max_steps`` drone-steps
+    (``noise_per_draw``: the most action-noise numbers its collector draws at once)."""
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     steps = agents * cfg["algo"]["episodes_per_update"] * cfg["env"]["max_steps"]
     per_step = (
@@ -185,7 +184,7 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     advice = "lower algo.episodes_per_update, env.max_steps or model.hidden_sizes"
     # The noise of as many of a call's updates as NOISE_PER_DRAW numbers hold, at least one update's.
     noise = ACTION_DIM * steps
-    updates = min(cfg["updates_per_call"], max(1, NOISE_PER_DRAW // noise))
+    updates = min(cfg["updates_per_call"], max(1, noise_per_draw // noise))
     return {
         "REINFORCE's update": Part(steps * per_step, advice),
         "the action noise": Part(updates * noise * (NOISE_DRAW_BYTES + b), f"{advice}, or updates_per_call"),
