@@ -147,7 +147,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         try:
             run_cfg = run_config(checkpoint["config"])
             run_cfg.device = cfg.device
-            validate(run_cfg)
+            validate(run_cfg, training=False)  # its values; its training's logger and memory are not ours
             actor = build_actor(run_cfg)
             actor.load_state_dict(checkpoint["actor"])
         except ConfigError:

@@ -629,8 +629,10 @@ def _plain(node: Any) -> Any:
     return node
 
 
-def validate(cfg: DictConfig) -> None:
-    """Raise :class:`ConfigError` for the first value that is not allowed."""
+def validate(cfg: DictConfig, training: bool = True) -> None:
+    """Raise :class:`ConfigError` for the first value that is not allowed. ``training``: the config
+    is about to train here, so its logger's extra must be installed and its memory must fit
+    (``drone-eval`` reads a checkpoint's config for its values only)."""
     cfg = _plain(check_keys(cfg))  # also refuses ??? and interpolations to nothing, in one line
     check_device(cfg.device)
     kwargs = tuple((name, type(value), value) for name, value in env_kwargs(cfg).items())
@@ -643,8 +645,10 @@ def validate(cfg: DictConfig) -> None:
     check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
     algorithms.get(cfg.algo.name).validate(cfg)
     backend = loggers.get(cfg.logger.backend)
-    loggers.require(backend)  # after the values: a bad value is named whether or not the extra is there
-    backend.validate(cfg)
+    if training:  # after the values: a bad value is named whether or not the extra is there
+        loggers.require(backend)
+    if backend.installed:  # its own checks may import it
+        backend.validate(cfg)
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
         raise ConfigError.of(
             "model.distribution",
@@ -661,7 +665,8 @@ def validate(cfg: DictConfig) -> None:
         )
     if not plain_name(cfg.sweep_name):
         raise ConfigError.of("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
-    check_memory(cfg)  # last: every value is allowed; does the run fit in this machine?
+    if training:
+        check_memory(cfg)  # last: every value is allowed; does the run fit in this machine?
 
 
 def check_memory(cfg: Mapping[str, Any], agents: int = 1) -> None:

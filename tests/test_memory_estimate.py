@@ -191,3 +191,19 @@ def test_a_population_too_large_for_memory_fails_before_training(monkeypatch, tm
     for seed, outcome in enumerate(outcomes):
         assert isinstance(outcome.error, ConfigError) and "needs about" in str(outcome.error)
         assert not (tmp_path / str(seed) / "episodes.csv").exists()
+
+
+def test_drone_eval_does_not_need_the_training_s_memory_or_logger(monkeypatch):
+    """drone-eval reads a checkpoint's config for its values: a run trained where its batch fitted, or
+    with a logger whose extra is not installed here, is still evaluated (only its own rollouts are
+    sized against this machine's memory)."""
+    from drone_torchrl import loggers
+
+    cfg = _cfg("algo=ppo", "eval.video=false")
+    monkeypatch.setattr(memory_estimate, "available_ram", lambda: (1, "MemAvailable"))
+    with pytest.raises(ConfigError, match="needs about"):
+        validate(cfg)
+    validate(cfg, training=False)
+    mlflow = _cfg("logger=mlflow", "eval.video=false")
+    monkeypatch.setattr(loggers.Backend, "installed", property(lambda self: self.needs is None))
+    validate(mlflow, training=False)
