@@ -7,6 +7,15 @@ import math
 from pathlib import Path
 from typing import Any
 
+# The largest numbers the tensors hold: a float key beyond float32's largest finite value turns into
+# inf in the env's and the nets' float32 tensors, a count beyond int64's overflows torch's integers.
+# A rule without an upper bound of its own is bounded by these.
+FLOAT32_MAX = 3.4028234663852886e38
+INT64_MAX = 2**63 - 1
+# The most characters of a value an error message shows.
+SHOWN_CHARS = 100
+LOG2_10 = math.log2(10)  # bits per decimal digit
+
 
 class ConfigError(ValueError):
     """A config value that is not allowed: the message names the key, the value and what is allowed."""
@@ -17,10 +26,14 @@ class ConfigError(ValueError):
 
 
 def as_override(value: Any) -> str:
-    # How the user would have typed it: null and true/false, as Hydra writes them.
+    # How the user would have typed it: null and true/false, as Hydra writes them; a value too long to
+    # read in a message (a pasted file, an int of thousands of digits) shortened to its start.
     if value is None or isinstance(value, bool):
         return {None: "null", True: "true", False: "false"}[value]
-    return repr(value)
+    if isinstance(value, int) and value.bit_length() > SHOWN_CHARS * LOG2_10:  # repr refuses > 4300 digits
+        return f"<an integer of {value.bit_length()} bits>"
+    text = repr(value)
+    return text if len(text) <= SHOWN_CHARS else f"{text[:SHOWN_CHARS]}... ({len(text)} characters)"
 
 
 def plain_name(name: Any) -> bool:
@@ -37,23 +50,27 @@ def check_number(
     low_open: bool = False,
     integer: bool = False,
 ) -> None:
-    """``value`` of ``key`` is a finite number (an integer with ``integer``) within the bounds."""
+    """``value`` of ``key`` is a finite number (an integer with ``integer``) within the bounds; without
+    an upper bound, within float32's range (an integer: int64's)."""
+    limit = INT64_MAX if integer else FLOAT32_MAX
     numeric = isinstance(value, int | float) and not isinstance(value, bool)
+    # An int too large for a float (10**400) is compared as an int: math.isfinite would overflow.
     if (
         numeric
         and (not integer or isinstance(value, int))
-        and math.isfinite(value)
+        and (isinstance(value, int) or math.isfinite(value))
+        and -limit <= value <= limit
         and (low is None or value > low or (value == low and not low_open))
         and (high is None or value <= high)
     ):
         return
     kind = "an integer" if integer else "a number"
-    bounds = []
-    if low is not None:
-        bounds.append(f"{'>' if low_open else '>='} {low}")
-    if high is not None:
-        bounds.append(f"<= {high}")
-    raise ConfigError.of(key, value, f"{kind} {' and '.join(bounds)}".strip())
+    dtype = "int64" if integer else "float32"
+    if low is None and high is None:
+        raise ConfigError.of(key, value, f"{kind} within {dtype}'s range, +-{limit}")
+    bounds = [] if low is None else [f"{'>' if low_open else '>='} {low}"]
+    bounds.append(f"<= {limit} ({dtype}'s largest)" if high is None else f"<= {high}")
+    raise ConfigError.of(key, value, f"{kind} {' and '.join(bounds)}")
 
 
 def check_choice(key: str, value: Any, choices: tuple, expected: str | None = None) -> None:
@@ -67,6 +84,6 @@ def check_sizes(key: str, value: Any) -> None:
     if (
         not isinstance(value, list)
         or not value
-        or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 1 for s in value)
+        or not all(isinstance(s, int) and not isinstance(s, bool) and 1 <= s <= INT64_MAX for s in value)
     ):
         raise ConfigError.of(key, value, "a non-empty list of integers >= 1, e.g. [32,32]")

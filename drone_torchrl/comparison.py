@@ -36,6 +36,7 @@ from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
 from drone_torchrl.optimum import Optimum
+from drone_torchrl.training import memory_estimate
 
 PLOT_NAME = "trajectory.png"
 VIDEO_NAME = "episode.gif"
@@ -149,7 +150,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         try:
             run_cfg = run_config(checkpoint["config"])
             run_cfg.device = cfg.device
-            validate(run_cfg)
+            validate(run_cfg, training=False)  # its values; its training's logger and memory are not ours
             check_networks("checkpoint", path, checkpoint, run_cfg)
             actor = build_actor(run_cfg)
             actor.load_state_dict(checkpoint["actor"])
@@ -172,6 +173,16 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
             raise ConfigError(f"env.{err}") from None
         policies = {}
     policies["PD controller"] = PDController(physics_params(kwargs))
+    # Every policy's rollout is kept (for the plot), and a GIF draws every step of one episode.
+    memory = memory_estimate.evaluation_parts(
+        memory_estimate.FLOAT_BYTES[kwargs["dtype"]],
+        len(policies) * cfg.episodes,
+        kwargs["max_steps"],
+        1 if cfg.video else None,
+        "lower episodes or env.max_steps",
+        "set video=false or lower env.max_steps",
+    )
+    memory_estimate.check(memory_estimate.MemoryEstimate(memory), cfg.device)
     ceiling = max_return(kwargs)
     optimum = reference_optimum(kwargs)
     best = None if optimum is None else optimum.best_return

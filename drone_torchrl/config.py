@@ -7,7 +7,7 @@ import dataclasses
 import difflib
 import functools
 import itertools
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +20,7 @@ from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.dynamics import DroneParams
 from drone_torchrl.schema import Rule
+from drone_torchrl.training import memory_estimate
 
 # The device kinds the code runs on. Others fail deep inside (mps has no float64 for the
 # population optimizer's per-agent scalars; meta holds no numbers), so they are refused up front.
@@ -202,25 +203,32 @@ def _option_keys(group: str, option: str) -> dict[str, Rule]:
     return schema_keys("config", **{group: plugins[group]})
 
 
-@functools.cache
 def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str, str | None]:
     """``{"algo": "reinforce", "logger": "tensorboard"}``: the plug-in each plug-in group names in
     ``conf/<name>.yaml`` composed by Hydra with these group options (``(("algo", "reinforce_plus"),)``;
     the others: the config's defaults). An option's file name is free, so only Hydra knows its
     plug-in: several options may share one (reinforce_plus is REINFORCE with other values)."""
+    return _composed(name, tuple(f"{group}={option}" for group, option in choices))[0]
+
+
+@functools.cache
+def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | None], dict[str, str]]:
+    """``conf/<name>.yaml`` composed by Hydra with these group overrides: the plug-in of each plug-in
+    group (:func:`_option_plugins`), and the option of each config group (Hydra's own left out)."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    overrides = [f"{group}={option}" for group, option in choices]
     if GlobalHydra.instance().is_initialized():  # inside a Hydra app (or a test's initialize)
-        cfg = compose(name, overrides=overrides)
+        cfg = compose(name, overrides=list(overrides), return_hydra_config=True)
     else:
         with initialize_config_dir(config_dir(), version_base="1.3"):
-            cfg = compose(name, overrides=overrides)
-    return {
+            cfg = compose(name, overrides=list(overrides), return_hydra_config=True)
+    plugins = {
         group: OmegaConf.select(cfg, f"{group}.{rule.plugin_key}", default=None)
         for group, rule in schema.plugin_groups(name).items()
     }
+    choices = cfg.hydra.runtime.choices
+    return plugins, {g: choices[g] for g in choices if g.split("/")[0] != _HYDRA_PREFIX}
 
 
 def _resolved(cfg: DictConfig | Mapping) -> Mapping:
@@ -325,16 +333,23 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
     for override in parsed:
         if override.key_or_group in plugin_keys and not override.is_delete():
             raise _plugin_key_set(override, plugin_keys[override.key_or_group], name)
+    _check_presets(parsed, name)
     known = _override_keys(parsed, name)
     if known is None:  # Hydra cannot compose these group options: its own message says why
         return
     for override in parsed:
         key = override.key_or_group
+        section = key not in known and any(k.startswith(f"{key}.") for k in known)
         if override.is_delete():
             # OmegaConf refuses to delete a field of a nested schema (several lines); a top-level key
             # would be refused as missing: either way, say it first.
-            if key in known:
+            if key in known or (section and key not in groups):
                 raise ConfigError(f"{key} cannot be deleted (~{key}); every config key needs a value")
+            if key in groups and any(k.startswith(f"{key}.") or f".{key}." in k for k in known):
+                raise ConfigError(
+                    f"{key} cannot be deleted (~{key}): its keys need values; choose another option: "
+                    f"{key}=<one of {_options(key)}>"
+                )
             continue
         values = (
             list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
@@ -345,6 +360,10 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             if key in ("hydra.run.dir", "hydra.sweep.dir"):
                 for value in values:
                     _check_folder(key, value)
+            if "/" in key:  # a Hydra group (hydra/launcher): Hydra raises a traceback for null or a list
+                for value in values:
+                    if not isinstance(value, str):
+                        raise ConfigError.of(key, value, f"the name of one of its options, e.g. {key}=basic")
             continue
         if key == "sweep_name":  # names the multirun folder, which Hydra makes before any job runs
             for value in values:
@@ -356,7 +375,11 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                 if value not in options:
                     raise ConfigError.of(key, value, f"one of {options}")
             continue
-        if key not in known and not any(k.startswith(f"{key}.") for k in known):
+        if section:
+            for value in values:
+                _check_section(key, value, known, groups)
+            continue
+        if key not in known:
             raise _unknown(key, known)
 
 
@@ -373,6 +396,23 @@ def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
     )
 
 
+def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list[str]) -> None:
+    """A section (``env.disturbance``, ``eval``) set on the command line: a mapping of its own keys
+    (Hydra merges it); null, a number or a list fail Hydra's merge in several lines."""
+    if isinstance(value, Mapping):
+        for sub, inner in value.items():
+            full = f"{key}.{sub}"
+            if full not in known and not any(k.startswith(f"{full}.") for k in known):
+                raise _unknown(full, known)
+            if isinstance(inner, Mapping):
+                _check_section(full, inner, known, groups)
+        return
+    first = next(k for k in known if k.startswith(f"{key}."))
+    group = key.split(".")[-1]
+    preset = f", or a preset: {group}=<one of {_options(group)}>" if group in groups and group != key else ""
+    raise ConfigError.of(key, value, f"its keys set one by one (e.g. {first}=...){preset}")
+
+
 def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
     """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick (the last
     plain one of each group, or every option a sweep names; an option of any group may pick the
@@ -380,6 +420,19 @@ def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
     those. Over a sweep, the keys every one of its jobs has."""
     if not schema.plugin_groups(name):
         return schema_keys(name)
+    known: dict[str, Rule] | None = None
+    for combination in _combinations(parsed):
+        try:
+            keys = schema_keys(name, **_option_plugins(name, combination))
+        except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
+            return None
+        known = keys if known is None else {k: rule for k, rule in known.items() if k in keys}
+    return known
+
+
+def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
+    """Every combination of the group options the overrides pick (the last plain one of each group,
+    or every option a sweep names): ``(("algo", "ppo"), ("experiment", "bounded"))``."""
     groups = group_names()
     picks: dict[str, list[str]] = {}
     for override in parsed:
@@ -392,14 +445,87 @@ def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
         options = [v for v in values if v in _options(group)]
         if options:
             picks[group] = options
-    known: dict[str, Rule] | None = None
-    for combination in itertools.product(*([(g, o) for o in opts] for g, opts in picks.items())):
+    return itertools.product(*([(g, o) for o in opts] for g, opts in picks.items()))
+
+
+# The group whose options are presets (experiment=bounded). A preset's keys of one plug-in live in
+# conf/<plug-in group>/presets/<plug-in>/<preset>.yaml, which that plug-in's options include
+# (conf/algo/reinforce.yaml), so they reach only that plug-in.
+PRESET_GROUP = "experiment"
+PLUGIN_PRESETS = "presets"
+
+
+def _check_presets(parsed: list, name: str) -> None:
+    """A preset that picks a plug-in (``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its
+    keys) with another one on the command line: refused, naming the preset it builds on as the way."""
+    if PRESET_GROUP not in group_names() or not schema.plugin_groups(name):
+        return
+    for combination in _combinations(parsed):
+        chosen = dict(combination)
+        preset = chosen.get(PRESET_GROUP)
+        if preset is None:
+            continue
         try:
-            keys = schema_keys(name, **_option_plugins(name, combination))
-        except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
-            return None
-        known = keys if known is None else {k: rule for k, rule in known.items() if k in keys}
-    return known
+            _, bare = _composed(name, (f"~{PRESET_GROUP}",))
+            _, picked = _composed(name, (f"{PRESET_GROUP}={preset}",))
+        except Exception:  # noqa: BLE001  (an option Hydra cannot compose: Hydra's message says why)
+            return
+        own = {g: o for g, o in picked.items() if g != PRESET_GROUP and bare.get(g) != o}
+        for group in schema.plugin_groups(name):
+            mine, theirs = chosen.get(group), own.get(group)
+            if mine is None or theirs is None or mine == theirs:
+                continue
+            bases = _preset_bases(preset)
+            way = (
+                f"{PRESET_GROUP}={bases[0]} {group}={mine}"
+                if bases
+                else f"{group}={mine} without {PRESET_GROUP}"
+            )
+            also = " ".join(f"{g}={o}" for g, o in own.items() if g != group and g not in chosen)
+            raise ConfigError(
+                f"{PRESET_GROUP}={preset} is made for {group}={theirs} (it sets {theirs}'s values) and cannot "
+                f"take {group}={mine}; for {group}={mine} use {way}"
+                + (f" (it also sets {also})" if also else "")
+            )
+
+
+def _preset_bases(preset: str) -> list[str]:
+    """The presets ``preset`` builds on: the options of its own group in its defaults list."""
+    defaults = OmegaConf.load(Path(config_dir()) / PRESET_GROUP / f"{preset}.yaml").get("defaults") or []
+    return [d for d in defaults if isinstance(d, str) and d in _options(PRESET_GROUP)]
+
+
+def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
+    """``experiment=paper_code: algo.optimizer, ... do not apply to algo=ppo; dropped``: one line per
+    plug-in group whose chosen plug-in does not take keys the chosen preset sets for another plug-in
+    of the group (``choices``: each config group's option, as Hydra's ``runtime.choices``)."""
+    preset = choices.get(PRESET_GROUP)
+    if not isinstance(preset, str):
+        return []
+    notes = []
+    for group in schema.plugin_groups(name):
+        option = choices.get(group)
+        folder = Path(config_dir()) / group / PLUGIN_PRESETS
+        if option is None or not folder.is_dir():
+            continue
+        plugin = _option_plugins(name, ((group, option),))[group]
+        own = _preset_keys(folder / str(plugin) / f"{preset}.yaml")
+        others = [
+            k
+            for p in sorted(folder.iterdir())
+            if p.name != plugin
+            for k in _preset_keys(p / f"{preset}.yaml")
+        ]
+        dropped = [f"{group}.{k}" for k in dict.fromkeys(others) if k not in own]
+        if dropped:
+            notes.append(
+                f"{PRESET_GROUP}={preset}: {', '.join(dropped)} do not apply to {group}={option}; dropped"
+            )
+    return notes
+
+
+def _preset_keys(path: Path) -> list[str]:
+    return list(leaves(OmegaConf.load(path))) if path.is_file() else []
 
 
 def _check_folder_name(key: str, value: Any, expected: str) -> None:
@@ -570,7 +696,7 @@ def check_device(device: Any) -> None:
 
     try:
         kind = torch.device(device).type
-    except (RuntimeError, TypeError):
+    except (RuntimeError, TypeError, ValueError, OverflowError):  # ValueError: an index past int64
         raise ConfigError.of("device", device, "a torch device such as 'cpu' or 'cuda'") from None
     if kind not in DEVICE_KINDS:
         raise ConfigError.of("device", device, "'cpu' or 'cuda' ('cuda:N' for GPU number N)")
@@ -610,8 +736,10 @@ def _plain(node: Any) -> Any:
     return node
 
 
-def validate(cfg: DictConfig) -> None:
-    """Raise :class:`ConfigError` for the first value that is not allowed."""
+def validate(cfg: DictConfig, training: bool = True) -> None:
+    """Raise :class:`ConfigError` for the first value that is not allowed. ``training``: the config
+    is about to train here, so its logger's extra must be installed and its memory must fit
+    (``drone-eval`` reads a checkpoint's config for its values only)."""
     cfg = _plain(check_keys(cfg))  # also refuses ??? and interpolations to nothing, in one line
     check_device(cfg.device)
     kwargs = tuple((name, type(value), value) for name, value in env_kwargs(cfg).items())
@@ -635,7 +763,8 @@ def validate(cfg: DictConfig) -> None:
         if reason is not None:
             raise ConfigError(f"backend=fast cannot take {reason}; backend=reference takes every option")
     algorithms.get(cfg.algo.name).validate(cfg)
-    loggers.check_backend(cfg)
+    if training:  # drone-eval reads a finished run's values: its logger is the training's business
+        loggers.check_backend(cfg)  # after the values: a bad value is named whether or not the extra is there
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
         raise ConfigError.of(
             "model.distribution",
@@ -651,3 +780,12 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError.of("logger.exp_name", name, expected)
     _check_folder_name("logger.exp_name", name, expected)
     _check_folder_name("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
+    if training:
+        check_memory(cfg)  # last: every value is allowed; does the run fit in this machine?
+
+
+def check_memory(cfg: Mapping[str, Any], agents: int = 1) -> None:
+    """Refuse in one line a config whose memory (:mod:`drone_torchrl.training.memory_estimate`), with
+    ``agents`` runs trained together in one process, exceeds what this machine has free."""
+    learner = algorithms.get(cfg["algo"]["name"]).memory
+    memory_estimate.check(memory_estimate.estimate(cfg, agents, learner), cfg["device"])

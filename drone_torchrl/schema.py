@@ -32,7 +32,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
-from drone_torchrl.checks import ConfigError, check_choice, check_number, check_sizes
+from drone_torchrl.checks import INT64_MAX, ConfigError, check_choice, check_number, check_sizes
 from drone_torchrl.envs.disturbances import MAX_GAIN_SPREAD, MAX_MASS_SPREAD, MAX_STEPS_BACK, Disturbance
 from drone_torchrl.envs.dynamics import (
     ALPHA_LIMIT,
@@ -52,13 +52,14 @@ from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS, MAX_DISTRIB
 # Bounds of values that have no natural limit. A learning rate above 1 only diverges with Adam's
 # unit-scale steps; seeds are signed 64-bit integers in torch.
 MAX_LR = 1.0
-MAX_SEED = 2**63 - 1
+MAX_SEED = INT64_MAX
 # Episodes flown side by side (an update's, an evaluation's, drone-eval's) live in memory together:
 # about 25 kB each for 300 steps, so 10,000 take a quarter of a GB.
 MAX_PARALLEL_EPISODES = 10_000
 # torch's intra-op threads; far past the cores they only slow it down (and 10^5 crashes it).
 MAX_THREADS = 256
-# An initial exploration std past this is no longer "near the mean": thrusts are fractions of the weight.
+# An initial exploration std (or a floor under the std) past this is no longer "near the mean":
+# thrusts are fractions of the weight.
 MAX_INIT_STD = 10.0
 # REINFORCE's optimizers: adam (the paper's text), adamw (decoupled weight decay, the paper's code).
 OPTIMIZERS = ("adam", "adamw")
@@ -255,7 +256,7 @@ class ModelConf:
     distribution: Any = one_of(DISTRIBUTIONS)
     hidden_sizes: Any = layer_sizes()
     activation: Any = one_of(tuple(ACTIVATIONS))
-    min_std: Any = a_number(low=0)
+    min_std: Any = a_number(low=0, high=MAX_INIT_STD)
     init_std: Any = a_number(low="model.min_std", low_open=True, high=MAX_INIT_STD, optional=True, added=None)
     distribution_eps: Any = a_number(low=0, high=MAX_DISTRIBUTION_EPS, added=0.0)
 

@@ -1,9 +1,12 @@
-"""Headless pygame for every test (no display, no audio device)."""
+"""Headless pygame for every test (no display, no audio device), and W&B offline (nothing leaves the
+machine: logger=wandb writes its run files only)."""
 
 import os
 
 os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
 os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+os.environ.setdefault("WANDB_MODE", "offline")
+os.environ.setdefault("WANDB_SILENT", "true")
 
 
 def pytest_ignore_collect(collection_path, config):

@@ -12,6 +12,7 @@ torn CSV row.
 from __future__ import annotations
 
 import hashlib
+import importlib.util
 import math
 import os
 import shutil
@@ -206,6 +207,11 @@ def _one_line(message: str, names: str) -> None:
 
 
 # ------------------------------------------------------------------------------------- drone-train
+def MLFLOW_OR(names: str) -> str:  # noqa: N802  (read as a constant in the tables)
+    """What a logger=mlflow row's message names: ``names``, or the extra when MLflow is not installed."""
+    return names if importlib.util.find_spec("mlflow") is not None else "drone_torchrl[mlflow]"
+
+
 # (overrides, what the message must name)
 TRAIN = [
     # what Hydra's override grammar cannot parse (was Hydra's multi-line message)
@@ -437,6 +443,58 @@ TRAIN = [
     ([f"logger.exp_name={LONG_NAME}"], "logger.exp_name"),
     ([f"sweep_name={LONG_NAME}"], "sweep_name"),
     (["resume={long}"], "resume"),
+    # Issue 34, the config side. A preset made for one algorithm, with another (was Hydra's
+    # ConfigKeyError in several lines); experiment=paper_code takes any algorithm (test_paper_code.py).
+    (["experiment=hover_optimal", "algo=reinforce"], "experiment=bounded algo=reinforce"),
+    (["experiment=hover_optimal", "algo=reinforce_plus"], "experiment=bounded algo=reinforce_plus"),
+    (["experiment=randomised", "algo=reinforce"], "experiment=bounded algo=reinforce"),
+    (["experiment=randomised", "algo=a2c"], "experiment=bounded algo=a2c"),  # was accepted silently
+    (["experiment=hover_optimal", "algo=a2c"], "experiment=bounded algo=a2c"),
+    # A config section (or Hydra group) set to null, a scalar or a list, or deleted (was Hydra's
+    # merge error in several lines, or a traceback for hydra/launcher)
+    (["env.disturbance=null"], "env.disturbance"),
+    (["env.disturbance=5"], "env.disturbance"),
+    (["env.disturbance=[]"], "env.disturbance"),
+    (["env.disturbance={{gale:1}}"], "env.disturbance.gale"),
+    (["eval=null"], "eval"),
+    (["checkpoint=5"], "checkpoint"),
+    (["metrics=[]"], "metrics"),
+    (["~env.disturbance"], "env.disturbance"),
+    (["~algo"], "algo"),
+    (["hydra/launcher=null"], "hydra/launcher"),
+    (["hydra/sweeper=[]"], "hydra/sweeper"),
+    (["algo=null"], "algo"),
+    (["model=3"], "model"),
+    (["logger=[]"], "logger"),
+    # Numbers no float32 holds, and physical bounds (were overflow tracebacks, NaN "diverged" runs
+    # that blamed algo.lr, or episodes that ended at their first step)
+    (["env.max_thrust=1e300"], "env.max_thrust"),
+    (["env.mass=1e300"], "env.mass"),
+    (["env.mass=1e-40"], "env.mass"),
+    (["env.motor_distance=1e-30"], "env.motor_distance"),
+    (["env.x_limit=1e300"], "env.x_limit"),
+    (["env.z_min=-1e300"], "env.z_min"),
+    (["env.disturbance.wind=1e300"], "env.disturbance.wind"),
+    (["env.disturbance.noise_angle=1e300"], "env.disturbance.noise_angle"),
+    (["env.disturbance.motor_lag=1e300"], "env.disturbance.motor_lag"),
+    (["model.min_std=1e300"], "model.min_std"),
+    (["algo.max_grad_norm=1e300"], "algo.max_grad_norm"),
+    (["algo=ppo", "algo.reward_scale=1e39"], "algo.reward_scale"),
+    (["algo.lr=1" + "0" * 400], "algo.lr"),  # an int no float holds: was an OverflowError traceback
+    # Counts no int64 holds (were accepted)
+    (["algo.episodes=99999999999999999999"], "algo.episodes"),
+    (["env.max_steps=99999999999999999999"], "env.max_steps"),
+    (["checkpoint.every_episodes=99999999999999999999"], "checkpoint.every_episodes"),
+    (["metrics.running_mean_window=99999999999999999999"], "metrics.running_mean_window"),
+    # Sizes no memory holds (were an allocator traceback after start-up, or the process killed)
+    (["algo=ppo", "algo.steps_per_batch=1000000000"], "algo.steps_per_batch"),
+    (["model.hidden_sizes=[1000000,1000000]"], "model.hidden_sizes"),
+    (["env.max_steps=1000000000000", "eval.video=false"], "env.max_steps"),
+    (["eval.episodes=10000", "env.max_steps=1000000000", "eval.video=false"], "eval.episodes"),
+    (["eval.video=true", "env.max_steps=1000000000"], "eval.video=false"),  # its frames
+    # MLflow (without the extra: refused naming it)
+    (["logger=mlflow", "logger.tracking_uri=foo://bar"], MLFLOW_OR("logger.tracking_uri")),
+    (["logger=mlflow", "logger.tracking_uri=sqlite:////nonexistent/x.db"], MLFLOW_OR("logger.tracking_uri")),
 ]
 
 
@@ -490,6 +548,11 @@ def test_a_logger_whose_extra_is_missing_is_one_line(backend, monkeypatch, tmp_p
 
 # -------------------------------------------------------------------------------------- drone-eval
 EVAL = [
+    (["env.max_thrust=1e300"], "env.max_thrust"),
+    (["env.mass=1e-40"], "env.mass"),
+    (["env.max_steps=1000000000000"], "env.max_steps"),  # its rollouts: no memory holds them
+    (["video=true", "env.max_steps=1000000000"], "video=false"),  # its GIF's frames
+    (["env.disturbance=null"], "env.disturbance"),
     (["disturbance=gale"], "disturbance"),
     (["env.disturbance.motor_lag=-0.02"], "env.disturbance.motor_lag"),
     (["checkpoint={emptydir}/nothing"], "checkpoint"),
@@ -701,6 +764,16 @@ E2E = [
     ("drone-eval", ["checkpoint={shapes}"], "module.0.module.shared.0.weight"),
     ("drone-train", [f"logger.exp_name={LONG_NAME}"], "logger.exp_name"),
     ("drone-report", ["{run}", "--out", "{long}"], "--out"),
+    # Issue 34, the config side.
+    ("drone-train", ["experiment=hover_optimal", "algo=reinforce"], "experiment=bounded algo=reinforce"),
+    ("drone-train", ["env.disturbance=null"], "env.disturbance"),
+    ("drone-train", ["hydra/launcher=null"], "hydra/launcher"),  # was a traceback
+    ("drone-train", ["env.max_thrust=1e300"], "env.max_thrust"),
+    ("drone-train", ["algo.episodes=99999999999999999999"], "algo.episodes"),
+    ("drone-train", ["algo=ppo", "algo.steps_per_batch=1000000000"], "algo.steps_per_batch"),
+    ("drone-train", ["model.hidden_sizes=[1000000,1000000]"], "model.hidden_sizes"),
+    ("drone-train", ["logger=mlflow", "logger.tracking_uri=foo://bar"], MLFLOW_OR("logger.tracking_uri")),
+    ("drone-eval", ["env.max_steps=1000000000", "video=true"], "video=false"),
 ]
 
 
@@ -1172,3 +1245,45 @@ def test_a_row_that_is_not_utf8_is_skipped_by_the_report_and_dropped_on_resume(f
     assert [line.split(",")[0] for line in text.splitlines()[1:]] == ["0", "2", "3"]
     (job / "FAILED.txt").write_bytes(b"Traceback ...\nStorageError: cannot write caf\xe9\n")
     assert job_status(job) == ("failed", "StorageError: cannot write caf\ufffd")
+
+
+@pytest.mark.slow  # two real processes, about 30 s on 2 cores
+def test_two_runs_that_open_a_new_mlflow_store_together_both_complete(tmp_path):
+    """Two processes that start together on a new SQLite store: the second died while MLflow created the
+    tables (``duplicate column name: step``, or alembic's ``expected to match one row``) and its run was
+    lost. Both complete now, each an MLflow run with every episode's step once."""
+    pytest.importorskip("mlflow")
+    from mlflow.tracking import MlflowClient
+
+    store = tmp_path / "mlflow.db"
+    args = [
+        *TINY,
+        "algo.episodes=4",
+        "eval.every_episodes=0",
+        "logger=mlflow",
+        f"logger.tracking_uri=sqlite:///{store}",
+    ]
+    runs = [tmp_path / name for name in ("a", "b")]
+    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-m", "drone_torchrl.apps.train", *args, f"hydra.run.dir={run}"],
+            cwd=tmp_path,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for run in runs
+    ]
+    results = [proc.communicate(timeout=180) for proc in procs]
+    for proc, (_, err) in zip(procs, results, strict=True):
+        assert proc.returncode == 0, err[-2000:]
+    client = MlflowClient(tracking_uri=f"sqlite:///{store}")
+    (experiment,) = [e for e in client.search_experiments() if e.name == "adhoc"]
+    found = {r.data.tags["run_dir"]: r for r in client.search_runs([experiment.experiment_id])}
+    assert sorted(found) == sorted(str(run) for run in runs)
+    for run in found.values():
+        assert run.info.status == "FINISHED"
+        steps = [m.step for m in client.get_metric_history(run.info.run_id, "episode/return")]
+        assert sorted(steps) == [1, 2, 3, 4]  # every episode once

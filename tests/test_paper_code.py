@@ -76,6 +76,39 @@ def test_paper_code_preset():
     assert (cfg.model.distribution_eps, cfg.model.min_std) == (1e-6, 0.0)
 
 
+@pytest.mark.parametrize("algo", ["reinforce", "reinforce_plus", "ppo", "a2c"])
+def test_paper_code_preset_with_any_algorithm(algo):
+    """experiment=paper_code algo=<x> (was Hydra's ConfigKeyError for algo=ppo): the public code's
+    environment and policy with the chosen algorithm's values; its AdamW and mean log-probabilities
+    only where the algorithm has those keys (REINFORCE's options), else dropped with a one-line note
+    when the run starts. The options tried are every conf/algo option (asserted below)."""
+    from drone_torchrl.config import _options, preset_notes
+
+    assert sorted(_options("algo")) == ["a2c", "ppo", "reinforce", "reinforce_plus"]
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", ["experiment=paper_code", f"algo={algo}"], return_hydra_config=True)
+        alone = compose("config", [f"algo={algo}"])
+    validate(cfg)
+    assert (cfg.env.zone_x_limit, cfg.env.bounds, cfg.env.dtype) == (0.6, "strict", "float64")
+    assert (cfg.model.distribution_eps, cfg.model.min_std) == (1e-6, 0.0)
+    reinforce = cfg.algo.name == "reinforce"
+    notes = preset_notes(cfg.hydra.runtime.choices)
+    for key, value in {"optimizer": "adamw", "weight_decay": 0.01, "log_prob_reduction": "mean"}.items():
+        assert cfg.algo.get(key) == (value if reinforce else None), key
+    assert notes == (
+        []
+        if reinforce
+        else [
+            f"experiment=paper_code: algo.optimizer, algo.weight_decay, algo.log_prob_reduction do not "
+            f"apply to algo={algo}; dropped"
+        ]
+    )
+    # Every other algo.* value is the algorithm's own.
+    assert {
+        k: v for k, v in cfg.algo.items() if k not in ("optimizer", "weight_decay", "log_prob_reduction")
+    } == {k: v for k, v in alone.algo.items() if k not in ("optimizer", "weight_decay", "log_prob_reduction")}
+
+
 def test_paper_code_preset_trains_on_the_fast_engine_as_reinforce_loss_scores_it(tmp_path):
     """experiment=paper_code's update on the C++ engine (float64, Normal(mu + 1e-6, sigma + 1e-6),
     averaged motors, strict bounds, the narrower zone) equals ReinforceLoss with autograd on the

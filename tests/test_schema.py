@@ -184,3 +184,20 @@ def test_a_key_of_the_plug_in_an_experiment_picks_is_accepted():
 def test_a_sweep_accepts_only_keys_every_one_of_its_jobs_has(sweep):
     with pytest.raises(ConfigError, match="algo.num_envs is not a key of this algo"):
         check_overrides([sweep, "algo.num_envs=256"])
+
+
+def test_the_keys_are_every_plug_in_s_whoever_asks_first():
+    """``_every_key`` and ``schema_keys`` are cached: asked before anything had discovered the plug-ins
+    (a test module reading them at import), they cached the keys without any algorithm's, and every
+    continued run of that process then kept its checkpoint's budget (``algo.episodes`` looked like
+    a kept key). A fresh process asks them first."""
+    import subprocess
+    import sys
+
+    probe = (
+        "from drone_torchrl.config import _every_key, resume_rule, schema_keys\n"
+        "print('algo.episodes' in _every_key('config'), resume_rule('algo.episodes'),"
+        " 'algo.num_envs' in schema_keys('config', algo='ppo'))"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
+    assert out.split() == ["True", "budget", "True"]

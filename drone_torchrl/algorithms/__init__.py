@@ -43,6 +43,9 @@ class Algorithm:
         checkpoint_keys: entries its learner adds to every checkpoint (a checkpoint without one is
             refused when resumed, in one line).
         summary: one line saying what it is.
+        memory: ``memory(cfg, agents)``: the bytes its learner allocates, by part
+            (:mod:`drone_torchrl.training.memory_estimate` derives them); a config whose estimate
+            exceeds the free memory is refused before any work. None: only the parts every run has.
     """
 
     name: str
@@ -50,6 +53,7 @@ class Algorithm:
     validate: Callable[[Mapping[str, Any]], None]
     checkpoint_keys: tuple[str, ...] = ()
     summary: str = ""
+    memory: Callable[[Mapping[str, Any], int], dict[str, Any]] | None = None
 
 
 ALGORITHMS: Registry[Algorithm] = Registry("algo.name", __name__, "drone_torchrl.algorithms")

@@ -63,6 +63,7 @@ from drone_torchrl.schema import (
     free,
     store_plugin,
 )
+from drone_torchrl.training.memory_estimate import on_policy_parts
 from drone_torchrl.training.segments import FusedSegments
 from drone_torchrl.training.update import UpdateOutput
 
@@ -341,5 +342,6 @@ register(
         validate,
         checkpoint_keys=("critic",),
         summary="PPO on TorchRL's collector, GAE and ClipPPOLoss",
+        memory=on_policy_parts,
     )
 )

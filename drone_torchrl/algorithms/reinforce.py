@@ -32,6 +32,7 @@ from drone_torchrl.schema import (
     store_plugin,
 )
 from drone_torchrl.training.collectors import make_collector
+from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.update import CHECKS, ReinforceUpdate
 
@@ -132,5 +133,6 @@ register(
         Reinforce,
         validate,
         summary="Monte-Carlo REINFORCE (the paper; `reinforce_plus`: with its usual variance reductions), a population of agents per process",
+        memory=reinforce_parts,
     )
 )

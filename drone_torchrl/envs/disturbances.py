@@ -49,6 +49,7 @@ from typing import Any, NamedTuple
 
 import torch
 
+from drone_torchrl.checks import as_override
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, DroneParams, X, Z
 from drone_torchrl.training import rng
@@ -83,9 +84,8 @@ class Disturbance:
     observed_actions: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("wind", "gust", "mass", "motor_gain", "motor_lag", "noise_position", "noise_angle"):
-            _check(name, getattr(self, name), 0.0, math.inf)
-        _check("gust_time", self.gust_time, 0.0, math.inf, low_open=True)
+        for name, high in MAX_MAGNITUDES.items():
+            _check(name, getattr(self, name), 0.0, high, low_open=name == "gust_time")
         # A drone lighter than nothing, or a motor with a negative gain, is not a disturbance.
         _check("mass", self.mass, 0.0, MAX_MASS_SPREAD)
         _check("motor_gain", self.motor_gain, 0.0, MAX_GAIN_SPREAD)
@@ -93,7 +93,7 @@ class Disturbance:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_STEPS_BACK:
                 raise ValueError(
-                    f"{name}={value!r} is not allowed; expected an integer in [0, {MAX_STEPS_BACK}]"
+                    f"{name}={as_override(value)} is not allowed; expected an integer in [0, {MAX_STEPS_BACK}]"
                 )
 
     @property
@@ -116,17 +116,33 @@ MAX_MASS_SPREAD = 0.9
 MAX_GAIN_SPREAD = 0.9
 # Commands remembered for the delay or offered to the policy; 25 steps is half a second at 50 Hz.
 MAX_STEPS_BACK = 25
+# Upper bounds of the other magnitudes, past which they describe no drone that could fly (and, far
+# past, overflow float32): wind and gusts of 10 weights (the strongest motors allowed, 100 weights
+# each, are for benches, not wind); a gust correlation time and a motor lag of an hour (a constant
+# wind, a motor that never answers within an episode); position noise of the largest arena (a
+# kilometre) and angle noise of half a turn (pi: past it the noise wraps around).
+MAX_FORCE = 10.0
+MAX_TIME = 3600.0
+MAX_MAGNITUDES = {
+    "wind": MAX_FORCE,
+    "gust": MAX_FORCE,
+    "gust_time": MAX_TIME,
+    "motor_lag": MAX_TIME,
+    "noise_position": dynamics.MAX_ARENA,
+    "noise_angle": math.pi,
+}
 FIELDS = tuple(f.name for f in fields(Disturbance))
 # Fields that change what the policy sees, not the physics.
 _LAYOUT = ("observed_actions", "gust_time")
 
 
 def _check(name: str, value: object, low: float, high: float, *, low_open: bool = False) -> None:
-    ok = not isinstance(value, bool) and isinstance(value, int | float) and math.isfinite(value)
+    ok = not isinstance(value, bool) and isinstance(value, int | float)
+    ok = ok and (isinstance(value, int) or math.isfinite(value))  # an int: isfinite overflows on 10**400
     ok = ok and (value > low if low_open else value >= low) and value <= high
     if not ok:
-        bound = f"{'>' if low_open else '>='} {low}" + (f" and <= {high}" if math.isfinite(high) else "")
-        raise ValueError(f"{name}={value!r} is not allowed; expected a finite number {bound}")
+        bound = f"{'>' if low_open else '>='} {low} and <= {high}"
+        raise ValueError(f"{name}={as_override(value)} is not allowed; expected a finite number {bound}")
 
 
 def make(disturbance: Disturbance | Mapping[str, Any] | None) -> Disturbance:
@@ -138,7 +154,7 @@ def make(disturbance: Disturbance | Mapping[str, Any] | None) -> Disturbance:
         return disturbance
     if not isinstance(disturbance, Mapping):
         raise ValueError(
-            f"disturbance={disturbance!r} is not allowed; expected a mapping of {FIELDS} or None"
+            f"disturbance={as_override(disturbance)} is not allowed; expected a mapping of {FIELDS} or None"
         )
     unknown = sorted(set(disturbance) - set(FIELDS))
     if unknown:

@@ -13,12 +13,14 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from drone_torchrl.checks import INT64_MAX, as_override
 from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.dynamics import (
     ACTION_DIM,
     ALPHA_LIMIT,
     BOUNDS_MODES,
     DTYPES,
+    MAX_ARENA,
     RESET_MODES,
     STATE_DIM,
     X_LIMIT,
@@ -41,6 +43,16 @@ RENDER_MODES = (None, "human", "rgb_array")
 MAX_DT = 0.1
 MAX_GRAVITY = 100.0
 MAX_FLOOR_TOLERANCE = 1.0
+# The drone's size. Mass cancels out of the motion (thrust is a fraction of the weight), but the
+# weight m*g and the angular acceleration's 1/(m r) are float32 numbers: at 1e300 kg or 1e-40 kg
+# they overflow (a traceback, or episodes that end at their first step). A gram is lighter than
+# any drone that flies, ten tonnes heavier than any built; a motor distance of 1 cm to 100 m alike.
+MIN_MASS, MAX_MASS = 1e-3, 1e4
+MIN_MOTOR_DISTANCE, MAX_MOTOR_DISTANCE = 1e-2, 1e2
+# Thrust per motor in weights: 100 is a thrust-to-weight ratio of 200 (racing drones reach 10-20).
+MAX_THRUST = 100.0
+# The longest episode (steps): an int64 count.
+MAX_STEPS = INT64_MAX
 
 
 def _check_real(
@@ -50,11 +62,20 @@ def _check_real(
     allowed = f"a finite number {'>=' if inclusive else '>'} {minimum}"
     if maximum is not None:
         allowed += f" and <= {maximum}"
-    if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value):
-        raise ValueError(f"{name}={value!r} is not allowed; expected {allowed}")
+    if not _finite(value):
+        raise ValueError(f"{name}={as_override(value)} is not allowed; expected {allowed}")
     if value < minimum or (value == minimum and not inclusive) or (maximum is not None and value > maximum):
-        raise ValueError(f"{name}={value!r} is not allowed; expected {allowed}")
+        raise ValueError(f"{name}={as_override(value)} is not allowed; expected {allowed}")
     return float(value)
+
+
+def _finite(value: object) -> bool:
+    """A real number, not a bool, that is finite (an int is: math.isfinite overflows on 10**400)."""
+    return (
+        isinstance(value, Real)
+        and not isinstance(value, bool)
+        and (isinstance(value, Integral) or math.isfinite(value))
+    )
 
 
 Bound = tuple[str, float]  # a named bound: ("z_min", 0.0)
@@ -71,20 +92,21 @@ def _check_range(
 ) -> float:
     """``value`` as float if finite and within the named bounds, else a ValueError naming the
     argument and the bounds (``expected a finite number > z_min (0.0)``)."""
-    label = lambda bound: bound[0] if bound[0][0].isdigit() else f"{bound[0]} ({bound[1]!r})"  # noqa: E731
+    # A bound named by another argument shows its value too; a literal one ("0", "1000 m") is its value.
+    label = lambda bound: f"{bound[0]} ({bound[1]!r})" if bound[0].isidentifier() else bound[0]  # noqa: E731
     parts = []
     if low is not None:
         parts.append(f"{'>' if low_open else '>='} {label(low)}")
     if high is not None:
         parts.append(f"{'<' if high_open else '<='} {label(high)}")
-    ok = isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
+    ok = _finite(value)
     if ok and low is not None:
         ok = value > low[1] or (value == low[1] and not low_open)
     if ok and high is not None:
         ok = value < high[1] or (value == high[1] and not high_open)
     if not ok:
         allowed = "a finite number" + (" " + " and ".join(parts) if parts else "")
-        raise ValueError(f"{name}={value!r} is not allowed; expected {allowed}")
+        raise ValueError(f"{name}={as_override(value)} is not allowed; expected {allowed}")
     return float(value)
 
 
@@ -102,9 +124,10 @@ def check_arena(
     half-widths, ``z_min < z_max``, a tilt limit in (0, pi], and a zone of positive size inside
     the domain (its edges may lie on the domain's)."""
     zero = ("0", 0.0)
-    x_limit = _check_range("x_limit", x_limit, zero, low_open=True)
-    z_min = _check_range("z_min", z_min)
-    z_max = _check_range("z_max", z_max, ("z_min", z_min), low_open=True)
+    arena = (f"{MAX_ARENA:g} m", MAX_ARENA)
+    x_limit = _check_range("x_limit", x_limit, zero, arena, low_open=True)
+    z_min = _check_range("z_min", z_min, (f"-{MAX_ARENA:g} m", -MAX_ARENA), arena)
+    z_max = _check_range("z_max", z_max, ("z_min", z_min), arena, low_open=True)
     alpha_limit = _check_range("alpha_limit", alpha_limit, zero, ("pi", math.pi), low_open=True)
     zone_x_limit = _check_range("zone_x_limit", zone_x_limit, zero, ("x_limit", x_limit), low_open=True)
     zone_z_min = _check_range("zone_z_min", zone_z_min, ("z_min", z_min), ("z_max", z_max), high_open=True)
@@ -112,7 +135,7 @@ def check_arena(
         "zone_z_max", zone_z_max, ("zone_z_min", zone_z_min), ("z_max", z_max), low_open=True
     )
     if bounds not in BOUNDS_MODES:
-        raise ValueError(f"bounds={bounds!r} is not allowed; expected one of {BOUNDS_MODES}")
+        raise ValueError(f"bounds={as_override(bounds)} is not allowed; expected one of {BOUNDS_MODES}")
     return {
         "x_limit": x_limit,
         "z_min": z_min,
@@ -137,14 +160,20 @@ def make_params(
     """Validate the physical and arena arguments shared by both envs and bundle them (``arena``:
     the keyword arguments of :func:`check_arena`, each defaulting to the paper's)."""
     return DroneParams(
-        mass=_check_real("mass", mass, minimum=0.0, inclusive=False),
-        motor_distance=_check_real("motor_distance", motor_distance, minimum=0.0, inclusive=False),
+        mass=_check_real("mass", mass, minimum=MIN_MASS, inclusive=True, maximum=MAX_MASS),
+        motor_distance=_check_real(
+            "motor_distance",
+            motor_distance,
+            minimum=MIN_MOTOR_DISTANCE,
+            inclusive=True,
+            maximum=MAX_MOTOR_DISTANCE,
+        ),
         # Thrust is a fraction of the weight m*g: with g = 0 no motor command could move the drone.
         gravity=_check_real("gravity", gravity, minimum=0.0, inclusive=False, maximum=MAX_GRAVITY),
         dt=_check_real("dt", dt, minimum=0.0, inclusive=False, maximum=MAX_DT),
         max_thrust=None
         if max_thrust is None
-        else _check_real("max_thrust", max_thrust, minimum=0.0, inclusive=False),
+        else _check_real("max_thrust", max_thrust, minimum=0.0, inclusive=False, maximum=MAX_THRUST),
         floor_tolerance=_check_real(
             "floor_tolerance", floor_tolerance, minimum=0.0, inclusive=True, maximum=MAX_FLOOR_TOLERANCE
         ),
@@ -157,17 +186,23 @@ def check_dtype(dtype: object) -> torch.dtype:
     for name, value in DTYPES.items():
         if dtype == name or dtype is value:
             return value
-    raise ValueError(f"dtype={dtype!r} is not allowed; expected one of {tuple(DTYPES)}")
+    raise ValueError(f"dtype={as_override(dtype)} is not allowed; expected one of {tuple(DTYPES)}")
 
 
 def check_episode_args(max_steps: object, reset_mode: object, render_mode: object) -> None:
     """Validate the episode arguments shared by both envs."""
-    if isinstance(max_steps, bool) or not isinstance(max_steps, Integral) or max_steps < 1:
-        raise ValueError(f"max_steps={max_steps!r} is not allowed; expected an integer >= 1")
+    if isinstance(max_steps, bool) or not isinstance(max_steps, Integral) or not 1 <= max_steps <= MAX_STEPS:
+        raise ValueError(
+            f"max_steps={as_override(max_steps)} is not allowed; expected an integer >= 1 and <= {MAX_STEPS}"
+        )
     if reset_mode not in RESET_MODES:
-        raise ValueError(f"reset_mode={reset_mode!r} is not allowed; expected one of {RESET_MODES}")
+        raise ValueError(
+            f"reset_mode={as_override(reset_mode)} is not allowed; expected one of {RESET_MODES}"
+        )
     if render_mode not in RENDER_MODES:
-        raise ValueError(f"render_mode={render_mode!r} is not allowed; expected one of {RENDER_MODES}")
+        raise ValueError(
+            f"render_mode={as_override(render_mode)} is not allowed; expected one of {RENDER_MODES}"
+        )
 
 
 def _check_batch_size(batch_size: object) -> torch.Size:
@@ -180,7 +215,7 @@ def _check_batch_size(batch_size: object) -> torch.Size:
     )
     if not ok:
         raise ValueError(
-            f"batch_size={batch_size!r} is not allowed; expected a list of positive integers, e.g. [] or [64]"
+            f"batch_size={as_override(batch_size)} is not allowed; expected a list of positive integers, e.g. [] or [64]"
         )
     return torch.Size(batch_size)
 
@@ -388,7 +423,9 @@ class DroneEnv(EnvBase):
         try:
             device = torch.device(device)
         except (RuntimeError, TypeError) as err:
-            raise ValueError(f"device={device!r} is not allowed; expected e.g. 'cpu' or 'cuda:0'") from err
+            raise ValueError(
+                f"device={as_override(device)} is not allowed; expected e.g. 'cpu' or 'cuda:0'"
+            ) from err
         n_envs = math.prod(batch_size)
         if (
             isinstance(render_index, bool)
@@ -396,7 +433,7 @@ class DroneEnv(EnvBase):
             or not 0 <= render_index < n_envs
         ):
             raise ValueError(
-                f"render_index={render_index!r} is not allowed; expected an integer in [0, {n_envs - 1}]"
+                f"render_index={as_override(render_index)} is not allowed; expected an integer in [0, {n_envs - 1}]"
             )
         super().__init__(device=device, batch_size=batch_size)
         self.max_steps = int(max_steps)

@@ -25,6 +25,7 @@ import json
 import os
 import socket
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 from drone_torchrl.checks import ConfigError
@@ -139,6 +140,21 @@ def _make_room() -> None:
             "(ulimit -Hn); raise it, or train fewer agents per process (hydra.launcher.agents_per_job)"
         )
     resource.setrlimit(resource.RLIMIT_NOFILE, (wanted, hard))
+
+
+@contextlib.contextmanager
+def exclusive(path: str | os.PathLike) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``path`` (created if missing) for the ``with`` block, waiting
+    while another process holds it: for a step two processes must not take at once (the first
+    contact with a shared store, which creates its tables)."""
+    path = Path(path)
+    with writing(path):
+        fd = os.open(path, os.O_RDONLY | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def renew(folder: str | os.PathLike) -> None:

@@ -86,7 +86,8 @@ class Backend:
             cover (one-line ``ConfigError``).
         summary: one line saying what it writes where.
         extra: the package extra it needs (``pip install "drone_torchrl[<extra>]"``), named as the
-            module it imports, or None.
+            module it imports, or None; without it a config is refused before any work
+            (:func:`check_backend`), naming the extra.
     """
 
     name: str
@@ -95,6 +96,15 @@ class Backend:
     validate: Callable[[Mapping[str, Any]], None] = lambda cfg: None
     summary: str = ""
     extra: str | None = None
+
+    @property
+    def installed(self) -> bool:
+        """Whether the module its :attr:`extra` installs can be imported."""
+        return self.extra is None or importlib.util.find_spec(self.extra) is not None
+
+    def missing(self) -> str:
+        """The one line saying what to install for it."""
+        return f"logger={self.name} needs the {self.extra} extra: pip install 'drone_torchrl[{self.extra}]'"
 
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
@@ -111,12 +121,11 @@ def get(name: Any) -> Backend:
 
 
 def check_backend(cfg: Mapping[str, Any]) -> None:
-    """Refuse, in one line, a backend whose extra is not installed, then run its own checks."""
+    """Refuse, in one line, a backend whose extra is not installed, then run its own checks (which
+    may import it)."""
     backend = get(cfg.logger.backend)
-    if backend.extra is not None and importlib.util.find_spec(backend.extra) is None:
-        raise ConfigError(
-            f"logger={backend.name} needs the {backend.extra} extra: pip install 'drone_torchrl[{backend.extra}]'"
-        )
+    if not backend.installed:
+        raise ConfigError(backend.missing())
     backend.validate(cfg)
 
 

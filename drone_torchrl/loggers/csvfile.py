@@ -123,6 +123,8 @@ def validate(cfg: Mapping[str, Any]) -> None:
     if fmt is None:
         return
     try:
+        if not isinstance(fmt, str):  # a number would be taken modulo 0.5 (10**400: an OverflowError)
+            raise TypeError
         float(fmt % 0.5)
     except (TypeError, ValueError):
         raise ConfigError.of(

@@ -26,9 +26,10 @@ runs; continuing keeps one curve per run, as the TensorBoard and CSV backends do
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,11 +38,14 @@ import numpy as np
 from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.io import run_lock
 from drone_torchrl.loggers import FAILED, FINISHED, Backend, RunStatus, flatten_config, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, a_text, store_plugin
 
 RUN_ID_FILE = "run_id"
 STORE_FILE = "mlflow.db"
+# Beside a SQLite store: the lock its first contact takes (<store>.lock).
+LOCK_SUFFIX = ".lock"
 # MLflow's limits per log_batch call (metrics, params) and per param value (characters).
 MAX_METRICS_PER_BATCH = 1000
 MAX_PARAMS_PER_BATCH = 100
@@ -50,14 +54,50 @@ MAX_PARAM_CHARS = 6000
 _STATUSES = {FINISHED: "FINISHED", FAILED: "FAILED"}
 
 
+# MLflow's tracking stores that hold runs, by URI scheme ("" is a folder path: a file store), where
+# its registry of stores cannot be read; the registry's others ("uc", "databricks-uc") hold models only.
+KNOWN_SCHEMES = ("", "databricks", "file", "http", "https", "mssql", "mysql", "postgresql", "sqlite")
+MODEL_ONLY_SCHEMES = ("uc", "databricks-uc")
+
+
 def _client(tracking_uri: str):
     try:
         from mlflow.tracking import MlflowClient
     except ImportError:
-        raise ConfigError(
-            "logger=mlflow needs MLflow: pip install 'drone_torchrl[mlflow]' (or mlflow)"
-        ) from None
+        raise ConfigError(BACKEND.missing()) from None
     return MlflowClient(tracking_uri=tracking_uri)
+
+
+def tracking_schemes() -> list[str]:
+    """The URI schemes of the tracking stores this MLflow can open (plug-ins included)."""
+    try:
+        from mlflow.tracking._tracking_service.utils import _tracking_store_registry
+
+        schemes = set(_tracking_store_registry._registry)
+    except (ImportError, AttributeError):  # a private name: another MLflow version may move it
+        schemes = set(KNOWN_SCHEMES)
+    return sorted(schemes - set(MODEL_ONLY_SCHEMES))
+
+
+def _sqlite_file(tracking_uri: str) -> Path | None:
+    """The database file of a ``sqlite:///<path>`` URI (None for another store or in-memory SQLite)."""
+    prefix = "sqlite:///"
+    path = tracking_uri[len(prefix) :] if tracking_uri.startswith(prefix) else ""
+    return Path(path) if path and path != ":memory:" else None
+
+
+@contextlib.contextmanager
+def _first_contact(tracking_uri: str) -> Iterator[None]:
+    """Processes that open one SQLite store take turns here: the first to reach a new store creates
+    its tables (MLflow's migrations; two at once collide, ``duplicate column name: step``, and the
+    second run was lost), and an experiment is created once. Other stores serialise themselves (a
+    server), or are one process's (a folder)."""
+    path = _sqlite_file(tracking_uri)
+    if path is None:
+        yield
+        return
+    with run_lock.exclusive(path.with_name(path.name + LOCK_SUFFIX)):
+        yield
 
 
 class MLflowLogger:
@@ -66,27 +106,28 @@ class MLflowLogger:
     def __init__(
         self, tracking_uri: str, experiment: str, run_dir: Path, exp_name: str, resumed_at: int | None
     ) -> None:
-        self.client = client = _client(tracking_uri)
         self.folder = Path(run_dir) / exp_name
         id_file = self.folder / RUN_ID_FILE
         self._buffer: list = []
         self._skip_to = -1  # steps <= this are in the store already
-        if id_file.is_file():
-            self.run_id = id_file.read_text().strip()
-            if resumed_at is not None:
-                self._skip_to = self._last_step()
-            client.update_run(self.run_id, status="RUNNING")
-        else:
+        with _first_contact(tracking_uri):  # MlflowClient opens the store, creating its tables
+            self.client = client = _client(tracking_uri)
+            if id_file.is_file():
+                self.run_id = id_file.read_text().strip()
+                if resumed_at is not None:
+                    self._skip_to = self._last_step()
+                client.update_run(self.run_id, status="RUNNING")
+                return
             found = client.get_experiment_by_name(experiment)
             experiment_id = found.experiment_id if found else client.create_experiment(experiment)
             run = client.create_run(
                 experiment_id, run_name=Path(run_dir).name, tags={"run_dir": str(run_dir)}
             )
-            self.run_id = run.info.run_id
-            self.folder.mkdir(parents=True, exist_ok=True)
-            tmp = id_file.with_name(RUN_ID_FILE + ".tmp")
-            tmp.write_text(self.run_id + "\n")
-            tmp.replace(id_file)
+        self.run_id = run.info.run_id
+        self.folder.mkdir(parents=True, exist_ok=True)
+        tmp = id_file.with_name(RUN_ID_FILE + ".tmp")
+        tmp.write_text(self.run_id + "\n")
+        tmp.replace(id_file)
 
     def _last_step(self) -> int:
         keys = self.client.get_run(self.run_id).data.metrics
@@ -140,6 +181,29 @@ class MLflowLogger:
         self.client.set_terminated(self.run_id, status=_STATUSES.get(status, "KILLED"))
 
 
+def validate(cfg: Mapping[str, Any]) -> None:
+    """``logger.tracking_uri``: a store MLflow can open (an unknown scheme was a traceback when the
+    run started), and a SQLite file in a folder that exists (SQLite creates the file, not the folder)."""
+    uri = cfg.logger.tracking_uri
+    if uri is None:
+        return
+    from mlflow.utils.uri import get_uri_scheme
+
+    schemes = tracking_schemes()
+    try:
+        scheme = get_uri_scheme(uri)
+    except Exception:  # noqa: BLE001  (MLflow refuses e.g. an unknown database engine, sqlitex://)
+        scheme = None
+    if scheme not in schemes:
+        listed = ", ".join(f"{s}://" for s in schemes if s)
+        raise ConfigError.of("logger.tracking_uri", uri, f"a folder path or a URI of {listed}")
+    path = _sqlite_file(uri)
+    if path is not None and not path.expanduser().parent.is_dir():
+        raise ConfigError.of(
+            "logger.tracking_uri", uri, f"a SQLite file in a folder that exists ({path.parent} does not)"
+        )
+
+
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> MLflowLogger:
     # MLflow's store announces creating and migrating its tables at INFO level, once per process.
     for name in ("mlflow.store.db.utils", "alembic"):
@@ -162,12 +226,13 @@ class MLflowConf(TensorBoardConf):
 
 store_plugin("logger", "mlflow", MLflowConf)
 
-register(
+BACKEND = register(
     Backend(
         "mlflow",
         make,
         resume_rule="continues the same MLflow run and skips the steps it already has (append-only store)",
         summary="an MLflow run per run in a tracking store (SQLite beside the runs by default)",
+        validate=validate,
         extra="mlflow",
     )
 )

@@ -42,6 +42,7 @@ from drone_torchrl.config import (
     leaves,
     open_checkpoint,
     per_agent_keys,
+    preset_notes,
     resume_rule,
     run_config,
     validate,
@@ -105,7 +106,15 @@ def prepare(
     """
     job = _prepare(cfg, run_dir, requested, validated)
     run_lock.hold(job.run_dir)
+    if HydraConfig.initialized():
+        for note in preset_notes(HydraConfig.get().runtime.choices):
+            if note not in _noted:  # once per process, not once per job of a sweep
+                _noted.add(note)
+                print(f"note: {note}", file=sys.stderr)
     return job
+
+
+_noted: set[str] = set()
 
 
 def _prepare(

@@ -24,7 +24,7 @@ import torch
 from omegaconf import DictConfig
 
 from drone_torchrl import algorithms
-from drone_torchrl.config import ConfigError, env_kwargs
+from drone_torchrl.config import ConfigError, check_memory, env_kwargs
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.optimum import Optimum
@@ -254,6 +254,8 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
             if stop.signum is not None:  # the groups trained so far have written their checkpoints
                 raise TrainingStopped(stop.signum, [])
         try:
+            if len(members) > 1:  # each job's config fits; do they, trained together?
+                check_memory(jobs[members[0]].cfg, agents=len(members))
             trainer = Trainer([jobs[i] for i in members])
             finals = trainer.train()
         except Exception as err:  # noqa: BLE001  (recorded per job; the other groups go on)
