@@ -78,7 +78,12 @@ def test_the_parts_scale_as_derived():
 # allocations do not matter.
 MEASURED = [
     ["algo.episodes_per_update=1024", "algo.episodes=1024", "model.hidden_sizes=[256,256]"],
-    ["algo.episodes_per_update=512", "algo.episodes=512", "model.hidden_sizes=[256,256]", "backend=reference"],
+    [
+        "algo.episodes_per_update=512",
+        "algo.episodes=512",
+        "model.hidden_sizes=[256,256]",
+        "backend=reference",
+    ],
     [
         "algo=ppo",
         "algo.num_envs=2048",
