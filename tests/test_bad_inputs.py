@@ -494,7 +494,10 @@ TRAIN = [
     (["eval.video=true", "env.max_steps=1000000000"], "eval.video=false"),  # its frames
     # MLflow (without the extra: refused naming it)
     (["logger=mlflow", "logger.tracking_uri=foo://bar"], MLFLOW_OR("logger.tracking_uri")),
-    (["logger=mlflow", "logger.tracking_uri=sqlite:////nonexistent/x.db"], MLFLOW_OR("logger.tracking_uri")),
+    (
+        ["logger=mlflow", "logger.tracking_uri=sqlite:///{emptydir}/missing/x.db"],
+        MLFLOW_OR("logger.tracking_uri"),
+    ),
 ]
 
 

@@ -1,7 +1,7 @@
 """What the fast engine (``backend=fast``) flies, and the one-line reason where it cannot.
 
 An option the C++ engine does not take is refused before any work (``backend=reference`` takes
-every option), rather than silently run by other code.
+every option), rather than silently run by other code. Each reason names the key that asks for it.
 """
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import torch
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.dynamics import DTYPES
 from drone_torchrl.kernels.build import library, unavailable_reason
-from drone_torchrl.kernels.ops import check_supported
+from drone_torchrl.kernels.ops import ACTIVATION_CODES, MAX_LAYERS, MAX_WIDTH
+from drone_torchrl.kernels.ops import DTYPES as KERNEL_DTYPES
 
 
 def fast_refusal(
@@ -23,13 +24,19 @@ def fast_refusal(
     dtype: str,
     disturbance: disturbances.Disturbance,
 ) -> str | None:
-    """Why ``backend=fast`` cannot train this run (None where it can). Builds the kernels on first
-    use (a few seconds once per machine, then cached)."""
+    """Why ``backend=fast`` cannot train this run (``"<key>=<value> (<why>)"``), or None where it can.
+    Builds the kernels on first use (a few seconds once per machine, then cached)."""
     if torch.device(device).type != "cpu":
         return f"device={device!r} (its kernels run on the CPU; the CUDA build is not there yet)"
-    reason = check_supported(disturbance.observation_dim, list(hidden_sizes), activation, DTYPES[dtype])
-    if reason is not None:
-        return reason
+    hidden = list(hidden_sizes)
+    if len(hidden) > MAX_LAYERS or any(not 0 < h <= MAX_WIDTH for h in hidden):
+        return f"model.hidden_sizes={hidden} (at most {MAX_LAYERS} layers of at most {MAX_WIDTH})"
+    if activation not in ACTIVATION_CODES:
+        return f"model.activation={activation!r} (one of {list(ACTIVATION_CODES)})"
+    if DTYPES[dtype] not in KERNEL_DTYPES:
+        return f"env.dtype={dtype!r}"
+    if disturbance.observed_actions > disturbances.MAX_STEPS_BACK:
+        return f"env.disturbance.observed_actions={disturbance.observed_actions}"
     if library(double=DTYPES[dtype] == torch.float64) is None:
         return f"this machine: its C++ kernels could not be built ({unavailable_reason()})"
     return None

@@ -647,17 +647,3 @@ def segments(
         params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys, max_steps, env,
         disturbance, list(hidden), activation, min_std, dist_eps,
     )  # fmt: skip
-
-
-def check_supported(in_dim: int, hidden: Sequence[int], activation: str, dtype: torch.dtype) -> str | None:
-    """None where the kernels cover this network, else why not."""
-    observed, odd = divmod(in_dim - dynamics.STATE_DIM, dynamics.ACTION_DIM)
-    if odd or not 0 <= observed <= disturbances.MAX_STEPS_BACK:
-        return f"observations of {in_dim} values (the kernel's policies see 6 + 2 * observed_actions)"
-    if activation not in ACTIVATION_CODES:
-        return f"activation {activation!r}"
-    if len(hidden) > MAX_LAYERS or any(not 0 < h <= MAX_WIDTH for h in hidden):
-        return f"hidden sizes {list(hidden)} (at most {MAX_LAYERS} layers of at most {MAX_WIDTH})"
-    if dtype not in DTYPES:
-        return f"dtype {dtype}"
-    return None
