@@ -833,6 +833,7 @@ def test_every_row_through_the_real_commands(files, tmp_path):
     assert unclean == []
 
 
+@pytest.mark.slow  # about 70 s on 2 cores; test_train.py's CLI tests keep a real command in the default run
 def test_end_to_end(files, tmp_path):
     """The real commands: exit != 0, no traceback, the one line on stderr, nothing written."""
 

@@ -116,10 +116,11 @@ def test_the_old_sweep_runs_again_in_its_folders(runs):
     ("old", "note", "backend"),
     [
         ("engine=torchrl", "engine=torchrl is now backend=reference", "reference"),
-        ("engine=fused", "engine=fused is now backend=fast", "fast"),
-        ("compile=false", "compile=false is ignored", "fast"),
-        ("steps_per_call=5", "steps_per_call=5 is ignored", "fast"),
-        ("updates_per_call=7", "updates_per_call=7 is ignored", "fast"),
+        # One real command each (about 4 s): the default run keeps one, the slow stage the rest.
+        pytest.param("engine=fused", "engine=fused is now backend=fast", "fast", marks=pytest.mark.slow),
+        pytest.param("compile=false", "compile=false is ignored", "fast", marks=pytest.mark.slow),
+        pytest.param("steps_per_call=5", "steps_per_call=5 is ignored", "fast", marks=pytest.mark.slow),
+        pytest.param("updates_per_call=7", "updates_per_call=7 is ignored", "fast", marks=pytest.mark.slow),
     ],
 )
 def test_old_keys_on_the_command_line_work_with_a_note(tmp_path, old, note, backend):
