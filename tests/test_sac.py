@@ -18,6 +18,7 @@ from drone_torchrl.training.trainer import Trainer, train
 QUIET = ["eval.video=false", "progress=false", "eval.episodes=2", "eval.every_episodes=0"]
 # 8 drones x 8 steps a batch, 8 gradient steps on 32 frames: small enough for seconds.
 SMALL = [
+    "experiment=bounded",
     "algo=sac",
     "algo.num_envs=8",
     "algo.steps_per_batch=8",
@@ -110,7 +111,7 @@ def test_sac_learns_on_a_short_budget(tmp_path):
     """Seed 0, the YAML's settings, 600 episodes: the last 100 episodes' mean return is at least
     LEARNED_FACTOR times the first 100's (figures in the README)."""
     run = tmp_path / "run"
-    train(_cfg("algo=sac", "algo.episodes=600", *QUIET), run)
+    train(_cfg("experiment=bounded", "algo=sac", "algo.episodes=600", *QUIET), run)
     returns = read_episodes(run / "episodes.csv")[0]["return"]
     first, last = returns[:100].mean(), returns[-100:].mean()
     print(f"first 100: {first:.1f}, last 100: {last:.1f}")

@@ -39,6 +39,7 @@ from drone_torchrl.schema import (
     EPISODES,
     GAMMA,
     LR,
+    MAX_LR,
     NUM_ENVS,
     REWARD_SCALE,
     STEPS_PER_BATCH,
@@ -228,7 +229,7 @@ def validate(cfg: Mapping[str, Any]) -> None:
         raise ConfigError.of(
             "model.distribution",
             cfg.model.distribution,
-            "'tanh_normal' with algo.name=sac (bounded thrust: experiment=bounded, or env.max_thrust set)",
+            "'tanh_normal' with algo.name=sac (bounded thrust: experiment=bounded algo=sac)",
         )
     if cfg.algo.batch_size > cfg.algo.buffer_size:
         raise ConfigError.of(
@@ -244,7 +245,7 @@ class SACConf:
 
     name: Any = free()
     lr: Any = LR.field()
-    alpha_lr: Any = LR.field()
+    alpha_lr: Any = a_number(low=0, low_open=True, high=MAX_LR)  # lr's bounds; one agent a run
     gamma: Any = GAMMA.field()
     episodes: Any = EPISODES.field()
     num_envs: Any = NUM_ENVS.field()
