@@ -15,6 +15,9 @@ from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.trainer import Trainer, train
 
+# The slow test's margin: seed 0 went from a mean return of 33.0 (first 100 episodes) to 300.0 (last
+# 100: every episode full length) on 2026-12-04, 9.1 times.
+LEARNED_FACTOR = 3.0
 QUIET = ["eval.video=false", "progress=false", "eval.episodes=2", "eval.every_episodes=0"]
 # 8 drones x 8 steps a batch, 8 gradient steps on 32 frames: small enough for seconds.
 SMALL = [
@@ -53,7 +56,7 @@ def test_a_checkpoint_holds_the_buffer_only_as_far_as_it_is_filled(tmp_path):
     frames = big["replay_buffer"]["frames"]
     assert frames["observation"].shape == (320, 6) and frames["next"]["observation"].shape == (320, 6)
     assert frames["action"].shape == (320, 2) and frames["next"]["terminated"].shape == (320, 1)
-    # The file holds 320 frames, not 100,000: a full buffer's observations alone take 4.8 MB.
+    # The file holds 320 frames, not 100,000 (283 kB; 7.3 MB when the storage was saved whole).
     assert (tmp_path / "big" / "checkpoints" / "last.pt").stat().st_size < 400_000
     small = _stopped_after(
         _cfg(*SMALL, "algo.episodes=100000", "algo.buffer_size=100"), tmp_path / "small", 5
@@ -109,13 +112,10 @@ def test_a_run_restarted_without_its_drones_differs(tmp_path):
 @pytest.mark.slow
 def test_sac_learns_on_a_short_budget(tmp_path):
     """Seed 0, the YAML's settings, 600 episodes: the last 100 episodes' mean return is at least
-    LEARNED_FACTOR times the first 100's (figures in the README)."""
+    LEARNED_FACTOR times the first 100's (it crashes within about 30 steps at first)."""
     run = tmp_path / "run"
     train(_cfg("experiment=bounded", "algo=sac", "algo.episodes=600", *QUIET), run)
     returns = read_episodes(run / "episodes.csv")[0]["return"]
     first, last = returns[:100].mean(), returns[-100:].mean()
     print(f"first 100: {first:.1f}, last 100: {last:.1f}")
     assert last >= LEARNED_FACTOR * first, (first, last)
-
-
-LEARNED_FACTOR = 3.0
