@@ -403,6 +403,12 @@ TRAIN = [
     (["experiment=bounded", "algo=sac", "algo.qvalue_hidden_sizes=[]"], "algo.qvalue_hidden_sizes"),
     (["experiment=bounded", "algo=sac", "env.num_workers=2"], "env.num_workers"),
     (["experiment=bounded", "algo=sac", "algo.minibatch_size=64"], "algo.minibatch_size"),  # PPO's key
+    (["experiment=bounded", "algo=sac", "algo.n_steps=0"], "algo.n_steps"),
+    (["experiment=bounded", "algo=sac", "algo.n_steps=21"], "algo.n_steps"),  # > env.max_steps (TINY's 20)
+    (
+        ["experiment=bounded", "algo=sac", "algo.n_steps=3", "algo.gamma=0"],
+        "algo.gamma",
+    ),  # MultiStep raises at gamma 0
     (["algo.name=dqn"], "algo.name"),
     # logger plug-ins: a backend's own key, and another backend's
     (["logger=csv", "logger.float_format=abc"], "logger.float_format"),

@@ -7,8 +7,11 @@ import numpy as np
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+from torchrl.data import MultiStep
+from torchrl.objectives.value import TD0Estimator
 
-from drone_torchrl.algorithms.sac import FRAME_KEYS
+from drone_torchrl.algorithms.sac import FRAME_KEYS, n_step
 from drone_torchrl.config import config_dir
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
@@ -119,3 +122,61 @@ def test_sac_learns_on_a_short_budget(tmp_path):
     first, last = returns[:100].mean(), returns[-100:].mean()
     print(f"first 100: {first:.1f}, last 100: {last:.1f}")
     assert last >= LEARNED_FACTOR * first, (first, last)
+
+
+def _one_drone(rewards, terminated, truncated=None):
+    """A ``[1, T]`` batch of one drone whose observation is its step index (to see which next
+    observation a window ends on)."""
+    steps = len(rewards)
+    column = lambda values: torch.tensor(values).reshape(1, steps, 1)  # noqa: E731
+    terminated = column(terminated)
+    done = terminated | (column(truncated) if truncated is not None else False)
+    obs = torch.arange(steps, dtype=torch.float32).reshape(1, steps, 1).expand(1, steps, 6)
+    return TensorDict(
+        {
+            "observation": obs,
+            "action": torch.zeros(1, steps, 2),
+            "next": {
+                "observation": obs + 1,
+                "reward": column([float(r) for r in rewards]),
+                "done": done,
+                "terminated": terminated,
+            },
+        },
+        batch_size=[1, steps],
+    )
+
+
+def test_an_n_step_window_with_a_crash_is_cut_there_and_not_bootstrapped():
+    """gamma 0.5, 3-step windows; the drone crashes at step 2 (terminated), a new episode runs steps
+    3-4 to the batch's end. By hand: step 0 sums 1 + 0.5 * 10 + 0.25 * 1 = 6.25 and ends on the crash
+    (not bootstrapped); step 1: 10 + 0.5 * 1 = 10.5, the crash too; step 2: 1, the crash; step 3:
+    10 + 0.5 * 1 = 10.5 over 2 steps, cut by the batch's end, bootstrapped from the observation after
+    step 4 with 0.5^2. TorchRL's MultiStep alone leaves step 0's terminated False: its TD0 target
+    would add the value after the crash."""
+    batch = _one_drone([1, 10, 1, 10, 1], [False, False, True, False, False])
+    raw = MultiStep(0.5, 3)(batch.clone())
+    assert not raw.get(("next", "terminated"))[0, 0].item()  # the pitfall: the window's start's flag
+    out = n_step(batch, 0.5, 3)
+    torch.testing.assert_close(
+        out.get(("next", "reward")).flatten(), torch.tensor([6.25, 10.5, 1.0, 10.5, 1.0])
+    )
+    assert out.get(("next", "terminated")).flatten().tolist() == [True, True, True, False, False]
+    assert out.get("steps_to_next_obs").flatten().tolist() == [3, 2, 1, 2, 1]
+    assert out.get(("next", "observation"))[0, :, 0].tolist() == [3.0, 3.0, 3.0, 5.0, 5.0]
+    # TD0 (SACLoss's estimator) on these frames with a next value of 100 everywhere: the crash's
+    # windows get their rewards alone, the others 0.5^steps x 100 on top.
+    td0 = TD0Estimator(gamma=0.5, value_network=None)
+    target = td0.value_estimate(out, next_value=torch.full((1, 5, 1), 100.0)).flatten()
+    torch.testing.assert_close(target, torch.tensor([6.25, 10.5, 1.0, 10.5 + 25.0, 1.0 + 50.0]))
+
+
+def test_a_step_limit_cut_inside_a_window_is_bootstrapped():
+    """A window that ends on a truncation (the step limit, not a crash) bootstraps from the
+    observation after it: step 0 sums 1 + 0.5 x 1 and is not terminated."""
+    batch = _one_drone([1, 1, 1], [False, False, False], truncated=[False, True, False])
+    out = n_step(batch, 0.5, 3)
+    torch.testing.assert_close(out.get(("next", "reward")).flatten(), torch.tensor([1.5, 1.0, 1.0]))
+    assert out.get(("next", "terminated")).flatten().tolist() == [False, False, False]
+    assert out.get(("next", "done")).flatten().tolist() == [True, True, False]
+    assert out.get("steps_to_next_obs").flatten().tolist() == [2, 1, 1]

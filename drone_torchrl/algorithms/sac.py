@@ -7,8 +7,8 @@ steps with the current TanhNormal actor (bounded thrust), the frames go into a
 (:class:`~torchrl.data.LazyTensorStorage`, oldest overwritten first), and ``algo.updates_per_batch``
 gradient steps on minibatches of ``algo.batch_size`` frames drawn from it follow, each one also
 moving the two target Q-networks ``algo.tau`` of the way (``SoftUpdate``). One-step TD targets
-(``TD0``): a crash (``terminated``) is not bootstrapped, a step-limit cut (``truncated``) is.
-No n-step returns.
+(``TD0``), or with ``algo.n_steps`` > 1 TorchRL's ``MultiStep`` sums that many rewards first
+(:func:`n_step`): a crash (``terminated``) is not bootstrapped, a step-limit cut (``truncated``) is.
 
 The batches are flown by the C++ engine (``backend=fast``, :class:`~.segments.FusedSegments`, as
 PPO's fast path), whose drones' state a checkpoint keeps: a resumed run carries on the drones'
@@ -26,7 +26,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.data import LazyTensorStorage, RandomSampler, TensorDictReplayBuffer
+from torchrl.data import LazyTensorStorage, MultiStep, RandomSampler, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
 from drone_torchrl.algorithms import Algorithm, register
@@ -68,6 +68,20 @@ FRAME_KEYS = (
 # (each reaches only its own parameters: SACLoss detaches the others).
 LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
 REPORTED = (*LOSSES, "alpha", "entropy")
+
+
+def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
+    """``[drones, steps]`` frames as ``n``-step transitions (TorchRL's ``MultiStep``): each frame's
+    reward becomes the discounted sum of up to ``n`` rewards, its next observation the one after
+    the last of them, and ``"steps_to_next_obs"`` their number (TD0 discounts the bootstrap by
+    ``gamma`` to that power). A window stops at its episode's end or the batch's; MultiStep leaves
+    the done flags at the window's start, so they are set here to the window's last step: a window
+    that ends in a crash is not bootstrapped."""
+    out = MultiStep(gamma, n)(frames)
+    last = (torch.arange(frames.shape[-1]) + out.get("steps_to_next_obs") - 1).unsqueeze(-1)
+    for flag in ("done", "terminated"):
+        out.set(("next", flag), frames.get(("next", flag)).gather(-2, last))
+    return out.select(*FRAME_KEYS, "steps_to_next_obs")
 
 
 class SAC:
@@ -160,10 +174,13 @@ class SAC:
         return state, update_output(metrics, episodes, self.checks, active)
 
     def _store(self, batch: TensorDictBase) -> None:
-        frames = batch.select(*FRAME_KEYS).reshape(-1)
-        frames.set(("next", "reward"), frames.get(("next", "reward")) * self.cfg.algo.reward_scale)
+        algo = self.cfg.algo
+        frames = batch.select(*FRAME_KEYS)
+        frames.set(("next", "reward"), frames.get(("next", "reward")) * algo.reward_scale)
+        if algo.n_steps > 1:
+            frames = n_step(frames, algo.gamma, algo.n_steps)
         with quiet("torchrl"):
-            self.buffer.extend(frames)
+            self.buffer.extend(frames.reshape(-1))
 
     def _learn(self) -> dict[str, float]:
         """``algo.updates_per_batch`` gradient steps of the actor, the Q-networks and the temperature,
@@ -231,6 +248,8 @@ def validate(cfg: Mapping[str, Any]) -> None:
             cfg.model.distribution,
             "'tanh_normal' with algo.name=sac (bounded thrust: experiment=bounded algo=sac)",
         )
+    if cfg.algo.n_steps > 1 and cfg.algo.gamma == 0:
+        raise ConfigError.of("algo.gamma", 0, "> 0 with algo.n_steps > 1 (MultiStep's discount)")
     if cfg.algo.batch_size > cfg.algo.buffer_size:
         raise ConfigError.of(
             "algo.batch_size",
@@ -253,6 +272,7 @@ class SACConf:
     buffer_size: Any = an_integer(low=1)
     batch_size: Any = an_integer(low=1)
     updates_per_batch: Any = an_integer(low=1)
+    n_steps: Any = an_integer(low=1, high="env.max_steps")  # a longer window than an episode: no use
     tau: Any = a_number(low=0, low_open=True, high=1)
     alpha_init: Any = a_number(low=0, low_open=True)
     target_entropy: Any = a_number()

@@ -238,6 +238,8 @@ def sac_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     d = observation_size(cfg)
     q_hidden = list(algo["qvalue_hidden_sizes"])
     stored = (2 * d + SAC_FLOATS_PER_FRAME) * b + SAC_FLAG_BYTES_PER_FRAME
+    if algo["n_steps"] > 1:  # and each window's length
+        stored += INT64_BYTES
     flown = (2 * d + ON_POLICY_FLOATS_PER_FRAME) * b + ON_POLICY_INT_BYTES_PER_FRAME
     frames = agents * algo["num_envs"] * algo["steps_per_batch"]
     graph = SAC_ACTOR_PASSES * graph_bytes(cfg["model"]["hidden_sizes"], b) + SAC_Q_PASSES * graph_bytes(
