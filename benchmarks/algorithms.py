@@ -1,4 +1,4 @@
-"""Every algorithm option (``conf/algo/*``: REINFORCE, REINFORCE+, PPO, A2C, ...) with bounded thrust, 4
+"""Every algorithm option (``conf/algo/*``: REINFORCE, REINFORCE+, PPO, A2C, SAC, ...) with bounded thrust, 4
 seeds each, against the PD controller.
 
     python benchmarks/algorithms.py                      # every algorithm, 4 seeds, their default budgets

@@ -86,6 +86,14 @@ class EpisodeTracker:
         zeros = torch.zeros(num_envs, device=device)
         self._return, self._length, self._zone, self._negative = (zeros.clone() for _ in range(4))
 
+    def state(self) -> list[torch.Tensor]:
+        """The running episodes' sums so far (return, length, steps in the zone, negative commands)."""
+        return [acc.clone() for acc in (self._return, self._length, self._zone, self._negative)]
+
+    def load_state(self, state: list[torch.Tensor]) -> None:
+        """Carry on the running episodes of :meth:`state` (a resumed run's)."""
+        self._return, self._length, self._zone, self._negative = (acc.clone() for acc in state)
+
     def update(self, batch: TensorDictBase) -> dict[str, list]:
         reward = batch.get(("next", "reward")).squeeze(-1)
         done = batch.get(("next", "done")).squeeze(-1)

@@ -389,6 +389,26 @@ TRAIN = [
     (["algo=a2c", "algo.loss_critic_type=huber"], "algo.loss_critic_type"),
     (["algo=a2c", "algo.advantage_scaling=whiten"], "algo.advantage_scaling"),
     (["algo=a2c", "algo.critic_max_grad_norm=0"], "algo.critic_max_grad_norm"),
+    # SAC (algo=sac, bounded thrust only)
+    (["experiment=bounded", "algo=sac", "algo.buffer_size=1000000000000"], "algo.buffer_size"),  # > memory
+    (["experiment=bounded", "algo=sac", "algo.buffer_size=500", "algo.batch_size=600"], "algo.batch_size"),
+    (["experiment=bounded", "algo=sac", "algo.buffer_size=0"], "algo.buffer_size"),
+    (["experiment=bounded", "algo=sac", "backend=reference"], "backend"),
+    (["algo=sac"], "model.distribution"),  # the default Normal head: unbounded thrust
+    (["experiment=bounded", "algo=sac", "algo.tau=0"], "algo.tau"),
+    (["experiment=bounded", "algo=sac", "algo.tau=1.5"], "algo.tau"),
+    (["experiment=bounded", "algo=sac", "algo.updates_per_batch=0"], "algo.updates_per_batch"),
+    (["experiment=bounded", "algo=sac", "algo.alpha_init=0"], "algo.alpha_init"),
+    (["experiment=bounded", "algo=sac", "algo.target_entropy=abc"], "algo.target_entropy"),
+    (["experiment=bounded", "algo=sac", "algo.qvalue_hidden_sizes=[]"], "algo.qvalue_hidden_sizes"),
+    (["experiment=bounded", "algo=sac", "env.num_workers=2"], "env.num_workers"),
+    (["experiment=bounded", "algo=sac", "algo.minibatch_size=64"], "algo.minibatch_size"),  # PPO's key
+    (["experiment=bounded", "algo=sac", "algo.n_steps=0"], "algo.n_steps"),
+    (["experiment=bounded", "algo=sac", "algo.n_steps=21"], "algo.n_steps"),  # > env.max_steps (TINY's 20)
+    (
+        ["experiment=bounded", "algo=sac", "algo.n_steps=3", "algo.gamma=0"],
+        "algo.gamma",
+    ),  # MultiStep raises at gamma 0
     (["algo.name=dqn"], "algo.name"),
     # logger plug-ins: a backend's own key, and another backend's
     (["logger=csv", "logger.float_format=abc"], "logger.float_format"),

@@ -43,8 +43,13 @@ def _base(key: str):
         return _composed(())
     for option in _options(group):
         if key in schema_keys("config", **_option_plugins("config", ((group, option),))):
-            return _composed((f"{group}={option}",))
+            return _composed((*OPTION_NEEDS.get(f"{group}={option}", ()), f"{group}={option}"))
     raise AssertionError(f"no {group} option has {key}")
+
+
+# What an option needs besides the default config, as its refusal says (SAC's TanhNormal actor:
+# bounded thrust).
+OPTION_NEEDS = {"algo=sac": ("experiment=bounded",)}
 
 
 @functools.cache
@@ -170,6 +175,9 @@ RELATED = {
         st.integers(min_value=1, max_value=INT64_MAX // cfg.algo.num_envs),
         lambda v: {"algo.minibatch_size": v * cfg.algo.num_envs},
     ),
+    # SAC's minibatch is drawn from its buffer: at most algo.buffer_size frames
+    "algo.batch_size": lambda cfg: (st.integers(min_value=1, max_value=cfg.algo.buffer_size), {}),
+    "algo.buffer_size": lambda cfg: (None, lambda v: {"algo.batch_size": min(v, cfg.algo.batch_size)}),
     # REINFORCE's budget is a multiple of the episodes of an update
     "algo.episodes_per_update": lambda cfg: (None, lambda v: {"algo.episodes": v}),
     # backend=fast's kernels take layers up to ops.MAX_WIDTH wide (its refusal names backend=reference)

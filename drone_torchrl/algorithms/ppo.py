@@ -72,7 +72,7 @@ ADVANTAGE_EPS = 1e-8
 
 
 @contextlib.contextmanager
-def _quiet(logger_name: str) -> Iterator[None]:
+def quiet(logger_name: str) -> Iterator[None]:
     logger = logging.getLogger(logger_name)
     level = logger.level
     logger.setLevel(logging.WARNING)
@@ -80,6 +80,40 @@ def _quiet(logger_name: str) -> Iterator[None]:
         yield
     finally:
         logger.setLevel(level)
+
+
+def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
+    """A collector batch (``[drones, steps]``) up to the step at which the budget's last episode ends: a batch of 64 drones x 64
+    steps can finish dozens of short episodes, so without this a budget of 20 would train 43. The
+    steps after it are dropped (the run ends there: the drones' next episodes are not booked), and
+    episodes that end on that same step are booked too, so the budget may be passed by those."""
+    done = batch.get(("next", "done")).reshape(batch.shape[0], batch.shape[1])  # [drones, steps]
+    ended_by = done.sum(0).cumsum(0)
+    if remaining <= 0 or ended_by[-1] <= remaining:
+        return batch
+    last_step = int(torch.searchsorted(ended_by, remaining))  # first step with >= remaining ended
+    return batch[:, : last_step + 1]
+
+
+def update_output(
+    metrics: list[dict[str, float]],
+    episodes: list[dict[str, list]],
+    checks: tuple[str, ...],
+    active: torch.Tensor,
+) -> UpdateOutput:
+    """One agent's ``k`` updates (``metrics`` and ``episodes``, one of each per update) in the update
+    contract's layout: metrics ``[k, 1]``, each update's episodes padded to the most any ended, with
+    a ``"valid"`` mask."""
+    k = len(metrics)
+    most = max(1, *(len(e["return"]) for e in episodes))
+    padded = {key: [[e[key] + [0] * (most - len(e[key]))] for e in episodes] for key in EPISODE_KEYS}
+    valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
+    values = torch.tensor([[[m[name] for name in checks]] for m in metrics], dtype=torch.float64)
+    out = {name: values[..., i] for i, name in enumerate(checks)}
+    out["active"] = active.reshape(1, 1).expand(k, 1)
+    out["checks"] = values.isfinite()
+    stats = {key: torch.tensor(padded[key]) for key in EPISODE_KEYS}
+    return UpdateOutput(out, {**stats, "valid": torch.tensor(valid)})
 
 
 class OnPolicy:
@@ -181,33 +215,12 @@ class OnPolicy:
         metrics: list[dict[str, float]] = []
         episodes: list[dict[str, list]] = []
         for _ in range(k):
-            batch = self._within_budget(next(self._batches), self.budget - int(state["episodes_done"]))
+            batch = within_budget(next(self._batches), self.budget - int(state["episodes_done"]))
             ended = self.tracker.update(batch)
             metrics.append(self._learn(batch, int(state["episodes_done"])))
             state["episodes_done"] += len(ended["return"])
             episodes.append(ended)
-        most = max(1, *(len(e["return"]) for e in episodes))
-        padded = {key: [[e[key] + [0] * (most - len(e[key]))] for e in episodes] for key in EPISODE_KEYS}
-        valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
-        values = torch.tensor([[[m[name] for name in self.checks]] for m in metrics], dtype=torch.float64)
-        out = {name: values[..., i] for i, name in enumerate(self.checks)}
-        out["active"] = active.reshape(1, 1).expand(k, 1)
-        out["checks"] = values.isfinite()
-        stats = {key: torch.tensor(padded[key]) for key in EPISODE_KEYS}
-        return state, UpdateOutput(out, {**stats, "valid": torch.tensor(valid)})
-
-    @staticmethod
-    def _within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
-        """The batch up to the step at which the budget's last episode ends: a batch of 64 drones x 64
-        steps can finish dozens of short episodes, so without this a budget of 20 would train 43. The
-        steps after it are dropped (the run ends there: the drones' next episodes are not booked), and
-        episodes that end on that same step are booked too, so the budget may be passed by those."""
-        done = batch.get(("next", "done")).reshape(batch.shape[0], batch.shape[1])  # [drones, steps]
-        ended_by = done.sum(0).cumsum(0)
-        if remaining <= 0 or ended_by[-1] <= remaining:
-            return batch
-        last_step = int(torch.searchsorted(ended_by, remaining))  # first step with >= remaining ended
-        return batch[:, : last_step + 1]
+        return state, update_output(metrics, episodes, self.checks, active)
 
     def _learn(self, batch, episodes_done: int) -> dict[str, float]:
         """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's mean metrics."""
@@ -221,7 +234,7 @@ class OnPolicy:
             self.advantage(batch)
             batch.set("advantage", self.scale_advantage(batch.get("advantage")))
         self.buffer.empty()  # a batch cut at the budget is smaller than the storage
-        with _quiet("torchrl"):  # its storage announces its first allocation at INFO level
+        with quiet("torchrl"):  # its storage announces its first allocation at INFO level
             self.buffer.extend(batch.reshape(-1))
         # A batch cut at the budget may hold fewer frames than one minibatch: then one of all of them.
         size = min(algo.minibatch_size, len(self.buffer))

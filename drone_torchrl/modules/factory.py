@@ -10,7 +10,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from drone_torchrl.envs.dynamics import ACTION_DIM, DTYPES, HOVER_THRUST, STATE_DIM
 from drone_torchrl.modules.policy import ThreeNetPolicy, actor_from_net, init_exploration
-from drone_torchrl.modules.value import make_critic
+from drone_torchrl.modules.value import make_critic, make_q_value
 
 # How close to the TanhNormal's bounds a starting mean may be (atanh is infinite at +-1).
 TANH_EDGE = 0.99
@@ -68,6 +68,17 @@ def build_critic(cfg: DictConfig) -> ValueOperator:
     """PPO's value network (``algo.value_hidden_sizes``, the policy's activation) on ``cfg.device``."""
     return make_critic(
         list(cfg.algo.value_hidden_sizes),
+        cfg.model.activation,
+        cfg.device,
+        model_dtype(cfg),
+        observation_dim(cfg),
+    )
+
+
+def build_q_value(cfg: DictConfig) -> ValueOperator:
+    """SAC's Q-network (``algo.qvalue_hidden_sizes``, the policy's activation) on ``cfg.device``."""
+    return make_q_value(
+        list(cfg.algo.qvalue_hidden_sizes),
         cfg.model.activation,
         cfg.device,
         model_dtype(cfg),

@@ -1,4 +1,4 @@
-"""The critic PPO trains beside the three-net actor: an MLP from the observation to a state value."""
+"""The critics trained beside the three-net actor: PPO's state value and SAC's action value (Q) MLPs."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from collections.abc import Sequence
 import torch
 from torchrl.modules import MLP, ValueOperator
 
-from drone_torchrl.envs.dynamics import STATE_DIM
+from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM
 from drone_torchrl.modules.policy import ACTIVATIONS
 
 
@@ -28,3 +28,22 @@ def make_critic(
         device=device,
     )
     return ValueOperator(net.to(dtype), in_keys=["observation"])
+
+
+def make_q_value(
+    hidden_sizes: Sequence[int],
+    activation: str,
+    device: torch.device | str,
+    dtype: torch.dtype,
+    observation_dim: int = STATE_DIM,
+) -> ValueOperator:
+    """SAC's Q-network: a ``ValueOperator`` over an MLP of the observation and the action
+    (concatenated by TorchRL's MLP), writing ``"state_action_value"``, in ``dtype``."""
+    net = MLP(
+        in_features=observation_dim + ACTION_DIM,
+        out_features=1,
+        num_cells=list(hidden_sizes),
+        activation_class=ACTIVATIONS[activation],
+        device=device,
+    )
+    return ValueOperator(net.to(dtype), in_keys=["observation", "action"], out_keys=["state_action_value"])

@@ -98,6 +98,16 @@ ON_POLICY_FLOATS_PER_FRAME = 3 * ACTION_DIM + 7
 ON_POLICY_INT_BYTES_PER_FRAME = 3 * INT64_BYTES + 6
 # The collector's steps before they are stacked, the batch, the replay buffer's copy.
 BATCH_COPIES = 3
+# A frame of SAC's replay buffer besides the two observations: the action (2) and the reward; and
+# its done and terminated flags (bool).
+SAC_FLOATS_PER_FRAME = ACTION_DIM + 1
+SAC_FLAG_BYTES_PER_FRAME = 2
+# SACLoss's graph per sample: the actor on the observations and the next ones; the two Q-networks on
+# (observation, action), on (observation, new action) and their targets on the next ones.
+SAC_ACTOR_PASSES = 2
+SAC_Q_PASSES = 6
+# Two Q-networks, each with its gradient, Adam's two moments and its target copy.
+SAC_Q_COPIES = 2 * (ADAM_COPIES + 1)
 # GAE's critic pass on the observations and the next ones stacked: their copy, and the widest
 # layer's pre-activation and activation.
 CRITIC_PASS_FRAMES = 2
@@ -217,6 +227,33 @@ def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
             minibatch, "lower algo.minibatch_size, model.hidden_sizes or algo.value_hidden_sizes"
         ),
         "the critic's weights": Part(critic, "lower algo.value_hidden_sizes"),
+    }
+
+
+def sac_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
+    """SAC's replay buffer of ``algo.buffer_size`` frames, the batch it flies, a minibatch's graph and
+    the Q-networks' weights."""
+    algo = cfg["algo"]
+    b = FLOAT_BYTES[cfg["env"]["dtype"]]
+    d = observation_size(cfg)
+    q_hidden = list(algo["qvalue_hidden_sizes"])
+    stored = (2 * d + SAC_FLOATS_PER_FRAME) * b + SAC_FLAG_BYTES_PER_FRAME
+    if algo["n_steps"] > 1:  # and each window's length
+        stored += INT64_BYTES
+    flown = (2 * d + ON_POLICY_FLOATS_PER_FRAME) * b + ON_POLICY_INT_BYTES_PER_FRAME
+    frames = agents * algo["num_envs"] * algo["steps_per_batch"]
+    graph = SAC_ACTOR_PASSES * graph_bytes(cfg["model"]["hidden_sizes"], b) + SAC_Q_PASSES * graph_bytes(
+        q_hidden, b
+    )
+    q_weights = mlp_parameters([d + ACTION_DIM, *q_hidden, 1]) * b
+    return {
+        "the replay buffer": Part(agents * algo["buffer_size"] * stored, "lower algo.buffer_size"),
+        "the flown batch": Part(frames * flown, "lower algo.num_envs or algo.steps_per_batch"),
+        "a minibatch": Part(
+            agents * algo["batch_size"] * (stored + graph),
+            "lower algo.batch_size, model.hidden_sizes or algo.qvalue_hidden_sizes",
+        ),
+        "the Q-networks' weights": Part(agents * SAC_Q_COPIES * q_weights, "lower algo.qvalue_hidden_sizes"),
     }
 
 

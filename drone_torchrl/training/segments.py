@@ -27,7 +27,7 @@ from torchrl.modules import ProbabilisticActor
 
 from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs import disturbances, dynamics
-from drone_torchrl.kernels.modules import KernelSegments
+from drone_torchrl.kernels.modules import Carried, KernelSegments
 from drone_torchrl.modules.factory import model_dtype
 from drone_torchrl.modules.policy import ThreeNetPolicy
 from drone_torchrl.modules.stacked import StackedThreeNet
@@ -60,6 +60,14 @@ class FusedSegments:
     def restart(self) -> None:
         """Start every drone's episode afresh (a resumed run: the interrupted episodes were not booked)."""
         self.kernel.restart()
+
+    def carried(self) -> list[torch.Tensor]:
+        """What each drone carries into the next batch (its state, step count, disturbances...)."""
+        return [t.clone() for t in self.kernel.carried]
+
+    def carry_on(self, carried: list[torch.Tensor]) -> None:
+        """Fly on from :meth:`carried` (a resumed run's drones, mid-episode)."""
+        self.kernel.carried = Carried(*(t.clone() for t in carried))
 
     def __iter__(self) -> FusedSegments:
         return self

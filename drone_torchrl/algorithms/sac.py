@@ -1,0 +1,294 @@
+"""SAC on the drone (``algo=sac``): TorchRL's ``SACLoss``, a TorchRL replay buffer and ``SoftUpdate``.
+
+Soft actor-critic (Haarnoja et al. 2018, with the learned temperature of their second paper), as
+TorchRL's ``sota-implementations/sac`` runs it: ``algo.num_envs`` drones fly ``algo.steps_per_batch``
+steps with the current TanhNormal actor (bounded thrust), the frames go into a
+:class:`~torchrl.data.TensorDictReplayBuffer` of ``algo.buffer_size`` frames
+(:class:`~torchrl.data.LazyTensorStorage`, oldest overwritten first), and ``algo.updates_per_batch``
+gradient steps on minibatches of ``algo.batch_size`` frames drawn from it follow, each one also
+moving the two target Q-networks ``algo.tau`` of the way (``SoftUpdate``). One-step TD targets
+(``TD0``), or with ``algo.n_steps`` > 1 TorchRL's ``MultiStep`` sums that many rewards first
+(:func:`n_step`): a crash (``terminated``) is not bootstrapped, a step-limit cut (``truncated``) is.
+
+The batches are flown by the C++ engine (``backend=fast``, :class:`~.segments.FusedSegments`, as
+PPO's fast path), whose drones' state a checkpoint keeps: a resumed run carries on the drones'
+episodes where the checkpoint left them, with the buffer (as far as it is filled), the Q-networks,
+their targets, the temperature, Adam's moments and both random generators, so it equals the
+uninterrupted run. TorchRL's collector (``backend=reference``) does not expose its envs' running
+state, so SAC refuses it in one line.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import LazyTensorStorage, MultiStep, RandomSampler, TensorDictReplayBuffer
+from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
+
+from drone_torchrl.algorithms import Algorithm, register
+from drone_torchrl.algorithms.ppo import quiet, update_output, within_budget
+from drone_torchrl.checks import ConfigError
+from drone_torchrl.episodes import EpisodeTracker
+from drone_torchrl.migrations import FAST
+from drone_torchrl.modules.factory import build_actor, build_policy, build_q_value
+from drone_torchrl.schema import (
+    EPISODES,
+    GAMMA,
+    LR,
+    MAX_LR,
+    NUM_ENVS,
+    REWARD_SCALE,
+    STEPS_PER_BATCH,
+    VALUE_HIDDEN_SIZES,
+    a_number,
+    an_integer,
+    free,
+    store_plugin,
+)
+from drone_torchrl.training.memory_estimate import sac_parts
+from drone_torchrl.training.segments import FusedSegments
+from drone_torchrl.training.update import UpdateOutput
+
+# Clipped double-Q: the target is the smaller of two Q-networks' (SACLoss's default).
+NUM_QVALUE_NETS = 2
+# What a frame of the replay buffer holds: the TD0 target and SACLoss need no more.
+FRAME_KEYS = (
+    "observation",
+    "action",
+    ("next", "observation"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+)
+# SACLoss's outputs booked as train/<name>; the losses among them are summed for one backward pass
+# (each reaches only its own parameters: SACLoss detaches the others).
+LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
+REPORTED = (*LOSSES, "alpha", "entropy")
+
+
+def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
+    """``[drones, steps]`` frames as ``n``-step transitions (TorchRL's ``MultiStep``): each frame's
+    reward becomes the discounted sum of up to ``n`` rewards, its next observation the one after
+    the last of them, and ``"steps_to_next_obs"`` their number (TD0 discounts the bootstrap by
+    ``gamma`` to that power). A window stops at its episode's end or the batch's; MultiStep leaves
+    the done flags at the window's start, so they are set here to the window's last step: a window
+    that ends in a crash is not bootstrapped."""
+    out = MultiStep(gamma, n)(frames)
+    last = (torch.arange(frames.shape[-1]) + out.get("steps_to_next_obs") - 1).unsqueeze(-1)
+    for flag in ("done", "terminated"):
+        out.set(("next", flag), frames.get(("next", flag)).gather(-2, last))
+    return out.select(*FRAME_KEYS, "steps_to_next_obs")
+
+
+class SAC:
+    """One SAC run behind the update contract (:mod:`drone_torchrl.training.update`): each update
+    flies one batch, stores it and takes ``algo.updates_per_batch`` gradient steps."""
+
+    advice = "lower algo.lr"
+    episodes_per_update = None  # the episodes a batch finishes vary: one update per call
+    eval_agents = None
+    checks = tuple(f"train/{k}" for k in REPORTED)
+
+    @staticmethod
+    def max_agents(cfg) -> int:
+        """One run per learner: it is a batch of drones already."""
+        return 1
+
+    def __init__(self, jobs) -> None:
+        (job,) = jobs
+        cfg = self.cfg = job.cfg
+        algo = cfg.algo
+        net = build_policy(cfg, cfg.seed)
+        self.actor_module = build_actor(cfg, net, return_log_prob=True)
+        self.loss = SACLoss(
+            self.actor_module,
+            build_q_value(cfg),
+            num_qvalue_nets=NUM_QVALUE_NETS,
+            loss_function="l2",
+            alpha_init=algo.alpha_init,
+            target_entropy=algo.target_entropy,
+        )
+        self.loss.make_value_estimator(ValueEstimators.TD0, gamma=algo.gamma)
+        self.target_update = SoftUpdate(self.loss, tau=algo.tau)
+        self.optimizer = torch.optim.Adam(
+            [
+                {"params": list(self.loss.actor_network_params.values(True, True))},
+                {"params": list(self.loss.qvalue_network_params.values(True, True))},
+                {"params": [self.loss.log_alpha], "lr": algo.alpha_lr},
+            ],
+            lr=algo.lr,
+        )
+        self.collector = FusedSegments(cfg, self.actor_module, net)
+        self.buffer = TensorDictReplayBuffer(
+            storage=LazyTensorStorage(algo.buffer_size, device=cfg.device),
+            sampler=RandomSampler(),
+            batch_size=algo.batch_size,
+        )
+        self.tracker = EpisodeTracker(algo.num_envs, cfg.device)
+        # False after a batch cut at the budget: its drones flew on past the cut, unbooked.
+        self.carried_on = True
+        checkpoint = job.checkpoint
+        if checkpoint is not None:
+            self._restore(checkpoint)
+        done = 0 if checkpoint is None else checkpoint["episodes_done"]
+        self.state = TensorDict({"episodes_done": torch.tensor([done])}, batch_size=[1])
+        self.budget = algo.episodes
+
+    def _restore(self, checkpoint: Mapping[str, Any]) -> None:
+        self.actor_module.load_state_dict(checkpoint["actor"])
+        self.loss.load_state_dict({**self.loss.state_dict(), **checkpoint["qvalue"]})
+        self.optimizer.load_state_dict(checkpoint["optimizer"])
+        torch.set_rng_state(checkpoint["rng"]["torch"])
+        self.collector.generator.set_state(checkpoint["rng"]["env"])
+        saved = checkpoint["replay_buffer"]
+        frames = TensorDict(saved["frames"]).auto_batch_size_(batch_dims=1)
+        if len(frames):
+            with quiet("torchrl"):  # its storage announces its first allocation at INFO level
+                self.buffer.extend(frames.to(self.cfg.device))
+        self.buffer.writer.load_state_dict(saved["writer"])
+        drones = checkpoint["drones"]
+        if drones["carried"] is None:  # its last batch was cut at the budget: start afresh
+            self.collector.restart()
+        else:
+            self.collector.carry_on(drones["carried"])
+            self.tracker.load_state(drones["episodes"])
+
+    def update(
+        self, state: TensorDictBase, k: int, active: torch.Tensor
+    ) -> tuple[TensorDictBase, UpdateOutput]:
+        metrics: list[dict[str, float]] = []
+        episodes: list[dict[str, list]] = []
+        for _ in range(k):
+            flown = next(self.collector)
+            batch = within_budget(flown, self.budget - int(state["episodes_done"]))
+            self.carried_on = batch.shape[1] == flown.shape[1]
+            ended = self.tracker.update(batch)
+            self._store(batch)
+            metrics.append(self._learn())
+            state["episodes_done"] += len(ended["return"])
+            episodes.append(ended)
+        return state, update_output(metrics, episodes, self.checks, active)
+
+    def _store(self, batch: TensorDictBase) -> None:
+        algo = self.cfg.algo
+        frames = batch.select(*FRAME_KEYS)
+        frames.set(("next", "reward"), frames.get(("next", "reward")) * algo.reward_scale)
+        if algo.n_steps > 1:
+            frames = n_step(frames, algo.gamma, algo.n_steps)
+        with quiet("torchrl"):
+            self.buffer.extend(frames.reshape(-1))
+
+    def _learn(self) -> dict[str, float]:
+        """``algo.updates_per_batch`` gradient steps of the actor, the Q-networks and the temperature,
+        each followed by the targets' soft update; the steps' mean of what SACLoss reports."""
+        steps = self.cfg.algo.updates_per_batch
+        sums: dict[str, torch.Tensor] = {}
+        for _ in range(steps):
+            losses = self.loss(self.buffer.sample())
+            self.optimizer.zero_grad()
+            sum(losses[key] for key in LOSSES).backward()
+            self.optimizer.step()
+            self.target_update.step()
+            for key in REPORTED:
+                sums[key] = sums.get(key, 0) + losses[key].detach()
+        return {f"train/{key}": (value / steps).item() for key, value in sums.items()}
+
+    def eval_policy(self):
+        return self.actor_module
+
+    def actor(self, agent: int):
+        return self.actor_module
+
+    def checkpoint_entries(self, agent: int) -> dict[str, Any]:
+        """Everything the next update depends on: the networks (``qvalue``: SACLoss's Q-networks,
+        their targets and the temperature), Adam, both generators, the buffer's filled frames and
+        its write cursor, and the drones' running episodes."""
+        # A copy: the slice is a view, and torch.save writes a view's whole storage (the capacity).
+        filled = self.buffer.storage[: len(self.buffer)].clone() if len(self.buffer) else TensorDict()
+        return {
+            "actor": self.actor_module.state_dict(),
+            "qvalue": {k: v for k, v in self.loss.state_dict().items() if not k.startswith("actor_network")},
+            "optimizer": self.optimizer.state_dict(),
+            "rng": {
+                "torch": torch.get_rng_state(),
+                "env": self.collector.generator.get_state(),
+                "agent": None,
+            },
+            "replay_buffer": {"frames": filled.cpu().to_dict(), "writer": self.buffer.writer.state_dict()},
+            "drones": {
+                "carried": self.collector.carried() if self.carried_on else None,
+                "episodes": self.tracker.state(),
+            },
+        }
+
+    def close(self) -> None:
+        pass
+
+
+def validate(cfg: Mapping[str, Any]) -> None:
+    """SAC's rules that relate keys (each key's bounds are SACConf's)."""
+    if cfg.backend != FAST:
+        raise ConfigError.of(
+            "backend",
+            cfg.backend,
+            "'fast' with algo.name=sac (a resumed SAC run carries on its drones' episodes, which "
+            "TorchRL's collector does not expose)",
+        )
+    if cfg.env.num_workers:
+        raise ConfigError.of(
+            "env.num_workers", cfg.env.num_workers, "0 with algo.name=sac (algo.num_envs drones in one env)"
+        )
+    if cfg.model.distribution != "tanh_normal":
+        raise ConfigError.of(
+            "model.distribution",
+            cfg.model.distribution,
+            "'tanh_normal' with algo.name=sac (bounded thrust: experiment=bounded algo=sac)",
+        )
+    if cfg.algo.n_steps > 1 and cfg.algo.gamma == 0:
+        raise ConfigError.of("algo.gamma", 0, "> 0 with algo.n_steps > 1 (MultiStep's discount)")
+    if cfg.algo.batch_size > cfg.algo.buffer_size:
+        raise ConfigError.of(
+            "algo.batch_size",
+            cfg.algo.batch_size,
+            f"at most algo.buffer_size = {cfg.algo.buffer_size} (the frames a minibatch is drawn from)",
+        )
+
+
+@dataclass
+class SACConf:
+    """``algo.*`` of ``algo.name=sac``."""
+
+    name: Any = free()
+    lr: Any = LR.field()
+    alpha_lr: Any = a_number(low=0, low_open=True, high=MAX_LR)  # lr's bounds; one agent a run
+    gamma: Any = GAMMA.field()
+    episodes: Any = EPISODES.field()
+    num_envs: Any = NUM_ENVS.field()
+    steps_per_batch: Any = STEPS_PER_BATCH.field()
+    buffer_size: Any = an_integer(low=1)
+    batch_size: Any = an_integer(low=1)
+    updates_per_batch: Any = an_integer(low=1)
+    n_steps: Any = an_integer(low=1, high="env.max_steps")  # a longer window than an episode: no use
+    tau: Any = a_number(low=0, low_open=True, high=1)
+    alpha_init: Any = a_number(low=0, low_open=True)
+    target_entropy: Any = a_number()
+    reward_scale: Any = REWARD_SCALE.field()
+    qvalue_hidden_sizes: Any = VALUE_HIDDEN_SIZES.field()
+
+
+store_plugin("algo", "sac", SACConf)
+
+register(
+    Algorithm(
+        "sac",
+        SAC,
+        validate,
+        checkpoint_keys=("qvalue", "replay_buffer", "drones"),
+        summary="SAC on the fast engine's batches, a TorchRL replay buffer and SACLoss",
+        memory=sac_parts,
+    )
+)
