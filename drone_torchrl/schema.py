@@ -313,6 +313,7 @@ class EvalConfig:
 
     env: EnvConf = field(default_factory=EnvConf)
     checkpoint: Any = free()
+    agent: Any = an_integer(low=0, optional=True)
     episodes: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
     seed: Any = an_integer(low=0, high=MAX_SEED)
     device: Any = free()
@@ -326,6 +327,7 @@ class ExportConfig:
     """``conf/export.yaml``: drone-export."""
 
     checkpoint: Any = free()
+    agent: Any = an_integer(low=0, optional=True)
     format: Any = one_of(
         EXPORT_FORMATS,
         optional=True,

@@ -51,6 +51,7 @@ from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
+    POPULATION,
     CheckpointError,
     is_last_of_its_run,
     load_checkpoint,
@@ -266,6 +267,11 @@ def job_status(job_dir: Path) -> tuple[str, str]:
         ckpt = load_checkpoint(last)
     except CheckpointError as err:
         return "unfinished", f"unreadable checkpoint: {err}"
+    if ckpt.get("kind") == POPULATION:
+        finished = sum(final is not None for final in ckpt["final"])
+        failed = sum(failure is not None for failure in ckpt["failure"])
+        detail = f"population of {len(ckpt['final'])} agents: {finished} finished, {failed} failed"
+        return ("finished" if finished + failed == len(ckpt["final"]) else "unfinished"), detail
     episodes = ckpt["episodes_done"]
     if ckpt["final"] is not None:
         return (
