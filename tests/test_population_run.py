@@ -183,3 +183,30 @@ def test_a_population_too_big_for_memory_is_refused_with_the_estimate(tmp_path, 
         train_population(cfgs, NAMES, tmp_path / "pop")
     assert "\n" not in str(refused.value)
     assert not (tmp_path / "pop").exists()
+
+
+def test_drone_eval_and_export_read_one_agent_back(tmp_path, monkeypatch):
+    """drone-eval checkpoint=<population run> agent=K flies agent K alone (a standalone actor built
+    from the stacked checkpoint): its mean return over the run's evaluation seeds equals what the
+    trainer's evaluator measured for agent K inside the population (final eval_return). drone-export
+    agent=K writes that agent's policy: its commands equal the actor's."""
+    from drone_torchrl.comparison import run_eval
+    from drone_torchrl.export import export_policy
+
+    pop = tmp_path / "pop"
+    # Bounded thrust: the agents' deterministic policies fly differently (60, 15, 34 here).
+    outcomes = train_population(_cfgs("algo.episodes=8", "experiment=bounded"), NAMES, pop)
+    evals = [o.final["eval_return"] for o in outcomes]
+    assert len(set(evals)) == 3  # the agents differ, so reading the wrong one would show
+    monkeypatch.chdir(tmp_path)
+    for k in range(3):
+        with initialize_config_dir(config_dir(), version_base="1.3"):
+            cfg = compose(
+                "eval",
+                overrides=[f"checkpoint={pop}", f"agent={k}", "episodes=2", "video=false", "plot=false"],
+            )
+        results = run_eval(cfg)
+        (flown,) = [r for name, r in results.items() if name.startswith("checkpoint")]
+        assert flown["return_mean"] == pytest.approx(evals[k], rel=1e-5), k
+    exported = export_policy(pop, tmp_path / "policy.pt2", agent=1)
+    assert exported.path.is_file()

@@ -8,7 +8,7 @@ at tens of thousands of agents is most of the time and open files. A population 
       agents.parquet           one row per agent: agent, name (its job's overrides), seed, algo.lr, ...
       episodes/part-NNNNNN.parquet
                                every finished episode: agent, episode, update, return, length,
-                               time_in_zone, negative_thrust_fraction, termination_cause;
+                               time_in_zone, negative_thrust_fraction, termination_cause, wall_clock_s;
                                each part written atomically (a kill never leaves a torn one)
       checkpoints/last.pt      the stacked state of every agent (see :func:`checkpoint_state`)
       <logger's files>         population summaries: quantiles of the running-mean return, the best
@@ -168,7 +168,7 @@ class PopulationRecord:
 
     # ------------------------------------------------------------------ episodes
     def _clear(self) -> None:
-        self._columns = {key: [] for key in ("agent", "episode", "update", *EPISODE_KEYS)}
+        self._columns = {key: [] for key in ("agent", "episode", "update", *EPISODE_KEYS, "wall_clock_s")}
 
     def add_rows(self, agent: int, first: int, update: int, episodes: dict[str, Sequence]) -> None:
         count = len(episodes["return"])
@@ -176,6 +176,7 @@ class PopulationRecord:
         cols["agent"].extend([agent] * count)
         cols["episode"].extend(range(first, first + count))
         cols["update"].extend([update] * count)
+        cols["wall_clock_s"].extend([round(self.agents[agent].wall_clock, 3)] * count)
         for key in EPISODE_KEYS:
             cols[key].extend(episodes[key])
 
@@ -194,7 +195,11 @@ class PopulationRecord:
             "agent": np.asarray(cols["agent"], dtype=np.int32),
             "episode": np.asarray(cols["episode"], dtype=np.int64),
             "update": np.asarray(cols["update"], dtype=np.int64),
-            **{k: np.asarray(cols[k], dtype=np.float64) for k in EPISODE_KEYS if k != "termination_cause"},
+            **{
+                k: np.asarray(cols[k], dtype=np.float64)
+                for k in (*EPISODE_KEYS, "wall_clock_s")
+                if k != "termination_cause"
+            },
             "termination_cause": names[np.asarray(cols["termination_cause"], dtype=np.int64)],
         }
         table["length"] = table["length"].astype(np.int64)
