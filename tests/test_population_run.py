@@ -210,3 +210,29 @@ def test_drone_eval_and_export_read_one_agent_back(tmp_path, monkeypatch):
         assert flown["return_mean"] == pytest.approx(evals[k], rel=1e-5), k
     exported = export_policy(pop, tmp_path / "policy.pt2", agent=1)
     assert exported.path.is_file()
+
+
+def test_a_diverged_agent_stops_alone_and_the_checkpoint_keeps_its_last_finite_state(tmp_path):
+    """Agent 1's weights turn NaN right after the episode-4 checkpoint: it stops at the next update,
+    the others finish; the population checkpoint keeps agent 1's episode-4 state (equal to that
+    checkpoint's rows, all finite) and its failure; its episodes end at 3."""
+    import torch
+
+    from drone_torchrl.training.jobs import Job
+    from drone_torchrl.training.trainer import Trainer
+
+    pop = tmp_path / "pop"
+    cfgs = _cfgs("algo.episodes=10", "checkpoint.every_episodes=2")
+    trainer = Trainer([Job(cfg, pop) for cfg in cfgs], pop, NAMES)
+    for _ in range(4):  # one episode per update: episodes 0..3, checkpoints after episodes 2 and 4
+        trainer.step([0, 1, 2], 1)
+    at_four = load_checkpoint(pop / "checkpoints" / "last.pt")
+    with torch.no_grad():
+        trainer.population.policy.params.get(("mean", "bias"))[1] = float("nan")
+    finals = trainer.train()
+    assert finals[0] is not None and finals[2] is not None and finals[1] is None
+    last = load_checkpoint(pop / "checkpoints" / "last.pt")
+    assert last["episodes_done"] == [10, 4, 10] and "non-finite actions" in last["failure"][1]
+    for key, value in last["state"].items():
+        torch.testing.assert_close(value[1], at_four["state"][key][1], rtol=0, atol=0)
+    assert [e for e, *_ in _by_agent(pop)[1]] == [0, 1, 2, 3]

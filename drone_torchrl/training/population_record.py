@@ -39,7 +39,14 @@ from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import open_checkpoint, per_agent_keys, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io import run_lock
-from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, FORMAT_VERSION, LAST, POPULATION, save_checkpoint
+from drone_torchrl.io.checkpoint import (
+    CHECKPOINT_DIR,
+    FORMAT_VERSION,
+    LAST,
+    POPULATION,
+    load_checkpoint,
+    save_checkpoint,
+)
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.yaml_text import save_yaml
 from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, make_logger
@@ -96,6 +103,7 @@ class PopulationAgent(AgentBook):
 
     def fail(self, reason: str) -> None:
         self.failure = reason
+        self.owner.keep_last_finite(self.index)
         print(
             f"{self.run_dir}: agent {self.index} failed: {TrainingDiverged.__name__}: {reason}",
             file=sys.stderr,
@@ -147,6 +155,9 @@ class PopulationRecord:
                 agent.final = final if agent.finished else None  # a larger budget trains it on
         self.updates = 0 if checkpoint is None else int(checkpoint["population_updates"])
         self._columns: dict[str, list] = {}
+        # Failed agent -> its rows of the stacked state in the last checkpoint (finite), kept in
+        # the checkpoints that follow instead of its diverged weights.
+        self._last_finite: dict[int, dict[str, torch.Tensor]] = {}
         self._clear()
         with writing(run_dir / CHECKPOINT_DIR):
             (run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
@@ -258,6 +269,14 @@ class PopulationRecord:
             self.logger.log_metrics({**metrics, "eval/best_return": float(returns[best])}, step=self.step)
 
     # ------------------------------------------------------------------ checkpoints
+    def keep_last_finite(self, agent: int) -> None:
+        """Agent ``agent`` diverged: keep its state of the last checkpoint for the next ones (none
+        yet: its weights are written with their non-finite values zeroed)."""
+        path = self.run_dir / CHECKPOINT_DIR / LAST
+        if path.is_file():
+            state = load_checkpoint(path)["state"]
+            self._last_finite[agent] = {key: value[agent].clone() for key, value in state.items()}
+
     def save(self, state: dict[str, torch.Tensor]) -> None:
         """Write ``last.pt`` with every agent's ``state`` (the stacked tensors, ``[N, ...]`` each)
         after the episodes it counts; at the end, the final summary too, and close."""
@@ -279,9 +298,12 @@ class PopulationRecord:
         stacked = {}
         for key, tensor in state.items():
             tensor = tensor.detach().cpu()
-            if tensor.is_floating_point() and bool(failed.any()):  # a diverged agent's weights are not kept
+            if bool(failed.any()):  # a diverged agent's weights are not kept: its last finite ones are
                 tensor = tensor.clone()
-                tensor[failed] = torch.nan_to_num(tensor[failed], nan=0.0, posinf=0.0, neginf=0.0)
+                if tensor.is_floating_point():
+                    tensor[failed] = torch.nan_to_num(tensor[failed], nan=0.0, posinf=0.0, neginf=0.0)
+                for agent, rows in self._last_finite.items():
+                    tensor[agent] = rows[key]
             stacked[key] = tensor
 
         def recent(name: str) -> torch.Tensor:
