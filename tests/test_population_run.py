@@ -108,8 +108,8 @@ def test_sigterm_then_resume_equals_one_uninterrupted_run(tmp_path, monkeypatch)
     """SIGTERM while update 6 is booked: the call in flight (updates 5..8: one call runs up to the
     checkpoint at 8) is finished, then stopped with a checkpoint at 8 episodes each (0..7 in the
     record); resumed to 12: every agent's episodes 0..11 exactly once, with the uninterrupted run's
-    returns. Then a kill after the checkpoint at 8 (parts written past it kept on disk) and a resume
-    give the same again."""
+    returns. Then a kill after the checkpoint at 8 (four episode parts written past it left on disk)
+    and resumes to 10, then 12, give the same again: the parts past the checkpoint are removed."""
     whole, cut, killed = tmp_path / "whole", tmp_path / "cut", tmp_path / "killed"
     train_population(_cfgs("algo.episodes=12"), NAMES, whole)
     expected = _by_agent(whole)
@@ -132,11 +132,14 @@ def test_sigterm_then_resume_equals_one_uninterrupted_run(tmp_path, monkeypatch)
     train_population(_cfgs("algo.episodes=12"), NAMES, cut)
     _same(_by_agent(cut), expected)
 
-    train_population(_cfgs("algo.episodes=8"), NAMES, killed)
+    flush = "logger.flush_every_s=0"  # a part per update: the killed run leaves 4 parts past episode 8
+    train_population(_cfgs("algo.episodes=8", flush), NAMES, killed)
     at_eight = (killed / "checkpoints" / "last.pt").read_bytes()
-    train_population(_cfgs("algo.episodes=10"), NAMES, killed)
-    (killed / "checkpoints" / "last.pt").write_bytes(at_eight)  # killed before the checkpoint at 10
-    train_population(_cfgs("algo.episodes=12"), NAMES, killed)
+    train_population(_cfgs("algo.episodes=12", flush), NAMES, killed)
+    (killed / "checkpoints" / "last.pt").write_bytes(at_eight)  # killed before its checkpoint at 12
+    train_population(_cfgs("algo.episodes=10", flush), NAMES, killed)  # writes 2 parts, not 4
+    _same(_by_agent(killed), {k: rows[:10] for k, rows in expected.items()})
+    train_population(_cfgs("algo.episodes=12", flush), NAMES, killed)
     _same(_by_agent(killed), expected)
 
 
