@@ -300,6 +300,8 @@ class TrainConfig:
     device: Any = free(on_resume=PROCESS)
     threads: Any = an_integer(low=1, high=MAX_THREADS, on_resume=PROCESS)
     resume: Any = free(on_resume=PROCESS)
+    # resume=<population run> agent=K: which agent of a population run's checkpoint to continue.
+    agent: Any = an_integer(low=0, optional=True, on_resume=PROCESS, added=None)
     progress: Any = one_of((True, False, "auto"), expected="true, false or auto", on_resume=PROCESS)
     sweep_name: Any = free(on_resume=IF_SET)
     checkpoint: CheckpointConf = field(default_factory=CheckpointConf)

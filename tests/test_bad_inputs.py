@@ -422,6 +422,11 @@ TRAIN = [
     # resume targets
     (["resume={emptydir}/nothing"], "resume"),
     (["resume={emptydir}"], "resume"),  # a folder without checkpoints/last.pt
+    # A population run's checkpoint: which agent to continue (0 or 1); agent=K of one run's checkpoint.
+    (["resume={population}"], "agent"),
+    (["resume={population}", "agent=2"], "agent"),
+    (["resume={population}", "agent=-1"], "agent"),
+    (["resume={run}", "agent=0"], "agent"),
     (["resume={empty}"], "empty.pt"),
     (["resume={corrupt}"], "corrupt.pt"),
     (["resume={foreign}"], "foreign.pt"),

@@ -239,3 +239,24 @@ def test_a_diverged_agent_stops_alone_and_the_checkpoint_keeps_its_last_finite_s
     for key, value in last["state"].items():
         torch.testing.assert_close(value[1], at_four["state"][key][1], rtol=0, atol=0)
     assert [e for e, *_ in _by_agent(pop)[1]] == [0, 1, 2, 3]
+
+
+def test_resume_continues_one_agent_of_a_population_as_its_own_run(tmp_path):
+    """resume=<population run> agent=1 continues agent 1 from the population's checkpoint (episode
+    8) as a fork in a run folder of its own: its episodes 8..11 equal agent 1's in a population
+    trained to 12 without a stop; the population's folder is left as it was."""
+    from drone_torchrl.training.trainer import train
+
+    pop, whole, fork = tmp_path / "pop", tmp_path / "whole", tmp_path / "fork"
+    train_population(_cfgs("algo.episodes=8"), NAMES, pop)
+    train_population(_cfgs("algo.episodes=12"), NAMES, whole)
+    before = {p: p.read_bytes() for p in pop.rglob("*") if p.is_file() and p.name != ".lock"}
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=[*COMMON, f"resume={pop}", "agent=1", "algo.episodes=12"])
+    train(cfg, run_dir=fork)
+    cols, _ = read_csv(fork / "episodes.csv")
+    expected = _by_agent(whole)[1][8:]
+    assert cols["episode"].astype(int).tolist() == [e for e, *_ in expected] == [8, 9, 10, 11]
+    assert cols["return"].tolist() == pytest.approx([r for _, r, _, _ in expected], rel=1e-6)
+    assert load_checkpoint(fork / "checkpoints" / "last.pt")["episodes_done"] == 12
+    assert {p: p.read_bytes() for p in pop.rglob("*") if p.is_file() and p.name != ".lock"} == before
