@@ -9,9 +9,11 @@ One update = every agent's episode (300 steps: termination is switched off here,
 kernels' bounds, so that the work per update does not depend on how well the agents fly),
 REINFORCE loss and gradient, per-agent clipping and Adam, and the population run's record (its
 Parquet rows and summaries; the checkpoint of every agent, timed once and amortised over
-CHECKPOINT_EVERY episodes), on the fast engine (backend=fast). Set-up: from the configs to the end
+``checkpoint.every_episodes`` of conf/config.yaml), on the fast engine (backend=fast). Set-up: from the configs to the end
 of the first update (the imports, once per command, are printed apart); memory: what the
-population added to this process, per agent.
+population added to this process per agent (a size after the first reuses memory the first
+freed: time one size per command for that figure), and the estimate of
+drone_torchrl.training.memory_estimate.
 ``--per-call`` updates run per call of the update (the training loop runs up to
 ``trainer.MAX_UPDATES_PER_CALL``).
 Prints the median time per update over ``--repeats`` runs, the time per agent, the share of the
@@ -38,13 +40,17 @@ import torch
 import train_speed  # the script beside this one: python benchmarks/population.py
 from omegaconf import OmegaConf
 
+from drone_torchrl.config import config_dir
+from drone_torchrl.training import memory_estimate
 from drone_torchrl.training import population_record as record_module
 from drone_torchrl.training.jobs import Job
+from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.trainer import Trainer
 
 IMPORTED = time.perf_counter()
-# Episodes between two checkpoints of the population (its cost is amortised over them).
-CHECKPOINT_EVERY = 1000
+# Episodes between two checkpoints of the population (its cost is amortised over them): the
+# default of conf/config.yaml.
+CHECKPOINT_EVERY = int(OmegaConf.load(Path(config_dir()) / "config.yaml").checkpoint.every_episodes)
 
 
 def unbounded_constants(*args, **kwargs) -> torch.Tensor:
@@ -138,7 +144,14 @@ def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) 
     # A checkpoint every CHECKPOINT_EVERY episodes: its cost shared by the updates in between.
     amortised = checkpoint / (CHECKPOINT_EVERY / int(cfg.algo.episodes_per_update))
     recording = record_time / (sum(times) * per_call) + amortised / per_update
-    return {"setup": setup, "update": per_update, "recording": recording, "bytes_per_agent": rss / agents}
+    estimated = memory_estimate.estimate(cfg, agents, reinforce_parts).total / agents
+    return {
+        "setup": setup,
+        "update": per_update,
+        "recording": recording,
+        "bytes_per_agent": rss / agents,
+        "estimated_per_agent": estimated,
+    }
 
 
 def main() -> None:
@@ -178,13 +191,13 @@ def main() -> None:
     print(f"imports: {IMPORTED - START:.1f} s (once per command)\n")
     print(
         "| agents | set-up s (to the first update's end) | s / update | ms / agent / update | recording share "
-        f"| memory / agent | x time of {base_n} agent(s) |"
+        f"| memory / agent (measured; estimated) | x time of {base_n} agent(s) |"
     )
     print("|---|---|---|---|---|---|---|")
     for n, r in rows:
         print(
             f"| {n} | {r['setup']:.1f} | {r['update']:.3f} | {1000 * r['update'] / n:.2f} | "
-            f"{100 * r['recording']:.1f}% | {r['bytes_per_agent'] / 1024:.0f} KiB | {r['update'] / base['update']:.1f}x |"
+            f"{100 * r['recording']:.1f}% | {r['bytes_per_agent'] / 1024:.0f}; {r['estimated_per_agent'] / 1024:.0f} KiB | {r['update'] / base['update']:.1f}x |"
         )
 
 

@@ -112,7 +112,11 @@ class Trainer:
                         for key, value in checkpoint["state"].items():
                             self.learner.state[key].copy_(value)
                 self.book = PopulationRecord(
-                    [job.cfg for job in jobs], names or [], population_dir, cfg.backend, checkpoint
+                    [job.cfg for job in jobs],
+                    names or [str(i) for i in range(len(jobs))],
+                    population_dir,
+                    cfg.backend,
+                    checkpoint,
                 )
                 self.runs = list(self.book.agents)
             for job in jobs if population_dir is None else ():
