@@ -104,7 +104,7 @@ def test_a_population_run_books_each_agent_as_its_own_run_would(tmp_path):
         assert scalars.count(f",{tag},") == 8, tag  # one point per update (logger.every_updates=1)
 
 
-def test_sigterm_then_resume_equals_one_uninterrupted_run(tmp_path, monkeypatch):
+def test_sigterm_then_resume_equals_one_uninterrupted_run(tmp_path, monkeypatch, capsys):
     """SIGTERM while update 6 is booked: the call in flight (updates 5..8: one call runs up to the
     checkpoint at 8) is finished, then stopped with a checkpoint at 8 episodes each (0..7 in the
     record); resumed to 12: every agent's episodes 0..11 exactly once, with the uninterrupted run's
@@ -127,6 +127,12 @@ def test_sigterm_then_resume_equals_one_uninterrupted_run(tmp_path, monkeypatch)
         train_population(_cfgs("algo.episodes=12"), NAMES, cut)
     monkeypatch.setattr(record_module.PopulationRecord, "after_update", book)
     assert stopped.value.run_dirs == [cut]
+    from drone_torchrl.apps.train import _stopped
+
+    with pytest.raises(SystemExit) as exited:  # drone-train's line: the sweep again, not resume=
+        _stopped(stopped.value)
+    assert exited.value.code == 128 + signal.SIGTERM
+    assert "run the same command again" in capsys.readouterr().err
     assert load_checkpoint(cut / "checkpoints" / "last.pt")["episodes_done"] == [8, 8, 8]
     assert {k: [e for e, *_ in v] for k, v in _by_agent(cut).items()} == {k: list(range(8)) for k in range(3)}
     train_population(_cfgs("algo.episodes=12"), NAMES, cut)
