@@ -1,12 +1,19 @@
-"""Time per update of the population engine for 1 ... 1024 agents, every episode the full 300 steps.
+"""Set-up, time per update and recording share of a population run (``hydra/launcher=population``)
+for 1 ... 65,536 agents, every episode the full 300 steps.
 
     python benchmarks/population.py                          # 1, 16, 32, 256, 1024 agents, CPU
+    python benchmarks/population.py --agents 1024 8192 65536 --updates 1 --per-call 1 --repeats 1
     python benchmarks/population.py --agents 32 1024 --device cuda
 
 One update = every agent's episode (300 steps: termination is switched off here, in the C++
 kernels' bounds, so that the work per update does not depend on how well the agents fly),
-REINFORCE loss and gradient, per-agent clipping and Adam, and the run records (CSV rows and
-TensorBoard scalars buffered every update, written at the end), on the fast engine (backend=fast).
+REINFORCE loss and gradient, per-agent clipping and Adam, and the population run's record (its
+Parquet rows and summaries; the checkpoint of every agent, timed once and amortised over
+``checkpoint.every_episodes`` of conf/config.yaml), on the fast engine (backend=fast). Set-up: from the configs to the end
+of the first update (the imports, once per command, are printed apart); memory: what the
+population added to this process per agent (a size after the first reuses memory the first
+freed: time one size per command for that figure), and the estimate of
+drone_torchrl.training.memory_estimate.
 ``--per-call`` updates run per call of the update (the training loop runs up to
 ``trainer.MAX_UPDATES_PER_CALL``).
 Prints the median time per update over ``--repeats`` runs, the time per agent, the share of the
@@ -15,22 +22,35 @@ populations are timed in turns (one run of each size per round), so that a slow 
 machine does not fall on one size only.
 """
 
+# ruff: noqa: E402  (the imports come after START: they are timed)
 from __future__ import annotations
 
+import time
+
+START = time.perf_counter()
+
 import argparse
-import copy
 import math
+import os
 import statistics
 import tempfile
-import time
 from pathlib import Path
 
 import torch
-import train_speed  # noqa: E402  (the script beside this one: python benchmarks/population.py)
+import train_speed  # the script beside this one: python benchmarks/population.py
+from omegaconf import OmegaConf
 
-from drone_torchrl.training import run as run_module
-from drone_torchrl.training.jobs import prepare
+from drone_torchrl.config import config_dir
+from drone_torchrl.training import memory_estimate
+from drone_torchrl.training import population_record as record_module
+from drone_torchrl.training.jobs import Job
+from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.trainer import Trainer
+
+IMPORTED = time.perf_counter()
+# Episodes between two checkpoints of the population (its cost is amortised over them): the
+# default of conf/config.yaml.
+CHECKPOINT_EVERY = int(OmegaConf.load(Path(config_dir()) / "config.yaml").checkpoint.every_episodes)
 
 
 def unbounded_constants(*args, **kwargs) -> torch.Tensor:
@@ -52,30 +72,56 @@ def config(device: str, threads: int):
     return cfg
 
 
-def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) -> tuple[float, float]:
-    """Seconds per update (median over ``updates`` calls of ``per_call`` updates) and the recording share."""
+def _rss() -> int:
+    """This process's resident memory now, in bytes."""
+    with open("/proc/self/statm") as statm:
+        return int(statm.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) -> dict[str, float]:
+    """One population run (``hydra/launcher=population``'s layout) of ``agents`` agents: its set-up
+    (configs, learner, folder: up to the end of the first update), the median seconds per update
+    over ``updates`` calls of ``per_call`` updates, the recording share (the rows, the summaries, the
+    flush to Parquet and the checkpoint amortised over ``checkpoint.every_episodes``), and the
+    memory the population added per agent."""
     record_time = 0.0
-    original = run_module.RunRecord.record
 
-    def timed_record(self, *args, **kwargs):
-        nonlocal record_time
-        start = time.perf_counter()
-        original(self, *args, **kwargs)
-        record_time += time.perf_counter() - start
+    def timed(method):
+        def wrapper(*args, **kwargs):
+            nonlocal record_time
+            start = time.perf_counter()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                record_time += time.perf_counter() - start
 
+        return wrapper
+
+    originals = {
+        (record_module.PopulationAgent, "record"): record_module.PopulationAgent.record,
+        (record_module.PopulationRecord, "after_update"): record_module.PopulationRecord.after_update,
+    }
+    rss_before = _rss()
     with tempfile.TemporaryDirectory() as tmp:
-        jobs = []
+        start = time.perf_counter()
+        budget = (warmup + updates) * per_call + 1
+        cfg.algo.episodes = budget
+        cfg.checkpoint.every_episodes = CHECKPOINT_EVERY
+        base = OmegaConf.to_container(cfg)
+        cfgs = []
         for seed in range(agents):
-            job = copy.deepcopy(cfg)
+            job = OmegaConf.create(base)
             job.seed = seed
-            job.algo.episodes = (warmup + updates) * per_call + 1
-            jobs.append(prepare(job, Path(tmp) / f"agent{seed}"))
-        trainer = Trainer(jobs)
+            cfgs.append(job)
+        trainer = Trainer([Job(c, Path(tmp)) for c in cfgs], Path(tmp), [f"seed={i}" for i in range(agents)])
         everyone = list(range(agents))
-        for _ in range(warmup):
+        trainer.step(everyone, per_call)
+        setup = time.perf_counter() - start
+        for _ in range(warmup - 1):
             trainer.step(everyone, per_call)
         times = []
-        run_module.RunRecord.record = timed_record
+        for (owner, name), method in originals.items():
+            setattr(owner, name, timed(method))
         try:
             for _ in range(updates):
                 if cfg.device.startswith("cuda"):
@@ -86,9 +132,26 @@ def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) 
                     torch.cuda.synchronize()
                 times.append((time.perf_counter() - start) / per_call)
         finally:
-            run_module.RunRecord.record = original
+            for (owner, name), method in originals.items():
+                setattr(owner, name, method)
+        rss = _rss() - rss_before
+        start = time.perf_counter()
+        trainer.book.flush()
+        trainer.save(everyone)
+        checkpoint = time.perf_counter() - start
         trainer.close()
-    return statistics.median(times), record_time / (sum(times) * per_call)
+    per_update = statistics.median(times)
+    # A checkpoint every CHECKPOINT_EVERY episodes: its cost shared by the updates in between.
+    amortised = checkpoint / (CHECKPOINT_EVERY / int(cfg.algo.episodes_per_update))
+    recording = record_time / (sum(times) * per_call) + amortised / per_update
+    estimated = memory_estimate.estimate(cfg, agents, reinforce_parts).total / agents
+    return {
+        "setup": setup,
+        "update": per_update,
+        "recording": recording,
+        "bytes_per_agent": rss / agents,
+        "estimated_per_agent": estimated,
+    }
 
 
 def main() -> None:
@@ -113,24 +176,29 @@ def main() -> None:
     device_name = torch.cuda.get_device_name() if args.device.startswith("cuda") else "CPU"
     # The populations take turns, one run each per round: a slow spell of a shared machine then
     # slows every size alike instead of one, and the ratios between sizes stay meaningful.
-    runs: dict[int, list[tuple[float, float]]] = {n: [] for n in args.agents}
+    runs: dict[int, list[dict[str, float]]] = {n: [] for n in args.agents}
     for _ in range(args.repeats):
         for n in args.agents:
             runs[n].append(time_population(cfg, n, args.updates, 1, args.per_call))
-    rows = [
-        (n, statistics.median(t for t, _ in runs[n]), statistics.median(s for _, s in runs[n]))
-        for n in args.agents
-    ]
-    base_n, base_t, _ = rows[0]
+            print(f"{n} agents: {runs[n][-1]}", flush=True)
+    rows = [(n, {k: statistics.median(r[k] for r in runs[n]) for k in runs[n][0]}) for n in args.agents]
+    base_n, base = rows[0]
     print(
         f"\n{device_name}, torch threads {args.threads}, backend=fast, 300-step episodes, "
         f"one episode per agent per update; median of {args.repeats} runs x {args.updates} calls "
         f"of {args.per_call} updates\n"
     )
-    print(f"| agents | s / update | ms / agent / update | recording share | x time of {base_n} agent(s) |")
-    print("|---|---|---|---|---|")
-    for n, t, share in rows:
-        print(f"| {n} | {t:.3f} | {1000 * t / n:.2f} | {100 * share:.0f}% | {t / base_t:.1f}x |")
+    print(f"imports: {IMPORTED - START:.1f} s (once per command)\n")
+    print(
+        "| agents | set-up s (to the first update's end) | s / update | ms / agent / update | recording share "
+        f"| memory / agent (measured; estimated) | x time of {base_n} agent(s) |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for n, r in rows:
+        print(
+            f"| {n} | {r['setup']:.1f} | {r['update']:.3f} | {1000 * r['update'] / n:.2f} | "
+            f"{100 * r['recording']:.1f}% | {r['bytes_per_agent'] / 1024:.0f}; {r['estimated_per_agent'] / 1024:.0f} KiB | {r['update'] / base['update']:.1f}x |"
+        )
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ from drone_torchrl.config import (
     check_values,
     command_line_keys,
     env_kwargs,
-    open_checkpoint,
     physics_params,
     run_config,
     validate,
@@ -37,6 +36,7 @@ from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
 from drone_torchrl.optimum import Optimum
 from drone_torchrl.training import memory_estimate
+from drone_torchrl.training.population_record import open_agent
 
 PLOT_NAME = "trajectory.png"
 VIDEO_NAME = "episode.gif"
@@ -146,7 +146,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
     check_values(check_keys(cfg, "eval"), "eval")  # the keys and the bounds of conf/eval.yaml's schema
     check_device(cfg.device)
     if cfg.checkpoint is not None:
-        path, checkpoint = open_checkpoint("checkpoint", cfg.checkpoint)
+        path, checkpoint = open_agent("checkpoint", cfg.checkpoint, cfg.agent)
         try:
             run_cfg = run_config(checkpoint["config"])
             run_cfg.device = cfg.device

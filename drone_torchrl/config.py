@@ -637,8 +637,10 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
 
 def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
     """The checkpoint that config value ``key`` (``resume``, ``checkpoint``) names: a checkpoint file or
-    a run folder. Raises :class:`ConfigError` naming the key for anything that is not a readable one."""
-    from drone_torchrl.io.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint
+    a run folder. Raises :class:`ConfigError` naming the key for anything that is not a readable one.
+    A population run's checkpoint comes back as it is (``population_record.open_agent`` reads one
+    agent of it)."""
+    from drone_torchrl.io.checkpoint import POPULATION, CheckpointError, load_checkpoint, resolve_checkpoint
 
     if not isinstance(location, str | Path) or not str(location).strip():
         raise ConfigError.of(key, location, "a run folder or a checkpoint file (a path)")
@@ -650,6 +652,8 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
         state = load_checkpoint(path)
     except CheckpointError as err:
         raise ConfigError(f"{key}={str(path)!r} cannot be used: {err}") from None
+    if state.get("kind") == POPULATION:
+        return path, state
     name = OmegaConf.select(run_config(state["config"]), "algo.name")
     try:
         algorithm = algorithms.get(name)

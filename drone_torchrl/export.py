@@ -54,7 +54,6 @@ from drone_torchrl.config import (
     check_keys,
     check_networks,
     check_values,
-    open_checkpoint,
     run_config,
 )
 from drone_torchrl.envs.dynamics import (
@@ -72,6 +71,7 @@ from drone_torchrl.io.storage import name_too_long, unwritable, write_atomically
 from drone_torchrl.modules.factory import build_actor, build_policy
 from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.schema import EXPORT_FORMATS
+from drone_torchrl.training.population_record import open_agent
 
 # The largest difference (max abs, in fractions of the weight) an exported file may have from the
 # actor on check_observations(). The same float32 layers evaluated by other kernels (onnxruntime's
@@ -204,10 +204,12 @@ def policy_and_actor(
     return policy, actor_from_net(net, distribution, max_thrust).eval()
 
 
-def load_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, ProbabilisticActor, Path]:
-    """The deterministic policy and the actor of a checkpoint file or run folder (:class:`ConfigError`
-    if unusable), on the CPU."""
-    path, state = open_checkpoint("checkpoint", checkpoint)
+def load_policy(
+    checkpoint: str | os.PathLike, agent: int | None = None
+) -> tuple[DeterministicPolicy, ProbabilisticActor, Path]:
+    """The deterministic policy and the actor of a checkpoint file or run folder (of a population
+    run: its agent ``agent``; :class:`ConfigError` if unusable), on the CPU."""
+    path, state = open_agent("checkpoint", checkpoint, agent)
     cfg = run_config(state["config"])
     cfg.device = "cpu"
     check_networks("checkpoint", path, state, cfg)
@@ -359,7 +361,10 @@ def load_program(source: str | os.PathLike | bytes, format: str) -> Callable[[to
 
 
 def export_policy(
-    checkpoint: str | os.PathLike, output: str | os.PathLike | None = None, format: str | None = None
+    checkpoint: str | os.PathLike,
+    output: str | os.PathLike | None = None,
+    format: str | None = None,
+    agent: int | None = None,
 ) -> Exported:
     """Write the deterministic policy of ``checkpoint`` to ``output`` as ``format`` (see
     :func:`resolve_output`), checked against the checkpoint's actor: :class:`ConfigError` for bad
@@ -371,7 +376,7 @@ def export_policy(
     refused = unwritable(output.parent)
     if refused is not None:
         raise ConfigError.of("output", str(output), f"a file in a folder this user can write ({refused})")
-    policy, actor, path = load_policy(checkpoint)
+    policy, actor, path = load_policy(checkpoint, agent)
     observations = check_observations(observation_dim(policy)).to(_dtype(policy))
     expected = actor_commands(actor, observations, policy.max_thrust)
     if not torch.isfinite(expected).all():
@@ -402,7 +407,7 @@ def run_export(cfg: Mapping[str, Any]) -> Exported:
         check_onnx_extra()
     if resolved["checkpoint"] is None:
         raise ConfigError.of("checkpoint", None, "a checkpoint file or a run folder")
-    return export_policy(resolved["checkpoint"], output, format)
+    return export_policy(resolved["checkpoint"], output, format, resolved["agent"])
 
 
 # ------------------------------------------------------------------------------- latency

@@ -300,6 +300,8 @@ class TrainConfig:
     device: Any = free(on_resume=PROCESS)
     threads: Any = an_integer(low=1, high=MAX_THREADS, on_resume=PROCESS)
     resume: Any = free(on_resume=PROCESS)
+    # resume=<population run> agent=K: which agent of a population run's checkpoint to continue.
+    agent: Any = an_integer(low=0, optional=True, on_resume=PROCESS, added=None)
     progress: Any = one_of((True, False, "auto"), expected="true, false or auto", on_resume=PROCESS)
     sweep_name: Any = free(on_resume=IF_SET)
     checkpoint: CheckpointConf = field(default_factory=CheckpointConf)
@@ -313,6 +315,7 @@ class EvalConfig:
 
     env: EnvConf = field(default_factory=EnvConf)
     checkpoint: Any = free()
+    agent: Any = an_integer(low=0, optional=True)
     episodes: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
     seed: Any = an_integer(low=0, high=MAX_SEED)
     device: Any = free()
@@ -326,6 +329,7 @@ class ExportConfig:
     """``conf/export.yaml``: drone-export."""
 
     checkpoint: Any = free()
+    agent: Any = an_integer(low=0, optional=True)
     format: Any = one_of(
         EXPORT_FORMATS,
         optional=True,

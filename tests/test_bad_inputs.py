@@ -31,13 +31,13 @@ from test_run_folder import Disk, small_disk  # noqa: F401  (a fixture: a tmpfs 
 from drone_torchrl import loggers
 from drone_torchrl.apps.report import main as report_main
 from drone_torchrl.comparison import run_eval
-from drone_torchrl.config import ConfigError, check_overrides, config_dir
+from drone_torchrl.config import ConfigError, check_overrides, config_dir, validate
 from drone_torchrl.export import ONNX_MODULES, run_export
 from drone_torchrl.io.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_COLUMNS, read_episodes
 from drone_torchrl.io.run_lock import release
 from drone_torchrl.training.jobs import job_status, prepare
-from drone_torchrl.training.trainer import train
+from drone_torchrl.training.trainer import train, train_population
 
 # A tiny real run, resumed or evaluated by the rows that need one.
 TINY = [
@@ -132,6 +132,10 @@ def files(tmp_path_factory) -> dict[str, Path]:
         train(compose("config", overrides=TINY), root / "run")
         train(compose("config", overrides=[*TINY, "seed=1"]), root / "other")
         train(compose("config", overrides=[*TINY, *PPO_TINY]), root / "ppo")
+        agents = [compose("config", overrides=[*TINY, f"seed={seed}"]) for seed in (0, 1)]
+    for cfg in agents:
+        validate(cfg)
+    train_population(agents, ["seed=0", "seed=1"], root / "population")  # hydra/launcher=population's
     (root / "other" / ".hydra").mkdir()
     (root / "other" / ".hydra" / "overrides.yaml").write_text("- seed=1\n")
     shutil.copy(root / "other" / "config.yaml", root / "other" / ".hydra" / "config.yaml")
@@ -173,6 +177,7 @@ def files(tmp_path_factory) -> dict[str, Path]:
         "best": root / "run" / "checkpoints" / "best.pt",
         "other": root / "other",
         "ppo": root / "ppo",
+        "population": root / "population",
         "long": root / LONG_NAME,
         **{name: root / f"{name}.pt" for name in DAMAGED},
     }
@@ -437,6 +442,11 @@ TRAIN = [
     # resume targets
     (["resume={emptydir}/nothing"], "resume"),
     (["resume={emptydir}"], "resume"),  # a folder without checkpoints/last.pt
+    # A population run's checkpoint: which agent to continue (0 or 1); agent=K of one run's checkpoint.
+    (["resume={population}"], "agent"),
+    (["resume={population}", "agent=2"], "agent"),
+    (["resume={population}", "agent=-1"], "agent"),
+    (["resume={run}", "agent=0"], "agent"),
     (["resume={empty}"], "empty.pt"),
     (["resume={corrupt}"], "corrupt.pt"),
     (["resume={foreign}"], "foreign.pt"),
@@ -612,6 +622,12 @@ EVAL = [
     *[([f"checkpoint={{{name}}}"], names) for name, names in DAMAGED.items()],
     (["checkpoint={long}"], "checkpoint"),  # ENAMETOOLONG tracebacks
     (["hydra.run.dir={long}"], "hydra.run.dir"),
+    # A population run's checkpoint: which agent (0 or 1) to fly; agent=K of one run's checkpoint.
+    (["checkpoint={population}"], "agent"),
+    (["checkpoint={population}", "agent=2"], "agent"),
+    (["checkpoint={population}", "agent=-1"], "agent"),
+    (["checkpoint={population}", "agent=one"], "agent"),
+    (["checkpoint={run}", "agent=0"], "agent"),
 ]
 
 
@@ -659,6 +675,9 @@ EXPORT = [
     (["checkpoint={long}"], "checkpoint"),  # ENAMETOOLONG tracebacks
     (["checkpoint={run}", "output={long}.pt2"], "output"),
     (["checkpoint={run}", "output={long}/policy.onnx"], "output"),
+    (["checkpoint={population}"], "agent"),  # which agent of the population run
+    (["checkpoint={population}", "agent=2"], "agent"),
+    (["checkpoint={run}", "agent=0"], "agent"),
 ]
 
 

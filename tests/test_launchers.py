@@ -284,3 +284,43 @@ def test_slurm_population_refuses_a_bad_agents_per_job():
     params = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
     del params["_target_"]
     assert SlurmPopulationLauncher(**params).params["agents_per_job"] == 32
+
+
+def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
+    """hydra/launcher=population: 2 lr x 2 seeds x 2 running-mean windows = 8 jobs; the window is not a
+    per-agent key, so two population runs of 4 agents each, each one folder with one ``.hydra/``,
+    agents.parquet, the episodes' parts and one checkpoint; re-running finds both finished."""
+    pytest.importorskip("pyarrow")
+    from drone_torchrl.training.population_record import read_agents, read_episodes
+
+    sweep_dir = tmp_path / "sweep"
+    grid = [*GRID, "metrics.running_mean_window=5,10"]
+    out = _multirun(sweep_dir, "hydra/launcher=population", *grid, cwd=tmp_path)
+    folders = sorted(p for p in sweep_dir.iterdir() if p.is_dir())
+    assert [p.name for p in folders] == ["population_0", "population_1"], out
+    assert sweep_jobs(sweep_dir) == folders
+    for folder in folders:
+        agents = read_agents(folder)
+        assert sorted(zip(agents["algo.lr"], agents["seed"], strict=True)) == [
+            (1e-4, 0),
+            (1e-4, 1),
+            (1e-3, 0),
+            (1e-3, 1),
+        ]
+        rows = read_episodes(folder)
+        assert sorted(zip(rows["agent"], rows["episode"], strict=True)) == [
+            (a, e) for a in range(4) for e in range(3)
+        ]
+        assert job_status(folder) == ("finished", "population of 4 agents: 4 finished, 0 failed")
+        assert not list(folder.glob("**/episodes.csv"))
+    again = _multirun(sweep_dir, "hydra/launcher=population", *grid, cwd=tmp_path)
+    assert again.count("already finished (4 agents); nothing to do") == 2, again
+    # drone-report reads each agent as the run it would be in its own folder: 4 settings of 2 seeds.
+    from drone_torchrl.apps.report import main as report_main
+    from drone_torchrl.report.runs import group_runs, load_runs
+
+    runs = load_runs(sweep_dir)
+    assert len(runs) == 8 and all(run.episodes == 3 and run.status == "finished" for run in runs)
+    assert sorted(len(setting.runs) for setting in group_runs(runs)) == [2, 2, 2, 2]
+    report_main([str(sweep_dir), "--no-pd", "--out", str(tmp_path / "report")])
+    assert (tmp_path / "report").is_dir() and any((tmp_path / "report").iterdir())

@@ -77,7 +77,8 @@ def test_the_key_lists_do_not_depend_on_what_was_imported_first():
 
 # What a continued run did with each key before the rules were the schema's (RESUME_KEYS,
 # PROCESS_KEYS and FIXED_ON_RESUME of drone_torchrl/training/jobs.py).
-PROCESS_KEYS = ("progress", "threads", "device", "resume")
+# agent (added with population runs) goes with resume: the agent of a population run it continues.
+PROCESS_KEYS = ("progress", "threads", "device", "resume", "agent")
 RESUME_KEYS = (
     "algo.episodes",
     "sweep_name",

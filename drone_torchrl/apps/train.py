@@ -22,6 +22,7 @@ from drone_torchrl.config import ConfigError, check_command_line, check_default_
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
+from drone_torchrl.training.population_record import AGENTS_TABLE
 from drone_torchrl.training.run import TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped
 
@@ -77,9 +78,10 @@ def _continue_hint(run: Path) -> str:
 def _stopped(stop: TrainingStopped) -> None:
     """The one line of a run stopped by SIGTERM/SIGUSR1, and its exit code (128 + the signal)."""
     name = stop.args[0]
-    if len(stop.run_dirs) == 1:
+    if len(stop.run_dirs) == 1 and not (Path(stop.run_dirs[0]) / AGENTS_TABLE).is_file():
         hint = f"continue with: drone-train resume={stop.run_dirs[0]}"
     else:
+        # Several runs, or a population run (hydra/launcher=population): the sweep's command again.
         hint = "run the same command again to continue them (each job resumes from its checkpoint)"
     print(f"drone-train: {name}; checkpoint written for {len(stop.run_dirs)} run(s); {hint}", file=sys.stderr)
     sys.exit(stop.exit_code)

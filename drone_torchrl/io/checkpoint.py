@@ -70,6 +70,21 @@ REQUIRED_KEYS = (
     "config",
     "final",
 )
+# A population run's checkpoint (``kind``): every agent's state stacked (see
+# drone_torchrl.training.population_record); these keys instead of REQUIRED_KEYS.
+POPULATION = "population"
+POPULATION_KEYS = (
+    "format_version",
+    "backend",
+    "state",
+    "config",
+    "agents",
+    "episodes_done",
+    "updates_done",
+    "final",
+    "failure",
+    "parts",
+)
 # The digest of every tensor of a checkpoint (see the layout above).
 DIGEST_KEY = "tensor_sha256"
 # Counters a checkpoint carries on (integers >= 0).
@@ -219,6 +234,13 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
     1 and 2 named the implementation ``engine`` (and PPO's ``algo.collector`` in the config), which
     ``backend`` replaced (:mod:`drone_torchrl.migrations`).
     """
+    if isinstance(state, dict) and state.get("kind") == POPULATION:
+        missing = [key for key in POPULATION_KEYS if key not in state]
+        if missing or state["format_version"] != FORMAT_VERSION:
+            raise CheckpointError(
+                f"{path} is a population checkpoint this version does not read: a damaged or foreign file"
+            )
+        return state
     if not isinstance(state, dict) or "actor" not in state or "config" not in state:
         raise CheckpointError(f"{path} is not a drone_torchrl checkpoint (no actor or config)")
     version = state.get("format_version", 1)

@@ -2,7 +2,9 @@
 
 A report reads only the files a sweep job leaves on disk: ``episodes.csv``
 (:func:`drone_torchrl.io.episodes_csv.read_episodes`), ``config.yaml``, ``.hydra/overrides.yaml``
-and ``checkpoints/last.pt`` (through :func:`drone_torchrl.training.jobs.job_status`).
+and ``checkpoints/last.pt`` (through :func:`drone_torchrl.training.jobs.job_status`). A population
+run (``hydra/launcher=population``: ``agents.parquet``) stands for one run per agent
+(:func:`load_population`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from drone_torchrl.config import ENV_ADDED, ENV_ARGS, env_kwargs
 from drone_torchrl.envs.dynamics import REWARD_IN_ZONE
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSVError, read_episodes
+from drone_torchrl.training import population_record
 from drone_torchrl.training.jobs import job_status, sweep_jobs
 
 CONFIG_FILE = "config.yaml"
@@ -127,6 +131,38 @@ def override_value(overrides: Sequence[str], key: str) -> str | None:
     return None
 
 
+def load_population(run_dir: Path) -> list[Run]:
+    """A population run's agents, each as the run it would be in a folder of its own: its job's
+    overrides, the group's config with its per-agent values, its status and its episodes."""
+    agents, rows = population_record.read_agents(run_dir), population_record.read_episodes(run_dir)
+    config = _load_yaml(run_dir / CONFIG_FILE, dict)
+    try:
+        checkpoint = load_checkpoint(run_dir / CHECKPOINT_DIR / LAST)
+    except (CheckpointError, FileNotFoundError):
+        checkpoint = None
+    columns = {key: np.asarray(values) for key, values in rows.items()}
+    owner = columns.get("agent", np.zeros(0, dtype=int))
+    runs = []
+    for k, name in zip(agents["agent"], agents["name"], strict=True):
+        own = OmegaConf.create(config)
+        for key, values in agents.items():
+            if key not in ("agent", "name"):
+                OmegaConf.update(own, key, values[k])
+        mine = np.flatnonzero(owner == k)
+        mine = mine[np.argsort(columns["episode"][mine], kind="stable")]
+        if checkpoint is None:
+            status, detail = STATUS_UNFINISHED, "no checkpoint"
+        elif checkpoint["failure"][k] is not None:
+            status, detail = STATUS_FAILED, checkpoint["failure"][k]
+        elif checkpoint["final"][k] is not None:
+            status, detail = STATUS_FINISHED, f"{checkpoint['episodes_done'][k]} episodes"
+        else:
+            status, detail = STATUS_UNFINISHED, f"{checkpoint['episodes_done'][k]} episodes so far"
+        agent_columns = {key: values[mine] for key, values in columns.items() if key != "agent"}
+        runs.append(Run(run_dir, name.split(), OmegaConf.to_container(own), status, detail, agent_columns))
+    return runs
+
+
 def load_run(job_dir: Path) -> Run | None:
     """Read one job folder; ``None`` if it has no ``episodes.csv`` (not started, or failed early)."""
     job_dir = Path(job_dir)
@@ -178,7 +214,12 @@ def load_runs(sweep_dir: Path) -> list[Run]:
     sweep_dir = Path(sweep_dir)
     if not sweep_dir.is_dir():
         raise ReportError(f"{sweep_dir} does not exist or is not a folder")
-    runs = [run for job in find_jobs(sweep_dir) if (run := load_run(job)) is not None]
+    runs = []
+    for job in find_jobs(sweep_dir):
+        if (job / population_record.AGENTS_TABLE).is_file():
+            runs += load_population(job)
+        elif (run := load_run(job)) is not None:
+            runs.append(run)
     if not runs:
         failed = failed_without_episodes(sweep_dir)
         why = (

@@ -40,7 +40,6 @@ from drone_torchrl.config import (
     command_line_keys,
     group_names,
     leaves,
-    open_checkpoint,
     per_agent_keys,
     preset_notes,
     resume_rule,
@@ -51,6 +50,7 @@ from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
+    POPULATION,
     CheckpointError,
     is_last_of_its_run,
     load_checkpoint,
@@ -59,6 +59,7 @@ from drone_torchrl.io.checkpoint import (
 from drone_torchrl.io.folders import HYDRA_ENTRIES, check_fork_folder
 from drone_torchrl.io.yaml_text import to_yaml
 from drone_torchrl.schema import BUDGET, KEPT, PROCESS
+from drone_torchrl.training.population_record import open_agent
 from drone_torchrl.training.run import FAILED_FILE
 
 
@@ -141,7 +142,10 @@ def _prepare(
         if not validated:
             validate(cfg)
         return Job(cfg, run_dir)
-    path, checkpoint = open_checkpoint("resume", location)
+    path, checkpoint = open_agent("resume", location, cfg.agent)
+    # An agent of a population run (open_agent refuses agent=K for any other checkpoint) continues
+    # in a folder of its own: a fork of the population.
+    of_population = cfg.agent is not None
     saved = run_config(checkpoint["config"])
     requested = cfg.backend if keys is not None and "backend" in keys else None
     if requested is not None and requested != checkpoint["backend"]:
@@ -162,7 +166,7 @@ def _prepare(
         raise ConfigError.of(
             "algo.episodes", saved.algo.episodes, f">= {done}: {path} has already trained {done} episodes"
         )
-    if is_last_of_its_run(path):
+    if is_last_of_its_run(path) and not of_population:
         return Job(saved, run_dir_of(path), checkpoint)
     # A fork: continue from an earlier point of the parent run, in a folder of its own.
     fork_dir = run_dir or _hydra_run_dir()
@@ -178,7 +182,8 @@ def _prepare(
         f"resume: {path.name} (episode {checkpoint['episodes_done']}) is not the last checkpoint of {parent}; "
         f"continuing as a fork in {fork_dir} (the original run is left as it is)"
     )
-    return Job(saved, fork_dir, _as_fork(checkpoint), parent)
+    # A population's episodes are not copied (they are in its Parquet parts, not an episodes.csv).
+    return Job(saved, fork_dir, _as_fork(checkpoint), None if of_population else parent)
 
 
 def _on(key: str, keys: set[str]) -> bool:
@@ -266,6 +271,11 @@ def job_status(job_dir: Path) -> tuple[str, str]:
         ckpt = load_checkpoint(last)
     except CheckpointError as err:
         return "unfinished", f"unreadable checkpoint: {err}"
+    if ckpt.get("kind") == POPULATION:
+        finished = sum(final is not None for final in ckpt["final"])
+        failed = sum(failure is not None for failure in ckpt["failure"])
+        detail = f"population of {len(ckpt['final'])} agents: {finished} finished, {failed} failed"
+        return ("finished" if finished + failed == len(ckpt["final"]) else "unfinished"), detail
     episodes = ckpt["episodes_done"]
     if ckpt["final"] is not None:
         return (

@@ -56,7 +56,129 @@ class TrainingDiverged(RuntimeError):
     """A run whose loss, gradients, weights or actions became non-finite (one-line message)."""
 
 
-class RunRecord:
+class AgentBook:
+    """One agent's counters: episodes and updates done, the running-mean windows, the evaluation and
+    checkpoint schedule, its final metrics or failure. Both homes of an agent's record keep them:
+    :class:`RunRecord` (a run folder of its own) and a population run's agents
+    (:mod:`.population_record`).
+
+    Args:
+        cfg: the agent's validated config.
+        checkpoint: what the agent continues from (its counters, as :meth:`counters` writes them), or None.
+    """
+
+    def __init__(self, cfg: DictConfig, checkpoint: dict[str, Any] | None = None) -> None:
+        self.cfg = cfg
+        # Read per update by every agent of a population: plain numbers, not OmegaConf lookups (~20 us each).
+        self.budget = int(cfg.algo.episodes)
+        self.every_updates = int(cfg.logger.every_updates)
+        self.checkpoint_every = int(cfg.checkpoint.every_episodes)
+        self.eval_every = int(cfg.eval.every_episodes)
+        self.window = window = int(cfg.metrics.running_mean_window)
+        self.recent_returns: deque[float] = deque(maxlen=window)
+        self.recent_lengths: deque[float] = deque(maxlen=window)
+        self.episodes_done = self.updates_done = 0
+        self.wall_clock_before = 0.0
+        self.best_eval = -math.inf
+        self.final: dict[str, float] | None = None
+        self.failure: str | None = None
+        if checkpoint is not None:
+            self.episodes_done, self.updates_done = checkpoint["episodes_done"], checkpoint["updates_done"]
+            self.wall_clock_before = checkpoint["wall_clock_s"]
+            self.best_eval = checkpoint["best_eval_return"]
+            self.recent_returns.extend(checkpoint["recent_returns"])
+            self.recent_lengths.extend(checkpoint["recent_lengths"])
+        self.last_eval_episode: int | None = None
+        self.next_checkpoint = self.episodes_done + self.checkpoint_every
+        self.next_eval = self.episodes_done + self.eval_every if self.eval_every else None
+        self.start = time.perf_counter()
+
+    @property
+    def finished(self) -> bool:
+        return self.episodes_done >= self.budget
+
+    @property
+    def failed(self) -> bool:
+        return self.failure is not None
+
+    @property
+    def wall_clock(self) -> float:
+        return self.wall_clock_before + time.perf_counter() - self.start
+
+    @property
+    def running_return(self) -> float:
+        return _mean(self.recent_returns)
+
+    @property
+    def running_length(self) -> float:
+        return _mean(self.recent_lengths)
+
+    def book(self, returns: Sequence[float], lengths: Sequence[float]) -> int:
+        """Count one update's finished episodes; returns the number of the first of them."""
+        first = self.episodes_done
+        self.updates_done += 1
+        self.recent_returns.extend(returns)
+        self.recent_lengths.extend(lengths)
+        self.episodes_done += len(returns)
+        return first
+
+    @property
+    def eval_due(self) -> bool:
+        """Every ``eval.every_episodes`` episodes, and once at the end (not twice when they coincide)."""
+        if self.last_eval_episode == self.episodes_done:
+            return False
+        periodic = self.next_eval is not None and self.episodes_done >= self.next_eval
+        return periodic or self.finished
+
+    def book_eval(self, result: dict[str, float]) -> bool:
+        """Count an evaluation (``return``, ``length``, ``time_in_zone`` means): the schedule moves on,
+        the final metrics are set at the end. Returns whether it is the best so far."""
+        best = result["return"] > self.best_eval
+        self.best_eval = max(self.best_eval, result["return"])
+        self.last_eval_episode = step = self.episodes_done
+        if self.next_eval is not None:
+            while self.next_eval <= step:
+                self.next_eval += self.eval_every
+        if self.finished:
+            self.final = {
+                "final_return": self.running_return,
+                "final_length": self.running_length,
+                "eval_return": result["return"],
+                "wall_clock_s": self.wall_clock,
+            }
+        return best
+
+    def updates_until_due(self, episodes_per_update: int) -> int:
+        """How many updates of ``episodes_per_update`` episodes until an evaluation, a checkpoint or
+        the end of the budget falls due (at least 1)."""
+        targets = [self.next_checkpoint, self.budget]
+        if self.next_eval is not None:
+            targets.append(self.next_eval)
+        episodes = min(target - self.episodes_done for target in targets)
+        return max(1, -(-episodes // episodes_per_update))
+
+    @property
+    def checkpoint_due(self) -> bool:
+        return self.finished or self.episodes_done >= self.next_checkpoint
+
+    def counters(self) -> dict[str, Any]:
+        """What a checkpoint keeps of these counters (what ``checkpoint`` gives back to ``__init__``)."""
+        return {
+            "episodes_done": self.episodes_done,
+            "updates_done": self.updates_done,
+            "wall_clock_s": self.wall_clock,
+            "best_eval_return": self.best_eval,
+            "recent_returns": list(self.recent_returns),
+            "recent_lengths": list(self.recent_lengths),
+        }
+
+    def book_save(self) -> None:
+        """A checkpoint was written: the next one falls due ``checkpoint.every_episodes`` later."""
+        while self.next_checkpoint <= self.episodes_done:
+            self.next_checkpoint += self.checkpoint_every
+
+
+class RunRecord(AgentBook):
     """One agent's run folder and its bookkeeping.
 
     Args:
@@ -77,35 +199,14 @@ class RunRecord:
         checkpoint: dict[str, Any] | None = None,
         parent_dir: Path | None = None,
     ) -> None:
-        self.cfg = cfg
+        super().__init__(cfg, checkpoint)
         # The resolved config as plain data, for checkpoints and TensorBoard's hparams (made once:
         # OmegaConf.to_container takes ~1 ms, and the config does not change during a run).
         self.config = OmegaConf.to_container(cfg, resolve=True)
         self.run_dir = Path(run_dir)
         self.backend = backend
-        # Read per update by every run of a population: plain numbers, not OmegaConf lookups (~20 us each).
-        self.budget = int(cfg.algo.episodes)
-        self.every_updates = int(cfg.logger.every_updates)
         self.flush_every_s = float(cfg.logger.flush_every_s)
-        self.window = window = int(cfg.metrics.running_mean_window)
-        self.recent_returns: deque[float] = deque(maxlen=window)
-        self.recent_lengths: deque[float] = deque(maxlen=window)
-        self.episodes_done = self.updates_done = 0
-        self.wall_clock_before = 0.0
-        self.best_eval = -math.inf
-        self.final: dict[str, float] | None = None
-        self.failure: str | None = None
         self._closed = False
-        if checkpoint is not None:
-            self.episodes_done, self.updates_done = checkpoint["episodes_done"], checkpoint["updates_done"]
-            self.wall_clock_before = checkpoint["wall_clock_s"]
-            self.best_eval = checkpoint["best_eval_return"]
-            self.recent_returns.extend(checkpoint["recent_returns"])
-            self.recent_lengths.extend(checkpoint["recent_lengths"])
-        self.last_eval_episode: int | None = None
-        self.next_checkpoint = self.episodes_done + cfg.checkpoint.every_episodes
-        every = cfg.eval.every_episodes
-        self.next_eval = self.episodes_done + every if every else None
 
         with writing(self.run_dir / CHECKPOINT_DIR):
             (self.run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
@@ -127,15 +228,6 @@ class RunRecord:
             )
         self.start = self._last_flush = time.perf_counter()
 
-    # ------------------------------------------------------------------ state
-    @property
-    def finished(self) -> bool:
-        return self.episodes_done >= self.budget
-
-    @property
-    def failed(self) -> bool:
-        return self.failure is not None
-
     def fail(self, reason: str) -> None:
         """Stop this run: ``FAILED.txt`` says why; its last checkpoint (all finite) is kept as it is."""
         self.failure = reason
@@ -144,33 +236,18 @@ class RunRecord:
             path.write_text(f"{TrainingDiverged.__name__}: {reason}\n")
         self.close()
 
-    @property
-    def wall_clock(self) -> float:
-        return self.wall_clock_before + time.perf_counter() - self.start
-
-    @property
-    def running_return(self) -> float:
-        return _mean(self.recent_returns)
-
-    @property
-    def running_length(self) -> float:
-        return _mean(self.recent_lengths)
-
     # ------------------------------------------------------------------ training
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
         """Book one update: its finished episodes (``EPISODE_KEYS`` -> one value per episode, in the
         order they finished) and its training metrics (TensorBoard every ``logger.every_updates``)."""
-        self.updates_done += 1
         wall = round(self.wall_clock, 3)
+        first = self.book(episodes["return"], episodes["length"])
         rows = []
-        for values in zip(*(episodes[k] for k in EPISODE_KEYS), strict=True):
+        for n, values in enumerate(zip(*(episodes[k] for k in EPISODE_KEYS), strict=True)):
             row = dict(zip(EPISODE_KEYS, values, strict=True))
             row["termination_cause"] = _CAUSE_NAMES[int(row["termination_cause"])]
-            row.update(episode=self.episodes_done, update=self.updates_done, wall_clock_s=wall)
+            row.update(episode=first + n, update=self.updates_done, wall_clock_s=wall)
             rows.append(row)
-            self.recent_returns.append(row["return"])
-            self.recent_lengths.append(row["length"])
-            self.episodes_done += 1
         self.csv.write(rows)
         if self.updates_done % self.every_updates == 0:
             metrics = {
@@ -183,14 +260,6 @@ class RunRecord:
             self.flush()
 
     # ------------------------------------------------------------------ evaluation
-    @property
-    def eval_due(self) -> bool:
-        """Every ``eval.every_episodes`` episodes, and once at the end (not twice when they coincide)."""
-        if self.last_eval_episode == self.episodes_done:
-            return False
-        periodic = self.next_eval is not None and self.episodes_done >= self.next_eval
-        return periodic or self.finished
-
     def record_eval(
         self,
         result: dict[str, float],
@@ -207,17 +276,7 @@ class RunRecord:
             save_checkpoint(self._state(learner_state()), self.run_dir / CHECKPOINT_DIR / BEST)
         if cfg.eval.video:
             self._video(actor(), step)
-        self.last_eval_episode = step
-        if self.next_eval is not None:
-            while self.next_eval <= step:
-                self.next_eval += cfg.eval.every_episodes
-        if self.finished:
-            self.final = {
-                "final_return": self.running_return,
-                "final_length": self.running_length,
-                "eval_return": result["return"],
-                "wall_clock_s": self.wall_clock,
-            }
+        self.book_eval(result)
 
     def _video(self, actor: Any, step: int) -> Path:
         """``<run>/videos/episode_<step>.mp4`` and TensorBoard's ``eval/video``.
@@ -233,31 +292,13 @@ class RunRecord:
         self.logger.log_frames("eval/video", frames[:, ::stride, ::stride], step=step, fps=fps)
         return path
 
-    def updates_until_due(self, episodes_per_update: int) -> int:
-        """How many updates of ``episodes_per_update`` episodes until an evaluation, a checkpoint or
-        the end of the budget falls due (at least 1)."""
-        targets = [self.next_checkpoint, self.budget]
-        if self.next_eval is not None:
-            targets.append(self.next_eval)
-        episodes = min(target - self.episodes_done for target in targets)
-        return max(1, -(-episodes // episodes_per_update))
-
     # ------------------------------------------------------------------ checkpoints
-    @property
-    def checkpoint_due(self) -> bool:
-        return self.finished or self.episodes_done >= self.next_checkpoint
-
     def _state(self, learner: dict[str, Any]) -> dict[str, Any]:
         return {
             "format_version": FORMAT_VERSION,
             "backend": self.backend,
             **learner,
-            "episodes_done": self.episodes_done,
-            "updates_done": self.updates_done,
-            "wall_clock_s": self.wall_clock,
-            "best_eval_return": self.best_eval,
-            "recent_returns": list(self.recent_returns),
-            "recent_lengths": list(self.recent_lengths),
+            **self.counters(),
             "config": self.config,
             "final": self.final,
         }
@@ -267,8 +308,7 @@ class RunRecord:
         the final hparams, and close the files."""
         self.flush()  # the CSV holds every episode the checkpoint counts
         save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
-        while self.next_checkpoint <= self.episodes_done:
-            self.next_checkpoint += self.cfg.checkpoint.every_episodes
+        self.book_save()
         if self.finished and self.final is not None:
             self.logger.log_final_hparams(self.config, self.final)
             self.close()

@@ -15,7 +15,7 @@ final evaluation is finished on resume.
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,13 +24,23 @@ import torch
 from omegaconf import DictConfig
 
 from drone_torchrl import algorithms
-from drone_torchrl.config import ConfigError, check_memory, env_kwargs
+from drone_torchrl.config import (
+    ConfigError,
+    check_memory,
+    env_kwargs,
+    leaves,
+    per_agent_keys,
+    resume_rule,
+)
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
 from drone_torchrl.optimum import Optimum
+from drone_torchrl.schema import KEPT
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
-from drone_torchrl.training.run import FAILED_FILE, Progress, RunRecord, TrainingDiverged
+from drone_torchrl.training.population_record import PopulationRecord, agent_values, is_population
+from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
 
 # Updates per call of a learner's update at most: the loop copies a call's metrics and episodes to
@@ -78,15 +88,38 @@ def learner_class(cfg: DictConfig) -> type:
 class Trainer:
     """The jobs of one group (see :func:`~.jobs.group_key`) trained together by one learner."""
 
-    def __init__(self, jobs: Sequence[Job]) -> None:
+    def __init__(
+        self,
+        jobs: Sequence[Job],
+        population_dir: Path | None = None,
+        names: Sequence[str] | None = None,
+        checkpoint: dict | None = None,
+    ) -> None:
+        """``population_dir``: train the jobs as one population run in that folder (see
+        :mod:`.population_record`; ``names``: the jobs' names, ``checkpoint``: the population
+        checkpoint to continue from); otherwise each job in its own run folder."""
         self.cfg = cfg = jobs[0].cfg
         torch.set_num_threads(cfg.threads)
         if torch.device(cfg.device).type == "cpu":
             keep_freed_memory()
         self.learner = learner_class(cfg)(jobs)
-        self.runs: list[RunRecord] = []
+        self.runs: list[AgentBook] = []
+        self.book: PopulationRecord | None = None
         try:
-            for job in jobs:
+            if population_dir is not None:
+                if checkpoint is not None:
+                    with torch.no_grad():  # the weights are a leaf that requires grad
+                        for key, value in checkpoint["state"].items():
+                            self.learner.state[key].copy_(value)
+                self.book = PopulationRecord(
+                    [job.cfg for job in jobs],
+                    names or [str(i) for i in range(len(jobs))],
+                    population_dir,
+                    cfg.backend,
+                    checkpoint,
+                )
+                self.runs = list(self.book.agents)
+            for job in jobs if population_dir is None else ():
                 self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
             self.progress = Progress([], False)
@@ -115,15 +148,14 @@ class Trainer:
                 # Killed after its last checkpoint but before the final evaluation: finish it now.
                 if at_budget := [i for i, run in enumerate(self.runs) if run.finished and run.final is None]:
                     self.evaluate(at_budget)
-                    for i in at_budget:
-                        self.runs[i].save(self.learner.checkpoint_entries(i))
+                    self.save(at_budget)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
                     self.step(active)
                     if stop.signum is not None:
                         active = [i for i in active if not self.runs[i].failed]
-                        for i in active:
-                            self.runs[i].save(self.learner.checkpoint_entries(i))
-                        raise TrainingStopped(stop.signum, [self.runs[i].run_dir for i in active])
+                        self.save(active)
+                        folders = dict.fromkeys(self.runs[i].run_dir for i in active)
+                        raise TrainingStopped(stop.signum, list(folders))
         except BaseException:
             self.close(quietly=True)  # the error in flight is the one to report, not a second one
             raise
@@ -172,13 +204,24 @@ class Trainer:
                 booked.append((runs[i], len(ended["length"])))
             if booked:
                 self.progress.update(sum(n for _, n in booked), [run for run, _ in booked])
+                if self.book is not None:
+                    self.book.after_update()
         active = [i for i in active if not runs[i].failed]
         if due := [i for i in active if runs[i].eval_due]:
             self.evaluate(due)
-        for i in active:
-            if runs[i].checkpoint_due:
-                runs[i].save(learner.checkpoint_entries(i))
+        if due := [i for i in active if runs[i].checkpoint_due]:
+            self.save(due)
         return steps
+
+    def save(self, agents: list[int]) -> None:
+        """A checkpoint of each of ``agents`` (a population run: one of every agent)."""
+        if not agents:
+            return
+        if self.book is not None:
+            self.book.save(dict(self.learner.state.items()))
+            return
+        for i in agents:
+            self.runs[i].save(self.learner.checkpoint_entries(i))
 
     def evaluate(self, agents: list[int]) -> None:
         """Fly the agents' deterministic policies on the evaluation seeds, all at once, and book it."""
@@ -202,12 +245,16 @@ class Trainer:
                 lambda i=i: learner.checkpoint_entries(i),
                 lambda i=i: learner.actor(i),
             )
+        if self.book is not None:
+            self.book.after_eval()
 
     def close(self, quietly: bool = False) -> None:
         """Flush and close every run; ``quietly``: while another error stops training, a run whose
         files cannot be written (the same full disk, say) is left as its last checkpoint has it."""
         self.progress.close()
         self.learner.close()
+        if self.book is not None:
+            self.book.close(quietly)
         for run in self.runs:
             try:
                 run.close()
@@ -296,3 +343,93 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
     if outcome.final is None:
         raise ConfigError(f"{outcome.run_dir}: training ended without final metrics")
     return outcome.final_return
+
+
+def train_population(
+    cfgs: Sequence[DictConfig],
+    names: Sequence[str],
+    run_dir: Path,
+    before_training: Callable[[], None] | None = None,
+) -> list[Outcome]:
+    """Train validated configs of one group (:func:`~.jobs.group_key`) as ONE population run in
+    ``run_dir`` (:mod:`.population_record`), or continue it from its ``checkpoints/last.pt``.
+
+    Refused in one line (:class:`ConfigError`) before anything is written: a learner that does not
+    train populations, a population larger than this machine's free memory, a folder another
+    process holds, a checkpoint of other agents or hyper-parameters. ``before_training``: called
+    once the folder is this process's (the launcher writes Hydra's record then). One outcome per
+    agent; SIGTERM stops it with a checkpoint (:class:`TrainingStopped`)."""
+    cfg = cfgs[0]
+    run_dir = Path(run_dir)
+    if learner_class(cfg).max_agents(cfg) is not None:
+        raise ConfigError(
+            f"hydra/launcher=population trains a population with one learner: algo={cfg.algo.name} with "
+            f"backend={cfg.backend} trains one agent at a time; use algo=reinforce (or reinforce_plus) "
+            "with backend=fast, or hydra/launcher=fused"
+        )
+    check_memory(cfg, agents=len(cfgs))
+    run_lock.hold(run_dir)
+    try:
+        checkpoint = _population_checkpoint(cfgs, names, run_dir)
+        budget = cfg.algo.episodes
+        if checkpoint is not None and all(
+            (final is not None and done >= budget) or failure is not None
+            for final, failure, done in zip(
+                checkpoint["final"], checkpoint["failure"], checkpoint["episodes_done"], strict=True
+            )
+        ):
+            print(f"{run_dir}: already finished ({len(cfgs)} agents); nothing to do")
+            return _population_outcomes(run_dir, checkpoint["final"], checkpoint["failure"])
+        if before_training is not None:
+            before_training()
+        trainer = Trainer([Job(c, run_dir) for c in cfgs], run_dir, names, checkpoint)
+        finals = trainer.train()
+        return _population_outcomes(run_dir, finals, [run.failure for run in trainer.runs])
+    finally:
+        run_lock.release(run_dir)
+
+
+def _population_outcomes(run_dir: Path, finals: Sequence, failures: Sequence) -> list[Outcome]:
+    return [
+        Outcome(run_dir, final, None if failure is None else TrainingDiverged(failure))
+        for final, failure in zip(finals, failures, strict=True)
+    ]
+
+
+def _population_checkpoint(cfgs: Sequence[DictConfig], names: Sequence[str], run_dir: Path) -> dict | None:
+    """The population run's last checkpoint, if it has one, checked against the sweep's agents and
+    hyper-parameters (as a continued run's: only the budget, logging and process settings change)."""
+    path = run_dir / CHECKPOINT_DIR / LAST
+    if not path.is_file():
+        return None
+    try:
+        checkpoint = load_checkpoint(path)
+    except CheckpointError as err:
+        raise ConfigError(f"{run_dir} cannot be continued: {err}") from None
+    if not is_population(checkpoint):
+        raise ConfigError(
+            f"{run_dir} holds a single run's checkpoint, not a population's: use another hydra.sweep.dir"
+        )
+    if checkpoint["agents"] != {"name": list(names), **agent_values(cfgs)}:
+        raise ConfigError(
+            f"{path} holds {len(checkpoint['agents']['name'])} other agents (names or per-agent values differ "
+            "from this sweep's): run the sweep that wrote it, or use another hydra.sweep.dir"
+        )
+    saved, now = leaves(checkpoint["config"]), leaves(cfgs[0])
+    per_agent = set(per_agent_keys())
+    changed = [
+        f"{key} {saved.get(key)!r} -> {value!r}"
+        for key, value in now.items()
+        if key not in per_agent and resume_rule(key) == KEPT and saved.get(key) != value
+    ]
+    if changed:
+        raise ConfigError(
+            f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued population keeps "
+            "its hyper-parameters: drop those overrides or use another hydra.sweep.dir"
+        )
+    done = max(checkpoint["episodes_done"])
+    if cfgs[0].algo.episodes < done:
+        raise ConfigError.of(
+            "algo.episodes", cfgs[0].algo.episodes, f">= {done}: {path} has already trained {done} episodes"
+        )
+    return checkpoint

@@ -1,4 +1,4 @@
-"""The config schemas of ``hydra/launcher=fused`` and ``hydra/sweeper=population``, in Hydra's ConfigStore.
+"""The config schemas of ``hydra/launcher=fused``, ``hydra/launcher=population`` and ``hydra/sweeper=population``, in Hydra's ConfigStore.
 
 Kept apart from the plugins (which import the training code when they run) so that composing the
 configs needs nothing but this module.
@@ -20,12 +20,20 @@ class FusedLauncherConf:
 
 
 @dataclass
+class PopulationLauncherConf:
+    _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.PopulationLauncher"
+
+
+@dataclass
 class PopulationSweeperConf(BasicSweeperConf):
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_sweeper.PopulationSweeper"
 
 
 ConfigStore.instance().store(
     group="hydra/launcher", name="fused", node=FusedLauncherConf, provider="drone_torchrl"
+)
+ConfigStore.instance().store(
+    group="hydra/launcher", name="population", node=PopulationLauncherConf, provider="drone_torchrl"
 )
 ConfigStore.instance().store(
     group="hydra/sweeper", name="population", node=PopulationSweeperConf, provider="drone_torchrl"

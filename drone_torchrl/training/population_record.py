@@ -1,0 +1,431 @@
+"""A population run: the agents of one population in ONE folder (``hydra/launcher=population``).
+
+A sweep's per-job folders cost a lock, ``.hydra/``, a CSV, a logger and checkpoints per agent, which
+at tens of thousands of agents is most of the time and open files. A population run keeps::
+
+    <run>/
+      .hydra/, config.yaml     the group's config (agent 0's values of the per-agent keys)
+      agents.parquet           one row per agent: agent, name (its job's overrides), seed, algo.lr, ...
+      episodes/part-NNNNNN.parquet
+                               every finished episode: agent, episode, update, return, length,
+                               time_in_zone, negative_thrust_fraction, termination_cause, wall_clock_s;
+                               each part written atomically (a kill never leaves a torn one)
+      checkpoints/last.pt      the stacked state of every agent (see :func:`checkpoint_state`)
+      <logger's files>         population summaries: quantiles of the running-mean return, the best
+                               agent, the number alive (not diverged)
+      .lock, FAILED.txt        as a run folder's
+
+Each agent keeps its counters in a :class:`PopulationAgent` (:class:`~.run.AgentBook`, as a
+:class:`~.run.RunRecord` does); the files are the :class:`PopulationRecord`'s. The checkpoint names
+how many episode parts it covers: parts written after it (episodes the resumed run trains again)
+are removed on resume, so every agent's episodes appear exactly once.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from drone_torchrl.checks import ConfigError
+from drone_torchrl.config import open_checkpoint, per_agent_keys, run_config
+from drone_torchrl.episodes import EPISODE_KEYS
+from drone_torchrl.io import run_lock
+from drone_torchrl.io.checkpoint import (
+    CHECKPOINT_DIR,
+    FORMAT_VERSION,
+    LAST,
+    POPULATION,
+    load_checkpoint,
+    save_checkpoint,
+)
+from drone_torchrl.io.storage import write_atomically, writing
+from drone_torchrl.io.yaml_text import save_yaml
+from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, make_logger
+from drone_torchrl.training.population import Population
+from drone_torchrl.training.run import _CAUSE_NAMES, CONFIG_NAME, FAILED_FILE, AgentBook, TrainingDiverged
+
+AGENTS_TABLE = "agents.parquet"
+EPISODES_DIR = "episodes"
+# The running-return quantiles the loggers get.
+QUANTILES = (0.1, 0.5, 0.9)
+
+
+def _pyarrow():
+    try:
+        import pyarrow
+        import pyarrow.parquet
+    except ImportError:
+        raise ConfigError(
+            "hydra/launcher=population writes Parquet and needs pyarrow: pip install 'drone_torchrl[population]'"
+        ) from None
+    return pyarrow
+
+
+def part_path(run_dir: Path, number: int) -> Path:
+    return Path(run_dir) / EPISODES_DIR / f"part-{number:06d}.parquet"
+
+
+def agent_values(cfgs: Sequence[DictConfig]) -> dict[str, list]:
+    """Each per-agent key (``seed``, ``algo.lr``, ...) -> its value for every agent."""
+    return {key: [OmegaConf.select(cfg, key) for cfg in cfgs] for key in per_agent_keys()}
+
+
+class PopulationAgent(AgentBook):
+    """One agent of a population run: its counters; what it books goes to the run's files."""
+
+    def __init__(
+        self, owner: PopulationRecord, index: int, cfg: DictConfig, counters: dict[str, Any] | None
+    ) -> None:
+        super().__init__(cfg, counters)
+        self.owner, self.index = owner, index
+
+    @property
+    def run_dir(self) -> Path:
+        return self.owner.run_dir
+
+    def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
+        first = self.book(episodes["return"], episodes["length"])
+        self.owner.add_rows(self.index, first, self.updates_done, episodes)
+
+    def record_eval(self, result: dict[str, float], learner_state: Any = None, actor: Any = None) -> None:
+        """Count an evaluation (a population run keeps no best.pt nor videos per agent)."""
+        self.book_eval(result)
+        self.owner.eval_returns[self.index] = result["return"]
+
+    def fail(self, reason: str) -> None:
+        self.failure = reason
+        self.owner.keep_last_finite(self.index)
+        print(
+            f"{self.run_dir}: agent {self.index} failed: {TrainingDiverged.__name__}: {reason}",
+            file=sys.stderr,
+        )
+
+    def close(self) -> None:
+        pass  # the population's files are closed once, by PopulationRecord.close
+
+
+class PopulationRecord:
+    """The folder and files of a population run (see the module's docstring).
+
+    Args:
+        cfgs: each agent's validated config (equal but for the per-agent keys).
+        names: each agent's name (its job's overrides), for ``agents.parquet``.
+        run_dir: the run folder.
+        backend: the backend that trains it.
+        checkpoint: the population checkpoint to continue from, or None.
+    """
+
+    def __init__(
+        self,
+        cfgs: Sequence[DictConfig],
+        names: Sequence[str],
+        run_dir: Path,
+        backend: str,
+        checkpoint: dict[str, Any] | None = None,
+    ) -> None:
+        self.pa = _pyarrow()
+        self.cfg = cfg = cfgs[0]
+        self.run_dir = run_dir = Path(run_dir)
+        self.backend = backend
+        self.config = OmegaConf.to_container(cfg, resolve=True)
+        self.values = agent_values(cfgs)
+        self.names = list(names)
+        self.every_updates = int(cfg.logger.every_updates)
+        self.flush_every_s = float(cfg.logger.flush_every_s)
+        n = len(cfgs)
+        self.agents = [
+            PopulationAgent(self, i, c, None if checkpoint is None else _agent_counters(checkpoint, i))
+            for i, c in enumerate(cfgs)
+        ]
+        self.eval_returns = [math.nan] * n
+        self.parts = 0 if checkpoint is None else int(checkpoint["parts"])
+        if checkpoint is not None:
+            for agent, failure in zip(self.agents, checkpoint["failure"], strict=True):
+                agent.failure = failure
+            for agent, final in zip(self.agents, checkpoint["final"], strict=True):
+                agent.final = final if agent.finished else None  # a larger budget trains it on
+        self.updates = 0 if checkpoint is None else int(checkpoint["population_updates"])
+        self._columns: dict[str, list] = {}
+        # Failed agent -> its rows of the stacked state in the last checkpoint (finite), kept in
+        # the checkpoints that follow instead of its diverged weights.
+        self._last_finite: dict[int, dict[str, torch.Tensor]] = {}
+        self._clear()
+        with writing(run_dir / CHECKPOINT_DIR):
+            (run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
+            (run_dir / EPISODES_DIR).mkdir(exist_ok=True)
+            (run_dir / FAILED_FILE).unlink(missing_ok=True)
+        dropped = self._drop_parts_past_checkpoint()
+        save_yaml(cfg, run_dir / CONFIG_NAME)
+        self._write_table(
+            {"agent": list(range(n)), "name": self.names, **self.values}, run_dir / AGENTS_TABLE
+        )
+        self.logger = make_logger(cfg, run_dir, None if checkpoint is None else self.step)
+        if checkpoint is not None:
+            print(
+                f"{run_dir}: {n} agents continuing from their checkpoint ({self.step} episodes each); "
+                f"{dropped} episode part(s) written after it removed (those episodes are trained again)"
+            )
+        self._closed = False
+        self._last_flush = time.perf_counter()
+
+    # ------------------------------------------------------------------ episodes
+    def _clear(self) -> None:
+        self._columns = {key: [] for key in ("agent", "episode", "update", *EPISODE_KEYS, "wall_clock_s")}
+
+    def add_rows(self, agent: int, first: int, update: int, episodes: dict[str, Sequence]) -> None:
+        count = len(episodes["return"])
+        cols = self._columns
+        cols["agent"].extend([agent] * count)
+        cols["episode"].extend(range(first, first + count))
+        cols["update"].extend([update] * count)
+        cols["wall_clock_s"].extend([round(self.agents[agent].wall_clock, 3)] * count)
+        for key in EPISODE_KEYS:
+            cols[key].extend(episodes[key])
+
+    def _write_table(self, columns: dict[str, list], path: Path) -> None:
+        """``columns`` as one Parquet file, written whole or not at all."""
+        buffer = io.BytesIO()
+        self.pa.parquet.write_table(self.pa.table(columns), buffer)
+        write_atomically(path, buffer.getbuffer())
+
+    def _write_part(self) -> None:
+        cols = self._columns
+        if not cols["agent"]:
+            return
+        names = np.array([_CAUSE_NAMES[c] for c in sorted(_CAUSE_NAMES)])
+        table = {
+            "agent": np.asarray(cols["agent"], dtype=np.int32),
+            "episode": np.asarray(cols["episode"], dtype=np.int64),
+            "update": np.asarray(cols["update"], dtype=np.int64),
+            **{
+                k: np.asarray(cols[k], dtype=np.float64)
+                for k in (*EPISODE_KEYS, "wall_clock_s")
+                if k != "termination_cause"
+            },
+            "termination_cause": names[np.asarray(cols["termination_cause"], dtype=np.int64)],
+        }
+        table["length"] = table["length"].astype(np.int64)
+        self._write_table(table, part_path(self.run_dir, self.parts + 1))
+        self.parts += 1
+        self._clear()
+
+    def _drop_parts_past_checkpoint(self) -> int:
+        """Remove the episode parts the checkpoint does not cover (written after it)."""
+        past = [
+            p for p in (self.run_dir / EPISODES_DIR).glob("part-*.parquet") if int(p.stem[5:]) > self.parts
+        ]
+        for path in past:
+            path.unlink()
+        return len(past)
+
+    # ------------------------------------------------------------------ summaries
+    @property
+    def step(self) -> int:
+        """The logger's step: the episodes of the agent furthest on (the agents go in step)."""
+        return max(agent.episodes_done for agent in self.agents)
+
+    @property
+    def wall_clock(self) -> float:
+        return self.agents[0].wall_clock
+
+    def summary(self) -> dict[str, float]:
+        """Quantiles of the agents' running-mean return, the best agent and the number alive."""
+        alive = [a for a in self.agents if not a.failed]
+        out: dict[str, float] = {"population/alive": float(len(alive))}
+        returns = np.array([a.running_return for a in alive], dtype=np.float64)
+        if len(returns) and not np.isnan(returns).all():
+            for q, value in zip(QUANTILES, np.nanquantile(returns, QUANTILES), strict=True):
+                out[f"population/return_q{round(100 * q)}"] = float(value)
+            best = int(np.nanargmax(returns))
+            out["population/best_return"] = float(returns[best])
+            out["population/best_agent"] = float(alive[best].index)
+        return out
+
+    def after_update(self) -> None:
+        """One update of the population booked: the summary every ``logger.every_updates``."""
+        self.updates += 1
+        if self.updates % self.every_updates == 0:
+            self.logger.log_metrics(self.summary(), step=self.step)
+        if time.perf_counter() - self._last_flush > self.flush_every_s:
+            self.flush()
+
+    def after_eval(self) -> None:
+        returns = np.array([r for a, r in zip(self.agents, self.eval_returns, strict=True) if not a.failed])
+        if len(returns) and not np.isnan(returns).all():
+            best = int(np.nanargmax(returns))
+            metrics = {
+                f"eval/return_q{round(100 * q)}": float(v)
+                for q, v in zip(QUANTILES, np.nanquantile(returns, QUANTILES), strict=True)
+            }
+            self.logger.log_metrics({**metrics, "eval/best_return": float(returns[best])}, step=self.step)
+
+    # ------------------------------------------------------------------ checkpoints
+    def keep_last_finite(self, agent: int) -> None:
+        """Agent ``agent`` diverged: keep its state of the last checkpoint for the next ones (none
+        yet: its weights are written with their non-finite values zeroed)."""
+        path = self.run_dir / CHECKPOINT_DIR / LAST
+        if path.is_file():
+            state = load_checkpoint(path)["state"]
+            self._last_finite[agent] = {key: value[agent].clone() for key, value in state.items()}
+
+    def save(self, state: dict[str, torch.Tensor]) -> None:
+        """Write ``last.pt`` with every agent's ``state`` (the stacked tensors, ``[N, ...]`` each)
+        after the episodes it counts; at the end, the final summary too, and close."""
+        self.flush()
+        save_checkpoint(self._checkpoint(state), self.run_dir / CHECKPOINT_DIR / LAST)
+        for agent in self.agents:
+            agent.book_save()
+        if all(a.failed or a.final is not None for a in self.agents):
+            finals = [a.final["final_return"] for a in self.agents if a.final is not None]
+            if finals:
+                self.logger.log_final_hparams(
+                    self.config, {"final_return_best": max(finals), **self.summary()}
+                )
+            self.close()
+
+    def _checkpoint(self, state: dict[str, torch.Tensor]) -> dict[str, Any]:
+        window = self.agents[0].window
+        failed = torch.tensor([a.failed for a in self.agents])
+        stacked = {}
+        for key, tensor in state.items():
+            tensor = tensor.detach().cpu()
+            if bool(failed.any()):  # a diverged agent's weights are not kept: its last finite ones are
+                tensor = tensor.clone()
+                if tensor.is_floating_point():
+                    tensor[failed] = torch.nan_to_num(tensor[failed], nan=0.0, posinf=0.0, neginf=0.0)
+                for agent, rows in self._last_finite.items():
+                    tensor[agent] = rows[key]
+            stacked[key] = tensor
+
+        def recent(name: str) -> torch.Tensor:
+            out = torch.zeros(len(self.agents), window, dtype=torch.float64)
+            for i, agent in enumerate(self.agents):
+                values = getattr(agent, name)
+                if values:
+                    out[i, : len(values)] = torch.tensor(list(values), dtype=torch.float64)
+            return out
+
+        return {
+            "format_version": FORMAT_VERSION,
+            "kind": POPULATION,
+            "backend": self.backend,
+            "state": stacked,
+            "config": self.config,
+            "agents": {"name": self.names, **self.values},
+            "episodes_done": [a.episodes_done for a in self.agents],
+            "updates_done": [a.updates_done for a in self.agents],
+            "wall_clock_s": self.wall_clock,
+            "best_eval_return": [a.best_eval for a in self.agents],
+            "recent_returns": recent("recent_returns"),
+            "recent_lengths": recent("recent_lengths"),
+            "recent_count": torch.tensor([len(a.recent_returns) for a in self.agents]),
+            "final": [a.final for a in self.agents],
+            "failure": [a.failure for a in self.agents],
+            "parts": self.parts,
+            "population_updates": self.updates,
+        }
+
+    def flush(self) -> None:
+        self._write_part()
+        self.logger.flush()
+        run_lock.renew(self.run_dir)
+        self._last_flush = time.perf_counter()
+
+    def close(self, quietly: bool = False) -> None:
+        """Write what is buffered and close the logger, once."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._write_part()
+        except OSError:
+            if not quietly:
+                raise
+        failed = all(a.failed for a in self.agents)
+        done = all(a.failed or a.final is not None for a in self.agents)
+        self.logger.close(FAILED if failed else FINISHED if done else STOPPED)
+        run_lock.renew(self.run_dir)
+
+
+def _agent_counters(checkpoint: dict[str, Any], i: int) -> dict[str, Any]:
+    """Agent ``i``'s counters in a population checkpoint, as :meth:`AgentBook.counters` writes them."""
+    count = int(checkpoint["recent_count"][i])
+    return {
+        "episodes_done": int(checkpoint["episodes_done"][i]),
+        "updates_done": int(checkpoint["updates_done"][i]),
+        "wall_clock_s": float(checkpoint["wall_clock_s"]),
+        "best_eval_return": float(checkpoint["best_eval_return"][i]),
+        "recent_returns": checkpoint["recent_returns"][i, :count].tolist(),
+        "recent_lengths": checkpoint["recent_lengths"][i, :count].tolist(),
+    }
+
+
+def is_population(checkpoint: dict[str, Any]) -> bool:
+    return isinstance(checkpoint, dict) and checkpoint.get("kind") == POPULATION
+
+
+def read_episodes(run_dir: Path) -> dict[str, list]:
+    """Every episode a population run booked, its parts in the order written: column -> values."""
+    pa = _pyarrow()
+    parts = sorted((Path(run_dir) / EPISODES_DIR).glob("part-*.parquet"))
+    if not parts:
+        return {}
+    return pa.concat_tables([pa.parquet.read_table(p) for p in parts]).to_pydict()
+
+
+def read_agents(run_dir: Path) -> dict[str, list]:
+    """``agents.parquet``: column -> one value per agent."""
+    return _pyarrow().parquet.read_table(Path(run_dir) / AGENTS_TABLE).to_pydict()
+
+
+def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[str, Any]]:
+    """:func:`~drone_torchrl.config.open_checkpoint`, and of a population run's checkpoint its agent
+    ``agent`` (:func:`agent_checkpoint`); ``agent`` is for population runs only."""
+    path, state = open_checkpoint(key, location)
+    if is_population(state):
+        return path, agent_checkpoint(state, agent, path)
+    if agent is not None:
+        raise ConfigError.of(
+            "agent",
+            agent,
+            f"null: {path} is one run's checkpoint (agent=K picks an agent of a population run)",
+        )
+    return path, state
+
+
+def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str, Any]:
+    """Agent ``agent`` of a population checkpoint as a run's checkpoint (actor, optimizer, counters,
+    its own config): what ``drone-eval``, ``drone-export`` and ``resume`` read. :class:`ConfigError`
+    (one line) for an agent the population does not have."""
+    count = len(state["episodes_done"])
+    if isinstance(agent, bool) or not isinstance(agent, int) or not 0 <= agent < count:
+        raise ConfigError.of(
+            "agent", agent, f"an agent of the population run {path}: an integer 0..{count - 1}"
+        )
+    cfg = run_config(state["config"])
+    for key, values in state["agents"].items():
+        if key != "name":
+            OmegaConf.update(cfg, key, values[agent])
+    cfg.device = "cpu"
+    one = Population([cfg])
+    with torch.no_grad():  # the weights are a leaf that requires grad
+        for key, value in state["state"].items():
+            one.state[key].copy_(value[agent : agent + 1])
+    return {
+        "format_version": FORMAT_VERSION,
+        "backend": state["backend"],
+        **one.checkpoint_entries(0),
+        "rng": {"torch": None, "env": None, "agent": None},  # counter-based: the update count is the state
+        **_agent_counters(state, agent),
+        "config": OmegaConf.to_container(cfg, resolve=True),
+        "final": state["final"][agent],
+    }
