@@ -5,7 +5,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from drone_torchrl.config import config_dir, validate
+from drone_torchrl.config import ConfigError, config_dir, validate
 from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.trainer import Trainer
 
@@ -76,18 +76,25 @@ def test_paper_code_preset():
     assert (cfg.model.distribution_eps, cfg.model.min_std) == (1e-6, 0.0)
 
 
-@pytest.mark.parametrize("algo", ["reinforce", "reinforce_plus", "ppo", "a2c"])
+@pytest.mark.parametrize("algo", ["reinforce", "reinforce_plus", "ppo", "a2c", "sac"])
 def test_paper_code_preset_with_any_algorithm(algo):
     """experiment=paper_code algo=<x> (was Hydra's ConfigKeyError for algo=ppo): the public code's
     environment and policy with the chosen algorithm's values; its AdamW and mean log-probabilities
     only where the algorithm has those keys (REINFORCE's options), else dropped with a one-line note
-    when the run starts. The options tried are every conf/algo option (asserted below)."""
+    when the run starts. SAC needs bounded thrust (the TanhNormal head), which the public code's
+    unbounded drone does not have: refused in one line naming what to type. The options tried are
+    every conf/algo option (asserted below)."""
     from drone_torchrl.config import _options, preset_notes
 
-    assert sorted(_options("algo")) == ["a2c", "ppo", "reinforce", "reinforce_plus"]
+    assert sorted(_options("algo")) == ["a2c", "ppo", "reinforce", "reinforce_plus", "sac"]
     with initialize_config_dir(config_dir(), version_base="1.3"):
         cfg = compose("config", ["experiment=paper_code", f"algo={algo}"], return_hydra_config=True)
         alone = compose("config", [f"algo={algo}"])
+    if algo == "sac":
+        with pytest.raises(ConfigError, match=r"model\.distribution=.*experiment=bounded algo=sac") as info:
+            validate(cfg)
+        assert "\n" not in str(info.value)
+        return
     validate(cfg)
     assert (cfg.env.zone_x_limit, cfg.env.bounds, cfg.env.dtype) == (0.6, "strict", "float64")
     assert (cfg.model.distribution_eps, cfg.model.min_std) == (1e-6, 0.0)
