@@ -324,3 +324,38 @@ def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
     assert sorted(len(setting.runs) for setting in group_runs(runs)) == [2, 2, 2, 2]
     report_main([str(sweep_dir), "--no-pd", "--out", str(tmp_path / "report")])
     assert (tmp_path / "report").is_dir() and any((tmp_path / "report").iterdir())
+
+
+def test_drone_train_registers_every_launcher_and_sweeper_of_the_package(monkeypatch):
+    """Hydra finds plug-ins by listing hydra_plugins' folders, which an editable install does not have
+    (``hydra/launcher=population`` was an "Unknown plugin class" traceback run outside the checkout):
+    drone-train registers each Launcher and Sweeper class our package defines. Hydra's registry is
+    emptied of them first, so only the registration can put them back."""
+    import importlib
+    import inspect
+    import pkgutil
+
+    from hydra.core.plugins import Plugins
+    from hydra.plugins.launcher import Launcher
+    from hydra.plugins.sweeper import Sweeper
+
+    import hydra_plugins.drone_torchrl_launcher as package
+    from drone_torchrl.apps.train import register_plugins
+
+    ours = set()
+    for info in pkgutil.iter_modules(package.__path__, package.__name__ + "."):
+        module = importlib.import_module(info.name)
+        for _, cls in inspect.getmembers(module, inspect.isclass):
+            if cls.__module__ == module.__name__ and issubclass(cls, (Launcher, Sweeper)):
+                ours.add(f"{cls.__module__}.{cls.__name__}")
+    assert {name.rsplit(".", 1)[1] for name in ours} >= {
+        "FusedLauncher",
+        "PopulationLauncher",
+        "PopulationSweeper",
+    }
+    registry = Plugins.instance().class_name_to_class
+    monkeypatch.setattr(
+        Plugins.instance(), "class_name_to_class", {k: v for k, v in registry.items() if k not in ours}
+    )
+    register_plugins()
+    assert ours <= set(Plugins.instance().class_name_to_class)

@@ -123,21 +123,28 @@ def _before_hydra() -> list[Path]:
     return [] if folder is None else [folder]
 
 
-def run() -> None:
-    """Console entry point: registers the population launcher, then runs the Hydra app."""
+def register_plugins() -> None:
+    """Register our Hydra launchers and sweeper with Hydra.
+
+    Hydra finds plugins by listing the hydra_plugins folders; an editable install's import hook is
+    not a folder, so ours are registered explicitly (harmless for a normal install)."""
     from hydra.core.plugins import Plugins
 
     from hydra_plugins.drone_torchrl_launcher import slurm_launcher
     from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
+    from hydra_plugins.drone_torchrl_launcher.population_launcher import PopulationLauncher
     from hydra_plugins.drone_torchrl_launcher.population_sweeper import PopulationSweeper
 
-    # Hydra finds plugins by listing the hydra_plugins folders; an editable install's import hook
-    # is not a folder, so register ours explicitly (harmless for a normal install).
-    Plugins.instance().register(FusedLauncher)
-    Plugins.instance().register(PopulationSweeper)
+    plugins = [FusedLauncher, PopulationLauncher, PopulationSweeper]
     if hasattr(slurm_launcher, "SlurmLauncher"):  # with the submitit extra
-        Plugins.instance().register(slurm_launcher.SlurmLauncher)
-        Plugins.instance().register(slurm_launcher.SlurmPopulationLauncher)
+        plugins += [slurm_launcher.SlurmLauncher, slurm_launcher.SlurmPopulationLauncher]
+    for plugin in plugins:
+        Plugins.instance().register(plugin)
+
+
+def run() -> None:
+    """Console entry point: registers our Hydra plug-ins, then runs the Hydra app."""
+    register_plugins()
     claimed = _before_hydra()
     try:
         main()
