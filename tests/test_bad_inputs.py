@@ -859,11 +859,15 @@ def test_every_row_through_the_real_commands(files, tmp_path):
         name, args, names = cases[i]
         cwd = tmp_path / str(i)
         cwd.mkdir()
-        # Each case resumes a copy of the run: the real commands run four at a time, and two of them
-        # resuming one run folder would be refused for that (it belongs to one process at a time).
+        # Each case resumes a copy of the run (and of the population run): the real commands run four
+        # at a time, and two of them resuming one folder would be refused for that (it belongs to one
+        # process at a time).
         own = dict(files, run=cwd / "run", last=cwd / "run" / "checkpoints" / "last.pt")
         if any("{run}" in a or "{last}" in a for a in args):
             shutil.copytree(files["run"], own["run"], ignore=shutil.ignore_patterns(".lock"))
+        if any("{population}" in a for a in args):
+            own["population"] = cwd / "population"
+            shutil.copytree(files["population"], own["population"], ignore=shutil.ignore_patterns(".lock"))
         return _command(name, *_fill(args, own), cwd=cwd)
 
     with ThreadPoolExecutor(4) as pool:
