@@ -61,12 +61,13 @@ def _train(sweep: Path, *overrides: str, wait: bool = True, launcher: str = "slu
     return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
 
 
-def _sacct(job_id: str, settle_s: float = 60.0) -> dict[str, str]:
+def _sacct(job_id: str, tasks: int, settle_s: float = 60.0) -> dict[str, str]:
     """``{"12_0": "COMPLETED", ...}``: SLURM's accounting record of an array job's tasks.
 
     submitit sees a task's result file before slurmd has told the controller the task ended, so
-    a task can still read RUNNING (or COMPLETING) for a moment after the sweep returns: wait for
-    the states to settle."""
+    a task can still read RUNNING (or COMPLETING) for a moment after the sweep returns, and
+    slurmdbd may not have recorded a finished task at all yet (sacct then lists fewer tasks):
+    wait until all ``tasks`` are listed and none is still pending or running."""
     deadline = time.time() + settle_s
     while True:
         out = subprocess.run(
@@ -76,7 +77,8 @@ def _sacct(job_id: str, settle_s: float = 60.0) -> dict[str, str]:
             check=True,
         ).stdout
         states = dict(line.split("|")[:2] for line in out.split() if line)
-        if time.time() > deadline or not {"PENDING", "RUNNING", "COMPLETING"} & set(states.values()):
+        settled = len(states) >= tasks and not {"PENDING", "RUNNING", "COMPLETING"} & set(states.values())
+        if settled or time.time() > deadline:
             return states
         time.sleep(1)
 
@@ -92,7 +94,7 @@ def test_a_sweep_runs_as_slurm_jobs_and_reports(tmp_path):
     assert done.returncode == 0, output[-3000:]
     job = _job_id(output)
     # The scheduler's view: three array tasks of one job, all completed.
-    assert _sacct(job) == {f"{job}_{i}": "COMPLETED" for i in range(3)}
+    assert _sacct(job, 3) == {f"{job}_{i}": "COMPLETED" for i in range(3)}
     shown = subprocess.run(
         ["scontrol", "show", "job", job], capture_output=True, text=True, check=True
     ).stdout
@@ -215,7 +217,7 @@ def test_a_large_sweep_runs_as_a_few_population_jobs(tmp_path):
     assert done.returncode == 0, output[-3000:]
     print(f"64 agents as 2 SLURM jobs: {time.perf_counter() - start:.1f} s")
     job = _job_id(output)
-    assert _sacct(job) == {f"{job}_0": "COMPLETED", f"{job}_1": "COMPLETED"}
+    assert _sacct(job, 2) == {f"{job}_0": "COMPLETED", f"{job}_1": "COMPLETED"}
     assert "64 finished, 0 failed" in output
     with initialize_config_dir(config_dir(), version_base="1.3"):
         for seed in (5, 40):  # one agent of each SLURM job, trained alone here
@@ -241,7 +243,7 @@ def test_a_repeated_job_is_trained_once_under_slurm_population(tmp_path):
     output = done.stdout + done.stderr
     assert done.returncode == 0, output[-3000:]
     job = _job_id(output)
-    assert _sacct(job) == {f"{job}_0": "COMPLETED", f"{job}_1": "COMPLETED"}
+    assert _sacct(job, 2) == {f"{job}_0": "COMPLETED", f"{job}_1": "COMPLETED"}
     assert "3 finished, 0 failed" in output, output[-3000:]
     (folder,) = sweep.glob("*seed=0")
     (episodes, notes) = read_episodes(folder / "episodes.csv")
