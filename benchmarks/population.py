@@ -3,14 +3,18 @@ for 1 ... 65,536 agents, every episode the full 300 steps.
 
     python benchmarks/population.py                          # 1, 16, 32, 256, 1024 agents, CPU
     python benchmarks/population.py --agents 1024 8192 65536 --updates 1 --per-call 1 --repeats 1
+    python benchmarks/population.py --agents 1024 8192 65536 --updates 1 --per-call 1 --repeats 1 --command
     python benchmarks/population.py --agents 32 1024 --device cuda
 
 One update = every agent's episode (300 steps: termination is switched off here, in the C++
 kernels' bounds, so that the work per update does not depend on how well the agents fly),
 REINFORCE loss and gradient, per-agent clipping and Adam, and the population run's record (its
 Parquet rows and summaries; the checkpoint of every agent, timed once and amortised over
-``checkpoint.every_episodes`` of conf/config.yaml), on the fast engine (backend=fast). Set-up: from the configs to the end
-of the first update (the imports, once per command, are printed apart); memory: what the
+``checkpoint.every_episodes`` of conf/config.yaml), on the fast engine (backend=fast). Set-up: from the
+configs to the first update (the agents' table, as the launcher makes it, the learner and the
+folder; the imports, once per command, and the first update are printed apart); ``--command``
+also times the real ``drone-train -m hydra/launcher=population 'seed=range(0,N)'`` from its start to
+its log line that the population is set up (Hydra and the sweep's N jobs included); memory: what the
 population added to this process per agent (a size after the first reuses memory the first
 freed: time one size per command for that figure), and the estimate of
 drone_torchrl.training.memory_estimate.
@@ -33,6 +37,8 @@ import argparse
 import math
 import os
 import statistics
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -40,10 +46,10 @@ import torch
 import train_speed  # the script beside this one: python benchmarks/population.py
 from omegaconf import OmegaConf
 
-from drone_torchrl.config import config_dir
+from drone_torchrl.config import config_dir, per_agent_keys
 from drone_torchrl.training import memory_estimate
 from drone_torchrl.training import population_record as record_module
-from drone_torchrl.training.jobs import Job
+from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.trainer import Trainer
 
@@ -107,16 +113,16 @@ def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) 
         budget = (warmup + updates) * per_call + 1
         cfg.algo.episodes = budget
         cfg.checkpoint.every_episodes = CHECKPOINT_EVERY
-        base = OmegaConf.to_container(cfg)
-        cfgs = []
-        for seed in range(agents):
-            job = OmegaConf.create(base)
-            job.seed = seed
-            cfgs.append(job)
-        trainer = Trainer([Job(c, Path(tmp)) for c in cfgs], Path(tmp), [f"seed={i}" for i in range(agents)])
-        everyone = list(range(agents))
-        trainer.step(everyone, per_call)
+        # The launcher's table of the sweep seed=0,...,N-1: one config, a column per per-agent key.
+        values = {key: [OmegaConf.select(cfg, key)] * agents for key in per_agent_keys()}
+        values["seed"] = list(range(agents))
+        table = AgentTable(cfg, values)
+        trainer = Trainer(table, Path(tmp), [f"seed={i}" for i in range(agents)])
         setup = time.perf_counter() - start
+        everyone = list(range(agents))
+        start = time.perf_counter()
+        trainer.step(everyone, per_call)
+        first = time.perf_counter() - start
         for _ in range(warmup - 1):
             trainer.step(everyone, per_call)
         times = []
@@ -147,6 +153,7 @@ def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) 
     estimated = memory_estimate.estimate(cfg, agents, reinforce_parts).total / agents
     return {
         "setup": setup,
+        "first": first,
         "update": per_update,
         "recording": recording,
         "bytes_per_agent": rss / agents,
@@ -164,6 +171,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--device", default="cpu")
+    parser.add_argument(
+        "--command", action="store_true", help="also time the real command's set-up (see command_setup)"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     # Every episode flies max_steps steps.
@@ -190,15 +200,52 @@ def main() -> None:
     )
     print(f"imports: {IMPORTED - START:.1f} s (once per command)\n")
     print(
-        "| agents | set-up s (to the first update's end) | s / update | ms / agent / update | recording share "
-        f"| memory / agent (measured; estimated) | x time of {base_n} agent(s) |"
+        "| agents | set-up s (configs, learner, folder) | first update s | s / update | ms / agent / update "
+        f"| recording share | memory / agent (measured; estimated) | x time of {base_n} agent(s) |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for n, r in rows:
         print(
-            f"| {n} | {r['setup']:.1f} | {r['update']:.3f} | {1000 * r['update'] / n:.2f} | "
-            f"{100 * r['recording']:.1f}% | {r['bytes_per_agent'] / 1024:.0f}; {r['estimated_per_agent'] / 1024:.0f} KiB | {r['update'] / base['update']:.1f}x |"
+            f"| {n} | {r['setup']:.1f} | {r['first']:.1f} | {r['update']:.3f} | {1000 * r['update'] / n:.2f} | "
+            f"{100 * r['recording']:.1f}% | {r['bytes_per_agent'] / 1024:.0f}; {r['estimated_per_agent'] / 1024:.0f} KiB "
+            f"| {r['update'] / base['update']:.1f}x |"
         )
+    if args.command:
+        print("\nThe command, from its start to its first update (warm cache; median of --repeats):\n")
+        print("| agents | drone-train -m hydra/launcher=population 'seed=range(0,N)': s to 'agents set up' |")
+        print("|---|---|")
+        command_setup(min(args.agents))  # warms the caches
+        for n in args.agents:
+            times = [command_setup(n) for _ in range(args.repeats)]
+            print(f"| {n} | {statistics.median(times):.1f} |", flush=True)
+
+
+def command_setup(agents: int) -> float:
+    """Seconds from starting ``drone-train -m hydra/launcher=population 'seed=range(0,N)'`` to its log
+    line saying the population is set up (imports, Hydra, the sweep's N jobs, their table, the
+    learner and the folder); the command is then killed (its folder is a temporary one)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        command = [
+            str(Path(sys.executable).with_name("drone-train")),
+            "-m",
+            "hydra/launcher=population",
+            f"seed=range(0,{agents})",
+            "progress=false",
+            "eval.every_episodes=0",
+            "eval.video=false",
+            f"hydra.sweep.dir={tmp}/sweep",
+        ]
+        start = time.perf_counter()
+        proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            assert proc.stdout is not None
+            for line in proc.stdout:
+                if "agents set up; training" in line:
+                    return time.perf_counter() - start
+            raise RuntimeError(f"{' '.join(command)} ended before its first update (exit {proc.wait()})")
+        finally:
+            proc.kill()
+            proc.wait()
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ import dataclasses
 import difflib
 import functools
 import itertools
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -738,6 +738,43 @@ def _plain(node: Any) -> Any:
     if isinstance(node, dict):
         return _Plain((key, _plain(value)) for key, value in node.items())
     return node
+
+
+def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> None:
+    """The per-agent values of a population whose group config ``cfg`` passed :func:`validate`.
+
+    Each distinct value of each column against its key's rule; the first refused raises
+    :class:`AgentValueError` naming the agent. Then the config with every column's smallest values,
+    and the one with its largest, pass :func:`validate` whole: the per-agent keys' rules are bounds,
+    so the checks that relate them to other keys (an algorithm's own) meet their worst case at a
+    column's ends. Thousands of agents cost a few config checks, not one each.
+    """
+    resolved = check_keys(cfg)
+    rules = {key: rule for key, _, rule in _checks("config", tuple(_plugins(resolved, "config").items()))}
+    varying = {key: column for key, column in values.items() if len(set(column)) > 1}
+    for key, column in varying.items():
+        for value in dict.fromkeys(column):
+            try:
+                rules[key].check(key, value, resolved)
+            except ConfigError as err:
+                raise AgentValueError(column.index(value), str(err)) from None
+    for pick in (min, max):
+        end = cfg.copy()
+        for key, column in varying.items():
+            OmegaConf.update(end, key, pick(column))
+        try:
+            validate(end)
+        except ConfigError as err:
+            agent = min(column.index(pick(column)) for column in varying.values())
+            raise AgentValueError(agent, str(err)) from None
+
+
+class AgentValueError(ConfigError):
+    """A per-agent value that is not allowed (:func:`check_agent_values`); ``agent``: whose."""
+
+    def __init__(self, agent: int, message: str) -> None:
+        super().__init__(message)
+        self.agent = agent
 
 
 def validate(cfg: DictConfig, training: bool = True) -> None:

@@ -231,6 +231,28 @@ def test_an_agent_does_not_depend_on_its_population():
             assert torch.equal(a, b)
 
 
+def test_the_update_kernel_called_on_chunks_of_agents_gives_the_whole_populations_outputs(monkeypatch):
+    """ops.AGENTS_PER_CALL bounds the kernel's scratch memory: 7 agents run as chunks of 3, 3 and 1
+    give the gradient, loss, std, lengths and counts of one call on all 7, bit for bit (a chunk
+    written at the wrong rows, or reading another chunk's parameters, differs)."""
+    flags = dict.fromkeys(ops.LOSS_OPTIONS, False)
+    n = 7
+    flyer = _rollout(_stacked(n, "normal", seed=3), "normal")
+    args = (
+        torch.arange(n),
+        torch.arange(n) * 5,
+        torch.linspace(0.5, 0.999, n),
+        torch.ones(n, dtype=torch.bool),
+    )
+    args[3][4] = False
+    whole = KernelReinforce(flyer, 2, flags)(*args)
+    monkeypatch.setattr(ops, "AGENTS_PER_CALL", 3)
+    chunked = KernelReinforce(flyer, 2, flags)(*args)
+    assert whole[0][4].abs().sum() == 0 and whole[0][5].abs().sum() > 0
+    for a, b in zip(whole, chunked, strict=True):
+        assert torch.equal(a, b)
+
+
 def test_float64_kernels_match_float32_to_rounding():
     stacked = _stacked(2, "normal")
     doubled = _stacked(2, "normal")

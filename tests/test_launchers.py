@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from drone_torchrl.config import config_dir
 from drone_torchrl.training.jobs import FAILED_FILE, job_status, sweep_jobs
@@ -324,6 +325,50 @@ def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
     assert sorted(len(setting.runs) for setting in group_runs(runs)) == [2, 2, 2, 2]
     report_main([str(sweep_dir), "--no-pd", "--out", str(tmp_path / "report")])
     assert (tmp_path / "report").is_dir() and any((tmp_path / "report").iterdir())
+
+
+def test_a_sweep_of_per_agent_values_is_one_config_and_trains_as_each_jobs_own_config(tmp_path):
+    """seed=0,1 x algo.lr=1e-3,1e-4 differ only in per-agent numbers: the launcher reads them from the
+    overrides' text into one config and a column per key (no config per job), and the population
+    equals the one trained from each job's own composed config: the same values per agent and the
+    same episodes (a value read as another number, or given to another agent, differs)."""
+    pytest.importorskip("pyarrow")
+    from hydra import compose, initialize_config_dir
+
+    from drone_torchrl.config import validate
+    from drone_torchrl.training.population_record import read_agents, read_episodes
+    from drone_torchrl.training.trainer import train_population
+
+    sweep_dir = tmp_path / "sweep"
+    out = _multirun(sweep_dir, "hydra/launcher=population", *GRID, cwd=tmp_path)
+    assert "4 jobs differ only in per-agent values: one population from one config" in out, out
+    jobs = [
+        ["algo.lr=1e-3", "seed=0"],
+        ["algo.lr=1e-3", "seed=1"],
+        ["algo.lr=1e-4", "seed=0"],
+        ["algo.lr=1e-4", "seed=1"],
+    ]
+    with initialize_config_dir(config_dir=config_dir(), version_base="1.3"):
+        cfgs = [compose("config", overrides=[*job, *TINY]) for job in jobs]
+    for cfg in cfgs:
+        validate(cfg)
+    alone = tmp_path / "alone"
+    train_population(cfgs, [" ".join(job) for job in jobs], alone)
+    swept = sweep_dir / "population_0"
+    written = yaml.safe_load((swept / ".hydra" / "overrides.yaml").read_text())
+    assert [job[:2] for job in written] == [
+        ["algo.lr=0.001", "seed=0"],
+        ["algo.lr=0.001", "seed=1"],
+        ["algo.lr=0.0001", "seed=0"],
+        ["algo.lr=0.0001", "seed=1"],
+    ]
+    (agents, expected_agents) = (read_agents(swept), read_agents(alone))
+    del agents["name"], expected_agents["name"]  # Hydra writes the sweep's values as 0.001
+    assert agents == expected_agents and [type(seed) for seed in agents["seed"]] == [int] * 4
+    assert read_agents(swept)["algo.lr"] == [1e-3, 1e-3, 1e-4, 1e-4]
+    rows, expected = read_episodes(swept), read_episodes(alone)
+    for key in ("agent", "episode", "return", "length", "termination_cause"):
+        assert rows[key] == expected[key], key
 
 
 def test_drone_train_registers_every_launcher_and_sweeper_of_the_package(monkeypatch):

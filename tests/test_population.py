@@ -12,6 +12,7 @@ from drone_torchrl.evaluation import evaluate
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.modules import ActionSampler, StackedThreeNet, ThreeNetPolicy
+from drone_torchrl.modules.factory import build_policies, build_policy
 from drone_torchrl.training.jobs import group_key, prepare
 from drone_torchrl.training.trainer import Trainer, train_jobs
 
@@ -111,6 +112,27 @@ def test_population_evaluation_equals_each_actor_alone(tmp_path, preset):
     trainer.close()
 
 
+def test_a_population_is_evaluated_a_slice_of_agents_at_a_time_as_all_at_once(tmp_path, monkeypatch):
+    """Trainer.evaluate flies ops.AGENTS_PER_EVALUATION agents per call (the episodes of one slice
+    are held at once): 5 agents as slices of 2, 2 and 1 book each agent the evaluation it gets in
+    one call of all 5 (a slice given another agent's rows, or stats joined out of order, differ)."""
+    from drone_torchrl.training import trainer as trainer_module
+
+    cfgs = [_cfg("algo.episodes=4", "eval.episodes=3", f"seed={s}") for s in range(5)]
+    trainer = Trainer([prepare(cfg, tmp_path / f"run{i}") for i, cfg in enumerate(cfgs)])
+    with torch.no_grad():  # agents that fly differently: untrained ones all fall at once
+        flat = trainer.population.policy.flat
+        flat.add_(torch.randn(flat.shape, generator=torch.Generator().manual_seed(0)))
+    booked = []
+    for run in trainer.runs:
+        run.record_eval = lambda result, *_, booked=booked: booked.append(result["return"])
+    trainer.evaluate(list(range(5)))
+    monkeypatch.setattr(trainer_module, "AGENTS_PER_EVALUATION", 2)
+    trainer.evaluate(list(range(5)))
+    trainer.close()
+    assert booked[:5] == booked[5:] and len(set(booked[:5])) >= 3
+
+
 def test_fused_resume_equals_an_uninterrupted_run(tmp_path):
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     _train((_cfg("algo.episodes=12", "checkpoint.every_episodes=6"), whole))
@@ -162,3 +184,28 @@ def test_checkpoint_actor_entries_equal_a_built_actor(preset):
         for key in expected:
             torch.testing.assert_close(got[key], expected[key], rtol=0, atol=0)
         assert not any(got[k].data_ptr() == p.data_ptr() for k in got for p in population.policy.parameters())
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        [],
+        ["experiment=bounded", "model.init_std=0.3"],
+        ["model.hidden_sizes=[16,8,4]", "model.activation=relu"],
+        ["env.dtype=float64"],
+    ],
+)
+def test_stacked_policies_start_from_each_seeds_own_weights(overrides, monkeypatch):
+    """build_policies draws every agent's weights without a module each: agent i's equal
+    build_policy(cfg, seed_i)'s (torch.manual_seed then nn.Linear's init), bit for bit. Also when the
+    one-draw-per-row shortcut does not round as uniform_ does (forced here): it then draws layer by
+    layer."""
+    cfg = _cfg(*overrides)
+    seeds = [0, 1, 7, 12345, 2**31 - 1]
+    alone = StackedThreeNet([build_policy(cfg, seed) for seed in seeds], cfg.model.activation)
+    stacked = build_policies(cfg, seeds)
+    assert stacked.names == alone.names and stacked.flat.dtype == alone.flat.dtype
+    assert torch.equal(stacked.flat, alone.flat)
+    addcmul = torch.addcmul
+    monkeypatch.setattr(torch, "addcmul", lambda *a: addcmul(*a) + 1e-3)
+    assert torch.equal(build_policies(cfg, seeds).flat, alone.flat)

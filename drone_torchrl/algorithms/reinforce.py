@@ -31,6 +31,7 @@ from drone_torchrl.schema import (
     one_of,
     store_plugin,
 )
+from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.population import Population
@@ -56,13 +57,15 @@ class Reinforce:
         return None if cfg.backend == FAST else 1
 
     def __init__(self, jobs) -> None:
-        cfg = jobs[0].cfg
-        self.population = Population([job.cfg for job in jobs])
+        """``jobs``: the jobs of one group, or a population's :class:`~drone_torchrl.training.agents.AgentTable`."""
+        agents = AgentTable.of(jobs)
+        cfg = agents.cfg
+        self.population = Population(agents)
         self.collector = make_collector(cfg, self.population)
-        for i, job in enumerate(jobs):
-            if job.checkpoint is not None:
-                self.population.load(i, job.checkpoint)
-                self.collector.set_rng_state(i, job.checkpoint["rng"], job.checkpoint["episodes_done"])
+        for i, checkpoint in enumerate(agents.checkpoints):
+            if checkpoint is not None:
+                self.population.load(i, checkpoint)
+                self.collector.set_rng_state(i, checkpoint["rng"], checkpoint["episodes_done"])
         self.update = ReinforceUpdate(cfg, self.population, self.collector)
         self.state = self.population.state
         self.episodes_per_update = int(cfg.algo.episodes_per_update)

@@ -12,6 +12,7 @@ Each flies the drone with the env's disturbances (:mod:`drone_torchrl.envs.distu
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Mapping
 from typing import Any, NamedTuple
 
@@ -54,6 +55,13 @@ class KernelRollout:
         self.max_steps = max_steps
         self.nominal = disturbances.make(disturbance).nominal
         self.disturbance = None if self.nominal else ops.disturbance_constants(disturbance)
+        self.agents = slice(None)
+
+    def rows(self, agents: slice) -> KernelRollout:
+        """The same rollout for the ``agents`` rows of the population only."""
+        part = copy.copy(self)
+        part.agents = agents
+        return part
 
     @torch.no_grad()
     def __call__(
@@ -70,7 +78,7 @@ class KernelRollout:
         the episodes' disturbance keys (None: drawn from ``rng``). ``active``: ``[N]`` bool (default:
         all). Returns ``[N, E, T]`` episodes, ``T`` the longest; inactive agents' rows are empty.
         Under disturbances their ``observation`` is what the policy saw."""
-        flat = self.stacked.flat
+        flat = self.stacked.flat[self.agents]
         n = flat.shape[0]
         if active is None:
             active = torch.ones(n, dtype=torch.bool)

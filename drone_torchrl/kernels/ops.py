@@ -35,6 +35,10 @@ STAT_NAMES = ("return", "zone_steps", "negative_commands", "termination_cause")
 STATS = len(STAT_NAMES)
 # The kernel's fixed limits (drone_kernels.cpp: kMaxLayers, kMaxWidth).
 MAX_LAYERS = 16
+# Agents per call of the REINFORCE kernel (its scratch memory is this many agents' at most).
+AGENTS_PER_CALL = 4096
+# Agents of a population evaluated per call (each keeps eval.episodes whole episodes until scored).
+AGENTS_PER_EVALUATION = 1024
 MAX_WIDTH = 1024
 DTYPES = (torch.float32, torch.float64)
 
@@ -335,14 +339,18 @@ def _reinforce(
     n, episodes = rng.shape[:2]
     in_dim = _check_net(params, hidden, disturbance)
     dtype = params.dtype
-    reward = torch.empty(n, episodes, steps, dtype=dtype)
+    # Each agent's episodes and gradient are its own: the kernel runs on AGENTS_PER_CALL agents at a
+    # time, so that its scratch (every step's rewards and what the backward pass reads) is that
+    # many agents' whatever the population's size.
+    chunk = max(1, min(n, AGENTS_PER_CALL))
+    reward = torch.empty(chunk, episodes, steps, dtype=dtype)
     returns = torch.empty_like(reward)
-    cause = torch.empty(n, episodes, steps, dtype=torch.int64)
+    cause = torch.empty(chunk, episodes, steps, dtype=torch.int64)
     length = torch.empty(n, episodes, dtype=torch.int64)
     counts = torch.empty(n, episodes, STATS, dtype=torch.float64)
     lib = _lib(dtype)
     sizes = _sizes(hidden)
-    size = lib.dk_saved_size(_c64(in_dim), _c64(len(hidden)), sizes, _c64(n), _c64(episodes), _c64(steps))
+    size = lib.dk_saved_size(_c64(in_dim), _c64(len(hidden)), sizes, _c64(chunk), _c64(episodes), _c64(steps))
     saved = torch.empty(size, dtype=dtype)
     grad = torch.empty_like(params)
     loss = torch.empty(n, dtype=torch.float64)
@@ -352,21 +360,23 @@ def _reinforce(
     flags = torch.tensor(list(options), dtype=torch.int64)
     params, rng, env, gamma = params.contiguous(), _i64(rng), _f64(env), _f64(gamma)
     disturbance = None if _nominal(disturbance) else _f64(disturbance)
-    lib.dk_reinforce(
-        _c64(torch.get_num_threads()),
-        _c64(in_dim),
-        _c64(len(hidden)),
-        sizes,
-        _c64(activation),
-        ctypes.c_double(min_std),
-        ctypes.c_double(dist_eps),
-        _c64(n),
-        _c64(episodes),
-        _c64(steps),
-        *(_p(t) for t in (params, rng, active, env, disturbance, gamma, flags, reward, cause, length)),
-        *(_p(t) for t in (returns, counts)),
-        *(_p(t) for t in (saved, grad, loss, std_mean, actions_finite)),
-    )
+    for first in range(0, n, chunk):
+        rows = slice(first, min(n, first + chunk))
+        lib.dk_reinforce(
+            _c64(torch.get_num_threads()),
+            _c64(in_dim),
+            _c64(len(hidden)),
+            sizes,
+            _c64(activation),
+            ctypes.c_double(min_std),
+            ctypes.c_double(dist_eps),
+            _c64(rows.stop - rows.start),
+            _c64(episodes),
+            _c64(steps),
+            *(_p(t) for t in (params[rows], rng[rows], active[rows], env, disturbance, gamma[rows], flags)),
+            *(_p(t) for t in (reward, cause, length[rows], returns, counts[rows])),
+            *(_p(t) for t in (saved, grad[rows], loss[rows], std_mean[rows], actions_finite[rows])),
+        )
     return grad, loss, std_mean, actions_finite, length, counts
 
 

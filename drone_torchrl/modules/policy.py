@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -80,7 +80,9 @@ def shift_distribution(
     return loc + eps, scale + eps
 
 
-def init_exploration(net: ThreeNetPolicy, std: float, mean: float = 0.0) -> None:
+def init_exploration(
+    net: ThreeNetPolicy, std: float, mean: float = 0.0, weights: Mapping[str, torch.Tensor] | None = None
+) -> None:
     """Start ``net`` at the mean head's output ``mean`` with exploration noise ``std`` in every state.
 
     The heads' weights are scaled down 100x (as in PPO implementations that initialise the policy
@@ -88,16 +90,24 @@ def init_exploration(net: ThreeNetPolicy, std: float, mean: float = 0.0) -> None
     ``softplus(bias) + min_std = std``. PyTorch's default gives a std of about 0.7 that varies
     with the state, which on a TanhNormal over ``[0, max_thrust]`` flips the drone within a few
     steps.
+
+    Args:
+        net: the policy (its ``min_std``; its parameters unless ``weights`` is given).
+        std: the starting std, > ``net.min_std``.
+        mean: the mean head's starting output.
+        weights: the tensors to set, by parameter name (``"mean.weight"``, ...); default ``net``'s
+            own. Views ``[N, ...]`` of many agents' stacked weights set every agent at once.
     """
     if not std > net.min_std:
         raise ValueError(
             f"model.init_std={std!r} is not allowed; expected a number > model.min_std={net.min_std}"
         )
+    p = dict(net.named_parameters()) if weights is None else weights
     with torch.no_grad():
-        net.mean.weight.mul_(0.01)
-        net.mean.bias.fill_(mean)
-        net.std.weight.mul_(0.01)
-        net.std.bias.fill_(math.log(math.expm1(std - net.min_std)))
+        p["mean.weight"].mul_(0.01)
+        p["mean.bias"].fill_(mean)
+        p["std.weight"].mul_(0.01)
+        p["std.bias"].fill_(math.log(math.expm1(std - net.min_std)))
 
 
 def make_actor(

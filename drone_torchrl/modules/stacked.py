@@ -34,10 +34,12 @@ class StackedThreeNet(nn.Module):
     """N :class:`ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., D]`` observations.
 
     ``nets`` give the architecture and each agent's initial weights (copied; the nets themselves
-    are not used afterwards).
+    are not used afterwards). ``flat``: every agent's initial weights ``[N, P]``, laid out as
+    ``nets[0]``'s (then ``nets`` is one net: the architecture), for populations too large to build a
+    module per agent.
     """
 
-    def __init__(self, nets: list[ThreeNetPolicy], activation: str) -> None:
+    def __init__(self, nets: list[ThreeNetPolicy], activation: str, flat: torch.Tensor | None = None) -> None:
         super().__init__()
         shapes = {tuple(p.shape for p in net.parameters()) for net in nets}
         kinds = {tuple(type(m) for m in net.shared if not isinstance(m, nn.Linear)) for net in nets}
@@ -48,9 +50,11 @@ class StackedThreeNet(nn.Module):
         first = nets[0]
         self.names = [name for name, _ in first.named_parameters()]
         self.shapes = [p.shape for p in first.parameters()]
-        self.flat = nn.Parameter(
-            torch.stack([torch.cat([p.detach().reshape(-1) for p in net.parameters()]) for net in nets])
-        )
+        if flat is None:
+            flat = torch.stack(
+                [torch.cat([p.detach().reshape(-1) for p in net.parameters()]) for net in nets]
+            )
+        self.flat = nn.Parameter(flat)
         self.activation_name = activation
         self.activation = ACTIVATIONS[activation]()
         self.min_std = first.min_std

@@ -67,6 +67,7 @@ from typing import Any
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM
 from drone_torchrl.envs.rendering import FRAME_HEIGHT, FRAME_WIDTH
+from drone_torchrl.kernels.ops import AGENTS_PER_CALL, AGENTS_PER_EVALUATION
 
 # The estimate is within this factor of what an update and an evaluation allocate, either way.
 STATED_FACTOR = 2.0
@@ -196,7 +197,8 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     if cfg["backend"] == "fast":
         # What drone_torchrl::reinforce keeps of each step for the backward pass (the observation,
         # every hidden output, loc, the std head's input, the action and the return-to-go), and its
-        # rewards, returns-to-go (floats) and causes (int64).
+        # rewards, returns-to-go (floats) and causes (int64), for the agents of one kernel call.
+        steps = steps // agents * min(agents, AGENTS_PER_CALL) if agents else 0
         saved = observation_size(cfg) + sum(hidden) + KERNEL_SAVED_FLOATS_PER_STEP
         backward = sum(hidden) + KERNEL_FLOATS_PER_STEP
         per_step = (saved + backward) * b + INT64_BYTES
@@ -273,7 +275,7 @@ def estimate(
     parts.update(
         evaluation_parts(
             b,
-            agents * cfg["eval"]["episodes"],
+            min(agents, AGENTS_PER_EVALUATION) * cfg["eval"]["episodes"],
             steps,
             video,
             "lower eval.episodes or env.max_steps",

@@ -18,27 +18,33 @@ discounts and seeds may differ between agents; everything else is the group's (s
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDict
 
-from drone_torchrl.modules.factory import build_actor, build_policy
-from drone_torchrl.modules.stacked import StackedThreeNet
+from drone_torchrl.modules.factory import build_actor, build_policies
+from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.optim import Adam, adam_state
 
 
 class Population:
-    def __init__(self, cfgs: list[DictConfig]) -> None:
-        self.cfgs = cfgs
-        base = cfgs[0]
+    """The stacked state of a population's agents (see the module's docstring).
+
+    Args:
+        agents: the agents (an :class:`~.agents.AgentTable`, or a list of configs equal but for the
+            per-agent keys).
+    """
+
+    def __init__(self, agents: AgentTable | Sequence[DictConfig]) -> None:
+        self.agents = agents = AgentTable.of(agents)
+        self.cfg = base = agents.cfg
         device = torch.device(base.device)
-        self.policy = StackedThreeNet(
-            [build_policy(cfg, seed=cfg.seed) for cfg in cfgs], base.model.activation
-        )
+        self.policy = build_policies(base, agents.column("seed"))
         params = self.policy.flat
-        decays = torch.tensor([cfg.algo.weight_decay for cfg in cfgs], dtype=torch.float64)
+        decays = torch.tensor(agents.column("algo.weight_decay"), dtype=torch.float64)
         decoupled = base.algo.optimizer == "adamw"
         self.adam = Adam(
             eps=base.algo.adam_eps,
@@ -48,14 +54,12 @@ class Population:
         self.state = TensorDict(
             {
                 "params": params,
-                **adam_state(
-                    params, torch.tensor([cfg.algo.lr for cfg in cfgs], dtype=torch.float64), decays
-                ),
-                "gamma": torch.tensor([cfg.algo.gamma for cfg in cfgs], dtype=params.dtype, device=device),
-                "seed": torch.tensor([cfg.seed for cfg in cfgs], dtype=torch.int64, device=device),
-                "counter": torch.zeros(len(cfgs), dtype=torch.int64, device=device),
+                **adam_state(params, torch.tensor(agents.column("algo.lr"), dtype=torch.float64), decays),
+                "gamma": torch.tensor(agents.column("algo.gamma"), dtype=params.dtype, device=device),
+                "seed": torch.tensor(agents.column("seed"), dtype=torch.int64, device=device),
+                "counter": torch.zeros(len(agents), dtype=torch.int64, device=device),
             },
-            batch_size=[len(cfgs)],
+            batch_size=[len(agents)],
         )
         max_norm = base.algo.max_grad_norm
         self.max_grad_norm = math.inf if max_norm is None else float(max_norm)
@@ -63,7 +67,7 @@ class Population:
         self._actor_extras: dict[str, torch.Tensor] = {}
 
     def __len__(self) -> int:
-        return len(self.cfgs)
+        return len(self.agents)
 
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """The agent's checkpoint entries: its actor (``make_actor``'s layout) and optimizer (``torch.optim.Adam``'s)."""
@@ -72,7 +76,7 @@ class Population:
             # layout is the same for every agent of the group, so learn it once.
             net = self.policy.agent_net(0)
             names = {id(p): name for name, p in net.named_parameters()}
-            entries = build_actor(self.cfgs[0], net).state_dict(keep_vars=True)
+            entries = build_actor(self.cfg, net).state_dict(keep_vars=True)
             self._actor_layout = {key: names.get(id(value)) for key, value in entries.items()}
             self._actor_extras = {
                 k: v.detach().clone() for k, v in entries.items() if self._actor_layout[k] is None
@@ -87,7 +91,7 @@ class Population:
 
     def load(self, agent: int, checkpoint: dict[str, Any]) -> None:
         """Continue agent ``agent`` from a checkpoint: weights, optimizer and update counter."""
-        actor = build_actor(self.cfgs[agent], self.policy.agent_net(agent))  # make_actor's key layout
+        actor = build_actor(self.cfg, self.policy.agent_net(agent))  # make_actor's key layout
         actor.load_state_dict(checkpoint["actor"], assign=True)
         self.policy.load_agent_state_dict(agent, actor.module[0].module.state_dict())
         self.adam.load_agent_state(
@@ -97,4 +101,4 @@ class Population:
 
     def actor(self, agent: int):
         """A standalone actor of one agent (a copy of its weights: for videos)."""
-        return build_actor(self.cfgs[agent], self.policy.agent_net(agent))
+        return build_actor(self.cfg, self.policy.agent_net(agent))

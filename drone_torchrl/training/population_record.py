@@ -36,7 +36,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.config import open_checkpoint, per_agent_keys, run_config
+from drone_torchrl.config import open_checkpoint, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
@@ -50,8 +50,16 @@ from drone_torchrl.io.checkpoint import (
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.yaml_text import save_yaml
 from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, make_logger
+from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.population import Population
-from drone_torchrl.training.run import _CAUSE_NAMES, CONFIG_NAME, FAILED_FILE, AgentBook, TrainingDiverged
+from drone_torchrl.training.run import (
+    _CAUSE_NAMES,
+    CONFIG_NAME,
+    FAILED_FILE,
+    AgentBook,
+    Schedule,
+    TrainingDiverged,
+)
 
 AGENTS_TABLE = "agents.parquet"
 EPISODES_DIR = "episodes"
@@ -74,18 +82,18 @@ def part_path(run_dir: Path, number: int) -> Path:
     return Path(run_dir) / EPISODES_DIR / f"part-{number:06d}.parquet"
 
 
-def agent_values(cfgs: Sequence[DictConfig]) -> dict[str, list]:
-    """Each per-agent key (``seed``, ``algo.lr``, ...) -> its value for every agent."""
-    return {key: [OmegaConf.select(cfg, key) for cfg in cfgs] for key in per_agent_keys()}
-
-
 class PopulationAgent(AgentBook):
     """One agent of a population run: its counters; what it books goes to the run's files."""
 
     def __init__(
-        self, owner: PopulationRecord, index: int, cfg: DictConfig, counters: dict[str, Any] | None
+        self,
+        owner: PopulationRecord,
+        index: int,
+        cfg: DictConfig,
+        counters: dict[str, Any] | None,
+        schedule: Schedule | None = None,
     ) -> None:
-        super().__init__(cfg, counters)
+        super().__init__(cfg, counters, schedule)
         self.owner, self.index = owner, index
 
     @property
@@ -117,7 +125,7 @@ class PopulationRecord:
     """The folder and files of a population run (see the module's docstring).
 
     Args:
-        cfgs: each agent's validated config (equal but for the per-agent keys).
+        agents: the agents (an :class:`~.agents.AgentTable`, or each agent's validated config).
         names: each agent's name (its job's overrides), for ``agents.parquet``.
         run_dir: the run folder.
         backend: the backend that trains it.
@@ -126,25 +134,30 @@ class PopulationRecord:
 
     def __init__(
         self,
-        cfgs: Sequence[DictConfig],
+        agents: AgentTable | Sequence[DictConfig],
         names: Sequence[str],
         run_dir: Path,
         backend: str,
         checkpoint: dict[str, Any] | None = None,
     ) -> None:
         self.pa = _pyarrow()
-        self.cfg = cfg = cfgs[0]
+        agents = AgentTable.of(agents)
+        self.cfg = cfg = agents.cfg
         self.run_dir = run_dir = Path(run_dir)
         self.backend = backend
         self.config = OmegaConf.to_container(cfg, resolve=True)
-        self.values = agent_values(cfgs)
+        self.values = agents.values
         self.names = list(names)
         self.every_updates = int(cfg.logger.every_updates)
         self.flush_every_s = float(cfg.logger.flush_every_s)
-        n = len(cfgs)
+        n = len(agents)
+        # Every agent's book holds the group's config: the per-agent keys are the table's.
+        schedule = Schedule.of(cfg)
         self.agents = [
-            PopulationAgent(self, i, c, None if checkpoint is None else _agent_counters(checkpoint, i))
-            for i, c in enumerate(cfgs)
+            PopulationAgent(
+                self, i, cfg, None if checkpoint is None else _agent_counters(checkpoint, i), schedule
+            )
+            for i in range(n)
         ]
         self.eval_returns = [math.nan] * n
         self.parts = 0 if checkpoint is None else int(checkpoint["parts"])

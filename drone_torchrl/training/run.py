@@ -17,6 +17,7 @@ import sys
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,27 @@ class TrainingDiverged(RuntimeError):
     """A run whose loss, gradients, weights or actions became non-finite (one-line message)."""
 
 
+@dataclass(frozen=True)
+class Schedule:
+    """The numbers of a config that an agent's counters read at every update."""
+
+    budget: int
+    every_updates: int
+    checkpoint_every: int
+    eval_every: int
+    window: int
+
+    @classmethod
+    def of(cls, cfg: DictConfig) -> Schedule:
+        return cls(
+            budget=int(cfg.algo.episodes),
+            every_updates=int(cfg.logger.every_updates),
+            checkpoint_every=int(cfg.checkpoint.every_episodes),
+            eval_every=int(cfg.eval.every_episodes),
+            window=int(cfg.metrics.running_mean_window),
+        )
+
+
 class AgentBook:
     """One agent's counters: episodes and updates done, the running-mean windows, the evaluation and
     checkpoint schedule, its final metrics or failure. Both homes of an agent's record keep them:
@@ -67,14 +89,16 @@ class AgentBook:
         checkpoint: what the agent continues from (its counters, as :meth:`counters` writes them), or None.
     """
 
-    def __init__(self, cfg: DictConfig, checkpoint: dict[str, Any] | None = None) -> None:
+    def __init__(
+        self, cfg: DictConfig, checkpoint: dict[str, Any] | None = None, schedule: Schedule | None = None
+    ) -> None:
         self.cfg = cfg
-        # Read per update by every agent of a population: plain numbers, not OmegaConf lookups (~20 us each).
-        self.budget = int(cfg.algo.episodes)
-        self.every_updates = int(cfg.logger.every_updates)
-        self.checkpoint_every = int(cfg.checkpoint.every_episodes)
-        self.eval_every = int(cfg.eval.every_episodes)
-        self.window = window = int(cfg.metrics.running_mean_window)
+        # Read per update by every agent of a population: plain numbers, not OmegaConf lookups;
+        # a population reads them once for all its agents.
+        s = Schedule.of(cfg) if schedule is None else schedule
+        self.budget, self.every_updates, self.window = s.budget, s.every_updates, s.window
+        self.checkpoint_every, self.eval_every = s.checkpoint_every, s.eval_every
+        window = s.window
         self.recent_returns: deque[float] = deque(maxlen=window)
         self.recent_lengths: deque[float] = deque(maxlen=window)
         self.episodes_done = self.updates_done = 0

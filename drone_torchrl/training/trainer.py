@@ -15,6 +15,7 @@ final evaluation is finished on resume.
 from __future__ import annotations
 
 import functools
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,11 +36,13 @@ from drone_torchrl.config import (
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
+from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
 from drone_torchrl.schema import KEPT
+from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
-from drone_torchrl.training.population_record import PopulationRecord, agent_values, is_population
+from drone_torchrl.training.population_record import PopulationRecord, is_population
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
 
@@ -48,6 +51,8 @@ from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
 # never runs past an evaluation, checkpoint or the end of a budget). It was the config key
 # updates_per_call.
 MAX_UPDATES_PER_CALL = 100
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -90,15 +95,16 @@ class Trainer:
 
     def __init__(
         self,
-        jobs: Sequence[Job],
+        jobs: Sequence[Job] | AgentTable,
         population_dir: Path | None = None,
         names: Sequence[str] | None = None,
         checkpoint: dict | None = None,
     ) -> None:
-        """``population_dir``: train the jobs as one population run in that folder (see
-        :mod:`.population_record`; ``names``: the jobs' names, ``checkpoint``: the population
-        checkpoint to continue from); otherwise each job in its own run folder."""
-        self.cfg = cfg = jobs[0].cfg
+        """``population_dir``: train the jobs (or an :class:`~.agents.AgentTable`) as one population
+        run in that folder (see :mod:`.population_record`; ``names``: the agents' names,
+        ``checkpoint``: the population checkpoint to continue from); otherwise each job in its own
+        run folder."""
+        self.cfg = cfg = jobs.cfg if isinstance(jobs, AgentTable) else jobs[0].cfg
         torch.set_num_threads(cfg.threads)
         if torch.device(cfg.device).type == "cpu":
             keep_freed_memory()
@@ -112,7 +118,7 @@ class Trainer:
                         for key, value in checkpoint["state"].items():
                             self.learner.state[key].copy_(value)
                 self.book = PopulationRecord(
-                    [job.cfg for job in jobs],
+                    AgentTable.of(jobs),
                     names or [str(i) for i in range(len(jobs))],
                     population_dir,
                     cfg.backend,
@@ -226,14 +232,29 @@ class Trainer:
     def evaluate(self, agents: list[int]) -> None:
         """Fly the agents' deterministic policies on the evaluation seeds, all at once, and book it."""
         cfg, learner = self.cfg, self.learner
-        stats, _ = evaluate(
-            learner.eval_policy(),
-            env_kwargs(cfg),
-            cfg.eval.episodes,
-            cfg.eval.seed,
-            cfg.device,
-            agents=learner.eval_agents,
+        policy, n = learner.eval_policy(), learner.eval_agents
+        # A population's agents a slice at a time (ops.AGENTS_PER_EVALUATION): the episodes of
+        # one slice are held at once, whatever the population's size.
+        chunks = (
+            [slice(None)]
+            if not hasattr(policy, "rows")
+            else [
+                slice(first, min(n, first + AGENTS_PER_EVALUATION))
+                for first in range(0, n, AGENTS_PER_EVALUATION)
+            ]
         )
+        parts = [
+            evaluate(
+                policy if rows == slice(None) else policy.rows(rows),
+                env_kwargs(cfg),
+                cfg.eval.episodes,
+                cfg.eval.seed,
+                cfg.device,
+                agents=n if rows == slice(None) else rows.stop - rows.start,
+            )[0]
+            for rows in chunks
+        ]
+        stats = {key: torch.cat([part[key] for part in parts]) for key in parts[0]}
         means = {
             k: stats[k].float().mean(-1).reshape(-1).tolist() for k in ("return", "length", "time_in_zone")
         }
@@ -346,20 +367,22 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
 
 
 def train_population(
-    cfgs: Sequence[DictConfig],
+    agents: AgentTable | Sequence[DictConfig],
     names: Sequence[str],
     run_dir: Path,
     before_training: Callable[[], None] | None = None,
 ) -> list[Outcome]:
-    """Train validated configs of one group (:func:`~.jobs.group_key`) as ONE population run in
-    ``run_dir`` (:mod:`.population_record`), or continue it from its ``checkpoints/last.pt``.
+    """Train validated agents of one group (:func:`~.jobs.group_key`; an :class:`~.agents.AgentTable`
+    or their configs) as ONE population run in ``run_dir`` (:mod:`.population_record`), or
+    continue it from its ``checkpoints/last.pt``.
 
     Refused in one line (:class:`ConfigError`) before anything is written: a learner that does not
     train populations, a population larger than this machine's free memory, a folder another
     process holds, a checkpoint of other agents or hyper-parameters. ``before_training``: called
     once the folder is this process's (the launcher writes Hydra's record then). One outcome per
     agent; SIGTERM stops it with a checkpoint (:class:`TrainingStopped`)."""
-    cfg = cfgs[0]
+    agents = AgentTable.of(agents)
+    cfg = agents.cfg
     run_dir = Path(run_dir)
     if learner_class(cfg).max_agents(cfg) is not None:
         raise ConfigError(
@@ -367,10 +390,10 @@ def train_population(
             f"backend={cfg.backend} trains one agent at a time; use algo=reinforce (or reinforce_plus) "
             "with backend=fast, or hydra/launcher=fused"
         )
-    check_memory(cfg, agents=len(cfgs))
+    check_memory(cfg, agents=len(agents))
     run_lock.hold(run_dir)
     try:
-        checkpoint = _population_checkpoint(cfgs, names, run_dir)
+        checkpoint = _population_checkpoint(agents, names, run_dir)
         budget = cfg.algo.episodes
         if checkpoint is not None and all(
             (final is not None and done >= budget) or failure is not None
@@ -378,11 +401,12 @@ def train_population(
                 checkpoint["final"], checkpoint["failure"], checkpoint["episodes_done"], strict=True
             )
         ):
-            print(f"{run_dir}: already finished ({len(cfgs)} agents); nothing to do")
+            print(f"{run_dir}: already finished ({len(agents)} agents); nothing to do")
             return _population_outcomes(run_dir, checkpoint["final"], checkpoint["failure"])
         if before_training is not None:
             before_training()
-        trainer = Trainer([Job(c, run_dir) for c in cfgs], run_dir, names, checkpoint)
+        trainer = Trainer(agents, run_dir, names, checkpoint)
+        log.info(f"{run_dir}: {len(agents)} agents set up; training")
         finals = trainer.train()
         return _population_outcomes(run_dir, finals, [run.failure for run in trainer.runs])
     finally:
@@ -396,7 +420,7 @@ def _population_outcomes(run_dir: Path, finals: Sequence, failures: Sequence) ->
     ]
 
 
-def _population_checkpoint(cfgs: Sequence[DictConfig], names: Sequence[str], run_dir: Path) -> dict | None:
+def _population_checkpoint(agents: AgentTable, names: Sequence[str], run_dir: Path) -> dict | None:
     """The population run's last checkpoint, if it has one, checked against the sweep's agents and
     hyper-parameters (as a continued run's: only the budget, logging and process settings change)."""
     path = run_dir / CHECKPOINT_DIR / LAST
@@ -410,12 +434,12 @@ def _population_checkpoint(cfgs: Sequence[DictConfig], names: Sequence[str], run
         raise ConfigError(
             f"{run_dir} holds a single run's checkpoint, not a population's: use another hydra.sweep.dir"
         )
-    if checkpoint["agents"] != {"name": list(names), **agent_values(cfgs)}:
+    if checkpoint["agents"] != {"name": list(names), **agents.values}:
         raise ConfigError(
             f"{path} holds {len(checkpoint['agents']['name'])} other agents (names or per-agent values differ "
             "from this sweep's): run the sweep that wrote it, or use another hydra.sweep.dir"
         )
-    saved, now = leaves(checkpoint["config"]), leaves(cfgs[0])
+    saved, now = leaves(checkpoint["config"]), leaves(agents.cfg)
     per_agent = set(per_agent_keys())
     changed = [
         f"{key} {saved.get(key)!r} -> {value!r}"
@@ -428,8 +452,10 @@ def _population_checkpoint(cfgs: Sequence[DictConfig], names: Sequence[str], run
             "its hyper-parameters: drop those overrides or use another hydra.sweep.dir"
         )
     done = max(checkpoint["episodes_done"])
-    if cfgs[0].algo.episodes < done:
+    if agents.cfg.algo.episodes < done:
         raise ConfigError.of(
-            "algo.episodes", cfgs[0].algo.episodes, f">= {done}: {path} has already trained {done} episodes"
+            "algo.episodes",
+            agents.cfg.algo.episodes,
+            f">= {done}: {path} has already trained {done} episodes",
         )
     return checkpoint

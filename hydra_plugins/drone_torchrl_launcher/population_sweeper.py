@@ -74,19 +74,43 @@ class PopulationSweeper(Sweeper):
         """Every job composes, and every job's values pass the config checks: a bad value in a
         sweep is one line before any job folder exists, not a failed job per value."""
         from drone_torchrl import migrations
-        from drone_torchrl.config import ConfigError, validate
-        from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+        from drone_torchrl.config import (
+            AgentValueError,
+            ConfigError,
+            check_agent_values,
+            per_agent_keys,
+            validate,
+        )
+        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
-        configs = sweep_configs(self.hydra_context.config_loader, self.config, batch, task_only=True)
-        for overrides, cfg in zip(batch, configs, strict=True):
+
+        def refuse(err: ConfigError, overrides: Sequence[str]) -> None:
+            sys.exit(
+                f"drone-train: error: {err} (in the sweep's job {' '.join(overrides)}; no job was started)"
+            )
+
+        loader = self.hydra_context.config_loader
+        table = agent_columns(loader, self.config, batch, per_agent_keys())
+        if table is not None:  # jobs that differ only in per-agent numbers: one config, checked once
+            cfg, _, values = table
+            try:
+                migrations.apply_legacy(cfg)
+                validate(cfg)
+                check_agent_values(cfg, values)
+            except AgentValueError as err:
+                refuse(err, batch[err.agent])
+            except ConfigError as err:
+                refuse(err, batch[0])
+            return
+        for overrides, cfg in zip(
+            batch, sweep_configs(loader, self.config, batch, task_only=True), strict=True
+        ):
             try:
                 migrations.apply_legacy(cfg)
                 validate(cfg)
             except ConfigError as err:
-                sys.exit(
-                    f"drone-train: error: {err} (in the sweep's job {' '.join(overrides)}; no job was started)"
-                )
+                refuse(err, overrides)
 
 
 class _GoOn:
