@@ -182,6 +182,12 @@ class PopulationRecord:
             {"agent": list(range(n)), "name": self.names, **self.values}, run_dir / AGENTS_TABLE
         )
         self.logger = make_logger(cfg, run_dir, None if checkpoint is None else self.step)
+        if cfg.eval.video or cfg.checkpoint.keep_best:
+            print(
+                f"{run_dir}: a population run keeps one stacked checkpoint and no videos, so "
+                "checkpoint.keep_best and eval.video do not apply (drone-eval checkpoint=<run> agent=K "
+                "renders agent K)"
+            )
         if checkpoint is not None:
             print(
                 f"{run_dir}: {n} agents continuing from their checkpoint ({self.step} episodes each); "
