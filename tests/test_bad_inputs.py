@@ -758,6 +758,41 @@ def test_drone_report_refuses(argv, names, files, tmp_path, capsys):
     assert _snapshot(files["run"].parent) == before
 
 
+# hydra/launcher=pbt's settings (drone_torchrl.training.pbt): refused when Hydra makes the launcher,
+# before any job starts.
+PBT = [
+    ({"quantile": 0.6}, "hydra.launcher.quantile"),
+    ({"quantile": 0}, "hydra.launcher.quantile"),
+    ({"every_updates": 0}, "hydra.launcher.every_updates"),
+    ({"perturb": []}, "hydra.launcher.perturb"),
+    ({"perturb": [0.8, -1.2]}, "hydra.launcher.perturb"),
+    ({"resample_probability": 1.5}, "hydra.launcher.resample_probability"),
+    ({"keys": ["seed"]}, "'seed' is a per-agent key PBT cannot search"),
+    ({"keys": ["model.hidden_sizes"]}, "'model.hidden_sizes' is not a per-agent key"),
+    ({"keys": []}, "hydra.launcher.keys"),
+]
+
+
+@pytest.mark.parametrize(("params", "names"), PBT, ids=[str(p) for p, _ in PBT])
+def test_the_pbt_launcher_refuses(params, names):
+    from hydra_plugins.drone_torchrl_launcher.population_launcher import PBTLauncher
+
+    with pytest.raises(SystemExit) as info:
+        PBTLauncher(**params)
+    _one_line(str(info.value.code), names)
+    assert str(info.value.code).startswith("drone-train: error: hydra.launcher.")
+
+
+def test_the_pbt_launcher_refuses_through_the_command(tmp_path):
+    """The same line reaches the terminal, and no sweep folder is made."""
+    proc = _command(
+        "drone-train", "-m", "hydra/launcher=pbt", "hydra.launcher.quantile=0.7", "seed=0,1", *TINY,
+        f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path,
+    )  # fmt: skip
+    _refused(proc, "hydra.launcher.quantile=0.7", "(0, 0.5]")
+    assert not (tmp_path / "sweep").exists()
+
+
 def test_at_least_100_rows():
     assert len(TRAIN) + len(EVAL) + len(REPORT) + len(EXPORT) >= 100
 

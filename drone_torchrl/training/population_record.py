@@ -11,6 +11,8 @@ at tens of thousands of agents is most of the time and open files. A population 
                                time_in_zone, negative_thrust_fraction, termination_cause, wall_clock_s;
                                each part written atomically (a kill never leaves a torn one)
       checkpoints/last.pt      the stacked state of every agent (see :func:`checkpoint_state`)
+      lineage.parquet          with population-based training (:mod:`.pbt`): each exploit step's
+                               update, agent, parent and new values, as far as the checkpoint
       <logger's files>         population summaries: quantiles of the running-mean return, the best
                                agent, the number alive (not diverged)
       .lock, FAILED.txt        as a run folder's
@@ -51,6 +53,7 @@ from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.yaml_text import save_yaml
 from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, make_logger
 from drone_torchrl.training.agents import AgentTable
+from drone_torchrl.training.pbt import PBT, STATE_KEYS
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import (
     _CAUSE_NAMES,
@@ -62,6 +65,7 @@ from drone_torchrl.training.run import (
 )
 
 AGENTS_TABLE = "agents.parquet"
+LINEAGE_TABLE = "lineage.parquet"
 EPISODES_DIR = "episodes"
 # The running-return quantiles the loggers get.
 QUANTILES = (0.1, 0.5, 0.9)
@@ -195,6 +199,9 @@ class PopulationRecord:
             )
         self._closed = False
         self._last_flush = time.perf_counter()
+        # The run's population-based training (:mod:`.pbt`), set by the trainer: its lineage goes
+        # into each checkpoint and lineage.parquet.
+        self.search: PBT | None = None
 
     # ------------------------------------------------------------------ episodes
     def _clear(self) -> None:
@@ -301,6 +308,8 @@ class PopulationRecord:
         after the episodes it counts; at the end, the final summary too, and close."""
         self.flush()
         save_checkpoint(self._checkpoint(state), self.run_dir / CHECKPOINT_DIR / LAST)
+        if self.search is not None:  # the lineage as far as the checkpoint: a resume starts there
+            self._write_table(self.search.lineage, self.run_dir / LINEAGE_TABLE)
         for agent in self.agents:
             agent.book_save()
         if all(a.failed or a.final is not None for a in self.agents):
@@ -351,6 +360,7 @@ class PopulationRecord:
             "failure": [a.failure for a in self.agents],
             "parts": self.parts,
             "population_updates": self.updates,
+            "search": None if self.search is None else self.search.checkpoint(),
         }
 
     def flush(self) -> None:
@@ -403,7 +413,12 @@ def read_episodes(run_dir: Path) -> dict[str, list]:
 
 def read_agents(run_dir: Path) -> dict[str, list]:
     """``agents.parquet``: column -> one value per agent."""
-    return _pyarrow().parquet.read_table(Path(run_dir) / AGENTS_TABLE).to_pydict()
+    return read_table(Path(run_dir) / AGENTS_TABLE)
+
+
+def read_table(path: Path) -> dict[str, list]:
+    """A Parquet file of a population run (``agents.parquet``, ``lineage.parquet``): column -> values."""
+    return _pyarrow().parquet.read_table(Path(path)).to_pydict()
 
 
 def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[str, Any]]:
@@ -434,6 +449,12 @@ def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str,
     for key, values in state["agents"].items():
         if key != "name":
             OmegaConf.update(cfg, key, values[agent])
+    lineage = (state.get("search") or {}).get("lineage") or {"agent": []}
+    for row, replaced in enumerate(lineage["agent"]):  # PBT's later values of the searched keys
+        if replaced == agent:
+            for key in STATE_KEYS:
+                if key in lineage:
+                    OmegaConf.update(cfg, key, lineage[key][row])
     cfg.device = "cpu"
     one = Population([cfg])
     with torch.no_grad():  # the weights are a leaf that requires grad

@@ -17,7 +17,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +42,7 @@ from drone_torchrl.schema import KEPT
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
+from drone_torchrl.training.pbt import PBT, PBTSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
@@ -99,11 +100,12 @@ class Trainer:
         population_dir: Path | None = None,
         names: Sequence[str] | None = None,
         checkpoint: dict | None = None,
+        search: PBTSettings | None = None,
     ) -> None:
         """``population_dir``: train the jobs (or an :class:`~.agents.AgentTable`) as one population
         run in that folder (see :mod:`.population_record`; ``names``: the agents' names,
-        ``checkpoint``: the population checkpoint to continue from); otherwise each job in its own
-        run folder."""
+        ``checkpoint``: the population checkpoint to continue from, ``search``: train it with
+        population-based training, :mod:`.pbt`); otherwise each job in its own run folder."""
         self.cfg = cfg = jobs.cfg if isinstance(jobs, AgentTable) else jobs[0].cfg
         torch.set_num_threads(cfg.threads)
         if torch.device(cfg.device).type == "cpu":
@@ -125,6 +127,9 @@ class Trainer:
                     checkpoint,
                 )
                 self.runs = list(self.book.agents)
+                if search is not None:
+                    saved = None if checkpoint is None else checkpoint["search"]["lineage"]
+                    self.book.search = PBT.for_population(search, cfg, self.book.values, saved)
             for job in jobs if population_dir is None else ():
                 self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
@@ -174,12 +179,15 @@ class Trainer:
         checkpoints that are due. Returns the env steps the agents took."""
         runs, learner = self.runs, self.learner
         per_update = learner.episodes_per_update
+        search = None if self.book is None else self.book.search
         if k is None:
             k = (
                 1
                 if per_update is None
                 else min(MAX_UPDATES_PER_CALL, *(runs[i].updates_until_due(per_update) for i in active))
             )
+            if search is not None:
+                k = min(k, search.updates_until_due(max(runs[i].updates_done for i in active)))
         mask = torch.zeros(len(runs), dtype=torch.bool, device=self.cfg.device)
         mask[active] = True
         _, out = learner.update(learner.state, k, mask)
@@ -213,6 +221,12 @@ class Trainer:
                 if self.book is not None:
                     self.book.after_update()
         active = [i for i in active if not runs[i].failed]
+        if search is not None and active and not any(runs[i].finished for i in active):
+            done = max(runs[i].updates_done for i in active)
+            if search.updates_until_due(done) == search.settings.every_updates:
+                scores = [run.running_return for run in runs]
+                for agent, parent in search.step(learner.state, scores, [not r.failed for r in runs], done):
+                    runs[agent].take_window(runs[parent])
         if due := [i for i in active if runs[i].eval_due]:
             self.evaluate(due)
         if due := [i for i in active if runs[i].checkpoint_due]:
@@ -371,6 +385,7 @@ def train_population(
     names: Sequence[str],
     run_dir: Path,
     before_training: Callable[[], None] | None = None,
+    search: PBTSettings | None = None,
 ) -> list[Outcome]:
     """Train validated agents of one group (:func:`~.jobs.group_key`; an :class:`~.agents.AgentTable`
     or their configs) as ONE population run in ``run_dir`` (:mod:`.population_record`), or
@@ -379,8 +394,9 @@ def train_population(
     Refused in one line (:class:`ConfigError`) before anything is written: a learner that does not
     train populations, a population larger than this machine's free memory, a folder another
     process holds, a checkpoint of other agents or hyper-parameters. ``before_training``: called
-    once the folder is this process's (the launcher writes Hydra's record then). One outcome per
-    agent; SIGTERM stops it with a checkpoint (:class:`TrainingStopped`)."""
+    once the folder is this process's (the launcher writes Hydra's record then); ``search``: train
+    it with population-based training (:mod:`.pbt`). One outcome per agent; SIGTERM stops it with a
+    checkpoint (:class:`TrainingStopped`)."""
     agents = AgentTable.of(agents)
     cfg = agents.cfg
     run_dir = Path(run_dir)
@@ -393,7 +409,7 @@ def train_population(
     check_memory(cfg, agents=len(agents))
     run_lock.hold(run_dir)
     try:
-        checkpoint = _population_checkpoint(agents, names, run_dir)
+        checkpoint = _population_checkpoint(agents, names, run_dir, search)
         budget = cfg.algo.episodes
         if checkpoint is not None and all(
             (final is not None and done >= budget) or failure is not None
@@ -405,7 +421,7 @@ def train_population(
             return _population_outcomes(run_dir, checkpoint["final"], checkpoint["failure"])
         if before_training is not None:
             before_training()
-        trainer = Trainer(agents, run_dir, names, checkpoint)
+        trainer = Trainer(agents, run_dir, names, checkpoint, search)
         log.info(f"{run_dir}: {len(agents)} agents set up; training")
         finals = trainer.train()
         return _population_outcomes(run_dir, finals, [run.failure for run in trainer.runs])
@@ -420,7 +436,9 @@ def _population_outcomes(run_dir: Path, finals: Sequence, failures: Sequence) ->
     ]
 
 
-def _population_checkpoint(agents: AgentTable, names: Sequence[str], run_dir: Path) -> dict | None:
+def _population_checkpoint(
+    agents: AgentTable, names: Sequence[str], run_dir: Path, search: PBTSettings | None = None
+) -> dict | None:
     """The population run's last checkpoint, if it has one, checked against the sweep's agents and
     hyper-parameters (as a continued run's: only the budget, logging and process settings change)."""
     path = run_dir / CHECKPOINT_DIR / LAST
@@ -451,6 +469,14 @@ def _population_checkpoint(agents: AgentTable, names: Sequence[str], run_dir: Pa
             f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued population keeps "
             "its hyper-parameters: drop those overrides or use another hydra.sweep.dir"
         )
+    saved_search = checkpoint.get("search")
+    now_search = None if search is None else asdict(search)
+    if (saved_search and saved_search["settings"]) != now_search:
+        raise ConfigError(
+            f"resume: {path} was trained with {_search_text(saved_search and saved_search['settings'])}, "
+            f"this command asks for {_search_text(now_search)}; a continued population keeps its search: "
+            "run the command that wrote it, or use another hydra.sweep.dir"
+        )
     done = max(checkpoint["episodes_done"])
     if agents.cfg.algo.episodes < done:
         raise ConfigError.of(
@@ -459,3 +485,10 @@ def _population_checkpoint(agents: AgentTable, names: Sequence[str], run_dir: Pa
             f">= {done}: {path} has already trained {done} episodes",
         )
     return checkpoint
+
+
+def _search_text(settings: dict | None) -> str:
+    if settings is None:
+        return "no search (hydra/launcher=population)"
+    values = " ".join(f"hydra.launcher.{key}={value}" for key, value in settings.items())
+    return f"hydra/launcher=pbt {values}"

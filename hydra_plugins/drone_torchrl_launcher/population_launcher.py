@@ -18,7 +18,7 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from hydra.core.utils import JobReturn, JobStatus, configure_log, setup_globals
 from omegaconf import OmegaConf, open_dict, read_write
@@ -30,6 +30,7 @@ from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher, J
 
 if TYPE_CHECKING:
     from drone_torchrl.training.agents import AgentTable
+    from drone_torchrl.training.pbt import PBTSettings
 
 log = logging.getLogger(__name__)
 
@@ -37,6 +38,8 @@ POPULATION_DIR = "population_{}"
 
 
 class PopulationLauncher(FusedLauncher):
+    search: PBTSettings | None = None
+
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         from drone_torchrl.training.trainer import Outcome, train_population
 
@@ -67,7 +70,7 @@ class PopulationLauncher(FusedLauncher):
                 write_atomically(record / "overrides.yaml", lines.encode("utf-8"))
 
             try:
-                done = train_population(agents, names, run_dir, write_record)
+                done = train_population(agents, names, run_dir, write_record, self.search)
             except ConfigError as err:  # refused before training: one line, the other groups go on
                 print(f"{run_dir}: population not started: {err}")
                 done = [Outcome(run_dir, error=err)] * len(members)
@@ -148,3 +151,19 @@ class PopulationLauncher(FusedLauncher):
             groups.setdefault(group_key(cfg), []).append(position)
         tables = [(AgentTable.of([returns[i].cfg for i in members]), members) for members in groups.values()]
         return hydra_record, tables
+
+
+class PBTLauncher(PopulationLauncher):
+    """``hydra/launcher=pbt``: each population run trained with population-based training
+    (:mod:`drone_torchrl.training.pbt`)."""
+
+    def __init__(self, **params: Any) -> None:
+        from drone_torchrl.training.pbt import PBTSettings
+
+        super().__init__()
+        try:
+            self.search = PBTSettings.of(params)
+        except (
+            ConfigError
+        ) as err:  # Hydra makes the launcher before any job starts: one line, nothing written
+            sys.exit(f"drone-train: error: {err}")

@@ -4,7 +4,7 @@ Kept apart from the plugins (which import the training code when they run) so th
 configs needs nothing but this module.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -25,6 +25,20 @@ class PopulationLauncherConf:
 
 
 @dataclass
+class PBTLauncherConf:
+    """``hydra/launcher=pbt``: population runs with population-based training (see
+    :mod:`drone_torchrl.training.pbt`; Ray Tune's defaults). Typed Any so that a bad value reaches
+    the launcher's one-line check, not OmegaConf's type error."""
+
+    _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.PBTLauncher"
+    every_updates: Any = 100
+    quantile: Any = 0.25
+    perturb: Any = field(default_factory=lambda: [0.8, 1.2])
+    resample_probability: Any = 0.25
+    keys: Any = field(default_factory=lambda: ["algo.lr", "algo.gamma"])
+
+
+@dataclass
 class PopulationSweeperConf(BasicSweeperConf):
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_sweeper.PopulationSweeper"
 
@@ -34,6 +48,9 @@ ConfigStore.instance().store(
 )
 ConfigStore.instance().store(
     group="hydra/launcher", name="population", node=PopulationLauncherConf, provider="drone_torchrl"
+)
+ConfigStore.instance().store(
+    group="hydra/launcher", name="pbt", node=PBTLauncherConf, provider="drone_torchrl"
 )
 ConfigStore.instance().store(
     group="hydra/sweeper", name="population", node=PopulationSweeperConf, provider="drone_torchrl"

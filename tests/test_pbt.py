@@ -1,0 +1,158 @@
+"""Population-based training inside a population run (``hydra/launcher=pbt``, drone_torchrl.training.pbt).
+
+- An exploit step copies the best agents' rows of the stacked state into the worst agents' rows
+  and perturbs or resamples the searched keys within their bounds; an agent keeps its seed and count.
+- A killed and resumed PBT run takes the same steps (lineage) and flies the same episodes as an
+  uninterrupted one.
+- An agent read back from the run (drone-eval / drone-export / resume ``agent=K``) has the values
+  PBT gave it.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import pytest
+import torch
+from tensordict import TensorDict
+from test_population_run import AGENTS, COMMON, NAMES, _by_agent, _same
+
+from drone_torchrl.config import config_dir, validate
+from drone_torchrl.io.checkpoint import load_checkpoint
+from drone_torchrl.training import population_record as record_module
+from drone_torchrl.training.pbt import PBT, PBTSettings
+from drone_torchrl.training.signals import TrainingStopped
+from drone_torchrl.training.trainer import train_population
+
+pytest.importorskip("pyarrow")
+
+LR_SPACE = [1e-4, 3e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1, 3e-1]
+
+
+def _state(n: int) -> TensorDict:
+    """A population's state of ``n`` agents whose rows all differ."""
+    row = torch.arange(n, dtype=torch.float64)
+    return TensorDict(
+        {
+            "params": row[:, None] * torch.ones(n, 5),
+            "exp_avg": row[:, None] * 10 + torch.zeros(n, 5),
+            "exp_avg_sq": row[:, None] * 100 + torch.zeros(n, 5),
+            "adam_steps": row.float() + 1000,
+            "lr": torch.tensor(LR_SPACE, dtype=torch.float64),
+            "weight_decay": torch.zeros(n, dtype=torch.float64),
+            "gamma": torch.full((n,), 0.99, dtype=torch.float32),
+            "seed": torch.arange(n) + 50,
+            "counter": torch.full((n,), 7),
+        },
+        batch_size=[n],
+    )
+
+
+def _pbt(resample: float) -> PBT:
+    settings = PBTSettings(every_updates=5, quantile=0.25, resample_probability=resample)
+    space = {"algo.lr": LR_SPACE, "algo.gamma": [0.99] * 8, "seed": list(range(50, 58))}
+    return PBT(settings, space, {"algo.lr": (0.0, 1.0), "algo.gamma": (0.0, 1.0)}, seed=50)
+
+
+def test_an_exploit_step_copies_the_best_rows_into_the_worst_and_perturbs_their_values():
+    """8 agents scored 0..7 (agent 7 best), quantile 0.25: agents 0 and 1 take the rows of agents
+    drawn from 6 and 7 (weights, Adam's moments and steps), keep their seed and update count, and
+    get the parent's lr times 0.8 or 1.2 and gamma 0.99 x 0.8 or 1.0 (1.2 x 0.99 is past 1: kept at
+    1); each replacement is a lineage row. The same update gives the same step."""
+    state, pbt = _state(8), _pbt(resample=0.0)
+    pairs = pbt.step(state, [float(i) for i in range(8)], [True] * 8, update=10)
+    assert sorted(agent for agent, _ in pairs) == [0, 1]
+    assert all(parent in (6, 7) for _, parent in pairs)
+    for agent, parent in pairs:
+        for key in ("params", "exp_avg", "exp_avg_sq", "adam_steps"):
+            assert torch.equal(state[key][agent], _state(8)[key][parent]), key
+        assert int(state["seed"][agent]) == 50 + agent and int(state["counter"][agent]) == 7
+        ratio = float(state["lr"][agent]) / LR_SPACE[parent]
+        assert ratio == pytest.approx(0.8) or ratio == pytest.approx(1.2)
+        assert float(state["gamma"][agent]) in (pytest.approx(0.792), 1.0)
+    for agent in range(2, 8):  # the others are left as they were
+        assert torch.equal(state["params"][agent], _state(8)["params"][agent])
+    assert pbt.lineage["update"] == [10, 10]
+    assert sorted(pbt.lineage["agent"]) == [0, 1]
+    assert [float(state["lr"][a]) for a in pbt.lineage["agent"]] == pbt.lineage["algo.lr"]
+    again = _pbt(resample=0.0)
+    again_state = _state(8)
+    assert again.step(again_state, [float(i) for i in range(8)], [True] * 8, update=10) == pairs
+    assert torch.equal(again_state["lr"], state["lr"])
+
+
+def test_a_resample_draws_from_the_sweeps_values_and_a_dead_agent_takes_no_part():
+    """resample_probability=1: the new lr is one of the sweep's values. A diverged agent (here the
+    worst-scored) is neither replaced nor copied from."""
+    state, pbt = _state(8), _pbt(resample=1.0)
+    alive = [True] * 8
+    alive[0] = False
+    pairs = pbt.step(state, [float(i) for i in range(8)], alive, update=5)
+    assert [agent for agent, _ in pairs] == [1] and pairs[0][1] == 7  # 7 alive agents: one of each side
+    assert float(state["lr"][1]) in LR_SPACE
+    assert torch.equal(state["params"][0], _state(8)["params"][0])
+
+
+def _cfgs(*overrides: str):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfgs = [compose("config", overrides=[*COMMON, *overrides, *agent]) for agent in AGENTS]
+    for cfg in cfgs:
+        validate(cfg)
+    return cfgs
+
+
+SEARCH = PBTSettings(every_updates=2, quantile=0.34, resample_probability=0.25)
+
+
+def test_a_killed_and_resumed_pbt_run_takes_the_steps_of_an_uninterrupted_one(tmp_path, monkeypatch):
+    """3 agents, an exploit step every 2 updates (one agent replaced each time), 12 episodes: SIGTERM
+    at update 5 stops it with a checkpoint at 6; resumed to 12 it writes the uninterrupted run's
+    lineage and every agent's episodes once, with the same returns. The read-back agent has the
+    lr PBT gave it."""
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    train_population(_cfgs("algo.episodes=12"), NAMES, whole, search=SEARCH)
+    lineage = record_module.read_table(whole / record_module.LINEAGE_TABLE)
+    assert lineage["update"] == [2, 4, 6, 8, 10]  # none after the last update: the budget is reached
+    assert len(set(lineage["parent"])) >= 1 and all(
+        a != p for a, p in zip(lineage["agent"], lineage["parent"], strict=True)
+    )
+
+    book = record_module.PopulationRecord.after_update
+
+    def signal_at_five(self):
+        book(self)
+        if self.updates == 5:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(record_module.PopulationRecord, "after_update", signal_at_five)
+    with pytest.raises(TrainingStopped):
+        train_population(_cfgs("algo.episodes=12"), NAMES, cut, search=SEARCH)
+    monkeypatch.setattr(record_module.PopulationRecord, "after_update", book)
+    assert load_checkpoint(cut / "checkpoints" / "last.pt")["episodes_done"] == [6, 6, 6]
+    assert record_module.read_table(cut / record_module.LINEAGE_TABLE)["update"] == [2, 4, 6]
+    train_population(_cfgs("algo.episodes=12"), NAMES, cut, search=SEARCH)
+    assert record_module.read_table(cut / record_module.LINEAGE_TABLE) == lineage
+    _same(_by_agent(cut), _by_agent(whole))
+
+    last, parent = lineage["agent"][-1], lineage["parent"][-1]
+    state = load_checkpoint(whole / "checkpoints" / "last.pt")
+    # Replaced at update 10, the agent is scored by its parent's 10 episodes, then its own 2.
+    recent = state["recent_returns"]
+    assert torch.equal(recent[last][:10], recent[parent][:10])
+    assert not torch.equal(recent[last][10:12], recent[parent][10:12])
+    agent = record_module.agent_checkpoint(state, last, whole)
+    assert agent["config"]["algo"]["lr"] == lineage["algo.lr"][-1]
+
+
+def test_a_pbt_run_is_not_continued_with_other_settings(tmp_path):
+    """Resuming with another search (or none) is refused in one line naming both."""
+    from drone_torchrl.config import ConfigError
+
+    run = tmp_path / "run"
+    train_population(_cfgs("algo.episodes=4"), NAMES, run, search=SEARCH)
+    with pytest.raises(ConfigError, match="hydra/launcher=pbt .* no search") as info:
+        train_population(_cfgs("algo.episodes=8"), NAMES, run)
+    assert "\n" not in str(info.value)
