@@ -21,7 +21,7 @@ from test_population_run import AGENTS, COMMON, NAMES, _by_agent, _same
 from drone_torchrl.config import config_dir, validate
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.training import population_record as record_module
-from drone_torchrl.training.pbt import PBT, PBTSettings
+from drone_torchrl.training.pbt import PBT, PBTSettings, ReplaySettings, schedule
 from drone_torchrl.training.signals import TrainingStopped
 from drone_torchrl.training.trainer import train_population
 
@@ -156,3 +156,48 @@ def test_a_pbt_run_is_not_continued_with_other_settings(tmp_path):
     with pytest.raises(ConfigError, match="hydra/launcher=pbt .* no search") as info:
         train_population(_cfgs("algo.episodes=8"), NAMES, run)
     assert "\n" not in str(info.value)
+
+
+def test_the_schedule_of_an_agent_follows_its_line_of_ancestors_back():
+    """Agent 0 took agent 2's weights at update 10 (lr 0.5), agent 1 took agent 0's at 20 (lr 0.7),
+    agent 2 took agent 1's at 30 (lr 0.9): agent 2's weights were trained with agent 2's first lr,
+    then 0.5, 0.7 and 0.9 (its own first values are not its line's after update 30)."""
+    lineage = {
+        "update": [10, 20, 30],
+        "agent": [0, 1, 2],
+        "parent": [2, 0, 1],
+        "algo.lr": [0.5, 0.7, 0.9],
+    }
+    initial = {"algo.lr": [0.1, 0.2, 0.3]}
+    assert schedule(lineage, initial, 2, ["algo.lr"]) == [
+        (0, {"algo.lr": 0.3}),
+        (10, {"algo.lr": 0.5}),
+        (20, {"algo.lr": 0.7}),
+        (30, {"algo.lr": 0.9}),
+    ]
+    assert schedule(lineage, initial, 0, ["algo.lr"]) == [(0, {"algo.lr": 0.3}), (10, {"algo.lr": 0.5})]
+    assert schedule(lineage, initial, 1, ["algo.lr"]) == [
+        (0, {"algo.lr": 0.3}),
+        (10, {"algo.lr": 0.5}),
+        (20, {"algo.lr": 0.7}),
+    ]
+
+
+def test_a_replay_trains_every_agent_with_the_pbt_agents_values(tmp_path):
+    """hydra/launcher=pbt_replay's search on fresh seeds: every agent gets the schedule's values at
+    its updates (the lineage holds one row per agent and change, and the state holds the last)."""
+    run = tmp_path / "pbt"
+    train_population(_cfgs("algo.episodes=8"), NAMES, run, search=SEARCH)
+    replay = ReplaySettings.of({"run": str(run), "agent": 1})
+    steps = [(u, dict(v)) for u, v in replay.schedule]
+    assert steps[0][0] == 0 and all(u % SEARCH.every_updates == 0 for u, _ in steps)
+    fresh = tmp_path / "fresh"
+    train_population(_cfgs("algo.episodes=8"), NAMES, fresh, search=replay)
+    lineage = record_module.read_table(fresh / record_module.LINEAGE_TABLE)
+    assert sorted(set(lineage["update"])) == [u for u, _ in steps]
+    for update, values in steps:
+        rows = [i for i, u in enumerate(lineage["update"]) if u == update]
+        assert sorted(lineage["agent"][i] for i in rows) == [0, 1, 2]
+        assert {lineage["algo.lr"][i] for i in rows} == {values["algo.lr"]}
+    state = load_checkpoint(fresh / "checkpoints" / "last.pt")["state"]
+    assert state["lr"].tolist() == [steps[-1][1]["algo.lr"]] * 3

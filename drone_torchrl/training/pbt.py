@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,6 +36,8 @@ from drone_torchrl.config import per_agent_keys, schema_keys
 STATE_KEYS = {"algo.lr": "lr", "algo.gamma": "gamma", "algo.weight_decay": "weight_decay"}
 # The largest truncation quantile: the worst and the best quantile must not overlap.
 MAX_QUANTILE = 0.5
+# Updates until a replay's next change, when it has none left.
+NEVER = 2**62
 # The lineage's columns besides the searched keys.
 LINEAGE_COLUMNS = ("update", "agent", "parent")
 
@@ -101,13 +104,70 @@ class PBTSettings:
             int(every), float(quantile), tuple(float(f) for f in perturb), float(resample), tuple(keys)
         )
 
+    def record(self) -> dict[str, Any]:
+        """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
+        return {"launcher": "pbt", **asdict(self)}
 
-class PBT:
+    def make(self, cfg: Any, values: Mapping[str, list], lineage: Mapping[str, list] | None) -> PBT:
+        return PBT.for_population(self, cfg, values, lineage)
+
+
+class Search:
+    """What PBT and its replay share: the lineage of the searched keys' values, and each agent's
+    value now.
+
+    Args:
+        keys: the searched keys.
+        initial: each searched key -> every agent's value from the sweep.
+        lineage: the rows written so far (a resumed run's, from its checkpoint), column -> values.
+    """
+
+    settings: Any
+
+    def __init__(
+        self, keys: Sequence[str], initial: Mapping[str, Sequence[float]], lineage: Mapping[str, list] | None
+    ) -> None:
+        self.keys = tuple(keys)
+        columns = (*LINEAGE_COLUMNS, *self.keys)
+        self.lineage: dict[str, list] = {key: list((lineage or {}).get(key, [])) for key in columns}
+        # Each agent's value of each searched key now, exactly (the state holds gamma in the
+        # network's precision): the sweep's, then each lineage row's.
+        self.current = {key: [float(v) for v in initial[key]] for key in self.keys}
+        for row, agent in enumerate(self.lineage["agent"]):
+            for key in self.keys:
+                self.current[key][agent] = float(self.lineage[key][row])
+
+    def start(self, state: Any) -> None:
+        """A fresh run's state before its first update (a resumed one has its checkpoint's)."""
+
+    def _set(
+        self, state: Any, update: int, agents: Sequence[int], parents: Sequence[int], new: Mapping[str, Any]
+    ) -> None:
+        """Give ``agents`` the ``new`` values (key -> one per agent) in ``state`` and the lineage."""
+        rows = torch.as_tensor(list(agents))
+        for key in self.keys:
+            entry = state[STATE_KEYS[key]]
+            with torch.no_grad():
+                entry[rows] = torch.as_tensor(np.asarray(new[key], dtype=np.float64), dtype=entry.dtype)
+        for i, (agent, parent) in enumerate(zip(agents, parents, strict=True)):
+            for column, value in zip(LINEAGE_COLUMNS, (update, agent, parent), strict=True):
+                self.lineage[column].append(int(value))
+            for key in self.keys:
+                value = float(new[key][i])
+                self.lineage[key].append(value)
+                self.current[key][agent] = value
+
+    def checkpoint(self) -> dict[str, Any]:
+        return {"settings": self.settings.record(), "lineage": self.lineage}
+
+
+class PBT(Search):
     """The exploit and explore steps of one population run.
 
     Args:
         settings: what to search and how.
-        space: each searched key -> the values the sweep gave it (what a resample draws from).
+        space: each searched key -> the values the sweep gave it, one per agent (what a resample
+            draws from, and the agents' first values).
         bounds: each searched key -> its ``(low, high)`` (explored values are kept inside).
         seed: the key of the steps' random draws (with the update number).
         lineage: the rows written so far (a resumed run's, from its checkpoint), column -> values.
@@ -121,18 +181,11 @@ class PBT:
         seed: int,
         lineage: Mapping[str, list] | None = None,
     ) -> None:
+        super().__init__(settings.keys, space, lineage)
         self.settings = settings
         self.space = {key: sorted(set(space[key])) for key in settings.keys}
         self.bounds = dict(bounds)
         self.seed = int(seed)
-        columns = (*LINEAGE_COLUMNS, *settings.keys)
-        self.lineage: dict[str, list] = {key: list((lineage or {}).get(key, [])) for key in columns}
-        # Each agent's value of each searched key now, exactly (the state holds gamma in the
-        # network's precision): the sweep's, then each lineage row's.
-        self.current = {key: [float(v) for v in space[key]] for key in settings.keys}
-        for row, agent in enumerate(self.lineage["agent"]):
-            for key in settings.keys:
-                self.current[key][agent] = float(self.lineage[key][row])
 
     @classmethod
     def for_population(cls, settings: PBTSettings, cfg: Any, values: Mapping[str, list], lineage=None) -> PBT:
@@ -151,6 +204,9 @@ class PBT:
     def updates_until_due(self, updates_done: int) -> int:
         every = self.settings.every_updates
         return every - updates_done % every
+
+    def due(self, updates_done: int) -> bool:
+        return updates_done % self.settings.every_updates == 0
 
     def step(
         self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
@@ -180,20 +236,122 @@ class PBT:
             drawn = space[rng.integers(len(space), size=count)]
             factors = np.array(s.perturb)[rng.integers(len(s.perturb), size=count)]
             values = np.where(resampled, drawn, np.array(self.current[key])[parents] * factors)
-            low, high = self.bounds[key]
-            new[key] = np.clip(values, low, high)
-            with torch.no_grad():
-                state[STATE_KEYS[key]][rows] = torch.as_tensor(new[key], dtype=state[STATE_KEYS[key]].dtype)
-        for i, (agent, parent) in enumerate(zip(worst.tolist(), parents.tolist(), strict=True)):
-            self._append(update, agent, parent, {key: float(new[key][i]) for key in s.keys})
+            new[key] = np.clip(values, *self.bounds[key])
+        self._set(state, update, worst.tolist(), parents.tolist(), new)
         return list(zip(worst.tolist(), parents.tolist(), strict=True))
 
-    def _append(self, update: int, agent: int, parent: int, values: Mapping[str, float]) -> None:
-        for key, value in zip(LINEAGE_COLUMNS, (update, agent, parent), strict=True):
-            self.lineage[key].append(value)
-        for key, value in values.items():
-            self.lineage[key].append(value)
-            self.current[key][agent] = value
 
-    def checkpoint(self) -> dict[str, Any]:
-        return {"settings": asdict(self.settings), "lineage": self.lineage}
+@dataclass(frozen=True)
+class ReplaySettings:
+    """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT run had.
+
+    Attributes:
+        run: the PBT population run (its folder).
+        agent: the agent whose line of ancestors' values is replayed (default: the one with the
+            best final return).
+        schedule: ``(update, ((key, value), ...))`` from update 0: that agent's values (:func:`schedule`).
+        every_updates: the PBT run's steps' interval.
+    """
+
+    run: str
+    agent: int
+    schedule: tuple[tuple[int, tuple[tuple[str, float], ...]], ...]
+    every_updates: int
+
+    @classmethod
+    def of(cls, params: Mapping[str, Any]) -> ReplaySettings:
+        """The settings from the launcher's parameters; :class:`ConfigError` (one line) for a run
+        that is not a finished PBT population run or an agent it does not have."""
+        from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
+
+        run = params.get("run")
+        path = Path(str(run)) / CHECKPOINT_DIR / LAST
+        try:
+            state = load_checkpoint(path) if run is not None and path.is_file() else None
+        except CheckpointError as err:
+            raise ConfigError.of("hydra.launcher.run", run, f"a PBT population run ({err})") from None
+        search = None if state is None else state.get("search")
+        if not search or search["settings"].get("launcher") != "pbt":
+            raise ConfigError.of(
+                "hydra.launcher.run", run, "the folder of a PBT population run (hydra/launcher=pbt)"
+            )
+        count = len(state["episodes_done"])
+        agent = params.get("agent")
+        if agent is None:  # the best final return
+            finals = [-math.inf if f is None else f["final_return"] for f in state["final"]]
+            agent = max(range(count), key=lambda i: finals[i])
+        if isinstance(agent, bool) or not isinstance(agent, int) or not 0 <= agent < count:
+            raise ConfigError.of(
+                "hydra.launcher.agent", agent, f"an agent of {run}: an integer 0..{count - 1}"
+            )
+        keys = tuple(search["settings"]["keys"])
+        initial = {key: state["agents"][key] for key in keys}
+        steps = schedule(search["lineage"], initial, agent, keys)
+        frozen = tuple((update, tuple(values.items())) for update, values in steps)
+        return cls(str(Path(str(run)).resolve()), agent, frozen, int(search["settings"]["every_updates"]))
+
+    def record(self) -> dict[str, Any]:
+        return {"launcher": "pbt_replay", "run": self.run, "agent": self.agent}
+
+    def make(self, cfg: Any, values: Mapping[str, list], lineage: Mapping[str, list] | None) -> Replay:
+        return Replay(self, len(values["seed"]), lineage)
+
+
+def schedule(
+    lineage: Mapping[str, list], initial: Mapping[str, Sequence[float]], agent: int, keys: Sequence[str]
+) -> list[tuple[int, dict[str, float]]]:
+    """The values ``agent``'s weights were trained with: ``[(0, the first values), (update, the values
+    from then on), ...]``, following its line of ancestors back through the lineage (an agent
+    replaced at update ``u`` by a copy of ``parent`` had ``parent``'s line before ``u``)."""
+    steps = []
+    current = agent
+    for row in range(len(lineage["agent"]) - 1, -1, -1):
+        if lineage["agent"][row] == current:
+            steps.append((int(lineage["update"][row]), {key: float(lineage[key][row]) for key in keys}))
+            current = int(lineage["parent"][row])
+    steps.append((0, {key: float(initial[key][current]) for key in keys}))
+    return steps[::-1]
+
+
+class Replay(Search):
+    """Every agent of a population trained with the values of one PBT agent's line (a schedule of
+    ``(update, values)``): the found configuration, retrained on fresh seeds."""
+
+    def __init__(
+        self, settings: ReplaySettings, agents: int, lineage: Mapping[str, list] | None = None
+    ) -> None:
+        self.settings = settings
+        self.steps = {update: dict(values) for update, values in settings.schedule}
+        keys = tuple(self.steps[0])
+        super().__init__(keys, {key: [self.steps[0][key]] * agents for key in keys}, lineage)
+        self.agents = agents
+
+    def start(self, state: Any) -> None:
+        self._apply(state, 0)
+
+    def updates_until_due(self, updates_done: int) -> int:
+        later = [u - updates_done for u in self.steps if u > updates_done]
+        return min(later, default=NEVER)
+
+    def due(self, updates_done: int) -> bool:
+        return updates_done in self.steps and updates_done > 0
+
+    def step(
+        self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
+    ) -> list[tuple[int, int]]:
+        self._apply(state, update)
+        return []
+
+    def _apply(self, state: Any, update: int) -> None:
+        everyone = list(range(self.agents))
+        self._set(
+            state,
+            update,
+            everyone,
+            everyone,
+            {key: [v] * self.agents for key, v in self.steps[update].items()},
+        )
+
+
+# What a population run's search is asked for: PBT, or a replay of one PBT agent's values.
+SearchSettings = PBTSettings | ReplaySettings

@@ -17,7 +17,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +42,7 @@ from drone_torchrl.schema import KEPT
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
-from drone_torchrl.training.pbt import PBT, PBTSettings
+from drone_torchrl.training.pbt import SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
@@ -100,7 +100,7 @@ class Trainer:
         population_dir: Path | None = None,
         names: Sequence[str] | None = None,
         checkpoint: dict | None = None,
-        search: PBTSettings | None = None,
+        search: SearchSettings | None = None,
     ) -> None:
         """``population_dir``: train the jobs (or an :class:`~.agents.AgentTable`) as one population
         run in that folder (see :mod:`.population_record`; ``names``: the agents' names,
@@ -129,7 +129,9 @@ class Trainer:
                 self.runs = list(self.book.agents)
                 if search is not None:
                     saved = None if checkpoint is None else checkpoint["search"]["lineage"]
-                    self.book.search = PBT.for_population(search, cfg, self.book.values, saved)
+                    self.book.search = search.make(cfg, self.book.values, saved)
+                    if checkpoint is None:
+                        self.book.search.start(self.learner.state)
             for job in jobs if population_dir is None else ():
                 self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
@@ -223,7 +225,7 @@ class Trainer:
         active = [i for i in active if not runs[i].failed]
         if search is not None and active and not any(runs[i].finished for i in active):
             done = max(runs[i].updates_done for i in active)
-            if search.updates_until_due(done) == search.settings.every_updates:
+            if search.due(done):
                 scores = [run.running_return for run in runs]
                 for agent, parent in search.step(learner.state, scores, [not r.failed for r in runs], done):
                     runs[agent].take_window(runs[parent])
@@ -385,7 +387,7 @@ def train_population(
     names: Sequence[str],
     run_dir: Path,
     before_training: Callable[[], None] | None = None,
-    search: PBTSettings | None = None,
+    search: SearchSettings | None = None,
 ) -> list[Outcome]:
     """Train validated agents of one group (:func:`~.jobs.group_key`; an :class:`~.agents.AgentTable`
     or their configs) as ONE population run in ``run_dir`` (:mod:`.population_record`), or
@@ -437,7 +439,7 @@ def _population_outcomes(run_dir: Path, finals: Sequence, failures: Sequence) ->
 
 
 def _population_checkpoint(
-    agents: AgentTable, names: Sequence[str], run_dir: Path, search: PBTSettings | None = None
+    agents: AgentTable, names: Sequence[str], run_dir: Path, search: SearchSettings | None = None
 ) -> dict | None:
     """The population run's last checkpoint, if it has one, checked against the sweep's agents and
     hyper-parameters (as a continued run's: only the budget, logging and process settings change)."""
@@ -470,7 +472,7 @@ def _population_checkpoint(
             "its hyper-parameters: drop those overrides or use another hydra.sweep.dir"
         )
     saved_search = checkpoint.get("search")
-    now_search = None if search is None else asdict(search)
+    now_search = None if search is None else search.record()
     if (saved_search and saved_search["settings"]) != now_search:
         raise ConfigError(
             f"resume: {path} was trained with {_search_text(saved_search and saved_search['settings'])}, "
@@ -490,5 +492,6 @@ def _population_checkpoint(
 def _search_text(settings: dict | None) -> str:
     if settings is None:
         return "no search (hydra/launcher=population)"
-    values = " ".join(f"hydra.launcher.{key}={value}" for key, value in settings.items())
-    return f"hydra/launcher=pbt {values}"
+    launcher = settings["launcher"]
+    values = " ".join(f"hydra.launcher.{key}={value}" for key, value in settings.items() if key != "launcher")
+    return f"hydra/launcher={launcher} {values}"

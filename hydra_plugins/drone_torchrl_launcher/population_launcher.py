@@ -30,7 +30,7 @@ from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher, J
 
 if TYPE_CHECKING:
     from drone_torchrl.training.agents import AgentTable
-    from drone_torchrl.training.pbt import PBTSettings
+    from drone_torchrl.training.pbt import SearchSettings
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +38,7 @@ POPULATION_DIR = "population_{}"
 
 
 class PopulationLauncher(FusedLauncher):
-    search: PBTSettings | None = None
+    search: SearchSettings | None = None
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         from drone_torchrl.training.trainer import Outcome, train_population
@@ -166,4 +166,19 @@ class PBTLauncher(PopulationLauncher):
         except (
             ConfigError
         ) as err:  # Hydra makes the launcher before any job starts: one line, nothing written
+            sys.exit(f"drone-train: error: {err}")
+
+
+class PBTReplayLauncher(PopulationLauncher):
+    """``hydra/launcher=pbt_replay``: each agent trained with the values one agent of a PBT run had,
+    at the updates it had them (``hydra.launcher.run``, ``hydra.launcher.agent``; see
+    :class:`drone_torchrl.training.pbt.Replay`): a PBT result retrained on fresh seeds."""
+
+    def __init__(self, **params: Any) -> None:
+        from drone_torchrl.training.pbt import ReplaySettings
+
+        super().__init__()
+        try:
+            self.search = ReplaySettings.of(params)
+        except ConfigError as err:
             sys.exit(f"drone-train: error: {err}")

@@ -39,6 +39,15 @@ class PBTLauncherConf:
 
 
 @dataclass
+class PBTReplayLauncherConf:
+    """``hydra/launcher=pbt_replay``: a PBT agent's values replayed on a new population."""
+
+    _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.PBTReplayLauncher"
+    run: Any = None
+    agent: Any = None
+
+
+@dataclass
 class PopulationSweeperConf(BasicSweeperConf):
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_sweeper.PopulationSweeper"
 
@@ -51,6 +60,9 @@ ConfigStore.instance().store(
 )
 ConfigStore.instance().store(
     group="hydra/launcher", name="pbt", node=PBTLauncherConf, provider="drone_torchrl"
+)
+ConfigStore.instance().store(
+    group="hydra/launcher", name="pbt_replay", node=PBTReplayLauncherConf, provider="drone_torchrl"
 )
 ConfigStore.instance().store(
     group="hydra/sweeper", name="population", node=PopulationSweeperConf, provider="drone_torchrl"
