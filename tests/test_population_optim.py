@@ -72,3 +72,24 @@ def test_population_adam_equals_torch_per_agent(decoupled, max_norm, path):
     fresh["exp_avg"].zero_()
     Adam.load_agent_state(fresh, 1, names, stacked.views, ref_state)
     torch.testing.assert_close(fresh["exp_avg"][1], state["exp_avg"][1], rtol=1e-5, atol=1e-8)
+
+
+def test_a_learning_rate_changed_between_steps_is_the_one_the_next_step_uses():
+    """Population-based training rewrites an agent's lr (and weight decay) in the state between
+    steps: the next fused step takes the new values, as a fresh optimizer on the same state does
+    (the agents' grouping by lr was made once per run, so a changed lr went unused)."""
+    torch.manual_seed(0)
+    params = torch.randn(3, 5)
+    grads = [torch.randn(3, 5) for _ in range(2)]
+    state = TensorDict(
+        {"params": params, **adam_state(params, torch.tensor(LRS, dtype=torch.float64), torch.zeros(3))},
+        batch_size=[3],
+    )
+    adam = Adam()
+    adam.step(state, grads[0].clone())
+    state["lr"][0] = 0.5
+    state["weight_decay"][2] = 0.1
+    fresh_state = state.clone()
+    adam.step(state, grads[1].clone())
+    Adam(coupled_decay=True).step(fresh_state, grads[1].clone())
+    assert torch.equal(state["params"], fresh_state["params"])

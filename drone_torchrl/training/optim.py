@@ -119,17 +119,21 @@ class Adam:
         param.sub_(step_size * (exp_avg / denom))
 
     def _fused_step(self, state: TensorDictBase, grad: torch.Tensor, agents: torch.Tensor | None) -> None:
-        params = state["params"]
-        if self._rows is None or self._rows[0] is not params:
+        params, lr, decay = state["params"], state["lr"], state["weight_decay"]
+        if (
+            self._rows is None
+            or self._rows[0] is not params
+            or not (torch.equal(self._rows[4], lr) and torch.equal(self._rows[5], decay))
+        ):
             # Row views of the state's tensors, and the agents grouped by learning rate and weight
-            # decay: both fixed for a run, so made once.
+            # decay: made again only when those change (population-based training changes them).
             steps = state["adam_steps"]
             columns = [t.unbind(0) for t in (params, state["exp_avg"], state["exp_avg_sq"], steps)]
             groups: dict[tuple[float, float], list[int]] = {}
-            for i, key in enumerate(zip(state["lr"].tolist(), state["weight_decay"].tolist(), strict=True)):
+            for i, key in enumerate(zip(lr.tolist(), decay.tolist(), strict=True)):
                 groups.setdefault(key, []).append(i)
-            self._rows = (params, steps, columns, groups)
-        _, steps, columns, groups = self._rows
+            self._rows = (params, steps, columns, groups, lr.clone(), decay.clone())
+        _, steps, columns, groups, _, _ = self._rows
         if agents is None:
             steps += 1
             chosen = None
