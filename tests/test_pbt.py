@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import csv
 import os
 import signal
 
@@ -201,3 +202,31 @@ def test_a_replay_trains_every_agent_with_the_pbt_agents_values(tmp_path):
         assert {lineage["algo.lr"][i] for i in rows} == {values["algo.lr"]}
     state = load_checkpoint(fresh / "checkpoints" / "last.pt")["state"]
     assert state["lr"].tolist() == [steps[-1][1]["algo.lr"]] * 3
+
+
+def test_drone_report_draws_the_best_agents_schedules(tmp_path):
+    """drone-report on a PBT sweep writes pbt_schedules.png and .csv: the best agents by final
+    return, best first, each with its line's values from update 0 (schedule())."""
+    from drone_torchrl.apps.report import main as report_main
+    from drone_torchrl.report.schedules import SCHEDULES_CSV, SCHEDULES_FIGURE
+
+    sweep = tmp_path / "sweep"
+    run = sweep / "population_0"
+    hydra_record = lambda: (run / ".hydra").mkdir()  # noqa: E731  (what the launcher writes: a job of the sweep)
+    train_population(_cfgs("algo.episodes=6"), NAMES, run, hydra_record, search=SEARCH)
+    report_main([str(sweep), "--no-pd", "--out", str(tmp_path / "report")])
+    assert (tmp_path / "report" / SCHEDULES_FIGURE).stat().st_size > 0
+    rows = list(csv.DictReader((tmp_path / "report" / SCHEDULES_CSV).open()))
+    state = load_checkpoint(sweep / "population_0" / "checkpoints" / "last.pt")
+    finals = [f["final_return"] for f in state["final"]]
+    order = sorted(range(3), key=lambda i: -finals[i])
+    assert list(dict.fromkeys(int(r["agent"]) for r in rows)) == order
+    initial = {"algo.lr": state["agents"]["algo.lr"], "algo.gamma": state["agents"]["algo.gamma"]}
+    best = order[0]
+    expected = schedule(state["search"]["lineage"], initial, best, ["algo.lr", "algo.gamma"])
+    got = [
+        (int(r["from_update"]), {"algo.lr": float(r["algo.lr"]), "algo.gamma": float(r["algo.gamma"])})
+        for r in rows
+        if int(r["agent"]) == best
+    ]
+    assert got == expected and got[0][0] == 0

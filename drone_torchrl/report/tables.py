@@ -25,6 +25,7 @@ from drone_torchrl.report.distribution import (
 from drone_torchrl.report.figures import RETURNS_FIGURE, STEPS_FIGURE, plot_curves
 from drone_torchrl.report.landscape import LANDSCAPE_FIGURE, landscape, write_landscape
 from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN
+from drone_torchrl.report.schedules import pbt_runs, write_schedules
 from drone_torchrl.report.stats import PD_EPISODES, PD_SEED, PERCENT, STD_DDOF, ZONE_SHARE
 from drone_torchrl.report.sweep import SweepReport
 
@@ -258,6 +259,9 @@ def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = Fal
     grid = landscape(report)
     if grid is not None:
         paths += write_landscape(grid, out_dir)
+    searched = pbt_runs(report.sweep_dir)
+    for run in searched:  # population-based training: the best agents' schedules
+        paths += write_schedules(run, out_dir, "" if len(searched) == 1 else f"{run.name}_")
     md = out_dir / SUMMARY_MD
     summary = format_report(report) + "\n" + extra
     summary += f"\n![landscape]({LANDSCAPE_FIGURE})\n" if grid is not None else ""
