@@ -758,29 +758,63 @@ def test_drone_report_refuses(argv, names, files, tmp_path, capsys):
     assert _snapshot(files["run"].parent) == before
 
 
-# hydra/launcher=pbt's settings (drone_torchrl.training.pbt): refused when Hydra makes the launcher,
-# before any job starts.
-PBT = [
-    ({"quantile": 0.6}, "hydra.launcher.quantile"),
-    ({"quantile": 0}, "hydra.launcher.quantile"),
-    ({"every_updates": 0}, "hydra.launcher.every_updates"),
-    ({"perturb": []}, "hydra.launcher.perturb"),
-    ({"perturb": [0.8, -1.2]}, "hydra.launcher.perturb"),
-    ({"resample_probability": 1.5}, "hydra.launcher.resample_probability"),
-    ({"keys": ["seed"]}, "'seed' is a per-agent key PBT cannot search"),
-    ({"keys": ["model.hidden_sizes"]}, "'model.hidden_sizes' is not a per-agent key"),
-    ({"keys": []}, "hydra.launcher.keys"),
+# hydra/launcher=pbt's, halving's and pbt_replay's settings (drone_torchrl.training.pbt): refused
+# when Hydra makes the launcher, before any job starts.
+SEARCH_LAUNCHERS = [
+    ("PBTLauncher", {"quantile": 0.6}, "hydra.launcher.quantile"),
+    ("PBTLauncher", {"quantile": 0}, "hydra.launcher.quantile"),
+    ("PBTLauncher", {"every_updates": 0}, "hydra.launcher.every_updates"),
+    ("PBTLauncher", {"perturb": []}, "hydra.launcher.perturb"),
+    ("PBTLauncher", {"perturb": [0.8, -1.2]}, "hydra.launcher.perturb"),
+    ("PBTLauncher", {"resample_probability": 1.5}, "hydra.launcher.resample_probability"),
+    ("PBTLauncher", {"keys": ["seed"]}, "'seed' is a per-agent key PBT cannot search"),
+    ("PBTLauncher", {"keys": ["model.hidden_sizes"]}, "'model.hidden_sizes' is not a per-agent key"),
+    ("PBTLauncher", {"keys": []}, "hydra.launcher.keys"),
+    ("HalvingLauncher", {"rungs": []}, "hydra.launcher.rungs"),
+    ("HalvingLauncher", {"rungs": [1500, 500]}, "hydra.launcher.rungs"),
+    ("HalvingLauncher", {"rungs": [0, 5]}, "hydra.launcher.rungs"),
+    ("HalvingLauncher", {"fraction": 1}, "hydra.launcher.fraction"),
+    ("HalvingLauncher", {"keys": ["seed"]}, "'seed' is a per-agent key successive halving cannot search"),
+    ("PBTReplayLauncher", {"run": "/nowhere"}, "hydra.launcher.run"),
 ]
 
 
-@pytest.mark.parametrize(("params", "names"), PBT, ids=[str(p) for p, _ in PBT])
-def test_the_pbt_launcher_refuses(params, names):
-    from hydra_plugins.drone_torchrl_launcher.population_launcher import PBTLauncher
+@pytest.mark.parametrize(
+    ("launcher", "params", "names"), SEARCH_LAUNCHERS, ids=[f"{n}-{p}" for n, p, _ in SEARCH_LAUNCHERS]
+)
+def test_the_search_launchers_refuse(launcher, params, names):
+    from hydra_plugins.drone_torchrl_launcher import population_launcher
 
     with pytest.raises(SystemExit) as info:
-        PBTLauncher(**params)
+        getattr(population_launcher, launcher)(**params)
     _one_line(str(info.value.code), names)
     assert str(info.value.code).startswith("drone-train: error: hydra.launcher.")
+
+
+@pytest.mark.parametrize(
+    ("search", "names"),
+    [
+        (
+            {"rungs": [100, 500]},
+            "hydra.launcher.rungs=[100, 500] is not allowed; expected rungs below the budget of 2 updates",
+        ),
+        (
+            {"every_updates": 2},
+            "hydra.launcher.every_updates=2 is not allowed; expected fewer than the budget's 2 updates",
+        ),
+    ],
+)
+def test_a_search_longer_than_the_budget_is_refused_before_the_folder_exists(search, names, tmp_path):
+    """A rung schedule (or a PBT interval) past algo.episodes: no search step would run."""
+    from drone_torchrl.training.pbt import HalvingSettings, PBTSettings
+
+    settings = HalvingSettings.of(search) if "rungs" in search else PBTSettings.of(search)
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfgs = [compose("config", overrides=[*TINY, "backend=fast", f"seed={s}"]) for s in (0, 1)]
+    with pytest.raises(ConfigError) as info:
+        train_population(cfgs, ["seed=0", "seed=1"], tmp_path / "pop", search=settings)
+    _one_line(str(info.value), names)
+    assert not (tmp_path / "pop").exists()
 
 
 def test_the_pbt_launcher_refuses_through_the_command(tmp_path):

@@ -22,7 +22,7 @@ from test_population_run import AGENTS, COMMON, NAMES, _by_agent, _same
 from drone_torchrl.config import config_dir, validate
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.training import population_record as record_module
-from drone_torchrl.training.pbt import PBT, PBTSettings, ReplaySettings, schedule
+from drone_torchrl.training.pbt import FRESH, PBT, HalvingSettings, PBTSettings, ReplaySettings, schedule
 from drone_torchrl.training.signals import TrainingStopped
 from drone_torchrl.training.trainer import train_population
 
@@ -108,18 +108,23 @@ def _cfgs(*overrides: str):
 SEARCH = PBTSettings(every_updates=2, quantile=0.34, resample_probability=0.25)
 
 
-def test_a_killed_and_resumed_pbt_run_takes_the_steps_of_an_uninterrupted_one(tmp_path, monkeypatch):
-    """3 agents, an exploit step every 2 updates (one agent replaced each time), 12 episodes: SIGTERM
-    at update 5 stops it with a checkpoint at 6; resumed to 12 it writes the uninterrupted run's
-    lineage and every agent's episodes once, with the same returns. The read-back agent has the
-    lr PBT gave it."""
+HALVING = HalvingSettings(rungs=(2, 4), fraction=0.34)
+
+
+@pytest.mark.parametrize("search", [SEARCH, HALVING], ids=["pbt", "halving"])
+def test_a_killed_and_resumed_search_takes_the_steps_of_an_uninterrupted_one(tmp_path, monkeypatch, search):
+    """3 agents, 12 episodes; PBT: an exploit step every 2 updates (one agent replaced each time);
+    halving: rungs at ages 2 and 4, the worst third stopped and restarted. SIGTERM at update 5
+    stops it with a checkpoint; resumed to 12 it writes the uninterrupted run's lineage and every
+    agent's episodes once, with the same returns. PBT's read-back agent has the lr PBT gave it."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
-    train_population(_cfgs("algo.episodes=12"), NAMES, whole, search=SEARCH)
+    train_population(_cfgs("algo.episodes=12"), NAMES, whole, search=search)
     lineage = record_module.read_table(whole / record_module.LINEAGE_TABLE)
-    assert lineage["update"] == [2, 4, 6, 8, 10]  # none after the last update: the budget is reached
-    assert len(set(lineage["parent"])) >= 1 and all(
-        a != p for a, p in zip(lineage["agent"], lineage["parent"], strict=True)
-    )
+    if search is SEARCH:
+        assert lineage["update"] == [2, 4, 6, 8, 10]  # none after the last update: the budget is reached
+    else:  # every agent meets rung 2 at update 2; restarted ones meet it again 2 updates later
+        assert lineage["update"][0] == 2 and set(lineage["parent"]) == {FRESH}
+    assert all(a != p for a, p in zip(lineage["agent"], lineage["parent"], strict=True))
 
     book = record_module.PopulationRecord.after_update
 
@@ -130,14 +135,15 @@ def test_a_killed_and_resumed_pbt_run_takes_the_steps_of_an_uninterrupted_one(tm
 
     monkeypatch.setattr(record_module.PopulationRecord, "after_update", signal_at_five)
     with pytest.raises(TrainingStopped):
-        train_population(_cfgs("algo.episodes=12"), NAMES, cut, search=SEARCH)
+        train_population(_cfgs("algo.episodes=12"), NAMES, cut, search=search)
     monkeypatch.setattr(record_module.PopulationRecord, "after_update", book)
-    assert load_checkpoint(cut / "checkpoints" / "last.pt")["episodes_done"] == [6, 6, 6]
-    assert record_module.read_table(cut / record_module.LINEAGE_TABLE)["update"] == [2, 4, 6]
-    train_population(_cfgs("algo.episodes=12"), NAMES, cut, search=SEARCH)
+    stopped_at = load_checkpoint(cut / "checkpoints" / "last.pt")["episodes_done"]
+    assert 5 <= stopped_at[0] < 12 and len(set(stopped_at)) == 1
+    train_population(_cfgs("algo.episodes=12"), NAMES, cut, search=search)
     assert record_module.read_table(cut / record_module.LINEAGE_TABLE) == lineage
     _same(_by_agent(cut), _by_agent(whole))
-
+    if search is not SEARCH:
+        return
     last, parent = lineage["agent"][-1], lineage["parent"][-1]
     state = load_checkpoint(whole / "checkpoints" / "last.pt")
     # Replaced at update 10, the agent is scored by its parent's 10 episodes, then its own 2.
@@ -146,6 +152,37 @@ def test_a_killed_and_resumed_pbt_run_takes_the_steps_of_an_uninterrupted_one(tm
     assert not torch.equal(recent[last][10:12], recent[parent][10:12])
     agent = record_module.agent_checkpoint(state, last, whole)
     assert agent["config"]["algo"]["lr"] == lineage["algo.lr"][-1]
+
+
+def test_halving_stops_the_worst_of_everything_a_rung_has_seen_and_restarts_their_slots():
+    """4 agents of seeds 0..3, one rung at age 10, fraction 0.5. At update 10, scores 1, 2, 3, 4:
+    agents 0 and 1 stop; their slots restart with seeds 4 and 5 (fresh weights: build_policies',
+    fresh Adam), values drawn from the sweep's, age 0 (lineage parent -1). At update 20 they reach
+    the rung: scored 2.5 and 0.5 among the rung's six scores 1, 2, 3, 4, 2.5, 0.5, the worst three
+    are those below 2.5: only agent 1 (0.5) stops again."""
+    from hydra import compose, initialize_config_dir
+
+    from drone_torchrl.modules.factory import build_policies
+    from drone_torchrl.training.population import Population
+
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfgs = [compose("config", overrides=["backend=fast", f"seed={s}", "algo.lr=0.001"]) for s in range(4)]
+    population = Population(cfgs)
+    state = population.state
+    with torch.no_grad():
+        state["exp_avg"].fill_(1.0)
+        state["adam_steps"].fill_(10.0)
+    values = {"seed": [0, 1, 2, 3], "algo.lr": [1e-3, 2e-3, 3e-3, 4e-3], "algo.gamma": [0.99] * 4}
+    halving = HalvingSettings(rungs=(10,), fraction=0.5).make(cfgs[0], values, None)
+    assert halving.step(state, [1.0, 2.0, 3.0, 4.0], [True] * 4, 10) == [(0, FRESH), (1, FRESH)]
+    assert state["seed"].tolist() == [4, 5, 2, 3]
+    assert torch.equal(state["params"][:2].detach(), build_policies(cfgs[0], [4, 5]).flat.detach())
+    assert state["exp_avg"][:2].abs().sum() == 0 and state["adam_steps"].tolist() == [0, 0, 10, 10]
+    assert halving.lineage["parent"] == [FRESH, FRESH] and halving.lineage["seed"] == [4, 5]
+    assert all(lr in values["algo.lr"] for lr in halving.lineage["algo.lr"])
+    assert not halving.due(15) and halving.due(20) and halving.updates_until_due(15) == 5
+    assert halving.step(state, [2.5, 0.5, 3.5, 4.5], [True] * 4, 20) == [(1, FRESH)]
+    assert halving.rung_scores[10] == [1.0, 2.0, 3.0, 4.0, 2.5, 0.5]
 
 
 def test_a_pbt_run_is_not_continued_with_other_settings(tmp_path):

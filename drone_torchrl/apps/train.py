@@ -133,13 +133,21 @@ def register_plugins() -> None:
     from hydra_plugins.drone_torchrl_launcher import slurm_launcher
     from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
     from hydra_plugins.drone_torchrl_launcher.population_launcher import (
+        HalvingLauncher,
         PBTLauncher,
         PBTReplayLauncher,
         PopulationLauncher,
     )
     from hydra_plugins.drone_torchrl_launcher.population_sweeper import PopulationSweeper
 
-    plugins = [FusedLauncher, PopulationLauncher, PBTLauncher, PBTReplayLauncher, PopulationSweeper]
+    plugins = [
+        FusedLauncher,
+        PopulationLauncher,
+        PBTLauncher,
+        PBTReplayLauncher,
+        HalvingLauncher,
+        PopulationSweeper,
+    ]
     if hasattr(slurm_launcher, "SlurmLauncher"):  # with the submitit extra
         plugins += [slurm_launcher.SlurmLauncher, slurm_launcher.SlurmPopulationLauncher]
     for plugin in plugins:

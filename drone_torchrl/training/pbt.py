@@ -39,7 +39,10 @@ MAX_QUANTILE = 0.5
 # Updates until a replay's next change, when it has none left.
 NEVER = 2**62
 # The lineage's columns besides the searched keys.
-LINEAGE_COLUMNS = ("update", "agent", "parent")
+# (parent -1: a new configuration from fresh weights, successive halving's; seed: the agent's then.)
+LINEAGE_COLUMNS = ("update", "agent", "parent", "seed")
+# The parent of an agent restarted from fresh weights.
+FRESH = -1
 
 
 @dataclass(frozen=True)
@@ -89,17 +92,7 @@ class PBTSettings:
         resample = params.get("resample_probability", cls.resample_probability)
         if isinstance(resample, bool) or not isinstance(resample, int | float) or not 0 <= resample <= 1:
             raise refuse("resample_probability", resample, "a number in [0, 1]")
-        keys = params.get("keys", cls.keys)
-        if isinstance(keys, str | bytes) or not isinstance(keys, Sequence) or not keys:
-            raise refuse("keys", keys, f"a non-empty list of {sorted(STATE_KEYS)}")
-        for key in keys:
-            if key not in STATE_KEYS:
-                why = "a per-agent key" if key in per_agent_keys() else "not a per-agent key"
-                raise refuse(
-                    "keys",
-                    list(keys),
-                    f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} PBT cannot search)",
-                )
+        keys = _searched_keys(params.get("keys", cls.keys), "PBT")
         return cls(
             int(every), float(quantile), tuple(float(f) for f in perturb), float(resample), tuple(keys)
         )
@@ -108,8 +101,19 @@ class PBTSettings:
         """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
         return {"launcher": "pbt", **asdict(self)}
 
-    def make(self, cfg: Any, values: Mapping[str, list], lineage: Mapping[str, list] | None) -> PBT:
-        return PBT.for_population(self, cfg, values, lineage)
+    def check(self, cfg: Any) -> None:
+        """A step inside the budget (``algo.episodes / algo.episodes_per_update`` updates)."""
+        updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
+        if self.every_updates >= updates:
+            raise ConfigError.of(
+                "hydra.launcher.every_updates",
+                self.every_updates,
+                f"fewer than the budget's {updates} updates",
+            )
+
+    def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PBT:
+        """The search of a population (``saved``: what its checkpoint holds of it, or None)."""
+        return PBT.for_population(self, cfg, values, None if saved is None else saved["lineage"])
 
 
 class Search:
@@ -149,8 +153,9 @@ class Search:
             entry = state[STATE_KEYS[key]]
             with torch.no_grad():
                 entry[rows] = torch.as_tensor(np.asarray(new[key], dtype=np.float64), dtype=entry.dtype)
+        seeds = state["seed"][rows].tolist()
         for i, (agent, parent) in enumerate(zip(agents, parents, strict=True)):
-            for column, value in zip(LINEAGE_COLUMNS, (update, agent, parent), strict=True):
+            for column, value in zip(LINEAGE_COLUMNS, (update, agent, parent, seeds[i]), strict=True):
                 self.lineage[column].append(int(value))
             for key in self.keys:
                 value = float(new[key][i])
@@ -159,6 +164,21 @@ class Search:
 
     def checkpoint(self) -> dict[str, Any]:
         return {"settings": self.settings.record(), "lineage": self.lineage}
+
+
+def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
+    """``hydra.launcher.keys`` checked: per-agent keys that a search can change."""
+    if isinstance(keys, str | bytes) or not isinstance(keys, Sequence) or not keys:
+        raise ConfigError.of("hydra.launcher.keys", keys, f"a non-empty list of {sorted(STATE_KEYS)}")
+    for key in keys:
+        if key not in STATE_KEYS:
+            why = "a per-agent key" if key in per_agent_keys() else "not a per-agent key"
+            raise ConfigError.of(
+                "hydra.launcher.keys",
+                list(keys),
+                f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} {search} cannot search)",
+            )
+    return tuple(keys)
 
 
 class PBT(Search):
@@ -293,8 +313,11 @@ class ReplaySettings:
     def record(self) -> dict[str, Any]:
         return {"launcher": "pbt_replay", "run": self.run, "agent": self.agent}
 
-    def make(self, cfg: Any, values: Mapping[str, list], lineage: Mapping[str, list] | None) -> Replay:
-        return Replay(self, len(values["seed"]), lineage)
+    def check(self, cfg: Any) -> None:
+        """Any budget: the last values hold past the PBT run's."""
+
+    def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Replay:
+        return Replay(self, len(values["seed"]), None if saved is None else saved["lineage"])
 
 
 def schedule(
@@ -307,8 +330,12 @@ def schedule(
     current = agent
     for row in range(len(lineage["agent"]) - 1, -1, -1):
         if lineage["agent"][row] == current:
-            steps.append((int(lineage["update"][row]), {key: float(lineage[key][row]) for key in keys}))
+            values = {key: float(lineage[key][row]) for key in keys}
             current = int(lineage["parent"][row])
+            if current == FRESH:  # the line began here from fresh weights: its updates count from here
+                start = int(lineage["update"][row])
+                return [(0, values), *((update - start, later) for update, later in steps[::-1])]
+            steps.append((int(lineage["update"][row]), values))
     steps.append((0, {key: float(initial[key][current]) for key in keys}))
     return steps[::-1]
 
@@ -353,5 +380,139 @@ class Replay(Search):
         )
 
 
-# What a population run's search is asked for: PBT, or a replay of one PBT agent's values.
-SearchSettings = PBTSettings | ReplaySettings
+@dataclass(frozen=True)
+class HalvingSettings:
+    """``hydra/launcher=halving``'s settings: successive halving inside a population run.
+
+    Attributes:
+        rungs: the updates after which the worst agents stop (increasing, below the budget).
+        fraction: the fraction of the agents stopped at each rung; their slots go to new
+            configurations (values drawn from the sweep's, fresh weights, a new seed).
+        keys: the keys a new configuration draws.
+    """
+
+    rungs: tuple[int, ...] = (500, 1500)
+    fraction: float = 0.5
+    keys: tuple[str, ...] = ("algo.lr", "algo.gamma")
+
+    @classmethod
+    def of(cls, params: Mapping[str, Any]) -> HalvingSettings:
+        """The settings from the launcher's parameters; :class:`ConfigError` (one line) for the
+        first that is not allowed."""
+        rungs = params.get("rungs", cls.rungs)
+        if (
+            isinstance(rungs, str | bytes)
+            or not isinstance(rungs, Sequence)
+            or not rungs
+            or not all(isinstance(r, int) and not isinstance(r, bool) and r >= 1 for r in rungs)
+            or list(rungs) != sorted(set(rungs))
+        ):
+            raise ConfigError.of(
+                "hydra.launcher.rungs", rungs, "increasing update counts >= 1, e.g. [500,1500]"
+            )
+        fraction = params.get("fraction", cls.fraction)
+        if isinstance(fraction, bool) or not isinstance(fraction, int | float) or not 0 < fraction < 1:
+            raise ConfigError.of("hydra.launcher.fraction", fraction, "a number in (0, 1)")
+        keys = _searched_keys(params.get("keys", cls.keys), "successive halving")
+        return cls(tuple(int(r) for r in rungs), float(fraction), keys)
+
+    def check(self, cfg: Any) -> None:
+        """Every rung inside the budget (``algo.episodes / algo.episodes_per_update`` updates)."""
+        updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
+        if self.rungs[-1] >= updates:
+            raise ConfigError.of(
+                "hydra.launcher.rungs",
+                list(self.rungs),
+                f"rungs below the budget of {updates} updates (algo.episodes={cfg.algo.episodes} / "
+                f"algo.episodes_per_update={cfg.algo.episodes_per_update})",
+            )
+
+    def record(self) -> dict[str, Any]:
+        return {"launcher": "halving", **asdict(self)}
+
+    def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Halving:
+        return Halving(self, cfg, values, saved)
+
+
+class Halving(Search):
+    """Successive halving inside a population run, asynchronous as ASHA's (Li et al. 2020).
+
+    The rungs are ages: updates since an agent's configuration started. When an agent reaches a
+    rung, its running-mean return joins the scores every agent had at that rung so far; if it is
+    among the worst ``fraction`` of them, the agent stops and its slot starts a new configuration:
+    each key drawn from the sweep's values, fresh weights from a new seed (after the sweep's and
+    the earlier new ones), a fresh optimizer, age 0. Agents past the last rung train to the end. A
+    slot's episodes after a restart are its new configuration's; each restart is a lineage row with
+    parent -1 (:data:`FRESH`). The scores at each rung are in the checkpoint; draws keyed as PBT's.
+    """
+
+    def __init__(
+        self, settings: HalvingSettings, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None
+    ) -> None:
+        super().__init__(settings.keys, values, None if saved is None else saved["lineage"])
+        self.settings = settings
+        self.cfg = cfg
+        self.space = {key: sorted(set(values[key])) for key in settings.keys}
+        self.seed = int(values["seed"][0])
+        self.next_seed = max([*values["seed"], *self.lineage["seed"]]) + 1
+        self.started = [0] * len(values["seed"])  # the update each agent's configuration started at
+        for update, agent in zip(self.lineage["update"], self.lineage["agent"], strict=True):
+            self.started[agent] = update
+        rungs = {} if saved is None else saved["rung_scores"]
+        self.rung_scores: dict[int, list[float]] = {r: list(rungs.get(r, [])) for r in settings.rungs}
+
+    def checkpoint(self) -> dict[str, Any]:
+        return {**super().checkpoint(), "rung_scores": self.rung_scores}
+
+    def updates_until_due(self, updates_done: int) -> int:
+        later = [s + r - updates_done for s in set(self.started) for r in self.settings.rungs]
+        return min((d for d in later if d > 0), default=NEVER)
+
+    def due(self, updates_done: int) -> bool:
+        return any(updates_done - s in self.rung_scores for s in set(self.started))
+
+    def step(
+        self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
+    ) -> list[tuple[int, int]]:
+        stopped = []
+        for rung, history in self.rung_scores.items():
+            arrived = [i for i in range(len(scores)) if alive[i] and update - self.started[i] == rung]
+            score = {i: -math.inf if math.isnan(scores[i]) else float(scores[i]) for i in arrived}
+            history.extend(score[i] for i in arrived)
+            if not arrived:
+                continue
+            # The worst `fraction` of every score this rung has seen: below the k-th smallest.
+            k = int(len(history) * self.settings.fraction)
+            threshold = sorted(history)[k] if k else -math.inf
+            stopped += [i for i in arrived if score[i] < threshold]
+        if stopped:
+            self._restart(state, update, sorted(stopped))
+        return [(agent, FRESH) for agent in sorted(stopped)]
+
+    def _restart(self, state: Any, update: int, agents: list[int]) -> None:
+        from drone_torchrl.modules.factory import build_policies
+        from drone_torchrl.training.optim import adam_state
+
+        count = len(agents)
+        rng = np.random.default_rng([self.seed, update])
+        new = {
+            key: np.array(self.space[key])[rng.integers(len(self.space[key]), size=count)]
+            for key in self.keys
+        }
+        seeds = list(range(self.next_seed, self.next_seed + count))
+        self.next_seed += count
+        rows = torch.as_tensor(agents)
+        fresh = build_policies(self.cfg, seeds).flat.detach()
+        zero = adam_state(fresh, torch.zeros(count), torch.zeros(count))
+        with torch.no_grad():
+            state["params"][rows] = fresh.to(state["params"])
+            for key in ("exp_avg", "exp_avg_sq", "adam_steps"):
+                state[key][rows] = zero[key].to(state[key])
+            state["seed"][rows] = torch.as_tensor(seeds, dtype=state["seed"].dtype)
+        self._set(state, update, agents, [FRESH] * count, new)
+        for agent in agents:
+            self.started[agent] = update
+
+
+# What a population run's search is asked for: PBT, successive halving, or a replay of one agent's values.
+SearchSettings = PBTSettings | HalvingSettings | ReplaySettings

@@ -452,7 +452,7 @@ def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str,
     lineage = (state.get("search") or {}).get("lineage") or {"agent": []}
     for row, replaced in enumerate(lineage["agent"]):  # PBT's later values of the searched keys
         if replaced == agent:
-            for key in STATE_KEYS:
+            for key in (*STATE_KEYS, "seed"):
                 if key in lineage:
                     OmegaConf.update(cfg, key, lineage[key][row])
     cfg.device = "cpu"

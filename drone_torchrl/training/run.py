@@ -121,10 +121,11 @@ class AgentBook:
     def finished(self) -> bool:
         return self.episodes_done >= self.budget
 
-    def take_window(self, other: AgentBook) -> None:
-        """Take ``other``'s running-mean windows (an agent that took its weights is scored by them)."""
-        self.recent_returns = deque(other.recent_returns, maxlen=self.window)
-        self.recent_lengths = deque(other.recent_lengths, maxlen=self.window)
+    def take_window(self, other: AgentBook | None) -> None:
+        """Take ``other``'s running-mean windows (an agent that took its weights is scored by them);
+        None: empty them (an agent restarted from fresh weights)."""
+        self.recent_returns = deque([] if other is None else other.recent_returns, maxlen=self.window)
+        self.recent_lengths = deque([] if other is None else other.recent_lengths, maxlen=self.window)
 
     @property
     def failed(self) -> bool:

@@ -42,7 +42,7 @@ from drone_torchrl.schema import KEPT
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
-from drone_torchrl.training.pbt import SearchSettings
+from drone_torchrl.training.pbt import FRESH, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
@@ -128,7 +128,7 @@ class Trainer:
                 )
                 self.runs = list(self.book.agents)
                 if search is not None:
-                    saved = None if checkpoint is None else checkpoint["search"]["lineage"]
+                    saved = None if checkpoint is None else checkpoint["search"]
                     self.book.search = search.make(cfg, self.book.values, saved)
                     if checkpoint is None:
                         self.book.search.start(self.learner.state)
@@ -228,7 +228,7 @@ class Trainer:
             if search.due(done):
                 scores = [run.running_return for run in runs]
                 for agent, parent in search.step(learner.state, scores, [not r.failed for r in runs], done):
-                    runs[agent].take_window(runs[parent])
+                    runs[agent].take_window(None if parent == FRESH else runs[parent])
         if due := [i for i in active if runs[i].eval_due]:
             self.evaluate(due)
         if due := [i for i in active if runs[i].checkpoint_due]:
@@ -409,6 +409,8 @@ def train_population(
             "with backend=fast, or hydra/launcher=fused"
         )
     check_memory(cfg, agents=len(agents))
+    if search is not None:
+        search.check(cfg)
     run_lock.hold(run_dir)
     try:
         checkpoint = _population_checkpoint(agents, names, run_dir, search)

@@ -182,3 +182,17 @@ class PBTReplayLauncher(PopulationLauncher):
             self.search = ReplaySettings.of(params)
         except ConfigError as err:
             sys.exit(f"drone-train: error: {err}")
+
+
+class HalvingLauncher(PopulationLauncher):
+    """``hydra/launcher=halving``: each population run trained with successive halving
+    (:class:`drone_torchrl.training.pbt.Halving`)."""
+
+    def __init__(self, **params: Any) -> None:
+        from drone_torchrl.training.pbt import HalvingSettings
+
+        super().__init__()
+        try:
+            self.search = HalvingSettings.of(params)
+        except ConfigError as err:
+            sys.exit(f"drone-train: error: {err}")

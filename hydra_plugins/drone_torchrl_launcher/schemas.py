@@ -39,6 +39,16 @@ class PBTLauncherConf:
 
 
 @dataclass
+class HalvingLauncherConf:
+    """``hydra/launcher=halving``: population runs with successive halving."""
+
+    _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.HalvingLauncher"
+    rungs: Any = field(default_factory=lambda: [500, 1500])
+    fraction: Any = 0.5
+    keys: Any = field(default_factory=lambda: ["algo.lr", "algo.gamma"])
+
+
+@dataclass
 class PBTReplayLauncherConf:
     """``hydra/launcher=pbt_replay``: a PBT agent's values replayed on a new population."""
 
@@ -63,6 +73,9 @@ ConfigStore.instance().store(
 )
 ConfigStore.instance().store(
     group="hydra/launcher", name="pbt_replay", node=PBTReplayLauncherConf, provider="drone_torchrl"
+)
+ConfigStore.instance().store(
+    group="hydra/launcher", name="halving", node=HalvingLauncherConf, provider="drone_torchrl"
 )
 ConfigStore.instance().store(
     group="hydra/sweeper", name="population", node=PopulationSweeperConf, provider="drone_torchrl"
