@@ -153,46 +153,40 @@ class PopulationLauncher(FusedLauncher):
         return hydra_record, tables
 
 
-class PBTLauncher(PopulationLauncher):
-    """``hydra/launcher=pbt``: each population run trained with population-based training
-    (:mod:`drone_torchrl.training.pbt`)."""
+class _SearchLauncher(PopulationLauncher):
+    """A population launcher whose runs search (:mod:`drone_torchrl.training.pbt`): its settings
+    class (by name: the plug-in module imports no training code until it runs) reads
+    ``hydra.launcher.*``."""
+
+    settings_class = ""
 
     def __init__(self, **params: Any) -> None:
-        from drone_torchrl.training.pbt import PBTSettings
+        from drone_torchrl.training import pbt
 
         super().__init__()
         try:
-            self.search = PBTSettings.of(params)
+            self.search = getattr(pbt, self.settings_class).of(params)
         except (
             ConfigError
         ) as err:  # Hydra makes the launcher before any job starts: one line, nothing written
             sys.exit(f"drone-train: error: {err}")
 
 
-class PBTReplayLauncher(PopulationLauncher):
+class PBTLauncher(_SearchLauncher):
+    """``hydra/launcher=pbt``: each population run trained with population-based training."""
+
+    settings_class = "PBTSettings"
+
+
+class PBTReplayLauncher(_SearchLauncher):
     """``hydra/launcher=pbt_replay``: each agent trained with the values one agent of a PBT run had,
-    at the updates it had them (``hydra.launcher.run``, ``hydra.launcher.agent``; see
-    :class:`drone_torchrl.training.pbt.Replay`): a PBT result retrained on fresh seeds."""
+    at the updates it had them (``hydra.launcher.run``, ``hydra.launcher.agent``): a PBT result
+    retrained on fresh seeds."""
 
-    def __init__(self, **params: Any) -> None:
-        from drone_torchrl.training.pbt import ReplaySettings
-
-        super().__init__()
-        try:
-            self.search = ReplaySettings.of(params)
-        except ConfigError as err:
-            sys.exit(f"drone-train: error: {err}")
+    settings_class = "ReplaySettings"
 
 
-class HalvingLauncher(PopulationLauncher):
-    """``hydra/launcher=halving``: each population run trained with successive halving
-    (:class:`drone_torchrl.training.pbt.Halving`)."""
+class HalvingLauncher(_SearchLauncher):
+    """``hydra/launcher=halving``: each population run trained with successive halving."""
 
-    def __init__(self, **params: Any) -> None:
-        from drone_torchrl.training.pbt import HalvingSettings
-
-        super().__init__()
-        try:
-            self.search = HalvingSettings.of(params)
-        except ConfigError as err:
-            sys.exit(f"drone-train: error: {err}")
+    settings_class = "HalvingSettings"
