@@ -263,20 +263,19 @@ class PBT(Search):
 
 @dataclass(frozen=True)
 class ReplaySettings:
-    """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT run had.
+    """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT (or
+    successive halving) run had.
 
     Attributes:
         run: the PBT population run (its folder).
         agent: the agent whose line of ancestors' values is replayed (default: the one with the
             best final return).
         schedule: ``(update, ((key, value), ...))`` from update 0: that agent's values (:func:`schedule`).
-        every_updates: the PBT run's steps' interval.
     """
 
     run: str
     agent: int
     schedule: tuple[tuple[int, tuple[tuple[str, float], ...]], ...]
-    every_updates: int
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> ReplaySettings:
@@ -291,9 +290,11 @@ class ReplaySettings:
         except CheckpointError as err:
             raise ConfigError.of("hydra.launcher.run", run, f"a PBT population run ({err})") from None
         search = None if state is None else state.get("search")
-        if not search or search["settings"].get("launcher") != "pbt":
+        if not search or search["settings"].get("launcher") not in ("pbt", "halving"):
             raise ConfigError.of(
-                "hydra.launcher.run", run, "the folder of a PBT population run (hydra/launcher=pbt)"
+                "hydra.launcher.run",
+                run,
+                "the folder of a PBT or halving run (hydra/launcher=pbt or halving)",
             )
         count = len(state["episodes_done"])
         agent = params.get("agent")
@@ -308,7 +309,7 @@ class ReplaySettings:
         initial = {key: state["agents"][key] for key in keys}
         steps = schedule(search["lineage"], initial, agent, keys)
         frozen = tuple((update, tuple(values.items())) for update, values in steps)
-        return cls(str(Path(str(run)).resolve()), agent, frozen, int(search["settings"]["every_updates"]))
+        return cls(str(Path(str(run)).resolve()), agent, frozen)
 
     def record(self) -> dict[str, Any]:
         return {"launcher": "pbt_replay", "run": self.run, "agent": self.agent}
