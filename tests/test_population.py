@@ -203,9 +203,13 @@ def test_stacked_policies_start_from_each_seeds_own_weights(overrides, monkeypat
     cfg = _cfg(*overrides)
     seeds = [0, 1, 7, 12345, 2**31 - 1]
     alone = StackedThreeNet([build_policy(cfg, seed) for seed in seeds], cfg.model.activation)
+    torch.manual_seed(12345)  # whatever torch's generator held before
     stacked = build_policies(cfg, seeds)
     assert stacked.names == alone.names and stacked.flat.dtype == alone.flat.dtype
     assert torch.equal(stacked.flat, alone.flat)
+    after_stacked = torch.get_rng_state()
+    build_policy(cfg, seeds[-1])
+    assert torch.equal(after_stacked, torch.get_rng_state())  # the reference collector draws from it next
     addcmul = torch.addcmul
     monkeypatch.setattr(torch, "addcmul", lambda *a: addcmul(*a) + 1e-3)
     assert torch.equal(build_policies(cfg, seeds).flat, alone.flat)

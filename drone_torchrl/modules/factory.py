@@ -69,7 +69,8 @@ def build_policies(cfg: DictConfig, seeds: Sequence[int]) -> StackedThreeNet:
     initialisation, from a generator of its own (CPU generators of one seed give one stream): per
     layer, the weight ``U(-b, b)`` with ``nn.init.kaiming_uniform_(a=sqrt(5))``'s bound, then the bias
     ``U(-1/sqrt(fan_in), 1/sqrt(fan_in))``, in ``named_parameters()`` order (the order the layers are
-    made). At tens of thousands of agents a module each takes minutes; this takes seconds.
+    made). At tens of thousands of agents a module each takes minutes; this takes seconds. torch's
+    global generator is left as ``build_policy(cfg, seeds[-1])`` leaves it.
     """
     model = cfg.model
     with torch.device("meta"):  # the architecture only: a meta net draws nothing
@@ -85,6 +86,11 @@ def build_policies(cfg: DictConfig, seeds: Sequence[int]) -> StackedThreeNet:
         draws.append((start, start + param.numel(), bound))
         start += param.numel()
     flat = _uniform_rows(seeds, draws, start)
+    if len(seeds):
+        # torch's own generator as build_policy(cfg, seeds[-1]) leaves it: seeded, then one draw
+        # per weight (the reference backend's collector samples from it next).
+        torch.manual_seed(int(seeds[-1]))
+        torch.empty(start).uniform_()
     stacked = StackedThreeNet([template], model.activation, flat=flat)
     if model.get("init_std") is not None:
         init_exploration(
