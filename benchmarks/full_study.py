@@ -1,11 +1,11 @@
 """Time the paper's whole study end to end: both grids x 4 seeds x 6000 episodes, then the report.
 
-    python benchmarks/full_study.py                       # the README's commands, timed
+    python benchmarks/full_study.py                       # docs/paper.md's commands, timed
     python benchmarks/full_study.py --out /tmp/study algo.episodes=600   # a shorter rehearsal
     python benchmarks/full_study.py --fresh --cold --peer eval.every_episodes=0 eval.video=false
     python benchmarks/full_study.py --bin /path/to/other/venv/bin --cold ...   # another installation
 
-It runs exactly what the README's "Reproduce the paper" section tells a user to type: the two
+It runs exactly what the "Reproduce the paper" page (docs/paper.md) tells a user to type: the two
 sweeps side by side (one process each, one per core; each trains its 16 jobs as one fused batch),
 then ``drone-report`` on both folders. Extra arguments are Hydra overrides passed to both sweeps.
 Prints each phase's wall-clock; the sweeps' logs are written next to their folders.

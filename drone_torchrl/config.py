@@ -496,9 +496,12 @@ def _preset_bases(preset: str) -> list[str]:
 
 
 def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
-    """``experiment=paper_code: algo.optimizer, ... do not apply to algo=ppo; dropped``: one line per
-    plug-in group whose chosen plug-in does not take keys the chosen preset sets for another plug-in
-    of the group (``choices``: each config group's option, as Hydra's ``runtime.choices``)."""
+    """The notes on a preset's keys that the chosen plug-in does not take (they are dropped).
+
+    One line per plug-in group whose chosen plug-in does not take keys the chosen preset sets for
+    another plug-in of the group, e.g. ``experiment=paper_code: algo.optimizer, ... do not apply to
+    algo=ppo; dropped`` (``choices``: each config group's option, as Hydra's ``runtime.choices``).
+    """
     preset = choices.get(PRESET_GROUP)
     if not isinstance(preset, str):
         return []
@@ -770,7 +773,10 @@ def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> 
 
 
 class AgentValueError(ConfigError):
-    """A per-agent value that is not allowed (:func:`check_agent_values`); ``agent``: whose."""
+    """A per-agent value that is not allowed (:func:`check_agent_values`).
+
+    ``agent`` is the index of the agent whose value it is.
+    """
 
     def __init__(self, agent: int, message: str) -> None:
         super().__init__(message)

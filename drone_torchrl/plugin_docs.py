@@ -1,8 +1,8 @@
-"""The README's table of built-in plug-ins, made from the registries and the option files.
+"""The plug-ins page's table of built-in plug-ins, made from the registries and the option files.
 
-``python -m drone_torchrl.plugin_docs`` prints it; ``tests/test_plugin_docs.py`` fails while the
-README's copy (between the :data:`BEGIN` and :data:`END` lines) differs, so adding an algorithm or a
-logger cannot leave the README's list behind.
+``python -m drone_torchrl.plugin_docs`` prints it; ``tests/test_plugin_docs.py`` fails while the copy
+in docs/plugins.md (between the :data:`BEGIN` and :data:`END` lines) differs, so adding an algorithm
+or a logger cannot leave the documented list behind.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def plugin_table() -> str:
 
 
 def readme_block() -> str:
-    """The README's generated block, markers included."""
+    """The plug-ins page's generated block, markers included."""
     return f"{BEGIN}\n{plugin_table()}\n{END}"
 
 

@@ -132,7 +132,7 @@ def test_onnx_matches_the_actor_and_the_pt2(tmp_path, onnxruntime, overrides, di
 
 
 def test_the_onnx_file_runs_with_onnxruntime_alone(tmp_path, onnxruntime):
-    """The README's snippet in a fresh interpreter: neither torch nor drone_torchrl is imported."""
+    """The ONNX snippet of docs/training.md (Export) in a fresh interpreter: neither torch nor drone_torchrl is imported."""
     checkpoint = _checkpoint(tmp_path / "last.pt", "experiment=bounded")
     out = export.export_policy(checkpoint, tmp_path / "policy.onnx").path
     observations = export.check_observations()

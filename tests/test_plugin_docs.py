@@ -1,4 +1,4 @@
-"""The README lists the plug-ins the registries hold: adding an algorithm or a logger cannot leave it behind."""
+"""The plug-ins page (docs/plugins.md) lists the plug-ins the registries hold: adding an algorithm or a logger cannot leave it behind."""
 
 from __future__ import annotations
 
@@ -8,14 +8,17 @@ from drone_torchrl import algorithms, loggers
 from drone_torchrl.config import group_options, options_by_plugin
 from drone_torchrl.plugin_docs import BEGIN, END, plugin_table, readme_block
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+PLUGINS_PAGE = ROOT / "docs" / "plugins.md"
 
 
 def test_the_readme_lists_exactly_the_registered_plugins():
-    text = README.read_text()
+    text = PLUGINS_PAGE.read_text()
     assert text.count(BEGIN) == 1 and text.count(END) == 1
     block = text[text.index(BEGIN) : text.index(END) + len(END)]
-    assert block == readme_block(), "the README's plug-in table is stale: python -m drone_torchrl.plugin_docs"
+    assert block == readme_block(), (
+        "docs/plugins.md's plug-in table is stale: python -m drone_torchrl.plugin_docs"
+    )
 
 
 def test_the_table_has_a_row_per_registered_plugin_and_every_option():
@@ -35,7 +38,7 @@ def test_the_algorithms_benchmark_takes_every_algorithm_option(monkeypatch):
 
     from drone_torchrl import config
 
-    path = README.parent / "benchmarks" / "algorithms.py"
+    path = ROOT / "benchmarks" / "algorithms.py"
     spec = importlib.util.spec_from_file_location("algorithms_benchmark", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -1,7 +1,7 @@
 """TensorBoard, served and read: what a user sees in the dashboard after a sweep.
 
 Starts ``tensorboard --logdir <sweep>`` on 127.0.0.1 and reads its HTTP data API (the one the
-dashboard itself calls): every run listed, the README's scalars with points, the HPARAMS plugin
+dashboard itself calls): every run listed, the scalars of docs/training.md's TensorBoard table with points, the HPARAMS plugin
 with the sweep's hyper-parameters and final metrics, and the evaluation video as images.
 """
 
@@ -18,7 +18,7 @@ import pytest
 
 from drone_torchrl.training.jobs import sweep_jobs
 
-# The README's TensorBoard table (one point per episode, update or evaluation).
+# The TensorBoard table of docs/training.md (one point per episode, update or evaluation).
 SCALARS = (
     "episode/return",
     "episode/length",

@@ -10,7 +10,8 @@ drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` ste
 computes advantages and value targets with the critic; ``algo.epochs`` passes of minibatches drawn
 without replacement from a replay buffer train the three-net actor and the critic with one Adam.
 With ``backend=fast`` the same batches are flown by the C++ engine
-(:class:`~drone_torchrl.training.segments.FusedSegments`), collected 8-19x faster (README: Benchmarks).
+(:class:`~drone_torchrl.training.segments.FusedSegments`), collected 8-19x faster (docs/beyond.md: "A
+learned policy at the optimum").
 
 It runs in the same training loop as REINFORCE (:class:`~drone_torchrl.training.trainer.Trainer`,
 behind the update contract of :mod:`drone_torchrl.training.update`): each finished episode goes to the same :class:`~.run.RunRecord`

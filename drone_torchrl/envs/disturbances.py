@@ -25,6 +25,7 @@ With lag or delay the motors start at the nominal hover command (``f_0 = 0.5``, 
 in flight too): a drone resting on the floor is held up by it, and with motors that start from 0
 a lagged or delayed drone would sink through the floor tolerance before any command of the
 policy's took effect.
+
 - **observation noise**: Gaussian noise of standard deviation ``noise_position`` (m) on the
   observed ``x`` and ``z`` and ``noise_angle`` (rad) on the observed ``alpha``, a fresh draw each
   step; velocities are observed exactly (as from a filtered estimate). Reward and termination use

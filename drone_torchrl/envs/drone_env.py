@@ -250,14 +250,16 @@ class DroneEnv(EnvBase):
 
     ``"observation"``, float32 (``dtype``), shape ``[*batch, 6]``, SI units, angles in radians:
 
-    | index | name        | meaning                                         | termination bound (default) |
-    |-------|-------------|-------------------------------------------------|-------------------|
-    | 0     | ``x``         | horizontal position (m, right positive)        | ``[-x_limit, x_limit]`` (``[-2, 2]``) |
-    | 1     | ``x_dot``     | horizontal velocity (m/s)                      | none              |
-    | 2     | ``z``         | altitude (m, up positive)                      | ``[z_min - floor_tolerance, z_max]`` (``[-0.05, 4]``) |
-    | 3     | ``z_dot``     | vertical velocity (m/s)                        | none              |
-    | 4     | ``alpha``     | roll from the vertical (rad, counter-clockwise)| ``[-alpha_limit, alpha_limit]`` (``[-pi/3, pi/3]``) |
-    | 5     | ``alpha_dot`` | roll rate (rad/s)                              | none              |
+    =====  =============  ===============================================  =====================================================
+    index  name           meaning                                          termination bound (default)
+    =====  =============  ===============================================  =====================================================
+    0      ``x``          horizontal position (m, right positive)          ``[-x_limit, x_limit]`` (``[-2, 2]``)
+    1      ``x_dot``      horizontal velocity (m/s)                        none
+    2      ``z``          altitude (m, up positive)                        ``[z_min - floor_tolerance, z_max]`` (``[-0.05, 4]``)
+    3      ``z_dot``      vertical velocity (m/s)                          none
+    4      ``alpha``      roll from the vertical (rad, counter-clockwise)  ``[-alpha_limit, alpha_limit]`` (``[-pi/3, pi/3]``)
+    5      ``alpha_dot``  roll rate (rad/s)                                none
+    =====  =============  ===============================================  =====================================================
 
     Also in every reset and step output: ``"termination_cause"`` (int64, ``[*batch, 1]``, a
     :class:`TerminationCause` code) and ``"step_count"`` (int64, ``[*batch, 1]``).

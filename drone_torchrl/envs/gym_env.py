@@ -103,6 +103,7 @@ class DroneGymEnv(gym.Env):
         self._seeded = False
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """A new episode: ``(observation, info)``, as Gymnasium's API; ``seed`` seeds its start state."""
         super().reset(seed=seed)
         if seed is not None:
             self.env.set_seed(int(seed))
@@ -118,6 +119,10 @@ class DroneGymEnv(gym.Env):
         return self._out.get("observation").numpy().copy()
 
     def step(self, action):
+        """One step of the drone: ``(observation, reward, terminated, truncated, info)`` as Gymnasium's API.
+
+        ``info`` holds the ``termination_cause`` (its name) and the ``step_count``.
+        """
         action = torch.as_tensor(np.asarray(action, dtype=self._np_dtype))
         if action.shape != (ACTION_DIM,):
             raise ValueError(f"action has shape {tuple(action.shape)}; expected ({ACTION_DIM},)")
@@ -135,10 +140,12 @@ class DroneGymEnv(gym.Env):
         return {"termination_cause": cause.name, "step_count": int(self._out.get("step_count"))}
 
     def render(self):
+        """Draw the current state in the env's render mode (an RGB array for ``"rgb_array"``); None without one."""
         if self.render_mode is None:
             gym.logger.warn("render() called with render_mode=None; pass render_mode='rgb_array' or 'human'")
             return None
         return self.env.render()
 
     def close(self) -> None:
+        """Close the underlying :class:`~drone_torchrl.envs.drone_env.DroneEnv`."""
         self.env.close(raise_if_closed=False)
