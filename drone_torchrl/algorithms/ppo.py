@@ -316,13 +316,15 @@ class PPO(OnPolicy):
             keys.advantage,
             keys.value_target,
         )
-        self.held: dict[str, torch.Tensor] = {}
+        self.held: list[torch.Tensor] = []
         self.order = torch.empty(0, dtype=torch.long)
 
     def hold_frames(self, batch: TensorDictBase) -> int:
         if not self.fused_loss:
             return super().hold_frames(batch)
-        self.held = {key: batch.get(key) for key in self.frame_keys}
+        observation, action, *rest = (batch.get(key) for key in self.frame_keys)
+        with torch.no_grad():
+            self.held = [observation, *pre_image(self.head, action), *rest]
         self.order = torch.empty(0, dtype=torch.long)
         return batch.numel()
 
@@ -330,16 +332,15 @@ class PPO(OnPolicy):
         if not self.fused_loss:
             return super().minibatch(size)
         if len(self.order) < size:  # an epoch's permutation is spent: the next epoch's
-            self.order = torch.randperm(len(self.held["observation"]), device=self.cfg.device)
+            self.order = torch.randperm(len(self.held[0]), device=self.cfg.device)
         index, self.order = self.order[:size], self.order[size:]
-        return [self.held[key][index] for key in self.frame_keys]
+        return [held[index] for held in self.held]
 
     def losses(self, minibatch: Any) -> Mapping[str, torch.Tensor]:
         if not self.fused_loss:
             return super().losses(minibatch)
         return clip_ppo_losses(
             self.policy_net,
-            self.head,
             self.critic.module,
             minibatch,
             self.loss.clip_epsilon,
@@ -365,26 +366,45 @@ class PPO(OnPolicy):
         )
 
 
+# log(sqrt(2 pi)), the Normal log-density's constant, as torch.distributions.Normal writes it.
+LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def pre_image(head: tuple[type, dict], action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
+    the log-determinant of that squashing summed over the action: both depend on the action only, so
+    a batch's are computed once, and each minibatch's log-probability is then the Normal's (what
+    ``TransformedDistribution.log_prob`` computes, without its objects)."""
+    dist_class, kwargs = head
+    dist = dist_class(torch.zeros_like(action), torch.ones_like(action), **kwargs)
+    log_det = torch.zeros_like(action)
+    for transform in reversed(getattr(dist, "transforms", ())):  # none for a Normal head
+        normal = transform.inv(action)
+        log_det = log_det + transform.log_abs_det_jacobian(normal, action)
+        action = normal
+    return action, log_det.sum(-1)
+
+
 def clip_ppo_losses(
     policy: nn.Module,
-    head: tuple[type, dict],
     value: nn.Module,
     minibatch: list[torch.Tensor],
     clip_epsilon: torch.Tensor,
     critic_coeff: torch.Tensor,
 ) -> dict[str, torch.Tensor]:
-    """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes on a minibatch of
-    ``[observation, action, its log-probability when flown, advantage, value target]``, in plain
-    torch: ``policy`` maps observations to the ``head``'s (class, kwargs) ``(loc, scale)``, ``value``
-    to state values. Its losses and ``clip_fraction``/``kl_approx``, the same values to float
-    rounding (tests/test_ppo.py)."""
-    observation, action, flown_log_prob, advantage, value_target = minibatch
+    """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
+    on a minibatch of ``[observation, pre-image and log-determinant of the action (pre_image),
+    its log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
+    Normal's ``(loc, scale)``, ``value`` to state values. Its losses, ``clip_fraction`` and
+    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py)."""
+    observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
     # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.
     advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(
         torch.finfo(torch.float).resolution
     )
-    dist_class, dist_kwargs = head
-    log_prob = dist_class(*policy(observation), **dist_kwargs).log_prob(action)
+    loc, scale = policy(observation)
+    log_density = -((normal - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
+    log_prob = log_density.sum(-1) - log_det
     log_weight = (log_prob - flown_log_prob).unsqueeze(-1)
     clipped = log_weight.clamp((-clip_epsilon).log1p(), clip_epsilon.log1p())
     gain = torch.minimum(log_weight.exp() * advantage, clipped.exp() * advantage)
