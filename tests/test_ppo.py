@@ -229,3 +229,74 @@ def test_a_checkpoint_without_its_algorithms_entries_is_refused_in_one_line(tmp_
     with pytest.raises(ConfigError, match=r"lacks critic \(algo.name=ppo writes it\)") as error:
         train(_cfg(f"resume={run}", "algo.episodes=16", *QUIET))
     assert "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize("preset", [["experiment=hover_optimal"], ["algo=ppo"]])  # TanhNormal, Normal
+def test_ppo_losses_equal_torchrls_default_clip_ppo_loss_on_one_batch(preset):
+    """algo=ppo's losses are pure speed changes: on one batch, TorchRL's ClipPPOLoss as documented
+    (functional, entropy bonus) gives the same losses and gradients, to float rounding, as the
+    ClipPPOLoss algo=ppo builds (no entropy term when entropy_coeff is 0, the nets' own parameters)
+    and as backend=fast's plain-torch clip_ppo_losses. The batch's log-probabilities are shifted by
+    up to +-0.5 so that about half of the ratios leave [1 - 0.2, 1 + 0.2]: a loss clipped at
+    another epsilon differs."""
+    from types import SimpleNamespace
+
+    from torchrl.objectives import ClipPPOLoss
+
+    from drone_torchrl.algorithms.ppo import PPO, clip_ppo_losses, pre_image
+    from drone_torchrl.modules.factory import build_critic, build_policy, observation_dim
+    from drone_torchrl.modules.policy import distribution_head
+
+    cfg = _cfg(*preset)
+    algo = cfg.algo
+    assert algo.entropy_coeff == 0
+    net = build_policy(cfg, 0)
+    actor = build_actor(cfg, net, return_log_prob=True)
+    critic = build_critic(cfg)
+    built = PPO.make_loss(SimpleNamespace(cfg=cfg), actor, critic)
+    reference = ClipPPOLoss(
+        actor,
+        critic,
+        clip_epsilon=algo.clip_epsilon,
+        entropy_coeff=algo.entropy_coeff,
+        critic_coeff=algo.critic_coeff,
+        normalize_advantage=True,
+    )
+    frames = 512
+    generator = torch.Generator().manual_seed(0)
+    observations = torch.randn(frames, observation_dim(cfg), generator=generator)
+    batch = TensorDict({"observation": observations}, [frames])
+    with torch.no_grad():
+        actor(batch)
+    keys = reference.tensor_keys
+    log_prob = keys.sample_log_prob
+    batch[log_prob] = batch[log_prob] + torch.rand(batch[log_prob].shape, generator=generator) - 0.5
+    batch["advantage"] = torch.randn(frames, 1, generator=generator)
+    batch["value_target"] = torch.randn(frames, 1, generator=generator)
+    params = [*actor.parameters(), *critic.parameters()]
+    head = distribution_head(cfg.model.distribution, cfg.env.max_thrust)
+    eps, coeff = torch.tensor(algo.clip_epsilon), torch.tensor(algo.critic_coeff)
+    plain = [
+        batch["observation"],
+        *pre_image(head, batch[keys.action]),
+        *(batch[key] for key in (log_prob, keys.advantage, keys.value_target)),
+    ]
+
+    def losses_and_gradients(loss):
+        out = loss(batch.clone())
+        total = sum(value for key, value in out.items() if key.startswith("loss_"))
+        return out, torch.autograd.grad(total, params)
+
+    def fused(_):
+        return TensorDict(clip_ppo_losses(net, critic.module, plain, eps, coeff))
+
+    want, want_grads = losses_and_gradients(reference)
+    assert 0.3 < want["clip_fraction"] < 0.7, want["clip_fraction"]
+    assert want["loss_entropy"] == 0 and "loss_entropy" not in built.out_keys
+    for got, got_grads in map(losses_and_gradients, (built, fused)):
+        for key in ("loss_objective", "loss_critic", "clip_fraction", "kl_approx"):
+            torch.testing.assert_close(got[key], want[key], rtol=1e-5, atol=1e-7)
+        assert sorted(k for k, _ in got.items() if k.startswith("loss_")) == ["loss_critic", "loss_objective"]
+        assert len(got_grads) == len(params) and any(g.abs().max() > 0 for g in got_grads)
+        for g, w in zip(got_grads, want_grads, strict=True):
+            torch.testing.assert_close(g, w, rtol=1e-5, atol=1e-7)

@@ -32,6 +32,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import nn
+from torch.nn import functional
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
 from torchrl.objectives import ClipPPOLoss, LossModule
@@ -44,6 +45,7 @@ from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
+from drone_torchrl.modules.policy import distribution_head
 from drone_torchrl.schema import (
     ADAM_EPS,
     ANNEAL_LR,
@@ -148,11 +150,26 @@ class OnPolicy:
         standardises each minibatch itself); A2C standardises the batch's."""
         return advantage
 
+    def hold_frames(self, batch: TensorDictBase) -> int:
+        """Keep the batch's frames (``[frames]``) for this update's minibatches; how many there are."""
+        self.buffer.empty()  # a batch cut at the budget is smaller than the storage
+        with quiet("torchrl"):  # its storage announces its first allocation at INFO level
+            self.buffer.extend(batch)
+        return len(self.buffer)
+
+    def minibatch(self, size: int) -> Any:
+        """``size`` of the held frames, drawn without replacement within an epoch."""
+        return self.buffer.sample(size)
+
+    def losses(self, minibatch: Any) -> Mapping[str, torch.Tensor]:
+        """The loss's outputs on one minibatch."""
+        return self.loss(minibatch)
+
     def clip_gradients(self) -> torch.Tensor:
         """Clip the loss's gradients before the optimizer's step (``algo.max_grad_norm`` on all of
         its parameters together); the norm returned is booked as ``train/grad_norm``."""
         limit = self.cfg.algo.max_grad_norm
-        return nn.utils.clip_grad_norm_(self.loss.parameters(), math.inf if limit is None else limit)
+        return nn.utils.clip_grad_norm_(self.params, math.inf if limit is None else limit)
 
     def __init__(self, jobs) -> None:
         (job,) = jobs
@@ -166,9 +183,14 @@ class OnPolicy:
         self.advantage = GAE(
             gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False
         )
-        self.optimizer = torch.optim.Adam(self.loss.parameters(), lr=algo.lr, eps=algo.adam_eps)
-        frames = algo.num_envs * algo.steps_per_batch
         self.fused = cfg.backend == FAST
+        # Listed once: the loss module's parameters() walks its modules on each call.
+        self.params = list(self.loss.parameters())
+        # backend=fast: Adam's fused kernel, a fifth of the per-parameter loop's time on these nets.
+        self.optimizer = torch.optim.Adam(
+            self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None
+        )
+        frames = algo.num_envs * algo.steps_per_batch
         if self.fused:
             self.collector = FusedSegments(cfg, self.actor_module, net)
             self._generator = self.collector.generator
@@ -234,16 +256,14 @@ class OnPolicy:
         with torch.no_grad():
             self.advantage(batch)
             batch.set("advantage", self.scale_advantage(batch.get("advantage")))
-        self.buffer.empty()  # a batch cut at the budget is smaller than the storage
-        with quiet("torchrl"):  # its storage announces its first allocation at INFO level
-            self.buffer.extend(batch.reshape(-1))
+        frames = self.hold_frames(batch.reshape(-1))
         # A batch cut at the budget may hold fewer frames than one minibatch: then one of all of them.
-        size = min(algo.minibatch_size, len(self.buffer))
-        steps = len(self.buffer) // size
+        size = min(algo.minibatch_size, frames)
+        steps = frames // size
         sums: dict[str, torch.Tensor] = {}
         for epoch in range(algo.epochs):
             for _ in range(steps):
-                losses = self.loss(self.buffer.sample(size))
+                losses = self.losses(self.minibatch(size))
                 total = sum(losses[k] for k in self.loss_keys)
                 self.optimizer.zero_grad()
                 total.backward()
@@ -278,9 +298,55 @@ class OnPolicy:
 
 
 class PPO(OnPolicy):
-    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages)."""
+    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages). With ``backend=fast``
+    the minibatches are plain tensors and their losses :func:`clip_ppo_losses`' (the same values
+    and gradients, without TensorDict's and TorchRL's machinery around a small network)."""
 
     diagnostics = ("entropy", "kl_approx", "clip_fraction")
+
+    def __init__(self, jobs) -> None:
+        super().__init__(jobs)
+        self.fused_loss = self.fused and not self.cfg.algo.entropy_coeff
+        self.policy_net = self.actor_module.module[0].module  # observation -> (loc, scale)
+        self.head = distribution_head(self.cfg.model.distribution, self.cfg.env.max_thrust)
+        keys = self.loss.tensor_keys
+        self.frame_keys = (
+            "observation",
+            keys.action,
+            keys.sample_log_prob,
+            keys.advantage,
+            keys.value_target,
+        )
+        self.held: list[torch.Tensor] = []
+        self.order = torch.empty(0, dtype=torch.long)
+
+    def hold_frames(self, batch: TensorDictBase) -> int:
+        if not self.fused_loss:
+            return super().hold_frames(batch)
+        observation, action, *rest = (batch.get(key) for key in self.frame_keys)
+        with torch.no_grad():
+            self.held = [observation, *pre_image(self.head, action), *rest]
+        self.order = torch.empty(0, dtype=torch.long)
+        return batch.numel()
+
+    def minibatch(self, size: int) -> Any:
+        if not self.fused_loss:
+            return super().minibatch(size)
+        if len(self.order) < size:  # an epoch's permutation is spent: the next epoch's
+            self.order = torch.randperm(len(self.held[0]), device=self.cfg.device)
+        index, self.order = self.order[:size], self.order[size:]
+        return [held[index] for held in self.held]
+
+    def losses(self, minibatch: Any) -> Mapping[str, torch.Tensor]:
+        if not self.fused_loss:
+            return super().losses(minibatch)
+        return clip_ppo_losses(
+            self.policy_net,
+            self.critic.module,
+            minibatch,
+            self.loss.clip_epsilon,
+            self.loss.critic_coeff,
+        )
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         algo = self.cfg.algo
@@ -288,10 +354,68 @@ class PPO(OnPolicy):
             actor,
             critic,
             clip_epsilon=algo.clip_epsilon,
+            # Without a bonus the entropy (a sampled estimate for TanhNormal) only costs time: a
+            # fifth of each minibatch's forward and backward. train/entropy is then not booked.
+            entropy_bonus=algo.entropy_coeff > 0,
             entropy_coeff=algo.entropy_coeff,
             critic_coeff=algo.critic_coeff,
             normalize_advantage=True,
+            # The actor's and critic's own parameters, not functional copies of them: the same
+            # loss and gradients (tests/test_ppo.py), without TensorDict's parameter swapping on
+            # each call; checkpoints and Adam's state keep their order.
+            functional=False,
         )
+
+
+# log(sqrt(2 pi)), the Normal log-density's constant, as torch.distributions.Normal writes it.
+LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def pre_image(head: tuple[type, dict], action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
+    the log-determinant of that squashing summed over the action: both depend on the action only, so
+    a batch's are computed once, and each minibatch's log-probability is then the Normal's (what
+    ``TransformedDistribution.log_prob`` computes, without its objects)."""
+    dist_class, kwargs = head
+    dist = dist_class(torch.zeros_like(action), torch.ones_like(action), **kwargs)
+    log_det = torch.zeros_like(action)
+    for transform in reversed(getattr(dist, "transforms", ())):  # none for a Normal head
+        normal = transform.inv(action)
+        log_det = log_det + transform.log_abs_det_jacobian(normal, action)
+        action = normal
+    return action, log_det.sum(-1)
+
+
+def clip_ppo_losses(
+    policy: nn.Module,
+    value: nn.Module,
+    minibatch: list[torch.Tensor],
+    clip_epsilon: torch.Tensor,
+    critic_coeff: torch.Tensor,
+) -> dict[str, torch.Tensor]:
+    """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
+    on a minibatch of ``[observation, pre-image and log-determinant of the action (pre_image),
+    its log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
+    Normal's ``(loc, scale)``, ``value`` to state values. Its losses, ``clip_fraction`` and
+    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py)."""
+    observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
+    # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.
+    advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(
+        torch.finfo(torch.float).resolution
+    )
+    loc, scale = policy(observation)
+    log_density = -((normal - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
+    log_prob = log_density.sum(-1) - log_det
+    log_weight = (log_prob - flown_log_prob).unsqueeze(-1)
+    clipped = log_weight.clamp((-clip_epsilon).log1p(), clip_epsilon.log1p())
+    gain = torch.minimum(log_weight.exp() * advantage, clipped.exp() * advantage)
+    loss_critic = functional.smooth_l1_loss(value_target, value(observation), reduction="none")
+    return {
+        "loss_objective": -gain.mean(),
+        "loss_critic": critic_coeff * loss_critic.mean(),
+        "clip_fraction": (clipped != log_weight).to(log_weight.dtype).mean(),
+        "kl_approx": (flown_log_prob - log_prob).detach().mean(),
+    }
 
 
 def validate_on_policy(cfg: Mapping[str, Any]) -> None:
