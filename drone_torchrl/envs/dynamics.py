@@ -30,7 +30,7 @@ ZONE_X_LIMIT = 0.8
 ZONE_Z_MIN, ZONE_Z_MAX = 2.2, 3.2
 ZONE_Z_CENTRE = 0.5 * (ZONE_Z_MIN + ZONE_Z_MAX)
 # The arena's largest extent (|x_limit|, |z_min|, |z_max|, m): a kilometre. float32 positions there
-# still resolve 0.1 mm, far below what a drone moves in one 20 ms step; at 1e300 m they are inf.
+# still resolve 0.1 mm, far below what a drone moves in one step (dt = 0.02 s); at 1e300 m they are inf.
 MAX_ARENA = 1e3
 
 # How a state exactly on a bound counts. "inclusive" (the paper's text and the default): inside,

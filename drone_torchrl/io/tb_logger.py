@@ -53,7 +53,7 @@ def tf_record(data: bytes) -> bytes:
 
 
 # Scalar events are encoded here rather than through the protobuf classes: building a ``Value``
-# message per scalar and an ``Event`` per step costs ~2 us a scalar in Python, which at a thousand
+# message per scalar and an ``Event`` per step in Python, at a thousand
 # runs logging a dozen scalars an update was as much as the update itself. The wire format of the
 # two messages involved is small and fixed (tensorboard's event.proto and summary.proto):
 #   Event   { double wall_time = 1; int64 step = 2; Summary summary = 5; }

@@ -7,7 +7,7 @@
 //
 // Why hand-written: per update the engine evaluates a 6-32-32-4 network up to 300 times in a
 // sequential loop for each agent and then differentiates it over the stored steps. PyTorch runs
-// each of those as dozens of dispatcher calls on tiny tensors (5-20 us each on a 2-core machine),
+// each of those as dozens of dispatcher calls on tiny tensors, each costing more than its arithmetic,
 // and torch.compile needs half a minute of compilation per process to fuse them. Here one call
 // does a whole update's rollout and gradient in SIMD registers.
 //

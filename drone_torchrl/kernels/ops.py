@@ -206,7 +206,7 @@ def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.T
 
 
 # ---------------------------------------------------------------------------------------- the ops
-# Defined with torch.library's low-level API: a call costs ~20 us, a third of what the
+# Defined with torch.library's low-level API: a call costs a third of what the
 # torch.library.custom_op decorator's checks cost, and each op is called once or twice per update.
 
 _LIB = torch.library.Library("drone_torchrl", "DEF")

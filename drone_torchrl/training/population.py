@@ -72,7 +72,7 @@ class Population:
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """The agent's checkpoint entries: its actor (``make_actor``'s layout) and optimizer (``torch.optim.Adam``'s)."""
         if self._actor_layout is None:
-            # Building a ProbabilisticActor per checkpoint costs ~2 ms an agent; its state-dict
+            # Building a ProbabilisticActor per agent per checkpoint is slow at thousands of agents; its state-dict
             # layout is the same for every agent of the group, so learn it once.
             net = self.policy.agent_net(0)
             names = {id(p): name for name, p in net.named_parameters()}

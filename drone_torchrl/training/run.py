@@ -231,7 +231,7 @@ class RunRecord(AgentBook):
     ) -> None:
         super().__init__(cfg, checkpoint)
         # The resolved config as plain data, for checkpoints and TensorBoard's hparams (made once:
-        # OmegaConf.to_container takes ~1 ms, and the config does not change during a run).
+        # OmegaConf.to_container is slow to repeat, and the config does not change during a run).
         self.config = OmegaConf.to_container(cfg, resolve=True)
         self.run_dir = Path(run_dir)
         self.backend = backend
@@ -378,7 +378,7 @@ class Progress:
         )
 
     def update(self, episodes: int, active: Sequence[RunRecord]) -> None:
-        if self.bar.disable:  # the running means below cost ~2 us a run per update
+        if self.bar.disable:  # the running means below are per run per update: skipped when unseen
             return
         self.bar.update(episodes)
         window = active[0].window
