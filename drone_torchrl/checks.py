@@ -26,7 +26,7 @@ class ConfigError(ValueError):
 
 
 def as_override(value: Any) -> str:
-    """``value`` as the user would have typed it in an override, shortened when too long to read in a message."""
+    """``value`` as the user would have typed it in an override, shortened if too long for a message."""
     # How the user would have typed it: null and true/false, as Hydra writes them; a value too long to
     # read in a message (a pasted file, an int of thousands of digits) shortened to its start.
     if value is None or isinstance(value, bool):

@@ -220,7 +220,8 @@ def load_policy(
 
 
 def deterministic_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, Path]:
-    """The deterministic policy of a checkpoint file or run folder (:class:`~.checks.ConfigError` if unusable)."""
+    """The deterministic policy of a checkpoint file or run folder (:class:`~.checks.ConfigError` if
+    unusable)."""
     policy, _, path = load_policy(checkpoint)
     return policy, path
 

@@ -16,8 +16,8 @@ a relaxation: the most zone steps it allows bounds every policy. ``docs/optimum.
   sequence, without assuming the drone stays once in: the upper bound.
 - :func:`optimum` puts them together (:class:`Optimum`); :func:`env_optimum` does it for the
   starts an env resets to (``"floor"``: all share ``z = z_dot = 0``; ``"air"``: a box of starts).
-- :func:`fly_plan` replays a vertical plan on the full 2D dynamics (:func:`dynamics.step <drone_torchrl.envs.dynamics.step>`) and then
-  hands over to the PD controller, which levels the drone and holds it in the zone.
+- :func:`fly_plan` replays a vertical plan on the full 2D dynamics (:func:`dynamics.step <.dynamics.step>`)
+  and then hands over to the PD controller, which levels the drone and holds it in the zone.
 """
 
 from __future__ import annotations
@@ -324,8 +324,8 @@ def optimum(
 
 def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]:
     """The vertical start states of ``reset_mode``: the floor start (at ``params.z_min``), or the
-    corners of the air box (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE <drone_torchrl.envs.dynamics.RESET_NOISE>` of the zone's
-    centre and of rest)."""
+    corners of the air box (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE <.dynamics.RESET_NOISE>`
+    of the zone's centre and of rest)."""
     params = DroneParams() if params is None else params
     if reset_mode == "floor":
         return [(params.z_min, FLOOR_START[1])]
@@ -372,8 +372,8 @@ def fly_plan(
     gains: PDGains | None = None,
 ) -> tuple[Episodes, VerticalPlan]:
     """Replay an optimal vertical plan from the floor starts ``start`` (``[B, 6]``) through
-    :func:`dynamics.step <drone_torchrl.envs.dynamics.step>`; returns the episodes (:func:`~drone_torchrl.episodes.episode_stats`
-    reads them) and the plan.
+    :func:`dynamics.step <.dynamics.step>`; returns the episodes
+    (:func:`~drone_torchrl.episodes.episode_stats` reads them) and the plan.
 
     Up to the top of the climb (:attr:`VerticalPlan.apex_step`) both motors get ``c_t / (2 cos
     alpha)``: with equal thrusts and ``alpha_dot = 0`` the roll angle stays at its start value, so

@@ -64,7 +64,7 @@ class Registry(Generic[T]):
         return tuple(sorted(self._items))
 
     def get(self, name: object) -> T:
-        """The plug-in called ``name``; a one-line :class:`~.checks.ConfigError` naming the choices otherwise."""
+        """The plug-in called ``name``; else a one-line :class:`~.checks.ConfigError` naming the choices."""
         self._discover()
         if not isinstance(name, str) or name not in self._items:
             raise ConfigError.of(

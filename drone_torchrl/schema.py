@@ -117,8 +117,8 @@ class Rule:
         return self.added is not _ORIGINAL
 
     def check(self, key: str, value: Any, cfg: Mapping[str, Any]) -> None:
-        """Raise :class:`~.checks.ConfigError` (one line) if ``value`` of ``key`` breaks the rule; ``cfg`` (the
-        resolved config as nested dicts) gives the bounds that are other keys."""
+        """Raise :class:`~.checks.ConfigError` (one line) if ``value`` of ``key`` breaks the rule; ``cfg``
+        (the resolved config as nested dicts) gives the bounds that are other keys."""
         kind = self.kind
         if kind == "free" or (self.optional and value is None):
             return

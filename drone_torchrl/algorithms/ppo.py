@@ -6,9 +6,10 @@ epochs, checkpoint entries, the budget); :class:`PPO` gives it ``ClipPPOLoss``, 
 
 As in TorchRL's ``sota-implementations/ppo``: a :class:`torchrl.collectors.Collector` flies
 ``algo.num_envs`` drones of one batched :class:`~drone_torchrl.envs.drone_env.DroneEnv` (auto-reset, so each
-drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` steps; :class:`~torchrl.objectives.value.GAE`
-computes advantages and value targets with the critic; ``algo.epochs`` passes of minibatches drawn
-without replacement from a replay buffer train the three-net actor and the critic with one Adam.
+drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` steps;
+:class:`~torchrl.objectives.value.GAE` computes advantages and value targets with the critic; ``algo.epochs``
+passes of minibatches drawn without replacement from a replay buffer train the three-net actor and the critic
+with one Adam.
 With ``backend=fast`` the same batches are flown by the C++ engine
 (:class:`~drone_torchrl.training.segments.FusedSegments`), collected 8-19x faster (docs/beyond.md: "A
 learned policy at the optimum").
@@ -76,7 +77,7 @@ ADVANTAGE_EPS = 1e-8
 
 @contextlib.contextmanager
 def quiet(logger_name: str) -> Iterator[None]:
-    """Raise logger ``logger_name`` to WARNING inside the block (its INFO messages dropped), then restore its level."""
+    """Raise logger ``logger_name`` to WARNING inside the block (no INFO messages), then restore it."""
     logger = logging.getLogger(logger_name)
     level = logger.level
     logger.setLevel(logging.WARNING)

@@ -66,7 +66,8 @@ class Reinforce:
             if checkpoint is not None:
                 self.population.load(i, checkpoint)
                 self.collector.set_rng_state(i, checkpoint["rng"], checkpoint["episodes_done"])
-        #: ``update(state, k, active)``: ``k`` updates of the active agents (:mod:`drone_torchrl.training.update`).
+        #: ``update(state, k, active)``: ``k`` updates of the active agents
+        #: (:mod:`drone_torchrl.training.update`).
         self.update = ReinforceUpdate(cfg, self.population, self.collector)
         #: The population's stacked state (:attr:`~drone_torchrl.training.population.Population.state`).
         self.state = self.population.state

@@ -88,7 +88,8 @@ class DroneParams:
 
     @property
     def strict(self) -> bool:
-        """Whether a state exactly on a bound is outside (outside the domain it terminates, outside the zone it is not in it)."""
+        """Whether a state exactly on a bound is outside (of the domain, it terminates; of the zone, it is not
+        in it)."""
         return self.bounds == "strict"
 
     @property

@@ -29,7 +29,8 @@ from drone_torchrl.envs.heuristic import PDGains, pd_action
 
 @dataclass(frozen=True)
 class PIDGains:
-    """:class:`~.heuristic.PDGains` plus integral gains (``(m/s^2)/(m s)`` on ``z``, ``rad/(m s)`` on ``x``)."""
+    """:class:`~.heuristic.PDGains` plus integral gains (``(m/s^2)/(m s)`` on ``z``, ``rad/(m s)`` on
+    ``x``)."""
 
     pd: PDGains = field(default_factory=PDGains)
     ki_x: float | torch.Tensor = 0.0

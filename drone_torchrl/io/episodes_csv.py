@@ -81,8 +81,8 @@ def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]
 
 
 class EpisodeCSV:
-    """One row per episode in ``path``, buffered: rows are appended when :meth:`~EpisodeCSV.flush` is called, and
-    no file stays open in between (a population of runs holds no file descriptor per run).
+    """One row per episode in ``path``, buffered: rows are appended when :meth:`~EpisodeCSV.flush` is
+    called, and no file stays open in between (a population of runs holds no file descriptor per run).
 
     ``keep_episodes``: on resume, keep the rows of episodes ``< keep_episodes`` read from ``source``
     (default: ``path`` itself; a fork copies its parent run's rows) and drop the rest, which the

@@ -31,7 +31,8 @@ def _linear_names(net: ThreeNetPolicy) -> list[str]:
 
 
 class StackedThreeNet(nn.Module):
-    """N :class:`~.policy.ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., D]`` observations.
+    """N :class:`~.policy.ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., D]``
+    observations.
 
     ``nets`` give the architecture and each agent's initial weights (copied; the nets themselves
     are not used afterwards). ``flat``: every agent's initial weights ``[N, P]``, laid out as

@@ -282,7 +282,7 @@ def _pd_return(env_json: str) -> float:
 
 
 def pd_reference(env_kwargs: dict[str, Any]) -> float:
-    """Mean return of the PD hover controller (:func:`~drone_torchrl.evaluation.evaluate_pd`, 100 episodes, seed 0).
+    """Mean return of the PD hover controller (:func:`~.evaluation.evaluate_pd`, 100 episodes, seed 0).
 
     Computed once per distinct env setting in this process (cached).
     """

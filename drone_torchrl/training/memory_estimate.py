@@ -3,8 +3,8 @@ config that cannot fit (:func:`~.memory_estimate.check`).
 
 A batch too large to allocate failed after start-up with an allocator traceback, and a huge
 ``model.hidden_sizes`` got the process killed with no message at all. :func:`estimate` derives the
-bytes from the shapes the code allocates; :func:`~.memory_estimate.check` compares them with what this machine has
-free (``MemAvailable``, or the GPU's free memory on ``device=cuda``) and refuses the config naming
+bytes from the shapes the code allocates; :func:`~.memory_estimate.check` compares them with what this
+machine has free (``MemAvailable``, or the GPU's free memory on ``device=cuda``) and refuses the config naming
 what to lower in its largest part. ``agents`` is the number of runs one process trains together (a
 population): every part but the video is per agent.
 
@@ -167,7 +167,7 @@ def mlp_parameters(widths: Sequence[int]) -> int:
 
 
 def observation_size(cfg: Mapping[str, Any]) -> int:
-    """The entries of one observation: the state, plus the last commands where the disturbance observes them."""
+    """The entries of one observation: the state, plus the last commands if the disturbance observes them."""
     return STATE_DIM + ACTION_DIM * int(cfg["env"]["disturbance"]["observed_actions"])
 
 

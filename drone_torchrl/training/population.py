@@ -3,8 +3,8 @@
 Everything an update reads and writes is one ``TensorDict`` with batch size ``[N]``
 (:attr:`Population.state`), so any slice of it is one agent's part:
 
-- ``"params"``: every agent's policy weights, ``[N, P]`` (the :class:`~drone_torchrl.modules.stacked.StackedThreeNet`'s
-  flat parameter: the same tensor);
+- ``"params"``: every agent's policy weights, ``[N, P]`` (the
+  :class:`~drone_torchrl.modules.stacked.StackedThreeNet`'s flat parameter: the same tensor);
 - Adam's ``"exp_avg"``, ``"exp_avg_sq"`` ``[N, P]`` and ``"adam_steps"`` ``[N]``, and the per-agent
   hyper-parameters ``"lr"``, ``"weight_decay"``, ``"gamma"``;
 - ``"seed"`` and ``"counter"`` (updates done): the key of the counter-based random numbers
