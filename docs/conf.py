@@ -41,3 +41,29 @@ napoleon_numpy_docstring = False
 
 html_theme = "furo"
 html_title = "drone_torchrl"
+
+# Every cross-reference must resolve (`-n`), except to the packages below: the build is offline, so
+# their intersphinx inventories are never loaded and their names can only stay plain text.
+nitpicky = True
+_ANY_ROLE = r"py:.*"
+nitpick_ignore_regex = [
+    # PyTorch (also as the `nn` alias a docstring may use).
+    (_ANY_ROLE, r"(torch|nn)(\..*)?"),
+    # NumPy, under its name and its `np` alias.
+    (_ANY_ROLE, r"(numpy|np)(\..*)?"),
+    # OmegaConf and Hydra (Hydra's own `hydra.*`; the package's plug-ins under `hydra_plugins` stay checked).
+    (_ANY_ROLE, r"(omegaconf|hydra)(\..*)?"),
+    # TensorDict and TorchRL.
+    (_ANY_ROLE, r"(tensordict|torchrl)(\..*)?"),
+    # Gymnasium, PyArrow, MLflow: the optional extras' packages.
+    (_ANY_ROLE, r"(gymnasium|pyarrow|mlflow)(\..*)?"),
+    # The standard library: Python's own inventory is not loaded either.
+    (_ANY_ROLE, r"(typing|collections\.abc|pathlib|os|enum|ctypes|argparse|csv)(\..*)?"),
+    # The same classes unqualified: autodoc leaves a class's ``__init__`` annotations as written
+    # (``from __future__ import annotations``), so they name the imports above by their short names.
+    ("py:class", r"Path|DictConfig|ProbabilisticActor|ProbabilisticTensorDictSequential"),
+    # Private bases and nested classes that autodoc names (show-inheritance, annotations) but that are
+    # not documented, being private.
+    ("py:class", r"hydra_plugins\.drone_torchrl_launcher\.population_launcher\._SearchLauncher"),
+    ("py:class", r"drone_torchrl\.objectives\.reinforce\.ReinforceLoss\._AcceptedKeys"),
+]

@@ -1,4 +1,4 @@
-"""The one-line checks of config values: :class:`ConfigError` and the number, choice and list checks
+"""The one-line checks of config values: :class:`~.checks.ConfigError` and the number, choice and list checks
 the schema's rules (:mod:`drone_torchrl.schema`) and the cross-field checks use."""
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ class ConfigError(ValueError):
 
 
 def as_override(value: Any) -> str:
+    """``value`` as the user would have typed it in an override, shortened if too long for a message."""
     # How the user would have typed it: null and true/false, as Hydra writes them; a value too long to
     # read in a message (a pasted file, an int of thousands of digits) shortened to its start.
     if value is None or isinstance(value, bool):

@@ -43,7 +43,7 @@ SWEEP_RECORD = "multirun.yaml"
 
 def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
     """Hydra's own command-line flags, parsed with its parser; an unknown or incomplete flag is a
-    one-line :class:`ConfigError` instead of argparse's usage text."""
+    one-line :class:`~.checks.ConfigError` instead of argparse's usage text."""
     parser = hydra_args_parser()
     parser.prog = prog
     parser.exit_on_error = False
@@ -112,6 +112,7 @@ def check_composed(overrides: list[str]) -> None:
 
 
 def check_multirun(overrides: dict[str, str]) -> None:
+    """Refuse what cannot be swept (``-m``): ``resume=``, with a one-line :class:`~.checks.ConfigError`."""
     if "resume" in overrides and overrides["resume"] not in ("null", ""):
         raise ConfigError(
             f"resume={overrides['resume']} continues one run and cannot be swept (-m); to continue a sweep, "

@@ -28,8 +28,8 @@ DEVICE_KINDS = ("cpu", "cuda")
 # The DroneEnv arguments a config holds under env.*: the env schema's keys but the TorchRL
 # collector's worker count (drone_torchrl.schema.EnvConf is the one list of them).
 ENV_ARGS = tuple(f.name for f in dataclasses.fields(schema.EnvConf) if f.name not in schema.ENV_NON_ARGS)
-# Those added after the first runs, with the value the runs saved before them behaved as: a saved
-# config (a checkpoint's, a run folder's config.yaml) without one of them gets it (env_kwargs).
+#: The env arguments added after the first runs, with the value the runs saved before them behaved
+#: as; a saved config (a checkpoint's, a run folder's config.yaml) without one of them gets it (env_kwargs).
 ENV_ADDED = {
     "disturbance": None,  # a section (env.disturbance.*): a config from before it flew the nominal drone
     **{
@@ -178,6 +178,7 @@ def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
 
 
 def group_names() -> list[str]:
+    """The config groups of ``conf/`` (its folders, Hydra's own left out), sorted."""
     return sorted(p.name for p in Path(config_dir()).iterdir() if p.is_dir() and p.name != _HYDRA_PREFIX)
 
 
@@ -294,7 +295,7 @@ def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
 def check_values(resolved: Mapping, name: str = "config") -> None:
     """Every rule of the schema (:mod:`drone_torchrl.schema`) on the resolved config (as nested
     dicts, keys checked by :func:`check_keys`): the first value a rule refuses raises
-    :class:`ConfigError`."""
+    :class:`~.checks.ConfigError`."""
     plugins = tuple(
         (group, resolved[group][rule.plugin_key]) for group, rule in schema.plugin_groups(name).items()
     )
@@ -640,7 +641,7 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
 
 def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
     """The checkpoint that config value ``key`` (``resume``, ``checkpoint``) names: a checkpoint file or
-    a run folder. Raises :class:`ConfigError` naming the key for anything that is not a readable one.
+    a run folder. Raises :class:`~.checks.ConfigError` naming the key for anything that is not a readable one.
     A population run's checkpoint comes back as it is (``population_record.open_agent`` reads one
     agent of it)."""
     from drone_torchrl.io.checkpoint import POPULATION, CheckpointError, load_checkpoint, resolve_checkpoint
@@ -677,7 +678,7 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
 def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig) -> None:
     """The checkpoint's weights fit the networks of ``cfg`` (its run's config, validated): its actor
     and, for an algorithm that keeps one among its checkpoint entries, its critic, each tensor of the
-    shape they have. :class:`ConfigError` naming the key, the file and the first tensor that differs;
+    shape they have. :class:`~.checks.ConfigError` naming the key, the file and the first tensor that differs;
     the networks are built on the meta device (shapes only: no memory, no time)."""
     import torch
 
@@ -698,7 +699,7 @@ def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig)
 
 
 def check_device(device: Any) -> None:
-    """Raise :class:`ConfigError` for a device torch does not know or this machine does not have."""
+    """Raise :class:`~.checks.ConfigError` for a device torch does not know or this machine does not have."""
     import torch
 
     try:
@@ -784,7 +785,7 @@ class AgentValueError(ConfigError):
 
 
 def validate(cfg: DictConfig, training: bool = True) -> None:
-    """Raise :class:`ConfigError` for the first value that is not allowed. ``training``: the config
+    """Raise :class:`~.checks.ConfigError` for the first value that is not allowed. ``training``: the config
     is about to train here, so its logger's extra must be installed and its memory must fit
     (``drone-eval`` reads a checkpoint's config for its values only)."""
     cfg = _plain(check_keys(cfg))  # also refuses ??? and interpolations to nothing, in one line

@@ -18,7 +18,7 @@ def _in_zone(reward: torch.Tensor) -> torch.Tensor:
     return reward == REWARD_IN_ZONE
 
 
-# What a run record books of each finished episode (one episodes.csv column each).
+#: What a run record books of each finished episode (one episodes.csv column each).
 EPISODE_KEYS = ("return", "length", "time_in_zone", "negative_thrust_fraction", "termination_cause")
 
 
@@ -70,7 +70,7 @@ def counted_metrics(length: torch.Tensor, counts: torch.Tensor) -> dict[str, tor
 
 
 def cause_counts(causes: torch.Tensor) -> dict[str, int]:
-    """How many episodes ended with each :class:`TerminationCause` (``NONE`` = truncated)."""
+    """How many episodes ended with each :class:`~.dynamics.TerminationCause` (``NONE`` = truncated)."""
     return {cause.name: int((causes == cause).sum()) for cause in TerminationCause}
 
 

@@ -73,10 +73,10 @@ from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.schema import EXPORT_FORMATS
 from drone_torchrl.training.population_record import open_agent
 
-# The largest difference (max abs, in fractions of the weight) an exported file may have from the
-# actor on check_observations(). The same float32 layers evaluated by other kernels (onnxruntime's
-# GEMM and tanh) differ by 1e-7 to 1e-6; a wrong head, a missing clamp or a stale weight by 1e-2 or
-# more. 1e-4 of the weight is far below anything the drone feels.
+#: The largest difference (max abs, in fractions of the weight) an exported file may have from the
+#: actor on check_observations(). The same float32 layers evaluated by other kernels (onnxruntime's
+#: GEMM and tanh) differ by 1e-7 to 1e-6; a wrong head, a missing clamp or a stale weight by 1e-2 or
+#: more. 1e-4 of the weight is far below anything the drone feels.
 TOLERANCE = 1e-4
 # The ONNX operator set written. The policy needs only Gemm, its activation (Tanh, Relu, Elu), Add,
 # Mul and Clip, all in 18, which onnxruntime reads since 1.14 (2023): more runtimes than torch's
@@ -87,7 +87,7 @@ ONNX_MODULES = ("onnx", "onnxruntime", "onnxscript")
 ONNX_EXTRA = "pip install 'drone_torchrl[onnx]'"
 # The ONNX model's input and output names.
 ONNX_INPUT, ONNX_OUTPUT = "observation", "thrust"
-# The runtime that runs each format, as the latency figures name it.
+#: The runtime that runs each format, as the latency figures name it.
 RUNTIMES = {"pt2": "torch.export", "onnx": "onnxruntime"}
 
 # check_observations(): CHECK_RANDOM states drawn uniformly within CHECK_SPAN of CHECK_CENTRE (twice
@@ -125,6 +125,7 @@ class DeterministicPolicy(nn.Module):
         self.max_thrust = max_thrust
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
+        """The motor commands ``[B, 2]`` for observations ``[B, 6]``."""
         loc, _ = self.net(observation)
         if (
             self.squash
@@ -148,7 +149,7 @@ class Exported:
 
 # ------------------------------------------------------------------------------ what to write
 def resolve_output(format: str | None, output: Any) -> tuple[str, Path]:
-    """The format and the file of ``format=`` and ``output=`` (:class:`ConfigError` if they do not
+    """The format and the file of ``format=`` and ``output=`` (:class:`~.checks.ConfigError` if they do not
     fit): the output's suffix is the format's (``.pt2``, ``.onnx``); a null format is the suffix's,
     a null output ``policy.<format>``."""
     suffixes = {f".{name}": name for name in EXPORT_FORMATS}
@@ -189,7 +190,7 @@ def _installed(module: str) -> bool:
 
 
 def check_onnx_extra() -> None:
-    """format=onnx without the onnx extra: one line naming it (:class:`ConfigError`)."""
+    """format=onnx without the onnx extra: one line naming it (:class:`~.checks.ConfigError`)."""
     missing = [name for name in ONNX_MODULES if not _installed(name)]
     if missing:
         raise ConfigError(f"format=onnx needs {', '.join(missing)}, not installed here: {ONNX_EXTRA}")
@@ -208,7 +209,7 @@ def load_policy(
     checkpoint: str | os.PathLike, agent: int | None = None
 ) -> tuple[DeterministicPolicy, ProbabilisticActor, Path]:
     """The deterministic policy and the actor of a checkpoint file or run folder (of a population
-    run: its agent ``agent``; :class:`ConfigError` if unusable), on the CPU."""
+    run: its agent ``agent``; :class:`~.checks.ConfigError` if unusable), on the CPU."""
     path, state = open_agent("checkpoint", checkpoint, agent)
     cfg = run_config(state["config"])
     cfg.device = "cpu"
@@ -219,7 +220,8 @@ def load_policy(
 
 
 def deterministic_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, Path]:
-    """The deterministic policy of a checkpoint file or run folder (:class:`ConfigError` if unusable)."""
+    """The deterministic policy of a checkpoint file or run folder (:class:`~.checks.ConfigError` if
+    unusable)."""
     policy, _, path = load_policy(checkpoint)
     return policy, path
 
@@ -235,7 +237,7 @@ def actor_commands(
 
 def check_observations(observation_dim: int = STATE_DIM) -> torch.Tensor:
     """The float32 observations ``[N, observation_dim]`` every export is checked on (fixed: seeded
-    draws, corners, extremes; see :data:`CHECK_SPAN`). Past the 6 state entries (a run with
+    draws, corners, extremes; see ``CHECK_SPAN``). Past the 6 state entries (a run with
     ``env.disturbance.observed_actions``) come past commands, seeded uniforms in [0, 1]."""
     centre, span = torch.tensor(CHECK_CENTRE), torch.tensor(CHECK_SPAN)
     generator = torch.Generator().manual_seed(CHECK_SEED)
@@ -367,7 +369,7 @@ def export_policy(
     agent: int | None = None,
 ) -> Exported:
     """Write the deterministic policy of ``checkpoint`` to ``output`` as ``format`` (see
-    :func:`resolve_output`), checked against the checkpoint's actor: :class:`ConfigError` for bad
+    :func:`resolve_output`), checked against the checkpoint's actor: :class:`~.checks.ConfigError` for bad
     arguments (before any work), :class:`ExportError` for a file that does not reproduce the actor
     (nothing is written)."""
     format, output = resolve_output(format, output)

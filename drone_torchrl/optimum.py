@@ -16,8 +16,8 @@ a relaxation: the most zone steps it allows bounds every policy. ``docs/optimum.
   sequence, without assuming the drone stays once in: the upper bound.
 - :func:`optimum` puts them together (:class:`Optimum`); :func:`env_optimum` does it for the
   starts an env resets to (``"floor"``: all share ``z = z_dot = 0``; ``"air"``: a box of starts).
-- :func:`fly_plan` replays a vertical plan on the full 2D dynamics (:func:`dynamics.step`) and then
-  hands over to the PD controller, which levels the drone and holds it in the zone.
+- :func:`fly_plan` replays a vertical plan on the full 2D dynamics (:func:`dynamics.step <.dynamics.step>`)
+  and then hands over to the PD controller, which levels the drone and holds it in the zone.
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ class Optimum:
     zone_steps: int
     """The most steps that can end in the zone (the upper bound)."""
     first_zone_step: int
-    """The earliest step from which the drone can stay in the zone to the end (0: never)."""
+    """The earliest step from which the drone can stay in the zone to the end (0 if never)."""
     plan: VerticalPlan | None
     """A vertical plan that enters at ``first_zone_step`` and stays (the largest margin), or ``None``."""
 
@@ -93,7 +93,7 @@ class Optimum:
 
     @property
     def exact(self) -> bool:
-        """Whether the bound is reached in the vertical problem: entering at ``first_zone_step`` and
+        """Whether the bound is reached in the vertical problem, where entering at ``first_zone_step`` and
         staying gives ``zone_steps`` steps in the zone (for a drone that can hover)."""
         if self.first_zone_step == 0:
             return self.zone_steps == 0  # the zone is out of reach; hovering earns the 1s
@@ -324,8 +324,8 @@ def optimum(
 
 def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]:
     """The vertical start states of ``reset_mode``: the floor start (at ``params.z_min``), or the
-    corners of the air box (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE` of the zone's
-    centre and of rest)."""
+    corners of the air box (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE <.dynamics.RESET_NOISE>`
+    of the zone's centre and of rest)."""
     params = DroneParams() if params is None else params
     if reset_mode == "floor":
         return [(params.z_min, FLOOR_START[1])]
@@ -372,8 +372,8 @@ def fly_plan(
     gains: PDGains | None = None,
 ) -> tuple[Episodes, VerticalPlan]:
     """Replay an optimal vertical plan from the floor starts ``start`` (``[B, 6]``) through
-    :func:`dynamics.step`; returns the episodes (:func:`~drone_torchrl.episodes.episode_stats`
-    reads them) and the plan.
+    :func:`dynamics.step <.dynamics.step>`; returns the episodes
+    (:func:`~drone_torchrl.episodes.episode_stats` reads them) and the plan.
 
     Up to the top of the climb (:attr:`VerticalPlan.apex_step`) both motors get ``c_t / (2 cos
     alpha)``: with equal thrusts and ``alpha_dot = 0`` the roll angle stays at its start value, so

@@ -16,6 +16,7 @@ from typing import Generic, TypeVar
 
 from drone_torchrl.checks import ConfigError
 
+#: The type of the plug-ins a :class:`Registry` holds.
 T = TypeVar("T")
 # What a plug-in may be called.
 NAME = re.compile(r"[a-z][a-z0-9_]*")
@@ -63,7 +64,7 @@ class Registry(Generic[T]):
         return tuple(sorted(self._items))
 
     def get(self, name: object) -> T:
-        """The plug-in called ``name``; a one-line :class:`ConfigError` naming the choices otherwise."""
+        """The plug-in called ``name``; else a one-line :class:`~.checks.ConfigError` naming the choices."""
         self._discover()
         if not isinstance(name, str) or name not in self._items:
             raise ConfigError.of(

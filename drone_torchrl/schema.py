@@ -69,10 +69,10 @@ EXPORT_FORMATS = ("pt2", "onnx")
 
 # ------------------------------------------------------------------ what a continued run does
 # A run continued from a checkpoint keeps the checkpoint's value of a key, unless the key says:
-KEPT = "kept"
-IF_SET = "if set"  # taken from the command line when it sets the key (logging, checkpointing...)
-BUDGET = "budget"  # also taken from the config without a command line (the episode budget)
-PROCESS = "process"  # always the current config's: where and how this process runs
+KEPT = "kept"  #: the checkpoint's value; a command line that changes it is refused
+IF_SET = "if set"  #: taken from the command line when it sets the key (logging, checkpointing...)
+BUDGET = "budget"  #: also taken from the config without a command line (the episode budget)
+PROCESS = "process"  #: always the current config's (where and how this process runs)
 
 # The metadata key of a field's rule.
 RULE = "drone_torchrl"
@@ -117,8 +117,8 @@ class Rule:
         return self.added is not _ORIGINAL
 
     def check(self, key: str, value: Any, cfg: Mapping[str, Any]) -> None:
-        """Raise :class:`ConfigError` (one line) if ``value`` of ``key`` breaks the rule; ``cfg`` (the
-        resolved config as nested dicts) gives the bounds that are other keys."""
+        """Raise :class:`~.checks.ConfigError` (one line) if ``value`` of ``key`` breaks the rule; ``cfg``
+        (the resolved config as nested dicts) gives the bounds that are other keys."""
         kind = self.kind
         if kind == "free" or (self.optional and value is None):
             return
@@ -162,26 +162,32 @@ def _bound(bound: float | str | None, cfg: Mapping[str, Any]) -> float | None:
 
 # Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``.
 def a_number(**rule: Any) -> Any:
+    """A config field holding a number, checked by a :class:`Rule` with ``rule``'s bounds."""
     return Rule("number", **rule).field()
 
 
 def an_integer(**rule: Any) -> Any:
+    """A config field holding an integer, checked by a :class:`Rule` with ``rule``'s bounds."""
     return Rule("integer", **rule).field()
 
 
 def a_flag(**rule: Any) -> Any:
+    """A config field holding true or false, checked by a :class:`Rule`."""
     return Rule("flag", **rule).field()
 
 
 def one_of(choices: tuple, **rule: Any) -> Any:
+    """A config field holding one of ``choices``, checked by a :class:`Rule`."""
     return Rule("choice", choices=tuple(choices), **rule).field()
 
 
 def layer_sizes(**rule: Any) -> Any:
+    """A config field holding a list of layer widths, checked by a :class:`Rule`."""
     return Rule("sizes", **rule).field()
 
 
 def a_text(**rule: Any) -> Any:
+    """A config field holding a string, checked by a :class:`Rule`."""
     return Rule("text", **rule).field()
 
 

@@ -5,10 +5,11 @@ epochs, checkpoint entries, the budget); :class:`PPO` gives it ``ClipPPOLoss``, 
 :class:`~drone_torchrl.algorithms.a2c.A2C` gives it ``A2CLoss``.
 
 As in TorchRL's ``sota-implementations/ppo``: a :class:`torchrl.collectors.Collector` flies
-``algo.num_envs`` drones of one batched :class:`~drone_torchrl.envs.DroneEnv` (auto-reset, so each
-drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` steps; :class:`GAE`
-computes advantages and value targets with the critic; ``algo.epochs`` passes of minibatches drawn
-without replacement from a replay buffer train the three-net actor and the critic with one Adam.
+``algo.num_envs`` drones of one batched :class:`~drone_torchrl.envs.drone_env.DroneEnv` (auto-reset, so each
+drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` steps;
+:class:`~torchrl.objectives.value.GAE` computes advantages and value targets with the critic; ``algo.epochs``
+passes of minibatches drawn without replacement from a replay buffer train the three-net actor and the critic
+with one Adam.
 With ``backend=fast`` the same batches are flown by the C++ engine
 (:class:`~drone_torchrl.training.segments.FusedSegments`), collected 8-19x faster (docs/beyond.md: "A
 learned policy at the optimum").
@@ -76,6 +77,7 @@ ADVANTAGE_EPS = 1e-8
 
 @contextlib.contextmanager
 def quiet(logger_name: str) -> Iterator[None]:
+    """Raise logger ``logger_name`` to WARNING inside the block (no INFO messages), then restore it."""
     logger = logging.getLogger(logger_name)
     level = logger.level
     logger.setLevel(logging.WARNING)
@@ -137,8 +139,8 @@ class OnPolicy:
     advice = "lower algo.lr"
     episodes_per_update = None  # the episodes a batch finishes vary: one update per call
     eval_agents = None
-    # What the loss reports besides its losses, booked as train/<name> where the loss has it
-    # (A2CLoss reports no entropy without an entropy bonus).
+    #: What the loss reports besides its losses, booked as train/<name> where the loss has it
+    #: (A2CLoss reports no entropy without an entropy bonus).
     diagnostics: tuple[str, ...] = ()
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
@@ -235,6 +237,8 @@ class OnPolicy:
     def update(
         self, state: TensorDictBase, k: int, active: torch.Tensor
     ) -> tuple[TensorDictBase, UpdateOutput]:
+        """Train on ``k`` collector batches, each followed by ``algo.epochs`` passes of minibatches;
+        returns ``state`` (its ``"episodes_done"`` advanced) and the batches' metrics and episodes."""
         metrics: list[dict[str, float]] = []
         episodes: list[dict[str, list]] = []
         for _ in range(k):
@@ -278,9 +282,11 @@ class OnPolicy:
         return {f"train/{k}": (v / steps).item() for k, v in sums.items()}
 
     def eval_policy(self):
+        """The actor, for evaluations."""
         return self.actor_module
 
     def actor(self, agent: int):
+        """The actor (a run is one agent), for videos."""
         return self.actor_module
 
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:

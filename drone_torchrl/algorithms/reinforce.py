@@ -3,7 +3,7 @@ reductions): a group of jobs trained as one population, with either engine.
 
 The update itself, the population engine's, is :class:`~drone_torchrl.training.update.ReinforceUpdate`
 (C++ kernels, the PyTorch fast path or TorchRL's reference loop); its loss is
-:class:`~drone_torchrl.objectives.ReinforceLoss`.
+:class:`~drone_torchrl.objectives.reinforce.ReinforceLoss`.
 """
 
 from __future__ import annotations
@@ -66,12 +66,17 @@ class Reinforce:
             if checkpoint is not None:
                 self.population.load(i, checkpoint)
                 self.collector.set_rng_state(i, checkpoint["rng"], checkpoint["episodes_done"])
+        #: ``update(state, k, active)``: ``k`` updates of the active agents
+        #: (:mod:`drone_torchrl.training.update`).
         self.update = ReinforceUpdate(cfg, self.population, self.collector)
+        #: The population's stacked state (:attr:`~drone_torchrl.training.population.Population.state`).
         self.state = self.population.state
         self.episodes_per_update = int(cfg.algo.episodes_per_update)
+        #: The agents :meth:`eval_policy` flies at once: all of them.
         self.eval_agents = len(jobs)
 
     def eval_policy(self):
+        """The policy that evaluations fly, every agent at once."""
         return self.collector.eval_policy()
 
     def checkpoint_entries(self, agent: int) -> dict:
@@ -79,6 +84,7 @@ class Reinforce:
         return {**self.population.checkpoint_entries(agent), "rng": self.collector.rng_state(agent)}
 
     def actor(self, agent: int):
+        """Agent ``agent``'s actor on its own (for videos)."""
         return self.population.actor(agent)
 
     def close(self) -> None:

@@ -23,6 +23,7 @@ from drone_torchrl.io.storage import StorageError
 
 @hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    """The Hydra app of ``drone-eval``: evaluate as ``cfg`` says; a refused config exits with one line."""
     from drone_torchrl.comparison import run_eval
 
     try:

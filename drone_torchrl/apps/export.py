@@ -26,6 +26,7 @@ from drone_torchrl.training.signals import Interrupted, interrupt_on_signals
 
 @hydra.main(config_path=config_dir(), config_name="export", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    """The Hydra app of ``drone-export``: export, check and time the policy; refusals exit in one line."""
     from drone_torchrl import export
 
     try:

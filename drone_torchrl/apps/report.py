@@ -71,6 +71,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """``drone-report``'s options from ``argv`` (the command line's if None); bad ones exit 2 in one line."""
     parser = _Parser(
         prog=PROG,
         description="Figures (steps.png, returns.png) and a summary table (summary.md, summary.csv) of sweeps.",

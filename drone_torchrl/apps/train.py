@@ -32,6 +32,7 @@ EXIT_INTERRUPTED = 130
 
 @hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
+    """The Hydra app of ``drone-train``: train a run or a sweep's job; returns the job's final metric."""
     from drone_torchrl.training.trainer import train
 
     if HydraConfig.get().mode != RunMode.MULTIRUN:

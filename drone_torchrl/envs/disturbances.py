@@ -104,7 +104,7 @@ class Disturbance:
 
     @property
     def nominal(self) -> bool:
-        """The nominal drone with its 6-entry observation: nothing to draw or carry per episode."""
+        """Whether this is the nominal drone with its 6-entry observation (nothing to draw or carry)."""
         return not self.active and self.observed_actions == 0
 
     @property

@@ -262,7 +262,7 @@ class DroneEnv(EnvBase):
     =====  =============  ===============================================  =====================================================
 
     Also in every reset and step output: ``"termination_cause"`` (int64, ``[*batch, 1]``, a
-    :class:`TerminationCause` code) and ``"step_count"`` (int64, ``[*batch, 1]``).
+    :class:`~.dynamics.TerminationCause` code) and ``"step_count"`` (int64, ``[*batch, 1]``).
 
     ## Rewards
 

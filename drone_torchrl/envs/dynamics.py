@@ -1,7 +1,7 @@
 """Pure, batched tensor functions for the 2D drone (the paper's eqs. 2.1-2.4, section 2.2).
 
-This is the only copy of the physics: :class:`~drone_torchrl.envs.DroneEnv` (TorchRL) and
-:class:`~drone_torchrl.envs.DroneGymEnv` (Gymnasium) both call it. Every function works on any
+This is the only copy of the physics: :class:`~drone_torchrl.envs.drone_env.DroneEnv` (TorchRL) and
+:class:`~drone_torchrl.envs.gym_env.DroneGymEnv` (Gymnasium) both call it. Every function works on any
 batch shape ``[*B, 6]`` with no Python loop over the batch.
 
 State layout: ``[x, x_dot, z, z_dot, alpha, alpha_dot]`` in SI units, angles in radians,
@@ -41,7 +41,7 @@ BOUNDS_MODES = ("inclusive", "strict")
 # The precisions the physics runs in (env argument ``dtype``), by name.
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
-# Each motor carrying half the weight holds a level drone still: the hover command of both motors.
+#: The hover command of both motors; each carrying half the weight holds a level drone still.
 HOVER_THRUST = 0.5
 
 # Section 2.2: 0 on the terminating step, 10 per step in the zone, 1 per step elsewhere.
@@ -49,7 +49,7 @@ REWARD_TERMINATED = 0.0
 REWARD_IN_ZONE = 10.0
 REWARD_ALIVE = 1.0
 
-# Section 2.1 item 2: x and alpha (floor) or every component (air) uniform in +-0.01.
+#: The reset noise (section 2.1 item 2), x and alpha (floor) or every component (air) uniform in +-0.01.
 RESET_NOISE = 0.01
 RESET_MODES = ("floor", "air")
 
@@ -67,7 +67,7 @@ class TerminationCause(IntEnum):
 @dataclass(frozen=True)
 class DroneParams:
     """The drone's physical parameters and its task's arena (domain, target zone, how a state on a
-    bound counts): everything :func:`step` needs. See :class:`~drone_torchrl.envs.DroneEnv` for the
+    bound counts): everything :func:`step` needs. See :class:`~drone_torchrl.envs.drone_env.DroneEnv` for the
     meaning of each; the defaults are the paper's. Validated by
     :func:`drone_torchrl.envs.drone_env.make_params`."""
 
@@ -88,12 +88,13 @@ class DroneParams:
 
     @property
     def strict(self) -> bool:
-        """A state exactly on a bound is outside (of the domain: terminates; of the zone: not in it)."""
+        """Whether a state exactly on a bound is outside (of the domain, it terminates; of the zone, it is not
+        in it)."""
         return self.bounds == "strict"
 
     @property
     def zone_z_centre(self) -> float:
-        """The target zone's centre height: where ``reset_mode="air"`` starts."""
+        """The target zone's centre height, where ``reset_mode="air"`` starts."""
         return 0.5 * (self.zone_z_min + self.zone_z_max)
 
     @property

@@ -1,4 +1,5 @@
-"""``Drone2D-v0``: a single drone as a Gymnasium env, an adapter over :class:`~drone_torchrl.envs.DroneEnv`."""
+"""``Drone2D-v0``: a single drone as a Gymnasium env, an adapter over
+:class:`~drone_torchrl.envs.drone_env.DroneEnv`."""
 
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from drone_torchrl.envs.dynamics import (
 
 
 class DroneGymEnv(gym.Env):
-    """The Gymnasium twin of :class:`~drone_torchrl.envs.DroneEnv` (same arguments, same manual).
+    """The Gymnasium twin of :class:`~drone_torchrl.envs.drone_env.DroneEnv` (same arguments, same manual).
 
     It holds a ``DroneEnv`` of one drone (``batch_size=[]``) and calls its reset and step: the same
     code flies both, so the same seed, arguments and actions give the same trajectory bit for bit:

@@ -34,9 +34,9 @@ from tensordict.nn import TensorDictModuleBase
 
 from drone_torchrl.envs.dynamics import STATE_DIM, DroneParams
 
-# The collective thrust is divided by cos(alpha); below the cosine of the termination tilt
-# (params.alpha_limit, 60 deg by default) the correction is held constant so a nearly flipped drone
-# does not ask for unbounded thrust, and never below MIN_COS_ALPHA (84 deg) whatever the tilt limit.
+#: The collective thrust is divided by cos(alpha); below the cosine of the termination tilt
+#: (params.alpha_limit, 60 deg by default) the correction is held constant so a nearly flipped drone
+#: does not ask for unbounded thrust, and never below MIN_COS_ALPHA (84 deg) whatever the tilt limit.
 MIN_COS_ALPHA = 0.1
 # The desired tilt stays within this share of the tilt limit (a tighter limit than the paper's
 # 60 deg then tightens gains.max_tilt).
@@ -64,7 +64,7 @@ class PDGains:
     """
 
     z_target: float | None = None
-    """Altitude set point (m); None: the centre height of the params' target zone (2.7 m by default)."""
+    """Altitude set point (m); None for the centre height of the params' target zone (2.7 m by default)."""
     x_target: float = 0.0
     """Horizontal set point (m)."""
     kp_z: float = 64.0
@@ -162,6 +162,7 @@ class PDController(TensorDictModuleBase):
         self.out_keys = [action_key]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write the PD commands for the observation at ``in_keys[0]`` to ``out_keys[0]``."""
         observation = tensordict.get(self.in_keys[0])
         # Past the 6 state entries an observation may carry the last commands (observed_actions).
         tensordict.set(self.out_keys[0], pd_action(observation[..., :STATE_DIM], self.params, self.gains))

@@ -29,7 +29,8 @@ from drone_torchrl.envs.heuristic import PDGains, pd_action
 
 @dataclass(frozen=True)
 class PIDGains:
-    """:class:`PDGains` plus integral gains (``(m/s^2)/(m s)`` on ``z``, ``rad/(m s)`` on ``x``)."""
+    """:class:`~.heuristic.PDGains` plus integral gains (``(m/s^2)/(m s)`` on ``z``, ``rad/(m s)`` on
+    ``x``)."""
 
     pd: PDGains = field(default_factory=PDGains)
     ki_x: float | torch.Tensor = 0.0
@@ -54,6 +55,7 @@ class PIDController(TensorDictModuleBase):
         self.integral = None
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Write the PID commands (:meth:`act`) for the observation at ``in_keys[0]`` to ``out_keys[0]``."""
         tensordict.set(self.out_keys[0], self.act(tensordict.get(self.in_keys[0])))
         return tensordict
 

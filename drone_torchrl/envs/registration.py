@@ -6,6 +6,7 @@ GYM_ID = "Drone2D-v0"
 
 
 def register_envs() -> None:
+    """Register ``Drone2D-v0`` with Gymnasium, once per process."""
     if GYM_ID not in gym.registry:
         gym.register(
             id=GYM_ID,

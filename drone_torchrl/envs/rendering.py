@@ -1,4 +1,4 @@
-"""pygame drawing of one 2D drone, shared by :class:`~drone_torchrl.envs.DroneEnv` and ``Drone2D-v0``.
+"""pygame drawing of one 2D drone, shared by :class:`~.drone_env.DroneEnv` and ``Drone2D-v0``.
 
 The frame shows the domain (the env's ``x_limit``, ``z_min``, ``z_max``: 4 m x 4 m by default),
 scaled to fit, with a 1 m grid and axis labels, the target zone (the env's) as a translucent rectangle, the drone as a bar of length ``motor_distance`` rotated by ``alpha`` with its

@@ -2,7 +2,7 @@
 as, and the evaluator's, the metrics' and the plots' common layout.
 
 :class:`Episodes` converts from and to the layout of TorchRL's ``EnvBase.rollout(...,
-break_when_all_done=True)`` on :class:`~drone_torchrl.envs.DroneEnv`, so the loss, the episode
+break_when_all_done=True)`` on :class:`~drone_torchrl.envs.drone_env.DroneEnv`, so the loss, the episode
 metrics and the plots read both engines' episodes alike. :func:`fly_reference` flies a TensorDict
 policy through the reference (a ``DroneEnv`` and TorchRL's rollout) into this layout.
 """
@@ -25,7 +25,7 @@ class Episodes(NamedTuple):
     """One episode per row, as plain tensors: what the fast engine trains on and the metrics read.
 
     ``states [*B, T + 1, 6]`` (before each step, then after the row's last step),
-    ``action [*B, T, 2]``, ``reward [*B, T]``, ``cause [*B, T]`` (int64 :class:`TerminationCause`
+    ``action [*B, T, 2]``, ``reward [*B, T]``, ``cause [*B, T]`` (int64 :class:`~.dynamics.TerminationCause`
     codes) and ``length [*B]`` (int64 steps of each row's episode). Entries after a row's end are
     zeros. ``observation [*B, T, D]`` is what the policy saw before each step where that is not the
     state (disturbed drones: noisy positions, past commands), else ``None``. :meth:`as_rollout`
@@ -132,8 +132,8 @@ class Episodes(NamedTuple):
         )
 
 
-# start states [*B, 6] (and, under disturbances, keys=[*B] episode keys) -> whole episodes, one
-# per row, with the deterministic action (the fast engine's KernelRollout).
+#: Start states ``[*B, 6]`` (and, under disturbances, episode ``keys`` ``[*B]``) -> whole episodes, one
+#: per row, with the deterministic action (the fast engine's KernelRollout).
 RolloutFn = Callable[..., Episodes]
 
 

@@ -53,6 +53,7 @@ from drone_torchrl.io.storage import name_too_long, write_atomically
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 BEST = "best.pt"
+#: The checkpoint format written; older ones are migrated to it when read.
 FORMAT_VERSION = 3
 # Keys every checkpoint of the current format holds.
 REQUIRED_KEYS = (

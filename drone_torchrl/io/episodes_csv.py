@@ -81,13 +81,13 @@ def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]
 
 
 class EpisodeCSV:
-    """One row per episode in ``path``, buffered: rows are appended when :meth:`flush` is called, and
-    no file stays open in between (a population of runs holds no file descriptor per run).
+    """One row per episode in ``path``, buffered: rows are appended when :meth:`~EpisodeCSV.flush` is
+    called, and no file stays open in between (a population of runs holds no file descriptor per run).
 
     ``keep_episodes``: on resume, keep the rows of episodes ``< keep_episodes`` read from ``source``
     (default: ``path`` itself; a fork copies its parent run's rows) and drop the rest, which the
     interrupted process wrote after its last checkpoint. A row torn by the interruption is dropped
-    too; :attr:`notes` says which lines were.
+    too; ``notes`` says which lines were.
     """
 
     def __init__(self, path: Path, keep_episodes: int = 0, source: Path | None = None) -> None:
@@ -113,6 +113,7 @@ class EpisodeCSV:
         self._rows.extend(rows)
 
     def flush(self) -> None:
+        """Append the buffered rows to the file (kept buffered if the disk refuses them)."""
         if not self._rows:
             return
         # A refused append may leave a torn last row: the rows stay buffered, and a resume drops

@@ -8,8 +8,8 @@ from pathlib import Path
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.run_lock import LOCK_NAME
 
-# What a run folder holds before the command's own code runs: Hydra's record and log, and the
-# folder's lock (drone_torchrl.io.run_lock).
+#: What a run folder holds before the command's own code runs (Hydra's record and log, and the
+#: folder's lock, :mod:`drone_torchrl.io.run_lock`).
 HYDRA_ENTRIES = frozenset({".hydra", "train.log", "evaluate.log", "export.log", LOCK_NAME})
 
 
@@ -39,7 +39,7 @@ def check_fork_folder(folder: Path, resume: str, also: frozenset[str] = frozense
     """A fork (``resume=`` a checkpoint that is not its run's ``last.pt``) trains in a folder of its
     own: ``folder`` must be new, or hold nothing but entries named in ``also`` (a lock left behind;
     inside the Hydra job: what Hydra wrote for it, :data:`HYDRA_ENTRIES`). Anything else is another
-    run, which the fork would overwrite: :class:`ConfigError` before anything is written."""
+    run, which the fork would overwrite: :class:`~.checks.ConfigError` before anything is written."""
     try:
         entries = sorted(p.name for p in Path(folder).iterdir() if p.name not in also)
     except (FileNotFoundError, NotADirectoryError):

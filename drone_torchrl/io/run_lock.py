@@ -32,9 +32,9 @@ from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.storage import writing
 
 LOCK_NAME = ".lock"
-# How long an owner on another host counts as alive after it last renewed its lock. Runs renew it
-# at every flush (logger.flush_every_s, 10 s by default) and after every update call, so five
-# minutes is far past any pause of a live run (an evaluation with a video takes seconds).
+#: How long an owner on another host counts as alive after it last renewed its lock. Runs renew it
+#: at every flush (logger.flush_every_s, 10 s by default) and after every update call, so five
+#: minutes is far past any pause of a live run (an evaluation with a video takes seconds).
 STALE_AFTER_S = 300.0
 
 # Open-file slots kept free beside the locks, for what a run opens meanwhile (its CSV and event

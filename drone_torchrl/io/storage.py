@@ -66,6 +66,7 @@ def folder_refuses(folder: Path, size: int) -> int | None:
 
 
 def is_storage_error(err: BaseException) -> bool:
+    """Whether ``err`` is the disk refusing a write (an ``OSError`` with an errno of ``STORAGE_ERRNOS``)."""
     return isinstance(err, OSError) and err.errno in STORAGE_ERRNOS
 
 

@@ -13,7 +13,7 @@ most of the logging time of a population. Videos and the final hparams, a few pe
 tensorboard's ``Summary`` protos in the same file. TensorBoard reads the event files in
 ``<run>/<exp_name>`` as one run.
 
-Steps count episodes done (see :func:`log_update`). On resume, the first flush passes
+Steps count episodes done (see :func:`~drone_torchrl.loggers.log_update`). On resume, the first flush passes
 ``purge_step``, one past the checkpoint's count: TensorBoard then drops the events the interrupted
 process logged after the checkpoint, so the curves do not fold back on themselves, and keeps the
 checkpoint's own last update and evaluation.

@@ -47,6 +47,8 @@ _state: dict[str, object] = {}
 
 
 def cache_dir() -> Path:
+    """Where the compiled kernels are kept: the folder ``$DRONE_TORCHRL_CACHE`` names, else the user's
+    cache folder."""
     if os.environ.get(CACHE_ENV):
         return Path(os.environ[CACHE_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"

@@ -2,7 +2,7 @@
 
 - :class:`KernelReinforce`: one REINFORCE update's gradient through ``drone_torchrl::reinforce``.
 - :class:`KernelRollout`: whole episodes through ``drone_torchrl::rollout``, as
-  :class:`~drone_torchrl.envs.rollout.Episodes` (what :func:`~drone_torchrl.envs.rollout.fly_episodes`
+  :class:`~drone_torchrl.envs.rollout.Episodes` (what :func:`~drone_torchrl.envs.rollout.fly_reference`
   returns for the PyTorch code).
 - :class:`KernelSegments`: PPO/A2C's auto-resetting batches through ``drone_torchrl::segments``,
   the drones' state carried from call to call.
@@ -23,6 +23,8 @@ from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.kernels import ops
 from drone_torchrl.modules.stacked import StackedThreeNet
 
+#: A disturbance as the modules take it (a :class:`~drone_torchrl.envs.disturbances.Disturbance`, its
+#: config section, or None for the nominal drone).
 DisturbanceArg = disturbances.Disturbance | Mapping[str, Any] | None
 
 
@@ -157,7 +159,7 @@ class Carried(NamedTuple):
 class KernelSegments:
     """``n`` drones of one agent flown by the C++ kernel with auto-reset, each call ``steps`` more
     steps (``drone_torchrl::segments``): TorchRL's collector over a batched
-    :class:`~drone_torchrl.envs.DroneEnv`, given the same draws.
+    :class:`~drone_torchrl.envs.drone_env.DroneEnv`, given the same draws.
 
     Args:
         rollout: the agent's :class:`KernelRollout` (one agent: network, drone, disturbances;

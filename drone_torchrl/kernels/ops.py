@@ -1,21 +1,21 @@
 """The C++ kernels as ``torch.library`` custom ops (CPU): the fast engine.
 
 - ``drone_torchrl::rollout``: whole episodes of many agents' stochastic (or deterministic) policies
-  on the drone, each row until its episode ends: what :class:`~drone_torchrl.envs.DroneEnv` and
-  :class:`~drone_torchrl.modules.StackedThreeNet` compute, in one call.
+  on the drone, each row until its episode ends: what :class:`~drone_torchrl.envs.drone_env.DroneEnv` and
+  :class:`~drone_torchrl.modules.stacked.StackedThreeNet` compute, in one call.
 - ``drone_torchrl::reinforce``: one REINFORCE update's episodes (the rollout above) and each
-  agent's loss and gradient, the arithmetic of :class:`~drone_torchrl.objectives.ReinforceLoss`
+  agent's loss and gradient, the arithmetic of :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss`
   (tested against it), back-propagated through the hidden outputs the rollout kept.
 - ``drone_torchrl::segments``: PPO/A2C's batches, ``n`` drones of one agent flown a number of
   steps with auto-reset and their state carried across calls: what TorchRL's collector gives over
-  :class:`~drone_torchrl.envs.DroneEnv` (tested against it).
+  :class:`~drone_torchrl.envs.drone_env.DroneEnv` (tested against it).
 
 Each takes the drone (:func:`env_constants`) and its disturbances (:func:`disturbance_constants`,
 the physics of :mod:`drone_torchrl.envs.disturbances`: wind, gusts, mass, motor gains, lag, delay,
 observation noise, observed commands); the policy then sees ``6 + 2 * observed_actions`` values.
 Being ``torch.library`` ops, they have fake (meta) implementations and trace as single opaque
 nodes under ``torch.compile(fullgraph=True)``. Parameters are each agent's flat vector
-(:attr:`StackedThreeNet.flat <drone_torchrl.modules.StackedThreeNet.flat>`).
+(:attr:`StackedThreeNet.flat <drone_torchrl.modules.stacked.StackedThreeNet.flat>`).
 """
 
 from __future__ import annotations
@@ -29,8 +29,9 @@ import torch
 from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.kernels.build import library, unavailable_reason
 
+#: The code of each activation as the kernels take it (``activation`` argument).
 ACTIVATION_CODES = {"tanh": 0, "relu": 1, "elu": 2}
-# The rollout's per-row counts (drone_kernels.cpp: Stat), from which the episode metrics follow.
+#: The rollout's per-row counts (``Stat`` in drone_kernels.cpp), from which the episode metrics follow.
 STAT_NAMES = ("return", "zone_steps", "negative_commands", "termination_cause")
 STATS = len(STAT_NAMES)
 # The kernel's fixed limits (drone_kernels.cpp: kMaxLayers, kMaxWidth).
@@ -61,7 +62,7 @@ def _lib(dtype: torch.dtype = torch.float32) -> ctypes.CDLL:
     return lib
 
 
-# The drone's constants, in the kernels' order (drone_kernels.cpp: EnvConst).
+#: The drone's constants in the kernels' order (``EnvConst`` in drone_kernels.cpp).
 ENV_CONSTANTS = (
     "weight",
     "mass",
@@ -127,7 +128,7 @@ def env_constants(
     return torch.tensor([values[name] for name in ENV_CONSTANTS], dtype=torch.float64, device=device)
 
 
-# The disturbance's magnitudes, in the kernels' order (drone_kernels.cpp: DistConst).
+#: The disturbance's magnitudes in the kernels' order (``DistConst`` in drone_kernels.cpp).
 DISTURBANCE_CONSTANTS = disturbances.FIELDS
 _OBSERVED = DISTURBANCE_CONSTANTS.index("observed_actions")
 _DELAY = DISTURBANCE_CONSTANTS.index("action_delay")
@@ -546,7 +547,7 @@ def rollout(
         gamma: ``[N]``, each agent's discount for the returns-to-go.
         hidden, activation, min_std: the network (:data:`ACTIVATION_CODES`).
         dist_eps: added to the mean and to the std, ``Normal(mu + eps, sigma + eps)``
-            (:class:`~drone_torchrl.modules.ThreeNetPolicy`'s ``distribution_eps``).
+            (:class:`~drone_torchrl.modules.policy.ThreeNetPolicy`'s ``distribution_eps``).
         disturbance: :func:`disturbance_constants` (None: the nominal drone).
         keys: ``[N, E]`` int64 episode keys of the disturbances (as
             :func:`drone_torchrl.envs.disturbances.start` takes them); None: element ``e`` of
@@ -555,7 +556,7 @@ def rollout(
 
     Returns ``states [N, E, steps + 1, 6]`` (the true states, before each step, then after the
     last), ``action [N, E, steps, 2]``, ``reward [N, E, steps]``, ``cause [N, E, steps]`` (int64
-    :class:`TerminationCause` codes), ``length [N, E]`` (int64), ``returns [N, E, steps]`` (each
+    :class:`~.dynamics.TerminationCause` codes), ``length [N, E]`` (int64), ``returns [N, E, steps]`` (each
     step's discounted return-to-go, :func:`~drone_torchrl.objectives.reinforce.discounted_returns`),
     ``stats [N, E, 4]`` float64 (:data:`STAT_NAMES`) and, with ``observations``, what the policy
     saw before each step ``[N, E, steps, observation_dim]`` (else an empty tensor); entries after
@@ -567,7 +568,7 @@ def rollout(
     )  # fmt: skip
 
 
-# The loss options drone_torchrl::reinforce takes, in its order (drone_kernels.cpp: LossOptions).
+#: The loss options ``drone_torchrl::reinforce`` takes in its order (``LossOptions`` in drone_kernels.cpp).
 LOSS_OPTIONS = ("baseline_mean", "normalize_returns", "discount_weight", "mean_log_prob")
 
 
@@ -626,7 +627,7 @@ def segments(
 ) -> tuple[torch.Tensor, ...]:
     """``drone_torchrl::segments``: ``n`` drones of one agent flown ``steps`` steps with auto-reset.
 
-    What TorchRL's collector gives over a batched :class:`~drone_torchrl.envs.DroneEnv` (``done =
+    What TorchRL's collector gives over a batched :class:`~drone_torchrl.envs.drone_env.DroneEnv` (``done =
     terminated | truncated``, a new episode as soon as one ends), given the same draws.
 
     Args:

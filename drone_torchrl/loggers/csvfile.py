@@ -114,6 +114,7 @@ def _write_atomically(path: Path, header: tuple[str, ...], rows: Iterable) -> No
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> CSVLogger:
+    """The CSV logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from, or None)."""
     return CSVLogger(run_dir / cfg.logger.exp_name, resumed_at, cfg.logger.float_format)
 
 

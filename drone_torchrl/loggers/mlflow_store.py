@@ -205,6 +205,7 @@ def validate(cfg: Mapping[str, Any]) -> None:
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> MLflowLogger:
+    """The MLflow logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from, or None)."""
     # MLflow's store announces creating and migrating its tables at INFO level, once per process.
     for name in ("mlflow.store.db.utils", "alembic"):
         logging.getLogger(name).setLevel(logging.WARNING)

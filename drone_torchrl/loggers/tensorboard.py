@@ -13,6 +13,7 @@ from drone_torchrl.schema import TensorBoardConf, store_plugin
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> RunLogger:
+    """The TensorBoard logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from)."""
     # The checkpoint's own last update and evaluation were logged at its count: TensorBoard drops
     # events from count + 1 on, those the interrupted process logged after the checkpoint.
     purge = None if resumed_at is None else resumed_at + 1

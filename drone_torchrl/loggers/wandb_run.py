@@ -151,6 +151,7 @@ def _write_atomically(path: Path, text: str) -> None:
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> WandbLogger:
+    """The W&B logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from, or None)."""
     return WandbLogger(cfg, run_dir, resumed_at)
 
 

@@ -139,7 +139,7 @@ def _uniform_rows(seeds: Sequence[int], draws: list[tuple[int, int, float]], wid
 
 
 def hover_mean(distribution: str, max_thrust: float | None) -> float:
-    """The mean head's output at which both motors hover (:data:`HOVER_THRUST` x weight each).
+    """The mean head's output at which both motors hover (:data:`~.dynamics.HOVER_THRUST` x weight each).
 
     The Normal head's mean is the command itself; the TanhNormal head maps ``loc`` onto
     ``[0, max_thrust]`` through ``(tanh(loc) + 1) / 2``, so hovering is ``atanh(2 h / A - 1)``

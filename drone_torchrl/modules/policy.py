@@ -53,6 +53,7 @@ class ThreeNetPolicy(nn.Module):
         self.distribution_eps = float(distribution_eps)
 
     def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The action distribution's mean and std ``[..., A]`` for observations ``[..., D]``."""
         features = self.shared(observation)
         loc, scale = self.mean(features), nn.functional.softplus(self.std(features)) + self.min_std
         return shift_distribution(loc, scale, self.distribution_eps)

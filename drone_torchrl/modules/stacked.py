@@ -1,6 +1,6 @@
 """The three-net policy of many agents at once: one set of parameters stacked over a leading agent dim.
 
-:class:`StackedThreeNet` holds N agents' :class:`~drone_torchrl.modules.ThreeNetPolicy` weights as
+:class:`StackedThreeNet` holds N agents' :class:`~drone_torchrl.modules.policy.ThreeNetPolicy` weights as
 one ``[N, P]`` parameter (:attr:`~StackedThreeNet.flat`: each agent's weights and biases one after
 the other, in ``named_parameters()`` order), so an optimizer step, a clip, a finite check or a C++
 kernel call is one operation whatever N and the depth are. :attr:`~StackedThreeNet.params` views
@@ -31,7 +31,8 @@ def _linear_names(net: ThreeNetPolicy) -> list[str]:
 
 
 class StackedThreeNet(nn.Module):
-    """N :class:`ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., D]`` observations.
+    """N :class:`~.policy.ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., D]``
+    observations.
 
     ``nets`` give the architecture and each agent's initial weights (copied; the nets themselves
     are not used afterwards). ``flat``: every agent's initial weights ``[N, P]``, laid out as
@@ -54,6 +55,7 @@ class StackedThreeNet(nn.Module):
             flat = torch.stack(
                 [torch.cat([p.detach().reshape(-1) for p in net.parameters()]) for net in nets]
             )
+        #: Every agent's weights and biases ``[N, P]``, one agent per row, in ``nets[0]``'s parameter order.
         self.flat = nn.Parameter(flat)
         self.activation_name = activation
         self.activation = ACTIVATIONS[activation]()
@@ -84,6 +86,7 @@ class StackedThreeNet(nn.Module):
 
     @property
     def params(self) -> TensorDict:
+        """:attr:`flat` as named ``[N, ...]`` views, one per parameter of the single net."""
         return self.views(self.flat)
 
     def stacked(self, flat: torch.Tensor | None = None) -> Layers:
@@ -110,11 +113,12 @@ class StackedThreeNet(nn.Module):
         return self.stacked()
 
     def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every agent's action mean and std ``[N, ..., A]`` for its observations ``[N, ..., D]``."""
         return self.apply_stacked(self.stacked(), observation)
 
     # ------------------------------------------------------------------ one agent
     def agent_state_dict(self, agent: int) -> dict[str, torch.Tensor]:
-        """Agent ``agent``'s weights as a :class:`ThreeNetPolicy` state dict (copies)."""
+        """Agent ``agent``'s weights as a :class:`~.policy.ThreeNetPolicy` state dict (copies)."""
         params = self.params
         return {name: params.get(tuple(name.split(".")))[agent].detach().clone() for name in self.names}
 

@@ -82,6 +82,7 @@ class Distribution:
 
 
 def percentile_tails() -> tuple[float, float]:
+    """The lower and upper percentiles (0-100) of a central interval of confidence ``CONFIDENCE``."""
     return 100 * (1 - CONFIDENCE) / 2, 100 * (1 + CONFIDENCE) / 2
 
 
@@ -176,7 +177,7 @@ def plot_distributions(
 
 
 def paper_order(settings: Sequence[Setting]) -> tuple[str, list[Setting]]:
-    """The swept key and the settings in the paper's order; :class:`ReportError` if it is not a paper grid."""
+    """The swept key and the settings in the paper's order; :class:`~.runs.ReportError` if not a paper grid."""
     for key, order in PAPER_ORDER.items():
         values = []
         for s in settings:

@@ -4,7 +4,7 @@ A sweep whose settings differ in exactly two numeric keys, each with at least tw
 grid. Per cell, over its seeds:
 
 - the median final running-mean return;
-- the fraction of seeds that end in the zone: final running-mean return >= :data:`ZONE_SHARE` of
+- the fraction of seeds that end in the zone: final running-mean return >= :data:`~.stats.ZONE_SHARE` of
   the ceiling ``10 * max_steps`` (1500 of 3000: the drone spends about half the episode or more
   hovering in the target zone, a return that a crash, or a drone that only survives outside the
   zone (about 300), cannot reach);

@@ -186,7 +186,8 @@ def load_run(job_dir: Path) -> Run | None:
 
 
 def find_jobs(sweep_dir: Path) -> list[Path]:
-    """Job folders of a sweep (:func:`sweep_jobs`); a single job folder stands for itself."""
+    """Job folders of a sweep (:func:`~drone_torchrl.training.jobs.sweep_jobs`); a single job folder stands
+    for itself."""
     sweep_dir = Path(sweep_dir)
     jobs = sweep_jobs(sweep_dir)
     if not jobs and (sweep_dir / HYDRA_DIR).is_dir():

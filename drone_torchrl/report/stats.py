@@ -27,11 +27,11 @@ from drone_torchrl.report.runs import (
 )
 
 DEFAULT_RETURN_THRESHOLD = 2000.0
-# A seed "ends in the zone" when its final running-mean return is at least this share of the ceiling
-# 10 * max_steps (1500 of 3000: the drone spends about half the episode or more in the zone).
+#: A seed "ends in the zone" when its final running-mean return is at least this share of the ceiling
+#: 10 * max_steps (1500 of 3000: the drone spends about half the episode or more in the zone).
 ZONE_SHARE = 0.5
 STD_DDOF = 0  # population std over seeds: a single seed has zero spread rather than NaN
-# A running mean "reaches" a threshold within this relative tolerance (float sums of integers).
+#: A running mean "reaches" a threshold within this relative tolerance (float sums of integers).
 CROSSING_RTOL = 1e-9
 
 PD_EPISODES = 100
@@ -282,7 +282,7 @@ def _pd_return(env_json: str) -> float:
 
 
 def pd_reference(env_kwargs: dict[str, Any]) -> float:
-    """Mean return of the PD hover controller (:func:`evaluate_pd`, 100 episodes, seed 0).
+    """Mean return of the PD hover controller (:func:`~.evaluation.evaluate_pd`, 100 episodes, seed 0).
 
     Computed once per distinct env setting in this process (cached).
     """

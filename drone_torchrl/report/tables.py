@@ -36,6 +36,7 @@ SUMMARY_CSV = "summary.csv"
 SECONDS_PER_MINUTE = 60.0
 SECONDS_PER_HOUR = 3600.0
 
+#: The columns of ``summary.csv``, one row per setting of the sweep.
 SUMMARY_CSV_COLUMNS = (
     "setting",
     "seeds_finished",
@@ -217,6 +218,7 @@ def format_seeds(report: SweepReport, distributions: list) -> str:
 
 
 def format_paper_averaging_section(report: SweepReport) -> str:
+    """The markdown section of the sweep's settings averaged as the paper does, in the paper's order."""
     key, ordered = paper_order(report.settings)
     return "\n".join(
         [

@@ -11,7 +11,7 @@
   update count; under disturbances each episode's key too), so an agent's run does not depend on
   which other agents share the batch; the evaluator flies the kernel's deterministic rollout.
 
-An update call of ``k`` updates first calls :meth:`begin`, then :meth:`collect` once per update
+An update call of ``k`` updates first calls ``begin``, then ``collect`` once per update
 (the reference's; the fast engine's update does not ask for batches).
 """
 

@@ -91,7 +91,7 @@ def prepare(
     requested: Iterable[str] | None = None,
     validated: bool = False,
 ) -> Job:
-    """Validate ``cfg`` and find what the run continues from; raises :class:`ConfigError` (one line).
+    """Validate ``cfg`` and find what the run continues from; raises :class:`~.checks.ConfigError` (one line).
 
     ``run_dir`` defaults to the Hydra job's folder (with ``resume`` of a run's last checkpoint: that
     run's folder). A run continues from a checkpoint when ``resume`` names one, or when its own
@@ -102,7 +102,7 @@ def prepare(
     ``cfg`` has passed :func:`~drone_torchrl.config.validate` already (a sweeper checked it).
 
     The job's folder is then this process's (:func:`drone_torchrl.io.run_lock.hold`) until
-    :func:`train_jobs` is done with it; a folder another live process trains is refused
+    :func:`~.trainer.train_jobs` is done with it; a folder another live process trains is refused
     (:class:`~drone_torchrl.io.run_lock.RunFolderBusy`).
     """
     job = _prepare(cfg, run_dir, requested, validated)
@@ -192,7 +192,7 @@ def _on(key: str, keys: set[str]) -> bool:
 
 
 def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, path: Path) -> None:
-    """Raise :class:`ConfigError` naming every key the command line changes in a continued run.
+    """Raise :class:`~.checks.ConfigError` naming every key the command line changes in a continued run.
 
     Only keys set on the command line count (the config's defaults are not a request); a group
     choice such as ``experiment=...`` may set any key, so then every key is compared.
@@ -307,6 +307,7 @@ def sweep_summary(sweep_dir: Path) -> str:
 
 
 def failed_jobs(sweep_dir: Path) -> list[Path]:
+    """The job folders of the sweep in ``sweep_dir`` that recorded a failure (``FAILED.txt``)."""
     return [job for job in sweep_jobs(sweep_dir) if (job / FAILED_FILE).is_file()]
 
 

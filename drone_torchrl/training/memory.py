@@ -20,10 +20,10 @@ import sys
 # mallopt parameters (glibc's malloc.h).
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3
-# Allocations below this come from the reusable heap: larger than any tensor of a population's
-# update here (a 4096-agent loss tensor is 160 MB), small enough to leave mmap for true outliers.
+#: Allocations below this come from the reusable heap; larger than any tensor of a population's
+#: update here (a 4096-agent loss tensor is 160 MB), small enough to leave mmap for true outliers.
 KEEP_BELOW_BYTES = 1 << 30
-# The largest mmap threshold glibc documents (4 MiB x sizeof(long)); older versions refuse more.
+#: The largest mmap threshold glibc documents (4 MiB x sizeof(long)); older versions refuse more.
 DOCUMENTED_MAX_BYTES = 32 << 20
 
 

@@ -1,10 +1,10 @@
 """The memory a training config will allocate, estimated before any work, and the one-line refusal of a
-config that cannot fit (:func:`check`).
+config that cannot fit (:func:`~.memory_estimate.check`).
 
 A batch too large to allocate failed after start-up with an allocator traceback, and a huge
 ``model.hidden_sizes`` got the process killed with no message at all. :func:`estimate` derives the
-bytes from the shapes the code allocates; :func:`check` compares them with what this machine has
-free (``MemAvailable``, or the GPU's free memory on ``device=cuda``) and refuses the config naming
+bytes from the shapes the code allocates; :func:`~.memory_estimate.check` compares them with what this
+machine has free (``MemAvailable``, or the GPU's free memory on ``device=cuda``) and refuses the config naming
 what to lower in its largest part. ``agents`` is the number of runs one process trains together (a
 population): every part but the video is per agent.
 
@@ -69,7 +69,7 @@ from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM
 from drone_torchrl.envs.rendering import FRAME_HEIGHT, FRAME_WIDTH
 from drone_torchrl.kernels.ops import AGENTS_PER_CALL, AGENTS_PER_EVALUATION
 
-# The estimate is within this factor of what an update and an evaluation allocate, either way.
+#: The estimate is within this factor of what an update and an evaluation allocate, either way.
 STATED_FACTOR = 2.0
 FLOAT_BYTES = {"float32": 4, "float64": 8}
 INT64_BYTES = 8
@@ -167,6 +167,7 @@ def mlp_parameters(widths: Sequence[int]) -> int:
 
 
 def observation_size(cfg: Mapping[str, Any]) -> int:
+    """The entries of one observation: the state, plus the last commands if the disturbance observes them."""
     return STATE_DIM + ACTION_DIM * int(cfg["env"]["disturbance"]["observed_actions"])
 
 
@@ -330,7 +331,7 @@ def available_gpu(device: Any) -> tuple[int, str] | None:
 
 
 def check(memory: MemoryEstimate, device: Any) -> None:
-    """Raise a one-line :class:`ConfigError` when ``memory`` exceeds what is free: the GPU's for the
+    """Raise a one-line :class:`~.checks.ConfigError` when ``memory`` exceeds what is free: the GPU's for the
     parts on ``device=cuda``, the RAM for the rest (everything on the CPU)."""
     gpu = available_gpu(device)
     # (the parts' side: the host, the device, or None for all; the memory free there; its name)

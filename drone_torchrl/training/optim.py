@@ -8,7 +8,7 @@ arithmetic follows ``torch.optim.Adam`` / ``AdamW`` (``foreach=False``, ``amsgra
 the tests check agent by agent.
 
 Parameters, gradients and moments are ``[N, P]`` tensors (every agent's parameters in one row,
-see :class:`~drone_torchrl.modules.StackedThreeNet`), so a step is about twenty kernels whatever
+see :class:`~drone_torchrl.modules.stacked.StackedThreeNet`), so a step is about twenty kernels whatever
 N and the depth of the network. Gradient clipping is per agent too: :func:`clip_grad_norms`
 scales each agent's gradient by ``max_norm / (norm + 1e-6)`` when its norm exceeds ``max_norm``,
 as ``clip_grad_norm_`` does.

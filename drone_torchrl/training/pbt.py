@@ -41,7 +41,7 @@ NEVER = 2**62
 # The lineage's columns besides the searched keys.
 # (parent -1: a new configuration from fresh weights, successive halving's; seed: the agent's then.)
 LINEAGE_COLUMNS = ("update", "agent", "parent", "seed")
-# The parent of an agent restarted from fresh weights.
+#: The parent of an agent restarted from fresh weights.
 FRESH = -1
 
 
@@ -65,7 +65,7 @@ class PBTSettings:
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> PBTSettings:
-        """The settings from the launcher's parameters, each checked: :class:`ConfigError` (one
+        """The settings from the launcher's parameters, each checked: :class:`~.checks.ConfigError` (one
         line, naming ``hydra.launcher.<key>``) for the first that is not allowed."""
 
         def refuse(key: str, value: Any, allowed: str) -> ConfigError:
@@ -279,7 +279,7 @@ class ReplaySettings:
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> ReplaySettings:
-        """The settings from the launcher's parameters; :class:`ConfigError` (one line) for a run
+        """The settings from the launcher's parameters; :class:`~.checks.ConfigError` (one line) for a run
         that is not a finished PBT population run or an agent it does not have."""
         from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
 
@@ -398,7 +398,7 @@ class HalvingSettings:
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> HalvingSettings:
-        """The settings from the launcher's parameters; :class:`ConfigError` (one line) for the
+        """The settings from the launcher's parameters; :class:`~.checks.ConfigError` (one line) for the
         first that is not allowed."""
         rungs = params.get("rungs", cls.rungs)
         if (
@@ -515,5 +515,5 @@ class Halving(Search):
             self.started[agent] = update
 
 
-# What a population run's search is asked for: PBT, successive halving, or a replay of one agent's values.
+#: What a population run's search is asked for (PBT, successive halving, or a replay of one agent's values).
 SearchSettings = PBTSettings | HalvingSettings | ReplaySettings

@@ -3,15 +3,15 @@
 Everything an update reads and writes is one ``TensorDict`` with batch size ``[N]``
 (:attr:`Population.state`), so any slice of it is one agent's part:
 
-- ``"params"``: every agent's policy weights, ``[N, P]`` (the :class:`~drone_torchrl.modules.StackedThreeNet`'s
-  flat parameter: the same tensor);
+- ``"params"``: every agent's policy weights, ``[N, P]`` (the
+  :class:`~drone_torchrl.modules.stacked.StackedThreeNet`'s flat parameter: the same tensor);
 - Adam's ``"exp_avg"``, ``"exp_avg_sq"`` ``[N, P]`` and ``"adam_steps"`` ``[N]``, and the per-agent
   hyper-parameters ``"lr"``, ``"weight_decay"``, ``"gamma"``;
 - ``"seed"`` and ``"counter"`` (updates done): the key of the counter-based random numbers
   (:mod:`.rng`), so the RNG has no other state.
 
 Agent ``i`` starts from the weights a single run of its seed starts from (``torch.manual_seed(seed_i)``
-then a fresh :class:`~drone_torchrl.modules.ThreeNetPolicy`). Learning rates, weight decays,
+then a fresh :class:`~drone_torchrl.modules.policy.ThreeNetPolicy`). Learning rates, weight decays,
 discounts and seeds may differ between agents; everything else is the group's (see :func:`.jobs.group_key`).
 """
 
@@ -51,6 +51,7 @@ class Population:
             decoupled_weight_decay=decoupled,
             coupled_decay=not decoupled and bool(decays.any()),
         )
+        #: Everything an update reads and writes, batch size ``[N]`` (the module's description lists it).
         self.state = TensorDict(
             {
                 "params": params,

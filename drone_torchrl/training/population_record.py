@@ -83,6 +83,7 @@ def _pyarrow():
 
 
 def part_path(run_dir: Path, number: int) -> Path:
+    """The file of the ``number``-th part of the run's episodes (Parquet)."""
     return Path(run_dir) / EPISODES_DIR / f"part-{number:06d}.parquet"
 
 
@@ -256,7 +257,7 @@ class PopulationRecord:
     # ------------------------------------------------------------------ summaries
     @property
     def step(self) -> int:
-        """The logger's step: the episodes of the agent furthest on (the agents go in step)."""
+        """The logger's step, the episodes of the agent furthest on (the agents go in step)."""
         return max(agent.episodes_done for agent in self.agents)
 
     @property
@@ -399,6 +400,7 @@ def _agent_counters(checkpoint: dict[str, Any], i: int) -> dict[str, Any]:
 
 
 def is_population(checkpoint: dict[str, Any]) -> bool:
+    """Whether ``checkpoint`` is a population run's checkpoint."""
     return isinstance(checkpoint, dict) and checkpoint.get("kind") == POPULATION
 
 
@@ -438,7 +440,7 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
 
 def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str, Any]:
     """Agent ``agent`` of a population checkpoint as a run's checkpoint (actor, optimizer, counters,
-    its own config): what ``drone-eval``, ``drone-export`` and ``resume`` read. :class:`ConfigError`
+    its own config): what ``drone-eval``, ``drone-export`` and ``resume`` read. :class:`~.checks.ConfigError`
     (one line) for an agent the population does not have."""
     count = len(state["episodes_done"])
     if isinstance(agent, bool) or not isinstance(agent, int) or not 0 <= agent < count:

@@ -1,7 +1,7 @@
 """The on-policy algorithms' batches flown by the fast engine (``backend=fast``).
 
 What :class:`torchrl.collectors.Collector` gives :class:`~drone_torchrl.algorithms.ppo.OnPolicy`
-over a batched :class:`~drone_torchrl.envs.DroneEnv`: ``num_envs`` drones flown side by side for
+over a batched :class:`~drone_torchrl.envs.drone_env.DroneEnv`: ``num_envs`` drones flown side by side for
 ``steps_per_batch`` steps, each starting a new episode as soon as one ends (auto-reset) and
 carrying an unfinished one over to the next batch, as a ``[num_envs, steps_per_batch]`` tensordict
 with the env's keys and the actor's log-probability of each action. Here one call of the C++
@@ -38,7 +38,7 @@ class FusedSegments:
     """Batches of ``[num_envs, steps_per_batch]`` steps of the actor's net, as TorchRL's collector
     gives them (see the module's docstring). Iterate to get the batches.
 
-    ``net`` is the :class:`ThreeNetPolicy` inside ``actor`` (the learner trains it): its weights
+    ``net`` is the :class:`~.policy.ThreeNetPolicy` inside ``actor`` (the learner trains it): its weights
     are copied into the kernel's flat layout at every batch, and ``actor`` scores the actions."""
 
     def __init__(self, cfg: DictConfig, actor: ProbabilisticActor, net: ThreeNetPolicy) -> None:

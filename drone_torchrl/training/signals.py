@@ -22,6 +22,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+#: The signals that stop training cleanly, with a checkpoint (see the module's description).
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1)
 
 
@@ -40,6 +41,7 @@ class TrainingStopped(BaseException):
 
     @property
     def exit_code(self) -> int:
+        """The command's exit status, ``128 +`` the signal's number."""
         return 128 + self.signum
 
 
@@ -89,6 +91,7 @@ class Interrupted(BaseException):
 
     @property
     def exit_code(self) -> int:
+        """The command's exit status, ``128 +`` the signal's number."""
         return 128 + self.signum
 
 

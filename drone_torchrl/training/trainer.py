@@ -47,10 +47,10 @@ from drone_torchrl.training.population_record import PopulationRecord, is_popula
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
 
-# Updates per call of a learner's update at most: the loop copies a call's metrics and episodes to
-# the host at once, so this bounds what they hold in memory; results do not depend on it (a call
-# never runs past an evaluation, checkpoint or the end of a budget). It was the config key
-# updates_per_call.
+#: The most updates per call of a learner's update; the loop copies a call's metrics and episodes to
+#: the host at once, so this bounds what they hold in memory; results do not depend on it (a call
+#: never runs past an evaluation, checkpoint or the end of a budget). It was the config key
+#: updates_per_call.
 MAX_UPDATES_PER_CALL = 100
 
 log = logging.getLogger(__name__)
@@ -371,7 +371,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
     """Train one run; returns its final running-mean return (the metric sweepers optimise).
 
     ``run_dir`` defaults to the Hydra job's output folder; with ``resume`` of a run's last
-    checkpoint, that run's folder. Raises the error that stopped it (a :class:`ConfigError` for a
+    checkpoint, that run's folder. Raises the error that stopped it (a :class:`~.checks.ConfigError` for a
     bad config, with a one-line message).
     """
     (outcome,) = train_jobs([prepare(cfg, run_dir)])
@@ -393,12 +393,12 @@ def train_population(
     or their configs) as ONE population run in ``run_dir`` (:mod:`.population_record`), or
     continue it from its ``checkpoints/last.pt``.
 
-    Refused in one line (:class:`ConfigError`) before anything is written: a learner that does not
+    Refused in one line (:class:`~.checks.ConfigError`) before anything is written: a learner that does not
     train populations, a population larger than this machine's free memory, a folder another
     process holds, a checkpoint of other agents or hyper-parameters. ``before_training``: called
     once the folder is this process's (the launcher writes Hydra's record then); ``search``: train
     it with population-based training (:mod:`.pbt`). One outcome per agent; SIGTERM stops it with a
-    checkpoint (:class:`TrainingStopped`)."""
+    checkpoint (:class:`~.signals.TrainingStopped`)."""
     agents = AgentTable.of(agents)
     cfg = agents.cfg
     run_dir = Path(run_dir)

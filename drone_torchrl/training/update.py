@@ -12,7 +12,8 @@
 
 One update, for all agents at once: the fast engine flies and differentiates every active agent's
 episodes in one C++ call; the reference collector's rollout is scored by
-:class:`~drone_torchrl.objectives.ReinforceLoss` on the stored actions (each agent's loss is the mean over its own episodes, the total their sum, so each
+:class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` on the stored actions (each agent's loss is the
+mean over its own episodes, the total their sum, so each
 agent's gradient is exactly its own), one backward gives the ``[N, P]`` gradient, each agent clips
 its norm, an agent whose actions, loss or gradient are not finite does not step and drops out of
 the rest of the call, the others take their Adam step.
@@ -33,7 +34,7 @@ from drone_torchrl.objectives.reinforce import ReinforceLoss
 from drone_torchrl.training.optim import clip_grad_norms
 from drone_torchrl.training.population import Population
 
-# What the finite checks test, in their row order (then the weights after the step).
+#: What the finite checks test, in their row order (then the weights after the step).
 CHECKS = ("actions", "loss", "gradients", "weights")
 
 
@@ -80,7 +81,8 @@ class ReinforceUpdate:
     - ``backend=fast``: one ``drone_torchrl::reinforce`` call flies the episodes and returns every
       agent's loss and gradient (:class:`~drone_torchrl.kernels.modules.KernelReinforce`);
     - ``backend=reference``: the collector's ``EnvBase.rollout`` tensordicts, scored by
-      :class:`~drone_torchrl.objectives.ReinforceLoss` through the ``ProbabilisticActor``, and autograd.
+      :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` through the ``ProbabilisticActor``, and
+      autograd.
     """
 
     def __init__(self, cfg: DictConfig, population: Population, collector) -> None:

@@ -9,7 +9,7 @@ log file like the basic launcher, and then trains all compatible jobs (configs e
 at a time, PPO's or the reference's, trains them one after another). Each job still ends with its
 own CSV, TensorBoard run and checkpoints, so ``drone-report`` and ``resume`` work unchanged.
 
-It sets the folders up itself (:func:`_job_folder`) instead of through Hydra's ``run_job``: that
+It sets the folders up itself (``_job_folder()``) instead of through Hydra's ``run_job``: that
 one deep-copies the whole config (Hydra's part included) four times and re-configures logging per
 job, about 25 ms a job, a tenth of a second-long sweep of 256 jobs; here nothing runs inside a
 job until training, so it only needs the files.
@@ -145,7 +145,7 @@ def train_populations(
     process); one ``JobReturn`` per job. The fused launcher runs it on this machine, the
     ``slurm_population`` launcher inside each of its SLURM jobs. ``job_numbers``: each job's Hydra
     job number (``hydra.job.num``). ``validated``: the sweeper has validated every job's config on
-    this machine (then :func:`prepare` does not again)."""
+    this machine (then :func:`~drone_torchrl.training.jobs.prepare` does not again)."""
     from drone_torchrl.config import ConfigError
     from drone_torchrl.io import run_lock
     from drone_torchrl.training.jobs import prepare, record_failure

@@ -29,7 +29,7 @@ from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registe
 
 
 class PopulationSweeper(Sweeper):
-    """The basic sweeper with a cheaper :meth:`validate_batch_is_legal`.
+    """The basic sweeper with a cheaper ``validate_batch_is_legal``.
 
     It wraps rather than subclasses ``BasicSweeper``: Hydra's plugin scan re-executes its core
     plugin modules, and ``BasicSweeper.__init__`` calls ``super(BasicSweeper, self)`` with the class

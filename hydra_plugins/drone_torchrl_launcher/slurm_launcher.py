@@ -1,14 +1,13 @@
 """``hydra/launcher=slurm`` and ``slurm_population``: sweeps on a SLURM cluster, waiting for every job.
 
 - ``slurm``: one SLURM job per sweep job (Hydra's submitit launcher, see below).
-- ``slurm_population``: the sweep cut into populations of ``agents_per_job`` jobs, one SLURM job
-  each, which trains its jobs as one population with the fused engine (:func:`.fused_launcher.
-  train_populations`, as ``hydra/launcher=fused`` does on one machine; on the node's GPU with
-  ``device=cuda``). A 256-agent landscape is then 8 cluster jobs of 32 agents instead of 256 jobs of
-  a few seconds of work each. Every job folder is the one it would have alone. Jobs that share a
-  folder (``seed=0,0``, or values of keys left out of folder names such as ``threads``) go into the
-  same SLURM job, which trains that folder once (:func:`population_groups`): two SLURM jobs never
-  write one folder at the same time.
+- ``slurm_population``: the sweep cut into populations of ``agents_per_job`` jobs, one SLURM job each, which
+  trains its jobs as one population with the fused engine (:func:`~.fused_launcher.train_populations`, as
+  ``hydra/launcher=fused`` does on one machine; on the node's GPU with ``device=cuda``). A 256-agent landscape
+  is then 8 cluster jobs of 32 agents instead of 256 jobs of a few seconds of work each. Every job folder is
+  the one it would have alone. Jobs that share a folder (``seed=0,0``, or values of keys left out of folder
+  names such as ``threads``) go into the same SLURM job, which trains that folder once
+  (:func:`population_groups`): two SLURM jobs never write one folder at the same time.
 
 Hydra's submitit launcher ends with ``[job.results()[0] for job in jobs]``: the first job that did
 not finish (cancelled with ``scancel``, out of memory, a node failure) raises while the other jobs
