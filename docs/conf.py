@@ -62,6 +62,10 @@ nitpick_ignore_regex = [
     # The same classes unqualified: autodoc leaves a class's ``__init__`` annotations as written
     # (``from __future__ import annotations``), so they name the imports above by their short names.
     ("py:class", r"Path|DictConfig|ProbabilisticActor|ProbabilisticTensorDictSequential"),
+    # Hydra's submitit plug-in (the `submitit` extra), which the SLURM launchers extend, and the
+    # `Dict[str, ...]` it annotates with (typing's old alias).
+    (_ANY_ROLE, r"hydra_plugins\.hydra_submitit_launcher(\..*)?"),
+    ("py:class", r"Dict\[str"),
     # Private bases and nested classes that autodoc names (show-inheritance, annotations) but that are
     # not documented, being private.
     ("py:class", r"hydra_plugins\.drone_torchrl_launcher\.population_launcher\._SearchLauncher"),
