@@ -59,6 +59,8 @@ def test_the_marked_blocks_are_where_the_pages_promise_them():
     assert {block.values[0].split("#")[0] for block in _run_blocks()} >= PAGES_WITH_RUN_BLOCKS
 
 
+# Real commands, a minute in all on 2 cores: in the slow stage with the other real-command checks.
+@pytest.mark.slow
 @pytest.mark.parametrize(("where", "language", "code"), _run_blocks())
 def test_a_marked_block_runs(tmp_path, where, language, code):
     env = {

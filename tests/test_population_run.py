@@ -194,6 +194,7 @@ def test_a_population_too_big_for_memory_is_refused_with_the_estimate(tmp_path, 
     assert not (tmp_path / "pop").exists()
 
 
+@pytest.mark.slow  # a real command (13 s)
 def test_a_sweep_whose_population_is_refused_for_memory_exits_non_zero(tmp_path):
     """The same refusal through drone-train -m hydra/launcher=population: each job fits (the sweeper's
     check), the population of 3 does not. The population has no folder for the sweep's summary to
