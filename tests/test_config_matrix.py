@@ -117,6 +117,7 @@ def test_the_table_covers_every_combination():
     assert set(DISTURBANCES) == set(_options("disturbance"))
 
 
+@pytest.mark.slow  # 300 compositions, about 50 s on 2 cores: with the matrix's training below
 def test_every_combination_is_composed_and_validated_as_the_table_says():
     """All of them (300 with 5 presets, 5 algorithms, 4 loggers, 3 disturbances), each in at most
     SECONDS_PER_COMBINATION on average."""
