@@ -11,7 +11,7 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import algorithms, loggers, migrations, schema
@@ -260,12 +260,15 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
 
     try:
         resolved = _resolved(cfg)
-        given = leaves(resolved)
+        leaves(resolved)
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
         key = getattr(err, "full_key", None) or "a config value"
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"{key} cannot be read: {first}") from None
     known = schema_keys(name, **_plugins(resolved, name))
+    for section in complete(resolved, name):  # set to something else than its keys: null, a number...
+        _check_section(section, _get(resolved, section), known, group_names())
+    given = leaves(resolved)
     missing = [k for k in known if k not in given and not any(g.startswith(f"{k}.") for g in given)]
     if missing:
         raise ConfigError(f"{missing[0]} is missing (deleted with ~?); every config key needs a value")
@@ -274,6 +277,50 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
         if key not in known and not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
             raise _unknown(key, known)
     return resolved
+
+
+@functools.cache
+def _section_defaults(name: str) -> dict[str, dict[str, Any]]:
+    """``{"env.disturbance": {"wind": 0.0, ...}}``: each open section of ``conf/<name>.yaml``
+    (:func:`drone_torchrl.schema.open_section`) with the ``added`` value of each of its keys."""
+    keys = schema_keys(name)
+    return {
+        section: {k.removeprefix(f"{section}."): r.added for k, r in keys.items() if k.startswith(f"{section}.")}
+        for section in schema.open_sections(schema.primary_schema(name))
+    }
+
+
+def _get(cfg: Mapping, key: str) -> Any:
+    """The value at dotted ``key`` of nested mappings, or None where a part is absent."""
+    for part in key.split("."):
+        cfg = cfg.get(part) if isinstance(cfg, Mapping) else None
+    return cfg
+
+
+def complete(cfg: DictConfig | dict, name: str = "config") -> list[str]:
+    """Fill in place the keys an open section of ``cfg`` leaves out (``env.disturbance.*``) with their
+    ``added`` values: a composed config lists them only where they differ from the nominal drone, the
+    code and a run's saved config see them all. Returns the open sections that hold something other
+    than a mapping (left as they are, for :func:`check_keys` to refuse)."""
+    refused = []
+    for section, defaults in _section_defaults(name).items():
+        parent_key, _, last = section.rpartition(".")
+        parent = _get(cfg, parent_key)
+        if not isinstance(parent, Mapping) or last not in parent:
+            continue
+        given = parent[last]
+        if not isinstance(given, Mapping):
+            refused.append(section)
+            continue
+        if set(defaults) <= set(given):
+            continue
+        filled = {**{k: given.get(k, v) for k, v in defaults.items()}, **given}
+        if isinstance(parent, DictConfig):
+            with open_dict(parent):
+                parent[last] = filled
+        else:
+            parent[last] = filled
+    return refused
 
 
 def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
@@ -636,6 +683,8 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     kwargs = {name: env[name] if name in env else ENV_ADDED[name] for name in ENV_ARGS}
     if isinstance(kwargs["disturbance"], DictConfig):  # the env takes a plain mapping
         kwargs["disturbance"] = OmegaConf.to_container(kwargs["disturbance"])
+    if isinstance(kwargs["disturbance"], Mapping):  # the keys an open section leaves out: nominal
+        kwargs["disturbance"] = {**_section_defaults("config")["env.disturbance"], **kwargs["disturbance"]}
     return kwargs
 
 

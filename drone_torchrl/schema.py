@@ -202,6 +202,18 @@ def plugin_group(key: str, added: str) -> Any:
     return Rule(plugin_key=key, added=added).field()
 
 
+# The metadata key of an open section's schema (:func:`open_section`).
+SECTION = "drone_torchrl_section"
+
+
+def open_section(node: type) -> Any:
+    """A section whose keys (those of dataclass ``node``) a config may leave out, each then its rule's
+    ``added`` value: an empty mapping by default, so a default run's config does not list values that
+    only restate the nominal case, and open (not struct) in Hydra's ConfigStore (:func:`_store`), so
+    ``env.disturbance.wind=0.3`` sets one of its keys without ``+``."""
+    return field(default_factory=dict, metadata={SECTION: node})
+
+
 # ------------------------------------------------------------------------- the shared groups
 # env.* keys that are not DroneEnv arguments: the TorchRL collector's worker processes.
 ENV_NON_ARGS = ("num_workers",)
@@ -214,7 +226,8 @@ _NOMINAL = Disturbance()
 class DisturbanceConf:
     """``env.disturbance.*``: wind, gusts, mass and motor mismatch, lag, delay, observation noise
     (drone_torchrl/envs/disturbances.py says each one's physics; presets: ``disturbance=none|mild|strong``).
-    They came after the first runs: a config without them flew the nominal drone."""
+    They came after the first runs: a config without them flew the nominal drone. An
+    :func:`open_section`: ``disturbance=none`` leaves it empty, and a key it lacks is its ``added`` value."""
 
     wind: Any = a_number(low=0, added=_NOMINAL.wind)
     gust: Any = a_number(low=0, added=_NOMINAL.gust)
@@ -251,7 +264,7 @@ class EnvConf:
     zone_z_max: Any = free(added=ZONE_Z_MAX)
     bounds: Any = one_of(BOUNDS_MODES, added="inclusive")
     dtype: Any = one_of(tuple(DTYPES), added="float32")
-    disturbance: DisturbanceConf = field(default_factory=DisturbanceConf)
+    disturbance: Any = open_section(DisturbanceConf)
     num_workers: Any = an_integer(low=0)
 
 
@@ -386,7 +399,19 @@ PRIMARY = {"config": TrainConfig, "eval": EvalConfig, "export": ExportConfig}
 
 
 def _store(name: str, node: type) -> None:
-    ConfigStore.instance().store(name=name, node=node, provider="drone_torchrl")
+    stored = OmegaConf.structured(node)
+    for key in open_sections(node):  # Hydra keeps a node's own struct flag through composition
+        OmegaConf.set_struct(OmegaConf.select(stored, key), False)
+    ConfigStore.instance().store(name=name, node=stored, provider="drone_torchrl")
+
+
+def open_sections(node: type, prefix: str = "") -> Iterator[str]:
+    """The keys of schema ``node``'s :func:`open_section` fields (``env.disturbance``), nested ones too."""
+    for f in dataclasses.fields(node):
+        if f.metadata.get(SECTION) is not None:
+            yield f"{prefix}{f.name}"
+        elif dataclasses.is_dataclass(f.default_factory):
+            yield from open_sections(f.default_factory, f"{prefix}{f.name}.")
 
 
 def store_plugin(group: str, plugin: str, node: type) -> None:
@@ -453,6 +478,9 @@ def fields(node: type, plugins: Mapping[str, type | None], prefix: str = "") -> 
         key = f"{prefix}{f.name}"
         if dataclasses.is_dataclass(f.default_factory):  # a section: env, model, checkpoint...
             yield from fields(f.default_factory, plugins, f"{key}.")
+            continue
+        if (section := f.metadata.get(SECTION)) is not None:  # env.disturbance
+            yield from fields(section, plugins, f"{key}.")
             continue
         rule = f.metadata.get(RULE, Rule())
         if rule.plugin_key:

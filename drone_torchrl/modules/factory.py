@@ -10,7 +10,8 @@ from omegaconf import DictConfig
 from torch import nn
 from torchrl.modules import ProbabilisticActor, ValueOperator
 
-from drone_torchrl.envs.dynamics import ACTION_DIM, DTYPES, HOVER_THRUST, STATE_DIM
+from drone_torchrl.envs import disturbances
+from drone_torchrl.envs.dynamics import DTYPES, HOVER_THRUST
 from drone_torchrl.modules.policy import ThreeNetPolicy, actor_from_net, init_exploration
 from drone_torchrl.modules.stacked import StackedThreeNet
 from drone_torchrl.modules.value import make_critic, make_q_value
@@ -33,8 +34,7 @@ def model_dtype(cfg: DictConfig) -> torch.dtype:
 def observation_dim(cfg: DictConfig) -> int:
     """Entries of the run's observations: the 6 state entries and ``env.disturbance.observed_actions``
     past commands (2 each)."""
-    disturbance = cfg.env.get("disturbance")
-    return STATE_DIM + ACTION_DIM * (0 if disturbance is None else disturbance.observed_actions)
+    return disturbances.make(cfg.env.get("disturbance")).observation_dim
 
 
 def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:

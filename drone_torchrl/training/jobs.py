@@ -38,6 +38,7 @@ from drone_torchrl.config import (
     ConfigError,
     check_networks,
     command_line_keys,
+    complete,
     group_names,
     leaves,
     per_agent_keys,
@@ -125,6 +126,7 @@ def _prepare(
     validated: bool,
 ) -> Job:
     migrations.apply_legacy(cfg)  # old keys from the command line, as today's
+    complete(cfg)  # env.disturbance's keys left out, nominal: the run and its saved config see them all
     run_dir = Path(run_dir) if run_dir is not None else None
     keys = command_line_keys() if requested is None else {k.split("=", 1)[0].lstrip("+~") for k in requested}
     if keys is not None:  # an old key that picked the implementation asks for a backend

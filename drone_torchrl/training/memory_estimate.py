@@ -65,6 +65,7 @@ from itertools import pairwise
 from typing import Any
 
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM
 from drone_torchrl.envs.rendering import FRAME_HEIGHT, FRAME_WIDTH
 from drone_torchrl.kernels.ops import AGENTS_PER_CALL, AGENTS_PER_EVALUATION
@@ -168,7 +169,7 @@ def mlp_parameters(widths: Sequence[int]) -> int:
 
 def observation_size(cfg: Mapping[str, Any]) -> int:
     """The entries of one observation: the state, plus the last commands if the disturbance observes them."""
-    return STATE_DIM + ACTION_DIM * int(cfg["env"]["disturbance"]["observed_actions"])
+    return disturbances.make(cfg["env"].get("disturbance")).observation_dim
 
 
 def policy_parameters(cfg: Mapping[str, Any]) -> int:
