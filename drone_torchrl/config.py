@@ -427,6 +427,8 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             for value in values:
                 _check_section(key, value, known, groups)
             continue
+        if key in migrations.FIXED:  # on drone-train's command line it was passed on as +legacy.<key>
+            raise ConfigError(migrations.fixed_refusal(key, values[0]))
         if key not in known:
             raise _unknown(key, known)
 

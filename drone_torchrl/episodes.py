@@ -18,6 +18,9 @@ def _in_zone(reward: torch.Tensor) -> torch.Tensor:
     return reward == REWARD_IN_ZONE
 
 
+#: Episodes of the running means a run logs and ends with (its final metrics): the paper's smoothing window.
+RUNNING_MEAN_WINDOW = 100
+
 #: What a run record books of each finished episode (one episodes.csv column each).
 EPISODE_KEYS = ("return", "length", "time_in_zone", "negative_thrust_fraction", "termination_cause")
 

@@ -9,12 +9,20 @@ where ``engine=fused`` or ``algo.collector=fused`` ran, ``reference`` (TorchRL) 
 did. ``compile``, ``steps_per_call`` and ``updates_per_call`` pick nothing any more (the fast engine
 is compiled C++, flies whole episodes per call, and the loop calls it as often as nothing falls
 due), so they are dropped.
+
+Keys every run had one value of left the config (:data:`FIXED`): ``metrics.running_mean_window``
+(the paper's 100, now :data:`drone_torchrl.episodes.RUNNING_MEAN_WINDOW`) and ``logger.video_fps``
+(50, the env's ``1 / env.dt``, from which videos now take their rate). A saved config or a command
+line with that value reads as today's; another value is refused in one line: the run would not be
+what it was.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from typing import Any
+
+from drone_torchrl.checks import ConfigError
 
 FAST, REFERENCE = "fast", "reference"
 BACKENDS = (REFERENCE, FAST)
@@ -25,6 +33,42 @@ REPLACED = ("engine", "algo.collector")
 DROPPED = ("compile", "steps_per_call", "updates_per_call")
 # A config saved before ``engine`` existed ran TorchRL's loop.
 ORIGINAL_ENGINE = "torchrl"
+#: Keys removed from the config, each with the one value every run had and what took its place.
+FIXED: dict[str, tuple[Any, str]] = {
+    "metrics.running_mean_window": (100, "the paper's window, drone_torchrl.episodes.RUNNING_MEAN_WINDOW"),
+    "logger.video_fps": (50, "videos play in real time, 1 / env.dt frames a second"),
+}
+
+
+def _is_fixed_value(key: str, value: Any) -> bool:
+    """Whether ``value`` (a config's, or a command line's text) is the one value :data:`FIXED` ``key`` had."""
+    try:
+        return not isinstance(value, bool) and float(value) == FIXED[key][0]
+    except (TypeError, ValueError):
+        return False
+
+
+def fixed_refusal(key: str, value: Any) -> str:
+    """The one line refusing ``key=value`` of a key :data:`FIXED` removed."""
+    fixed, replaced = FIXED[key]
+    return f"{key}={value} is not allowed: the key was removed and every run uses {fixed} ({replaced}); drop it"
+
+
+def _pop(config: dict[str, Any], key: str) -> Any:
+    """Remove dotted ``key`` from nested dicts (and a section it leaves empty); its value, or None."""
+    *sections, leaf = key.split(".")
+    parents, node = [], config
+    for part in sections:
+        if not isinstance(node.get(part), Mapping):
+            return None
+        parents.append((node, part))
+        node[part] = dict(node[part])  # a copy: the caller's config is left as it is
+        node = node[part]
+    value = node.pop(leaf, None)
+    for parent, part in reversed(parents):
+        if not parent[part]:
+            del parent[part]
+    return value
 
 
 def backend_of(engine: Any = None, collector: Any = None) -> str:
@@ -37,8 +81,13 @@ def backend_of(engine: Any = None, collector: Any = None) -> str:
 
 def migrate_config(config: Mapping[str, Any]) -> dict[str, Any]:
     """A saved config (plain nested dicts) in today's keys: ``backend`` from ``engine`` and
-    ``algo.collector``, the dropped keys removed. A config that has ``backend`` is returned as it is."""
+    ``algo.collector``, the dropped keys removed, the :data:`FIXED` ones too where they hold the value
+    every run had (another raises :class:`~drone_torchrl.checks.ConfigError`)."""
     out = dict(config)
+    for key in FIXED:
+        value = _pop(out, key)
+        if value is not None and not _is_fixed_value(key, value):
+            raise ConfigError(f"a saved config's {fixed_refusal(key, value)}: it cannot be continued as it was trained")
     algo = dict(out.get("algo") or {})
     collector = algo.pop("collector", None)
     engine = out.pop("engine", None)
@@ -129,9 +178,13 @@ def migrate_override(key: str, value: str) -> tuple[str | None, str]:
             f"note: {key}={value} is ignored: it tuned the fused engine's PyTorch path, which backend=fast "
             "(compiled C++, whole episodes per call) replaced"
         )
+    if key in FIXED:
+        if not _is_fixed_value(key, value):
+            raise ValueError(fixed_refusal(key, value))
+        return None, f"note: {key}={value} is ignored: the key was removed, every run uses it ({FIXED[key][1]})"
     raise KeyError(key)
 
 
 def is_old_key(key: str) -> bool:
     """Whether ``key`` is one of the keys :func:`migrate_override` reads."""
-    return key in REPLACED or key in DROPPED
+    return key in REPLACED or key in DROPPED or key in FIXED

@@ -296,11 +296,6 @@ class PeriodicEvalConf:
     video: Any = a_flag(on_resume=IF_SET)
 
 
-@dataclass
-class MetricsConf:
-    running_mean_window: Any = an_integer(low=1)
-
-
 # ---------------------------------------------------------------------- the primary configs
 # Field order is the composed config's key order (what --cfg job prints and config.yaml saves):
 # the order of conf/config.yaml's defaults list, then its own keys.
@@ -325,7 +320,6 @@ class TrainConfig:
     sweep_name: Any = free(on_resume=IF_SET)
     checkpoint: CheckpointConf = field(default_factory=CheckpointConf)
     eval: PeriodicEvalConf = field(default_factory=PeriodicEvalConf)
-    metrics: MetricsConf = field(default_factory=MetricsConf)
 
 
 @dataclass
@@ -385,7 +379,6 @@ class TensorBoardConf:
 
     backend: Any = free()
     exp_name: Any = free()
-    video_fps: Any = an_integer(low=1, on_resume=IF_SET)
     video_stride: Any = an_integer(low=1, on_resume=IF_SET, added=1)
     every_updates: Any = an_integer(low=1, on_resume=IF_SET, added=1)
     flush_every_s: Any = a_number(low=0, on_resume=IF_SET, added=10)

@@ -288,14 +288,14 @@ def test_slurm_population_refuses_a_bad_agents_per_job():
 
 
 def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
-    """hydra/launcher=population: 2 lr x 2 seeds x 2 running-mean windows = 8 jobs; the window is not a
+    """hydra/launcher=population: 2 lr x 2 seeds x 2 evaluation seeds = 8 jobs; eval.seed is not a
     per-agent key, so two population runs of 4 agents each, each one folder with one ``.hydra/``,
     agents.parquet, the episodes' parts and one checkpoint; re-running finds both finished."""
     pytest.importorskip("pyarrow")
     from drone_torchrl.training.population_record import read_agents, read_episodes
 
     sweep_dir = tmp_path / "sweep"
-    grid = [*GRID, "metrics.running_mean_window=5,10"]
+    grid = [*GRID, "eval.seed=5,10"]
     out = _multirun(sweep_dir, "hydra/launcher=population", *grid, cwd=tmp_path)
     folders = sorted(p for p in sweep_dir.iterdir() if p.is_dir())
     assert [p.name for p in folders] == ["population_0", "population_1"], out

@@ -87,7 +87,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         "--window",
         type=_positive_int,
         default=None,
-        help="running-mean window in episodes (default: metrics.running_mean_window of conf/config.yaml)",
+        help="running-mean window in episodes (default: a run's, the paper's 100)",
     )
     parser.add_argument(
         "--return-threshold",

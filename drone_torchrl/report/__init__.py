@@ -15,7 +15,7 @@ Method:
    only the overrides that differ between settings (``algo.lr=0.001``); a single setting is
    labelled ``all``.
 2. **Curves.** Per run, the running mean over ``window`` episodes (default
-   ``metrics.running_mean_window`` of ``conf/config.yaml``, the paper's 100) of the episode length,
+   :data:`drone_torchrl.episodes.RUNNING_MEAN_WINDOW`, the paper's 100) of the episode length,
    return and negative-thrust fraction. The window is *trailing*, and over the first
    ``window - 1`` episodes it averages the episodes available so far (pandas'
    ``rolling(window, min_periods=1)``), which is also what ``drone-train`` logs as its running

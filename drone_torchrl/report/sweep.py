@@ -7,9 +7,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
-from drone_torchrl.config import config_dir
+from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.optimum import Optimum
 from drone_torchrl.report.runs import LABEL_SEPARATOR, Run, Setting, group_runs, load_runs
 from drone_torchrl.report.stats import (
@@ -22,7 +20,6 @@ from drone_torchrl.report.stats import (
     verdict,
 )
 
-DEFAULTS_FILE = "config.yaml"  # the package's primary Hydra config, in conf/
 PD_LABEL = "PD controller"
 OPTIMUM_LABEL = "optimum"
 
@@ -54,8 +51,8 @@ class SweepReport:
 
 
 def default_window() -> int:
-    """``metrics.running_mean_window`` of the package's ``conf/config.yaml`` (the paper's 100)."""
-    return int(OmegaConf.load(Path(config_dir()) / DEFAULTS_FILE).metrics.running_mean_window)
+    """The running-mean window of a run (:data:`~drone_torchrl.episodes.RUNNING_MEAN_WINDOW`, the paper's 100)."""
+    return RUNNING_MEAN_WINDOW
 
 
 def build_report(

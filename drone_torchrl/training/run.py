@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.dynamics import TerminationCause
-from drone_torchrl.episodes import EPISODE_KEYS
+from drone_torchrl.episodes import EPISODE_KEYS, RUNNING_MEAN_WINDOW
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, FORMAT_VERSION, LAST, save_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
@@ -74,7 +74,7 @@ class Schedule:
             every_updates=int(cfg.logger.every_updates),
             checkpoint_every=int(cfg.checkpoint.every_episodes),
             eval_every=int(cfg.eval.every_episodes),
-            window=int(cfg.metrics.running_mean_window),
+            window=RUNNING_MEAN_WINDOW,
         )
 
 
@@ -317,7 +317,7 @@ class RunRecord(AgentBook):
         cfg = self.cfg
         stride = cfg.logger.video_stride
         frames = record_video(actor, env_kwargs(cfg), cfg.eval.seed, cfg.device, frame_stride=stride)
-        fps = cfg.logger.video_fps / stride
+        fps = 1 / (cfg.env.dt * stride)
         path = save_mp4(frames, self.run_dir / VIDEO_DIR / f"episode_{step:06d}.mp4", fps)
         self.logger.log_frames("eval/video", frames[:, ::stride, ::stride], step=step, fps=fps)
         return path

@@ -33,6 +33,7 @@ from drone_torchrl.config import (
     per_agent_keys,
     resume_rule,
 )
+from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
@@ -361,7 +362,7 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
 def _report(job: Job, final: dict[str, float]) -> None:
     cfg = job.cfg
     print(
-        f"{job.run_dir}: {cfg.algo.episodes} episodes, running-mean({cfg.metrics.running_mean_window}) "
+        f"{job.run_dir}: {cfg.algo.episodes} episodes, running-mean({RUNNING_MEAN_WINDOW}) "
         f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
         f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s"
     )
