@@ -370,6 +370,10 @@ TRAIN = [
     (["logger.video_stride=0"], "logger.video_stride"),
     (["logger.every_updates=0"], "logger.every_updates"),
     (["logger.flush_every_s=-1"], "logger.flush_every_s"),
+    # Keys removed with the one value every run had (drone_torchrl.migrations.FIXED): another is refused
+    (["metrics.running_mean_window=50"], "metrics.running_mean_window"),
+    (["logger.video_fps=30"], "logger.video_fps"),
+    (["metrics.running_mean_window=5,10"], "metrics.running_mean_window"),  # a sweep of it
     (["logger.exp_name=null"], "logger.exp_name"),  # was a traceback
     (["logger.exp_name=../../outside"], "logger.exp_name"),  # wrote outside the run folder
     (["logger.exp_name=/tmp/abs"], "logger.exp_name"),
@@ -889,6 +893,7 @@ E2E = [
     # Issue 34, the config side.
     ("drone-train", ["experiment=hover_optimal", "algo=reinforce"], "experiment=bounded algo=reinforce"),
     ("drone-train", ["env.disturbance=null"], "env.disturbance"),
+    ("drone-train", ["metrics.running_mean_window=50"], "metrics.running_mean_window"),  # a removed key
     ("drone-train", ["hydra/launcher=null"], "hydra/launcher"),  # was a traceback
     ("drone-train", ["env.max_thrust=1e300"], "env.max_thrust"),
     ("drone-train", ["algo.episodes=99999999999999999999"], "algo.episodes"),
