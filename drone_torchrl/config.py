@@ -807,6 +807,7 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             cfg.model.activation,
             cfg.env.dtype,
             disturbances.make(env_kwargs(cfg)["disturbance"]),
+            cfg.algo.name,
         )
         if reason is not None:
             raise ConfigError(f"backend=fast cannot take {reason}; backend=reference takes every option")
