@@ -47,8 +47,11 @@ _state: dict[str, object] = {}
 
 
 def cache_dir() -> Path:
-    """Where the compiled kernels are kept: the folder ``$DRONE_TORCHRL_CACHE`` names, else the user's
-    cache folder."""
+    """The folder that keeps the compiled kernels.
+
+    Where the compiled kernels are kept: the folder ``$DRONE_TORCHRL_CACHE`` names, else the user's
+    cache folder.
+    """
     if os.environ.get(CACHE_ENV):
         return Path(os.environ[CACHE_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
@@ -99,8 +102,11 @@ def _build(compiler: str, target: Path, precision: tuple[str, ...]) -> str | Non
 
 
 def library(double: bool = False) -> ctypes.CDLL | None:
-    """The loaded kernels for float32 (``double``: float64) tensors, built on first use, or None
-    where they cannot be built."""
+    """The loaded kernels for float32 (or float64) tensors, built on first use; None if they cannot be.
+
+    The loaded kernels for float32 (``double``: float64) tensors, built on first use, or None
+    where they cannot be built.
+    """
     name = "float64" if double else "float32"
     precision = (f"-DDK_DOUBLE={int(double)}",)
     with _lock:
@@ -143,8 +149,11 @@ def unavailable_reason() -> str | None:
 
 
 def scalar_check() -> str | None:
-    """Compile the kernels' single-source functions for scalar lanes (``-DDK_SCALAR_CHECK``): None,
-    or the compiler's first complaint (a vector-only idiom crept into a ``DK_HD`` function)."""
+    """Compile the kernels' single-source functions for scalar lanes; None or the first complaint.
+
+    Compile the kernels' single-source functions for scalar lanes (``-DDK_SCALAR_CHECK``): None,
+    or the compiler's first complaint (a vector-only idiom crept into a ``DK_HD`` function).
+    """
     compiler = _compiler()
     if compiler is None:
         return "no C++ compiler found (set CXX, or install g++ or clang++)"

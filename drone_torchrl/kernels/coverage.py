@@ -24,8 +24,11 @@ def fast_refusal(
     dtype: str,
     disturbance: disturbances.Disturbance,
 ) -> str | None:
-    """Why ``backend=fast`` cannot train this run (``"<key>=<value> (<why>)"``), or None where it can.
-    Builds the kernels on first use (a few seconds once per machine, then cached)."""
+    """Why ``backend=fast`` cannot train this run, or None where it can.
+
+    Why ``backend=fast`` cannot train this run (``"<key>=<value> (<why>)"``), or None where it can.
+    Builds the kernels on first use (a few seconds once per machine, then cached).
+    """
     if torch.device(device).type != "cpu":
         return f"device={device!r} (its kernels run on the CPU; the CUDA build is not there yet)"
     hidden = list(hidden_sizes)
