@@ -104,8 +104,7 @@ def check_launcher(option: str) -> None:
 def check_composed(overrides: list[str]) -> None:
     """The config ``--cfg job`` would print, composed and validated.
 
-    The config ``--cfg job`` would print, composed and validated: a bad value is refused as it
-    would be when training, not printed as if it were fine.
+    A bad value is refused as it would be when training, not printed as if it were fine.
     """
     from hydra import compose, initialize_config_dir
 
@@ -135,8 +134,7 @@ def sweep_root_above(folder: Path) -> Path | None:
 def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]:
     """Claim the folder a single run will write before Hydra writes into it.
 
-    Claim the folder a single run will write before Hydra writes into it; returns the folder
-    claimed (or None) and overrides to add.
+    Returns the folder claimed (or None) and overrides to add.
 
     - ``hydra.run.dir=<folder>``: refused inside a sweep folder (unless it is one of its jobs, which
       then continues); claimed; if it already holds a run, Hydra is told not to rewrite that run's

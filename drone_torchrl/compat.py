@@ -57,8 +57,7 @@ def _release(version: str) -> tuple[int, ...]:
 def check_versions(checked: dict[str, tuple[str, str]] = CHECKED) -> None:
     """Raise ``RuntimeError`` (one line) if an installed package is outside the range checked here.
 
-    Raise ``RuntimeError`` (one line) if an installed package is outside the range checked here;
-    packages not installed (an extra) are skipped.
+    Packages not installed (an extra) are skipped.
     """
     for name, (low, high) in checked.items():
         try:
@@ -75,8 +74,8 @@ def check_versions(checked: dict[str, tuple[str, str]] = CHECKED) -> None:
 def basic_sweeper_class() -> type:
     """Hydra's ``BasicSweeper``, imported afresh.
 
-    Hydra's ``BasicSweeper``, imported afresh: Hydra's plugin scan re-executes its core plugin
-    modules, so the class must be looked up when it is used, not kept from an earlier import.
+    Hydra's plugin scan re-executes its core plugin modules, so the class must be looked up when it is used,
+    not kept from an earlier import.
     """
     return importlib.import_module("hydra._internal.core_plugins.basic_sweeper").BasicSweeper
 

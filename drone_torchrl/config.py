@@ -702,10 +702,9 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
 def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
     """The checkpoint that config value ``key`` (``resume``, ``checkpoint``) names.
 
-    The checkpoint that config value ``key`` (``resume``, ``checkpoint``) names: a checkpoint file or
-    a run folder. Raises :class:`~.checks.ConfigError` naming the key for anything that is not a readable one.
-    A population run's checkpoint comes back as it is (``population_record.open_agent`` reads one
-    agent of it).
+    A checkpoint file or a run folder. Raises :class:`~.checks.ConfigError` naming the key for anything that
+    is not a readable one. A population run's checkpoint comes back as it is (``population_record.open_agent``
+    reads one agent of it).
     """
     from drone_torchrl.io.checkpoint import POPULATION, CheckpointError, load_checkpoint, resolve_checkpoint
 
@@ -798,9 +797,8 @@ def _env_error(device: Any, kwargs: tuple[tuple[str, type, Any], ...]) -> str | 
 class _Plain(dict):
     """A resolved config as nested dicts with attribute access (``cfg.algo.lr``), for validation.
 
-    A resolved config as nested dicts with attribute access (``cfg.algo.lr``), for validation:
-    it reads about 150 values, ~7 us each through OmegaConf, and a population validates every job.
-    (A key named like a dict method, ``items`` say, must be read as ``cfg["items"]``.)
+    It reads about 150 values, ~7 us each through OmegaConf, and a population validates every job. (A key
+    named like a dict method, ``items`` say, must be read as ``cfg["items"]``.)
     """
 
     def __getattr__(self, name: str) -> Any:
@@ -861,9 +859,8 @@ class AgentValueError(ConfigError):
 def validate(cfg: DictConfig, training: bool = True) -> None:
     """Raise :class:`~.checks.ConfigError` for the first value that is not allowed.
 
-    Raise :class:`~.checks.ConfigError` for the first value that is not allowed. ``training``: the config
-    is about to train here, so its logger's extra must be installed and its memory must fit
-    (``drone-eval`` reads a checkpoint's config for its values only).
+    ``training``: the config is about to train here, so its logger's extra must be installed and its memory
+    must fit (``drone-eval`` reads a checkpoint's config for its values only).
     """
     cfg = _plain(check_keys(cfg))  # also refuses ??? and interpolations to nothing, in one line
     check_device(cfg.device)

@@ -1,7 +1,6 @@
 """Settings earlier versions had, and what each means now.
 
-Settings earlier versions had, and what each means now: the one place saved configs, checkpoints and
-command lines are read through.
+The one place saved configs, checkpoints and command lines are read through.
 
 Until ``backend`` existed, three keys picked an implementation: ``engine`` (``fused`` or ``torchrl``),
 ``compile`` (the fused engine's C++ kernels or ``torch.compile``, else eager PyTorch) and PPO/A2C's
@@ -32,8 +31,7 @@ ORIGINAL_ENGINE = "torchrl"
 def backend_of(engine: Any = None, collector: Any = None) -> str:
     """The backend an old run trained with.
 
-    The backend an old run trained with: its on-policy ``algo.collector`` if it had one (PPO and
-    A2C's batches), else its ``engine``.
+    Its on-policy ``algo.collector`` if it had one (PPO and A2C's batches), else its ``engine``.
     """
     if collector is not None:
         return _AS_BACKEND.get(collector, REFERENCE)
@@ -43,8 +41,8 @@ def backend_of(engine: Any = None, collector: Any = None) -> str:
 def migrate_config(config: Mapping[str, Any]) -> dict[str, Any]:
     """A saved config (plain nested dicts) in today's keys.
 
-    A saved config (plain nested dicts) in today's keys: ``backend`` from ``engine`` and
-    ``algo.collector``, the dropped keys removed. A config that has ``backend`` is returned as it is.
+    ``backend`` from ``engine`` and ``algo.collector``, the dropped keys removed. A config that has
+    ``backend`` is returned as it is.
     """
     out = dict(config)
     algo = dict(out.get("algo") or {})

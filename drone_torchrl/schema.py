@@ -122,8 +122,7 @@ class Rule:
     def check(self, key: str, value: Any, cfg: Mapping[str, Any]) -> None:
         """Raise :class:`~.checks.ConfigError` (one line) if ``value`` of ``key`` breaks the rule.
 
-        Raise :class:`~.checks.ConfigError` (one line) if ``value`` of ``key`` breaks the rule; ``cfg``
-        (the resolved config as nested dicts) gives the bounds that are other keys.
+        ``cfg`` (the resolved config as nested dicts) gives the bounds that are other keys.
         """
         kind = self.kind
         if kind == "free" or (self.optional and value is None):
@@ -409,8 +408,7 @@ def _store(name: str, node: type) -> None:
 def store_plugin(group: str, plugin: str, node: type) -> None:
     """Store ``node`` as the schema of plug-in ``plugin`` of ``group`` (``schema_algo_ppo``).
 
-    Store ``node`` as the schema of plug-in ``plugin`` of ``group`` (``schema_algo_ppo``): what
-    ``conf/<group>/<option>.yaml`` lists first in its defaults, and where the checks find its keys.
+    What ``conf/<group>/<option>.yaml`` lists first in its defaults, and where the checks find its keys.
     """
     _store(f"{PREFIX}_{group}_{plugin}", node)
 

@@ -161,8 +161,7 @@ class OnPolicy:
     def scale_advantage(self, advantage: torch.Tensor) -> torch.Tensor:
         """The batch's advantages as the loss sees them.
 
-        The batch's advantages as the loss sees them: as GAE gave them here (ClipPPOLoss
-        standardises each minibatch itself); A2C standardises the batch's.
+        As GAE gave them here (ClipPPOLoss standardises each minibatch itself); A2C standardises the batch's.
         """
         return advantage
 
@@ -256,8 +255,7 @@ class OnPolicy:
     ) -> tuple[TensorDictBase, UpdateOutput]:
         """Train on ``k`` collector batches, each followed by ``algo.epochs`` passes of minibatches.
 
-        Train on ``k`` collector batches, each followed by ``algo.epochs`` passes of minibatches;
-        returns ``state`` (its ``"episodes_done"`` advanced) and the batches' metrics and episodes.
+        Returns ``state`` (its ``"episodes_done"`` advanced) and the batches' metrics and episodes.
         """
         metrics: list[dict[str, float]] = []
         episodes: list[dict[str, list]] = []
@@ -327,9 +325,8 @@ class OnPolicy:
 class PPO(OnPolicy):
     """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages).
 
-    PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages). With ``backend=fast``
-    the minibatches are plain tensors and their losses :func:`clip_ppo_losses`' (the same values
-    and gradients, without TensorDict's and TorchRL's machinery around a small network).
+    With ``backend=fast`` the minibatches are plain tensors and their losses :func:`clip_ppo_losses`' (the
+    same values and gradients, without TensorDict's and TorchRL's machinery around a small network).
 
     Args:
         jobs: the one job trained, as for :class:`OnPolicy`.

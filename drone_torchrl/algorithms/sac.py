@@ -73,12 +73,11 @@ REPORTED = (*LOSSES, "alpha", "entropy")
 def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
     """``[drones, steps]`` frames as ``n``-step transitions (TorchRL's ``MultiStep``).
 
-    ``[drones, steps]`` frames as ``n``-step transitions (TorchRL's ``MultiStep``): each frame's
-    reward becomes the discounted sum of up to ``n`` rewards, its next observation the one after
-    the last of them, and ``"steps_to_next_obs"`` their number (TD0 discounts the bootstrap by
-    ``gamma`` to that power). A window stops at its episode's end or the batch's; MultiStep leaves
-    the done flags at the window's start, so they are set here to the window's last step: a window
-    that ends in a crash is not bootstrapped.
+    Each frame's reward becomes the discounted sum of up to ``n`` rewards, its next observation the one after
+    the last of them, and ``"steps_to_next_obs"`` their number (TD0 discounts the bootstrap by ``gamma`` to
+    that power). A window stops at its episode's end or the batch's; MultiStep leaves the done flags at the
+    window's start, so they are set here to the window's last step: a window that ends in a crash is not
+    bootstrapped.
     """
     out = MultiStep(gamma, n)(frames)
     last = (torch.arange(frames.shape[-1]) + out.get("steps_to_next_obs") - 1).unsqueeze(-1)

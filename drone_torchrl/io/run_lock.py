@@ -124,9 +124,8 @@ def hold(folder: str | os.PathLike) -> Path:
 def _make_room() -> None:
     """Keep :data:`SPARE_DESCRIPTORS` open-file slots free beside the locks held.
 
-    Keep :data:`SPARE_DESCRIPTORS` open-file slots free beside the locks held: a population holds
-    one lock per agent, and many systems start processes at a soft limit of 1024, so the soft limit
-    is raised towards the hard one; past the hard one, one line says what to change.
+    A population holds one lock per agent, and many systems start processes at a soft limit of 1024, so the
+    soft limit is raised towards the hard one; past the hard one, one line says what to change.
     """
     import resource
 

@@ -59,8 +59,7 @@ class StorageError(OSError):
 def folder_refuses(folder: Path, size: int) -> int | None:
     """Why ``folder`` would refuse ``size`` more bytes (the errno), or None.
 
-    Why ``folder`` would refuse ``size`` more bytes (the errno), or None: for a child process's
-    failed write (ffmpeg's reaches Python as a broken pipe), diagnosed after the fact.
+    For a child process's failed write (ffmpeg's reaches Python as a broken pipe), diagnosed after the fact.
     """
     try:
         stats = os.statvfs(folder)
@@ -84,9 +83,8 @@ def is_storage_error(err: BaseException) -> bool:
 def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[None]:
     """Run a write of ``path``; a refused write becomes :class:`StorageError`.
 
-    Run a write of ``path``; a refused write becomes :class:`StorageError`. ``temporary`` files
-    (this write's half-written ones) are removed whenever the write does not finish: refused, or
-    stopped by another exception (a signal turned into one, Ctrl-C).
+    ``temporary`` files (this write's half-written ones) are removed whenever the write does not finish:
+    refused, or stopped by another exception (a signal turned into one, Ctrl-C).
     """
     try:
         yield
@@ -137,9 +135,8 @@ def _limit(folder: Path, name: str, default: int) -> int:
 def name_too_long(path: str | os.PathLike) -> str | None:
     """Why the file system would refuse ``path`` as too long (ENAMETOOLONG), or None.
 
-    Why the file system would refuse ``path`` as too long (ENAMETOOLONG), or None: each component
-    against ``NAME_MAX`` and the whole path against ``PATH_MAX`` of the nearest existing folder above
-    it (the folders still to be made are on its file system). In bytes, as the file system counts.
+    Each component against ``NAME_MAX`` and the whole path against ``PATH_MAX`` of the nearest existing folder
+    above it (the folders still to be made are on its file system). In bytes, as the file system counts.
     """
     path = Path(path).expanduser()
     absolute = path.absolute()
@@ -160,10 +157,9 @@ def name_too_long(path: str | os.PathLike) -> str | None:
 def unwritable(folder: str | os.PathLike, room: int = 1) -> str | None:
     """Why nothing could be written into ``folder`` (made if missing), told before any work, or None.
 
-    Why nothing could be written into ``folder`` (made if missing), told before any work, or None:
-    a name too long (:func:`name_too_long`), a file where a folder must be, or the nearest existing
-    folder read-only, forbidden or with less than ``room`` bytes free (:func:`folder_refuses`). A
-    write that fails all the same is still refused in one line by :func:`writing`.
+    A name too long (:func:`name_too_long`), a file where a folder must be, or the nearest existing folder
+    read-only, forbidden or with less than ``room`` bytes free (:func:`folder_refuses`). A write that fails
+    all the same is still refused in one line by :func:`writing`.
     """
     too_long = name_too_long(folder)
     if too_long is not None:

@@ -93,9 +93,8 @@ def _rgb_codes(frame: np.ndarray) -> np.ndarray:
 def _palette_images(frames: np.ndarray) -> list:
     """The frames as palette images with one palette for the whole clip.
 
-    The frames as palette images with one palette for the whole clip: exactly their colours if
-    there are at most 256 (the renderer draws fewer: 214 in a training video), else a median cut
-    of a sample of frames. A fixed palette costs a lookup per pixel; choosing one per frame, as
+    Exactly their colours if there are at most 256 (the renderer draws fewer: 214 in a training video), else a
+    median cut of a sample of frames. A fixed palette costs a lookup per pixel; choosing one per frame, as
     moviepy (TensorBoard's ``add_video``) does, took 3.8 s a training video here.
     """
     from PIL import Image

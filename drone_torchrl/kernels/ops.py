@@ -142,9 +142,8 @@ def disturbance_constants(
 ) -> torch.Tensor:
     """The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64.
 
-    The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64. Magnitudes all zero
-    (the gusts' time scale aside), or None, is the nominal drone, which the kernels fly as fast as
-    ever.
+    Magnitudes all zero (the gusts' time scale aside), or None, is the nominal drone, which the kernels fly as
+    fast as ever.
     """
     d = disturbances.make(disturbance)
     return torch.tensor(
@@ -163,8 +162,7 @@ def _nominal(disturbance: torch.Tensor | None) -> bool:
 def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
     """``(action_delay, observed_actions)`` of ``disturbance`` (:func:`disturbance_constants`).
 
-    ``(action_delay, observed_actions)`` of ``disturbance`` (:func:`disturbance_constants`):
-    the commands each drone keeps in flight and those it observes.
+    The commands each drone keeps in flight and those it observes.
     """
     if disturbance is None:
         return 0, 0

@@ -140,8 +140,7 @@ def override_value(overrides: Sequence[str], key: str) -> str | None:
 def load_population(run_dir: Path) -> list[Run]:
     """A population run's agents, each as the run it would be in a folder of its own.
 
-    A population run's agents, each as the run it would be in a folder of its own: its job's
-    overrides, the group's config with its per-agent values, its status and its episodes.
+    Its job's overrides, the group's config with its per-agent values, its status and its episodes.
     """
     agents, rows = population_record.read_agents(run_dir), population_record.read_episodes(run_dir)
     config = _load_yaml(run_dir / CONFIG_FILE, dict)

@@ -171,9 +171,8 @@ def kernel_rollout(
 ) -> KernelRollout:
     """The C++ engine's rollout of ``policy`` (``max_steps`` steps at most) for the config's drone.
 
-    The C++ engine's rollout of ``policy`` (``max_steps`` steps at most) for the config's drone.
-    The config passed :func:`drone_torchrl.config.validate`, which refuses what the kernels do not
-    fly (:func:`drone_torchrl.kernels.coverage.fast_refusal`).
+    The config passed :func:`drone_torchrl.config.validate`, which refuses what the kernels do not fly
+    (:func:`drone_torchrl.kernels.coverage.fast_refusal`).
     """
     kwargs = env_kwargs(cfg)
     return KernelRollout(

@@ -357,8 +357,7 @@ def available_gpu(device: Any) -> tuple[int, str] | None:
 def check(memory: MemoryEstimate, device: Any) -> None:
     """Raise a one-line :class:`~.checks.ConfigError` when ``memory`` exceeds what is free.
 
-    Raise a one-line :class:`~.checks.ConfigError` when ``memory`` exceeds what is free: the GPU's for the
-    parts on ``device=cuda``, the RAM for the rest (everything on the CPU).
+    The GPU's for the parts on ``device=cuda``, the RAM for the rest (everything on the CPU).
     """
     gpu = available_gpu(device)
     # (the parts' side: the host, the device, or None for all; the memory free there; its name)

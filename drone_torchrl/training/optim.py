@@ -214,8 +214,7 @@ class Adam:
     ) -> None:
         """Load a ``torch.optim.Adam`` (or :meth:`agent_state`) state dict into agent ``agent``.
 
-        Load a ``torch.optim.Adam`` (or :meth:`agent_state`) state dict into agent ``agent``; a fresh
-        optimizer state (no ``state`` entries yet) leaves the agent's moments at zero.
+        A fresh optimizer state (no ``state`` entries yet) leaves the agent's moments at zero.
         """
         keys = [tuple(name.split(".")) for name in names]
         exp_avg, exp_avg_sq = views(state["exp_avg"]), views(state["exp_avg_sq"])

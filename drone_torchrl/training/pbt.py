@@ -67,8 +67,8 @@ class PBTSettings:
     def of(cls, params: Mapping[str, Any]) -> PBTSettings:
         """The settings from the launcher's parameters, each checked.
 
-        The settings from the launcher's parameters, each checked: :class:`~.checks.ConfigError` (one
-        line, naming ``hydra.launcher.<key>``) for the first that is not allowed.
+        :class:`~.checks.ConfigError` (one line, naming ``hydra.launcher.<key>``) for the first that is not
+        allowed.
         """
 
         def refuse(key: str, value: Any, allowed: str) -> ConfigError:

@@ -73,8 +73,7 @@ class Outcome:
 def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
     """``tensor.tolist()`` of each tensor, all copied to the host at once (one sync).
 
-    ``tensor.tolist()`` of each tensor, all copied to the host at once (one sync): in float64,
-    which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such.
+    In float64, which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such.
     """
     flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu().numpy()
     out: dict[str, list] = {}
@@ -302,8 +301,8 @@ class Trainer:
     def close(self, quietly: bool = False) -> None:
         """Flush and close every run.
 
-        Flush and close every run; ``quietly``: while another error stops training, a run whose
-        files cannot be written (the same full disk, say) is left as its last checkpoint has it.
+        ``quietly``: while another error stops training, a run whose files cannot be written (the same full
+        disk, say) is left as its last checkpoint has it.
         """
         self.progress.close()
         self.learner.close()
