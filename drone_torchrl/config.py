@@ -133,8 +133,7 @@ def resume_rule(key: str) -> str:
 def _every_key(name: str) -> dict[str, Rule]:
     """Every key of ``conf/<name>.yaml`` with any plug-in stored in the ConfigStore.
 
-    Every key of ``conf/<name>.yaml`` with any plug-in stored in the ConfigStore (each plug-in's
-    rule of a key the plug-ins share is the same).
+    Each plug-in's rule of a key the plug-ins share is the same.
     """
     _discover_plugins()
     out: dict[str, Rule] = {}
@@ -473,8 +472,8 @@ def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
 def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
     """Every combination of the group options the overrides pick.
 
-    Every combination of the group options the overrides pick (the last plain one of each group,
-    or every option a sweep names): ``(("algo", "ppo"), ("experiment", "bounded"))``.
+    The last plain one of each group, or every option a sweep names. ``(("algo", "ppo"), ("experiment",
+    "bounded"))``.
     """
     groups = group_names()
     picks: dict[str, list[str]] = {}

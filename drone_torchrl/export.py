@@ -252,8 +252,7 @@ def actor_commands(
 def check_observations(observation_dim: int = STATE_DIM) -> torch.Tensor:
     """The float32 observations ``[N, observation_dim]`` every export is checked on.
 
-    The float32 observations ``[N, observation_dim]`` every export is checked on (fixed: seeded
-    draws, corners, extremes; see ``CHECK_SPAN``). Past the 6 state entries (a run with
+    Fixed: seeded draws, corners, extremes; see ``CHECK_SPAN``. Past the 6 state entries (a run with
     ``env.disturbance.observed_actions``) come past commands, seeded uniforms in [0, 1].
     """
     centre, span = torch.tensor(CHECK_CENTRE), torch.tensor(CHECK_SPAN)
@@ -319,10 +318,9 @@ def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
 def program_bytes(policy: DeterministicPolicy, format: str) -> bytes:
     """``policy`` as the bytes of a ``format`` file (``pt2`` or ``onnx``), unchecked.
 
-    ``policy`` as the bytes of a ``format`` file (``pt2`` or ``onnx``), unchecked (see
-    :func:`export_policy`). Made in memory: nothing reaches the disk before the file is checked, and
-    then it is written at once (:func:`~drone_torchrl.io.storage.write_atomically`; torch's and
-    onnx's own writers abort the process, in C++, on a full disk).
+    See :func:`export_policy`. Made in memory: nothing reaches the disk before the file is checked, and then
+    it is written at once (:func:`~drone_torchrl.io.storage.write_atomically`; torch's and onnx's own writers
+    abort the
     """
     policy.requires_grad_(False)  # an inference program: no autograd graph in its outputs
     example = torch.zeros(2, observation_dim(policy), dtype=_dtype(policy))

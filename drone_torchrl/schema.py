@@ -204,8 +204,7 @@ def free(**rule: Any) -> Any:
 def plugin_group(key: str, added: str) -> Any:
     """The field of a plug-in group: ``key`` of the group names the plug-in.
 
-    The field of a plug-in group: ``key`` of the group names the plug-in (its schema:
-    ``schema_<group>_<plug-in>``); a config without it is from before plug-ins, as ``added``.
+    Its schema: ``schema_<group>_<plug-in>``. A config without it is from before plug-ins, as ``added``.
     """
     return Rule(plugin_key=key, added=added).field()
 
@@ -222,8 +221,7 @@ _NOMINAL = Disturbance()
 class DisturbanceConf:
     """``env.disturbance.*``: wind, gusts, mass and motor mismatch, lag, delay, observation noise.
 
-    ``env.disturbance.*``: wind, gusts, mass and motor mismatch, lag, delay, observation noise
-    (drone_torchrl/envs/disturbances.py says each one's physics; presets: ``disturbance=none|mild|strong``).
+    Each one's physics is in drone_torchrl/envs/disturbances.py; presets: ``disturbance=none|mild|strong``.
     They came after the first runs: a config without them flew the nominal drone.
     """
 
@@ -457,8 +455,7 @@ def plugin_schema(group: str, plugin: Any) -> type | None:
 def plugin_groups(name: str = "config") -> dict[str, Rule]:
     """``{"algo": rule, "logger": rule}``: the plug-in groups of a primary config.
 
-    ``{"algo": rule, "logger": rule}``: the plug-in groups of a primary config (``rule.plugin_key``
-    names the plug-in).
+    ``rule.plugin_key`` names the plug-in.
     """
     return {
         f.name: rule

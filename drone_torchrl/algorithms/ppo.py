@@ -461,8 +461,7 @@ def clip_ppo_losses(
 def validate_on_policy(cfg: Mapping[str, Any]) -> None:
     """The rules of :class:`OnPolicy` that relate keys.
 
-    The rules of :class:`OnPolicy` that relate keys (each key's bounds are its schema's:
-    PPOConf here, A2CConf in a2c.py).
+    Each key's bounds are its schema's: PPOConf here, A2CConf in a2c.py.
     """
     name = cfg.algo.name
     if cfg.env.num_workers:

@@ -165,8 +165,7 @@ def make_params(
 ) -> DroneParams:
     """Validate the physical and arena arguments shared by both envs and bundle them.
 
-    Validate the physical and arena arguments shared by both envs and bundle them (``arena``:
-    the keyword arguments of :func:`check_arena`, each defaulting to the paper's).
+    ``arena``: the keyword arguments of :func:`check_arena`, each defaulting to the paper's.
     """
     return DroneParams(
         mass=_check_real("mass", mass, minimum=MIN_MASS, inclusive=True, maximum=MAX_MASS),

@@ -39,8 +39,7 @@ def open_csv(path: Path) -> TextIO:
 def is_text(fields: Iterable[Any]) -> bool:
     """Whether a row read through :func:`open_csv` was UTF-8 text.
 
-    Whether a row read through :func:`open_csv` was UTF-8 text (its fields, lists of extra fields
-    and ``None`` for missing ones).
+    It checks the fields, lists of extra fields and ``None`` for missing ones.
     """
     for field in fields:
         for value in field if isinstance(field, list) else [field]:
@@ -68,8 +67,7 @@ def _parse(row: dict[str, str | None]) -> dict[str, object] | None:
 def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]]], list[str]]:
     """The parsable rows of ``path`` (parsed, and as written), and a note for each line left out.
 
-    The parsable rows of ``path`` (parsed, and as written), and a note for each line left out
-    (torn, garbled, or bytes that are not UTF-8).
+    A line is left out when torn, garbled, or not UTF-8.
     """
     notes: list[str] = []
     rows = []

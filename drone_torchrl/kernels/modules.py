@@ -157,8 +157,7 @@ class Segment(NamedTuple):
 class Carried(NamedTuple):
     """What each drone carries from one call to the next.
 
-    What each drone carries from one call to the next (see ``drone_torchrl::segments``):
-    ``t = -1`` where a new episode starts at the next call's first step.
+    See ``drone_torchrl::segments``. ``t = -1`` where a new episode starts at the next call's first step.
     """
 
     state: torch.Tensor

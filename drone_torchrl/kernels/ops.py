@@ -184,8 +184,7 @@ def param_count(in_dim: int, hidden: Sequence[int]) -> int:
 def input_dim(params: int, hidden: Sequence[int]) -> int:
     """The input width of the network whose flat parameters have ``params`` values.
 
-    The input width of the network whose flat parameters have ``params`` values (the inverse of
-    :func:`param_count`; the fake implementations infer the observation's width from it).
+    The inverse of :func:`param_count`; the fake implementations infer the observation's width from it.
     """
     if not hidden:
         heads = 2 * dynamics.ACTION_DIM

@@ -74,8 +74,8 @@ class Logger(Protocol):
     def close(self, status: RunStatus) -> None:
         """Flush and finish: the run logs nothing more in this process.
 
-        Flush and finish: the run logs nothing more in this process (called once, also when
-        the run failed or was stopped; ``status`` says which, for a backend that records it).
+        Called once, also when the run failed or was stopped; ``status`` says which, for a backend that
+        records it.
         """
 
 
@@ -129,8 +129,7 @@ def get(name: Any) -> Backend:
 def check_backend(cfg: Mapping[str, Any]) -> None:
     """Refuse, in one line, a backend whose extra is not installed, then run its own checks.
 
-    Refuse, in one line, a backend whose extra is not installed, then run its own checks (which
-    may import it).
+    The backend's own checks may import it.
     """
     backend = get(cfg.logger.backend)
     if not backend.installed:

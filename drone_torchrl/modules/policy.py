@@ -163,8 +163,7 @@ def check_head(distribution: str, max_thrust: float | None) -> None:
 def distribution_head(distribution: str, max_thrust: float | None) -> tuple[type, dict]:
     """The TorchRL distribution class and its keyword arguments for the head ``distribution``.
 
-    The TorchRL distribution class and its keyword arguments for the head ``distribution``
-    (``cls(loc, scale, **kwargs)``): what the actor samples from and the losses score with.
+    Called as ``cls(loc, scale, **kwargs)``. What the actor samples from and the losses score with.
     """
     check_head(distribution, max_thrust)
     if distribution == "normal":

@@ -209,8 +209,7 @@ def find_jobs(sweep_dir: Path) -> list[Path]:
 def failed_without_episodes(sweep_dir: Path) -> list[tuple[Path, str]]:
     """``(job folder, reason)`` of the jobs that failed before writing any episode.
 
-    ``(job folder, reason)`` of the jobs that failed before writing any episode (a bad value
-    found only in the job, a full disk): they have no ``episodes.csv``, so no place in a figure.
+    Say, a bad value found only in the job, or a full disk. They have no ``episodes.csv``, so no place in a figure.
     """
     out = []
     for job in find_jobs(Path(sweep_dir)):

@@ -314,8 +314,7 @@ class PopulationRecord:
     def keep_last_finite(self, agent: int) -> None:
         """Agent ``agent`` diverged: keep its state of the last checkpoint for the next ones.
 
-        Agent ``agent`` diverged: keep its state of the last checkpoint for the next ones (none
-        yet: its weights are written with their non-finite values zeroed).
+        None yet: its weights are written with their non-finite values zeroed.
         """
         path = self.run_dir / CHECKPOINT_DIR / LAST
         if path.is_file():
@@ -466,9 +465,8 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
 def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str, Any]:
     """Agent ``agent`` of a population checkpoint as a run's checkpoint.
 
-    Agent ``agent`` of a population checkpoint as a run's checkpoint (actor, optimizer, counters,
-    its own config): what ``drone-eval``, ``drone-export`` and ``resume`` read. :class:`~.checks.ConfigError`
-    (one line) for an agent the population does not have.
+    Actor, optimizer, counters, its own config. What ``drone-eval``, ``drone-export`` and ``resume`` read.
+    :class:`~.checks.ConfigError` (one line) for an agent the population does not have.
     """
     count = len(state["episodes_done"])
     if isinstance(agent, bool) or not isinstance(agent, int) or not 0 <= agent < count:

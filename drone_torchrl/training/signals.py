@@ -67,10 +67,9 @@ _active: list[StopRequest] = []  # the request of the outermost block running no
 def stop_on_signals() -> Iterator[StopRequest]:
     """Catch :data:`STOP_SIGNALS` as a :class:`StopRequest` while the block runs.
 
-    Catch :data:`STOP_SIGNALS` as a :class:`StopRequest` while the block runs (the handlers in
-    place before are restored after). Blocks nest: an inner one shares the outer one's request, so a
-    signal between two trainings of one command is not lost. Outside the main thread Python cannot
-    install handlers: the request then never fires and the signals keep their previous meaning.
+    The handlers in place before are restored after. Blocks nest: an inner one shares the outer one's request,
+    so a signal between two trainings of one command is not lost. Outside the main thread Python cannot
+    install handlers:
     """
     if _active:
         yield _active[0]
