@@ -65,8 +65,11 @@ _state: dict[str, object] = {}
 
 
 def cache_dir() -> Path:
-    """Where the compiled kernels are kept: the folder ``$DRONE_TORCHRL_CACHE`` names, else the user's
-    cache folder."""
+    """The folder that keeps the compiled kernels.
+
+    Where the compiled kernels are kept: the folder ``$DRONE_TORCHRL_CACHE`` names, else the user's
+    cache folder.
+    """
     if os.environ.get(CACHE_ENV):
         return Path(os.environ[CACHE_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
@@ -117,8 +120,10 @@ def _build(compiler: str, target: Path, precision: tuple[str, ...]) -> str | Non
 
 
 def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
-    """The loaded kernels for float32 (``double``: float64) tensors, built on first use, or None
-    where they cannot be built. ``scalar``: the scalar engine (one drone per block)."""
+    """The loaded kernels for float32 (or float64) tensors, built on first use; None if they cannot be.
+
+    ``double``: float64. ``scalar``: the scalar engine (one drone per block).
+    """
     name = ("scalar-" if scalar else "") + ("float64" if double else "float32")
     precision = (f"-DDK_DOUBLE={int(double)}",) + (SCALAR_ENGINE_FLAGS if scalar else ())
     with _lock:
@@ -168,8 +173,11 @@ def _load(path: Path, double: bool) -> ctypes.CDLL:
 
 
 def nvcc() -> str | None:
-    """The CUDA compiler: ``$NVCC``, else ``nvcc`` on ``PATH``, else the CUDA toolkit's, else the
-    one the ``cuda`` extra installs (PyPI's ``nvidia-cuda-nvcc``)."""
+    """The CUDA compiler's path, or None.
+
+    ``$NVCC``, else ``nvcc`` on ``PATH``, else the CUDA toolkit's, else the one the ``cuda`` extra
+    installs (PyPI's ``nvidia-cuda-nvcc``).
+    """
     candidates = [os.environ.get("NVCC"), "nvcc", "/usr/local/cuda/bin/nvcc"]
     spec = importlib.util.find_spec("nvidia")
     for folder in (spec.submodule_search_locations or []) if spec else []:
@@ -200,9 +208,11 @@ def build_cuda(target: Path, double: bool = False) -> str | None:
 
 
 def cuda_library(double: bool = False) -> ctypes.CDLL | None:
-    """The CUDA engine for float32 (``double``: float64) tensors: ``$DRONE_TORCHRL_CUDA_LIBRARY``
-    (float32) when set, else built with :func:`nvcc` on first use and cached; None where neither
-    works (:func:`unavailable_reason` says why)."""
+    """The CUDA engine for float32 (``double``: float64) tensors, or None.
+
+    ``$DRONE_TORCHRL_CUDA_LIBRARY`` (float32) when set, else built with :func:`nvcc` on first use
+    and cached; None where neither works (:func:`unavailable_reason` says why).
+    """
     name = "cuda-" + ("float64" if double else "float32")
     with _lock:
         if name in _state:
@@ -235,8 +245,11 @@ def unavailable_reason() -> str | None:
 
 
 def scalar_check() -> str | None:
-    """Compile the kernels' single-source functions for scalar lanes (``-DDK_SCALAR_CHECK``): None,
-    or the compiler's first complaint (a vector-only idiom crept into a ``DK_HD`` function)."""
+    """Compile the kernels' single-source functions for scalar lanes; None or the first complaint.
+
+    Compile the kernels' single-source functions for scalar lanes (``-DDK_SCALAR_CHECK``): None,
+    or the compiler's first complaint (a vector-only idiom crept into a ``DK_HD`` function).
+    """
     compiler = _compiler()
     if compiler is None:
         return "no C++ compiler found (set CXX, or install g++ or clang++)"

@@ -25,10 +25,12 @@ def fast_refusal(
     disturbance: disturbances.Disturbance,
     algo: str = "reinforce",
 ) -> str | None:
-    """Why ``backend=fast`` cannot train this run (``"<key>=<value> (<why>)"``), or None where it can.
-    Builds the kernels on first use (a few seconds once per machine, then cached; the CUDA engine
-    for a ``cuda`` device). ``algo``: ``algo.name``; on a GPU the engine flies REINFORCE's
-    updates, not PPO/A2C/SAC's segments."""
+    """Why ``backend=fast`` cannot train this run, or None where it can.
+
+    The reason reads ``"<key>=<value> (<why>)"``. Builds the kernels on first use (a few seconds
+    once per machine, then cached; the CUDA engine for a ``cuda`` device). ``algo``: ``algo.name``;
+    on a GPU the engine flies REINFORCE's updates, not PPO/A2C/SAC's segments.
+    """
     cuda = torch.device(device).type == "cuda"
     if torch.device(device).type not in ("cpu", "cuda"):
         return f"device={device!r} (the fast engine runs on the CPU or a CUDA GPU)"

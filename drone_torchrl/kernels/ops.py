@@ -65,8 +65,11 @@ def _lib(dtype: torch.dtype = torch.float32, device: torch.device | None = None)
 
 
 def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, scratch: int) -> None:
-    """``dk_<function>`` with ``args`` on the CPU (threads first), or ``dk_cuda_<function>`` on
-    ``device``'s current stream with ``scratch`` scalars of scratch memory (last)."""
+    """Call ``dk_<function>`` on the CPU, or ``dk_cuda_<function>`` on ``device``.
+
+    On the CPU the thread count goes first; on a GPU, ``device``'s current stream goes first and
+    ``scratch`` scalars of scratch memory (allocated here, PyTorch's) last.
+    """
     if device.type != "cuda":
         getattr(lib, f"dk_{function}")(_c64(torch.get_num_threads()), *args)
         return
@@ -111,7 +114,9 @@ def env_constants(
     reset_mode: str = "floor",
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """The drone's constants (:data:`ENV_CONSTANTS`), float64: its physics and its arena (domain,
+    """The drone's constants (:data:`ENV_CONSTANTS`, float64): its physics and arena from ``params``.
+
+    The drone's constants (:data:`ENV_CONSTANTS`), float64: its physics and its arena (domain,
     target zone, ``bounds``) from ``params``.
 
     ``squash_high``: the TanhNormal head's upper bound (actions in ``[0, squash_high]``), or None
@@ -154,9 +159,11 @@ _GUST_TIME = DISTURBANCE_CONSTANTS.index("gust_time")
 def disturbance_constants(
     disturbance: disturbances.Disturbance | Mapping[str, Any] | None, device: torch.device | str = "cpu"
 ) -> torch.Tensor:
-    """The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64. Magnitudes all zero
-    (the gusts' time scale aside), or None, is the nominal drone, which the kernels fly as fast as
-    ever."""
+    """The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64.
+
+    Magnitudes all zero (the gusts' time scale aside), or None, is the nominal drone, which the kernels fly as
+    fast as ever.
+    """
     d = disturbances.make(disturbance)
     return torch.tensor(
         [float(getattr(d, name)) for name in DISTURBANCE_CONSTANTS], dtype=torch.float64, device=device
@@ -172,8 +179,10 @@ def _nominal(disturbance: torch.Tensor | None) -> bool:
 
 
 def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
-    """``(action_delay, observed_actions)`` of ``disturbance`` (:func:`disturbance_constants`):
-    the commands each drone keeps in flight and those it observes."""
+    """``(action_delay, observed_actions)`` of ``disturbance`` (:func:`disturbance_constants`).
+
+    The commands each drone keeps in flight and those it observes.
+    """
     if disturbance is None:
         return 0, 0
     return int(disturbance[_DELAY]), int(disturbance[_OBSERVED])
@@ -192,8 +201,10 @@ def param_count(in_dim: int, hidden: Sequence[int]) -> int:
 
 
 def input_dim(params: int, hidden: Sequence[int]) -> int:
-    """The input width of the network whose flat parameters have ``params`` values (the inverse of
-    :func:`param_count`; the fake implementations infer the observation's width from it)."""
+    """The input width of the network whose flat parameters have ``params`` values.
+
+    The inverse of :func:`param_count`; the fake implementations infer the observation's width from it.
+    """
     if not hidden:
         heads = 2 * dynamics.ACTION_DIM
         return (params - heads) // heads
@@ -309,8 +320,11 @@ def _rollout(
 
 
 def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Tensor) -> tuple[int, int]:
-    """Agents and episodes per agent: from ``start`` ``[N, E, 6]``, or ``rng`` ``[N, E, 2]`` (only its
-    shape is read for ``E``; the keys are per agent)."""
+    """Agents and episodes per agent, ``(N, E)``, from ``start`` or ``rng``.
+
+    Agents and episodes per agent: from ``start`` ``[N, E, 6]``, or ``rng`` ``[N, E, 2]`` (only its
+    shape is read for ``E``; the keys are per agent).
+    """
     if start is not None:
         return start.shape[0], start.shape[1]
     if rng is None:
@@ -557,7 +571,10 @@ def rollout(
         active: ``[N]`` bool; inactive agents fly nothing (length 0).
         env: :func:`env_constants`.
         gamma: ``[N]``, each agent's discount for the returns-to-go.
-        hidden, activation, min_std: the network (:data:`ACTIVATION_CODES`).
+        hidden: the network's hidden layer widths.
+        activation: its activation's code (:data:`ACTIVATION_CODES`).
+        min_std: the floor added to the std head's softplus.
+        steps: the most steps an episode flies (its truncation, ``env.max_steps``).
         dist_eps: added to the mean and to the std, ``Normal(mu + eps, sigma + eps)``
             (:class:`~drone_torchrl.modules.policy.ThreeNetPolicy`'s ``distribution_eps``).
         disturbance: :func:`disturbance_constants` (None: the nominal drone).
@@ -644,20 +661,29 @@ def segments(
 
     Args:
         params: ``[P]`` the agent's flat parameters.
-        state, t, key, gust, thrust, pending, issued: the carried state of each drone (what the
-            last call returned): the physical state ``[n, 6]``, its episode's step count ``[n]``
-            (int64; ``-1``: its episode ended, a new one starts at this call's step 0), its
-            episode key ``[n]`` (int64) and its disturbances' internal state
-            (:class:`drone_torchrl.envs.disturbances.Internal`): ``gust [n]``, ``thrust [n, 2]``,
-            ``pending [n, action_delay, 2]``, ``issued [n, observed_actions, 2]``. A first call
-            passes ``t = -1`` everywhere (the other values are then not read).
+        state: ``[n, 6]`` each drone's physical state, carried from the last call (as are the
+            next six: what it returned).
+        t: ``[n]`` int64, its episode's step count (``-1``: its episode ended, a new one starts at
+            this call's step 0). A first call passes ``t = -1`` everywhere (the other carried
+            values are then not read).
+        key: ``[n]`` int64, its episode key.
+        gust: ``[n]``, its gust force / nominal weight (the disturbances' internal state,
+            :class:`drone_torchrl.envs.disturbances.Internal`, as are the next three).
+        thrust: ``[n, 2]``, the motors' thrust fractions in effect (lag).
+        pending: ``[n, action_delay, 2]``, the commands issued but not yet acting, oldest first.
+        issued: ``[n, observed_actions, 2]``, the last commands issued, newest first.
         noise: ``[n, steps, 2]`` standard normals of the actions.
-        fresh, fresh_keys: ``[n, steps, 6]`` start states and ``[n, steps]`` int64 episode keys:
-            a drone that starts a new episode at step ``j`` starts from ``fresh[d, j]`` with key
-            ``fresh_keys[d, j]`` (None: the nominal drone, which draws nothing).
+        fresh: ``[n, steps, 6]`` start states: a drone that starts a new episode at step ``j``
+            starts from ``fresh[d, j]``.
+        fresh_keys: ``[n, steps]`` int64, that episode's key ``fresh_keys[d, j]`` (None: the
+            nominal drone, which draws nothing).
         max_steps: the episodes' truncation (``env.max_steps``).
-        env, disturbance: :func:`env_constants`, :func:`disturbance_constants` (None: nominal).
-        hidden, activation, min_std, dist_eps: the network, as for :func:`rollout`.
+        env: :func:`env_constants`.
+        disturbance: :func:`disturbance_constants` (None: nominal).
+        hidden: the network's hidden layer widths, as for :func:`rollout`.
+        activation: its activation's code, as for :func:`rollout`.
+        min_std: the std's floor, as for :func:`rollout`.
+        dist_eps: the distribution's epsilon, as for :func:`rollout`.
 
     Returns, per step ``[n, steps, ...]``: the observation the policy saw, the action, the reward,
     the next observation (what the env returns after the step: at the step count after it, with
