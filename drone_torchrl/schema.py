@@ -282,6 +282,7 @@ class ModelConf:
 @dataclass
 class CheckpointConf:
     """``checkpoint.*`` of a training run."""
+
     every_episodes: Any = an_integer(low=1, on_resume=IF_SET)
     keep_best: Any = a_flag(on_resume=IF_SET)
 
@@ -299,6 +300,7 @@ class PeriodicEvalConf:
 @dataclass
 class MetricsConf:
     """``metrics.*`` of a training run."""
+
     running_mean_window: Any = an_integer(low=1)
 
 

@@ -56,6 +56,7 @@ def _axis_position(key: str, value: float) -> float:
 @dataclass
 class Landscape:
     """A two-key sweep's grid: per cell ``[len(y), len(x)]`` the median return, zone fraction and seeds."""
+
     x_key: str
     y_key: str
     x_values: list[float]
