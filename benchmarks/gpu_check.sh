@@ -3,14 +3,14 @@
 #
 # On a machine with network, once, from the repository's root: fetch the wheels a GPU machine
 # with PyTorch, JAX and nvcc but without this project's other dependencies lacks (Python 3.12,
-# x86-64 Linux; about 8 MB in .whl/, which git ignores):
+# x86-64 Linux; into .whl/, which git ignores):
 #     bash benchmarks/gpu_check.sh --fetch
-# Then on the GPU machine, from a copy of the repository with .whl/ (no network needed; about 4
+# Then on the GPU machine, from a copy of the repository with .whl/ (no network needed; a few
 # minutes on an H200):
 #     bash benchmarks/gpu_check.sh                    # the table; PYTHONUNBUFFERED, so rows as measured
 #     bash benchmarks/gpu_check.sh --device cpu --quick   # the same rows on the CPU (a slow test runs this)
 # Without nvcc there, set DRONE_TORCHRL_CUDA_LIBRARY to a CUDA engine built elsewhere
-# (python -c "from drone_torchrl.kernels import build; build.build_cuda(Path('x.so'))").
+# (python -c "from pathlib import Path; from drone_torchrl.kernels import build; print(build.build_cuda(Path('x.so')))").
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # The versions this project's CI installs; pure-Python ones (any) and cp312 builds.
