@@ -88,10 +88,13 @@ def quiet(logger_name: str) -> Iterator[None]:
 
 
 def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
-    """A collector batch (``[drones, steps]``) up to the step at which the budget's last episode ends: a batch of 64 drones x 64
+    """A collector batch ``[drones, steps]`` cut at the step the budget's last episode ends.
+
+    A collector batch (``[drones, steps]``) up to the step at which the budget's last episode ends: a batch of 64 drones x 64
     steps can finish dozens of short episodes, so without this a budget of 20 would train 43. The
     steps after it are dropped (the run ends there: the drones' next episodes are not booked), and
-    episodes that end on that same step are booked too, so the budget may be passed by those."""
+    episodes that end on that same step are booked too, so the budget may be passed by those.
+    """
     done = batch.get(("next", "done")).reshape(batch.shape[0], batch.shape[1])  # [drones, steps]
     ended_by = done.sum(0).cumsum(0)
     if remaining <= 0 or ended_by[-1] <= remaining:
@@ -106,9 +109,12 @@ def update_output(
     checks: tuple[str, ...],
     active: torch.Tensor,
 ) -> UpdateOutput:
-    """One agent's ``k`` updates (``metrics`` and ``episodes``, one of each per update) in the update
+    """One agent's ``k`` updates in the update contract's layout.
+
+    One agent's ``k`` updates (``metrics`` and ``episodes``, one of each per update) in the update
     contract's layout: metrics ``[k, 1]``, each update's episodes padded to the most any ended, with
-    a ``"valid"`` mask."""
+    a ``"valid"`` mask.
+    """
     k = len(metrics)
     most = max(1, *(len(e["return"]) for e in episodes))
     padded = {key: [[e[key] + [0] * (most - len(e[key]))] for e in episodes] for key in EPISODE_KEYS}
@@ -122,14 +128,19 @@ def update_output(
 
 
 class OnPolicy:
-    """One actor-critic run as the training loop (:class:`~drone_torchrl.training.trainer.Trainer`)
-    drives it: collector, GAE, loss, optimizer. :meth:`update` follows the engines' contract
+    """One actor-critic run as the training loop drives it: collector, GAE, loss, optimizer.
+
+    The training loop is :class:`~drone_torchrl.training.trainer.Trainer`. :meth:`update` follows the engines' contract
     (:mod:`drone_torchrl.training.update`): ``k`` collector batches, each followed by ``algo.epochs``
     passes of minibatches; its episodes are those that ended in each batch (any number: padded, with
     a ``"valid"`` mask). A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of
     what its loss reports; the losses summed and booked are the loss's ``loss_*`` outputs. It may
     also change what the loss sees of the batch's advantages (:meth:`scale_advantage`) and how the
-    gradients are clipped before each step (:meth:`clip_gradients`)."""
+    gradients are clipped before each step (:meth:`clip_gradients`).
+
+    Args:
+        jobs: the one job trained (an actor-critic run trains no population): its ``cfg``.
+    """
 
     @staticmethod
     def max_agents(cfg) -> int:
@@ -148,8 +159,10 @@ class OnPolicy:
         raise NotImplementedError
 
     def scale_advantage(self, advantage: torch.Tensor) -> torch.Tensor:
-        """The batch's advantages as the loss sees them: as GAE gave them here (ClipPPOLoss
-        standardises each minibatch itself); A2C standardises the batch's."""
+        """The batch's advantages as the loss sees them.
+
+        As GAE gave them here (ClipPPOLoss standardises each minibatch itself); A2C standardises the batch's.
+        """
         return advantage
 
     def hold_frames(self, batch: TensorDictBase) -> int:
@@ -168,8 +181,11 @@ class OnPolicy:
         return self.loss(minibatch)
 
     def clip_gradients(self) -> torch.Tensor:
-        """Clip the loss's gradients before the optimizer's step (``algo.max_grad_norm`` on all of
-        its parameters together); the norm returned is booked as ``train/grad_norm``."""
+        """Clip the loss's gradients before the optimizer's step; returns the norm, ``train/grad_norm``.
+
+        Clip the loss's gradients before the optimizer's step (``algo.max_grad_norm`` on all of
+        its parameters together); the norm returned is booked as ``train/grad_norm``.
+        """
         limit = self.cfg.algo.max_grad_norm
         return nn.utils.clip_grad_norm_(self.params, math.inf if limit is None else limit)
 
@@ -237,8 +253,10 @@ class OnPolicy:
     def update(
         self, state: TensorDictBase, k: int, active: torch.Tensor
     ) -> tuple[TensorDictBase, UpdateOutput]:
-        """Train on ``k`` collector batches, each followed by ``algo.epochs`` passes of minibatches;
-        returns ``state`` (its ``"episodes_done"`` advanced) and the batches' metrics and episodes."""
+        """Train on ``k`` collector batches, each followed by ``algo.epochs`` passes of minibatches.
+
+        Returns ``state`` (its ``"episodes_done"`` advanced) and the batches' metrics and episodes.
+        """
         metrics: list[dict[str, float]] = []
         episodes: list[dict[str, list]] = []
         for _ in range(k):
@@ -299,14 +317,20 @@ class OnPolicy:
         }
 
     def close(self) -> None:
+        """Shut the collector down (the fused engine has none)."""
         if not self.fused:
             self.collector.shutdown()
 
 
 class PPO(OnPolicy):
-    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages). With ``backend=fast``
-    the minibatches are plain tensors and their losses :func:`clip_ppo_losses`' (the same values
-    and gradients, without TensorDict's and TorchRL's machinery around a small network)."""
+    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages).
+
+    With ``backend=fast`` the minibatches are plain tensors and their losses :func:`clip_ppo_losses`' (the
+    same values and gradients, without TensorDict's and TorchRL's machinery around a small network).
+
+    Args:
+        jobs: the one job trained, as for :class:`OnPolicy`.
+    """
 
     diagnostics = ("entropy", "kl_approx", "clip_fraction")
 
@@ -327,6 +351,7 @@ class PPO(OnPolicy):
         self.order = torch.empty(0, dtype=torch.long)
 
     def hold_frames(self, batch: TensorDictBase) -> int:
+        """Keep the batch's ``[frames]`` for this update's minibatches; returns how many there are."""
         if not self.fused_loss:
             return super().hold_frames(batch)
         observation, action, *rest = (batch.get(key) for key in self.frame_keys)
@@ -336,6 +361,7 @@ class PPO(OnPolicy):
         return batch.numel()
 
     def minibatch(self, size: int) -> Any:
+        """``size`` of the held frames, drawn without replacement within an epoch."""
         if not self.fused_loss:
             return super().minibatch(size)
         if len(self.order) < size:  # an epoch's permutation is spent: the next epoch's
@@ -344,6 +370,7 @@ class PPO(OnPolicy):
         return [held[index] for held in self.held]
 
     def losses(self, minibatch: Any) -> Mapping[str, torch.Tensor]:
+        """The loss's outputs on one minibatch."""
         if not self.fused_loss:
             return super().losses(minibatch)
         return clip_ppo_losses(
@@ -355,6 +382,7 @@ class PPO(OnPolicy):
         )
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
+        """TorchRL's ``ClipPPOLoss`` over ``actor`` and ``critic``, from ``algo.*``."""
         algo = self.cfg.algo
         return ClipPPOLoss(
             actor,
@@ -378,10 +406,13 @@ LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
 
 def pre_image(head: tuple[type, dict], action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
+    """The Normal sample that ``head`` squashes into ``action``, and the squashing's log-determinant.
+
+    The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
     the log-determinant of that squashing summed over the action: both depend on the action only, so
     a batch's are computed once, and each minibatch's log-probability is then the Normal's (what
-    ``TransformedDistribution.log_prob`` computes, without its objects)."""
+    ``TransformedDistribution.log_prob`` computes, without its objects).
+    """
     dist_class, kwargs = head
     dist = dist_class(torch.zeros_like(action), torch.ones_like(action), **kwargs)
     log_det = torch.zeros_like(action)
@@ -399,11 +430,14 @@ def clip_ppo_losses(
     clip_epsilon: torch.Tensor,
     critic_coeff: torch.Tensor,
 ) -> dict[str, torch.Tensor]:
-    """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
+    """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch.
+
+    What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
     on a minibatch of ``[observation, pre-image and log-determinant of the action (pre_image),
     its log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
     Normal's ``(loc, scale)``, ``value`` to state values. Its losses, ``clip_fraction`` and
-    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py)."""
+    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py).
+    """
     observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
     # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.
     advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(
@@ -425,8 +459,10 @@ def clip_ppo_losses(
 
 
 def validate_on_policy(cfg: Mapping[str, Any]) -> None:
-    """The rules of :class:`OnPolicy` that relate keys (each key's bounds are its schema's:
-    PPOConf here, A2CConf in a2c.py)."""
+    """The rules of :class:`OnPolicy` that relate keys.
+
+    Each key's bounds are its schema's: PPOConf here, A2CConf in a2c.py.
+    """
     name = cfg.algo.name
     if cfg.env.num_workers:
         raise ConfigError.of(

@@ -28,8 +28,11 @@ DOCUMENTED_MAX_BYTES = 32 << 20
 
 
 def keep_freed_memory() -> bool:
-    """Raise glibc's mmap threshold to :data:`KEEP_BELOW_BYTES` (or, where refused, to
-    :data:`DOCUMENTED_MAX_BYTES`) and its trim threshold alike; True if both took effect."""
+    """Raise glibc's mmap and trim thresholds; True if both took effect.
+
+    Raise glibc's mmap threshold to :data:`KEEP_BELOW_BYTES` (or, where refused, to
+    :data:`DOCUMENTED_MAX_BYTES`) and its trim threshold alike; True if both took effect.
+    """
     if not sys.platform.startswith("linux"):
         return False
     try:
