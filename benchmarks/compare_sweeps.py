@@ -7,7 +7,7 @@ seeds in the zone of each, and the difference with its bootstrap interval.
 
 Made to check a change of engine that is allowed to change float rounding (and so each seed's
 run) but not the statistics: the sweeps' runs are read by ``drone-report``'s reader, each run's
-final value is its last running mean over ``metrics.running_mean_window`` episodes, "in the zone"
+final value is its last running mean over ``drone_torchrl.episodes.RUNNING_MEAN_WINDOW`` (100) episodes, "in the zone"
 is ``drone-report``'s (final return >= 1500 of 3000), and the intervals are percentile-bootstrap
 95% intervals of the difference (after - before), resampling each sweep's seeds independently
 (10,000 resamples, fixed seed).
