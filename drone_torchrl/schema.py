@@ -218,7 +218,7 @@ def open_section(node: type) -> Any:
 
     A key left out is its rule's ``added`` value. The section is an empty mapping by default, so a
     default run's config does not list values that only restate the nominal case, and open (not
-    struct) in Hydra's ConfigStore (:func:`_store`), so ``env.disturbance.wind=0.3`` sets one of its
+    struct) in Hydra's ConfigStore (as ``_store`` keeps it), so ``env.disturbance.wind=0.3`` sets one of its
     keys without ``+``.
     """
     return field(default_factory=dict, metadata={SECTION: node})
