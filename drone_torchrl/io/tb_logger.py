@@ -1,15 +1,14 @@
 """``logger=tensorboard`` (the default backend): buffered scalars, written in batches, no writer held open.
 
 TorchRL's ``TensorboardLogger`` keeps a ``SummaryWriter`` (an open event file and a writer thread)
-for the life of a run and sends every scalar through the thread's queue, about 40 us each. A
+for the life of a run and sends every scalar through the thread's queue, one by one. A
 population of a thousand runs cannot hold a thousand writers, and at that rate its logging would
 cost more than its training. :class:`RunLogger` keeps TorchRL's logging calls (``log_scalar``,
 ``log_metrics``) but buffers them, and :meth:`RunLogger.flush` appends them to the run's event file
 as TensorBoard records (tensorboard's own ``Event`` protos, one per step holding all of that step's
 scalars, as ``tf.summary.merge_all`` writes them; no thread), opening the file only for that. The
-records' CRC32C checksums come from ``google-crc32c`` (C, about 0.1 us a record): tensorboard's
-``RecordWriter`` computes them in pure Python when TensorFlow is absent, about 7 us per record and
-most of the logging time of a population. Videos and the final hparams, a few per run, are
+records' CRC32C checksums come from ``google-crc32c`` (C): tensorboard's ``RecordWriter`` computes
+them in pure Python when TensorFlow is absent, which was most of the logging time of a population. Videos and the final hparams, a few per run, are
 tensorboard's ``Summary`` protos in the same file. TensorBoard reads the event files in
 ``<run>/<exp_name>`` as one run.
 

@@ -45,8 +45,8 @@ _CAUSE_NAMES = {int(cause): cause.name for cause in TerminationCause}
 def _mean(values: deque[float]) -> float:
     """The mean of ``values`` (nan when empty).
 
-    The mean (nan when empty). math.fsum, not np.mean: read per update by every run of a
-    population, and np.mean copies the deque into an array first (~5 us).
+    math.fsum, not np.mean: read per update by every run of a population, and np.mean copies the
+    deque into an array first.
     """
     if not values:
         return math.nan
