@@ -57,6 +57,11 @@ class TrainingDiverged(RuntimeError):
     """A run whose loss, gradients, weights or actions became non-finite (one-line message)."""
 
 
+def divergence(episode: int, failed: Sequence[str], advice: str) -> str:
+    """Why a run stopped (its ``FAILED.txt``): the update after ``episode`` left ``failed`` non-finite."""
+    return f"training diverged at episode {episode}: non-finite {' and '.join(failed)}; {advice}"
+
+
 @dataclass(frozen=True)
 class Schedule:
     """The numbers of a config that an agent's counters read at every update."""

@@ -44,8 +44,15 @@ from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.pbt import FRESH, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
-from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
-from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
+from drone_torchrl.training.run import (
+    FAILED_FILE,
+    AgentBook,
+    Progress,
+    RunRecord,
+    TrainingDiverged,
+    divergence,
+)
+from drone_torchrl.training.signals import StopRequest, TrainingStopped, stop_on_signals
 
 #: The most updates per call of a learner's update; the loop copies a call's metrics and episodes to
 #: the host at once, so this bounds what they hold in memory; results do not depend on it (a call
@@ -162,18 +169,27 @@ class Trainer:
                 if at_budget := [i for i, run in enumerate(self.runs) if run.finished and run.final is None]:
                     self.evaluate(at_budget)
                     self.save(at_budget)
+                own_loop = getattr(self.learner, "train", None)  # PPO's and A2C's (algorithms/ppo.py)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
+                    if own_loop is not None:
+                        own_loop(self, stop)
+                        break
                     self.step(active)
-                    if stop.signum is not None:
-                        active = [i for i in active if not self.runs[i].failed]
-                        self.save(active)
-                        folders = dict.fromkeys(self.runs[i].run_dir for i in active)
-                        raise TrainingStopped(stop.signum, list(folders))
+                    self.stop_if_asked(stop, active)
         except BaseException:
             self.close(quietly=True)  # the error in flight is the one to report, not a second one
             raise
         self.close()
         return [run.final for run in self.runs]
+
+    def stop_if_asked(self, stop: StopRequest, active: list[int]) -> None:
+        """After an update: if a stop signal came, a checkpoint of every active agent that has not
+        failed, then :class:`~.signals.TrainingStopped`."""
+        if stop.signum is None:
+            return
+        active = [i for i in active if not self.runs[i].failed]
+        self.save(active)
+        raise TrainingStopped(stop.signum, list(dict.fromkeys(self.runs[i].run_dir for i in active)))
 
     def step(self, active: list[int], k: int | None = None) -> int:
         """``k`` updates of the ``active`` agents (default: as many as nothing falls due in, at most
@@ -204,10 +220,7 @@ class Trainer:
                     continue
                 failed = [what for what, ok in zip(learner.checks, checks[j][i], strict=True) if not ok]
                 if failed:
-                    runs[i].fail(
-                        f"training diverged at episode {runs[i].episodes_done}: non-finite "
-                        f"{' and '.join(failed)}; {learner.advice}"
-                    )
+                    runs[i].fail(divergence(runs[i].episodes_done, failed, learner.advice))
                     continue
                 ended = {key: values[j][i] for key, values in episodes.items()}
                 if valid is not None:  # a learner whose updates end different numbers of episodes
