@@ -60,7 +60,6 @@ from drone_torchrl.schema import (
     store_plugin,
 )
 from drone_torchrl.training.memory_estimate import on_policy_parts
-from drone_torchrl.training.run import divergence
 from drone_torchrl.training.segments import FusedSegments
 
 if TYPE_CHECKING:
@@ -124,15 +123,11 @@ class OnPolicy:
         self.actor_module = build_actor(cfg, net, return_log_prob=True)
         self.critic = build_critic(cfg)
         self.loss = self.make_loss(self.actor_module, self.critic)
-        self.advantage = GAE(
-            gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False
-        )
+        self.advantage = GAE(gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False)
         self.fused = cfg.backend == FAST
         # Listed once: the loss module's parameters() walks its modules on each call.
         self.params = list(self.loss.parameters())
-        self.optimizer = torch.optim.Adam(
-            self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None
-        )
+        self.optimizer = torch.optim.Adam(self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None)
         frames = algo.num_envs * algo.steps_per_batch
         if self.fused:
             self.collector = FusedSegments(cfg, self.actor_module, net)
@@ -178,7 +173,7 @@ class OnPolicy:
             ended = self.tracker.update(batch)
             metrics = self._learn(batch, run.episodes_done)
             if failed := [name for name, value in metrics.items() if not math.isfinite(value)]:
-                run.fail(divergence(run.episodes_done, failed, self.advice))
+                run.diverged(failed, self.advice)
             else:
                 run.record(ended, metrics)
                 trainer.progress.update(len(ended["return"]), [run])
@@ -220,11 +215,10 @@ class OnPolicy:
                         sums[key] = sums.get(key, 0) + value.detach()
         return {f"train/{k}": (v / steps).item() for k, v in sums.items()}
 
-    #: No stacked state: :meth:`update` is for probes of one update's memory; the loop is :meth:`train`.
-    state = None
+    state = None  # no stacked state: update() is a memory probe's (tests/test_memory_estimate.py)
 
     def update(self, state: None, k: int, active: torch.Tensor) -> tuple[None, None]:
-        """``k`` batches learned from, not booked (what tests/test_memory_estimate.py measures)."""
+        """``k`` batches learned from, not booked; the loop is :meth:`train`."""
         for _ in range(k):
             self._learn(next(self._batches), 0)
         return state, None
@@ -282,24 +276,15 @@ class OnPolicy:
 
 
 class PPO(OnPolicy):
-    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages). With ``backend=fast``
-    and no entropy bonus, its minibatches are :class:`~.ppo_fast.PlainMinibatches`."""
+    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages)."""
 
     diagnostics = ("entropy", "kl_approx", "clip_fraction")
 
     def __init__(self, jobs) -> None:
         super().__init__(jobs)
-        fast = self.fused and not self.cfg.algo.entropy_coeff
-        self.plain = PlainMinibatches(self.cfg, self.loss, self.actor_module, self.critic) if fast else None
-
-    def hold_frames(self, batch: TensorDictBase) -> int:
-        return super().hold_frames(batch) if self.plain is None else self.plain.hold(batch)
-
-    def minibatch(self, size: int) -> Any:
-        return super().minibatch(size) if self.plain is None else self.plain.sample(size)
-
-    def losses(self, minibatch: Any) -> Mapping[str, torch.Tensor]:
-        return super().losses(minibatch) if self.plain is None else self.plain.losses(minibatch)
+        if self.fused and not self.cfg.algo.entropy_coeff:  # the fast twin's minibatches and loss
+            plain = PlainMinibatches(self.cfg, self.loss, self.actor_module, self.critic)
+            self.hold_frames, self.minibatch, self.losses = plain.hold, plain.sample, plain.losses
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         algo = self.cfg.algo
@@ -339,11 +324,6 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
         )
 
 
-def validate(cfg: Mapping[str, Any]) -> None:
-    """PPO's rules that relate keys: the on-policy loop's."""
-    validate_on_policy(cfg)
-
-
 @dataclass
 class OnPolicyConf:
     """``algo.*`` every on-policy algorithm has (the loop of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
@@ -379,7 +359,7 @@ register(
     Algorithm(
         "ppo",
         PPO,
-        validate,
+        validate_on_policy,
         checkpoint_keys=("critic",),
         summary="PPO on TorchRL's collector, GAE and ClipPPOLoss",
         memory=on_policy_parts,

@@ -1,11 +1,7 @@
-"""``backend=fast``'s PPO, the twin of the reference loop in :mod:`.ppo` (kept apart, as LeanRL keeps its
-compiled variants beside the plain ones).
-
-Three pieces differ, each tested equal to the reference (tests/test_ppo.py, tests/test_segments.py):
-the batches are flown by the C++ engine (:class:`~drone_torchrl.training.segments.FusedSegments`, in
-place of TorchRL's ``Collector``), Adam runs its fused kernel (``torch.optim.Adam(fused=True)``), and
-without an entropy bonus each minibatch is plain tensors scored by :func:`clip_ppo_losses` (what
-``ClipPPOLoss`` computes, without TensorDict's and TorchRL's machinery around a small network).
+"""``backend=fast``'s PPO, beside the reference in :mod:`.ppo` (as LeanRL keeps its compiled variants):
+the C++ engine's batches (:class:`~drone_torchrl.training.segments.FusedSegments`), Adam's fused kernel,
+and, without an entropy bonus, plain-tensor minibatches scored by :func:`clip_ppo_losses` (what
+``ClipPPOLoss`` computes, without TensorDict's machinery). Tested equal: tests/test_ppo.py, test_segments.py.
 """
 
 from __future__ import annotations
@@ -72,21 +68,13 @@ def clip_ppo_losses(
 
 
 class PlainMinibatches:
-    """A batch's frames as plain tensors, minibatches drawn without replacement within an epoch and
-    scored by :func:`clip_ppo_losses`: what the reference's replay buffer and ``ClipPPOLoss`` do.
-
-    Args:
-        cfg: the run's config (``model.distribution``, ``env.max_thrust``, ``device``).
-        loss: the run's ``ClipPPOLoss`` (its keys, clipping range and critic coefficient).
-        actor: its ``ProbabilisticActor``; critic: its value operator.
-    """
+    """The replay buffer and ``ClipPPOLoss`` of a run (``cfg``, ``loss``, ``actor``, ``critic``), as
+    plain tensors: minibatches drawn without replacement within an epoch, scored by :func:`clip_ppo_losses`."""
 
     def __init__(self, cfg: Any, loss: nn.Module, actor: nn.Module, critic: nn.Module) -> None:
-        self.device = cfg.device
-        self.policy = actor.module[0].module  # observation -> (loc, scale)
-        self.value = critic.module
-        self.head = distribution_head(cfg.model.distribution, cfg.env.max_thrust)
-        self.loss = loss
+        self.device, self.head = cfg.device, distribution_head(cfg.model.distribution, cfg.env.max_thrust)
+        self.policy, self.value = actor.module[0].module, critic.module  # observation -> (loc, scale), value
+        self.clip_epsilon, self.critic_coeff = loss.clip_epsilon, loss.critic_coeff
         keys = loss.tensor_keys
         self.frame_keys = ("observation", keys.action, keys.sample_log_prob, keys.advantage, keys.value_target)
         self.held: list[torch.Tensor] = []
@@ -109,6 +97,4 @@ class PlainMinibatches:
 
     def losses(self, minibatch: list[torch.Tensor]) -> dict[str, torch.Tensor]:
         """:func:`clip_ppo_losses` of the minibatch."""
-        return clip_ppo_losses(
-            self.policy, self.value, minibatch, self.loss.clip_epsilon, self.loss.critic_coeff
-        )
+        return clip_ppo_losses(self.policy, self.value, minibatch, self.clip_epsilon, self.critic_coeff)

@@ -57,11 +57,6 @@ class TrainingDiverged(RuntimeError):
     """A run whose loss, gradients, weights or actions became non-finite (one-line message)."""
 
 
-def divergence(episode: int, failed: Sequence[str], advice: str) -> str:
-    """Why a run stopped (its ``FAILED.txt``): the update after ``episode`` left ``failed`` non-finite."""
-    return f"training diverged at episode {episode}: non-finite {' and '.join(failed)}; {advice}"
-
-
 @dataclass(frozen=True)
 class Schedule:
     """The numbers of a config that an agent's counters read at every update."""
@@ -135,6 +130,10 @@ class AgentBook:
     @property
     def failed(self) -> bool:
         return self.failure is not None
+
+    def diverged(self, failed: Sequence[str], advice: str) -> None:
+        """Stop the agent (its ``fail``): its last update left the values named ``failed`` non-finite."""
+        self.fail(f"training diverged at episode {self.episodes_done}: non-finite {' and '.join(failed)}; {advice}")
 
     @property
     def wall_clock(self) -> float:

@@ -1,4 +1,5 @@
-"""The training loop, the same for one agent or a population and for every algorithm.
+"""The training loop of REINFORCE's populations and SAC, and the books of every run (PPO and A2C loop
+in ``OnPolicy.train``, :mod:`drone_torchrl.algorithms.ppo`, on them: records, evaluations, checkpoints, signals).
 
 A learner (an algorithm's, see :mod:`drone_torchrl.algorithms`) updates its agents behind one contract,
 ``update(state, k, active) -> (state, UpdateOutput)`` (see :mod:`.update`): ``k`` updates of every
@@ -44,14 +45,7 @@ from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.pbt import FRESH, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
-from drone_torchrl.training.run import (
-    FAILED_FILE,
-    AgentBook,
-    Progress,
-    RunRecord,
-    TrainingDiverged,
-    divergence,
-)
+from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import StopRequest, TrainingStopped, stop_on_signals
 
 #: The most updates per call of a learner's update; the loop copies a call's metrics and episodes to
@@ -169,10 +163,9 @@ class Trainer:
                 if at_budget := [i for i, run in enumerate(self.runs) if run.finished and run.final is None]:
                     self.evaluate(at_budget)
                     self.save(at_budget)
-                own_loop = getattr(self.learner, "train", None)  # PPO's and A2C's (algorithms/ppo.py)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
-                    if own_loop is not None:
-                        own_loop(self, stop)
+                    if hasattr(self.learner, "train"):  # a loop of its own: PPO's and A2C's (algorithms/ppo.py)
+                        self.learner.train(self, stop)
                         break
                     self.step(active)
                     self.stop_if_asked(stop, active)
@@ -183,8 +176,7 @@ class Trainer:
         return [run.final for run in self.runs]
 
     def stop_if_asked(self, stop: StopRequest, active: list[int]) -> None:
-        """After an update: if a stop signal came, a checkpoint of every active agent that has not
-        failed, then :class:`~.signals.TrainingStopped`."""
+        """After an update, on a stop signal: a checkpoint of each active agent, then TrainingStopped."""
         if stop.signum is None:
             return
         active = [i for i in active if not self.runs[i].failed]
@@ -220,7 +212,7 @@ class Trainer:
                     continue
                 failed = [what for what, ok in zip(learner.checks, checks[j][i], strict=True) if not ok]
                 if failed:
-                    runs[i].fail(divergence(runs[i].episodes_done, failed, learner.advice))
+                    runs[i].diverged(failed, learner.advice)
                     continue
                 ended = {key: values[j][i] for key, values in episodes.items()}
                 if valid is not None:  # a learner whose updates end different numbers of episodes
