@@ -96,8 +96,7 @@ def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
 
 
 class OnPolicy:
-    """One actor-critic run: ``__init__`` builds it, :meth:`train` is its loop, ``_learn`` one
-    batch's update. A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what
+    """One actor-critic run: ``__init__`` builds it, ``train`` is its loop, ``_learn`` one batch's update. A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what
     its loss reports; the losses summed and booked are the loss's ``loss_*`` outputs. It may also
     change what the loss sees of the batch's advantages (:meth:`scale_advantage`) and how the
     gradients are clipped before each step (:meth:`clip_gradients`)."""

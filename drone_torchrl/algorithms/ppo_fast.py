@@ -1,7 +1,8 @@
-"""``backend=fast``'s PPO, beside the reference in :mod:`.ppo` (as LeanRL keeps its compiled variants):
-the C++ engine's batches (:class:`~drone_torchrl.training.segments.FusedSegments`), Adam's fused kernel,
-and, without an entropy bonus, plain-tensor minibatches scored by :func:`clip_ppo_losses` (what
-``ClipPPOLoss`` computes, without TensorDict's machinery). Tested equal: tests/test_ppo.py, test_segments.py.
+"""``backend=fast``'s PPO, beside the reference in :mod:`drone_torchrl.algorithms.ppo`, as LeanRL keeps its
+compiled variants: the C++ engine's batches (:class:`~drone_torchrl.training.segments.FusedSegments`),
+Adam's fused kernel, and, without an entropy bonus, plain-tensor minibatches scored by
+:func:`~drone_torchrl.algorithms.ppo_fast.clip_ppo_losses` (what ``ClipPPOLoss`` computes, without
+TensorDict's machinery). Tested equal: tests/test_ppo.py, test_segments.py.
 """
 
 from __future__ import annotations
