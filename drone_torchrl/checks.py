@@ -1,5 +1,8 @@
-"""The one-line checks of config values: :class:`~.checks.ConfigError` and the number, choice and list checks
-the schema's rules (:mod:`drone_torchrl.schema`) and the cross-field checks use."""
+"""The one-line checks of config values: :class:`~.checks.ConfigError` and its checks.
+
+The one-line checks of config values: :class:`~.checks.ConfigError` and the number, choice and list checks
+the schema's rules (:mod:`drone_torchrl.schema`) and the cross-field checks use.
+"""
 
 from __future__ import annotations
 
@@ -22,6 +25,7 @@ class ConfigError(ValueError):
 
     @classmethod
     def of(cls, key: str, value: Any, allowed: str) -> ConfigError:
+        """The one-line error ``key=value is not allowed; expected <allowed>``."""
         return cls(f"{key}={as_override(value)} is not allowed; expected {allowed}")
 
 
@@ -51,8 +55,11 @@ def check_number(
     low_open: bool = False,
     integer: bool = False,
 ) -> None:
-    """``value`` of ``key`` is a finite number (an integer with ``integer``) within the bounds; without
-    an upper bound, within float32's range (an integer: int64's)."""
+    """Check that ``value`` of ``key`` is a finite number within the bounds.
+
+    ``value`` of ``key`` is a finite number (an integer with ``integer``) within the bounds; without
+    an upper bound, within float32's range (an integer: int64's).
+    """
     limit = INT64_MAX if integer else FLOAT32_MAX
     numeric = isinstance(value, int | float) and not isinstance(value, bool)
     # An int too large for a float (10**400) is compared as an int: math.isfinite would overflow.

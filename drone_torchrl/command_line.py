@@ -42,8 +42,11 @@ SWEEP_RECORD = "multirun.yaml"
 
 
 def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
-    """Hydra's own command-line flags, parsed with its parser; an unknown or incomplete flag is a
-    one-line :class:`~.checks.ConfigError` instead of argparse's usage text."""
+    """Hydra's own command-line flags, parsed with its parser; a bad flag is a one-line error.
+
+    Hydra's own command-line flags, parsed with its parser; an unknown or incomplete flag is a
+    one-line :class:`~.checks.ConfigError` instead of argparse's usage text.
+    """
     parser = hydra_args_parser()
     parser.prog = prog
     parser.exit_on_error = False
@@ -99,8 +102,10 @@ def check_launcher(option: str) -> None:
 
 
 def check_composed(overrides: list[str]) -> None:
-    """The config ``--cfg job`` would print, composed and validated: a bad value is refused as it
-    would be when training, not printed as if it were fine."""
+    """The config ``--cfg job`` would print, composed and validated.
+
+    A bad value is refused as it would be when training, not printed as if it were fine.
+    """
     from hydra import compose, initialize_config_dir
 
     from drone_torchrl.config import config_dir, validate
@@ -127,8 +132,9 @@ def sweep_root_above(folder: Path) -> Path | None:
 
 
 def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]:
-    """Claim the folder a single run will write before Hydra writes into it; returns the folder
-    claimed (or None) and overrides to add.
+    """Claim the folder a single run will write before Hydra writes into it.
+
+    Returns the folder claimed (or None) and overrides to add.
 
     - ``hydra.run.dir=<folder>``: refused inside a sweep folder (unless it is one of its jobs, which
       then continues); claimed; if it already holds a run, Hydra is told not to rewrite that run's

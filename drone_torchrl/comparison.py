@@ -45,8 +45,11 @@ VIDEO_NAME = "episode.gif"
 def plot_trajectory(
     rollout: TensorDictBase, path: Path, title: str, params: dynamics.DroneParams | None = None
 ) -> Path:
-    """x-z path of the first episode over the domain and target zone of ``params`` (default: the
-    paper's), and both thrusts over time."""
+    """Plot the first episode's x-z path over the domain and target zone, and both thrusts over time.
+
+    x-z path of the first episode over the domain and target zone of ``params`` (default: the
+    paper's), and both thrusts over time.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -91,8 +94,11 @@ def plot_trajectory(
 
 
 def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
-    """A checkpoint flies in its own run's env: an ``env.*`` override that differs is refused, not
-    ignored. The disturbances are the evaluation's conditions (:func:`_flown_env`), not the run's."""
+    """Refuse an ``env.*`` override that differs from the checkpoint's run: it flies in its own env.
+
+    A checkpoint flies in its own run's env: an ``env.*`` override that differs is refused, not
+    ignored. The disturbances are the evaluation's conditions (:func:`_flown_env`), not the run's.
+    """
     keys = command_line_keys() or set()
     changed = [
         f"env.{name} {run_env[name]!r} -> {cfg.env[name]!r}"
@@ -109,8 +115,11 @@ def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
 
 
 def _flown_env(cfg: DictConfig, run_env: dict, path: Path) -> dict:
-    """The run's env under the disturbances drone-eval was asked for (``disturbance=...``), keeping
-    the run's ``observed_actions``: the policy's input layout, not a condition."""
+    """The run's env under the disturbances drone-eval was asked for.
+
+    The run's env under the disturbances drone-eval was asked for (``disturbance=...``), keeping
+    the run's ``observed_actions``: the policy's input layout, not a condition.
+    """
     asked = env_kwargs(cfg)["disturbance"]
     trained = disturbances.make(run_env["disturbance"]).observed_actions
     if asked["observed_actions"] != trained and "env.disturbance.observed_actions" in (

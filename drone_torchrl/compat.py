@@ -55,8 +55,10 @@ def _release(version: str) -> tuple[int, ...]:
 
 
 def check_versions(checked: dict[str, tuple[str, str]] = CHECKED) -> None:
-    """Raise ``RuntimeError`` (one line) if an installed package is outside the range checked here;
-    packages not installed (an extra) are skipped."""
+    """Raise ``RuntimeError`` (one line) if an installed package is outside the range checked here.
+
+    Packages not installed (an extra) are skipped.
+    """
     for name, (low, high) in checked.items():
         try:
             version = metadata.version(name)
@@ -70,8 +72,11 @@ def check_versions(checked: dict[str, tuple[str, str]] = CHECKED) -> None:
 
 
 def basic_sweeper_class() -> type:
-    """Hydra's ``BasicSweeper``, imported afresh: Hydra's plugin scan re-executes its core plugin
-    modules, so the class must be looked up when it is used, not kept from an earlier import."""
+    """Hydra's ``BasicSweeper``, imported afresh.
+
+    Hydra's plugin scan re-executes its core plugin modules, so the class must be looked up when it is used,
+    not kept from an earlier import.
+    """
     return importlib.import_module("hydra._internal.core_plugins.basic_sweeper").BasicSweeper
 
 
@@ -112,7 +117,7 @@ def submitit_params(launcher: Any) -> dict[str, Any]:
 
 
 def fused_adam(decoupled_weight_decay: bool) -> Callable:
-    """torch's fused multi-tensor Adam (or AdamW with ``decoupled_weight_decay``) step on the CPU."""
+    """Torch's fused multi-tensor Adam (or AdamW with ``decoupled_weight_decay``) step on the CPU."""
     import torch
 
     return torch._fused_adamw_ if decoupled_weight_decay else torch._fused_adam_

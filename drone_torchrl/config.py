@@ -84,18 +84,24 @@ _REGISTRIES = {"algo": algorithms.get, "logger": loggers.get}
 
 @functools.cache
 def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
-    """``{"algo.lr": rule, ...}``: every key of a ``conf/<name>.yaml`` config, in order, with its
+    """Every key of a ``conf/<name>.yaml`` config, in order, with its :class:`~drone_torchrl.schema.Rule`.
+
+    ``{"algo.lr": rule, ...}``: every key of a ``conf/<name>.yaml`` config, in order, with its
     :class:`~drone_torchrl.schema.Rule`, from the schemas in Hydra's ConfigStore. ``plugins``: the
     plug-in of each plug-in group (``algo="ppo"``; a group not given, or a plug-in without a stored
-    schema, adds no keys)."""
+    schema, adds no keys).
+    """
     _discover_plugins()  # a plug-in not imported yet has no stored schema: its keys would be missing
     nodes = {group: schema.plugin_schema(group, plugin) for group, plugin in plugins.items()}
     return dict(schema.fields(schema.primary_schema(name), nodes))
 
 
 def _discover_plugins() -> None:
-    """Import every algorithm and logger plug-in (each stores its schema when imported): the cached
-    key lists above must not be made before they are (a caller that asks before any app ran)."""
+    """Import every algorithm and logger plug-in, so that each stores its schema.
+
+    Import every algorithm and logger plug-in (each stores its schema when imported): the cached
+    key lists above must not be made before they are (a caller that asks before any app ran).
+    """
     algorithms.names()
     loggers.BACKENDS.names()
 
@@ -114,16 +120,21 @@ def per_agent_keys(name: str = "config") -> tuple[str, ...]:
 
 
 def resume_rule(key: str) -> str:
-    """What a continued run does with ``key`` (:data:`~drone_torchrl.schema.KEPT`, ``IF_SET``,
-    ``BUDGET`` or ``PROCESS``); a key no schema has is kept."""
+    """What a continued run does with ``key``; a key no schema has is kept.
+
+    What a continued run does with ``key`` (:data:`~drone_torchrl.schema.KEPT`, ``IF_SET``,
+    ``BUDGET`` or ``PROCESS``); a key no schema has is kept.
+    """
     rule = _every_key("config").get(key)
     return schema.KEPT if rule is None else rule.on_resume
 
 
 @functools.cache
 def _every_key(name: str) -> dict[str, Rule]:
-    """Every key of ``conf/<name>.yaml`` with any plug-in stored in the ConfigStore (each plug-in's
-    rule of a key the plug-ins share is the same)."""
+    """Every key of ``conf/<name>.yaml`` with any plug-in stored in the ConfigStore.
+
+    Each plug-in's rule of a key the plug-ins share is the same.
+    """
     _discover_plugins()
     out: dict[str, Rule] = {}
     for group in schema.plugin_groups(name):
@@ -165,8 +176,11 @@ def group_options(group: str) -> list[str]:
 
 
 def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
-    """``{"reinforce": ["reinforce", "reinforce_plus"], ...}``: the plug-in each option of plug-in group
-    ``group`` chooses, with the options that choose it (an option Hydra cannot compose is left out)."""
+    """The plug-in each option of plug-in group ``group`` chooses, with the options that choose it.
+
+    ``{"reinforce": ["reinforce", "reinforce_plus"], ...}``: the plug-in each option of plug-in group
+    ``group`` chooses, with the options that choose it (an option Hydra cannot compose is left out).
+    """
     out: dict[str, list[str]] = {}
     for option in _options(group):
         try:
@@ -205,17 +219,23 @@ def _option_keys(group: str, option: str) -> dict[str, Rule]:
 
 
 def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str, str | None]:
-    """``{"algo": "reinforce", "logger": "tensorboard"}``: the plug-in each plug-in group names in
+    """The plug-in each plug-in group names in ``conf/<name>.yaml`` composed with these group options.
+
+    ``{"algo": "reinforce", "logger": "tensorboard"}``: the plug-in each plug-in group names in
     ``conf/<name>.yaml`` composed by Hydra with these group options (``(("algo", "reinforce_plus"),)``;
     the others: the config's defaults). An option's file name is free, so only Hydra knows its
-    plug-in: several options may share one (reinforce_plus is REINFORCE with other values)."""
+    plug-in: several options may share one (reinforce_plus is REINFORCE with other values).
+    """
     return _composed(name, tuple(f"{group}={option}" for group, option in choices))[0]
 
 
 @functools.cache
 def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | None], dict[str, str]]:
-    """``conf/<name>.yaml`` composed by Hydra with these group overrides: the plug-in of each plug-in
-    group (:func:`_option_plugins`), and the option of each config group (Hydra's own left out)."""
+    """``conf/<name>.yaml`` composed by Hydra with these group overrides: its plug-ins and options.
+
+    ``conf/<name>.yaml`` composed by Hydra with these group overrides: the plug-in of each plug-in
+    group (:func:`_option_plugins`), and the option of each config group (Hydra's own left out).
+    """
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -235,7 +255,8 @@ def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | No
 def _resolved(cfg: DictConfig | Mapping) -> Mapping:
     """The config as plain data, resolved (a ``???`` value raises), Hydra's own node left out.
 
-    At once (~0.2 ms) rather than node by node through OmegaConf (~0.5 ms)."""
+    At once rather than node by node through OmegaConf, which costs more than twice as much.
+    """
     if not isinstance(cfg, DictConfig):
         return cfg
     out: dict[str, Any] = {}
@@ -254,10 +275,12 @@ def _resolved(cfg: DictConfig | Mapping) -> Mapping:
 
 
 def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
-    """Refuse keys the schema of ``conf/<name>.yaml`` does not have (e.g. added with ``+``), keys
-    without a value, and plug-ins without a schema. Returns the config as resolved plain data
-    (``???`` and interpolations to nothing are refused)."""
+    """Refuse keys the schema does not have, keys without a value, and plug-ins without a schema.
 
+    Refuse keys the schema of ``conf/<name>.yaml`` does not have (e.g. added with ``+``), keys
+    without a value, and plug-ins without a schema. Returns the config as resolved plain data
+    (``???`` and interpolations to nothing are refused).
+    """
     try:
         resolved = _resolved(cfg)
         given = leaves(resolved)
@@ -293,9 +316,12 @@ def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
 
 
 def check_values(resolved: Mapping, name: str = "config") -> None:
-    """Every rule of the schema (:mod:`drone_torchrl.schema`) on the resolved config (as nested
+    """Check every rule of the schema on the resolved config; the first refusal raises ConfigError.
+
+    Every rule of the schema (:mod:`drone_torchrl.schema`) on the resolved config (as nested
     dicts, keys checked by :func:`check_keys`): the first value a rule refuses raises
-    :class:`~.checks.ConfigError`."""
+    :class:`~.checks.ConfigError`.
+    """
     plugins = tuple(
         (group, resolved[group][rule.plugin_key]) for group, rule in schema.plugin_groups(name).items()
     )
@@ -307,9 +333,12 @@ def check_values(resolved: Mapping, name: str = "config") -> None:
 
 
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
-    """One-line errors for command-line overrides Hydra would reject with several lines, or accept
+    """One-line errors for command-line overrides Hydra would reject in several lines, or accept wrongly.
+
+    One-line errors for command-line overrides Hydra would reject with several lines, or accept
     though they make no sense: an unknown key (with or without ``+``), an unknown group option, and
-    a run folder that is a file, and an override Hydra cannot parse (its grammar error in one line)."""
+    a run folder that is a file, and an override Hydra cannot parse (its grammar error in one line).
+    """
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
@@ -385,8 +414,11 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
 
 
 def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
-    """The one line for ``algo.name=ppo``: the plug-in comes with its keys, so it is chosen with its
-    group (``algo=ppo``), which sets the key; setting the key alone leaves the other plug-in's keys."""
+    """The one line for ``algo.name=ppo``: a plug-in is chosen with its group (``algo=ppo``).
+
+    The one line for ``algo.name=ppo``: the plug-in comes with its keys, so it is chosen with its
+    group (``algo=ppo``), which sets the key; setting the key alone leaves the other plug-in's keys.
+    """
     values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
     value = values[0]
     options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
@@ -398,8 +430,11 @@ def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
 
 
 def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list[str]) -> None:
-    """A section (``env.disturbance``, ``eval``) set on the command line: a mapping of its own keys
-    (Hydra merges it); null, a number or a list fail Hydra's merge in several lines."""
+    """Check that a section set on the command line is a mapping of its own keys.
+
+    A section (``env.disturbance``, ``eval``) set on the command line: a mapping of its own keys
+    (Hydra merges it); null, a number or a list fail Hydra's merge in several lines.
+    """
     if isinstance(value, Mapping):
         for sub, inner in value.items():
             full = f"{key}.{sub}"
@@ -415,10 +450,13 @@ def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list
 
 
 def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
-    """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick (the last
+    """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick, or None.
+
+    The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick (the last
     plain one of each group, or every option a sweep names; an option of any group may pick the
     plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``), or None if Hydra cannot compose
-    those. Over a sweep, the keys every one of its jobs has."""
+    those. Over a sweep, the keys every one of its jobs has.
+    """
     if not schema.plugin_groups(name):
         return schema_keys(name)
     known: dict[str, Rule] | None = None
@@ -432,8 +470,11 @@ def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
 
 
 def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
-    """Every combination of the group options the overrides pick (the last plain one of each group,
-    or every option a sweep names): ``(("algo", "ppo"), ("experiment", "bounded"))``."""
+    """Every combination of the group options the overrides pick.
+
+    The last plain one of each group, or every option a sweep names. ``(("algo", "ppo"), ("experiment",
+    "bounded"))``.
+    """
     groups = group_names()
     picks: dict[str, list[str]] = {}
     for override in parsed:
@@ -457,8 +498,11 @@ PLUGIN_PRESETS = "presets"
 
 
 def _check_presets(parsed: list, name: str) -> None:
-    """A preset that picks a plug-in (``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its
-    keys) with another one on the command line: refused, naming the preset it builds on as the way."""
+    """Refuse a preset that picks a plug-in together with another plug-in on the command line.
+
+    A preset that picks a plug-in (``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its
+    keys) with another one on the command line: refused, naming the preset it builds on as the way.
+    """
     if PRESET_GROUP not in group_names() or not schema.plugin_groups(name):
         return
     for combination in _combinations(parsed):
@@ -533,9 +577,12 @@ def _preset_keys(path: Path) -> list[str]:
 
 
 def _check_folder_name(key: str, value: Any, expected: str) -> None:
-    """``value`` of ``key`` names one folder (:func:`plain_name`; else the message asks for
+    """Check that ``value`` of ``key`` names one folder, of a length the file system allows.
+
+    ``value`` of ``key`` names one folder (:func:`plain_name`; else the message asks for
     ``expected``) no longer than the working folder's file system allows (where run and sweep
-    folders go by default)."""
+    folders go by default).
+    """
     from drone_torchrl.io.storage import name_too_long
 
     if not plain_name(value):
@@ -545,8 +592,11 @@ def _check_folder_name(key: str, value: Any, expected: str) -> None:
 
 
 def _check_folder(key: str, value: Any) -> None:
-    """A folder the run can create or write into: not empty, not a file, a name the file system
-    takes, under a folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`)."""
+    """Check that the run can create or write into ``folder``.
+
+    A folder the run can create or write into: not empty, not a file, a name the file system
+    takes, under a folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`).
+    """
     import os
 
     from drone_torchrl.io.storage import unwritable
@@ -563,11 +613,14 @@ def _check_folder(key: str, value: Any) -> None:
 
 
 def check_default_folder(name: str, args: Iterable[str]) -> None:
-    """The folder Hydra makes and writes its record into before any of our code runs, when ``args``
+    """The folder Hydra makes and writes its record into before any of our code runs.
+
+    The folder Hydra makes and writes its record into before any of our code runs, when ``args``
     name none: the default of ``hydra.run.dir`` (``hydra.sweep.dir`` with ``-m``) in
     ``conf/<name>.yaml``, e.g. ``outputs/<date>/<time>``. A read-only or full working folder is
     refused in one line (it was Hydra's traceback). For commands that train or fly (not for
-    ``--cfg``, ``--help``), which write there."""
+    ``--cfg``, ``--help``), which write there.
+    """
     args = list(args)
     key = "hydra.sweep.dir" if {"-m", "--multirun"} & set(args) else "hydra.run.dir"
     if any(a.split("=", 1)[0].lstrip("+") == key for a in args):
@@ -596,11 +649,14 @@ def check_command_line(prog: str, name: str) -> None:
 
 
 def run_config(saved: dict[str, Any]) -> DictConfig:
-    """The config stored in a checkpoint, in today's keys: those replaced since read as their new ones
+    """The config stored in a checkpoint, in today's keys, with the keys added since filled in.
+
+    The config stored in a checkpoint, in today's keys: those replaced since read as their new ones
     (:func:`drone_torchrl.migrations.migrate_config`: ``engine`` as ``backend``...), and keys added
     since filled in with the value those runs behaved as (the schema's ``added``; only the keys of
     its plug-ins: a PPO run has no REINFORCE optimizer keys), so old runs can still be evaluated and
-    resumed."""
+    resumed.
+    """
     cfg = OmegaConf.create(migrations.migrate_config(saved))
     plugins = {}
     for group, rule in schema.plugin_groups().items():
@@ -630,8 +686,11 @@ def physics_params(kwargs: dict[str, Any]) -> DroneParams:
 
 
 def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
-    """The ``DroneEnv`` arguments of a config (a ``DictConfig`` or the plain dict of a saved one); a
-    saved config from before an argument existed gets its :data:`ENV_ADDED` value."""
+    """The ``DroneEnv`` arguments of a config (a ``DictConfig`` or a saved one's plain dict).
+
+    The ``DroneEnv`` arguments of a config (a ``DictConfig`` or the plain dict of a saved one); a
+    saved config from before an argument existed gets its :data:`ENV_ADDED` value.
+    """
     env = cfg["env"]
     kwargs = {name: env[name] if name in env else ENV_ADDED[name] for name in ENV_ARGS}
     if isinstance(kwargs["disturbance"], DictConfig):  # the env takes a plain mapping
@@ -640,10 +699,12 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
 
 
 def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
-    """The checkpoint that config value ``key`` (``resume``, ``checkpoint``) names: a checkpoint file or
-    a run folder. Raises :class:`~.checks.ConfigError` naming the key for anything that is not a readable one.
-    A population run's checkpoint comes back as it is (``population_record.open_agent`` reads one
-    agent of it)."""
+    """The checkpoint that config value ``key`` (``resume``, ``checkpoint``) names.
+
+    A checkpoint file or a run folder. Raises :class:`~.checks.ConfigError` naming the key for anything that
+    is not a readable one. A population run's checkpoint comes back as it is (``population_record.open_agent``
+    reads one agent of it).
+    """
     from drone_torchrl.io.checkpoint import POPULATION, CheckpointError, load_checkpoint, resolve_checkpoint
 
     if not isinstance(location, str | Path) or not str(location).strip():
@@ -676,10 +737,13 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
 
 
 def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig) -> None:
-    """The checkpoint's weights fit the networks of ``cfg`` (its run's config, validated): its actor
+    """Check that the checkpoint's weights fit the networks of ``cfg``.
+
+    The checkpoint's weights fit the networks of ``cfg`` (its run's config, validated): its actor
     and, for an algorithm that keeps one among its checkpoint entries, its critic, each tensor of the
     shape they have. :class:`~.checks.ConfigError` naming the key, the file and the first tensor that differs;
-    the networks are built on the meta device (shapes only: no memory, no time)."""
+    the networks are built on the meta device (shapes only: no memory, no time).
+    """
     import torch
 
     from drone_torchrl.io.checkpoint import CheckpointError, check_weights
@@ -714,10 +778,12 @@ def check_device(device: Any) -> None:
 
 @functools.lru_cache(maxsize=64)
 def _env_error(device: Any, kwargs: tuple[tuple[str, type, Any], ...]) -> str | None:
-    """What ``DroneEnv`` says of these arguments (``(name, type, value)``: the type is part of the
+    """What ``DroneEnv`` says of these arguments (``(name, type, value)``), or None; cached.
+
+    What ``DroneEnv`` says of these arguments (``(name, type, value)``: the type is part of the
     key, since ``1``, ``1.0`` and ``True`` are equal keys but not equally allowed), or None.
-    Cached: a sweep's jobs mostly share them, and building the env is most of a job's validation
-    (2 ms)."""
+    Cached: a sweep's jobs mostly share them, and building the env is most of a job's validation.
+    """
     try:
         DroneEnv(batch_size=[], device=device, **{name: value for name, _, value in kwargs}).close()
     except ValueError as err:
@@ -727,9 +793,11 @@ def _env_error(device: Any, kwargs: tuple[tuple[str, type, Any], ...]) -> str | 
 
 
 class _Plain(dict):
-    """A resolved config as nested dicts with attribute access (``cfg.algo.lr``), for validation:
-    it reads about 150 values, ~7 us each through OmegaConf, and a population validates every job.
-    (A key named like a dict method, ``items`` say, must be read as ``cfg["items"]``.)"""
+    """A resolved config as nested dicts with attribute access (``cfg.algo.lr``), for validation.
+
+    It reads about 150 values, each a slow read through OmegaConf, and a population validates every job. (A key
+    named like a dict method, ``items`` say, must be read as ``cfg["items"]``.)
+    """
 
     def __getattr__(self, name: str) -> Any:
         try:
@@ -776,7 +844,9 @@ def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> 
 class AgentValueError(ConfigError):
     """A per-agent value that is not allowed (:func:`check_agent_values`).
 
-    ``agent`` is the index of the agent whose value it is.
+    Args:
+        agent: the index of the agent whose value it is.
+        message: the one-line error.
     """
 
     def __init__(self, agent: int, message: str) -> None:
@@ -785,9 +855,11 @@ class AgentValueError(ConfigError):
 
 
 def validate(cfg: DictConfig, training: bool = True) -> None:
-    """Raise :class:`~.checks.ConfigError` for the first value that is not allowed. ``training``: the config
-    is about to train here, so its logger's extra must be installed and its memory must fit
-    (``drone-eval`` reads a checkpoint's config for its values only)."""
+    """Raise :class:`~.checks.ConfigError` for the first value that is not allowed.
+
+    ``training``: the config is about to train here, so its logger's extra must be installed and its memory
+    must fit (``drone-eval`` reads a checkpoint's config for its values only).
+    """
     cfg = _plain(check_keys(cfg))  # also refuses ??? and interpolations to nothing, in one line
     check_device(cfg.device)
     kwargs = tuple((name, type(value), value) for name, value in env_kwargs(cfg).items())
@@ -807,6 +879,7 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             cfg.model.activation,
             cfg.env.dtype,
             disturbances.make(env_kwargs(cfg)["disturbance"]),
+            cfg.algo.name,
         )
         if reason is not None:
             raise ConfigError(f"backend=fast cannot take {reason}; backend=reference takes every option")
@@ -833,7 +906,10 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
 
 
 def check_memory(cfg: Mapping[str, Any], agents: int = 1) -> None:
-    """Refuse in one line a config whose memory (:mod:`drone_torchrl.training.memory_estimate`), with
-    ``agents`` runs trained together in one process, exceeds what this machine has free."""
+    """Refuse in one line a config whose memory exceeds what this machine has free.
+
+    Refuse in one line a config whose memory (:mod:`drone_torchrl.training.memory_estimate`), with
+    ``agents`` runs trained together in one process, exceeds what this machine has free.
+    """
     learner = algorithms.get(cfg["algo"]["name"]).memory
     memory_estimate.check(memory_estimate.estimate(cfg, agents, learner), cfg["device"])

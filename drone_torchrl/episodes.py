@@ -12,9 +12,12 @@ from drone_torchrl.envs.rollout import Episodes
 
 
 def _in_zone(reward: torch.Tensor) -> torch.Tensor:
-    """The steps that ended inside the target zone without terminating: those the env rewarded with
+    """The steps ``[*B, T]`` that ended inside the target zone without terminating.
+
+    The steps that ended inside the target zone without terminating: those the env rewarded with
     :data:`~drone_torchrl.envs.dynamics.REWARD_IN_ZONE` (it alone knows its zone, bounds and dtype;
-    the other rewards, 1 and 0, differ from it)."""
+    the other rewards, 1 and 0, differ from it).
+    """
     return reward == REWARD_IN_ZONE
 
 
@@ -56,9 +59,12 @@ def episode_stats(rollout: TensorDictBase | Episodes) -> dict[str, torch.Tensor]
 
 
 def counted_metrics(length: torch.Tensor, counts: torch.Tensor) -> dict[str, torch.Tensor]:
-    """:data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies
+    """:data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies.
+
+    :data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies
     (``[*B, 4]``: :data:`drone_torchrl.kernels.ops.STAT_NAMES`) and the lengths: the same numbers
-    as :func:`episode_stats`."""
+    as :func:`episode_stats`.
+    """
     steps = length.clamp_min(1).to(counts.dtype)
     return {
         "return": counts[..., 0],
@@ -75,11 +81,17 @@ def cause_counts(causes: torch.Tensor) -> dict[str, int]:
 
 
 class EpisodeTracker:
-    """Per-episode metrics of a stream of ``[N, T]`` collector batches, whose episodes start and end
-    anywhere in a batch and run across batches (auto-reset envs, as TorchRL's collectors give them).
+    """Per-episode metrics of a stream of ``[N, T]`` collector batches (auto-reset envs).
+
+    The episodes start and end anywhere in a batch and run across batches (auto-reset envs, as
+    TorchRL's collectors give them).
 
     The same metrics as :func:`episode_stats`, for each episode that ends in a batch, in the order
     they end (by step, then by env index). Episodes still running carry over to the next batch.
+
+    Args:
+        num_envs: the batches' ``N``, the envs stepped together.
+        device: where the running sums live (the batches').
     """
 
     def __init__(self, num_envs: int, device: torch.device | str = "cpu") -> None:
@@ -95,6 +107,7 @@ class EpisodeTracker:
         self._return, self._length, self._zone, self._negative = (acc.clone() for acc in state)
 
     def update(self, batch: TensorDictBase) -> dict[str, list]:
+        """Track one ``[N, T]`` batch; returns the metrics of the episodes that ended in it."""
         reward = batch.get(("next", "reward")).squeeze(-1)
         done = batch.get(("next", "done")).squeeze(-1)
         terminated = batch.get(("next", "terminated")).squeeze(-1)

@@ -1,4 +1,6 @@
-"""A trained policy as a standalone file: its deterministic action as a ``torch.export`` program
+"""A trained policy as a standalone file: a ``torch.export`` program or an ONNX model.
+
+A trained policy as a standalone file: its deterministic action as a ``torch.export`` program
 (``.pt2``, plain torch) or an ONNX model (``.onnx``, onnxruntime or any ONNX runtime).
 
 Both map an observation batch ``[B, 6]`` in the env's state layout
@@ -115,7 +117,14 @@ class ExportError(RuntimeError):
 
 
 class DeterministicPolicy(nn.Module):
-    """Observation ``[B, 6]`` -> the motor commands ``[B, 2]`` the env applies (deterministic)."""
+    """Observation ``[B, 6]`` -> the motor commands ``[B, 2]`` the env applies (deterministic).
+
+    Args:
+        net: the policy's net, observations to the Normal's ``(loc, scale)``.
+        distribution: the head, ``"normal"`` or ``"tanh_normal"`` (the mean squashed into
+            ``[0, max_thrust]``).
+        max_thrust: the per-motor thrust limit (``"tanh_normal"`` only).
+    """
 
     def __init__(self, net: nn.Module, distribution: str, max_thrust: float | None) -> None:
         super().__init__()
@@ -149,9 +158,12 @@ class Exported:
 
 # ------------------------------------------------------------------------------ what to write
 def resolve_output(format: str | None, output: Any) -> tuple[str, Path]:
-    """The format and the file of ``format=`` and ``output=`` (:class:`~.checks.ConfigError` if they do not
+    """The format and the file of ``format=`` and ``output=``, checked to fit each other.
+
+    The format and the file of ``format=`` and ``output=`` (:class:`~.checks.ConfigError` if they do not
     fit): the output's suffix is the format's (``.pt2``, ``.onnx``); a null format is the suffix's,
-    a null output ``policy.<format>``."""
+    a null output ``policy.<format>``.
+    """
     suffixes = {f".{name}": name for name in EXPORT_FORMATS}
     if format is not None and format not in EXPORT_FORMATS:
         raise ConfigError.of(
@@ -208,8 +220,11 @@ def policy_and_actor(
 def load_policy(
     checkpoint: str | os.PathLike, agent: int | None = None
 ) -> tuple[DeterministicPolicy, ProbabilisticActor, Path]:
-    """The deterministic policy and the actor of a checkpoint file or run folder (of a population
-    run: its agent ``agent``; :class:`~.checks.ConfigError` if unusable), on the CPU."""
+    """The deterministic policy and the actor of a checkpoint file or run folder, on the CPU.
+
+    The deterministic policy and the actor of a checkpoint file or run folder (of a population
+    run: its agent ``agent``; :class:`~.checks.ConfigError` if unusable), on the CPU.
+    """
     path, state = open_agent("checkpoint", checkpoint, agent)
     cfg = run_config(state["config"])
     cfg.device = "cpu"
@@ -220,8 +235,7 @@ def load_policy(
 
 
 def deterministic_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, Path]:
-    """The deterministic policy of a checkpoint file or run folder (:class:`~.checks.ConfigError` if
-    unusable)."""
+    """The deterministic policy of a checkpoint or run folder (:class:`~.checks.ConfigError` if unusable)."""
     policy, _, path = load_policy(checkpoint)
     return policy, path
 
@@ -236,9 +250,11 @@ def actor_commands(
 
 
 def check_observations(observation_dim: int = STATE_DIM) -> torch.Tensor:
-    """The float32 observations ``[N, observation_dim]`` every export is checked on (fixed: seeded
-    draws, corners, extremes; see ``CHECK_SPAN``). Past the 6 state entries (a run with
-    ``env.disturbance.observed_actions``) come past commands, seeded uniforms in [0, 1]."""
+    """The float32 observations ``[N, observation_dim]`` every export is checked on.
+
+    Fixed: seeded draws, corners, extremes; see ``CHECK_SPAN``. Past the 6 state entries (a run with
+    ``env.disturbance.observed_actions``) come past commands, seeded uniforms in [0, 1].
+    """
     centre, span = torch.tensor(CHECK_CENTRE), torch.tensor(CHECK_SPAN)
     generator = torch.Generator().manual_seed(CHECK_SEED)
     uniform = 2.0 * torch.rand(CHECK_RANDOM, STATE_DIM, generator=generator) - 1.0
@@ -264,8 +280,11 @@ def observation_dim(policy: DeterministicPolicy) -> int:
 # ------------------------------------------------------------------------------- writing
 @contextlib.contextmanager
 def _quiet_onnx_exporter() -> Iterator[None]:
-    """torch.onnx's exporter logs a warning for each torchvision operator it cannot register and
-    torch.export's pytree warns about its own deprecations: noise on drone-export's terminal."""
+    """Silence the exporters' warnings that are noise on drone-export's terminal.
+
+    torch.onnx's exporter logs a warning for each torchvision operator it cannot register and
+    torch.export's pytree warns about its own deprecations: noise on drone-export's terminal.
+    """
     logger = logging.getLogger("torch.onnx")
     level = logger.level
     logger.setLevel(logging.ERROR)
@@ -297,10 +316,12 @@ def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
 
 
 def program_bytes(policy: DeterministicPolicy, format: str) -> bytes:
-    """``policy`` as the bytes of a ``format`` file (``pt2`` or ``onnx``), unchecked (see
-    :func:`export_policy`). Made in memory: nothing reaches the disk before the file is checked, and
-    then it is written at once (:func:`~drone_torchrl.io.storage.write_atomically`; torch's and
-    onnx's own writers abort the process, in C++, on a full disk)."""
+    """``policy`` as the bytes of a ``format`` file (``pt2`` or ``onnx``), unchecked.
+
+    See :func:`export_policy`. Made in memory: nothing reaches the disk before the file is checked, and then
+    it is written at once (:func:`~drone_torchrl.io.storage.write_atomically`; torch's and onnx's own writers
+    abort the
+    """
     policy.requires_grad_(False)  # an inference program: no autograd graph in its outputs
     example = torch.zeros(2, observation_dim(policy), dtype=_dtype(policy))
     batch = torch.export.Dim("batch")
@@ -348,8 +369,11 @@ def onnx_session(source: str | os.PathLike | bytes, threads: int = 1) -> Any:
 
 
 def load_program(source: str | os.PathLike | bytes, format: str) -> Callable[[torch.Tensor], torch.Tensor]:
-    """The file ``source`` (a path, or its bytes) run by its own runtime, as a function of an
-    observation batch (the policy's dtype)."""
+    """The file ``source`` (a path, or its bytes) run by its own runtime, as a function.
+
+    The file ``source`` (a path, or its bytes) run by its own runtime, as a function of an
+    observation batch (the policy's dtype).
+    """
     if format == "pt2":
         module = torch.export.load(io.BytesIO(source) if isinstance(source, bytes) else source).module()
 
@@ -368,10 +392,13 @@ def export_policy(
     format: str | None = None,
     agent: int | None = None,
 ) -> Exported:
-    """Write the deterministic policy of ``checkpoint`` to ``output`` as ``format`` (see
+    """Write the deterministic policy of ``checkpoint`` to ``output`` as ``format``, checked.
+
+    Write the deterministic policy of ``checkpoint`` to ``output`` as ``format`` (see
     :func:`resolve_output`), checked against the checkpoint's actor: :class:`~.checks.ConfigError` for bad
     arguments (before any work), :class:`ExportError` for a file that does not reproduce the actor
-    (nothing is written)."""
+    (nothing is written).
+    """
     format, output = resolve_output(format, output)
     if format == "onnx":
         check_onnx_extra()
@@ -415,7 +442,7 @@ def run_export(cfg: Mapping[str, Any]) -> Exported:
 # ------------------------------------------------------------------------------- latency
 @contextlib.contextmanager
 def one_thread() -> Iterator[None]:
-    """torch on one intra-op thread (restored after)."""
+    """Torch on one intra-op thread (restored after)."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
@@ -445,8 +472,11 @@ def median_us(
 def forward_passes(
     policy: DeterministicPolicy, files: Mapping[str, str | os.PathLike], batch: int = 1
 ) -> dict[str, Callable[[], Any]]:
-    """One forward pass of ``batch`` observations (hovering in the zone) each: the eager policy
-    (``eager torch``) and each file in ``files`` (format -> path) in its runtime (:data:`RUNTIMES`)."""
+    """Callables that each run one forward pass: of the eager policy and of each exported file.
+
+    One forward pass of ``batch`` observations (hovering in the zone) each: the eager policy
+    (``eager torch``) and each file in ``files`` (format -> path) in its runtime (:data:`RUNTIMES`).
+    """
     hover = [*HOVER_OBSERVATION, *[HOVER_THRUST] * (observation_dim(policy) - STATE_DIM)]
     observation = torch.tensor([hover], dtype=_dtype(policy)).expand(batch, len(hover)).contiguous()
     passes: dict[str, Callable[[], Any]] = {}

@@ -1,5 +1,6 @@
-"""Settings earlier versions had, and what each means now: the one place saved configs, checkpoints and
-command lines are read through.
+"""Settings earlier versions had, and what each means now.
+
+The one place saved configs, checkpoints and command lines are read through.
 
 Until ``backend`` existed, three keys picked an implementation: ``engine`` (``fused`` or ``torchrl``),
 ``compile`` (the fused engine's C++ kernels or ``torch.compile``, else eager PyTorch) and PPO/A2C's
@@ -28,16 +29,21 @@ ORIGINAL_ENGINE = "torchrl"
 
 
 def backend_of(engine: Any = None, collector: Any = None) -> str:
-    """The backend an old run trained with: its on-policy ``algo.collector`` if it had one (PPO and
-    A2C's batches), else its ``engine``."""
+    """The backend an old run trained with.
+
+    Its on-policy ``algo.collector`` if it had one (PPO and A2C's batches), else its ``engine``.
+    """
     if collector is not None:
         return _AS_BACKEND.get(collector, REFERENCE)
     return _AS_BACKEND.get(ORIGINAL_ENGINE if engine is None else engine, REFERENCE)
 
 
 def migrate_config(config: Mapping[str, Any]) -> dict[str, Any]:
-    """A saved config (plain nested dicts) in today's keys: ``backend`` from ``engine`` and
-    ``algo.collector``, the dropped keys removed. A config that has ``backend`` is returned as it is."""
+    """A saved config (plain nested dicts) in today's keys.
+
+    ``backend`` from ``engine`` and ``algo.collector``, the dropped keys removed. A config that has
+    ``backend`` is returned as it is.
+    """
     out = dict(config)
     algo = dict(out.get("algo") or {})
     collector = algo.pop("collector", None)
@@ -59,9 +65,12 @@ _PREFIX = f"+{LEGACY}."
 
 
 def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
-    """The command line with each old-key override ``key=value`` passed as ``+legacy.key=value``, and
+    """The command line with old-key overrides passed as ``+legacy.key=value``, and notes to print.
+
+    The command line with each old-key override ``key=value`` passed as ``+legacy.key=value``, and
     the notes to print (one line each). A value the old key never took, or a command line that sets
-    both an old key and ``backend`` (which one would win is not obvious), raises ``ValueError``."""
+    both an old key and ``backend`` (which one would win is not obvious), raises ``ValueError``.
+    """
     out, notes, replaced = [], [], []
     for arg in args:
         key, sep, value = arg.partition("=")
@@ -80,8 +89,11 @@ def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
 
 
 def apply_legacy(cfg: Any) -> None:
-    """Turn a composed config's ``legacy`` node (old keys from the command line) into today's keys,
-    in place: ``engine``/``algo.collector`` set ``backend``, the dropped keys go; the node is removed."""
+    """Turn a composed config's ``legacy`` node (old keys) into today's keys, in place.
+
+    Turn a composed config's ``legacy`` node (old keys from the command line) into today's keys,
+    in place: ``engine``/``algo.collector`` set ``backend``, the dropped keys go; the node is removed.
+    """
     from omegaconf import open_dict
 
     legacy = cfg.get(LEGACY) if hasattr(cfg, "get") else None
@@ -97,9 +109,12 @@ def apply_legacy(cfg: Any) -> None:
 
 
 def job_dirname(override_dirname: str) -> str:
-    """A sweep job's folder name: Hydra's ``override_dirname`` with old keys named as they were typed
+    """A sweep job's folder name, with old keys named as they were typed.
+
+    A sweep job's folder name: Hydra's ``override_dirname`` with old keys named as they were typed
     (``compile=True``, not ``+legacy.compile=True``), so a sweep started before ``backend`` existed
-    finds its job folders when its command is run again."""
+    finds its job folders when its command is run again.
+    """
     if _PREFIX not in override_dirname:
         return override_dirname
     items, depth, start = [], 0, 0
@@ -113,8 +128,11 @@ def job_dirname(override_dirname: str) -> str:
 
 
 def migrate_override(key: str, value: str) -> tuple[str | None, str]:
-    """A command-line override of an old key as today's (``("backend=fast", note)``), or
-    ``(None, note)`` for a dropped one; the note is the one line to print."""
+    """A command-line override of an old key as today's, and the note to print.
+
+    A command-line override of an old key as today's (``("backend=fast", note)``), or
+    ``(None, note)`` for a dropped one; the note is the one line to print.
+    """
     if key in REPLACED:
         backend = _AS_BACKEND.get(str(value).strip())
         if backend is None:

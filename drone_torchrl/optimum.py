@@ -93,8 +93,11 @@ class Optimum:
 
     @property
     def exact(self) -> bool:
-        """Whether the bound is reached in the vertical problem, where entering at ``first_zone_step`` and
-        staying gives ``zone_steps`` steps in the zone (for a drone that can hover)."""
+        """Whether the bound is reached in the vertical problem from ``first_zone_step`` on.
+
+        Whether the bound is reached in the vertical problem, where entering at ``first_zone_step`` and
+        staying gives ``zone_steps`` steps in the zone (for a drone that can hover).
+        """
         if self.first_zone_step == 0:
             return self.zone_steps == 0  # the zone is out of reach; hovering earns the 1s
         return self.steps - self.first_zone_step + 1 == self.zone_steps
@@ -112,8 +115,11 @@ class Optimum:
 
 
 def collective_limit(params: DroneParams, tilt: float = 0.0) -> float | None:
-    """The largest vertical thrust ``c`` (multiple of the weight): ``2 max_thrust cos(tilt)``, or
-    ``None`` (unbounded) when the thrust is; ``tilt`` is a roll angle that the drone keeps."""
+    """The largest vertical thrust ``c`` (multiple of the weight), or ``None`` when unbounded.
+
+    The largest vertical thrust ``c`` (multiple of the weight): ``2 max_thrust cos(tilt)``, or
+    ``None`` (unbounded) when the thrust is; ``tilt`` is a roll angle that the drone keeps.
+    """
     if params.max_thrust is None:
         return None
     return ACTION_DIM * params.max_thrust * math.cos(tilt)
@@ -156,7 +162,9 @@ def zone_margin(
     domain_z: tuple[float, float] = DOMAIN_Z,
     thrust_cap: float | None = None,
 ) -> VerticalPlan | None:
-    """The vertical plan that stays in the zone from ``first_zone_step`` through ``steps`` with the
+    """The vertical plan that stays in the zone from ``first_zone_step`` with the largest margin.
+
+    The vertical plan that stays in the zone from ``first_zone_step`` through ``steps`` with the
     largest margin (one LP; the margin is negative where the zone cannot be held from that step).
 
     Every step keeps ``z`` inside the domain (the floor with its tolerance); the steps from
@@ -206,7 +214,9 @@ def earliest_zone_step(
     domain_z: tuple[float, float] = DOMAIN_Z,
     thrust_cap: float | None = None,
 ) -> VerticalPlan | None:
-    """The largest-margin plan of the earliest step ``k`` from which the drone can be in the zone at
+    """The largest-margin plan of the earliest step from which the drone can stay in the zone.
+
+    The largest-margin plan of the earliest step ``k`` from which the drone can be in the zone at
     every step through ``steps`` (``None``: no such step).
 
     A sequence of :func:`zone_margin` LPs, bisected on ``k``: holding the zone from ``k`` asks for
@@ -251,7 +261,9 @@ def max_zone_steps(
     start: Start = FLOOR_START,
     zone_z: tuple[float, float] = ZONE_Z,
 ) -> int:
-    """The most steps whose end state can lie in the zone, over every vertical thrust sequence with
+    """The most steps whose end state can lie in the zone, over every vertical thrust sequence.
+
+    The most steps whose end state can lie in the zone, over every vertical thrust sequence with
     ``c`` in ``[0, 2 max_thrust]`` (one MILP; bounded thrust only).
 
     Nothing else is assumed: the drone may leave the zone and come back, and the domain is not
@@ -323,9 +335,12 @@ def optimum(
 
 
 def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]:
-    """The vertical start states of ``reset_mode``: the floor start (at ``params.z_min``), or the
+    """The vertical start states of ``reset_mode``: the floor start or the air box's corners.
+
+    The vertical start states of ``reset_mode``: the floor start (at ``params.z_min``), or the
     corners of the air box (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE <.dynamics.RESET_NOISE>`
-    of the zone's centre and of rest)."""
+    of the zone's centre and of rest).
+    """
     params = DroneParams() if params is None else params
     if reset_mode == "floor":
         return [(params.z_min, FLOOR_START[1])]
@@ -338,7 +353,9 @@ def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]
 
 @functools.cache
 def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum | None:
-    """The best achievable return of every episode that starts as ``reset_mode`` resets, or ``None``
+    """The best achievable return of every episode that starts as ``reset_mode`` resets.
+
+    The best achievable return of every episode that starts as ``reset_mode`` resets, or ``None``
     where it is not derived.
 
     ``"floor"``: every start has ``z = z_dot = 0`` (``x`` and ``alpha`` do not enter the vertical
@@ -371,7 +388,9 @@ def fly_plan(
     domain_z: tuple[float, float] = DOMAIN_Z,
     gains: PDGains | None = None,
 ) -> tuple[Episodes, VerticalPlan]:
-    """Replay an optimal vertical plan from the floor starts ``start`` (``[B, 6]``) through
+    """Replay an optimal vertical plan from the floor starts ``start`` ``[B, 6]``.
+
+    Replay an optimal vertical plan from the floor starts ``start`` (``[B, 6]``) through
     :func:`dynamics.step <.dynamics.step>`; returns the episodes
     (:func:`~drone_torchrl.episodes.episode_stats` reads them) and the plan.
 

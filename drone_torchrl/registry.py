@@ -1,4 +1,6 @@
-"""Plug-in registries: algorithms (:mod:`drone_torchrl.algorithms`) and logger backends
+"""Plug-in registries: algorithms and logger backends are found by name the same way.
+
+Plug-in registries: algorithms (:mod:`drone_torchrl.algorithms`) and logger backends
 (:mod:`drone_torchrl.loggers`) are found by name the same way.
 
 A plug-in module calls :meth:`Registry.register` when imported. A registry imports the modules of
@@ -37,9 +39,12 @@ class Registry(Generic[T]):
         self._discovered = False
 
     def register(self, name: str, item: T) -> T:
-        """Add ``item`` as ``name``; another item of the same name is refused, and so is a name that
+        """Add ``item`` as ``name``; a duplicate or a malformed name is refused.
+
+        Add ``item`` as ``name``; another item of the same name is refused, and so is a name that
         is not lowercase letters, digits and ``_`` starting with a letter (it is typed on command
-        lines and names folders and config keys)."""
+        lines and names folders and config keys).
+        """
         if not isinstance(name, str) or not NAME.fullmatch(name):
             raise ValueError(f"{self.key}={name!r} cannot be registered: a name is {NAME.pattern}")
         known = self._items.get(name)

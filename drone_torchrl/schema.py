@@ -1,4 +1,6 @@
-"""The config schema: every key of ``conf/``'s configs as Hydra structured configs, with what each
+"""The config schema: every key of ``conf/``'s configs as Hydra structured configs.
+
+The config schema: every key of ``conf/``'s configs as Hydra structured configs, with what each
 key allows and what the code needs to know of it, declared once, beside the key.
 
 Each ``conf/`` file lists its schema first in its defaults list (``/schema_config@_here_``,
@@ -114,11 +116,14 @@ class Rule:
 
     @property
     def is_added(self) -> bool:
+        """Whether the key came after the first runs (a config without it gets ``added``)."""
         return self.added is not _ORIGINAL
 
     def check(self, key: str, value: Any, cfg: Mapping[str, Any]) -> None:
-        """Raise :class:`~.checks.ConfigError` (one line) if ``value`` of ``key`` breaks the rule; ``cfg``
-        (the resolved config as nested dicts) gives the bounds that are other keys."""
+        """Raise :class:`~.checks.ConfigError` (one line) if ``value`` of ``key`` breaks the rule.
+
+        ``cfg`` (the resolved config as nested dicts) gives the bounds that are other keys.
+        """
         kind = self.kind
         if kind == "free" or (self.optional and value is None):
             return
@@ -197,8 +202,10 @@ def free(**rule: Any) -> Any:
 
 
 def plugin_group(key: str, added: str) -> Any:
-    """The field of a plug-in group: ``key`` of the group names the plug-in (its schema:
-    ``schema_<group>_<plug-in>``); a config without it is from before plug-ins, as ``added``."""
+    """The field of a plug-in group: ``key`` of the group names the plug-in.
+
+    Its schema: ``schema_<group>_<plug-in>``. A config without it is from before plug-ins, as ``added``.
+    """
     return Rule(plugin_key=key, added=added).field()
 
 
@@ -212,9 +219,11 @@ _NOMINAL = Disturbance()
 
 @dataclass
 class DisturbanceConf:
-    """``env.disturbance.*``: wind, gusts, mass and motor mismatch, lag, delay, observation noise
-    (drone_torchrl/envs/disturbances.py says each one's physics; presets: ``disturbance=none|mild|strong``).
-    They came after the first runs: a config without them flew the nominal drone."""
+    """``env.disturbance.*``: wind, gusts, mass and motor mismatch, lag, delay, observation noise.
+
+    Each one's physics is in drone_torchrl/envs/disturbances.py; presets: ``disturbance=none|mild|strong``.
+    They came after the first runs: a config without them flew the nominal drone.
+    """
 
     wind: Any = a_number(low=0, added=_NOMINAL.wind)
     gust: Any = a_number(low=0, added=_NOMINAL.gust)
@@ -230,9 +239,12 @@ class DisturbanceConf:
 
 @dataclass
 class EnvConf:
-    """``env.*``: the DroneEnv arguments (the env checks them itself: make_params and check_arena
+    """``env.*``: the DroneEnv arguments (the env checks them itself).
+
+    ``env.*``: the DroneEnv arguments (the env checks them itself: make_params and check_arena
     hold their bounds, and how the arena's keys relate). The arena, ``bounds`` and ``dtype`` came
-    after the first runs: a checkpoint or run folder without them gets the paper's values."""
+    after the first runs: a checkpoint or run folder without them gets the paper's values.
+    """
 
     mass: Any = free()
     motor_distance: Any = free()
@@ -269,6 +281,8 @@ class ModelConf:
 
 @dataclass
 class CheckpointConf:
+    """``checkpoint.*`` of a training run."""
+
     every_episodes: Any = an_integer(low=1, on_resume=IF_SET)
     keep_best: Any = a_flag(on_resume=IF_SET)
 
@@ -285,6 +299,8 @@ class PeriodicEvalConf:
 
 @dataclass
 class MetricsConf:
+    """``metrics.*`` of a training run."""
+
     running_mean_window: Any = an_integer(low=1)
 
 
@@ -390,8 +406,10 @@ def _store(name: str, node: type) -> None:
 
 
 def store_plugin(group: str, plugin: str, node: type) -> None:
-    """Store ``node`` as the schema of plug-in ``plugin`` of ``group`` (``schema_algo_ppo``): what
-    ``conf/<group>/<option>.yaml`` lists first in its defaults, and where the checks find its keys."""
+    """Store ``node`` as the schema of plug-in ``plugin`` of ``group`` (``schema_algo_ppo``).
+
+    What ``conf/<group>/<option>.yaml`` lists first in its defaults, and where the checks find its keys.
+    """
     _store(f"{PREFIX}_{group}_{plugin}", node)
 
 
@@ -437,8 +455,10 @@ def plugin_schema(group: str, plugin: Any) -> type | None:
 
 @functools.cache
 def plugin_groups(name: str = "config") -> dict[str, Rule]:
-    """``{"algo": rule, "logger": rule}``: the plug-in groups of a primary config (``rule.plugin_key``
-    names the plug-in)."""
+    """``{"algo": rule, "logger": rule}``: the plug-in groups of a primary config.
+
+    ``rule.plugin_key`` names the plug-in.
+    """
     return {
         f.name: rule
         for f in dataclasses.fields(primary_schema(name))
@@ -447,8 +467,11 @@ def plugin_groups(name: str = "config") -> dict[str, Rule]:
 
 
 def fields(node: type, plugins: Mapping[str, type | None], prefix: str = "") -> Iterator[tuple[str, Rule]]:
-    """``("algo.lr", rule)`` for every key of schema ``node`` in order, each plug-in group's keys
-    those of its schema in ``plugins`` (a group whose schema is None has no keys)."""
+    """``("algo.lr", rule)`` for every key of schema ``node``, in order.
+
+    ``("algo.lr", rule)`` for every key of schema ``node`` in order, each plug-in group's keys
+    those of its schema in ``plugins`` (a group whose schema is None has no keys).
+    """
     for f in dataclasses.fields(node):
         key = f"{prefix}{f.name}"
         if dataclasses.is_dataclass(f.default_factory):  # a section: env, model, checkpoint...

@@ -1,9 +1,10 @@
 """Comments say why, not when or how fast: no dates and no measured durations in the package's
-comments (measurements belong in the docs pages and benchmarks/, which say what machine and load
-they were taken on)."""
+comments and docstrings (measurements belong in the docs pages and benchmarks/, which say what
+machine and load they were taken on)."""
 
 from __future__ import annotations
 
+import ast
 import io
 import re
 import tokenize
@@ -17,10 +18,17 @@ DURATION = re.compile(r"\d\s?(ms|us|µs|ns)\b")
 
 
 def _comments(path: Path) -> list[tuple[int, str]]:
+    """The comments and the docstrings' lines of a Python or C++ file, with their line numbers."""
     text = path.read_text()
     if path.suffix == ".py":
         tokens = tokenize.generate_tokens(io.StringIO(text).readline)
-        return [(t.start[0], t.string) for t in tokens if t.type == tokenize.COMMENT]
+        found = [(t.start[0], t.string) for t in tokens if t.type == tokenize.COMMENT]
+        tree = ast.parse(text)
+        documented = (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)
+        for node in (n for n in ast.walk(tree) if isinstance(n, documented)):
+            if docstring := ast.get_docstring(node):
+                found += [(getattr(node, "lineno", 1), line) for line in docstring.splitlines()]
+        return found
     return [(n, line[line.index("//") :]) for n, line in enumerate(text.splitlines(), 1) if "//" in line]
 
 
@@ -36,6 +44,9 @@ def test_no_dates_or_timings_in_comments():
     assert not found, "\n".join(found)
 
 
-def test_the_check_finds_a_date_and_a_timing():
+def test_the_check_finds_a_date_and_a_timing(tmp_path):
     assert DATE.search("# measured 2026-12-05") and DURATION.search("# costs ~2 ms an agent")
+    module = tmp_path / "m.py"
+    module.write_text('def f():\n    """Fast.\n\n    About 5 us a call.\n    """\n')
+    assert _comments(module) == [(1, "Fast."), (1, ""), (1, "About 5 us a call.")]
     assert not DURATION.search("# one step (dt = 0.02 s)") and not DATE.search("# 2,000 episodes")

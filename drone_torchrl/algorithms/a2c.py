@@ -39,6 +39,7 @@ class A2C(OnPolicy):
     diagnostics = ("entropy",)
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
+        """TorchRL's ``A2CLoss`` over ``actor`` and ``critic``, from ``algo.*``."""
         algo = self.cfg.algo
         return A2CLoss(
             actor,
@@ -58,8 +59,11 @@ class A2C(OnPolicy):
         return centred if scaling == "center" else centred / (advantage.std() + ADVANTAGE_EPS)
 
     def clip_gradients(self) -> torch.Tensor:
-        """``algo.max_grad_norm`` on the actor and ``algo.critic_max_grad_norm`` on the critic, each on
-        its own (null: ``max_grad_norm`` on both together, the loop's); books the norm of both."""
+        """Clip the actor's and the critic's gradients, apart if configured so; returns the norm of both.
+
+        ``algo.max_grad_norm`` on the actor and ``algo.critic_max_grad_norm`` on the critic, each on
+        its own (null: ``max_grad_norm`` on both together, the loop's); books the norm of both.
+        """
         algo = self.cfg.algo
         if algo.critic_max_grad_norm is None:
             return super().clip_gradients()
@@ -75,8 +79,10 @@ class A2C(OnPolicy):
 
 @dataclass
 class A2CConf(OnPolicyConf):
-    """``algo.*`` of ``algo.name=a2c``: the on-policy keys, the value loss, the advantages' scaling
-    and the critic's own gradient clip."""
+    """``algo.*`` of ``algo.name=a2c``.
+
+    The on-policy keys, the value loss, the advantages' scaling and the critic's own gradient clip.
+    """
 
     # Each ``added=``: what runs saved before the key existed did (A2CLoss's default critic loss,
     # standardised advantages, one clip and one learning rate for both nets).

@@ -83,10 +83,13 @@ def quiet(logger_name: str) -> Iterator[None]:
 
 
 def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
-    """A collector batch (``[drones, steps]``) up to the step at which the budget's last episode ends: a batch of 64 drones x 64
+    """A collector batch ``[drones, steps]`` cut at the step the budget's last episode ends.
+
+    A collector batch (``[drones, steps]``) up to the step at which the budget's last episode ends: a batch of 64 drones x 64
     steps can finish dozens of short episodes, so without this a budget of 20 would train 43. The
     steps after it are dropped (the run ends there: the drones' next episodes are not booked), and
-    episodes that end on that same step are booked too, so the budget may be passed by those."""
+    episodes that end on that same step are booked too, so the budget may be passed by those.
+    """
     done = batch.get(("next", "done")).reshape(batch.shape[0], batch.shape[1])  # [drones, steps]
     ended_by = done.sum(0).cumsum(0)
     if remaining <= 0 or ended_by[-1] <= remaining:
@@ -96,10 +99,16 @@ def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
 
 
 class OnPolicy:
-    """One actor-critic run: ``__init__`` builds it, ``train`` is its loop, ``_learn`` one batch's update. A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what
-    its loss reports; the losses summed and booked are the loss's ``loss_*`` outputs. It may also
-    change what the loss sees of the batch's advantages (:meth:`scale_advantage`) and how the
-    gradients are clipped before each step (:meth:`clip_gradients`)."""
+    """One actor-critic run: ``__init__`` builds it, ``train`` is its loop, ``_learn`` one batch's update.
+
+    A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what its loss reports;
+    the losses summed and booked are the loss's ``loss_*`` outputs. It may also change what the loss
+    sees of the batch's advantages (:meth:`scale_advantage`) and how the gradients are clipped before
+    each step (:meth:`clip_gradients`).
+
+    Args:
+        jobs: the one job trained (an actor-critic run trains no population), fresh or resumed.
+    """
 
     @staticmethod
     def max_agents(cfg) -> int:
@@ -113,7 +122,6 @@ class OnPolicy:
     diagnostics: tuple[str, ...] = ()
 
     def __init__(self, jobs) -> None:
-        """``jobs``: one prepared job (:func:`~drone_torchrl.training.jobs.prepare`), fresh or resumed."""
         (job,) = jobs
         cfg = self.cfg = job.cfg
         algo = cfg.algo
@@ -163,9 +171,11 @@ class OnPolicy:
         self.reported = (*self.loss_keys, *(k for k in self.diagnostics if k in reported))
 
     def train(self, trainer: Trainer, stop: StopRequest) -> None:
-        """The loop, one collector batch at a time, to the budget (the last batch cut where its last
-        episode ends), a divergence or a stop signal; ``trainer`` keeps the books of its one run
-        (evaluations, checkpoints, the progress bar, ``stop``'s checkpoint)."""
+        """The loop, one collector batch at a time, to the budget, a divergence or a stop signal.
+
+        The last batch is cut where the budget's last episode ends; ``trainer`` keeps the books of
+        its one run (evaluations, checkpoints, the progress bar, ``stop``'s checkpoint).
+        """
         (run,) = trainer.runs
         for batch in self._batches:
             batch = within_budget(batch, run.budget - run.episodes_done)
@@ -185,8 +195,10 @@ class OnPolicy:
                 return
 
     def _learn(self, batch: TensorDictBase, episodes_done: int) -> dict[str, float]:
-        """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's mean metrics
-        (``train/<loss output>`` and ``train/grad_norm``)."""
+        """GAE on the batch, then ``algo.epochs`` passes of minibatches; returns the last pass's means.
+
+        The means are ``train/<loss output>`` and ``train/grad_norm``.
+        """
         algo = self.cfg.algo
         if algo.anneal_lr:  # linearly to 0 at the budget, as TorchRL's and CleanRL's PPO do (by frames there)
             for group in self.optimizer.param_groups:
@@ -227,8 +239,10 @@ class OnPolicy:
         raise NotImplementedError
 
     def scale_advantage(self, advantage: torch.Tensor) -> torch.Tensor:
-        """The batch's advantages as the loss sees them: as GAE gave them here (ClipPPOLoss
-        standardises each minibatch itself); A2C standardises the batch's."""
+        """The batch's advantages as the loss sees them.
+
+        As GAE gave them here (ClipPPOLoss standardises each minibatch itself); A2C standardises the batch's.
+        """
         return advantage
 
     def hold_frames(self, batch: TensorDictBase) -> int:
@@ -247,8 +261,11 @@ class OnPolicy:
         return self.loss(minibatch)
 
     def clip_gradients(self) -> torch.Tensor:
-        """Clip the loss's gradients before the optimizer's step (``algo.max_grad_norm`` on all of
-        its parameters together); the norm returned is booked as ``train/grad_norm``."""
+        """Clip the loss's gradients before the optimizer's step; returns the norm, ``train/grad_norm``.
+
+        Clip the loss's gradients before the optimizer's step (``algo.max_grad_norm`` on all of
+        its parameters together); the norm returned is booked as ``train/grad_norm``.
+        """
         limit = self.cfg.algo.max_grad_norm
         return nn.utils.clip_grad_norm_(self.params, math.inf if limit is None else limit)
 
@@ -270,12 +287,17 @@ class OnPolicy:
         }
 
     def close(self) -> None:
+        """Shut the collector down (the fused engine has none)."""
         if not self.fused:
             self.collector.shutdown()
 
 
 class PPO(OnPolicy):
-    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages)."""
+    """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages).
+
+    Args:
+        jobs: the one job trained, as for :class:`OnPolicy`.
+    """
 
     diagnostics = ("entropy", "kl_approx", "clip_fraction")
 
@@ -286,6 +308,7 @@ class PPO(OnPolicy):
             self.hold_frames, self.minibatch, self.losses = plain.hold, plain.sample, plain.losses
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
+        """TorchRL's ``ClipPPOLoss`` over ``actor`` and ``critic``, from ``algo.*``."""
         algo = self.cfg.algo
         return ClipPPOLoss(
             actor,
@@ -305,8 +328,10 @@ class PPO(OnPolicy):
 
 
 def validate_on_policy(cfg: Mapping[str, Any]) -> None:
-    """The rules of :class:`OnPolicy` that relate keys (each key's bounds are its schema's:
-    PPOConf here, A2CConf in a2c.py)."""
+    """The rules of :class:`OnPolicy` that relate keys.
+
+    Each key's bounds are its schema's: PPOConf here, A2CConf in a2c.py.
+    """
     name = cfg.algo.name
     if cfg.env.num_workers:
         raise ConfigError.of(

@@ -1,5 +1,6 @@
-"""``backend=fast``'s PPO, beside the reference in :mod:`drone_torchrl.algorithms.ppo`, as LeanRL keeps its
-compiled variants: the C++ engine's batches (:class:`~drone_torchrl.training.segments.FusedSegments`),
+"""``backend=fast``'s PPO, beside the reference in :mod:`drone_torchrl.algorithms.ppo`.
+
+As LeanRL keeps its compiled variants apart: the C++ engine's batches (:class:`~drone_torchrl.training.segments.FusedSegments`),
 Adam's fused kernel, and, without an entropy bonus, plain-tensor minibatches scored by
 :func:`~drone_torchrl.algorithms.ppo_fast.clip_ppo_losses` (what ``ClipPPOLoss`` computes, without
 TensorDict's machinery). Tested equal: tests/test_ppo.py, test_segments.py.
@@ -22,10 +23,13 @@ LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
 
 def pre_image(head: tuple[type, dict], action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
+    """The Normal sample that ``head`` squashes into ``action``, and the squashing's log-determinant.
+
+    The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
     the log-determinant of that squashing summed over the action: both depend on the action only, so
     a batch's are computed once, and each minibatch's log-probability is then the Normal's (what
-    ``TransformedDistribution.log_prob`` computes, without its objects)."""
+    ``TransformedDistribution.log_prob`` computes, without its objects).
+    """
     dist_class, kwargs = head
     dist = dist_class(torch.zeros_like(action), torch.ones_like(action), **kwargs)
     log_det = torch.zeros_like(action)
@@ -43,11 +47,14 @@ def clip_ppo_losses(
     clip_epsilon: torch.Tensor,
     critic_coeff: torch.Tensor,
 ) -> dict[str, torch.Tensor]:
-    """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
+    """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch.
+
+    What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
     on a minibatch of ``[observation, pre-image and log-determinant of the action (pre_image),
     its log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
     Normal's ``(loc, scale)``, ``value`` to state values. Its losses, ``clip_fraction`` and
-    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py)."""
+    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py).
+    """
     observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
     # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.
     advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(
@@ -69,8 +76,13 @@ def clip_ppo_losses(
 
 
 class PlainMinibatches:
-    """The replay buffer and ``ClipPPOLoss`` of a run (``cfg``, ``loss``, ``actor``, ``critic``), as
-    plain tensors: minibatches drawn without replacement within an epoch, scored by :func:`clip_ppo_losses`."""
+    """A run's replay buffer and ``ClipPPOLoss`` on plain tensors.
+
+    Minibatches are drawn without replacement within an epoch and scored by :func:`clip_ppo_losses`.
+
+    Args:
+        cfg: the run's config; loss: its ``ClipPPOLoss``; actor: its actor; critic: its value operator.
+    """
 
     def __init__(self, cfg: Any, loss: nn.Module, actor: nn.Module, critic: nn.Module) -> None:
         self.device, self.head = cfg.device, distribution_head(cfg.model.distribution, cfg.env.max_thrust)

@@ -1,4 +1,6 @@
-"""REINFORCE (``algo=reinforce``, the paper's; ``algo=reinforce_plus``, the same learner with variance
+"""REINFORCE (``algo=reinforce``, the paper's; ``algo=reinforce_plus``, with variance reductions).
+
+REINFORCE (``algo=reinforce``, the paper's; ``algo=reinforce_plus``, the same learner with variance
 reductions): a group of jobs trained as one population, with either engine.
 
 The update itself, the population engine's, is :class:`~drone_torchrl.training.update.ReinforceUpdate`;
@@ -40,7 +42,9 @@ from drone_torchrl.training.update import CHECKS, ReinforceUpdate
 
 
 class Reinforce:
-    """REINFORCE as the training loop (:class:`~drone_torchrl.training.trainer.Trainer`) drives it: a group of jobs trained
+    """REINFORCE as the training loop drives it: a group of jobs trained as one population.
+
+    REINFORCE as the training loop (:class:`~drone_torchrl.training.trainer.Trainer`) drives it: a group of jobs trained
     as one population (see :func:`~drone_torchrl.training.jobs.group_key`), on either backend.
 
     The loop calls :meth:`update` with :attr:`state` and books what it returns; it asks
@@ -89,12 +93,16 @@ class Reinforce:
         return self.population.actor(agent)
 
     def close(self) -> None:
+        """Close the collector (and its env)."""
         self.collector.close()
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
-    """REINFORCE's rules that relate keys (each key's bounds are its schema's, ReinforceConf above),
-    and those of the engine options it alone uses."""
+    """REINFORCE's rules that relate keys, and those of the engine options it alone uses.
+
+    REINFORCE's rules that relate keys (each key's bounds are its schema's, ReinforceConf above),
+    and those of the engine options it alone uses.
+    """
     workers = cfg.env.num_workers
     if cfg.algo.episodes % cfg.algo.episodes_per_update:
         raise ConfigError.of(

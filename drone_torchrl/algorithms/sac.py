@@ -76,9 +76,12 @@ def update_output(
     checks: tuple[str, ...],
     active: torch.Tensor,
 ) -> UpdateOutput:
-    """One agent's ``k`` updates (``metrics`` and ``episodes``, one of each per update) in the update
+    """One agent's ``k`` updates in the update contract's layout.
+
+    One agent's ``k`` updates (``metrics`` and ``episodes``, one of each per update) in the update
     contract's layout: metrics ``[k, 1]``, each update's episodes padded to the most any ended, with
-    a ``"valid"`` mask."""
+    a ``"valid"`` mask.
+    """
     k = len(metrics)
     most = max(1, *(len(e["return"]) for e in episodes))
     padded = {key: [[e[key] + [0] * (most - len(e[key]))] for e in episodes] for key in EPISODE_KEYS}
@@ -92,12 +95,14 @@ def update_output(
 
 
 def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
-    """``[drones, steps]`` frames as ``n``-step transitions (TorchRL's ``MultiStep``): each frame's
-    reward becomes the discounted sum of up to ``n`` rewards, its next observation the one after
-    the last of them, and ``"steps_to_next_obs"`` their number (TD0 discounts the bootstrap by
-    ``gamma`` to that power). A window stops at its episode's end or the batch's; MultiStep leaves
-    the done flags at the window's start, so they are set here to the window's last step: a window
-    that ends in a crash is not bootstrapped."""
+    """``[drones, steps]`` frames as ``n``-step transitions (TorchRL's ``MultiStep``).
+
+    Each frame's reward becomes the discounted sum of up to ``n`` rewards, its next observation the one after
+    the last of them, and ``"steps_to_next_obs"`` their number (TD0 discounts the bootstrap by ``gamma`` to
+    that power). A window stops at its episode's end or the batch's; MultiStep leaves the done flags at the
+    window's start, so they are set here to the window's last step: a window that ends in a crash is not
+    bootstrapped.
+    """
     out = MultiStep(gamma, n)(frames)
     last = (torch.arange(frames.shape[-1]) + out.get("steps_to_next_obs") - 1).unsqueeze(-1)
     for flag in ("done", "terminated"):
@@ -106,8 +111,13 @@ def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
 
 
 class SAC:
-    """One SAC run behind the update contract (:mod:`drone_torchrl.training.update`): each update
-    flies one batch, stores it and takes ``algo.updates_per_batch`` gradient steps."""
+    """One SAC run behind the update contract (:mod:`drone_torchrl.training.update`).
+
+    Each update flies one batch, stores it and takes ``algo.updates_per_batch`` gradient steps.
+
+    Args:
+        jobs: the one job trained (SAC trains no population): its ``cfg``.
+    """
 
     advice = "lower algo.lr"
     episodes_per_update = None  # the episodes a batch finishes vary: one update per call
@@ -181,6 +191,7 @@ class SAC:
     def update(
         self, state: TensorDictBase, k: int, active: torch.Tensor
     ) -> tuple[TensorDictBase, UpdateOutput]:
+        """Run ``k`` updates (fly, store, train); returns ``state`` and their metrics and episodes."""
         metrics: list[dict[str, float]] = []
         episodes: list[dict[str, list]] = []
         for _ in range(k):
@@ -204,8 +215,11 @@ class SAC:
             self.buffer.extend(frames.reshape(-1))
 
     def _learn(self) -> dict[str, float]:
-        """``algo.updates_per_batch`` gradient steps of the actor, the Q-networks and the temperature,
-        each followed by the targets' soft update; the steps' mean of what SACLoss reports."""
+        """``algo.updates_per_batch`` gradient steps of the actor, Q-networks and temperature.
+
+        ``algo.updates_per_batch`` gradient steps of the actor, the Q-networks and the temperature,
+        each followed by the targets' soft update; the steps' mean of what SACLoss reports.
+        """
         steps = self.cfg.algo.updates_per_batch
         sums: dict[str, torch.Tensor] = {}
         for _ in range(steps):
@@ -219,15 +233,20 @@ class SAC:
         return {f"train/{key}": (value / steps).item() for key, value in sums.items()}
 
     def eval_policy(self):
+        """The policy the evaluator flies (the actor)."""
         return self.actor_module
 
     def actor(self, agent: int):
+        """The actor of the run's only agent."""
         return self.actor_module
 
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
-        """Everything the next update depends on: the networks (``qvalue``: SACLoss's Q-networks,
+        """Everything the next update depends on, as checkpoint entries.
+
+        Everything the next update depends on: the networks (``qvalue``: SACLoss's Q-networks,
         their targets and the temperature), Adam, both generators, the buffer's filled frames and
-        its write cursor, and the drones' running episodes."""
+        its write cursor, and the drones' running episodes.
+        """
         # A copy: the slice is a view, and torch.save writes a view's whole storage (the capacity).
         filled = self.buffer.storage[: len(self.buffer)].clone() if len(self.buffer) else TensorDict()
         return {
@@ -247,6 +266,7 @@ class SAC:
         }
 
     def close(self) -> None:
+        """Nothing to close: the collector holds no resources."""
         pass
 
 

@@ -35,8 +35,11 @@ def main(cfg: DictConfig) -> None:
 
 
 def run() -> None:
-    """Console entry point: checks the command line's keys and the folder Hydra will write, then
-    runs the Hydra app."""
+    """Console entry point ``drone-eval``: check the command line, then run the Hydra app.
+
+    Console entry point: checks the command line's keys and the folder Hydra will write, then
+    runs the Hydra app.
+    """
     flags = command_line.check_flags("drone-eval")
     check_command_line("drone-eval", "eval")
     if not (

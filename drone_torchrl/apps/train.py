@@ -89,8 +89,11 @@ def _stopped(stop: TrainingStopped) -> None:
 
 
 def _before_hydra() -> list[Path]:
-    """The command line's one-line checks, and the run folder claimed before Hydra writes into it
-    (:mod:`drone_torchrl.command_line`); returns the folders claimed. Exits with the message on a bad input."""
+    """Run the command line's one-line checks and claim the run folder before Hydra writes into it.
+
+    The command line's one-line checks, and the run folder claimed before Hydra writes into it
+    (:mod:`drone_torchrl.command_line`); returns the folders claimed. Exits with the message on a bad input.
+    """
     from drone_torchrl import command_line
 
     try:
@@ -128,7 +131,8 @@ def register_plugins() -> None:
     """Register our Hydra launchers and sweeper with Hydra.
 
     Hydra finds plugins by listing the hydra_plugins folders; an editable install's import hook is
-    not a folder, so ours are registered explicitly (harmless for a normal install)."""
+    not a folder, so ours are registered explicitly (harmless for a normal install).
+    """
     from hydra.core.plugins import Plugins
 
     from hydra_plugins.drone_torchrl_launcher import slurm_launcher

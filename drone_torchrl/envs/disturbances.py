@@ -109,6 +109,7 @@ class Disturbance:
 
     @property
     def observation_dim(self) -> int:
+        """Entries of an observation, the 6 state entries and 2 per observed past command."""
         return dynamics.STATE_DIM + ACTION_DIM * self.observed_actions
 
 
@@ -147,8 +148,11 @@ def _check(name: str, value: object, low: float, high: float, *, low_open: bool 
 
 
 def make(disturbance: Disturbance | Mapping[str, Any] | None) -> Disturbance:
-    """A :class:`Disturbance` from itself, a mapping of its fields (a config's ``env.disturbance``) or
-    ``None`` (no disturbance); an unknown field raises a one-line ``ValueError``."""
+    """Make a :class:`Disturbance` from itself, a mapping of its fields or ``None``.
+
+    A :class:`Disturbance` from itself, a mapping of its fields (a config's ``env.disturbance``) or
+    ``None`` (no disturbance); an unknown field raises a one-line ``ValueError``.
+    """
     if disturbance is None:
         return Disturbance()
     if isinstance(disturbance, Disturbance):
@@ -293,8 +297,11 @@ def step(
 def episode_keys(
     generator: torch.Generator, shape: tuple[int, ...] | torch.Size, device: torch.device | str | None = None
 ) -> torch.Tensor:
-    """Fresh episode keys (int64 ``[*shape]``) from a CPU generator, one draw per episode in row-major
-    order (so the same seed gives the same keys whatever the batch layout), moved to ``device``."""
+    """Draw fresh int64 episode keys ``[*shape]``, independent of the batch layout.
+
+    Fresh episode keys (int64 ``[*shape]``) from a CPU generator, one draw per episode in row-major
+    order (so the same seed gives the same keys whatever the batch layout), moved to ``device``.
+    """
     keys = torch.randint(-(2**63), 2**63 - 1, tuple(shape), generator=generator, dtype=torch.int64)
     return keys if device is None else keys.to(device)
 

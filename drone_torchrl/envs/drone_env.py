@@ -90,8 +90,11 @@ def _check_range(
     low_open: bool = False,
     high_open: bool = False,
 ) -> float:
-    """``value`` as float if finite and within the named bounds, else a ValueError naming the
-    argument and the bounds (``expected a finite number > z_min (0.0)``)."""
+    """Check that ``value`` is a finite number within the named bounds; return it as a float.
+
+    ``value`` as float if finite and within the named bounds, else a ValueError naming the
+    argument and the bounds (``expected a finite number > z_min (0.0)``).
+    """
     # A bound named by another argument shows its value too; a literal one ("0", "1000 m") is its value.
     label = lambda bound: f"{bound[0]} ({bound[1]!r})" if bound[0].isidentifier() else bound[0]  # noqa: E731
     parts = []
@@ -120,9 +123,12 @@ def check_arena(
     zone_z_max: float = ZONE_Z_MAX,
     bounds: str = "inclusive",
 ) -> dict[str, float | str]:
-    """Validate the domain and the target zone, returned as floats (and ``bounds``): positive
+    """Validate the domain and the target zone; return them as floats (and ``bounds``).
+
+    Validate the domain and the target zone, returned as floats (and ``bounds``): positive
     half-widths, ``z_min < z_max``, a tilt limit in (0, pi], and a zone of positive size inside
-    the domain (its edges may lie on the domain's)."""
+    the domain (its edges may lie on the domain's).
+    """
     zero = ("0", 0.0)
     arena = (f"{MAX_ARENA:g} m", MAX_ARENA)
     x_limit = _check_range("x_limit", x_limit, zero, arena, low_open=True)
@@ -157,8 +163,10 @@ def make_params(
     floor_tolerance: float = 0.05,
     **arena: float | str,
 ) -> DroneParams:
-    """Validate the physical and arena arguments shared by both envs and bundle them (``arena``:
-    the keyword arguments of :func:`check_arena`, each defaulting to the paper's)."""
+    """Validate the physical and arena arguments shared by both envs and bundle them.
+
+    ``arena``: the keyword arguments of :func:`check_arena`, each defaulting to the paper's.
+    """
     return DroneParams(
         mass=_check_real("mass", mass, minimum=MIN_MASS, inclusive=True, maximum=MAX_MASS),
         motor_distance=_check_real(
@@ -519,10 +527,13 @@ class DroneEnv(EnvBase):
         return None if self._internal is None else self._internal.key.clone()
 
     def reset_to(self, state: torch.Tensor, keys: torch.Tensor | None = None) -> TensorDictBase:
-        """Start every drone's episode from ``state`` (``[*batch, 6]``) instead of drawing a start; under
+        """Start every drone's episode from the given states ``[*batch, 6]`` instead of drawing starts.
+
+        Start every drone's episode from ``state`` (``[*batch, 6]``) instead of drawing a start; under
         disturbances ``keys`` (int64 ``[*batch]``) are the episodes' disturbance keys. Returns the reset
         output: give it to ``rollout(..., auto_reset=False, tensordict=...)``. What the evaluator uses to
-        fly one set of start states under several policies, and tests to fly another engine's draws."""
+        fly one set of start states under several policies, and tests to fly another engine's draws.
+        """
         shape = tuple(self.batch_size)
         if tuple(state.shape) != (*shape, STATE_DIM):
             raise ValueError(f"state has shape {tuple(state.shape)}; expected {(*shape, STATE_DIM)}")
@@ -670,6 +681,7 @@ class DroneEnv(EnvBase):
         )
 
     def close(self, *, raise_if_closed: bool = True) -> None:
+        """Close the env and its render window, if one is open."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None

@@ -66,10 +66,13 @@ class TerminationCause(IntEnum):
 
 @dataclass(frozen=True)
 class DroneParams:
-    """The drone's physical parameters and its task's arena (domain, target zone, how a state on a
+    """The drone's physical parameters and its task's arena: everything :func:`step` needs.
+
+    The drone's physical parameters and its task's arena (domain, target zone, how a state on a
     bound counts): everything :func:`step` needs. See :class:`~drone_torchrl.envs.drone_env.DroneEnv` for the
     meaning of each; the defaults are the paper's. Validated by
-    :func:`drone_torchrl.envs.drone_env.make_params`."""
+    :func:`drone_torchrl.envs.drone_env.make_params`.
+    """
 
     mass: float = 1.0
     motor_distance: float = 1.0
@@ -88,8 +91,11 @@ class DroneParams:
 
     @property
     def strict(self) -> bool:
-        """Whether a state exactly on a bound is outside (of the domain, it terminates; of the zone, it is not
-        in it)."""
+        """Whether a state exactly on a bound is outside (``bounds="strict"``).
+
+        Whether a state exactly on a bound is outside (of the domain, it terminates; of the zone, it is not
+        in it).
+        """
         return self.bounds == "strict"
 
     @property
@@ -114,6 +120,7 @@ class DroneParams:
 
     @property
     def weight(self) -> float:
+        """The drone's weight ``m * g`` in newtons."""
         return self.mass * self.gravity
 
 
@@ -191,8 +198,11 @@ def termination_cause(state: torch.Tensor, params: DroneParams) -> torch.Tensor:
 
 
 def in_target_zone(state: torch.Tensor, params: DroneParams) -> torch.Tensor:
-    """True where the state is inside the target zone: ``|x| <= zone_x_limit``,
-    ``zone_z_min <= z <= zone_z_max`` and ``|alpha| <= alpha_limit`` (``<`` each with strict bounds)."""
+    """True where the state ``[*B, 6]`` is inside the target zone (``[*B]`` bool).
+
+    True where the state is inside the target zone: ``|x| <= zone_x_limit``,
+    ``zone_z_min <= z <= zone_z_max`` and ``|alpha| <= alpha_limit`` (``<`` each with strict bounds).
+    """
     x, z, alpha = state[..., X], state[..., Z], state[..., ALPHA]
     within, over = (torch.lt, torch.gt) if params.strict else (torch.le, torch.ge)
     return (

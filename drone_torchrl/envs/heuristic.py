@@ -146,6 +146,12 @@ class PDController(TensorDictModuleBase):
     >>> from drone_torchrl.envs import DroneEnv
     >>> env = DroneEnv(batch_size=[16], max_thrust=1.0)
     >>> td = env.rollout(300, PDController(env.params))
+
+    Args:
+        params: the drone's physical parameters and arena (as :func:`pd_action` takes them).
+        gains: the controller's gains (None: :class:`PDGains`' defaults).
+        observation_key: the key it reads the ``[*B, 6]`` observation from.
+        action_key: the key it writes the ``[*B, 2]`` action to.
     """
 
     def __init__(

@@ -29,8 +29,10 @@ from drone_torchrl.envs.heuristic import PDGains, pd_action
 
 @dataclass(frozen=True)
 class PIDGains:
-    """:class:`~.heuristic.PDGains` plus integral gains (``(m/s^2)/(m s)`` on ``z``, ``rad/(m s)`` on
-    ``x``)."""
+    """PID gains: :class:`~.heuristic.PDGains` plus integral gains on ``z`` and ``x``.
+
+    The integral gains are in ``(m/s^2)/(m s)`` on ``z`` and ``rad/(m s)`` on ``x``.
+    """
 
     pd: PDGains = field(default_factory=PDGains)
     ki_x: float | torch.Tensor = 0.0
@@ -40,7 +42,12 @@ class PIDGains:
 
 
 class PIDController(TensorDictModuleBase):
-    """:class:`PIDGains` as a TorchRL policy: reads ``"observation"`` (its first 6 entries), writes ``"action"``."""
+    """:class:`PIDGains` as a TorchRL policy: reads ``"observation"`` (its first 6 entries), writes ``"action"``.
+
+    Args:
+        params: the drone's physical parameters and arena (as :func:`~.heuristic.pd_action` takes them).
+        gains: the controller's gains (None: :class:`PIDGains`' defaults).
+    """
 
     def __init__(self, params: DroneParams, gains: PIDGains | None = None) -> None:
         super().__init__()

@@ -97,6 +97,7 @@ class Layout:
 
     @property
     def pixels_per_metre(self) -> float:
+        """Screen pixels per metre, the largest scale at which the whole domain fits."""
         p = self.params
         return min(DOMAIN_WIDTH_PX / (2 * p.x_limit), DOMAIN_HEIGHT_PX / (p.z_max - p.z_min))
 
@@ -113,8 +114,11 @@ class Layout:
 
 
 def world_to_pixel(x: float, z: float, params: DroneParams | None = None) -> tuple[float, float]:
-    """Screen coordinates of the world point ``(x, z)`` in the frame of ``params``' domain (default:
-    the paper's)."""
+    """Screen coordinates of the world point ``(x, z)`` in ``params``' domain.
+
+    Screen coordinates of the world point ``(x, z)`` in the frame of ``params``' domain (default:
+    the paper's).
+    """
     return Layout(DroneParams() if params is None else params).to_pixel(x, z)
 
 
@@ -141,6 +145,11 @@ class DroneRenderer:
     ``render_mode="rgb_array"``: :meth:`draw` returns an ``H x W x 3`` uint8 frame.
     ``render_mode="human"``: :meth:`draw` updates a window, keeps it responsive, waits to hold
     ``fps`` frames per second and returns ``None``.
+
+    Args:
+        render_mode: ``"human"`` or ``"rgb_array"``.
+        params: the drone and its arena, which sets the drawing's scale.
+        fps: the frames per second a ``"human"`` window holds.
     """
 
     def __init__(self, render_mode: str, params: DroneParams, fps: int) -> None:

@@ -1,4 +1,6 @@
-"""Episodes as plain tensors, one per row: what the fast engine returns, the reference's rollouts read
+"""Episodes as plain tensors, one per row: the engines', evaluator's and plots' common layout.
+
+Episodes as plain tensors, one per row: what the fast engine returns, the reference's rollouts read
 as, and the evaluator's, the metrics' and the plots' common layout.
 
 :class:`Episodes` converts from and to the layout of TorchRL's ``EnvBase.rollout(...,
@@ -45,6 +47,7 @@ class Episodes(NamedTuple):
 
     @property
     def steps(self) -> int:
+        """The buffers' step dimension ``T`` (the longest episode they can hold)."""
         return self.reward.shape[-1]
 
     def valid(self) -> torch.Tensor:
@@ -64,8 +67,11 @@ class Episodes(NamedTuple):
         cause: torch.Tensor,
         length: torch.Tensor,
     ) -> Episodes:
-        """Rows of ``length`` steps out of longer buffers (``states[..., length, :]`` is the state after a
-        row's last step): the entries after each row's end are zeroed."""
+        """Build rows of ``length`` steps out of longer buffers, zeroing the entries after each row's end.
+
+        Rows of ``length`` steps out of longer buffers (``states[..., length, :]`` is the state after a
+        row's last step): the entries after each row's end are zeroed.
+        """
         steps = torch.arange(reward.shape[-1] + 1, device=length.device)
         keep = steps <= length.unsqueeze(-1)  # states: up to the one after the last step
         valid = keep[..., :-1] & keep[..., 1:]
@@ -79,8 +85,11 @@ class Episodes(NamedTuple):
 
     @classmethod
     def from_rollout(cls, rollout: TensorDictBase) -> Episodes:
-        """The first episode of each row of a ``[*B, T]`` rollout (``EnvBase.rollout``'s layout; a row may
-        go on after its first ``done``, repeating or starting a new episode: that part is dropped)."""
+        """The first episode of each row of a ``[*B, T]`` TorchRL rollout.
+
+        The first episode of each row of a ``[*B, T]`` rollout (``EnvBase.rollout``'s layout; a row may
+        go on after its first ``done``, repeating or starting a new episode: that part is dropped).
+        """
         done = rollout.get(("next", "done")).squeeze(-1)
         length = ((done.cumsum(-1) - done.to(torch.int64)) == 0).sum(-1)  # up to the first done
         # A disturbed env's observation is a measurement; its "state" entry is the true state.
@@ -99,10 +108,13 @@ class Episodes(NamedTuple):
         return episodes
 
     def as_rollout(self, max_steps: int) -> TensorDict:
-        """The ``[*B, T]`` tensordict of ``EnvBase.rollout(..., break_when_all_done=True)``, cut after the
+        """These episodes as the ``[*B, T]`` tensordict ``EnvBase.rollout`` would return.
+
+        The ``[*B, T]`` tensordict of ``EnvBase.rollout(..., break_when_all_done=True)``, cut after the
         longest episode: ``observation``, ``action``, ``step_count`` and ``next`` (``observation``,
         ``reward``, ``terminated``, ``truncated``, ``done``, ``termination_cause``). A row that did not
-        terminate by step ``max_steps`` is truncated there."""
+        terminate by step ``max_steps`` is truncated there.
+        """
         n = max(int(self.length.max()), 1) if self.length.numel() else 1
         cause = self.cause[..., :n]
         terminated = cause != int(TerminationCause.NONE)
@@ -145,10 +157,13 @@ def fly_reference(
     device: str | torch.device = "cpu",
     **env_kwargs,
 ) -> Episodes:
-    """The deterministic episodes of a TensorDict policy (an actor, the PD or PID controller, a
+    """Fly a TensorDict policy's deterministic episodes from ``start`` ``[*B, 6]`` in the reference env.
+
+    The deterministic episodes of a TensorDict policy (an actor, the PD or PID controller, a
     replayed plan) from ``start`` (``[*B, 6]``; under disturbances with episode ``keys`` ``[*B]``),
     flown by the reference: a ``DroneEnv(batch_size=B, **env_kwargs)`` and TorchRL's rollout, one
-    episode per row."""
+    episode per row.
+    """
     env = DroneEnv(batch_size=list(start.shape[:-1]), device=device, **env_kwargs)
     if callable(reset := getattr(policy, "reset", None)):
         reset()  # a stateful controller (the PID's integrals) starts new episodes

@@ -101,8 +101,11 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(state: dict[str, Any], path: Path) -> None:
-    """Write ``state`` and the digest of its tensors to ``path`` through a temporary file and an
-    atomic rename."""
+    """Write ``state`` and its tensors' digest to ``path`` atomically (temporary file, then rename).
+
+    Write ``state`` and the digest of its tensors to ``path`` through a temporary file and an
+    atomic rename.
+    """
     state = {key: value for key, value in state.items() if key != DIGEST_KEY}
     state[DIGEST_KEY] = tensor_digests(state)
     # Serialised in memory and written at once: torch.save's zip writer makes a small write per
@@ -114,8 +117,11 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
 
 
 def tensors(state: Any, prefix: str = "") -> Iterator[tuple[str, torch.Tensor]]:
-    """Every tensor of a checkpoint's nested dicts and lists, with its path (``actor/<key>``,
-    ``optimizer/state/0/exp_avg``), in the order they are stored."""
+    """Every tensor of a checkpoint's nested dicts and lists, with its path, in storage order.
+
+    Every tensor of a checkpoint's nested dicts and lists, with its path (``actor/<key>``,
+    ``optimizer/state/0/exp_avg``), in the order they are stored.
+    """
     if isinstance(state, torch.Tensor):
         yield prefix, state
     elif isinstance(state, Mapping):
@@ -205,9 +211,12 @@ def _check_digest(state: dict[str, Any], path: Path) -> None:
 
 
 def _check_archive(path: Path) -> None:
-    """Every record of the zip archive against the CRC-32 stored with it (``torch.load`` does not
+    """Check every record of the zip archive against the CRC-32 stored with it.
+
+    Every record of the zip archive against the CRC-32 stored with it (``torch.load`` does not
     check them). A record stored without one (CRC 0: ``torch.serialization.config.save.compute_crc32``
-    off) and files in torch's legacy format, which are not zip archives, are not checked."""
+    off) and files in torch's legacy format, which are not zip archives, are not checked.
+    """
     try:
         archive = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError):
@@ -282,10 +291,13 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
 
 
 def check_weights(module: torch.nn.Module, weights: Any, path: Path, entry: str) -> None:
-    """``weights`` (the checkpoint's ``entry``) holds the tensors ``module`` has, of their shapes, and
+    """Check that ``weights`` holds exactly the tensors ``module`` has, of their shapes.
+
+    ``weights`` (the checkpoint's ``entry``) holds the tensors ``module`` has, of their shapes, and
     no others: what ``module.load_state_dict(weights)`` needs. :class:`CheckpointError` naming the
     file and the first tensor that differs otherwise (``load_state_dict`` lists them all, over many
-    lines). ``module`` may live on the meta device: only its shapes are read."""
+    lines). ``module`` may live on the meta device: only its shapes are read.
+    """
     expected = module.state_dict()
     if not isinstance(weights, Mapping):
         raise CheckpointError(f"{path}: its {entry} is not a state dict: a damaged or foreign checkpoint")

@@ -28,14 +28,19 @@ TEXT_COLUMNS = ("termination_cause",)
 
 
 def open_csv(path: Path) -> TextIO:
-    """``path`` opened for :mod:`csv` to read: UTF-8, and a byte that is not UTF-8 (a damaged file)
-    read as a lone surrogate instead of raising, so one bad row costs that row (:func:`is_text`)."""
+    """Open ``path`` for :mod:`csv` to read, with bytes that are not UTF-8 kept as lone surrogates.
+
+    ``path`` opened for :mod:`csv` to read: UTF-8, and a byte that is not UTF-8 (a damaged file)
+    read as a lone surrogate instead of raising, so one bad row costs that row (:func:`is_text`).
+    """
     return Path(path).open(newline="", encoding="utf-8", errors="surrogateescape")
 
 
 def is_text(fields: Iterable[Any]) -> bool:
-    """Whether a row read through :func:`open_csv` was UTF-8 text (its fields, lists of extra fields
-    and ``None`` for missing ones)."""
+    """Whether a row read through :func:`open_csv` was UTF-8 text.
+
+    It checks the fields, lists of extra fields and ``None`` for missing ones.
+    """
     for field in fields:
         for value in field if isinstance(field, list) else [field]:
             try:
@@ -60,8 +65,10 @@ def _parse(row: dict[str, str | None]) -> dict[str, object] | None:
 
 
 def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]]], list[str]]:
-    """The parsable rows of ``path`` (parsed, and as written), and a note for each line left out
-    (torn, garbled, or bytes that are not UTF-8)."""
+    """The parsable rows of ``path`` (parsed, and as written), and a note for each line left out.
+
+    A line is left out when torn, garbled, or not UTF-8.
+    """
     notes: list[str] = []
     rows = []
     with open_csv(path) as f:
@@ -81,13 +88,17 @@ def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]
 
 
 class EpisodeCSV:
-    """One row per episode in ``path``, buffered: rows are appended when :meth:`~EpisodeCSV.flush` is
-    called, and no file stays open in between (a population of runs holds no file descriptor per run).
+    """One row per episode in ``path``, buffered until :meth:`~EpisodeCSV.flush`.
 
-    ``keep_episodes``: on resume, keep the rows of episodes ``< keep_episodes`` read from ``source``
-    (default: ``path`` itself; a fork copies its parent run's rows) and drop the rest, which the
-    interrupted process wrote after its last checkpoint. A row torn by the interruption is dropped
-    too; ``notes`` says which lines were.
+    No file stays open between flushes (a population of runs holds no file descriptor per run).
+
+    Args:
+        path: the CSV file written (rewritten at once with its header and the rows kept).
+        keep_episodes: on resume, keep the rows of episodes ``< keep_episodes`` read from
+            ``source`` and drop the rest, which the interrupted process wrote after its last
+            checkpoint. A row torn by the interruption is dropped too; ``notes`` says which lines were.
+        source: the file those rows are read from (default: ``path`` itself; a fork copies its
+            parent run's rows).
     """
 
     def __init__(self, path: Path, keep_episodes: int = 0, source: Path | None = None) -> None:
@@ -110,6 +121,7 @@ class EpisodeCSV:
         self._rows: list[dict[str, object]] = []
 
     def write(self, rows: Iterable[dict[str, object]]) -> None:
+        """Buffer episode rows (column name to value) until the next :meth:`flush`."""
         self._rows.extend(rows)
 
     def flush(self) -> None:
@@ -123,6 +135,7 @@ class EpisodeCSV:
         self._rows.clear()
 
     def close(self) -> None:
+        """Append the buffered rows; the file is not held open, so nothing else is released."""
         self.flush()
 
 

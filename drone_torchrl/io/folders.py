@@ -14,7 +14,9 @@ HYDRA_ENTRIES = frozenset({".hydra", "train.log", "evaluate.log", "export.log", 
 
 
 def remove_if_untouched(run_dir: Path, root: Path | None = None, also: frozenset[str] = frozenset()) -> None:
-    """Delete ``run_dir`` if it holds only what Hydra put there (and entries named in ``also``), then
+    """Delete ``run_dir`` if it holds only what Hydra put there, then its empty parents up to ``root``.
+
+    Delete ``run_dir`` if it holds only what Hydra put there (and entries named in ``also``), then
     its parents up to ``root`` (default: the current folder) while they are empty.
 
     A refused config, or a resume that continued another folder, trains nothing here: the folder
@@ -36,10 +38,13 @@ def remove_if_untouched(run_dir: Path, root: Path | None = None, also: frozenset
 
 
 def check_fork_folder(folder: Path, resume: str, also: frozenset[str] = frozenset({LOCK_NAME})) -> None:
-    """A fork (``resume=`` a checkpoint that is not its run's ``last.pt``) trains in a folder of its
+    """Refuse a fork's folder unless it is new or holds only entries named in ``also``.
+
+    A fork (``resume=`` a checkpoint that is not its run's ``last.pt``) trains in a folder of its
     own: ``folder`` must be new, or hold nothing but entries named in ``also`` (a lock left behind;
     inside the Hydra job: what Hydra wrote for it, :data:`HYDRA_ENTRIES`). Anything else is another
-    run, which the fork would overwrite: :class:`~.checks.ConfigError` before anything is written."""
+    run, which the fork would overwrite: :class:`~.checks.ConfigError` before anything is written.
+    """
     try:
         entries = sorted(p.name for p in Path(folder).iterdir() if p.name not in also)
     except (FileNotFoundError, NotADirectoryError):

@@ -122,9 +122,11 @@ def hold(folder: str | os.PathLike) -> Path:
 
 
 def _make_room() -> None:
-    """Keep :data:`SPARE_DESCRIPTORS` open-file slots free beside the locks held: a population holds
-    one lock per agent, and many systems start processes at a soft limit of 1024, so the soft limit
-    is raised towards the hard one; past the hard one, one line says what to change."""
+    """Keep :data:`SPARE_DESCRIPTORS` open-file slots free beside the locks held.
+
+    A population holds one lock per agent, and many systems start processes at a soft limit of 1024, so the
+    soft limit is raised towards the hard one; past the hard one, one line says what to change.
+    """
     import resource
 
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
@@ -144,9 +146,12 @@ def _make_room() -> None:
 
 @contextlib.contextmanager
 def exclusive(path: str | os.PathLike) -> Iterator[None]:
-    """Hold an exclusive ``flock`` on ``path`` (created if missing) for the ``with`` block, waiting
+    """Hold an exclusive ``flock`` on ``path`` (created if missing) for the ``with`` block.
+
+    Hold an exclusive ``flock`` on ``path`` (created if missing) for the ``with`` block, waiting
     while another process holds it: for a step two processes must not take at once (the first
-    contact with a shared store, which creates its tables)."""
+    contact with a shared store, which creates its tables).
+    """
     path = Path(path)
     with writing(path):
         fd = os.open(path, os.O_RDONLY | os.O_CREAT, 0o644)

@@ -1,4 +1,6 @@
-"""Writes the filesystem refuses (a full disk, a quota, a read-only or forbidden folder, a name too
+"""Writes the filesystem refuses (full disk, quota, read-only, name too long) as one line.
+
+Writes the filesystem refuses (a full disk, a quota, a read-only or forbidden folder, a name too
 long) as one line: the one module every command (drone-train, drone-eval, drone-export,
 drone-report) writes its files through.
 
@@ -38,7 +40,12 @@ NAME_SHOWN = 24
 
 
 class StorageError(OSError):
-    """A file a run could not write: one line naming the file and the OS's reason."""
+    """A file a run could not write: one line naming the file and the OS's reason.
+
+    Args:
+        path: the file that could not be written.
+        reason: the OS's refusal (its errno names the reason).
+    """
 
     def __init__(self, path: str | os.PathLike, reason: OSError) -> None:
         code = errno.errorcode.get(reason.errno or 0, str(reason.errno))
@@ -50,8 +57,10 @@ class StorageError(OSError):
 
 
 def folder_refuses(folder: Path, size: int) -> int | None:
-    """Why ``folder`` would refuse ``size`` more bytes (the errno), or None: for a child process's
-    failed write (ffmpeg's reaches Python as a broken pipe), diagnosed after the fact."""
+    """Why ``folder`` would refuse ``size`` more bytes (the errno), or None.
+
+    For a child process's failed write (ffmpeg's reaches Python as a broken pipe), diagnosed after the fact.
+    """
     try:
         stats = os.statvfs(folder)
     except OSError:
@@ -72,9 +81,11 @@ def is_storage_error(err: BaseException) -> bool:
 
 @contextmanager
 def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[None]:
-    """Run a write of ``path``; a refused write becomes :class:`StorageError`. ``temporary`` files
-    (this write's half-written ones) are removed whenever the write does not finish: refused, or
-    stopped by another exception (a signal turned into one, Ctrl-C)."""
+    """Run a write of ``path``; a refused write becomes :class:`StorageError`.
+
+    ``temporary`` files (this write's half-written ones) are removed whenever the write does not finish:
+    refused, or stopped by another exception (a signal turned into one, Ctrl-C).
+    """
     try:
         yield
     except BaseException as err:
@@ -88,9 +99,12 @@ def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[
 
 
 def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryview) -> Path:
-    """Write ``data`` to ``path`` through ``<path>.tmp`` and a rename (making its folder): a reader,
+    """Write ``data`` to ``path`` atomically, through ``<path>.tmp`` and a rename.
+
+    Write ``data`` to ``path`` through ``<path>.tmp`` and a rename (making its folder): a reader,
     or a process killed meanwhile, sees the old file or the whole new one, never a part. A refused
-    write is :class:`StorageError` and leaves no temporary file."""
+    write is :class:`StorageError` and leaves no temporary file.
+    """
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     with writing(path, tmp):
@@ -101,8 +115,11 @@ def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryvi
 
 
 def write_figure(fig: Any, path: str | os.PathLike, **savefig: Any) -> Path:
-    """A matplotlib figure saved as ``path`` (its suffix names the format), atomically: matplotlib
-    writes straight into the file, so a full disk would leave a partial image."""
+    """Save a matplotlib figure as ``path`` atomically (its suffix names the format).
+
+    A matplotlib figure saved as ``path`` (its suffix names the format), atomically: matplotlib
+    writes straight into the file, so a full disk would leave a partial image.
+    """
     buffer = io.BytesIO()
     fig.savefig(buffer, format=Path(path).suffix.lstrip(".") or None, **savefig)
     return write_atomically(path, buffer.getbuffer())
@@ -116,9 +133,11 @@ def _limit(folder: Path, name: str, default: int) -> int:
 
 
 def name_too_long(path: str | os.PathLike) -> str | None:
-    """Why the file system would refuse ``path`` as too long (ENAMETOOLONG), or None: each component
-    against ``NAME_MAX`` and the whole path against ``PATH_MAX`` of the nearest existing folder above
-    it (the folders still to be made are on its file system). In bytes, as the file system counts."""
+    """Why the file system would refuse ``path`` as too long (ENAMETOOLONG), or None.
+
+    Each component against ``NAME_MAX`` and the whole path against ``PATH_MAX`` of the nearest existing folder
+    above it (the folders still to be made are on its file system). In bytes, as the file system counts.
+    """
     path = Path(path).expanduser()
     absolute = path.absolute()
     existing = _nearest_existing(absolute.parent)
@@ -136,10 +155,12 @@ def name_too_long(path: str | os.PathLike) -> str | None:
 
 
 def unwritable(folder: str | os.PathLike, room: int = 1) -> str | None:
-    """Why nothing could be written into ``folder`` (made if missing), told before any work, or None:
-    a name too long (:func:`name_too_long`), a file where a folder must be, or the nearest existing
-    folder read-only, forbidden or with less than ``room`` bytes free (:func:`folder_refuses`). A
-    write that fails all the same is still refused in one line by :func:`writing`."""
+    """Why nothing could be written into ``folder`` (made if missing), told before any work, or None.
+
+    A name too long (:func:`name_too_long`), a file where a folder must be, or the nearest existing folder
+    read-only, forbidden or with less than ``room`` bytes free (:func:`folder_refuses`). A write that fails
+    all the same is still refused in one line by :func:`writing`.
+    """
     too_long = name_too_long(folder)
     if too_long is not None:
         return too_long

@@ -1,15 +1,14 @@
 """``logger=tensorboard`` (the default backend): buffered scalars, written in batches, no writer held open.
 
 TorchRL's ``TensorboardLogger`` keeps a ``SummaryWriter`` (an open event file and a writer thread)
-for the life of a run and sends every scalar through the thread's queue, about 40 us each. A
+for the life of a run and sends every scalar through the thread's queue, one by one. A
 population of a thousand runs cannot hold a thousand writers, and at that rate its logging would
 cost more than its training. :class:`RunLogger` keeps TorchRL's logging calls (``log_scalar``,
 ``log_metrics``) but buffers them, and :meth:`RunLogger.flush` appends them to the run's event file
 as TensorBoard records (tensorboard's own ``Event`` protos, one per step holding all of that step's
 scalars, as ``tf.summary.merge_all`` writes them; no thread), opening the file only for that. The
-records' CRC32C checksums come from ``google-crc32c`` (C, about 0.1 us a record): tensorboard's
-``RecordWriter`` computes them in pure Python when TensorFlow is absent, about 7 us per record and
-most of the logging time of a population. Videos and the final hparams, a few per run, are
+records' CRC32C checksums come from ``google-crc32c`` (C): tensorboard's ``RecordWriter`` computes
+them in pure Python when TensorFlow is absent, which was most of the logging time of a population. Videos and the final hparams, a few per run, are
 tensorboard's ``Summary`` protos in the same file. TensorBoard reads the event files in
 ``<run>/<exp_name>`` as one run.
 
@@ -102,7 +101,14 @@ def scalar_event(wall_time: float, step: int, values: list[bytes]) -> bytes:
 
 
 class RunLogger:
-    """Buffered TensorBoard logging into ``<log_dir>/<exp_name>``."""
+    """Buffered TensorBoard logging into ``<log_dir>/<exp_name>``.
+
+    Args:
+        exp_name: the subfolder of ``log_dir`` the event file goes in.
+        log_dir: the run folder.
+        purge_step: on resume, one past the checkpoint's count: TensorBoard drops the events the
+            interrupted process logged after the checkpoint (None: a new run).
+    """
 
     def __init__(self, exp_name: str, log_dir: str | Path, purge_step: int | None = None) -> None:
         self.exp_name = exp_name
@@ -113,6 +119,7 @@ class RunLogger:
         self._events: Path | None = None
 
     def log_scalar(self, name: str, value: float, step: int) -> None:
+        """Buffer one scalar ``value`` of tag ``name`` at ``step``."""
         self._scalars.append((name, value, step))
 
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
@@ -120,6 +127,7 @@ class RunLogger:
         self._scalars.extend(scalars)
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        """Buffer each ``name: value`` of ``metrics`` at ``step``."""
         self._scalars.extend((name, value, step) for name, value in metrics.items())
 
     def flush(self) -> None:
@@ -158,9 +166,12 @@ class RunLogger:
         self._summaries.clear()
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
-        """Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video: an animated GIF in an image
+        """Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video (an animated GIF image summary).
+
+        Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video: an animated GIF in an image
         summary, the record ``SummaryWriter.add_video`` writes, with the GIF from
-        :func:`~drone_torchrl.io.video.gif_bytes` (add_video's moviepy took 3.8 s a training video here, this 0.4 s)."""
+        :func:`~drone_torchrl.io.video.gif_bytes` (add_video's moviepy took 3.8 s a training video here, this 0.4 s).
+        """
         from tensorboard.compat.proto.summary_pb2 import Summary
 
         _, height, width, channels = frames.shape

@@ -23,11 +23,14 @@ VIDEO_DIR = "videos"
 def record_video(
     policy: Any, env_kwargs: dict[str, Any], seed: int, device: str = "cpu", frame_stride: int = 1
 ) -> np.ndarray:
-    """Render one deterministic episode: ``uint8`` frames ``[T, H, W, 3]``, the reset frame first,
+    """Render one deterministic episode as ``uint8`` frames ``[T, H, W, 3]``, the reset frame first.
+
+    Render one deterministic episode: ``uint8`` frames ``[T, H, W, 3]``, the reset frame first,
     then every ``frame_stride``-th step (drawing is the slow part, so skipped steps are not drawn).
 
     The episode starts where the first episode of :func:`drone_torchrl.evaluation.evaluate` with the
-    same ``seed`` starts."""
+    same ``seed`` starts.
+    """
     env = DroneEnv(batch_size=[], device=device, render_mode="rgb_array", **env_kwargs)
     env.set_seed(seed)
     # Each frame is copied once into one array sized for the longest episode (a list stacked at the
@@ -88,10 +91,12 @@ def _rgb_codes(frame: np.ndarray) -> np.ndarray:
 
 
 def _palette_images(frames: np.ndarray) -> list:
-    """The frames as palette images with one palette for the whole clip: exactly their colours if
-    there are at most 256 (the renderer draws fewer: 214 in a training video), else a median cut
-    of a sample of frames. A fixed palette costs a lookup per pixel; choosing one per frame, as
-    moviepy (TensorBoard's ``add_video``) does, took 3.8 s a training video here."""
+    """The frames as palette images with one palette for the whole clip.
+
+    Exactly their colours if there are at most 256 (the renderer draws fewer: 214 in a training video), else a
+    median cut of a sample of frames. A fixed palette costs a lookup per pixel; choosing one per frame, as
+    moviepy (TensorBoard's ``add_video``) does, took 3.8 s a training video here.
+    """
     from PIL import Image
 
     seen = np.zeros(_RGB_CODES, dtype=bool)
@@ -115,8 +120,11 @@ def _palette_images(frames: np.ndarray) -> list:
 
 
 def gif_bytes(frames: np.ndarray, fps: float) -> bytes:
-    """``[T, H, W, 3]`` uint8 frames as an animated GIF (looping) at ``fps``, encoded by Pillow with
-    one palette for the clip (0.4 s for a 300-step training video, 150 frames of 300x300)."""
+    """Encode ``[T, H, W, 3]`` uint8 frames as a looping animated GIF at ``fps``.
+
+    ``[T, H, W, 3]`` uint8 frames as an animated GIF (looping) at ``fps``, encoded by Pillow with
+    one palette for the clip (0.4 s for a 300-step training video, 150 frames of 300x300).
+    """
     images = _palette_images(frames)
     out = io.BytesIO()
     images[0].save(out, format="GIF", save_all=True, append_images=images[1:], duration=1000.0 / fps, loop=0)

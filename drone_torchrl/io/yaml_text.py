@@ -1,8 +1,8 @@
 """Configs as YAML text: what ``OmegaConf.to_yaml`` writes, on libyaml's emitter where PyYAML has it.
 
 A population writes each agent's config twice when it starts (``.hydra/config.yaml`` and the run's
-``config.yaml``) and Hydra's node once; OmegaConf's pure-Python emitter takes about 3 ms a file,
-libyaml's about a fifth of that. The representers are OmegaConf's (strings that would read back as
+``config.yaml``) and Hydra's node once; libyaml's emitter writes a file several times faster than
+OmegaConf's pure-Python one. The representers are OmegaConf's (strings that would read back as
 a number or a boolean are quoted), so the text is the same for configs of ASCII and most other
 text; libyaml escapes a few characters Python's emitter writes as they are (those beyond the Basic
 Multilingual Plane, such as emoji, and U+0085), which read back the same.

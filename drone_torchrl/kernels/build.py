@@ -17,14 +17,25 @@ Where no compiler works, :func:`library` returns None and :func:`unavailable_rea
 the engine then runs its PyTorch path.
 
 :func:`scalar_check` compiles the source once more, syntax only (under a second), with
-``-DDK_SCALAR_CHECK``: the single-source step functions with one drone per thread (``V = float``,
-``double``) and no vector type in sight, as a CUDA kernel will call them.
+``-DDK_SCALAR_CHECK``: the single-source functions with one drone per thread (``V = float``,
+``double``) and no vector type in sight.
+
+Two more builds of the same source:
+
+- :func:`cuda_library`: the CUDA engine (``nvcc -x cu``; one thread per drone), for tensors on a
+  GPU. ``nvcc`` is ``$NVCC``, else on ``PATH``, else ``/usr/local/cuda/bin/nvcc``; a machine without
+  it can load a library built elsewhere from ``$DRONE_TORCHRL_CUDA_LIBRARY`` (what
+  ``benchmarks/gpu_check.sh`` carries to a GPU machine). :func:`build_cuda` compiles one into a
+  given file; CI does, although it has no GPU.
+- :func:`library` with ``scalar=True``: the scalar engine, the CPU engine with one drone per block,
+  so the code every CUDA thread runs, run on the CPU (the tests compare it with the vector engine).
 """
 
 from __future__ import annotations
 
 import ctypes
 import hashlib
+import importlib.util
 import os
 import platform
 import shutil
@@ -41,14 +52,24 @@ BASE_FLAGS = ("-O3", "-std=c++17", "-fPIC", "-shared", "-fno-math-errno", "-ffp-
 ARCH_FLAGS = ("-march=native",)
 BUILD_TIMEOUT_S = 300
 SCALAR_CHECK_FLAGS = ("-std=c++17", "-fsyntax-only", "-Wall", "-Werror", "-DDK_SCALAR_CHECK")
+SCALAR_ENGINE_FLAGS = ("-DDK_SCALAR_ENGINE",)
+CUDA_LIBRARY_ENV = "DRONE_TORCHRL_CUDA_LIBRARY"
+# Ampere and Hopper machine code, and Hopper's PTX for newer GPUs (the driver compiles it on load).
+CUDA_ARCHS = ("-gencode=arch=compute_80,code=sm_80", "-gencode=arch=compute_90,code=[sm_90,compute_90]")
+# -cudart static: the library needs only the driver at run time, not a CUDA toolkit.
+CUDA_FLAGS = ("-x", "cu", "-O3", "-std=c++17", "-shared", "-Xcompiler", "-fPIC", "-cudart", "static",
+              "-diag-suppress", "128,177", *CUDA_ARCHS)  # fmt: skip
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
 
 
 def cache_dir() -> Path:
-    """Where the compiled kernels are kept: the folder ``$DRONE_TORCHRL_CACHE`` names, else the user's
-    cache folder."""
+    """The folder that keeps the compiled kernels.
+
+    Where the compiled kernels are kept: the folder ``$DRONE_TORCHRL_CACHE`` names, else the user's
+    cache folder.
+    """
     if os.environ.get(CACHE_ENV):
         return Path(os.environ[CACHE_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
@@ -98,11 +119,13 @@ def _build(compiler: str, target: Path, precision: tuple[str, ...]) -> str | Non
     return f"{compiler} failed: {errors[-1]}"
 
 
-def library(double: bool = False) -> ctypes.CDLL | None:
-    """The loaded kernels for float32 (``double``: float64) tensors, built on first use, or None
-    where they cannot be built."""
-    name = "float64" if double else "float32"
-    precision = (f"-DDK_DOUBLE={int(double)}",)
+def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
+    """The loaded kernels for float32 (or float64) tensors, built on first use; None if they cannot be.
+
+    ``double``: float64. ``scalar``: the scalar engine (one drone per block).
+    """
+    name = ("scalar-" if scalar else "") + ("float64" if double else "float32")
+    precision = (f"-DDK_DOUBLE={int(double)}",) + (SCALAR_ENGINE_FLAGS if scalar else ())
     with _lock:
         if name in _state:
             return _state[name]  # type: ignore[return-value]
@@ -126,13 +149,92 @@ def library(double: bool = False) -> ctypes.CDLL | None:
                 if not path.is_file():
                     reason = _build(compiler, path, precision)
                 if reason is None:
-                    lib = ctypes.CDLL(str(path))
-                    for function in ("dk_saved_size", "dk_real_bytes", "dk_env_consts"):
-                        getattr(lib, function).restype = ctypes.c_int64
-                    if lib.dk_real_bytes() != (8 if double else 4):
-                        raise OSError(f"{path} was built for another precision")
+                    lib = _load(path, double)
             except (OSError, subprocess.SubprocessError) as err:
                 reason = f"{type(err).__name__}: {err}"
+        _state[name], _state["reason"] = lib, reason
+        return lib
+
+
+_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_env_consts", "dk_cuda_scratch_size", "dk_cuda_rollout",
+                  "dk_cuda_reinforce")  # fmt: skip
+
+
+def _load(path: Path, double: bool) -> ctypes.CDLL:
+    lib = ctypes.CDLL(str(path))
+    for function in _INT64_RESULTS:
+        if hasattr(lib, function):
+            getattr(lib, function).restype = ctypes.c_int64
+    if hasattr(lib, "dk_cuda_error"):
+        lib.dk_cuda_error.restype = ctypes.c_char_p
+    if lib.dk_real_bytes() != (8 if double else 4):
+        raise OSError(f"{path} was built for another precision")
+    return lib
+
+
+def nvcc() -> str | None:
+    """The CUDA compiler's path, or None.
+
+    ``$NVCC``, else ``nvcc`` on ``PATH``, else the CUDA toolkit's, else the one the ``cuda`` extra
+    installs (PyPI's ``nvidia-cuda-nvcc``).
+    """
+    candidates = [os.environ.get("NVCC"), "nvcc", "/usr/local/cuda/bin/nvcc"]
+    spec = importlib.util.find_spec("nvidia")
+    for folder in (spec.submodule_search_locations or []) if spec else []:
+        candidates.append(str(Path(folder, "cu13", "bin", "nvcc")))
+    return next((found for c in candidates if c and (found := shutil.which(c))), None)
+
+
+def build_cuda(target: Path, double: bool = False) -> str | None:
+    """Compile the CUDA engine into ``target`` (no GPU needed): None, or why it failed."""
+    compiler = nvcc()
+    if compiler is None:
+        return "no nvcc found (set NVCC, install the CUDA toolkit, or pip install 'drone_torchrl[cuda]')"
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so.tmp", dir=target.parent)
+    os.close(fd)
+    cmd = [compiler, *CUDA_FLAGS, f"-DDK_DOUBLE={int(double)}", str(SOURCE), "-o", tmp]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
+        if out.returncode != 0:
+            errors = [line for line in out.stderr.splitlines() if "error" in line]
+            return f"{compiler} failed: {(errors or out.stderr.strip().splitlines() or [out.returncode])[0]}"
+        os.replace(tmp, target)
+        return None
+    except (OSError, subprocess.SubprocessError) as err:
+        return f"{compiler} failed: {err}"
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def cuda_library(double: bool = False) -> ctypes.CDLL | None:
+    """The CUDA engine for float32 (``double``: float64) tensors, or None.
+
+    ``$DRONE_TORCHRL_CUDA_LIBRARY`` (float32) when set, else built with :func:`nvcc` on first use
+    and cached; None where neither works (:func:`unavailable_reason` says why).
+    """
+    name = "cuda-" + ("float64" if double else "float32")
+    with _lock:
+        if name in _state:
+            return _state[name]  # type: ignore[return-value]
+        lib, reason = None, None
+        try:
+            given = os.environ.get(CUDA_LIBRARY_ENV)
+            if given and not double:
+                path = Path(given)
+            else:
+                compiler = nvcc()
+                if compiler is None:
+                    raise OSError(f"no nvcc found and ${CUDA_LIBRARY_ENV} not set")
+                key = "\n".join([SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double)])
+                path = (
+                    cache_dir() / f"drone_kernels-{name}-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
+                )
+                if not path.is_file() and (why := build_cuda(path, double)) is not None:
+                    raise OSError(why)
+            lib = _load(path, double)
+        except (OSError, subprocess.SubprocessError) as err:
+            reason = f"{type(err).__name__}: {err}"
         _state[name], _state["reason"] = lib, reason
         return lib
 
@@ -143,8 +245,11 @@ def unavailable_reason() -> str | None:
 
 
 def scalar_check() -> str | None:
-    """Compile the kernels' single-source functions for scalar lanes (``-DDK_SCALAR_CHECK``): None,
-    or the compiler's first complaint (a vector-only idiom crept into a ``DK_HD`` function)."""
+    """Compile the kernels' single-source functions for scalar lanes; None or the first complaint.
+
+    Compile the kernels' single-source functions for scalar lanes (``-DDK_SCALAR_CHECK``): None,
+    or the compiler's first complaint (a vector-only idiom crept into a ``DK_HD`` function).
+    """
     compiler = _compiler()
     if compiler is None:
         return "no C++ compiler found (set CXX, or install g++ or clang++)"

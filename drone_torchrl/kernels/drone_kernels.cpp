@@ -838,9 +838,13 @@ DK_HD inline V log_prob_backward(const EnvParams<ScalarOf<V>>& e, const V* loc, 
   return log_prob;
 }
 
-#if DK_CPU
 // ------------------------------------------------------------------------------------------------
-// The CPU engine: blocks of lanes<V> drones, threads over blocks.
+// The engine's loops, single source as well: fly_block (whole episodes of a block of rows),
+// reinforce_agent (one agent's loss and gradient) and segment_block (PPO/A2C's segments), each on
+// lanes<V>() drones at a time and on scratch memory the caller owns. The CPU engine (below) calls
+// them with V a vector over threads of blocks; the CUDA build (drone_kernels.cu) with V = Real, one
+// thread per row or agent; the scalar engine (-DDK_SCALAR_ENGINE, tested against the CPU engine)
+// runs the CUDA threads' code on the CPU.
 
 // One build per precision (build.py compiles float64 only when a run asks for it): the scalar type
 // of every tensor the C interface takes.
@@ -849,19 +853,17 @@ DK_HD inline V log_prob_backward(const EnvParams<ScalarOf<V>>& e, const V* loc, 
 #endif
 using Real = std::conditional_t<DK_DOUBLE != 0, double, float>;
 
-template <class S>
-struct Block {
-  std::vector<Vec<S>> w, acts, x;
-  explicit Block(const Net& net) : w(net.params), acts(net.activations > 0 ? net.activations : 1), x(net.in_dim) {}
-};
-
-template <class S>
-void pack_weights(const Net& net, const S* params, const int64_t* agent, int count, Vec<S>* w) {
+// The weights of each lane's agent: lane l of w[k] is parameter k of agent[l]. One lane: the
+// agent's own parameters, read where they are.
+template <class V>
+DK_HD inline const V* lane_weights(const Net& net, const ScalarOf<V>* params, const int64_t* agent, V* w) {
   const int p = net.params;
-  for (int l = 0; l < lanes_of<Vec<S>>(); l++) {
-    const S* src = params + agent[l < count ? l : 0] * p;
-    for (int k = 0; k < p; k++) w[k][l] = src[k];
+  if (lanes_of<V>() == 1) return reinterpret_cast<const V*>(params + agent[0] * p);
+  for (int l = 0; l < lanes_of<V>(); l++) {
+    const ScalarOf<V>* src = params + agent[l] * p;
+    for (int k = 0; k < p; k++) set_lane(w[k], l, src[k]);
   }
+  return w;
 }
 
 struct RolloutArgs {
@@ -893,13 +895,13 @@ struct RolloutArgs {
 struct Saved {
   int in_dim, activations, width;  // width: vectors per block
   int64_t blocks;                  // per agent
-  int x() const { return 0; }
-  int acts() const { return in_dim; }
-  int loc() const { return in_dim + activations; }
-  int pre() const { return loc() + kActionDim; }
-  int action() const { return pre() + kActionDim; }
-  int ret() const { return action() + kActionDim; }
-  static Saved of(const Net& net, int64_t episodes, int64_t steps, int lanes) {
+  DK_HD int x() const { return 0; }
+  DK_HD int acts() const { return in_dim; }
+  DK_HD int loc() const { return in_dim + activations; }
+  DK_HD int pre() const { return loc() + kActionDim; }
+  DK_HD int action() const { return pre() + kActionDim; }
+  DK_HD int ret() const { return action() + kActionDim; }
+  DK_HD static Saved of(const Net& net, int64_t episodes, int64_t steps, int lanes) {
     Saved s{};
     s.in_dim = net.in_dim;
     s.activations = net.activations;
@@ -914,9 +916,11 @@ struct Saved {
 // and the termination cause of the last step.
 enum Stat { kReturn, kZoneSteps, kNegative, kLastCause, kStats };
 
-template <class S>
-void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t last) {
-  using V = Vec<S>;
+// Rows b * L .. b * L + L - 1 of dk_rollout (L = lanes<V>()). w: scratch of net.params vectors
+// (unused with one lane), acts: of max(net.activations, 1), x: of net.in_dim.
+template <class V>
+DK_HD void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* wbuf, V* acts, V* x) {
+  using S = ScalarOf<V>;
   constexpr int L = lanes_of<V>();
   const S* params = static_cast<const S*>(a.params);
   const S* start = static_cast<const S*>(a.start);
@@ -933,10 +937,9 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
   };
   const EnvParams<S> e = env_params<S>(a.env, net);
   const DistParams<S> d = dist_params<S>(a.dist, a.env[kDt]);
-  Block<S> block(net);
   Drone<V> dr{};
   const int64_t T = a.steps, in_dim = net.in_dim;
-  for (int64_t b = first; b < last; b++) {
+  {
     const int64_t row0 = b * L;
     const int count = static_cast<int>(row0 + L <= a.rows ? L : a.rows - row0);
     int64_t agent[L];
@@ -951,8 +954,8 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
     }
     bool any = false;
     for (int l = 0; l < L; l++) any = any || live[l];
-    if (!any) continue;
-    pack_weights<S>(net, params, agent, L, block.w.data());
+    if (!any) return;
+    const V* w = lane_weights(net, params, agent, wbuf);
     // The stream keys of each lane's agent, and the row's episode index within its agent.
     uint64_t noise_key[L], episode[L];
     for (int l = 0; l < L; l++) {
@@ -980,15 +983,15 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
         pair[l] = static_cast<uint64_t>(t) * a.episodes + episode[l];
       }
       step_normals(d, dr, steps, n);
-      observe(d, dr, n, block.x.data());
+      observe(d, dr, n, x);
       V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
       if (a.rng) {
         action_normals(noise_key, pair, z);
       } else if (noise) {
         for (int m = 0; m < kActionDim; m++)
-          for (int l = 0; l < L; l++) z[m][l] = live[l] ? noise[((row0 + l) * T + t) * kActionDim + m] : S(0);
+          for (int l = 0; l < L; l++) set_lane(z[m], l, live[l] ? noise[((row0 + l) * T + t) * kActionDim + m] : S(0));
       }
-      policy_step(net, e, block.w.data(), block.x.data(), block.acts.data(), stochastic ? z : nullptr, loc, pre, act);
+      policy_step(net, e, w, x, acts, stochastic ? z : nullptr, loc, pre, act);
       V next[kStateDim], r, cause, zone;
       drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
       any = false;
@@ -997,34 +1000,34 @@ void rollout_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t
         const int64_t row = row0 + l, at = row * T + t, state_at = row * (T + 1) + t;
         if (obs) {
           for (int k = 0; k < kStateDim; k++) {
-            obs[state_at * kStateDim + k] = dr.s[k][l];
-            obs[(state_at + 1) * kStateDim + k] = next[k][l];
+            obs[state_at * kStateDim + k] = lane(dr.s[k], l);
+            obs[(state_at + 1) * kStateDim + k] = lane(next[k], l);
           }
         }
         if (seen)
-          for (int k = 0; k < in_dim; k++) seen[at * in_dim + k] = block.x[k][l];
+          for (int k = 0; k < in_dim; k++) seen[at * in_dim + k] = lane(x[k], l);
         if (action) {
-          action[at * kActionDim] = act[0][l];
-          action[at * kActionDim + 1] = act[1][l];
+          action[at * kActionDim] = lane(act[0], l);
+          action[at * kActionDim + 1] = lane(act[1], l);
         }
         if (saved) {
           const int64_t r_agent = episode[l] * T + t;
-          for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, layout.x() + k) = block.x[k][l];
-          for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = block.acts[k][l];
+          for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, layout.x() + k) = lane(x[k], l);
+          for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = lane(acts[k], l);
           for (int m = 0; m < kActionDim; m++) {
-            slot(agent[l], r_agent, layout.loc() + m) = loc[m][l];
-            slot(agent[l], r_agent, layout.pre() + m) = pre[m][l];
-            slot(agent[l], r_agent, layout.action() + m) = act[m][l];
+            slot(agent[l], r_agent, layout.loc() + m) = lane(loc[m], l);
+            slot(agent[l], r_agent, layout.pre() + m) = lane(pre[m], l);
+            slot(agent[l], r_agent, layout.action() + m) = lane(act[m], l);
           }
         }
-        const int64_t code = static_cast<int64_t>(cause[l]);
-        reward[at] = r[l];
+        const int64_t code = static_cast<int64_t>(lane(cause, l));
+        reward[at] = lane(r, l);
         a.cause[at] = code;
         a.length[row] = t + 1;
         double* stat = a.stats + row * kStats;
-        stat[kReturn] += r[l];
-        stat[kZoneSteps] += zone[l] != 0 && code == 0;
-        stat[kNegative] += (act[0][l] < 0) + (act[1][l] < 0);
+        stat[kReturn] += lane(r, l);
+        stat[kZoneSteps] += lane(zone, l) != 0 && code == 0;
+        stat[kNegative] += (lane(act[0], l) < 0) + (lane(act[1], l) < 0);
         stat[kLastCause] = code;
         live[l] = code == 0;
         any = any || live[l];
@@ -1052,7 +1055,7 @@ struct LossOptions {
 };
 
 struct GradArgs {
-  const RolloutArgs* roll;
+  RolloutArgs roll;
   LossOptions options;
   void* grad;               // [agents, params]
   double* loss;             // [agents]: each agent's REINFORCE loss (reinforce_terms' loss_per_agent)
@@ -1065,25 +1068,26 @@ struct GradArgs {
 // log-probability's derivatives in loc and scale (log_prob_backward), then the network's backward
 // through the saved hidden outputs (backward_deltas per block, weight_grad over the blocks). No
 // forward pass again.
-template <class S>
-void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t last) {
-  using V = Vec<S>;
+// Agent n's. Scratch: deltas of blocks * max(net.activations, 1) vectors, heads of blocks * 4,
+// grad of net.params (blocks: Saved::of's).
+template <class V>
+DK_HD void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, V* deltas, V* heads, V* grad) {
+  using S = ScalarOf<V>;
   constexpr int L = lanes_of<V>();
-  const RolloutArgs& a = *g.roll;
+  const RolloutArgs& a = g.roll;
   const LossOptions& o = g.options;
   const int64_t E = a.episodes, T = a.steps;
   const Saved layout = Saved::of(net, E, T, L);
   const EnvParams<S> env = env_params<S>(a.env, net);
   const int p = net.params, act_w = net.activations > 0 ? net.activations : 1;
   const S eps = sizeof(S) == 4 ? S(1.1920928955078125e-07) : S(2.220446049250313e-16);  // finfo eps
-  std::vector<V> deltas(layout.blocks * act_w), heads(layout.blocks * 2 * kActionDim), grad(p);
-  for (int64_t n = first; n < last; n++) {
+  {
     S* out = static_cast<S*>(g.grad) + n * p;
     g.loss[n] = 0;
     g.std_mean[n] = 0;
     g.actions_finite[n] = 1;
     for (int k = 0; k < p; k++) out[k] = 0;
-    if (!a.active[n]) continue;
+    if (!a.active[n]) return;
     V* saved = static_cast<V*>(a.saved) + n * layout.blocks * layout.width;
     const int64_t* length = a.length + n * E;
     // Lane masks of the valid steps, the blocks in use, and the per-agent sums of reinforce_terms.
@@ -1093,12 +1097,12 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
       episodes += length[e] > 0;
       steps += length[e];
     }
-    if (episodes == 0) continue;
+    if (episodes == 0) return;
     auto valid = [&](int64_t b) {
       V mask{};
       for (int l = 0; l < L; l++) {
         const int64_t r = b * L + l, e = r / T;
-        mask[l] = e < E && r % T < length[e] ? S(1) : S(0);
+        set_lane(mask, l, e < E && r % T < length[e] ? S(1) : S(0));
       }
       return mask;
     };
@@ -1106,20 +1110,20 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
     for (int64_t b = 0; b < used; b++) {
       const V mask = valid(b);
       for (int k = 0; k < layout.width; k++)
-        saved[b * layout.width + k] = mask != 0 ? saved[b * layout.width + k] : V{};
+        saved[b * layout.width + k] = select(mask != S(0), saved[b * layout.width + k], V{});
     }
     S mean = 0, std = 0;
     if (o.baseline_mean || o.normalize_returns) {
       S total = 0;
       for (int64_t b = 0; b < used; b++)
-        for (int l = 0; l < L; l++) total += saved[b * layout.width + layout.ret()][l];
+        for (int l = 0; l < L; l++) total += lane(saved[b * layout.width + layout.ret()], l);
       mean = total / S(steps);
       if (o.normalize_returns) {
         S squares = 0;
         for (int64_t b = 0; b < used; b++) {
           const V mask = valid(b);
           const V centred = (saved[b * layout.width + layout.ret()] - mean) * mask;
-          for (int l = 0; l < L; l++) squares += centred[l] * centred[l];
+          for (int l = 0; l < L; l++) squares += lane(centred, l) * lane(centred, l);
         }
         std = std::sqrt(squares / S(steps));
       }
@@ -1135,7 +1139,7 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
       if (o.baseline_mean || o.normalize_returns) w = w - mean;
       if (o.normalize_returns) w = w / (std + eps);
       if (o.discount_weight) {
-        for (int l = 0; l < L; l++) w[l] *= std::pow(gamma, S((b * L + l) % T));
+        for (int l = 0; l < L; l++) set_lane(w, l, lane(w, l) * std::pow(gamma, S((b * L + l) % T)));
       }
       const V coef = -w * per_episode * mask;  // d loss / d log pi at each step
       V* d_loc = &heads[b * 2 * kActionDim];
@@ -1145,13 +1149,13 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
                                            coef * reduce, d_loc, d_pre, scale);
       for (int m = 0; m < kActionDim; m++)
         for (int l = 0; l < L; l++) {
-          if (mask[l] == 0) continue;
-          std_sum += scale[m][l];
-          finite = finite && std::isfinite(blk[layout.action() + m][l]);
+          if (lane(mask, l) == 0) continue;
+          std_sum += lane(scale[m], l);
+          finite = finite && std::isfinite(lane(blk[layout.action() + m], l));
         }
-      for (int l = 0; l < L; l++) loss += mask[l] != 0 ? coef[l] * reduce * log_prob[l] : S(0);
+      for (int l = 0; l < L; l++) loss += lane(mask, l) != 0 ? lane(coef, l) * reduce * lane(log_prob, l) : S(0);
       backward_deltas(net, static_cast<const S*>(a.params) + n * p, blk + layout.acts(), d_loc, d_pre,
-                      &deltas[b * act_w]);
+                      deltas + b * act_w);
     }
     // The weights' gradients, layer by layer, as sums over the blocks (weight_grad), then the lanes.
     for (int k = 0; k < p; k++) grad[k] = V{};
@@ -1160,16 +1164,16 @@ void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t 
       const int n_out = net.out(l), n_in = net.width[l];
       const int prev = l < net.n_hidden ? l - 1 : net.n_hidden - 1;
       const V* input = prev < 0 ? saved + layout.x() : saved + layout.acts() + start;
-      const V* d = l < net.n_hidden ? deltas.data() + start + (l ? net.hidden[l - 1] : 0)
-                                    : heads.data() + (l - net.n_hidden) * kActionDim;
+      const V* d = l < net.n_hidden ? deltas + start + (l ? net.hidden[l - 1] : 0)
+                                    : heads + (l - net.n_hidden) * kActionDim;
       const int d_stride = l < net.n_hidden ? act_w : 2 * kActionDim;
-      V* gw = grad.data() + net.offset[l];
+      V* gw = grad + net.offset[l];
       weight_grad(d, d_stride, input, layout.width, n_out, n_in, used, gw, gw + n_out * n_in);
       if (l > 0 && l < net.n_hidden) start += net.hidden[l - 1];
     }
     for (int k = 0; k < p; k++) {
       S sum = 0;
-      for (int l = 0; l < L; l++) sum += grad[k][l];
+      for (int l = 0; l < L; l++) sum += lane(grad[k], l);
       out[k] = sum;
     }
     g.loss[n] = loss;
@@ -1216,19 +1220,20 @@ struct SegmentArgs {
   void* issued_out;
 };
 
-template <class S>
-void segment_blocks(const Net& net, const SegmentArgs& a, int64_t first, int64_t last) {
-  using V = Vec<S>;
+// Drones b * L .. b * L + L - 1 of dk_segments. Scratch: acts of max(net.activations, 1), x of
+// net.in_dim vectors.
+template <class V>
+DK_HD void segment_block(const Net& net, const SegmentArgs& a, int64_t b, V* acts, V* x) {
+  using S = ScalarOf<V>;
   constexpr int L = lanes_of<V>();
   const S* w = static_cast<const S*>(a.params);  // one agent: every lane reads the same weights
   const EnvParams<S> e = env_params<S>(a.env, net);
   const DistParams<S> d = dist_params<S>(a.dist, a.env[kDt]);
   const int64_t J = a.steps, in_dim = net.in_dim, delay = d.delay, observed = d.observed;
-  std::vector<V> acts(net.activations > 0 ? net.activations : 1), x(in_dim);
   Drone<V> dr{}, fresh{};
   auto in = [](const void* p, int64_t i) { return static_cast<const S*>(p)[i]; };
   auto out = [](void* p, int64_t i) -> S& { return static_cast<S*>(p)[i]; };
-  for (int64_t b = first; b < last; b++) {
+  {
     const int64_t row0 = b * L;
     const int count = static_cast<int>(row0 + L <= a.n ? L : a.n - row0);
     int64_t row[L], t[L];
@@ -1286,15 +1291,15 @@ void segment_blocks(const Net& net, const SegmentArgs& a, int64_t first, int64_t
       }
       if (!seen) {
         step_normals(d, dr, t, n);
-        observe(d, dr, n, x.data());
+        observe(d, dr, n, x);
       }
       V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
       for (int m = 0; m < kActionDim; m++)
-        for (int l = 0; l < L; l++) z[m][l] = in(a.noise, (row[l] * J + j) * kActionDim + m);
-      policy_step(net, e, w, x.data(), acts.data(), z, loc, pre, act);
+        for (int l = 0; l < L; l++) set_lane(z[m], l, in(a.noise, (row[l] * J + j) * kActionDim + m));
+      policy_step(net, e, w, x, acts, z, loc, pre, act);
       for (int l = 0; l < count; l++) {
         const int64_t at = row[l] * J + j;
-        for (int k = 0; k < in_dim; k++) out(a.obs, at * in_dim + k) = x[k][l];
+        for (int k = 0; k < in_dim; k++) out(a.obs, at * in_dim + k) = lane(x[k], l);
         a.step_count[at] = t[l];
       }
       V next[kStateDim], r, cause, zone;
@@ -1303,15 +1308,15 @@ void segment_blocks(const Net& net, const SegmentArgs& a, int64_t first, int64_t
       for (int l = 0; l < L; l++) t[l] += 1;
       // What the env returns: the observation of the state after the step, at its step count.
       step_normals(d, dr, t, n);
-      observe(d, dr, n, x.data());
+      observe(d, dr, n, x);
       seen = true;
       for (int l = 0; l < count; l++) {
         const int64_t at = row[l] * J + j;
-        const int64_t code = static_cast<int64_t>(cause[l]);
+        const int64_t code = static_cast<int64_t>(lane(cause, l));
         const bool terminated = code != 0, truncated = !terminated && t[l] >= a.max_steps;
-        for (int k = 0; k < in_dim; k++) out(a.next_obs, at * in_dim + k) = x[k][l];
-        for (int m = 0; m < kActionDim; m++) out(a.action, at * kActionDim + m) = act[m][l];
-        out(a.reward, at) = r[l];
+        for (int k = 0; k < in_dim; k++) out(a.next_obs, at * in_dim + k) = lane(x[k], l);
+        for (int m = 0; m < kActionDim; m++) out(a.action, at * kActionDim + m) = lane(act[m], l);
+        out(a.reward, at) = lane(r, l);
         a.cause[at] = code;
         a.terminated[at] = terminated;
         a.truncated[at] = truncated;
@@ -1320,34 +1325,21 @@ void segment_blocks(const Net& net, const SegmentArgs& a, int64_t first, int64_t
     }
     for (int l = 0; l < count; l++) {
       const int64_t r = row[l];
-      for (int k = 0; k < kStateDim; k++) out(a.state_out, r * kStateDim + k) = dr.s[k][l];
+      for (int k = 0; k < kStateDim; k++) out(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
       a.t_out[r] = restart[l] ? -1 : t[l];
       a.key_out[r] = static_cast<int64_t>(dr.key[l]);
-      out(a.gust_out, r) = d.nominal ? S(0) : dr.gust[l];
+      out(a.gust_out, r) = d.nominal ? S(0) : lane(dr.gust, l);
       for (int m = 0; m < kActionDim; m++) {
-        out(a.thrust_out, r * kActionDim + m) = d.nominal ? S(kHover) : dr.thrust[m][l];
-        for (int i = 0; i < delay; i++) out(a.pending_out, (r * delay + i) * kActionDim + m) = dr.pending[i][m][l];
+        out(a.thrust_out, r * kActionDim + m) = d.nominal ? S(kHover) : lane(dr.thrust[m], l);
+        for (int i = 0; i < delay; i++) out(a.pending_out, (r * delay + i) * kActionDim + m) = lane(dr.pending[i][m], l);
         for (int i = 0; i < observed; i++)
-          out(a.issued_out, (r * observed + i) * kActionDim + m) = dr.issued[i][m][l];
+          out(a.issued_out, (r * observed + i) * kActionDim + m) = lane(dr.issued[i][m], l);
       }
     }
   }
 }
 
-template <class Fn>
-void parallel_blocks(int64_t blocks, int threads, Fn fn) {
-  if (threads <= 1 || blocks < 2) {
-    fn(0, blocks);
-    return;
-  }
-  const int64_t workers = blocks < threads ? blocks : threads;
-  std::vector<std::thread> pool;
-  for (int64_t k = 0; k < workers; k++)
-    pool.emplace_back(fn, blocks * k / workers, blocks * (k + 1) / workers);
-  for (auto& th : pool) th.join();
-}
-
-Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation, double min_std,
+DK_HD Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation, double min_std,
              double dist_eps) {
   Net net{};
   net.in_dim = static_cast<int>(in_dim);
@@ -1371,8 +1363,40 @@ Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t ac
   return net;
 }
 
-constexpr int64_t lanes() { return lanes_of<Vec<Real>>(); }
+// max(net.activations, 1): the scratch vectors of a network's hidden outputs.
+DK_HD inline int activation_width(const Net& net) { return net.activations > 0 ? net.activations : 1; }
+
+#if DK_CPU
+// ------------------------------------------------------------------------------------------------
+// The CPU engine: threads over blocks of lanes() drones. The scalar engine (-DDK_SCALAR_ENGINE)
+// is the same with one drone per block: the code each CUDA thread runs.
+
+#ifdef DK_SCALAR_ENGINE
+using Lanes = Real;
+#else
+using Lanes = Vec<Real>;
+#endif
+
+template <class Fn>
+void parallel_blocks(int64_t blocks, int threads, Fn fn) {
+  if (threads <= 1 || blocks < 2) {
+    fn(0, blocks);
+    return;
+  }
+  const int64_t workers = blocks < threads ? blocks : threads;
+  std::vector<std::thread> pool;
+  for (int64_t k = 0; k < workers; k++)
+    pool.emplace_back(fn, blocks * k / workers, blocks * (k + 1) / workers);
+  for (auto& th : pool) th.join();
+}
+
+constexpr int64_t lanes() { return lanes_of<Lanes>(); }
 constexpr int64_t blocks_of(int64_t rows) { return (rows + lanes() - 1) / lanes(); }
+
+void fly_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t last) {
+  std::vector<Lanes> w(net.params), acts(activation_width(net)), x(net.in_dim);
+  for (int64_t b = first; b < last; b++) fly_block(net, a, b, w.data(), acts.data(), x.data());
+}
 
 }  // namespace
 
@@ -1396,7 +1420,7 @@ void dk_rollout(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t
   const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
   RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
                 gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
-  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
+  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { fly_blocks(net, a, f, l); });
 }
 
 // One REINFORCE update's episodes and gradient for every active agent: the rollout of dk_rollout
@@ -1412,9 +1436,14 @@ void dk_reinforce(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64
   const int64_t rows = agents * episodes;
   RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
                 gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
-  GradArgs g{&a, {options[0], options[1], options[2], options[3]}, grad, loss, std_mean, actions_finite};
-  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { rollout_blocks<Real>(net, a, f, l); });
-  parallel_blocks(agents, threads, [&](int64_t f, int64_t l) { reinforce_agents<Real>(net, g, f, l); });
+  GradArgs g{a, {options[0], options[1], options[2], options[3]}, grad, loss, std_mean, actions_finite};
+  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { fly_blocks(net, a, f, l); });
+  parallel_blocks(agents, threads, [&](int64_t first, int64_t last) {
+    const Saved layout = Saved::of(net, episodes, steps, lanes());
+    std::vector<Lanes> deltas(layout.blocks * activation_width(net)), heads(layout.blocks * 2 * kActionDim),
+        grad(net.params);
+    for (int64_t n = first; n < last; n++) reinforce_agent(net, g, n, deltas.data(), heads.data(), grad.data());
+  });
 }
 
 // The size of dk_reinforce's saved buffer, in scalars.
@@ -1439,7 +1468,10 @@ void dk_segments(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_
                 thrust,     pending,   issued,    noise,      fresh,      fresh_keys, env,        dist,
                 obs,        action,    reward,    next_obs,   cause,      terminated, truncated,  step_count,
                 state_out,  t_out,     key_out,   gust_out,   thrust_out, pending_out, issued_out};
-  parallel_blocks(blocks_of(n), threads, [&](int64_t f, int64_t l) { segment_blocks<Real>(net, a, f, l); });
+  parallel_blocks(blocks_of(n), threads, [&](int64_t first, int64_t last) {
+    std::vector<Lanes> acts(activation_width(net)), x(net.in_dim);
+    for (int64_t b = first; b < last; b++) segment_block(net, a, b, acts.data(), x.data());
+  });
 }
 
 // 4 (float32) or 8 (float64): the precision of this build's tensors, in bytes.
@@ -1447,8 +1479,103 @@ int64_t dk_real_bytes() { return sizeof(Real); }
 
 }  // extern "C"
 
-#else  // !DK_CPU
+#elif defined(__CUDACC__)
+// ------------------------------------------------------------------------------------------------
+// The CUDA engine: one thread per drone (dk_cuda_rollout: per row; dk_cuda_reinforce: per agent
+// for the gradient), each running the single-source loops with V = Real. Scratch lives in a
+// buffer the caller allocates (dk_cuda_scratch_size), so PyTorch's caching allocator owns all
+// device memory. Launches go on the caller's stream; nothing synchronises.
 
+constexpr int kThreadsPerBlock = 128;
+
+__global__ void fly_kernel(Net net, RolloutArgs a, Real* scratch) {
+  const int64_t row = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (row >= a.rows) return;
+  Real* acts = scratch + row * (activation_width(net) + net.in_dim);
+  fly_block<Real>(net, a, row, nullptr, acts, acts + activation_width(net));
+}
+
+__global__ void reinforce_kernel(Net net, GradArgs g, int64_t agents, Real* scratch) {
+  const int64_t n = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (n >= agents) return;
+  const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, 1);
+  const int64_t deltas = layout.blocks * activation_width(net), heads = layout.blocks * 2 * kActionDim;
+  Real* mine = scratch + n * (deltas + heads + net.params);
+  reinforce_agent<Real>(net, g, n, mine, mine + deltas, mine + deltas + heads);
+}
+
+inline unsigned grid_of(int64_t threads) {
+  return static_cast<unsigned>((threads + kThreadsPerBlock - 1) / kThreadsPerBlock);
+}
+
+}  // namespace
+
+extern "C" {
+
+int64_t dk_env_consts() { return kEnvConsts; }
+int64_t dk_disturbance_consts() { return kDistConsts; }
+int64_t dk_real_bytes() { return sizeof(Real); }
+
+// Scratch scalars of dk_cuda_rollout (rows rows) and dk_cuda_reinforce (agents agents).
+int64_t dk_cuda_scratch_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t rows, int64_t agents,
+                             int64_t episodes, int64_t steps) {
+  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
+  const Saved layout = Saved::of(net, episodes, steps, 1);
+  const int64_t per_row = activation_width(net) + net.in_dim;
+  const int64_t per_agent = layout.blocks * (activation_width(net) + 2 * kActionDim) + net.params;
+  const int64_t fly = rows * per_row, grad = agents * per_agent;
+  return fly > grad ? fly : grad;
+}
+
+// dk_saved_size with one drone per lane block.
+int64_t dk_saved_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t agents, int64_t episodes,
+                      int64_t steps) {
+  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
+  return agents * Saved::of(net, episodes, steps, 1).blocks * Saved::of(net, episodes, steps, 1).width;
+}
+
+// dk_rollout on device pointers (host pointer: hidden), launched on stream; returns the CUDA error code.
+int64_t dk_cuda_rollout(void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
+                        double min_std, double dist_eps, int64_t rows, int64_t episodes, int64_t steps,
+                        const void* params, const void* start, const void* noise, const int64_t* rng,
+                        const int64_t* keys, const uint8_t* active, const double* env, const double* dist,
+                        const double* gamma, void* obs, void* action, void* reward, int64_t* cause, int64_t* length,
+                        void* returns, double* stats, void* seen, void* scratch) {
+  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
+  RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
+                gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
+  if (rows > 0)
+    fly_kernel<<<grid_of(rows), kThreadsPerBlock, 0, static_cast<cudaStream_t>(stream)>>>(
+        net, a, static_cast<Real*>(scratch));
+  return static_cast<int64_t>(cudaGetLastError());
+}
+
+// dk_reinforce on device pointers (host pointers: hidden, options), launched on stream.
+int64_t dk_cuda_reinforce(void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
+                          double min_std, double dist_eps, int64_t agents, int64_t episodes, int64_t steps,
+                          const void* params, const int64_t* rng, const uint8_t* active, const double* env,
+                          const double* dist, const double* gamma, const int64_t* options, void* reward,
+                          int64_t* cause, int64_t* length, void* returns, double* stats, void* saved, void* grad,
+                          double* loss, double* std_mean, uint8_t* actions_finite, void* scratch) {
+  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
+  const int64_t rows = agents * episodes;
+  RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
+                gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
+  GradArgs g{a, {options[0], options[1], options[2], options[3]}, grad, loss, std_mean, actions_finite};
+  const cudaStream_t s = static_cast<cudaStream_t>(stream);
+  if (rows > 0) {
+    fly_kernel<<<grid_of(rows), kThreadsPerBlock, 0, s>>>(net, a, static_cast<Real*>(scratch));
+    reinforce_kernel<<<grid_of(agents), kThreadsPerBlock, 0, s>>>(net, g, agents, static_cast<Real*>(scratch));
+  }
+  return static_cast<int64_t>(cudaGetLastError());
+}
+
+// The message of a CUDA error code.
+const char* dk_cuda_error(int64_t code) { return cudaGetErrorString(static_cast<cudaError_t>(code)); }
+
+}  // extern "C"
+
+#else  // DK_SCALAR_CHECK
 // The scalar check (-DDK_SCALAR_CHECK): every single-source function with V = float and V = double,
 // compiled without the vector types, as a CUDA kernel (one thread per drone) will call them.
 #define DK_INSTANTIATE(V)                                                                                      \
@@ -1466,11 +1593,14 @@ int64_t dk_real_bytes() { return sizeof(Real); }
                                   V*);                                                                         \
   template void drone_step<V>(const EnvParams<V>&, const DistParams<V>&, Drone<V>&, const V*, V, V*, V*, V*,   \
                               V*);                                                                             \
-  template V log_prob_backward<V>(const EnvParams<V>&, const V*, const V*, const V*, V, V*, V*, V*);
+  template V log_prob_backward<V>(const EnvParams<V>&, const V*, const V*, const V*, V, V*, V*, V*);        \
+  template void fly_block<V>(const Net&, const RolloutArgs&, int64_t, V*, V*, V*);                             \
+  template void reinforce_agent<V>(const Net&, const GradArgs&, int64_t, V*, V*, V*);                          \
+  template void segment_block<V>(const Net&, const SegmentArgs&, int64_t, V*, V*);
 DK_INSTANTIATE(float)
 DK_INSTANTIATE(double)
 #undef DK_INSTANTIATE
 
 }  // namespace
 
-#endif  // DK_CPU
+#endif

@@ -29,7 +29,9 @@ DisturbanceArg = disturbances.Disturbance | Mapping[str, Any] | None
 
 
 class KernelRollout:
-    """Each agent's episodes flown to their ends by the C++ kernel, for the stochastic policy or
+    """Each agent's episodes flown to their ends by the C++ kernel.
+
+    Each agent's episodes flown to their ends by the C++ kernel, for the stochastic policy or
     the deterministic one.
 
     Args:
@@ -74,12 +76,15 @@ class KernelRollout:
         rng: torch.Tensor | None = None,
         keys: torch.Tensor | None = None,
     ) -> Episodes:
-        """Each agent's episodes from ``start`` (``[N, E, 6]``) with ``noise`` (``[N, E, max_steps, 2]``;
+        """Fly each agent's episodes ``[N, E, T]`` from start states (or ``rng``) by the C++ kernel.
+
+        Each agent's episodes from ``start`` (``[N, E, 6]``) with ``noise`` (``[N, E, max_steps, 2]``;
         None: the deterministic action), or with start states and noise drawn from ``rng``
         (``[N, E, 2]``: seed and update counter, see ``drone_torchrl::rollout``). ``keys``: ``[N, E]``
         the episodes' disturbance keys (None: drawn from ``rng``). ``active``: ``[N]`` bool (default:
         all). Returns ``[N, E, T]`` episodes, ``T`` the longest; inactive agents' rows are empty.
-        Under disturbances their ``observation`` is what the policy saw."""
+        Under disturbances their ``observation`` is what the policy saw.
+        """
         flat = self.stacked.flat[self.agents]
         n = flat.shape[0]
         if active is None:
@@ -118,8 +123,11 @@ class KernelReinforce:
     def __call__(
         self, seed: torch.Tensor, counter: torch.Tensor, gamma: torch.Tensor, active: torch.Tensor
     ) -> tuple[torch.Tensor, ...]:
-        """``seed``, ``counter`` (the update's RNG key), ``gamma``, ``active``: ``[N]`` each. Returns
-        :func:`~drone_torchrl.kernels.ops.reinforce`'s outputs."""
+        """One REINFORCE update of every active agent by the C++ kernel (all inputs ``[N]``).
+
+        ``seed``, ``counter`` (the update's RNG key), ``gamma``, ``active``: ``[N]`` each. Returns
+        :func:`~drone_torchrl.kernels.ops.reinforce`'s outputs.
+        """
         r = self.rollout
         keys = torch.stack([seed, counter], -1).unsqueeze(1).expand(-1, self.episodes, -1)
         return ops.reinforce(
@@ -129,9 +137,12 @@ class KernelReinforce:
 
 
 class Segment(NamedTuple):
-    """One call's steps of each drone, ``[n, steps, ...]``: the env's keys of TorchRL's collector
+    """One call's steps of each drone, ``[n, steps, ...]``, keyed as TorchRL's collector keys them.
+
+    One call's steps of each drone, ``[n, steps, ...]``: the env's keys of TorchRL's collector
     (``observation``, ``action``, ``step_count`` and ``next``'s ``observation``, ``reward``,
-    ``termination_cause``, ``terminated``, ``truncated``)."""
+    ``termination_cause``, ``terminated``, ``truncated``).
+    """
 
     observation: torch.Tensor
     action: torch.Tensor
@@ -144,8 +155,10 @@ class Segment(NamedTuple):
 
 
 class Carried(NamedTuple):
-    """What each drone carries from one call to the next (see ``drone_torchrl::segments``):
-    ``t = -1`` where a new episode starts at the next call's first step."""
+    """What each drone carries from one call to the next.
+
+    See ``drone_torchrl::segments``. ``t = -1`` where a new episode starts at the next call's first step.
+    """
 
     state: torch.Tensor
     t: torch.Tensor
@@ -157,7 +170,9 @@ class Carried(NamedTuple):
 
 
 class KernelSegments:
-    """``n`` drones of one agent flown by the C++ kernel with auto-reset, each call ``steps`` more
+    """``n`` drones of one agent flown by the C++ kernel with auto-reset, ``steps`` steps a call.
+
+    ``n`` drones of one agent flown by the C++ kernel with auto-reset, each call ``steps`` more
     steps (``drone_torchrl::segments``): TorchRL's collector over a batched
     :class:`~drone_torchrl.envs.drone_env.DroneEnv`, given the same draws.
 
@@ -191,10 +206,13 @@ class KernelSegments:
     def __call__(
         self, noise: torch.Tensor, fresh: torch.Tensor, fresh_keys: torch.Tensor | None = None
     ) -> Segment:
-        """The next ``steps`` steps of every drone: ``noise`` ``[n, steps, 2]`` standard normals of
+        """Fly the next ``steps`` steps of every drone; returns them as a :class:`Segment`.
+
+        The next ``steps`` steps of every drone: ``noise`` ``[n, steps, 2]`` standard normals of
         the actions, ``fresh`` ``[n, steps, 6]`` and ``fresh_keys`` ``[n, steps]`` the start state
         and episode key of a drone that starts a new episode at that step (keys: None for the
-        nominal drone)."""
+        nominal drone).
+        """
         r = self.rollout
         out = ops.segments(
             r.stacked.flat.detach()[0], *self.carried, noise, fresh, fresh_keys, r.max_steps, r.env,

@@ -1,4 +1,4 @@
-"""The C++ kernels as ``torch.library`` custom ops (CPU): the fast engine.
+"""The C++ kernels as ``torch.library`` custom ops (CPU; rollout and reinforce also CUDA): the fast engine.
 
 - ``drone_torchrl::rollout``: whole episodes of many agents' stochastic (or deterministic) policies
   on the drone, each row until its episode ends: what :class:`~drone_torchrl.envs.drone_env.DroneEnv` and
@@ -27,7 +27,7 @@ from typing import Any
 import torch
 
 from drone_torchrl.envs import disturbances, dynamics
-from drone_torchrl.kernels.build import library, unavailable_reason
+from drone_torchrl.kernels.build import cuda_library, library, unavailable_reason
 
 #: The code of each activation as the kernels take it (``activation`` argument).
 ACTIVATION_CODES = {"tanh": 0, "relu": 1, "elu": 2}
@@ -55,11 +55,30 @@ def _sizes(hidden: Sequence[int]) -> ctypes.Array:
     return (_c64 * max(len(hidden), 1))(*hidden)
 
 
-def _lib(dtype: torch.dtype = torch.float32) -> ctypes.CDLL:
-    lib = library(double=dtype == torch.float64)
+def _lib(dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> ctypes.CDLL:
+    cuda = device is not None and device.type == "cuda"
+    lib = (cuda_library if cuda else library)(double=dtype == torch.float64)
     if lib is None:
-        raise RuntimeError(f"the drone_torchrl C++ kernels are not available: {unavailable_reason()}")
+        engine = "CUDA engine" if cuda else "C++ kernels"
+        raise RuntimeError(f"the drone_torchrl {engine} is not available: {unavailable_reason()}")
     return lib
+
+
+def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, scratch: int) -> None:
+    """Call ``dk_<function>`` on the CPU, or ``dk_cuda_<function>`` on ``device``.
+
+    On the CPU the thread count goes first; on a GPU, ``device``'s current stream goes first and
+    ``scratch`` scalars of scratch memory (allocated here, PyTorch's) last.
+    """
+    if device.type != "cuda":
+        getattr(lib, f"dk_{function}")(_c64(torch.get_num_threads()), *args)
+        return
+    dtype = torch.float64 if lib.dk_real_bytes() == 8 else torch.float32
+    memory = torch.empty(scratch, dtype=dtype, device=device)
+    stream = _ptr(torch.cuda.current_stream(device).cuda_stream)
+    code = getattr(lib, f"dk_cuda_{function}")(stream, *args, _p(memory))
+    if code != 0:
+        raise RuntimeError(f"drone_torchrl::{function} on {device}: {lib.dk_cuda_error(_c64(code)).decode()}")
 
 
 #: The drone's constants in the kernels' order (``EnvConst`` in drone_kernels.cpp).
@@ -95,7 +114,9 @@ def env_constants(
     reset_mode: str = "floor",
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """The drone's constants (:data:`ENV_CONSTANTS`), float64: its physics and its arena (domain,
+    """The drone's constants (:data:`ENV_CONSTANTS`, float64): its physics and arena from ``params``.
+
+    The drone's constants (:data:`ENV_CONSTANTS`), float64: its physics and its arena (domain,
     target zone, ``bounds``) from ``params``.
 
     ``squash_high``: the TanhNormal head's upper bound (actions in ``[0, squash_high]``), or None
@@ -138,9 +159,11 @@ _GUST_TIME = DISTURBANCE_CONSTANTS.index("gust_time")
 def disturbance_constants(
     disturbance: disturbances.Disturbance | Mapping[str, Any] | None, device: torch.device | str = "cpu"
 ) -> torch.Tensor:
-    """The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64. Magnitudes all zero
-    (the gusts' time scale aside), or None, is the nominal drone, which the kernels fly as fast as
-    ever."""
+    """The disturbance's magnitudes (:data:`DISTURBANCE_CONSTANTS`), float64.
+
+    Magnitudes all zero (the gusts' time scale aside), or None, is the nominal drone, which the kernels fly as
+    fast as ever.
+    """
     d = disturbances.make(disturbance)
     return torch.tensor(
         [float(getattr(d, name)) for name in DISTURBANCE_CONSTANTS], dtype=torch.float64, device=device
@@ -156,8 +179,10 @@ def _nominal(disturbance: torch.Tensor | None) -> bool:
 
 
 def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
-    """``(action_delay, observed_actions)`` of ``disturbance`` (:func:`disturbance_constants`):
-    the commands each drone keeps in flight and those it observes."""
+    """``(action_delay, observed_actions)`` of ``disturbance`` (:func:`disturbance_constants`).
+
+    The commands each drone keeps in flight and those it observes.
+    """
     if disturbance is None:
         return 0, 0
     return int(disturbance[_DELAY]), int(disturbance[_OBSERVED])
@@ -176,8 +201,10 @@ def param_count(in_dim: int, hidden: Sequence[int]) -> int:
 
 
 def input_dim(params: int, hidden: Sequence[int]) -> int:
-    """The input width of the network whose flat parameters have ``params`` values (the inverse of
-    :func:`param_count`; the fake implementations infer the observation's width from it)."""
+    """The input width of the network whose flat parameters have ``params`` values.
+
+    The inverse of :func:`param_count`; the fake implementations infer the observation's width from it.
+    """
     if not hidden:
         heads = 2 * dynamics.ACTION_DIM
         return (params - heads) // heads
@@ -231,12 +258,13 @@ _LIB.define(
 )
 
 
-def _f64(tensor: torch.Tensor | None) -> torch.Tensor | None:
-    return None if tensor is None else tensor.to(torch.float64).contiguous()
+# The small inputs (constants, keys, flags) follow the parameters to their device.
+def _f64(tensor: torch.Tensor | None, device: torch.device | None = None) -> torch.Tensor | None:
+    return None if tensor is None else tensor.to(device=device, dtype=torch.float64).contiguous()
 
 
-def _i64(tensor: torch.Tensor | None) -> torch.Tensor | None:
-    return None if tensor is None else tensor.to(torch.int64).contiguous()
+def _i64(tensor: torch.Tensor | None, device: torch.device | None = None) -> torch.Tensor | None:
+    return None if tensor is None else tensor.to(device=device, dtype=torch.int64).contiguous()
 
 
 def _rollout(
@@ -260,43 +288,43 @@ def _rollout(
     in_dim = _check_net(params, hidden, disturbance)
     if keys is None and rng is None and not _nominal(disturbance):
         raise ValueError("drone_torchrl::rollout under disturbances needs episode keys or rng keys")
-    dtype = params.dtype
-    states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=dtype)
-    action = torch.zeros(n, episodes, steps, dynamics.ACTION_DIM, dtype=dtype)
-    reward = torch.zeros(n, episodes, steps, dtype=dtype)
-    cause = torch.zeros(n, episodes, steps, dtype=torch.int64)
-    length = torch.zeros(n, episodes, dtype=torch.int64)
-    returns = torch.zeros(n, episodes, steps, dtype=dtype)
-    stats = torch.empty(n, episodes, STATS, dtype=torch.float64)
-    seen = torch.zeros(n, episodes, steps, in_dim, dtype=dtype) if observations else params.new_zeros(0)
+    dtype, device = params.dtype, params.device
+    states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=dtype, device=device)
+    action = torch.zeros(n, episodes, steps, dynamics.ACTION_DIM, dtype=dtype, device=device)
+    reward = torch.zeros(n, episodes, steps, dtype=dtype, device=device)
+    cause = torch.zeros(n, episodes, steps, dtype=torch.int64, device=device)
+    length = torch.zeros(n, episodes, dtype=torch.int64, device=device)
+    returns = torch.zeros(n, episodes, steps, dtype=dtype, device=device)
+    stats = torch.empty(n, episodes, STATS, dtype=torch.float64, device=device)
+    seen = params.new_zeros(n, episodes, steps, in_dim) if observations else params.new_zeros(0)
     params = params.contiguous()
-    start = None if start is None else start.to(dtype).contiguous()
-    noise = None if noise is None else noise.to(dtype).contiguous()
-    active = active.to(torch.uint8).contiguous()
+    start = None if start is None else start.to(device=device, dtype=dtype).contiguous()
+    noise = None if noise is None else noise.to(device=device, dtype=dtype).contiguous()
+    active = active.to(device=device, dtype=torch.uint8).contiguous()
     # Bound to names: a pointer is only valid while its tensor lives.
-    rng, keys, env, gamma = _i64(rng), _i64(keys), _f64(env), _f64(gamma)
-    disturbance = None if _nominal(disturbance) else _f64(disturbance)
-    _lib(dtype).dk_rollout(
-        _c64(torch.get_num_threads()),
-        _c64(in_dim),
-        _c64(len(hidden)),
-        _sizes(hidden),
-        _c64(activation),
-        ctypes.c_double(min_std),
-        ctypes.c_double(dist_eps),
-        _c64(n * episodes),
-        _c64(episodes),
-        _c64(steps),
-        *(_p(t) for t in (params, start, noise, rng, keys, active, env, disturbance, gamma)),
-        *(_p(t) for t in (states, action, reward, cause, length, returns, stats)),
-        _p(seen if observations else None),
-    )
+    rng, keys, env, gamma = _i64(rng, device), _i64(keys, device), _f64(env, device), _f64(gamma, device)
+    disturbance = None if _nominal(disturbance) else _f64(disturbance, device)
+    lib, sizes = _lib(dtype, device), _sizes(hidden)
+    args = [_c64(in_dim), _c64(len(hidden)), sizes, _c64(activation), ctypes.c_double(min_std)]
+    args += [ctypes.c_double(dist_eps), _c64(n * episodes), _c64(episodes), _c64(steps)]
+    args += [_p(t) for t in (params, start, noise, rng, keys, active, env, disturbance, gamma)]
+    args += [_p(t) for t in (states, action, reward, cause, length, returns, stats)]
+    args += [_p(seen if observations else None)]
+    scratch = 0
+    if device.type == "cuda":
+        scratch = lib.dk_cuda_scratch_size(
+            args[0], args[1], sizes, _c64(n * episodes), _c64(0), args[7], args[8]
+        )
+    _launch(lib, "rollout", device, args, scratch)
     return states, action, reward, cause, length, returns, stats, seen
 
 
 def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Tensor) -> tuple[int, int]:
-    """Agents and episodes per agent: from ``start`` ``[N, E, 6]``, or ``rng`` ``[N, E, 2]`` (only its
-    shape is read for ``E``; the keys are per agent)."""
+    """Agents and episodes per agent, ``(N, E)``, from ``start`` or ``rng``.
+
+    Agents and episodes per agent: from ``start`` ``[N, E, 6]``, or ``rng`` ``[N, E, 2]`` (only its
+    shape is read for ``E``; the keys are per agent).
+    """
     if start is not None:
         return start.shape[0], start.shape[1]
     if rng is None:
@@ -339,45 +367,41 @@ def _reinforce(
 ) -> tuple[torch.Tensor, ...]:
     n, episodes = rng.shape[:2]
     in_dim = _check_net(params, hidden, disturbance)
-    dtype = params.dtype
+    dtype, device = params.dtype, params.device
     # Each agent's episodes and gradient are its own: the kernel runs on AGENTS_PER_CALL agents at a
     # time, so that its scratch (every step's rewards and what the backward pass reads) is that
     # many agents' whatever the population's size.
     chunk = max(1, min(n, AGENTS_PER_CALL))
-    reward = torch.empty(chunk, episodes, steps, dtype=dtype)
+    reward = params.new_empty(chunk, episodes, steps)
     returns = torch.empty_like(reward)
-    cause = torch.empty(chunk, episodes, steps, dtype=torch.int64)
-    length = torch.empty(n, episodes, dtype=torch.int64)
-    counts = torch.empty(n, episodes, STATS, dtype=torch.float64)
-    lib = _lib(dtype)
+    cause = params.new_empty(chunk, episodes, steps, dtype=torch.int64)
+    length = params.new_empty(n, episodes, dtype=torch.int64)
+    counts = params.new_empty(n, episodes, STATS, dtype=torch.float64)
+    lib = _lib(dtype, device)
     sizes = _sizes(hidden)
-    size = lib.dk_saved_size(_c64(in_dim), _c64(len(hidden)), sizes, _c64(chunk), _c64(episodes), _c64(steps))
-    saved = torch.empty(size, dtype=dtype)
+    net = (_c64(in_dim), _c64(len(hidden)), sizes)
+    saved = params.new_empty(lib.dk_saved_size(*net, _c64(chunk), _c64(episodes), _c64(steps)))
+    scratch = 0
+    if device.type == "cuda":
+        scratch = lib.dk_cuda_scratch_size(
+            *net, _c64(chunk * episodes), _c64(chunk), _c64(episodes), _c64(steps)
+        )
     grad = torch.empty_like(params)
-    loss = torch.empty(n, dtype=torch.float64)
+    loss = params.new_empty(n, dtype=torch.float64)
     std_mean = torch.empty_like(loss)
-    actions_finite = torch.empty(n, dtype=torch.bool)
-    active = active.to(torch.uint8).contiguous()
-    flags = torch.tensor(list(options), dtype=torch.int64)
-    params, rng, env, gamma = params.contiguous(), _i64(rng), _f64(env), _f64(gamma)
-    disturbance = None if _nominal(disturbance) else _f64(disturbance)
+    actions_finite = params.new_empty(n, dtype=torch.bool)
+    active = active.to(device=device, dtype=torch.uint8).contiguous()
+    flags = torch.tensor(list(options), dtype=torch.int64)  # read on the host
+    params, rng, env, gamma = params.contiguous(), _i64(rng, device), _f64(env, device), _f64(gamma, device)
+    disturbance = None if _nominal(disturbance) else _f64(disturbance, device)
     for first in range(0, n, chunk):
         rows = slice(first, min(n, first + chunk))
-        lib.dk_reinforce(
-            _c64(torch.get_num_threads()),
-            _c64(in_dim),
-            _c64(len(hidden)),
-            sizes,
-            _c64(activation),
-            ctypes.c_double(min_std),
-            ctypes.c_double(dist_eps),
-            _c64(rows.stop - rows.start),
-            _c64(episodes),
-            _c64(steps),
-            *(_p(t) for t in (params[rows], rng[rows], active[rows], env, disturbance, gamma[rows], flags)),
-            *(_p(t) for t in (reward, cause, length[rows], returns, counts[rows])),
-            *(_p(t) for t in (saved, grad[rows], loss[rows], std_mean[rows], actions_finite[rows])),
-        )
+        args = [*net, _c64(activation), ctypes.c_double(min_std), ctypes.c_double(dist_eps)]
+        args += [_c64(rows.stop - rows.start), _c64(episodes), _c64(steps)]
+        args += [_p(t) for t in (params[rows], rng[rows], active[rows], env, disturbance, gamma[rows], flags)]
+        args += [_p(t) for t in (reward, cause, length[rows], returns, counts[rows])]
+        args += [_p(t) for t in (saved, grad[rows], loss[rows], std_mean[rows], actions_finite[rows])]
+        _launch(lib, "reinforce", device, args, scratch)
     return grad, loss, std_mean, actions_finite, length, counts
 
 
@@ -508,6 +532,8 @@ def _segments_fake(
 
 _LIB.impl("rollout", _rollout, "CPU")
 _LIB.impl("reinforce", _reinforce, "CPU")
+_LIB.impl("rollout", _rollout, "CUDA")
+_LIB.impl("reinforce", _reinforce, "CUDA")
 _LIB.impl("segments", _segments, "CPU")
 torch.library.register_fake("drone_torchrl::rollout", _rollout_fake, lib=_LIB)
 torch.library.register_fake("drone_torchrl::reinforce", _reinforce_fake, lib=_LIB)
@@ -545,7 +571,10 @@ def rollout(
         active: ``[N]`` bool; inactive agents fly nothing (length 0).
         env: :func:`env_constants`.
         gamma: ``[N]``, each agent's discount for the returns-to-go.
-        hidden, activation, min_std: the network (:data:`ACTIVATION_CODES`).
+        hidden: the network's hidden layer widths.
+        activation: its activation's code (:data:`ACTIVATION_CODES`).
+        min_std: the floor added to the std head's softplus.
+        steps: the most steps an episode flies (its truncation, ``env.max_steps``).
         dist_eps: added to the mean and to the std, ``Normal(mu + eps, sigma + eps)``
             (:class:`~drone_torchrl.modules.policy.ThreeNetPolicy`'s ``distribution_eps``).
         disturbance: :func:`disturbance_constants` (None: the nominal drone).
@@ -632,20 +661,29 @@ def segments(
 
     Args:
         params: ``[P]`` the agent's flat parameters.
-        state, t, key, gust, thrust, pending, issued: the carried state of each drone (what the
-            last call returned): the physical state ``[n, 6]``, its episode's step count ``[n]``
-            (int64; ``-1``: its episode ended, a new one starts at this call's step 0), its
-            episode key ``[n]`` (int64) and its disturbances' internal state
-            (:class:`drone_torchrl.envs.disturbances.Internal`): ``gust [n]``, ``thrust [n, 2]``,
-            ``pending [n, action_delay, 2]``, ``issued [n, observed_actions, 2]``. A first call
-            passes ``t = -1`` everywhere (the other values are then not read).
+        state: ``[n, 6]`` each drone's physical state, carried from the last call (as are the
+            next six: what it returned).
+        t: ``[n]`` int64, its episode's step count (``-1``: its episode ended, a new one starts at
+            this call's step 0). A first call passes ``t = -1`` everywhere (the other carried
+            values are then not read).
+        key: ``[n]`` int64, its episode key.
+        gust: ``[n]``, its gust force / nominal weight (the disturbances' internal state,
+            :class:`drone_torchrl.envs.disturbances.Internal`, as are the next three).
+        thrust: ``[n, 2]``, the motors' thrust fractions in effect (lag).
+        pending: ``[n, action_delay, 2]``, the commands issued but not yet acting, oldest first.
+        issued: ``[n, observed_actions, 2]``, the last commands issued, newest first.
         noise: ``[n, steps, 2]`` standard normals of the actions.
-        fresh, fresh_keys: ``[n, steps, 6]`` start states and ``[n, steps]`` int64 episode keys:
-            a drone that starts a new episode at step ``j`` starts from ``fresh[d, j]`` with key
-            ``fresh_keys[d, j]`` (None: the nominal drone, which draws nothing).
+        fresh: ``[n, steps, 6]`` start states: a drone that starts a new episode at step ``j``
+            starts from ``fresh[d, j]``.
+        fresh_keys: ``[n, steps]`` int64, that episode's key ``fresh_keys[d, j]`` (None: the
+            nominal drone, which draws nothing).
         max_steps: the episodes' truncation (``env.max_steps``).
-        env, disturbance: :func:`env_constants`, :func:`disturbance_constants` (None: nominal).
-        hidden, activation, min_std, dist_eps: the network, as for :func:`rollout`.
+        env: :func:`env_constants`.
+        disturbance: :func:`disturbance_constants` (None: nominal).
+        hidden: the network's hidden layer widths, as for :func:`rollout`.
+        activation: its activation's code, as for :func:`rollout`.
+        min_std: the std's floor, as for :func:`rollout`.
+        dist_eps: the distribution's epsilon, as for :func:`rollout`.
 
     Returns, per step ``[n, steps, ...]``: the observation the policy saw, the action, the reward,
     the next observation (what the env returns after the step: at the step count after it, with

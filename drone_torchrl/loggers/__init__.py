@@ -59,8 +59,11 @@ class Logger(Protocol):
         """``{tag: value}`` at one step."""
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
-        """``[T, H, W, 3]`` uint8 frames of an evaluation video (a backend may skip them: the run
-        folder always has the MP4)."""
+        """Log ``[T, H, W, 3]`` uint8 frames of an evaluation video (a backend may skip them).
+
+        ``[T, H, W, 3]`` uint8 frames of an evaluation video (a backend may skip them: the run
+        folder always has the MP4).
+        """
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         """The flattened config with the run's final metrics, once, when it finishes."""
@@ -69,8 +72,11 @@ class Logger(Protocol):
         """Write what is buffered (files are opened only for this)."""
 
     def close(self, status: RunStatus) -> None:
-        """Flush and finish: the run logs nothing more in this process (called once, also when
-        the run failed or was stopped; ``status`` says which, for a backend that records it)."""
+        """Flush and finish: the run logs nothing more in this process.
+
+        Called once, also when the run failed or was stopped; ``status`` says which, for a backend that
+        records it.
+        """
 
 
 @dataclass(frozen=True)
@@ -121,8 +127,10 @@ def get(name: Any) -> Backend:
 
 
 def check_backend(cfg: Mapping[str, Any]) -> None:
-    """Refuse, in one line, a backend whose extra is not installed, then run its own checks (which
-    may import it)."""
+    """Refuse, in one line, a backend whose extra is not installed, then run its own checks.
+
+    The backend's own checks may import it.
+    """
     backend = get(cfg.logger.backend)
     if not backend.installed:
         raise ConfigError(backend.missing())
@@ -161,11 +169,14 @@ _CAUSE_TAGS = tuple((cause.name, f"episode/termination_cause/{cause.name}") for 
 def log_update(
     logger: Logger, rows: list[dict[str, Any]], train_metrics: dict[str, float], step: int
 ) -> None:
-    """One update's scalars: each episode's metrics, the number of episodes that ended
+    """Log one update's scalars: each episode's metrics, the termination causes and training metrics.
+
+    One update's scalars: each episode's metrics, the number of episodes that ended
     with each termination cause, and the update's training metrics. Every step is a count of episodes
     done: an episode's own metrics at its number counted from 1 (the CSV's ``episode`` + 1), the
     update's at ``step``, the count after its last episode; so a resume from a checkpoint at count
-    ``E`` purges from ``E + 1`` and keeps everything the checkpoint includes."""
+    ``E`` purges from ``E + 1`` and keeps everything the checkpoint includes.
+    """
     for row in rows:
         count = row["episode"] + 1
         logger.log_scalars((tag, row[k], count) for k, tag in _EPISODE_TAGS)

@@ -36,7 +36,13 @@ HEADER = ("step", "tag", "value")
 
 
 class CSVLogger:
-    """Buffered scalars appended to ``<log_dir>/scalars.csv``."""
+    """Buffered scalars appended to ``<log_dir>/scalars.csv``.
+
+    Args:
+        log_dir: the folder of ``scalars.csv`` and ``hparams.csv``.
+        resumed_at: on resume, the step after which the rows already in ``scalars.csv`` are dropped.
+        float_format: a ``%`` format for the values (None: written in full, Python's ``repr``).
+    """
 
     def __init__(self, log_dir: Path, resumed_at: int | None = None, float_format: str | None = None) -> None:
         self.log_dir = Path(log_dir)
@@ -47,19 +53,23 @@ class CSVLogger:
             _keep_until(self.path, resumed_at)
 
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
+        """Buffer ``(tag, value, step)`` triples as rows."""
         self._rows.extend((int(step), tag, value) for tag, value, step in scalars)
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        """Buffer each ``tag: value`` of ``metrics`` as a row at ``step``."""
         self._rows.extend((int(step), tag, value) for tag, value in metrics.items())
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
         """Not kept: the MP4 is in the run folder's ``videos/``."""
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
+        """Write the flattened config and the final ``metrics`` (as ``hparam/*``) to the hparams file."""
         entries = {**flatten_config(cfg), **{f"hparam/{k}": v for k, v in metrics.items()}}
         _write_atomically(self.log_dir / HPARAMS, ("key", "value"), entries.items())
 
     def flush(self) -> None:
+        """Append the buffered rows to the scalars CSV (with its header when the file is new)."""
         if not self._rows:
             return
         with writing(self.path):
@@ -77,12 +87,12 @@ class CSVLogger:
         self._rows.clear()
 
     def close(self, status: RunStatus = FINISHED) -> None:
+        """Flush the buffered rows; the file is not held open, and ``status`` is not recorded."""
         self.flush()
 
 
 def _keep_until(path: Path, step: int) -> None:
-    """Rewrite ``path`` with its rows up to ``step`` (a torn last line, from a kill, and a row that is
-    not UTF-8 text are dropped too)."""
+    """Rewrite ``path`` with its rows up to ``step``, dropping torn lines (a kill's) and non-UTF-8 rows."""
     with open_csv(path) as f:
         rows = list(csv.reader(f))
     kept = [

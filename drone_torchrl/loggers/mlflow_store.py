@@ -88,10 +88,13 @@ def _sqlite_file(tracking_uri: str) -> Path | None:
 
 @contextlib.contextmanager
 def _first_contact(tracking_uri: str) -> Iterator[None]:
-    """Processes that open one SQLite store take turns here: the first to reach a new store creates
+    """Take turns with the other processes that open one SQLite store.
+
+    Processes that open one SQLite store take turns here: the first to reach a new store creates
     its tables (MLflow's migrations; two at once collide, ``duplicate column name: step``, and the
     second run was lost), and an experiment is created once. Other stores serialise themselves (a
-    server), or are one process's (a folder)."""
+    server), or are one process's (a folder).
+    """
     path = _sqlite_file(tracking_uri)
     if path is None:
         yield
@@ -101,7 +104,15 @@ def _first_contact(tracking_uri: str) -> Iterator[None]:
 
 
 class MLflowLogger:
-    """One drone_torchrl run as one MLflow run, buffered."""
+    """One drone_torchrl run as one MLflow run, buffered.
+
+    Args:
+        tracking_uri: the MLflow store (a SQLite file, a folder or a server).
+        experiment: the MLflow experiment's name (created if missing).
+        run_dir: the run folder (the MLflow run's name, and where its id is kept).
+        exp_name: the subfolder of ``run_dir`` that keeps the MLflow run's id.
+        resumed_at: on resume, skip the steps the store has already (None: a new or continued run).
+    """
 
     def __init__(
         self, tracking_uri: str, experiment: str, run_dir: Path, exp_name: str, resumed_at: int | None
@@ -135,6 +146,7 @@ class MLflowLogger:
         return max(steps, default=-1)
 
     def log_params(self, cfg: DictConfig | dict) -> None:
+        """Log the flattened config as the run's params (those a resumed run has already are skipped)."""
         from mlflow.entities import Param
 
         have = self.client.get_run(self.run_id).data.params
@@ -147,9 +159,11 @@ class MLflowLogger:
             self.client.log_batch(self.run_id, params=params[start : start + MAX_PARAMS_PER_BATCH])
 
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
+        """Buffer ``(tag, value, step)`` triples as metrics."""
         self._buffer.extend((tag, float(value), int(step)) for tag, value, step in scalars)
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        """Buffer each ``tag: value`` of ``metrics`` at ``step``."""
         self._buffer.extend((tag, float(value), int(step)) for tag, value in metrics.items())
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
@@ -158,9 +172,11 @@ class MLflowLogger:
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         # MLflow shows params and metrics side by side already; the final metrics under hparam/*,
         # as TensorBoard's HPARAMS tab names them. Step 0, as there.
+        """Log the final ``metrics`` as ``hparam/*`` metrics at step 0."""
         self.log_metrics({f"hparam/{k}": v for k, v in metrics.items()}, step=0)
 
     def flush(self) -> None:
+        """Send the buffered metrics to the store in one batch."""
         from mlflow.entities import Metric
 
         if not self._buffer:
@@ -176,14 +192,18 @@ class MLflowLogger:
             self.client.log_batch(self.run_id, metrics=metrics[start : start + MAX_METRICS_PER_BATCH])
 
     def close(self, status: RunStatus) -> None:
+        """Flush, then mark the MLflow run finished, failed or killed by ``status``."""
         self.flush()
         # A run stopped by a signal is continued later (update_run sets RUNNING again).
         self.client.set_terminated(self.run_id, status=_STATUSES.get(status, "KILLED"))
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
-    """``logger.tracking_uri``: a store MLflow can open (an unknown scheme was a traceback when the
-    run started), and a SQLite file in a folder that exists (SQLite creates the file, not the folder)."""
+    """Check ``logger.tracking_uri``: a store MLflow can open, and a SQLite file's folder exists.
+
+    ``logger.tracking_uri``: a store MLflow can open (an unknown scheme was a traceback when the
+    run started), and a SQLite file in a folder that exists (SQLite creates the file, not the folder).
+    """
     uri = cfg.logger.tracking_uri
     if uri is None:
         return

@@ -1,5 +1,8 @@
-"""``logger=tensorboard`` (the default): :class:`~drone_torchrl.io.tb_logger.RunLogger`, buffered
-TensorBoard event files in ``<run>/<logger.exp_name>``."""
+"""``logger=tensorboard`` (the default): buffered TensorBoard event files in the run folder.
+
+``logger=tensorboard`` (the default): :class:`~drone_torchrl.io.tb_logger.RunLogger`, buffered
+TensorBoard event files in ``<run>/<logger.exp_name>``.
+"""
 
 from __future__ import annotations
 

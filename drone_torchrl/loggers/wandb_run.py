@@ -59,7 +59,13 @@ FORBIDDEN_CHARS = "/\\#?%:"
 
 
 class WandbLogger:
-    """One drone_torchrl run as one W&B run, buffered."""
+    """One drone_torchrl run as one W&B run, buffered.
+
+    Args:
+        cfg: the run's config (``logger.*`` and the config W&B records).
+        run_dir: the run folder (the W&B run's name; its files go in ``<run_dir>/<logger.exp_name>``).
+        resumed_at: on resume, the W&B run is continued and the steps it has already are skipped.
+    """
 
     def __init__(self, cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> None:
         import wandb
@@ -94,14 +100,17 @@ class WandbLogger:
         self._media: list[Path] = []  # GIFs handed to W&B, removed once it has its copy
 
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
+        """Buffer ``(tag, value, step)`` triples, grouped by step."""
         steps = self._steps
         for tag, value, step in scalars:
             steps[int(step)][tag] = float(value)
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
+        """Buffer each ``tag: value`` of ``metrics`` at ``step``."""
         self._steps[int(step)].update((tag, float(value)) for tag, value in metrics.items())
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
+        """Log ``[T, H, W, 3]`` uint8 frames as a W&B video (an animated GIF at ``fps``)."""
         import wandb
 
         # wandb.Video encodes arrays with moviepy, which the package does not need: hand it a GIF,
@@ -112,9 +121,11 @@ class WandbLogger:
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         # The config is the run's already; the final metrics go where W&B keeps a run's last word.
+        """Put the final ``metrics`` (as ``hparam/*``) in the W&B run's summary."""
         self.run.summary.update({f"hparam/{k}": v for k, v in metrics.items()})
 
     def flush(self) -> None:
+        """Send the buffered steps W&B has not had yet, in step order."""
         if not self._steps:
             return
         sent = self._sent
@@ -130,6 +141,7 @@ class WandbLogger:
             _write_atomically(self._sent_file, str(self._sent))
 
     def close(self, status: RunStatus) -> None:
+        """Flush and finish the W&B run (marked preempting when stopped, exit code 1 when failed)."""
         self.flush()
         if status not in (FINISHED, FAILED):
             self.run.mark_preempting()
@@ -169,8 +181,11 @@ def _check_name(key: str, value: Any, optional: bool) -> None:
 
 
 def validate(cfg: Mapping[str, Any]) -> None:
-    """Names W&B accepts, and credentials for an online run, before any work (W&B is installed:
-    :func:`drone_torchrl.loggers.check_backend` checks the extra first)."""
+    """Check names W&B accepts, and credentials for an online run, before any work.
+
+    Names W&B accepts, and credentials for an online run, before any work (W&B is installed:
+    :func:`drone_torchrl.loggers.check_backend` checks the extra first).
+    """
     logger = cfg.logger
     _check_name("logger.project", logger.project, optional=False)
     _check_name("logger.entity", logger.entity, optional=True)

@@ -26,21 +26,28 @@ def model_dtype(cfg: DictConfig) -> torch.dtype:
 
     The whole model runs in the env's dtype rather than casting at the policy boundary, so a
     float64 run is float64 end to end: observations, actions, log-probabilities, returns, the loss,
-    the gradients and the weights (its checkpoints hold float64 weights)."""
+    the gradients and the weights (its checkpoints hold float64 weights).
+    """
     return DTYPES[cfg.env.dtype]
 
 
 def observation_dim(cfg: DictConfig) -> int:
-    """Entries of the run's observations: the 6 state entries and ``env.disturbance.observed_actions``
-    past commands (2 each)."""
+    """Entries of the run's observations (6 state entries plus 2 per observed past command).
+
+    Entries of the run's observations: the 6 state entries and ``env.disturbance.observed_actions``
+    past commands (2 each).
+    """
     disturbance = cfg.env.get("disturbance")
     return STATE_DIM + ACTION_DIM * (0 if disturbance is None else disturbance.observed_actions)
 
 
 def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
-    """A fresh three-net policy on ``cfg.device`` in :func:`model_dtype`; with ``seed``, initialised
+    """A fresh three-net policy on ``cfg.device`` in :func:`model_dtype`, optionally seeded.
+
+    A fresh three-net policy on ``cfg.device`` in :func:`model_dtype`; with ``seed``, initialised
     after ``torch.manual_seed(seed)`` (in float32, then converted: a seed starts from the same
-    weights in either precision)."""
+    weights in either precision).
+    """
     if seed is not None:
         torch.manual_seed(seed)
     model = cfg.model
@@ -62,7 +69,9 @@ def _policy_net(cfg: DictConfig) -> ThreeNetPolicy:
 
 
 def build_policies(cfg: DictConfig, seeds: Sequence[int]) -> StackedThreeNet:
-    """Fresh policies of ``len(seeds)`` agents, stacked: agent ``i`` starts from the weights of
+    """Fresh policies of ``len(seeds)`` agents, stacked, without building a module per agent.
+
+    Fresh policies of ``len(seeds)`` agents, stacked: agent ``i`` starts from the weights of
     ``build_policy(cfg, seeds[i])``, drawn without building a module per agent.
 
     Each agent's draws are those of ``torch.manual_seed(seed)`` then ``nn.Linear``'s own
@@ -106,7 +115,9 @@ def build_policies(cfg: DictConfig, seeds: Sequence[int]) -> StackedThreeNet:
 
 
 def _uniform_rows(seeds: Sequence[int], draws: list[tuple[int, int, float]], width: int) -> torch.Tensor:
-    """``[len(seeds), width]``: row ``i`` holds, from a generator seeded ``seeds[i]``, ``U(-b, b)`` for
+    """Seeded uniform draws ``[len(seeds), width]``: each row from its own seed's generator.
+
+    ``[len(seeds), width]``: row ``i`` holds, from a generator seeded ``seeds[i]``, ``U(-b, b)`` for
     each ``(first, last, b)`` of ``draws`` in turn (float32).
 
     One ``uniform_(0, 1)`` per row, then ``lo + u * (hi - lo)`` per column, is 8x faster than a call

@@ -28,6 +28,14 @@ class ThreeNetPolicy(nn.Module):
     ``Normal(mu + eps, sigma + eps)``, as the paper's public code builds it (with ``eps = 1e-6``).
     Its gradients are those of ``mu`` and ``sigma``; it only moves the mean by ``eps`` and widens the
     std by ``eps``.
+
+    Args:
+        hidden_sizes: the shared net's hidden layer widths.
+        activation: the hidden layers' activation (a key of ``ACTIVATIONS``).
+        min_std: the floor added to the std head's softplus.
+        obs_dim: the observation's width ``D``.
+        action_dim: the action's width ``A`` (the two motor commands).
+        distribution_eps: added to the mean and the std.
     """
 
     def __init__(
@@ -153,8 +161,10 @@ def check_head(distribution: str, max_thrust: float | None) -> None:
 
 
 def distribution_head(distribution: str, max_thrust: float | None) -> tuple[type, dict]:
-    """The TorchRL distribution class and its keyword arguments for the head ``distribution``
-    (``cls(loc, scale, **kwargs)``): what the actor samples from and the losses score with."""
+    """The TorchRL distribution class and its keyword arguments for the head ``distribution``.
+
+    Called as ``cls(loc, scale, **kwargs)``. What the actor samples from and the losses score with.
+    """
     check_head(distribution, max_thrust)
     if distribution == "normal":
         return IndependentNormal, {}

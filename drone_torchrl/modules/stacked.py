@@ -31,13 +31,14 @@ def _linear_names(net: ThreeNetPolicy) -> list[str]:
 
 
 class StackedThreeNet(nn.Module):
-    """N :class:`~.policy.ThreeNetPolicy` nets with stacked parameters, applied at once to ``[N, ..., D]``
-    observations.
+    """N :class:`~.policy.ThreeNetPolicy` nets with stacked parameters, applied to ``[N, ..., D]`` at once.
 
-    ``nets`` give the architecture and each agent's initial weights (copied; the nets themselves
-    are not used afterwards). ``flat``: every agent's initial weights ``[N, P]``, laid out as
-    ``nets[0]``'s (then ``nets`` is one net: the architecture), for populations too large to build a
-    module per agent.
+    Args:
+        nets: the architecture and each agent's initial weights (copied; the nets themselves are
+            not used afterwards).
+        activation: the hidden layers' activation (a key of ``ACTIVATIONS``).
+        flat: every agent's initial weights ``[N, P]``, laid out as ``nets[0]``'s (then ``nets`` is
+            one net: the architecture), for populations too large to build a module per agent.
     """
 
     def __init__(self, nets: list[ThreeNetPolicy], activation: str, flat: torch.Tensor | None = None) -> None:
@@ -98,6 +99,7 @@ class StackedThreeNet(nn.Module):
         ]
 
     def apply_stacked(self, layers: Layers, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every agent's action mean and std ``[N, ..., A]`` from ``layers`` and observations ``[N, ..., D]``."""
         shape = observation.shape
         h = observation.reshape(shape[0], -1, shape[-1])
         for weight, bias in layers[: self.n_hidden]:
@@ -110,6 +112,7 @@ class StackedThreeNet(nn.Module):
         return loc.reshape(out_shape), scale.reshape(out_shape)
 
     def layers(self) -> Layers:
+        """The stacked ``(weight, bias)`` of each layer, views of :attr:`flat`."""
         return self.stacked()
 
     def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -124,6 +127,7 @@ class StackedThreeNet(nn.Module):
 
     @torch.no_grad()
     def load_agent_state_dict(self, agent: int, state: dict[str, torch.Tensor]) -> None:
+        """Overwrite agent ``agent``'s parameters with a single policy's ``state_dict``."""
         missing = set(self.names) - set(state)
         if missing:
             raise KeyError(f"missing policy weights: {sorted(missing)}")
@@ -133,7 +137,8 @@ class StackedThreeNet(nn.Module):
         """A standalone copy of agent ``agent``'s policy (for videos, checkpoints and export).
 
         Built on the meta device and then given the weights, so it draws nothing from torch's RNG
-        (the TorchRL collector samples from it: a checkpoint must not change the run)."""
+        (the TorchRL collector samples from it: a checkpoint must not change the run).
+        """
         with torch.device("meta"):
             net = ThreeNetPolicy(**self.spec)
         net.load_state_dict(self.agent_state_dict(agent), assign=True)
@@ -145,6 +150,10 @@ class ActionSampler:
 
     Drawing the noise outside lets each agent draw from its own generator; ``noise=None`` gives
     the deterministic action (the mean, or its squashed image, as ``ExplorationType.DETERMINISTIC``).
+
+    Args:
+        distribution: the head's distribution, ``"normal"`` or ``"tanh_normal"`` .
+        max_thrust: the per-motor thrust limit (``"tanh_normal"`` only).
     """
 
     def __init__(self, distribution: str, max_thrust: float | None) -> None:
@@ -155,5 +164,6 @@ class ActionSampler:
             self.squash = probe.transforms[0]
 
     def __call__(self, loc: torch.Tensor, scale: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
+        """The action from the head's ``loc`` and ``scale`` and normals ``noise`` (None: the mean)."""
         pre = loc if noise is None else loc + scale * noise
         return pre if self.squash is None else self.squash(pre)

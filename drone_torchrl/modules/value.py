@@ -18,8 +18,11 @@ def make_critic(
     dtype: torch.dtype = torch.float32,
     observation_dim: int = STATE_DIM,
 ) -> ValueOperator:
-    """A ``ValueOperator`` reading ``"observation"`` and writing ``"state_value"``, in ``dtype``
-    (the env's: initialised in float32, then converted)."""
+    """A state-value network: ``"observation"`` in, ``"state_value"`` out, in ``dtype``.
+
+    A ``ValueOperator`` reading ``"observation"`` and writing ``"state_value"``, in ``dtype``
+    (the env's: initialised in float32, then converted).
+    """
     net = MLP(
         in_features=observation_dim,
         out_features=1,
@@ -37,8 +40,11 @@ def make_q_value(
     dtype: torch.dtype,
     observation_dim: int = STATE_DIM,
 ) -> ValueOperator:
-    """SAC's Q-network: a ``ValueOperator`` over an MLP of the observation and the action
-    (concatenated by TorchRL's MLP), writing ``"state_action_value"``, in ``dtype``."""
+    """SAC's Q-network: ``"observation"`` and ``"action"`` in, ``"state_action_value"`` out.
+
+    SAC's Q-network: a ``ValueOperator`` over an MLP of the observation and the action
+    (concatenated by TorchRL's MLP), writing ``"state_action_value"``, in ``dtype``.
+    """
     net = MLP(
         in_features=observation_dim + ACTION_DIM,
         out_features=1,

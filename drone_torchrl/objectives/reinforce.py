@@ -125,6 +125,7 @@ class ReinforceLoss(LossModule):
         pass
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The loss of a batch ``[*B, T]`` of episodes: ``loss_objective`` and the diagnostics."""
         keys = self.tensor_keys
         done = tensordict.get(("next", keys.done))
         mask = tensordict.get(("collector", "mask"), default=None)
@@ -161,10 +162,11 @@ def reinforce_terms(
     normalize_returns: bool = False,
     discount_weight: bool = False,
 ) -> dict[str, torch.Tensor]:
-    """The arithmetic of :class:`ReinforceLoss` on plain ``[*A, *B, T]`` tensors (``A``: the
-    ``agent_dims`` leading agent dims): the stored actions' ``log_prob`` (already reduced over the
+    """The arithmetic of :class:`ReinforceLoss` on plain ``[*A, *B, T]`` tensors.
+
+    ``A``: the ``agent_dims`` leading agent dims. The stored actions' ``log_prob`` (already reduced over the
     motors), ``reward``, ``done``, the ``mask`` of valid steps and each step's index in its episode.
-    ``gamma``: a float or one discount per agent (``[*A]``). Returns :class:`ReinforceLoss`'s outputs.
+    ``gamma``: a float or
     """
     if isinstance(gamma, torch.Tensor):  # one discount per agent: [*A] -> [*A, 1, ..., 1]
         gamma = gamma.reshape(*gamma.shape, *([1] * (reward.ndim - agent_dims)))

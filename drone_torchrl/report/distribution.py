@@ -69,14 +69,17 @@ class Distribution:
 
     @property
     def seeds(self) -> int:
+        """Number of seeds (final returns)."""
         return int(self.final_returns.size)
 
     @property
     def median(self) -> float:
+        """Median of the seeds' final returns."""
         return float(np.median(self.final_returns))
 
     @property
     def quartiles(self) -> tuple[float, float]:
+        """First and third quartiles of the seeds' final returns."""
         q1, q3 = np.percentile(self.final_returns, [25, 75])
         return float(q1), float(q3)
 

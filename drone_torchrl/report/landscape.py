@@ -43,8 +43,11 @@ DARK_TEXT_ABOVE = 0.5
 
 
 def _axis_position(key: str, value: float) -> float:
-    """Where a value sits on its axis: -log(1 - gamma) for discounts (the horizon, log-spaced, growing
-    with gamma), log(value) for other positive values."""
+    """Where a value sits on its axis: ``-log(1 - gamma)`` for discounts, ``log(value)`` otherwise.
+
+    Where a value sits on its axis: -log(1 - gamma) for discounts (the horizon, log-spaced, growing
+    with gamma), log(value) for other positive values.
+    """
     if key.endswith("gamma"):
         return -math.log(1.0 - value) if value < 1 else math.inf
     return math.log(value) if value > 0 else value
@@ -52,6 +55,8 @@ def _axis_position(key: str, value: float) -> float:
 
 @dataclass
 class Landscape:
+    """A two-key sweep's grid: per cell ``[len(y), len(x)]`` the median return, zone fraction and seeds."""
+
     x_key: str
     y_key: str
     x_values: list[float]

@@ -75,10 +75,12 @@ class Run:
 
     @property
     def episodes(self) -> int:
+        """Number of episodes in the run's ``episodes.csv``."""
         return int(self.columns[COL_RETURN].size)
 
     @property
     def seed(self) -> Any:
+        """The run's seed (from its config, else its overrides)."""
         return self.config.get(SEED_KEY, override_value(self.overrides, SEED_KEY))
 
     def _required(self, key: str) -> Any:
@@ -89,12 +91,16 @@ class Run:
 
     @property
     def max_steps(self) -> int:
+        """The run's ``env.max_steps``."""
         return int(self._required("env.max_steps"))
 
     @property
     def env_kwargs(self) -> dict[str, Any]:
-        """The ``DroneEnv`` arguments of the run (:func:`drone_torchrl.config.env_kwargs`; a run from
-        before an argument existed gets the value it ran with, :data:`~drone_torchrl.config.ENV_ADDED`)."""
+        """The ``DroneEnv`` arguments of the run (:func:`drone_torchrl.config.env_kwargs`).
+
+        The ``DroneEnv`` arguments of the run (:func:`drone_torchrl.config.env_kwargs`; a run from
+        before an argument existed gets the value it ran with, :data:`~drone_torchrl.config.ENV_ADDED`).
+        """
         for name in ENV_ARGS:  # a config without one of them: a one-line error, not a KeyError
             if name not in ENV_ADDED:
                 self._required(f"env.{name}")
@@ -132,8 +138,10 @@ def override_value(overrides: Sequence[str], key: str) -> str | None:
 
 
 def load_population(run_dir: Path) -> list[Run]:
-    """A population run's agents, each as the run it would be in a folder of its own: its job's
-    overrides, the group's config with its per-agent values, its status and its episodes."""
+    """A population run's agents, each as the run it would be in a folder of its own.
+
+    Its job's overrides, the group's config with its per-agent values, its status and its episodes.
+    """
     agents, rows = population_record.read_agents(run_dir), population_record.read_episodes(run_dir)
     config = _load_yaml(run_dir / CONFIG_FILE, dict)
     try:
@@ -186,8 +194,11 @@ def load_run(job_dir: Path) -> Run | None:
 
 
 def find_jobs(sweep_dir: Path) -> list[Path]:
-    """Job folders of a sweep (:func:`~drone_torchrl.training.jobs.sweep_jobs`); a single job folder stands
-    for itself."""
+    """Job folders of a sweep; a single job folder stands for itself.
+
+    Job folders of a sweep (:func:`~drone_torchrl.training.jobs.sweep_jobs`); a single job folder stands
+    for itself.
+    """
     sweep_dir = Path(sweep_dir)
     jobs = sweep_jobs(sweep_dir)
     if not jobs and (sweep_dir / HYDRA_DIR).is_dir():
@@ -196,8 +207,10 @@ def find_jobs(sweep_dir: Path) -> list[Path]:
 
 
 def failed_without_episodes(sweep_dir: Path) -> list[tuple[Path, str]]:
-    """``(job folder, reason)`` of the jobs that failed before writing any episode (a bad value
-    found only in the job, a full disk): they have no ``episodes.csv``, so no place in a figure."""
+    """``(job folder, reason)`` of the jobs that failed before writing any episode.
+
+    Say, a bad value found only in the job, or a full disk. They have no ``episodes.csv``, so no place in a figure.
+    """
     out = []
     for job in find_jobs(Path(sweep_dir)):
         if not (job / CSV_NAME).is_file():
@@ -292,6 +305,7 @@ class Setting:
 
     @property
     def max_steps(self) -> int:
+        """The setting's ``env.max_steps`` (its first run's)."""
         return self.runs[0].max_steps
 
     @property
@@ -301,10 +315,12 @@ class Setting:
 
     @property
     def env_kwargs(self) -> dict[str, Any]:
+        """The setting's ``DroneEnv`` arguments (its first run's)."""
         return self.runs[0].env_kwargs
 
     @property
     def runs_with_episodes(self) -> list[Run]:
+        """The setting's runs that have episodes."""
         return [run for run in self.runs if run.episodes]
 
 

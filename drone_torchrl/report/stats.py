@@ -1,6 +1,9 @@
-"""The numbers of a sweep report: running means, statistics over seeds, threshold crossings, the
+"""The numbers of a sweep report: statistics over seeds, thresholds, verdict and references.
+
+The numbers of a sweep report: running means, statistics over seeds, threshold crossings, the
 summary of each setting, the verdict, the PD controller's reference return and the best achievable
-return (:mod:`drone_torchrl.optimum`)."""
+return (:mod:`drone_torchrl.optimum`).
+"""
 
 from __future__ import annotations
 
@@ -129,9 +132,11 @@ class Crossing:
 
     @property
     def mean(self) -> float | None:
+        """Mean first-crossing episode of the runs that reach the threshold (None if none does)."""
         return float(np.mean(self.episodes)) if self.episodes else None
 
     def text(self) -> str:
+        """The crossing as a table cell, ``"412 (3/4 seeds)"`` or ``"never (0/4 seeds)"``."""
         reached = f"({len(self.episodes)}/{self.runs} seeds)"
         return f"{self.mean:.0f} {reached}" if self.episodes else f"never {reached}"
 
@@ -159,14 +164,17 @@ class SettingSummary:
 
     @property
     def final_return_mean(self) -> float:
+        """Mean final running-mean return over the seeds (NaN without any)."""
         return float(np.mean(self.final_returns)) if self.final_returns else math.nan
 
     @property
     def final_return_std(self) -> float:
+        """Standard deviation of the final returns over the seeds (NaN without any)."""
         return float(np.std(self.final_returns, ddof=STD_DDOF)) if self.final_returns else math.nan
 
     @property
     def final_return_pct(self) -> float:
+        """The mean final return as a percentage of the highest possible return."""
         return PERCENT * self.final_return_mean / self.ceiling
 
     @property
@@ -242,7 +250,9 @@ def summarize(
 
 
 def verdict(summaries: Sequence[SettingSummary]) -> str:
-    """``"best: algo.lr=0.0001 (2210 +- 150, 73.7% of 3000)"``: the best mean final running-mean return
+    """The best setting's line: its mean final running-mean return and its share of the ceiling.
+
+    ``"best: algo.lr=0.0001 (2210 +- 150, 73.7% of 3000)"``: the best mean final running-mean return
     (with bounded thrust also its share of the optimum: ``..., 82.0% of the optimum 2694)``).
 
     Names settings tied with the best, and says the verdict is provisional when some runs are
@@ -271,8 +281,11 @@ def verdict(summaries: Sequence[SettingSummary]) -> str:
 
 
 def env_key(env_kwargs: dict[str, Any]) -> str:
-    """An env setting as a hashable key (JSON: the arguments hold a mapping, env.disturbance);
-    ``json.loads`` gives the arguments back."""
+    """An env setting as a hashable key (JSON); ``json.loads`` gives the arguments back.
+
+    An env setting as a hashable key (JSON: the arguments hold a mapping, env.disturbance);
+    ``json.loads`` gives the arguments back.
+    """
     return json.dumps(env_kwargs, sort_keys=True)
 
 
@@ -299,8 +312,11 @@ def _optimum(env_json: str) -> Optimum | None:
 
 
 def optimum_reference(env_kwargs: dict[str, Any]) -> Optimum | None:
-    """The best achievable return of every episode in this env with bounded thrust
-    (:func:`drone_torchrl.evaluation.reference_optimum`), or ``None``. Cached per env setting."""
+    """The best achievable return of every episode in this env with bounded thrust, or ``None``.
+
+    The best achievable return of every episode in this env with bounded thrust
+    (:func:`drone_torchrl.evaluation.reference_optimum`), or ``None``. Cached per env setting.
+    """
     return _optimum(env_key(env_kwargs))
 
 

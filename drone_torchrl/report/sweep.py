@@ -46,10 +46,12 @@ class SweepReport:
 
     @property
     def name(self) -> str:
+        """The sweep folder's name."""
         return self.sweep_dir.resolve().name
 
     @property
     def verdict(self) -> str:
+        """The verdict line on the sweep's settings."""
         return verdict(self.summaries)
 
 
@@ -65,8 +67,11 @@ def build_report(
     pd: bool = True,
     runs: Sequence[Run] | None = None,
 ) -> SweepReport:
-    """Read a sweep folder (or use its already loaded ``runs``) and compute its settings, table
-    rows, PD references (``pd``) and optima; ``window=None`` is :func:`default_window`."""
+    """Read a sweep folder and compute its settings, table rows, PD references and optima.
+
+    Read a sweep folder (or use its already loaded ``runs``) and compute its settings, table
+    rows, PD references (``pd``) and optima; ``window=None`` is :func:`default_window`.
+    """
     window = default_window() if window is None else window
     runs = load_runs(Path(sweep_dir)) if runs is None else runs
     settings = group_runs(runs)

@@ -154,8 +154,11 @@ def format_table(report: SweepReport) -> str:
 
 
 def format_report(report: SweepReport, figures: bool = True) -> str:
-    """``summary.md``: the verdict on its first line, then the method, references, the table and
-    (with ``figures``) links to the two figures."""
+    """Write ``summary.md``: the verdict, the method, references, the table and links to figures.
+
+    ``summary.md``: the verdict on its first line, then the method, references, the table and
+    (with ``figures``) links to the two figures.
+    """
     runs = sum(len(s.runs) for s in report.settings)
     lines = [
         report.verdict,
@@ -236,9 +239,12 @@ def format_paper_averaging_section(report: SweepReport) -> str:
 
 
 def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = False) -> list[Path]:
-    """Write ``steps.png``, ``returns.png``, ``finals.png``, ``summary.md`` and ``summary.csv`` into
+    """Write the report's figures and tables into ``out_dir``.
+
+    Write ``steps.png``, ``returns.png``, ``finals.png``, ``summary.md`` and ``summary.csv`` into
     ``out_dir``; for a two-key grid sweep also ``landscape.png`` and ``landscape.csv``
-    (:mod:`.landscape`); with ``paper_averaging`` also ``paper_averaging.png``."""
+    (:mod:`.landscape`); with ``paper_averaging`` also ``paper_averaging.png``.
+    """
     out_dir = Path(out_dir)
     distributions = [distribution(s, report.window) for s in report.settings if s.runs_with_episodes]
     paths = [

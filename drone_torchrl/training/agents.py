@@ -40,8 +40,11 @@ class AgentTable:
 
     @classmethod
     def of(cls, agents: AgentTable | Sequence[DictConfig] | Sequence[Any]) -> AgentTable:
-        """``agents`` as a table: a table itself, or a list of configs or of jobs (each with its
-        ``cfg`` and ``checkpoint``), equal but for their per-agent keys."""
+        """``agents`` as a table: a table itself, or a list of configs or of jobs.
+
+        ``agents`` as a table: a table itself, or a list of configs or of jobs (each with its
+        ``cfg`` and ``checkpoint``), equal but for their per-agent keys.
+        """
         if isinstance(agents, AgentTable):
             return agents
         jobs = [a for a in agents if not isinstance(a, DictConfig)]

@@ -56,6 +56,10 @@ class TorchRLCollector:
     whose workers hold several drones cannot step part of a worker, so it flies the full
     ``max_steps`` and the steps after each row's first episode are masked like the repeats.
     Actions are sampled from torch's global RNG, the env's start states from its own generator.
+
+    Args:
+        cfg: the run's validated config.
+        population: the population of one agent whose policy flies.
     """
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
@@ -75,9 +79,11 @@ class TorchRLCollector:
         )
 
     def begin(self, state: TensorDictBase, k: int) -> None:
+        """Nothing to prepare: each update's rollout is flown when collected."""
         pass
 
     def collect(self, j: int, active: torch.Tensor) -> TensorDictBase:
+        """Fly one update's episodes; returns the rollout as a ``[1, E, T]`` tensordict (agent dim first)."""
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             rollout = self.env.rollout(self.cfg.env.max_steps, self._actor, **self._stop)
         return rollout.reshape(1, -1, rollout.shape[-1])
@@ -87,9 +93,11 @@ class TorchRLCollector:
         return self._loss_actor
 
     def eval_policy(self) -> ProbabilisticActor:
+        """The policy the evaluator flies (the collector's actor)."""
         return self._actor
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:
+        """What a checkpoint keeps of the random state: torch's global generator and the env's."""
         generator = getattr(self.env, "_generator", None)
         return {
             "torch": torch.get_rng_state(),
@@ -98,6 +106,7 @@ class TorchRLCollector:
         }
 
     def set_rng_state(self, agent: int, state: dict[str, Any], episodes_done: int) -> None:
+        """Restore the random state of :meth:`rng_state` (a parallel env is reseeded instead)."""
         torch.set_rng_state(state["torch"])
         if hasattr(self.env, "_generator"):
             self.env._generator.set_state(state["env"])
@@ -105,11 +114,17 @@ class TorchRLCollector:
             self.env.set_seed(self.cfg.seed + episodes_done)
 
     def close(self) -> None:
+        """Close the env (and its worker processes, if parallel)."""
         self.env.close(raise_if_closed=False)
 
 
 class FastCollector:
-    """Every agent's policy on the C++ engine (``[N, ...]`` agents; see the module's docstring)."""
+    """Every agent's policy on the C++ engine (``[N, ...]`` agents; see the module's docstring).
+
+    Args:
+        cfg: the group's validated config.
+        population: the agents whose stacked policy flies.
+    """
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
         self.population = population
@@ -117,6 +132,7 @@ class FastCollector:
         self._actor = actor_from_net(population.policy, cfg.model.distribution, cfg.env.max_thrust)
 
     def begin(self, state: TensorDictBase, k: int) -> None:
+        """Nothing to prepare: the kernel flies each update's episodes itself."""
         pass
 
     def actor(self) -> ProbabilisticActor:
@@ -129,18 +145,24 @@ class FastCollector:
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:
         # Counter-based: the update count in the checkpoint is all the state there is.
+        """No random state to keep: the generator is counter-based (seed and update count)."""
         return {"torch": None, "env": None, "agent": None}
 
     def set_rng_state(self, agent: int, state: dict[str, Any], episodes_done: int) -> None:
+        """Nothing to restore: the update count in the checkpoint is the generator's whole state."""
         pass
 
     def close(self) -> None:
+        """Nothing to close: the kernels hold no resources."""
         pass
 
 
 def squash_bound(cfg: DictConfig) -> float | None:
-    """The TanhNormal head's upper bound on the motor commands (``env.max_thrust``), or None for
-    the Normal head: what the kernels squash their samples onto."""
+    """The TanhNormal head's upper bound on the motor commands, or None for the Normal head.
+
+    The TanhNormal head's upper bound on the motor commands (``env.max_thrust``), or None for
+    the Normal head: what the kernels squash their samples onto.
+    """
     return cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
 
 
@@ -148,8 +170,10 @@ def kernel_rollout(
     cfg: DictConfig, policy: StackedThreeNet, squash_high: float | None, max_steps: int
 ) -> KernelRollout:
     """The C++ engine's rollout of ``policy`` (``max_steps`` steps at most) for the config's drone.
-    The config passed :func:`drone_torchrl.config.validate`, which refuses what the kernels do not
-    fly (:func:`drone_torchrl.kernels.coverage.fast_refusal`)."""
+
+    The config passed :func:`drone_torchrl.config.validate`, which refuses what the kernels do not fly
+    (:func:`drone_torchrl.kernels.coverage.fast_refusal`).
+    """
     kwargs = env_kwargs(cfg)
     return KernelRollout(
         policy, physics_params(kwargs), squash_high, max_steps, cfg.env.reset_mode, kwargs["disturbance"]

@@ -75,6 +75,7 @@ class Job:
 
     @property
     def already_finished(self) -> bool:
+        """Whether the job's checkpoint is final and holds its whole budget of episodes."""
         ckpt = self.checkpoint
         return (
             ckpt is not None and ckpt["final"] is not None and ckpt["episodes_done"] >= self.cfg.algo.episodes
@@ -225,8 +226,11 @@ def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
 
 
 def group_key(cfg: DictConfig) -> str:
-    """Jobs whose configs agree on everything but their per-agent keys (the schema's ``per_agent``)
-    can train as one population."""
+    """The key that groups jobs into one population: their configs but for per-agent keys.
+
+    Jobs whose configs agree on everything but their per-agent keys (the schema's ``per_agent``)
+    can train as one population.
+    """
     container = OmegaConf.to_container(cfg, resolve=True)
     for dotted in (*per_agent_keys(), "resume", "progress"):
         node = container
@@ -245,7 +249,8 @@ def record_failure(run_dir: Path, error: BaseException) -> str:
     """Write the traceback into ``<run>/FAILED.txt``; returns the one-line reason.
 
     Nothing is written into a folder another process owns (:class:`~drone_torchrl.io.run_lock.RunFolderBusy`),
-    and a disk that refuses ``FAILED.txt`` too leaves the reason to the caller's one line."""
+    and a disk that refuses ``FAILED.txt`` too leaves the reason to the caller's one line.
+    """
     reason = f"{type(error).__name__}: {error}"
     if isinstance(error, run_lock.RunFolderBusy):
         return reason
@@ -319,6 +324,7 @@ class SweepSummary(Callback):
     """
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
+        """Print the sweep's summary; exit non-zero naming how many jobs failed."""
         sweep_dir = Path(config.hydra.sweep.dir)
         print(sweep_summary(sweep_dir))
         failed = failed_jobs(sweep_dir)

@@ -3,8 +3,8 @@
 The loss of a large population works on tensors of tens of MB (``[agents, steps, hidden]``:
 40 MB at 1024 agents). glibc serves an allocation above its mmap threshold (adaptive, at most
 32 MB) with fresh pages from the OS and unmaps them when the tensor is freed, so each update
-faults every page of those tensors in again: an elementwise op on a 40 MB tensor took 21 ms, 6 ms
-once its memory is reused. PyTorch's CPU allocator does not cache (its tuning guides swap in
+faults every page of those tensors in again, which makes an elementwise op on such a tensor
+several times slower than on reused memory. PyTorch's CPU allocator does not cache (its tuning guides swap in
 jemalloc or tcmalloc for this); raising glibc's mmap and trim thresholds has the same effect
 without a preloaded library. The process keeps freed memory until it exits (and the heap grows by
 a block now and then, when a small allocation splits a freed one). Elsewhere (macOS, musl,
@@ -28,8 +28,11 @@ DOCUMENTED_MAX_BYTES = 32 << 20
 
 
 def keep_freed_memory() -> bool:
-    """Raise glibc's mmap threshold to :data:`KEEP_BELOW_BYTES` (or, where refused, to
-    :data:`DOCUMENTED_MAX_BYTES`) and its trim threshold alike; True if both took effect."""
+    """Raise glibc's mmap and trim thresholds; True if both took effect.
+
+    Raise glibc's mmap threshold to :data:`KEEP_BELOW_BYTES` (or, where refused, to
+    :data:`DOCUMENTED_MAX_BYTES`) and its trim threshold alike; True if both took effect.
+    """
     if not sys.platform.startswith("linux"):
         return False
     try:

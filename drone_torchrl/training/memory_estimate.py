@@ -1,4 +1,6 @@
-"""The memory a training config will allocate, estimated before any work, and the one-line refusal of a
+"""The memory a training config will allocate, estimated before any work, and its refusal.
+
+The memory a training config will allocate, estimated before any work, and the one-line refusal of a
 config that cannot fit (:func:`~.memory_estimate.check`).
 
 A batch too large to allocate failed after start-up with an allocator traceback, and a huge
@@ -124,8 +126,11 @@ THINNED_COPY = 0.25
 
 @dataclass(frozen=True)
 class Part:
-    """Bytes one thing allocates, what to change to make it smaller, and whether it lives on the host
-    even when the run is on a GPU (the video frames)."""
+    """One part of the memory: its bytes, the keys that shrink it, and whether it lives on the host.
+
+    Bytes one thing allocates, what to change to make it smaller, and whether it lives on the host
+    even when the run is on a GPU (the video frames).
+    """
 
     bytes: int
     advice: str
@@ -140,6 +145,7 @@ class MemoryEstimate:
 
     @property
     def total(self) -> int:
+        """Bytes of all the parts together."""
         return sum(part.bytes for part in self.parts.values())
 
     def on(self, host: bool) -> int:
@@ -183,14 +189,20 @@ def rollout_bytes(b: int) -> int:
 
 
 def graph_bytes(hidden: Sequence[int], b: int) -> int:
-    """The loss's autograd graph per sample through hidden layers of these widths (every layer's
-    activation, and the backward pass's gradients at the widest)."""
+    """Bytes of the loss's autograd graph per sample through hidden layers of these widths.
+
+    The loss's autograd graph per sample through hidden layers of these widths (every layer's
+    activation, and the backward pass's gradients at the widest).
+    """
     return (sum(hidden) + BACKWARD_COPIES * max(hidden)) * b
 
 
 def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
-    """REINFORCE's update: ``A x algo.episodes_per_update x env.max_steps`` drone-steps, on the
-    backend's terms (the C++ engine's buffers, or the reference's rollout and autograd graph)."""
+    """REINFORCE's update: ``A x algo.episodes_per_update x env.max_steps`` drone-steps.
+
+    REINFORCE's update: ``A x algo.episodes_per_update x env.max_steps`` drone-steps, on the
+    backend's terms (the C++ engine's buffers, or the reference's rollout and autograd graph).
+    """
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     steps = agents * cfg["algo"]["episodes_per_update"] * cfg["env"]["max_steps"]
     hidden = cfg["model"]["hidden_sizes"]
@@ -211,8 +223,11 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
 
 
 def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
-    """The on-policy learners' (PPO, A2C) batch of ``algo.num_envs x algo.steps_per_batch`` frames,
-    a minibatch's graph, and the critic's weights."""
+    """The on-policy learners' (PPO, A2C) batch, a minibatch's graph, and the critic's weights.
+
+    The on-policy learners' (PPO, A2C) batch of ``algo.num_envs x algo.steps_per_batch`` frames,
+    a minibatch's graph, and the critic's weights.
+    """
     algo = cfg["algo"]
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     d = observation_size(cfg)
@@ -234,8 +249,11 @@ def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
 
 
 def sac_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
-    """SAC's replay buffer of ``algo.buffer_size`` frames, the batch it flies, a minibatch's graph and
-    the Q-networks' weights."""
+    """SAC's replay buffer, the batch it flies, a minibatch's graph and the Q-networks' weights.
+
+    SAC's replay buffer of ``algo.buffer_size`` frames, the batch it flies, a minibatch's graph and
+    the Q-networks' weights.
+    """
     algo = cfg["algo"]
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     d = observation_size(cfg)
@@ -263,9 +281,12 @@ def sac_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
 def estimate(
     cfg: Mapping[str, Any], agents: int = 1, learner: Callable[[Mapping, int], dict[str, Part]] | None = None
 ) -> MemoryEstimate:
-    """The memory of a training config (resolved, as nested mappings) with ``agents`` runs in one
+    """The memory of a training config with ``agents`` runs in one process.
+
+    The memory of a training config (resolved, as nested mappings) with ``agents`` runs in one
     process; ``learner`` gives the algorithm's own parts (its
-    :class:`~drone_torchrl.algorithms.Algorithm`'s ``memory``; None: the parts every run has)."""
+    :class:`~drone_torchrl.algorithms.Algorithm`'s ``memory``; None: the parts every run has).
+    """
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     steps = cfg["env"]["max_steps"]
     weights = (ADAM_COPIES + 1) * agents * policy_parameters(cfg) * b
@@ -289,9 +310,12 @@ def estimate(
 def evaluation_parts(
     b: int, episodes: int, max_steps: int, video_stride: int | None, advice: str, video_advice: str
 ) -> dict[str, Part]:
-    """``episodes`` evaluation episodes of ``max_steps`` steps (every agent's, or every policy's that
+    """The memory of ``episodes`` evaluation episodes and of a video of one of them.
+
+    ``episodes`` evaluation episodes of ``max_steps`` steps (every agent's, or every policy's that
     ``drone-eval`` keeps), and the frames of a video of one episode (``video_stride``: the steps
-    drawn; None: no video). ``advice`` and ``video_advice`` name the keys that size them."""
+    drawn; None: no video). ``advice`` and ``video_advice`` name the keys that size them.
+    """
     parts = {
         "evaluation": Part(
             episodes * max_steps * (rollout_bytes(b) + EVAL_FLAG_BYTES + EVAL_INT_BYTES), advice
@@ -331,8 +355,10 @@ def available_gpu(device: Any) -> tuple[int, str] | None:
 
 
 def check(memory: MemoryEstimate, device: Any) -> None:
-    """Raise a one-line :class:`~.checks.ConfigError` when ``memory`` exceeds what is free: the GPU's for the
-    parts on ``device=cuda``, the RAM for the rest (everything on the CPU)."""
+    """Raise a one-line :class:`~.checks.ConfigError` when ``memory`` exceeds what is free.
+
+    The GPU's for the parts on ``device=cuda``, the RAM for the rest (everything on the CPU).
+    """
     gpu = available_gpu(device)
     # (the parts' side: the host, the device, or None for all; the memory free there; its name)
     checks = [(False, gpu, "of GPU memory")] if gpu is not None else []

@@ -34,8 +34,11 @@ def grad_norms(grad: torch.Tensor) -> torch.Tensor:
 
 
 def clip_grad_norms(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
-    """Clip each agent's row of ``grad`` (``[N, P]``, in place) to ``max_norm`` (``inf``: no clipping);
-    returns the norms before."""
+    """Clip each agent's row of ``grad`` ``[N, P]`` in place to ``max_norm``; returns the norms before.
+
+    Clip each agent's row of ``grad`` (``[N, P]``, in place) to ``max_norm`` (``inf``: no clipping);
+    returns the norms before.
+    """
     norms = grad_norms(grad)
     if max_norm != float("inf"):
         grad.mul_((max_norm / (norms + CLIP_EPS)).clamp(max=1.0).unsqueeze(1))
@@ -56,11 +59,18 @@ def adam_state(params: torch.Tensor, lr: torch.Tensor, weight_decay: torch.Tenso
 
 
 class Adam:
-    """Adam (``decoupled_weight_decay=False``) or AdamW (``True``) over the ``[N, P]`` ``"params"`` of
-    a population's state (``"exp_avg"``, ``"exp_avg_sq"``, ``"adam_steps"``, per-agent ``"lr"`` and
-    ``"weight_decay"``: :func:`adam_state`). ``betas`` and ``eps`` are shared by all agents;
-    ``coupled_decay``: whether any agent has a (coupled) weight decay, known at construction so
-    that the step does not ask the device (a host sync)."""
+    """Adam or AdamW over the ``[N, P]`` ``"params"`` of a population's state.
+
+    The state also holds ``"exp_avg"``, ``"exp_avg_sq"``, ``"adam_steps"``, per-agent ``"lr"`` and
+    ``"weight_decay"`` (:func:`adam_state`).
+
+    Args:
+        betas: Adam's moment decays, shared by all agents.
+        eps: Adam's denominator term, shared by all agents.
+        decoupled_weight_decay: AdamW's decoupled weight decay (False: Adam's coupled one).
+        coupled_decay: whether any agent has a (coupled) weight decay, known at construction so
+            that the step does not ask the device (a host sync).
+    """
 
     def __init__(
         self,
@@ -161,8 +171,11 @@ class Adam:
         names: list[str],
         views: Callable[[torch.Tensor], TensorDictBase],
     ) -> dict[str, Any]:
-        """Agent ``agent``'s optimizer in ``torch.optim.Adam.state_dict()``'s layout (params in
-        ``names`` order; ``views`` splits an ``[N, P]`` tensor into named parameters)."""
+        """Agent ``agent``'s optimizer state in ``torch.optim.Adam.state_dict()``'s layout.
+
+        Agent ``agent``'s optimizer in ``torch.optim.Adam.state_dict()``'s layout (params in
+        ``names`` order; ``views`` splits an ``[N, P]`` tensor into named parameters).
+        """
         keys = [tuple(name.split(".")) for name in names]
         exp_avg, exp_avg_sq = views(state["exp_avg"]), views(state["exp_avg_sq"])
         step = state["adam_steps"][agent].detach().to(torch.float32).cpu()
@@ -199,8 +212,10 @@ class Adam:
         views: Callable[[torch.Tensor], TensorDictBase],
         saved: dict[str, Any],
     ) -> None:
-        """Load a ``torch.optim.Adam`` (or :meth:`agent_state`) state dict into agent ``agent``; a fresh
-        optimizer state (no ``state`` entries yet) leaves the agent's moments at zero."""
+        """Load a ``torch.optim.Adam`` (or :meth:`agent_state`) state dict into agent ``agent``.
+
+        A fresh optimizer state (no ``state`` entries yet) leaves the agent's moments at zero.
+        """
         keys = [tuple(name.split(".")) for name in names]
         exp_avg, exp_avg_sq = views(state["exp_avg"]), views(state["exp_avg_sq"])
         entries = saved["state"]

@@ -65,8 +65,11 @@ class PBTSettings:
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> PBTSettings:
-        """The settings from the launcher's parameters, each checked: :class:`~.checks.ConfigError` (one
-        line, naming ``hydra.launcher.<key>``) for the first that is not allowed."""
+        """The settings from the launcher's parameters, each checked.
+
+        :class:`~.checks.ConfigError` (one line, naming ``hydra.launcher.<key>``) for the first that is not
+        allowed.
+        """
 
         def refuse(key: str, value: Any, allowed: str) -> ConfigError:
             return ConfigError.of(f"hydra.launcher.{key}", value, allowed)
@@ -117,7 +120,9 @@ class PBTSettings:
 
 
 class Search:
-    """What PBT and its replay share: the lineage of the searched keys' values, and each agent's
+    """What PBT and its replay share: the searched keys' lineage and each agent's value now.
+
+    What PBT and its replay share: the lineage of the searched keys' values, and each agent's
     value now.
 
     Args:
@@ -163,6 +168,7 @@ class Search:
                 self.current[key][agent] = value
 
     def checkpoint(self) -> dict[str, Any]:
+        """What a checkpoint keeps of the search: its settings and the lineage."""
         return {"settings": self.settings.record(), "lineage": self.lineage}
 
 
@@ -222,19 +228,24 @@ class PBT(Search):
         return cls(settings, values, bounds, int(values["seed"][0]), lineage)
 
     def updates_until_due(self, updates_done: int) -> int:
+        """Updates from ``updates_done`` until the next exploit-and-explore step."""
         every = self.settings.every_updates
         return every - updates_done % every
 
     def due(self, updates_done: int) -> bool:
+        """Whether an exploit-and-explore step is due after ``updates_done`` updates."""
         return updates_done % self.settings.every_updates == 0
 
     def step(
         self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
     ) -> list[tuple[int, int]]:
-        """One exploit-and-explore step after ``update`` updates: rewrites rows of ``state`` (the
+        """One exploit-and-explore step after ``update`` updates; returns ``(agent, parent)`` pairs.
+
+        One exploit-and-explore step after ``update`` updates: rewrites rows of ``state`` (the
         population's stacked state) in place and appends the lineage. ``scores``: each agent's
         running-mean return; ``alive``: the agents that take part. Returns ``(agent, parent)``
-        pairs (the caller copies the agents' own records)."""
+        pairs (the caller copies the agents' own records).
+        """
         s = self.settings
         candidates = [i for i in range(len(scores)) if alive[i] and not math.isnan(scores[i])]
         count = int(len(candidates) * s.quantile)
@@ -263,7 +274,9 @@ class PBT(Search):
 
 @dataclass(frozen=True)
 class ReplaySettings:
-    """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT (or
+    """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT run had.
+
+    ``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT (or
     successive halving) run had.
 
     Attributes:
@@ -279,8 +292,11 @@ class ReplaySettings:
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> ReplaySettings:
-        """The settings from the launcher's parameters; :class:`~.checks.ConfigError` (one line) for a run
-        that is not a finished PBT population run or an agent it does not have."""
+        """The settings from the launcher's parameters, checked against the PBT run replayed.
+
+        The settings from the launcher's parameters; :class:`~.checks.ConfigError` (one line) for a run
+        that is not a finished PBT population run or an agent it does not have.
+        """
         from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
 
         run = params.get("run")
@@ -312,21 +328,26 @@ class ReplaySettings:
         return cls(str(Path(str(run)).resolve()), agent, frozen)
 
     def record(self) -> dict[str, Any]:
+        """What a checkpoint keeps of these settings (the launcher, run and agent replayed)."""
         return {"launcher": "pbt_replay", "run": self.run, "agent": self.agent}
 
     def check(self, cfg: Any) -> None:
         """Any budget: the last values hold past the PBT run's."""
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Replay:
+        """The :class:`Replay` of a population of ``len(values["seed"])`` agents."""
         return Replay(self, len(values["seed"]), None if saved is None else saved["lineage"])
 
 
 def schedule(
     lineage: Mapping[str, list], initial: Mapping[str, Sequence[float]], agent: int, keys: Sequence[str]
 ) -> list[tuple[int, dict[str, float]]]:
-    """The values ``agent``'s weights were trained with: ``[(0, the first values), (update, the values
+    """The values ``agent``'s weights were trained with, as ``[(update, values), ...]``.
+
+    The values ``agent``'s weights were trained with: ``[(0, the first values), (update, the values
     from then on), ...]``, following its line of ancestors back through the lineage (an agent
-    replaced at update ``u`` by a copy of ``parent`` had ``parent``'s line before ``u``)."""
+    replaced at update ``u`` by a copy of ``parent`` had ``parent``'s line before ``u``).
+    """
     steps = []
     current = agent
     for row in range(len(lineage["agent"]) - 1, -1, -1):
@@ -342,8 +363,15 @@ def schedule(
 
 
 class Replay(Search):
-    """Every agent of a population trained with the values of one PBT agent's line (a schedule of
-    ``(update, values)``): the found configuration, retrained on fresh seeds."""
+    """Every agent of a population trained with the values of one PBT agent's line.
+
+    The line is a schedule of ``(update, values)``: the found configuration, retrained on fresh seeds.
+
+    Args:
+        settings: the launcher's settings, with the schedule replayed.
+        agents: the population's size.
+        lineage: the lineage a resumed run had (None: a new run).
+    """
 
     def __init__(
         self, settings: ReplaySettings, agents: int, lineage: Mapping[str, list] | None = None
@@ -355,18 +383,22 @@ class Replay(Search):
         self.agents = agents
 
     def start(self, state: Any) -> None:
+        """Give every agent the replayed line's first values."""
         self._apply(state, 0)
 
     def updates_until_due(self, updates_done: int) -> int:
+        """Updates from ``updates_done`` until the replayed line's next change of values."""
         later = [u - updates_done for u in self.steps if u > updates_done]
         return min(later, default=NEVER)
 
     def due(self, updates_done: int) -> bool:
+        """Whether the replayed line changes its values after ``updates_done`` updates."""
         return updates_done in self.steps and updates_done > 0
 
     def step(
         self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
     ) -> list[tuple[int, int]]:
+        """Give every agent the line's values from ``update`` on; replaces no agent (returns ``[]``)."""
         self._apply(state, update)
         return []
 
@@ -398,8 +430,11 @@ class HalvingSettings:
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> HalvingSettings:
-        """The settings from the launcher's parameters; :class:`~.checks.ConfigError` (one line) for the
-        first that is not allowed."""
+        """The settings from the launcher's parameters, each checked.
+
+        The settings from the launcher's parameters; :class:`~.checks.ConfigError` (one line) for the
+        first that is not allowed.
+        """
         rungs = params.get("rungs", cls.rungs)
         if (
             isinstance(rungs, str | bytes)
@@ -429,9 +464,11 @@ class HalvingSettings:
             )
 
     def record(self) -> dict[str, Any]:
+        """What a checkpoint keeps of these settings."""
         return {"launcher": "halving", **asdict(self)}
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Halving:
+        """The :class:`Halving` of a population whose sweep gave ``values``."""
         return Halving(self, cfg, values, saved)
 
 
@@ -445,6 +482,12 @@ class Halving(Search):
     the earlier new ones), a fresh optimizer, age 0. Agents past the last rung train to the end. A
     slot's episodes after a restart are its new configuration's; each restart is a lineage row with
     parent -1 (:data:`FRESH`). The scores at each rung are in the checkpoint; draws keyed as PBT's.
+
+    Args:
+        settings: the launcher's settings (searched keys, rungs, ``fraction``).
+        cfg: the group's config (fresh configurations are built from it).
+        values: the sweep's values of each key, one per agent (``"seed"`` among them).
+        saved: the search's checkpoint entry of a resumed run (None: a new run).
     """
 
     def __init__(
@@ -463,18 +506,22 @@ class Halving(Search):
         self.rung_scores: dict[int, list[float]] = {r: list(rungs.get(r, [])) for r in settings.rungs}
 
     def checkpoint(self) -> dict[str, Any]:
+        """What a checkpoint keeps of the search: the lineage and the scores at each rung."""
         return {**super().checkpoint(), "rung_scores": self.rung_scores}
 
     def updates_until_due(self, updates_done: int) -> int:
+        """Updates from ``updates_done`` until an agent next reaches a rung."""
         later = [s + r - updates_done for s in set(self.started) for r in self.settings.rungs]
         return min((d for d in later if d > 0), default=NEVER)
 
     def due(self, updates_done: int) -> bool:
+        """Whether an agent reaches a rung after ``updates_done`` updates."""
         return any(updates_done - s in self.rung_scores for s in set(self.started))
 
     def step(
         self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
     ) -> list[tuple[int, int]]:
+        """Restart the agents at a rung that score in its worst ``fraction``; returns ``(agent, FRESH)`` pairs."""
         stopped = []
         for rung, history in self.rung_scores.items():
             arrived = [i for i in range(len(scores)) if alive[i] and update - self.started[i] == rung]

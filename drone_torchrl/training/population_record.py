@@ -88,7 +88,15 @@ def part_path(run_dir: Path, number: int) -> Path:
 
 
 class PopulationAgent(AgentBook):
-    """One agent of a population run: its counters; what it books goes to the run's files."""
+    """One agent of a population run: its counters; what it books goes to the run's files.
+
+    Args:
+        owner: the population's record, which writes the files.
+        index: the agent's index in the population.
+        cfg: the agent's validated config.
+        counters: what the agent continues from (:meth:`~.run.AgentBook.counters`), or None.
+        schedule: the config's schedule, shared by all the agents.
+    """
 
     def __init__(
         self,
@@ -103,9 +111,11 @@ class PopulationAgent(AgentBook):
 
     @property
     def run_dir(self) -> Path:
+        """The population's run folder."""
         return self.owner.run_dir
 
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
+        """Book one update's episodes and add them to the population's rows."""
         first = self.book(episodes["return"], episodes["length"])
         self.owner.add_rows(self.index, first, self.updates_done, episodes)
 
@@ -115,6 +125,7 @@ class PopulationAgent(AgentBook):
         self.owner.eval_returns[self.index] = result["return"]
 
     def fail(self, reason: str) -> None:
+        """Mark the agent failed, keep its last finite state, and say so on stderr."""
         self.failure = reason
         self.owner.keep_last_finite(self.index)
         print(
@@ -123,6 +134,7 @@ class PopulationAgent(AgentBook):
         )
 
     def close(self) -> None:
+        """Nothing to close: the population's files are closed once, by :meth:`PopulationRecord.close`."""
         pass  # the population's files are closed once, by PopulationRecord.close
 
 
@@ -209,6 +221,7 @@ class PopulationRecord:
         self._columns = {key: [] for key in ("agent", "episode", "update", *EPISODE_KEYS, "wall_clock_s")}
 
     def add_rows(self, agent: int, first: int, update: int, episodes: dict[str, Sequence]) -> None:
+        """Buffer ``episodes`` (key to one value per episode) of ``agent`` as rows from episode ``first``."""
         count = len(episodes["return"])
         cols = self._columns
         cols["agent"].extend([agent] * count)
@@ -262,6 +275,7 @@ class PopulationRecord:
 
     @property
     def wall_clock(self) -> float:
+        """Seconds the run has trained (all agents train together)."""
         return self.agents[0].wall_clock
 
     def summary(self) -> dict[str, float]:
@@ -286,6 +300,7 @@ class PopulationRecord:
             self.flush()
 
     def after_eval(self) -> None:
+        """Log the evaluation's quantiles over the agents and the best agent."""
         returns = np.array([r for a, r in zip(self.agents, self.eval_returns, strict=True) if not a.failed])
         if len(returns) and not np.isnan(returns).all():
             best = int(np.nanargmax(returns))
@@ -297,16 +312,21 @@ class PopulationRecord:
 
     # ------------------------------------------------------------------ checkpoints
     def keep_last_finite(self, agent: int) -> None:
-        """Agent ``agent`` diverged: keep its state of the last checkpoint for the next ones (none
-        yet: its weights are written with their non-finite values zeroed)."""
+        """Agent ``agent`` diverged: keep its state of the last checkpoint for the next ones.
+
+        None yet: its weights are written with their non-finite values zeroed.
+        """
         path = self.run_dir / CHECKPOINT_DIR / LAST
         if path.is_file():
             state = load_checkpoint(path)["state"]
             self._last_finite[agent] = {key: value[agent].clone() for key, value in state.items()}
 
     def save(self, state: dict[str, torch.Tensor]) -> None:
-        """Write ``last.pt`` with every agent's ``state`` (the stacked tensors, ``[N, ...]`` each)
-        after the episodes it counts; at the end, the final summary too, and close."""
+        """Write ``last.pt`` with every agent's stacked state ``[N, ...]``; at the end, also close.
+
+        Write ``last.pt`` with every agent's ``state`` (the stacked tensors, ``[N, ...]`` each)
+        after the episodes it counts; at the end, the final summary too, and close.
+        """
         self.flush()
         save_checkpoint(self._checkpoint(state), self.run_dir / CHECKPOINT_DIR / LAST)
         if self.search is not None:  # the lineage as far as the checkpoint: a resume starts there
@@ -365,6 +385,7 @@ class PopulationRecord:
         }
 
     def flush(self) -> None:
+        """Write the buffered rows and scalars, and renew the run folder's lock."""
         self._write_part()
         self.logger.flush()
         run_lock.renew(self.run_dir)
@@ -424,8 +445,11 @@ def read_table(path: Path) -> dict[str, list]:
 
 
 def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[str, Any]]:
-    """:func:`~drone_torchrl.config.open_checkpoint`, and of a population run's checkpoint its agent
-    ``agent`` (:func:`agent_checkpoint`); ``agent`` is for population runs only."""
+    """Open a checkpoint; of a population run's, its agent ``agent``.
+
+    :func:`~drone_torchrl.config.open_checkpoint`, and of a population run's checkpoint its agent
+    ``agent`` (:func:`agent_checkpoint`); ``agent`` is for population runs only.
+    """
     path, state = open_checkpoint(key, location)
     if is_population(state):
         return path, agent_checkpoint(state, agent, path)
@@ -439,9 +463,11 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
 
 
 def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str, Any]:
-    """Agent ``agent`` of a population checkpoint as a run's checkpoint (actor, optimizer, counters,
-    its own config): what ``drone-eval``, ``drone-export`` and ``resume`` read. :class:`~.checks.ConfigError`
-    (one line) for an agent the population does not have."""
+    """Agent ``agent`` of a population checkpoint as a run's checkpoint.
+
+    Actor, optimizer, counters, its own config. What ``drone-eval``, ``drone-export`` and ``resume`` read.
+    :class:`~.checks.ConfigError` (one line) for an agent the population does not have.
+    """
     count = len(state["episodes_done"])
     if isinstance(agent, bool) or not isinstance(agent, int) or not 0 <= agent < count:
         raise ConfigError.of(

@@ -43,8 +43,11 @@ _CAUSE_NAMES = {int(cause): cause.name for cause in TerminationCause}
 
 
 def _mean(values: deque[float]) -> float:
-    """The mean (nan when empty). math.fsum, not np.mean: read per update by every run of a
-    population, and np.mean copies the deque into an array first (~5 us)."""
+    """The mean of ``values`` (nan when empty).
+
+    math.fsum, not np.mean: read per update by every run of a population, and np.mean copies the
+    deque into an array first.
+    """
     if not values:
         return math.nan
     try:
@@ -69,6 +72,7 @@ class Schedule:
 
     @classmethod
     def of(cls, cfg: DictConfig) -> Schedule:
+        """The schedule of a run's config (budget, logging, checkpoint and evaluation periods, window)."""
         return cls(
             budget=int(cfg.algo.episodes),
             every_updates=int(cfg.logger.every_updates),
@@ -79,14 +83,17 @@ class Schedule:
 
 
 class AgentBook:
-    """One agent's counters: episodes and updates done, the running-mean windows, the evaluation and
-    checkpoint schedule, its final metrics or failure. Both homes of an agent's record keep them:
+    """One agent's counters: episodes and updates done, running means, schedule and outcome.
+
+    Both homes of an agent's record keep them:
     :class:`RunRecord` (a run folder of its own) and a population run's agents
     (:mod:`.population_record`).
 
     Args:
         cfg: the agent's validated config.
         checkpoint: what the agent continues from (its counters, as :meth:`counters` writes them), or None.
+        schedule: the config's :class:`Schedule`, read once for all the agents of a population
+            (None: read from ``cfg``).
     """
 
     def __init__(
@@ -119,16 +126,21 @@ class AgentBook:
 
     @property
     def finished(self) -> bool:
+        """Whether the agent has trained its budget of episodes."""
         return self.episodes_done >= self.budget
 
     def take_window(self, other: AgentBook | None) -> None:
-        """Take ``other``'s running-mean windows (an agent that took its weights is scored by them);
-        None: empty them (an agent restarted from fresh weights)."""
+        """Take ``other``'s running-mean windows; None empties them.
+
+        Take ``other``'s running-mean windows (an agent that took its weights is scored by them);
+        None: empty them (an agent restarted from fresh weights).
+        """
         self.recent_returns = deque([] if other is None else other.recent_returns, maxlen=self.window)
         self.recent_lengths = deque([] if other is None else other.recent_lengths, maxlen=self.window)
 
     @property
     def failed(self) -> bool:
+        """Whether the agent failed (diverged)."""
         return self.failure is not None
 
     def diverged(self, failed: Sequence[str], advice: str) -> None:
@@ -137,14 +149,17 @@ class AgentBook:
 
     @property
     def wall_clock(self) -> float:
+        """Seconds the agent has trained, over all its processes."""
         return self.wall_clock_before + time.perf_counter() - self.start
 
     @property
     def running_return(self) -> float:
+        """The running mean of the last ``window`` episodes' returns."""
         return _mean(self.recent_returns)
 
     @property
     def running_length(self) -> float:
+        """The running mean of the last ``window`` episodes' lengths."""
         return _mean(self.recent_lengths)
 
     def book(self, returns: Sequence[float], lengths: Sequence[float]) -> int:
@@ -165,8 +180,11 @@ class AgentBook:
         return periodic or self.finished
 
     def book_eval(self, result: dict[str, float]) -> bool:
-        """Count an evaluation (``return``, ``length``, ``time_in_zone`` means): the schedule moves on,
-        the final metrics are set at the end. Returns whether it is the best so far."""
+        """Count an evaluation; returns whether it is the best so far.
+
+        Count an evaluation (``return``, ``length``, ``time_in_zone`` means): the schedule moves on,
+        the final metrics are set at the end. Returns whether it is the best so far.
+        """
         best = result["return"] > self.best_eval
         self.best_eval = max(self.best_eval, result["return"])
         self.last_eval_episode = step = self.episodes_done
@@ -183,8 +201,11 @@ class AgentBook:
         return best
 
     def updates_until_due(self, episodes_per_update: int) -> int:
-        """How many updates of ``episodes_per_update`` episodes until an evaluation, a checkpoint or
-        the end of the budget falls due (at least 1)."""
+        """Updates of ``episodes_per_update`` episodes until an evaluation, checkpoint or the end is due.
+
+        How many updates of ``episodes_per_update`` episodes until an evaluation, a checkpoint or
+        the end of the budget falls due (at least 1).
+        """
         targets = [self.next_checkpoint, self.budget]
         if self.next_eval is not None:
             targets.append(self.next_eval)
@@ -193,6 +214,7 @@ class AgentBook:
 
     @property
     def checkpoint_due(self) -> bool:
+        """Whether a checkpoint is due (or the budget is done)."""
         return self.finished or self.episodes_done >= self.next_checkpoint
 
     def counters(self) -> dict[str, Any]:
@@ -272,8 +294,11 @@ class RunRecord(AgentBook):
 
     # ------------------------------------------------------------------ training
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
-        """Book one update: its finished episodes (``EPISODE_KEYS`` -> one value per episode, in the
-        order they finished) and its training metrics (TensorBoard every ``logger.every_updates``)."""
+        """Book one update: its finished episodes and its training metrics.
+
+        Book one update: its finished episodes (``EPISODE_KEYS`` -> one value per episode, in the
+        order they finished) and its training metrics (TensorBoard every ``logger.every_updates``).
+        """
         wall = round(self.wall_clock, 3)
         first = self.book(episodes["return"], episodes["length"])
         rows = []
@@ -300,8 +325,11 @@ class RunRecord(AgentBook):
         learner_state: Callable[[], dict[str, Any]],
         actor: Callable[[], Any],
     ) -> None:
-        """Book an evaluation (``return``, ``length``, ``time_in_zone`` means): TensorBoard, ``best.pt``
-        when it is the best so far, and a video of ``actor()`` when ``eval.video``."""
+        """Book an evaluation: TensorBoard, ``best.pt`` when it is the best so far, and a video.
+
+        Book an evaluation (``return``, ``length``, ``time_in_zone`` means): TensorBoard, ``best.pt``
+        when it is the best so far, and a video of ``actor()`` when ``eval.video``.
+        """
         cfg = self.cfg
         step = self.episodes_done
         self.logger.log_metrics({f"eval/{k}": v for k, v in result.items()}, step=step)
@@ -338,8 +366,11 @@ class RunRecord(AgentBook):
         }
 
     def save(self, learner: dict[str, Any]) -> None:
-        """Write ``last.pt`` (the CSV is flushed first, so the two agree after a kill); at the end also
-        the final hparams, and close the files."""
+        """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close.
+
+        Write ``last.pt`` (the CSV is flushed first, so the two agree after a kill); at the end also
+        the final hparams, and close the files.
+        """
         self.flush()  # the CSV holds every episode the checkpoint counts
         save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
         self.book_save()
@@ -348,16 +379,22 @@ class RunRecord(AgentBook):
             self.close()
 
     def flush(self) -> None:
-        """Write the buffered CSV rows and TensorBoard scalars (files are open only while this runs),
-        and renew the run folder's lock (what another host reads as "its owner is alive")."""
+        """Write the buffered CSV rows and logger scalars, and renew the run folder's lock.
+
+        Write the buffered CSV rows and TensorBoard scalars (files are open only while this runs),
+        and renew the run folder's lock (what another host reads as "its owner is alive").
+        """
         self.csv.flush()
         self.logger.flush()
         run_lock.renew(self.run_dir)
         self._last_flush = time.perf_counter()
 
     def close(self) -> None:
-        """Flush and finish the logger, once: told whether the run finished, failed or stopped (a
-        backend with a service or open run, as W&B and MLflow have, records it)."""
+        """Flush and finish the logger, once, telling it whether the run finished, failed or stopped.
+
+        Flush and finish the logger, once: told whether the run finished, failed or stopped (a
+        backend with a service or open run, as W&B and MLflow have, records it).
+        """
         if self._closed:
             return
         self._closed = True
@@ -368,7 +405,12 @@ class RunRecord(AgentBook):
 
 
 class Progress:
-    """One progress bar over the episodes of every run trained together, with the running mean."""
+    """One progress bar over the episodes of every run trained together, with the running mean.
+
+    Args:
+        runs: the runs trained together.
+        setting: ``progress``: True, False or ``"auto"`` (shown when stderr is a terminal).
+    """
 
     def __init__(self, runs: Sequence[RunRecord], setting: bool | str) -> None:
         show = sys.stderr.isatty() if setting == "auto" else bool(setting)
@@ -382,6 +424,7 @@ class Progress:
         )
 
     def update(self, episodes: int, active: Sequence[RunRecord]) -> None:
+        """Advance the progress bar by ``episodes`` and show the ``active`` runs' running means."""
         if self.bar.disable:  # the running means below are per run per update: skipped when unseen
             return
         self.bar.update(episodes)
@@ -396,4 +439,5 @@ class Progress:
         self.bar.set_postfix_str(text, refresh=False)
 
     def close(self) -> None:
+        """Close the progress bar."""
         self.bar.close()

@@ -35,11 +35,16 @@ from drone_torchrl.training.collectors import kernel_rollout, squash_bound
 
 
 class FusedSegments:
-    """Batches of ``[num_envs, steps_per_batch]`` steps of the actor's net, as TorchRL's collector
-    gives them (see the module's docstring). Iterate to get the batches.
+    """Batches of ``[num_envs, steps_per_batch]`` steps of the actor's net, as TorchRL's collector's.
 
-    ``net`` is the :class:`~.policy.ThreeNetPolicy` inside ``actor`` (the learner trains it): its weights
-    are copied into the kernel's flat layout at every batch, and ``actor`` scores the actions."""
+    See the module's docstring. Iterate to get the batches.
+
+    Args:
+        cfg: the run's config (``algo.num_envs``, ``algo.steps_per_batch``, the env).
+        actor: the actor that scores the actions.
+        net: the :class:`~drone_torchrl.modules.policy.ThreeNetPolicy` inside ``actor`` (the learner
+            trains it): its weights are copied into the kernel's flat layout at every batch.
+    """
 
     def __init__(self, cfg: DictConfig, actor: ProbabilisticActor, net: ThreeNetPolicy) -> None:
         algo = cfg.algo

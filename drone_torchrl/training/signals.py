@@ -32,6 +32,10 @@ class TrainingStopped(BaseException):
     A ``BaseException``, like ``KeyboardInterrupt``: it is not a failure of the job, so the handlers
     that record failed jobs (``except Exception``) let it pass to the command, which exits with
     :attr:`exit_code`.
+
+    Args:
+        signum: the signal that stopped training.
+        run_dirs: the folders of the runs checkpointed.
     """
 
     def __init__(self, signum: int, run_dirs: list[Path]) -> None:
@@ -52,6 +56,7 @@ class StopRequest:
         self.signum: int | None = None
 
     def __call__(self, signum: int, frame: object) -> None:
+        """Record the signal (the handler of each stop signal)."""
         self.signum = signum
 
 
@@ -60,10 +65,12 @@ _active: list[StopRequest] = []  # the request of the outermost block running no
 
 @contextmanager
 def stop_on_signals() -> Iterator[StopRequest]:
-    """Catch :data:`STOP_SIGNALS` as a :class:`StopRequest` while the block runs (the handlers in
-    place before are restored after). Blocks nest: an inner one shares the outer one's request, so a
-    signal between two trainings of one command is not lost. Outside the main thread Python cannot
-    install handlers: the request then never fires and the signals keep their previous meaning."""
+    """Catch :data:`STOP_SIGNALS` as a :class:`StopRequest` while the block runs.
+
+    The handlers in place before are restored after. Blocks nest: an inner one shares the outer one's request,
+    so a signal between two trainings of one command is not lost. Outside the main thread Python cannot
+    install handlers:
+    """
     if _active:
         yield _active[0]
         return
@@ -82,8 +89,13 @@ def stop_on_signals() -> Iterator[StopRequest]:
 
 
 class Interrupted(BaseException):
-    """A stop signal received inside :func:`interrupt_on_signals`: raised where the program was, so
-    ``finally`` blocks and :func:`~drone_torchrl.io.storage.writing` clean up on the way out."""
+    """A stop signal received inside :func:`interrupt_on_signals`, raised where the program was.
+
+    So ``finally`` blocks and :func:`~drone_torchrl.io.storage.writing` clean up on the way out.
+
+    Args:
+        signum: the signal received.
+    """
 
     def __init__(self, signum: int) -> None:
         self.signum = signum
@@ -101,8 +113,11 @@ def _interrupt(signum: int, frame: object) -> None:
 
 @contextmanager
 def interrupt_on_signals() -> Iterator[None]:
-    """:data:`STOP_SIGNALS` raise :class:`Interrupted` while the block runs (the handlers in place
-    before are restored after; outside the main thread they keep their meaning)."""
+    """Make :data:`STOP_SIGNALS` raise :class:`Interrupted` while the block runs.
+
+    :data:`STOP_SIGNALS` raise :class:`Interrupted` while the block runs (the handlers in place
+    before are restored after; outside the main thread they keep their meaning).
+    """
     if threading.current_thread() is not threading.main_thread():
         yield
         return

@@ -1,7 +1,7 @@
-"""The training loop of REINFORCE's populations and SAC, and the books of every run (PPO and A2C loop
-in ``OnPolicy.train``, :mod:`drone_torchrl.algorithms.ppo`, on them: records, evaluations, checkpoints, signals).
+"""The training loop of REINFORCE's populations and SAC, and the books every algorithm's run keeps.
 
-A learner (an algorithm's, see :mod:`drone_torchrl.algorithms`) updates its agents behind one contract,
+PPO and A2C run their own loop (``OnPolicy.train`` in :mod:`drone_torchrl.algorithms.ppo`) on these
+books: records, evaluations, checkpoints, signals. A learner (an algorithm's, see :mod:`drone_torchrl.algorithms`) updates its agents behind one contract,
 ``update(state, k, active) -> (state, UpdateOutput)`` (see :mod:`.update`): ``k`` updates of every
 active agent, their metrics and finished episodes handed back at once. The loop copies them to the
 host in one go (one sync per call) and books them, update by update, in each agent's
@@ -67,12 +67,15 @@ class Outcome:
 
     @property
     def final_return(self) -> float | None:
+        """The final running-mean return, or None if the job did not finish."""
         return None if self.final is None else self.final["final_return"]
 
 
 def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
-    """``tensor.tolist()`` of each tensor, all copied to the host at once (one sync): in float64,
-    which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such."""
+    """``tensor.tolist()`` of each tensor, all copied to the host at once (one sync).
+
+    In float64, which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such.
+    """
     flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu().numpy()
     out: dict[str, list] = {}
     start = 0
@@ -103,10 +106,13 @@ class Trainer:
         checkpoint: dict | None = None,
         search: SearchSettings | None = None,
     ) -> None:
-        """``population_dir``: train the jobs (or an :class:`~.agents.AgentTable`) as one population
+        """Train the jobs, each in its own run folder, or together as one population run.
+
+        ``population_dir``: train the jobs (or an :class:`~.agents.AgentTable`) as one population
         run in that folder (see :mod:`.population_record`; ``names``: the agents' names,
         ``checkpoint``: the population checkpoint to continue from, ``search``: train it with
-        population-based training, :mod:`.pbt`); otherwise each job in its own run folder."""
+        population-based training, :mod:`.pbt`); otherwise each job in its own run folder.
+        """
         self.cfg = cfg = jobs.cfg if isinstance(jobs, AgentTable) else jobs[0].cfg
         torch.set_num_threads(cfg.threads)
         if torch.device(cfg.device).type == "cpu":
@@ -143,8 +149,11 @@ class Trainer:
 
     @functools.cached_property
     def optimum(self) -> Optimum | None:
-        """The best achievable return of the evaluation episodes (bounded thrust only), found at the
-        first evaluation and kept: the env is the same for every evaluation of the run."""
+        """The best achievable return of the evaluation episodes (bounded thrust only), kept.
+
+        The best achievable return of the evaluation episodes (bounded thrust only), found at the
+        first evaluation and kept: the env is the same for every evaluation of the run.
+        """
         return reference_optimum(env_kwargs(self.cfg))
 
     @property
@@ -156,7 +165,8 @@ class Trainer:
         """Run every agent to its own ``algo.episodes``; returns each one's final metrics.
 
         SIGTERM or SIGUSR1 stop it after the update in flight, with a checkpoint of every active
-        agent (:mod:`.signals`)."""
+        agent (:mod:`.signals`).
+        """
         try:
             with stop_on_signals() as stop:
                 # Killed after its last checkpoint but before the final evaluation: finish it now.
@@ -184,9 +194,12 @@ class Trainer:
         raise TrainingStopped(stop.signum, list(dict.fromkeys(self.runs[i].run_dir for i in active)))
 
     def step(self, active: list[int], k: int | None = None) -> int:
-        """``k`` updates of the ``active`` agents (default: as many as nothing falls due in, at most
+        """Run ``k`` updates of the ``active`` agents, booked, then the evaluations and checkpoints due.
+
+        ``k`` updates of the ``active`` agents (default: as many as nothing falls due in, at most
         :data:`MAX_UPDATES_PER_CALL`; one where the learner cannot tell), booked; then the evaluations and
-        checkpoints that are due. Returns the env steps the agents took."""
+        checkpoints that are due. Returns the env steps the agents took.
+        """
         runs, learner = self.runs, self.learner
         per_update = learner.episodes_per_update
         search = None if self.book is None else self.book.search
@@ -291,8 +304,11 @@ class Trainer:
             self.book.after_eval()
 
     def close(self, quietly: bool = False) -> None:
-        """Flush and close every run; ``quietly``: while another error stops training, a run whose
-        files cannot be written (the same full disk, say) is left as its last checkpoint has it."""
+        """Flush and close every run.
+
+        ``quietly``: while another error stops training, a run whose files cannot be written (the same full
+        disk, say) is left as its last checkpoint has it.
+        """
         self.progress.close()
         self.learner.close()
         if self.book is not None:
@@ -394,7 +410,9 @@ def train_population(
     before_training: Callable[[], None] | None = None,
     search: SearchSettings | None = None,
 ) -> list[Outcome]:
-    """Train validated agents of one group (:func:`~.jobs.group_key`; an :class:`~.agents.AgentTable`
+    """Train validated agents of one group as ONE population run in ``run_dir``, or continue it.
+
+    Train validated agents of one group (:func:`~.jobs.group_key`; an :class:`~.agents.AgentTable`
     or their configs) as ONE population run in ``run_dir`` (:mod:`.population_record`), or
     continue it from its ``checkpoints/last.pt``.
 
@@ -403,7 +421,8 @@ def train_population(
     process holds, a checkpoint of other agents or hyper-parameters. ``before_training``: called
     once the folder is this process's (the launcher writes Hydra's record then); ``search``: train
     it with population-based training (:mod:`.pbt`). One outcome per agent; SIGTERM stops it with a
-    checkpoint (:class:`~.signals.TrainingStopped`)."""
+    checkpoint (:class:`~.signals.TrainingStopped`).
+    """
     agents = AgentTable.of(agents)
     cfg = agents.cfg
     run_dir = Path(run_dir)
@@ -448,8 +467,11 @@ def _population_outcomes(run_dir: Path, finals: Sequence, failures: Sequence) ->
 def _population_checkpoint(
     agents: AgentTable, names: Sequence[str], run_dir: Path, search: SearchSettings | None = None
 ) -> dict | None:
-    """The population run's last checkpoint, if it has one, checked against the sweep's agents and
-    hyper-parameters (as a continued run's: only the budget, logging and process settings change)."""
+    """The population run's last checkpoint, if it has one, checked against the sweep's agents.
+
+    The population run's last checkpoint, if it has one, checked against the sweep's agents and
+    hyper-parameters (as a continued run's: only the budget, logging and process settings change).
+    """
     path = run_dir / CHECKPOINT_DIR / LAST
     if not path.is_file():
         return None

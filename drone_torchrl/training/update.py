@@ -1,4 +1,6 @@
-"""The REINFORCE update of a population, behind the contract every training engine follows::
+"""The REINFORCE update of a population, behind the contract every training engine follows.
+
+The contract::
 
     update(state, k, active) -> (state, UpdateOutput)
 
@@ -39,10 +41,13 @@ CHECKS = ("actions", "loss", "gradients", "weights")
 
 
 class UpdateOutput(NamedTuple):
-    """``k`` updates of ``N`` agents: ``metrics`` (``[k, N]`` each: ``"train/loss"``,
+    """``k`` updates of ``N`` agents: their ``metrics`` and finished ``episodes``.
+
+    ``k`` updates of ``N`` agents: ``metrics`` (``[k, N]`` each: ``"train/loss"``,
     ``"train/grad_norm"``, ``"policy/std_mean"``; ``"active"`` ``[k, N]`` bool, who was trained in
     each update; ``"checks"`` ``[k, N, 4]`` bool, see :data:`CHECKS`) and the finished
-    ``episodes`` (``[k, N, E]`` each, :data:`~drone_torchrl.episodes.EPISODE_KEYS`)."""
+    ``episodes`` (``[k, N, E]`` each, :data:`~drone_torchrl.episodes.EPISODE_KEYS`).
+    """
 
     metrics: dict[str, torch.Tensor]
     episodes: dict[str, torch.Tensor]
@@ -83,6 +88,12 @@ class ReinforceUpdate:
     - ``backend=reference``: the collector's ``EnvBase.rollout`` tensordicts, scored by
       :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` through the ``ProbabilisticActor``, and
       autograd.
+
+    Args:
+        cfg: the group's validated config (the loss's options).
+        population: the agents trained (their state, Adam and gradient clip).
+        collector: where the episodes come from (:class:`~.collectors.TorchRLCollector` or
+            :class:`~.collectors.FastCollector`).
     """
 
     def __init__(self, cfg: DictConfig, population: Population, collector) -> None:
@@ -145,6 +156,7 @@ class ReinforceUpdate:
     def __call__(
         self, state: TensorDictBase, k: int, active: torch.Tensor
     ) -> tuple[TensorDictBase, UpdateOutput]:
+        """Run ``k`` updates of the ``active`` agents (``[N]`` bool); returns ``state`` and their output."""
         params, counter = state["params"], state["counter"]
         self.begin(state, k)
         metrics: list[dict[str, torch.Tensor]] = []

@@ -11,7 +11,7 @@ own CSV, TensorBoard run and checkpoints, so ``drone-report`` and ``resume`` wor
 
 It sets the folders up itself (``_job_folder()``) instead of through Hydra's ``run_job``: that
 one deep-copies the whole config (Hydra's part included) four times and re-configures logging per
-job, about 25 ms a job, a tenth of a second-long sweep of 256 jobs; here nothing runs inside a
+job, a large part of a sweep of small jobs; here nothing runs inside a
 job until training, so it only needs the files.
 
 A job that fails is reported as failed (Hydra then exits non-zero after printing the sweep summary);
