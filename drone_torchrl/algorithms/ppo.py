@@ -130,11 +130,15 @@ class OnPolicy:
         self.actor_module = build_actor(cfg, net, return_log_prob=True)
         self.critic = build_critic(cfg)
         self.loss = self.make_loss(self.actor_module, self.critic)
-        self.advantage = GAE(gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False)
+        self.advantage = GAE(
+            gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False
+        )
         self.fused = cfg.backend == FAST
         # Listed once: the loss module's parameters() walks its modules on each call.
         self.params = list(self.loss.parameters())
-        self.optimizer = torch.optim.Adam(self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None)
+        self.optimizer = torch.optim.Adam(
+            self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None
+        )
         frames = algo.num_envs * algo.steps_per_batch
         if self.fused:
             self.collector = FusedSegments(cfg, self.actor_module, net)
@@ -173,8 +177,7 @@ class OnPolicy:
     def train(self, trainer: Trainer, stop: StopRequest) -> None:
         """The loop, one collector batch at a time, to the budget, a divergence or a stop signal.
 
-        The last batch is cut where the budget's last episode ends; ``trainer`` keeps the books of
-        its one run (evaluations, checkpoints, the progress bar, ``stop``'s checkpoint).
+        ``trainer`` keeps its run's books: evaluations, checkpoints, progress, ``stop``'s checkpoint.
         """
         (run,) = trainer.runs
         for batch in self._batches:
@@ -195,10 +198,7 @@ class OnPolicy:
                 return
 
     def _learn(self, batch: TensorDictBase, episodes_done: int) -> dict[str, float]:
-        """GAE on the batch, then ``algo.epochs`` passes of minibatches; returns the last pass's means.
-
-        The means are ``train/<loss output>`` and ``train/grad_norm``.
-        """
+        """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's ``train/*`` means."""
         algo = self.cfg.algo
         if algo.anneal_lr:  # linearly to 0 at the budget, as TorchRL's and CleanRL's PPO do (by frames there)
             for group in self.optimizer.param_groups:

@@ -76,20 +76,17 @@ def clip_ppo_losses(
 
 
 class PlainMinibatches:
-    """A run's replay buffer and ``ClipPPOLoss`` on plain tensors.
+    """Plain-tensor replay buffer and ``ClipPPOLoss`` of a run (``cfg``, ``loss``, ``actor``, ``critic``).
 
     Minibatches are drawn without replacement within an epoch and scored by :func:`clip_ppo_losses`.
-
-    Args:
-        cfg: the run's config; loss: its ``ClipPPOLoss``; actor: its actor; critic: its value operator.
     """
 
     def __init__(self, cfg: Any, loss: nn.Module, actor: nn.Module, critic: nn.Module) -> None:
         self.device, self.head = cfg.device, distribution_head(cfg.model.distribution, cfg.env.max_thrust)
         self.policy, self.value = actor.module[0].module, critic.module  # observation -> (loc, scale), value
         self.clip_epsilon, self.critic_coeff = loss.clip_epsilon, loss.critic_coeff
-        keys = loss.tensor_keys
-        self.frame_keys = ("observation", keys.action, keys.sample_log_prob, keys.advantage, keys.value_target)
+        k = loss.tensor_keys
+        self.frame_keys = ("observation", k.action, k.sample_log_prob, k.advantage, k.value_target)
         self.held: list[torch.Tensor] = []
         self.order = torch.empty(0, dtype=torch.long)
 

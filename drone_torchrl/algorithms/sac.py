@@ -76,12 +76,7 @@ def update_output(
     checks: tuple[str, ...],
     active: torch.Tensor,
 ) -> UpdateOutput:
-    """One agent's ``k`` updates in the update contract's layout.
-
-    One agent's ``k`` updates (``metrics`` and ``episodes``, one of each per update) in the update
-    contract's layout: metrics ``[k, 1]``, each update's episodes padded to the most any ended, with
-    a ``"valid"`` mask.
-    """
+    """One agent's ``k`` updates in the update contract's layout (episodes padded, a ``"valid"`` mask)."""
     k = len(metrics)
     most = max(1, *(len(e["return"]) for e in episodes))
     padded = {key: [[e[key] + [0] * (most - len(e[key]))] for e in episodes] for key in EPISODE_KEYS}

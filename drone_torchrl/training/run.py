@@ -145,7 +145,8 @@ class AgentBook:
 
     def diverged(self, failed: Sequence[str], advice: str) -> None:
         """Stop the agent (its ``fail``): its last update left the values named ``failed`` non-finite."""
-        self.fail(f"training diverged at episode {self.episodes_done}: non-finite {' and '.join(failed)}; {advice}")
+        what = " and ".join(failed)
+        self.fail(f"training diverged at episode {self.episodes_done}: non-finite {what}; {advice}")
 
     @property
     def wall_clock(self) -> float:

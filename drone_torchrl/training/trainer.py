@@ -174,7 +174,7 @@ class Trainer:
                     self.evaluate(at_budget)
                     self.save(at_budget)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
-                    if hasattr(self.learner, "train"):  # a loop of its own: PPO's and A2C's (algorithms/ppo.py)
+                    if hasattr(self.learner, "train"):  # its own loop: PPO's, A2C's (algorithms/ppo.py)
                         self.learner.train(self, stop)
                         break
                     self.step(active)
