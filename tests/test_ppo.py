@@ -300,3 +300,35 @@ def test_ppo_losses_equal_torchrls_default_clip_ppo_loss_on_one_batch(preset):
         assert len(got_grads) == len(params) and any(g.abs().max() > 0 for g in got_grads)
         for g, w in zip(got_grads, want_grads, strict=True):
             torch.testing.assert_close(g, w, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("algo", ON_POLICY)
+def test_a_stop_signal_ends_an_on_policy_run_after_its_batch_with_a_checkpoint(tmp_path, monkeypatch, algo):
+    """SIGTERM during the second batch: that batch is booked, last.pt counts both batches' episodes,
+    the run stops with exit code 143; resumed, it goes on from there, no episode lost or twice."""
+    import signal
+
+    from drone_torchrl.training.run import RunRecord
+    from drone_torchrl.training.signals import TrainingStopped
+
+    record, booked = RunRecord.record, []
+
+    def record_then_signal(self, episodes, metrics):
+        record(self, episodes, metrics)
+        booked.append(len(episodes["return"]))
+        if len(booked) == 2:
+            signal.raise_signal(signal.SIGTERM)
+
+    monkeypatch.setattr(RunRecord, "record", record_then_signal)
+    run = tmp_path / "run"
+    small = ["algo.num_envs=8", "algo.steps_per_batch=32", "algo.minibatch_size=64", "algo.epochs=1", *QUIET]
+    with pytest.raises(TrainingStopped) as stopped:
+        train(_cfg(f"algo={algo}", "algo.episodes=100000", *small), run)
+    assert stopped.value.exit_code == 143 and stopped.value.run_dirs == [run]
+    state = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert (state["updates_done"], state["episodes_done"], state["final"]) == (2, sum(booked), None)
+    monkeypatch.undo()
+    train(_cfg(f"resume={run}", f"algo.episodes={sum(booked) + 8}", *QUIET))
+    again = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert again["episodes_done"] >= sum(booked) + 8 and again["final"] is not None
+    assert read_episodes(run / "episodes.csv")[0]["episode"].tolist() == list(range(again["episodes_done"]))

@@ -2,7 +2,8 @@
 
 A module registers one :class:`Algorithm`: its name (what ``algo.name`` in its YAML says), its
 learner (the class :class:`~drone_torchrl.training.trainer.Trainer` drives through the update
-contract of :mod:`drone_torchrl.training.update`), the checks of its own ``algo.*`` keys and the
+contract of :mod:`drone_torchrl.training.update`, or its own loop ``train(trainer, stop)``, as
+:class:`~.ppo.OnPolicy`'s), the checks of its own ``algo.*`` keys and the
 entries its learner adds to every checkpoint. Everything else a run does (the run record,
 evaluations, checkpoints and resume, divergence, the one-line errors, sweeps and launchers) is
 the shared skeleton's and needs nothing from the algorithm.
@@ -36,7 +37,7 @@ class Algorithm:
     Attributes:
         name: its ``algo.name``.
         learner: the learner class; ``learner(jobs)`` trains up to ``learner.max_agents`` prepared
-            jobs (None: any number) behind ``update(state, k, active)``.
+            jobs (None: any number) behind ``update(state, k, active)`` or its own ``train``.
         validate: raises :class:`~drone_torchrl.checks.ConfigError` (one line) for values of its keys
             that do not go together; each key's own bounds and choices (its schema's) are checked
             before it is called. Gets the resolved config as nested dicts with attribute access.

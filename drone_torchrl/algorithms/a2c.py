@@ -5,18 +5,16 @@ run it: ``algo.num_envs`` drones of one batched env fly ``algo.steps_per_batch``
 the advantages (``gae_lambda`` 1 would be plain n-step returns), and one gradient step of the
 policy-gradient, value and entropy losses follows per batch (``epochs: 1``, one minibatch of the
 whole batch; more of either turns it towards PPO without the clipping that makes that safe).
-Everything but the loss (collector, GAE, the episode budget, checkpoints, resume) is
+Everything but the loss (collector, GAE, the loop, checkpoints, resume) is
 :class:`~drone_torchrl.algorithms.ppo.OnPolicy`'s, shared with PPO. Three keys of its own change
 the value loss (``algo.loss_critic_type``), what the loss sees of the batch's advantages
 (``algo.advantage_scaling``) and whether the critic's gradients are clipped on their own
-(``algo.critic_max_grad_norm``); their defaults (smooth L1, standardised, one shared clip) are the
-updates A2C made before they existed, to the bit.
+(``algo.critic_max_grad_norm``); their defaults are what A2C did before they existed.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -79,11 +77,6 @@ class A2C(OnPolicy):
         return torch.stack(norms).norm()
 
 
-def validate(cfg: Mapping[str, Any]) -> None:
-    """A2C's rules that relate keys are the on-policy loop's."""
-    validate_on_policy(cfg)
-
-
 @dataclass
 class A2CConf(OnPolicyConf):
     """``algo.*`` of ``algo.name=a2c``.
@@ -104,7 +97,7 @@ register(
     Algorithm(
         "a2c",
         A2C,
-        validate,
+        validate_on_policy,
         checkpoint_keys=("critic",),
         summary="A2C on TorchRL's collector, GAE and A2CLoss",
         memory=on_policy_parts,

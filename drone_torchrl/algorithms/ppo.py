@@ -1,24 +1,17 @@
-"""PPO on the drone (``algo=ppo``): TorchRL's collector, GAE and ``ClipPPOLoss``, booked by the run record.
+"""PPO on the drone (``algo=ppo``), as TorchRL's ``sota-implementations/ppo`` runs it.
 
-:class:`OnPolicy` is the loop every actor-critic algorithm here shares (collector, GAE, minibatch
-epochs, checkpoint entries, the budget); :class:`PPO` gives it ``ClipPPOLoss``, and
-:class:`~drone_torchrl.algorithms.a2c.A2C` gives it ``A2CLoss``.
+Top to bottom: :class:`OnPolicy` builds the actor and critic, the loss (``ClipPPOLoss`` here,
+``A2CLoss`` in :mod:`.a2c`), TorchRL's :class:`~torchrl.objectives.value.GAE`, one Adam and the
+collector (``algo.num_envs`` drones of one batched, auto-resetting
+:class:`~drone_torchrl.envs.drone_env.DroneEnv`, ``algo.steps_per_batch`` steps a batch);
+:meth:`OnPolicy.train` is the loop, ``for batch in collector``: learn from it (``OnPolicy._learn``:
+GAE, then ``algo.epochs`` passes of minibatches: loss, backward, clip, step), book it in the
+:class:`~drone_torchrl.training.run.RunRecord` (``episodes.csv``, TensorBoard), evaluate and
+checkpoint on the schedule, stop on a non-finite loss or gradient, or on SIGTERM with a checkpoint.
+``backend=fast`` swaps three pieces for their twins in :mod:`.ppo_fast`.
 
-As in TorchRL's ``sota-implementations/ppo``: a :class:`torchrl.collectors.Collector` flies
-``algo.num_envs`` drones of one batched :class:`~drone_torchrl.envs.drone_env.DroneEnv` (auto-reset, so each
-drone starts a new episode as soon as one ends) for ``algo.steps_per_batch`` steps;
-:class:`~torchrl.objectives.value.GAE` computes advantages and value targets with the critic; ``algo.epochs``
-passes of minibatches drawn without replacement from a replay buffer train the three-net actor and the critic
-with one Adam.
-With ``backend=fast`` the same batches are flown by the C++ engine
-(:class:`~drone_torchrl.training.segments.FusedSegments`), collected 8-19x faster (docs/beyond.md: "A
-learned policy at the optimum").
-
-It runs in the same training loop as REINFORCE (:class:`~drone_torchrl.training.trainer.Trainer`,
-behind the update contract of :mod:`drone_torchrl.training.update`): each finished episode goes to the same :class:`~.run.RunRecord`
-(``episodes.csv``, TensorBoard, evaluations, ``best.pt``/``last.pt``, resume). Only the drones'
-current episodes are not in a checkpoint: a resumed run starts them afresh (they were not booked,
-so no episode is lost or counted twice, but the run does not replay the interrupted one exactly).
+Only the drones' current episodes are not in a checkpoint: a resumed run starts them afresh (they
+were not booked, so no episode is lost or counted twice).
 """
 
 from __future__ import annotations
@@ -28,25 +21,24 @@ import logging
 import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torch import nn
-from torch.nn import functional
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacement
 from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 
 from drone_torchrl.algorithms import Algorithm, register
+from drone_torchrl.algorithms.ppo_fast import PlainMinibatches, clip_ppo_losses, pre_image  # noqa: F401
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.drone_env import DroneEnv
-from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
+from drone_torchrl.episodes import EpisodeTracker
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
-from drone_torchrl.modules.policy import distribution_head
 from drone_torchrl.schema import (
     ADAM_EPS,
     ANNEAL_LR,
@@ -69,7 +61,10 @@ from drone_torchrl.schema import (
 )
 from drone_torchrl.training.memory_estimate import on_policy_parts
 from drone_torchrl.training.segments import FusedSegments
-from drone_torchrl.training.update import UpdateOutput
+
+if TYPE_CHECKING:
+    from drone_torchrl.training.signals import StopRequest
+    from drone_torchrl.training.trainer import Trainer
 
 # Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
 ADVANTAGE_EPS = 1e-8
@@ -103,43 +98,16 @@ def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
     return batch[:, : last_step + 1]
 
 
-def update_output(
-    metrics: list[dict[str, float]],
-    episodes: list[dict[str, list]],
-    checks: tuple[str, ...],
-    active: torch.Tensor,
-) -> UpdateOutput:
-    """One agent's ``k`` updates in the update contract's layout.
-
-    One agent's ``k`` updates (``metrics`` and ``episodes``, one of each per update) in the update
-    contract's layout: metrics ``[k, 1]``, each update's episodes padded to the most any ended, with
-    a ``"valid"`` mask.
-    """
-    k = len(metrics)
-    most = max(1, *(len(e["return"]) for e in episodes))
-    padded = {key: [[e[key] + [0] * (most - len(e[key]))] for e in episodes] for key in EPISODE_KEYS}
-    valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
-    values = torch.tensor([[[m[name] for name in checks]] for m in metrics], dtype=torch.float64)
-    out = {name: values[..., i] for i, name in enumerate(checks)}
-    out["active"] = active.reshape(1, 1).expand(k, 1)
-    out["checks"] = values.isfinite()
-    stats = {key: torch.tensor(padded[key]) for key in EPISODE_KEYS}
-    return UpdateOutput(out, {**stats, "valid": torch.tensor(valid)})
-
-
 class OnPolicy:
-    """One actor-critic run as the training loop drives it: collector, GAE, loss, optimizer.
+    """One actor-critic run: ``__init__`` builds it, ``train`` is its loop, ``_learn`` one batch's update.
 
-    The training loop is :class:`~drone_torchrl.training.trainer.Trainer`. :meth:`update` follows the engines' contract
-    (:mod:`drone_torchrl.training.update`): ``k`` collector batches, each followed by ``algo.epochs``
-    passes of minibatches; its episodes are those that ended in each batch (any number: padded, with
-    a ``"valid"`` mask). A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of
-    what its loss reports; the losses summed and booked are the loss's ``loss_*`` outputs. It may
-    also change what the loss sees of the batch's advantages (:meth:`scale_advantage`) and how the
-    gradients are clipped before each step (:meth:`clip_gradients`).
+    A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what its loss reports;
+    the losses summed and booked are the loss's ``loss_*`` outputs. It may also change what the loss
+    sees of the batch's advantages (:meth:`scale_advantage`) and how the gradients are clipped before
+    each step (:meth:`clip_gradients`).
 
     Args:
-        jobs: the one job trained (an actor-critic run trains no population): its ``cfg``.
+        jobs: the one job trained (an actor-critic run trains no population), fresh or resumed.
     """
 
     @staticmethod
@@ -148,11 +116,123 @@ class OnPolicy:
         return 1
 
     advice = "lower algo.lr"
-    episodes_per_update = None  # the episodes a batch finishes vary: one update per call
     eval_agents = None
     #: What the loss reports besides its losses, booked as train/<name> where the loss has it
     #: (A2CLoss reports no entropy without an entropy bonus).
     diagnostics: tuple[str, ...] = ()
+
+    def __init__(self, jobs) -> None:
+        (job,) = jobs
+        cfg = self.cfg = job.cfg
+        algo = cfg.algo
+        torch.manual_seed(cfg.seed)
+        net = build_policy(cfg, cfg.seed)
+        self.actor_module = build_actor(cfg, net, return_log_prob=True)
+        self.critic = build_critic(cfg)
+        self.loss = self.make_loss(self.actor_module, self.critic)
+        self.advantage = GAE(
+            gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False
+        )
+        self.fused = cfg.backend == FAST
+        # Listed once: the loss module's parameters() walks its modules on each call.
+        self.params = list(self.loss.parameters())
+        self.optimizer = torch.optim.Adam(
+            self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None
+        )
+        frames = algo.num_envs * algo.steps_per_batch
+        if self.fused:
+            self.collector = FusedSegments(cfg, self.actor_module, net)
+            self._generator = self.collector.generator
+        else:
+            self.env = DroneEnv(batch_size=[algo.num_envs], device=cfg.device, **env_kwargs(cfg))
+            self.env.set_seed(cfg.seed)
+            self._generator = self.env._generator
+        if (checkpoint := job.checkpoint) is not None:
+            self.actor_module.load_state_dict(checkpoint["actor"])
+            self.critic.load_state_dict(checkpoint["critic"])
+            self.optimizer.load_state_dict(checkpoint["optimizer"])
+            torch.set_rng_state(checkpoint["rng"]["torch"])
+            self._generator.set_state(checkpoint["rng"]["env"])
+            if self.fused:
+                self.collector.restart()
+        if not self.fused:  # made after the checkpoint: it resets the env from the restored generator
+            self.collector = Collector(
+                self.env,
+                self.actor_module,
+                frames_per_batch=frames,
+                total_frames=-1,
+                device=cfg.device,
+                auto_register_policy_transforms=False,
+            )
+        self._batches = iter(self.collector)
+        self.buffer = ReplayBuffer(
+            storage=LazyTensorStorage(frames, device=cfg.device),
+            sampler=SamplerWithoutReplacement(),
+        )
+        self.tracker = EpisodeTracker(algo.num_envs, cfg.device)
+        reported = self.loss.out_keys
+        self.loss_keys = tuple(k for k in reported if k.startswith("loss_"))
+        self.reported = (*self.loss_keys, *(k for k in self.diagnostics if k in reported))
+
+    def train(self, trainer: Trainer, stop: StopRequest) -> None:
+        """The loop, one collector batch at a time, to the budget, a divergence or a stop signal.
+
+        ``trainer`` keeps its run's books: evaluations, checkpoints, progress, ``stop``'s checkpoint.
+        """
+        (run,) = trainer.runs
+        for batch in self._batches:
+            batch = within_budget(batch, run.budget - run.episodes_done)
+            ended = self.tracker.update(batch)
+            metrics = self._learn(batch, run.episodes_done)
+            if failed := [name for name, value in metrics.items() if not math.isfinite(value)]:
+                run.diverged(failed, self.advice)
+            else:
+                run.record(ended, metrics)
+                trainer.progress.update(len(ended["return"]), [run])
+                if run.eval_due:
+                    trainer.evaluate([0])
+                if run.checkpoint_due:
+                    trainer.save([0])
+            trainer.stop_if_asked(stop, [0])
+            if run.finished or run.failed:
+                return
+
+    def _learn(self, batch: TensorDictBase, episodes_done: int) -> dict[str, float]:
+        """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's ``train/*`` means."""
+        algo = self.cfg.algo
+        if algo.anneal_lr:  # linearly to 0 at the budget, as TorchRL's and CleanRL's PPO do (by frames there)
+            for group in self.optimizer.param_groups:
+                group["lr"] = algo.lr * max(0.0, 1.0 - episodes_done / algo.episodes)
+        batch = batch.clone(False)
+        batch.set(("next", "reward"), batch.get(("next", "reward")) * algo.reward_scale)
+        with torch.no_grad():
+            self.advantage(batch)
+            batch.set("advantage", self.scale_advantage(batch.get("advantage")))
+        frames = self.hold_frames(batch.reshape(-1))
+        # A batch cut at the budget may hold fewer frames than one minibatch: then one of all of them.
+        size = min(algo.minibatch_size, frames)
+        steps = frames // size
+        sums: dict[str, torch.Tensor] = {}
+        for epoch in range(algo.epochs):
+            for _ in range(steps):
+                losses = self.losses(self.minibatch(size))
+                total = sum(losses[k] for k in self.loss_keys)
+                self.optimizer.zero_grad()
+                total.backward()
+                norm = self.clip_gradients()
+                self.optimizer.step()
+                if epoch == algo.epochs - 1:
+                    for key, value in (*((k, losses[k]) for k in self.reported), ("grad_norm", norm)):
+                        sums[key] = sums.get(key, 0) + value.detach()
+        return {f"train/{k}": (v / steps).item() for k, v in sums.items()}
+
+    state = None  # no stacked state: update() is a memory probe's (tests/test_memory_estimate.py)
+
+    def update(self, state: None, k: int, active: torch.Tensor) -> tuple[None, None]:
+        """``k`` batches learned from, not booked; the loop is :meth:`train`."""
+        for _ in range(k):
+            self._learn(next(self._batches), 0)
+        return state, None
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         """The algorithm's TorchRL loss over ``actor`` and ``critic``, from ``self.cfg.algo``."""
@@ -189,116 +269,6 @@ class OnPolicy:
         limit = self.cfg.algo.max_grad_norm
         return nn.utils.clip_grad_norm_(self.params, math.inf if limit is None else limit)
 
-    def __init__(self, jobs) -> None:
-        (job,) = jobs
-        cfg = self.cfg = job.cfg
-        algo = cfg.algo
-        torch.manual_seed(cfg.seed)
-        net = build_policy(cfg, cfg.seed)
-        self.actor_module = build_actor(cfg, net, return_log_prob=True)
-        self.critic = build_critic(cfg)
-        self.loss = self.make_loss(self.actor_module, self.critic)
-        self.advantage = GAE(
-            gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False
-        )
-        self.fused = cfg.backend == FAST
-        # Listed once: the loss module's parameters() walks its modules on each call.
-        self.params = list(self.loss.parameters())
-        # backend=fast: Adam's fused kernel, a fifth of the per-parameter loop's time on these nets.
-        self.optimizer = torch.optim.Adam(
-            self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None
-        )
-        frames = algo.num_envs * algo.steps_per_batch
-        if self.fused:
-            self.collector = FusedSegments(cfg, self.actor_module, net)
-            self._generator = self.collector.generator
-        else:
-            self.env = DroneEnv(batch_size=[algo.num_envs], device=cfg.device, **env_kwargs(cfg))
-            self.env.set_seed(cfg.seed)
-            self._generator = self.env._generator
-        checkpoint = job.checkpoint
-        if checkpoint is not None:
-            self.actor_module.load_state_dict(checkpoint["actor"])
-            self.critic.load_state_dict(checkpoint["critic"])
-            self.optimizer.load_state_dict(checkpoint["optimizer"])
-            torch.set_rng_state(checkpoint["rng"]["torch"])
-            self._generator.set_state(checkpoint["rng"]["env"])
-            if self.fused:
-                self.collector.restart()
-        # The loop's state: the episodes booked (for the learning-rate schedule). The weights and
-        # Adam's moments live in TorchRL's loss module and torch.optim.Adam.
-        done = 0 if checkpoint is None else checkpoint["episodes_done"]
-        self.state = TensorDict({"episodes_done": torch.tensor([done])}, batch_size=[1])
-        self.budget = algo.episodes
-        if not self.fused:  # made after the checkpoint: it resets the env from the restored generator
-            self.collector = Collector(
-                self.env,
-                self.actor_module,
-                frames_per_batch=frames,
-                total_frames=-1,
-                device=cfg.device,
-                auto_register_policy_transforms=False,
-            )
-        self._batches = iter(self.collector)
-        self.buffer = ReplayBuffer(
-            storage=LazyTensorStorage(frames, device=cfg.device),
-            sampler=SamplerWithoutReplacement(),
-        )
-        self.tracker = EpisodeTracker(algo.num_envs, cfg.device)
-        reported = self.loss.out_keys
-        self.loss_keys = tuple(k for k in reported if k.startswith("loss_"))
-        self.reported = (*self.loss_keys, *(k for k in self.diagnostics if k in reported))
-        self.checks = tuple(f"train/{k}" for k in (*self.reported, "grad_norm"))
-
-    def update(
-        self, state: TensorDictBase, k: int, active: torch.Tensor
-    ) -> tuple[TensorDictBase, UpdateOutput]:
-        """Train on ``k`` collector batches, each followed by ``algo.epochs`` passes of minibatches.
-
-        Returns ``state`` (its ``"episodes_done"`` advanced) and the batches' metrics and episodes.
-        """
-        metrics: list[dict[str, float]] = []
-        episodes: list[dict[str, list]] = []
-        for _ in range(k):
-            batch = within_budget(next(self._batches), self.budget - int(state["episodes_done"]))
-            ended = self.tracker.update(batch)
-            metrics.append(self._learn(batch, int(state["episodes_done"])))
-            state["episodes_done"] += len(ended["return"])
-            episodes.append(ended)
-        return state, update_output(metrics, episodes, self.checks, active)
-
-    def _learn(self, batch, episodes_done: int) -> dict[str, float]:
-        """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's mean metrics."""
-        algo = self.cfg.algo
-        if algo.anneal_lr:  # linearly to 0 at the budget, as TorchRL's and CleanRL's PPO do (by frames there)
-            for group in self.optimizer.param_groups:
-                group["lr"] = algo.lr * max(0.0, 1.0 - episodes_done / self.budget)
-        batch = batch.clone(False)
-        batch.set(("next", "reward"), batch.get(("next", "reward")) * algo.reward_scale)
-        with torch.no_grad():
-            self.advantage(batch)
-            batch.set("advantage", self.scale_advantage(batch.get("advantage")))
-        frames = self.hold_frames(batch.reshape(-1))
-        # A batch cut at the budget may hold fewer frames than one minibatch: then one of all of them.
-        size = min(algo.minibatch_size, frames)
-        steps = frames // size
-        sums: dict[str, torch.Tensor] = {}
-        for epoch in range(algo.epochs):
-            for _ in range(steps):
-                losses = self.losses(self.minibatch(size))
-                total = sum(losses[k] for k in self.loss_keys)
-                self.optimizer.zero_grad()
-                total.backward()
-                norm = self.clip_gradients()
-                self.optimizer.step()
-                if epoch == algo.epochs - 1:
-                    for key, value in (
-                        *((k, losses[k]) for k in self.reported),
-                        ("grad_norm", norm),
-                    ):
-                        sums[key] = sums.get(key, 0) + value.detach()
-        return {f"train/{k}": (v / steps).item() for k, v in sums.items()}
-
     def eval_policy(self):
         """The actor, for evaluations."""
         return self.actor_module
@@ -325,9 +295,6 @@ class OnPolicy:
 class PPO(OnPolicy):
     """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages).
 
-    With ``backend=fast`` the minibatches are plain tensors and their losses :func:`clip_ppo_losses`' (the
-    same values and gradients, without TensorDict's and TorchRL's machinery around a small network).
-
     Args:
         jobs: the one job trained, as for :class:`OnPolicy`.
     """
@@ -336,50 +303,9 @@ class PPO(OnPolicy):
 
     def __init__(self, jobs) -> None:
         super().__init__(jobs)
-        self.fused_loss = self.fused and not self.cfg.algo.entropy_coeff
-        self.policy_net = self.actor_module.module[0].module  # observation -> (loc, scale)
-        self.head = distribution_head(self.cfg.model.distribution, self.cfg.env.max_thrust)
-        keys = self.loss.tensor_keys
-        self.frame_keys = (
-            "observation",
-            keys.action,
-            keys.sample_log_prob,
-            keys.advantage,
-            keys.value_target,
-        )
-        self.held: list[torch.Tensor] = []
-        self.order = torch.empty(0, dtype=torch.long)
-
-    def hold_frames(self, batch: TensorDictBase) -> int:
-        """Keep the batch's ``[frames]`` for this update's minibatches; returns how many there are."""
-        if not self.fused_loss:
-            return super().hold_frames(batch)
-        observation, action, *rest = (batch.get(key) for key in self.frame_keys)
-        with torch.no_grad():
-            self.held = [observation, *pre_image(self.head, action), *rest]
-        self.order = torch.empty(0, dtype=torch.long)
-        return batch.numel()
-
-    def minibatch(self, size: int) -> Any:
-        """``size`` of the held frames, drawn without replacement within an epoch."""
-        if not self.fused_loss:
-            return super().minibatch(size)
-        if len(self.order) < size:  # an epoch's permutation is spent: the next epoch's
-            self.order = torch.randperm(len(self.held[0]), device=self.cfg.device)
-        index, self.order = self.order[:size], self.order[size:]
-        return [held[index] for held in self.held]
-
-    def losses(self, minibatch: Any) -> Mapping[str, torch.Tensor]:
-        """The loss's outputs on one minibatch."""
-        if not self.fused_loss:
-            return super().losses(minibatch)
-        return clip_ppo_losses(
-            self.policy_net,
-            self.critic.module,
-            minibatch,
-            self.loss.clip_epsilon,
-            self.loss.critic_coeff,
-        )
+        if self.fused and not self.cfg.algo.entropy_coeff:  # the fast twin's minibatches and loss
+            plain = PlainMinibatches(self.cfg, self.loss, self.actor_module, self.critic)
+            self.hold_frames, self.minibatch, self.losses = plain.hold, plain.sample, plain.losses
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         """TorchRL's ``ClipPPOLoss`` over ``actor`` and ``critic``, from ``algo.*``."""
@@ -401,63 +327,6 @@ class PPO(OnPolicy):
         )
 
 
-# log(sqrt(2 pi)), the Normal log-density's constant, as torch.distributions.Normal writes it.
-LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
-
-
-def pre_image(head: tuple[type, dict], action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The Normal sample that ``head`` squashes into ``action``, and the squashing's log-determinant.
-
-    The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
-    the log-determinant of that squashing summed over the action: both depend on the action only, so
-    a batch's are computed once, and each minibatch's log-probability is then the Normal's (what
-    ``TransformedDistribution.log_prob`` computes, without its objects).
-    """
-    dist_class, kwargs = head
-    dist = dist_class(torch.zeros_like(action), torch.ones_like(action), **kwargs)
-    log_det = torch.zeros_like(action)
-    for transform in reversed(getattr(dist, "transforms", ())):  # none for a Normal head
-        normal = transform.inv(action)
-        log_det = log_det + transform.log_abs_det_jacobian(normal, action)
-        action = normal
-    return action, log_det.sum(-1)
-
-
-def clip_ppo_losses(
-    policy: nn.Module,
-    value: nn.Module,
-    minibatch: list[torch.Tensor],
-    clip_epsilon: torch.Tensor,
-    critic_coeff: torch.Tensor,
-) -> dict[str, torch.Tensor]:
-    """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch.
-
-    What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
-    on a minibatch of ``[observation, pre-image and log-determinant of the action (pre_image),
-    its log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
-    Normal's ``(loc, scale)``, ``value`` to state values. Its losses, ``clip_fraction`` and
-    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py).
-    """
-    observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
-    # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.
-    advantage = (advantage - advantage.mean()) / advantage.std().clamp_min(
-        torch.finfo(torch.float).resolution
-    )
-    loc, scale = policy(observation)
-    log_density = -((normal - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
-    log_prob = log_density.sum(-1) - log_det
-    log_weight = (log_prob - flown_log_prob).unsqueeze(-1)
-    clipped = log_weight.clamp((-clip_epsilon).log1p(), clip_epsilon.log1p())
-    gain = torch.minimum(log_weight.exp() * advantage, clipped.exp() * advantage)
-    loss_critic = functional.smooth_l1_loss(value_target, value(observation), reduction="none")
-    return {
-        "loss_objective": -gain.mean(),
-        "loss_critic": critic_coeff * loss_critic.mean(),
-        "clip_fraction": (clipped != log_weight).to(log_weight.dtype).mean(),
-        "kl_approx": (flown_log_prob - log_prob).detach().mean(),
-    }
-
-
 def validate_on_policy(cfg: Mapping[str, Any]) -> None:
     """The rules of :class:`OnPolicy` that relate keys.
 
@@ -477,11 +346,6 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
             cfg.algo.minibatch_size,
             f"a divisor of algo.num_envs x algo.steps_per_batch = {frames} (the frames of a batch)",
         )
-
-
-def validate(cfg: Mapping[str, Any]) -> None:
-    """PPO's rules that relate keys: the on-policy loop's."""
-    validate_on_policy(cfg)
 
 
 @dataclass
@@ -519,7 +383,7 @@ register(
     Algorithm(
         "ppo",
         PPO,
-        validate,
+        validate_on_policy,
         checkpoint_keys=("critic",),
         summary="PPO on TorchRL's collector, GAE and ClipPPOLoss",
         memory=on_policy_parts,

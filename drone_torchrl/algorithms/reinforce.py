@@ -3,9 +3,10 @@
 REINFORCE (``algo=reinforce``, the paper's; ``algo=reinforce_plus``, the same learner with variance
 reductions): a group of jobs trained as one population, with either engine.
 
-The update itself, the population engine's, is :class:`~drone_torchrl.training.update.ReinforceUpdate`
-(C++ kernels, the PyTorch fast path or TorchRL's reference loop); its loss is
-:class:`~drone_torchrl.objectives.reinforce.ReinforceLoss`.
+The update itself, the population engine's, is :class:`~drone_torchrl.training.update.ReinforceUpdate`;
+its loss, in Python, is :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` (the arithmetic in
+:func:`~drone_torchrl.objectives.reinforce.reinforce_terms`), and the fast engine's loss and gradient
+are one call of :class:`~drone_torchrl.kernels.modules.KernelReinforce` (the C++ op ``drone_torchrl::reinforce``).
 """
 
 from __future__ import annotations

@@ -30,9 +30,9 @@ from torchrl.data import LazyTensorStorage, MultiStep, RandomSampler, TensorDict
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
 from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.algorithms.ppo import quiet, update_output, within_budget
+from drone_torchrl.algorithms.ppo import quiet, within_budget
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.episodes import EpisodeTracker
+from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_policy, build_q_value
 from drone_torchrl.schema import (
@@ -68,6 +68,25 @@ FRAME_KEYS = (
 # (each reaches only its own parameters: SACLoss detaches the others).
 LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
 REPORTED = (*LOSSES, "alpha", "entropy")
+
+
+def update_output(
+    metrics: list[dict[str, float]],
+    episodes: list[dict[str, list]],
+    checks: tuple[str, ...],
+    active: torch.Tensor,
+) -> UpdateOutput:
+    """One agent's ``k`` updates in the update contract's layout (episodes padded, a ``"valid"`` mask)."""
+    k = len(metrics)
+    most = max(1, *(len(e["return"]) for e in episodes))
+    padded = {key: [[e[key] + [0] * (most - len(e[key]))] for e in episodes] for key in EPISODE_KEYS}
+    valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
+    values = torch.tensor([[[m[name] for name in checks]] for m in metrics], dtype=torch.float64)
+    out = {name: values[..., i] for i, name in enumerate(checks)}
+    out["active"] = active.reshape(1, 1).expand(k, 1)
+    out["checks"] = values.isfinite()
+    stats = {key: torch.tensor(padded[key]) for key in EPISODE_KEYS}
+    return UpdateOutput(out, {**stats, "valid": torch.tensor(valid)})
 
 
 def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:

@@ -143,6 +143,11 @@ class AgentBook:
         """Whether the agent failed (diverged)."""
         return self.failure is not None
 
+    def diverged(self, failed: Sequence[str], advice: str) -> None:
+        """Stop the agent (its ``fail``): its last update left the values named ``failed`` non-finite."""
+        what = " and ".join(failed)
+        self.fail(f"training diverged at episode {self.episodes_done}: non-finite {what}; {advice}")
+
     @property
     def wall_clock(self) -> float:
         """Seconds the agent has trained, over all its processes."""

@@ -1,6 +1,7 @@
-"""The training loop, the same for one agent or a population and for every algorithm.
+"""The training loop of REINFORCE's populations and SAC, and the books every algorithm's run keeps.
 
-A learner (an algorithm's, see :mod:`drone_torchrl.algorithms`) updates its agents behind one contract,
+PPO and A2C run their own loop (``OnPolicy.train`` in :mod:`drone_torchrl.algorithms.ppo`) on these
+books: records, evaluations, checkpoints, signals. A learner (an algorithm's, see :mod:`drone_torchrl.algorithms`) updates its agents behind one contract,
 ``update(state, k, active) -> (state, UpdateOutput)`` (see :mod:`.update`): ``k`` updates of every
 active agent, their metrics and finished episodes handed back at once. The loop copies them to the
 host in one go (one sync per call) and books them, update by update, in each agent's
@@ -46,7 +47,7 @@ from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.pbt import FRESH, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
-from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
+from drone_torchrl.training.signals import StopRequest, TrainingStopped, stop_on_signals
 
 #: The most updates per call of a learner's update; the loop copies a call's metrics and episodes to
 #: the host at once, so this bounds what they hold in memory; results do not depend on it (a call
@@ -174,17 +175,24 @@ class Trainer:
                     self.evaluate(at_budget)
                     self.save(at_budget)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
+                    if hasattr(self.learner, "train"):  # its own loop: PPO's, A2C's (algorithms/ppo.py)
+                        self.learner.train(self, stop)
+                        break
                     self.step(active)
-                    if stop.signum is not None:
-                        active = [i for i in active if not self.runs[i].failed]
-                        self.save(active)
-                        folders = dict.fromkeys(self.runs[i].run_dir for i in active)
-                        raise TrainingStopped(stop.signum, list(folders))
+                    self.stop_if_asked(stop, active)
         except BaseException:
             self.close(quietly=True)  # the error in flight is the one to report, not a second one
             raise
         self.close()
         return [run.final for run in self.runs]
+
+    def stop_if_asked(self, stop: StopRequest, active: list[int]) -> None:
+        """After an update, on a stop signal: a checkpoint of each active agent, then TrainingStopped."""
+        if stop.signum is None:
+            return
+        active = [i for i in active if not self.runs[i].failed]
+        self.save(active)
+        raise TrainingStopped(stop.signum, list(dict.fromkeys(self.runs[i].run_dir for i in active)))
 
     def step(self, active: list[int], k: int | None = None) -> int:
         """Run ``k`` updates of the ``active`` agents, booked, then the evaluations and checkpoints due.
@@ -218,10 +226,7 @@ class Trainer:
                     continue
                 failed = [what for what, ok in zip(learner.checks, checks[j][i], strict=True) if not ok]
                 if failed:
-                    runs[i].fail(
-                        f"training diverged at episode {runs[i].episodes_done}: non-finite "
-                        f"{' and '.join(failed)}; {learner.advice}"
-                    )
+                    runs[i].diverged(failed, learner.advice)
                     continue
                 ended = {key: values[j][i] for key, values in episodes.items()}
                 if valid is not None:  # a learner whose updates end different numbers of episodes
