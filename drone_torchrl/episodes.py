@@ -21,7 +21,7 @@ def _in_zone(reward: torch.Tensor) -> torch.Tensor:
     return reward == REWARD_IN_ZONE
 
 
-#: Episodes of the running means a run logs and ends with (its final metrics): the paper's smoothing window.
+#: The paper's smoothing window, in episodes, of the running means a run logs and ends with (its final metrics).
 RUNNING_MEAN_WINDOW = 100
 
 #: What a run record books of each finished episode (one episodes.csv column each).
