@@ -394,6 +394,8 @@ TRAIN = [
     (["algo=ppo", "algo.steps_per_batch=0"], "algo.steps_per_batch"),
     (["algo=ppo", "algo.epochs=0"], "algo.epochs"),
     (["algo=ppo", "algo.clip_epsilon=0"], "algo.clip_epsilon"),
+    (["algo=ppo", "algo.target_kl=0"], "algo.target_kl"),
+    (["algo=a2c", "algo.target_kl=0.01"], "algo.target_kl"),
     (["algo=ppo", "algo.gae_lambda=2"], "algo.gae_lambda"),
     (["algo=ppo", "algo.critic_coeff=0"], "algo.critic_coeff"),
     (["algo=ppo", "algo.reward_scale=-1"], "algo.reward_scale"),

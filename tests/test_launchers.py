@@ -316,13 +316,14 @@ def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
         assert not list(folder.glob("**/episodes.csv"))
     again = _multirun(sweep_dir, "hydra/launcher=population", *grid, cwd=tmp_path)
     assert again.count("already finished (4 agents); nothing to do") == 2, again
-    # drone-report reads each agent as the run it would be in its own folder: 4 settings of 2 seeds.
+    # drone-report reads each agent as the run it would be in its own folder: 2 settings (algo.lr)
+    # of 4 runs (eval.seed, which picks the evaluation's starts, is not a setting).
     from drone_torchrl.apps.report import main as report_main
     from drone_torchrl.report.runs import group_runs, load_runs
 
     runs = load_runs(sweep_dir)
     assert len(runs) == 8 and all(run.episodes == 3 and run.status == "finished" for run in runs)
-    assert sorted(len(setting.runs) for setting in group_runs(runs)) == [2, 2, 2, 2]
+    assert sorted(len(setting.runs) for setting in group_runs(runs)) == [4, 4]
     report_main([str(sweep_dir), "--no-pd", "--out", str(tmp_path / "report")])
     assert (tmp_path / "report").is_dir() and any((tmp_path / "report").iterdir())
 

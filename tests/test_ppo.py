@@ -332,3 +332,35 @@ def test_a_stop_signal_ends_an_on_policy_run_after_its_batch_with_a_checkpoint(t
     again = load_checkpoint(run / "checkpoints" / "last.pt")
     assert again["episodes_done"] >= sum(booked) + 8 and again["final"] is not None
     assert read_episodes(run / "episodes.csv")[0]["episode"].tolist() == list(range(again["episodes_done"]))
+
+
+@pytest.mark.parametrize("backend", ["reference", "fast"])
+def test_target_kl_ends_a_batch_s_epochs_at_the_first_minibatch_past_its_margin(backend):
+    """``algo.target_kl``: before each step after the batch's first, a minibatch whose approximate KL
+    from the flying policy exceeds 1.5 x target_kl ends the batch's epochs (Stable-Baselines3's
+    rule). 2 epochs x 4 minibatches, the loss's kl_approx replaced by a given sequence, target 0.1
+    (margin 0.15): no target or a sequence under the margin, 8 steps; 0.16 at the third minibatch,
+    2 steps; over the margin from the first, 1 step (the batch's first step is always taken)."""
+    from drone_torchrl.training.jobs import Job
+
+    small = ["algo=ppo", f"backend={backend}", "algo.num_envs=8", "algo.steps_per_batch=32"]
+    small += ["algo.minibatch_size=64", "algo.epochs=2"]
+    cases = {
+        ("null", (0.9,) * 8): 8,
+        ("0.1", (0.0, 0.14, 0.149, 0.149, 0.1, 0.0, 0.149, 0.149)): 8,
+        ("0.1", (0.0, 0.1, 0.16, 0.0, 0.0, 0.0, 0.0, 0.0)): 2,
+        ("0.1", (9.0,) * 8): 1,
+    }
+    for (target, kls), expected in cases.items():
+        learner = algorithms.get("ppo").learner([Job(_cfg(*small, f"algo.target_kl={target}"), run_dir=None)])
+        taken, sequence, losses = [], iter(kls), learner.losses
+
+        def given_kl(minibatch, losses=losses, sequence=sequence):
+            return {**losses(minibatch), "kl_approx": torch.tensor(next(sequence))}
+
+        step = learner.optimizer.step
+        learner.losses = given_kl
+        learner.optimizer.step = lambda *a, step=step, taken=taken, **k: (taken.append(1), step(*a, **k))[1]
+        metrics = learner._learn(next(learner._batches), 0)
+        assert len(taken) == expected, (target, kls)
+        assert all(np.isfinite(v) for v in metrics.values()) and "train/kl_approx" in metrics

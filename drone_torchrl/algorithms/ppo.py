@@ -212,19 +212,30 @@ class OnPolicy:
         # A batch cut at the budget may hold fewer frames than one minibatch: then one of all of them.
         size = min(algo.minibatch_size, frames)
         steps = frames // size
-        sums: dict[str, torch.Tensor] = {}
-        for epoch in range(algo.epochs):
+        limit, means, stepped = self.kl_limit(), {}, 0
+        for _ in range(algo.epochs):
+            sums: dict[str, torch.Tensor] = {}
+            done = 0
             for _ in range(steps):
                 losses = self.losses(self.minibatch(size))
+                # Stable-Baselines3's early stop: before a step that would move the policy further
+                # from the one that flew the batch (never before the batch's first step).
+                if limit is not None and stepped and float(losses["kl_approx"]) > limit:
+                    return means or {f"train/{k}": (v / done).item() for k, v in sums.items()}
                 total = sum(losses[k] for k in self.loss_keys)
                 self.optimizer.zero_grad()
                 total.backward()
                 norm = self.clip_gradients()
                 self.optimizer.step()
-                if epoch == algo.epochs - 1:
-                    for key, value in (*((k, losses[k]) for k in self.reported), ("grad_norm", norm)):
-                        sums[key] = sums.get(key, 0) + value.detach()
-        return {f"train/{k}": (v / steps).item() for k, v in sums.items()}
+                stepped, done = stepped + 1, done + 1
+                for key, value in (*((k, losses[k]) for k in self.reported), ("grad_norm", norm)):
+                    sums[key] = sums.get(key, 0) + value.detach()
+            means = {f"train/{k}": (v / steps).item() for k, v in sums.items()}
+        return means
+
+    def kl_limit(self) -> float | None:
+        """The approximate KL divergence that ends a batch's epochs early; None: no limit."""
+        return None
 
     state = None  # no stacked state: update() is a memory probe's (tests/test_memory_estimate.py)
 
@@ -300,6 +311,13 @@ class PPO(OnPolicy):
     """
 
     diagnostics = ("entropy", "kl_approx", "clip_fraction")
+    #: A batch's epochs stop where the approximate KL divergence exceeds this many times ``algo.target_kl``.
+    KL_MARGIN = 1.5
+
+    def kl_limit(self) -> float | None:
+        """``KL_MARGIN`` x ``algo.target_kl`` (Stable-Baselines3's rule), or None without one."""
+        target = self.cfg.algo.get("target_kl")
+        return None if target is None else self.KL_MARGIN * target
 
     def __init__(self, jobs) -> None:
         super().__init__(jobs)
@@ -375,6 +393,9 @@ class PPOConf(OnPolicyConf):
     """``algo.*`` of ``algo.name=ppo``: the on-policy keys and the clipping range."""
 
     clip_epsilon: Any = a_number(low=0, low_open=True, high=1)
+    # Stable-Baselines3's target_kl: a batch's epochs stop at the first minibatch whose approximate
+    # KL divergence from the policy that flew the batch exceeds 1.5 target_kl (null: never).
+    target_kl: Any = a_number(low=0, low_open=True, optional=True, added=None)
 
 
 store_plugin("algo", "ppo", PPOConf)
