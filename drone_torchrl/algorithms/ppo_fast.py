@@ -49,11 +49,10 @@ def clip_ppo_losses(
 ) -> dict[str, torch.Tensor]:
     """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch.
 
-    What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
-    on a minibatch of ``[observation, pre-image and log-determinant of the action (pre_image),
-    its log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
-    Normal's ``(loc, scale)``, ``value`` to state values. Its losses, ``clip_fraction`` and
-    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py).
+    The minibatch is ``[observation, pre-image and log-determinant of the action (pre_image), its
+    log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
+    Normal's ``(loc, scale)``, ``value`` to state values. Returns its losses, ``clip_fraction`` and
+    ``kl_approx``: the same values and gradients to float rounding (tests/test_ppo.py).
     """
     observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
     # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.
