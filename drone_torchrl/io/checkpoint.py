@@ -119,8 +119,7 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
 def tensors(state: Any, prefix: str = "") -> Iterator[tuple[str, torch.Tensor]]:
     """Every tensor of a checkpoint's nested dicts and lists, with its path, in storage order.
 
-    Every tensor of a checkpoint's nested dicts and lists, with its path (``actor/<key>``,
-    ``optimizer/state/0/exp_avg``), in the order they are stored.
+    A path reads like ``actor/<key>`` or ``optimizer/state/0/exp_avg``.
     """
     if isinstance(state, torch.Tensor):
         yield prefix, state

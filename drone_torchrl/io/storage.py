@@ -1,8 +1,7 @@
 """Writes the filesystem refuses (full disk, quota, read-only, name too long) as one line.
 
-Writes the filesystem refuses (a full disk, a quota, a read-only or forbidden folder, a name too
-long) as one line: the one module every command (drone-train, drone-eval, drone-export,
-drone-report) writes its files through.
+Read-only covers a forbidden folder too. This is the one module every command (drone-train,
+drone-eval, drone-export, drone-report) writes its files through.
 
 Python reports them as ``OSError`` from wherever the bytes were finally written, often without a
 file name (a buffered write fails at ``close``). Every file a command writes goes through
@@ -101,9 +100,9 @@ def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[
 def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryview) -> Path:
     """Write ``data`` to ``path`` atomically, through ``<path>.tmp`` and a rename.
 
-    Write ``data`` to ``path`` through ``<path>.tmp`` and a rename (making its folder): a reader,
-    or a process killed meanwhile, sees the old file or the whole new one, never a part. A refused
-    write is :class:`StorageError` and leaves no temporary file.
+    The folder is made if missing. A reader, or a process killed meanwhile, sees the old file or
+    the whole new one, never a part. A refused write is :class:`StorageError` and leaves no
+    temporary file.
     """
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")

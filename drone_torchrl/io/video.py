@@ -25,8 +25,8 @@ def record_video(
 ) -> np.ndarray:
     """Render one deterministic episode as ``uint8`` frames ``[T, H, W, 3]``, the reset frame first.
 
-    Render one deterministic episode: ``uint8`` frames ``[T, H, W, 3]``, the reset frame first,
-    then every ``frame_stride``-th step (drawing is the slow part, so skipped steps are not drawn).
+    After the reset frame comes every ``frame_stride``-th step (drawing is the slow part, so
+    skipped steps are not drawn).
 
     The episode starts where the first episode of :func:`drone_torchrl.evaluation.evaluate` with the
     same ``seed`` starts.
