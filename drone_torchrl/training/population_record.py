@@ -324,8 +324,8 @@ class PopulationRecord:
     def save(self, state: dict[str, torch.Tensor]) -> None:
         """Write ``last.pt`` with every agent's stacked state ``[N, ...]``; at the end, also close.
 
-        Write ``last.pt`` with every agent's ``state`` (the stacked tensors, ``[N, ...]`` each)
-        after the episodes it counts; at the end, the final summary too, and close.
+        The state is ``state``'s stacked tensors, written after the episodes it counts; at the end
+        the final summary is written too.
         """
         self.flush()
         save_checkpoint(self._checkpoint(state), self.run_dir / CHECKPOINT_DIR / LAST)

@@ -132,8 +132,8 @@ class AgentBook:
     def take_window(self, other: AgentBook | None) -> None:
         """Take ``other``'s running-mean windows; None empties them.
 
-        Take ``other``'s running-mean windows (an agent that took its weights is scored by them);
-        None: empty them (an agent restarted from fresh weights).
+        An agent that took ``other``'s weights is scored by its windows; one restarted from fresh
+        weights gets None.
         """
         self.recent_returns = deque([] if other is None else other.recent_returns, maxlen=self.window)
         self.recent_lengths = deque([] if other is None else other.recent_lengths, maxlen=self.window)
@@ -297,8 +297,8 @@ class RunRecord(AgentBook):
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
         """Book one update: its finished episodes and its training metrics.
 
-        Book one update: its finished episodes (``EPISODE_KEYS`` -> one value per episode, in the
-        order they finished) and its training metrics (TensorBoard every ``logger.every_updates``).
+        The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished; the
+        metrics go to TensorBoard every ``logger.every_updates``.
         """
         wall = round(self.wall_clock, 3)
         first = self.book(episodes["return"], episodes["length"])
@@ -382,8 +382,8 @@ class RunRecord(AgentBook):
     def flush(self) -> None:
         """Write the buffered CSV rows and logger scalars, and renew the run folder's lock.
 
-        Write the buffered CSV rows and TensorBoard scalars (files are open only while this runs),
-        and renew the run folder's lock (what another host reads as "its owner is alive").
+        The scalars are TensorBoard's; files are open only while this runs. The renewed lock is what
+        another host reads as "its owner is alive".
         """
         self.csv.flush()
         self.logger.flush()
@@ -393,8 +393,7 @@ class RunRecord(AgentBook):
     def close(self) -> None:
         """Flush and finish the logger, once, telling it whether the run finished, failed or stopped.
 
-        Flush and finish the logger, once: told whether the run finished, failed or stopped (a
-        backend with a service or open run, as W&B and MLflow have, records it).
+        A backend with a service or open run, as W&B and MLflow have, records that outcome.
         """
         if self._closed:
             return
