@@ -169,7 +169,7 @@ class RunLogger:
         """Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video (an animated GIF image summary).
 
         It is the record ``SummaryWriter.add_video`` writes, with the GIF from
-        :func:`~drone_torchrl.io.video.gif_bytes`: add_video's moviepy took about nine times as long
+        :func:`~drone_torchrl.io.video.gif_bytes`: add_video's moviepy took about ten times as long
         for a training video.
         """
         from tensorboard.compat.proto.summary_pb2 import Summary
