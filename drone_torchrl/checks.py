@@ -1,7 +1,7 @@
 """The one-line checks of config values: :class:`~.checks.ConfigError` and its checks.
 
-The one-line checks of config values: :class:`~.checks.ConfigError` and the number, choice and list checks
-the schema's rules (:mod:`drone_torchrl.schema`) and the cross-field checks use.
+The checks are of numbers, choices and lists; the schema's rules (:mod:`drone_torchrl.schema`) and
+the cross-field checks use them.
 """
 
 from __future__ import annotations

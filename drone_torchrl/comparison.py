@@ -117,8 +117,8 @@ def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
 def _flown_env(cfg: DictConfig, run_env: dict, path: Path) -> dict:
     """The run's env under the disturbances drone-eval was asked for.
 
-    The run's env under the disturbances drone-eval was asked for (``disturbance=...``), keeping
-    the run's ``observed_actions``: the policy's input layout, not a condition.
+    The disturbances are ``disturbance=...``'s; the run's ``observed_actions`` is kept, since it is
+    the policy's input layout, not a condition.
     """
     asked = env_kwargs(cfg)["disturbance"]
     trained = disturbances.make(run_env["disturbance"]).observed_actions

@@ -99,8 +99,8 @@ def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
 def _discover_plugins() -> None:
     """Import every algorithm and logger plug-in, so that each stores its schema.
 
-    Import every algorithm and logger plug-in (each stores its schema when imported): the cached
-    key lists above must not be made before they are (a caller that asks before any app ran).
+    Each stores it when imported. The cached key lists above must not be made before they are (a
+    caller that asks before any app ran).
     """
     algorithms.names()
     loggers.BACKENDS.names()
@@ -122,8 +122,7 @@ def per_agent_keys(name: str = "config") -> tuple[str, ...]:
 def resume_rule(key: str) -> str:
     """What a continued run does with ``key``; a key no schema has is kept.
 
-    What a continued run does with ``key`` (:data:`~drone_torchrl.schema.KEPT`, ``IF_SET``,
-    ``BUDGET`` or ``PROCESS``); a key no schema has is kept.
+    One of :data:`~drone_torchrl.schema.KEPT`, ``IF_SET``, ``BUDGET`` or ``PROCESS``.
     """
     rule = _every_key("config").get(key)
     return schema.KEPT if rule is None else rule.on_resume
@@ -233,8 +232,8 @@ def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str
 def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | None], dict[str, str]]:
     """``conf/<name>.yaml`` composed by Hydra with these group overrides: its plug-ins and options.
 
-    ``conf/<name>.yaml`` composed by Hydra with these group overrides: the plug-in of each plug-in
-    group (:func:`_option_plugins`), and the option of each config group (Hydra's own left out).
+    Returns the plug-in of each plug-in group (:func:`_option_plugins`), and the option of each
+    config group (Hydra's own left out).
     """
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -277,9 +276,8 @@ def _resolved(cfg: DictConfig | Mapping) -> Mapping:
 def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
     """Refuse keys the schema does not have, keys without a value, and plug-ins without a schema.
 
-    Refuse keys the schema of ``conf/<name>.yaml`` does not have (e.g. added with ``+``), keys
-    without a value, and plug-ins without a schema. Returns the config as resolved plain data
-    (``???`` and interpolations to nothing are refused).
+    The schema is that of ``conf/<name>.yaml``; a key it lacks was e.g. added with ``+``. Returns
+    the config as resolved plain data (``???`` and interpolations to nothing are refused).
     """
     try:
         resolved = _resolved(cfg)
@@ -393,9 +391,9 @@ def check_values(resolved: Mapping, name: str = "config") -> None:
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
     """One-line errors for command-line overrides Hydra would reject in several lines, or accept wrongly.
 
-    One-line errors for command-line overrides Hydra would reject with several lines, or accept
-    though they make no sense: an unknown key (with or without ``+``), an unknown group option, and
-    a run folder that is a file, and an override Hydra cannot parse (its grammar error in one line).
+    Accepted wrongly means accepted though they make no sense. The overrides refused: an unknown
+    key (with or without ``+``), an unknown group option, a run folder that is a file, and an
+    override Hydra cannot parse (its grammar error in one line).
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
@@ -476,8 +474,8 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
 def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
     """The one line for ``algo.name=ppo``: a plug-in is chosen with its group (``algo=ppo``).
 
-    The one line for ``algo.name=ppo``: the plug-in comes with its keys, so it is chosen with its
-    group (``algo=ppo``), which sets the key; setting the key alone leaves the other plug-in's keys.
+    The plug-in comes with its keys, so it is chosen with its group, which sets the key; setting
+    the key alone leaves the other plug-in's keys.
     """
     values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
     value = values[0]
@@ -512,10 +510,9 @@ def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list
 def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
     """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick, or None.
 
-    The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick (the last
-    plain one of each group, or every option a sweep names; an option of any group may pick the
-    plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``), or None if Hydra cannot compose
-    those. Over a sweep, the keys every one of its jobs has.
+    The options picked are the last plain one of each group, or every option a sweep names; an
+    option of any group may pick the plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``.
+    None if Hydra cannot compose those. Over a sweep, the keys every one of its jobs has.
     """
     if not schema.plugin_groups(name):
         return schema_keys(name)
@@ -675,11 +672,10 @@ def _check_folder(key: str, value: Any) -> None:
 def check_default_folder(name: str, args: Iterable[str]) -> None:
     """The folder Hydra makes and writes its record into before any of our code runs.
 
-    The folder Hydra makes and writes its record into before any of our code runs, when ``args``
-    name none: the default of ``hydra.run.dir`` (``hydra.sweep.dir`` with ``-m``) in
-    ``conf/<name>.yaml``, e.g. ``outputs/<date>/<time>``. A read-only or full working folder is
-    refused in one line (it was Hydra's traceback). For commands that train or fly (not for
-    ``--cfg``, ``--help``), which write there.
+    It is checked when ``args`` name none: the default of ``hydra.run.dir`` (``hydra.sweep.dir``
+    with ``-m``) in ``conf/<name>.yaml``, e.g. ``outputs/<date>/<time>``. A read-only or full
+    working folder is refused in one line (it was Hydra's traceback). For commands that train or
+    fly (not for ``--cfg``, ``--help``), which write there.
     """
     args = list(args)
     key = "hydra.sweep.dir" if {"-m", "--multirun"} & set(args) else "hydra.run.dir"
@@ -711,10 +707,10 @@ def check_command_line(prog: str, name: str) -> None:
 def run_config(saved: dict[str, Any]) -> DictConfig:
     """The config stored in a checkpoint, in today's keys, with the keys added since filled in.
 
-    The config stored in a checkpoint, in today's keys: those replaced since read as their new ones
-    (:func:`drone_torchrl.migrations.migrate_config`: ``engine`` as ``backend``...), and keys added
-    since filled in with the value those runs behaved as (the schema's ``added``; only the keys of
-    its plug-ins: a PPO run has no REINFORCE optimizer keys), so old runs can still be evaluated and
+    The keys replaced since are read as their new ones
+    (:func:`drone_torchrl.migrations.migrate_config`: ``engine`` as ``backend``...). The keys added
+    since get the value those runs behaved as (the schema's ``added``; only the keys of its
+    plug-ins: a PPO run has no REINFORCE optimizer keys), so old runs can still be evaluated and
     resumed.
     """
     cfg = OmegaConf.create(migrations.migrate_config(saved))
@@ -748,8 +744,7 @@ def physics_params(kwargs: dict[str, Any]) -> DroneParams:
 def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     """The ``DroneEnv`` arguments of a config (a ``DictConfig`` or a saved one's plain dict).
 
-    The ``DroneEnv`` arguments of a config (a ``DictConfig`` or the plain dict of a saved one); a
-    saved config from before an argument existed gets its :data:`ENV_ADDED` value.
+    A saved config from before an argument existed gets its :data:`ENV_ADDED` value.
     """
     env = cfg["env"]
     kwargs = {name: env[name] if name in env else ENV_ADDED[name] for name in ENV_ARGS}
@@ -842,9 +837,9 @@ def check_device(device: Any) -> None:
 def _env_error(device: Any, kwargs: tuple[tuple[str, type, Any], ...]) -> str | None:
     """What ``DroneEnv`` says of these arguments (``(name, type, value)``), or None; cached.
 
-    What ``DroneEnv`` says of these arguments (``(name, type, value)``: the type is part of the
-    key, since ``1``, ``1.0`` and ``True`` are equal keys but not equally allowed), or None.
-    Cached: a sweep's jobs mostly share them, and building the env is most of a job's validation.
+    The type is part of the key, since ``1``, ``1.0`` and ``True`` are equal keys but not equally
+    allowed. Cached because a sweep's jobs mostly share the arguments, and building the env is most
+    of a job's validation.
     """
     try:
         DroneEnv(batch_size=[], device=device, **{name: value for name, _, value in kwargs}).close()
@@ -970,8 +965,8 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
 def check_memory(cfg: Mapping[str, Any], agents: int = 1) -> None:
     """Refuse in one line a config whose memory exceeds what this machine has free.
 
-    Refuse in one line a config whose memory (:mod:`drone_torchrl.training.memory_estimate`), with
-    ``agents`` runs trained together in one process, exceeds what this machine has free.
+    The memory is :mod:`drone_torchrl.training.memory_estimate`'s, with ``agents`` runs trained
+    together in one process.
     """
     learner = algorithms.get(cfg["algo"]["name"]).memory
     memory_estimate.check(memory_estimate.estimate(cfg, agents, learner), cfg["device"])

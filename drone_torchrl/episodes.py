@@ -64,9 +64,8 @@ def episode_stats(rollout: TensorDictBase | Episodes) -> dict[str, torch.Tensor]
 def counted_metrics(length: torch.Tensor, counts: torch.Tensor) -> dict[str, torch.Tensor]:
     """:data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies.
 
-    :data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies
-    (``[*B, 4]``: :data:`drone_torchrl.kernels.ops.STAT_NAMES`) and the lengths: the same numbers
-    as :func:`episode_stats`.
+    The counts are ``[*B, 4]`` (:data:`drone_torchrl.kernels.ops.STAT_NAMES`), read with the
+    lengths; the numbers are the same as :func:`episode_stats`'s.
     """
     steps = length.clamp_min(1).to(counts.dtype)
     return {
