@@ -25,10 +25,10 @@ LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 def pre_image(head: tuple[type, dict], action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The Normal sample that ``head`` squashes into ``action``, and the squashing's log-determinant.
 
-    The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
-    the log-determinant of that squashing summed over the action: both depend on the action only, so
-    a batch's are computed once, and each minibatch's log-probability is then the Normal's (what
-    ``TransformedDistribution.log_prob`` computes, without its objects).
+    ``head`` is the distribution class and its kwargs; the log-determinant is summed over the
+    action. Both depend on the action only, so a batch's are computed once, and each minibatch's
+    log-probability is then the Normal's (what ``TransformedDistribution.log_prob`` computes,
+    without its objects).
     """
     dist_class, kwargs = head
     dist = dist_class(torch.zeros_like(action), torch.ones_like(action), **kwargs)
