@@ -69,8 +69,7 @@ class Episodes(NamedTuple):
     ) -> Episodes:
         """Build rows of ``length`` steps out of longer buffers, zeroing the entries after each row's end.
 
-        Rows of ``length`` steps out of longer buffers (``states[..., length, :]`` is the state after a
-        row's last step): the entries after each row's end are zeroed.
+        ``states[..., length, :]`` is the state after a row's last step.
         """
         steps = torch.arange(reward.shape[-1] + 1, device=length.device)
         keep = steps <= length.unsqueeze(-1)  # states: up to the one after the last step
