@@ -116,8 +116,8 @@ def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryvi
 def write_figure(fig: Any, path: str | os.PathLike, **savefig: Any) -> Path:
     """Save a matplotlib figure as ``path`` atomically (its suffix names the format).
 
-    A matplotlib figure saved as ``path`` (its suffix names the format), atomically: matplotlib
-    writes straight into the file, so a full disk would leave a partial image.
+    Atomically because matplotlib writes straight into the file, so a full disk would leave a
+    partial image.
     """
     buffer = io.BytesIO()
     fig.savefig(buffer, format=Path(path).suffix.lstrip(".") or None, **savefig)
