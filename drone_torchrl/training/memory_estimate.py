@@ -191,8 +191,7 @@ def rollout_bytes(b: int) -> int:
 def graph_bytes(hidden: Sequence[int], b: int) -> int:
     """Bytes of the loss's autograd graph per sample through hidden layers of these widths.
 
-    The loss's autograd graph per sample through hidden layers of these widths (every layer's
-    activation, and the backward pass's gradients at the widest).
+    The graph holds every layer's activation, and the backward pass's gradients at the widest.
     """
     return (sum(hidden) + BACKWARD_COPIES * max(hidden)) * b
 

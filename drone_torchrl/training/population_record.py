@@ -447,8 +447,8 @@ def read_table(path: Path) -> dict[str, list]:
 def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[str, Any]]:
     """Open a checkpoint; of a population run's, its agent ``agent``.
 
-    :func:`~drone_torchrl.config.open_checkpoint`, and of a population run's checkpoint its agent
-    ``agent`` (:func:`agent_checkpoint`); ``agent`` is for population runs only.
+    Opened by :func:`~drone_torchrl.config.open_checkpoint`, the agent taken by
+    :func:`agent_checkpoint`; ``agent`` is for population runs only.
     """
     path, state = open_checkpoint(key, location)
     if is_population(state):

@@ -204,8 +204,7 @@ class AgentBook:
     def updates_until_due(self, episodes_per_update: int) -> int:
         """Updates of ``episodes_per_update`` episodes until an evaluation, checkpoint or the end is due.
 
-        How many updates of ``episodes_per_update`` episodes until an evaluation, a checkpoint or
-        the end of the budget falls due (at least 1).
+        The end is the budget's; at least 1.
         """
         targets = [self.next_checkpoint, self.budget]
         if self.next_eval is not None:
@@ -328,8 +327,8 @@ class RunRecord(AgentBook):
     ) -> None:
         """Book an evaluation: TensorBoard, ``best.pt`` when it is the best so far, and a video.
 
-        Book an evaluation (``return``, ``length``, ``time_in_zone`` means): TensorBoard, ``best.pt``
-        when it is the best so far, and a video of ``actor()`` when ``eval.video``.
+        The evaluation's numbers are the ``return``, ``length`` and ``time_in_zone`` means; the
+        video, of ``actor()``, only with ``eval.video``.
         """
         cfg = self.cfg
         step = self.episodes_done
@@ -369,8 +368,7 @@ class RunRecord(AgentBook):
     def save(self, learner: dict[str, Any]) -> None:
         """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close.
 
-        Write ``last.pt`` (the CSV is flushed first, so the two agree after a kill); at the end also
-        the final hparams, and close the files.
+        The CSV is flushed first so the two agree after a kill; closing closes the files.
         """
         self.flush()  # the CSV holds every episode the checkpoint counts
         save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
