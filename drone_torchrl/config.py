@@ -86,8 +86,7 @@ _REGISTRIES = {"algo": algorithms.get, "logger": loggers.get}
 def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
     """Every key of a ``conf/<name>.yaml`` config, in order, with its :class:`~drone_torchrl.schema.Rule`.
 
-    ``{"algo.lr": rule, ...}``: every key of a ``conf/<name>.yaml`` config, in order, with its
-    :class:`~drone_torchrl.schema.Rule`, from the schemas in Hydra's ConfigStore. ``plugins``: the
+    Returns ``{"algo.lr": rule, ...}``, from the schemas in Hydra's ConfigStore. ``plugins``: the
     plug-in of each plug-in group (``algo="ppo"``; a group not given, or a plug-in without a stored
     schema, adds no keys).
     """
@@ -177,8 +176,8 @@ def group_options(group: str) -> list[str]:
 def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
     """The plug-in each option of plug-in group ``group`` chooses, with the options that choose it.
 
-    ``{"reinforce": ["reinforce", "reinforce_plus"], ...}``: the plug-in each option of plug-in group
-    ``group`` chooses, with the options that choose it (an option Hydra cannot compose is left out).
+    Returns ``{"reinforce": ["reinforce", "reinforce_plus"], ...}``; an option Hydra cannot compose
+    is left out.
     """
     out: dict[str, list[str]] = {}
     for option in _options(group):
@@ -220,10 +219,10 @@ def _option_keys(group: str, option: str) -> dict[str, Rule]:
 def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str, str | None]:
     """The plug-in each plug-in group names in ``conf/<name>.yaml`` composed with these group options.
 
-    ``{"algo": "reinforce", "logger": "tensorboard"}``: the plug-in each plug-in group names in
-    ``conf/<name>.yaml`` composed by Hydra with these group options (``(("algo", "reinforce_plus"),)``;
-    the others: the config's defaults). An option's file name is free, so only Hydra knows its
-    plug-in: several options may share one (reinforce_plus is REINFORCE with other values).
+    Returns ``{"algo": "reinforce", "logger": "tensorboard"}``; Hydra composes the config with the
+    options given (``(("algo", "reinforce_plus"),)``; the others: the config's defaults). An
+    option's file name is free, so only Hydra knows its plug-in: several options may share one
+    (reinforce_plus is REINFORCE with other values).
     """
     return _composed(name, tuple(f"{group}={option}" for group, option in choices))[0]
 
@@ -490,8 +489,8 @@ def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
 def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list[str]) -> None:
     """Check that a section set on the command line is a mapping of its own keys.
 
-    A section (``env.disturbance``, ``eval``) set on the command line: a mapping of its own keys
-    (Hydra merges it); null, a number or a list fail Hydra's merge in several lines.
+    A section is e.g. ``env.disturbance`` or ``eval``, which Hydra merges; null, a number or a list
+    fail Hydra's merge in several lines.
     """
     if isinstance(value, Mapping):
         for sub, inner in value.items():
@@ -557,8 +556,8 @@ PLUGIN_PRESETS = "presets"
 def _check_presets(parsed: list, name: str) -> None:
     """Refuse a preset that picks a plug-in together with another plug-in on the command line.
 
-    A preset that picks a plug-in (``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its
-    keys) with another one on the command line: refused, naming the preset it builds on as the way.
+    E.g. ``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its keys. The refusal names the
+    preset it builds on as the way.
     """
     if PRESET_GROUP not in group_names() or not schema.plugin_groups(name):
         return
@@ -651,8 +650,8 @@ def _check_folder_name(key: str, value: Any, expected: str) -> None:
 def _check_folder(key: str, value: Any) -> None:
     """Check that the run can create or write into ``folder``.
 
-    A folder the run can create or write into: not empty, not a file, a name the file system
-    takes, under a folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`).
+    It must not be empty or a file, must be a name the file system takes, and must lie under a
+    folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`).
     """
     import os
 
@@ -796,9 +795,9 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
 def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig) -> None:
     """Check that the checkpoint's weights fit the networks of ``cfg``.
 
-    The checkpoint's weights fit the networks of ``cfg`` (its run's config, validated): its actor
-    and, for an algorithm that keeps one among its checkpoint entries, its critic, each tensor of the
-    shape they have. :class:`~.checks.ConfigError` naming the key, the file and the first tensor that differs;
+    ``cfg`` is the run's config, validated. The networks are its actor and, for an algorithm that
+    keeps one among its checkpoint entries, its critic; each tensor must have their shape.
+    :class:`~.checks.ConfigError` naming the key, the file and the first tensor that differs;
     the networks are built on the meta device (shapes only: no memory, no time).
     """
     import torch

@@ -14,9 +14,8 @@ from drone_torchrl.envs.rollout import Episodes
 def _in_zone(reward: torch.Tensor) -> torch.Tensor:
     """The steps ``[*B, T]`` that ended inside the target zone without terminating.
 
-    The steps that ended inside the target zone without terminating: those the env rewarded with
-    :data:`~drone_torchrl.envs.dynamics.REWARD_IN_ZONE` (it alone knows its zone, bounds and dtype;
-    the other rewards, 1 and 0, differ from it).
+    Those are the steps the env rewarded with :data:`~drone_torchrl.envs.dynamics.REWARD_IN_ZONE`
+    (it alone knows its zone, bounds and dtype; the other rewards, 1 and 0, differ from it).
     """
     return reward == REWARD_IN_ZONE
 

@@ -470,8 +470,8 @@ def forward_passes(
 ) -> dict[str, Callable[[], Any]]:
     """Callables that each run one forward pass: of the eager policy and of each exported file.
 
-    One forward pass of ``batch`` observations (hovering in the zone) each: the eager policy
-    (``eager torch``) and each file in ``files`` (format -> path) in its runtime (:data:`RUNTIMES`).
+    Each pass is of ``batch`` observations (hovering in the zone). The eager policy is
+    ``eager torch``; each file in ``files`` (format -> path) runs in its runtime (:data:`RUNTIMES`).
     """
     hover = [*HOVER_OBSERVATION, *[HOVER_THRUST] * (observation_dim(policy) - STATE_DIM)]
     observation = torch.tensor([hover], dtype=_dtype(policy)).expand(batch, len(hover)).contiguous()
