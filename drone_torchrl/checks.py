@@ -1,7 +1,7 @@
 """The one-line checks of config values: :class:`~.checks.ConfigError` and its checks.
 
-The one-line checks of config values: :class:`~.checks.ConfigError` and the number, choice and list checks
-the schema's rules (:mod:`drone_torchrl.schema`) and the cross-field checks use.
+The checks are of numbers, choices and lists; the schema's rules (:mod:`drone_torchrl.schema`) and
+the cross-field checks use them.
 """
 
 from __future__ import annotations
@@ -57,8 +57,8 @@ def check_number(
 ) -> None:
     """Check that ``value`` of ``key`` is a finite number within the bounds.
 
-    ``value`` of ``key`` is a finite number (an integer with ``integer``) within the bounds; without
-    an upper bound, within float32's range (an integer: int64's).
+    With ``integer`` it must be an integer. Without an upper bound, it must be within float32's
+    range (an integer: int64's).
     """
     limit = INT64_MAX if integer else FLOAT32_MAX
     numeric = isinstance(value, int | float) and not isinstance(value, bool)

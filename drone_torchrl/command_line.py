@@ -44,8 +44,8 @@ SWEEP_RECORD = "multirun.yaml"
 def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
     """Hydra's own command-line flags, parsed with its parser; a bad flag is a one-line error.
 
-    Hydra's own command-line flags, parsed with its parser; an unknown or incomplete flag is a
-    one-line :class:`~.checks.ConfigError` instead of argparse's usage text.
+    An unknown or incomplete flag is a :class:`~.checks.ConfigError` instead of argparse's usage
+    text.
     """
     parser = hydra_args_parser()
     parser.prog = prog

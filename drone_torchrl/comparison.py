@@ -47,8 +47,7 @@ def plot_trajectory(
 ) -> Path:
     """Plot the first episode's x-z path over the domain and target zone, and both thrusts over time.
 
-    x-z path of the first episode over the domain and target zone of ``params`` (default: the
-    paper's), and both thrusts over time.
+    The domain and zone are those of ``params`` (default: the paper's).
     """
     import matplotlib
 
@@ -96,8 +95,8 @@ def plot_trajectory(
 def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
     """Refuse an ``env.*`` override that differs from the checkpoint's run: it flies in its own env.
 
-    A checkpoint flies in its own run's env: an ``env.*`` override that differs is refused, not
-    ignored. The disturbances are the evaluation's conditions (:func:`_flown_env`), not the run's.
+    Such an override is refused, not ignored. The disturbances are the evaluation's conditions
+    (:func:`_flown_env`), not the run's.
     """
     keys = command_line_keys() or set()
     changed = [
@@ -117,8 +116,8 @@ def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
 def _flown_env(cfg: DictConfig, run_env: dict, path: Path) -> dict:
     """The run's env under the disturbances drone-eval was asked for.
 
-    The run's env under the disturbances drone-eval was asked for (``disturbance=...``), keeping
-    the run's ``observed_actions``: the policy's input layout, not a condition.
+    The disturbances are ``disturbance=...``'s; the run's ``observed_actions`` is kept, since it is
+    the policy's input layout, not a condition.
     """
     asked = env_kwargs(cfg)["disturbance"]
     trained = disturbances.make(run_env["disturbance"]).observed_actions

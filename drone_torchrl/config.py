@@ -86,8 +86,7 @@ _REGISTRIES = {"algo": algorithms.get, "logger": loggers.get}
 def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
     """Every key of a ``conf/<name>.yaml`` config, in order, with its :class:`~drone_torchrl.schema.Rule`.
 
-    ``{"algo.lr": rule, ...}``: every key of a ``conf/<name>.yaml`` config, in order, with its
-    :class:`~drone_torchrl.schema.Rule`, from the schemas in Hydra's ConfigStore. ``plugins``: the
+    Returns ``{"algo.lr": rule, ...}``, from the schemas in Hydra's ConfigStore. ``plugins``: the
     plug-in of each plug-in group (``algo="ppo"``; a group not given, or a plug-in without a stored
     schema, adds no keys).
     """
@@ -99,8 +98,8 @@ def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
 def _discover_plugins() -> None:
     """Import every algorithm and logger plug-in, so that each stores its schema.
 
-    Import every algorithm and logger plug-in (each stores its schema when imported): the cached
-    key lists above must not be made before they are (a caller that asks before any app ran).
+    Each stores it when imported. The cached key lists above must not be made before they are (a
+    caller that asks before any app ran).
     """
     algorithms.names()
     loggers.BACKENDS.names()
@@ -122,8 +121,7 @@ def per_agent_keys(name: str = "config") -> tuple[str, ...]:
 def resume_rule(key: str) -> str:
     """What a continued run does with ``key``; a key no schema has is kept.
 
-    What a continued run does with ``key`` (:data:`~drone_torchrl.schema.KEPT`, ``IF_SET``,
-    ``BUDGET`` or ``PROCESS``); a key no schema has is kept.
+    One of :data:`~drone_torchrl.schema.KEPT`, ``IF_SET``, ``BUDGET`` or ``PROCESS``.
     """
     rule = _every_key("config").get(key)
     return schema.KEPT if rule is None else rule.on_resume
@@ -178,8 +176,8 @@ def group_options(group: str) -> list[str]:
 def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
     """The plug-in each option of plug-in group ``group`` chooses, with the options that choose it.
 
-    ``{"reinforce": ["reinforce", "reinforce_plus"], ...}``: the plug-in each option of plug-in group
-    ``group`` chooses, with the options that choose it (an option Hydra cannot compose is left out).
+    Returns ``{"reinforce": ["reinforce", "reinforce_plus"], ...}``; an option Hydra cannot compose
+    is left out.
     """
     out: dict[str, list[str]] = {}
     for option in _options(group):
@@ -221,10 +219,10 @@ def _option_keys(group: str, option: str) -> dict[str, Rule]:
 def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str, str | None]:
     """The plug-in each plug-in group names in ``conf/<name>.yaml`` composed with these group options.
 
-    ``{"algo": "reinforce", "logger": "tensorboard"}``: the plug-in each plug-in group names in
-    ``conf/<name>.yaml`` composed by Hydra with these group options (``(("algo", "reinforce_plus"),)``;
-    the others: the config's defaults). An option's file name is free, so only Hydra knows its
-    plug-in: several options may share one (reinforce_plus is REINFORCE with other values).
+    Returns ``{"algo": "reinforce", "logger": "tensorboard"}``; Hydra composes the config with the
+    options given (``(("algo", "reinforce_plus"),)``; the others: the config's defaults). An
+    option's file name is free, so only Hydra knows its plug-in: several options may share one
+    (reinforce_plus is REINFORCE with other values).
     """
     return _composed(name, tuple(f"{group}={option}" for group, option in choices))[0]
 
@@ -233,8 +231,8 @@ def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str
 def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | None], dict[str, str]]:
     """``conf/<name>.yaml`` composed by Hydra with these group overrides: its plug-ins and options.
 
-    ``conf/<name>.yaml`` composed by Hydra with these group overrides: the plug-in of each plug-in
-    group (:func:`_option_plugins`), and the option of each config group (Hydra's own left out).
+    Returns the plug-in of each plug-in group (:func:`_option_plugins`), and the option of each
+    config group (Hydra's own left out).
     """
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -277,9 +275,8 @@ def _resolved(cfg: DictConfig | Mapping) -> Mapping:
 def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
     """Refuse keys the schema does not have, keys without a value, and plug-ins without a schema.
 
-    Refuse keys the schema of ``conf/<name>.yaml`` does not have (e.g. added with ``+``), keys
-    without a value, and plug-ins without a schema. Returns the config as resolved plain data
-    (``???`` and interpolations to nothing are refused).
+    The schema is that of ``conf/<name>.yaml``; a key it lacks was e.g. added with ``+``. Returns
+    the config as resolved plain data (``???`` and interpolations to nothing are refused).
     """
     try:
         resolved = _resolved(cfg)
@@ -393,9 +390,9 @@ def check_values(resolved: Mapping, name: str = "config") -> None:
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
     """One-line errors for command-line overrides Hydra would reject in several lines, or accept wrongly.
 
-    One-line errors for command-line overrides Hydra would reject with several lines, or accept
-    though they make no sense: an unknown key (with or without ``+``), an unknown group option, and
-    a run folder that is a file, and an override Hydra cannot parse (its grammar error in one line).
+    Accepted wrongly means accepted though they make no sense. The overrides refused: an unknown
+    key (with or without ``+``), an unknown group option, a run folder that is a file, and an
+    override Hydra cannot parse (its grammar error in one line).
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
@@ -476,8 +473,8 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
 def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
     """The one line for ``algo.name=ppo``: a plug-in is chosen with its group (``algo=ppo``).
 
-    The one line for ``algo.name=ppo``: the plug-in comes with its keys, so it is chosen with its
-    group (``algo=ppo``), which sets the key; setting the key alone leaves the other plug-in's keys.
+    The plug-in comes with its keys, so it is chosen with its group, which sets the key; setting
+    the key alone leaves the other plug-in's keys.
     """
     values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
     value = values[0]
@@ -492,8 +489,8 @@ def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
 def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list[str]) -> None:
     """Check that a section set on the command line is a mapping of its own keys.
 
-    A section (``env.disturbance``, ``eval``) set on the command line: a mapping of its own keys
-    (Hydra merges it); null, a number or a list fail Hydra's merge in several lines.
+    A section is e.g. ``env.disturbance`` or ``eval``, which Hydra merges; null, a number or a list
+    fail Hydra's merge in several lines.
     """
     if isinstance(value, Mapping):
         for sub, inner in value.items():
@@ -512,10 +509,9 @@ def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list
 def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
     """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick, or None.
 
-    The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick (the last
-    plain one of each group, or every option a sweep names; an option of any group may pick the
-    plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``), or None if Hydra cannot compose
-    those. Over a sweep, the keys every one of its jobs has.
+    The options picked are the last plain one of each group, or every option a sweep names; an
+    option of any group may pick the plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``.
+    None if Hydra cannot compose those. Over a sweep, the keys every one of its jobs has.
     """
     if not schema.plugin_groups(name):
         return schema_keys(name)
@@ -560,8 +556,8 @@ PLUGIN_PRESETS = "presets"
 def _check_presets(parsed: list, name: str) -> None:
     """Refuse a preset that picks a plug-in together with another plug-in on the command line.
 
-    A preset that picks a plug-in (``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its
-    keys) with another one on the command line: refused, naming the preset it builds on as the way.
+    E.g. ``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its keys. The refusal names the
+    preset it builds on as the way.
     """
     if PRESET_GROUP not in group_names() or not schema.plugin_groups(name):
         return
@@ -654,8 +650,8 @@ def _check_folder_name(key: str, value: Any, expected: str) -> None:
 def _check_folder(key: str, value: Any) -> None:
     """Check that the run can create or write into ``folder``.
 
-    A folder the run can create or write into: not empty, not a file, a name the file system
-    takes, under a folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`).
+    It must not be empty or a file, must be a name the file system takes, and must lie under a
+    folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`).
     """
     import os
 
@@ -675,11 +671,10 @@ def _check_folder(key: str, value: Any) -> None:
 def check_default_folder(name: str, args: Iterable[str]) -> None:
     """The folder Hydra makes and writes its record into before any of our code runs.
 
-    The folder Hydra makes and writes its record into before any of our code runs, when ``args``
-    name none: the default of ``hydra.run.dir`` (``hydra.sweep.dir`` with ``-m``) in
-    ``conf/<name>.yaml``, e.g. ``outputs/<date>/<time>``. A read-only or full working folder is
-    refused in one line (it was Hydra's traceback). For commands that train or fly (not for
-    ``--cfg``, ``--help``), which write there.
+    It is checked when ``args`` name none: the default of ``hydra.run.dir`` (``hydra.sweep.dir``
+    with ``-m``) in ``conf/<name>.yaml``, e.g. ``outputs/<date>/<time>``. A read-only or full
+    working folder is refused in one line (it was Hydra's traceback). For commands that train or
+    fly (not for ``--cfg``, ``--help``), which write there.
     """
     args = list(args)
     key = "hydra.sweep.dir" if {"-m", "--multirun"} & set(args) else "hydra.run.dir"
@@ -711,10 +706,10 @@ def check_command_line(prog: str, name: str) -> None:
 def run_config(saved: dict[str, Any]) -> DictConfig:
     """The config stored in a checkpoint, in today's keys, with the keys added since filled in.
 
-    The config stored in a checkpoint, in today's keys: those replaced since read as their new ones
-    (:func:`drone_torchrl.migrations.migrate_config`: ``engine`` as ``backend``...), and keys added
-    since filled in with the value those runs behaved as (the schema's ``added``; only the keys of
-    its plug-ins: a PPO run has no REINFORCE optimizer keys), so old runs can still be evaluated and
+    The keys replaced since are read as their new ones
+    (:func:`drone_torchrl.migrations.migrate_config`: ``engine`` as ``backend``...). The keys added
+    since get the value those runs behaved as (the schema's ``added``; only the keys of its
+    plug-ins: a PPO run has no REINFORCE optimizer keys), so old runs can still be evaluated and
     resumed.
     """
     cfg = OmegaConf.create(migrations.migrate_config(saved))
@@ -748,8 +743,7 @@ def physics_params(kwargs: dict[str, Any]) -> DroneParams:
 def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     """The ``DroneEnv`` arguments of a config (a ``DictConfig`` or a saved one's plain dict).
 
-    The ``DroneEnv`` arguments of a config (a ``DictConfig`` or the plain dict of a saved one); a
-    saved config from before an argument existed gets its :data:`ENV_ADDED` value.
+    A saved config from before an argument existed gets its :data:`ENV_ADDED` value.
     """
     env = cfg["env"]
     kwargs = {name: env[name] if name in env else ENV_ADDED[name] for name in ENV_ARGS}
@@ -801,9 +795,9 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
 def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig) -> None:
     """Check that the checkpoint's weights fit the networks of ``cfg``.
 
-    The checkpoint's weights fit the networks of ``cfg`` (its run's config, validated): its actor
-    and, for an algorithm that keeps one among its checkpoint entries, its critic, each tensor of the
-    shape they have. :class:`~.checks.ConfigError` naming the key, the file and the first tensor that differs;
+    ``cfg`` is the run's config, validated. The networks are its actor and, for an algorithm that
+    keeps one among its checkpoint entries, its critic; each tensor must have their shape.
+    :class:`~.checks.ConfigError` naming the key, the file and the first tensor that differs;
     the networks are built on the meta device (shapes only: no memory, no time).
     """
     import torch
@@ -842,9 +836,9 @@ def check_device(device: Any) -> None:
 def _env_error(device: Any, kwargs: tuple[tuple[str, type, Any], ...]) -> str | None:
     """What ``DroneEnv`` says of these arguments (``(name, type, value)``), or None; cached.
 
-    What ``DroneEnv`` says of these arguments (``(name, type, value)``: the type is part of the
-    key, since ``1``, ``1.0`` and ``True`` are equal keys but not equally allowed), or None.
-    Cached: a sweep's jobs mostly share them, and building the env is most of a job's validation.
+    The type is part of the key, since ``1``, ``1.0`` and ``True`` are equal keys but not equally
+    allowed. Cached because a sweep's jobs mostly share the arguments, and building the env is most
+    of a job's validation.
     """
     try:
         DroneEnv(batch_size=[], device=device, **{name: value for name, _, value in kwargs}).close()
@@ -970,8 +964,8 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
 def check_memory(cfg: Mapping[str, Any], agents: int = 1) -> None:
     """Refuse in one line a config whose memory exceeds what this machine has free.
 
-    Refuse in one line a config whose memory (:mod:`drone_torchrl.training.memory_estimate`), with
-    ``agents`` runs trained together in one process, exceeds what this machine has free.
+    The memory is :mod:`drone_torchrl.training.memory_estimate`'s, with ``agents`` runs trained
+    together in one process.
     """
     learner = algorithms.get(cfg["algo"]["name"]).memory
     memory_estimate.check(memory_estimate.estimate(cfg, agents, learner), cfg["device"])

@@ -14,9 +14,8 @@ from drone_torchrl.envs.rollout import Episodes
 def _in_zone(reward: torch.Tensor) -> torch.Tensor:
     """The steps ``[*B, T]`` that ended inside the target zone without terminating.
 
-    The steps that ended inside the target zone without terminating: those the env rewarded with
-    :data:`~drone_torchrl.envs.dynamics.REWARD_IN_ZONE` (it alone knows its zone, bounds and dtype;
-    the other rewards, 1 and 0, differ from it).
+    Those are the steps the env rewarded with :data:`~drone_torchrl.envs.dynamics.REWARD_IN_ZONE`
+    (it alone knows its zone, bounds and dtype; the other rewards, 1 and 0, differ from it).
     """
     return reward == REWARD_IN_ZONE
 
@@ -64,9 +63,8 @@ def episode_stats(rollout: TensorDictBase | Episodes) -> dict[str, torch.Tensor]
 def counted_metrics(length: torch.Tensor, counts: torch.Tensor) -> dict[str, torch.Tensor]:
     """:data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies.
 
-    :data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies
-    (``[*B, 4]``: :data:`drone_torchrl.kernels.ops.STAT_NAMES`) and the lengths: the same numbers
-    as :func:`episode_stats`.
+    The counts are ``[*B, 4]`` (:data:`drone_torchrl.kernels.ops.STAT_NAMES`), read with the
+    lengths; the numbers are the same as :func:`episode_stats`'s.
     """
     steps = length.clamp_min(1).to(counts.dtype)
     return {

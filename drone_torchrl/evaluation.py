@@ -103,11 +103,10 @@ def max_return(env_kwargs: dict[str, Any]) -> float:
 def reference_optimum(env_kwargs: dict[str, Any]) -> Optimum | None:
     """The best achievable return of the env's episodes where it is the reference: with bounded thrust.
 
-    The best achievable return of the env's episodes (:func:`drone_torchrl.optimum.env_optimum`)
-    where it is the reference for returns: with bounded thrust. ``None`` with unbounded thrust (the
-    bound is the ceiling ``10 * max_steps``, reached only by a thrust pulse of hundreds of weights,
-    so the PD controller is the practical reference), under disturbances (the bound is the nominal
-    drone's) and where the bound is not derived.
+    The bound is :func:`drone_torchrl.optimum.env_optimum`'s, the reference for returns. ``None``
+    with unbounded thrust (the bound is the ceiling ``10 * max_steps``, reached only by a thrust
+    pulse of hundreds of weights, so the PD controller is the practical reference), under
+    disturbances (the bound is the nominal drone's) and where the bound is not derived.
     """
     env = DroneEnv(batch_size=[], **env_kwargs)  # validates the arguments
     params, max_steps, reset_mode = env.params, env.max_steps, env.reset_mode

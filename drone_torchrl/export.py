@@ -1,7 +1,7 @@
 """A trained policy as a standalone file: a ``torch.export`` program or an ONNX model.
 
-A trained policy as a standalone file: its deterministic action as a ``torch.export`` program
-(``.pt2``, plain torch) or an ONNX model (``.onnx``, onnxruntime or any ONNX runtime).
+The file holds its deterministic action: a ``.pt2`` runs with plain torch, an ``.onnx`` with
+onnxruntime or any ONNX runtime.
 
 Both map an observation batch ``[B, 6]`` in the env's state layout
 (``x, x_dot, z, z_dot, alpha, alpha_dot``) and dtype (float32; float64 for a run with
@@ -160,9 +160,8 @@ class Exported:
 def resolve_output(format: str | None, output: Any) -> tuple[str, Path]:
     """The format and the file of ``format=`` and ``output=``, checked to fit each other.
 
-    The format and the file of ``format=`` and ``output=`` (:class:`~.checks.ConfigError` if they do not
-    fit): the output's suffix is the format's (``.pt2``, ``.onnx``); a null format is the suffix's,
-    a null output ``policy.<format>``.
+    They fit when the output's suffix is the format's (``.pt2``, ``.onnx``); otherwise
+    :class:`~.checks.ConfigError`. A null format is the suffix's, a null output ``policy.<format>``.
     """
     suffixes = {f".{name}": name for name in EXPORT_FORMATS}
     if format is not None and format not in EXPORT_FORMATS:
@@ -222,8 +221,7 @@ def load_policy(
 ) -> tuple[DeterministicPolicy, ProbabilisticActor, Path]:
     """The deterministic policy and the actor of a checkpoint file or run folder, on the CPU.
 
-    The deterministic policy and the actor of a checkpoint file or run folder (of a population
-    run: its agent ``agent``; :class:`~.checks.ConfigError` if unusable), on the CPU.
+    Of a population run, its agent ``agent``'s; :class:`~.checks.ConfigError` if unusable.
     """
     path, state = open_agent("checkpoint", checkpoint, agent)
     cfg = run_config(state["config"])
@@ -371,8 +369,7 @@ def onnx_session(source: str | os.PathLike | bytes, threads: int = 1) -> Any:
 def load_program(source: str | os.PathLike | bytes, format: str) -> Callable[[torch.Tensor], torch.Tensor]:
     """The file ``source`` (a path, or its bytes) run by its own runtime, as a function.
 
-    The file ``source`` (a path, or its bytes) run by its own runtime, as a function of an
-    observation batch (the policy's dtype).
+    The function takes an observation batch in the policy's dtype.
     """
     if format == "pt2":
         module = torch.export.load(io.BytesIO(source) if isinstance(source, bytes) else source).module()
@@ -394,10 +391,9 @@ def export_policy(
 ) -> Exported:
     """Write the deterministic policy of ``checkpoint`` to ``output`` as ``format``, checked.
 
-    Write the deterministic policy of ``checkpoint`` to ``output`` as ``format`` (see
-    :func:`resolve_output`), checked against the checkpoint's actor: :class:`~.checks.ConfigError` for bad
-    arguments (before any work), :class:`ExportError` for a file that does not reproduce the actor
-    (nothing is written).
+    ``format`` and ``output`` are resolved by :func:`resolve_output`; the file is checked against
+    the checkpoint's actor. Raises :class:`~.checks.ConfigError` for bad arguments (before any
+    work), :class:`ExportError` for a file that does not reproduce the actor (nothing is written).
     """
     format, output = resolve_output(format, output)
     if format == "onnx":
@@ -474,8 +470,8 @@ def forward_passes(
 ) -> dict[str, Callable[[], Any]]:
     """Callables that each run one forward pass: of the eager policy and of each exported file.
 
-    One forward pass of ``batch`` observations (hovering in the zone) each: the eager policy
-    (``eager torch``) and each file in ``files`` (format -> path) in its runtime (:data:`RUNTIMES`).
+    Each pass is of ``batch`` observations (hovering in the zone). The eager policy is
+    ``eager torch``; each file in ``files`` (format -> path) runs in its runtime (:data:`RUNTIMES`).
     """
     hover = [*HOVER_OBSERVATION, *[HOVER_THRUST] * (observation_dim(policy) - STATE_DIM)]
     observation = torch.tensor([hover], dtype=_dtype(policy)).expand(batch, len(hover)).contiguous()

@@ -116,9 +116,9 @@ _PREFIX = f"+{LEGACY}."
 def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
     """The command line with old-key overrides passed as ``+legacy.key=value``, and notes to print.
 
-    The command line with each old-key override ``key=value`` passed as ``+legacy.key=value``, and
-    the notes to print (one line each). A value the old key never took, or a command line that sets
-    both an old key and ``backend`` (which one would win is not obvious), raises ``ValueError``.
+    Each old-key override is ``key=value``; each note is one line. A value the old key never took,
+    or a command line that sets both an old key and ``backend`` (which one would win is not
+    obvious), raises ``ValueError``.
     """
     out, notes, replaced = [], [], []
     for arg in args:
@@ -140,8 +140,8 @@ def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
 def apply_legacy(cfg: Any) -> None:
     """Turn a composed config's ``legacy`` node (old keys) into today's keys, in place.
 
-    Turn a composed config's ``legacy`` node (old keys from the command line) into today's keys,
-    in place: ``engine``/``algo.collector`` set ``backend``, the dropped keys go; the node is removed.
+    The old keys come from the command line: ``engine``/``algo.collector`` set ``backend``, the
+    dropped keys go; the node is removed.
     """
     from omegaconf import open_dict
 
@@ -160,9 +160,9 @@ def apply_legacy(cfg: Any) -> None:
 def job_dirname(override_dirname: str) -> str:
     """A sweep job's folder name, with old keys named as they were typed.
 
-    A sweep job's folder name: Hydra's ``override_dirname`` with old keys named as they were typed
-    (``compile=True``, not ``+legacy.compile=True``), so a sweep started before ``backend`` existed
-    finds its job folders when its command is run again.
+    It is Hydra's ``override_dirname`` with an old key as ``compile=True``, not
+    ``+legacy.compile=True``, so a sweep started before ``backend`` existed finds its job folders
+    when its command is run again.
     """
     if _PREFIX not in override_dirname:
         return override_dirname
@@ -179,8 +179,8 @@ def job_dirname(override_dirname: str) -> str:
 def migrate_override(key: str, value: str) -> tuple[str | None, str]:
     """A command-line override of an old key as today's, and the note to print.
 
-    A command-line override of an old key as today's (``("backend=fast", note)``), or
-    ``(None, note)`` for a dropped one; the note is the one line to print.
+    Returns ``("backend=fast", note)``, or ``(None, note)`` for a dropped key; the note is the one
+    line to print.
     """
     if key in REPLACED:
         backend = _AS_BACKEND.get(str(value).strip())

@@ -95,8 +95,8 @@ class Optimum:
     def exact(self) -> bool:
         """Whether the bound is reached in the vertical problem from ``first_zone_step`` on.
 
-        Whether the bound is reached in the vertical problem, where entering at ``first_zone_step`` and
-        staying gives ``zone_steps`` steps in the zone (for a drone that can hover).
+        Entering the zone at ``first_zone_step`` and staying gives ``zone_steps`` steps in it (for a
+        drone that can hover).
         """
         if self.first_zone_step == 0:
             return self.zone_steps == 0  # the zone is out of reach; hovering earns the 1s
@@ -117,8 +117,8 @@ class Optimum:
 def collective_limit(params: DroneParams, tilt: float = 0.0) -> float | None:
     """The largest vertical thrust ``c`` (multiple of the weight), or ``None`` when unbounded.
 
-    The largest vertical thrust ``c`` (multiple of the weight): ``2 max_thrust cos(tilt)``, or
-    ``None`` (unbounded) when the thrust is; ``tilt`` is a roll angle that the drone keeps.
+    It is ``2 max_thrust cos(tilt)``, ``None`` when the thrust is unbounded; ``tilt`` is a roll
+    angle that the drone keeps.
     """
     if params.max_thrust is None:
         return None
@@ -164,8 +164,8 @@ def zone_margin(
 ) -> VerticalPlan | None:
     """The vertical plan that stays in the zone from ``first_zone_step`` with the largest margin.
 
-    The vertical plan that stays in the zone from ``first_zone_step`` through ``steps`` with the
-    largest margin (one LP; the margin is negative where the zone cannot be held from that step).
+    The plan runs through ``steps``; it is one LP, and the margin is negative where the zone cannot
+    be held from that step.
 
     Every step keeps ``z`` inside the domain (the floor with its tolerance); the steps from
     ``first_zone_step`` on keep ``zone_z[0] + margin <= z <= zone_z[1] - margin``; ``c`` lies in
@@ -216,8 +216,8 @@ def earliest_zone_step(
 ) -> VerticalPlan | None:
     """The largest-margin plan of the earliest step from which the drone can stay in the zone.
 
-    The largest-margin plan of the earliest step ``k`` from which the drone can be in the zone at
-    every step through ``steps`` (``None``: no such step).
+    Staying means being in the zone at every step from ``k`` through ``steps``; ``None`` if no
+    step ``k`` allows it.
 
     A sequence of :func:`zone_margin` LPs, bisected on ``k``: holding the zone from ``k`` asks for
     more than holding it from ``k + 1``, so the margin never decreases with ``k``.
@@ -263,8 +263,7 @@ def max_zone_steps(
 ) -> int:
     """The most steps whose end state can lie in the zone, over every vertical thrust sequence.
 
-    The most steps whose end state can lie in the zone, over every vertical thrust sequence with
-    ``c`` in ``[0, 2 max_thrust]`` (one MILP; bounded thrust only).
+    The sequences have ``c`` in ``[0, 2 max_thrust]``; one MILP, bounded thrust only.
 
     Nothing else is assumed: the drone may leave the zone and come back, and the domain is not
     enforced (so trajectories that end in a crash are counted too). One binary per step says "in
@@ -337,9 +336,8 @@ def optimum(
 def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]:
     """The vertical start states of ``reset_mode``: the floor start or the air box's corners.
 
-    The vertical start states of ``reset_mode``: the floor start (at ``params.z_min``), or the
-    corners of the air box (``z`` and ``z_dot`` within :data:`dynamics.RESET_NOISE <.dynamics.RESET_NOISE>`
-    of the zone's centre and of rest).
+    The floor start is at ``params.z_min``; the air box has ``z`` and ``z_dot`` within
+    :data:`dynamics.RESET_NOISE <.dynamics.RESET_NOISE>` of the zone's centre and of rest.
     """
     params = DroneParams() if params is None else params
     if reset_mode == "floor":
@@ -355,8 +353,7 @@ def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]
 def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum | None:
     """The best achievable return of every episode that starts as ``reset_mode`` resets.
 
-    The best achievable return of every episode that starts as ``reset_mode`` resets, or ``None``
-    where it is not derived.
+    ``None`` where it is not derived.
 
     ``"floor"``: every start has ``z = z_dot = 0`` (``x`` and ``alpha`` do not enter the vertical
     problem), so one :func:`optimum` serves all. ``"air"``: the set of vertical starts from which the
@@ -390,8 +387,7 @@ def fly_plan(
 ) -> tuple[Episodes, VerticalPlan]:
     """Replay an optimal vertical plan from the floor starts ``start`` ``[B, 6]``.
 
-    Replay an optimal vertical plan from the floor starts ``start`` (``[B, 6]``) through
-    :func:`dynamics.step <.dynamics.step>`; returns the episodes
+    The plan is flown through :func:`dynamics.step <.dynamics.step>`; returns the episodes
     (:func:`~drone_torchrl.episodes.episode_stats` reads them) and the plan.
 
     Up to the top of the climb (:attr:`VerticalPlan.apex_step`) both motors get ``c_t / (2 cos

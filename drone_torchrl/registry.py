@@ -1,7 +1,6 @@
 """Plug-in registries: algorithms and logger backends are found by name the same way.
 
-Plug-in registries: algorithms (:mod:`drone_torchrl.algorithms`) and logger backends
-(:mod:`drone_torchrl.loggers`) are found by name the same way.
+The algorithms are :mod:`drone_torchrl.algorithms`, the logger backends :mod:`drone_torchrl.loggers`.
 
 A plug-in module calls :meth:`Registry.register` when imported. A registry imports the modules of
 its own package, and those another package names in its entry-point group, when a name is first
@@ -41,9 +40,9 @@ class Registry(Generic[T]):
     def register(self, name: str, item: T) -> T:
         """Add ``item`` as ``name``; a duplicate or a malformed name is refused.
 
-        Add ``item`` as ``name``; another item of the same name is refused, and so is a name that
-        is not lowercase letters, digits and ``_`` starting with a letter (it is typed on command
-        lines and names folders and config keys).
+        A duplicate is another item of the same name; a well-formed name is lowercase letters,
+        digits and ``_``, starting with a letter (it is typed on command lines and names folders and
+        config keys).
         """
         if not isinstance(name, str) or not NAME.fullmatch(name):
             raise ValueError(f"{self.key}={name!r} cannot be registered: a name is {NAME.pattern}")

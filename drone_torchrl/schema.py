@@ -1,7 +1,7 @@
 """The config schema: every key of ``conf/``'s configs as Hydra structured configs.
 
-The config schema: every key of ``conf/``'s configs as Hydra structured configs, with what each
-key allows and what the code needs to know of it, declared once, beside the key.
+With each key go what it allows and what the code needs to know of it, declared once, beside the
+key.
 
 Each ``conf/`` file lists its schema first in its defaults list (``/schema_config@_here_``,
 ``/schema_algo_ppo@algo``...), so Hydra composes every config onto its dataclass: a YAML key the
@@ -257,9 +257,9 @@ class DisturbanceConf:
 class EnvConf:
     """``env.*``: the DroneEnv arguments (the env checks them itself).
 
-    ``env.*``: the DroneEnv arguments (the env checks them itself: make_params and check_arena
-    hold their bounds, and how the arena's keys relate). The arena, ``bounds`` and ``dtype`` came
-    after the first runs: a checkpoint or run folder without them gets the paper's values.
+    make_params and check_arena hold their bounds, and how the arena's keys relate. The arena,
+    ``bounds`` and ``dtype`` came after the first runs: a checkpoint or run folder without them gets
+    the paper's values.
     """
 
     mass: Any = free()
@@ -488,8 +488,8 @@ def plugin_groups(name: str = "config") -> dict[str, Rule]:
 def fields(node: type, plugins: Mapping[str, type | None], prefix: str = "") -> Iterator[tuple[str, Rule]]:
     """``("algo.lr", rule)`` for every key of schema ``node``, in order.
 
-    ``("algo.lr", rule)`` for every key of schema ``node`` in order, each plug-in group's keys
-    those of its schema in ``plugins`` (a group whose schema is None has no keys).
+    A plug-in group's keys are those of its schema in ``plugins`` (a group whose schema is None has
+    no keys).
     """
     for f in dataclasses.fields(node):
         key = f"{prefix}{f.name}"

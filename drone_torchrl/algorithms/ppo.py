@@ -85,10 +85,10 @@ def quiet(logger_name: str) -> Iterator[None]:
 def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
     """A collector batch ``[drones, steps]`` cut at the step the budget's last episode ends.
 
-    A collector batch (``[drones, steps]``) up to the step at which the budget's last episode ends: a batch of 64 drones x 64
-    steps can finish dozens of short episodes, so without this a budget of 20 would train 43. The
-    steps after it are dropped (the run ends there: the drones' next episodes are not booked), and
-    episodes that end on that same step are booked too, so the budget may be passed by those.
+    A batch of 64 drones x 64 steps can finish dozens of short episodes, so without this cut a
+    budget of 20 would train 43. The steps after the cut are dropped (the run ends there: the
+    drones' next episodes are not booked), and episodes that end on that same step are booked too,
+    so the budget may be passed by those.
     """
     done = batch.get(("next", "done")).reshape(batch.shape[0], batch.shape[1])  # [drones, steps]
     ended_by = done.sum(0).cumsum(0)
@@ -274,8 +274,7 @@ class OnPolicy:
     def clip_gradients(self) -> torch.Tensor:
         """Clip the loss's gradients before the optimizer's step; returns the norm, ``train/grad_norm``.
 
-        Clip the loss's gradients before the optimizer's step (``algo.max_grad_norm`` on all of
-        its parameters together); the norm returned is booked as ``train/grad_norm``.
+        The bound is ``algo.max_grad_norm``, on the norm of all of the loss's parameters together.
         """
         limit = self.cfg.algo.max_grad_norm
         return nn.utils.clip_grad_norm_(self.params, math.inf if limit is None else limit)

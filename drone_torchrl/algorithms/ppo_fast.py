@@ -25,10 +25,10 @@ LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 def pre_image(head: tuple[type, dict], action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The Normal sample that ``head`` squashes into ``action``, and the squashing's log-determinant.
 
-    The Normal sample the ``head`` (distribution class, kwargs) squashes into ``action``, and
-    the log-determinant of that squashing summed over the action: both depend on the action only, so
-    a batch's are computed once, and each minibatch's log-probability is then the Normal's (what
-    ``TransformedDistribution.log_prob`` computes, without its objects).
+    ``head`` is the distribution class and its kwargs; the log-determinant is summed over the
+    action. Both depend on the action only, so a batch's are computed once, and each minibatch's
+    log-probability is then the Normal's (what ``TransformedDistribution.log_prob`` computes,
+    without its objects).
     """
     dist_class, kwargs = head
     dist = dist_class(torch.zeros_like(action), torch.ones_like(action), **kwargs)
@@ -49,11 +49,10 @@ def clip_ppo_losses(
 ) -> dict[str, torch.Tensor]:
     """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch.
 
-    What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch,
-    on a minibatch of ``[observation, pre-image and log-determinant of the action (pre_image),
-    its log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
-    Normal's ``(loc, scale)``, ``value`` to state values. Its losses, ``clip_fraction`` and
-    ``kl_approx``, the same values and gradients to float rounding (tests/test_ppo.py).
+    The minibatch is ``[observation, pre-image and log-determinant of the action (pre_image), its
+    log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
+    Normal's ``(loc, scale)``, ``value`` to state values. Returns its losses, ``clip_fraction`` and
+    ``kl_approx``: the same values and gradients to float rounding (tests/test_ppo.py).
     """
     observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
     # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.

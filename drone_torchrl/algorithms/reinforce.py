@@ -1,7 +1,7 @@
 """REINFORCE (``algo=reinforce``, the paper's; ``algo=reinforce_plus``, with variance reductions).
 
-REINFORCE (``algo=reinforce``, the paper's; ``algo=reinforce_plus``, the same learner with variance
-reductions): a group of jobs trained as one population, with either engine.
+Both are the same learner (``reinforce_plus`` adds the variance reductions): a group of jobs
+trained as one population, with either engine.
 
 The update itself, the population engine's, is :class:`~drone_torchrl.training.update.ReinforceUpdate`;
 its loss, in Python, is :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` (the arithmetic in
@@ -44,8 +44,8 @@ from drone_torchrl.training.update import CHECKS, ReinforceUpdate
 class Reinforce:
     """REINFORCE as the training loop drives it: a group of jobs trained as one population.
 
-    REINFORCE as the training loop (:class:`~drone_torchrl.training.trainer.Trainer`) drives it: a group of jobs trained
-    as one population (see :func:`~drone_torchrl.training.jobs.group_key`), on either backend.
+    The loop is :class:`~drone_torchrl.training.trainer.Trainer`; the group is the jobs of one
+    :func:`~drone_torchrl.training.jobs.group_key`, on either backend.
 
     The loop calls :meth:`update` with :attr:`state` and books what it returns; it asks
     :meth:`eval_policy` (for all :attr:`eval_agents` agents at once), :meth:`checkpoint_entries`
@@ -100,8 +100,7 @@ class Reinforce:
 def validate(cfg: Mapping[str, Any]) -> None:
     """REINFORCE's rules that relate keys, and those of the engine options it alone uses.
 
-    REINFORCE's rules that relate keys (each key's bounds are its schema's, ReinforceConf above),
-    and those of the engine options it alone uses.
+    Each key's own bounds are not checked here: they are its schema's (ReinforceConf above).
     """
     workers = cfg.env.num_workers
     if cfg.algo.episodes % cfg.algo.episodes_per_update:

@@ -212,8 +212,8 @@ class SAC:
     def _learn(self) -> dict[str, float]:
         """``algo.updates_per_batch`` gradient steps of the actor, Q-networks and temperature.
 
-        ``algo.updates_per_batch`` gradient steps of the actor, the Q-networks and the temperature,
-        each followed by the targets' soft update; the steps' mean of what SACLoss reports.
+        Each step is followed by the targets' soft update. Returns the steps' mean of what SACLoss
+        reports.
         """
         steps = self.cfg.algo.updates_per_batch
         sums: dict[str, torch.Tensor] = {}
@@ -238,9 +238,9 @@ class SAC:
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """Everything the next update depends on, as checkpoint entries.
 
-        Everything the next update depends on: the networks (``qvalue``: SACLoss's Q-networks,
-        their targets and the temperature), Adam, both generators, the buffer's filled frames and
-        its write cursor, and the drones' running episodes.
+        That is: the networks (``qvalue``: SACLoss's Q-networks, their targets and the temperature),
+        Adam, both generators, the buffer's filled frames and its write cursor, and the drones'
+        running episodes.
         """
         # A copy: the slice is a view, and torch.save writes a view's whole storage (the capacity).
         filled = self.buffer.storage[: len(self.buffer)].clone() if len(self.buffer) else TensorDict()

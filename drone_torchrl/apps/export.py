@@ -1,7 +1,6 @@
 """``drone-export``: a checkpoint's deterministic policy as a standalone file.
 
-``drone-export``: a checkpoint's deterministic policy as a standalone file, a ``torch.export``
-program (``.pt2``) or an ONNX model (``.onnx``, the ``onnx`` extra).
+The file is a ``torch.export`` program (``.pt2``) or an ONNX model (``.onnx``, the ``onnx`` extra).
 
 drone-export checkpoint=outputs/<date>/<run> output=policy.pt2
 drone-export checkpoint=outputs/<date>/<run> output=policy.onnx      # or format=onnx

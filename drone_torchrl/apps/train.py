@@ -91,8 +91,8 @@ def _stopped(stop: TrainingStopped) -> None:
 def _before_hydra() -> list[Path]:
     """Run the command line's one-line checks and claim the run folder before Hydra writes into it.
 
-    The command line's one-line checks, and the run folder claimed before Hydra writes into it
-    (:mod:`drone_torchrl.command_line`); returns the folders claimed. Exits with the message on a bad input.
+    The checks are :mod:`drone_torchrl.command_line`'s; returns the folders claimed. Exits with the
+    message on a bad input.
     """
     from drone_torchrl import command_line
 

@@ -150,8 +150,8 @@ def _check(name: str, value: object, low: float, high: float, *, low_open: bool 
 def make(disturbance: Disturbance | Mapping[str, Any] | None) -> Disturbance:
     """Make a :class:`Disturbance` from itself, a mapping of its fields or ``None``.
 
-    A :class:`Disturbance` from itself, a mapping of its fields (a config's ``env.disturbance``) or
-    ``None`` (no disturbance); an unknown field raises a one-line ``ValueError``.
+    The mapping is e.g. a config's ``env.disturbance``; ``None`` is no disturbance. An unknown
+    field raises a one-line ``ValueError``.
     """
     if disturbance is None:
         return Disturbance()

@@ -125,9 +125,8 @@ def check_arena(
 ) -> dict[str, float | str]:
     """Validate the domain and the target zone; return them as floats (and ``bounds``).
 
-    Validate the domain and the target zone, returned as floats (and ``bounds``): positive
-    half-widths, ``z_min < z_max``, a tilt limit in (0, pi], and a zone of positive size inside
-    the domain (its edges may lie on the domain's).
+    The rules: positive half-widths, ``z_min < z_max``, a tilt limit in (0, pi], and a zone of
+    positive size inside the domain (its edges may lie on the domain's).
     """
     zero = ("0", 0.0)
     arena = (f"{MAX_ARENA:g} m", MAX_ARENA)
@@ -529,10 +528,10 @@ class DroneEnv(EnvBase):
     def reset_to(self, state: torch.Tensor, keys: torch.Tensor | None = None) -> TensorDictBase:
         """Start every drone's episode from the given states ``[*batch, 6]`` instead of drawing starts.
 
-        Start every drone's episode from ``state`` (``[*batch, 6]``) instead of drawing a start; under
-        disturbances ``keys`` (int64 ``[*batch]``) are the episodes' disturbance keys. Returns the reset
-        output: give it to ``rollout(..., auto_reset=False, tensordict=...)``. What the evaluator uses to
-        fly one set of start states under several policies, and tests to fly another engine's draws.
+        Under disturbances ``keys`` (int64 ``[*batch]``) are the episodes' disturbance keys. Returns
+        the reset output: give it to ``rollout(..., auto_reset=False, tensordict=...)``. What the
+        evaluator uses to fly one set of start states under several policies, and tests to fly another
+        engine's draws.
         """
         shape = tuple(self.batch_size)
         if tuple(state.shape) != (*shape, STATE_DIM):

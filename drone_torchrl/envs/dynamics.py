@@ -68,10 +68,9 @@ class TerminationCause(IntEnum):
 class DroneParams:
     """The drone's physical parameters and its task's arena: everything :func:`step` needs.
 
-    The drone's physical parameters and its task's arena (domain, target zone, how a state on a
-    bound counts): everything :func:`step` needs. See :class:`~drone_torchrl.envs.drone_env.DroneEnv` for the
-    meaning of each; the defaults are the paper's. Validated by
-    :func:`drone_torchrl.envs.drone_env.make_params`.
+    The arena is the domain, the target zone and how a state on a bound counts. See
+    :class:`~drone_torchrl.envs.drone_env.DroneEnv` for the meaning of each; the defaults are the
+    paper's. Validated by :func:`drone_torchrl.envs.drone_env.make_params`.
     """
 
     mass: float = 1.0
@@ -93,8 +92,7 @@ class DroneParams:
     def strict(self) -> bool:
         """Whether a state exactly on a bound is outside (``bounds="strict"``).
 
-        Whether a state exactly on a bound is outside (of the domain, it terminates; of the zone, it is not
-        in it).
+        On the domain's bound such a state terminates; on the zone's, it is not in the zone.
         """
         return self.bounds == "strict"
 
@@ -200,8 +198,8 @@ def termination_cause(state: torch.Tensor, params: DroneParams) -> torch.Tensor:
 def in_target_zone(state: torch.Tensor, params: DroneParams) -> torch.Tensor:
     """True where the state ``[*B, 6]`` is inside the target zone (``[*B]`` bool).
 
-    True where the state is inside the target zone: ``|x| <= zone_x_limit``,
-    ``zone_z_min <= z <= zone_z_max`` and ``|alpha| <= alpha_limit`` (``<`` each with strict bounds).
+    Inside means ``|x| <= zone_x_limit``, ``zone_z_min <= z <= zone_z_max`` and
+    ``|alpha| <= alpha_limit`` (``<`` each with strict bounds).
     """
     x, z, alpha = state[..., X], state[..., Z], state[..., ALPHA]
     within, over = (torch.lt, torch.gt) if params.strict else (torch.le, torch.ge)

@@ -1,7 +1,6 @@
 """``Drone2D-v0``: a single drone as a Gymnasium env.
 
-``Drone2D-v0``: a single drone as a Gymnasium env, an adapter over
-:class:`~drone_torchrl.envs.drone_env.DroneEnv`.
+An adapter over :class:`~drone_torchrl.envs.drone_env.DroneEnv`.
 """
 
 from __future__ import annotations

@@ -116,8 +116,7 @@ class Layout:
 def world_to_pixel(x: float, z: float, params: DroneParams | None = None) -> tuple[float, float]:
     """Screen coordinates of the world point ``(x, z)`` in ``params``' domain.
 
-    Screen coordinates of the world point ``(x, z)`` in the frame of ``params``' domain (default:
-    the paper's).
+    The default ``params`` is the paper's domain.
     """
     return Layout(DroneParams() if params is None else params).to_pixel(x, z)
 

@@ -1,7 +1,7 @@
 """Episodes as plain tensors, one per row: the engines', evaluator's and plots' common layout.
 
-Episodes as plain tensors, one per row: what the fast engine returns, the reference's rollouts read
-as, and the evaluator's, the metrics' and the plots' common layout.
+It is what the fast engine returns and what the reference's rollouts are read as; the evaluator,
+the metrics and the plots read it.
 
 :class:`Episodes` converts from and to the layout of TorchRL's ``EnvBase.rollout(...,
 break_when_all_done=True)`` on :class:`~drone_torchrl.envs.drone_env.DroneEnv`, so the loss, the episode
@@ -69,8 +69,7 @@ class Episodes(NamedTuple):
     ) -> Episodes:
         """Build rows of ``length`` steps out of longer buffers, zeroing the entries after each row's end.
 
-        Rows of ``length`` steps out of longer buffers (``states[..., length, :]`` is the state after a
-        row's last step): the entries after each row's end are zeroed.
+        ``states[..., length, :]`` is the state after a row's last step.
         """
         steps = torch.arange(reward.shape[-1] + 1, device=length.device)
         keep = steps <= length.unsqueeze(-1)  # states: up to the one after the last step
@@ -87,8 +86,8 @@ class Episodes(NamedTuple):
     def from_rollout(cls, rollout: TensorDictBase) -> Episodes:
         """The first episode of each row of a ``[*B, T]`` TorchRL rollout.
 
-        The first episode of each row of a ``[*B, T]`` rollout (``EnvBase.rollout``'s layout; a row may
-        go on after its first ``done``, repeating or starting a new episode: that part is dropped).
+        The rollout is in ``EnvBase.rollout``'s layout; a row may go on after its first ``done``,
+        repeating or starting a new episode: that part is dropped.
         """
         done = rollout.get(("next", "done")).squeeze(-1)
         length = ((done.cumsum(-1) - done.to(torch.int64)) == 0).sum(-1)  # up to the first done

@@ -103,8 +103,8 @@ class CheckpointError(ValueError):
 def save_checkpoint(state: dict[str, Any], path: Path) -> None:
     """Write ``state`` and its tensors' digest to ``path`` atomically (temporary file, then rename).
 
-    Write ``state`` and the digest of its tensors to ``path`` through a temporary file and an
-    atomic rename.
+    Written through :func:`~drone_torchrl.io.storage.write_atomically`, so a reader, or a process
+    killed meanwhile, sees the old checkpoint or the whole new one.
     """
     state = {key: value for key, value in state.items() if key != DIGEST_KEY}
     state[DIGEST_KEY] = tensor_digests(state)
@@ -119,8 +119,7 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
 def tensors(state: Any, prefix: str = "") -> Iterator[tuple[str, torch.Tensor]]:
     """Every tensor of a checkpoint's nested dicts and lists, with its path, in storage order.
 
-    Every tensor of a checkpoint's nested dicts and lists, with its path (``actor/<key>``,
-    ``optimizer/state/0/exp_avg``), in the order they are stored.
+    A path reads like ``actor/<key>`` or ``optimizer/state/0/exp_avg``.
     """
     if isinstance(state, torch.Tensor):
         yield prefix, state
@@ -213,9 +212,9 @@ def _check_digest(state: dict[str, Any], path: Path) -> None:
 def _check_archive(path: Path) -> None:
     """Check every record of the zip archive against the CRC-32 stored with it.
 
-    Every record of the zip archive against the CRC-32 stored with it (``torch.load`` does not
-    check them). A record stored without one (CRC 0: ``torch.serialization.config.save.compute_crc32``
-    off) and files in torch's legacy format, which are not zip archives, are not checked.
+    ``torch.load`` does not check them. A record stored without one (CRC 0:
+    ``torch.serialization.config.save.compute_crc32`` off) and files in torch's legacy format, which
+    are not zip archives, are not checked.
     """
     try:
         archive = zipfile.ZipFile(path)
@@ -293,10 +292,10 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
 def check_weights(module: torch.nn.Module, weights: Any, path: Path, entry: str) -> None:
     """Check that ``weights`` holds exactly the tensors ``module`` has, of their shapes.
 
-    ``weights`` (the checkpoint's ``entry``) holds the tensors ``module`` has, of their shapes, and
-    no others: what ``module.load_state_dict(weights)`` needs. :class:`CheckpointError` naming the
-    file and the first tensor that differs otherwise (``load_state_dict`` lists them all, over many
-    lines). ``module`` may live on the meta device: only its shapes are read.
+    ``weights`` is the checkpoint's ``entry``; exactly those tensors is what
+    ``module.load_state_dict(weights)`` needs. :class:`CheckpointError` naming the file and the
+    first tensor that differs otherwise (``load_state_dict`` lists them all, over many lines).
+    ``module`` may live on the meta device: only its shapes are read.
     """
     expected = module.state_dict()
     if not isinstance(weights, Mapping):

@@ -16,8 +16,7 @@ HYDRA_ENTRIES = frozenset({".hydra", "train.log", "evaluate.log", "export.log", 
 def remove_if_untouched(run_dir: Path, root: Path | None = None, also: frozenset[str] = frozenset()) -> None:
     """Delete ``run_dir`` if it holds only what Hydra put there, then its empty parents up to ``root``.
 
-    Delete ``run_dir`` if it holds only what Hydra put there (and entries named in ``also``), then
-    its parents up to ``root`` (default: the current folder) while they are empty.
+    Entries named in ``also`` count as Hydra's too; ``root`` defaults to the current folder.
 
     A refused config, or a resume that continued another folder, trains nothing here: the folder
     (``outputs/<date>/<time>/``) would only be clutter among the real runs.

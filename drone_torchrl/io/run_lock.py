@@ -148,9 +148,8 @@ def _make_room() -> None:
 def exclusive(path: str | os.PathLike) -> Iterator[None]:
     """Hold an exclusive ``flock`` on ``path`` (created if missing) for the ``with`` block.
 
-    Hold an exclusive ``flock`` on ``path`` (created if missing) for the ``with`` block, waiting
-    while another process holds it: for a step two processes must not take at once (the first
-    contact with a shared store, which creates its tables).
+    Waits while another process holds it. For a step two processes must not take at once (the
+    first contact with a shared store, which creates its tables).
     """
     path = Path(path)
     with writing(path):

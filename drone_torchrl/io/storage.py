@@ -1,8 +1,7 @@
 """Writes the filesystem refuses (full disk, quota, read-only, name too long) as one line.
 
-Writes the filesystem refuses (a full disk, a quota, a read-only or forbidden folder, a name too
-long) as one line: the one module every command (drone-train, drone-eval, drone-export,
-drone-report) writes its files through.
+Read-only covers a forbidden folder too. This is the one module every command (drone-train,
+drone-eval, drone-export, drone-report) writes its files through.
 
 Python reports them as ``OSError`` from wherever the bytes were finally written, often without a
 file name (a buffered write fails at ``close``). Every file a command writes goes through
@@ -101,9 +100,9 @@ def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[
 def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryview) -> Path:
     """Write ``data`` to ``path`` atomically, through ``<path>.tmp`` and a rename.
 
-    Write ``data`` to ``path`` through ``<path>.tmp`` and a rename (making its folder): a reader,
-    or a process killed meanwhile, sees the old file or the whole new one, never a part. A refused
-    write is :class:`StorageError` and leaves no temporary file.
+    The folder is made if missing. A reader, or a process killed meanwhile, sees the old file or
+    the whole new one, never a part. A refused write is :class:`StorageError` and leaves no
+    temporary file.
     """
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
@@ -117,8 +116,8 @@ def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryvi
 def write_figure(fig: Any, path: str | os.PathLike, **savefig: Any) -> Path:
     """Save a matplotlib figure as ``path`` atomically (its suffix names the format).
 
-    A matplotlib figure saved as ``path`` (its suffix names the format), atomically: matplotlib
-    writes straight into the file, so a full disk would leave a partial image.
+    Atomically because matplotlib writes straight into the file, so a full disk would leave a
+    partial image.
     """
     buffer = io.BytesIO()
     fig.savefig(buffer, format=Path(path).suffix.lstrip(".") or None, **savefig)

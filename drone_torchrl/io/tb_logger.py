@@ -168,9 +168,9 @@ class RunLogger:
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
         """Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video (an animated GIF image summary).
 
-        Log ``[T, H, W, 3]`` uint8 frames as a TensorBoard video: an animated GIF in an image
-        summary, the record ``SummaryWriter.add_video`` writes, with the GIF from
-        :func:`~drone_torchrl.io.video.gif_bytes` (add_video's moviepy took 3.8 s a training video here, this 0.4 s).
+        It is the record ``SummaryWriter.add_video`` writes, with the GIF from
+        :func:`~drone_torchrl.io.video.gif_bytes`: add_video's moviepy took about ten times as long
+        for a training video.
         """
         from tensorboard.compat.proto.summary_pb2 import Summary
 

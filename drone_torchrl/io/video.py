@@ -25,8 +25,8 @@ def record_video(
 ) -> np.ndarray:
     """Render one deterministic episode as ``uint8`` frames ``[T, H, W, 3]``, the reset frame first.
 
-    Render one deterministic episode: ``uint8`` frames ``[T, H, W, 3]``, the reset frame first,
-    then every ``frame_stride``-th step (drawing is the slow part, so skipped steps are not drawn).
+    After the reset frame comes every ``frame_stride``-th step (drawing is the slow part, so
+    skipped steps are not drawn).
 
     The episode starts where the first episode of :func:`drone_torchrl.evaluation.evaluate` with the
     same ``seed`` starts.
@@ -95,7 +95,7 @@ def _palette_images(frames: np.ndarray) -> list:
 
     Exactly their colours if there are at most 256 (the renderer draws fewer: 214 in a training video), else a
     median cut of a sample of frames. A fixed palette costs a lookup per pixel; choosing one per frame, as
-    moviepy (TensorBoard's ``add_video``) does, took 3.8 s a training video here.
+    moviepy (TensorBoard's ``add_video``) does, took about ten times as long for a training video.
     """
     from PIL import Image
 
@@ -122,8 +122,7 @@ def _palette_images(frames: np.ndarray) -> list:
 def gif_bytes(frames: np.ndarray, fps: float) -> bytes:
     """Encode ``[T, H, W, 3]`` uint8 frames as a looping animated GIF at ``fps``.
 
-    ``[T, H, W, 3]`` uint8 frames as an animated GIF (looping) at ``fps``, encoded by Pillow with
-    one palette for the clip (0.4 s for a 300-step training video, 150 frames of 300x300).
+    Pillow encodes it, with one palette for the whole clip.
     """
     images = _palette_images(frames)
     out = io.BytesIO()

@@ -247,8 +247,8 @@ def unavailable_reason() -> str | None:
 def scalar_check() -> str | None:
     """Compile the kernels' single-source functions for scalar lanes; None or the first complaint.
 
-    Compile the kernels' single-source functions for scalar lanes (``-DDK_SCALAR_CHECK``): None,
-    or the compiler's first complaint (a vector-only idiom crept into a ``DK_HD`` function).
+    Compiled with ``-DDK_SCALAR_CHECK``; a complaint from the compiler means a vector-only idiom
+    crept into a ``DK_HD`` function.
     """
     compiler = _compiler()
     if compiler is None:

@@ -31,8 +31,7 @@ DisturbanceArg = disturbances.Disturbance | Mapping[str, Any] | None
 class KernelRollout:
     """Each agent's episodes flown to their ends by the C++ kernel.
 
-    Each agent's episodes flown to their ends by the C++ kernel, for the stochastic policy or
-    the deterministic one.
+    The policy flown is the stochastic one or the deterministic one.
 
     Args:
         stacked: the agents' nets (their flat parameters are read at each call).
@@ -139,9 +138,8 @@ class KernelReinforce:
 class Segment(NamedTuple):
     """One call's steps of each drone, ``[n, steps, ...]``, keyed as TorchRL's collector keys them.
 
-    One call's steps of each drone, ``[n, steps, ...]``: the env's keys of TorchRL's collector
-    (``observation``, ``action``, ``step_count`` and ``next``'s ``observation``, ``reward``,
-    ``termination_cause``, ``terminated``, ``truncated``).
+    The keys are the env's: ``observation``, ``action``, ``step_count`` and ``next``'s
+    ``observation``, ``reward``, ``termination_cause``, ``terminated``, ``truncated``.
     """
 
     observation: torch.Tensor
@@ -172,8 +170,7 @@ class Carried(NamedTuple):
 class KernelSegments:
     """``n`` drones of one agent flown by the C++ kernel with auto-reset, ``steps`` steps a call.
 
-    ``n`` drones of one agent flown by the C++ kernel with auto-reset, each call ``steps`` more
-    steps (``drone_torchrl::segments``): TorchRL's collector over a batched
+    The op is ``drone_torchrl::segments``; it matches TorchRL's collector over a batched
     :class:`~drone_torchrl.envs.drone_env.DroneEnv`, given the same draws.
 
     Args:

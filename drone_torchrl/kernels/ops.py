@@ -116,8 +116,7 @@ def env_constants(
 ) -> torch.Tensor:
     """The drone's constants (:data:`ENV_CONSTANTS`, float64): its physics and arena from ``params``.
 
-    The drone's constants (:data:`ENV_CONSTANTS`), float64: its physics and its arena (domain,
-    target zone, ``bounds``) from ``params``.
+    The arena is the domain, the target zone and ``bounds``.
 
     ``squash_high``: the TanhNormal head's upper bound (actions in ``[0, squash_high]``), or None
     for the Normal head. ``reset_mode``: where the start states drawn in the kernel lie.
@@ -322,8 +321,8 @@ def _rollout(
 def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Tensor) -> tuple[int, int]:
     """Agents and episodes per agent, ``(N, E)``, from ``start`` or ``rng``.
 
-    Agents and episodes per agent: from ``start`` ``[N, E, 6]``, or ``rng`` ``[N, E, 2]`` (only its
-    shape is read for ``E``; the keys are per agent).
+    ``start`` is ``[N, E, 6]``; ``rng`` is ``[N, E, 2]``, only its shape is read for ``E`` (the
+    keys are per agent).
     """
     if start is not None:
         return start.shape[0], start.shape[1]

@@ -61,8 +61,7 @@ class Logger(Protocol):
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
         """Log ``[T, H, W, 3]`` uint8 frames of an evaluation video (a backend may skip them).
 
-        ``[T, H, W, 3]`` uint8 frames of an evaluation video (a backend may skip them: the run
-        folder always has the MP4).
+        A backend may skip them because the run folder always has the MP4.
         """
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
@@ -171,8 +170,7 @@ def log_update(
 ) -> None:
     """Log one update's scalars: each episode's metrics, the termination causes and training metrics.
 
-    One update's scalars: each episode's metrics, the number of episodes that ended
-    with each termination cause, and the update's training metrics. Every step is a count of episodes
+    The causes are the number of episodes that ended with each. Every step is a count of episodes
     done: an episode's own metrics at its number counted from 1 (the CSV's ``episode`` + 1), the
     update's at ``step``, the count after its last episode; so a resume from a checkpoint at count
     ``E`` purges from ``E + 1`` and keeps everything the checkpoint includes.

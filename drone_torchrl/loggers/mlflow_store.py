@@ -90,10 +90,9 @@ def _sqlite_file(tracking_uri: str) -> Path | None:
 def _first_contact(tracking_uri: str) -> Iterator[None]:
     """Take turns with the other processes that open one SQLite store.
 
-    Processes that open one SQLite store take turns here: the first to reach a new store creates
-    its tables (MLflow's migrations; two at once collide, ``duplicate column name: step``, and the
-    second run was lost), and an experiment is created once. Other stores serialise themselves (a
-    server), or are one process's (a folder).
+    The first to reach a new store creates its tables (MLflow's migrations; two at once collide,
+    ``duplicate column name: step``, and the second run was lost), and an experiment is created
+    once. Other stores serialise themselves (a server), or are one process's (a folder).
     """
     path = _sqlite_file(tracking_uri)
     if path is None:

@@ -1,7 +1,7 @@
 """``logger=tensorboard`` (the default): buffered TensorBoard event files in the run folder.
 
-``logger=tensorboard`` (the default): :class:`~drone_torchrl.io.tb_logger.RunLogger`, buffered
-TensorBoard event files in ``<run>/<logger.exp_name>``.
+The logger is :class:`~drone_torchrl.io.tb_logger.RunLogger`; the files go to
+``<run>/<logger.exp_name>``.
 """
 
 from __future__ import annotations

@@ -183,8 +183,7 @@ def _check_name(key: str, value: Any, optional: bool) -> None:
 def validate(cfg: Mapping[str, Any]) -> None:
     """Check names W&B accepts, and credentials for an online run, before any work.
 
-    Names W&B accepts, and credentials for an online run, before any work (W&B is installed:
-    :func:`drone_torchrl.loggers.check_backend` checks the extra first).
+    W&B is installed by then: :func:`drone_torchrl.loggers.check_backend` checks the extra first.
     """
     logger = cfg.logger
     _check_name("logger.project", logger.project, optional=False)

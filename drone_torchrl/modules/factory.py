@@ -44,9 +44,8 @@ def observation_dim(cfg: DictConfig) -> int:
 def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:
     """A fresh three-net policy on ``cfg.device`` in :func:`model_dtype`, optionally seeded.
 
-    A fresh three-net policy on ``cfg.device`` in :func:`model_dtype`; with ``seed``, initialised
-    after ``torch.manual_seed(seed)`` (in float32, then converted: a seed starts from the same
-    weights in either precision).
+    With ``seed``, it is initialised after ``torch.manual_seed(seed)``, in float32 and then
+    converted, so a seed starts from the same weights in either precision.
     """
     if seed is not None:
         torch.manual_seed(seed)
@@ -71,8 +70,7 @@ def _policy_net(cfg: DictConfig) -> ThreeNetPolicy:
 def build_policies(cfg: DictConfig, seeds: Sequence[int]) -> StackedThreeNet:
     """Fresh policies of ``len(seeds)`` agents, stacked, without building a module per agent.
 
-    Fresh policies of ``len(seeds)`` agents, stacked: agent ``i`` starts from the weights of
-    ``build_policy(cfg, seeds[i])``, drawn without building a module per agent.
+    Agent ``i`` starts from the weights of ``build_policy(cfg, seeds[i])``.
 
     Each agent's draws are those of ``torch.manual_seed(seed)`` then ``nn.Linear``'s own
     initialisation, from a generator of its own (CPU generators of one seed give one stream): per

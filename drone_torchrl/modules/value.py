@@ -42,8 +42,8 @@ def make_q_value(
 ) -> ValueOperator:
     """SAC's Q-network: ``"observation"`` and ``"action"`` in, ``"state_action_value"`` out.
 
-    SAC's Q-network: a ``ValueOperator`` over an MLP of the observation and the action
-    (concatenated by TorchRL's MLP), writing ``"state_action_value"``, in ``dtype``.
+    A ``ValueOperator`` over an MLP of the observation and the action (concatenated by TorchRL's
+    MLP), in ``dtype``.
     """
     net = MLP(
         in_features=observation_dim + ACTION_DIM,

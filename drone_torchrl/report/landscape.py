@@ -45,8 +45,8 @@ DARK_TEXT_ABOVE = 0.5
 def _axis_position(key: str, value: float) -> float:
     """Where a value sits on its axis: ``-log(1 - gamma)`` for discounts, ``log(value)`` otherwise.
 
-    Where a value sits on its axis: -log(1 - gamma) for discounts (the horizon, log-spaced, growing
-    with gamma), log(value) for other positive values.
+    For a discount that is the horizon, log-spaced and growing with gamma; ``log(value)`` is for
+    the other, positive, values.
     """
     if key.endswith("gamma"):
         return -math.log(1.0 - value) if value < 1 else math.inf

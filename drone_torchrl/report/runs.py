@@ -98,8 +98,8 @@ class Run:
     def env_kwargs(self) -> dict[str, Any]:
         """The ``DroneEnv`` arguments of the run (:func:`drone_torchrl.config.env_kwargs`).
 
-        The ``DroneEnv`` arguments of the run (:func:`drone_torchrl.config.env_kwargs`; a run from
-        before an argument existed gets the value it ran with, :data:`~drone_torchrl.config.ENV_ADDED`).
+        A run from before an argument existed gets the value it ran with
+        (:data:`~drone_torchrl.config.ENV_ADDED`).
         """
         for name in ENV_ARGS:  # a config without one of them: a one-line error, not a KeyError
             if name not in ENV_ADDED:
@@ -196,8 +196,7 @@ def load_run(job_dir: Path) -> Run | None:
 def find_jobs(sweep_dir: Path) -> list[Path]:
     """Job folders of a sweep; a single job folder stands for itself.
 
-    Job folders of a sweep (:func:`~drone_torchrl.training.jobs.sweep_jobs`); a single job folder stands
-    for itself.
+    A sweep's job folders are those of :func:`~drone_torchrl.training.jobs.sweep_jobs`.
     """
     sweep_dir = Path(sweep_dir)
     jobs = sweep_jobs(sweep_dir)

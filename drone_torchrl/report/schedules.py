@@ -33,8 +33,7 @@ def pbt_runs(sweep_dir: Path) -> list[Path]:
 def best_schedules(run_dir: Path, best: int = BEST_AGENTS) -> tuple[list[str], list[tuple[int, float, list]]]:
     """The searched keys, and ``(agent, final return, schedule)`` of the ``best`` agents.
 
-    The searched keys, and ``(agent, final return, schedule)`` of the ``best`` agents by final
-    return (agents without one, unfinished or diverged, are left out).
+    The best are ranked by final return; agents without one (unfinished or diverged) are left out.
     """
     state = load_checkpoint(Path(run_dir) / CHECKPOINT_DIR / LAST)
     settings = state["search"]["settings"]

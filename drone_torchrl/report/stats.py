@@ -1,8 +1,8 @@
 """The numbers of a sweep report: statistics over seeds, thresholds, verdict and references.
 
-The numbers of a sweep report: running means, statistics over seeds, threshold crossings, the
-summary of each setting, the verdict, the PD controller's reference return and the best achievable
-return (:mod:`drone_torchrl.optimum`).
+That is: running means, statistics over seeds, threshold crossings, the summary of each setting,
+the verdict, the PD controller's reference return and the best achievable return
+(:mod:`drone_torchrl.optimum`).
 """
 
 from __future__ import annotations
@@ -283,8 +283,7 @@ def verdict(summaries: Sequence[SettingSummary]) -> str:
 def env_key(env_kwargs: dict[str, Any]) -> str:
     """An env setting as a hashable key (JSON); ``json.loads`` gives the arguments back.
 
-    An env setting as a hashable key (JSON: the arguments hold a mapping, env.disturbance);
-    ``json.loads`` gives the arguments back.
+    JSON because the arguments hold a mapping (env.disturbance).
     """
     return json.dumps(env_kwargs, sort_keys=True)
 
@@ -314,8 +313,7 @@ def _optimum(env_json: str) -> Optimum | None:
 def optimum_reference(env_kwargs: dict[str, Any]) -> Optimum | None:
     """The best achievable return of every episode in this env with bounded thrust, or ``None``.
 
-    The best achievable return of every episode in this env with bounded thrust
-    (:func:`drone_torchrl.evaluation.reference_optimum`), or ``None``. Cached per env setting.
+    Computed by :func:`drone_torchrl.evaluation.reference_optimum`; cached per env setting.
     """
     return _optimum(env_key(env_kwargs))
 

@@ -66,8 +66,8 @@ def build_report(
 ) -> SweepReport:
     """Read a sweep folder and compute its settings, table rows, PD references and optima.
 
-    Read a sweep folder (or use its already loaded ``runs``) and compute its settings, table
-    rows, PD references (``pd``) and optima; ``window=None`` is :func:`default_window`.
+    Already loaded ``runs`` are used instead of reading them again. The PD references are ``pd``;
+    ``window=None`` is :func:`default_window`.
     """
     window = default_window() if window is None else window
     runs = load_runs(Path(sweep_dir)) if runs is None else runs

@@ -156,8 +156,7 @@ def format_table(report: SweepReport) -> str:
 def format_report(report: SweepReport, figures: bool = True) -> str:
     """Write ``summary.md``: the verdict, the method, references, the table and links to figures.
 
-    ``summary.md``: the verdict on its first line, then the method, references, the table and
-    (with ``figures``) links to the two figures.
+    The verdict is on the first line; the links to the two figures come with ``figures``.
     """
     runs = sum(len(s.runs) for s in report.settings)
     lines = [

@@ -42,8 +42,8 @@ class AgentTable:
     def of(cls, agents: AgentTable | Sequence[DictConfig] | Sequence[Any]) -> AgentTable:
         """``agents`` as a table: a table itself, or a list of configs or of jobs.
 
-        ``agents`` as a table: a table itself, or a list of configs or of jobs (each with its
-        ``cfg`` and ``checkpoint``), equal but for their per-agent keys.
+        Jobs come each with its ``cfg`` and ``checkpoint``; the configs must be equal but for their
+        per-agent keys.
         """
         if isinstance(agents, AgentTable):
             return agents

@@ -160,8 +160,7 @@ class FastCollector:
 def squash_bound(cfg: DictConfig) -> float | None:
     """The TanhNormal head's upper bound on the motor commands, or None for the Normal head.
 
-    The TanhNormal head's upper bound on the motor commands (``env.max_thrust``), or None for
-    the Normal head: what the kernels squash their samples onto.
+    The bound is ``env.max_thrust``: what the kernels squash their samples onto.
     """
     return cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
 

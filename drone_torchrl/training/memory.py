@@ -30,8 +30,8 @@ DOCUMENTED_MAX_BYTES = 32 << 20
 def keep_freed_memory() -> bool:
     """Raise glibc's mmap and trim thresholds; True if both took effect.
 
-    Raise glibc's mmap threshold to :data:`KEEP_BELOW_BYTES` (or, where refused, to
-    :data:`DOCUMENTED_MAX_BYTES`) and its trim threshold alike; True if both took effect.
+    The mmap threshold goes to :data:`KEEP_BELOW_BYTES` (or, where refused, to
+    :data:`DOCUMENTED_MAX_BYTES`), and the trim threshold alike.
     """
     if not sys.platform.startswith("linux"):
         return False

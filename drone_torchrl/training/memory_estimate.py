@@ -1,7 +1,6 @@
 """The memory a training config will allocate, estimated before any work, and its refusal.
 
-The memory a training config will allocate, estimated before any work, and the one-line refusal of a
-config that cannot fit (:func:`~.memory_estimate.check`).
+The refusal, of a config that cannot fit, is one line (:func:`~.memory_estimate.check`).
 
 A batch too large to allocate failed after start-up with an allocator traceback, and a huge
 ``model.hidden_sizes`` got the process killed with no message at all. :func:`estimate` derives the
@@ -192,8 +191,7 @@ def rollout_bytes(b: int) -> int:
 def graph_bytes(hidden: Sequence[int], b: int) -> int:
     """Bytes of the loss's autograd graph per sample through hidden layers of these widths.
 
-    The loss's autograd graph per sample through hidden layers of these widths (every layer's
-    activation, and the backward pass's gradients at the widest).
+    The graph holds every layer's activation, and the backward pass's gradients at the widest.
     """
     return (sum(hidden) + BACKWARD_COPIES * max(hidden)) * b
 
@@ -201,8 +199,8 @@ def graph_bytes(hidden: Sequence[int], b: int) -> int:
 def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     """REINFORCE's update: ``A x algo.episodes_per_update x env.max_steps`` drone-steps.
 
-    REINFORCE's update: ``A x algo.episodes_per_update x env.max_steps`` drone-steps, on the
-    backend's terms (the C++ engine's buffers, or the reference's rollout and autograd graph).
+    Sized on the backend's terms: the C++ engine's buffers, or the reference's rollout and
+    autograd graph.
     """
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     steps = agents * cfg["algo"]["episodes_per_update"] * cfg["env"]["max_steps"]
@@ -226,8 +224,7 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
 def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     """The on-policy learners' (PPO, A2C) batch, a minibatch's graph, and the critic's weights.
 
-    The on-policy learners' (PPO, A2C) batch of ``algo.num_envs x algo.steps_per_batch`` frames,
-    a minibatch's graph, and the critic's weights.
+    The batch is ``algo.num_envs x algo.steps_per_batch`` frames.
     """
     algo = cfg["algo"]
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
@@ -252,8 +249,7 @@ def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
 def sac_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     """SAC's replay buffer, the batch it flies, a minibatch's graph and the Q-networks' weights.
 
-    SAC's replay buffer of ``algo.buffer_size`` frames, the batch it flies, a minibatch's graph and
-    the Q-networks' weights.
+    The replay buffer holds ``algo.buffer_size`` frames.
     """
     algo = cfg["algo"]
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
@@ -284,8 +280,7 @@ def estimate(
 ) -> MemoryEstimate:
     """The memory of a training config with ``agents`` runs in one process.
 
-    The memory of a training config (resolved, as nested mappings) with ``agents`` runs in one
-    process; ``learner`` gives the algorithm's own parts (its
+    The config is resolved, as nested mappings. ``learner`` gives the algorithm's own parts (its
     :class:`~drone_torchrl.algorithms.Algorithm`'s ``memory``; None: the parts every run has).
     """
     b = FLOAT_BYTES[cfg["env"]["dtype"]]

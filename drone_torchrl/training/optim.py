@@ -36,8 +36,7 @@ def grad_norms(grad: torch.Tensor) -> torch.Tensor:
 def clip_grad_norms(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
     """Clip each agent's row of ``grad`` ``[N, P]`` in place to ``max_norm``; returns the norms before.
 
-    Clip each agent's row of ``grad`` (``[N, P]``, in place) to ``max_norm`` (``inf``: no clipping);
-    returns the norms before.
+    ``max_norm=inf`` clips nothing.
     """
     norms = grad_norms(grad)
     if max_norm != float("inf"):
@@ -173,8 +172,7 @@ class Adam:
     ) -> dict[str, Any]:
         """Agent ``agent``'s optimizer state in ``torch.optim.Adam.state_dict()``'s layout.
 
-        Agent ``agent``'s optimizer in ``torch.optim.Adam.state_dict()``'s layout (params in
-        ``names`` order; ``views`` splits an ``[N, P]`` tensor into named parameters).
+        Params are in ``names`` order; ``views`` splits an ``[N, P]`` tensor into named parameters.
         """
         keys = [tuple(name.split(".")) for name in names]
         exp_avg, exp_avg_sq = views(state["exp_avg"]), views(state["exp_avg_sq"])

@@ -122,9 +122,6 @@ class PBTSettings:
 class Search:
     """What PBT and its replay share: the searched keys' lineage and each agent's value now.
 
-    What PBT and its replay share: the lineage of the searched keys' values, and each agent's
-    value now.
-
     Args:
         keys: the searched keys.
         initial: each searched key -> every agent's value from the sweep.
@@ -241,10 +238,9 @@ class PBT(Search):
     ) -> list[tuple[int, int]]:
         """One exploit-and-explore step after ``update`` updates; returns ``(agent, parent)`` pairs.
 
-        One exploit-and-explore step after ``update`` updates: rewrites rows of ``state`` (the
-        population's stacked state) in place and appends the lineage. ``scores``: each agent's
-        running-mean return; ``alive``: the agents that take part. Returns ``(agent, parent)``
-        pairs (the caller copies the agents' own records).
+        Rewrites rows of ``state`` (the population's stacked state) in place and appends the
+        lineage. ``scores``: each agent's running-mean return; ``alive``: the agents that take part.
+        The caller copies the agents' own records for the pairs returned.
         """
         s = self.settings
         candidates = [i for i in range(len(scores)) if alive[i] and not math.isnan(scores[i])]
@@ -276,8 +272,7 @@ class PBT(Search):
 class ReplaySettings:
     """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT run had.
 
-    ``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT (or
-    successive halving) run had.
+    The run may also be a successive halving run.
 
     Attributes:
         run: the PBT population run (its folder).
@@ -294,8 +289,8 @@ class ReplaySettings:
     def of(cls, params: Mapping[str, Any]) -> ReplaySettings:
         """The settings from the launcher's parameters, checked against the PBT run replayed.
 
-        The settings from the launcher's parameters; :class:`~.checks.ConfigError` (one line) for a run
-        that is not a finished PBT population run or an agent it does not have.
+        Raises :class:`~.checks.ConfigError` (one line) for a run that is not a finished PBT
+        population run, or for an agent it does not have.
         """
         from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
 
@@ -344,9 +339,9 @@ def schedule(
 ) -> list[tuple[int, dict[str, float]]]:
     """The values ``agent``'s weights were trained with, as ``[(update, values), ...]``.
 
-    The values ``agent``'s weights were trained with: ``[(0, the first values), (update, the values
-    from then on), ...]``, following its line of ancestors back through the lineage (an agent
-    replaced at update ``u`` by a copy of ``parent`` had ``parent``'s line before ``u``).
+    The list is ``[(0, the first values), (update, the values from then on), ...]``, following the
+    agent's line of ancestors back through the lineage (an agent replaced at update ``u`` by a copy
+    of ``parent`` had ``parent``'s line before ``u``).
     """
     steps = []
     current = agent
@@ -432,8 +427,7 @@ class HalvingSettings:
     def of(cls, params: Mapping[str, Any]) -> HalvingSettings:
         """The settings from the launcher's parameters, each checked.
 
-        The settings from the launcher's parameters; :class:`~.checks.ConfigError` (one line) for the
-        first that is not allowed.
+        Raises :class:`~.checks.ConfigError` (one line) for the first that is not allowed.
         """
         rungs = params.get("rungs", cls.rungs)
         if (

@@ -324,8 +324,8 @@ class PopulationRecord:
     def save(self, state: dict[str, torch.Tensor]) -> None:
         """Write ``last.pt`` with every agent's stacked state ``[N, ...]``; at the end, also close.
 
-        Write ``last.pt`` with every agent's ``state`` (the stacked tensors, ``[N, ...]`` each)
-        after the episodes it counts; at the end, the final summary too, and close.
+        The state is ``state``'s stacked tensors, written after the episodes it counts; at the end
+        the final summary is written too.
         """
         self.flush()
         save_checkpoint(self._checkpoint(state), self.run_dir / CHECKPOINT_DIR / LAST)
@@ -447,8 +447,8 @@ def read_table(path: Path) -> dict[str, list]:
 def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[str, Any]]:
     """Open a checkpoint; of a population run's, its agent ``agent``.
 
-    :func:`~drone_torchrl.config.open_checkpoint`, and of a population run's checkpoint its agent
-    ``agent`` (:func:`agent_checkpoint`); ``agent`` is for population runs only.
+    Opened by :func:`~drone_torchrl.config.open_checkpoint`, the agent taken by
+    :func:`agent_checkpoint`; ``agent`` is for population runs only.
     """
     path, state = open_checkpoint(key, location)
     if is_population(state):

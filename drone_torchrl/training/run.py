@@ -132,8 +132,8 @@ class AgentBook:
     def take_window(self, other: AgentBook | None) -> None:
         """Take ``other``'s running-mean windows; None empties them.
 
-        Take ``other``'s running-mean windows (an agent that took its weights is scored by them);
-        None: empty them (an agent restarted from fresh weights).
+        An agent that took ``other``'s weights is scored by its windows; one restarted from fresh
+        weights gets None.
         """
         self.recent_returns = deque([] if other is None else other.recent_returns, maxlen=self.window)
         self.recent_lengths = deque([] if other is None else other.recent_lengths, maxlen=self.window)
@@ -204,8 +204,7 @@ class AgentBook:
     def updates_until_due(self, episodes_per_update: int) -> int:
         """Updates of ``episodes_per_update`` episodes until an evaluation, checkpoint or the end is due.
 
-        How many updates of ``episodes_per_update`` episodes until an evaluation, a checkpoint or
-        the end of the budget falls due (at least 1).
+        The end is the budget's; at least 1.
         """
         targets = [self.next_checkpoint, self.budget]
         if self.next_eval is not None:
@@ -297,8 +296,8 @@ class RunRecord(AgentBook):
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
         """Book one update: its finished episodes and its training metrics.
 
-        Book one update: its finished episodes (``EPISODE_KEYS`` -> one value per episode, in the
-        order they finished) and its training metrics (TensorBoard every ``logger.every_updates``).
+        The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished; the
+        metrics go to TensorBoard every ``logger.every_updates``.
         """
         wall = round(self.wall_clock, 3)
         first = self.book(episodes["return"], episodes["length"])
@@ -328,8 +327,8 @@ class RunRecord(AgentBook):
     ) -> None:
         """Book an evaluation: TensorBoard, ``best.pt`` when it is the best so far, and a video.
 
-        Book an evaluation (``return``, ``length``, ``time_in_zone`` means): TensorBoard, ``best.pt``
-        when it is the best so far, and a video of ``actor()`` when ``eval.video``.
+        The evaluation's numbers are the ``return``, ``length`` and ``time_in_zone`` means; the
+        video, of ``actor()``, only with ``eval.video``.
         """
         cfg = self.cfg
         step = self.episodes_done
@@ -369,8 +368,7 @@ class RunRecord(AgentBook):
     def save(self, learner: dict[str, Any]) -> None:
         """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close.
 
-        Write ``last.pt`` (the CSV is flushed first, so the two agree after a kill); at the end also
-        the final hparams, and close the files.
+        The CSV is flushed first so the two agree after a kill; closing closes the files.
         """
         self.flush()  # the CSV holds every episode the checkpoint counts
         save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
@@ -382,8 +380,8 @@ class RunRecord(AgentBook):
     def flush(self) -> None:
         """Write the buffered CSV rows and logger scalars, and renew the run folder's lock.
 
-        Write the buffered CSV rows and TensorBoard scalars (files are open only while this runs),
-        and renew the run folder's lock (what another host reads as "its owner is alive").
+        The scalars are TensorBoard's; files are open only while this runs. The renewed lock is what
+        another host reads as "its owner is alive".
         """
         self.csv.flush()
         self.logger.flush()
@@ -393,8 +391,7 @@ class RunRecord(AgentBook):
     def close(self) -> None:
         """Flush and finish the logger, once, telling it whether the run finished, failed or stopped.
 
-        Flush and finish the logger, once: told whether the run finished, failed or stopped (a
-        backend with a service or open run, as W&B and MLflow have, records it).
+        A backend with a service or open run, as W&B and MLflow have, records that outcome.
         """
         if self._closed:
             return

@@ -115,8 +115,8 @@ def _interrupt(signum: int, frame: object) -> None:
 def interrupt_on_signals() -> Iterator[None]:
     """Make :data:`STOP_SIGNALS` raise :class:`Interrupted` while the block runs.
 
-    :data:`STOP_SIGNALS` raise :class:`Interrupted` while the block runs (the handlers in place
-    before are restored after; outside the main thread they keep their meaning).
+    The handlers in place before are restored after; outside the main thread the signals keep
+    their meaning.
     """
     if threading.current_thread() is not threading.main_thread():
         yield

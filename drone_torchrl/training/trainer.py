@@ -152,8 +152,8 @@ class Trainer:
     def optimum(self) -> Optimum | None:
         """The best achievable return of the evaluation episodes (bounded thrust only), kept.
 
-        The best achievable return of the evaluation episodes (bounded thrust only), found at the
-        first evaluation and kept: the env is the same for every evaluation of the run.
+        Found at the first evaluation and kept, since the env is the same for every evaluation of
+        the run.
         """
         return reference_optimum(env_kwargs(self.cfg))
 
@@ -413,9 +413,9 @@ def train_population(
 ) -> list[Outcome]:
     """Train validated agents of one group as ONE population run in ``run_dir``, or continue it.
 
-    Train validated agents of one group (:func:`~.jobs.group_key`; an :class:`~.agents.AgentTable`
-    or their configs) as ONE population run in ``run_dir`` (:mod:`.population_record`), or
-    continue it from its ``checkpoints/last.pt``.
+    The group is a :func:`~.jobs.group_key`'s agents, as an :class:`~.agents.AgentTable` or their
+    configs; the run is recorded by :mod:`.population_record` and continues from its
+    ``checkpoints/last.pt``.
 
     Refused in one line (:class:`~.checks.ConfigError`) before anything is written: a learner that does not
     train populations, a population larger than this machine's free memory, a folder another
@@ -470,8 +470,8 @@ def _population_checkpoint(
 ) -> dict | None:
     """The population run's last checkpoint, if it has one, checked against the sweep's agents.
 
-    The population run's last checkpoint, if it has one, checked against the sweep's agents and
-    hyper-parameters (as a continued run's: only the budget, logging and process settings change).
+    The hyper-parameters are checked too, as a continued run's: only the budget, logging and
+    process settings may change.
     """
     path = run_dir / CHECKPOINT_DIR / LAST
     if not path.is_file():

@@ -43,10 +43,10 @@ CHECKS = ("actions", "loss", "gradients", "weights")
 class UpdateOutput(NamedTuple):
     """``k`` updates of ``N`` agents: their ``metrics`` and finished ``episodes``.
 
-    ``k`` updates of ``N`` agents: ``metrics`` (``[k, N]`` each: ``"train/loss"``,
-    ``"train/grad_norm"``, ``"policy/std_mean"``; ``"active"`` ``[k, N]`` bool, who was trained in
-    each update; ``"checks"`` ``[k, N, 4]`` bool, see :data:`CHECKS`) and the finished
-    ``episodes`` (``[k, N, E]`` each, :data:`~drone_torchrl.episodes.EPISODE_KEYS`).
+    ``metrics``: ``[k, N]`` each, ``"train/loss"``, ``"train/grad_norm"``, ``"policy/std_mean"``;
+    ``"active"`` ``[k, N]`` bool, who was trained in each update; ``"checks"`` ``[k, N, 4]`` bool,
+    see :data:`CHECKS`. ``episodes``: ``[k, N, E]`` each,
+    :data:`~drone_torchrl.episodes.EPISODE_KEYS`.
     """
 
     metrics: dict[str, torch.Tensor]
