@@ -919,7 +919,7 @@ enum Stat { kReturn, kZoneSteps, kNegative, kLastCause, kStats };
 // Rows b * L .. b * L + L - 1 of dk_rollout (L = lanes<V>()). w: scratch of net.params vectors
 // (unused with one lane), acts: of max(net.activations, 1), x: of net.in_dim.
 template <class V>
-DK_HD void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* wbuf, V* acts, V* x) {
+DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* wbuf, V* acts, V* x) {
   using S = ScalarOf<V>;
   constexpr int L = lanes_of<V>();
   const S* params = static_cast<const S*>(a.params);
@@ -1071,7 +1071,7 @@ struct GradArgs {
 // Agent n's. Scratch: deltas of blocks * max(net.activations, 1) vectors, heads of blocks * 4,
 // grad of net.params (blocks: Saved::of's).
 template <class V>
-DK_HD void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, V* deltas, V* heads, V* grad) {
+DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, V* deltas, V* heads, V* grad) {
   using S = ScalarOf<V>;
   constexpr int L = lanes_of<V>();
   const RolloutArgs& a = g.roll;
@@ -1223,7 +1223,7 @@ struct SegmentArgs {
 // Drones b * L .. b * L + L - 1 of dk_segments. Scratch: acts of max(net.activations, 1), x of
 // net.in_dim vectors.
 template <class V>
-DK_HD void segment_block(const Net& net, const SegmentArgs& a, int64_t b, V* acts, V* x) {
+DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b, V* acts, V* x) {
   using S = ScalarOf<V>;
   constexpr int L = lanes_of<V>();
   const S* w = static_cast<const S*>(a.params);  // one agent: every lane reads the same weights
@@ -1393,9 +1393,16 @@ void parallel_blocks(int64_t blocks, int threads, Fn fn) {
 constexpr int64_t lanes() { return lanes_of<Lanes>(); }
 constexpr int64_t blocks_of(int64_t rows) { return (rows + lanes() - 1) / lanes(); }
 
-void fly_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t last) {
+__attribute__((flatten)) void fly_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t last) {
   std::vector<Lanes> w(net.params), acts(activation_width(net)), x(net.in_dim);
   for (int64_t b = first; b < last; b++) fly_block(net, a, b, w.data(), acts.data(), x.data());
+}
+
+__attribute__((flatten)) void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t last) {
+  const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, lanes());
+  std::vector<Lanes> deltas(layout.blocks * activation_width(net)), heads(layout.blocks * 2 * kActionDim),
+      grad(net.params);
+  for (int64_t n = first; n < last; n++) reinforce_agent(net, g, n, deltas.data(), heads.data(), grad.data());
 }
 
 }  // namespace
@@ -1438,12 +1445,7 @@ void dk_reinforce(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64
                 gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
   GradArgs g{a, {options[0], options[1], options[2], options[3]}, grad, loss, std_mean, actions_finite};
   parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { fly_blocks(net, a, f, l); });
-  parallel_blocks(agents, threads, [&](int64_t first, int64_t last) {
-    const Saved layout = Saved::of(net, episodes, steps, lanes());
-    std::vector<Lanes> deltas(layout.blocks * activation_width(net)), heads(layout.blocks * 2 * kActionDim),
-        grad(net.params);
-    for (int64_t n = first; n < last; n++) reinforce_agent(net, g, n, deltas.data(), heads.data(), grad.data());
-  });
+  parallel_blocks(agents, threads, [&](int64_t first, int64_t last) { reinforce_agents(net, g, first, last); });
 }
 
 // The size of dk_reinforce's saved buffer, in scalars.
