@@ -5,6 +5,7 @@ live in its test module (tests/test_a2c.py)."""
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 
@@ -16,6 +17,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from drone_torchrl import algorithms
+from drone_torchrl.algorithms import ppo
 from drone_torchrl.algorithms.ppo import OnPolicy
 from drone_torchrl.config import config_dir, run_config
 from drone_torchrl.envs import DroneEnv
@@ -364,3 +366,38 @@ def test_target_kl_ends_a_batch_s_epochs_at_the_first_minibatch_past_its_margin(
         metrics = learner._learn(next(learner._batches), 0)
         assert len(taken) == expected, (target, kls)
         assert all(np.isfinite(v) for v in metrics.values()) and "train/kl_approx" in metrics
+
+
+def test_dual_clip_bounds_a_negative_advantage_s_term_by_c_times_it():
+    """``clip_ppo_losses(dual_clip=3)`` by hand on 3 frames, log-ratios 100 (e^100 overflows float32),
+    0 and -0.1, advantages -1, 2, -1 (standardised: -1, 2, -1 over sqrt(3)), clip 0.2: the first
+    term is 3 x its advantage instead of -inf, the others ClipPPOLoss's; the gradient is finite. Without
+    the bound the loss is inf."""
+    from drone_torchrl.algorithms.ppo_fast import LOG_SQRT_2PI
+
+    class Fixed(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.loc = torch.nn.Parameter(torch.zeros(3, 2))
+
+        def forward(self, observation):
+            return self.loc, torch.ones(3, 2)
+
+    log_ratio = torch.tensor([100.0, 0.0, -0.1])
+    minibatch = [
+        torch.zeros(3, 6),  # observation
+        torch.zeros(3, 2),  # the actions' pre-images: at the mean
+        torch.zeros(3),  # log-determinant
+        -2 * LOG_SQRT_2PI - log_ratio,  # log-probability when flown
+        torch.tensor([[-1.0], [2.0], [-1.0]]),  # advantage
+        torch.zeros(3, 1),  # value target
+    ]
+    policy, value = Fixed(), lambda observation: torch.zeros(3, 1)
+    eps, coeff = torch.tensor(0.2), torch.tensor(0.5)
+    bounded = ppo.clip_ppo_losses(policy, value, minibatch, eps, coeff, dual_clip=3.0)
+    a = torch.tensor([-1.0, 2.0, -1.0]) / math.sqrt(3)
+    expected = -(3 * a[0] + a[1] + math.exp(-0.1) * a[2]) / 3
+    assert float(bounded["loss_objective"].detach()) == pytest.approx(float(expected), rel=1e-6)
+    bounded["loss_objective"].backward()
+    assert bool(torch.isfinite(policy.loc.grad).all())
+    assert float(ppo.clip_ppo_losses(policy, value, minibatch, eps, coeff)["loss_objective"].detach()) == math.inf

@@ -356,6 +356,13 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
             cfg.env.num_workers,
             f"0 with algo.name={name} (algo.num_envs drones in one env)",
         )
+    if cfg.algo.get("dual_clip") is not None and (cfg.backend != FAST or cfg.algo.entropy_coeff):
+        raise ConfigError.of(
+            "algo.dual_clip",
+            cfg.algo.dual_clip,
+            "null unless backend=fast and algo.entropy_coeff=0 (the fast loss bounds the ratio; "
+            "TorchRL's ClipPPOLoss has no dual clip)",
+        )
     frames = cfg.algo.num_envs * cfg.algo.steps_per_batch
     if frames % cfg.algo.minibatch_size:
         raise ConfigError.of(
@@ -395,6 +402,9 @@ class PPOConf(OnPolicyConf):
     # Stable-Baselines3's target_kl: a batch's epochs stop at the first minibatch whose approximate
     # KL divergence from the policy that flew the batch exceeds 1.5 target_kl (null: never).
     target_kl: Any = a_number(low=0, low_open=True, optional=True, added=None)
+    # Dual-clip PPO: the importance ratio bounded by this (> 1), so a minibatch whose ratios overflow
+    # cannot throw the policy off; backend=fast only (TorchRL's ClipPPOLoss has no such bound).
+    dual_clip: Any = a_number(low=1, low_open=True, optional=True, added=None)
 
 
 store_plugin("algo", "ppo", PPOConf)

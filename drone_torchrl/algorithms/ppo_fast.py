@@ -46,6 +46,7 @@ def clip_ppo_losses(
     minibatch: list[torch.Tensor],
     clip_epsilon: torch.Tensor,
     critic_coeff: torch.Tensor,
+    dual_clip: float | None = None,
 ) -> dict[str, torch.Tensor]:
     """What ``ClipPPOLoss(normalize_advantage=True, entropy_bonus=False)`` computes, in plain torch.
 
@@ -53,6 +54,11 @@ def clip_ppo_losses(
     log-probability when flown, advantage, value target]``: ``policy`` maps observations to the
     Normal's ``(loc, scale)``, ``value`` to state values. Returns its losses, ``clip_fraction`` and
     ``kl_approx``: the same values and gradients to float rounding (tests/test_ppo.py).
+
+    ``dual_clip`` (Ye et al. 2020, "Mastering Complex Control in MOBA Games with Deep RL"): the
+    importance ratio is bounded by it, which bounds a negative advantage's term by
+    ``dual_clip x advantage`` and leaves the rest of the clipped objective as it is (for a positive
+    advantage a ratio above ``1 + clip_epsilon`` is clipped anyway). None: ClipPPOLoss's objective.
     """
     observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
     # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.
@@ -64,7 +70,8 @@ def clip_ppo_losses(
     log_prob = log_density.sum(-1) - log_det
     log_weight = (log_prob - flown_log_prob).unsqueeze(-1)
     clipped = log_weight.clamp((-clip_epsilon).log1p(), clip_epsilon.log1p())
-    gain = torch.minimum(log_weight.exp() * advantage, clipped.exp() * advantage)
+    ratio = (log_weight if dual_clip is None else log_weight.clamp(max=math.log(dual_clip))).exp()
+    gain = torch.minimum(ratio * advantage, clipped.exp() * advantage)
     loss_critic = functional.smooth_l1_loss(value_target, value(observation), reduction="none")
     return {
         "loss_objective": -gain.mean(),
@@ -84,6 +91,7 @@ class PlainMinibatches:
         self.device, self.head = cfg.device, distribution_head(cfg.model.distribution, cfg.env.max_thrust)
         self.policy, self.value = actor.module[0].module, critic.module  # observation -> (loc, scale), value
         self.clip_epsilon, self.critic_coeff = loss.clip_epsilon, loss.critic_coeff
+        self.dual_clip = cfg.algo.get("dual_clip")
         k = loss.tensor_keys
         self.frame_keys = ("observation", k.action, k.sample_log_prob, k.advantage, k.value_target)
         self.held: list[torch.Tensor] = []
@@ -106,4 +114,6 @@ class PlainMinibatches:
 
     def losses(self, minibatch: list[torch.Tensor]) -> dict[str, torch.Tensor]:
         """:func:`clip_ppo_losses` of the minibatch."""
-        return clip_ppo_losses(self.policy, self.value, minibatch, self.clip_epsilon, self.critic_coeff)
+        return clip_ppo_losses(
+            self.policy, self.value, minibatch, self.clip_epsilon, self.critic_coeff, self.dual_clip
+        )
