@@ -940,6 +940,12 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
         if reason is not None:
             raise ConfigError(f"backend=fast cannot take {reason}; backend=reference takes every option")
     algorithms.get(cfg.algo.name).validate(cfg)
+    if cfg.eval.get("stop_return") is not None and not cfg.eval.every_episodes:
+        raise ConfigError.of(
+            "eval.stop_return",
+            cfg.eval.stop_return,
+            "null unless eval.every_episodes > 0 (it ends a run at a periodic evaluation)",
+        )
     if training:  # drone-eval reads a finished run's values: its logger is the training's business
         loggers.check_backend(cfg)  # after the values: a bad value is named whether or not the extra is there
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
