@@ -164,13 +164,10 @@ def plot_landscape(grid: Landscape, path: Path) -> Path:
         if marker is not None:
             ax.plot(*marker, marker="*", color="red", markersize=MARKER_SIZE, markeredgecolor="white")
     if marker is not None:
-        fig.suptitle(f"red star: the paper's setting ({_paper_label()}); grey: never", fontsize="medium")
+        paper = ", ".join(f"{key} {value:g}" for key, value in PAPER_SETTING.items())
+        fig.suptitle(f"red star: the paper's setting ({paper}); grey: never", fontsize="medium")
     fig.tight_layout()
     return write_figure(fig, path, dpi=FIGURE_DPI)
-
-
-def _paper_label() -> str:
-    return ", ".join(f"{key} {value:g}" for key, value in PAPER_SETTING.items())
 
 
 def _paper_marker(grid: Landscape) -> tuple[float, float] | None:
