@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drone_torchrl.io.storage import write_atomically, write_figure
+from drone_torchrl.io.storage import new_figure, write_atomically, write_figure
 from drone_torchrl.report.stats import ZONE_SHARE, SettingSummary
 from drone_torchrl.report.sweep import SweepReport
 
@@ -121,11 +121,8 @@ def _format(value: float, kind: str) -> str:
 def plot_landscape(grid: Landscape, path: Path) -> Path:
     """Three heat maps side by side, values written in the cells, the paper's setting marked."""
     import matplotlib
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
 
-    fig = Figure(figsize=FIGURE_SIZE)
-    FigureCanvasAgg(fig)
+    fig = new_figure(FIGURE_SIZE)
     marker = _paper_marker(grid)
     panels = [
         ("median final return (running mean)", grid.median_return, "value", "viridis"),
