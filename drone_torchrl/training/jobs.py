@@ -237,8 +237,7 @@ def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
 def group_key(cfg: DictConfig) -> str:
     """The key that groups jobs into one population: their configs but for per-agent keys.
 
-    Jobs whose configs agree on everything but their per-agent keys (the schema's ``per_agent``)
-    can train as one population.
+    The per-agent keys are the schema's ``per_agent`` ones.
     """
     container = OmegaConf.to_container(cfg, resolve=True)
     for dotted in (*per_agent_keys(), "resume", "progress"):

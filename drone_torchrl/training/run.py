@@ -201,8 +201,8 @@ class AgentBook:
     def book_eval(self, result: dict[str, float]) -> bool:
         """Count an evaluation; returns whether it is the best so far.
 
-        Count an evaluation (``return``, ``length``, ``time_in_zone`` means): the schedule moves on,
-        the final metrics are set at the end. Returns whether it is the best so far.
+        ``result``: its ``return``, ``length``, ``time_in_zone`` means. The schedule moves on; the
+        final metrics are set at the end.
         """
         best = result["return"] > self.best_eval
         self.best_eval = max(self.best_eval, result["return"])

@@ -109,10 +109,10 @@ class Trainer:
     ) -> None:
         """Train the jobs, each in its own run folder, or together as one population run.
 
-        ``population_dir``: train the jobs (or an :class:`~.agents.AgentTable`) as one population
-        run in that folder (see :mod:`.population_record`; ``names``: the agents' names,
-        ``checkpoint``: the population checkpoint to continue from, ``search``: train it with
-        population-based training, :mod:`.pbt`); otherwise each job in its own run folder.
+        ``population_dir``: the population run's folder (see :mod:`.population_record`; the jobs may
+        be an :class:`~.agents.AgentTable`); ``names``: the agents' names; ``checkpoint``: the
+        population checkpoint to continue from; ``search``: train it with population-based
+        training (:mod:`.pbt`).
         """
         self.cfg = cfg = jobs.cfg if isinstance(jobs, AgentTable) else jobs[0].cfg
         torch.set_num_threads(cfg.threads)
@@ -197,9 +197,8 @@ class Trainer:
     def step(self, active: list[int], k: int | None = None) -> int:
         """Run ``k`` updates of the ``active`` agents, booked, then the evaluations and checkpoints due.
 
-        ``k`` updates of the ``active`` agents (default: as many as nothing falls due in, at most
-        :data:`MAX_UPDATES_PER_CALL`; one where the learner cannot tell), booked; then the evaluations and
-        checkpoints that are due. Returns the env steps the agents took.
+        ``k`` defaults to as many as nothing falls due in (at most :data:`MAX_UPDATES_PER_CALL`; one
+        where the learner cannot tell). Returns the env steps the agents took.
         """
         runs, learner = self.runs, self.learner
         per_update = learner.episodes_per_update
