@@ -12,7 +12,8 @@ videos. Printed per seed:
 
 - *to target*: the training wall-clock (``episodes.csv``'s ``wall_clock_s``) at the first evaluation
   whose return reaches the target, less the evaluations before it;
-- *training*: the whole budget's training wall-clock, less the evaluations;
+- *training*: the run's training wall-clock (to its budget, or to the evaluation that reached
+  ``eval.stop_return`` where the preset sets one), less the evaluations;
 - *command*: the whole command, start-up and the final evaluation included;
 - drone-eval's return, first step in the zone (of the episode that enters last) and crashes over its 100 seeded starts, on
   ``checkpoints/last.pt`` (the same evaluator: :func:`drone_torchrl.comparison.run_eval`).
@@ -156,7 +157,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--preset", default="hover_optimal", help="the experiment option (conf/experiment)")
     parser.add_argument("--seeds", type=seed_list, default=seed_list("0-7"), help="e.g. 0-7 or 100-107")
-    parser.add_argument("--every", type=int, default=500, help="episodes between evaluations")
+    parser.add_argument("--every", type=int, default=250, help="episodes between evaluations")
     parser.add_argument("--target", type=float, default=2685.0, help="the evaluation return to reach")
     parser.add_argument("--eval-repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/time_to_hover"))
