@@ -1,6 +1,7 @@
 """Headless pygame for every test (no display, no audio device), and W&B offline (nothing leaves the
 machine: logger=wandb writes its run files only); ``command_here``, a console command run in-process."""
 
+import logging
 import os
 import subprocess
 import sys
@@ -30,18 +31,24 @@ def command_here(monkeypatch, capsys):
 
     For commands refused before any work (a new process would spend seconds importing torch only
     to print one line): ``sys.exit("...")`` becomes exit status 1 with the message on stderr, as
-    the interpreter does.
+    the interpreter does. Hydra configures the root logger (a handler on this test's captured
+    stdout); it is put back as it was, for the tests after this one.
     """
 
     def call(entry, name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
         monkeypatch.chdir(cwd)
         monkeypatch.setattr(sys, "argv", [name, *args])
         capsys.readouterr()
+        root = logging.getLogger()
+        handlers, level = list(root.handlers), root.level
         try:
             entry()
             code = 0
         except SystemExit as stop:
             code = stop.code
+        finally:
+            root.handlers[:] = handlers
+            root.setLevel(level)
         out, err = capsys.readouterr()
         if isinstance(code, str):
             err, code = err + code + "\n", 1

@@ -1,7 +1,7 @@
 """Sweeps under each Hydra launcher: every job gets its folder, re-running skips finished jobs, and a
 failing job is reported while the others finish.
 
-Each test runs ``python -m drone_torchrl.apps.train -m ...`` as a subprocess. A launcher whose plugin is not
+Each test that trains runs ``python -m drone_torchrl.apps.train -m ...`` as a subprocess. A launcher whose plugin is not
 installed (extras ``joblib``, ``submitit``, ``ray``) is skipped. The Ray test starts a local Ray
 instance and is skipped unless selected with ``-m ray``.
 """
@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from drone_torchrl.apps import train as train_app
 from drone_torchrl.config import config_dir
 from drone_torchrl.training.jobs import FAILED_FILE, job_status, sweep_jobs
 
@@ -144,10 +145,15 @@ def test_failed_job_is_summarised_and_the_others_finish(launcher, request, tmp_p
 
 
 @pytest.mark.parametrize("launcher", ["basic", "fused"])
-def test_a_bad_value_in_a_sweep_is_refused_before_any_job(launcher, request, tmp_path):
+def test_a_bad_value_in_a_sweep_is_refused_before_any_job(launcher, request, tmp_path, command_here):
+    """Refused by the sweeper before any job starts: drone-train runs in this process (no job, so no
+    new process is needed to keep this one's state apart)."""
     overrides = _require(launcher, request)
     sweep_dir = tmp_path / "sweep"
-    out = _multirun(sweep_dir, *overrides, "algo.gamma=0.9,7", cwd=tmp_path, expect_failure=True)
+    argv = ["-m", *overrides, "algo.gamma=0.9,7", *TINY, f"hydra.sweep.dir={sweep_dir}"]
+    proc = command_here(train_app.run, "drone-train", *argv, cwd=tmp_path)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode != 0 and "Traceback" not in out, out
     errors = [line for line in out.splitlines() if "error" in line]
     assert len(errors) == 1 and errors[0].startswith("drone-train: error: algo.gamma=7 is not allowed"), out
     assert sweep_jobs(sweep_dir) == [] and not list(sweep_dir.glob("*/episodes.csv"))
