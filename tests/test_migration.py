@@ -12,6 +12,7 @@ import os
 import shutil
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -78,9 +79,14 @@ def test_an_old_config_names_its_backend(engine, collector, backend):
 
 def test_old_runs_resume(runs):
     """Both fixtures continue from their checkpoints at episode 4: the episode counter carries on,
-    the CSV grows, and the checkpoint now says backend."""
-    for name, budget in (("run_reinforce", 6), ("run_ppo", 8)):
-        proc = _drone_train(f"resume={runs / name}", f"algo.episodes={budget}", cwd=runs)
+    the CSV grows, and the checkpoint now says backend. (Two runs, two processes side by side.)"""
+    budgets = {"run_reinforce": 6, "run_ppo": 8}
+    with ThreadPoolExecutor(len(budgets)) as pool:
+        procs = pool.map(
+            lambda name: _drone_train(f"resume={runs / name}", f"algo.episodes={budgets[name]}", cwd=runs),
+            budgets,
+        )
+    for (name, budget), proc in zip(budgets.items(), procs, strict=True):
         assert proc.returncode == 0, proc.stderr
         assert "continuing from episode 4" in proc.stdout
         state = load_checkpoint(runs / name / "checkpoints" / "last.pt")
