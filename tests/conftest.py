@@ -25,20 +25,21 @@ def pytest_ignore_collect(collection_path, config):
 
 
 @pytest.fixture
-def command_here(monkeypatch, capsys):
+def command_here(monkeypatch, capfd):
     """Run a console command's entry point (``drone_torchrl.apps.<module>.run``/``main``) in this
     process, as ``name args...`` from ``cwd``; returns what its process would have ended with.
 
     For commands refused before any work (a new process would spend seconds importing torch only
     to print one line): ``sys.exit("...")`` becomes exit status 1 with the message on stderr, as
-    the interpreter does. Hydra configures the root logger (a handler on this test's captured
-    stdout); it is put back as it was, for the tests after this one.
+    the interpreter does. Output is captured at the file descriptors, as a process's pipes would
+    be. Hydra configures the root logger (handlers on the captured stdout and on each job's log
+    file); it is put back as it was, for the tests after this one.
     """
 
     def call(entry, name: str, *args: str, cwd: Path) -> subprocess.CompletedProcess:
         monkeypatch.chdir(cwd)
         monkeypatch.setattr(sys, "argv", [name, *args])
-        capsys.readouterr()
+        capfd.readouterr()
         root = logging.getLogger()
         handlers, level = list(root.handlers), root.level
         try:
@@ -47,9 +48,11 @@ def command_here(monkeypatch, capsys):
         except SystemExit as stop:
             code = stop.code
         finally:
+            for handler in set(root.handlers) - set(handlers):
+                handler.close()  # a job's log file (Hydra's job logging)
             root.handlers[:] = handlers
             root.setLevel(level)
-        out, err = capsys.readouterr()
+        out, err = capfd.readouterr()
         if isinstance(code, str):
             err, code = err + code + "\n", 1
         return subprocess.CompletedProcess([name, *args], 0 if code is None else code, out, err)
