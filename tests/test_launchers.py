@@ -1,10 +1,10 @@
 """Sweeps under each Hydra launcher: every job gets its folder, re-running skips finished jobs, and a
 failing job is reported while the others finish.
 
-Each sweep is ``drone-train -m ...``: in this process for the launchers that train inside drone-train's own
-process (basic, fused, population; ``IN_PROCESS``), as ``python -m drone_torchrl.apps.train`` for those
-that start processes of their own. A launcher whose plugin is not
-installed (extras ``joblib``, ``submitit``, ``ray``) is skipped. The Ray test starts a local Ray
+Each sweep is ``drone-train -m ...``: in this process for the launchers that train inside
+drone-train's own process (basic, fused, population; ``IN_PROCESS``), as ``python -m
+drone_torchrl.apps.train`` for those that start processes of their own. A launcher whose plugin is
+not installed (extras ``joblib``, ``submitit``, ``ray``) is skipped. The Ray test starts a local Ray
 instance and is skipped unless selected with ``-m ray``.
 """
 
