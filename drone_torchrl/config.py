@@ -371,11 +371,10 @@ def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
 
 
 def check_values(resolved: Mapping, name: str = "config") -> None:
-    """Check every rule of the schema on the resolved config; the first refusal raises ConfigError.
+    """Check every rule of the schema (:mod:`drone_torchrl.schema`) on the resolved config.
 
-    Every rule of the schema (:mod:`drone_torchrl.schema`) on the resolved config (as nested
-    dicts, keys checked by :func:`check_keys`): the first value a rule refuses raises
-    :class:`~.checks.ConfigError`.
+    ``resolved``: nested dicts, keys checked by :func:`check_keys`. The first value a rule refuses
+    raises :class:`~.checks.ConfigError`.
     """
     plugins = tuple(
         (group, resolved[group][rule.plugin_key]) for group, rule in schema.plugin_groups(name).items()
@@ -436,9 +435,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                     f"{key}=<one of {_options(key)}>"
                 )
             continue
-        values = (
-            list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
-        )
+        values = _override_values(override)
         if key.startswith(f"{migrations.LEGACY}.") and migrations.is_old_key(key.split(".", 1)[1]):
             continue  # an old key, passed on as +legacy.<key> (drone_torchrl.migrations.legacy_arguments)
         if key.split(".")[0].split("/")[0] == _HYDRA_PREFIX:
@@ -470,14 +467,18 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             raise _unknown(key, known)
 
 
+def _override_values(override: Any) -> list[Any]:
+    """The value of a parsed override, or each value of a sweep."""
+    return list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+
+
 def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
     """The one line for ``algo.name=ppo``: a plug-in is chosen with its group (``algo=ppo``).
 
     The plug-in comes with its keys, so it is chosen with its group, which sets the key; setting
     the key alone leaves the other plug-in's keys.
     """
-    values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
-    value = values[0]
+    value = _override_values(override)[0]
     options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
     how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
     return ConfigError(
@@ -526,10 +527,9 @@ def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
 
 
 def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
-    """Every combination of the group options the overrides pick.
+    """Every combination of the group options the overrides pick, ``(("algo", "ppo"), ...)``.
 
-    The last plain one of each group, or every option a sweep names. ``(("algo", "ppo"), ("experiment",
-    "bounded"))``.
+    The last plain one of each group, or every option a sweep names.
     """
     groups = group_names()
     picks: dict[str, list[str]] = {}
@@ -537,9 +537,7 @@ def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
         group = override.key_or_group
         if group not in groups or override.is_delete():
             continue
-        values = (
-            list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
-        )
+        values = _override_values(override)
         options = [v for v in values if v in _options(group)]
         if options:
             picks[group] = options
@@ -635,9 +633,8 @@ def _preset_keys(path: Path) -> list[str]:
 def _check_folder_name(key: str, value: Any, expected: str) -> None:
     """Check that ``value`` of ``key`` names one folder, of a length the file system allows.
 
-    ``value`` of ``key`` names one folder (:func:`plain_name`; else the message asks for
-    ``expected``) no longer than the working folder's file system allows (where run and sweep
-    folders go by default).
+    Not one folder (:func:`plain_name`): the message asks for ``expected``. The length is the
+    working folder's file system's (where run and sweep folders go by default).
     """
     from drone_torchrl.io.storage import name_too_long
 
@@ -940,6 +937,12 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
         if reason is not None:
             raise ConfigError(f"backend=fast cannot take {reason}; backend=reference takes every option")
     algorithms.get(cfg.algo.name).validate(cfg)
+    if cfg.eval.get("stop_return") is not None and not cfg.eval.every_episodes:
+        raise ConfigError.of(
+            "eval.stop_return",
+            cfg.eval.stop_return,
+            "null unless eval.every_episodes > 0 (it ends a run at a periodic evaluation)",
+        )
     if training:  # drone-eval reads a finished run's values: its logger is the training's business
         loggers.check_backend(cfg)  # after the values: a bad value is named whether or not the extra is there
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:

@@ -318,7 +318,7 @@ def program_bytes(policy: DeterministicPolicy, format: str) -> bytes:
 
     See :func:`export_policy`. Made in memory: nothing reaches the disk before the file is checked, and then
     it is written at once (:func:`~drone_torchrl.io.storage.write_atomically`; torch's and onnx's own writers
-    abort the
+    abort the process, in C++, on a full disk).
     """
     policy.requires_grad_(False)  # an inference program: no autograd graph in its outputs
     example = torch.zeros(2, observation_dim(policy), dtype=_dtype(policy))

@@ -19,8 +19,7 @@ END = "<!-- end of plug-ins -->"
 def plugin_table() -> str:
     """A markdown table of the registered algorithms and logger backends.
 
-    A markdown table: each registered algorithm and logger backend, the options that choose it,
-    what it is, and the extra it needs.
+    Each with the options that choose it, what it is, and the extra it needs.
     """
     rows = ["| choose with | plug-in | what it is | needs |", "|---|---|---|---|"]
     groups = {"algo": algorithms.get, "logger": loggers.get}

@@ -311,6 +311,7 @@ class PeriodicEvalConf:
     episodes: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
     seed: Any = an_integer(low=0, high=MAX_SEED)
     video: Any = a_flag(on_resume=IF_SET)
+    stop_return: Any = a_number(optional=True, on_resume=IF_SET, added=None)
 
 
 # ---------------------------------------------------------------------- the primary configs

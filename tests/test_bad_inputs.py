@@ -400,6 +400,10 @@ TRAIN = [
     (["algo=ppo", "algo.dual_clip=1"], "algo.dual_clip"),
     (["algo=ppo", "algo.dual_clip=3"], "algo.dual_clip"),
     (["algo=ppo", "backend=fast", "algo.entropy_coeff=0.01", "algo.dual_clip=3"], "algo.dual_clip"),
+    # eval.stop_return ends a run at a periodic evaluation: none, nothing would stop it.
+    (["eval.stop_return=2685", "eval.every_episodes=0"], "eval.stop_return"),
+    (["eval.stop_return=high"], "eval.stop_return"),
+    (["eval.stop_return=[2685]"], "eval.stop_return"),
     (["algo=ppo", "algo.gae_lambda=2"], "algo.gae_lambda"),
     (["algo=ppo", "algo.critic_coeff=0"], "algo.critic_coeff"),
     (["algo=ppo", "algo.reward_scale=-1"], "algo.reward_scale"),
@@ -824,6 +828,18 @@ def test_a_search_longer_than_the_budget_is_refused_before_the_folder_exists(sea
     with pytest.raises(ConfigError) as info:
         train_population(cfgs, ["seed=0", "seed=1"], tmp_path / "pop", search=settings)
     _one_line(str(info.value), names)
+    assert not (tmp_path / "pop").exists()
+
+
+def test_a_population_run_refuses_stop_return_before_the_folder_exists(tmp_path):
+    """eval.stop_return ends one run early; a population's agents train their whole budget together."""
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfgs = [
+            compose("config", overrides=[*TINY, "backend=fast", f"seed={s}", "eval.stop_return=100"]) for s in (0, 1)
+        ]
+    with pytest.raises(ConfigError) as info:
+        train_population(cfgs, ["seed=0", "seed=1"], tmp_path / "pop")
+    _one_line(str(info.value), "eval.stop_return=100 is not allowed; expected null with hydra/launcher=population")
     assert not (tmp_path / "pop").exists()
 
 

@@ -25,7 +25,7 @@ from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.modules import make_actor
 from drone_torchrl.objectives import ReinforceLoss
 from drone_torchrl.training.jobs import job_status, prepare
-from drone_torchrl.training.trainer import Trainer, train
+from drone_torchrl.training.trainer import Trainer, train, train_jobs
 
 BACKENDS = ["reference", "fast"]
 FAST = ["progress=false", "eval.episodes=2", "eval.video=false", "env.max_steps=30"]
@@ -531,3 +531,38 @@ def test_every_run_closes_its_logger_once_saying_how_it_ended(tmp_path, monkeypa
     with pytest.raises(TrainingStopped):
         trainer.train()
     assert sorted(_ClosingSpy.closed) == [("a0", "stopped"), ("a1", "failed"), ("a2", "finished")]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_stop_return_ends_the_run_at_the_first_evaluation_that_reaches_it(tmp_path, backend, capsys):
+    """eval.stop_return: the run ends at the first evaluation at or above it, with a final checkpoint.
+
+    The same command then has nothing to do; with the key set to null the run trains on to its
+    budget and ends as the run that never stopped.
+    """
+    common = (f"backend={backend}", "algo.episodes=8", "eval.every_episodes=2", *FAST)
+    whole = tmp_path / "whole"
+    train(_cfg(*common), run_dir=whole)
+    evals = _tb_points(whole, "eval/return")
+    assert sorted(evals) == [2, 4, 6, 8]
+    # best.pt: the first evaluation at the best return (a later equal one does not replace it).
+    kept = load_checkpoint(whole / "checkpoints" / "best.pt")
+    best, first_best = kept["best_eval_return"], kept["episodes_done"]
+    assert evals[first_best] == pytest.approx(best) and first_best < 8  # else the test shows no stop
+
+    run = tmp_path / "run"
+    train(_cfg(*common, f"eval.stop_return={best}"), run_dir=run)
+    assert "eval.stop_return" in capsys.readouterr().out
+    assert len(read_episodes(run / "episodes.csv")[0]["return"]) == first_best
+    checkpoint = load_checkpoint(run / "checkpoints" / "last.pt")
+    assert checkpoint["episodes_done"] == first_best and checkpoint["final"] is not None
+    assert checkpoint["stopped_at_return"] == best
+    assert job_status(run)[0] == "finished"
+    train(_cfg(*common, f"eval.stop_return={best}"), run_dir=run)
+    assert "already finished" in capsys.readouterr().out
+
+    raised = (f"eval.stop_return={best + 1}", f"resume={run}")  # above the return it stopped at: trains on
+    train_jobs([prepare(_cfg(*common, *raised), run_dir=run, requested=raised)])
+    np.testing.assert_array_equal(read_episodes(run / "episodes.csv")[0]["return"], read_episodes(whole / "episodes.csv")[0]["return"])
+    assert _tb_points(run, "eval/return") == evals
+

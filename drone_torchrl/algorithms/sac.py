@@ -262,7 +262,6 @@ class SAC:
 
     def close(self) -> None:
         """Nothing to close: the collector holds no resources."""
-        pass
 
 
 def validate(cfg: Mapping[str, Any]) -> None:

@@ -37,8 +37,7 @@ def main(cfg: DictConfig) -> None:
 def run() -> None:
     """Console entry point ``drone-eval``: check the command line, then run the Hydra app.
 
-    Console entry point: checks the command line's keys and the folder Hydra will write, then
-    runs the Hydra app.
+    The command line's keys and the folder Hydra will write are checked.
     """
     flags = command_line.check_flags("drone-eval")
     check_command_line("drone-eval", "eval")

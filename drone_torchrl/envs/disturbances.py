@@ -299,8 +299,7 @@ def episode_keys(
 ) -> torch.Tensor:
     """Draw fresh int64 episode keys ``[*shape]``, independent of the batch layout.
 
-    Fresh episode keys (int64 ``[*shape]``) from a CPU generator, one draw per episode in row-major
-    order (so the same seed gives the same keys whatever the batch layout), moved to ``device``.
+    From a CPU generator, one draw per episode in row-major order, moved to ``device``.
     """
     keys = torch.randint(-(2**63), 2**63 - 1, tuple(shape), generator=generator, dtype=torch.int64)
     return keys if device is None else keys.to(device)

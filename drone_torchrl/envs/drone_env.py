@@ -59,14 +59,8 @@ def _check_real(
     name: str, value: object, *, minimum: float, inclusive: bool, maximum: float | None = None
 ) -> float:
     """Return ``value`` as float, or raise a ValueError naming the argument and the allowed range."""
-    allowed = f"a finite number {'>=' if inclusive else '>'} {minimum}"
-    if maximum is not None:
-        allowed += f" and <= {maximum}"
-    if not _finite(value):
-        raise ValueError(f"{name}={as_override(value)} is not allowed; expected {allowed}")
-    if value < minimum or (value == minimum and not inclusive) or (maximum is not None and value > maximum):
-        raise ValueError(f"{name}={as_override(value)} is not allowed; expected {allowed}")
-    return float(value)
+    high = None if maximum is None else (str(maximum), maximum)
+    return _check_range(name, value, (str(minimum), minimum), high, low_open=not inclusive)
 
 
 def _finite(value: object) -> bool:
@@ -92,8 +86,7 @@ def _check_range(
 ) -> float:
     """Check that ``value`` is a finite number within the named bounds; return it as a float.
 
-    ``value`` as float if finite and within the named bounds, else a ValueError naming the
-    argument and the bounds (``expected a finite number > z_min (0.0)``).
+    Else a ValueError naming the argument and the bounds (``expected a finite number > z_min (0.0)``).
     """
     # A bound named by another argument shows its value too; a literal one ("0", "1000 m") is its value.
     label = lambda bound: f"{bound[0]} ({bound[1]!r})" if bound[0].isidentifier() else bound[0]  # noqa: E731

@@ -5,7 +5,6 @@ An adapter over :class:`~drone_torchrl.envs.drone_env.DroneEnv`.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -14,17 +13,9 @@ import torch
 from gymnasium import spaces
 from tensordict import TensorDict
 
-from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.dynamics import (
     ACTION_DIM,
-    ALPHA_LIMIT,
-    X_LIMIT,
-    Z_MAX,
-    Z_MIN,
-    ZONE_X_LIMIT,
-    ZONE_Z_MAX,
-    ZONE_Z_MIN,
     TerminationCause,
 )
 
@@ -48,56 +39,18 @@ class DroneGymEnv(gym.Env):
 
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 50}
 
-    def __init__(
-        self,
-        *,
-        mass: float = 1.0,
-        motor_distance: float = 1.0,
-        gravity: float = 9.81,
-        dt: float = 0.02,
-        max_steps: int = 300,
-        reset_mode: str = "floor",
-        max_thrust: float | None = None,
-        floor_tolerance: float = 0.05,
-        x_limit: float = X_LIMIT,
-        z_min: float = Z_MIN,
-        z_max: float = Z_MAX,
-        alpha_limit: float = ALPHA_LIMIT,
-        zone_x_limit: float = ZONE_X_LIMIT,
-        zone_z_min: float = ZONE_Z_MIN,
-        zone_z_max: float = ZONE_Z_MAX,
-        bounds: str = "inclusive",
-        dtype: str | torch.dtype = "float32",
-        disturbance: disturbances.Disturbance | Mapping[str, Any] | None = None,
-        render_mode: str | None = None,
-    ) -> None:
-        self.env = DroneEnv(
-            batch_size=[],
-            mass=mass,
-            motor_distance=motor_distance,
-            gravity=gravity,
-            dt=dt,
-            max_steps=max_steps,
-            reset_mode=reset_mode,
-            max_thrust=max_thrust,
-            floor_tolerance=floor_tolerance,
-            x_limit=x_limit,
-            z_min=z_min,
-            z_max=z_max,
-            alpha_limit=alpha_limit,
-            zone_x_limit=zone_x_limit,
-            zone_z_min=zone_z_min,
-            zone_z_max=zone_z_max,
-            bounds=bounds,
-            dtype=dtype,
-            disturbance=disturbance,
-            render_mode=render_mode,
-        )
+    def __init__(self, *, render_mode: str | None = None, **env_kwargs: Any) -> None:
+        # DroneEnv's keyword arguments, but those of a batch: one drone, on the CPU (numpy's).
+        for batch_only in ("batch_size", "device", "render_index"):
+            if batch_only in env_kwargs:
+                raise TypeError(f"DroneGymEnv.__init__() got an unexpected keyword argument '{batch_only}'")
+        self.env = DroneEnv(batch_size=[], render_mode=render_mode, **env_kwargs)
         self.params, self.dtype, self.disturbance = self.env.params, self.env.dtype, self.env.disturbance
-        self.max_steps, self.reset_mode, self.render_mode = self.env.max_steps, reset_mode, render_mode
+        self.max_steps, self.reset_mode, self.render_mode = self.env.max_steps, self.env.reset_mode, render_mode
         self._np_dtype = np.float64 if self.dtype == torch.float64 else np.float32
         obs_dim = self.disturbance.observation_dim
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=self._np_dtype)
+        max_thrust = self.params.max_thrust
         if max_thrust is None:
             self.action_space = spaces.Box(-np.inf, np.inf, shape=(ACTION_DIM,), dtype=self._np_dtype)
         else:

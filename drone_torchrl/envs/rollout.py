@@ -158,10 +158,9 @@ def fly_reference(
 ) -> Episodes:
     """Fly a TensorDict policy's deterministic episodes from ``start`` ``[*B, 6]`` in the reference env.
 
-    The deterministic episodes of a TensorDict policy (an actor, the PD or PID controller, a
-    replayed plan) from ``start`` (``[*B, 6]``; under disturbances with episode ``keys`` ``[*B]``),
-    flown by the reference: a ``DroneEnv(batch_size=B, **env_kwargs)`` and TorchRL's rollout, one
-    episode per row.
+    The policy: an actor, the PD or PID controller, a replayed plan; under disturbances with episode
+    ``keys`` ``[*B]``. The reference: a ``DroneEnv(batch_size=B, **env_kwargs)`` and TorchRL's
+    rollout, one episode per row.
     """
     env = DroneEnv(batch_size=list(start.shape[:-1]), device=device, **env_kwargs)
     if callable(reset := getattr(policy, "reset", None)):

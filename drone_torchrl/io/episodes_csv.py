@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import csv
+import io
 import math
-import os
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, TextIO
 
 import numpy as np
 
-from drone_torchrl.io.storage import writing
+from drone_torchrl.io.storage import write_atomically, writing
 
 CSV_NAME = "episodes.csv"
 CSV_COLUMNS = (
@@ -111,13 +111,11 @@ class EpisodeCSV:
             read, self.notes = _read_rows(source)
             rows = [raw for parsed, raw in read if parsed["episode"] < keep_episodes]
             self.dropped = sum(parsed["episode"] >= keep_episodes for parsed, _ in read)
-        tmp = self.path.with_name(self.path.name + ".tmp")
-        with writing(self.path, tmp):
-            with tmp.open("w", newline="") as f:
-                writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
-                writer.writeheader()
-                writer.writerows(rows)
-            os.replace(tmp, self.path)  # a kill here leaves the old file whole, not half of it
+        text = io.StringIO()
+        writer = csv.DictWriter(text, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+        write_atomically(self.path, text.getvalue().encode())  # a kill leaves the old file whole
         self._rows: list[dict[str, object]] = []
 
     def write(self, rows: Iterable[dict[str, object]]) -> None:

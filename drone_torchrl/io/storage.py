@@ -113,6 +113,16 @@ def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryvi
     return path
 
 
+def new_figure(figsize: tuple[float, float]) -> Any:
+    """A matplotlib figure of ``figsize`` inches on the Agg canvas (no pyplot), for :func:`write_figure`."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize)
+    FigureCanvasAgg(fig)
+    return fig
+
+
 def write_figure(fig: Any, path: str | os.PathLike, **savefig: Any) -> Path:
     """Save a matplotlib figure as ``path`` atomically (its suffix names the format).
 

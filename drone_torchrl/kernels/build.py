@@ -65,15 +65,17 @@ _state: dict[str, object] = {}
 
 
 def cache_dir() -> Path:
-    """The folder that keeps the compiled kernels.
-
-    Where the compiled kernels are kept: the folder ``$DRONE_TORCHRL_CACHE`` names, else the user's
-    cache folder.
-    """
+    """The folder that keeps the compiled kernels: ``$DRONE_TORCHRL_CACHE``, else the user's cache folder."""
     if os.environ.get(CACHE_ENV):
         return Path(os.environ[CACHE_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "drone_torchrl"
+
+
+def _cached(name: str, *inputs: str) -> Path:
+    """The cache file of library ``name`` built from ``inputs`` (source, compiler, flags...): their hash."""
+    key = hashlib.sha256("\n".join(inputs).encode()).hexdigest()[:16]
+    return cache_dir() / f"drone_kernels-{name}-{key}.so"
 
 
 def _compiler() -> str | None:
@@ -135,17 +137,8 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
             reason = "no C++ compiler found (set CXX, or install g++ or clang++)"
         else:
             try:
-                key = hashlib.sha256(
-                    "\n".join(
-                        [
-                            SOURCE.read_text(),
-                            _version(compiler),
-                            " ".join(BASE_FLAGS + precision + ARCH_FLAGS),
-                            _cpu_signature(),
-                        ]
-                    ).encode()
-                ).hexdigest()[:16]
-                path = cache_dir() / f"drone_kernels-{name}-{key}.so"
+                flags = " ".join(BASE_FLAGS + precision + ARCH_FLAGS)
+                path = _cached(name, SOURCE.read_text(), _version(compiler), flags, _cpu_signature())
                 if not path.is_file():
                     reason = _build(compiler, path, precision)
                 if reason is None:
@@ -226,10 +219,7 @@ def cuda_library(double: bool = False) -> ctypes.CDLL | None:
                 compiler = nvcc()
                 if compiler is None:
                     raise OSError(f"no nvcc found and ${CUDA_LIBRARY_ENV} not set")
-                key = "\n".join([SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double)])
-                path = (
-                    cache_dir() / f"drone_kernels-{name}-{hashlib.sha256(key.encode()).hexdigest()[:16]}.so"
-                )
+                path = _cached(name, SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double))
                 if not path.is_file() and (why := build_cuda(path, double)) is not None:
                     raise OSError(why)
             lib = _load(path, double)

@@ -124,7 +124,7 @@ class KernelReinforce:
     ) -> tuple[torch.Tensor, ...]:
         """One REINFORCE update of every active agent by the C++ kernel (all inputs ``[N]``).
 
-        ``seed``, ``counter`` (the update's RNG key), ``gamma``, ``active``: ``[N]`` each. Returns
+        ``seed`` and ``counter``: the update's RNG key. Returns
         :func:`~drone_torchrl.kernels.ops.reinforce`'s outputs.
         """
         r = self.rollout
@@ -205,10 +205,9 @@ class KernelSegments:
     ) -> Segment:
         """Fly the next ``steps`` steps of every drone; returns them as a :class:`Segment`.
 
-        The next ``steps`` steps of every drone: ``noise`` ``[n, steps, 2]`` standard normals of
-        the actions, ``fresh`` ``[n, steps, 6]`` and ``fresh_keys`` ``[n, steps]`` the start state
-        and episode key of a drone that starts a new episode at that step (keys: None for the
-        nominal drone).
+        ``noise`` ``[n, steps, 2]``: standard normals of the actions; ``fresh`` ``[n, steps, 6]`` and
+        ``fresh_keys`` ``[n, steps]``: the start state and episode key of a drone that starts a new
+        episode at that step (keys: None for the nominal drone).
         """
         r = self.rollout
         out = ops.segments(

@@ -200,8 +200,7 @@ class MLflowLogger:
 def validate(cfg: Mapping[str, Any]) -> None:
     """Check ``logger.tracking_uri``: a store MLflow can open, and a SQLite file's folder exists.
 
-    ``logger.tracking_uri``: a store MLflow can open (an unknown scheme was a traceback when the
-    run started), and a SQLite file in a folder that exists (SQLite creates the file, not the folder).
+    An unknown scheme was a traceback when the run started; SQLite creates the file, not the folder.
     """
     uri = cfg.logger.tracking_uri
     if uri is None:

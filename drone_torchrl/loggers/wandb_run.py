@@ -43,7 +43,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.io.storage import writing
+from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.video import save_gif
 from drone_torchrl.loggers import FAILED, FINISHED, Backend, RunStatus, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, a_text, one_of, store_plugin
@@ -92,8 +92,8 @@ class WandbLogger:
             settings=wandb.Settings(reinit="create_new", console="off"),
         )
         if not resuming:
-            _write_atomically(self._sent_file, str(self._sent))
-            _write_atomically(id_file, self.run.id)
+            write_atomically(self._sent_file, f"{self._sent}\n".encode())
+            write_atomically(id_file, f"{self.run.id}\n".encode())
         self.run.define_metric(STEP_METRIC)
         self.run.define_metric("*", step_metric=STEP_METRIC)
         self._steps: dict[int, dict[str, Any]] = defaultdict(dict)
@@ -138,7 +138,7 @@ class WandbLogger:
             path.unlink(missing_ok=True)
         self._media.clear()
         if self._sent != sent:
-            _write_atomically(self._sent_file, str(self._sent))
+            write_atomically(self._sent_file, f"{self._sent}\n".encode())
 
     def close(self, status: RunStatus) -> None:
         """Flush and finish the W&B run (marked preempting when stopped, exit code 1 when failed)."""
@@ -153,13 +153,6 @@ def _read_int(path: Path) -> int:
         return int(path.read_text().strip())
     except (OSError, ValueError):  # absent or torn: nothing known to be sent
         return 0
-
-
-def _write_atomically(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with writing(path, tmp):
-        tmp.write_text(text + "\n")
-        os.replace(tmp, path)
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> WandbLogger:

@@ -11,6 +11,20 @@ from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM
 from drone_torchrl.modules.policy import ACTIVATIONS
 
 
+def _mlp(
+    inputs: int, hidden_sizes: Sequence[int], activation: str, device: torch.device | str, dtype: torch.dtype
+) -> MLP:
+    """A one-output MLP, made in float32 on ``device`` then converted to ``dtype``."""
+    net = MLP(
+        in_features=inputs,
+        out_features=1,
+        num_cells=list(hidden_sizes),
+        activation_class=ACTIVATIONS[activation],
+        device=device,
+    )
+    return net.to(dtype)
+
+
 def make_critic(
     hidden_sizes: Sequence[int] = (64, 64),
     activation: str = "tanh",
@@ -20,17 +34,9 @@ def make_critic(
 ) -> ValueOperator:
     """A state-value network: ``"observation"`` in, ``"state_value"`` out, in ``dtype``.
 
-    A ``ValueOperator`` reading ``"observation"`` and writing ``"state_value"``, in ``dtype``
-    (the env's: initialised in float32, then converted).
+    ``dtype``: the env's (initialised in float32, then converted).
     """
-    net = MLP(
-        in_features=observation_dim,
-        out_features=1,
-        num_cells=list(hidden_sizes),
-        activation_class=ACTIVATIONS[activation],
-        device=device,
-    )
-    return ValueOperator(net.to(dtype), in_keys=["observation"])
+    return ValueOperator(_mlp(observation_dim, hidden_sizes, activation, device, dtype), in_keys=["observation"])
 
 
 def make_q_value(
@@ -42,14 +48,7 @@ def make_q_value(
 ) -> ValueOperator:
     """SAC's Q-network: ``"observation"`` and ``"action"`` in, ``"state_action_value"`` out.
 
-    A ``ValueOperator`` over an MLP of the observation and the action (concatenated by TorchRL's
-    MLP), in ``dtype``.
+    The observation and the action are concatenated by TorchRL's MLP; in ``dtype``.
     """
-    net = MLP(
-        in_features=observation_dim + ACTION_DIM,
-        out_features=1,
-        num_cells=list(hidden_sizes),
-        activation_class=ACTIVATIONS[activation],
-        device=device,
-    )
-    return ValueOperator(net.to(dtype), in_keys=["observation", "action"], out_keys=["state_action_value"])
+    net = _mlp(observation_dim + ACTION_DIM, hidden_sizes, activation, device, dtype)
+    return ValueOperator(net, in_keys=["observation", "action"], out_keys=["state_action_value"])

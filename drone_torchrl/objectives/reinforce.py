@@ -166,7 +166,7 @@ def reinforce_terms(
 
     ``A``: the ``agent_dims`` leading agent dims. The stored actions' ``log_prob`` (already reduced over the
     motors), ``reward``, ``done``, the ``mask`` of valid steps and each step's index in its episode.
-    ``gamma``: a float or
+    ``gamma``: a float or one discount per agent (``[*A]``). Returns :class:`ReinforceLoss`'s outputs.
     """
     if isinstance(gamma, torch.Tensor):  # one discount per agent: [*A] -> [*A, 1, ..., 1]
         gamma = gamma.reshape(*gamma.shape, *([1] * (reward.ndim - agent_dims)))

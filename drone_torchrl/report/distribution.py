@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drone_torchrl.io.storage import write_figure
+from drone_torchrl.io.storage import new_figure, write_figure
 from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, ReportError, Setting
 from drone_torchrl.report.stats import (
     PERCENT,
@@ -154,11 +154,7 @@ def plot_distributions(
     distributions: Sequence[Distribution], title: str, zone_return: float, path: Path
 ) -> Path:
     """Box plot of each setting's final running-mean returns, every seed drawn as a point."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(9.0, 5.0))
-    FigureCanvasAgg(fig)
+    fig = new_figure((9.0, 5.0))
     ax = fig.add_subplot()
     data = [d.final_returns for d in distributions]
     ax.boxplot(data, whis=(0, 100), widths=0.5)
@@ -214,11 +210,7 @@ def per_setting_curves(settings: Sequence[Setting], column: str, window: int) ->
 
 def plot_paper_averaging(settings: Sequence[Setting], window: int, title: str, path: Path) -> Path:
     """Per-setting means next to the paper's cumulative means, for episode length and return."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(12.0, 8.0))
-    FigureCanvasAgg(fig)
+    fig = new_figure((12.0, 8.0))
     axes = fig.subplots(2, 2, sharey="row")
     for row, (column, ylabel) in enumerate(((COL_LENGTH, "steps per episode"), (COL_RETURN, "return"))):
         for col, (curves, kind) in enumerate(

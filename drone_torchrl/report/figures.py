@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drone_torchrl.io.storage import write_figure
+from drone_torchrl.io.storage import new_figure, write_figure
 from drone_torchrl.report.runs import COL_LENGTH, STATUS_FINISHED, Setting
 from drone_torchrl.report.stats import setting_curve
 from drone_torchrl.report.sweep import SweepReport
@@ -32,11 +32,7 @@ def _legend_label(setting: Setting) -> str:
 
 def plot_curves(report: SweepReport, column: str, path: Path) -> Path:
     """One running-mean curve per setting with a mean +- std band, plus reference lines; a PNG."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=FIGURE_SIZE)
-    FigureCanvasAgg(fig)
+    fig = new_figure(FIGURE_SIZE)
     ax = fig.add_subplot()
     for setting in report.settings:
         stats = setting_curve(setting, column, report.window)

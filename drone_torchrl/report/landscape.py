@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drone_torchrl.io.storage import write_atomically, write_figure
+from drone_torchrl.io.storage import new_figure, write_atomically, write_figure
 from drone_torchrl.report.stats import ZONE_SHARE, SettingSummary
 from drone_torchrl.report.sweep import SweepReport
 
@@ -121,11 +121,8 @@ def _format(value: float, kind: str) -> str:
 def plot_landscape(grid: Landscape, path: Path) -> Path:
     """Three heat maps side by side, values written in the cells, the paper's setting marked."""
     import matplotlib
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
 
-    fig = Figure(figsize=FIGURE_SIZE)
-    FigureCanvasAgg(fig)
+    fig = new_figure(FIGURE_SIZE)
     marker = _paper_marker(grid)
     panels = [
         ("median final return (running mean)", grid.median_return, "value", "viridis"),
@@ -164,13 +161,10 @@ def plot_landscape(grid: Landscape, path: Path) -> Path:
         if marker is not None:
             ax.plot(*marker, marker="*", color="red", markersize=MARKER_SIZE, markeredgecolor="white")
     if marker is not None:
-        fig.suptitle(f"red star: the paper's setting ({_paper_label()}); grey: never", fontsize="medium")
+        paper = ", ".join(f"{key} {value:g}" for key, value in PAPER_SETTING.items())
+        fig.suptitle(f"red star: the paper's setting ({paper}); grey: never", fontsize="medium")
     fig.tight_layout()
     return write_figure(fig, path, dpi=FIGURE_DPI)
-
-
-def _paper_label() -> str:
-    return ", ".join(f"{key} {value:g}" for key, value in PAPER_SETTING.items())
 
 
 def _paper_marker(grid: Landscape) -> tuple[float, float] | None:

@@ -14,7 +14,7 @@ import math
 from pathlib import Path
 
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, load_checkpoint
-from drone_torchrl.io.storage import write_atomically, write_figure
+from drone_torchrl.io.storage import new_figure, write_atomically, write_figure
 from drone_torchrl.training.pbt import schedule
 
 BEST_AGENTS = 3
@@ -47,13 +47,9 @@ def best_schedules(run_dir: Path, best: int = BEST_AGENTS) -> tuple[list[str], l
 
 def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path]:
     """``<prefix>pbt_schedules.png`` and ``.csv`` of one PBT population run into ``out_dir``."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     keys, best = best_schedules(run_dir)
     budget = max(int(e) for e in load_checkpoint(Path(run_dir) / CHECKPOINT_DIR / LAST)["updates_done"])
-    fig = Figure(figsize=(PANEL_SIZE[0] * len(keys), PANEL_SIZE[1]))
-    FigureCanvasAgg(fig)
+    fig = new_figure((PANEL_SIZE[0] * len(keys), PANEL_SIZE[1]))
     axes = fig.subplots(1, len(keys), squeeze=False)
     for ax, key in zip(axes[0], keys, strict=True):
         for agent, final, steps in best:

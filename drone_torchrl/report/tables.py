@@ -64,36 +64,34 @@ SUMMARY_CSV_COLUMNS = (
 
 def summary_rows(report: SweepReport) -> list[dict[str, Any]]:
     """The summary table as dicts with :data:`SUMMARY_CSV_COLUMNS` (raw numbers; empty = never)."""
-    rows = []
-    for s in report.summaries:
-        rows.append(
-            {
-                "setting": s.label,
-                "seeds_finished": s.seeds_finished,
-                "seeds_total": s.seeds_total,
-                "episodes_min": s.episodes_min,
-                "episodes_max": s.episodes_max,
-                "final_return_mean": s.final_return_mean,
-                "final_return_std": s.final_return_std,
-                "return_ceiling": s.ceiling,
-                "final_return_pct_of_ceiling": s.final_return_pct,
-                "optimum_return": "" if s.optimum is None else s.optimum,
-                "final_return_pct_of_optimum": "" if s.optimum is None else s.final_return_pct_of_optimum,
-                "max_steps": s.max_steps,
-                "length_cap_episode_mean": "" if s.length_cap.mean is None else s.length_cap.mean,
-                "length_cap_seeds_reached": len(s.length_cap.episodes),
-                "return_threshold": report.return_threshold,
-                "return_threshold_episode_mean": ""
-                if s.return_threshold.mean is None
-                else s.return_threshold.mean,
-                "return_threshold_seeds_reached": len(s.return_threshold.episodes),
-                "final_negative_thrust_fraction": s.final_negative_thrust,
-                "wall_clock_mean_s": s.wall_clock_mean_s,
-                "wall_clock_total_s": s.wall_clock_total_s,
-                "notes": "; ".join(s.notes),
-            }
-        )
-    return rows
+    return [
+        {
+            "setting": s.label,
+            "seeds_finished": s.seeds_finished,
+            "seeds_total": s.seeds_total,
+            "episodes_min": s.episodes_min,
+            "episodes_max": s.episodes_max,
+            "final_return_mean": s.final_return_mean,
+            "final_return_std": s.final_return_std,
+            "return_ceiling": s.ceiling,
+            "final_return_pct_of_ceiling": s.final_return_pct,
+            "optimum_return": "" if s.optimum is None else s.optimum,
+            "final_return_pct_of_optimum": "" if s.optimum is None else s.final_return_pct_of_optimum,
+            "max_steps": s.max_steps,
+            "length_cap_episode_mean": "" if s.length_cap.mean is None else s.length_cap.mean,
+            "length_cap_seeds_reached": len(s.length_cap.episodes),
+            "return_threshold": report.return_threshold,
+            "return_threshold_episode_mean": ""
+            if s.return_threshold.mean is None
+            else s.return_threshold.mean,
+            "return_threshold_seeds_reached": len(s.return_threshold.episodes),
+            "final_negative_thrust_fraction": s.final_negative_thrust,
+            "wall_clock_mean_s": s.wall_clock_mean_s,
+            "wall_clock_total_s": s.wall_clock_total_s,
+            "notes": "; ".join(s.notes),
+        }
+        for s in report.summaries
+    ]
 
 
 def _common(values: set) -> str:

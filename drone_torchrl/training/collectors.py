@@ -80,7 +80,6 @@ class TorchRLCollector:
 
     def begin(self, state: TensorDictBase, k: int) -> None:
         """Nothing to prepare: each update's rollout is flown when collected."""
-        pass
 
     def collect(self, j: int, active: torch.Tensor) -> TensorDictBase:
         """Fly one update's episodes; returns the rollout as a ``[1, E, T]`` tensordict (agent dim first)."""
@@ -133,7 +132,6 @@ class FastCollector:
 
     def begin(self, state: TensorDictBase, k: int) -> None:
         """Nothing to prepare: the kernel flies each update's episodes itself."""
-        pass
 
     def actor(self) -> ProbabilisticActor:
         """The agents' nets under the config's distribution head (scores ``[N, ...]`` batches)."""
@@ -144,17 +142,14 @@ class FastCollector:
         return self.kernel
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:
-        # Counter-based: the update count in the checkpoint is all the state there is.
         """No random state to keep: the generator is counter-based (seed and update count)."""
         return {"torch": None, "env": None, "agent": None}
 
     def set_rng_state(self, agent: int, state: dict[str, Any], episodes_done: int) -> None:
         """Nothing to restore: the update count in the checkpoint is the generator's whole state."""
-        pass
 
     def close(self) -> None:
         """Nothing to close: the kernels hold no resources."""
-        pass
 
 
 def squash_bound(cfg: DictConfig) -> float | None:

@@ -61,7 +61,7 @@ from drone_torchrl.io.folders import HYDRA_ENTRIES, check_fork_folder
 from drone_torchrl.io.yaml_text import to_yaml
 from drone_torchrl.schema import BUDGET, KEPT, PROCESS
 from drone_torchrl.training.population_record import open_agent
-from drone_torchrl.training.run import FAILED_FILE
+from drone_torchrl.training.run import FAILED_FILE, trained_out
 
 
 @dataclass
@@ -76,10 +76,17 @@ class Job:
 
     @property
     def already_finished(self) -> bool:
-        """Whether the job's checkpoint is final and holds its whole budget of episodes."""
+        """Whether the job's checkpoint is final: its whole budget of episodes, or ``eval.stop_return`` reached."""
         ckpt = self.checkpoint
         return (
-            ckpt is not None and ckpt["final"] is not None and ckpt["episodes_done"] >= self.cfg.algo.episodes
+            ckpt is not None
+            and ckpt["final"] is not None
+            and trained_out(
+                ckpt["episodes_done"],
+                self.cfg.algo.episodes,
+                ckpt.get("stopped_at_return"),
+                self.cfg.eval.get("stop_return"),
+            )
         )
 
 
@@ -230,8 +237,7 @@ def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
 def group_key(cfg: DictConfig) -> str:
     """The key that groups jobs into one population: their configs but for per-agent keys.
 
-    Jobs whose configs agree on everything but their per-agent keys (the schema's ``per_agent``)
-    can train as one population.
+    The per-agent keys are the schema's ``per_agent`` ones.
     """
     container = OmegaConf.to_container(cfg, resolve=True)
     for dotted in (*per_agent_keys(), "resume", "progress"):

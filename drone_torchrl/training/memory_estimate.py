@@ -308,9 +308,8 @@ def evaluation_parts(
 ) -> dict[str, Part]:
     """The memory of ``episodes`` evaluation episodes and of a video of one of them.
 
-    ``episodes`` evaluation episodes of ``max_steps`` steps (every agent's, or every policy's that
-    ``drone-eval`` keeps), and the frames of a video of one episode (``video_stride``: the steps
-    drawn; None: no video). ``advice`` and ``video_advice`` name the keys that size them.
+    The episodes: every agent's, or every policy's that ``drone-eval`` keeps. ``video_stride``: the
+    steps drawn (None: no video). ``advice`` and ``video_advice`` name the keys that size them.
     """
     parts = {
         "evaluation": Part(

@@ -87,6 +87,15 @@ def part_path(run_dir: Path, number: int) -> Path:
     return Path(run_dir) / EPISODES_DIR / f"part-{number:06d}.parquet"
 
 
+def _return_quantiles(returns: np.ndarray, prefix: str) -> dict[str, float]:
+    """``<prefix>/return_q<percent>`` of :data:`QUANTILES` and ``<prefix>/best_return``; {} when none is a number."""
+    if not len(returns) or np.isnan(returns).all():
+        return {}
+    quantiles = zip(QUANTILES, np.nanquantile(returns, QUANTILES), strict=True)
+    out = {f"{prefix}/return_q{round(100 * q)}": float(value) for q, value in quantiles}
+    return out | {f"{prefix}/best_return": float(np.nanmax(returns))}
+
+
 class PopulationAgent(AgentBook):
     """One agent of a population run: its counters; what it books goes to the run's files.
 
@@ -135,7 +144,6 @@ class PopulationAgent(AgentBook):
 
     def close(self) -> None:
         """Nothing to close: the population's files are closed once, by :meth:`PopulationRecord.close`."""
-        pass  # the population's files are closed once, by PopulationRecord.close
 
 
 class PopulationRecord:
@@ -283,12 +291,9 @@ class PopulationRecord:
         alive = [a for a in self.agents if not a.failed]
         out: dict[str, float] = {"population/alive": float(len(alive))}
         returns = np.array([a.running_return for a in alive], dtype=np.float64)
-        if len(returns) and not np.isnan(returns).all():
-            for q, value in zip(QUANTILES, np.nanquantile(returns, QUANTILES), strict=True):
-                out[f"population/return_q{round(100 * q)}"] = float(value)
-            best = int(np.nanargmax(returns))
-            out["population/best_return"] = float(returns[best])
-            out["population/best_agent"] = float(alive[best].index)
+        out |= _return_quantiles(returns, "population")
+        if "population/best_return" in out:
+            out["population/best_agent"] = float(alive[int(np.nanargmax(returns))].index)
         return out
 
     def after_update(self) -> None:
@@ -302,13 +307,8 @@ class PopulationRecord:
     def after_eval(self) -> None:
         """Log the evaluation's quantiles over the agents and the best agent."""
         returns = np.array([r for a, r in zip(self.agents, self.eval_returns, strict=True) if not a.failed])
-        if len(returns) and not np.isnan(returns).all():
-            best = int(np.nanargmax(returns))
-            metrics = {
-                f"eval/return_q{round(100 * q)}": float(v)
-                for q, v in zip(QUANTILES, np.nanquantile(returns, QUANTILES), strict=True)
-            }
-            self.logger.log_metrics({**metrics, "eval/best_return": float(returns[best])}, step=self.step)
+        if metrics := _return_quantiles(returns, "eval"):
+            self.logger.log_metrics(metrics, step=self.step)
 
     # ------------------------------------------------------------------ checkpoints
     def keep_last_finite(self, agent: int) -> None:

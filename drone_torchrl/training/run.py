@@ -69,6 +69,7 @@ class Schedule:
     checkpoint_every: int
     eval_every: int
     window: int
+    stop_return: float | None
 
     @classmethod
     def of(cls, cfg: DictConfig) -> Schedule:
@@ -79,7 +80,21 @@ class Schedule:
             checkpoint_every=int(cfg.checkpoint.every_episodes),
             eval_every=int(cfg.eval.every_episodes),
             window=RUNNING_MEAN_WINDOW,
+            stop_return=cfg.eval.get("stop_return"),
         )
+
+
+def trained_out(
+    episodes_done: int, budget: int, stopped_at: float | None, stop_return: float | None
+) -> bool:
+    """Whether an agent is done: its budget trained, or an evaluation at ``stop_return`` or above.
+
+    ``stopped_at``: the return of the evaluation that stopped it (None: none did). A continued run
+    whose ``eval.stop_return`` is raised above it, or set to null, trains on, as one whose budget
+    is raised does.
+    """
+    reached = stop_return is not None and stopped_at is not None and stopped_at >= stop_return
+    return reached or episodes_done >= budget
 
 
 class AgentBook:
@@ -105,6 +120,7 @@ class AgentBook:
         s = Schedule.of(cfg) if schedule is None else schedule
         self.budget, self.every_updates, self.window = s.budget, s.every_updates, s.window
         self.checkpoint_every, self.eval_every = s.checkpoint_every, s.eval_every
+        self.stop_return = s.stop_return
         window = s.window
         self.recent_returns: deque[float] = deque(maxlen=window)
         self.recent_lengths: deque[float] = deque(maxlen=window)
@@ -113,7 +129,9 @@ class AgentBook:
         self.best_eval = -math.inf
         self.final: dict[str, float] | None = None
         self.failure: str | None = None
+        self.stopped_at: float | None = None  # the return of the evaluation that ended it early
         if checkpoint is not None:
+            self.stopped_at = checkpoint.get("stopped_at_return")  # None in checkpoints before the key
             self.episodes_done, self.updates_done = checkpoint["episodes_done"], checkpoint["updates_done"]
             self.wall_clock_before = checkpoint["wall_clock_s"]
             self.best_eval = checkpoint["best_eval_return"]
@@ -126,8 +144,8 @@ class AgentBook:
 
     @property
     def finished(self) -> bool:
-        """Whether the agent has trained its budget of episodes."""
-        return self.episodes_done >= self.budget
+        """Whether the agent has trained its budget of episodes, or reached ``eval.stop_return``."""
+        return trained_out(self.episodes_done, self.budget, self.stopped_at, self.stop_return)
 
     def take_window(self, other: AgentBook | None) -> None:
         """Take ``other``'s running-mean windows; None empties them.
@@ -183,11 +201,13 @@ class AgentBook:
     def book_eval(self, result: dict[str, float]) -> bool:
         """Count an evaluation; returns whether it is the best so far.
 
-        Count an evaluation (``return``, ``length``, ``time_in_zone`` means): the schedule moves on,
-        the final metrics are set at the end. Returns whether it is the best so far.
+        ``result``: its ``return``, ``length``, ``time_in_zone`` means. The schedule moves on; the
+        final metrics are set at the end.
         """
         best = result["return"] > self.best_eval
         self.best_eval = max(self.best_eval, result["return"])
+        if self.stop_return is not None and result["return"] >= self.stop_return:
+            self.stopped_at = result["return"]
         self.last_eval_episode = step = self.episodes_done
         if self.next_eval is not None:
             while self.next_eval <= step:
@@ -226,6 +246,7 @@ class AgentBook:
             "best_eval_return": self.best_eval,
             "recent_returns": list(self.recent_returns),
             "recent_lengths": list(self.recent_lengths),
+            "stopped_at_return": self.stopped_at,
         }
 
     def book_save(self) -> None:

@@ -69,7 +69,7 @@ def stop_on_signals() -> Iterator[StopRequest]:
 
     The handlers in place before are restored after. Blocks nest: an inner one shares the outer one's request,
     so a signal between two trainings of one command is not lost. Outside the main thread Python cannot
-    install handlers:
+    install handlers: the request then never fires and the signals keep their previous meaning.
     """
     if _active:
         yield _active[0]

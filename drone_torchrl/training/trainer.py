@@ -109,10 +109,10 @@ class Trainer:
     ) -> None:
         """Train the jobs, each in its own run folder, or together as one population run.
 
-        ``population_dir``: train the jobs (or an :class:`~.agents.AgentTable`) as one population
-        run in that folder (see :mod:`.population_record`; ``names``: the agents' names,
-        ``checkpoint``: the population checkpoint to continue from, ``search``: train it with
-        population-based training, :mod:`.pbt`); otherwise each job in its own run folder.
+        ``population_dir``: the population run's folder (see :mod:`.population_record`; the jobs may
+        be an :class:`~.agents.AgentTable`); ``names``: the agents' names; ``checkpoint``: the
+        population checkpoint to continue from; ``search``: train it with population-based
+        training (:mod:`.pbt`).
         """
         self.cfg = cfg = jobs.cfg if isinstance(jobs, AgentTable) else jobs[0].cfg
         torch.set_num_threads(cfg.threads)
@@ -197,9 +197,8 @@ class Trainer:
     def step(self, active: list[int], k: int | None = None) -> int:
         """Run ``k`` updates of the ``active`` agents, booked, then the evaluations and checkpoints due.
 
-        ``k`` updates of the ``active`` agents (default: as many as nothing falls due in, at most
-        :data:`MAX_UPDATES_PER_CALL`; one where the learner cannot tell), booked; then the evaluations and
-        checkpoints that are due. Returns the env steps the agents took.
+        ``k`` defaults to as many as nothing falls due in (at most :data:`MAX_UPDATES_PER_CALL`; one
+        where the learner cannot tell). Returns the env steps the agents took.
         """
         runs, learner = self.runs, self.learner
         per_update = learner.episodes_per_update
@@ -376,14 +375,15 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
                     print(f"{jobs[i].run_dir}: failed: {outcomes[i].error}")
                 continue
             outcomes[i].final = final
-            _report(jobs[i], final)
+            _report(jobs[i], final, trainer.runs[members.index(i)])
     return outcomes
 
 
-def _report(job: Job, final: dict[str, float]) -> None:
-    cfg = job.cfg
+def _report(job: Job, final: dict[str, float], run: AgentBook) -> None:
+    # Finished short of its budget: an evaluation reached eval.stop_return.
+    stopped = "" if run.episodes_done >= run.budget else f" (an evaluation at eval.stop_return={run.stop_return:g})"
     print(
-        f"{job.run_dir}: {cfg.algo.episodes} episodes, running-mean({RUNNING_MEAN_WINDOW}) "
+        f"{job.run_dir}: {run.episodes_done} episodes{stopped}, running-mean({RUNNING_MEAN_WINDOW}) "
         f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
         f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s"
     )
@@ -432,6 +432,12 @@ def train_population(
             f"hydra/launcher=population trains a population with one learner: algo={cfg.algo.name} with "
             f"backend={cfg.backend} trains one agent at a time; use algo=reinforce (or reinforce_plus) "
             "with backend=fast, or hydra/launcher=fused"
+        )
+    if cfg.eval.get("stop_return") is not None:
+        raise ConfigError.of(
+            "eval.stop_return",
+            cfg.eval.stop_return,
+            "null with hydra/launcher=population (its agents train their whole budget together)",
         )
     check_memory(cfg, agents=len(agents))
     if search is not None:

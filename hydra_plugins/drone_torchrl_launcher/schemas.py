@@ -62,24 +62,15 @@ class PopulationSweeperConf(BasicSweeperConf):
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_sweeper.PopulationSweeper"
 
 
-ConfigStore.instance().store(
-    group="hydra/launcher", name="fused", node=FusedLauncherConf, provider="drone_torchrl"
-)
-ConfigStore.instance().store(
-    group="hydra/launcher", name="population", node=PopulationLauncherConf, provider="drone_torchrl"
-)
-ConfigStore.instance().store(
-    group="hydra/launcher", name="pbt", node=PBTLauncherConf, provider="drone_torchrl"
-)
-ConfigStore.instance().store(
-    group="hydra/launcher", name="pbt_replay", node=PBTReplayLauncherConf, provider="drone_torchrl"
-)
-ConfigStore.instance().store(
-    group="hydra/launcher", name="halving", node=HalvingLauncherConf, provider="drone_torchrl"
-)
-ConfigStore.instance().store(
-    group="hydra/sweeper", name="population", node=PopulationSweeperConf, provider="drone_torchrl"
-)
+for group, name, node in (
+    ("hydra/launcher", "fused", FusedLauncherConf),
+    ("hydra/launcher", "population", PopulationLauncherConf),
+    ("hydra/launcher", "pbt", PBTLauncherConf),
+    ("hydra/launcher", "pbt_replay", PBTReplayLauncherConf),
+    ("hydra/launcher", "halving", HalvingLauncherConf),
+    ("hydra/sweeper", "population", PopulationSweeperConf),
+):
+    ConfigStore.instance().store(group=group, name=name, node=node, provider="drone_torchrl")
 
 
 try:  # hydra/launcher=slurm_population extends the submitit plugin's SLURM schema (the submitit extra)
