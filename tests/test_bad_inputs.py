@@ -29,6 +29,7 @@ from hydra import compose, initialize_config_dir
 from test_run_folder import Disk, small_disk  # noqa: F401  (a fixture: a tmpfs to fill or make read-only)
 
 from drone_torchrl import loggers
+from drone_torchrl.apps import train as train_app
 from drone_torchrl.apps.report import main as report_main
 from drone_torchrl.comparison import run_eval
 from drone_torchrl.config import ConfigError, check_overrides, config_dir, validate
@@ -842,11 +843,11 @@ def test_a_population_run_refuses_stop_return_before_the_folder_exists(tmp_path)
     assert not (tmp_path / "pop").exists()
 
 
-def test_the_pbt_launcher_refuses_through_the_command(tmp_path):
-    """The same line reaches the terminal, and no sweep folder is made."""
-    proc = _command(
-        "drone-train", "-m", "hydra/launcher=pbt", "hydra.launcher.quantile=0.7", "seed=0,1", *TINY,
-        f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path,
+def test_the_pbt_launcher_refuses_through_the_command(tmp_path, command_here):
+    """The same line reaches the terminal, and no sweep folder is made (drone-train in this process)."""
+    proc = command_here(
+        train_app.run, "drone-train", "-m", "hydra/launcher=pbt", "hydra.launcher.quantile=0.7", "seed=0,1",
+        *TINY, f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path,
     )  # fmt: skip
     _refused(proc, "hydra.launcher.quantile=0.7", "(0, 0.5]")
     assert not (tmp_path / "sweep").exists()
@@ -1085,15 +1086,18 @@ def test_a_finished_job_re_run_with_another_value_is_refused(files, tmp_path):
     assert torch.load(run / "checkpoints" / "last.pt", weights_only=True)["episodes_done"] == 4
 
 
-def test_a_refused_re_run_in_a_run_s_folder_keeps_its_hydra_record(files, tmp_path):
+def test_a_refused_re_run_in_a_run_s_folder_keeps_its_hydra_record(files, tmp_path, command_here):
     """``drone-train hydra.run.dir=<finished run> <changed key>``: refused in one line, and the run's
-    ``.hydra/`` (how it was started) is not rewritten first, as Hydra would."""
+    ``.hydra/`` (how it was started) is not rewritten first, as Hydra would (drone-train in this
+    process)."""
     run = tmp_path / "run"
     shutil.copytree(files["run"], run)
     (run / ".hydra").mkdir()
     (run / ".hydra" / "overrides.yaml").write_text("- algo.episodes=2\n")
     before = {p: p.read_bytes() for p in run.rglob("*") if p.is_file()}
-    proc = _command("drone-train", *TINY, f"hydra.run.dir={run}", "algo.gamma=0.5", cwd=tmp_path)
+    proc = command_here(
+        train_app.run, "drone-train", *TINY, f"hydra.run.dir={run}", "algo.gamma=0.5", cwd=tmp_path
+    )
     assert proc.returncode == 1
     _one_line(proc.stderr.strip(), "algo.gamma")
     after = {

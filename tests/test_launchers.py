@@ -1,8 +1,10 @@
 """Sweeps under each Hydra launcher: every job gets its folder, re-running skips finished jobs, and a
 failing job is reported while the others finish.
 
-Each test runs ``python -m drone_torchrl.apps.train -m ...`` as a subprocess. A launcher whose plugin is not
-installed (extras ``joblib``, ``submitit``, ``ray``) is skipped. The Ray test starts a local Ray
+Each sweep is ``drone-train -m ...``: in this process for the launchers that train inside
+drone-train's own process (basic, fused, population; ``IN_PROCESS``), as ``python -m
+drone_torchrl.apps.train`` for those that start processes of their own. A launcher whose plugin is
+not installed (extras ``joblib``, ``submitit``, ``ray``) is skipped. The Ray test starts a local Ray
 instance and is skipped unless selected with ``-m ray``.
 """
 
@@ -17,6 +19,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from drone_torchrl.apps import train as train_app
 from drone_torchrl.config import config_dir
 from drone_torchrl.training.jobs import FAILED_FILE, job_status, sweep_jobs
 
@@ -27,9 +30,9 @@ FAILING_GRID = ["algo.gamma=0.9,0.95"]  # the 0.95 job's folder is given a damag
 DAMAGED = "is not a readable checkpoint"
 
 
-def _damage(sweep_dir: Path, *overrides: str, cwd: Path) -> None:
+def _damage(sweep_dir: Path, *overrides: str, cwd: Path, here) -> None:
     """Run the gamma 0.95 job alone, then damage its checkpoint: re-running it fails at run time."""
-    _multirun(sweep_dir, *overrides, "algo.gamma=0.95", cwd=cwd)
+    _multirun(sweep_dir, *overrides, "algo.gamma=0.95", cwd=cwd, here=here)
     (job,) = sweep_jobs(sweep_dir)
     (job / "checkpoints" / "last.pt").write_bytes(b"not a checkpoint")
 
@@ -53,10 +56,25 @@ def _require(launcher: str, request: pytest.FixtureRequest) -> list[str]:
     return overrides
 
 
-def _multirun(sweep_dir: Path, *overrides: str, cwd: Path, expect_failure: bool = False) -> str:
+# Launchers that train every job inside drone-train's own process: their sweeps run in this one
+# (tests/conftest.py's command_here), as a new process would only add the imports of torch, TorchRL
+# and Hydra. The others start processes of their own, so drone-train gets one too.
+IN_PROCESS = {"basic", "fused", "population"}
+
+
+def _multirun(sweep_dir: Path, *overrides: str, cwd: Path, here, expect_failure: bool = False) -> str:
     """Run a multirun to completion; returns its output plus any per-job logs submitit kept.
 
-    A sweep with a failed job must exit non-zero (``expect_failure``), one without must exit 0."""
+    A sweep with a failed job must exit non-zero (``expect_failure``), one without must exit 0.
+    ``here``: the ``command_here`` fixture, which runs the IN_PROCESS launchers' sweeps."""
+    launcher = next((o.split("=", 1)[1] for o in overrides if o.startswith("hydra/launcher=")), "basic")
+    if launcher in IN_PROCESS:
+        argv = ["-m", *overrides, *TINY, f"hydra.sweep.dir={sweep_dir}"]
+        proc = here(train_app.run, "drone-train", *argv, cwd=cwd)
+        out = proc.stdout + proc.stderr
+        assert (proc.returncode != 0) == expect_failure, out
+        assert "Traceback" not in proc.stderr, out
+        return out
     env = {**os.environ, "SDL_VIDEODRIVER": "dummy", "SDL_AUDIODRIVER": "dummy", "RAY_DEDUP_LOGS": "0"}
     # Hydra finds launcher plugins by listing hydra_plugins' folders; an editable install's import
     # hook is not one, so hydra/launcher=fused is only found with the checkout on the path.
@@ -95,10 +113,10 @@ def _snapshot(jobs: list[Path]) -> dict[Path, tuple[bytes, int]]:
         pytest.param("ray_local", marks=pytest.mark.ray),
     ],
 )
-def test_sweep_runs_then_skips_finished_jobs(launcher, request, tmp_path):
+def test_sweep_runs_then_skips_finished_jobs(launcher, request, tmp_path, command_here):
     overrides = _require(launcher, request)
     sweep_dir = tmp_path / "sweep"
-    _multirun(sweep_dir, *overrides, *GRID, cwd=tmp_path)
+    _multirun(sweep_dir, *overrides, *GRID, cwd=tmp_path, here=command_here)
 
     jobs = sweep_jobs(sweep_dir)
     assert len(jobs) == 4, jobs
@@ -108,7 +126,7 @@ def test_sweep_runs_then_skips_finished_jobs(launcher, request, tmp_path):
         assert job_status(job)[0] == "finished", (job, job_status(job))
     before = _snapshot(jobs)
 
-    out = _multirun(sweep_dir, *overrides, *GRID, cwd=tmp_path)
+    out = _multirun(sweep_dir, *overrides, *GRID, cwd=tmp_path, here=command_here)
     assert sweep_jobs(sweep_dir) == jobs
     for job in jobs:
         assert f"{job.name}: already finished" in out, out
@@ -125,11 +143,13 @@ def test_sweep_runs_then_skips_finished_jobs(launcher, request, tmp_path):
         pytest.param("ray_local", marks=pytest.mark.ray),
     ],
 )
-def test_failed_job_is_summarised_and_the_others_finish(launcher, request, tmp_path):
+def test_failed_job_is_summarised_and_the_others_finish(launcher, request, tmp_path, command_here):
     overrides = _require(launcher, request)
     sweep_dir = tmp_path / "sweep"
-    _damage(sweep_dir, *overrides, cwd=tmp_path)
-    out = _multirun(sweep_dir, *overrides, *FAILING_GRID, cwd=tmp_path, expect_failure=True)
+    _damage(sweep_dir, *overrides, cwd=tmp_path, here=command_here)
+    out = _multirun(
+        sweep_dir, *overrides, *FAILING_GRID, cwd=tmp_path, here=command_here, expect_failure=True
+    )
 
     jobs = {job.name.split(",")[0]: job for job in sweep_jobs(sweep_dir)}
     assert set(jobs) == {"algo.gamma=0.9", "algo.gamma=0.95"}, jobs
@@ -144,10 +164,12 @@ def test_failed_job_is_summarised_and_the_others_finish(launcher, request, tmp_p
 
 
 @pytest.mark.parametrize("launcher", ["basic", "fused"])
-def test_a_bad_value_in_a_sweep_is_refused_before_any_job(launcher, request, tmp_path):
+def test_a_bad_value_in_a_sweep_is_refused_before_any_job(launcher, request, tmp_path, command_here):
     overrides = _require(launcher, request)
     sweep_dir = tmp_path / "sweep"
-    out = _multirun(sweep_dir, *overrides, "algo.gamma=0.9,7", cwd=tmp_path, expect_failure=True)
+    out = _multirun(
+        sweep_dir, *overrides, "algo.gamma=0.9,7", cwd=tmp_path, here=command_here, expect_failure=True
+    )
     errors = [line for line in out.splitlines() if "error" in line]
     assert len(errors) == 1 and errors[0].startswith("drone-train: error: algo.gamma=7 is not allowed"), out
     assert sweep_jobs(sweep_dir) == [] and not list(sweep_dir.glob("*/episodes.csv"))
@@ -218,16 +240,17 @@ def test_parallel_env_starts_inside_a_joblib_worker(tmp_path):
     assert "batch (1, 2)" in proc.stdout, proc.stdout
 
 
-def test_a_failed_job_does_not_stop_later_batches(tmp_path):
+def test_a_failed_job_does_not_stop_later_batches(tmp_path, command_here):
     """The failing job first, one job per batch: Hydra's basic sweeper used to stop after it."""
     sweep_dir = tmp_path / "sweep"
-    _damage(sweep_dir, "hydra/launcher=fused", cwd=tmp_path)
+    _damage(sweep_dir, "hydra/launcher=fused", cwd=tmp_path, here=command_here)
     out = _multirun(
         sweep_dir,
         "hydra/launcher=fused",
         "algo.gamma=0.95,0.9",
         "hydra.sweeper.max_batch_size=1",
         cwd=tmp_path,
+        here=command_here,
         expect_failure=True,
     )
     jobs = {job.name.split(",")[0]: job for job in sweep_jobs(sweep_dir)}
@@ -237,11 +260,11 @@ def test_a_failed_job_does_not_stop_later_batches(tmp_path):
     assert out.count(DAMAGED) <= 3, out  # the job's line, the summary, FAILED.txt's
 
 
-def test_a_repeated_job_trains_once_and_reports_its_outcome(tmp_path):
+def test_a_repeated_job_trains_once_and_reports_its_outcome(tmp_path, command_here):
     """seed=0,0 under the fused launcher: one folder, one agent trained, both jobs report it (the basic
     launcher would train the first and find the second already finished)."""
     sweep_dir = tmp_path / "sweep"
-    out = _multirun(sweep_dir, "hydra/launcher=fused", "algo.gamma=0.9,0.9", cwd=tmp_path)
+    out = _multirun(sweep_dir, "hydra/launcher=fused", "algo.gamma=0.9,0.9", cwd=tmp_path, here=command_here)
     (job,) = sweep_jobs(sweep_dir)
     assert job_status(job)[0] == "finished"
     assert f"{job}: job #1 is job #0 again (the same folder); trained once" in out, out
@@ -287,7 +310,7 @@ def test_slurm_population_refuses_a_bad_agents_per_job():
     assert SlurmPopulationLauncher(**params).params["agents_per_job"] == 32
 
 
-def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
+def test_population_launcher_trains_each_group_in_one_folder(tmp_path, command_here):
     """hydra/launcher=population: 2 lr x 2 seeds x 2 evaluation seeds = 8 jobs; eval.seed is not a
     per-agent key, so two population runs of 4 agents each, each one folder with one ``.hydra/``,
     agents.parquet, the episodes' parts and one checkpoint; re-running finds both finished."""
@@ -296,7 +319,7 @@ def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
 
     sweep_dir = tmp_path / "sweep"
     grid = [*GRID, "eval.seed=5,10"]
-    out = _multirun(sweep_dir, "hydra/launcher=population", *grid, cwd=tmp_path)
+    out = _multirun(sweep_dir, "hydra/launcher=population", *grid, cwd=tmp_path, here=command_here)
     folders = sorted(p for p in sweep_dir.iterdir() if p.is_dir())
     assert [p.name for p in folders] == ["population_0", "population_1"], out
     assert sweep_jobs(sweep_dir) == folders
@@ -314,7 +337,7 @@ def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
         ]
         assert job_status(folder) == ("finished", "population of 4 agents: 4 finished, 0 failed")
         assert not list(folder.glob("**/episodes.csv"))
-    again = _multirun(sweep_dir, "hydra/launcher=population", *grid, cwd=tmp_path)
+    again = _multirun(sweep_dir, "hydra/launcher=population", *grid, cwd=tmp_path, here=command_here)
     assert again.count("already finished (4 agents); nothing to do") == 2, again
     # drone-report reads each agent as the run it would be in its own folder: 2 settings (algo.lr)
     # of 4 runs (eval.seed, which picks the evaluation's starts, is not a setting).
@@ -328,7 +351,7 @@ def test_population_launcher_trains_each_group_in_one_folder(tmp_path):
     assert (tmp_path / "report").is_dir() and any((tmp_path / "report").iterdir())
 
 
-def test_a_sweep_of_per_agent_values_is_one_config_and_trains_as_each_jobs_own_config(tmp_path):
+def test_a_sweep_of_per_agent_values_is_one_config_and_trains_as_each_jobs_own_config(tmp_path, command_here):
     """seed=0,1 x algo.lr=1e-3,1e-4 differ only in per-agent numbers: the launcher reads them from the
     overrides' text into one config and a column per key (no config per job), and the population
     equals the one trained from each job's own composed config: the same values per agent and the
@@ -341,7 +364,7 @@ def test_a_sweep_of_per_agent_values_is_one_config_and_trains_as_each_jobs_own_c
     from drone_torchrl.training.trainer import train_population
 
     sweep_dir = tmp_path / "sweep"
-    out = _multirun(sweep_dir, "hydra/launcher=population", *GRID, cwd=tmp_path)
+    out = _multirun(sweep_dir, "hydra/launcher=population", *GRID, cwd=tmp_path, here=command_here)
     assert "4 jobs differ only in per-agent values: one population from one config" in out, out
     jobs = [
         ["algo.lr=1e-3", "seed=0"],

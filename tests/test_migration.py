@@ -8,34 +8,25 @@ written by main at 8718978. Each test works on a copy.
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import yaml
 
 from drone_torchrl import migrations
+from drone_torchrl.apps import train as train_app
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures" / "main_8718978"
-REPO = Path(__file__).resolve().parents[1]
 
 
-def _drone_train(*args: str, cwd: Path) -> subprocess.CompletedProcess:
-    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
-    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), env.get("PYTHONPATH")]))
-    return subprocess.run(
-        [sys.executable, "-m", "drone_torchrl.apps.train", *args],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+@pytest.fixture
+def drone_train(command_here):
+    """``drone-train args...`` from ``cwd``, in this process (tests/conftest.py's command_here): the
+    runs are tiny, a new process would mostly import torch."""
+    return lambda *args, cwd: command_here(train_app.run, "drone-train", *args, cwd=cwd)
 
 
 @pytest.fixture
@@ -76,11 +67,11 @@ def test_an_old_config_names_its_backend(engine, collector, backend):
     assert not {"engine", "compile", "steps_per_call"} & set(migrated)
 
 
-def test_old_runs_resume(runs):
+def test_old_runs_resume(runs, drone_train):
     """Both fixtures continue from their checkpoints at episode 4: the episode counter carries on,
     the CSV grows, and the checkpoint now says backend."""
     for name, budget in (("run_reinforce", 6), ("run_ppo", 8)):
-        proc = _drone_train(f"resume={runs / name}", f"algo.episodes={budget}", cwd=runs)
+        proc = drone_train(f"resume={runs / name}", f"algo.episodes={budget}", cwd=runs)
         assert proc.returncode == 0, proc.stderr
         assert "continuing from episode 4" in proc.stdout
         state = load_checkpoint(runs / name / "checkpoints" / "last.pt")
@@ -90,7 +81,7 @@ def test_old_runs_resume(runs):
         assert len(rows["episode"]) >= budget
 
 
-def test_the_old_sweep_runs_again_in_its_folders(runs):
+def test_the_old_sweep_runs_again_in_its_folders(runs, drone_train):
     """The sweep's own command again (with compile=true, a key that is gone): a note names what it
     became, no "key differs" refusal, the finished jobs are found in their folders (named after
     compile=True as before) and skipped; with a larger budget they continue in them."""
@@ -99,13 +90,13 @@ def test_the_old_sweep_runs_again_in_its_folders(runs):
     assert "compile=true" in task
     folders = sorted(p.name for p in sweep.iterdir() if p.is_dir())
     command = ["-m", "hydra/launcher=fused", *task, f"hydra.sweep.dir={sweep}"]
-    again = _drone_train(*command, cwd=runs)
+    again = drone_train(*command, cwd=runs)
     assert again.returncode == 0, again.stderr
     assert "note: compile=true is ignored" in again.stderr
     assert again.stdout.count("already finished (4 episodes)") == 2
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == folders
     longer = [a if not a.startswith("algo.episodes=") else "algo.episodes=6" for a in command]
-    proc = _drone_train(*longer, cwd=runs)
+    proc = drone_train(*longer, cwd=runs)
     assert proc.returncode == 0, proc.stderr
     assert sorted(p.name for p in sweep.iterdir() if p.is_dir()) == folders
     for folder in folders:
@@ -116,15 +107,15 @@ def test_the_old_sweep_runs_again_in_its_folders(runs):
     ("old", "note", "backend"),
     [
         ("engine=torchrl", "engine=torchrl is now backend=reference", "reference"),
-        # One real command each (about 4 s): the default run keeps one, the slow stage the rest.
-        pytest.param("engine=fused", "engine=fused is now backend=fast", "fast", marks=pytest.mark.slow),
-        pytest.param("compile=false", "compile=false is ignored", "fast", marks=pytest.mark.slow),
-        pytest.param("steps_per_call=5", "steps_per_call=5 is ignored", "fast", marks=pytest.mark.slow),
-        pytest.param("updates_per_call=7", "updates_per_call=7 is ignored", "fast", marks=pytest.mark.slow),
+        # In this process (drone_train), under a second each: all in the default run.
+        ("engine=fused", "engine=fused is now backend=fast", "fast"),
+        ("compile=false", "compile=false is ignored", "fast"),
+        ("steps_per_call=5", "steps_per_call=5 is ignored", "fast"),
+        ("updates_per_call=7", "updates_per_call=7 is ignored", "fast"),
     ],
 )
-def test_old_keys_on_the_command_line_work_with_a_note(tmp_path, old, note, backend):
-    proc = _drone_train(
+def test_old_keys_on_the_command_line_work_with_a_note(tmp_path, old, note, backend, drone_train):
+    proc = drone_train(
         old, "algo.episodes=2", "env.max_steps=20", "eval.video=false", f"hydra.run.dir={tmp_path / 'run'}",
         cwd=tmp_path,
     )  # fmt: skip

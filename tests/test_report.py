@@ -1,14 +1,12 @@
 """drone-report: running means, seed aggregation, grouping, crossings, verdict, files, CLI errors."""
 
 import csv
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
+from drone_torchrl.apps import train as train_app
 from drone_torchrl.apps.report import main
 from drone_torchrl.config import ENV_ADDED
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, FORMAT_VERSION, LAST, REQUIRED_KEYS, save_checkpoint
@@ -142,13 +140,10 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
         assert len(err) == 1 and str(folder) in err[0]
 
 
-def test_report_on_a_real_tiny_sweep(tmp_path):
+def test_report_on_a_real_tiny_sweep(tmp_path, command_here):
+    """The sweep is drone-train's, run in this process (tests/conftest.py's command_here)."""
     sweep = tmp_path / "sweep"
-    env = {**os.environ, "SDL_VIDEODRIVER": "dummy"}
-    cmd = [
-        sys.executable,
-        "-m",
-        "drone_torchrl.apps.train",
+    argv = [
         "-m",
         "algo.lr=1e-3,1e-4",
         "seed=0,1",
@@ -158,7 +153,8 @@ def test_report_on_a_real_tiny_sweep(tmp_path):
         "eval.episodes=1",
         f"hydra.sweep.dir={sweep}",
     ]
-    subprocess.run(cmd, check=True, capture_output=True, env=env, timeout=300)
+    trained = command_here(train_app.run, "drone-train", *argv, cwd=tmp_path)
+    assert trained.returncode == 0, trained.stderr
     main([str(sweep), "--no-pd"])
     for name in ("steps.png", "returns.png", "summary.md", "summary.csv"):
         assert (sweep / "report" / name).stat().st_size > 0

@@ -28,6 +28,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
+from drone_torchrl.apps import train as train_app
 from drone_torchrl.config import config_dir
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import load_checkpoint
@@ -151,19 +152,23 @@ def test_an_owner_on_another_host_is_honoured_while_it_renews_its_lock(tmp_path,
     run_lock.release(folder)
 
 
-def test_two_processes_on_one_run_folder_then_sigterm_and_resume(tmp_path):
+def test_two_processes_on_one_run_folder_then_sigterm_and_resume(tmp_path, command_here):
     """The second process (same folder, or resume of it) is refused in one line naming the owner's
     pid; SIGTERM then stops the owner with a checkpoint (exit 143); its CSV holds episodes
-    0..E-1 exactly once, and the resume trains E..N-1: no episode twice, none lost."""
+    0..E-1 exactly once, and the resume trains E..N-1: no episode twice, none lost.
+
+    The two refused commands run in this process (another one than the owner's; they are refused
+    before any work, so a new process would only add its imports); a small budget, so that one
+    let through fails at once instead of training for minutes."""
     run = tmp_path / "run"
     common = [*QUICK, f"hydra.run.dir={run}"]
     owner = _drone_train(*common, "algo.episodes=1000000", cwd=tmp_path, wait=False)
     try:
         _wait_for_owner(run, owner.pid, owner, also="episodes.csv")
-        second = _drone_train(*common, "algo.episodes=1000000", cwd=tmp_path)
+        second = command_here(train_app.run, "drone-train", *common, "algo.episodes=2", cwd=tmp_path)
         assert second.returncode == 1
         _one_error_line(second.stderr, str(run), f"pid {owner.pid}")
-        resumed = _drone_train("progress=false", f"resume={run}", cwd=tmp_path)
+        resumed = command_here(train_app.run, "drone-train", "progress=false", f"resume={run}", cwd=tmp_path)
         assert resumed.returncode == 1
         _one_error_line(resumed.stderr, f"pid {owner.pid}")
         assert not (tmp_path / "outputs").exists()  # the refused resume left no folder of its own

@@ -3,6 +3,7 @@
 import inspect
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -84,16 +85,24 @@ def test_bad_values_are_named(override, key):
 
 
 def test_cli_bad_value_is_one_line_and_nonzero(tmp_path):
-    for module, override in [
+    """The real command, refused: two processes side by side (each with its own run folder)."""
+    cases = [
         ("drone_torchrl.apps.train", "algo.gamma=2"),
         ("drone_torchrl.apps.train", f"resume={tmp_path}/nope"),
-    ]:
-        proc = subprocess.run(
-            [sys.executable, "-m", module, override, f"hydra.run.dir={tmp_path}/run"],
+    ]
+
+    def refused(i: int) -> subprocess.CompletedProcess:
+        module, override = cases[i]
+        return subprocess.run(
+            [sys.executable, "-m", module, override, f"hydra.run.dir={tmp_path}/run{i}"],
             capture_output=True,
             text=True,
             timeout=120,
         )
+
+    with ThreadPoolExecutor(len(cases)) as pool:
+        procs = list(pool.map(refused, range(len(cases))))
+    for (_, override), proc in zip(cases, procs, strict=True):
         assert proc.returncode != 0
         lines = [line for line in proc.stderr.splitlines() if line.strip()]
         assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr
