@@ -7,8 +7,8 @@ the run's last checkpoint.
     python benchmarks/time_to_hover.py --seeds 0-3 --preset hover_optimal algo.epochs=5
 
 Each seed is one ``drone-train experiment=<preset> seed=S`` command, one at a time, with an
-evaluation every ``--every`` episodes (its returns are read from ``logger=csv``'s scalars) and no
-videos. Printed per seed:
+evaluation every ``--every`` episodes (default: the preset's ``eval.every_episodes``; its returns are
+read from ``logger=csv``'s scalars) and no videos. Printed per seed:
 
 - *to target*: the training wall-clock (``episodes.csv``'s ``wall_clock_s``) at the first evaluation
   whose return reaches the target, less the evaluations before it;
@@ -58,14 +58,14 @@ def seed_list(text: str) -> list[int]:
     return seeds
 
 
-def _train(preset: str, seed: int, run_dir: Path, every: int, overrides: list[str]) -> float:
+def _train(preset: str, seed: int, run_dir: Path, every: int | None, overrides: list[str]) -> float:
     """One ``drone-train`` command; returns its wall-clock."""
     cmd = [
         str(Path(sys.executable).parent / "drone-train"),
         f"experiment={preset}",
         f"seed={seed}",
         "logger=csv",
-        f"eval.every_episodes={every}",
+        *([] if every is None else [f"eval.every_episodes={every}"]),
         "eval.video=false",
         "progress=false",
         f"hydra.run.dir={run_dir}",
@@ -114,7 +114,7 @@ def _drone_eval(run_dir: Path) -> dict:
 
 
 def measure(
-    preset: str, seed: int, out: Path, every: int, target: float, repeats: int, overrides: list[str]
+    preset: str, seed: int, out: Path, every: int | None, target: float, repeats: int, overrides: list[str]
 ) -> dict:
     run_dir = out / f"{preset}-seed{seed}"
     command = _train(preset, seed, run_dir, every, overrides)
@@ -157,7 +157,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--preset", default="hover_optimal", help="the experiment option (conf/experiment)")
     parser.add_argument("--seeds", type=seed_list, default=seed_list("0-7"), help="e.g. 0-7 or 100-107")
-    parser.add_argument("--every", type=int, default=250, help="episodes between evaluations")
+    parser.add_argument(
+        "--every", type=int, default=None, help="episodes between evaluations (default: the preset's)"
+    )
     parser.add_argument("--target", type=float, default=2685.0, help="the evaluation return to reach")
     parser.add_argument("--eval-repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/out/time_to_hover"))

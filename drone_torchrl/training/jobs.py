@@ -76,7 +76,7 @@ class Job:
 
     @property
     def already_finished(self) -> bool:
-        """Whether the job's checkpoint is final: its whole budget of episodes, or ``eval.stop_return`` reached."""
+        """Whether the job's checkpoint is final, with its whole budget trained or ``eval.stop_return`` reached."""
         ckpt = self.checkpoint
         return (
             ckpt is not None
