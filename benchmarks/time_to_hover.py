@@ -33,17 +33,19 @@ import os
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
 
+from drone_torchrl import algorithms
 from drone_torchrl.comparison import run_eval
 from drone_torchrl.config import config_dir, env_kwargs, run_config
 from drone_torchrl.evaluation import evaluate
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
-from drone_torchrl.modules.factory import build_actor
+from drone_torchrl.training.jobs import prepare
 
 LAST = Path("checkpoints") / "last.pt"
 SCALARS = Path("csv") / "scalars.csv"
@@ -91,17 +93,23 @@ def _eval_returns(run_dir: Path) -> list[tuple[int, float]]:
 
 
 def _eval_seconds(run_dir: Path, repeats: int) -> float:
-    """The median time of one evaluation of the run's last checkpoint, as training evaluates."""
+    """The median time of one evaluation of the run's last checkpoint, flown as training flies them.
+
+    The run's learner's ``eval_policy`` (backend=fast PPO and A2C: the C++ engine; otherwise
+    TorchRL's env and the actor), with the checkpoint's actor.
+    """
     state = load_checkpoint(run_dir / LAST)
     cfg = run_config(state["config"])
-    actor = build_actor(cfg)
-    actor.load_state_dict(state["actor"])
-    kwargs = env_kwargs(cfg)
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        evaluate(actor, kwargs, cfg.eval.episodes, cfg.eval.seed)
-        times.append(time.perf_counter() - start)
+    with tempfile.TemporaryDirectory() as tmp:
+        learner = algorithms.get(cfg.algo.name).learner([prepare(cfg, Path(tmp) / "run")])
+        learner.actor(0).load_state_dict(state["actor"])
+        kwargs = env_kwargs(cfg)
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            evaluate(learner.eval_policy(), kwargs, cfg.eval.episodes, cfg.eval.seed, agents=learner.eval_agents)
+            times.append(time.perf_counter() - start)
+        learner.close()
     return statistics.median(times)
 
 

@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_dir
 from drone_torchrl.config import config_dir, env_kwargs, physics_params, validate
 from drone_torchrl.envs import dynamics
 from drone_torchrl.episodes import EpisodeTracker
+from drone_torchrl.evaluation import evaluate
 from drone_torchrl.modules.factory import build_actor, build_policy
 from drone_torchrl.modules.stacked import ActionSampler
 from drone_torchrl.training.segments import FusedSegments
@@ -138,3 +139,22 @@ def test_fast_batches_fly_the_disturbed_drone_with_what_the_policy_saw():
     fresh = batch["step_count"].squeeze(-1) == 0
     assert bool(fresh.any()) and bool((obs[fresh][:, 6:] == 0).all())
     assert bool(done.any())  # some episodes end inside the batch
+
+
+def test_evaluations_fly_the_net_as_it_stands_on_the_kernel_as_the_reference_does():
+    """backend=fast's evaluations: the kernel flies the evaluator's start states with the net's weights
+    of the moment, and its episodes are the reference's (TorchRL's env and the actor) to float rounding."""
+    cfg = _cfg("env.max_steps=300", "env.reset_mode=air")  # starts all over the domain: varied episodes
+    net = build_policy(cfg, cfg.seed)
+    actor = build_actor(cfg, net)
+    segments = FusedSegments(cfg, build_actor(cfg, net, return_log_prob=True), net)
+    torch.manual_seed(1)
+    with torch.no_grad():  # weights the segments have not seen: a stale copy would fly other episodes
+        for p in net.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    kwargs = env_kwargs(cfg)
+    kernel, _ = evaluate(segments.eval_policy(), kwargs, 20, 12345, agents=1)
+    reference, _ = evaluate(actor, kwargs, 20, 12345)
+    assert len(set(reference["length"].tolist())) > 3  # episodes of many lengths: the test sees steps
+    torch.testing.assert_close(kernel["length"][0], reference["length"])
+    torch.testing.assert_close(kernel["return"][0], reference["return"], rtol=0, atol=1e-3)

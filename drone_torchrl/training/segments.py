@@ -27,7 +27,7 @@ from torchrl.modules import ProbabilisticActor
 
 from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs import disturbances, dynamics
-from drone_torchrl.kernels.modules import Carried, KernelSegments
+from drone_torchrl.kernels.modules import Carried, KernelRollout, KernelSegments
 from drone_torchrl.modules.factory import model_dtype
 from drone_torchrl.modules.policy import ThreeNetPolicy
 from drone_torchrl.modules.stacked import StackedThreeNet
@@ -54,9 +54,8 @@ class FusedSegments:
         self.params = physics_params(env_kwargs(cfg))
         self.dtype = model_dtype(cfg)
         self.stacked = StackedThreeNet([net], cfg.model.activation)
-        self.kernel = KernelSegments(
-            kernel_rollout(cfg, self.stacked, squash_bound(cfg), cfg.env.max_steps), self.num_envs
-        )
+        self.rollout = kernel_rollout(cfg, self.stacked, squash_bound(cfg), cfg.env.max_steps)
+        self.kernel = KernelSegments(self.rollout, self.num_envs)
         self.disturbed = not disturbances.make(env_kwargs(cfg)["disturbance"]).nominal
         self.log_prob_key = actor.log_prob_keys[0]
         self.generator = torch.Generator()
@@ -73,6 +72,11 @@ class FusedSegments:
     def carry_on(self, carried: list[torch.Tensor]) -> None:
         """Fly on from :meth:`carried` (a resumed run's drones, mid-episode)."""
         self.kernel.carried = Carried(*(t.clone() for t in carried))
+
+    def eval_policy(self) -> KernelRollout:
+        """The net's deterministic episodes as they stand now, flown by the kernel (one agent's rows)."""
+        self.stacked.load_agent_state_dict(0, self.net.state_dict())
+        return self.rollout
 
     def __iter__(self) -> FusedSegments:
         return self
