@@ -90,6 +90,7 @@ RESUME_KEYS = (
     "checkpoint.",
     "eval.every_episodes",
     "eval.video",
+    "eval.stop_return",  # added later, with the budget's rule in spirit: a raised one trains on
 )
 # logger=wandb's project and entity hold its run id: a continued run keeps them (added with it).
 FIXED_ON_RESUME = ("logger.backend", "logger.exp_name", "logger.project", "logger.entity")

@@ -283,8 +283,8 @@ class OnPolicy:
     def eval_policy(self):
         """What evaluations fly: the actor, or with ``backend=fast`` its episodes on the C++ engine.
 
-        The fast engine flies the same start states by the arithmetic of training, in milliseconds
-        where TorchRL's env takes about 1 ms a step (``tests/test_segments.py`` checks they agree).
+        The fast engine flies the same start states by the arithmetic of training, without TorchRL's
+        per-step overhead (``tests/test_segments.py`` checks they agree).
         """
         return self.collector.eval_policy() if self.fused else self.actor_module
 
