@@ -155,6 +155,7 @@ SHORT = {
     "algo.episodes": 2,
     "env.max_steps": 10,
     "eval.every_episodes": 0,
+    "eval.stop_return": "null",  # hover_optimal's stop needs periodic evaluations
     "eval.episodes": 1,
     "eval.video": "false",
     "checkpoint.every_episodes": 1000,
