@@ -943,6 +943,14 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             cfg.eval.stop_return,
             "null unless eval.every_episodes > 0 (it ends a run at a periodic evaluation)",
         )
+    if (drop := cfg.eval.get("rollback_drop")) is not None:
+        if not cfg.eval.every_episodes:
+            raise ConfigError.of(
+                "eval.rollback_drop", drop, "null unless eval.every_episodes > 0 (it acts at a periodic evaluation)"
+            )
+        if not hasattr(algorithms.get(cfg.algo.name).learner, "after_evaluation"):
+            takers = [n for n in algorithms.names() if hasattr(algorithms.get(n).learner, "after_evaluation")]
+            raise ConfigError.of("eval.rollback_drop", drop, f"null with algo={cfg.algo.name} (taken by algo={'/'.join(takers)})")
     if training:  # drone-eval reads a finished run's values: its logger is the training's business
         loggers.check_backend(cfg)  # after the values: a bad value is named whether or not the extra is there
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:

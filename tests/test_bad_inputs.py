@@ -404,6 +404,11 @@ TRAIN = [
     (["eval.stop_return=2685", "eval.every_episodes=0"], "eval.stop_return"),
     (["eval.stop_return=high"], "eval.stop_return"),
     (["eval.stop_return=[2685]"], "eval.stop_return"),
+    # eval.rollback_drop acts at a periodic evaluation, on an on-policy learner's state.
+    (["algo=ppo", "eval.rollback_drop=1000", "eval.every_episodes=0"], "eval.rollback_drop"),
+    (["algo=ppo", "eval.rollback_drop=0"], "eval.rollback_drop"),
+    (["eval.rollback_drop=1000"], "eval.rollback_drop"),  # algo=reinforce: its learner has none
+    (["experiment=bounded", "algo=sac", "eval.rollback_drop=1000"], "eval.rollback_drop"),
     (["algo=ppo", "algo.gae_lambda=2"], "algo.gae_lambda"),
     (["algo=ppo", "algo.critic_coeff=0"], "algo.critic_coeff"),
     (["algo=ppo", "algo.reward_scale=-1"], "algo.reward_scale"),

@@ -155,7 +155,8 @@ SHORT = {
     "algo.episodes": 2,
     "env.max_steps": 10,
     "eval.every_episodes": 0,
-    "eval.stop_return": "null",  # hover_optimal's stop needs periodic evaluations
+    "eval.stop_return": "null",  # hover_optimal's stop and rollback need periodic evaluations
+    "eval.rollback_drop": "null",
     "eval.episodes": 1,
     "eval.video": "false",
     "checkpoint.every_episodes": 1000,

@@ -401,3 +401,69 @@ def test_dual_clip_bounds_a_negative_advantage_s_term_by_c_times_it():
     bounded["loss_objective"].backward()
     assert bool(torch.isfinite(policy.loc.grad).all())
     assert float(ppo.clip_ppo_losses(policy, value, minibatch, eps, coeff)["loss_objective"].detach()) == math.inf
+
+
+@pytest.mark.parametrize("backend", ["reference", "fast"])
+def test_rollback_drop_puts_the_best_evaluations_state_back_once(tmp_path, monkeypatch, backend, capsys):
+    """eval.rollback_drop: after an evaluation more than it below the best, the actor, critic and
+    optimizer are the best evaluation's again (best.pt's), once per best; last.pt keeps that state
+    so a continued run carries it on, and best.pt's own state is the best one when forked from."""
+    seen = []  # each evaluation: its return, the best so far, and the actor's weights after it
+    after_evaluation = OnPolicy.after_evaluation
+
+    def spy(self, run, best_before):
+        after_evaluation(self, run, best_before)
+        weights = {k: v.clone() for k, v in self.actor_module.state_dict().items()}
+        seen.append((run.last_eval_return, run.best_eval, self.returned_to_best, weights))
+
+    monkeypatch.setattr(OnPolicy, "after_evaluation", spy)
+    common = (
+        "algo=ppo",
+        "experiment=bounded",
+        f"backend={backend}",
+        "algo.num_envs=8",
+        "algo.steps_per_batch=32",
+        "algo.minibatch_size=64",
+        "algo.epochs=2",
+        "eval.every_episodes=8",
+        "checkpoint.every_episodes=8",
+        *QUIET,
+    )
+    run = tmp_path / "run"
+    # Any evaluation below the best by more than 0.001 (return units) sends the run back.
+    train(_cfg(*common, "algo.episodes=96", "eval.rollback_drop=0.001"), run)
+    returns = [r for r, *_ in seen]
+    assert len(seen) >= 8 and len(set(returns)) > 1  # the evaluations differ: else nothing to test
+    said = capsys.readouterr().out.count("eval.rollback_drop=0.001 below the best")
+    rollbacks = [i for i in range(1, len(seen)) if seen[i][2] and not seen[i - 1][2]]
+    assert rollbacks and said == len(rollbacks)
+    for i in rollbacks:
+        best_at = max(j for j in range(i) if seen[j][0] == seen[i][1])  # the evaluation that set the best
+        for key, value in seen[best_at][3].items():
+            torch.testing.assert_close(seen[i][3][key], value, rtol=0, atol=0)
+        # Once per best: a second drop below the same best does not send the run back again.
+        assert all(seen[j][2] for j in range(i, len(seen)) if seen[j][1] == seen[i][1])
+    last = load_checkpoint(run / "checkpoints" / "last.pt")
+    best = load_checkpoint(run / "checkpoints" / "best.pt")
+    kept = last["rollback"]["state"]
+    assert kept["return"] == last["best_eval_return"] == best["best_eval_return"]
+    for part in ("actor", "critic"):
+        for key, value in best[part].items():
+            torch.testing.assert_close(kept[part][key], value, rtol=0, atol=0)
+
+    # A continued run and a fork from best.pt start from those states.
+    learner = OnPolicy.__new__(OnPolicy)
+    learner.rollback_drop = 0.001
+    learner._load_best_state(last)
+    assert learner.best_state is kept and learner.returned_to_best == last["rollback"]["returned"]
+    learner._load_best_state(best)
+    assert learner.best_state["return"] == best["best_eval_return"]
+    assert learner.best_state["actor"] is best["actor"] and not learner.returned_to_best
+
+    # Without it the same seed evaluates the same up to the first rollback, and otherwise after it.
+    with_it = returns
+    seen.clear()
+    train(_cfg(*common, "algo.episodes=96"), tmp_path / "plain")
+    first = rollbacks[0]
+    assert [r for r, *_ in seen[: first + 1]] == with_it[: first + 1]
+    assert [r for r, *_ in seen[first + 1 :]] != with_it[first + 1 :]

@@ -17,6 +17,7 @@ were not booked, so no episode is lost or counted twice).
 from __future__ import annotations
 
 import contextlib
+import copy
 import logging
 import math
 from collections.abc import Iterator, Mapping
@@ -63,6 +64,7 @@ from drone_torchrl.training.memory_estimate import on_policy_parts
 from drone_torchrl.training.segments import FusedSegments
 
 if TYPE_CHECKING:
+    from drone_torchrl.training.run import AgentBook
     from drone_torchrl.training.signals import StopRequest
     from drone_torchrl.training.trainer import Trainer
 
@@ -148,7 +150,11 @@ class OnPolicy:
             self.env = DroneEnv(batch_size=[algo.num_envs], device=cfg.device, **env_kwargs(cfg))
             self.env.set_seed(cfg.seed)
             self._generator = self.env._generator
+        self.rollback_drop = cfg.eval.get("rollback_drop")
+        self.best_state: dict[str, Any] | None = None  # eval.rollback_drop's: see after_evaluation
+        self.returned_to_best = False
         if (checkpoint := job.checkpoint) is not None:
+            self._load_best_state(checkpoint)
             self.actor_module.load_state_dict(checkpoint["actor"])
             self.critic.load_state_dict(checkpoint["critic"])
             self.optimizer.load_state_dict(checkpoint["optimizer"])
@@ -191,12 +197,70 @@ class OnPolicy:
                 run.record(ended, metrics)
                 trainer.progress.update(len(ended["return"]), [run])
                 if run.eval_due:
+                    best_before = run.best_eval
                     trainer.evaluate([0])
+                    self.after_evaluation(run, best_before)
                 if run.checkpoint_due:
                     trainer.save([0])
             trainer.stop_if_asked(stop, [0])
             if run.finished or run.failed:
                 return
+
+    def after_evaluation(self, run: AgentBook, best_before: float) -> None:
+        """``eval.rollback_drop``: keep the state of the best evaluation; go back to it after a collapse.
+
+        An evaluation better than every earlier one has its actor, critic and optimizer state kept.
+        One more than ``eval.rollback_drop`` below the best (the run not finished) puts that state
+        back, once per best: training goes on from the best policy with the random streams where
+        they are, so its next batches are new ones. A policy that collapses again from the same
+        state is left to recover by itself.
+        """
+        if self.rollback_drop is None:
+            return
+        last = run.last_eval_return
+        if last > best_before:
+            self.best_state = {"return": last, **copy.deepcopy(self._learner_state())}
+            self.returned_to_best = False
+        elif (
+            self.best_state is not None
+            and not self.returned_to_best
+            and not run.finished
+            and self.best_state["return"] - last > self.rollback_drop
+        ):
+            self._restore(copy.deepcopy(self.best_state))
+            self.returned_to_best = True
+            print(
+                f"{run.run_dir}: episode {run.episodes_done}: evaluation return {last:.1f} is more than "
+                f"eval.rollback_drop={self.rollback_drop:g} below the best, {self.best_state['return']:.1f}: "
+                "training goes on from the best evaluation's policy, critic and optimizer"
+            )
+
+    def _learner_state(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor_module.state_dict(),
+            "critic": self.critic.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+        }
+
+    def _restore(self, state: Mapping[str, Any]) -> None:
+        self.actor_module.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.optimizer.load_state_dict(state["optimizer"])
+
+    def _load_best_state(self, checkpoint: Mapping[str, Any]) -> None:
+        """eval.rollback_drop's best state and whether it was returned to, as ``checkpoint`` keeps them.
+
+        ``best.pt`` is written before its evaluation's state is kept: there the checkpoint's own state
+        is the best one.
+        """
+        saved = checkpoint.get("rollback")
+        if self.rollback_drop is None or saved is None:
+            return
+        self.best_state, self.returned_to_best = saved["state"], saved["returned"]
+        best = checkpoint["best_eval_return"]
+        if self.best_state is None or best > self.best_state["return"]:
+            self.best_state = {"return": best, **{k: checkpoint[k] for k in ("actor", "critic", "optimizer")}}
+            self.returned_to_best = False
 
     def _learn(self, batch: TensorDictBase, episodes_done: int) -> dict[str, float]:
         """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's ``train/*`` means."""
@@ -294,12 +358,13 @@ class OnPolicy:
 
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """The checkpoint entries the run record does not own: actor, critic, optimizer, RNG."""
-        return {
-            "actor": self.actor_module.state_dict(),
-            "critic": self.critic.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
+        entries = {
+            **self._learner_state(),
             "rng": {"torch": torch.get_rng_state(), "env": self._generator.get_state(), "agent": None},
         }
+        if self.rollback_drop is not None:
+            entries["rollback"] = {"state": self.best_state, "returned": self.returned_to_best}
+        return entries
 
     def close(self) -> None:
         """Shut the collector down (the fused engine has none)."""

@@ -138,6 +138,7 @@ class AgentBook:
             self.recent_returns.extend(checkpoint["recent_returns"])
             self.recent_lengths.extend(checkpoint["recent_lengths"])
         self.last_eval_episode: int | None = None
+        self.last_eval_return = -math.inf  # this process's last evaluation's mean return
         self.next_checkpoint = self.episodes_done + self.checkpoint_every
         self.next_eval = self.episodes_done + self.eval_every if self.eval_every else None
         self.start = time.perf_counter()
@@ -205,6 +206,7 @@ class AgentBook:
         final metrics are set at the end.
         """
         best = result["return"] > self.best_eval
+        self.last_eval_return = result["return"]
         self.best_eval = max(self.best_eval, result["return"])
         if self.stop_return is not None and result["return"] >= self.stop_return:
             self.stopped_at = result["return"]
