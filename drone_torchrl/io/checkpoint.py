@@ -19,7 +19,9 @@ Layout (``format_version`` 3)::
                     under "agent"; it is not used)
     config          the run's resolved config (plain dict)
     final           None while the run goes on; its final metrics once it finished
-    <algorithm's>   what its learner adds (algo=ppo and a2c: ``critic``; see drone_torchrl.algorithms)
+    <algorithm's>   what its learner adds (algo=ppo and a2c: ``critic``, and with eval.rollback_drop
+                    ``rollback``: the best evaluation's return, actor, critic and optimizer, and
+                    whether the run went back to them; see drone_torchrl.algorithms)
     tensor_sha256   {"actor/<key>": sha256 of that tensor's dtype, shape and bytes, ...}: every
                     tensor above, written by :func:`save_checkpoint`
 
