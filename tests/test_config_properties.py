@@ -39,6 +39,8 @@ EXAMPLES = 1500
 def _base(key: str):
     """The default config with the plug-in options that have ``key`` (algo=ppo for algo.num_envs)."""
     group = key.split(".")[0]
+    if key in KEY_NEEDS:
+        return _composed(KEY_NEEDS[key])
     if group not in ("algo", "logger") or key in schema_keys("config"):
         return _composed(())
     for option in _options(group):
@@ -50,6 +52,9 @@ def _base(key: str):
 # What an option needs besides the default config, as its refusal says (SAC's TanhNormal actor:
 # bounded thrust).
 OPTION_NEEDS = {"algo=sac": ("experiment=bounded",)}
+# What a key of the default config needs to take a value other than null, as its refusal says
+# (going back to the best evaluation is an on-policy learner's: algo=ppo or a2c).
+KEY_NEEDS = {"eval.rollback_drop": ("algo=ppo",)}
 
 
 @functools.cache
