@@ -312,7 +312,7 @@ class PeriodicEvalConf:
     seed: Any = an_integer(low=0, high=MAX_SEED)
     video: Any = a_flag(on_resume=IF_SET)
     stop_return: Any = a_number(optional=True, on_resume=IF_SET, added=None)
-    rollback_drop: Any = a_number(low=0, low_open=True, optional=True, added=None)
+    rollback_drop: Any = a_number(low=0, low_open=True, optional=True, on_resume=IF_SET, added=None)
 
 
 # ---------------------------------------------------------------------- the primary configs

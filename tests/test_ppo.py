@@ -451,14 +451,18 @@ def test_rollback_drop_puts_the_best_evaluations_state_back_once(tmp_path, monke
         for key, value in best[part].items():
             torch.testing.assert_close(kept[part][key], value, rtol=0, atol=0)
 
-    # A continued run and a fork from best.pt start from those states.
+    # A continued run goes on with last.pt's; best.pt (its evaluation's state not yet kept) holds it.
     learner = OnPolicy.__new__(OnPolicy)
     learner.rollback_drop = 0.001
     learner._load_best_state(last)
     assert learner.best_state is kept and learner.returned_to_best == last["rollback"]["returned"]
     learner._load_best_state(best)
-    assert learner.best_state["return"] == best["best_eval_return"]
-    assert learner.best_state["actor"] is best["actor"] and not learner.returned_to_best
+    assert learner.best_state["return"] == best["best_eval_return"] and not learner.returned_to_best
+    for key, value in best["optimizer"]["state"][0].items():  # a copy: Adam steps its state in place
+        assert torch.equal(learner.best_state["optimizer"]["state"][0][key], value)
+        assert learner.best_state["optimizer"]["state"][0][key] is not value
+    learner._load_best_state({**best, "best_eval_return": -math.inf})  # a fork: no best yet
+    assert learner.best_state["return"] == best["best_eval_return"]  # (unchanged by it)
 
     # Without it the same seed evaluates the same up to the first rollback, and otherwise after it.
     with_it = returns

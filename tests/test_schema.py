@@ -91,6 +91,7 @@ RESUME_KEYS = (
     "eval.every_episodes",
     "eval.video",
     "eval.stop_return",  # added later, with the budget's rule in spirit: a raised one trains on
+    "eval.rollback_drop",  # added later: set again (or null) on a continued run
 )
 # logger=wandb's project and entity hold its run id: a continued run keeps them (added with it).
 FIXED_ON_RESUME = ("logger.backend", "logger.exp_name", "logger.project", "logger.entity")

@@ -250,16 +250,19 @@ class OnPolicy:
     def _load_best_state(self, checkpoint: Mapping[str, Any]) -> None:
         """eval.rollback_drop's best state and whether it was returned to, as ``checkpoint`` keeps them.
 
-        ``best.pt`` is written before its evaluation's state is kept: there the checkpoint's own state
-        is the best one.
+        A checkpoint whose best evaluation is above the kept one holds the best state itself: ``best.pt``
+        (written before its evaluation's state is kept), or a run whose final evaluation was its best.
+        A fork starts with no best (its first evaluation is one).
         """
         saved = checkpoint.get("rollback")
-        if self.rollback_drop is None or saved is None:
+        best = checkpoint["best_eval_return"]
+        if self.rollback_drop is None or saved is None or best == -math.inf:
             return
         self.best_state, self.returned_to_best = saved["state"], saved["returned"]
-        best = checkpoint["best_eval_return"]
         if self.best_state is None or best > self.best_state["return"]:
-            self.best_state = {"return": best, **{k: checkpoint[k] for k in ("actor", "critic", "optimizer")}}
+            # A copy: Adam's load_state_dict keeps CPU tensors as they are, and steps them in place.
+            own = copy.deepcopy({k: checkpoint[k] for k in ("actor", "critic", "optimizer")})
+            self.best_state = {"return": best, **own}
             self.returned_to_best = False
 
     def _learn(self, batch: TensorDictBase, episodes_done: int) -> dict[str, float]:

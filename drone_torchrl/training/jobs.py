@@ -223,7 +223,7 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
         raise ConfigError(
             f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued run keeps its "
             "hyper-parameters and logger (only algo.episodes, logger.* but logger.backend, exp_name, project and entity, checkpoint.*, "
-            "eval.every_episodes, eval.video "
+            "eval.every_episodes, eval.video, eval.stop_return, eval.rollback_drop "
             "and process settings may change): drop those overrides or start a new run"
         )
 
