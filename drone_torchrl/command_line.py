@@ -9,6 +9,7 @@ claimed (:mod:`drone_torchrl.io.run_lock`) before Hydra touches it.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib.util
 from pathlib import Path
 
@@ -151,10 +152,8 @@ def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]
     resume = overrides.get("resume")
     path = None
     if resume not in (None, "", "null") and "${" not in resume:
-        try:
+        with contextlib.suppress(OSError):
             path = resolve_checkpoint(resume)
-        except (FileNotFoundError, OSError):
-            path = None
     run_dir = overrides.get("hydra.run.dir")
     if run_dir is not None and run_dir.strip() and "${" not in run_dir:
         folder = Path(run_dir).expanduser()

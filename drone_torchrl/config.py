@@ -8,6 +8,7 @@ import difflib
 import functools
 import itertools
 from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
@@ -78,8 +79,8 @@ RUN_FOLDER_ENTRIES = frozenset(
 # (hydra/launcher, hydra/sweeper) are Hydra's to check.
 _HYDRA_PREFIX = "hydra"
 # The registry of each plug-in group (drone_torchrl.schema.plugin_groups): its one-line error names
-# the registered plug-ins when a config names another.
-_REGISTRIES = {"algo": algorithms.get, "logger": loggers.get}
+# the registered plug-ins when a config names another; the plug-ins page lists them (plugin_docs).
+REGISTRIES = {"algo": algorithms.get, "logger": loggers.get}
 
 
 @functools.cache
@@ -164,13 +165,9 @@ def command_line_keys() -> set[str] | None:
     return {str(o).split("=", 1)[0].lstrip("+~") for o in task}
 
 
-def _options(group: str) -> list[str]:
-    return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
-
-
 def group_options(group: str) -> list[str]:
     """The options of config group ``group`` (``algo`` -> ``["a2c", "ppo", ...]``: its YAML files), sorted."""
-    return _options(group)
+    return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
 
 
 def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
@@ -180,7 +177,7 @@ def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
     is left out.
     """
     out: dict[str, list[str]] = {}
-    for option in _options(group):
+    for option in group_options(group):
         try:
             plugin = _option_plugins(name, ((group, option),))[group]
         except Exception:  # noqa: BLE001  (a broken option file: Hydra says why when it is used)
@@ -197,7 +194,12 @@ def group_names() -> list[str]:
 def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     group = key.split(".")[0]
     if group in schema.plugin_groups():  # another plug-in's key: say whose, not a look-alike of this one's
-        owners = [o for o in _options(group) if key in _option_keys(group, o)]
+        owners = sorted(
+            option
+            for plugin, options in options_by_plugin(group).items()
+            if key in schema_keys("config", **{group: plugin})
+            for option in options
+        )
         if owners:
             return ConfigError(
                 f"{key} is not a key of this {group}; it belongs to {group}={f' or {group}='.join(owners)}"
@@ -205,15 +207,6 @@ def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
     return ConfigError(f"{key} is not a config key{hint}")
-
-
-def _option_keys(group: str, option: str) -> dict[str, Rule]:
-    """The keys of the training config with ``group=option`` (its plug-in's)."""
-    try:
-        plugins = _option_plugins("config", ((group, option),))
-    except Exception:  # noqa: BLE001  (an option Hydra cannot compose owns no keys here; Hydra says why)
-        return {}
-    return schema_keys("config", **{group: plugins[group]})
 
 
 def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str, str | None]:
@@ -237,11 +230,9 @@ def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | No
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    if GlobalHydra.instance().is_initialized():  # inside a Hydra app (or a test's initialize)
+    inside = GlobalHydra.instance().is_initialized()  # inside a Hydra app (or a test's initialize)
+    with nullcontext() if inside else initialize_config_dir(config_dir(), version_base="1.3"):
         cfg = compose(name, overrides=list(overrides), return_hydra_config=True)
-    else:
-        with initialize_config_dir(config_dir(), version_base="1.3"):
-            cfg = compose(name, overrides=list(overrides), return_hydra_config=True)
     plugins = {
         group: OmegaConf.select(cfg, f"{group}.{rule.plugin_key}", default=None)
         for group, rule in schema.plugin_groups(name).items()
@@ -345,12 +336,8 @@ def complete(cfg: DictConfig | dict, name: str = "config") -> list[str]:
             continue
         if set(defaults) <= set(given):
             continue
-        filled = {**{k: given.get(k, v) for k, v in defaults.items()}, **given}
-        if isinstance(parent, DictConfig):
-            with open_dict(parent):
-                parent[last] = filled
-        else:
-            parent[last] = filled
+        with open_dict(parent) if isinstance(parent, DictConfig) else nullcontext():
+            parent[last] = {**defaults, **given}
     return refused
 
 
@@ -361,7 +348,7 @@ def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
         section = resolved.get(group)
         plugin = section.get(rule.plugin_key) if isinstance(section, Mapping) else None
         if schema.plugin_schema(group, plugin) is None:
-            _REGISTRIES[group](plugin)  # not a registered plug-in: its registry's one-line error
+            REGISTRIES[group](plugin)  # not a registered plug-in: its registry's one-line error
             raise ConfigError(
                 f"{group}.{rule.plugin_key}={plugin!r} has no config schema: its plug-in must store one "
                 f"with drone_torchrl.schema.store_plugin({group!r}, {plugin!r}, ...)"
@@ -376,10 +363,7 @@ def check_values(resolved: Mapping, name: str = "config") -> None:
     ``resolved``: nested dicts, keys checked by :func:`check_keys`. The first value a rule refuses
     raises :class:`~.checks.ConfigError`.
     """
-    plugins = tuple(
-        (group, resolved[group][rule.plugin_key]) for group, rule in schema.plugin_groups(name).items()
-    )
-    for key, path, rule in _checks(name, plugins):
+    for key, path, rule in _checks(name, tuple(_plugins(resolved, name).items())):
         value = resolved
         for part in path:
             value = value[part]
@@ -432,7 +416,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             if key in groups and any(k.startswith(f"{key}.") or f".{key}." in k for k in known):
                 raise ConfigError(
                     f"{key} cannot be deleted (~{key}): its keys need values; choose another option: "
-                    f"{key}=<one of {_options(key)}>"
+                    f"{key}=<one of {group_options(key)}>"
                 )
             continue
         values = _override_values(override)
@@ -452,7 +436,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                 _check_folder_name(key, value, "a folder name (no '/' or '..'), e.g. lr")
             continue
         if key in groups:
-            options = _options(key)
+            options = group_options(key)
             for value in values:
                 if value not in options:
                     raise ConfigError.of(key, value, f"one of {options}")
@@ -479,8 +463,8 @@ def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
     the key alone leaves the other plug-in's keys.
     """
     value = _override_values(override)[0]
-    options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
-    how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
+    options = [o for o in group_options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
+    how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {group_options(group)}"
     return ConfigError(
         f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, with its "
         f"plug-in's keys); choose it with {how}"
@@ -503,7 +487,9 @@ def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list
         return
     first = next(k for k in known if k.startswith(f"{key}."))
     group = key.split(".")[-1]
-    preset = f", or a preset: {group}=<one of {_options(group)}>" if group in groups and group != key else ""
+    preset = (
+        f", or a preset: {group}=<one of {group_options(group)}>" if group in groups and group != key else ""
+    )
     raise ConfigError.of(key, value, f"its keys set one by one (e.g. {first}=...){preset}")
 
 
@@ -538,7 +524,7 @@ def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
         if group not in groups or override.is_delete():
             continue
         values = _override_values(override)
-        options = [v for v in values if v in _options(group)]
+        options = [v for v in values if v in group_options(group)]
         if options:
             picks[group] = options
     return itertools.product(*([(g, o) for o in opts] for g, opts in picks.items()))
@@ -591,7 +577,7 @@ def _check_presets(parsed: list, name: str) -> None:
 def _preset_bases(preset: str) -> list[str]:
     """The presets ``preset`` builds on: the options of its own group in its defaults list."""
     defaults = OmegaConf.load(Path(config_dir()) / PRESET_GROUP / f"{preset}.yaml").get("defaults") or []
-    return [d for d in defaults if isinstance(d, str) and d in _options(PRESET_GROUP)]
+    return [d for d in defaults if isinstance(d, str) and d in group_options(PRESET_GROUP)]
 
 
 def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
@@ -677,10 +663,8 @@ def check_default_folder(name: str, args: Iterable[str]) -> None:
     key = "hydra.sweep.dir" if {"-m", "--multirun"} & set(args) else "hydra.run.dir"
     if any(a.split("=", 1)[0].lstrip("+") == key for a in args):
         return  # checked with the other overrides
-    node: Any = OmegaConf.to_container(OmegaConf.load(Path(config_dir()) / f"{name}.yaml"), resolve=False)
-    for part in key.split("."):
-        node = node.get(part) if isinstance(node, dict) else None
-    _check_folder(key, node)
+    node = OmegaConf.to_container(OmegaConf.load(Path(config_dir()) / f"{name}.yaml"), resolve=False)
+    _check_folder(key, _get(node, key))
 
 
 def check_command_line(prog: str, name: str) -> None:
@@ -728,8 +712,7 @@ _ABSENT = object()
 # The DroneEnv arguments that describe the episode rather than the drone, the precision and the
 # disturbances (drawn per episode around the nominal drone): the others are DroneParams' (the
 # physics and the arena, what the dynamics need).
-EPISODE_ARGS = ("max_steps", "reset_mode")
-NOT_PARAMS = (*EPISODE_ARGS, "dtype", "disturbance")
+NOT_PARAMS = ("max_steps", "reset_mode", "dtype", "disturbance")
 
 
 def physics_params(kwargs: dict[str, Any]) -> DroneParams:

@@ -32,8 +32,6 @@ _AS_BACKEND = {"fused": FAST, "torchrl": REFERENCE}
 # The keys that picked an implementation, and the one that picks it now.
 REPLACED = ("engine", "algo.collector")
 DROPPED = ("compile", "steps_per_call", "updates_per_call")
-# A config saved before ``engine`` existed ran TorchRL's loop.
-ORIGINAL_ENGINE = "torchrl"
 #: Keys removed from the config, each with the one value every run had and what took its place.
 FIXED: dict[str, tuple[Any, str]] = {
     "metrics.running_mean_window": (100, "the paper's window, drone_torchrl.episodes.RUNNING_MEAN_WINDOW"),
@@ -75,11 +73,10 @@ def _pop(config: dict[str, Any], key: str) -> Any:
 def backend_of(engine: Any = None, collector: Any = None) -> str:
     """The backend an old run trained with.
 
-    Its on-policy ``algo.collector`` if it had one (PPO and A2C's batches), else its ``engine``.
+    Its on-policy ``algo.collector`` if it had one (PPO and A2C's batches), else its ``engine``; a
+    config saved before ``engine`` existed ran TorchRL's loop (``reference``).
     """
-    if collector is not None:
-        return _AS_BACKEND.get(collector, REFERENCE)
-    return _AS_BACKEND.get(ORIGINAL_ENGINE if engine is None else engine, REFERENCE)
+    return _AS_BACKEND.get(engine if collector is None else collector, REFERENCE)
 
 
 def migrate_config(config: Mapping[str, Any]) -> dict[str, Any]:
@@ -101,8 +98,7 @@ def migrate_config(config: Mapping[str, Any]) -> dict[str, Any]:
         out.pop(key, None)
     if "algo" in out:
         out["algo"] = algo
-    if "backend" not in out:
-        out["backend"] = backend_of(engine, collector)
+    out.setdefault("backend", backend_of(engine, collector))
     return out
 
 
@@ -143,14 +139,12 @@ def apply_legacy(cfg: Any) -> None:
     The old keys come from the command line: ``engine``/``algo.collector`` set ``backend``, the
     dropped keys go; the node is removed.
     """
-    from omegaconf import open_dict
+    from omegaconf import OmegaConf, open_dict
 
-    legacy = cfg.get(LEGACY) if hasattr(cfg, "get") else None
-    if legacy is None:
+    if cfg.get(LEGACY) is None:
         return
-    engine = legacy.get("engine")
-    algo = legacy.get("algo") or {}
-    collector = algo.get("collector") if hasattr(algo, "get") else None
+    engine = OmegaConf.select(cfg, f"{LEGACY}.engine")
+    collector = OmegaConf.select(cfg, f"{LEGACY}.algo.collector")
     with open_dict(cfg):
         if engine is not None or collector is not None:
             cfg.backend = backend_of(engine, collector)

@@ -449,13 +449,10 @@ def _stored_names() -> list[str]:
 
 def _stored(name: str) -> type | None:
     """The dataclass stored as ``name`` in Hydra's ConfigStore (``schema_algo_ppo``), or None."""
-    found = _found.get(name)
-    if found is None:
-        if name not in _stored_names():
-            return None
+    if name not in _found and name in _stored_names():
         # Kept: the store copies a node at every load, and a population validates every job.
-        found = _found[name] = OmegaConf.get_type(ConfigStore.instance().load(f"{name}.yaml").node)
-    return found
+        _found[name] = OmegaConf.get_type(ConfigStore.instance().load(f"{name}.yaml").node)
+    return _found.get(name)
 
 
 _found: dict[str, type] = {}

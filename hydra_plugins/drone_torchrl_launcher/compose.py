@@ -20,6 +20,7 @@ each job's values, read from the override's text without a config or a parser ca
 from __future__ import annotations
 
 import copy
+import functools
 import re
 from collections.abc import Iterator, Sequence
 
@@ -60,15 +61,16 @@ def sweep_configs(
     """
     if not jobs:
         return
-    parse = _Parser()
+    # Hydra's grammar is slow per override, and the jobs of a grid repeat most of theirs.
+    parse = functools.cache(OverridesParser.create().parse_override)
     first = list(jobs[0])
     template = config_loader.load_sweep_config(master, first)
-    first_parsed = {o.input_line: o for o in parse(first)}
+    first_parsed = {o.input_line: o for o in map(parse, first)}
     groups = set(template.hydra.runtime.choices)
     shared = _take_hydra(template)
     dirname = shared.job.config.override_dirname
     for overrides in jobs:
-        parsed = parse(overrides)
+        parsed = list(map(parse, overrides))
         changed = [o for o in parsed if o.input_line not in first_parsed]
         same_keys = [o.key_or_group for o in parsed] == [o.key_or_group for o in first_parsed.values()]
         if same_keys and all(_is_plain_value(o, template, groups) for o in changed):
@@ -117,7 +119,7 @@ def agent_columns(
     groups = set(template.hydra.runtime.choices)
     hydra = _take_hydra(template)
     varying: dict[int, str] = {}  # position in the overrides -> the per-agent key there
-    for position, override in enumerate(_Parser()(first)):
+    for position, override in enumerate(OverridesParser.create().parse_overrides(first)):
         if override.key_or_group in keys and _is_plain_value(override, template, groups):
             varying[position] = override.key_or_group
     columns = {key: [] for key in varying.values()}
@@ -145,23 +147,6 @@ def _number(text: str) -> int | float | None:
     if _FLOAT.fullmatch(text):
         return float(text)
     return None
-
-
-class _Parser:
-    """Hydra's override parser with a cache: the jobs of a grid repeat most of their overrides.
-
-    Hydra's grammar is slow per override, and a sweep of tens of thousands of jobs parses each.
-    """
-
-    def __init__(self) -> None:
-        self._parser = OverridesParser.create()
-        self._parsed: dict[str, Override] = {}
-
-    def __call__(self, overrides: Sequence[str]) -> list[Override]:
-        new = [line for line in overrides if line not in self._parsed]
-        if new:
-            self._parsed.update(zip(new, self._parser.parse_overrides(new), strict=True))
-        return [self._parsed[line] for line in overrides]
 
 
 def _take_hydra(cfg: DictConfig) -> DictConfig:

@@ -164,15 +164,15 @@ def train_populations(
         zip(job_numbers, job_overrides, configs, strict=True)
     ):
         log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
+        folder = job_output_dir(sweep_config, idx)
         try:
-            # The job's folder is this process's before anything is written into it.
-            run_lock.hold(job_output_dir(sweep_config, idx))
+            run_lock.hold(folder)  # the job's folder is this process's before anything is written into it
         except (ConfigError, OSError) as err:
-            print(f"{job_output_dir(sweep_config, idx)}: job not started: {err}")
-            ret, run_dir = _JobReturn(overrides=list(overrides)), Path(job_output_dir(sweep_config, idx))
+            print(f"{folder}: job not started: {err}")
+            ret = _JobReturn(overrides=list(overrides))
             ret.cfg = sweep_config
             returns.append(ret)
-            jobs.append(Outcome(run_dir, error=err))
+            jobs.append(Outcome(Path(folder), error=err))
             continue
         ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
         returns.append(ret)

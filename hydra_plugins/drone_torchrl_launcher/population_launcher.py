@@ -166,9 +166,7 @@ class _SearchLauncher(PopulationLauncher):
         super().__init__()
         try:
             self.search = getattr(pbt, self.settings_class).of(params)
-        except (
-            ConfigError
-        ) as err:  # Hydra makes the launcher before any job starts: one line, nothing written
+        except ConfigError as err:  # Hydra makes it before any job starts: one line, nothing written
             sys.exit(f"drone-train: error: {err}")
 
 
