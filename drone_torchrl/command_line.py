@@ -126,12 +126,6 @@ def check_multirun(overrides: dict[str, str]) -> None:
         )
 
 
-def sweep_root_above(folder: Path) -> Path | None:
-    """The sweep folder ``folder`` lies inside, if any."""
-    folder = folder.expanduser().resolve()
-    return next((p for p in folder.parents if (p / SWEEP_RECORD).is_file()), None)
-
-
 def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]:
     """Claim the folder a single run will write before Hydra writes into it.
 
@@ -157,7 +151,7 @@ def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]
     run_dir = overrides.get("hydra.run.dir")
     if run_dir is not None and run_dir.strip() and "${" not in run_dir:
         folder = Path(run_dir).expanduser()
-        root = sweep_root_above(folder)
+        root = next((p for p in folder.resolve().parents if (p / SWEEP_RECORD).is_file()), None)
         if root is not None and not (folder / ".hydra").is_dir():
             raise ConfigError(
                 f"hydra.run.dir={run_dir} is inside the sweep folder {root}, whose job folders its sweep "

@@ -165,9 +165,13 @@ def command_line_keys() -> set[str] | None:
     return {str(o).split("=", 1)[0].lstrip("+~") for o in task}
 
 
+def _options(group: str) -> list[str]:
+    return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
+
+
 def group_options(group: str) -> list[str]:
     """The options of config group ``group`` (``algo`` -> ``["a2c", "ppo", ...]``: its YAML files), sorted."""
-    return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
+    return _options(group)
 
 
 def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
@@ -177,7 +181,7 @@ def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
     is left out.
     """
     out: dict[str, list[str]] = {}
-    for option in group_options(group):
+    for option in _options(group):
         try:
             plugin = _option_plugins(name, ((group, option),))[group]
         except Exception:  # noqa: BLE001  (a broken option file: Hydra says why when it is used)
@@ -416,7 +420,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             if key in groups and any(k.startswith(f"{key}.") or f".{key}." in k for k in known):
                 raise ConfigError(
                     f"{key} cannot be deleted (~{key}): its keys need values; choose another option: "
-                    f"{key}=<one of {group_options(key)}>"
+                    f"{key}=<one of {_options(key)}>"
                 )
             continue
         values = _override_values(override)
@@ -436,7 +440,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                 _check_folder_name(key, value, "a folder name (no '/' or '..'), e.g. lr")
             continue
         if key in groups:
-            options = group_options(key)
+            options = _options(key)
             for value in values:
                 if value not in options:
                     raise ConfigError.of(key, value, f"one of {options}")
@@ -463,8 +467,8 @@ def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
     the key alone leaves the other plug-in's keys.
     """
     value = _override_values(override)[0]
-    options = [o for o in group_options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
-    how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {group_options(group)}"
+    options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
+    how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
     return ConfigError(
         f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, with its "
         f"plug-in's keys); choose it with {how}"
@@ -487,9 +491,7 @@ def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list
         return
     first = next(k for k in known if k.startswith(f"{key}."))
     group = key.split(".")[-1]
-    preset = (
-        f", or a preset: {group}=<one of {group_options(group)}>" if group in groups and group != key else ""
-    )
+    preset = f", or a preset: {group}=<one of {_options(group)}>" if group in groups and group != key else ""
     raise ConfigError.of(key, value, f"its keys set one by one (e.g. {first}=...){preset}")
 
 
@@ -524,7 +526,7 @@ def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
         if group not in groups or override.is_delete():
             continue
         values = _override_values(override)
-        options = [v for v in values if v in group_options(group)]
+        options = [v for v in values if v in _options(group)]
         if options:
             picks[group] = options
     return itertools.product(*([(g, o) for o in opts] for g, opts in picks.items()))
@@ -577,7 +579,7 @@ def _check_presets(parsed: list, name: str) -> None:
 def _preset_bases(preset: str) -> list[str]:
     """The presets ``preset`` builds on: the options of its own group in its defaults list."""
     defaults = OmegaConf.load(Path(config_dir()) / PRESET_GROUP / f"{preset}.yaml").get("defaults") or []
-    return [d for d in defaults if isinstance(d, str) and d in group_options(PRESET_GROUP)]
+    return [d for d in defaults if isinstance(d, str) and d in _options(PRESET_GROUP)]
 
 
 def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
@@ -920,20 +922,15 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
         if reason is not None:
             raise ConfigError(f"backend=fast cannot take {reason}; backend=reference takes every option")
     algorithms.get(cfg.algo.name).validate(cfg)
-    if cfg.eval.get("stop_return") is not None and not cfg.eval.every_episodes:
-        raise ConfigError.of(
-            "eval.stop_return",
-            cfg.eval.stop_return,
-            "null unless eval.every_episodes > 0 (it ends a run at a periodic evaluation)",
-        )
-    if (drop := cfg.eval.get("rollback_drop")) is not None:
-        if not cfg.eval.every_episodes:
-            raise ConfigError.of(
-                "eval.rollback_drop", drop, "null unless eval.every_episodes > 0 (it acts at a periodic evaluation)"
-            )
-        if not hasattr(algorithms.get(cfg.algo.name).learner, "after_evaluation"):
-            takers = [n for n in algorithms.names() if hasattr(algorithms.get(n).learner, "after_evaluation")]
-            raise ConfigError.of("eval.rollback_drop", drop, f"null with algo={cfg.algo.name} (taken by algo={'/'.join(takers)})")
+    for key, acts in (("stop_return", "it ends a run"), ("rollback_drop", "it acts")):
+        if cfg.eval.get(key) is not None and not cfg.eval.every_episodes:
+            expected = f"null unless eval.every_episodes > 0 ({acts} at a periodic evaluation)"
+            raise ConfigError.of(f"eval.{key}", cfg.eval[key], expected)
+    drop = cfg.eval.get("rollback_drop")
+    if drop is not None and not hasattr(algorithms.get(cfg.algo.name).learner, "after_evaluation"):
+        takers = [n for n in algorithms.names() if hasattr(algorithms.get(n).learner, "after_evaluation")]
+        expected = f"null with algo={cfg.algo.name} (taken by algo={'/'.join(takers)})"
+        raise ConfigError.of("eval.rollback_drop", drop, expected)
     if training:  # drone-eval reads a finished run's values: its logger is the training's business
         loggers.check_backend(cfg)  # after the values: a bad value is named whether or not the extra is there
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:

@@ -100,12 +100,6 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
     return ret, Path(output_dir)
 
 
-def _population_sweeper(config: DictConfig) -> bool:
-    """Whether the sweep runs under ``hydra/sweeper=population``, which validates every job's config
-    before launching its batch and prints the end-of-sweep summary itself."""
-    return str(config.hydra.sweeper._target_).endswith("PopulationSweeper")
-
-
 class FusedLauncher(Launcher):
     def __init__(self) -> None:
         super().__init__()
@@ -124,7 +118,9 @@ class FusedLauncher(Launcher):
         setup_globals()
         assert self.config is not None and self.hydra_context is not None
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
-        validated = _population_sweeper(self.config)
+        # hydra/sweeper=population validates every job's config before launching its batch, and prints
+        # the end-of-sweep summary itself.
+        validated = str(self.config.hydra.sweeper._target_).endswith("PopulationSweeper")
         numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
         returns = train_populations(self.hydra_context, self.config, job_overrides, numbers, validated)
         failed = any(ret.status == JobStatus.FAILED for ret in returns)

@@ -50,10 +50,9 @@ class PopulationLauncher(FusedLauncher):
         log.info(f"Launching {len(job_overrides)} jobs as population runs in {sweep_dir}")
         returns: list[JobReturn] = [_JobReturn(overrides=list(overrides)) for overrides in job_overrides]
         outcomes: list[Outcome | None] = [None] * len(job_overrides)
-        grouped = self._one_table(job_overrides, returns)
-        if grouped is None:
-            grouped = self._tables(job_overrides, initial_job_idx, returns, outcomes, sweep_dir)
-        hydra_record, groups = grouped
+        hydra_record, groups = self._one_table(job_overrides, returns) or self._tables(
+            job_overrides, initial_job_idx, returns, outcomes, sweep_dir
+        )
         refused = 0
         for number, (agents, members) in enumerate(groups):
             run_dir = sweep_dir / POPULATION_DIR.format(number)

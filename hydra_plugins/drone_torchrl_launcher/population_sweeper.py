@@ -37,8 +37,7 @@ class PopulationSweeper(Sweeper):
     """
 
     def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None) -> None:
-        basic = basic_sweeper_class()
-        self._basic = basic(max_batch_size=max_batch_size, params=params)
+        self._basic = basic_sweeper_class()(max_batch_size=max_batch_size, params=params)
         self._basic.validate_batch_is_legal = self.validate_batch_is_legal
         self.config: DictConfig | None = None
         self.hydra_context: HydraContext | None = None
@@ -74,13 +73,8 @@ class PopulationSweeper(Sweeper):
         """Every job composes, and every job's values pass the config checks: a bad value in a
         sweep is one line before any job folder exists, not a failed job per value."""
         from drone_torchrl import migrations
-        from drone_torchrl.config import (
-            AgentValueError,
-            ConfigError,
-            check_agent_values,
-            per_agent_keys,
-            validate,
-        )
+        from drone_torchrl.checks import ConfigError
+        from drone_torchrl.config import AgentValueError, check_agent_values, per_agent_keys, validate
         from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, sweep_configs
 
         assert self.config is not None and self.hydra_context is not None

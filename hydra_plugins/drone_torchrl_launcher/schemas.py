@@ -76,9 +76,8 @@ for group, name, node in (
 try:  # hydra/launcher=slurm_population extends the submitit plugin's SLURM schema (the submitit extra)
     from hydra_plugins.hydra_submitit_launcher.config import SlurmQueueConf
 except ImportError:
-    SlurmQueueConf = None
-
-if SlurmQueueConf is not None:
+    pass
+else:
 
     @dataclass
     class SlurmPopulationConf(SlurmQueueConf):

@@ -53,16 +53,12 @@ def population_groups(folders: Sequence[str], per_job: int) -> list[list[int]]:
     """The sweep's jobs (by position) cut into SLURM jobs of up to ``per_job`` distinct folders, in
     order; a job whose folder an earlier job has goes with that job (which trains the folder once)."""
     groups: list[list[int]] = []
-    distinct: list[int] = []  # distinct folders per group
-    owner: dict[str, int] = {}  # folder -> its group
+    owner: dict[str, int] = {}  # folder -> its group: the n-th distinct folder goes to group n // per_job
     for position, folder in enumerate(folders):
-        if folder not in owner:
-            if not groups or distinct[-1] == per_job:
-                groups.append([])
-                distinct.append(0)
-            owner[folder] = len(groups) - 1
-            distinct[-1] += 1
-        groups[owner[folder]].append(position)
+        group = owner.setdefault(folder, len(owner) // per_job)
+        if group == len(groups):
+            groups.append([])
+        groups[group].append(position)
     return groups
 
 
