@@ -101,16 +101,12 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
 
 
 class FusedLauncher(Launcher):
-    def __init__(self) -> None:
-        super().__init__()
-        self.config: DictConfig | None = None
-        self.hydra_context: HydraContext | None = None
-        self.task_function: TaskFunction | None = None
+    config: DictConfig | None = None
+    hydra_context: HydraContext | None = None
+    task_function: TaskFunction | None = None
 
     def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
-        self.config = config
-        self.hydra_context = hydra_context
-        self.task_function = task_function
+        self.config, self.hydra_context, self.task_function = config, hydra_context, task_function
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         from drone_torchrl.training.jobs import sweep_summary

@@ -36,11 +36,12 @@ class PopulationSweeper(Sweeper):
     the module defines now, which a subclass of the class imported earlier is not.
     """
 
+    config: DictConfig | None = None
+    hydra_context: HydraContext | None = None
+
     def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None) -> None:
         self._basic = basic_sweeper_class()(max_batch_size=max_batch_size, params=params)
         self._basic.validate_batch_is_legal = self.validate_batch_is_legal
-        self.config: DictConfig | None = None
-        self.hydra_context: HydraContext | None = None
 
     def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
         self.config, self.hydra_context = config, hydra_context
