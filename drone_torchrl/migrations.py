@@ -122,9 +122,8 @@ def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
         if arg.startswith("-") or not sep or not is_old_key(key):
             out.append(arg)
             continue
-        new, note = migrate_override(key, value)
-        notes.append(note)
-        replaced += [key] if new is not None else []
+        notes.append(override_note(key, value))
+        replaced += [key] if key in REPLACED else []
         out.append(f"{_PREFIX}{arg}")
     if replaced and any(a.partition("=")[0].lstrip("+") == "backend" for a in args):
         raise ValueError(
@@ -170,33 +169,29 @@ def job_dirname(override_dirname: str) -> str:
     return ",".join(sorted(item.removeprefix(_PREFIX) for item in items))
 
 
-def migrate_override(key: str, value: str) -> tuple[str | None, str]:
-    """A command-line override of an old key as today's, and the note to print.
+def override_note(key: str, value: str) -> str:
+    """The one-line note to print for ``key=value``, an old key on the command line: what it is now.
 
-    Returns ``("backend=fast", note)``, or ``(None, note)`` for a dropped key; the note is the one
-    line to print.
+    A value the old key never took raises ``ValueError``.
     """
     if key in REPLACED:
         backend = _AS_BACKEND.get(str(value).strip())
         if backend is None:
             choices = " or ".join(f"{old} (backend={new})" for old, new in _AS_BACKEND.items())
             raise ValueError(f"{key}={value!r} is not allowed; expected {choices}")
-        return (
-            f"backend={backend}",
-            f"note: {key}={value} is now backend={backend} (the key that picks the implementation)",
-        )
+        return f"note: {key}={value} is now backend={backend} (the key that picks the implementation)"
     if key in DROPPED:
-        return None, (
+        return (
             f"note: {key}={value} is ignored: it tuned the fused engine's PyTorch path, which backend=fast "
             "(compiled C++, whole episodes per call) replaced"
         )
     if key in FIXED:
         if not _is_fixed_value(key, value):
             raise ValueError(fixed_refusal(key, value))
-        return None, f"note: {key}={value} is ignored: the key was removed, every run uses it ({FIXED[key][1]})"
+        return f"note: {key}={value} is ignored: the key was removed, every run uses it ({FIXED[key][1]})"
     raise KeyError(key)
 
 
 def is_old_key(key: str) -> bool:
-    """Whether ``key`` is one of the keys :func:`migrate_override` reads."""
+    """Whether ``key`` is one of the keys :func:`override_note` reads."""
     return key in REPLACED or key in DROPPED or key in FIXED
