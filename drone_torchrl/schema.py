@@ -492,10 +492,8 @@ def fields(node: type, plugins: Mapping[str, type | None], prefix: str = "") -> 
     """
     for f in dataclasses.fields(node):
         key = f"{prefix}{f.name}"
-        if dataclasses.is_dataclass(f.default_factory):  # a section: env, model, checkpoint...
-            yield from fields(f.default_factory, plugins, f"{key}.")
-            continue
-        if (section := f.metadata.get(SECTION)) is not None:  # env.disturbance
+        section = f.metadata.get(SECTION, f.default_factory)
+        if dataclasses.is_dataclass(section):  # a section (env, model...) or an open one (env.disturbance)
             yield from fields(section, plugins, f"{key}.")
             continue
         rule = f.metadata.get(RULE, Rule())
