@@ -73,11 +73,6 @@ def folder_refuses(folder: Path, size: int) -> int | None:
     return None
 
 
-def is_storage_error(err: BaseException) -> bool:
-    """Whether ``err`` is the disk refusing a write (an ``OSError`` with an errno of ``STORAGE_ERRNOS``)."""
-    return isinstance(err, OSError) and err.errno in STORAGE_ERRNOS
-
-
 @contextmanager
 def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[None]:
     """Run a write of ``path``; a refused write becomes :class:`StorageError`.
@@ -92,7 +87,7 @@ def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[
             # A read-only folder keeps it; the next successful write replaces it.
             with contextlib.suppress(OSError):
                 Path(tmp).unlink(missing_ok=True)
-        if isinstance(err, StorageError) or not is_storage_error(err):
+        if isinstance(err, StorageError) or not (isinstance(err, OSError) and err.errno in STORAGE_ERRNOS):
             raise
         raise StorageError(path, err) from None  # type: ignore[arg-type]
 

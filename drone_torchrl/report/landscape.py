@@ -69,9 +69,7 @@ class Landscape:
 
 def landscape(report: SweepReport) -> Landscape | None:
     """The grid of a sweep, or None if its settings are not a two-key numeric grid."""
-    keys: list[str] = []
-    for setting in report.settings:
-        keys.extend(k for k, _ in setting.pairs if k not in keys)
+    keys = list(dict.fromkeys(k for setting in report.settings for k, _ in setting.pairs))
     values: dict[str, set[float]] = {}
     for key in keys:
         try:
