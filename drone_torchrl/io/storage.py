@@ -19,10 +19,11 @@ inside such a folder) is refused by :func:`writing` like a full disk.
 from __future__ import annotations
 
 import contextlib
+import csv
 import errno
 import io
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -106,6 +107,15 @@ def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryvi
         tmp.write_bytes(data)
         os.replace(tmp, path)
     return path
+
+
+def write_csv(path: str | os.PathLike, header: Sequence[Any], rows: Iterable[Sequence[Any]]) -> Path:
+    """Write a CSV file of ``header`` and ``rows`` (:mod:`csv`'s dialect) atomically (:func:`write_atomically`)."""
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    writer.writerow(header)
+    writer.writerows(rows)
+    return write_atomically(path, text.getvalue().encode())
 
 
 def new_figure(figsize: tuple[float, float]) -> Any:

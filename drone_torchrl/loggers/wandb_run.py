@@ -151,11 +151,6 @@ def _read_int(path: Path) -> int:
         return 0
 
 
-def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> WandbLogger:
-    """The W&B logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from, or None)."""
-    return WandbLogger(cfg, run_dir, resumed_at)
-
-
 def _check_name(key: str, value: Any, optional: bool) -> None:
     if value is None and optional:
         return
@@ -210,7 +205,7 @@ store_plugin("logger", "wandb", WandbConf)
 register(
     Backend(
         "wandb",
-        make,
+        WandbLogger,
         resume_rule="continues the same W&B run and sends no step twice (those sent after the checkpoint are skipped)",
         validate=validate,
         summary="a Weights & Biases run per run, online or offline: config, scalars, videos, final metrics",
