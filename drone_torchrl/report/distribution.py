@@ -178,15 +178,10 @@ def plot_distributions(
 def paper_order(settings: Sequence[Setting]) -> tuple[str, list[Setting]]:
     """The swept key and the settings in the paper's order; :class:`~.runs.ReportError` if not a paper grid."""
     for key, order in PAPER_ORDER.items():
-        values = []
-        for s in settings:
-            value = dict(s.pairs).get(key)
-            values.append(None if value is None else float(value))
-        if None in values or len(set(values)) != len(values):
-            continue
-        ranks = {v: i for i, v in enumerate(order)}
-        if all(v in ranks for v in values):
-            return key, [s for _, s in sorted(zip(values, settings, strict=True), key=lambda p: ranks[p[0]])]
+        values = [dict(s.pairs).get(key) for s in settings]
+        ranks = [None if v is None or float(v) not in order else order.index(float(v)) for v in values]
+        if None not in ranks and len(set(ranks)) == len(ranks):
+            return key, [s for _, s in sorted(zip(ranks, settings, strict=True), key=lambda p: p[0])]
     raise ReportError(
         "--paper-averaging needs a sweep over the paper's values of algo.lr "
         f"{list(PAPER_ORDER['algo.lr'])} or algo.gamma {list(PAPER_ORDER['algo.gamma'])}"
