@@ -109,8 +109,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     """``drone-report``: one report per sweep folder; exit code 2 with a one-line error if unusable."""
     args = parse_args(argv)
     try:
-        if args.out is not None and args.out.exists() and not args.out.is_dir():
-            raise ReportError(f"--out {args.out} is a file; expected a folder (new or existing)")
         window = default_window() if args.window is None else args.window
         runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
         out_dirs = output_dirs(args.sweeps, args.out)
