@@ -457,29 +457,22 @@ class DroneEnv(EnvBase):
 
     def _make_specs(self) -> None:
         bs = self.batch_size
+        real = {"dtype": self.dtype, "device": self.device}  # the state's, the actions' and the rewards'
+        count = {"low": 0, "shape": (*bs, 1), "dtype": torch.int64, "device": self.device}
         self.observation_spec = Composite(
-            observation=Unbounded(
-                shape=(*bs, self.disturbance.observation_dim), dtype=self.dtype, device=self.device
-            ),
-            termination_cause=Bounded(
-                low=0, high=max(TerminationCause), shape=(*bs, 1), dtype=torch.int64, device=self.device
-            ),
-            step_count=Bounded(
-                low=0, high=self.max_steps, shape=(*bs, 1), dtype=torch.int64, device=self.device
-            ),
+            observation=Unbounded(shape=(*bs, self.disturbance.observation_dim), **real),
+            termination_cause=Bounded(high=max(TerminationCause), **count),
+            step_count=Bounded(high=self.max_steps, **count),
             shape=bs,
             device=self.device,
         )
         if self._disturbed:  # the observation is a measurement: the true state too, for the record
-            self.observation_spec["state"] = Unbounded(
-                shape=(*bs, STATE_DIM), dtype=self.dtype, device=self.device
-            )
-        action = {"shape": (*bs, ACTION_DIM), "dtype": self.dtype, "device": self.device}
+            self.observation_spec["state"] = Unbounded(shape=(*bs, STATE_DIM), **real)
         if self.max_thrust is None:
-            self.action_spec = Unbounded(**action)
+            self.action_spec = Unbounded(shape=(*bs, ACTION_DIM), **real)
         else:
-            self.action_spec = Bounded(low=0.0, high=self.max_thrust, **action)
-        self.reward_spec = Unbounded(shape=(*bs, 1), dtype=self.dtype, device=self.device)
+            self.action_spec = Bounded(low=0.0, high=self.max_thrust, shape=(*bs, ACTION_DIM), **real)
+        self.reward_spec = Unbounded(shape=(*bs, 1), **real)
         flag = Categorical(n=2, shape=(*bs, 1), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(
             done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=bs, device=self.device
@@ -570,14 +563,13 @@ class DroneEnv(EnvBase):
         return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
 
     def _output(self, done: torch.Tensor, terminated=None, truncated=None, reward=None) -> TensorDictBase:
+        observation = self._state
         if self._disturbed:  # what the policy sees: noisy positions, past commands
             observation = disturbances.observe(
-                self.disturbance, self._state, self._internal, self._step_count
+                self.disturbance, observation, self._internal, self._step_count
             )
-            if observation is self._state:  # nothing added: a partial reset writes into the state
-                observation = observation.clone()
-        else:
-            observation = self._state.clone()
+        if observation is self._state:  # nothing added: a partial reset writes into the state
+            observation = observation.clone()
         out = {
             "observation": observation,
             "termination_cause": self._cause.unsqueeze(-1),
