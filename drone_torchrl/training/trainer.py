@@ -269,24 +269,13 @@ class Trainer:
         policy, n = learner.eval_policy(), learner.eval_agents
         # A population's agents a slice at a time (ops.AGENTS_PER_EVALUATION): the episodes of
         # one slice are held at once, whatever the population's size.
-        chunks = (
-            [slice(None)]
-            if not hasattr(policy, "rows")
-            else [
-                slice(first, min(n, first + AGENTS_PER_EVALUATION))
-                for first in range(0, n, AGENTS_PER_EVALUATION)
-            ]
-        )
+        flown = [(policy, n)]
+        if hasattr(policy, "rows"):
+            rows = [slice(i, min(n, i + AGENTS_PER_EVALUATION)) for i in range(0, n, AGENTS_PER_EVALUATION)]
+            flown = [(policy.rows(r), r.stop - r.start) for r in rows]
         parts = [
-            evaluate(
-                policy if rows == slice(None) else policy.rows(rows),
-                env_kwargs(cfg),
-                cfg.eval.episodes,
-                cfg.eval.seed,
-                cfg.device,
-                agents=n if rows == slice(None) else rows.stop - rows.start,
-            )[0]
-            for rows in chunks
+            evaluate(p, env_kwargs(cfg), cfg.eval.episodes, cfg.eval.seed, cfg.device, agents=count)[0]
+            for p, count in flown
         ]
         stats = {key: torch.cat([part[key] for part in parts]) for key in parts[0]}
         means = {
