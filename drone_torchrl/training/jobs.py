@@ -319,11 +319,6 @@ def sweep_summary(sweep_dir: Path) -> str:
     return "\n".join(lines)
 
 
-def failed_jobs(sweep_dir: Path) -> list[Path]:
-    """The job folders of the sweep in ``sweep_dir`` that recorded a failure (``FAILED.txt``)."""
-    return [job for job in sweep_jobs(sweep_dir) if (job / FAILED_FILE).is_file()]
-
-
 class SweepSummary(Callback):
     """Prints the sweep summary at the end of a multirun, and exits non-zero if a job failed.
 
@@ -335,6 +330,6 @@ class SweepSummary(Callback):
         """Print the sweep's summary; exit non-zero naming how many jobs failed."""
         sweep_dir = Path(config.hydra.sweep.dir)
         print(sweep_summary(sweep_dir))
-        failed = failed_jobs(sweep_dir)
+        failed = [job for job in sweep_jobs(sweep_dir) if (job / FAILED_FILE).is_file()]
         if failed:
             sys.exit(f"drone-train: {len(failed)} job(s) failed")

@@ -160,11 +160,11 @@ class MemoryEstimate:
 
 def size(n: float) -> str:
     """``n`` bytes in the largest unit that keeps a number >= 1 (``12.3 GB``)."""
-    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
-        if n < 1000 or unit == "PB":
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if n < 1000:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000
-    raise AssertionError("unreachable")
+    return f"{n:.1f} PB"
 
 
 def mlp_parameters(widths: Sequence[int]) -> int:

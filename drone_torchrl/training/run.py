@@ -121,9 +121,8 @@ class AgentBook:
         self.budget, self.every_updates, self.window = s.budget, s.every_updates, s.window
         self.checkpoint_every, self.eval_every = s.checkpoint_every, s.eval_every
         self.stop_return = s.stop_return
-        window = s.window
-        self.recent_returns: deque[float] = deque(maxlen=window)
-        self.recent_lengths: deque[float] = deque(maxlen=window)
+        self.recent_returns: deque[float] = deque(maxlen=s.window)
+        self.recent_lengths: deque[float] = deque(maxlen=s.window)
         self.episodes_done = self.updates_done = 0
         self.wall_clock_before = 0.0
         self.best_eval = -math.inf
