@@ -192,8 +192,11 @@ def _prepare(
         f"resume: {path.name} (episode {checkpoint['episodes_done']}) is not the last checkpoint of {parent}; "
         f"continuing as a fork in {fork_dir} (the original run is left as it is)"
     )
-    # A population's episodes are not copied (they are in its Parquet parts, not an episodes.csv).
-    return Job(saved, fork_dir, _as_fork(checkpoint), None if of_population else parent)
+    # A fork has not finished, whatever its parent did after the checkpoint, and its best.pt is the
+    # best of its own evaluations (its folder has none of the parent's checkpoints). A population's
+    # episodes are not copied (they are in its Parquet parts, not an episodes.csv).
+    forked = {**checkpoint, "final": None, "best_eval_return": -math.inf}
+    return Job(saved, fork_dir, forked, None if of_population else parent)
 
 
 def _on(key: str, keys: set[str]) -> bool:
@@ -226,12 +229,6 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
             "eval.every_episodes, eval.video, eval.stop_return, eval.rollback_drop "
             "and process settings may change): drop those overrides or start a new run"
         )
-
-
-def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
-    # A fork has not finished, whatever its parent did after the checkpoint, and its best.pt is the
-    # best of its own evaluations (its folder has none of the parent's checkpoints).
-    return {**checkpoint, "final": None, "best_eval_return": -math.inf}
 
 
 def group_key(cfg: DictConfig) -> str:

@@ -388,10 +388,7 @@ class RunRecord(AgentBook):
         }
 
     def save(self, learner: dict[str, Any]) -> None:
-        """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close.
-
-        The CSV is flushed first so the two agree after a kill; closing closes the files.
-        """
+        """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close."""
         self.flush()  # the CSV holds every episode the checkpoint counts
         save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
         self.book_save()
