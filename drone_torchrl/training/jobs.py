@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import sys
 import traceback
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -213,15 +213,7 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
     if keys is None:
         return
     compare_all = any(k in group_names() for k in keys)
-    old = leaves(saved)
-    changed = [
-        f"{key} {old.get(key)!r} -> {value!r}"
-        for key, value in leaves(cfg).items()
-        if key != "backend"
-        and resume_rule(key) == KEPT
-        and (compare_all or _on(key, keys))
-        and old.get(key) != value
-    ]
+    changed = kept_changes(saved, cfg, lambda key: key != "backend" and (compare_all or _on(key, keys)))
     if changed:
         raise ConfigError(
             f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued run keeps its "
@@ -229,6 +221,19 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
             "eval.every_episodes, eval.video, eval.stop_return, eval.rollback_drop "
             "and process settings may change): drop those overrides or start a new run"
         )
+
+
+def kept_changes(saved: Any, cfg: DictConfig, asked: Callable[[str], bool]) -> list[str]:
+    """``key saved -> now`` of each key that ``asked`` picks, a continued run keeps and ``cfg`` changes.
+
+    ``saved``: the checkpoint's config; the keys kept are the schema's ``on_resume`` KEPT ones.
+    """
+    old = leaves(saved)
+    return [
+        f"{key} {old.get(key)!r} -> {value!r}"
+        for key, value in leaves(cfg).items()
+        if asked(key) and resume_rule(key) == KEPT and old.get(key) != value
+    ]
 
 
 def group_key(cfg: DictConfig) -> str:
