@@ -21,6 +21,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 
@@ -68,12 +69,18 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
 
     In float64, which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such.
     """
-    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu()
-    parts = flat.split([t.numel() for t in tensors.values()])
-    return {
-        key: part.reshape(t.shape).to(t.dtype).tolist()
-        for (key, t), part in zip(tensors.items(), parts, strict=True)
-    }
+    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu().numpy()
+    out: dict[str, list] = {}
+    start = 0
+    for key, tensor in tensors.items():
+        values = flat[start : start + tensor.numel()].reshape(tensor.shape)
+        start += tensor.numel()
+        if tensor.dtype == torch.bool:
+            values = values.astype(bool)
+        elif not tensor.is_floating_point():
+            values = values.astype(np.int64)
+        out[key] = values.tolist()
+    return out
 
 
 def learner_class(cfg: DictConfig) -> type:
