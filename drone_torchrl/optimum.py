@@ -148,11 +148,6 @@ def _recursion(
     return sparse.vstack([velocity, position], format="csr"), np.concatenate([b_velocity, b_position])
 
 
-def _limits(params: DroneParams, domain_z: tuple[float, float]) -> tuple[float, float]:
-    """The heights at which the drone survives: the floor counts as hit only below ``-floor_tolerance``."""
-    return domain_z[0] - params.floor_tolerance, domain_z[1]
-
-
 def zone_margin(
     params: DroneParams,
     steps: int,
@@ -194,7 +189,7 @@ def zone_margin(
         shape=(2 * held.size, 3 * n + 1),
     )
     b_ub = np.concatenate([np.full(held.size, -zone_z[0]), np.full(held.size, zone_z[1])])
-    low, high = _limits(params, domain_z)
+    low, high = domain_z[0] - params.floor_tolerance, domain_z[1]  # the floor counts as hit only below it
     bounds = [(0.0, cap) if cap is not None else (None, None)] * n + [(None, None)] * n + [(low, high)] * n
     bounds.append((None, None))
     objective = np.zeros(3 * n + 1)
@@ -432,20 +427,3 @@ class _PlanPolicy(TensorDictModuleBase):
         pd = pd_action(state, self.params, self.gains)
         tensordict.set("action", torch.where((t < self.hand_over).unsqueeze(-1), planned, pd))
         return tensordict
-
-
-__all__ = [
-    "DOMAIN_Z",
-    "FLOOR_START",
-    "ZONE_Z",
-    "Optimum",
-    "VerticalPlan",
-    "collective_limit",
-    "earliest_zone_step",
-    "env_optimum",
-    "fly_plan",
-    "max_zone_steps",
-    "optimum",
-    "start_box",
-    "zone_margin",
-]
