@@ -38,7 +38,7 @@ import itertools
 import logging
 import os
 import statistics
-import time
+import timeit
 import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -453,15 +453,9 @@ def median_us(
     warmup: int = LATENCY_WARMUP,
 ) -> float:
     """The median over ``repeats`` of the mean time of one ``call()`` in ``calls``, in microseconds."""
-    for _ in range(warmup):
-        call()
-    per_call = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(calls):
-            call()
-        per_call.append((time.perf_counter() - start) / calls * US_PER_S)
-    return statistics.median(per_call)
+    timer = timeit.Timer(call, "import gc; gc.enable()")  # timeit pauses the garbage collector otherwise
+    timer.timeit(warmup)
+    return statistics.median(timer.repeat(repeats, calls)) / calls * US_PER_S
 
 
 def forward_passes(
