@@ -61,7 +61,7 @@ def episode_stats(rollout: TensorDictBase | Episodes) -> dict[str, torch.Tensor]
 
 
 def counted_metrics(length: torch.Tensor, counts: torch.Tensor) -> dict[str, torch.Tensor]:
-    """:data:`EPISODE_KEYS` of each episode from the counts the C++ rollout keeps while it flies.
+    """:data:`EPISODE_KEYS` of each episode from the counts the C++ rollout (and EpisodeTracker) keeps.
 
     The counts are ``[*B, 4]`` (:data:`drone_torchrl.kernels.ops.STAT_NAMES`), read with the
     lengths; the numbers are the same as :func:`episode_stats`'s.
@@ -96,16 +96,16 @@ class EpisodeTracker:
     """
 
     def __init__(self, num_envs: int, device: torch.device | str = "cpu") -> None:
-        zeros = torch.zeros(num_envs, device=device)
-        self._return, self._length, self._zone, self._negative = (zeros.clone() for _ in range(4))
+        # Each env's running episode: its return, length, steps in the zone and negative commands.
+        self._sums = torch.zeros(4, num_envs, device=device)
 
     def state(self) -> list[torch.Tensor]:
         """The running episodes' sums so far (return, length, steps in the zone, negative commands)."""
-        return [acc.clone() for acc in (self._return, self._length, self._zone, self._negative)]
+        return [acc.clone() for acc in self._sums]
 
     def load_state(self, state: list[torch.Tensor]) -> None:
         """Carry on the running episodes of :meth:`state` (a resumed run's)."""
-        self._return, self._length, self._zone, self._negative = (acc.clone() for acc in state)
+        self._sums = torch.stack(state)
 
     def update(self, batch: TensorDictBase) -> dict[str, list]:
         """Track one ``[N, T]`` batch; returns the metrics of the episodes that ended in it."""
@@ -115,21 +115,18 @@ class EpisodeTracker:
         zone = _in_zone(reward) & ~terminated
         negative = (batch.get("action") < 0).sum(-1)
         cause = batch.get(("next", "termination_cause")).squeeze(-1)
+        steps = torch.stack(
+            [reward, torch.ones_like(reward), zone.to(reward.dtype), negative.to(reward.dtype)]
+        )
         ended: dict[str, list] = {k: [] for k in EPISODE_KEYS}
         for t in range(reward.shape[-1]):
-            self._return += reward[:, t]
-            self._length += 1
-            self._zone += zone[:, t]
-            self._negative += negative[:, t]
+            self._sums += steps[..., t]
             if not done[:, t].any():
                 continue
             idx = done[:, t].nonzero().squeeze(-1)
-            length = self._length[idx]
-            ended["return"] += self._return[idx].tolist()
-            ended["length"] += length.to(torch.int64).tolist()
-            ended["time_in_zone"] += (self._zone[idx] / length).tolist()
-            ended["negative_thrust_fraction"] += (self._negative[idx] / (length * ACTION_DIM)).tolist()
-            ended["termination_cause"] += cause[idx, t].tolist()
-            for acc in (self._return, self._length, self._zone, self._negative):
-                acc[idx] = 0
+            total, length, in_zone, negatives = self._sums[:, idx]
+            counts = torch.stack([total, in_zone, negatives, cause[idx, t].to(total.dtype)], -1)
+            for key, value in counted_metrics(length.to(torch.int64), counts).items():
+                ended[key] += value.tolist()
+            self._sums[:, idx] = 0
         return ended

@@ -38,7 +38,7 @@ import itertools
 import logging
 import os
 import statistics
-import time
+import timeit
 import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
@@ -136,9 +136,8 @@ class DeterministicPolicy(nn.Module):
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         """The motor commands ``[B, 2]`` for observations ``[B, 6]``."""
         loc, _ = self.net(observation)
-        if (
-            self.squash
-        ):  # TanhNormal(low=0, high=max_thrust, tanh_loc=False): the mean through tanh onto [0, A]
+        # TanhNormal(low=0, high=max_thrust, tanh_loc=False): the mean through tanh onto [0, A].
+        if self.squash:
             loc = (torch.tanh(loc) + 1.0) * (0.5 * self.max_thrust)
         if self.max_thrust is not None:  # what dynamics.clamp_action does in the env
             loc = loc.clamp(0.0, self.max_thrust)
@@ -278,10 +277,10 @@ def observation_dim(policy: DeterministicPolicy) -> int:
 # ------------------------------------------------------------------------------- writing
 @contextlib.contextmanager
 def _quiet_onnx_exporter() -> Iterator[None]:
-    """Silence the exporters' warnings that are noise on drone-export's terminal.
+    """Silence the exporters' noise on drone-export's terminal.
 
     torch.onnx's exporter logs a warning for each torchvision operator it cannot register and
-    torch.export's pytree warns about its own deprecations: noise on drone-export's terminal.
+    torch.export's pytree warns about its own deprecations.
     """
     logger = logging.getLogger("torch.onnx")
     level = logger.level
@@ -454,15 +453,9 @@ def median_us(
     warmup: int = LATENCY_WARMUP,
 ) -> float:
     """The median over ``repeats`` of the mean time of one ``call()`` in ``calls``, in microseconds."""
-    for _ in range(warmup):
-        call()
-    per_call = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        for _ in range(calls):
-            call()
-        per_call.append((time.perf_counter() - start) / calls * US_PER_S)
-    return statistics.median(per_call)
+    timer = timeit.Timer(call, "import gc; gc.enable()")  # timeit pauses the garbage collector otherwise
+    timer.timeit(warmup)
+    return statistics.median(timer.repeat(repeats, calls)) / calls * US_PER_S
 
 
 def forward_passes(

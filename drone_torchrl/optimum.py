@@ -148,11 +148,6 @@ def _recursion(
     return sparse.vstack([velocity, position], format="csr"), np.concatenate([b_velocity, b_position])
 
 
-def _limits(params: DroneParams, domain_z: tuple[float, float]) -> tuple[float, float]:
-    """The heights at which the drone survives: the floor counts as hit only below ``-floor_tolerance``."""
-    return domain_z[0] - params.floor_tolerance, domain_z[1]
-
-
 def zone_margin(
     params: DroneParams,
     steps: int,
@@ -178,23 +173,14 @@ def zone_margin(
     cap = collective_limit(params) if thrust_cap is None else thrust_cap
     a_eq, b_eq = _recursion(params, n, start, extra=1)
     # Zone rows for t >= first_zone_step:  -z_t + margin <= -z_min  and  z_t + margin <= z_max.
-    held = np.arange(first_zone_step - 1, n)
-    rows = np.arange(held.size)
-    z_col = 2 * n + held
-    margin_col = np.full(held.size, 3 * n)
-    ones = np.ones(held.size)
-    a_ub = sparse.csr_array(
-        (
-            np.concatenate([-ones, ones, ones, ones]),
-            (
-                np.concatenate([rows, rows, rows + held.size, rows + held.size]),
-                np.concatenate([z_col, margin_col, z_col, margin_col]),
-            ),
-        ),
-        shape=(2 * held.size, 3 * n + 1),
+    held = sparse.eye_array(n, format="csr")[first_zone_step - 1 :]  # picks those z_t
+    zero = sparse.csr_array(held.shape)
+    margin = sparse.csr_array(np.ones((held.shape[0], 1)))
+    a_ub = sparse.vstack(
+        [sparse.hstack([zero, zero, -held, margin]), sparse.hstack([zero, zero, held, margin])], format="csr"
     )
-    b_ub = np.concatenate([np.full(held.size, -zone_z[0]), np.full(held.size, zone_z[1])])
-    low, high = _limits(params, domain_z)
+    b_ub = np.concatenate([np.full(held.shape[0], -zone_z[0]), np.full(held.shape[0], zone_z[1])])
+    low, high = domain_z[0] - params.floor_tolerance, domain_z[1]  # the floor counts as hit only below it
     bounds = [(0.0, cap) if cap is not None else (None, None)] * n + [(None, None)] * n + [(low, high)] * n
     bounds.append((None, None))
     objective = np.zeros(3 * n + 1)
@@ -432,20 +418,3 @@ class _PlanPolicy(TensorDictModuleBase):
         pd = pd_action(state, self.params, self.gains)
         tensordict.set("action", torch.where((t < self.hand_over).unsqueeze(-1), planned, pd))
         return tensordict
-
-
-__all__ = [
-    "DOMAIN_Z",
-    "FLOOR_START",
-    "ZONE_Z",
-    "Optimum",
-    "VerticalPlan",
-    "collective_limit",
-    "earliest_zone_step",
-    "env_optimum",
-    "fly_plan",
-    "max_zone_steps",
-    "optimum",
-    "start_box",
-    "zone_margin",
-]

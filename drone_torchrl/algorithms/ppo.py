@@ -127,7 +127,6 @@ class OnPolicy:
         (job,) = jobs
         cfg = self.cfg = job.cfg
         algo = cfg.algo
-        torch.manual_seed(cfg.seed)
         net = build_policy(cfg, cfg.seed)
         self.actor_module = build_actor(cfg, net, return_log_prob=True)
         self.critic = build_critic(cfg)
@@ -155,9 +154,7 @@ class OnPolicy:
         self.returned_to_best = False
         if (checkpoint := job.checkpoint) is not None:
             self._load_best_state(checkpoint)
-            self.actor_module.load_state_dict(checkpoint["actor"])
-            self.critic.load_state_dict(checkpoint["critic"])
-            self.optimizer.load_state_dict(checkpoint["optimizer"])
+            self._restore(checkpoint)
             torch.set_rng_state(checkpoint["rng"]["torch"])
             self._generator.set_state(checkpoint["rng"]["env"])
             if self.fused:

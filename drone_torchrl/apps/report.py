@@ -19,7 +19,7 @@ from drone_torchrl.io.storage import StorageError, unwritable
 from drone_torchrl.report.distribution import paper_order
 from drone_torchrl.report.runs import ReportError, failed_without_episodes, group_runs, load_runs
 from drone_torchrl.report.stats import DEFAULT_RETURN_THRESHOLD
-from drone_torchrl.report.sweep import build_report, default_window
+from drone_torchrl.report.sweep import build_report
 from drone_torchrl.report.tables import (
     format_paper_averaging_section,
     format_report,
@@ -109,9 +109,6 @@ def main(argv: Sequence[str] | None = None) -> None:
     """``drone-report``: one report per sweep folder; exit code 2 with a one-line error if unusable."""
     args = parse_args(argv)
     try:
-        if args.out is not None and args.out.exists() and not args.out.is_dir():
-            raise ReportError(f"--out {args.out} is a file; expected a folder (new or existing)")
-        window = default_window() if args.window is None else args.window
         runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
         out_dirs = output_dirs(args.sweeps, args.out)
         for out_dir in out_dirs:  # before any figure is drawn
@@ -121,7 +118,7 @@ def main(argv: Sequence[str] | None = None) -> None:
             for sweep_runs in runs:
                 paper_order(group_runs(sweep_runs))
         for sweep_dir, sweep_runs, out_dir in zip(args.sweeps, runs, out_dirs, strict=True):
-            report = build_report(sweep_dir, window, args.return_threshold, not args.no_pd, sweep_runs)
+            report = build_report(sweep_dir, args.window, args.return_threshold, not args.no_pd, sweep_runs)
             paths = write_report(report, out_dir, args.paper_averaging)
             print(format_report(report, figures=False))
             for job, reason in failed_without_episodes(sweep_dir):

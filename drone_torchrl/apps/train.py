@@ -39,9 +39,7 @@ def main(cfg: DictConfig) -> float | None:
         hydra_dir = Path(HydraConfig.get().runtime.output_dir)
         try:
             return train(cfg)
-        except (ConfigError, CheckpointError) as err:
-            sys.exit(f"drone-train: error: {err}")
-        except TrainingDiverged as err:
+        except (ConfigError, CheckpointError, TrainingDiverged) as err:
             sys.exit(f"drone-train: error: {err}")
         except StorageError as err:
             run = Path(cfg.resume) if cfg.resume else hydra_dir

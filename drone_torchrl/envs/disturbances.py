@@ -197,13 +197,9 @@ class Internal(NamedTuple):
 
 def replace_rows(internal: Internal, index: tuple[torch.Tensor, ...], fresh: Internal) -> Internal:
     """``internal`` with the rows ``index`` (integer indices of the batch) replaced by ``fresh``'s."""
-
-    def put(old: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
-        return old.index_put(index, new)
-
-    draw = EpisodeDraw(*(put(o, n) for o, n in zip(internal.draw, fresh.draw, strict=True)))
-    rest = (put(o, n) for o, n in zip(internal[2:], fresh[2:], strict=True))
-    return Internal(put(internal.key, fresh.key), draw, *rest)
+    put = lambda old, new: old.index_put(index, new)  # noqa: E731
+    draw = EpisodeDraw(*map(put, internal.draw, fresh.draw))
+    return Internal(put(internal.key, fresh.key), draw, *map(put, internal[2:], fresh[2:]))
 
 
 def draw_episode(

@@ -55,24 +55,8 @@ MAX_THRUST = 100.0
 MAX_STEPS = INT64_MAX
 
 
-def _check_real(
-    name: str, value: object, *, minimum: float, inclusive: bool, maximum: float | None = None
-) -> float:
-    """Return ``value`` as float, or raise a ValueError naming the argument and the allowed range."""
-    high = None if maximum is None else (str(maximum), maximum)
-    return _check_range(name, value, (str(minimum), minimum), high, low_open=not inclusive)
-
-
-def _finite(value: object) -> bool:
-    """A real number, not a bool, that is finite (an int is: math.isfinite overflows on 10**400)."""
-    return (
-        isinstance(value, Real)
-        and not isinstance(value, bool)
-        and (isinstance(value, Integral) or math.isfinite(value))
-    )
-
-
-Bound = tuple[str, float]  # a named bound: ("z_min", 0.0)
+# A bound: named, ("z_min", 0.0) or ("0", 0.0), or a float shown as Python writes it (0.001).
+Bound = tuple[str, float] | float
 
 
 def _check_range(
@@ -84,10 +68,11 @@ def _check_range(
     low_open: bool = False,
     high_open: bool = False,
 ) -> float:
-    """Check that ``value`` is a finite number within the named bounds; return it as a float.
+    """Check that ``value`` is a finite number within the bounds; return it as a float.
 
     Else a ValueError naming the argument and the bounds (``expected a finite number > z_min (0.0)``).
     """
+    low, high = ((str(b), b) if isinstance(b, float) else b for b in (low, high))
     # A bound named by another argument shows its value too; a literal one ("0", "1000 m") is its value.
     label = lambda bound: f"{bound[0]} ({bound[1]!r})" if bound[0].isidentifier() else bound[0]  # noqa: E731
     parts = []
@@ -95,7 +80,12 @@ def _check_range(
         parts.append(f"{'>' if low_open else '>='} {label(low)}")
     if high is not None:
         parts.append(f"{'<' if high_open else '<='} {label(high)}")
-    ok = _finite(value)
+    # A real number, not a bool, that is finite (an int is: math.isfinite overflows on 10**400).
+    ok = (
+        isinstance(value, Real)
+        and not isinstance(value, bool)
+        and (isinstance(value, Integral) or math.isfinite(value))
+    )
     if ok and low is not None:
         ok = value > low[1] or (value == low[1] and not low_open)
     if ok and high is not None:
@@ -160,23 +150,15 @@ def make_params(
     ``arena``: the keyword arguments of :func:`check_arena`, each defaulting to the paper's.
     """
     return DroneParams(
-        mass=_check_real("mass", mass, minimum=MIN_MASS, inclusive=True, maximum=MAX_MASS),
-        motor_distance=_check_real(
-            "motor_distance",
-            motor_distance,
-            minimum=MIN_MOTOR_DISTANCE,
-            inclusive=True,
-            maximum=MAX_MOTOR_DISTANCE,
-        ),
+        mass=_check_range("mass", mass, MIN_MASS, MAX_MASS),
+        motor_distance=_check_range("motor_distance", motor_distance, MIN_MOTOR_DISTANCE, MAX_MOTOR_DISTANCE),
         # Thrust is a fraction of the weight m*g: with g = 0 no motor command could move the drone.
-        gravity=_check_real("gravity", gravity, minimum=0.0, inclusive=False, maximum=MAX_GRAVITY),
-        dt=_check_real("dt", dt, minimum=0.0, inclusive=False, maximum=MAX_DT),
+        gravity=_check_range("gravity", gravity, 0.0, MAX_GRAVITY, low_open=True),
+        dt=_check_range("dt", dt, 0.0, MAX_DT, low_open=True),
         max_thrust=None
         if max_thrust is None
-        else _check_real("max_thrust", max_thrust, minimum=0.0, inclusive=False, maximum=MAX_THRUST),
-        floor_tolerance=_check_real(
-            "floor_tolerance", floor_tolerance, minimum=0.0, inclusive=True, maximum=MAX_FLOOR_TOLERANCE
-        ),
+        else _check_range("max_thrust", max_thrust, 0.0, MAX_THRUST, low_open=True),
+        floor_tolerance=_check_range("floor_tolerance", floor_tolerance, 0.0, MAX_FLOOR_TOLERANCE),
         **check_arena(**arena),
     )
 
@@ -475,34 +457,22 @@ class DroneEnv(EnvBase):
 
     def _make_specs(self) -> None:
         bs = self.batch_size
+        real = {"dtype": self.dtype, "device": self.device}  # the state's, the actions' and the rewards'
+        count = {"low": 0, "shape": (*bs, 1), "dtype": torch.int64, "device": self.device}
         self.observation_spec = Composite(
-            observation=Unbounded(
-                shape=(*bs, self.disturbance.observation_dim), dtype=self.dtype, device=self.device
-            ),
-            termination_cause=Bounded(
-                low=0, high=max(TerminationCause), shape=(*bs, 1), dtype=torch.int64, device=self.device
-            ),
-            step_count=Bounded(
-                low=0, high=self.max_steps, shape=(*bs, 1), dtype=torch.int64, device=self.device
-            ),
+            observation=Unbounded(shape=(*bs, self.disturbance.observation_dim), **real),
+            termination_cause=Bounded(high=max(TerminationCause), **count),
+            step_count=Bounded(high=self.max_steps, **count),
             shape=bs,
             device=self.device,
         )
         if self._disturbed:  # the observation is a measurement: the true state too, for the record
-            self.observation_spec["state"] = Unbounded(
-                shape=(*bs, STATE_DIM), dtype=self.dtype, device=self.device
-            )
+            self.observation_spec["state"] = Unbounded(shape=(*bs, STATE_DIM), **real)
         if self.max_thrust is None:
-            self.action_spec = Unbounded(shape=(*bs, ACTION_DIM), dtype=self.dtype, device=self.device)
+            self.action_spec = Unbounded(shape=(*bs, ACTION_DIM), **real)
         else:
-            self.action_spec = Bounded(
-                low=0.0,
-                high=self.max_thrust,
-                shape=(*bs, ACTION_DIM),
-                dtype=self.dtype,
-                device=self.device,
-            )
-        self.reward_spec = Unbounded(shape=(*bs, 1), dtype=self.dtype, device=self.device)
+            self.action_spec = Bounded(low=0.0, high=self.max_thrust, shape=(*bs, ACTION_DIM), **real)
+        self.reward_spec = Unbounded(shape=(*bs, 1), **real)
         flag = Categorical(n=2, shape=(*bs, 1), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(
             done=flag.clone(), terminated=flag.clone(), truncated=flag.clone(), shape=bs, device=self.device
@@ -593,14 +563,13 @@ class DroneEnv(EnvBase):
         return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
 
     def _output(self, done: torch.Tensor, terminated=None, truncated=None, reward=None) -> TensorDictBase:
+        observation = self._state
         if self._disturbed:  # what the policy sees: noisy positions, past commands
             observation = disturbances.observe(
-                self.disturbance, self._state, self._internal, self._step_count
+                self.disturbance, observation, self._internal, self._step_count
             )
-            if observation is self._state:  # nothing added: a partial reset writes into the state
-                observation = observation.clone()
-        else:
-            observation = self._state.clone()
+        if observation is self._state:  # nothing added: a partial reset writes into the state
+            observation = observation.clone()
         out = {
             "observation": observation,
             "termination_cause": self._cause.unsqueeze(-1),
@@ -625,25 +594,19 @@ class DroneEnv(EnvBase):
                 raise ValueError(
                     f"action contains NaN or inf at batch indices {bad}; expected finite thrust fractions"
                 )
+        action = action.to(self.dtype)
         if self._disturbed:
             self._state, reward, self._cause, self._internal = disturbances.step(
-                self.disturbance,
-                self._state,
-                action.to(self.dtype),
-                self._internal,
-                self._step_count,
-                self.params,
+                self.disturbance, self._state, action, self._internal, self._step_count, self.params
             )
-            action = dynamics.clamp_action(action.to(self.dtype), self.max_thrust)
         else:
-            action = dynamics.clamp_action(action.to(self.dtype), self.max_thrust)
             self._state, reward, self._cause = dynamics.step(self._state, action, self.params)
         self._step_count = self._step_count + 1
         terminated = self._cause != int(TerminationCause.NONE)
         truncated = (self._step_count >= self.max_steps) & ~terminated
         if self.render_mode is not None:  # the overlay's return so far and arrows
             self._episode_return = self._episode_return + reward
-            self._last_action = action
+            self._last_action = dynamics.clamp_action(action, self.max_thrust)
             if self.render_mode == "human":
                 self.render()
         return self._output(terminated | truncated, terminated, truncated, reward)

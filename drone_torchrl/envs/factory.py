@@ -51,16 +51,10 @@ def make_env(
     factory = partial(DroneEnv, batch_size=batch_size, **env_kwargs)
     if parallel == "serial":
         return SerialEnv(num_workers, factory)
-    _standard_start_method()
-    return ParallelEnv(num_workers, factory, mp_start_method="spawn")
-
-
-def _standard_start_method() -> None:
-    """Make the process-wide start method ``"spawn"`` if it is not one Python itself knows.
-
-    A spawned child first re-applies its parent's *global* start method, whatever context started
-    it. Inside a worker of Hydra's joblib launcher that method is ``"loky"``, which the child cannot
-    find ("cannot find context for 'loky'"), so each ``ParallelEnv`` worker would die at start-up.
-    """
+    # A spawned child first re-applies its parent's *global* start method, whatever context started
+    # it. Inside a worker of Hydra's joblib launcher that method is "loky", which the child cannot
+    # find ("cannot find context for 'loky'"), so each ParallelEnv worker would die at start-up:
+    # the process-wide method becomes "spawn" when it is not one Python itself knows.
     if mp.get_start_method(allow_none=True) not in (None, *mp.get_all_start_methods()):
         mp.set_start_method("spawn", force=True)
+    return ParallelEnv(num_workers, factory, mp_start_method="spawn")

@@ -14,10 +14,7 @@ from gymnasium import spaces
 from tensordict import TensorDict
 
 from drone_torchrl.envs.drone_env import DroneEnv
-from drone_torchrl.envs.dynamics import (
-    ACTION_DIM,
-    TerminationCause,
-)
+from drone_torchrl.envs.dynamics import ACTION_DIM, TerminationCause
 
 
 class DroneGymEnv(gym.Env):
@@ -51,10 +48,8 @@ class DroneGymEnv(gym.Env):
         obs_dim = self.disturbance.observation_dim
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=self._np_dtype)
         max_thrust = self.params.max_thrust
-        if max_thrust is None:
-            self.action_space = spaces.Box(-np.inf, np.inf, shape=(ACTION_DIM,), dtype=self._np_dtype)
-        else:
-            self.action_space = spaces.Box(0.0, float(max_thrust), shape=(ACTION_DIM,), dtype=self._np_dtype)
+        low, high = (-np.inf, np.inf) if max_thrust is None else (0.0, float(max_thrust))
+        self.action_space = spaces.Box(low, high, shape=(ACTION_DIM,), dtype=self._np_dtype)
         self._out: TensorDict | None = None  # the env's last output (Gymnasium resets before stepping)
         self._seeded = False
 
@@ -63,12 +58,9 @@ class DroneGymEnv(gym.Env):
         super().reset(seed=seed)
         if seed is not None:
             self.env.set_seed(int(seed))
+        if seed is not None or not self._seeded:  # reset(seed=s) then reset(), no step: the same start
             self._out = self.env._reset()
-            self._seeded = True
-        elif self._seeded:  # reset(seed=s) then reset(), no step: the same start
-            self._seeded = False
-        else:
-            self._out = self.env._reset()
+        self._seeded = seed is not None
         return self._observation(), self._info()
 
     def _observation(self) -> np.ndarray:

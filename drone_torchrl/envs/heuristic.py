@@ -32,7 +32,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from drone_torchrl.envs.dynamics import STATE_DIM, DroneParams
+from drone_torchrl.envs.dynamics import STATE_DIM, DroneParams, clamp_action
 
 #: The collective thrust is divided by cos(alpha); below the cosine of the termination tilt
 #: (params.alpha_limit, 60 deg by default) the correction is held constant so a nearly flipped drone
@@ -135,9 +135,7 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
     else:
         base = 0.5 * collective
     action = torch.stack((base - 0.5 * difference, base + 0.5 * difference), dim=-1)
-    if params.max_thrust is not None:
-        action = action.clamp(0.0, params.max_thrust)  # only rounding can reach beyond the limit
-    return action
+    return clamp_action(action, params.max_thrust)  # only rounding can reach beyond the limit
 
 
 class PDController(TensorDictModuleBase):

@@ -127,17 +127,6 @@ def _ticks(low: float, high: float) -> list[float]:
     return [k * GRID_SPACING_M for k in range(first, last + 1)]
 
 
-def _import_pygame():
-    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
-    try:
-        import pygame
-    except ImportError as err:
-        raise ImportError(
-            "rendering the drone needs pygame, which is not installed; install it with `pip install pygame`"
-        ) from err
-    return pygame
-
-
 class DroneRenderer:
     """Draws one drone with pygame.
 
@@ -154,7 +143,13 @@ class DroneRenderer:
     def __init__(self, render_mode: str, params: DroneParams, fps: int) -> None:
         if render_mode not in RENDER_MODES:
             raise ValueError(f"render_mode={render_mode!r} is not allowed; expected one of {RENDER_MODES}")
-        pygame = _import_pygame()
+        os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+        try:
+            import pygame
+        except ImportError as err:
+            raise ImportError(
+                "rendering the drone needs pygame, which is not installed; install it with `pip install pygame`"
+            ) from err
         self._pygame = pygame
         self.render_mode = render_mode
         self.params = params
@@ -189,44 +184,16 @@ class DroneRenderer:
         for x in x_ticks:
             px, _ = to_pixel(x, p.z_min)
             pygame.draw.line(surface, GRID_COLOUR, (px, top), (px, bottom), GRID_LINE_WIDTH)
-            self._blit_text(
-                surface,
-                self._tick_font,
-                f"{x:g}",
-                TICK_TEXT_COLOUR,
-                (px, bottom + TICK_LABEL_GAP_PX),
-                "midtop",
-            )
+            self._tick_label(surface, f"{x:g}", (px, bottom + TICK_LABEL_GAP_PX), "midtop")
         for z in z_ticks:
             _, py = to_pixel(-p.x_limit, z)
             pygame.draw.line(surface, GRID_COLOUR, (left, py), (right, py), GRID_LINE_WIDTH)
-            self._blit_text(
-                surface,
-                self._tick_font,
-                f"{z:g}",
-                TICK_TEXT_COLOUR,
-                (left - TICK_LABEL_GAP_PX, py),
-                "midright",
-            )
+            self._tick_label(surface, f"{z:g}", (left - TICK_LABEL_GAP_PX, py), "midright")
         # Axis titles sit between the last two tick labels of each axis.
         title_x, _ = to_pixel(x_ticks[-1] - 0.5 * GRID_SPACING_M if x_ticks else 0.0, p.z_min)
-        self._blit_text(
-            surface,
-            self._tick_font,
-            "x [m]",
-            TICK_TEXT_COLOUR,
-            (title_x, bottom + TICK_LABEL_GAP_PX),
-            "midtop",
-        )
+        self._tick_label(surface, "x [m]", (title_x, bottom + TICK_LABEL_GAP_PX), "midtop")
         _, title_z = to_pixel(-p.x_limit, (z_ticks[-1] if z_ticks else p.z_max) - 0.5 * GRID_SPACING_M)
-        self._blit_text(
-            surface,
-            self._tick_font,
-            "z [m]",
-            TICK_TEXT_COLOUR,
-            (left - TICK_LABEL_GAP_PX, title_z),
-            "midright",
-        )
+        self._tick_label(surface, "z [m]", (left - TICK_LABEL_GAP_PX, title_z), "midright")
 
         zone_left, zone_top = to_pixel(-p.zone_x_limit, p.zone_z_max)
         zone_right, zone_bottom = to_pixel(p.zone_x_limit, p.zone_z_min)
@@ -242,11 +209,10 @@ class DroneRenderer:
         pygame.draw.line(surface, FLOOR_COLOUR, (left, bottom), (right, bottom), FLOOR_LINE_WIDTH)
         return surface
 
-    @staticmethod
-    def _blit_text(surface, font, text: str, colour, position, anchor: str = "topleft") -> None:
-        image = font.render(text, True, colour)
-        rect = image.get_rect(**{anchor: (round(position[0]), round(position[1]))})
-        surface.blit(image, rect)
+    def _tick_label(self, surface, text: str, position: tuple[float, float], anchor: str) -> None:
+        """A grid or axis label whose ``anchor`` point (``"midtop"``, ...) lies on ``position``."""
+        image = self._tick_font.render(text, True, TICK_TEXT_COLOUR)
+        surface.blit(image, image.get_rect(**{anchor: (round(position[0]), round(position[1]))}))
 
     # ------------------------------------------------------------------ drone
     def _draw_arrow(self, start: np.ndarray, direction: np.ndarray, length_px: float, colour) -> None:
@@ -269,13 +235,11 @@ class DroneRenderer:
     def _draw_drone(self, state: np.ndarray, action: np.ndarray) -> None:
         pygame = self._pygame
         x, z, alpha = float(state[X]), float(state[Z]), float(state[ALPHA])
-        # Body axes in the world frame (alpha CCW from vertical): "right" points from the centre to
-        # the right motor, "up" is the thrust direction (eq. 2.1: x_ddot ~ sin(-alpha)).
-        right_w = np.array([math.cos(alpha), math.sin(alpha)])
-        up_w = np.array([-math.sin(alpha), math.cos(alpha)])
-        # Screen frame: y points down, so the world z component flips sign.
-        right_s = right_w * (1.0, -1.0)
-        up_s = up_w * (1.0, -1.0)
+        # Body axes (alpha CCW from vertical): "right" points from the centre to the right motor, "up"
+        # is the thrust direction (eq. 2.1: x_ddot ~ sin(-alpha)); in the screen frame, whose y points
+        # down, their world z components flip sign.
+        right_s = np.array([math.cos(alpha), -math.sin(alpha)])
+        up_s = np.array([-math.sin(alpha), -math.cos(alpha)])
         centre = np.array(self.layout.to_pixel(x, z))
         pixels_per_metre = self.layout.pixels_per_metre
         half_length = self.params.lever_arm * pixels_per_metre

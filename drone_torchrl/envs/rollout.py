@@ -1,8 +1,5 @@
 """Episodes as plain tensors, one per row: the engines', evaluator's and plots' common layout.
 
-It is what the fast engine returns and what the reference's rollouts are read as; the evaluator,
-the metrics and the plots read it.
-
 :class:`Episodes` converts from and to the layout of TorchRL's ``EnvBase.rollout(...,
 break_when_all_done=True)`` on :class:`~drone_torchrl.envs.drone_env.DroneEnv`, so the loss, the episode
 metrics and the plots read both engines' episodes alike. :func:`fly_reference` flies a TensorDict
@@ -59,30 +56,6 @@ class Episodes(NamedTuple):
         return torch.arange(self.steps, device=self.length.device) == (self.length - 1).unsqueeze(-1)
 
     @classmethod
-    def from_steps(
-        cls,
-        states: torch.Tensor,
-        action: torch.Tensor,
-        reward: torch.Tensor,
-        cause: torch.Tensor,
-        length: torch.Tensor,
-    ) -> Episodes:
-        """Build rows of ``length`` steps out of longer buffers, zeroing the entries after each row's end.
-
-        ``states[..., length, :]`` is the state after a row's last step.
-        """
-        steps = torch.arange(reward.shape[-1] + 1, device=length.device)
-        keep = steps <= length.unsqueeze(-1)  # states: up to the one after the last step
-        valid = keep[..., :-1] & keep[..., 1:]
-        return cls(
-            torch.where(keep.unsqueeze(-1), states, 0.0),
-            torch.where(valid.unsqueeze(-1), action, 0.0),
-            torch.where(valid, reward, 0.0),
-            torch.where(valid, cause, 0),
-            length,
-        )
-
-    @classmethod
     def from_rollout(cls, rollout: TensorDictBase) -> Episodes:
         """The first episode of each row of a ``[*B, T]`` TorchRL rollout.
 
@@ -98,19 +71,26 @@ class Episodes(NamedTuple):
         # The state after each row's last step (the rows that end early may repeat after it).
         at = length.reshape(*length.shape, 1, 1).expand(*length.shape, 1, states.shape[-1])
         states = states.scatter(-2, at, next_obs.gather(-2, (at - 1).clamp_min(0)))
-        reward = rollout.get(("next", "reward")).squeeze(-1)
-        cause = rollout.get(("next", "termination_cause")).squeeze(-1)
-        episodes = cls.from_steps(states, rollout.get("action"), reward, cause, length)
+        # Zeros after each row's end: its states up to the one after its last step, and those steps.
+        keep = torch.arange(states.shape[-2], device=length.device) <= length.unsqueeze(-1)
+        valid = keep[..., :-1] & keep[..., 1:]
+        episodes = cls(
+            torch.where(keep.unsqueeze(-1), states, 0.0),
+            torch.where(valid.unsqueeze(-1), rollout.get("action"), 0.0),
+            torch.where(valid, rollout.get(("next", "reward")).squeeze(-1), 0.0),
+            torch.where(valid, rollout.get(("next", "termination_cause")).squeeze(-1), 0),
+            length,
+        )
         if key == "state":
             seen = rollout.get("observation")
-            episodes = episodes._replace(observation=torch.where(episodes.valid().unsqueeze(-1), seen, 0.0))
+            episodes = episodes._replace(observation=torch.where(valid.unsqueeze(-1), seen, 0.0))
         return episodes
 
     def as_rollout(self, max_steps: int) -> TensorDict:
         """These episodes as the ``[*B, T]`` tensordict ``EnvBase.rollout`` would return.
 
-        The ``[*B, T]`` tensordict of ``EnvBase.rollout(..., break_when_all_done=True)``, cut after the
-        longest episode: ``observation``, ``action``, ``step_count`` and ``next`` (``observation``,
+        That of ``EnvBase.rollout(..., break_when_all_done=True)``, cut after the longest episode:
+        ``observation``, ``action``, ``step_count`` and ``next`` (``observation``,
         ``reward``, ``terminated``, ``truncated``, ``done``, ``termination_cause``). A row that did not
         terminate by step ``max_steps`` is truncated there.
         """

@@ -165,8 +165,7 @@ def load_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     Raises :class:`CheckpointError` (one line, naming the file) for a file that is not a
     checkpoint, holds Python objects other than tensors and plain data, has an unknown version,
     is damaged (a tensor that does not match its digest, a record that does not match its zip
-    CRC-32), or holds counters or weights no run saves (see the module's docstring). A checkpoint
-    written before the digest existed has none: its tensors are checked by the zip's CRCs only.
+    CRC-32), or holds counters or weights no run saves (see the module's docstring).
     """
     path = Path(path)
     try:

@@ -28,10 +28,9 @@ TEXT_COLUMNS = ("termination_cause",)
 
 
 def open_csv(path: Path) -> TextIO:
-    """Open ``path`` for :mod:`csv` to read, with bytes that are not UTF-8 kept as lone surrogates.
+    """Open ``path`` for :mod:`csv` to read as UTF-8, a byte that is not UTF-8 kept as a lone surrogate.
 
-    ``path`` opened for :mod:`csv` to read: UTF-8, and a byte that is not UTF-8 (a damaged file)
-    read as a lone surrogate instead of raising, so one bad row costs that row (:func:`is_text`).
+    A damaged file does not raise: one bad row costs that row (:func:`is_text`).
     """
     return Path(path).open(newline="", encoding="utf-8", errors="surrogateescape")
 

@@ -102,9 +102,8 @@ def hold(folder: str | os.PathLike) -> Path:
         owner = _read_owner(fd)
         age = time.time() - os.fstat(fd).st_mtime
         foreign = owner.get("host") not in (None, socket.gethostname())
-        same_job = owner.get("slurm_job_id") is not None and owner.get("slurm_job_id") == os.environ.get(
-            "SLURM_JOB_ID"
-        )
+        job = owner.get("slurm_job_id")
+        same_job = job is not None and job == os.environ.get("SLURM_JOB_ID")
         if foreign and not same_job and age < STALE_AFTER_S:
             raise RunFolderBusy(
                 f"{folder} is in use by {_describe(owner)}, renewed {age:.0f} s ago (this filesystem's flock "

@@ -19,10 +19,11 @@ inside such a folder) is refused by :func:`writing` like a full disk.
 from __future__ import annotations
 
 import contextlib
+import csv
 import errno
 import io
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -73,11 +74,6 @@ def folder_refuses(folder: Path, size: int) -> int | None:
     return None
 
 
-def is_storage_error(err: BaseException) -> bool:
-    """Whether ``err`` is the disk refusing a write (an ``OSError`` with an errno of ``STORAGE_ERRNOS``)."""
-    return isinstance(err, OSError) and err.errno in STORAGE_ERRNOS
-
-
 @contextmanager
 def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[None]:
     """Run a write of ``path``; a refused write becomes :class:`StorageError`.
@@ -92,7 +88,7 @@ def writing(path: str | os.PathLike, *temporary: str | os.PathLike) -> Iterator[
             # A read-only folder keeps it; the next successful write replaces it.
             with contextlib.suppress(OSError):
                 Path(tmp).unlink(missing_ok=True)
-        if isinstance(err, StorageError) or not is_storage_error(err):
+        if isinstance(err, StorageError) or not (isinstance(err, OSError) and err.errno in STORAGE_ERRNOS):
             raise
         raise StorageError(path, err) from None  # type: ignore[arg-type]
 
@@ -111,6 +107,15 @@ def write_atomically(path: str | os.PathLike, data: bytes | bytearray | memoryvi
         tmp.write_bytes(data)
         os.replace(tmp, path)
     return path
+
+
+def write_csv(path: str | os.PathLike, header: Sequence[Any], rows: Iterable[Sequence[Any]]) -> Path:
+    """Write a CSV file of ``header`` and ``rows`` (:mod:`csv`'s dialect) atomically (:func:`write_atomically`)."""
+    text = io.StringIO(newline="")
+    writer = csv.writer(text)
+    writer.writerow(header)
+    writer.writerows(rows)
+    return write_atomically(path, text.getvalue().encode())
 
 
 def new_figure(figsize: tuple[float, float]) -> Any:

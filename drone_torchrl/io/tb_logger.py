@@ -34,7 +34,7 @@ from omegaconf import DictConfig
 
 from drone_torchrl.io.storage import writing
 from drone_torchrl.io.video import gif_bytes
-from drone_torchrl.loggers import flatten_config
+from drone_torchrl.loggers import Logger, flatten_config
 
 # TFRecord framing (what tensorboard's RecordWriter writes): a masked CRC32C of the length and of the data.
 _CRC_MASK_DELTA = 0xA282EAD8
@@ -100,7 +100,7 @@ def scalar_event(wall_time: float, step: int, values: list[bytes]) -> bytes:
     )
 
 
-class RunLogger:
+class RunLogger(Logger):
     """Buffered TensorBoard logging into ``<log_dir>/<exp_name>``.
 
     Args:
@@ -125,10 +125,6 @@ class RunLogger:
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
         """``(tag, value, step)`` triples, as many as come."""
         self._scalars.extend(scalars)
-
-    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
-        """Buffer each ``name: value`` of ``metrics`` at ``step``."""
-        self._scalars.extend((name, value, step) for name, value in metrics.items())
 
     def flush(self) -> None:
         """Append the buffered scalars to this logger's event file (opened only for this)."""
@@ -191,8 +187,4 @@ class RunLogger:
         final = {f"hparam/{k}": v for k, v in metrics.items()}
         self._summaries.extend((0, summary) for summary in hparams(flatten_config(cfg), final))
         self.log_metrics(final, step=0)
-        self.flush()
-
-    def close(self, status: str = "finished") -> None:
-        """Flush (the event file is open only while a flush writes; ``status`` changes nothing)."""
         self.flush()

@@ -50,16 +50,20 @@ STOPPED: RunStatus = "stopped"
 
 
 class Logger(Protocol):
-    """What the run record calls. Steps are counts of episodes done; values are buffered until :meth:`flush`."""
+    """What the run record calls. Steps are counts of episodes done; values are buffered until :meth:`flush`.
+
+    A backend that subclasses it inherits :meth:`log_metrics`, :meth:`log_frames` and :meth:`close`.
+    """
 
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
         """``(tag, value, step)`` triples, as many as come."""
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
-        """``{tag: value}`` at one step."""
+        """``{tag: value}`` at one step (as :meth:`log_scalars` triples)."""
+        self.log_scalars((tag, value, step) for tag, value in metrics.items())
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
-        """Log ``[T, H, W, 3]`` uint8 frames of an evaluation video (a backend may skip them).
+        """Log ``[T, H, W, 3]`` uint8 frames of an evaluation video (skipped here).
 
         A backend may skip them because the run folder always has the MP4.
         """
@@ -70,12 +74,13 @@ class Logger(Protocol):
     def flush(self) -> None:
         """Write what is buffered (files are opened only for this)."""
 
-    def close(self, status: RunStatus) -> None:
+    def close(self, status: RunStatus = FINISHED) -> None:
         """Flush and finish: the run logs nothing more in this process.
 
         Called once, also when the run failed or was stopped; ``status`` says which, for a backend that
-        records it.
+        records it (here: none is held open, so flushing is all).
         """
+        self.flush()
 
 
 @dataclass(frozen=True)
@@ -120,9 +125,8 @@ def register(backend: Backend) -> Backend:
     return BACKENDS.register(backend.name, backend)
 
 
-def get(name: Any) -> Backend:
-    """The backend named ``name``; a one-line :class:`~drone_torchrl.checks.ConfigError` otherwise."""
-    return BACKENDS.get(name)
+#: The backend named ``name``; a one-line :class:`~drone_torchrl.checks.ConfigError` otherwise.
+get = BACKENDS.get
 
 
 def check_backend(cfg: Mapping[str, Any]) -> None:

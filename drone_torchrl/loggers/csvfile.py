@@ -21,13 +21,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.episodes_csv import is_text, open_csv
 from drone_torchrl.io.storage import writing
-from drone_torchrl.loggers import FINISHED, Backend, RunStatus, flatten_config, register
+from drone_torchrl.loggers import Backend, Logger, flatten_config, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, free, store_plugin
 
 SCALARS = "scalars.csv"
@@ -35,8 +34,8 @@ HPARAMS = "hparams.csv"
 HEADER = ("step", "tag", "value")
 
 
-class CSVLogger:
-    """Buffered scalars appended to ``<log_dir>/scalars.csv``.
+class CSVLogger(Logger):
+    """Buffered scalars appended to ``<log_dir>/scalars.csv`` (videos are not kept).
 
     Args:
         log_dir: the folder of ``scalars.csv`` and ``hparams.csv``.
@@ -55,13 +54,6 @@ class CSVLogger:
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
         """Buffer ``(tag, value, step)`` triples as rows."""
         self._rows.extend((int(step), tag, value) for tag, value, step in scalars)
-
-    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
-        """Buffer each ``tag: value`` of ``metrics`` as a row at ``step``."""
-        self._rows.extend((int(step), tag, value) for tag, value in metrics.items())
-
-    def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
-        """Not kept: the MP4 is in the run folder's ``videos/``."""
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         """Write the flattened config and the final ``metrics`` (as ``hparam/*``) to the hparams file."""
@@ -85,10 +77,6 @@ class CSVLogger:
                 for step, tag, value in self._rows
             )
         self._rows.clear()
-
-    def close(self, status: RunStatus = FINISHED) -> None:
-        """Flush the buffered rows; the file is not held open, and ``status`` is not recorded."""
-        self.flush()
 
 
 def _keep_until(path: Path, step: int) -> None:

@@ -29,17 +29,17 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.io import run_lock
-from drone_torchrl.loggers import FAILED, FINISHED, Backend, RunStatus, flatten_config, register
+from drone_torchrl.io.storage import write_atomically
+from drone_torchrl.loggers import FAILED, FINISHED, Backend, Logger, RunStatus, flatten_config, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, a_text, store_plugin
 
 RUN_ID_FILE = "run_id"
@@ -86,8 +86,7 @@ def _sqlite_file(tracking_uri: str) -> Path | None:
     return Path(path) if path and path != ":memory:" else None
 
 
-@contextlib.contextmanager
-def _first_contact(tracking_uri: str) -> Iterator[None]:
+def _first_contact(tracking_uri: str) -> contextlib.AbstractContextManager:
     """Take turns with the other processes that open one SQLite store.
 
     The first to reach a new store creates its tables (MLflow's migrations; two at once collide,
@@ -96,14 +95,12 @@ def _first_contact(tracking_uri: str) -> Iterator[None]:
     """
     path = _sqlite_file(tracking_uri)
     if path is None:
-        yield
-        return
-    with run_lock.exclusive(path.with_name(path.name + LOCK_SUFFIX)):
-        yield
+        return contextlib.nullcontext()
+    return run_lock.exclusive(path.with_name(path.name + LOCK_SUFFIX))
 
 
-class MLflowLogger:
-    """One drone_torchrl run as one MLflow run, buffered.
+class MLflowLogger(Logger):
+    """One drone_torchrl run as one MLflow run, buffered (videos are not uploaded).
 
     Args:
         tracking_uri: the MLflow store (a SQLite file, a folder or a server).
@@ -134,10 +131,7 @@ class MLflowLogger:
                 experiment_id, run_name=Path(run_dir).name, tags={"run_dir": str(run_dir)}
             )
         self.run_id = run.info.run_id
-        self.folder.mkdir(parents=True, exist_ok=True)
-        tmp = id_file.with_name(RUN_ID_FILE + ".tmp")
-        tmp.write_text(self.run_id + "\n")
-        tmp.replace(id_file)
+        write_atomically(id_file, f"{self.run_id}\n".encode())
 
     def _last_step(self) -> int:
         keys = self.client.get_run(self.run_id).data.metrics
@@ -160,13 +154,6 @@ class MLflowLogger:
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
         """Buffer ``(tag, value, step)`` triples as metrics."""
         self._buffer.extend((tag, float(value), int(step)) for tag, value, step in scalars)
-
-    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
-        """Buffer each ``tag: value`` of ``metrics`` at ``step``."""
-        self._buffer.extend((tag, float(value), int(step)) for tag, value in metrics.items())
-
-    def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
-        """Not uploaded: the MP4 is in the run folder's ``videos/``."""
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         # MLflow shows params and metrics side by side already; the final metrics under hparam/*,

@@ -45,7 +45,7 @@ from omegaconf import DictConfig, OmegaConf
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.video import save_gif
-from drone_torchrl.loggers import FAILED, FINISHED, Backend, RunStatus, register
+from drone_torchrl.loggers import FAILED, FINISHED, Backend, Logger, RunStatus, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, a_text, one_of, store_plugin
 
 RUN_ID_FILE = "run_id"
@@ -58,7 +58,7 @@ MAX_NAME_CHARS = 128
 FORBIDDEN_CHARS = "/\\#?%:"
 
 
-class WandbLogger:
+class WandbLogger(Logger):
     """One drone_torchrl run as one W&B run, buffered.
 
     Args:
@@ -105,10 +105,6 @@ class WandbLogger:
         for tag, value, step in scalars:
             steps[int(step)][tag] = float(value)
 
-    def log_metrics(self, metrics: dict[str, float], step: int) -> None:
-        """Buffer each ``tag: value`` of ``metrics`` at ``step``."""
-        self._steps[int(step)].update((tag, float(value)) for tag, value in metrics.items())
-
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
         """Log ``[T, H, W, 3]`` uint8 frames as a W&B video (an animated GIF at ``fps``)."""
         import wandb
@@ -153,11 +149,6 @@ def _read_int(path: Path) -> int:
         return int(path.read_text().strip())
     except (OSError, ValueError):  # absent or torn: nothing known to be sent
         return 0
-
-
-def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> WandbLogger:
-    """The W&B logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from, or None)."""
-    return WandbLogger(cfg, run_dir, resumed_at)
 
 
 def _check_name(key: str, value: Any, optional: bool) -> None:
@@ -214,7 +205,7 @@ store_plugin("logger", "wandb", WandbConf)
 register(
     Backend(
         "wandb",
-        make,
+        WandbLogger,
         resume_rule="continues the same W&B run and sends no step twice (those sent after the checkpoint are skipped)",
         validate=validate,
         summary="a Weights & Biases run per run, online or offline: config, scalars, videos, final metrics",

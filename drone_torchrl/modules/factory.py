@@ -8,13 +8,12 @@ from collections.abc import Sequence
 import torch
 from omegaconf import DictConfig
 from torch import nn
-from torchrl.modules import ProbabilisticActor, ValueOperator
+from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 
 from drone_torchrl.envs import disturbances
-from drone_torchrl.envs.dynamics import DTYPES, HOVER_THRUST
-from drone_torchrl.modules.policy import ThreeNetPolicy, actor_from_net, init_exploration
+from drone_torchrl.envs.dynamics import ACTION_DIM, DTYPES, HOVER_THRUST
+from drone_torchrl.modules.policy import ACTIVATIONS, ThreeNetPolicy, actor_from_net, init_exploration
 from drone_torchrl.modules.stacked import StackedThreeNet
-from drone_torchrl.modules.value import make_critic, make_q_value
 
 # How close to the TanhNormal's bounds a starting mean may be (atanh is infinite at +-1).
 TANH_EDGE = 0.99
@@ -159,26 +158,29 @@ def hover_mean(distribution: str, max_thrust: float | None) -> float:
     return math.atanh(inside)
 
 
+def _value_mlp(cfg: DictConfig, hidden_sizes: Sequence[int], inputs: int) -> MLP:
+    """A one-output MLP with the policy's activation, made in float32 on ``cfg.device``, then in :func:`model_dtype`."""
+    net = MLP(
+        in_features=inputs,
+        out_features=1,
+        num_cells=list(hidden_sizes),
+        activation_class=ACTIVATIONS[cfg.model.activation],
+        device=cfg.device,
+    )
+    return net.to(model_dtype(cfg))
+
+
 def build_critic(cfg: DictConfig) -> ValueOperator:
-    """PPO's value network (``algo.value_hidden_sizes``, the policy's activation) on ``cfg.device``."""
-    return make_critic(
-        list(cfg.algo.value_hidden_sizes),
-        cfg.model.activation,
-        cfg.device,
-        model_dtype(cfg),
-        observation_dim(cfg),
+    """PPO's value network (``algo.value_hidden_sizes``): ``"observation"`` in, ``"state_value"`` out."""
+    return ValueOperator(
+        _value_mlp(cfg, cfg.algo.value_hidden_sizes, observation_dim(cfg)), in_keys=["observation"]
     )
 
 
 def build_q_value(cfg: DictConfig) -> ValueOperator:
-    """SAC's Q-network (``algo.qvalue_hidden_sizes``, the policy's activation) on ``cfg.device``."""
-    return make_q_value(
-        list(cfg.algo.qvalue_hidden_sizes),
-        cfg.model.activation,
-        cfg.device,
-        model_dtype(cfg),
-        observation_dim(cfg),
-    )
+    """SAC's Q-network (``algo.qvalue_hidden_sizes``): the observation and action in, ``"state_action_value"`` out."""
+    net = _value_mlp(cfg, cfg.algo.qvalue_hidden_sizes, observation_dim(cfg) + ACTION_DIM)
+    return ValueOperator(net, in_keys=["observation", "action"], out_keys=["state_action_value"])
 
 
 def build_actor(

@@ -22,13 +22,6 @@ from torchrl.modules import TanhNormal
 
 from drone_torchrl.modules.policy import ACTIVATIONS, ThreeNetPolicy, shift_distribution
 
-Layers = list[tuple[torch.Tensor, torch.Tensor]]
-
-
-def _linear_names(net: ThreeNetPolicy) -> list[str]:
-    shared = [f"shared.{i}" for i, m in enumerate(net.shared) if isinstance(m, nn.Linear)]
-    return [*shared, "mean", "std"]
-
 
 class StackedThreeNet(nn.Module):
     """N :class:`~.policy.ThreeNetPolicy` nets with stacked parameters, applied to ``[N, ..., D]`` at once.
@@ -62,16 +55,8 @@ class StackedThreeNet(nn.Module):
         self.activation = ACTIVATIONS[activation]()
         self.min_std = first.min_std
         self.distribution_eps = first.distribution_eps
-        self.linears = [tuple(name.split(".")) for name in _linear_names(first)]
-        self.n_hidden = len(self.linears) - 2
+        self.hidden = [f"shared.{i}" for i, m in enumerate(first.shared) if isinstance(m, nn.Linear)]
         self.hidden_sizes = [m.out_features for m in first.shared if isinstance(m, nn.Linear)]
-        self.spec = {
-            "hidden_sizes": self.hidden_sizes,
-            "activation": activation,
-            "min_std": self.min_std,
-            "distribution_eps": self.distribution_eps,
-            "obs_dim": first.shared[0].in_features,  # 6, or 6 + 2k with past commands observed
-        }
 
     def __len__(self) -> int:
         return self.flat.shape[0]
@@ -90,34 +75,23 @@ class StackedThreeNet(nn.Module):
         """:attr:`flat` as named ``[N, ...]`` views, one per parameter of the single net."""
         return self.views(self.flat)
 
-    def stacked(self, flat: torch.Tensor | None = None) -> Layers:
-        """``[(W^T [N, in, out], b [N, 1, out]), ...]``: hidden layers, then the mean and std heads."""
-        params = self.views(self.flat if flat is None else flat)
-        return [
-            (params.get((*key, "weight")).transpose(1, 2), params.get((*key, "bias")).unsqueeze(1))
-            for key in self.linears
-        ]
+    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every agent's action mean and std ``[N, ..., A]`` for its observations ``[N, ..., D]``."""
+        params, shape = self.params, observation.shape
 
-    def apply_stacked(self, layers: Layers, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every agent's action mean and std ``[N, ..., A]`` from ``layers`` and observations ``[N, ..., D]``."""
-        shape = observation.shape
+        def linear(name: str, x: torch.Tensor) -> torch.Tensor:  # every agent's layer: x W^T + b
+            key = tuple(name.split("."))
+            weight, bias = params.get((*key, "weight")), params.get((*key, "bias"))
+            return torch.baddbmm(bias.unsqueeze(1), x, weight.transpose(1, 2))
+
         h = observation.reshape(shape[0], -1, shape[-1])
-        for weight, bias in layers[: self.n_hidden]:
-            h = self.activation(torch.baddbmm(bias, h, weight))
-        (w_mean, b_mean), (w_std, b_std) = layers[self.n_hidden :]
-        loc = torch.baddbmm(b_mean, h, w_mean)
-        scale = nn.functional.softplus(torch.baddbmm(b_std, h, w_std)) + self.min_std
+        for name in self.hidden:
+            h = self.activation(linear(name, h))
+        loc = linear("mean", h)
+        scale = nn.functional.softplus(linear("std", h)) + self.min_std
         loc, scale = shift_distribution(loc, scale, self.distribution_eps)
         out_shape = (*shape[:-1], loc.shape[-1])
         return loc.reshape(out_shape), scale.reshape(out_shape)
-
-    def layers(self) -> Layers:
-        """The stacked ``(weight, bias)`` of each layer, views of :attr:`flat`."""
-        return self.stacked()
-
-    def forward(self, observation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every agent's action mean and std ``[N, ..., A]`` for its observations ``[N, ..., D]``."""
-        return self.apply_stacked(self.stacked(), observation)
 
     # ------------------------------------------------------------------ one agent
     def agent_state_dict(self, agent: int) -> dict[str, torch.Tensor]:
@@ -140,7 +114,14 @@ class StackedThreeNet(nn.Module):
         (the TorchRL collector samples from it: a checkpoint must not change the run).
         """
         with torch.device("meta"):
-            net = ThreeNetPolicy(**self.spec)
+            # The observation's width D: 6, or 6 + 2k with past commands observed.
+            net = ThreeNetPolicy(
+                self.hidden_sizes,
+                self.activation_name,
+                self.min_std,
+                self.shapes[0][1],
+                distribution_eps=self.distribution_eps,
+            )
         net.load_state_dict(self.agent_state_dict(agent), assign=True)
         return net
 

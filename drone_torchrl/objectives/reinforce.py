@@ -121,9 +121,6 @@ class ReinforceLoss(LossModule):
         self.agent_dims = agent_dims
         self.log_prob_reduction = log_prob_reduction
 
-    def _forward_value_estimator_keys(self, **kwargs) -> None:
-        pass
-
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """The loss of a batch ``[*B, T]`` of episodes: ``loss_objective`` and the diagnostics."""
         keys = self.tensor_keys

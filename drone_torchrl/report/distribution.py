@@ -178,15 +178,10 @@ def plot_distributions(
 def paper_order(settings: Sequence[Setting]) -> tuple[str, list[Setting]]:
     """The swept key and the settings in the paper's order; :class:`~.runs.ReportError` if not a paper grid."""
     for key, order in PAPER_ORDER.items():
-        values = []
-        for s in settings:
-            value = dict(s.pairs).get(key)
-            values.append(None if value is None else float(value))
-        if None in values or len(set(values)) != len(values):
-            continue
-        ranks = {v: i for i, v in enumerate(order)}
-        if all(v in ranks for v in values):
-            return key, [s for _, s in sorted(zip(values, settings, strict=True), key=lambda p: ranks[p[0]])]
+        values = [dict(s.pairs).get(key) for s in settings]
+        ranks = [None if v is None or float(v) not in order else order.index(float(v)) for v in values]
+        if None not in ranks and len(set(ranks)) == len(ranks):
+            return key, [s for _, s in sorted(zip(ranks, settings, strict=True), key=lambda p: p[0])]
     raise ReportError(
         "--paper-averaging needs a sweep over the paper's values of algo.lr "
         f"{list(PAPER_ORDER['algo.lr'])} or algo.gamma {list(PAPER_ORDER['algo.gamma'])}"
@@ -208,22 +203,21 @@ def per_setting_curves(settings: Sequence[Setting], column: str, window: int) ->
     return [setting_curve(setting, column, window).mean for setting in settings]
 
 
+# The two averagings, side by side in the figure and the table: each curve's function and its title.
+AVERAGINGS = (
+    (per_setting_curves, "per setting (each setting's own runs)"),
+    (paper_averaged_curves, "as the paper averages (runs of settings 1..k)"),
+)
+
+
 def plot_paper_averaging(settings: Sequence[Setting], window: int, title: str, path: Path) -> Path:
     """Per-setting means next to the paper's cumulative means, for episode length and return."""
     fig = new_figure((12.0, 8.0))
     axes = fig.subplots(2, 2, sharey="row")
     for row, (column, ylabel) in enumerate(((COL_LENGTH, "steps per episode"), (COL_RETURN, "return"))):
-        for col, (curves, kind) in enumerate(
-            (
-                (per_setting_curves(settings, column, window), "per setting (each setting's own runs)"),
-                (
-                    paper_averaged_curves(settings, column, window),
-                    "as the paper averages (runs of settings 1..k)",
-                ),
-            )
-        ):
+        for col, (curves_of, kind) in enumerate(AVERAGINGS):
             ax = axes[row][col]
-            for setting, curve in zip(settings, curves, strict=True):
+            for setting, curve in zip(settings, curves_of(settings, column, window), strict=True):
                 ax.plot(np.arange(curve.size), curve, linewidth=1.5, label=setting.label)
             ax.set_title(f"{kind}", fontsize="medium")
             ax.set_xlabel("episode")
@@ -242,19 +236,14 @@ def format_paper_averaging(settings: Sequence[Setting], window: int) -> str:
         "final length: per setting | as the paper averages |",
         "|---|---|---|---|---|---|",
     ]
-    own_r, pooled_r = (
-        per_setting_curves(settings, COL_RETURN, window),
-        paper_averaged_curves(settings, COL_RETURN, window),
-    )
-    own_l, pooled_l = (
-        per_setting_curves(settings, COL_LENGTH, window),
-        paper_averaged_curves(settings, COL_LENGTH, window),
-    )
+    curves = [
+        curves_of(settings, column, window)
+        for column in (COL_RETURN, COL_LENGTH)
+        for curves_of, _ in AVERAGINGS
+    ]
     runs = 0
     for k, setting in enumerate(settings):
         runs += len(setting.runs_with_episodes)
-        lines.append(
-            f"| {setting.label} | {runs} | {own_r[k][-1]:.0f} | {pooled_r[k][-1]:.0f} | "
-            f"{own_l[k][-1]:.0f} | {pooled_l[k][-1]:.0f} |"
-        )
+        finals = " | ".join(f"{c[k][-1]:.0f}" for c in curves)
+        lines.append(f"| {setting.label} | {runs} | {finals} |")
     return "\n".join(lines)

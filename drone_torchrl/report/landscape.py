@@ -16,21 +16,21 @@ The paper's setting (alpha 1e-4, gamma 0.99) is marked where it falls between th
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from drone_torchrl.io.storage import new_figure, write_atomically, write_figure
+from drone_torchrl.io.storage import new_figure, write_csv, write_figure
 from drone_torchrl.report.stats import ZONE_SHARE, SettingSummary
 from drone_torchrl.report.sweep import SweepReport
 
 PAPER_SETTING = {"algo.lr": 1e-4, "algo.gamma": 0.99}
 LANDSCAPE_FIGURE = "landscape.png"
 LANDSCAPE_CSV = "landscape.csv"
+# Its columns after the two keys' values.
+LANDSCAPE_CSV_COLUMNS = ("seeds", "median_final_return", "zone_fraction", "median_full_length_episode")
 MIN_VALUES_PER_AXIS = 2
 FIGURE_SIZE = (16.0, 5.0)
 FIGURE_DPI = 120
@@ -69,9 +69,7 @@ class Landscape:
 
 def landscape(report: SweepReport) -> Landscape | None:
     """The grid of a sweep, or None if its settings are not a two-key numeric grid."""
-    keys: list[str] = []
-    for setting in report.settings:
-        keys.extend(k for k, _ in setting.pairs if k not in keys)
+    keys = list(dict.fromkeys(k for setting in report.settings for k, _ in setting.pairs))
     values: dict[str, set[float]] = {}
     for key in keys:
         try:
@@ -183,29 +181,16 @@ def _paper_marker(grid: Landscape) -> tuple[float, float] | None:
 def write_landscape(grid: Landscape, out_dir: Path) -> list[Path]:
     """``landscape.png`` and ``landscape.csv`` (one row per cell)."""
     figure = plot_landscape(grid, Path(out_dir) / LANDSCAPE_FIGURE)
-    table = Path(out_dir) / LANDSCAPE_CSV
-    text = io.StringIO(newline="")
-    writer = csv.writer(text)
-    writer.writerow(
+    header = [grid.x_key, grid.y_key, *LANDSCAPE_CSV_COLUMNS]
+    rows = [
         [
-            grid.x_key,
-            grid.y_key,
-            "seeds",
-            "median_final_return",
-            "zone_fraction",
-            "median_full_length_episode",
+            grid.x_values[col],
+            grid.y_values[row],
+            int(seeds) if not math.isnan(seeds) else 0,
+            grid.median_return[row, col],
+            grid.zone_fraction[row, col],
+            _format(grid.full_length_episode[row, col], "value"),
         ]
-    )
-    for (row, col), seeds in np.ndenumerate(grid.seeds):
-        writer.writerow(
-            [
-                grid.x_values[col],
-                grid.y_values[row],
-                int(seeds) if not math.isnan(seeds) else 0,
-                grid.median_return[row, col],
-                grid.zone_fraction[row, col],
-                _format(grid.full_length_episode[row, col], "value"),
-            ]
-        )
-    write_atomically(table, text.getvalue().encode())
-    return [figure, table]
+        for (row, col), seeds in np.ndenumerate(grid.seeds)
+    ]
+    return [figure, write_csv(Path(out_dir) / LANDSCAPE_CSV, header, rows)]

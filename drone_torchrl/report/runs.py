@@ -342,9 +342,7 @@ def group_runs(runs: Sequence[Run]) -> list[Setting]:
     groups: dict[tuple[tuple[str, str], ...], list[Run]] = {}
     for run in runs:
         groups.setdefault(setting_of(run.overrides, run.config), []).append(run)
-    keys: list[str] = []
-    for pairs in groups:
-        keys.extend(k for k, _ in pairs if k not in keys)
+    keys = list(dict.fromkeys(k for pairs in groups for k, _ in pairs))
     values = [dict(pairs) for pairs in groups]
     differing = [k for k in keys if len({v.get(k) for v in values}) > 1]
     settings = []

@@ -8,13 +8,11 @@ against the update, one line per agent, and ``pbt_schedules.csv`` lists the step
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from pathlib import Path
 
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, load_checkpoint
-from drone_torchrl.io.storage import new_figure, write_atomically, write_figure
+from drone_torchrl.io.storage import new_figure, write_csv, write_figure
 from drone_torchrl.training.pbt import schedule
 
 BEST_AGENTS = 3
@@ -63,12 +61,12 @@ def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path
     fig.suptitle(f"{Path(run_dir).name}: the values the best agents' weights were trained with")
     fig.tight_layout()
     figure = write_figure(fig, Path(out_dir) / f"{prefix}{SCHEDULES_FIGURE}", dpi=FIGURE_DPI)
-    text = io.StringIO(newline="")
-    writer = csv.writer(text)
-    writer.writerow(["agent", "final_return", "from_update", *keys])
-    for agent, final, steps in best:
-        for update, values in steps:
-            writer.writerow([agent, final, update, *(values[k] for k in keys)])
-    table = Path(out_dir) / f"{prefix}{SCHEDULES_CSV}"
-    write_atomically(table, text.getvalue().encode())
+    rows = [
+        [agent, final, update, *(values[k] for k in keys)]
+        for agent, final, steps in best
+        for update, values in steps
+    ]
+    table = write_csv(
+        Path(out_dir) / f"{prefix}{SCHEDULES_CSV}", ["agent", "final_return", "from_update", *keys], rows
+    )
     return [figure, table]

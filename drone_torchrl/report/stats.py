@@ -201,14 +201,11 @@ def progress_notes(setting: Setting) -> list[str]:
     """Unfinished and failed seeds, e.g. ``"2 of 4 seeds unfinished, shortest at 1200 episodes"``."""
     notes = []
     total = len(setting.runs)
-    unfinished = [r for r in setting.runs if r.status == STATUS_UNFINISHED]
-    failed = [r for r in setting.runs if r.status == STATUS_FAILED]
-    if unfinished:
-        shortest = min(r.episodes for r in unfinished)
-        notes.append(f"{len(unfinished)} of {total} seeds unfinished, shortest at {shortest} episodes")
-    if failed:
-        shortest = min(r.episodes for r in failed)
-        notes.append(f"{len(failed)} of {total} seeds failed, shortest at {shortest} episodes")
+    for status in (STATUS_UNFINISHED, STATUS_FAILED):  # each status is also its word in the note
+        stopped = [r for r in setting.runs if r.status == status]
+        if stopped:
+            shortest = min(r.episodes for r in stopped)
+            notes.append(f"{len(stopped)} of {total} seeds {status}, shortest at {shortest} episodes")
     for run in setting.runs:
         if not run.episodes:
             notes.append(f"seed {run.seed} has no episode yet")

@@ -2,14 +2,12 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from drone_torchrl.io.storage import write_atomically
+from drone_torchrl.io.storage import write_atomically, write_csv
 from drone_torchrl.report.distribution import (
     CONFIDENCE,
     DISTRIBUTION_FIGURE,
@@ -271,13 +269,8 @@ def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = Fal
     summary = format_report(report) + "\n" + extra
     summary += f"\n![landscape]({LANDSCAPE_FIGURE})\n" if grid is not None else ""
     write_atomically(md, summary.encode())
-    table = out_dir / SUMMARY_CSV
-    text = io.StringIO(newline="")
-    writer = csv.DictWriter(text, fieldnames=SUMMARY_CSV_COLUMNS)
-    writer.writeheader()
-    writer.writerows(summary_rows(report))
-    write_atomically(table, text.getvalue().encode())
-    return [*paths, md, table]
+    rows = [[row[column] for column in SUMMARY_CSV_COLUMNS] for row in summary_rows(report)]
+    return [*paths, md, write_csv(out_dir / SUMMARY_CSV, SUMMARY_CSV_COLUMNS, rows)]
 
 
 def output_dirs(sweep_dirs: Sequence[Path], out: Path | None) -> list[Path]:

@@ -3,8 +3,7 @@
 The agents of a population differ only in the per-agent keys (``seed``, ``algo.lr``,
 ``algo.gamma``, ``algo.weight_decay``: the schema's ``per_agent``; see :func:`.jobs.group_key`).
 An OmegaConf config takes milliseconds to make, so at tens of thousands of agents a config per
-agent is most of the set-up: an :class:`AgentTable` holds one config and each agent's values, and
-makes an agent's own config only when asked (:meth:`AgentTable.config`).
+agent is most of the set-up: an :class:`AgentTable` holds one config and each agent's values.
 """
 
 from __future__ import annotations
@@ -54,14 +53,3 @@ class AgentTable:
 
     def __len__(self) -> int:
         return self.size
-
-    def column(self, key: str) -> list:
-        """Every agent's value of the per-agent ``key``."""
-        return self.values[key]
-
-    def config(self, agent: int) -> DictConfig:
-        """Agent ``agent``'s own config (a new one: the group's with its per-agent values)."""
-        cfg = self.cfg.copy()
-        for key, column in self.values.items():
-            OmegaConf.update(cfg, key, column[agent])
-        return cfg

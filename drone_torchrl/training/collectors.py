@@ -11,8 +11,8 @@
   update count; under disturbances each episode's key too), so an agent's run does not depend on
   which other agents share the batch; the evaluator flies the kernel's deterministic rollout.
 
-An update call of ``k`` updates first calls ``begin``, then ``collect`` once per update
-(the reference's; the fast engine's update does not ask for batches).
+The reference's update calls ``collect`` once per update (the fast engine's update does not ask
+for batches).
 """
 
 from __future__ import annotations
@@ -78,9 +78,6 @@ class TorchRLCollector:
             else {"break_when_any_done": False}
         )
 
-    def begin(self, state: TensorDictBase, k: int) -> None:
-        """Nothing to prepare: each update's rollout is flown when collected."""
-
     def collect(self, j: int, active: torch.Tensor) -> TensorDictBase:
         """Fly one update's episodes; returns the rollout as a ``[1, E, T]`` tensordict (agent dim first)."""
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
@@ -127,11 +124,8 @@ class FastCollector:
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
         self.population = population
-        self.kernel = kernel_rollout(cfg, population.policy, squash_bound(cfg), cfg.env.max_steps)
+        self.kernel = kernel_rollout(cfg, population.policy)
         self._actor = actor_from_net(population.policy, cfg.model.distribution, cfg.env.max_thrust)
-
-    def begin(self, state: TensorDictBase, k: int) -> None:
-        """Nothing to prepare: the kernel flies each update's episodes itself."""
 
     def actor(self) -> ProbabilisticActor:
         """The agents' nets under the config's distribution head (scores ``[N, ...]`` batches)."""
@@ -152,25 +146,17 @@ class FastCollector:
         """Nothing to close: the kernels hold no resources."""
 
 
-def squash_bound(cfg: DictConfig) -> float | None:
-    """The TanhNormal head's upper bound on the motor commands, or None for the Normal head.
+def kernel_rollout(cfg: DictConfig, policy: StackedThreeNet) -> KernelRollout:
+    """The C++ engine's rollout of ``policy`` (``env.max_steps`` steps at most) for the config's drone.
 
-    The bound is ``env.max_thrust``: what the kernels squash their samples onto.
-    """
-    return cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
-
-
-def kernel_rollout(
-    cfg: DictConfig, policy: StackedThreeNet, squash_high: float | None, max_steps: int
-) -> KernelRollout:
-    """The C++ engine's rollout of ``policy`` (``max_steps`` steps at most) for the config's drone.
-
-    The config passed :func:`drone_torchrl.config.validate`, which refuses what the kernels do not fly
+    The TanhNormal head's samples are squashed onto ``env.max_thrust``. The config passed
+    :func:`drone_torchrl.config.validate`, which refuses what the kernels do not fly
     (:func:`drone_torchrl.kernels.coverage.fast_refusal`).
     """
     kwargs = env_kwargs(cfg)
+    squash_high = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
     return KernelRollout(
-        policy, physics_params(kwargs), squash_high, max_steps, cfg.env.reset_mode, kwargs["disturbance"]
+        policy, physics_params(kwargs), squash_high, cfg.env.max_steps, cfg.env.reset_mode, kwargs["disturbance"]
     )
 
 

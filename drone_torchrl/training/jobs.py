@@ -24,7 +24,7 @@ from __future__ import annotations
 import math
 import sys
 import traceback
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -192,8 +192,11 @@ def _prepare(
         f"resume: {path.name} (episode {checkpoint['episodes_done']}) is not the last checkpoint of {parent}; "
         f"continuing as a fork in {fork_dir} (the original run is left as it is)"
     )
-    # A population's episodes are not copied (they are in its Parquet parts, not an episodes.csv).
-    return Job(saved, fork_dir, _as_fork(checkpoint), None if of_population else parent)
+    # A fork has not finished, whatever its parent did after the checkpoint, and its best.pt is the
+    # best of its own evaluations (its folder has none of the parent's checkpoints). A population's
+    # episodes are not copied (they are in its Parquet parts, not an episodes.csv).
+    forked = {**checkpoint, "final": None, "best_eval_return": -math.inf}
+    return Job(saved, fork_dir, forked, None if of_population else parent)
 
 
 def _on(key: str, keys: set[str]) -> bool:
@@ -210,15 +213,7 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
     if keys is None:
         return
     compare_all = any(k in group_names() for k in keys)
-    old = leaves(saved)
-    changed = [
-        f"{key} {old.get(key)!r} -> {value!r}"
-        for key, value in leaves(cfg).items()
-        if key != "backend"
-        and resume_rule(key) == KEPT
-        and (compare_all or _on(key, keys))
-        and old.get(key) != value
-    ]
+    changed = kept_changes(saved, cfg, lambda key: key != "backend" and (compare_all or _on(key, keys)))
     if changed:
         raise ConfigError(
             f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued run keeps its "
@@ -228,10 +223,17 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
         )
 
 
-def _as_fork(checkpoint: dict[str, Any]) -> dict[str, Any]:
-    # A fork has not finished, whatever its parent did after the checkpoint, and its best.pt is the
-    # best of its own evaluations (its folder has none of the parent's checkpoints).
-    return {**checkpoint, "final": None, "best_eval_return": -math.inf}
+def kept_changes(saved: Any, cfg: DictConfig, asked: Callable[[str], bool]) -> list[str]:
+    """``key saved -> now`` of each key that ``asked`` picks, a continued run keeps and ``cfg`` changes.
+
+    ``saved``: the checkpoint's config; the keys kept are the schema's ``on_resume`` KEPT ones.
+    """
+    old = leaves(saved)
+    return [
+        f"{key} {old.get(key)!r} -> {value!r}"
+        for key, value in leaves(cfg).items()
+        if asked(key) and resume_rule(key) == KEPT and old.get(key) != value
+    ]
 
 
 def group_key(cfg: DictConfig) -> str:
@@ -319,11 +321,6 @@ def sweep_summary(sweep_dir: Path) -> str:
     return "\n".join(lines)
 
 
-def failed_jobs(sweep_dir: Path) -> list[Path]:
-    """The job folders of the sweep in ``sweep_dir`` that recorded a failure (``FAILED.txt``)."""
-    return [job for job in sweep_jobs(sweep_dir) if (job / FAILED_FILE).is_file()]
-
-
 class SweepSummary(Callback):
     """Prints the sweep summary at the end of a multirun, and exits non-zero if a job failed.
 
@@ -335,6 +332,6 @@ class SweepSummary(Callback):
         """Print the sweep's summary; exit non-zero naming how many jobs failed."""
         sweep_dir = Path(config.hydra.sweep.dir)
         print(sweep_summary(sweep_dir))
-        failed = failed_jobs(sweep_dir)
+        failed = [job for job in sweep_jobs(sweep_dir) if (job / FAILED_FILE).is_file()]
         if failed:
             sys.exit(f"drone-train: {len(failed)} job(s) failed")

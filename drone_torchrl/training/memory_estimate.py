@@ -160,11 +160,11 @@ class MemoryEstimate:
 
 def size(n: float) -> str:
     """``n`` bytes in the largest unit that keeps a number >= 1 (``12.3 GB``)."""
-    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
-        if n < 1000 or unit == "PB":
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if n < 1000:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000
-    raise AssertionError("unreachable")
+    return f"{n:.1f} PB"
 
 
 def mlp_parameters(widths: Sequence[int]) -> int:
@@ -207,9 +207,7 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     hidden = cfg["model"]["hidden_sizes"]
     advice = "lower algo.episodes_per_update, env.max_steps or model.hidden_sizes"
     if cfg["backend"] == "fast":
-        # What drone_torchrl::reinforce keeps of each step for the backward pass (the observation,
-        # every hidden output, loc, the std head's input, the action and the return-to-go), and its
-        # rewards, returns-to-go (floats) and causes (int64), for the agents of one kernel call.
+        # The kernel's buffers (listed in the module's docstring), for the agents of one kernel call.
         steps = steps // agents * min(agents, AGENTS_PER_CALL) if agents else 0
         saved = observation_size(cfg) + sum(hidden) + KERNEL_SAVED_FLOATS_PER_STEP
         backward = sum(hidden) + KERNEL_FLOATS_PER_STEP

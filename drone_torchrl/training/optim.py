@@ -185,20 +185,15 @@ class Adam:
             }
             for i, key in enumerate(keys)
         }
-        group = {
-            "lr": float(state["lr"][agent]),
-            "betas": self.betas,
-            "eps": self.eps,
-            "weight_decay": float(state["weight_decay"][agent]),
-            "amsgrad": False,
-            "maximize": False,
-            "foreach": None,
-            "capturable": False,
-            "differentiable": False,
-            "fused": None,
-            "decoupled_weight_decay": self.decoupled_weight_decay,
-            "params": list(range(len(keys))),
-        }
+        # torch.optim.Adam's own param group of these values: its layout and its defaults.
+        group = torch.optim.Adam(
+            [torch.zeros(0, requires_grad=True) for _ in keys],
+            lr=float(state["lr"][agent]),
+            betas=self.betas,
+            eps=self.eps,
+            weight_decay=float(state["weight_decay"][agent]),
+            decoupled_weight_decay=self.decoupled_weight_decay,
+        ).state_dict()["param_groups"][0]
         return {"state": entries, "param_groups": [group]}
 
     @staticmethod

@@ -70,31 +70,20 @@ class PBTSettings:
         :class:`~.checks.ConfigError` (one line, naming ``hydra.launcher.<key>``) for the first that is not
         allowed.
         """
-
-        def refuse(key: str, value: Any, allowed: str) -> ConfigError:
-            return ConfigError.of(f"hydra.launcher.{key}", value, allowed)
-
         every = params.get("every_updates", cls.every_updates)
-        if isinstance(every, bool) or not isinstance(every, int) or every < 1:
-            raise refuse("every_updates", every, "an integer >= 1")
+        if not (_number(every) and isinstance(every, int) and every >= 1):
+            raise ConfigError.of("hydra.launcher.every_updates", every, "an integer >= 1")
         quantile = params.get("quantile", cls.quantile)
-        if (
-            isinstance(quantile, bool)
-            or not isinstance(quantile, int | float)
-            or not 0 < quantile <= MAX_QUANTILE
-        ):
-            raise refuse("quantile", quantile, f"a number in (0, {MAX_QUANTILE}]")
+        if not (_number(quantile) and 0 < quantile <= MAX_QUANTILE):
+            raise ConfigError.of("hydra.launcher.quantile", quantile, f"a number in (0, {MAX_QUANTILE}]")
         perturb = params.get("perturb", cls.perturb)
-        if (
-            isinstance(perturb, str | bytes)
-            or not isinstance(perturb, Sequence)
-            or not perturb
-            or not all(isinstance(f, int | float) and not isinstance(f, bool) and f > 0 for f in perturb)
-        ):
-            raise refuse("perturb", perturb, "a non-empty list of factors > 0, e.g. [0.8,1.2]")
+        if not (_list(perturb) and all(_number(f) and f > 0 for f in perturb)):
+            raise ConfigError.of(
+                "hydra.launcher.perturb", perturb, "a non-empty list of factors > 0, e.g. [0.8,1.2]"
+            )
         resample = params.get("resample_probability", cls.resample_probability)
-        if isinstance(resample, bool) or not isinstance(resample, int | float) or not 0 <= resample <= 1:
-            raise refuse("resample_probability", resample, "a number in [0, 1]")
+        if not (_number(resample) and 0 <= resample <= 1):
+            raise ConfigError.of("hydra.launcher.resample_probability", resample, "a number in [0, 1]")
         keys = _searched_keys(params.get("keys", cls.keys), "PBT")
         return cls(
             int(every), float(quantile), tuple(float(f) for f in perturb), float(resample), tuple(keys)
@@ -115,8 +104,21 @@ class PBTSettings:
             )
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PBT:
-        """The search of a population (``saved``: what its checkpoint holds of it, or None)."""
-        return PBT.for_population(self, cfg, values, None if saved is None else saved["lineage"])
+        """The search of a population (``saved``: what its checkpoint holds of it, or None).
+
+        ``cfg`` is the population's group config, ``values`` what its sweep gave each agent.
+        """
+        rules = schema_keys("config", algo=cfg.algo.name, logger=cfg.logger.backend)
+        bounds = {}
+        for key in self.keys:
+            rule = rules.get(key)
+            if rule is None:
+                raise ConfigError.of(
+                    "hydra.launcher.keys", list(self.keys), f"keys that algo={cfg.algo.name} has"
+                )
+            bounds[key] = (float(rule.low), float(rule.high))
+        lineage = None if saved is None else saved["lineage"]
+        return PBT(self, values, bounds, int(values["seed"][0]), lineage)
 
 
 class Search:
@@ -169,9 +171,19 @@ class Search:
         return {"settings": self.settings.record(), "lineage": self.lineage}
 
 
+def _number(value: Any) -> bool:
+    """Whether ``value`` is an int or a float (not a bool)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _list(value: Any) -> bool:
+    """Whether ``value`` is a non-empty list (not a string)."""
+    return isinstance(value, Sequence) and not isinstance(value, str | bytes) and bool(value)
+
+
 def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
     """``hydra.launcher.keys`` checked: per-agent keys that a search can change."""
-    if isinstance(keys, str | bytes) or not isinstance(keys, Sequence) or not keys:
+    if not _list(keys):
         raise ConfigError.of("hydra.launcher.keys", keys, f"a non-empty list of {sorted(STATE_KEYS)}")
     for key in keys:
         if key not in STATE_KEYS:
@@ -209,20 +221,6 @@ class PBT(Search):
         self.space = {key: sorted(set(space[key])) for key in settings.keys}
         self.bounds = dict(bounds)
         self.seed = int(seed)
-
-    @classmethod
-    def for_population(cls, settings: PBTSettings, cfg: Any, values: Mapping[str, list], lineage=None) -> PBT:
-        """The PBT of a population whose group config is ``cfg`` and whose sweep gave ``values``."""
-        rules = schema_keys("config", algo=cfg.algo.name, logger=cfg.logger.backend)
-        bounds = {}
-        for key in settings.keys:
-            rule = rules.get(key)
-            if rule is None:
-                raise ConfigError.of(
-                    "hydra.launcher.keys", list(settings.keys), f"keys that algo={cfg.algo.name} has"
-                )
-            bounds[key] = (float(rule.low), float(rule.high))
-        return cls(settings, values, bounds, int(values["seed"][0]), lineage)
 
     def updates_until_due(self, updates_done: int) -> int:
         """Updates from ``updates_done`` until the next exploit-and-explore step."""
@@ -430,18 +428,16 @@ class HalvingSettings:
         Raises :class:`~.checks.ConfigError` (one line) for the first that is not allowed.
         """
         rungs = params.get("rungs", cls.rungs)
-        if (
-            isinstance(rungs, str | bytes)
-            or not isinstance(rungs, Sequence)
-            or not rungs
-            or not all(isinstance(r, int) and not isinstance(r, bool) and r >= 1 for r in rungs)
-            or list(rungs) != sorted(set(rungs))
+        if not (
+            _list(rungs)
+            and all(_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
+            and list(rungs) == sorted(set(rungs))
         ):
             raise ConfigError.of(
                 "hydra.launcher.rungs", rungs, "increasing update counts >= 1, e.g. [500,1500]"
             )
         fraction = params.get("fraction", cls.fraction)
-        if isinstance(fraction, bool) or not isinstance(fraction, int | float) or not 0 < fraction < 1:
+        if not (_number(fraction) and 0 < fraction < 1):
             raise ConfigError.of("hydra.launcher.fraction", fraction, "a number in (0, 1)")
         keys = _searched_keys(params.get("keys", cls.keys), "successive halving")
         return cls(tuple(int(r) for r in rungs), float(fraction), keys)

@@ -42,9 +42,9 @@ class Population:
         self.agents = agents = AgentTable.of(agents)
         self.cfg = base = agents.cfg
         device = torch.device(base.device)
-        self.policy = build_policies(base, agents.column("seed"))
+        self.policy = build_policies(base, agents.values["seed"])
         params = self.policy.flat
-        decays = torch.tensor(agents.column("algo.weight_decay"), dtype=torch.float64)
+        decays = torch.tensor(agents.values["algo.weight_decay"], dtype=torch.float64)
         decoupled = base.algo.optimizer == "adamw"
         self.adam = Adam(
             eps=base.algo.adam_eps,
@@ -55,9 +55,9 @@ class Population:
         self.state = TensorDict(
             {
                 "params": params,
-                **adam_state(params, torch.tensor(agents.column("algo.lr"), dtype=torch.float64), decays),
-                "gamma": torch.tensor(agents.column("algo.gamma"), dtype=params.dtype, device=device),
-                "seed": torch.tensor(agents.column("seed"), dtype=torch.int64, device=device),
+                **adam_state(params, torch.tensor(agents.values["algo.lr"], dtype=torch.float64), decays),
+                "gamma": torch.tensor(agents.values["algo.gamma"], dtype=params.dtype, device=device),
+                "seed": torch.tensor(agents.values["seed"], dtype=torch.int64, device=device),
                 "counter": torch.zeros(len(agents), dtype=torch.int64, device=device),
             },
             batch_size=[len(agents)],

@@ -82,11 +82,6 @@ def _pyarrow():
     return pyarrow
 
 
-def part_path(run_dir: Path, number: int) -> Path:
-    """The file of the ``number``-th part of the run's episodes (Parquet)."""
-    return Path(run_dir) / EPISODES_DIR / f"part-{number:06d}.parquet"
-
-
 def _return_quantiles(returns: np.ndarray, prefix: str) -> dict[str, float]:
     """``<prefix>/return_q<percent>`` of :data:`QUANTILES` and ``<prefix>/best_return``; {} when none is a number."""
     if not len(returns) or np.isnan(returns).all():
@@ -250,19 +245,14 @@ class PopulationRecord:
         if not cols["agent"]:
             return
         names = np.array([_CAUSE_NAMES[c] for c in sorted(_CAUSE_NAMES)])
+        dtypes = {"agent": np.int32, "episode": np.int64, "update": np.int64, "length": np.int64}
         table = {
-            "agent": np.asarray(cols["agent"], dtype=np.int32),
-            "episode": np.asarray(cols["episode"], dtype=np.int64),
-            "update": np.asarray(cols["update"], dtype=np.int64),
-            **{
-                k: np.asarray(cols[k], dtype=np.float64)
-                for k in (*EPISODE_KEYS, "wall_clock_s")
-                if k != "termination_cause"
-            },
-            "termination_cause": names[np.asarray(cols["termination_cause"], dtype=np.int64)],
+            k: np.asarray(v, dtype=dtypes.get(k, np.float64))
+            for k, v in cols.items()
+            if k != "termination_cause"
         }
-        table["length"] = table["length"].astype(np.int64)
-        self._write_table(table, part_path(self.run_dir, self.parts + 1))
+        table["termination_cause"] = names[np.asarray(cols["termination_cause"], dtype=np.int64)]
+        self._write_table(table, self.run_dir / EPISODES_DIR / f"part-{self.parts + 1:06d}.parquet")
         self.parts += 1
         self._clear()
 

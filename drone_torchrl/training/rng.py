@@ -58,8 +58,11 @@ def mix(x: torch.Tensor) -> torch.Tensor:
     return x ^ _shift_right(x, 31)
 
 
-def _bits(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:
-    """``[N, *shape]`` hashed int64 of each agent's (seed, counter, stream) key and element index."""
+def keys(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:
+    """64-bit keys, int64 ``[N, *shape]``: the hash of each agent's (seed, counter, stream) key and element index.
+
+    The raw hashes, to seed counter-based draws of their own.
+    """
     seeds = torch.as_tensor(seeds, dtype=torch.int64)
     counters = torch.as_tensor(counters, dtype=torch.int64, device=seeds.device)
     key = mix(mix(seeds) ^ (counters * _UPDATE + _signed(stream * _STREAM)))
@@ -67,14 +70,9 @@ def _bits(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple
     return mix(key.reshape(-1, *([1] * len(shape))) + index * GOLDEN)
 
 
-def keys(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:
-    """64-bit keys, int64 ``[N, *shape]``: the raw hashes, to seed counter-based draws of their own."""
-    return _bits(seeds, counters, stream, shape)
-
-
 def uniform(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tuple[int, ...]) -> torch.Tensor:
     """Uniforms in (0, 1), float32 ``[N, *shape]``: agent ``i``'s depend only on its seed and counter."""
-    top = _shift_right(_bits(seeds, counters, stream, shape), 64 - UNIFORM_BITS)
+    top = _shift_right(keys(seeds, counters, stream, shape), 64 - UNIFORM_BITS)
     return (top.to(torch.float32) + 0.5) / float(1 << UNIFORM_BITS)
 
 

@@ -121,9 +121,8 @@ class AgentBook:
         self.budget, self.every_updates, self.window = s.budget, s.every_updates, s.window
         self.checkpoint_every, self.eval_every = s.checkpoint_every, s.eval_every
         self.stop_return = s.stop_return
-        window = s.window
-        self.recent_returns: deque[float] = deque(maxlen=window)
-        self.recent_lengths: deque[float] = deque(maxlen=window)
+        self.recent_returns: deque[float] = deque(maxlen=s.window)
+        self.recent_lengths: deque[float] = deque(maxlen=s.window)
         self.episodes_done = self.updates_done = 0
         self.wall_clock_before = 0.0
         self.best_eval = -math.inf
@@ -389,10 +388,7 @@ class RunRecord(AgentBook):
         }
 
     def save(self, learner: dict[str, Any]) -> None:
-        """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close.
-
-        The CSV is flushed first so the two agree after a kill; closing closes the files.
-        """
+        """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close."""
         self.flush()  # the CSV holds every episode the checkpoint counts
         save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
         self.book_save()

@@ -31,7 +31,7 @@ from drone_torchrl.kernels.modules import Carried, KernelRollout, KernelSegments
 from drone_torchrl.modules.factory import model_dtype
 from drone_torchrl.modules.policy import ThreeNetPolicy
 from drone_torchrl.modules.stacked import StackedThreeNet
-from drone_torchrl.training.collectors import kernel_rollout, squash_bound
+from drone_torchrl.training.collectors import kernel_rollout
 
 
 class FusedSegments:
@@ -54,7 +54,7 @@ class FusedSegments:
         self.params = physics_params(env_kwargs(cfg))
         self.dtype = model_dtype(cfg)
         self.stacked = StackedThreeNet([net], cfg.model.activation)
-        self.rollout = kernel_rollout(cfg, self.stacked, squash_bound(cfg), cfg.env.max_steps)
+        self.rollout = kernel_rollout(cfg, self.stacked)
         self.kernel = KernelSegments(self.rollout, self.num_envs)
         self.disturbed = not disturbances.make(env_kwargs(cfg)["disturbance"]).nominal
         self.log_prob_key = actor.log_prob_keys[0]

@@ -26,23 +26,15 @@ import torch
 from omegaconf import DictConfig
 
 from drone_torchrl import algorithms
-from drone_torchrl.config import (
-    ConfigError,
-    check_memory,
-    env_kwargs,
-    leaves,
-    per_agent_keys,
-    resume_rule,
-)
+from drone_torchrl.config import ConfigError, check_memory, env_kwargs, per_agent_keys
 from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
-from drone_torchrl.schema import KEPT
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.jobs import Job, group_key, prepare, record_failure
+from drone_torchrl.training.jobs import Job, group_key, kept_changes, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.pbt import FRESH, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
@@ -269,24 +261,13 @@ class Trainer:
         policy, n = learner.eval_policy(), learner.eval_agents
         # A population's agents a slice at a time (ops.AGENTS_PER_EVALUATION): the episodes of
         # one slice are held at once, whatever the population's size.
-        chunks = (
-            [slice(None)]
-            if not hasattr(policy, "rows")
-            else [
-                slice(first, min(n, first + AGENTS_PER_EVALUATION))
-                for first in range(0, n, AGENTS_PER_EVALUATION)
-            ]
-        )
+        flown = [(policy, n)]
+        if hasattr(policy, "rows"):
+            rows = [slice(i, min(n, i + AGENTS_PER_EVALUATION)) for i in range(0, n, AGENTS_PER_EVALUATION)]
+            flown = [(policy.rows(r), r.stop - r.start) for r in rows]
         parts = [
-            evaluate(
-                policy if rows == slice(None) else policy.rows(rows),
-                env_kwargs(cfg),
-                cfg.eval.episodes,
-                cfg.eval.seed,
-                cfg.device,
-                agents=n if rows == slice(None) else rows.stop - rows.start,
-            )[0]
-            for rows in chunks
+            evaluate(p, env_kwargs(cfg), cfg.eval.episodes, cfg.eval.seed, cfg.device, agents=count)[0]
+            for p, count in flown
         ]
         stats = {key: torch.cat([part[key] for part in parts]) for key in parts[0]}
         means = {
@@ -495,13 +476,8 @@ def _population_checkpoint(
             f"{path} holds {len(checkpoint['agents']['name'])} other agents (names or per-agent values differ "
             "from this sweep's): run the sweep that wrote it, or use another hydra.sweep.dir"
         )
-    saved, now = leaves(checkpoint["config"]), leaves(agents.cfg)
     per_agent = set(per_agent_keys())
-    changed = [
-        f"{key} {saved.get(key)!r} -> {value!r}"
-        for key, value in now.items()
-        if key not in per_agent and resume_rule(key) == KEPT and saved.get(key) != value
-    ]
+    changed = kept_changes(checkpoint["config"], agents.cfg, lambda key: key not in per_agent)
     if changed:
         raise ConfigError(
             f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued population keeps "

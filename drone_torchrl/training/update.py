@@ -53,21 +53,6 @@ class UpdateOutput(NamedTuple):
     episodes: dict[str, torch.Tensor]
 
 
-def make_loss(cfg: DictConfig, actor, gamma: torch.Tensor) -> ReinforceLoss:
-    """The config's REINFORCE loss over ``[N, ...]`` batches, one discount per agent."""
-    return ReinforceLoss(actor, gamma=gamma, agent_dims=1, **_loss_options(cfg))
-
-
-def _loss_options(cfg: DictConfig) -> dict:
-    algo = cfg.algo
-    return {
-        "discount_weight": algo.discount_weight,
-        "normalize_returns": algo.normalize_returns,
-        "baseline": algo.baseline,
-        "log_prob_reduction": algo.log_prob_reduction,
-    }
-
-
 class Gradient(NamedTuple):
     """One update's gradient of every agent and what the loop books of it (``[N]`` unless noted)."""
 
@@ -101,31 +86,35 @@ class ReinforceUpdate:
         self.adam = population.adam
         self.max_grad_norm = population.max_grad_norm
         self.gamma = population.state["gamma"]
-        self.loss = make_loss(cfg, collector.actor(), self.gamma)
+        algo = cfg.algo
+        # Over [N, ...] batches, one discount per agent.
+        self.loss = ReinforceLoss(
+            collector.actor(),
+            gamma=self.gamma,
+            agent_dims=1,
+            discount_weight=algo.discount_weight,
+            normalize_returns=algo.normalize_returns,
+            baseline=algo.baseline,
+            log_prob_reduction=algo.log_prob_reduction,
+        )
         self.kernel = None
         if getattr(collector, "kernel", None) is not None:  # backend=fast
-            options = _loss_options(cfg)
             flags = {
-                "baseline_mean": options["baseline"] == "mean",
-                "normalize_returns": options["normalize_returns"],
-                "discount_weight": options["discount_weight"],
-                "mean_log_prob": options["log_prob_reduction"] == "mean",
+                "baseline_mean": algo.baseline == "mean",
+                "normalize_returns": algo.normalize_returns,
+                "discount_weight": algo.discount_weight,
+                "mean_log_prob": algo.log_prob_reduction == "mean",
             }
-            self.kernel = KernelReinforce(collector.kernel, cfg.algo.episodes_per_update, flags)
+            self.kernel = KernelReinforce(collector.kernel, algo.episodes_per_update, flags)
 
     def begin(self, state: TensorDictBase, k: int) -> None:
         """Before ``k`` updates from ``state``: their random numbers are keyed by its update counters."""
         self._seeds, self._counters = state["seed"], state["counter"].clone()
-        if self.kernel is None:
-            self.collector.begin(state, k)
 
     def gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
         """Update ``j`` (of those announced to :meth:`begin`)'s episodes and gradient, without a step."""
-        if self.kernel is not None:
-            return self._kernel_gradient(state, j, active)
-        return self._autograd_gradient(state, j, active)
-
-    def _kernel_gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
+        if self.kernel is None:
+            return self._autograd_gradient(state, j, active)
         grad, loss, std, finite, length, counts = self.kernel(
             self._seeds, self._counters + j, self.gamma, active
         )
