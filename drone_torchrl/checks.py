@@ -46,6 +46,11 @@ def plain_name(name: Any) -> bool:
     return isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name
 
 
+def is_number(value: Any) -> bool:
+    """Whether ``value`` is an int or a float (a bool, though an int to Python, is not)."""
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
 def check_number(
     key: str,
     value: Any,
@@ -61,7 +66,7 @@ def check_number(
     range (an integer: int64's).
     """
     limit = INT64_MAX if integer else FLOAT32_MAX
-    numeric = isinstance(value, int | float) and not isinstance(value, bool)
+    numeric = is_number(value)
     # An int too large for a float (10**400) is compared as an int: math.isfinite would overflow.
     if (
         numeric

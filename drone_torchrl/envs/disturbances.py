@@ -50,7 +50,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from drone_torchrl.checks import as_override
+from drone_torchrl.checks import as_override, is_number
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, DroneParams, X, Z
 from drone_torchrl.training import rng
@@ -139,7 +139,7 @@ _LAYOUT = ("observed_actions", "gust_time")
 
 
 def _check(name: str, value: object, low: float, high: float, *, low_open: bool = False) -> None:
-    ok = not isinstance(value, bool) and isinstance(value, int | float)
+    ok = is_number(value)
     ok = ok and (isinstance(value, int) or math.isfinite(value))  # an int: isfinite overflows on 10**400
     ok = ok and (value > low if low_open else value >= low) and value <= high
     if not ok:

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from drone_torchrl.checks import ConfigError
+from drone_torchrl.checks import ConfigError, is_number
 from drone_torchrl.config import per_agent_keys, schema_keys
 
 # The population state's entry of each key PBT can search.
@@ -71,18 +71,18 @@ class PBTSettings:
         allowed.
         """
         every = params.get("every_updates", cls.every_updates)
-        if not (_number(every) and isinstance(every, int) and every >= 1):
+        if not (is_number(every) and isinstance(every, int) and every >= 1):
             raise ConfigError.of("hydra.launcher.every_updates", every, "an integer >= 1")
         quantile = params.get("quantile", cls.quantile)
-        if not (_number(quantile) and 0 < quantile <= MAX_QUANTILE):
+        if not (is_number(quantile) and 0 < quantile <= MAX_QUANTILE):
             raise ConfigError.of("hydra.launcher.quantile", quantile, f"a number in (0, {MAX_QUANTILE}]")
         perturb = params.get("perturb", cls.perturb)
-        if not (_list(perturb) and all(_number(f) and f > 0 for f in perturb)):
+        if not (_list(perturb) and all(is_number(f) and f > 0 for f in perturb)):
             raise ConfigError.of(
                 "hydra.launcher.perturb", perturb, "a non-empty list of factors > 0, e.g. [0.8,1.2]"
             )
         resample = params.get("resample_probability", cls.resample_probability)
-        if not (_number(resample) and 0 <= resample <= 1):
+        if not (is_number(resample) and 0 <= resample <= 1):
             raise ConfigError.of("hydra.launcher.resample_probability", resample, "a number in [0, 1]")
         keys = _searched_keys(params.get("keys", cls.keys), "PBT")
         return cls(
@@ -169,11 +169,6 @@ class Search:
     def checkpoint(self) -> dict[str, Any]:
         """What a checkpoint keeps of the search: its settings and the lineage."""
         return {"settings": self.settings.record(), "lineage": self.lineage}
-
-
-def _number(value: Any) -> bool:
-    """Whether ``value`` is an int or a float (not a bool)."""
-    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _list(value: Any) -> bool:
@@ -430,14 +425,14 @@ class HalvingSettings:
         rungs = params.get("rungs", cls.rungs)
         if not (
             _list(rungs)
-            and all(_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
+            and all(is_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
             and list(rungs) == sorted(set(rungs))
         ):
             raise ConfigError.of(
                 "hydra.launcher.rungs", rungs, "increasing update counts >= 1, e.g. [500,1500]"
             )
         fraction = params.get("fraction", cls.fraction)
-        if not (_number(fraction) and 0 < fraction < 1):
+        if not (is_number(fraction) and 0 < fraction < 1):
             raise ConfigError.of("hydra.launcher.fraction", fraction, "a number in (0, 1)")
         keys = _searched_keys(params.get("keys", cls.keys), "successive halving")
         return cls(tuple(int(r) for r in rungs), float(fraction), keys)
