@@ -383,31 +383,3 @@ def test_the_kernels_read_every_disturbance_constant_python_packs():
     packed = ops.disturbance_constants({"wind": 0.2, "action_delay": 3, "observed_actions": 2})
     assert dict(zip(ops.DISTURBANCE_CONSTANTS, packed.tolist(), strict=True))["action_delay"] == 3.0
     assert ops.observation_dim(packed) == 10 and ops.steps_back(packed) == (3, 2)
-    for hidden in ([], [7], [32, 32], [5, 9, 3]):
-        for in_dim in (6, 10):
-            assert ops.input_dim(ops.param_count(in_dim, hidden), hidden) == in_dim
-
-
-def test_the_fake_implementations_give_the_real_shapes_and_dtypes():
-    """What torch.compile traces (the ops' fake implementations) is what they return, observation
-    widths included.
-
-    Mutation caught (in ops.py): the fake segments outputs in another order than the real ones."""
-    d = disturbances.Disturbance(wind=0.1, action_delay=2, observed_actions=2)
-    flat = StackedThreeNet([ThreeNetPolicy((16, 16), "tanh", obs_dim=10)], "tanh").flat.detach()
-    env, dc = ops.env_constants(dynamics.DroneParams(max_thrust=1.0), None), ops.disturbance_constants(d)
-    n, steps, net = 5, 4, ([16, 16], 0, 1e-6)
-    carried = (torch.zeros(n, 6), torch.full((n,), -1), torch.zeros(n, dtype=torch.int64), torch.zeros(n),
-               torch.full((n, 2), 0.5), torch.full((n, 2, 2), 0.5), torch.zeros(n, 2, 2))  # fmt: skip
-    draws = (torch.randn(n, steps, 2), torch.zeros(n, steps, 6), torch.randint(0, 99, (n, steps)))
-    key_pairs = torch.tensor([[[1, 2], [1, 3]]])
-    calls = {
-        "segments": (flat[0], *carried, *draws, 7, env, dc, *net, 0.0),
-        "rollout": (flat, None, None, key_pairs, torch.ones(1, dtype=torch.bool), env, torch.ones(1), *net, 20,
-                    0.0, dc, None, True),
-        "reinforce": (flat, key_pairs, torch.ones(1, dtype=torch.bool), env, torch.ones(1), [1, 1, 0, 0], *net,
-                      20, 0.0, dc),
-    }  # fmt: skip
-    for name, args in calls.items():
-        op = getattr(torch.ops.drone_torchrl, name).default
-        torch.library.opcheck(op, args, test_utils=("test_schema", "test_faketensor"))

@@ -1,4 +1,4 @@
-"""C++ CPU kernels of the fast engine, as ``torch.library`` custom ops (see :mod:`.ops`)."""
+"""The fast engine's C++ kernels (CPU, and CUDA where built), called through :mod:`.ops`."""
 
 from drone_torchrl.kernels.build import library, unavailable_reason
 

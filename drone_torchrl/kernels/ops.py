@@ -1,4 +1,4 @@
-"""The C++ kernels as ``torch.library`` custom ops (CPU; rollout and reinforce also CUDA): the fast engine.
+"""The C++ kernels as PyTorch functions (CPU; rollout and reinforce also CUDA): the fast engine.
 
 - ``drone_torchrl::rollout``: whole episodes of many agents' stochastic (or deterministic) policies
   on the drone, each row until its episode ends: what :class:`~drone_torchrl.envs.drone_env.DroneEnv` and
@@ -13,8 +13,7 @@
 Each takes the drone (:func:`env_constants`) and its disturbances (:func:`disturbance_constants`,
 the physics of :mod:`drone_torchrl.envs.disturbances`: wind, gusts, mass, motor gains, lag, delay,
 observation noise, observed commands); the policy then sees ``6 + 2 * observed_actions`` values.
-Being ``torch.library`` ops, they have fake (meta) implementations and trace as single opaque
-nodes under ``torch.compile(fullgraph=True)``. Parameters are each agent's flat vector
+Parameters are each agent's flat vector
 (:attr:`StackedThreeNet.flat <drone_torchrl.modules.stacked.StackedThreeNet.flat>`).
 """
 
@@ -199,18 +198,6 @@ def param_count(in_dim: int, hidden: Sequence[int]) -> int:
     return layers + 2 * (dynamics.ACTION_DIM * widths[-1] + dynamics.ACTION_DIM)
 
 
-def input_dim(params: int, hidden: Sequence[int]) -> int:
-    """The input width of the network whose flat parameters have ``params`` values.
-
-    The inverse of :func:`param_count`; the fake implementations infer the observation's width from it.
-    """
-    if not hidden:
-        heads = 2 * dynamics.ACTION_DIM
-        return (params - heads) // heads
-    first = hidden[0]  # param_count(in, hidden) = in * first + first + what follows the first layer
-    return (params - first - param_count(first, hidden[1:])) // first
-
-
 def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.Tensor | None) -> int:
     """The policy's input width, which must be what it sees under ``disturbance``."""
     if disturbance is not None and tuple(disturbance.shape) != (len(DISTURBANCE_CONSTANTS),):
@@ -233,28 +220,8 @@ def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.T
 
 
 # ---------------------------------------------------------------------------------------- the ops
-# Defined with torch.library's low-level API: a call costs a third of what the
-# torch.library.custom_op decorator's checks cost, and each op is called once or twice per update.
-
-_LIB = torch.library.Library("drone_torchrl", "DEF")
-_LIB.define(
-    "rollout(Tensor params, Tensor? start, Tensor? noise, Tensor? rng, Tensor active, Tensor env, Tensor gamma, "
-    "int[] hidden, int activation, float min_std, int steps, float dist_eps=0.0, Tensor? disturbance=None, "
-    "Tensor? keys=None, bool observations=False) "
-    "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
-)
-_LIB.define(
-    "reinforce(Tensor params, Tensor rng, Tensor active, Tensor env, Tensor gamma, int[] options, int[] hidden, "
-    "int activation, float min_std, int steps, float dist_eps=0.0, Tensor? disturbance=None) "
-    "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor)"
-)
-_LIB.define(
-    "segments(Tensor params, Tensor state, Tensor t, Tensor key, Tensor gust, Tensor thrust, Tensor pending, "
-    "Tensor issued, Tensor noise, Tensor fresh, Tensor? fresh_keys, int max_steps, Tensor env, "
-    "Tensor? disturbance, int[] hidden, int activation, float min_std, float dist_eps=0.0) "
-    "-> (Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, "
-    "Tensor, Tensor)"
-)
+# Plain functions over the C interface: the package calls them eagerly (nothing traces them), so
+# they carry no torch.library registration.
 
 
 # The small inputs (constants, keys, flags) follow the parameters to their device.
@@ -264,279 +231,6 @@ def _f64(tensor: torch.Tensor | None, device: torch.device | None = None) -> tor
 
 def _i64(tensor: torch.Tensor | None, device: torch.device | None = None) -> torch.Tensor | None:
     return None if tensor is None else tensor.to(device=device, dtype=torch.int64).contiguous()
-
-
-def _rollout(
-    params: torch.Tensor,
-    start: torch.Tensor | None,
-    noise: torch.Tensor | None,
-    rng: torch.Tensor | None,
-    active: torch.Tensor,
-    env: torch.Tensor,
-    gamma: torch.Tensor,
-    hidden: Sequence[int],
-    activation: int,
-    min_std: float,
-    steps: int,
-    dist_eps: float = 0.0,
-    disturbance: torch.Tensor | None = None,
-    keys: torch.Tensor | None = None,
-    observations: bool = False,
-) -> tuple[torch.Tensor, ...]:
-    n, episodes = _rows(start, rng, active)
-    in_dim = _check_net(params, hidden, disturbance)
-    if keys is None and rng is None and not _nominal(disturbance):
-        raise ValueError("drone_torchrl::rollout under disturbances needs episode keys or rng keys")
-    dtype, device = params.dtype, params.device
-    states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=dtype, device=device)
-    action = torch.zeros(n, episodes, steps, dynamics.ACTION_DIM, dtype=dtype, device=device)
-    reward = torch.zeros(n, episodes, steps, dtype=dtype, device=device)
-    cause = torch.zeros(n, episodes, steps, dtype=torch.int64, device=device)
-    length = torch.zeros(n, episodes, dtype=torch.int64, device=device)
-    returns = torch.zeros(n, episodes, steps, dtype=dtype, device=device)
-    stats = torch.empty(n, episodes, STATS, dtype=torch.float64, device=device)
-    seen = params.new_zeros(n, episodes, steps, in_dim) if observations else params.new_zeros(0)
-    params = params.contiguous()
-    start = None if start is None else start.to(device=device, dtype=dtype).contiguous()
-    noise = None if noise is None else noise.to(device=device, dtype=dtype).contiguous()
-    active = active.to(device=device, dtype=torch.uint8).contiguous()
-    # Bound to names: a pointer is only valid while its tensor lives.
-    rng, keys, env, gamma = _i64(rng, device), _i64(keys, device), _f64(env, device), _f64(gamma, device)
-    disturbance = None if _nominal(disturbance) else _f64(disturbance, device)
-    lib, sizes = _lib(dtype, device), _sizes(hidden)
-    args = [_c64(in_dim), _c64(len(hidden)), sizes, _c64(activation), ctypes.c_double(min_std)]
-    args += [ctypes.c_double(dist_eps), _c64(n * episodes), _c64(episodes), _c64(steps)]
-    args += [_p(t) for t in (params, start, noise, rng, keys, active, env, disturbance, gamma)]
-    args += [_p(t) for t in (states, action, reward, cause, length, returns, stats)]
-    args += [_p(seen if observations else None)]
-    scratch = 0
-    if device.type == "cuda":
-        scratch = lib.dk_cuda_scratch_size(
-            args[0], args[1], sizes, _c64(n * episodes), _c64(0), args[7], args[8]
-        )
-    _launch(lib, "rollout", device, args, scratch)
-    return states, action, reward, cause, length, returns, stats, seen
-
-
-def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Tensor) -> tuple[int, int]:
-    """Agents and episodes per agent, ``(N, E)``, from ``start`` or ``rng``.
-
-    ``start`` is ``[N, E, 6]``; ``rng`` is ``[N, E, 2]``, only its shape is read for ``E`` (the
-    keys are per agent).
-    """
-    if start is not None:
-        return start.shape[0], start.shape[1]
-    if rng is None:
-        raise ValueError("drone_torchrl::rollout needs start states or rng keys")
-    return active.shape[0], rng.shape[1]
-
-
-def _rollout_fake(
-    params, start, noise, rng, active, env, gamma, hidden, activation, min_std, steps, dist_eps=0.0,
-    disturbance=None, keys=None, observations=False,
-):  # fmt: skip
-    n, episodes = _rows(start, rng, active)
-    new = params.new_empty
-    in_dim = input_dim(params.shape[-1], hidden)
-    return (
-        new(n, episodes, steps + 1, dynamics.STATE_DIM),
-        new(n, episodes, steps, dynamics.ACTION_DIM),
-        new(n, episodes, steps),
-        new(n, episodes, steps, dtype=torch.int64),
-        new(n, episodes, dtype=torch.int64),
-        new(n, episodes, steps),
-        new(n, episodes, STATS, dtype=torch.float64),
-        new(n, episodes, steps, in_dim) if observations else new(0),
-    )
-
-
-def _reinforce(
-    params: torch.Tensor,
-    rng: torch.Tensor,
-    active: torch.Tensor,
-    env: torch.Tensor,
-    gamma: torch.Tensor,
-    options: Sequence[int],
-    hidden: Sequence[int],
-    activation: int,
-    min_std: float,
-    steps: int,
-    dist_eps: float = 0.0,
-    disturbance: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, ...]:
-    n, episodes = rng.shape[:2]
-    in_dim = _check_net(params, hidden, disturbance)
-    dtype, device = params.dtype, params.device
-    # Each agent's episodes and gradient are its own: the kernel runs on AGENTS_PER_CALL agents at a
-    # time, so that its scratch (every step's rewards and what the backward pass reads) is that
-    # many agents' whatever the population's size.
-    chunk = max(1, min(n, AGENTS_PER_CALL))
-    reward = params.new_empty(chunk, episodes, steps)
-    returns = torch.empty_like(reward)
-    cause = params.new_empty(chunk, episodes, steps, dtype=torch.int64)
-    length = params.new_empty(n, episodes, dtype=torch.int64)
-    counts = params.new_empty(n, episodes, STATS, dtype=torch.float64)
-    lib = _lib(dtype, device)
-    sizes = _sizes(hidden)
-    net = (_c64(in_dim), _c64(len(hidden)), sizes)
-    saved = params.new_empty(lib.dk_saved_size(*net, _c64(chunk), _c64(episodes), _c64(steps)))
-    scratch = 0
-    if device.type == "cuda":
-        scratch = lib.dk_cuda_scratch_size(
-            *net, _c64(chunk * episodes), _c64(chunk), _c64(episodes), _c64(steps)
-        )
-    grad = torch.empty_like(params)
-    loss = params.new_empty(n, dtype=torch.float64)
-    std_mean = torch.empty_like(loss)
-    actions_finite = params.new_empty(n, dtype=torch.bool)
-    active = active.to(device=device, dtype=torch.uint8).contiguous()
-    flags = torch.tensor(list(options), dtype=torch.int64)  # read on the host
-    params, rng, env, gamma = params.contiguous(), _i64(rng, device), _f64(env, device), _f64(gamma, device)
-    disturbance = None if _nominal(disturbance) else _f64(disturbance, device)
-    for first in range(0, n, chunk):
-        rows = slice(first, min(n, first + chunk))
-        args = [*net, _c64(activation), ctypes.c_double(min_std), ctypes.c_double(dist_eps)]
-        args += [_c64(rows.stop - rows.start), _c64(episodes), _c64(steps)]
-        args += [_p(t) for t in (params[rows], rng[rows], active[rows], env, disturbance, gamma[rows], flags)]
-        args += [_p(t) for t in (reward, cause, length[rows], returns, counts[rows])]
-        args += [_p(t) for t in (saved, grad[rows], loss[rows], std_mean[rows], actions_finite[rows])]
-        _launch(lib, "reinforce", device, args, scratch)
-    return grad, loss, std_mean, actions_finite, length, counts
-
-
-def _reinforce_fake(
-    params,
-    rng,
-    active,
-    env,
-    gamma,
-    options,
-    hidden,
-    activation,
-    min_std,
-    steps,
-    dist_eps=0.0,
-    disturbance=None,
-):
-    n, episodes = rng.shape[:2]
-    scalar = params.new_empty(n, dtype=torch.float64)
-    return (
-        torch.empty_like(params),
-        scalar,
-        torch.empty_like(scalar),
-        params.new_empty(n, dtype=torch.bool),
-        params.new_empty(n, episodes, dtype=torch.int64),
-        params.new_empty(n, episodes, STATS, dtype=torch.float64),
-    )
-
-
-def _segment_shapes(
-    state: torch.Tensor, noise: torch.Tensor, disturbance: torch.Tensor | None, in_dim: int
-) -> dict[str, tuple[int, ...]]:
-    n, steps = noise.shape[:2]
-    delay, observed = steps_back(disturbance)
-    a, s = dynamics.ACTION_DIM, dynamics.STATE_DIM
-    return {
-        "state": (n, s), "t": (n,), "key": (n,), "gust": (n,), "thrust": (n, a), "pending": (n, delay, a),
-        "issued": (n, observed, a), "noise": (n, steps, a), "fresh": (n, steps, s), "fresh_keys": (n, steps),
-        "obs": (n, steps, in_dim), "action": (n, steps, a), "step": (n, steps),
-    }  # fmt: skip
-
-
-def _segments(
-    params: torch.Tensor,
-    state: torch.Tensor,
-    t: torch.Tensor,
-    key: torch.Tensor,
-    gust: torch.Tensor,
-    thrust: torch.Tensor,
-    pending: torch.Tensor,
-    issued: torch.Tensor,
-    noise: torch.Tensor,
-    fresh: torch.Tensor,
-    fresh_keys: torch.Tensor | None,
-    max_steps: int,
-    env: torch.Tensor,
-    disturbance: torch.Tensor | None,
-    hidden: Sequence[int],
-    activation: int,
-    min_std: float,
-    dist_eps: float = 0.0,
-) -> tuple[torch.Tensor, ...]:
-    in_dim = _check_net(params, hidden, disturbance)
-    shapes = _segment_shapes(state, noise, disturbance, in_dim)
-    given = {"state": state, "t": t, "key": key, "gust": gust, "thrust": thrust, "pending": pending}
-    given |= {"issued": issued, "fresh": fresh, "fresh_keys": fresh_keys}
-    for name, tensor in given.items():
-        if tensor is not None and tuple(tensor.shape) != shapes[name]:
-            raise ValueError(
-                f"drone_torchrl::segments: {name} of shape {list(tensor.shape)}; expected {list(shapes[name])}"
-            )
-    nominal = _nominal(disturbance)
-    if fresh_keys is None and not nominal:
-        raise ValueError("drone_torchrl::segments under disturbances needs fresh_keys")
-    dtype = params.dtype
-    n, steps = shapes["step"]
-    obs = torch.empty(shapes["obs"], dtype=dtype)
-    next_obs = torch.empty_like(obs)
-    action = torch.empty(shapes["action"], dtype=dtype)
-    reward = torch.empty(n, steps, dtype=dtype)
-    cause = torch.empty(n, steps, dtype=torch.int64)
-    terminated = torch.empty(n, steps, dtype=torch.bool)
-    truncated = torch.empty_like(terminated)
-    step_count = torch.empty_like(cause)
-    carried = [torch.empty(shapes[k], dtype=dtype) for k in ("state",)]
-    carried += [torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)]
-    carried += [torch.empty(shapes[k], dtype=dtype) for k in ("gust", "thrust", "pending", "issued")]
-    # Bound to names: a pointer is only valid while its tensor lives.
-    state, gust, thrust, pending, issued, noise, fresh = (
-        x.to(dtype).contiguous() for x in (state, gust, thrust, pending, issued, noise, fresh)
-    )
-    params, t, key, fresh_keys, env = params.contiguous(), _i64(t), _i64(key), _i64(fresh_keys), _f64(env)
-    disturbance = None if nominal else _f64(disturbance)
-    _lib(dtype).dk_segments(
-        _c64(torch.get_num_threads()),
-        _c64(in_dim),
-        _c64(len(hidden)),
-        _sizes(hidden),
-        _c64(activation),
-        ctypes.c_double(min_std),
-        ctypes.c_double(dist_eps),
-        _c64(n),
-        _c64(steps),
-        _c64(max_steps),
-        *(_p(x) for x in (params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys)),
-        _p(env),
-        _p(disturbance),
-        *(_p(x) for x in (obs, action, reward, next_obs, cause, terminated, truncated, step_count, *carried)),
-    )
-    return obs, action, reward, next_obs, cause, terminated, truncated, step_count, *carried
-
-
-def _segments_fake(
-    params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys, max_steps, env,
-    disturbance, hidden, activation, min_std, dist_eps=0.0,
-):  # fmt: skip
-    n, steps = noise.shape[:2]
-    real = params.new_empty
-    obs = real(n, steps, input_dim(params.shape[-1], hidden))
-    flags = real(n, steps, dtype=torch.bool)
-    counts = real(n, steps, dtype=torch.int64)
-    return (
-        obs, real(n, steps, dynamics.ACTION_DIM), real(n, steps), torch.empty_like(obs), torch.empty_like(counts),
-        flags, torch.empty_like(flags), counts, real(state.shape), real(n, dtype=torch.int64),
-        real(n, dtype=torch.int64), real(gust.shape), real(thrust.shape), real(pending.shape), real(issued.shape),
-    )  # fmt: skip
-
-
-_LIB.impl("rollout", _rollout, "CPU")
-_LIB.impl("reinforce", _reinforce, "CPU")
-_LIB.impl("rollout", _rollout, "CUDA")
-_LIB.impl("reinforce", _reinforce, "CUDA")
-_LIB.impl("segments", _segments, "CPU")
-torch.library.register_fake("drone_torchrl::rollout", _rollout_fake, lib=_LIB)
-torch.library.register_fake("drone_torchrl::reinforce", _reinforce_fake, lib=_LIB)
-torch.library.register_fake("drone_torchrl::segments", _segments_fake, lib=_LIB)
 
 
 def rollout(
@@ -590,10 +284,52 @@ def rollout(
     saw before each step ``[N, E, steps, observation_dim]`` (else an empty tensor); entries after
     an episode's end hold zeros.
     """
-    return torch.ops.drone_torchrl.rollout(
-        params, start, noise, rng, active, env, gamma, list(hidden), activation, min_std, steps, dist_eps,
-        disturbance, keys, observations,
-    )  # fmt: skip
+    n, episodes = _rows(start, rng, active)
+    in_dim = _check_net(params, hidden, disturbance)
+    if keys is None and rng is None and not _nominal(disturbance):
+        raise ValueError("drone_torchrl::rollout under disturbances needs episode keys or rng keys")
+    dtype, device = params.dtype, params.device
+    states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=dtype, device=device)
+    action = torch.zeros(n, episodes, steps, dynamics.ACTION_DIM, dtype=dtype, device=device)
+    reward = torch.zeros(n, episodes, steps, dtype=dtype, device=device)
+    cause = torch.zeros(n, episodes, steps, dtype=torch.int64, device=device)
+    length = torch.zeros(n, episodes, dtype=torch.int64, device=device)
+    returns = torch.zeros(n, episodes, steps, dtype=dtype, device=device)
+    stats = torch.empty(n, episodes, STATS, dtype=torch.float64, device=device)
+    seen = params.new_zeros(n, episodes, steps, in_dim) if observations else params.new_zeros(0)
+    params = params.contiguous()
+    start = None if start is None else start.to(device=device, dtype=dtype).contiguous()
+    noise = None if noise is None else noise.to(device=device, dtype=dtype).contiguous()
+    active = active.to(device=device, dtype=torch.uint8).contiguous()
+    # Bound to names: a pointer is only valid while its tensor lives.
+    rng, keys, env, gamma = _i64(rng, device), _i64(keys, device), _f64(env, device), _f64(gamma, device)
+    disturbance = None if _nominal(disturbance) else _f64(disturbance, device)
+    lib, sizes = _lib(dtype, device), _sizes(hidden)
+    args = [_c64(in_dim), _c64(len(hidden)), sizes, _c64(activation), ctypes.c_double(min_std)]
+    args += [ctypes.c_double(dist_eps), _c64(n * episodes), _c64(episodes), _c64(steps)]
+    args += [_p(t) for t in (params, start, noise, rng, keys, active, env, disturbance, gamma)]
+    args += [_p(t) for t in (states, action, reward, cause, length, returns, stats)]
+    args += [_p(seen if observations else None)]
+    scratch = 0
+    if device.type == "cuda":
+        scratch = lib.dk_cuda_scratch_size(
+            args[0], args[1], sizes, _c64(n * episodes), _c64(0), args[7], args[8]
+        )
+    _launch(lib, "rollout", device, args, scratch)
+    return states, action, reward, cause, length, returns, stats, seen
+
+
+def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Tensor) -> tuple[int, int]:
+    """Agents and episodes per agent, ``(N, E)``, from ``start`` or ``rng``.
+
+    ``start`` is ``[N, E, 6]``; ``rng`` is ``[N, E, 2]``, only its shape is read for ``E`` (the
+    keys are per agent).
+    """
+    if start is not None:
+        return start.shape[0], start.shape[1]
+    if rng is None:
+        raise ValueError("drone_torchrl::rollout needs start states or rng keys")
+    return active.shape[0], rng.shape[1]
 
 
 #: The loss options ``drone_torchrl::reinforce`` takes in its order (``LossOptions`` in drone_kernels.cpp).
@@ -627,10 +363,57 @@ def reinforce(
     the valid steps and motors), ``actions_finite [N]`` (bool), ``length [N, E]`` and
     ``counts [N, E, 4]`` (:data:`STAT_NAMES`).
     """
-    return torch.ops.drone_torchrl.reinforce(
-        params, rng, active, env, gamma, list(options), list(hidden), activation, min_std, steps, dist_eps,
-        disturbance,
-    )  # fmt: skip
+    n, episodes = rng.shape[:2]
+    in_dim = _check_net(params, hidden, disturbance)
+    dtype, device = params.dtype, params.device
+    # Each agent's episodes and gradient are its own: the kernel runs on AGENTS_PER_CALL agents at a
+    # time, so that its scratch (every step's rewards and what the backward pass reads) is that
+    # many agents' whatever the population's size.
+    chunk = max(1, min(n, AGENTS_PER_CALL))
+    reward = params.new_empty(chunk, episodes, steps)
+    returns = torch.empty_like(reward)
+    cause = params.new_empty(chunk, episodes, steps, dtype=torch.int64)
+    length = params.new_empty(n, episodes, dtype=torch.int64)
+    counts = params.new_empty(n, episodes, STATS, dtype=torch.float64)
+    lib = _lib(dtype, device)
+    sizes = _sizes(hidden)
+    net = (_c64(in_dim), _c64(len(hidden)), sizes)
+    saved = params.new_empty(lib.dk_saved_size(*net, _c64(chunk), _c64(episodes), _c64(steps)))
+    scratch = 0
+    if device.type == "cuda":
+        scratch = lib.dk_cuda_scratch_size(
+            *net, _c64(chunk * episodes), _c64(chunk), _c64(episodes), _c64(steps)
+        )
+    grad = torch.empty_like(params)
+    loss = params.new_empty(n, dtype=torch.float64)
+    std_mean = torch.empty_like(loss)
+    actions_finite = params.new_empty(n, dtype=torch.bool)
+    active = active.to(device=device, dtype=torch.uint8).contiguous()
+    flags = torch.tensor(list(options), dtype=torch.int64)  # read on the host
+    params, rng, env, gamma = params.contiguous(), _i64(rng, device), _f64(env, device), _f64(gamma, device)
+    disturbance = None if _nominal(disturbance) else _f64(disturbance, device)
+    for first in range(0, n, chunk):
+        rows = slice(first, min(n, first + chunk))
+        args = [*net, _c64(activation), ctypes.c_double(min_std), ctypes.c_double(dist_eps)]
+        args += [_c64(rows.stop - rows.start), _c64(episodes), _c64(steps)]
+        args += [_p(t) for t in (params[rows], rng[rows], active[rows], env, disturbance, gamma[rows], flags)]
+        args += [_p(t) for t in (reward, cause, length[rows], returns, counts[rows])]
+        args += [_p(t) for t in (saved, grad[rows], loss[rows], std_mean[rows], actions_finite[rows])]
+        _launch(lib, "reinforce", device, args, scratch)
+    return grad, loss, std_mean, actions_finite, length, counts
+
+
+def _segment_shapes(
+    state: torch.Tensor, noise: torch.Tensor, disturbance: torch.Tensor | None, in_dim: int
+) -> dict[str, tuple[int, ...]]:
+    n, steps = noise.shape[:2]
+    delay, observed = steps_back(disturbance)
+    a, s = dynamics.ACTION_DIM, dynamics.STATE_DIM
+    return {
+        "state": (n, s), "t": (n,), "key": (n,), "gust": (n,), "thrust": (n, a), "pending": (n, delay, a),
+        "issued": (n, observed, a), "noise": (n, steps, a), "fresh": (n, steps, s), "fresh_keys": (n, steps),
+        "obs": (n, steps, in_dim), "action": (n, steps, a), "step": (n, steps),
+    }  # fmt: skip
 
 
 def segments(
@@ -691,7 +474,53 @@ def segments(
     the step count before the step (int64); then the carried state after the last step, as the
     inputs lay it out (``t = -1`` where the last step ended the episode).
     """
-    return torch.ops.drone_torchrl.segments(
-        params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys, max_steps, env,
-        disturbance, list(hidden), activation, min_std, dist_eps,
-    )  # fmt: skip
+    if params.device.type != "cpu":
+        raise ValueError(f"drone_torchrl::segments runs on the CPU only; params are on {params.device}")
+    in_dim = _check_net(params, hidden, disturbance)
+    shapes = _segment_shapes(state, noise, disturbance, in_dim)
+    given = {"state": state, "t": t, "key": key, "gust": gust, "thrust": thrust, "pending": pending}
+    given |= {"issued": issued, "fresh": fresh, "fresh_keys": fresh_keys}
+    for name, tensor in given.items():
+        if tensor is not None and tuple(tensor.shape) != shapes[name]:
+            raise ValueError(
+                f"drone_torchrl::segments: {name} of shape {list(tensor.shape)}; expected {list(shapes[name])}"
+            )
+    nominal = _nominal(disturbance)
+    if fresh_keys is None and not nominal:
+        raise ValueError("drone_torchrl::segments under disturbances needs fresh_keys")
+    dtype = params.dtype
+    n, steps = shapes["step"]
+    obs = torch.empty(shapes["obs"], dtype=dtype)
+    next_obs = torch.empty_like(obs)
+    action = torch.empty(shapes["action"], dtype=dtype)
+    reward = torch.empty(n, steps, dtype=dtype)
+    cause = torch.empty(n, steps, dtype=torch.int64)
+    terminated = torch.empty(n, steps, dtype=torch.bool)
+    truncated = torch.empty_like(terminated)
+    step_count = torch.empty_like(cause)
+    carried = [torch.empty(shapes[k], dtype=dtype) for k in ("state",)]
+    carried += [torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)]
+    carried += [torch.empty(shapes[k], dtype=dtype) for k in ("gust", "thrust", "pending", "issued")]
+    # Bound to names: a pointer is only valid while its tensor lives.
+    state, gust, thrust, pending, issued, noise, fresh = (
+        x.to(dtype).contiguous() for x in (state, gust, thrust, pending, issued, noise, fresh)
+    )
+    params, t, key, fresh_keys, env = params.contiguous(), _i64(t), _i64(key), _i64(fresh_keys), _f64(env)
+    disturbance = None if nominal else _f64(disturbance)
+    _lib(dtype).dk_segments(
+        _c64(torch.get_num_threads()),
+        _c64(in_dim),
+        _c64(len(hidden)),
+        _sizes(hidden),
+        _c64(activation),
+        ctypes.c_double(min_std),
+        ctypes.c_double(dist_eps),
+        _c64(n),
+        _c64(steps),
+        _c64(max_steps),
+        *(_p(x) for x in (params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys)),
+        _p(env),
+        _p(disturbance),
+        *(_p(x) for x in (obs, action, reward, next_obs, cause, terminated, truncated, step_count, *carried)),
+    )
+    return obs, action, reward, next_obs, cause, terminated, truncated, step_count, *carried
