@@ -1,7 +1,7 @@
 // The fast engine: whole-episode rollouts of many agents' three-net policies on the drone's
 // dynamics (disturbances, sampling included), one REINFORCE update's loss gradient through them,
 // and PPO/A2C's auto-resetting segments. Built and loaded by drone_torchrl/kernels/build.py and
-// exposed as torch.library ops by drone_torchrl/kernels/ops.py; the PyTorch code they replace
+// called from PyTorch through drone_torchrl/kernels/ops.py; the PyTorch code they replace
 // (envs/dynamics.py, envs/disturbances.py, modules/stacked.py, training/rng.py,
 // objectives/reinforce.py, envs/drone_env.py) stays the reference they are tested against.
 //
