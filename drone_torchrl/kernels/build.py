@@ -14,7 +14,7 @@ build can crash on another CPU). It is written to a temporary file and renamed i
 concurrent first runs never load a half-written file.
 
 Where no compiler works, :func:`library` returns None and :func:`unavailable_reason` says why;
-the engine then runs its PyTorch path.
+``backend=fast`` is then refused in one line (:func:`~drone_torchrl.kernels.coverage.fast_refusal`).
 
 :func:`scalar_check` compiles the source once more, syntax only (under a second), with
 ``-DDK_SCALAR_CHECK``: the single-source functions with one drone per thread (``V = float``,
@@ -98,27 +98,36 @@ def _version(compiler: str) -> str:
     return out.stdout.splitlines()[0] if out.stdout else compiler
 
 
+def _compile(cmd: list[str], target: Path) -> str | None:
+    """Run ``cmd -o <temporary file>`` and rename the file into ``target``: None, or why it failed."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so.tmp", dir=target.parent)
+    os.close(fd)
+    try:
+        out = subprocess.run([*cmd, "-o", tmp], capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
+        if out.returncode != 0:
+            return f"{cmd[0]} failed: {_complaint(out)}"
+        os.replace(tmp, target)
+        return None
+    except (OSError, subprocess.SubprocessError) as err:
+        return f"{cmd[0]} failed: {err}"
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def _complaint(out: subprocess.CompletedProcess) -> str:
+    """A failed compiler's first error line (else its first line, else its exit status)."""
+    errors = [line for line in out.stderr.splitlines() if "error" in line]
+    return (errors or out.stderr.strip().splitlines() or [f"exit {out.returncode}"])[0]
+
+
 def _build(compiler: str, target: Path, precision: tuple[str, ...]) -> str | None:
     """Compile into ``target``; returns None, or why it failed."""
-    target.parent.mkdir(parents=True, exist_ok=True)
-    errors = []
     for arch in (ARCH_FLAGS, ()):  # some compilers (Apple clang on arm64) refuse -march=native
-        fd, tmp = tempfile.mkstemp(suffix=".so.tmp", dir=target.parent)
-        os.close(fd)
-        cmd = [compiler, *BASE_FLAGS, *precision, *arch, str(SOURCE), "-o", tmp]
-        try:
-            out = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
-            if out.returncode == 0:
-                os.replace(tmp, target)
-                return None
-            errors.append(
-                out.stderr.strip().splitlines()[-1] if out.stderr.strip() else f"exit {out.returncode}"
-            )
-        except (OSError, subprocess.TimeoutExpired) as err:
-            errors.append(str(err))
-        finally:
-            Path(tmp).unlink(missing_ok=True)
-    return f"{compiler} failed: {errors[-1]}"
+        why = _compile([compiler, *BASE_FLAGS, *precision, *arch, str(SOURCE)], target)
+        if why is None:
+            break
+    return why
 
 
 def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
@@ -183,21 +192,7 @@ def build_cuda(target: Path, double: bool = False) -> str | None:
     compiler = nvcc()
     if compiler is None:
         return "no nvcc found (set NVCC, install the CUDA toolkit, or pip install 'drone_torchrl[cuda]')"
-    target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".so.tmp", dir=target.parent)
-    os.close(fd)
-    cmd = [compiler, *CUDA_FLAGS, f"-DDK_DOUBLE={int(double)}", str(SOURCE), "-o", tmp]
-    try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
-        if out.returncode != 0:
-            errors = [line for line in out.stderr.splitlines() if "error" in line]
-            return f"{compiler} failed: {(errors or out.stderr.strip().splitlines() or [out.returncode])[0]}"
-        os.replace(tmp, target)
-        return None
-    except (OSError, subprocess.SubprocessError) as err:
-        return f"{compiler} failed: {err}"
-    finally:
-        Path(tmp).unlink(missing_ok=True)
+    return _compile([compiler, *CUDA_FLAGS, f"-DDK_DOUBLE={int(double)}", str(SOURCE)], target)
 
 
 def cuda_library(double: bool = False) -> ctypes.CDLL | None:
@@ -246,7 +241,4 @@ def scalar_check() -> str | None:
     out = subprocess.run(
         [compiler, *SCALAR_CHECK_FLAGS, str(SOURCE)], capture_output=True, text=True, timeout=BUILD_TIMEOUT_S
     )
-    if out.returncode == 0:
-        return None
-    errors = [line for line in out.stderr.splitlines() if "error" in line]
-    return (errors or out.stderr.strip().splitlines() or [f"exit {out.returncode}"])[0]
+    return None if out.returncode == 0 else _complaint(out)
