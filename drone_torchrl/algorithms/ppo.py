@@ -367,7 +367,7 @@ class OnPolicy:
         return entries
 
     def close(self) -> None:
-        """Shut the collector down (the fused engine has none)."""
+        """Shut the collector down (the fast engine's batches need none)."""
         if not self.fused:
             self.collector.shutdown()
 

@@ -2,7 +2,7 @@
 
 - ``slurm``: one SLURM job per sweep job (Hydra's submitit launcher, see below).
 - ``slurm_population``: the sweep cut into populations of ``agents_per_job`` jobs, one SLURM job each, which
-  trains its jobs as one population with the fused engine (:func:`~.fused_launcher.train_populations`, as
+  trains its jobs as one population with the fast engine (:func:`~.fused_launcher.train_populations`, as
   ``hydra/launcher=fused`` does on one machine; on the node's GPU with ``device=cuda``). A 256-agent landscape
   is then 8 cluster jobs of 32 agents instead of 256 jobs of a few seconds of work each. Every job folder is
   the one it would have alone. Jobs that share a folder (``seed=0,0``, or values of keys left out of folder
@@ -139,7 +139,7 @@ if _SubmititSlurm is not None:
             return JobReturn(overrides=overrides, status=JobStatus.FAILED, _return_value=error)
 
     class SlurmPopulationLauncher(SlurmLauncher):
-        """One SLURM job per population of ``agents_per_job`` sweep jobs, trained by the fused engine."""
+        """One SLURM job per population of ``agents_per_job`` sweep jobs, trained by the fast engine."""
 
         def __init__(self, **params) -> None:
             super().__init__(**params)
