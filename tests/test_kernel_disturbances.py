@@ -84,7 +84,7 @@ def _close(a: torch.Tensor, b: torch.Tensor, msg: str = "") -> None:
 
 @pytest.mark.parametrize(("condition", "head", "dtype"), CASES)
 def test_every_disturbed_step_equals_the_reference(condition, head, dtype):
-    """Each flown step of ``drone_torchrl::rollout`` with given start states, noise and episode keys:
+    """Each flown step of ``ops.rollout`` with given start states, noise and episode keys:
     the observation is ``disturbances.observe``'s, the action the stacked net's sample at it, and
     the next state, reward and cause ``disturbances.step``'s (``dynamics.step``'s for the nominal
     drone) from the kernel's state and action (teacher forcing: chaos cannot hide a difference; the
@@ -197,7 +197,7 @@ def _reference_loss(stacked, head, episodes: Episodes, gamma, d):
 
 @pytest.mark.parametrize(("condition", "head", "dtype"), CASES)
 def test_disturbed_update_equals_reinforce_loss(condition, head, dtype):
-    """``drone_torchrl::reinforce`` under disturbances (start states, noise and episode keys drawn
+    """``ops.reinforce`` under disturbances (start states, noise and episode keys drawn
     from the agents' RNG keys): its episodes are ``KernelRollout``'s with the same keys, and its
     loss and gradient ReinforceLoss's with autograd, through the observations the policy saw: the
     gradient to 2e-5 relative; the loss to 1e-5 relative in float64, and in float32 to 1e-5 of its
@@ -357,7 +357,7 @@ BAD = {"wind": 0.1}  # a disturbed drone (its keys are needed)
             True,
             r"^params of 484 values do not fit the policy of 6 inputs and hidden sizes \[16, 16\]",
         ),
-        (6, BAD, False, r"^drone_torchrl::rollout under disturbances needs episode keys or rng keys$"),
+        (6, BAD, False, r"^ops.rollout under disturbances needs episode keys or rng keys$"),
         (6, "short", True, r"^disturbance of shape \[9\]; expected \[10\] \(ops.disturbance_constants\)$"),
         (6, "long delay", True, r"^action_delay and observed_actions \(26, 0\) are not allowed; expected"),
     ],

@@ -6,7 +6,7 @@ trained as one population, with either engine.
 The update itself, the population engine's, is :class:`~drone_torchrl.training.update.ReinforceUpdate`;
 its loss, in Python, is :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` (the arithmetic in
 :func:`~drone_torchrl.objectives.reinforce.reinforce_terms`), and the fast engine's loss and gradient
-are one call of :class:`~drone_torchrl.kernels.modules.KernelReinforce` (the C++ op ``drone_torchrl::reinforce``).
+are one call of :class:`~drone_torchrl.kernels.modules.KernelReinforce` (the C++ engine's ``ops.reinforce``).
 """
 
 from __future__ import annotations

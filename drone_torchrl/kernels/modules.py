@@ -1,10 +1,10 @@
 """The kernels behind the interfaces the rest of the package uses.
 
-- :class:`KernelReinforce`: one REINFORCE update's gradient through ``drone_torchrl::reinforce``.
-- :class:`KernelRollout`: whole episodes through ``drone_torchrl::rollout``, as
+- :class:`KernelReinforce`: one REINFORCE update's gradient through ``ops.reinforce``.
+- :class:`KernelRollout`: whole episodes through ``ops.rollout``, as
   :class:`~drone_torchrl.envs.rollout.Episodes` (what :func:`~drone_torchrl.envs.rollout.fly_reference`
   returns for the PyTorch code).
-- :class:`KernelSegments`: PPO/A2C's auto-resetting batches through ``drone_torchrl::segments``,
+- :class:`KernelSegments`: PPO/A2C's auto-resetting batches through ``ops.segments``,
   the drones' state carried from call to call.
 
 Each flies the drone with the env's disturbances (:mod:`drone_torchrl.envs.disturbances`).
@@ -79,7 +79,7 @@ class KernelRollout:
 
         Each agent's episodes from ``start`` (``[N, E, 6]``) with ``noise`` (``[N, E, max_steps, 2]``;
         None: the deterministic action), or with start states and noise drawn from ``rng``
-        (``[N, E, 2]``: seed and update counter, see ``drone_torchrl::rollout``). ``keys``: ``[N, E]``
+        (``[N, E, 2]``: seed and update counter, see ``ops.rollout``). ``keys``: ``[N, E]``
         the episodes' disturbance keys (None: drawn from ``rng``). ``active``: ``[N]`` bool (default:
         all). Returns ``[N, E, T]`` episodes, ``T`` the longest; inactive agents' rows are empty.
         Under disturbances their ``observation`` is what the policy saw.
@@ -106,7 +106,7 @@ class KernelRollout:
 
 
 class KernelReinforce:
-    """One REINFORCE update's gradient of every agent by the C++ kernel (``drone_torchrl::reinforce``).
+    """One REINFORCE update's gradient of every agent by the C++ kernel (``ops.reinforce``).
 
     Args:
         rollout: the agents' :class:`KernelRollout` (network, drone, disturbances, episode limit).
@@ -155,7 +155,7 @@ class Segment(NamedTuple):
 class Carried(NamedTuple):
     """What each drone carries from one call to the next.
 
-    See ``drone_torchrl::segments``. ``t = -1`` where a new episode starts at the next call's first step.
+    See ``ops.segments``. ``t = -1`` where a new episode starts at the next call's first step.
     """
 
     state: torch.Tensor
@@ -170,7 +170,7 @@ class Carried(NamedTuple):
 class KernelSegments:
     """``n`` drones of one agent flown by the C++ kernel with auto-reset, ``steps`` steps a call.
 
-    The op is ``drone_torchrl::segments``; it matches TorchRL's collector over a batched
+    The function is ``ops.segments``; it matches TorchRL's collector over a batched
     :class:`~drone_torchrl.envs.drone_env.DroneEnv`, given the same draws.
 
     Args:

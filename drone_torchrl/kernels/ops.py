@@ -1,12 +1,12 @@
 """The C++ kernels as PyTorch functions (CPU; rollout and reinforce also CUDA): the fast engine.
 
-- ``drone_torchrl::rollout``: whole episodes of many agents' stochastic (or deterministic) policies
+- ``ops.rollout``: whole episodes of many agents' stochastic (or deterministic) policies
   on the drone, each row until its episode ends: what :class:`~drone_torchrl.envs.drone_env.DroneEnv` and
   :class:`~drone_torchrl.modules.stacked.StackedThreeNet` compute, in one call.
-- ``drone_torchrl::reinforce``: one REINFORCE update's episodes (the rollout above) and each
+- ``ops.reinforce``: one REINFORCE update's episodes (the rollout above) and each
   agent's loss and gradient, the arithmetic of :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss`
   (tested against it), back-propagated through the hidden outputs the rollout kept.
-- ``drone_torchrl::segments``: PPO/A2C's batches, ``n`` drones of one agent flown a number of
+- ``ops.segments``: PPO/A2C's batches, ``n`` drones of one agent flown a number of
   steps with auto-reset and their state carried across calls: what TorchRL's collector gives over
   :class:`~drone_torchrl.envs.drone_env.DroneEnv` (tested against it).
 
@@ -77,7 +77,7 @@ def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, s
     stream = _ptr(torch.cuda.current_stream(device).cuda_stream)
     code = getattr(lib, f"dk_cuda_{function}")(stream, *args, _p(memory))
     if code != 0:
-        raise RuntimeError(f"drone_torchrl::{function} on {device}: {lib.dk_cuda_error(_c64(code)).decode()}")
+        raise RuntimeError(f"ops.{function} on {device}: {lib.dk_cuda_error(_c64(code)).decode()}")
 
 
 #: The drone's constants in the kernels' order (``EnvConst`` in drone_kernels.cpp).
@@ -250,7 +250,7 @@ def rollout(
     keys: torch.Tensor | None = None,
     observations: bool = False,
 ) -> tuple[torch.Tensor, ...]:
-    """``drone_torchrl::rollout``: fly every active agent's ``E`` episodes until each ends or ``steps`` pass.
+    """Fly every active agent's ``E`` episodes until each ends or ``steps`` pass.
 
     Args:
         params: ``[N, P]`` flat parameters (a policy of :func:`observation_dim` inputs).
@@ -287,7 +287,7 @@ def rollout(
     n, episodes = _rows(start, rng, active)
     in_dim = _check_net(params, hidden, disturbance)
     if keys is None and rng is None and not _nominal(disturbance):
-        raise ValueError("drone_torchrl::rollout under disturbances needs episode keys or rng keys")
+        raise ValueError("ops.rollout under disturbances needs episode keys or rng keys")
     dtype, device = params.dtype, params.device
     states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=dtype, device=device)
     action = torch.zeros(n, episodes, steps, dynamics.ACTION_DIM, dtype=dtype, device=device)
@@ -328,11 +328,11 @@ def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Te
     if start is not None:
         return start.shape[0], start.shape[1]
     if rng is None:
-        raise ValueError("drone_torchrl::rollout needs start states or rng keys")
+        raise ValueError("ops.rollout needs start states or rng keys")
     return active.shape[0], rng.shape[1]
 
 
-#: The loss options ``drone_torchrl::reinforce`` takes in its order (``LossOptions`` in drone_kernels.cpp).
+#: The loss options ``ops.reinforce`` takes in its order (``LossOptions`` in drone_kernels.cpp).
 LOSS_OPTIONS = ("baseline_mean", "normalize_returns", "discount_weight", "mean_log_prob")
 
 
@@ -350,7 +350,7 @@ def reinforce(
     dist_eps: float = 0.0,
     disturbance: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, ...]:
-    """``drone_torchrl::reinforce``: one REINFORCE update's episodes and gradient for every active agent.
+    """One REINFORCE update's episodes and gradient for every active agent, by the C++ engine.
 
     The episodes of :func:`rollout` with ``rng`` (``[N, E, 2]``: each agent's seed and update
     counter) and ``disturbance``, then each agent's loss, the ``loss_per_agent`` of
@@ -436,7 +436,7 @@ def segments(
     min_std: float,
     dist_eps: float = 0.0,
 ) -> tuple[torch.Tensor, ...]:
-    """``drone_torchrl::segments``: ``n`` drones of one agent flown ``steps`` steps with auto-reset.
+    """Fly ``n`` drones of one agent ``steps`` steps with auto-reset.
 
     What TorchRL's collector gives over a batched :class:`~drone_torchrl.envs.drone_env.DroneEnv` (``done =
     terminated | truncated``, a new episode as soon as one ends), given the same draws.
@@ -475,7 +475,7 @@ def segments(
     inputs lay it out (``t = -1`` where the last step ended the episode).
     """
     if params.device.type != "cpu":
-        raise ValueError(f"drone_torchrl::segments runs on the CPU only; params are on {params.device}")
+        raise ValueError(f"ops.segments runs on the CPU only; params are on {params.device}")
     in_dim = _check_net(params, hidden, disturbance)
     shapes = _segment_shapes(state, noise, disturbance, in_dim)
     given = {"state": state, "t": t, "key": key, "gust": gust, "thrust": thrust, "pending": pending}
@@ -483,11 +483,11 @@ def segments(
     for name, tensor in given.items():
         if tensor is not None and tuple(tensor.shape) != shapes[name]:
             raise ValueError(
-                f"drone_torchrl::segments: {name} of shape {list(tensor.shape)}; expected {list(shapes[name])}"
+                f"ops.segments: {name} of shape {list(tensor.shape)}; expected {list(shapes[name])}"
             )
     nominal = _nominal(disturbance)
     if fresh_keys is None and not nominal:
-        raise ValueError("drone_torchrl::segments under disturbances needs fresh_keys")
+        raise ValueError("ops.segments under disturbances needs fresh_keys")
     dtype = params.dtype
     n, steps = shapes["step"]
     obs = torch.empty(shapes["obs"], dtype=dtype)

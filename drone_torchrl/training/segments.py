@@ -5,7 +5,7 @@ over a batched :class:`~drone_torchrl.envs.drone_env.DroneEnv`: ``num_envs`` dro
 ``steps_per_batch`` steps, each starting a new episode as soon as one ends (auto-reset) and
 carrying an unfinished one over to the next batch, as a ``[num_envs, steps_per_batch]`` tensordict
 with the env's keys and the actor's log-probability of each action. Here one call of the C++
-engine's ``drone_torchrl::segments`` flies a whole batch
+engine's ``ops.segments`` flies a whole batch
 (:class:`~drone_torchrl.kernels.modules.KernelSegments`, which carries each drone's state,
 disturbances included, from batch to batch), where the collector steps the env and the actor
 through TorchRL one step at a time (``benchmarks/ppo_collectors.py`` times both). Given the same

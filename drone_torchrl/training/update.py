@@ -68,7 +68,7 @@ class ReinforceUpdate:
 
     Two ways to the same gradient, tested equal (tests/test_kernels.py):
 
-    - ``backend=fast``: one ``drone_torchrl::reinforce`` call flies the episodes and returns every
+    - ``backend=fast``: one ``ops.reinforce`` call flies the episodes and returns every
       agent's loss and gradient (:class:`~drone_torchrl.kernels.modules.KernelReinforce`);
     - ``backend=reference``: the collector's ``EnvBase.rollout`` tensordicts, scored by
       :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` through the ``ProbabilisticActor``, and
