@@ -171,7 +171,9 @@ OPTIONS = [
 def test_update_kernel_loss_and_gradient_equal_torchrl_reinforce_loss(head, options, eps):
     """On the episodes the update kernel flies (the same as KernelRollout with the same RNG keys),
     its loss and gradient equal ReinforceLoss + autograd agent by agent; an inactive agent gets zeros.
-    With ``distribution_eps`` too (the paper's code's ``Normal(mu + eps, sigma + eps)``)."""
+    With ``distribution_eps`` too (the paper's code's ``Normal(mu + eps, sigma + eps)``).
+
+    Mutation caught (in drone_kernels.cpp): ``d_loc``'s sign flipped in ``log_prob_backward``."""
     n, e = 4, 3
     stacked = _stacked(n, head, eps=eps)
     flyer = _rollout(stacked, head)
