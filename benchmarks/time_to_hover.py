@@ -107,7 +107,9 @@ def _eval_seconds(run_dir: Path, repeats: int) -> float:
         times = []
         for _ in range(repeats):
             start = time.perf_counter()
-            evaluate(learner.eval_policy(), kwargs, cfg.eval.episodes, cfg.eval.seed, agents=learner.eval_agents)
+            evaluate(
+                learner.eval_policy(), kwargs, cfg.eval.episodes, cfg.eval.seed, agents=learner.eval_agents
+            )
             times.append(time.perf_counter() - start)
         learner.close()
     return statistics.median(times)

@@ -302,7 +302,9 @@ def _section_defaults(name: str) -> dict[str, dict[str, Any]]:
     """
     keys = schema_keys(name)
     return {
-        section: {k.removeprefix(f"{section}."): r.added for k, r in keys.items() if k.startswith(f"{section}.")}
+        section: {
+            k.removeprefix(f"{section}."): r.added for k, r in keys.items() if k.startswith(f"{section}.")
+        }
         for section in schema.open_sections(schema.primary_schema(name))
     }
 

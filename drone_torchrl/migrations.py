@@ -50,7 +50,9 @@ def _is_fixed_value(key: str, value: Any) -> bool:
 def fixed_refusal(key: str, value: Any) -> str:
     """The one line refusing ``key=value`` of a key :data:`FIXED` removed."""
     fixed, replaced = FIXED[key]
-    return f"{key}={value} is not allowed: the key was removed and every run uses {fixed} ({replaced}); drop it"
+    return (
+        f"{key}={value} is not allowed: the key was removed and every run uses {fixed} ({replaced}); drop it"
+    )
 
 
 def _pop(config: dict[str, Any], key: str) -> Any:
@@ -90,7 +92,9 @@ def migrate_config(config: Mapping[str, Any]) -> dict[str, Any]:
     for key in FIXED:
         value = _pop(out, key)
         if value is not None and not _is_fixed_value(key, value):
-            raise ConfigError(f"a saved config's {fixed_refusal(key, value)}: it cannot be continued as it was trained")
+            raise ConfigError(
+                f"a saved config's {fixed_refusal(key, value)}: it cannot be continued as it was trained"
+            )
     algo = dict(out.get("algo") or {})
     collector = algo.pop("collector", None)
     engine = out.pop("engine", None)

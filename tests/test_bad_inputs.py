@@ -840,11 +840,14 @@ def test_a_population_run_refuses_stop_return_before_the_folder_exists(tmp_path)
     """eval.stop_return ends one run early; a population's agents train their whole budget together."""
     with initialize_config_dir(config_dir(), version_base="1.3"):
         cfgs = [
-            compose("config", overrides=[*TINY, "backend=fast", f"seed={s}", "eval.stop_return=100"]) for s in (0, 1)
+            compose("config", overrides=[*TINY, "backend=fast", f"seed={s}", "eval.stop_return=100"])
+            for s in (0, 1)
         ]
     with pytest.raises(ConfigError) as info:
         train_population(cfgs, ["seed=0", "seed=1"], tmp_path / "pop")
-    _one_line(str(info.value), "eval.stop_return=100 is not allowed; expected null with hydra/launcher=population")
+    _one_line(
+        str(info.value), "eval.stop_return=100 is not allowed; expected null with hydra/launcher=population"
+    )
     assert not (tmp_path / "pop").exists()
 
 

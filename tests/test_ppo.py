@@ -400,7 +400,10 @@ def test_dual_clip_bounds_a_negative_advantage_s_term_by_c_times_it():
     assert float(bounded["loss_objective"].detach()) == pytest.approx(float(expected), rel=1e-6)
     bounded["loss_objective"].backward()
     assert bool(torch.isfinite(policy.loc.grad).all())
-    assert float(ppo.clip_ppo_losses(policy, value, minibatch, eps, coeff)["loss_objective"].detach()) == math.inf
+    assert (
+        float(ppo.clip_ppo_losses(policy, value, minibatch, eps, coeff)["loss_objective"].detach())
+        == math.inf
+    )
 
 
 @pytest.mark.parametrize("backend", ["reference", "fast"])

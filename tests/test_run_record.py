@@ -563,6 +563,7 @@ def test_stop_return_ends_the_run_at_the_first_evaluation_that_reaches_it(tmp_pa
 
     raised = (f"eval.stop_return={best + 1}", f"resume={run}")  # above the return it stopped at: trains on
     train_jobs([prepare(_cfg(*common, *raised), run_dir=run, requested=raised)])
-    np.testing.assert_array_equal(read_episodes(run / "episodes.csv")[0]["return"], read_episodes(whole / "episodes.csv")[0]["return"])
+    np.testing.assert_array_equal(
+        read_episodes(run / "episodes.csv")[0]["return"], read_episodes(whole / "episodes.csv")[0]["return"]
+    )
     assert _tb_points(run, "eval/return") == evals
-

@@ -214,7 +214,9 @@ def cuda_library(double: bool = False) -> ctypes.CDLL | None:
                 compiler = nvcc()
                 if compiler is None:
                     raise OSError(f"no nvcc found and ${CUDA_LIBRARY_ENV} not set")
-                path = _cached(name, SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double))
+                path = _cached(
+                    name, SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double)
+                )
                 if not path.is_file() and (why := build_cuda(path, double)) is not None:
                     raise OSError(why)
             lib = _load(path, double)

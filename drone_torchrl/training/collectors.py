@@ -156,7 +156,12 @@ def kernel_rollout(cfg: DictConfig, policy: StackedThreeNet) -> KernelRollout:
     kwargs = env_kwargs(cfg)
     squash_high = cfg.env.max_thrust if cfg.model.distribution == "tanh_normal" else None
     return KernelRollout(
-        policy, physics_params(kwargs), squash_high, cfg.env.max_steps, cfg.env.reset_mode, kwargs["disturbance"]
+        policy,
+        physics_params(kwargs),
+        squash_high,
+        cfg.env.max_steps,
+        cfg.env.reset_mode,
+        kwargs["disturbance"],
     )
 
 

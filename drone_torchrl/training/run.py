@@ -84,9 +84,7 @@ class Schedule:
         )
 
 
-def trained_out(
-    episodes_done: int, budget: int, stopped_at: float | None, stop_return: float | None
-) -> bool:
+def trained_out(episodes_done: int, budget: int, stopped_at: float | None, stop_return: float | None) -> bool:
     """Whether an agent is done: its budget trained, or an evaluation at ``stop_return`` or above.
 
     ``stopped_at``: the return of the evaluation that stopped it (None: none did). A continued run

@@ -362,7 +362,9 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
 
 def _report(job: Job, final: dict[str, float], run: AgentBook) -> None:
     # Finished short of its budget: an evaluation reached eval.stop_return.
-    stopped = "" if run.episodes_done >= run.budget else f" (an evaluation at eval.stop_return={run.stop_return:g})"
+    stopped = (
+        "" if run.episodes_done >= run.budget else f" (an evaluation at eval.stop_return={run.stop_return:g})"
+    )
     print(
         f"{job.run_dir}: {run.episodes_done} episodes{stopped}, running-mean({RUNNING_MEAN_WINDOW}) "
         f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
