@@ -37,7 +37,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import migrations
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.config import check_default_folder, check_device, check_overrides, config_dir, preset_notes
+from drone_torchrl.config import check_default_folder, check_overrides, config_dir, preset_notes
 
 # The configs of drone-train and drone-eval (conf/<name>.yaml).
 TRAIN_CONFIG, EVAL_CONFIG = "config", "eval"
@@ -221,6 +221,8 @@ def _arguments(
             )
         args.append(f"{key}={_hydra_value(key, value)}")
     if folder is not None:
+        if not isinstance(folder, str | os.PathLike):
+            raise ConfigError(f"{prog}() takes a folder path (a str or a Path), not {folder!r}")
         if any(a.split("=", 1)[0].lstrip("+") == folder_key for a in args):
             raise ConfigError(f"the folder is given twice, as {folder_key}= and as a keyword; give one")
         args.append(f"{folder_key}={_hydra_value(folder_key, os.fspath(folder))}")
@@ -286,6 +288,8 @@ def _compose(name: str, args: list[str]) -> tuple[DictConfig, Path]:
                 f"{override.input_line} is a sweep: one call trains or flies one config (call it once per "
                 "value, or sweep with drone-train -m)"
             )
+        if key == RUN_DIR_KEY and not isinstance(override.value(), str):  # Hydra's merge: several lines
+            raise ConfigError.of(key, override.value(), "a folder path")
         if key.split(".")[0].split("/")[0] == "hydra" and key != RUN_DIR_KEY:
             raise ConfigError(
                 f"{override.input_line} is a Hydra setting; in Python only {RUN_DIR_KEY} (the folder) applies"
@@ -295,11 +299,14 @@ def _compose(name: str, args: list[str]) -> tuple[DictConfig, Path]:
         check_default_folder(name, args)
     try:
         cfg = compose(name, overrides=args, return_hydra_config=True)
-        folder = Path(OmegaConf.select(cfg, RUN_DIR_KEY)).expanduser()
+        folder = OmegaConf.select(cfg, RUN_DIR_KEY)
         choices = OmegaConf.to_container(cfg.hydra.runtime.choices)
     except (HydraException, OmegaConfBaseException) as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"Hydra cannot compose conf/{name}.yaml with {' '.join(args)}: {first}") from None
+    if not isinstance(folder, str):
+        raise ConfigError.of(RUN_DIR_KEY, folder, "a folder path")
+    folder = Path(folder).expanduser()
     with open_dict(cfg):
         del cfg["hydra"]
     for note in preset_notes(choices, name):
@@ -346,12 +353,14 @@ def _process_state(device: str) -> Iterator[None]:
     A run sets its threads (``threads``) and seeds its networks through torch's global generator;
     the caller's later work keeps its own.
     """
-    check_device(device)  # before torch reads it: a bad one is the config's one line
     threads = torch.get_num_threads()
-    where = torch.device(device)
-    cuda = (
-        [] if where.type != "cuda" else [torch.cuda.current_device() if where.index is None else where.index]
-    )
+    try:
+        where = torch.device(device)
+    except (RuntimeError, TypeError, ValueError):  # not a device: the config's checks say so in one line
+        where = torch.device("cpu")
+    cuda = []
+    if where.type == "cuda" and torch.cuda.is_available():  # CUDA is initialised only for a run on it
+        cuda = [torch.cuda.current_device() if where.index is None else where.index]
     try:
         with torch.random.fork_rng(devices=cuda):
             yield

@@ -126,15 +126,20 @@ def test_twice_in_one_process_the_same_seed_gives_the_same_run_and_another_seed_
     assert _episodes(tmp_path / "c") != _episodes(tmp_path / "a")
 
 
-def test_the_process_is_left_as_found_inside_a_callers_hydra(tmp_path):
+def test_the_process_is_left_as_found_inside_a_callers_hydra(tmp_path, monkeypatch):
     """A caller's own Hydra (its initialize, a HydraConfig of its app) is its own again afterwards."""
     (tmp_path / "conf").mkdir()
     (tmp_path / "conf" / "mine.yaml").write_text("answer: 42\n")
-    with initialize_config_dir(str(tmp_path / "conf"), version_base="1.2"):
+    monkeypatch.setattr(HydraConfig.instance(), "cfg", None)  # put back after the test
+    with initialize_config_dir(str(tmp_path / "conf"), version_base="1.2", job_name="mine"):
+        # As inside the caller's Hydra app: its job's config (its command line: answer=7).
+        HydraConfig.instance().set_config(compose("mine", ["answer=7"], return_hydra_config=True))
         before = _process_state()
         result = drone_torchrl.train(*TINY, run_dir=tmp_path / "run")
         _assert_same_state(before, _process_state())
         assert compose("mine").answer == 42  # the caller's config folder, not drone_torchrl's
+        assert HydraConfig.get().job.name == "mine"
+        assert list(HydraConfig.get().overrides.task) == ["answer=7"]
     assert not GlobalHydra.instance().is_initialized()
     assert result.metrics["final_return"] == pytest.approx(sum(_episodes(tmp_path / "run")["return"]) / 2)
 
@@ -215,6 +220,9 @@ def test_evaluate_writes_its_plot_where_asked_and_refuses_what_drone_eval_refuse
         ((3,), {}, r"takes Hydra override strings"),
         ((), {"seed": object()}, r"^seed=<object"),
         ((), {"device": "mps"}, r"^device='mps' is not allowed"),
+        ((), {"device": 3}, r"^device=3 is not allowed"),
+        ((), {"run_dir": 3}, r"takes a folder path"),
+        (("hydra.run.dir=null",), {}, r"^hydra.run.dir=null is not allowed; expected a folder path"),
         (("algo.lr=3e-4",), {"algo": {"lr": 1e-3}, "run_dir": "x", "hydra.run.dir": "y"}, r"given twice"),
     ],
 )
