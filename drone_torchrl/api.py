@@ -129,7 +129,7 @@ def train(*overrides: str, run_dir: str | os.PathLike | None = None, **values: A
 
     Args:
         *overrides: Hydra override strings, as on the command line (``"algo.lr=3e-4"``,
-            ``"experiment=bounded"``, ``"+legacy..."`` are passed as they are).
+            ``"experiment=bounded"``, ``"resume=outputs/<date>/<time>"``).
         run_dir: the run folder; the same as the override ``hydra.run.dir=<folder>``. Default: the
             config's, ``outputs/<date>/<time>`` under the working folder, with ``-1``, ``-2``...
             appended if a run of the same second has it.

@@ -144,6 +144,24 @@ def test_the_process_is_left_as_found_inside_a_callers_hydra(tmp_path, monkeypat
     assert result.metrics["final_return"] == pytest.approx(sum(_episodes(tmp_path / "run")["return"]) / 2)
 
 
+def test_a_run_folder_with_a_run_continues_it_taking_only_what_a_continued_run_takes(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    run = tmp_path / "run"
+    drone_torchrl.train(*TINY, run_dir=run)
+    first = _episodes(run)
+    with pytest.raises(drone_torchrl.ConfigError, match=r"algo.lr") as refused:
+        drone_torchrl.train(*TINY, "algo.episodes=4", "algo.lr=1e-3", run_dir=run)  # a kept hyper-parameter
+    assert "\n" not in str(refused.value)
+    longer = drone_torchrl.train(*TINY, "algo.episodes=4", run_dir=run)
+    assert longer.run_dir == run and longer.config.algo.episodes == 4
+    assert _episodes(run)["episode"] == [0, 1, 2, 3]
+    assert {key: values[:2] for key, values in _episodes(run).items()} == first
+    # resume= names the run: it continues in its own folder, whatever the default folder would be.
+    again = drone_torchrl.train(*TINY, "algo.episodes=6", resume=run)
+    assert again.run_dir == run and len(_episodes(run)["episode"]) == 6
+    assert not (tmp_path / "outputs").exists()
+
+
 def test_the_returned_policy_acts_as_the_checkpoint(tmp_path):
     result = drone_torchrl.train(*TINY, "seed=2", run_dir=tmp_path / "run")
     saved = load_checkpoint(tmp_path / "run" / "checkpoints" / "last.pt")
