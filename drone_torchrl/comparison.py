@@ -40,6 +40,8 @@ from drone_torchrl.training.population_record import open_agent
 
 PLOT_NAME = "trajectory.png"
 VIDEO_NAME = "episode.gif"
+#: The PD hover controller's name in the table (and in :func:`run_eval`'s results).
+PD_NAME = "PD controller"
 
 
 def plot_trajectory(
@@ -92,13 +94,12 @@ def plot_trajectory(
         plt.close(fig)
 
 
-def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
+def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> None:
     """Refuse an ``env.*`` override that differs from the checkpoint's run: it flies in its own env.
 
     Such an override is refused, not ignored. The disturbances are the evaluation's conditions
-    (:func:`_flown_env`), not the run's.
+    (:func:`_flown_env`), not the run's. ``keys``: those the caller set.
     """
-    keys = command_line_keys() or set()
     changed = [
         f"env.{name} {run_env[name]!r} -> {cfg.env[name]!r}"
         for name in run_env
@@ -113,17 +114,15 @@ def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path) -> None:
         )
 
 
-def _flown_env(cfg: DictConfig, run_env: dict, path: Path) -> dict:
+def _flown_env(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> dict:
     """The run's env under the disturbances drone-eval was asked for.
 
     The disturbances are ``disturbance=...``'s; the run's ``observed_actions`` is kept, since it is
-    the policy's input layout, not a condition.
+    the policy's input layout, not a condition. ``keys``: those the caller set.
     """
     asked = env_kwargs(cfg)["disturbance"]
     trained = disturbances.make(run_env["disturbance"]).observed_actions
-    if asked["observed_actions"] != trained and "env.disturbance.observed_actions" in (
-        command_line_keys() or set()
-    ):
+    if asked["observed_actions"] != trained and "env.disturbance.observed_actions" in keys:
         raise ConfigError(
             f"checkpoint={str(path)!r} reads {trained} past command(s) in its observations; "
             f"env.disturbance.observed_actions={asked['observed_actions']} cannot change that: drop the override"
@@ -148,9 +147,18 @@ def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
     )
 
 
-def run_eval(cfg: DictConfig) -> dict[str, dict]:
-    """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot."""
-    out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
+def run_eval(
+    cfg: DictConfig, out_dir: Path | None = None, requested: set[str] | None = None
+) -> dict[str, dict]:
+    """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot.
+
+    Returns each policy's :func:`~drone_torchrl.evaluation.summarize` by its name in the table.
+    ``out_dir``: where the plot and video go (default: the Hydra job's folder, else the working
+    folder); ``requested``: the keys the caller set (default: those of the Hydra command line).
+    """
+    if out_dir is None:
+        out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
+    keys = (command_line_keys() or set()) if requested is None else requested
     check_values(check_keys(cfg, "eval"), "eval")  # the keys and the bounds of conf/eval.yaml's schema
     check_device(cfg.device)
     if cfg.checkpoint is not None:
@@ -169,8 +177,8 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
                 f"checkpoint={str(path)!r} cannot be used: {type(err).__name__}: {err}"
             ) from None
         kwargs = env_kwargs(run_cfg)
-        _refuse_env_overrides(cfg, kwargs, path)
-        kwargs = _flown_env(cfg, kwargs, path)
+        _refuse_env_overrides(cfg, kwargs, path, keys)
+        kwargs = _flown_env(cfg, kwargs, path, keys)
         actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:
@@ -180,7 +188,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
         except ValueError as err:
             raise ConfigError(f"env.{err}") from None
         policies = {}
-    policies["PD controller"] = PDController(physics_params(kwargs))
+    policies[PD_NAME] = PDController(physics_params(kwargs))
     # Every policy's rollout is kept (for the plot), and a GIF draws every step of one episode.
     memory = memory_estimate.evaluation_parts(
         memory_estimate.FLOAT_BYTES[kwargs["dtype"]],
@@ -199,7 +207,7 @@ def run_eval(cfg: DictConfig) -> dict[str, dict]:
     for name, policy in policies.items():
         stats, rollouts[name] = evaluate(policy, kwargs, cfg.episodes, cfg.seed, cfg.device)
         results[name] = {"policy": name, **summarize(stats, ceiling, best)}
-    pd_return = results["PD controller"]["return_mean"]
+    pd_return = results[PD_NAME]["return_mean"]
     print(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
     print(optimum_line(kwargs, optimum, ceiling))
     for name, r in results.items():

@@ -379,12 +379,20 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
     checkpoint, that run's folder. Raises the error that stopped it (a :class:`~.checks.ConfigError` for a
     bad config, with a one-line message).
     """
-    (outcome,) = train_jobs([prepare(cfg, run_dir)])
+    return train_job(prepare(cfg, run_dir)).final_return
+
+
+def train_job(job: Job) -> Outcome:
+    """Train one prepared job (:func:`~.jobs.prepare`); returns its outcome, with its final metrics.
+
+    Raises the error that stopped it, as :func:`train` does (``drone_torchrl.train`` calls this too).
+    """
+    (outcome,) = train_jobs([job])
     if outcome.error is not None:
         raise outcome.error
     if outcome.final is None:
         raise ConfigError(f"{outcome.run_dir}: training ended without final metrics")
-    return outcome.final_return
+    return outcome
 
 
 def train_population(
