@@ -69,9 +69,7 @@ def adhoc_name(task: Iterable[str], hydra: Iterable[str] = ()) -> str:
 
     overrides = search_overrides(task, hydra)
     digest = hashlib.sha256("\n".join(overrides).encode()).hexdigest()[:HASH_DIGITS]
-    parsed = OverridesParser.create().parse_overrides(
-        [o for o in overrides if not o.startswith("hydra")]
-    )
+    parsed = OverridesParser.create().parse_overrides([o for o in overrides if not o.startswith("hydra")])
     swept = sorted({o.key_or_group.replace("/", ".") for o in parsed if o.is_sweep_override()})
     prefix = ",".join(swept)[:_PREFIX_CHARS] or OLD_ADHOC
     return f"{prefix}-{digest}"

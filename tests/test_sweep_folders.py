@@ -61,7 +61,9 @@ def test_two_adhoc_sweeps_land_in_two_folders_each_summary_counting_its_own(tmp_
     one, two = _sweeps(tmp_path)  # two folders, not multirun/adhoc shared
     by_name = {p.name.rsplit("-", 1)[0]: p for p in (one, two)}
     assert sorted(by_name) == ["algo.lr,seed", "seed"]  # the readable prefix: the swept keys
-    assert _summary(first.stdout) == f"sweep multirun/{by_name['seed'].name}: 2 finished, 0 failed, 0 unfinished"
+    assert (
+        _summary(first.stdout) == f"sweep multirun/{by_name['seed'].name}: 2 finished, 0 failed, 0 unfinished"
+    )
     assert _summary(second.stdout) == (
         f"sweep multirun/{by_name['algo.lr,seed'].name}: 4 finished, 0 failed, 0 unfinished"
     )
@@ -110,7 +112,9 @@ def test_report_of_a_folder_mixing_budgets_names_no_best(tmp_path, drone_train, 
     proc = command_here(report_app.main, "drone-report", "multirun/mixed", "--no-pd", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.splitlines()
-    assert lines[0] == "best: none named: its runs mix budgets (algo.episodes=2, 3); compare runs of one budget"
+    assert (
+        lines[0] == "best: none named: its runs mix budgets (algo.episodes=2, 3); compare runs of one budget"
+    )
     assert not any(line.startswith("best: ") for line in lines[1:])
     # The table still has one row per setting, each labelled with its budget.
     rows = [line for line in lines if line.startswith("| algo.")]
