@@ -25,9 +25,15 @@ OLD_ADHOC = "adhoc"
 HASH_DIGITS = 8
 # Keeps the readable prefix well inside a file system's 255-byte names.
 _PREFIX_CHARS = 60
-# Hydra overrides that change the search (how jobs are grouped, searched, scheduled); the others
-# (hydra.verbose, hydra.job_logging, hydra.mode, ...) change how it is logged, not what it is.
-_HYDRA_SEARCH = ("hydra/launcher", "hydra/sweeper", "hydra.launcher.", "hydra.sweeper.")
+#: Launchers that change what a sweep is: one population run per group (``population_<g>/``, not a
+#: folder per job) or a search (PBT, successive halving, a PBT agent replayed). The others (basic,
+#: fused, local_parallel, slurm, ...) train the same jobs into the same job folders, so the same grid
+#: run by another of them continues in its folder; their keys (cores, partition) are no matter either.
+SEARCH_LAUNCHERS = frozenset({"population", "pbt", "halving", "pbt_replay"})
+_LAUNCHER = "hydra/launcher"
+# Hydra overrides that pick the jobs (the sweeper and its params); the others (hydra.verbose,
+# hydra.job_logging, hydra.mode, ...) change how the sweep is logged, not what it is.
+_SWEEPER = ("hydra/sweeper", "hydra.sweeper.")
 
 
 def _key(override: str) -> str:
@@ -51,11 +57,15 @@ def search_overrides(task: Iterable[str], hydra: Iterable[str] = ()) -> list[str
     """The overrides that name an ad-hoc sweep's folder, sorted (their order on the line is no matter).
 
     Every task override but the process-only ones (budgets included: ``algo.episodes=2`` and
-    ``algo.episodes=6000`` are different sweeps), and the Hydra overrides that pick or tune the
-    launcher or the sweeper (a PBT search and a plain grid over the same values differ).
+    ``algo.episodes=6000`` are different sweeps), the sweeper's overrides, and a
+    :data:`SEARCH_LAUNCHERS` launcher with its keys (a PBT search and a plain grid over the same
+    values differ; a grid run by ``fused`` or ``slurm`` is the grid run by ``basic``).
     """
     chosen = [str(o) for o in task if _defines_the_search(_key(str(o)))]
-    chosen += [str(o) for o in hydra if _key(str(o)).startswith(_HYDRA_SEARCH)]
+    hydra = [str(o) for o in hydra]
+    launcher = next((o.partition("=")[2] for o in reversed(hydra) if _key(o) == _LAUNCHER), None)
+    search = (_SWEEPER + (_LAUNCHER, "hydra.launcher.")) if launcher in SEARCH_LAUNCHERS else _SWEEPER
+    chosen += [o for o in hydra if _key(o).startswith(search)]
     return sorted(chosen)
 
 

@@ -90,12 +90,14 @@ def test_the_folder_is_named_by_what_the_command_searches():
     # The same overrides in another order, and settings of this process only: the same folder.
     assert _sweep_dir(*reversed(TINY), "algo.lr=1e-3", "seed=0,1") == base
     assert _sweep_dir("seed=0,1", "algo.lr=1e-3", *TINY, "threads=2", "device=cpu", "progress=true") == base
+    # A launcher that trains the same jobs into the same job folders: the same sweep, continued there.
+    assert _sweep_dir("seed=0,1", "algo.lr=1e-3", *TINY, "hydra/launcher=fused") == base
     # Anything that changes the search: another folder each.
     others = [
         _sweep_dir("seed=0,1", "algo.lr=1e-3", *TINY[1:], "algo.episodes=3"),  # the budget
         _sweep_dir("seed=0,1,2", "algo.lr=1e-3", *TINY),
         _sweep_dir("seed=0,1", "algo.lr=1e-4", *TINY),
-        _sweep_dir("seed=0,1", "algo.lr=1e-3", *TINY, "hydra/launcher=fused"),
+        _sweep_dir("seed=0,1", "algo.lr=1e-3", *TINY, "hydra/launcher=population"),
         _sweep_dir("seed=0,1", "algo.lr=1e-3", *TINY, "hydra/launcher=pbt", "hydra.launcher.quantile=0.25"),
         _sweep_dir("seed=0,1", "algo.lr=1e-3", *TINY, "hydra/launcher=pbt", "hydra.launcher.quantile=0.5"),
     ]
