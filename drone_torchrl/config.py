@@ -15,7 +15,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
-from drone_torchrl import algorithms, loggers, migrations, schema
+from drone_torchrl import algorithms, loggers, migrations, schema, sweep_folder
 from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
@@ -43,6 +43,10 @@ ENV_ADDED = {
 
 # Resolvers the configs use (registered at import: every process that composes imports this module).
 OmegaConf.register_new_resolver("drone_torchrl.job_dirname", migrations.job_dirname, replace=True)
+# Cached as Hydra's ${now:} is: each job's config gets the sweep's value (drone_torchrl.sweep_folder).
+OmegaConf.register_new_resolver(
+    "drone_torchrl.sweep_folder", sweep_folder.sweep_folder, replace=True, use_cache=True
+)
 
 
 def config_dir() -> str:
@@ -439,7 +443,8 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             continue
         if key == "sweep_name":  # names the multirun folder, which Hydra makes before any job runs
             for value in values:
-                _check_folder_name(key, value, "a folder name (no '/' or '..'), e.g. lr")
+                if value is not None:  # null: the folder is named by the overrides
+                    _check_folder_name(key, value, "a folder name (no '/' or '..'), e.g. lr")
             continue
         if key in groups:
             options = _options(key)
@@ -949,7 +954,8 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
     if isinstance(name, str) and name in RUN_FOLDER_ENTRIES:
         raise ConfigError.of("logger.exp_name", name, expected)
     _check_folder_name("logger.exp_name", name, expected)
-    _check_folder_name("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
+    if cfg.sweep_name is not None:  # null: an ad-hoc sweep, its folder named by its overrides
+        _check_folder_name("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
     if training:
         check_memory(cfg)  # last: every value is allowed; does the run fit in this machine?
 

@@ -232,9 +232,9 @@ def test_a_signal_stops_a_population_after_the_update_with_checkpoints(tmp_path,
 def test_the_same_sweep_started_twice_at_once(tmp_path):
     """The second sweep process is refused in one line before it writes; the first finishes every
     job with every episode exactly once."""
-    args = ["-m", "seed=0,1", "hydra/launcher=fused", "algo.episodes=60000", *QUICK]
+    args = ["-m", "seed=0,1", "hydra/launcher=fused", "algo.episodes=60000", *QUICK, "sweep_name=twice"]
     first = _drone_train(*args, cwd=tmp_path, wait=False)
-    sweep = tmp_path / "multirun" / "adhoc"
+    sweep = tmp_path / "multirun" / "twice"
     try:
         _wait_for_owner(sweep, first.pid, first, also="*seed=1/episodes.csv")
         second = _drone_train(*args, cwd=tmp_path)

@@ -41,6 +41,7 @@ from drone_torchrl.io import run_lock
 from drone_torchrl.io.storage import write_atomically
 from drone_torchrl.loggers import FAILED, FINISHED, Backend, Logger, RunStatus, flatten_config, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, a_text, store_plugin
+from drone_torchrl.sweep_folder import group_name
 
 RUN_ID_FILE = "run_id"
 STORE_FILE = "mlflow.db"
@@ -216,7 +217,7 @@ def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> MLflowLogger
         logging.getLogger(name).setLevel(logging.WARNING)
     run_dir = Path(run_dir)
     uri = cfg.logger.tracking_uri or f"sqlite:///{(run_dir.resolve().parent / STORE_FILE)}"
-    experiment = cfg.logger.experiment or cfg.sweep_name
+    experiment = cfg.logger.experiment or group_name(cfg.sweep_name, run_dir)
     logger = MLflowLogger(uri, experiment, run_dir, cfg.logger.exp_name, resumed_at)
     logger.log_params(cfg)
     return logger

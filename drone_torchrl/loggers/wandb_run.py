@@ -47,6 +47,7 @@ from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.video import save_gif
 from drone_torchrl.loggers import FAILED, FINISHED, Backend, Logger, RunStatus, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, a_text, one_of, store_plugin
+from drone_torchrl.sweep_folder import group_name
 
 RUN_ID_FILE = "run_id"
 SENT_FILE = "sent_through"
@@ -82,7 +83,7 @@ class WandbLogger(Logger):
         self.run = wandb.init(
             project=cfg.logger.project,
             entity=cfg.logger.entity,
-            group=cfg.logger.group or cfg.sweep_name,
+            group=cfg.logger.group or group_name(cfg.sweep_name, run_dir),
             name=run_dir.name,
             id=run_id,
             resume="allow",

@@ -30,7 +30,8 @@ Method:
    reaches ``return_threshold`` (mean over the seeds that reach it, and how many do), the final
    running-mean negative-thrust fraction, and the wall-clock time (each run's last
    ``wall_clock_s``; mean per run and total). The verdict names the setting with the best mean
-   final running-mean return.
+   final running-mean return; none when the runs mix budgets (``algo.episodes``): a run given
+   more episodes ends further along, so each budget is then a setting of its own in the table.
 4. **Figures.** ``steps.png`` and ``returns.png`` like the paper's figures 4.2 and 4.4: one curve per
    setting with a mean +- std band, the ``max_steps`` cap and the ``10 * max_steps`` ceiling as
    dashed lines, and the PD hover controller's mean return

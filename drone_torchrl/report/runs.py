@@ -29,10 +29,13 @@ HYDRA_DIR = ".hydra"
 OVERRIDES_FILE = "overrides.yaml"
 
 SEED_KEY = "seed"
+# A run's budget. Not a setting key (a longer run is the same setting, further along), but runs of
+# different budgets are not compared: a folder that mixes them is grouped by budget too (group_runs).
+BUDGET_KEY = "algo.episodes"
 # Overrides that do not define what is trained: the sweep preset and its name, the run length
 # (a longer run is the same setting, further along), bookkeeping, and evaluation/checkpoint knobs.
 NON_SETTING_KEYS = frozenset(
-    {SEED_KEY, "sweep", "sweep_name", "algo.episodes", "progress", "threads", "device", "resume"}
+    {SEED_KEY, "sweep", "sweep_name", BUDGET_KEY, "progress", "threads", "device", "resume"}
 )
 NON_SETTING_PREFIXES = ("hydra.", "eval.", "checkpoint.")
 OVERRIDE_PREFIXES = "+"  # "+key=value" adds and "++key=value" forces a key: the same setting key
@@ -88,6 +91,11 @@ class Run:
         if not found:
             raise ReportError(f"{self.job_dir}: its config has no {key}")
         return value
+
+    @property
+    def budget(self) -> Any:
+        """The run's ``algo.episodes`` (``None`` if its config has none)."""
+        return _lookup(self.config, BUDGET_KEY)[1]
 
     @property
     def max_steps(self) -> int:
@@ -332,16 +340,34 @@ def _sort_key(value: str | None) -> tuple[int, float, str]:
         return (1, 0.0, value)
 
 
+def budgets(runs: Sequence[Run]) -> list[Any]:
+    """The distinct budgets (``algo.episodes``) of ``runs``, sorted; more than one: a mixed folder."""
+    return sorted({run.budget for run in runs if run.budget is not None}, key=lambda b: _sort_key(str(b)))
+
+
+def mixed_budgets(runs: Sequence[Run]) -> str | None:
+    """The line saying that ``runs`` mix budgets (``algo.episodes=2, 3``), or ``None`` if they do not."""
+    found = budgets(runs)
+    if len(found) < 2:
+        return None
+    return f"its runs mix budgets ({BUDGET_KEY}={LABEL_SEPARATOR.join(format_value(b) for b in found)})"
+
+
 def group_runs(runs: Sequence[Run]) -> list[Setting]:
     """Group runs by setting (overrides minus the seed and non-setting keys) and label the groups.
 
     A label lists only the overrides that differ between settings; ``all`` when there is one
     setting (``defaults`` for a setting without any of the differing overrides). Settings are
-    sorted by their differing values, numerically where they are numbers.
+    sorted by their differing values, numerically where they are numbers. Runs of different
+    budgets (:func:`mixed_budgets`) are different settings, labelled with their ``algo.episodes``.
     """
+    by_budget = mixed_budgets(runs) is not None
     groups: dict[tuple[tuple[str, str], ...], list[Run]] = {}
     for run in runs:
-        groups.setdefault(setting_of(run.overrides, run.config), []).append(run)
+        pairs = setting_of(run.overrides, run.config)
+        if by_budget:
+            pairs += ((BUDGET_KEY, format_value(run.budget)),)
+        groups.setdefault(pairs, []).append(run)
     keys = list(dict.fromkeys(k for pairs in groups for k, _ in pairs))
     values = [dict(pairs) for pairs in groups]
     differing = [k for k in keys if len({v.get(k) for v in values}) > 1]

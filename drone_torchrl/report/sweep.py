@@ -9,7 +9,7 @@ from pathlib import Path
 
 from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.optimum import Optimum
-from drone_torchrl.report.runs import LABEL_SEPARATOR, Run, Setting, group_runs, load_runs
+from drone_torchrl.report.runs import LABEL_SEPARATOR, Run, Setting, group_runs, load_runs, mixed_budgets
 from drone_torchrl.report.stats import (
     DEFAULT_RETURN_THRESHOLD,
     SettingSummary,
@@ -40,6 +40,8 @@ class SweepReport:
     ``"optimum (<labels>)"`` when the settings differ in their env)."""
     pd_optima: dict[str, float] = field(default_factory=dict)
     """The best achievable return of the env of each PD reference that has one (keys of ``pd_returns``)."""
+    mixed_budgets: str | None = None
+    """The line saying the runs mix budgets (:func:`~drone_torchrl.report.runs.mixed_budgets`), or ``None``."""
 
     @property
     def name(self) -> str:
@@ -48,7 +50,13 @@ class SweepReport:
 
     @property
     def verdict(self) -> str:
-        """The verdict line on the sweep's settings."""
+        """The verdict line on the sweep's settings; none is named best when the runs mix budgets.
+
+        A run given more episodes ends further along, so a best across budgets would rank budgets,
+        not settings.
+        """
+        if self.mixed_budgets is not None:
+            return f"best: none named: {self.mixed_budgets}; compare runs of one budget"
         return verdict(self.summaries)
 
 
@@ -90,5 +98,13 @@ def build_report(
             if best is not None:
                 pd_optima[PD_LABEL + suffix] = best.best_return
     return SweepReport(
-        Path(sweep_dir), window, return_threshold, settings, summaries, pd_returns, optima, pd_optima
+        Path(sweep_dir),
+        window,
+        return_threshold,
+        settings,
+        summaries,
+        pd_returns,
+        optima,
+        pd_optima,
+        mixed_budgets(runs),
     )
