@@ -10,7 +10,8 @@ second and without importing torch:
   config. The YAML files set every key anyway (the schema holds no values; it refuses what they lack),
   so the keys and values are those of the real composition; a value is checked when the command runs.
 - The meanings are the YAML files' own comments, their one home: a key's comment on its line, else
-  the comment block right above it (up to its first full stop). PyYAML and OmegaConf drop comments,
+  the comment block right above it (up to its first full stop); a key the chosen option leaves
+  uncommented takes the same key's comment in another option of its group (``algo.lr``). PyYAML and OmegaConf drop comments,
   and ruamel.yaml is not a dependency, so :func:`key_comments` reads them with a small line parser
   over the simple block-style YAML ``conf/`` is written in (one key per line; lists in flow style or
   as ``- item`` lines).
@@ -111,10 +112,13 @@ def page(prog: str, overrides: Sequence[str] = ()) -> str:
         f"Usage: {prog} [GROUP=OPTION ...] [KEY=VALUE ...]",
         f"       {prog} --cfg job [...]   print the composed config and exit",
         f"       {prog} --hydra-help      Hydra's own flags (-m, --config-dir, ...)",
-        "",
-        f"Config groups (GROUP=OPTION; * marks the option chosen, a + is needed for groups {prog} "
-        "does not choose by default):",
     ]
+    if composed.groups:  # drone-export has none
+        lines += [
+            "",
+            f"Config groups (GROUP=OPTION; * marks the option chosen, a + is needed for groups {prog} "
+            "does not choose by default):",
+        ]
     for group, options, chosen in composed.groups:
         marked = " | ".join(f"{o}*" if o == chosen else o for o in options)
         lines.append(f"  {group if chosen is not None else '+' + group}: {marked}")
@@ -189,6 +193,13 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
             meanings[prefix + key] = comment
         if default.package and not default.is_self:  # a group's option: its header says what it sets
             meanings.setdefault(default.package, _header(text))
+    for group in names:  # a key its option leaves uncommented: the same key's comment in another option
+        for path in sorted((conf / group).glob("*.yaml")):
+            text = path.read_text(encoding="utf-8")
+            package = re.search(r"^# @package (\S+)", text, re.MULTILINE)
+            prefix = (package[1] if package else group.replace("/", ".")).replace("_global_", "")
+            for key, comment in key_comments(text).items():
+                meanings.setdefault(f"{prefix}.{key}".lstrip("."), comment)
     values = OmegaConf.to_container(cfg, resolve=False)
     assert isinstance(values, dict)
     values.pop("hydra")
@@ -228,7 +239,7 @@ def key_comments(text: str) -> dict[str, str]:
         key = ".".join([k for _, k in parents] + [match["key"]])
         inline = _INLINE_COMMENT.search(match["rest"] or "")
         comment = inline["comment"].strip() if inline else _first_sentence(block)
-        if comment:
+        if comment and key != "defaults":
             out[key] = comment
         parents.append((indent, match["key"]))
         block = []
