@@ -128,18 +128,19 @@ def test_help_page_refuses_an_override_that_does_not_compose_in_one_line(command
 @pytest.mark.parametrize(
     ("entry", "prog"),
     [
-        ("train", "drone-train"),
-        ("evaluate", "drone-eval"),
-        ("export", "drone-export"),
-        ("report", "drone-report"),
+        ("commands.train", "drone-train"),
+        ("commands.evaluate", "drone-eval"),
+        ("commands.export", "drone-export"),
+        ("report.main", "drone-report"),
     ],
 )
 def test_help_imports_no_torch(entry, prog):
+    # The entry points of pyproject's [project.scripts], as the console scripts call them.
     code = (
         "import sys\n"
         f"sys.argv = [{prog!r}, '--help']\n"
-        "from drone_torchrl.apps import commands\n"
-        f"try:\n    commands.{entry}()\nexcept SystemExit as stop:\n    assert stop.code in (0, None), stop.code\n"
+        "from drone_torchrl.apps import commands, report\n"
+        f"try:\n    {entry}()\nexcept SystemExit as stop:\n    assert stop.code in (0, None), stop.code\n"
         "print('torch' in sys.modules, file=sys.stderr)\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
