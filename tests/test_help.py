@@ -5,14 +5,13 @@ import shutil
 import subprocess
 import sys
 import time
+from importlib.metadata import entry_points
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from drone_torchrl.apps import commands
-from drone_torchrl.apps.help import key_comments
 from drone_torchrl.config import config_dir
 
 CONF = Path(config_dir())
@@ -35,6 +34,12 @@ def console(name: str) -> str:
     if found is None:
         pytest.skip(f"{name} is not installed")
     return found
+
+
+def entry_point(name: str):
+    """The function pyproject's [project.scripts] names for console command ``name``."""
+    (command,) = entry_points(group="console_scripts", name=name)
+    return command.load()
 
 
 def run_console(name: str, *args: str) -> tuple[subprocess.CompletedProcess, float]:
@@ -109,7 +114,9 @@ def test_console_help_page_is_quick_and_lists_every_group_and_key(prog):
 
 def test_help_page_follows_the_command_lines_choices(command_here, tmp_path):
     # -h as --help; algo=ppo: PPO's keys and values (its own option file's), ppo marked as chosen.
-    done = command_here(commands.train, "drone-train", "algo=ppo", "algo.lr=0.003", "-h", cwd=tmp_path)
+    done = command_here(
+        entry_point("drone-train"), "drone-train", "algo=ppo", "algo.lr=0.003", "-h", cwd=tmp_path
+    )
     assert done.returncode == 0, done.stderr
     check_page(done.stdout, "drone-train", "config", ["algo=ppo", "algo.lr=0.003"])
     # ppo.yaml leaves algo.lr uncommented: the same key's comment in another algo option.
@@ -118,29 +125,22 @@ def test_help_page_follows_the_command_lines_choices(command_here, tmp_path):
 
 
 def test_help_page_refuses_an_override_that_does_not_compose_in_one_line(command_here, tmp_path):
-    done = command_here(commands.evaluate, "drone-eval", "disturbance=gale", "--help", cwd=tmp_path)
+    done = command_here(entry_point("drone-eval"), "drone-eval", "disturbance=gale", "--help", cwd=tmp_path)
     assert done.returncode == 1
     assert done.stdout == ""
     assert done.stderr.startswith("drone-eval: error: ") and "gale" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize(
-    ("entry", "prog"),
-    [
-        ("commands.train", "drone-train"),
-        ("commands.evaluate", "drone-eval"),
-        ("commands.export", "drone-export"),
-        ("report.main", "drone-report"),
-    ],
-)
-def test_help_imports_no_torch(entry, prog):
-    # The entry points of pyproject's [project.scripts], as the console scripts call them.
+@pytest.mark.parametrize("prog", [*APPS, "drone-report"])
+def test_help_imports_no_torch(prog):
+    # The function pyproject's [project.scripts] names for the command, called as its script does.
     code = (
         "import sys\n"
+        "from importlib.metadata import entry_points\n"
         f"sys.argv = [{prog!r}, '--help']\n"
-        "from drone_torchrl.apps import commands, report\n"
-        f"try:\n    {entry}()\nexcept SystemExit as stop:\n    assert stop.code in (0, None), stop.code\n"
+        f"(command,) = entry_points(group='console_scripts', name={prog!r})\n"
+        "try:\n    command.load()()\nexcept SystemExit as stop:\n    assert stop.code in (0, None), stop.code\n"
         "print('torch' in sys.modules, file=sys.stderr)\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -167,6 +167,8 @@ def test_drone_report_help_is_quick():
 
 
 def test_key_comments_reads_inline_comments_and_the_block_above():
+    from drone_torchrl.apps.help import key_comments
+
     text = (
         "# header of the file\n"
         "defaults:\n"
