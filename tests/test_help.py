@@ -128,7 +128,8 @@ def test_help_page_refuses_an_override_that_does_not_compose_in_one_line(command
     done = command_here(entry_point("drone-eval"), "drone-eval", "disturbance=gale", "--help", cwd=tmp_path)
     assert done.returncode == 1
     assert done.stdout == ""
-    assert done.stderr.startswith("drone-eval: error: ") and "gale" in done.stderr
+    assert done.stderr.startswith("drone-eval: error: ") and "disturbance/gale" in done.stderr
+    assert "Available options in 'disturbance': mild, none, strong" in done.stderr
     assert len(done.stderr.strip().splitlines()) == 1
 
 

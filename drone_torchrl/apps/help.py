@@ -181,7 +181,7 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
             names = [g for g in dict.fromkeys(names) if g in choices and "/" not in g] + list(app.groups)
             groups = [(g, sorted(loader.get_group_options(g)), choices.get(g)) for g in names]
     except (HydraException, OmegaConfBaseException) as err:
-        raise HelpError(str(err).strip().splitlines()[0]) from None
+        raise HelpError(_one_line(str(err))) from None
     meanings: dict[str, str] = {}
     for default in defaults:  # in composition order: a later file's comment wins, as its value does
         path = conf / f"{default.config_path}.yaml"
@@ -208,6 +208,19 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
 
 
 APPS_BY_CONFIG = {app.config: app for app in APPS.values()}
+
+
+def _one_line(message: str) -> str:
+    """Hydra's error message in one line: its statements, and the options it lists, comma-separated."""
+    parts: list[str] = []
+    for line in message.strip().splitlines():
+        if line.startswith("Config search path"):  # then where it looked: not the user's mistake
+            break
+        if line.startswith("\t") and parts:  # an option of the group: "Available options in ...:" above
+            parts[-1] += (" " if parts[-1].endswith(":") else ", ") + line.strip()
+        elif line.strip() and not line.startswith(" ") and not line.startswith("To append"):
+            parts.append(line.strip())
+    return " ".join(f"{p}." if p[-1].isalnum() or p[-1] == "'" else p for p in parts)
 
 
 def key_comments(text: str) -> dict[str, str]:
