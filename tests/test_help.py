@@ -154,10 +154,12 @@ def test_import_drone_torchrl_registers_the_gym_env_without_torch():
     code = (
         "import sys\nimport drone_torchrl\nprint('torch' in sys.modules)\n"
         "import gymnasium\nenv = gymnasium.make('Drone2D-v0')\nprint(env.reset(seed=0)[0].shape)\n"
+        # drone_torchrl.envs loads its classes and submodules on first use, as an eager package had them.
+        "print(drone_torchrl.envs.DroneEnv.__name__, drone_torchrl.envs.disturbances.Disturbance.__name__)\n"
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stderr
-    assert done.stdout.split("\n")[:2] == ["False", "(6,)"]
+    assert done.stdout.splitlines() == ["False", "(6,)", "DroneEnv Disturbance"]
 
 
 def test_drone_report_help_is_quick():

@@ -90,7 +90,7 @@ def answer_help(prog: str, args: Sequence[str] | None = None) -> None:
 
 
 class HelpError(Exception):
-    """The command line's overrides do not compose (Hydra's message, first line)."""
+    """The command line's overrides do not compose (Hydra's message, in one line)."""
 
 
 def overrides_in(args: Sequence[str]) -> list[str]:
