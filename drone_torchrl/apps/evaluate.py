@@ -16,6 +16,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from drone_torchrl import command_line
+from drone_torchrl.apps.help import answer_help
 from drone_torchrl.config import ConfigError, check_command_line, check_default_folder, config_dir
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
@@ -39,6 +40,7 @@ def run() -> None:
 
     The command line's keys and the folder Hydra will write are checked.
     """
+    answer_help("drone-eval")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
     flags = command_line.check_flags("drone-eval")
     check_command_line("drone-eval", "eval")
     if not (

@@ -16,16 +16,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from drone_torchrl.io.storage import StorageError, unwritable
-from drone_torchrl.report.distribution import paper_order
-from drone_torchrl.report.runs import ReportError, failed_without_episodes, group_runs, load_runs
-from drone_torchrl.report.stats import DEFAULT_RETURN_THRESHOLD
-from drone_torchrl.report.sweep import build_report
-from drone_torchrl.report.tables import (
-    format_paper_averaging_section,
-    format_report,
-    output_dirs,
-    write_report,
-)
+from drone_torchrl.report import DEFAULT_RETURN_THRESHOLD
 
 PROG = "drone-report"
 EXIT_ERROR = 2
@@ -108,6 +99,17 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 def main(argv: Sequence[str] | None = None) -> None:
     """``drone-report``: one report per sweep folder; exit code 2 with a one-line error if unusable."""
     args = parse_args(argv)
+    # Imported once the command line is read: they import torch (seconds), which --help does without.
+    from drone_torchrl.report.distribution import paper_order
+    from drone_torchrl.report.runs import ReportError, failed_without_episodes, group_runs, load_runs
+    from drone_torchrl.report.sweep import build_report
+    from drone_torchrl.report.tables import (
+        format_paper_averaging_section,
+        format_report,
+        output_dirs,
+        write_report,
+    )
+
     try:
         runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
         out_dirs = output_dirs(args.sweeps, args.out)

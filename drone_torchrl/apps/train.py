@@ -18,6 +18,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from drone_torchrl import migrations
+from drone_torchrl.apps.help import answer_help
 from drone_torchrl.config import ConfigError, check_command_line, check_default_folder, config_dir
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
@@ -159,6 +160,7 @@ def register_plugins() -> None:
 
 def run() -> None:
     """Console entry point: registers our Hydra plug-ins, then runs the Hydra app."""
+    answer_help("drone-train")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
     register_plugins()
     claimed = _before_hydra()
     try:

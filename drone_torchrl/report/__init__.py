@@ -39,21 +39,39 @@ Method:
    as a dotted reference line.
 """
 
-from drone_torchrl.report.runs import ReportError, Run, Setting, group_runs, load_runs, setting_of
-from drone_torchrl.report.stats import (
-    Crossing,
-    SeedStats,
-    SettingSummary,
-    aggregate_over_seeds,
-    first_crossing,
-    pd_reference,
-    running_mean,
-    setting_curve,
-    summarize,
-    verdict,
-)
-from drone_torchrl.report.sweep import SweepReport, build_report
-from drone_torchrl.report.tables import format_report, format_table, write_report
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: The return whose first crossing by the running mean the report gives (drone-report --return-threshold).
+DEFAULT_RETURN_THRESHOLD = 2000.0
+
+# Loaded on first use (PEP 562): drone-report's command line (drone_torchrl/apps/report.py) and its
+# --help need none of them, and they import torch.
+_LAZY = {
+    "ReportError": "drone_torchrl.report.runs",
+    "Run": "drone_torchrl.report.runs",
+    "Setting": "drone_torchrl.report.runs",
+    "group_runs": "drone_torchrl.report.runs",
+    "load_runs": "drone_torchrl.report.runs",
+    "setting_of": "drone_torchrl.report.runs",
+    "Crossing": "drone_torchrl.report.stats",
+    "SeedStats": "drone_torchrl.report.stats",
+    "SettingSummary": "drone_torchrl.report.stats",
+    "aggregate_over_seeds": "drone_torchrl.report.stats",
+    "first_crossing": "drone_torchrl.report.stats",
+    "pd_reference": "drone_torchrl.report.stats",
+    "running_mean": "drone_torchrl.report.stats",
+    "setting_curve": "drone_torchrl.report.stats",
+    "summarize": "drone_torchrl.report.stats",
+    "verdict": "drone_torchrl.report.stats",
+    "SweepReport": "drone_torchrl.report.sweep",
+    "build_report": "drone_torchrl.report.sweep",
+    "format_report": "drone_torchrl.report.tables",
+    "format_table": "drone_torchrl.report.tables",
+    "write_report": "drone_torchrl.report.tables",
+}
 
 __all__ = [
     "Crossing",
@@ -78,3 +96,16 @@ __all__ = [
     "verdict",
     "write_report",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is not None:
+        return getattr(importlib.import_module(module), name)
+    # A submodule, as an eager package had it imported (drone_torchrl.envs.disturbances).
+    try:
+        return importlib.import_module(f"{__name__}.{name}")
+    except ModuleNotFoundError as err:
+        if err.name != f"{__name__}.{name}":
+            raise
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

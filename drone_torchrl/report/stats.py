@@ -18,6 +18,7 @@ import numpy as np
 
 from drone_torchrl.evaluation import evaluate_pd, reference_optimum
 from drone_torchrl.optimum import Optimum
+from drone_torchrl.report import DEFAULT_RETURN_THRESHOLD
 from drone_torchrl.report.runs import (
     COL_LENGTH,
     COL_NEGATIVE_THRUST,
@@ -29,7 +30,6 @@ from drone_torchrl.report.runs import (
     Setting,
 )
 
-DEFAULT_RETURN_THRESHOLD = 2000.0
 #: A seed "ends in the zone" when its final running-mean return is at least this share of the ceiling
 #: 10 * max_steps (1500 of 3000: the drone spends about half the episode or more in the zone).
 ZONE_SHARE = 0.5

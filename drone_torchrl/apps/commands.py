@@ -1,0 +1,34 @@
+"""The console commands (pyproject's ``[project.scripts]``): ``--help`` answered before the app loads.
+
+Each app's module imports torch and the training code (seconds); its ``--help`` page needs neither
+(:mod:`drone_torchrl.apps.help`), so each command checks for it first and imports its app only to
+run it.
+"""
+
+from __future__ import annotations
+
+from drone_torchrl.apps.help import answer_help
+
+
+def train() -> None:
+    """``drone-train`` (:func:`drone_torchrl.apps.train.run`)."""
+    answer_help("drone-train")
+    from drone_torchrl.apps.train import run
+
+    run()
+
+
+def evaluate() -> None:
+    """``drone-eval`` (:func:`drone_torchrl.apps.evaluate.run`)."""
+    answer_help("drone-eval")
+    from drone_torchrl.apps.evaluate import run
+
+    run()
+
+
+def export() -> None:
+    """``drone-export`` (:func:`drone_torchrl.apps.export.run`)."""
+    answer_help("drone-export")
+    from drone_torchrl.apps.export import run
+
+    run()

@@ -1,0 +1,320 @@
+"""The ``--help`` page of ``drone-train``, ``drone-eval`` and ``drone-export``, made from ``conf/``.
+
+The page lists the config groups with their options and every key of the composed config with its
+value and a one-line meaning. It is composed by Hydra as the command would compose it (defaults
+lists, packages, ``_self_``, the experiment presets, the command line's overrides), in well under a
+second and without importing torch:
+
+- The schemas (:mod:`drone_torchrl.schema` and each plug-in's) live in modules that import torch, so
+  each schema a ``conf/`` defaults list names (``/schema_config@_here_``) is stood in for by an empty
+  config. The YAML files set every key anyway (the schema holds no values; it refuses what they lack),
+  so the keys and values are those of the real composition; a value is checked when the command runs.
+- The meanings are the YAML files' own comments, their one home: a key's comment on its line, else
+  the comment block right above it (up to its first full stop); a key the chosen option leaves
+  uncommented takes the same key's comment in another option of its group (``algo.lr``). PyYAML and OmegaConf drop comments,
+  and ruamel.yaml is not a dependency, so :func:`key_comments` reads them with a small line parser
+  over the simple block-style YAML ``conf/`` is written in (one key per line; lists in flow style or
+  as ``- item`` lines).
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+# The root-level configs a conf/ defaults list names: the schemas (``- /schema_config@_here_``).
+_ROOT_ENTRY = re.compile(r"^\s*-\s*/(\w+)@", re.MULTILINE)
+# ``key: value  # comment`` (a key is a plain word; conf/ quotes no keys).
+_KEY_LINE = re.compile(r"^(?P<indent>\s*)(?P<key>[A-Za-z_][\w-]*):(?:\s+(?P<rest>.*))?$")
+# A comment after a value: `` #`` outside quotes (conf/'s quoted values hold no ``#``).
+_INLINE_COMMENT = re.compile(r"\s#\s?(?P<comment>.*)$")
+# Hydra's flags that choose another config than the command's: its own help then applies.
+_OTHER_CONFIG = ("--config-path", "-cp", "--config-name", "-cn", "--config-dir", "-cd")
+
+
+@dataclass(frozen=True)
+class App:
+    """One Hydra command.
+
+    Attributes:
+        config: its primary config, ``conf/<config>.yaml``.
+        groups: groups its defaults list does not choose that it takes all the same
+            (``+sweep=lr``, ``hydra/launcher=population``).
+    """
+
+    config: str
+    groups: tuple[str, ...] = ()
+
+
+APPS = {
+    "drone-train": App("config", groups=("sweep", "hydra/launcher")),
+    "drone-eval": App("eval"),
+    "drone-export": App("export"),
+}
+
+
+def conf_folder() -> Path:
+    """The ``conf/`` folder: ``drone_torchrl/conf`` in a wheel, the top-level one in a checkout."""
+    package = Path(__file__).resolve().parent.parent
+    for candidate in (package / "conf", package.parent / "conf"):
+        if (candidate / "config.yaml").is_file():
+            return candidate
+    raise FileNotFoundError(f"drone_torchrl's conf/ folder is missing (looked in {package} and its parent)")
+
+
+def wants_help(args: Sequence[str]) -> bool:
+    """Whether the command line asks for the page (``--help`` or ``-h``, not for another config)."""
+    return any(a in ("--help", "-h") for a in args) and not any(
+        a.split("=", 1)[0] in _OTHER_CONFIG for a in args
+    )
+
+
+def answer_help(prog: str, args: Sequence[str] | None = None) -> None:
+    """Print ``prog``'s page and exit 0 if ``args`` (the command line's if None) ask for it.
+
+    A command line Hydra cannot compose exits 1 with one line on stderr.
+    """
+    args = sys.argv[1:] if args is None else list(args)
+    if not wants_help(args):
+        return
+    try:
+        text = page(prog, overrides_in(args))
+    except HelpError as err:
+        sys.exit(f"{prog}: error: {err}")
+    print(text)
+    sys.exit(0)
+
+
+class HelpError(Exception):
+    """The command line's overrides do not compose (Hydra's message, in one line)."""
+
+
+def overrides_in(args: Sequence[str]) -> list[str]:
+    """The ``key=value`` overrides of a command line, as Hydra's own parser reads them."""
+    from drone_torchrl.compat import hydra_args_parser
+
+    known, _ = hydra_args_parser().parse_known_args(list(args))
+    return list(known.overrides)
+
+
+def page(prog: str, overrides: Sequence[str] = ()) -> str:
+    """The ``--help`` page of ``prog`` (``drone-train``...), its config composed with ``overrides``."""
+    app = APPS[prog]
+    conf = conf_folder()
+    composed = compose(conf, app.config, overrides)
+    lines = [
+        f"{prog}: {_summary(conf / f'{app.config}.yaml')}",
+        "",
+        f"Usage: {prog} [GROUP=OPTION ...] [KEY=VALUE ...]",
+        f"       {prog} --cfg job [...]   print the composed config and exit",
+        f"       {prog} --hydra-help      Hydra's own flags (-m, --config-dir, ...)",
+    ]
+    if composed.groups:  # drone-export has none
+        lines += [
+            "",
+            f"Config groups (GROUP=OPTION; * marks the option chosen, a + is needed for groups {prog} "
+            "does not choose by default):",
+        ]
+    for group, options, chosen in composed.groups:
+        marked = " | ".join(f"{o}*" if o == chosen else o for o in options)
+        lines.append(f"  {group if chosen is not None else '+' + group}: {marked}")
+        for option in options:
+            summary = _option_summary(conf, group, option)
+            if summary:
+                lines.append(f"      {option:<{max(map(len, options))}}  {summary}")
+    lines += ["", f"Keys (KEY=VALUE), with their values in conf/{app.config}.yaml as composed:"]
+    width = max(len(key) + len(value) for key, value, _ in composed.keys) + 3
+    for key, value, meaning in composed.keys:
+        lines.append(f"  {f'{key}={value}':<{width}}  {meaning}".rstrip())
+    lines += ["", "Meanings are the comments of conf/'s YAML files; docs/training.md has the full story."]
+    return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class Composed:
+    """What the page shows of a composed config.
+
+    Attributes:
+        groups: ``(group, options, chosen)``; ``chosen`` is None for a group the defaults list does
+            not choose.
+        keys: ``(key, value, meaning)`` for every key, in the config's order.
+    """
+
+    groups: list[tuple[str, list[str], str | None]]
+    keys: list[tuple[str, str, str]]
+
+
+def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
+    """Compose ``conf/<config>.yaml`` with Hydra, the schemas stood in for (see the module's docstring)."""
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
+    from hydra.core.config_store import ConfigStore
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.errors import HydraException
+    from hydra.types import RunMode
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    # hydra/launcher=fused and hydra/sweeper=population, which the configs name (no torch).
+    import hydra_plugins.drone_torchrl_launcher.schemas  # noqa: F401
+
+    store = ConfigStore.instance()
+    stored = {n.removesuffix(".yaml") for n in store.list("")}
+    for path in sorted(conf.rglob("*.yaml")):
+        for name in _ROOT_ENTRY.findall(path.read_text(encoding="utf-8")):
+            if name not in stored:  # the real schema, where a process has imported it, stays
+                store.store(name=name, node={}, provider="drone_torchrl.apps.help")
+                stored.add(name)
+    app = APPS_BY_CONFIG.get(config, App(config))
+    try:
+        with initialize_config_dir(str(conf), version_base="1.3", job_name=config):
+            cfg = hydra_compose(config, overrides=list(overrides), return_hydra_config=True)
+            loader = GlobalHydra.instance().hydra.config_loader  # type: ignore[union-attr]
+            choices = dict(cfg.hydra.runtime.choices)
+            defaults = loader.compute_defaults_list(config, list(overrides), RunMode.RUN).defaults
+            # The groups the defaults list chooses, in its order (conf/<group>/<option>), then the app's others.
+            names = [d.config_path.rpartition("/")[0] for d in defaults if d.config_path]
+            names = [g for g in dict.fromkeys(names) if g in choices and "/" not in g] + list(app.groups)
+            groups = [(g, sorted(loader.get_group_options(g)), choices.get(g)) for g in names]
+    except (HydraException, OmegaConfBaseException) as err:
+        raise HelpError(_one_line(str(err))) from None
+    meanings: dict[str, str] = {}
+    for default in defaults:  # in composition order: a later file's comment wins, as its value does
+        path = conf / f"{default.config_path}.yaml"
+        if default.package is None or default.package.startswith("hydra") or not path.is_file():
+            continue
+        prefix = f"{default.package}." if default.package else ""
+        text = path.read_text(encoding="utf-8")
+        for key, comment in key_comments(text).items():
+            meanings[prefix + key] = comment
+        if default.package and not default.is_self:  # a group's option: its header says what it sets
+            meanings.setdefault(default.package, _header(text))
+    for group in names:  # a key its option leaves uncommented: the same key's comment in another option
+        for path in sorted((conf / group).glob("*.yaml")):
+            text = path.read_text(encoding="utf-8")
+            package = re.search(r"^# @package (\S+)", text, re.MULTILINE)
+            prefix = (package[1] if package else group.replace("/", ".")).replace("_global_", "")
+            for key, comment in key_comments(text).items():
+                meanings.setdefault(f"{prefix}.{key}".lstrip("."), comment)
+    values = OmegaConf.to_container(cfg, resolve=False)
+    assert isinstance(values, dict)
+    values.pop("hydra")
+    keys = [(key, _show(value), meanings.get(key, "")) for key, value in _leaves(values)]
+    return Composed(groups=groups, keys=keys)
+
+
+APPS_BY_CONFIG = {app.config: app for app in APPS.values()}
+
+
+def _one_line(message: str) -> str:
+    """Hydra's error message in one line: its statements, and the options it lists, comma-separated."""
+    parts: list[str] = []
+    for line in message.strip().splitlines():
+        if line.startswith("Config search path"):  # then where it looked: not the user's mistake
+            break
+        if line.startswith("\t") and parts:  # an option of the group: "Available options in ...:" above
+            parts[-1] += (" " if parts[-1].endswith(":") else ", ") + line.strip()
+        elif line.strip() and not line.startswith(" ") and not line.startswith("To append"):
+            parts.append(line.strip())
+    return " ".join(f"{p}." if p[-1].isalnum() or p[-1] == "'" else p for p in parts)
+
+
+def key_comments(text: str) -> dict[str, str]:
+    """``{"checkpoint.keep_best": "also keep best.pt, ..."}``: each key's comment in a YAML text.
+
+    A key's comment is the one on its line, else the block of comment lines right above it (no
+    blank line between), up to its first line that ends a sentence. Lines of lists (``- item``) and
+    of the ``defaults`` list are skipped.
+    """
+    out: dict[str, str] = {}
+    parents: list[tuple[int, str]] = []
+    block: list[str] = []
+    for line in text.splitlines():
+        stripped = line.strip()
+        if not stripped or stripped.startswith("-"):
+            block = []
+            continue
+        if stripped.startswith("#"):
+            if not stripped.startswith("# @package"):
+                block.append(stripped.lstrip("#").strip())
+            continue
+        match = _KEY_LINE.match(line)
+        if match is None:  # a continued value: not a key
+            block = []
+            continue
+        indent = len(match["indent"])
+        while parents and parents[-1][0] >= indent:
+            parents.pop()
+        key = ".".join([k for _, k in parents] + [match["key"]])
+        inline = _INLINE_COMMENT.search(match["rest"] or "")
+        comment = inline["comment"].strip() if inline else _first_sentence(block)
+        if comment and key != "defaults":
+            out[key] = comment
+        parents.append((indent, match["key"]))
+        block = []
+    return out
+
+
+def _first_sentence(block: list[str]) -> str:
+    """The first sentence of comment lines, as one line (a block's last ``:`` introduces a list)."""
+    taken = []
+    for line in block:
+        taken.append(line)
+        if line.endswith((".", ":")):
+            break
+    return _SENTENCE_END.split(" ".join(taken), maxsplit=1)[0].removesuffix(":")
+
+
+# A full stop that ends a sentence: followed by a space, and not that of "e.g." or "i.e.".
+_SENTENCE_END = re.compile(r"(?<=\.)(?<!e\.g\.)(?<!i\.e\.)\s+")
+
+
+def _header(text: str) -> str:
+    """The first sentence of a YAML file's opening comment block."""
+    block = []
+    for line in text.splitlines():
+        stripped = line.strip()
+        if not stripped.startswith("#"):
+            break
+        if not stripped.startswith("# @package"):
+            block.append(stripped.lstrip("#").strip())
+    return _first_sentence(block)
+
+
+def _summary(path: Path) -> str:
+    """What a primary config's command does: its header, without the ``drone-xxx:`` it starts with."""
+    return re.sub(r"^[\w-]+:\s*", "", _header(path.read_text(encoding="utf-8")))
+
+
+def _option_summary(conf: Path, group: str, option: str) -> str:
+    """What option ``option`` of ``group`` is: its file's header, without ``group=option:``."""
+    path = conf / group / f"{option}.yaml"
+    if not path.is_file():  # an option in Hydra's ConfigStore (hydra/launcher=fused): no file
+        return ""
+    return re.sub(rf"^\+?{re.escape(group)}={re.escape(option)}:\s*", "", _header(path.read_text("utf-8")))
+
+
+def _leaves(node: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:
+    """``("env.mass", 1.0)`` for every key of a nested mapping; an empty mapping is a key too."""
+    for key, value in node.items():
+        if isinstance(value, Mapping) and value:
+            yield from _leaves(value, f"{prefix}{key}.")
+        else:
+            yield f"{prefix}{key}", value
+
+
+def _show(value: Any) -> str:
+    """A value as it is typed on the command line (YAML's spelling: null, true, [32, 32])."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return str(value).lower()
+    if isinstance(value, list):
+        return f"[{', '.join(_show(v) for v in value)}]"
+    if isinstance(value, dict):
+        return "{" + ", ".join(f"{k}: {_show(v)}" for k, v in value.items()) + "}"
+    return str(value)
