@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib.util
 from pathlib import Path
 
 from drone_torchrl import migrations
@@ -26,18 +25,6 @@ from drone_torchrl.io.checkpoint import (
 )
 from drone_torchrl.io.folders import check_fork_folder
 
-# hydra/launcher options and the Hydra plugin each one runs on (with the extra that installs it).
-LAUNCHER_PLUGINS = {
-    "local_parallel": ("hydra_plugins.hydra_joblib_launcher", "joblib"),
-    "joblib": ("hydra_plugins.hydra_joblib_launcher", "joblib"),
-    "local_submitit": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "submitit_local": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "submitit_slurm": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "slurm": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "slurm_population": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "ray_local": ("hydra_plugins.hydra_ray_launcher", "ray"),
-    "ray": ("hydra_plugins.hydra_ray_launcher", "ray"),
-}
 # What marks a folder as a sweep's root (Hydra writes it there when the sweep starts).
 SWEEP_RECORD = "multirun.yaml"
 
@@ -83,23 +70,6 @@ def overrides_of(args: list[str]) -> dict[str, str]:
             key, value = arg.split("=", 1)
             out[key.lstrip("+~")] = value
     return out
-
-
-def check_launcher(option: str) -> None:
-    """A ``hydra/launcher`` option whose plugin is not installed: one line naming the extra."""
-    plugin = LAUNCHER_PLUGINS.get(option)
-    if plugin is None:
-        return
-    module, extra = plugin
-    try:
-        found = importlib.util.find_spec(module) is not None
-    except ImportError:
-        found = False
-    if not found:
-        raise ConfigError(
-            f"hydra/launcher={option} needs Hydra's launcher plugin, which is not installed: "
-            f"pip install 'drone_torchrl[{extra}]'"
-        )
 
 
 def check_composed(overrides: list[str]) -> None:

@@ -28,7 +28,6 @@ and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard, /schema_logger_
 
 from __future__ import annotations
 
-import importlib.util
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +36,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from drone_torchrl import extras
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.registry import Registry
@@ -110,11 +110,11 @@ class Backend:
     @property
     def installed(self) -> bool:
         """Whether the module its :attr:`extra` installs can be imported."""
-        return self.extra is None or importlib.util.find_spec(self.extra) is not None
+        return self.extra is None or extras.Needs(self.extra, self.extra).installed
 
     def missing(self) -> str:
-        """The one line saying what to install for it."""
-        return f"logger={self.name} needs the {self.extra} extra: pip install 'drone_torchrl[{self.extra}]'"
+        """The one line saying what to install for it (:func:`drone_torchrl.extras.missing`'s)."""
+        return extras.missing(f"logger={self.name}", extras.Needs(str(self.extra), str(self.extra)))
 
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
