@@ -2,11 +2,11 @@
 
 The one table of "choice -> the module it imports -> the extra that installs it" (pyproject.toml's
 ``[project.optional-dependencies]``). ``drone-train`` checks the choices typed on its command line
-against it before Hydra starts (:func:`check_choices`, called by :mod:`drone_torchrl.command_line`),
+against it before Hydra starts (:func:`check_choices`, with its other command-line checks),
 so a choice whose extra is missing is refused in one line that names the choice as typed and the
 extra, with nothing written::
 
-    drone-train: error: hydra/launcher=pbt needs pyarrow: pip install "drone_torchrl[population]"
+    drone-train: error: hydra/launcher=pbt needs pyarrow: pip install 'drone_torchrl[population]'
 
 - ``hydra/launcher=<option>``: :data:`LAUNCHERS` (Hydra's launcher plug-ins; the population runs'
   Parquet record).
@@ -33,7 +33,7 @@ class Needs:
 
     Attributes:
         module: the module it imports (looked up, not imported).
-        extra: the package extra that installs it (``pip install "drone_torchrl[<extra>]"``).
+        extra: the package extra that installs it (``pip install 'drone_torchrl[<extra>]'``).
         label: how the one-line error names the module (default: ``module``).
     """
 
@@ -77,7 +77,7 @@ LAUNCHERS: dict[str, Needs] = {
 
 def missing(choice: str, needs: Needs) -> str:
     """The one line saying that ``choice`` (as typed, ``key=value``) needs what ``needs`` installs."""
-    return f'{choice} needs {needs.label or needs.module}: pip install "drone_torchrl[{needs.extra}]"'
+    return f"{choice} needs {needs.label or needs.module}: pip install 'drone_torchrl[{needs.extra}]'"
 
 
 def logger_needs(option: str) -> Needs | None:

@@ -20,6 +20,8 @@ import pytest
 from drone_torchrl.apps import train as train_app
 
 TINY = ["algo.episodes=2", "env.max_steps=20", "eval.episodes=1", "eval.video=false", "progress=false"]
+# A PBT run's perturbation interval within the tiny budget (the default, 100 updates, is refused).
+PBT_TINY = [*TINY, "hydra.launcher.every_updates=1"]
 POPULATION_LINE = "drone-train: error: {choice} needs pyarrow: pip install 'drone_torchrl[population]'"
 
 # A sitecustomize that hides the modules named in $HIDE_MODULES from the whole process (an install
@@ -81,7 +83,7 @@ def test_pbt_without_pyarrow_is_one_line_naming_it_and_writes_nothing(tmp_path):
     (site / "sitecustomize.py").write_text(SITECUSTOMIZE)
     path = os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH")) if p)
     proc = subprocess.run(
-        [sys.executable, "-m", "drone_torchrl.apps.train", "-m", "seed=0,1", "hydra/launcher=pbt", *TINY],
+        [sys.executable, "-m", "drone_torchrl.apps.train", "-m", "seed=0,1", "hydra/launcher=pbt", *PBT_TINY],
         capture_output=True,
         text=True,
         timeout=300,
