@@ -12,7 +12,7 @@ import argparse
 import contextlib
 from pathlib import Path
 
-from drone_torchrl import migrations
+from drone_torchrl import extras, migrations
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
@@ -70,6 +70,50 @@ def overrides_of(args: list[str]) -> dict[str, str]:
             key, value = arg.split("=", 1)
             out[key.lstrip("+~")] = value
     return out
+
+
+def check_extras(overrides: dict[str, str]) -> None:
+    """Refuse, in one line, a ``hydra/launcher=`` or ``logger=`` choice whose extra is not installed.
+
+    What each choice needs is :mod:`drone_torchrl.extras`'s (a logger's: its backend's
+    :attr:`~drone_torchrl.loggers.Backend.extra`); each option of a swept choice (``logger=csv,mlflow``)
+    is checked. Raises :class:`~.checks.ConfigError` naming the choice as typed and the extra.
+    """
+    if "hydra/launcher" in overrides:
+        for option in _options("hydra/launcher", overrides["hydra/launcher"]):
+            extras.check(f"hydra/launcher={option}", extras.LAUNCHERS.get(option))
+    if "logger" in overrides:
+        for option in _options("logger", overrides["logger"]):
+            extras.check(f"logger={option}", _logger_needs(option))
+
+
+def _logger_needs(option: str) -> extras.Needs | None:
+    """What ``logger=<option>`` needs; None for an option Hydra cannot compose (it says why, later)."""
+    from hydra.errors import HydraException
+
+    from drone_torchrl import loggers
+    from drone_torchrl.config import _option_plugins
+
+    try:
+        # Hydra composes the option (its file names its backend, or inherits one): about 0.2 s.
+        return loggers.get(_option_plugins("config", (("logger", option),))["logger"]).needs
+    except (HydraException, ConfigError):
+        return None
+
+
+def _options(group: str, value: str) -> list[str]:
+    """The options of ``group=value`` as Hydra reads them: one, or each of a sweep's."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        (override,) = OverridesParser.create().parse_overrides([f"{group}={value}"])
+    except HydraException:  # refused in its own line by check_command_line
+        return []
+    if override.is_sweep_override():
+        return [str(option) for option in override.sweep_string_iterator()]
+    option = override.value()
+    return [option] if isinstance(option, str) else []
 
 
 def check_composed(overrides: list[str]) -> None:

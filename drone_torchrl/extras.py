@@ -2,9 +2,9 @@
 
 The one table of "choice -> the module it imports -> the extra that installs it" (pyproject.toml's
 ``[project.optional-dependencies]``). ``drone-train`` checks the choices typed on its command line
-against it before Hydra starts (:func:`check_choices`, with its other command-line checks),
-so a choice whose extra is missing is refused in one line that names the choice as typed and the
-extra, with nothing written::
+against it before Hydra starts (:func:`drone_torchrl.command_line.check_extras`), so a choice whose
+extra is missing is refused in one line that names the choice as typed and the extra, with nothing
+written::
 
     drone-train: error: hydra/launcher=pbt needs pyarrow: pip install 'drone_torchrl[population]'
 
@@ -21,7 +21,6 @@ checks (a choice made in a config file).
 from __future__ import annotations
 
 import importlib.util
-from collections.abc import Mapping
 from dataclasses import dataclass
 
 from drone_torchrl.checks import ConfigError
@@ -80,63 +79,7 @@ def missing(choice: str, needs: Needs) -> str:
     return f"{choice} needs {needs.label or needs.module}: pip install 'drone_torchrl[{needs.extra}]'"
 
 
-def logger_needs(option: str) -> Needs | None:
-    """What ``logger=<option>`` needs: its backend's extra (:attr:`~drone_torchrl.loggers.Backend.extra`).
-
-    None when it needs nothing, and for an option whose backend cannot be told here (Hydra says why
-    when it composes it).
-    """
-    from hydra.errors import HydraException
-
-    from drone_torchrl import loggers
-    from drone_torchrl.config import _option_plugins
-
-    try:
-        # Hydra composes the option (its file names its backend, or inherits one): about 0.2 s.
-        backend = loggers.get(_option_plugins("config", (("logger", option),))["logger"])
-    except (HydraException, ConfigError):
-        return None
-    return None if backend.extra is None else Needs(backend.extra, backend.extra)
-
-
-def needs_of(group: str, option: str) -> Needs | None:
-    """What ``<group>=<option>`` needs, or None: :data:`LAUNCHERS`, or the logger's backend's extra."""
-    if group == "hydra/launcher":
-        return LAUNCHERS.get(option)
-    if group == "logger":
-        return logger_needs(option)
-    return None
-
-
-#: The config groups whose choices :func:`check_choices` checks.
-GROUPS = ("hydra/launcher", "logger")
-
-
-def check_choices(overrides: Mapping[str, str]) -> None:
-    """Refuse, in one line (:class:`~.checks.ConfigError`), a choice whose extra is not installed.
-
-    ``overrides``: the command line's ``{key: value}``; each option of a swept choice
-    (``logger=csv,mlflow``) is checked.
-    """
-    for group in GROUPS:
-        if group not in overrides:
-            continue
-        for option in _options(group, overrides[group]):
-            needs = needs_of(group, option)
-            if needs is not None and not needs.installed:
-                raise ConfigError(missing(f"{group}={option}", needs))
-
-
-def _options(group: str, value: str) -> list[str]:
-    """The options of ``group=value`` as Hydra reads them: one, or each of a sweep's."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-
-    try:
-        (override,) = OverridesParser.create().parse_overrides([f"{group}={value}"])
-    except HydraException:  # refused with its own line by the command line's checks
-        return []
-    if override.is_sweep_override():
-        return [str(option) for option in override.sweep_string_iterator()]
-    value = override.value()
-    return [value] if isinstance(value, str) else []
+def check(choice: str, needs: Needs | None) -> None:
+    """Refuse ``choice`` (as typed, ``key=value``) in one line when what it needs is missing (:class:`~.checks.ConfigError`)."""
+    if needs is not None and not needs.installed:
+        raise ConfigError(missing(choice, needs))

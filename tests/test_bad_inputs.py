@@ -1116,7 +1116,7 @@ def test_a_refused_re_run_in_a_run_s_folder_keeps_its_hydra_record(files, tmp_pa
 
 def test_a_launcher_whose_extra_is_missing_is_one_line(monkeypatch):
     """hydra/launcher=local_parallel without the joblib extra: Hydra would list its plugins in many lines."""
-    from drone_torchrl import extras
+    from drone_torchrl import command_line
 
     found = importlib.util.find_spec
     monkeypatch.setattr(
@@ -1125,15 +1125,15 @@ def test_a_launcher_whose_extra_is_missing_is_one_line(monkeypatch):
         lambda name, *a: None if name == "hydra_plugins.hydra_joblib_launcher" else found(name, *a),
     )
     with pytest.raises(ConfigError) as info:
-        extras.check_choices({"hydra/launcher": "local_parallel"})
+        command_line.check_extras({"hydra/launcher": "local_parallel"})
     _one_line(str(info.value), "hydra/launcher=local_parallel")
     assert "drone_torchrl[joblib]" in str(info.value)
     # An installed plugin is accepted; the README's install (".[test]") has no submitit extra.
     if found("hydra_plugins.hydra_submitit_launcher") is not None:
-        extras.check_choices({"hydra/launcher": "slurm"})
+        command_line.check_extras({"hydra/launcher": "slurm"})
     else:
         with pytest.raises(ConfigError, match=r"drone_torchrl\[submitit\]"):
-            extras.check_choices({"hydra/launcher": "slurm"})
+            command_line.check_extras({"hydra/launcher": "slurm"})
 
 
 def test_report_lists_the_jobs_that_failed_before_their_first_episode(files, tmp_path, capsys):

@@ -97,17 +97,34 @@ def test_pbt_without_pyarrow_is_one_line_naming_it_and_writes_nothing(tmp_path):
     assert list(work.iterdir()) == []
 
 
-@pytest.mark.parametrize("launcher", ["population", "halving", "pbt_replay"])
-def test_every_population_launcher_without_pyarrow_is_refused_naming_itself(
-    launcher, hide, tmp_path, command_here
+@pytest.mark.parametrize(
+    ("launcher", "hidden", "needs"),
+    [
+        ("population", "pyarrow", "pyarrow: pip install 'drone_torchrl[population]'"),
+        ("halving", "pyarrow", "pyarrow: pip install 'drone_torchrl[population]'"),
+        ("pbt_replay", "pyarrow", "pyarrow: pip install 'drone_torchrl[population]'"),
+        (
+            "local_parallel",
+            "hydra_plugins.hydra_joblib_launcher",
+            "Hydra's joblib launcher plug-in: pip install 'drone_torchrl[joblib]'",
+        ),
+        (
+            "slurm_population",
+            "hydra_plugins.hydra_submitit_launcher",
+            "Hydra's submitit launcher plug-in: pip install 'drone_torchrl[submitit]'",
+        ),
+    ],
+)
+def test_a_launcher_without_its_extra_is_refused_naming_itself(
+    launcher, hidden, needs, hide, tmp_path, command_here
 ):
-    hide("pyarrow")
+    hide(hidden)
     proc = command_here(
         train_app.run, "drone-train", "-m", "seed=0,1", f"hydra/launcher={launcher}", *TINY, cwd=tmp_path
     )
     assert (proc.returncode, proc.stderr) == (
         1,
-        POPULATION_LINE.format(choice=f"hydra/launcher={launcher}") + "\n",
+        f"drone-train: error: hydra/launcher={launcher} needs {needs}\n",
     )
     assert list(tmp_path.iterdir()) == []
 
@@ -138,10 +155,10 @@ def test_a_logger_without_its_extra_is_refused_before_hydra_starts(
 
 def test_launchers_that_need_no_pyarrow_are_not_refused_for_it(hide):
     """fused and slurm_population train a folder per job (no Parquet): pyarrow is not theirs to need."""
-    from drone_torchrl import extras
+    from drone_torchrl import command_line, extras
 
     hide("pyarrow")
-    extras.check_choices({"hydra/launcher": "fused"})
+    command_line.check_extras({"hydra/launcher": "fused"})
     assert extras.LAUNCHERS["slurm_population"].module == "hydra_plugins.hydra_submitit_launcher"
     assert {k for k, v in extras.LAUNCHERS.items() if v == extras.POPULATION} == {
         "population",

@@ -93,7 +93,7 @@ def _before_hydra() -> list[Path]:
     The checks are :mod:`drone_torchrl.command_line`'s; returns the folders claimed. Exits with the
     message on a bad input.
     """
-    from drone_torchrl import command_line, extras
+    from drone_torchrl import command_line
 
     try:
         # Old keys (engine=, compile=, ...) work, each with a note naming today's (drone_torchrl.migrations).
@@ -107,7 +107,7 @@ def _before_hydra() -> list[Path]:
         flags = command_line.parse_flags("drone-train", args)
         check_command_line("drone-train", "config")
         overrides = command_line.overrides_of(args)
-        extras.check_choices(overrides)  # hydra/launcher=, logger= whose extra is missing
+        command_line.check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
         prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
         if not prints and flags.config_name is None and flags.config_dir is None:
             check_default_folder("config", args)

@@ -108,13 +108,18 @@ class Backend:
     extra: str | None = None
 
     @property
+    def needs(self) -> extras.Needs | None:
+        """What it needs installed (:mod:`drone_torchrl.extras`): the module its :attr:`extra` installs."""
+        return None if self.extra is None else extras.Needs(self.extra, self.extra)
+
+    @property
     def installed(self) -> bool:
         """Whether the module its :attr:`extra` installs can be imported."""
-        return self.extra is None or extras.Needs(self.extra, self.extra).installed
+        return self.needs is None or self.needs.installed
 
     def missing(self) -> str:
         """The one line saying what to install for it (:func:`drone_torchrl.extras.missing`'s)."""
-        return extras.missing(f"logger={self.name}", extras.Needs(str(self.extra), str(self.extra)))
+        return extras.missing(f"logger={self.name}", self.needs or extras.Needs(self.name, self.name))
 
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
