@@ -114,6 +114,7 @@ def test_pbt_without_pyarrow_is_one_line_naming_it_and_writes_nothing(tmp_path):
             "Hydra's submitit launcher plug-in: pip install 'drone_torchrl[submitit]'",
         ),
     ],
+    ids=["population", "halving", "pbt_replay", "local_parallel", "slurm_population"],
 )
 def test_a_launcher_without_its_extra_is_refused_naming_itself(
     launcher, hidden, needs, hide, tmp_path, command_here
