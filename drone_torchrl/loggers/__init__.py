@@ -119,7 +119,8 @@ class Backend:
 
     def missing(self) -> str:
         """The one line saying what to install for it (:func:`drone_torchrl.extras.missing`'s)."""
-        return extras.missing(f"logger={self.name}", self.needs or extras.Needs(self.name, self.name))
+        assert self.needs is not None, "a backend without an extra misses nothing"
+        return extras.missing(f"logger={self.name}", self.needs)
 
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
