@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import importlib.util
 from pathlib import Path
 
-from drone_torchrl import migrations
+from drone_torchrl import extras, migrations
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
@@ -26,18 +25,6 @@ from drone_torchrl.io.checkpoint import (
 )
 from drone_torchrl.io.folders import check_fork_folder
 
-# hydra/launcher options and the Hydra plugin each one runs on (with the extra that installs it).
-LAUNCHER_PLUGINS = {
-    "local_parallel": ("hydra_plugins.hydra_joblib_launcher", "joblib"),
-    "joblib": ("hydra_plugins.hydra_joblib_launcher", "joblib"),
-    "local_submitit": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "submitit_local": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "submitit_slurm": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "slurm": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "slurm_population": ("hydra_plugins.hydra_submitit_launcher", "submitit"),
-    "ray_local": ("hydra_plugins.hydra_ray_launcher", "ray"),
-    "ray": ("hydra_plugins.hydra_ray_launcher", "ray"),
-}
 # What marks a folder as a sweep's root (Hydra writes it there when the sweep starts).
 SWEEP_RECORD = "multirun.yaml"
 
@@ -85,21 +72,48 @@ def overrides_of(args: list[str]) -> dict[str, str]:
     return out
 
 
-def check_launcher(option: str) -> None:
-    """A ``hydra/launcher`` option whose plugin is not installed: one line naming the extra."""
-    plugin = LAUNCHER_PLUGINS.get(option)
-    if plugin is None:
-        return
-    module, extra = plugin
+def check_extras(overrides: dict[str, str]) -> None:
+    """Refuse, in one line, a ``hydra/launcher=`` or ``logger=`` choice whose extra is not installed.
+
+    What each choice needs is :mod:`drone_torchrl.extras`'s (a logger's: its backend's
+    :attr:`~drone_torchrl.loggers.Backend.extra`); each option of a swept choice (``logger=csv,mlflow``)
+    is checked. Raises :class:`~.checks.ConfigError` naming the choice as typed and the extra.
+    """
+    if "hydra/launcher" in overrides:
+        for option in _options("hydra/launcher", overrides["hydra/launcher"]):
+            extras.check(f"hydra/launcher={option}", extras.LAUNCHERS.get(option))
+    if "logger" in overrides:
+        for option in _options("logger", overrides["logger"]):
+            extras.check(f"logger={option}", _logger_needs(option))
+
+
+def _logger_needs(option: str) -> extras.Needs | None:
+    """What ``logger=<option>`` needs; None for an option Hydra cannot compose (it says why, later)."""
+    from hydra.errors import HydraException
+
+    from drone_torchrl import loggers
+    from drone_torchrl.config import _option_plugins
+
     try:
-        found = importlib.util.find_spec(module) is not None
-    except ImportError:
-        found = False
-    if not found:
-        raise ConfigError(
-            f"hydra/launcher={option} needs Hydra's launcher plugin, which is not installed: "
-            f"pip install 'drone_torchrl[{extra}]'"
-        )
+        # Hydra composes the option (its file names its backend, or inherits one): about 0.2 s.
+        return loggers.get(_option_plugins("config", (("logger", option),))["logger"]).needs
+    except (HydraException, ConfigError):
+        return None
+
+
+def _options(group: str, value: str) -> list[str]:
+    """The options of ``group=value`` as Hydra reads them: one, or each of a sweep's."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        (override,) = OverridesParser.create().parse_overrides([f"{group}={value}"])
+    except HydraException:  # refused in its own line by check_command_line
+        return []
+    if override.is_sweep_override():
+        return [str(option) for option in override.sweep_string_iterator()]
+    option = override.value()
+    return [option] if isinstance(option, str) else []
 
 
 def check_composed(overrides: list[str]) -> None:

@@ -1,12 +1,17 @@
 """drone-eval's work: fly a checkpoint (or the PD controller) on seeded episodes, compare, and plot.
 
 ``run_eval(cfg)`` takes the ``conf/eval.yaml`` config; the command-line shell is
-:mod:`drone_torchrl.apps.evaluate`.
+:mod:`drone_torchrl.apps.evaluate`. Besides the printed table it writes, in its output folder,
+the same table as :data:`TABLE_NAME` (a CSV, one row per policy: ``pandas.read_csv``) and
+:data:`SETTINGS_NAME` (JSON: what was flown, and the rows), beside the plot and the video.
 """
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -30,7 +35,7 @@ from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
 from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
-from drone_torchrl.io.storage import write_figure
+from drone_torchrl.io.storage import write_atomically, write_csv, write_figure
 from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
@@ -42,6 +47,29 @@ PLOT_NAME = "trajectory.png"
 VIDEO_NAME = "episode.gif"
 #: The PD hover controller's name in the table (and in :func:`run_eval`'s results).
 PD_NAME = "PD controller"
+#: The printed table as a CSV file in the output folder, one row per policy.
+TABLE_NAME = "results.csv"
+#: What was flown (checkpoint, episodes, seed, env, ceiling, optimum) and the rows, as JSON.
+SETTINGS_NAME = "results.json"
+#: The table's columns after ``policy``, in the printed line's order; then ``ends_<CAUSE>`` per
+#: termination cause. The percentages are of the ceiling (max), the optimum and the PD controller.
+TABLE_COLUMNS = (
+    "return_mean",
+    "return_std",
+    "return_min",
+    "pct_of_max",
+    "pct_of_optimum",
+    "pct_of_pd",
+    "length_mean",
+    "time_in_zone",
+    "first_zone_step_mean",
+    "first_zone_step_max",
+    "reached_fraction",
+    "thrust_mean",
+    "thrust_max",
+    "negative_thrust_fraction",
+    "crashes",
+)
 
 
 def plot_trajectory(
@@ -147,15 +175,60 @@ def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
     )
 
 
+def table_rows(results: dict[str, dict]) -> list[dict[str, Any]]:
+    """The table's rows, one per policy: ``policy``, :data:`TABLE_COLUMNS`, then ``ends_<CAUSE>``.
+
+    ``crashes`` counts the episodes that terminated (every cause but ``NONE``, the truncated ones).
+    """
+    rows = []
+    for name, r in results.items():
+        ends = {f"ends_{cause}": count for cause, count in r["causes"].items()}
+        crashes = sum(
+            count for cause, count in r["causes"].items() if cause != dynamics.TerminationCause.NONE.name
+        )
+        rows.append(
+            {"policy": name, **{k: r[k] for k in TABLE_COLUMNS if k != "crashes"}, "crashes": crashes, **ends}
+        )
+    return rows
+
+
+def write_table(out_dir: Path, rows: list[dict[str, Any]], settings: dict[str, Any]) -> tuple[Path, Path]:
+    """Write the table as :data:`TABLE_NAME` and, with the settings, :data:`SETTINGS_NAME`, atomically.
+
+    A number that is not one (no optimum, no episode reached the zone) is ``nan`` in the CSV and
+    ``null`` in the JSON (which has no NaN).
+    """
+    header = list(rows[0])
+    table = write_csv(out_dir / TABLE_NAME, header, ([row[k] for k in header] for row in rows))
+    document = _json_numbers({**settings, "policies": rows})
+    text = json.dumps(document, indent=2, allow_nan=False) + "\n"
+    return table, write_atomically(out_dir / SETTINGS_NAME, text.encode())
+
+
+def _json_numbers(value: Any) -> Any:
+    """``value`` with every NaN as None (JSON has no NaN)."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_numbers(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_numbers(v) for v in value]
+    return value
+
+
 def run_eval(
-    cfg: DictConfig, out_dir: Path | None = None, requested: set[str] | None = None
+    cfg: DictConfig, out_dir: Path | None = None, requested: set[str] | None = None, table: bool | None = None
 ) -> dict[str, dict]:
-    """Evaluate ``cfg.checkpoint`` (or the PD controller) and write the video and plot.
+    """Evaluate ``cfg.checkpoint`` (or the PD controller); write the table, the plot and the video.
 
     Returns each policy's :func:`~drone_torchrl.evaluation.summarize` by its name in the table.
-    ``out_dir``: where the plot and video go (default: the Hydra job's folder, else the working
-    folder); ``requested``: the keys the caller set (default: those of the Hydra command line).
+    ``out_dir``: where the files go (default: the Hydra job's folder, else the working folder);
+    ``requested``: the keys the caller set (default: those of the Hydra command line); ``table``:
+    write the table as :data:`TABLE_NAME` and :data:`SETTINGS_NAME` (default: when run as
+    ``drone-eval``, a Hydra job; a Python call writes only the plot and video it asks for).
     """
+    if table is None:
+        table = out_dir is None and HydraConfig.initialized()
     if out_dir is None:
         out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
     keys = (command_line_keys() or set()) if requested is None else requested
@@ -208,10 +281,12 @@ def run_eval(
         stats, rollouts[name] = evaluate(policy, kwargs, cfg.episodes, cfg.seed, cfg.device)
         results[name] = {"policy": name, **summarize(stats, ceiling, best)}
     pd_return = results[PD_NAME]["return_mean"]
+    for r in results.values():
+        r["pct_of_pd"] = 100.0 * r["return_mean"] / pd_return if pd_return else math.nan
     print(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
     print(optimum_line(kwargs, optimum, ceiling))
     for name, r in results.items():
-        vs_pd = 100.0 * r["return_mean"] / pd_return if pd_return else float("nan")
+        vs_pd = r["pct_of_pd"]
         vs_optimum = "" if best is None else f"{r['pct_of_optimum']:.1f}% of the optimum {best:.0f}, "
         causes = ", ".join(f"{k} {v}" for k, v in r["causes"].items() if v)
         print(
@@ -222,6 +297,20 @@ def run_eval(
             f"x weight, negative thrust {100 * r['negative_thrust_fraction']:.1f}%; "
             f"episode ends: {causes} (NONE = truncated; the others are crashes)"
         )
+    if table:
+        settings = {
+            "checkpoint": None if cfg.checkpoint is None else str(path),
+            "agent": cfg.agent,
+            "episodes": cfg.episodes,
+            "seed": cfg.seed,
+            "device": cfg.device,
+            "env": kwargs,
+            "ceiling": ceiling,
+            "optimum": best,
+            "pd_return": pd_return,
+        }
+        csv_file, json_file = write_table(out_dir, table_rows(results), settings)
+        print(f"wrote {csv_file} and {json_file}")
     main_name = next(iter(policies))
     if cfg.plot:
         plot = plot_trajectory(rollouts[main_name], out_dir / PLOT_NAME, main_name, physics_params(kwargs))

@@ -69,6 +69,7 @@ from drone_torchrl.envs.dynamics import (
     ZONE_Z_CENTRE,
     clamp_action,
 )
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR
 from drone_torchrl.io.storage import name_too_long, unwritable, write_atomically
 from drone_torchrl.modules.factory import build_actor, build_policy
 from drone_torchrl.modules.policy import actor_from_net
@@ -87,6 +88,8 @@ ONNX_OPSET = 18
 # What format=onnx imports: the onnx extra (pyproject.toml).
 ONNX_MODULES = ("onnx", "onnxruntime", "onnxscript")
 ONNX_EXTRA = "pip install 'drone_torchrl[onnx]'"
+# The folder of a run that output=null exports into (default_output).
+EXPORT_DIR = "export"
 # The ONNX model's input and output names.
 ONNX_INPUT, ONNX_OUTPUT = "observation", "thrust"
 #: The runtime that runs each format, as the latency figures name it.
@@ -156,11 +159,12 @@ class Exported:
 
 
 # ------------------------------------------------------------------------------ what to write
-def resolve_output(format: str | None, output: Any) -> tuple[str, Path]:
+def resolve_output(format: str | None, output: Any) -> tuple[str, Path | None]:
     """The format and the file of ``format=`` and ``output=``, checked to fit each other.
 
     They fit when the output's suffix is the format's (``.pt2``, ``.onnx``); otherwise
-    :class:`~.checks.ConfigError`. A null format is the suffix's, a null output ``policy.<format>``.
+    :class:`~.checks.ConfigError`. A null format is the suffix's (``pt2`` without an output); a null
+    output stays None: the file goes into the checkpoint's run folder (:func:`default_output`).
     """
     suffixes = {f".{name}": name for name in EXPORT_FORMATS}
     if format is not None and format not in EXPORT_FORMATS:
@@ -168,8 +172,7 @@ def resolve_output(format: str | None, output: Any) -> tuple[str, Path]:
             "format", format, f"one of {list(EXPORT_FORMATS)}, or null (from the output's suffix)"
         )
     if output is None:
-        format = format or EXPORT_FORMATS[0]
-        return format, Path(f"policy.{format}")
+        return format or EXPORT_FORMATS[0], None
     if not isinstance(output, str | os.PathLike) or not str(output).strip():
         raise ConfigError.of("output", output, "a file path such as policy.pt2 or policy.onnx")
     path = Path(output)
@@ -190,6 +193,20 @@ def resolve_output(format: str | None, output: Any) -> tuple[str, Path]:
             "output", str(output), f"a file name ending in .{format}, to match format={format}"
         )
     return named, path
+
+
+def default_output(checkpoint: Path, format: str, agent: int | None = None) -> Path:
+    """Where ``output=null`` writes: ``<run>/export/<checkpoint's name>[_agent<K>].<format>``.
+
+    ``<run>`` is the run folder of ``checkpoint`` (``<run>/checkpoints/<name>.pt``; a checkpoint file
+    elsewhere: its own folder), so ``checkpoints/last.pt`` becomes ``export/last.pt2`` and
+    ``best.pt`` ``best.pt2``: exports of other checkpoints, formats and agents do not overwrite each
+    other, and nothing lands in the folder the command was started from.
+    """
+    checkpoint = Path(checkpoint)
+    run = checkpoint.parent.parent if checkpoint.parent.name == CHECKPOINT_DIR else checkpoint.parent
+    name = checkpoint.stem if agent is None else f"{checkpoint.stem}_agent{agent}"
+    return run / EXPORT_DIR / f"{name}.{format}"
 
 
 def _installed(module: str) -> bool:
@@ -382,6 +399,21 @@ def load_program(source: str | os.PathLike | bytes, format: str) -> Callable[[to
     return lambda observation: torch.from_numpy(session.run(None, {ONNX_INPUT: observation.numpy()})[0])
 
 
+def check_output_folder(output: Path, given: bool = True) -> None:
+    """Refuse, before the work, an output whose folder cannot be written (:class:`~.checks.ConfigError`).
+
+    ``given``: the user named it (``output=``); otherwise it is :func:`default_output`'s.
+    """
+    refused = unwritable(output.parent)
+    if refused is None:
+        return
+    if given:
+        raise ConfigError.of("output", str(output), f"a file in a folder this user can write ({refused})")
+    raise ConfigError(
+        f"output=null writes {output}, whose folder cannot be written ({refused}): give output=<file>"
+    )
+
+
 def export_policy(
     checkpoint: str | os.PathLike,
     output: str | os.PathLike | None = None,
@@ -390,17 +422,20 @@ def export_policy(
 ) -> Exported:
     """Write the deterministic policy of ``checkpoint`` to ``output`` as ``format``, checked.
 
-    ``format`` and ``output`` are resolved by :func:`resolve_output`; the file is checked against
+    ``format`` and ``output`` are resolved by :func:`resolve_output` (no output: into the run
+    folder, :func:`default_output`); the file is checked against
     the checkpoint's actor. Raises :class:`~.checks.ConfigError` for bad arguments (before any
     work), :class:`ExportError` for a file that does not reproduce the actor (nothing is written).
     """
     format, output = resolve_output(format, output)
     if format == "onnx":
         check_onnx_extra()
-    refused = unwritable(output.parent)
-    if refused is not None:
-        raise ConfigError.of("output", str(output), f"a file in a folder this user can write ({refused})")
+    if output is not None:
+        check_output_folder(output)
     policy, actor, path = load_policy(checkpoint, agent)
+    if output is None:
+        output = default_output(path, format, agent)
+        check_output_folder(output, given=False)
     observations = check_observations(observation_dim(policy)).to(_dtype(policy))
     expected = actor_commands(actor, observations, policy.max_thrust)
     if not torch.isfinite(expected).all():

@@ -1118,22 +1118,22 @@ def test_a_launcher_whose_extra_is_missing_is_one_line(monkeypatch):
     """hydra/launcher=local_parallel without the joblib extra: Hydra would list its plugins in many lines."""
     from drone_torchrl import command_line
 
-    found = command_line.importlib.util.find_spec
+    found = importlib.util.find_spec
     monkeypatch.setattr(
-        command_line.importlib.util,
+        importlib.util,
         "find_spec",
         lambda name, *a: None if name == "hydra_plugins.hydra_joblib_launcher" else found(name, *a),
     )
     with pytest.raises(ConfigError) as info:
-        command_line.check_launcher("local_parallel")
+        command_line.check_extras({"hydra/launcher": "local_parallel"})
     _one_line(str(info.value), "hydra/launcher=local_parallel")
     assert "drone_torchrl[joblib]" in str(info.value)
     # An installed plugin is accepted; the README's install (".[test]") has no submitit extra.
     if found("hydra_plugins.hydra_submitit_launcher") is not None:
-        command_line.check_launcher("slurm")
+        command_line.check_extras({"hydra/launcher": "slurm"})
     else:
         with pytest.raises(ConfigError, match=r"drone_torchrl\[submitit\]"):
-            command_line.check_launcher("slurm")
+            command_line.check_extras({"hydra/launcher": "slurm"})
 
 
 def test_report_lists_the_jobs_that_failed_before_their_first_episode(files, tmp_path, capsys):

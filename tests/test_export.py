@@ -191,9 +191,9 @@ def test_format_onnx_without_the_extra_says_which_in_one_line_before_any_work(tm
 @pytest.mark.parametrize(
     ("format", "output", "expected"),
     [
-        (None, None, ("pt2", "policy.pt2")),
-        ("onnx", None, ("onnx", "policy.onnx")),
-        ("pt2", None, ("pt2", "policy.pt2")),
+        (None, None, ("pt2", None)),  # no output: the run folder's (default_output)
+        ("onnx", None, ("onnx", None)),
+        ("pt2", None, ("pt2", None)),
         (None, "out/best.onnx", ("onnx", "out/best.onnx")),
         (None, "best.ONNX", ("onnx", "best.ONNX")),
         ("onnx", "best.onnx", ("onnx", "best.onnx")),
@@ -202,7 +202,7 @@ def test_format_onnx_without_the_extra_says_which_in_one_line_before_any_work(tm
 )
 def test_the_format_is_the_output_s_suffix(format, output, expected):
     fmt, path = export.resolve_output(format, output)
-    assert (fmt, path) == (expected[0], Path(expected[1]))
+    assert (fmt, path) == (expected[0], None if expected[1] is None else Path(expected[1]))
 
 
 def test_latency_is_measured_for_each_runtime(tmp_path, onnxruntime):
@@ -229,6 +229,10 @@ def test_drone_export_onnx_prints_the_check_and_the_latency(tmp_path, onnxruntim
     )
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
     lines = proc.stdout.splitlines()
-    assert lines[0] == "wrote policy.onnx" and (tmp_path / "policy.onnx").is_file()
+    # No output=: beside the checkpoint (a file outside a run's checkpoints/ folder), in export/.
+    assert (
+        lines[0] == f"wrote {tmp_path / 'export' / 'last.onnx'}"
+        and (tmp_path / "export" / "last.onnx").is_file()
+    )
     assert lines[1].startswith("checked: largest difference from the actor ")
     assert "onnxruntime" in lines[2] and " us" in lines[2] and "eager torch" in lines[2]

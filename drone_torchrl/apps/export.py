@@ -2,9 +2,11 @@
 
 The file is a ``torch.export`` program (``.pt2``) or an ONNX model (``.onnx``, the ``onnx`` extra).
 
-drone-export checkpoint=outputs/<date>/<run> output=policy.pt2
-drone-export checkpoint=outputs/<date>/<run> output=policy.onnx      # or format=onnx
-drone-export checkpoint=<run>/checkpoints/best.pt output=best.pt2
+drone-export checkpoint=outputs/<date>/<run>                     # <run>/export/last.pt2
+drone-export checkpoint=outputs/<date>/<run> format=onnx         # <run>/export/last.onnx
+drone-export checkpoint=<run>/checkpoints/best.pt                # <run>/export/best.pt2
+drone-export checkpoint=<population run> agent=3                 # <run>/export/last_agent3.pt2
+drone-export checkpoint=outputs/<date>/<run> output=policy.onnx  # anywhere else: output=<file>
 
 Load a .pt2 with plain torch: ``torch.export.load("policy.pt2").module()(observation)``; an .onnx
 with onnxruntime: ``InferenceSession("policy.onnx").run(None, {"observation": observation})``.

@@ -107,8 +107,7 @@ def _before_hydra() -> list[Path]:
         flags = command_line.parse_flags("drone-train", args)
         check_command_line("drone-train", "config")
         overrides = command_line.overrides_of(args)
-        if "hydra/launcher" in overrides:
-            command_line.check_launcher(overrides["hydra/launcher"])
+        command_line.check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
         prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
         if not prints and flags.config_name is None and flags.config_dir is None:
             check_default_folder("config", args)

@@ -28,7 +28,6 @@ and ``conf/logger/<option>.yaml`` with ``defaults: [tensorboard, /schema_logger_
 
 from __future__ import annotations
 
-import importlib.util
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +36,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
+from drone_torchrl import extras
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.registry import Registry
@@ -108,13 +108,19 @@ class Backend:
     extra: str | None = None
 
     @property
+    def needs(self) -> extras.Needs | None:
+        """What it needs installed (:mod:`drone_torchrl.extras`): the module its :attr:`extra` installs."""
+        return None if self.extra is None else extras.Needs(self.extra, self.extra)
+
+    @property
     def installed(self) -> bool:
         """Whether the module its :attr:`extra` installs can be imported."""
-        return self.extra is None or importlib.util.find_spec(self.extra) is not None
+        return self.needs is None or self.needs.installed
 
     def missing(self) -> str:
-        """The one line saying what to install for it."""
-        return f"logger={self.name} needs the {self.extra} extra: pip install 'drone_torchrl[{self.extra}]'"
+        """The one line saying what to install for it (:func:`drone_torchrl.extras.missing`'s)."""
+        assert self.needs is not None, "a backend without an extra misses nothing"
+        return extras.missing(f"logger={self.name}", self.needs)
 
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from drone_torchrl import extras
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import open_checkpoint, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
@@ -76,8 +77,11 @@ def _pyarrow():
         import pyarrow
         import pyarrow.parquet
     except ImportError:
+        # drone-train refuses these launchers typed on its command line before Hydra starts; this is
+        # for the other ways here (a launcher chosen in a config file, drone-report on a population run).
+        launchers = "|".join(k for k, v in extras.LAUNCHERS.items() if v == extras.POPULATION)
         raise ConfigError(
-            "hydra/launcher=population writes Parquet and needs pyarrow: pip install 'drone_torchrl[population]'"
+            extras.missing(f"a population run (hydra/launcher={launchers})", extras.POPULATION)
         ) from None
     return pyarrow
 
