@@ -24,9 +24,7 @@ from drone_torchrl.io.checkpoint import (
     run_dir_of,
 )
 from drone_torchrl.io.folders import check_fork_folder
-
-# What marks a folder as a sweep's root (Hydra writes it there when the sweep starts).
-SWEEP_RECORD = "multirun.yaml"
+from drone_torchrl.sweep_folder import SWEEP_RECORD
 
 
 def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:

@@ -15,10 +15,13 @@ on any launcher, gets the sweep's folder.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from collections.abc import Iterable
 from pathlib import Path
 
+#: What marks a folder as a sweep's root (Hydra writes it there when the sweep starts).
+SWEEP_RECORD = "multirun.yaml"
 #: The folder every ad-hoc sweep shared before they were named by their overrides.
 OLD_ADHOC = "adhoc"
 #: Hex digits of the hash in an ad-hoc sweep's folder name.
@@ -41,16 +44,23 @@ def _key(override: str) -> str:
     return override.partition("=")[0].lstrip("+~")
 
 
+@functools.cache
+def _process_keys() -> frozenset[str]:
+    """The schema's ``PROCESS`` keys (the run's own keys: no plug-in has one)."""
+    from drone_torchrl import schema
+
+    return frozenset(
+        key for key, rule in schema.fields(schema.TrainConfig, {}) if rule.on_resume == schema.PROCESS
+    )
+
+
 def _defines_the_search(key: str) -> bool:
     """Whether a task override with ``key`` enters the folder's hash.
 
     Keys that only say where and how this process runs (the schema's ``PROCESS`` keys: ``device``,
     ``threads``, ``progress``, ...) do not, nor ``sweep_name`` (an ad-hoc sweep has none).
     """
-    from drone_torchrl.config import resume_rule
-    from drone_torchrl.schema import PROCESS
-
-    return key != "sweep_name" and resume_rule(key) != PROCESS
+    return key != "sweep_name" and key not in _process_keys()
 
 
 def search_overrides(task: Iterable[str], hydra: Iterable[str] = ()) -> list[str]:
@@ -102,8 +112,6 @@ def group_name(sweep_name: str | None, run_dir: Path) -> str:
     ``sweep_name``; for a job of an ad-hoc sweep its sweep folder's name (the folder holds the
     sweep's ``multirun.yaml``), so each sweep is one group; for a single run :data:`OLD_ADHOC`.
     """
-    from drone_torchrl.command_line import SWEEP_RECORD
-
     if sweep_name is not None:
         return str(sweep_name)
     sweep = Path(run_dir).resolve().parent
