@@ -1,4 +1,4 @@
-"""The Python entry points: :func:`train` and :func:`evaluate`, what ``drone-train`` and ``drone-eval`` do.
+"""The Python entry points: :func:`~drone_torchrl.api.train` and :func:`~drone_torchrl.api.evaluate`, what ``drone-train`` and ``drone-eval`` do.
 
 For a notebook or a script (docs/python.md)::
 

@@ -28,8 +28,8 @@ OLD_ADHOC = "adhoc"
 HASH_DIGITS = 8
 # Keeps the readable prefix well inside a file system's 255-byte names.
 _PREFIX_CHARS = 60
-#: Launchers that change what a sweep is: one population run per group (``population_<g>/``, not a
-#: folder per job) or a search (PBT, successive halving, a PBT agent replayed). The others (basic,
+#: The launchers that change what a sweep is, with one population run per group (``population_<g>/``,
+#: not a folder per job) or a search (PBT, successive halving, a PBT agent replayed). The others (basic,
 #: fused, local_parallel, slurm, ...) train the same jobs into the same job folders, so the same grid
 #: run by another of them continues in its folder; their keys (cores, partition) are no matter either.
 SEARCH_LAUNCHERS = frozenset({"population", "pbt", "halving", "pbt_replay"})
