@@ -1,0 +1,107 @@
+"""What the commands show their user: a reader that went away, and the lines each run keeps in its log.
+
+A command's output piped into ``head`` (or a terminal closed under it) makes the next write to
+stdout or stderr raise :class:`BrokenPipeError`. That is no reason to stop training, nor to record
+a job as failed: :func:`guard_broken_pipes` wraps both streams once, at each command's start, so
+that a broken pipe points the stream at :data:`os.devnull` (Python's documented idiom) and the
+command goes on; every ``print``, logging handler and progress bar writes through the wrappers.
+Only ``EPIPE`` is handled: a full disk or any other error is raised as before.
+
+:data:`console` is the logger of the lines a run shows (notes, ``resume:`` lines, the final
+summary, the next steps): INFO lines go to stdout, WARNING and above to stderr, as text alone
+(:class:`Terminal`). Hydra's job logging (``hydra.job_logging`` in ``conf/config.yaml``) adds the
+job's log file (``<run>/train.log``) to it, so the log holds what the terminal showed, without the
+progress bar.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import sys
+from typing import Any, TextIO
+
+#: The logger of the lines a command shows its user (see the module's docstring).
+console = logging.getLogger("drone_torchrl.console")
+
+
+class Terminal(logging.Handler):
+    """Writes a record's message alone, as ``print`` would: INFO to stdout, WARNING and above to stderr.
+
+    The streams are looked up at each line (not kept from when the handler was made): a test's
+    captured streams and :func:`guard_broken_pipes`' wrappers are the ones written to.
+    """
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Write ``record``'s message and a newline to stdout or stderr."""
+        try:
+            stream = sys.stderr if record.levelno >= logging.WARNING else sys.stdout
+            stream.write(f"{record.getMessage()}\n")
+            stream.flush()
+        except Exception:  # noqa: BLE001  (logging's contract: a handler reports its error, never raises)
+            self.handleError(record)
+
+
+console.addHandler(Terminal())
+console.setLevel(logging.INFO)
+console.propagate = False  # root's handlers (Hydra's console) would show each line a second time
+
+
+class _PipeGuard:
+    """A text stream that turns into :data:`os.devnull` when its reader is gone (EPIPE).
+
+    Everything but ``write``, ``writelines`` and ``flush`` is the wrapped stream's.
+    """
+
+    def __init__(self, stream: TextIO) -> None:
+        self._stream = stream
+
+    def _gone(self) -> None:
+        # The file descriptor itself points at devnull too: the interpreter's last flush of the
+        # original stream, and child processes that inherit it, then write nowhere without error.
+        try:
+            fd = self._stream.fileno()
+        except (AttributeError, ValueError, OSError):  # no descriptor (a test's captured stream)
+            fd = None
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        if fd is not None:
+            os.dup2(devnull, fd)
+        os.close(devnull)
+        self._stream = open(os.devnull, "w", encoding="utf-8")  # noqa: SIM115  (lives as long as the process)
+
+    def _call(self, name: str, *args: Any) -> Any:
+        try:
+            return getattr(self._stream, name)(*args)
+        except BrokenPipeError:
+            self._gone()
+        except OSError as err:
+            if err.errno != errno.EPIPE:
+                raise
+            self._gone()
+        return None
+
+    def write(self, text: str) -> int:
+        """Write ``text``; after the reader has gone, nowhere (returns ``len(text)`` then)."""
+        written = self._call("write", text)
+        return len(text) if written is None else written
+
+    def writelines(self, lines: Any) -> None:
+        """Write each of ``lines``."""
+        for line in lines:
+            self.write(line)
+
+    def flush(self) -> None:
+        """Flush the stream (nothing, after the reader has gone)."""
+        self._call("flush")
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._stream, name)
+
+
+def guard_broken_pipes() -> None:
+    """Wrap ``sys.stdout`` and ``sys.stderr`` so that a broken pipe never stops the command (once)."""
+    for name in ("stdout", "stderr"):
+        stream = getattr(sys, name)
+        if stream is not None and not isinstance(stream, _PipeGuard):
+            setattr(sys, name, _PipeGuard(stream))
