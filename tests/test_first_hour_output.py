@@ -5,6 +5,8 @@ The closed-pipe tests run the installed commands with their stdout's reading end
 (``drone-train ... | head -0``): every write to it fails with EPIPE.
 """
 
+import errno
+import io
 import os
 import re
 import subprocess
@@ -155,3 +157,25 @@ def test_the_eval_log_holds_the_table(tmp_path, command_here):
     log = (tmp_path / "ev" / "evaluate.log").read_text()
     for line in proc.stdout.splitlines():
         assert line in log
+
+
+def test_the_guard_drops_a_broken_pipe_and_nothing_else():
+    """EPIPE turns the stream into devnull (the next writes go nowhere, without error); a full disk
+    behind a redirection is still an error."""
+    from drone_torchrl.io.streams import _PipeGuard
+
+    read, write = os.pipe()
+    os.close(read)
+    guard = _PipeGuard(os.fdopen(write, "w"))
+    assert guard.write("lost\n") == 5
+    guard.flush()  # EPIPE here: from now on, devnull
+    assert guard.write("also lost\n") == 10
+    guard.flush()
+    assert os.path.samestat(os.fstat(write), os.stat(os.devnull))  # the descriptor too
+
+    class FullDisk(io.StringIO):
+        def write(self, text: str) -> int:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    with pytest.raises(OSError, match="No space left"):
+        _PipeGuard(FullDisk()).write("x")

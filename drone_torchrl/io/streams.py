@@ -56,6 +56,7 @@ class _PipeGuard:
 
     def __init__(self, stream: TextIO) -> None:
         self._stream = stream
+        self._broken: TextIO | None = None
 
     def _gone(self) -> None:
         # The file descriptor itself points at devnull too: the interpreter's last flush of the
@@ -68,15 +69,15 @@ class _PipeGuard:
         if fd is not None:
             os.dup2(devnull, fd)
         os.close(devnull)
+        # The broken stream is kept: closing it (when nothing refers to it) would flush its buffer again.
+        self._broken = self._stream
         self._stream = open(os.devnull, "w", encoding="utf-8")  # noqa: SIM115  (lives as long as the process)
 
     def _call(self, name: str, *args: Any) -> Any:
         try:
             return getattr(self._stream, name)(*args)
-        except BrokenPipeError:
-            self._gone()
         except OSError as err:
-            if err.errno != errno.EPIPE:
+            if err.errno != errno.EPIPE:  # a full disk behind a redirection is an error as before
                 raise
             self._gone()
         return None

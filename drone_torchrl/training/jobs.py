@@ -332,7 +332,7 @@ def next_steps(folder: Path, sweep: bool = False) -> str:
 
 
 def sweep_summary(sweep_dir: Path) -> str:
-    """Which jobs of a sweep finished, failed (and why) or are unfinished: the end-of-sweep text."""
+    """Which jobs of a sweep finished, failed (and why) or are unfinished, and the next steps: the end-of-sweep text."""
     sweep_dir = Path(sweep_dir)
     rows = [(job.relative_to(sweep_dir), *job_status(job)) for job in sweep_jobs(sweep_dir)]
     counts = {s: sum(1 for _, status, _ in rows if status == s) for s in ("finished", "failed", "unfinished")}
@@ -347,7 +347,7 @@ def sweep_summary(sweep_dir: Path) -> str:
 
 
 class SweepSummary(Callback):
-    """Prints the sweep summary at the end of a multirun, and exits non-zero if a job failed.
+    """Prints the sweep summary and next steps at the end of a multirun, and exits non-zero if a job failed.
 
     Launchers that report a failed job to Hydra as failed (``hydra/launcher=fused``) make Hydra stop
     before this callback; that launcher prints the summary itself.
