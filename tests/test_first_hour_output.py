@@ -124,11 +124,31 @@ def test_the_run_log_holds_what_the_terminal_showed_and_the_next_steps(tmp_path,
         assert line in log
     assert "[INFO]" not in proc.stdout  # the terminal shows the text alone, as before
 
+    # Resumed in its own folder (Hydra's job log is a new folder's, removed): the run's log all the same.
+    again = command_here(
+        train_app.run, "drone-train", "resume=run", "algo.episodes=3", "progress=false", cwd=tmp_path
+    )
+    assert again.returncode == 0, again.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+    log = (run / "train.log").read_text()
+    assert f"{run}: continuing from episode 2 (the checkpoint's)" in log
+    assert f"{run}: 3 episodes, running-mean(100) return" in log
+    assert log.count("next steps:") == 2
 
-def test_a_sweep_ends_with_the_report_of_its_folder(tmp_path, command_here):
-    """After a sweep: drone-report and TensorBoard on the sweep's folder; each job's log holds its own summary."""
+
+@pytest.mark.parametrize("launcher", ["basic", "fused"])
+def test_a_sweep_ends_with_the_report_of_its_folder(tmp_path, command_here, launcher):
+    """After a sweep: drone-report and TensorBoard on the sweep's folder; each job's log holds its own
+    summary (the fused launcher's jobs too, trained together in one process)."""
     proc = command_here(
-        train_app.run, "drone-train", "-m", "seed=0,1", "hydra.sweep.dir=sw", *TINY, cwd=tmp_path
+        train_app.run,
+        "drone-train",
+        "-m",
+        "seed=0,1",
+        "hydra.sweep.dir=sw",
+        f"hydra/launcher={launcher}",
+        *TINY,
+        cwd=tmp_path,
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.splitlines()[-3:] == ["next steps:", "  drone-report sw", "  tensorboard --logdir sw"]

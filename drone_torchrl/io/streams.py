@@ -9,9 +9,12 @@ Only ``EPIPE`` is handled: a full disk or any other error is raised as before.
 
 :data:`console` is the logger of the lines a run shows (notes, ``resume:`` lines, the final
 summary, the next steps): INFO lines go to stdout, WARNING and above to stderr, as text alone
-(:class:`Terminal`). Hydra's job logging (``hydra.job_logging`` in ``conf/config.yaml``) adds the
-job's log file (``<run>/train.log``) to it, so the log holds what the terminal showed, without the
-progress bar.
+(:class:`Terminal`). Hydra's job logging (``hydra/job_logging=drone``, ``conf/hydra/job_logging/``)
+adds the job's log file (``<folder>/train.log``) to it, so the log holds what the terminal showed,
+without the progress bar. A line about one run names it (``extra={"run_dir": ...}``, see
+:func:`about`); :class:`RunLogs` appends it to that run's ``train.log`` where Hydra's file is
+another one: a run resumed in its own folder, the jobs of the fused launcher trained together, a
+run trained from Python.
 """
 
 from __future__ import annotations
@@ -20,10 +23,20 @@ import errno
 import logging
 import os
 import sys
+from pathlib import Path
 from typing import Any, TextIO
 
 #: The logger of the lines a command shows its user (see the module's docstring).
 console = logging.getLogger("drone_torchrl.console")
+#: A run folder's log file: Hydra's job log (``${hydra.job.name}.log`` of ``drone-train``).
+RUN_LOG = "train.log"
+#: The lines of a log file: Hydra's default job logging format.
+LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"
+
+
+def about(run_dir: str | Path) -> dict[str, Any]:
+    """The ``extra`` of a :data:`console` line about the run in ``run_dir`` (:class:`RunLogs` files it there)."""
+    return {"extra": {"run_dir": run_dir}}
 
 
 class Terminal(logging.Handler):
@@ -43,7 +56,34 @@ class Terminal(logging.Handler):
             self.handleError(record)
 
 
+class RunLogs(logging.Handler):
+    """Appends each line about a run (:func:`about`) to that run's ``train.log``.
+
+    Unless another handler of :data:`console` writes that file already (Hydra's job log, when the
+    run trains in the Hydra job's folder). The file is opened for each line: a run has a handful.
+    """
+
+    def __init__(self, level: int = logging.NOTSET) -> None:
+        super().__init__(level)
+        self.setFormatter(logging.Formatter(LOG_FORMAT))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Append ``record`` to ``<run_dir>/train.log`` if it names a run whose log no other handler writes."""
+        run_dir = getattr(record, "run_dir", None)
+        if run_dir is None:
+            return
+        try:
+            path = os.path.realpath(Path(run_dir) / RUN_LOG)
+            if any(os.path.realpath(getattr(h, "baseFilename", "")) == path for h in console.handlers):
+                return
+            with open(path, "a", encoding="utf-8") as log:
+                log.write(f"{self.format(record)}\n")
+        except Exception:  # noqa: BLE001  (logging's contract: a handler reports its error, never raises)
+            self.handleError(record)
+
+
 console.addHandler(Terminal())
+console.addHandler(RunLogs())
 console.setLevel(logging.INFO)
 console.propagate = False  # root's handlers (Hydra's console) would show each line a second time
 

@@ -59,7 +59,7 @@ from drone_torchrl.io.checkpoint import (
     run_dir_of,
 )
 from drone_torchrl.io.folders import HYDRA_ENTRIES, check_fork_folder
-from drone_torchrl.io.streams import console
+from drone_torchrl.io.streams import about, console
 from drone_torchrl.io.yaml_text import to_yaml
 from drone_torchrl.schema import BUDGET, KEPT, PROCESS
 from drone_torchrl.training.population_record import open_agent
@@ -192,7 +192,8 @@ def _prepare(
     check_fork_folder(fork_dir, cfg.resume, HYDRA_ENTRIES)
     console.info(
         f"resume: {path.name} (episode {checkpoint['episodes_done']}) is not the last checkpoint of {parent}; "
-        f"continuing as a fork in {fork_dir} (the original run is left as it is)"
+        f"continuing as a fork in {fork_dir} (the original run is left as it is)",
+        **about(fork_dir),
     )
     # A fork has not finished, whatever its parent did after the checkpoint, and its best.pt is the
     # best of its own evaluations (its folder has none of the parent's checkpoints). A population's

@@ -31,7 +31,7 @@ from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
-from drone_torchrl.io.streams import console
+from drone_torchrl.io.streams import about, console
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
 from drone_torchrl.training.agents import AgentTable
@@ -324,7 +324,8 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     for i, job in enumerate(jobs):
         if job.already_finished:
             console.info(
-                f"{job.run_dir}: already finished ({job.checkpoint['episodes_done']} episodes); nothing to do"
+                f"{job.run_dir}: already finished ({job.checkpoint['episodes_done']} episodes); nothing to do",
+                **about(job.run_dir),
             )
             outcomes[i].final = job.checkpoint["final"]
             (job.run_dir / FAILED_FILE).unlink(missing_ok=True)  # left by a refused re-run
@@ -354,7 +355,7 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
             if final is None:  # the agent diverged (its run record wrote FAILED.txt)
                 outcomes[i].error = TrainingDiverged(trainer.runs[members.index(i)].failure)
                 if len(jobs) > 1:
-                    console.info(f"{jobs[i].run_dir}: failed: {outcomes[i].error}")
+                    console.info(f"{jobs[i].run_dir}: failed: {outcomes[i].error}", **about(jobs[i].run_dir))
                 continue
             outcomes[i].final = final
             _report(jobs[i], final, trainer.runs[members.index(i)])
@@ -369,7 +370,8 @@ def _report(job: Job, final: dict[str, float], run: AgentBook) -> None:
     console.info(
         f"{job.run_dir}: {run.episodes_done} episodes{stopped}, running-mean({RUNNING_MEAN_WINDOW}) "
         f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
-        f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s"
+        f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s",
+        **about(job.run_dir),
     )
 
 
@@ -383,7 +385,7 @@ def train(cfg: DictConfig, run_dir: str | Path | None = None, show_next_steps: b
     """
     outcome = train_job(prepare(cfg, run_dir))
     if show_next_steps:
-        console.info(next_steps(outcome.run_dir))
+        console.info(next_steps(outcome.run_dir), **about(outcome.run_dir))
     return outcome.final_return
 
 
@@ -448,7 +450,9 @@ def train_population(
                 checkpoint["final"], checkpoint["failure"], checkpoint["episodes_done"], strict=True
             )
         ):
-            console.info(f"{run_dir}: already finished ({len(agents)} agents); nothing to do")
+            console.info(
+                f"{run_dir}: already finished ({len(agents)} agents); nothing to do", **about(run_dir)
+            )
             return _population_outcomes(run_dir, checkpoint["final"], checkpoint["failure"])
         if before_training is not None:
             before_training()
