@@ -23,7 +23,7 @@ from drone_torchrl.config import ConfigError, check_command_line, check_default_
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
-from drone_torchrl.io.streams import console, guard_broken_pipes
+from drone_torchrl.io.streams import console, guard_broken_pipes, keep_run_logs
 from drone_torchrl.training.population_record import AGENTS_TABLE
 from drone_torchrl.training.run import TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped
@@ -162,6 +162,7 @@ def register_plugins() -> None:
 def run() -> None:
     """Console entry point: registers our Hydra plug-ins, then runs the Hydra app."""
     guard_broken_pipes()  # output piped into `head` never stops training
+    keep_run_logs()  # each run's lines in its train.log, whichever launcher trains it
     answer_help("drone-train")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
     register_plugins()
     claimed = _before_hydra()

@@ -14,7 +14,7 @@ adds the job's log file (``<folder>/train.log``) to it, so the log holds what th
 without the progress bar. A line about one run names it (``extra={"run_dir": ...}``, see
 :func:`about`); :class:`RunLogs` appends it to that run's ``train.log`` where Hydra's file is
 another one: a run resumed in its own folder, the jobs of the fused launcher trained together, a
-run trained from Python.
+population run.
 """
 
 from __future__ import annotations
@@ -83,9 +83,18 @@ class RunLogs(logging.Handler):
 
 
 console.addHandler(Terminal())
-console.addHandler(RunLogs())
 console.setLevel(logging.INFO)
 console.propagate = False  # root's handlers (Hydra's console) would show each line a second time
+
+
+def keep_run_logs() -> None:
+    """Give :data:`console` a :class:`RunLogs` (once): a command's runs keep their lines in their folders.
+
+    ``drone-train`` calls it; a run trained from Python writes no log file. Hydra's job logging
+    (``hydra/job_logging=drone``) sets :data:`console`'s handlers again, a :class:`RunLogs` among them.
+    """
+    if not any(isinstance(handler, RunLogs) for handler in console.handlers):
+        console.addHandler(RunLogs())
 
 
 class _PipeGuard:
