@@ -311,7 +311,7 @@ def run_eval(
             "pd_return": pd_return,
         }
         csv_file, json_file = write_table(out_dir, table_rows(results), settings)
-        print(f"wrote {csv_file} and {json_file}")
+        console.info(f"wrote {csv_file} and {json_file}")
     main_name = next(iter(policies))
     if cfg.plot:
         plot = plot_trajectory(rollouts[main_name], out_dir / PLOT_NAME, main_name, physics_params(kwargs))
