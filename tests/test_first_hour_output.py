@@ -199,3 +199,31 @@ def test_the_guard_drops_a_broken_pipe_and_nothing_else():
 
     with pytest.raises(OSError, match="No space left"):
         _PipeGuard(FullDisk()).write("x")
+
+
+def test_a_logging_config_that_disables_loggers_does_not_silence_the_run_lines(capsys):
+    """hydra/job_logging=disabled (drone-export's) disables every existing logger: the run's lines
+    (its output, not diagnostics) still show."""
+    import logging.config
+
+    from drone_torchrl.io.streams import console
+
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    before = {
+        name: lg.disabled
+        for name, lg in logging.Logger.manager.loggerDict.items()
+        if isinstance(lg, logging.Logger)
+    }
+    try:
+        logging.config.dictConfig(
+            {"version": 1, "root": {"level": "ERROR"}, "disable_existing_loggers": True}
+        )
+        console.info("the summary")
+        console.warning("a note")
+    finally:
+        for name, disabled in before.items():
+            logging.getLogger(name).disabled = disabled
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    assert capsys.readouterr() == ("the summary\n", "a note\n")

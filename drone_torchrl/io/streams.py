@@ -26,8 +26,35 @@ import sys
 from pathlib import Path
 from typing import Any, TextIO
 
+
+class _AlwaysOn(logging.Logger):
+    """A logger that a logging config's ``disable_existing_loggers`` cannot silence.
+
+    Hydra's ``hydra/job_logging=disabled`` (drone-export's) disables every logger it finds, and
+    :data:`console`'s lines are a command's output, not diagnostics: they are shown all the same.
+    """
+
+    @property  # type: ignore[override]
+    def disabled(self) -> bool:
+        """Never: the lines are the command's output."""
+        return False
+
+    @disabled.setter
+    def disabled(self, value: bool) -> None:
+        pass
+
+
+def _always_on(name: str) -> logging.Logger:
+    previous = logging.getLoggerClass()
+    logging.setLoggerClass(_AlwaysOn)
+    try:
+        return logging.getLogger(name)
+    finally:
+        logging.setLoggerClass(previous)
+
+
 #: The logger of the lines a command shows its user (see the module's docstring).
-console = logging.getLogger("drone_torchrl.console")
+console = _always_on("drone_torchrl.console")
 #: A run folder's log file: Hydra's job log (``${hydra.job.name}.log`` of ``drone-train``).
 RUN_LOG = "train.log"
 #: The lines of a log file: Hydra's default job logging format.
