@@ -55,9 +55,9 @@ def _always_on(name: str) -> logging.Logger:
 
 #: The logger of the lines a command shows its user (see the module's docstring).
 console = _always_on("drone_torchrl.console")
-#: A run folder's log file: Hydra's job log (``${hydra.job.name}.log`` of ``drone-train``).
+#: A run folder's log file, Hydra's job log (``${hydra.job.name}.log`` of ``drone-train``).
 RUN_LOG = "train.log"
-#: The lines of a log file: Hydra's default job logging format.
+#: How a log file's lines look, as in Hydra's default job logging.
 LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"
 
 
