@@ -36,6 +36,7 @@ from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
 from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
 from drone_torchrl.io.storage import write_atomically, write_csv, write_figure
+from drone_torchrl.io.streams import console
 from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
@@ -283,13 +284,13 @@ def run_eval(
     pd_return = results[PD_NAME]["return_mean"]
     for r in results.values():
         r["pct_of_pd"] = 100.0 * r["return_mean"] / pd_return if pd_return else math.nan
-    print(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
-    print(optimum_line(kwargs, optimum, ceiling))
+    console.info(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
+    console.info(optimum_line(kwargs, optimum, ceiling))
     for name, r in results.items():
         vs_pd = r["pct_of_pd"]
         vs_optimum = "" if best is None else f"{r['pct_of_optimum']:.1f}% of the optimum {best:.0f}, "
         causes = ", ".join(f"{k} {v}" for k, v in r["causes"].items() if v)
-        print(
+        console.info(
             f"{name}: return {r['return_mean']:.1f} +- {r['return_std']:.1f} "
             f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_optimum}{vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
             f"time in zone {100 * r['time_in_zone']:.1f}%, first in the zone at step {r['first_zone_step_mean']:.1f} "
@@ -310,12 +311,12 @@ def run_eval(
             "pd_return": pd_return,
         }
         csv_file, json_file = write_table(out_dir, table_rows(results), settings)
-        print(f"wrote {csv_file} and {json_file}")
+        console.info(f"wrote {csv_file} and {json_file}")
     main_name = next(iter(policies))
     if cfg.plot:
         plot = plot_trajectory(rollouts[main_name], out_dir / PLOT_NAME, main_name, physics_params(kwargs))
-        print("plot:", plot)
+        console.info(f"plot: {plot}")
     if cfg.video:
         frames = record_video(policies[main_name], kwargs, cfg.seed, cfg.device)
-        print("video:", save_gif(frames, out_dir / VIDEO_NAME, cfg.video_fps))
+        console.info(f"video: {save_gif(frames, out_dir / VIDEO_NAME, cfg.video_fps)}")
     return results

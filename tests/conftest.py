@@ -42,6 +42,9 @@ def command_here(monkeypatch, capfd):
         capfd.readouterr()
         root = logging.getLogger()
         handlers, level = list(root.handlers), root.level
+        # The run's lines have a logger of their own, which Hydra's job logging gives the log file too.
+        console = logging.getLogger("drone_torchrl.console")
+        console_handlers = list(console.handlers)
         try:
             entry()
             code = 0
@@ -52,6 +55,9 @@ def command_here(monkeypatch, capfd):
                 handler.close()  # a job's log file (Hydra's job logging)
             root.handlers[:] = handlers
             root.setLevel(level)
+            for handler in set(console.handlers) - set(console_handlers):
+                handler.close()
+            console.handlers[:] = console_handlers
         out, err = capfd.readouterr()
         if isinstance(code, str):
             err, code = err + code + "\n", 1

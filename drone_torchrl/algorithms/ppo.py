@@ -38,6 +38,7 @@ from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.episodes import EpisodeTracker
+from drone_torchrl.io.streams import about, console
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
 from drone_torchrl.schema import (
@@ -226,10 +227,11 @@ class OnPolicy:
         ):
             self._restore(copy.deepcopy(self.best_state))
             self.returned_to_best = True
-            print(
+            console.info(
                 f"{run.run_dir}: episode {run.episodes_done}: evaluation return {last:.1f} is more than "
                 f"eval.rollback_drop={self.rollback_drop:g} below the best, {self.best_state['return']:.1f}: "
-                "training goes on from the best evaluation's policy, critic and optimizer"
+                "training goes on from the best evaluation's policy, critic and optimizer",
+                **about(run.run_dir),
             )
 
     def _learner_state(self) -> dict[str, Any]:

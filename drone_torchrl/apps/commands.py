@@ -2,16 +2,19 @@
 
 Each app's module imports torch and the training code (seconds); its ``--help`` page needs neither
 (:mod:`drone_torchrl.apps.help`), so each command checks for it first and imports its app only to
-run it.
+run it. Output piped into ``head`` never stops a command, its help page included
+(:func:`~drone_torchrl.io.streams.guard_broken_pipes`, first).
 """
 
 from __future__ import annotations
 
 from drone_torchrl.apps.help import answer_help
+from drone_torchrl.io.streams import guard_broken_pipes
 
 
 def train() -> None:
     """``drone-train`` (:func:`drone_torchrl.apps.train.run`)."""
+    guard_broken_pipes()
     answer_help("drone-train")
     from drone_torchrl.apps.train import run
 
@@ -20,6 +23,7 @@ def train() -> None:
 
 def evaluate() -> None:
     """``drone-eval`` (:func:`drone_torchrl.apps.evaluate.run`)."""
+    guard_broken_pipes()
     answer_help("drone-eval")
     from drone_torchrl.apps.evaluate import run
 
@@ -28,6 +32,7 @@ def evaluate() -> None:
 
 def export() -> None:
     """``drone-export`` (:func:`drone_torchrl.apps.export.run`)."""
+    guard_broken_pipes()
     answer_help("drone-export")
     from drone_torchrl.apps.export import run
 

@@ -20,6 +20,7 @@ from drone_torchrl.apps.help import answer_help
 from drone_torchrl.config import ConfigError, check_command_line, check_default_folder, config_dir
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
+from drone_torchrl.io.streams import guard_broken_pipes
 
 
 @hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
@@ -40,6 +41,7 @@ def run() -> None:
 
     The command line's keys and the folder Hydra will write are checked.
     """
+    guard_broken_pipes()
     answer_help("drone-eval")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
     flags = command_line.check_flags("drone-eval")
     check_command_line("drone-eval", "eval")

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from drone_torchrl.io.storage import StorageError, unwritable
+from drone_torchrl.io.streams import guard_broken_pipes
 from drone_torchrl.report import DEFAULT_RETURN_THRESHOLD
 
 PROG = "drone-report"
@@ -98,6 +99,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 def main(argv: Sequence[str] | None = None) -> None:
     """``drone-report``: one report per sweep folder; exit code 2 with a one-line error if unusable."""
+    guard_broken_pipes()  # output piped into `head` is not an unwritable report
     args = parse_args(argv)
     # Imported once the command line is read: they import torch (seconds), which --help does without.
     from drone_torchrl.report.distribution import paper_order

@@ -23,6 +23,7 @@ from drone_torchrl.config import ConfigError, check_command_line, check_default_
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
+from drone_torchrl.io.streams import console, guard_broken_pipes, keep_run_logs
 from drone_torchrl.training.population_record import AGENTS_TABLE
 from drone_torchrl.training.run import TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped
@@ -36,10 +37,11 @@ def main(cfg: DictConfig) -> float | None:
     """The Hydra app of ``drone-train``: train a run or a sweep's job; returns the job's final metric."""
     from drone_torchrl.training.trainer import train
 
+    guard_broken_pipes()  # also in a launcher's worker process
     if HydraConfig.get().mode != RunMode.MULTIRUN:
         hydra_dir = Path(HydraConfig.get().runtime.output_dir)
         try:
-            return train(cfg)
+            return train(cfg, show_next_steps=True)
         except (ConfigError, CheckpointError, TrainingDiverged) as err:
             sys.exit(f"drone-train: error: {err}")
         except StorageError as err:
@@ -47,7 +49,7 @@ def main(cfg: DictConfig) -> float | None:
             sys.exit(f"drone-train: error: {err}; {_continue_hint(run)}")
         except KeyboardInterrupt:
             run = Path(cfg.resume) if cfg.resume else hydra_dir
-            print(f"drone-train: interrupted; {_continue_hint(run)}", file=sys.stderr)
+            console.warning(f"drone-train: interrupted; {_continue_hint(run)}")
             sys.exit(EXIT_INTERRUPTED)
         finally:
             # Refused, or resumed in the run's own folder: Hydra's folder for this call holds nothing.
@@ -64,7 +66,7 @@ def main(cfg: DictConfig) -> float | None:
 
         if not (job_dir / FAILED_FILE).is_file():
             record_failure(job_dir, err)
-        print(f"drone-train: job failed: {type(err).__name__}: {err}", file=sys.stderr)
+        console.error(f"drone-train: job failed: {type(err).__name__}: {err}")
         raise
 
 
@@ -159,6 +161,8 @@ def register_plugins() -> None:
 
 def run() -> None:
     """Console entry point: registers our Hydra plug-ins, then runs the Hydra app."""
+    guard_broken_pipes()  # output piped into `head` never stops training
+    keep_run_logs()  # each run's lines in its train.log, whichever launcher trains it
     answer_help("drone-train")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
     register_plugins()
     claimed = _before_hydra()

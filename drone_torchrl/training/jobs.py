@@ -22,6 +22,7 @@ Resume rules (:func:`prepare`):
 from __future__ import annotations
 
 import math
+import shlex
 import sys
 import traceback
 from collections.abc import Callable, Iterable
@@ -58,6 +59,7 @@ from drone_torchrl.io.checkpoint import (
     run_dir_of,
 )
 from drone_torchrl.io.folders import HYDRA_ENTRIES, check_fork_folder
+from drone_torchrl.io.streams import about, console
 from drone_torchrl.io.yaml_text import to_yaml
 from drone_torchrl.schema import BUDGET, KEPT, PROCESS
 from drone_torchrl.training.population_record import open_agent
@@ -120,7 +122,7 @@ def prepare(
         for note in preset_notes(HydraConfig.get().runtime.choices):
             if note not in _noted:  # once per process, not once per job of a sweep
                 _noted.add(note)
-                print(f"note: {note}", file=sys.stderr)
+                console.warning(f"note: {note}")
     return job
 
 
@@ -188,9 +190,10 @@ def _prepare(
     # A new or empty folder (the Hydra job's holds its record, log and lock): never another run's,
     # nor the parent's.
     check_fork_folder(fork_dir, cfg.resume, HYDRA_ENTRIES)
-    print(
+    console.info(
         f"resume: {path.name} (episode {checkpoint['episodes_done']}) is not the last checkpoint of {parent}; "
-        f"continuing as a fork in {fork_dir} (the original run is left as it is)"
+        f"continuing as a fork in {fork_dir} (the original run is left as it is)",
+        **about(fork_dir),
     )
     # A fork has not finished, whatever its parent did after the checkpoint, and its best.pt is the
     # best of its own evaluations (its folder has none of the parent's checkpoints). A population's
@@ -307,8 +310,30 @@ def sweep_jobs(sweep_dir: Path) -> list[Path]:
     )
 
 
+def next_steps(folder: Path, sweep: bool = False) -> str:
+    """The commands that look at what a finished command made in ``folder``, one per line.
+
+    A run: TensorBoard on its folder (when it holds event files) and ``drone-eval`` on its last
+    checkpoint; a sweep (``sweep``): ``drone-report`` and TensorBoard on the sweep's folder. The
+    paths are relative to the current folder when inside it, quoted for the shell where needed.
+    """
+    folder = Path(folder).absolute()
+    try:
+        shown = folder.relative_to(Path.cwd())
+    except ValueError:
+        shown = folder
+    lines = ["next steps:"]
+    if sweep:
+        lines.append(f"  drone-report {shlex.quote(str(shown))}")
+    if next(folder.rglob("events.out.tfevents.*"), None) is not None:
+        lines.append(f"  tensorboard --logdir {shlex.quote(str(shown))}")
+    if not sweep:
+        lines.append(f"  drone-eval {shlex.quote(f'checkpoint={shown / CHECKPOINT_DIR / LAST}')}")
+    return "\n".join(lines)
+
+
 def sweep_summary(sweep_dir: Path) -> str:
-    """Which jobs of a sweep finished, failed (and why) or are unfinished: the end-of-sweep text."""
+    """Which jobs of a sweep finished, failed (and why) or are unfinished, and the next steps: the end-of-sweep text."""
     sweep_dir = Path(sweep_dir)
     rows = [(job.relative_to(sweep_dir), *job_status(job)) for job in sweep_jobs(sweep_dir)]
     counts = {s: sum(1 for _, status, _ in rows if status == s) for s in ("finished", "failed", "unfinished")}
@@ -318,11 +343,12 @@ def sweep_summary(sweep_dir: Path) -> str:
         lines.append(
             f"  failed jobs keep their traceback in <job>/{FAILED_FILE}; re-run the same command to retry them"
         )
+    lines.append(next_steps(sweep_dir, sweep=True))
     return "\n".join(lines)
 
 
 class SweepSummary(Callback):
-    """Prints the sweep summary at the end of a multirun, and exits non-zero if a job failed.
+    """Prints the sweep summary and next steps at the end of a multirun, and exits non-zero if a job failed.
 
     Launchers that report a failed job to Hydra as failed (``hydra/launcher=fused``) make Hydra stop
     before this callback; that launcher prints the summary itself.

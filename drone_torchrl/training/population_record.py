@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import io
 import math
-import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -51,6 +50,7 @@ from drone_torchrl.io.checkpoint import (
     save_checkpoint,
 )
 from drone_torchrl.io.storage import write_atomically, writing
+from drone_torchrl.io.streams import about, console
 from drone_torchrl.io.yaml_text import save_yaml
 from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, make_logger
 from drone_torchrl.training.agents import AgentTable
@@ -136,9 +136,9 @@ class PopulationAgent(AgentBook):
         """Mark the agent failed, keep its last finite state, and say so on stderr."""
         self.failure = reason
         self.owner.keep_last_finite(self.index)
-        print(
+        console.warning(
             f"{self.run_dir}: agent {self.index} failed: {TrainingDiverged.__name__}: {reason}",
-            file=sys.stderr,
+            **about(self.run_dir),
         )
 
     def close(self) -> None:
@@ -207,15 +207,17 @@ class PopulationRecord:
         )
         self.logger = make_logger(cfg, run_dir, None if checkpoint is None else self.step)
         if cfg.eval.video or cfg.checkpoint.keep_best:
-            print(
+            console.info(
                 f"{run_dir}: a population run keeps one stacked checkpoint and no videos, so "
                 "checkpoint.keep_best and eval.video do not apply (drone-eval checkpoint=<run> agent=K "
-                "renders agent K)"
+                "renders agent K)",
+                **about(run_dir),
             )
         if checkpoint is not None:
-            print(
+            console.info(
                 f"{run_dir}: {n} agents continuing from their checkpoint ({self.step} episodes each); "
-                f"{dropped} episode part(s) written after it removed (those episodes are trained again)"
+                f"{dropped} episode part(s) written after it removed (those episodes are trained again)",
+                **about(run_dir),
             )
         self._closed = False
         self._last_flush = time.perf_counter()

@@ -32,6 +32,7 @@ from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, FORMAT_VERSION, LAST, save_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
 from drone_torchrl.io.storage import writing
+from drone_torchrl.io.streams import about, console
 from drone_torchrl.io.video import VIDEO_DIR, record_video, save_mp4
 from drone_torchrl.io.yaml_text import save_yaml
 from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, log_update, make_logger
@@ -296,11 +297,12 @@ class RunRecord(AgentBook):
             source=None if parent_dir is None else Path(parent_dir) / CSV_NAME,
         )
         for note in self.csv.notes:
-            print(f"resume: {note}", file=sys.stderr)
+            console.warning(f"resume: {note}", **about(self.run_dir))
         if resumed and not self.finished:
-            print(
+            console.info(
                 f"{self.run_dir}: continuing from episode {self.episodes_done} (the checkpoint's); "
-                f"{self.csv.dropped} episode(s) logged after it are trained again"
+                f"{self.csv.dropped} episode(s) logged after it are trained again",
+                **about(self.run_dir),
             )
         self.start = self._last_flush = time.perf_counter()
 

@@ -31,10 +31,11 @@ from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
+from drone_torchrl.io.streams import about, console
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.jobs import Job, group_key, kept_changes, prepare, record_failure
+from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.pbt import FRESH, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
@@ -322,8 +323,9 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     groups: dict[str, list[int]] = {}
     for i, job in enumerate(jobs):
         if job.already_finished:
-            print(
-                f"{job.run_dir}: already finished ({job.checkpoint['episodes_done']} episodes); nothing to do"
+            console.info(
+                f"{job.run_dir}: already finished ({job.checkpoint['episodes_done']} episodes); nothing to do",
+                **about(job.run_dir),
             )
             outcomes[i].final = job.checkpoint["final"]
             (job.run_dir / FAILED_FILE).unlink(missing_ok=True)  # left by a refused re-run
@@ -353,7 +355,7 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
             if final is None:  # the agent diverged (its run record wrote FAILED.txt)
                 outcomes[i].error = TrainingDiverged(trainer.runs[members.index(i)].failure)
                 if len(jobs) > 1:
-                    print(f"{jobs[i].run_dir}: failed: {outcomes[i].error}")
+                    console.info(f"{jobs[i].run_dir}: failed: {outcomes[i].error}", **about(jobs[i].run_dir))
                 continue
             outcomes[i].final = final
             _report(jobs[i], final, trainer.runs[members.index(i)])
@@ -365,21 +367,26 @@ def _report(job: Job, final: dict[str, float], run: AgentBook) -> None:
     stopped = (
         "" if run.episodes_done >= run.budget else f" (an evaluation at eval.stop_return={run.stop_return:g})"
     )
-    print(
+    console.info(
         f"{job.run_dir}: {run.episodes_done} episodes{stopped}, running-mean({RUNNING_MEAN_WINDOW}) "
         f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
-        f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s"
+        f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s",
+        **about(job.run_dir),
     )
 
 
-def train(cfg: DictConfig, run_dir: str | Path | None = None) -> float:
+def train(cfg: DictConfig, run_dir: str | Path | None = None, show_next_steps: bool = False) -> float:
     """Train one run; returns its final running-mean return (the metric sweepers optimise).
 
     ``run_dir`` defaults to the Hydra job's output folder; with ``resume`` of a run's last
     checkpoint, that run's folder. Raises the error that stopped it (a :class:`~.checks.ConfigError` for a
-    bad config, with a one-line message).
+    bad config, with a one-line message). ``show_next_steps``: end with the commands that look at
+    the run (:func:`~.jobs.next_steps`), as ``drone-train`` does.
     """
-    return train_job(prepare(cfg, run_dir)).final_return
+    outcome = train_job(prepare(cfg, run_dir))
+    if show_next_steps:
+        console.info(next_steps(outcome.run_dir), **about(outcome.run_dir))
+    return outcome.final_return
 
 
 def train_job(job: Job) -> Outcome:
@@ -443,7 +450,9 @@ def train_population(
                 checkpoint["final"], checkpoint["failure"], checkpoint["episodes_done"], strict=True
             )
         ):
-            print(f"{run_dir}: already finished ({len(agents)} agents); nothing to do")
+            console.info(
+                f"{run_dir}: already finished ({len(agents)} agents); nothing to do", **about(run_dir)
+            )
             return _population_outcomes(run_dir, checkpoint["final"], checkpoint["failure"])
         if before_training is not None:
             before_training()
