@@ -161,3 +161,102 @@ def test_explored_range_values_stay_in_the_range(log):
     draws = span.draw(np.random.default_rng(1), 3000)
     share = float(np.mean(draws < 1e-4))
     assert share == pytest.approx(1 / 3 if log else (1e-4 - 1e-5) / (1e-2 - 1e-5), abs=0.03)
+
+
+TINY = [
+    "algo.episodes=6",
+    "env.max_steps=20",
+    "eval.episodes=1",
+    "eval.every_episodes=0",
+    "eval.video=false",
+    "progress=false",
+]
+
+
+def test_a_range_sweep_draws_each_agents_first_value_by_its_seed_and_pbt_stays_in_it(tmp_path, command_here):
+    """drone-train -m seed=range(0,8) hydra/launcher=pbt 'algo.lr=tag(log,interval(1e-4,1e-2))'
+    algo.gamma=0.95,0.99: 16 agents; each agent's first lr is the range's draw keyed by its seed;
+    every lr PBT gives (5 steps) is in [1e-4, 1e-2] and every gamma is 0.95 or 0.99. The same
+    command again finds the run finished (the same values and settings)."""
+    pytest.importorskip("pyarrow")
+    from drone_torchrl.apps import train as train_app
+    from drone_torchrl.training import population_record as record_module
+    from drone_torchrl.training.pbt import Range
+
+    sweep = tmp_path / "sweep"
+    argv = [
+        "-m", "seed=range(0,8)", "hydra/launcher=pbt", "hydra.launcher.every_updates=1",
+        "algo.lr=tag(log,interval(1e-4,1e-2))", "algo.gamma=0.95,0.99", *TINY, f"hydra.sweep.dir={sweep}",
+    ]  # fmt: skip
+    proc = command_here(train_app.run, "drone-train", *argv, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    run = sweep / "population_0"
+    agents = record_module.read_table(run / "agents.parquet")
+    assert agents["seed"] == [s for s in range(8) for _ in range(2)]
+    assert agents["algo.lr"] == Range("algo.lr", 1e-4, 1e-2, log=True).first_values(agents["seed"])
+    lineage = record_module.read_table(run / record_module.LINEAGE_TABLE)
+    assert sorted(set(lineage["update"])) == [1, 2, 3, 4, 5]
+    assert all(1e-4 <= lr <= 1e-2 for lr in lineage["algo.lr"])
+    assert set(lineage["algo.gamma"]) <= {0.95, 0.99}
+    again = command_here(train_app.run, "drone-train", *argv, cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert record_module.read_table(run / record_module.LINEAGE_TABLE) == lineage
+
+
+@pytest.mark.parametrize(
+    "overrides, line",
+    [
+        (
+            ["hydra/launcher=population", "algo.lr=interval(1e-5,1e-2)"],
+            "algo.lr=interval(1e-5,1e-2) is not allowed; expected a list of values (e.g. "
+            "algo.lr=1e-4,3e-4,1e-3): a range is searched only by hydra/launcher=pbt",
+        ),
+        (
+            ["hydra/launcher=pbt", "hydra.launcher.every_updates=1", "algo.weight_decay=interval(0,0.1)"],
+            "algo.weight_decay=interval(0,0.1) is not allowed; expected a list of values: a range is "
+            "allowed only for a key PBT searches (hydra.launcher.keys=['algo.lr', 'algo.gamma'])",
+        ),
+        (
+            ["hydra/launcher=pbt", "hydra.launcher.every_updates=1", "algo.lr=tag(log,interval(0,0.1))"],
+            "algo.lr=tag(log,interval(0,0.1)) is not allowed; expected interval(low,high) with "
+            "0 < low < high (a log range)",
+        ),
+        (
+            ["hydra/launcher=pbt", "hydra.launcher.every_updates=1", "algo.gamma=interval(0.5,1.5)"],
+            "algo.gamma=interval(0.5,1.5) is not allowed; expected a range inside the values "
+            "algo=reinforce allows, [0.0, 1.0]",
+        ),
+    ],
+    ids=["not-pbt", "not-searched", "log-from-0", "past-bounds"],
+)
+def test_a_range_pbt_cannot_search_is_refused_in_one_line(tmp_path, command_here, overrides, line):
+    """Before any folder is made, with the key, the value and what is allowed."""
+    from drone_torchrl.apps import train as train_app
+
+    proc = command_here(
+        train_app.run, "drone-train", "-m", "seed=0,1", *overrides, *TINY,
+        f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 1
+    assert proc.stderr == f"drone-train: error: {line}\n"
+    assert not (tmp_path / "sweep").exists()
+
+
+def test_perturb_set_for_a_search_of_lists_only_is_a_one_line_note(capsys):
+    """perturb multiplies range keys only: a search whose keys are all lists and that asks for other
+    factors is told on stderr (one line) that they go unused; the default factors say nothing."""
+    from hydra import compose, initialize_config_dir
+
+    from drone_torchrl.config import config_dir
+
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=["algo.episodes=6"])
+    values = {"algo.lr": [1e-4, 1e-3], "algo.gamma": [0.99, 0.99], "seed": [0, 1]}
+    PBTSettings(every_updates=1).make(cfg, values, None)
+    assert capsys.readouterr().err == ""
+    PBTSettings(every_updates=1, perturb=(0.5, 2.0)).make(cfg, values, None)
+    assert capsys.readouterr().err == (
+        "drone-train: note: hydra.launcher.perturb=[0.5, 2.0] is not used: every searched key "
+        "(algo.lr, algo.gamma) is searched over a list, and moves to a neighbouring value of it; "
+        "perturb multiplies keys searched over interval(low,high)\n"
+    )

@@ -153,10 +153,11 @@ class PBTSettings:
                 f"fewer than the budget's {updates} updates",
             )
 
-    def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PBT:
-        """The search of a population (``saved``: what its checkpoint holds of it, or None).
+    def bounds(self, cfg: Any) -> dict[str, tuple[float, float]]:
+        """Each searched key's ``(low, high)``: the values its rule allows under ``cfg``'s algorithm.
 
-        ``cfg`` is the population's group config, ``values`` what its sweep gave each agent.
+        Raises :class:`~.checks.ConfigError` (one line) for a key the algorithm does not have, or a
+        range (:attr:`ranges`) that reaches outside its key's values.
         """
         rules = schema_keys("config", algo=cfg.algo.name, logger=cfg.logger.backend)
         bounds = {}
@@ -167,11 +168,27 @@ class PBTSettings:
                     "hydra.launcher.keys", list(self.keys), f"keys that algo={cfg.algo.name} has"
                 )
             bounds[key] = (float(rule.low), float(rule.high))
+        for span in self.ranges:
+            low, high = bounds[span.key]
+            if not low <= span.low < span.high <= high:
+                text = f"interval({span.low},{span.high})"
+                raise ConfigError(
+                    f"{span.key}={f'tag(log,{text})' if span.log else text} is not allowed; expected "
+                    f"a range inside the values algo={cfg.algo.name} allows, [{low}, {high}]"
+                )
+        return bounds
+
+    def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PBT:
+        """The search of a population (``saved``: what its checkpoint holds of it, or None).
+
+        ``cfg`` is the population's group config, ``values`` what its sweep gave each agent.
+        """
+        bounds = self.bounds(cfg)
         if not self.ranges and self.perturb != PBTSettings.perturb:
             print(
                 f"drone-train: note: hydra.launcher.perturb={list(self.perturb)} is not used: every "
-                f"searched key ({', '.join(self.keys)}) is a list, and a list key moves to a "
-                "neighbouring value; perturb multiplies keys searched over interval(low,high)",
+                f"searched key ({', '.join(self.keys)}) is searched over a list, and moves to a "
+                "neighbouring value of it; perturb multiplies keys searched over interval(low,high)",
                 file=sys.stderr,
             )
         lineage = None if saved is None else saved["lineage"]
