@@ -114,12 +114,16 @@ def test_the_exploit_step_copies_the_parents_weights_and_adam_state_and_keeps_th
             assert torch.equal(state[key][agent], before[key][agent]), key
 
 
-def test_the_same_seed_and_update_give_the_same_step():
+@pytest.mark.parametrize("lr", ["list", "log range"])
+def test_the_same_seed_and_update_give_the_same_step(lr):
     """Two PBTs of the same seed take the same step at the same update (a resumed run's); another
     update or another seed draws otherwise."""
+    from drone_torchrl.training.pbt import Range
+
+    ranges = () if lr == "list" else (Range("algo.lr", 1e-5, 1e-2, log=True),)
 
     def step(seed: int, update: int) -> tuple:
-        pbt, state = _pbt(_lists(), resample=0.25, seed=seed), _state()
+        pbt, state = _pbt(_lists(), resample=0.25, seed=seed, ranges=ranges), _state()
         pairs = pbt.step(state, [float(i) for i in range(N)], [True] * N, update=update)
         return pairs, tuple(pbt.lineage["algo.lr"]), tuple(pbt.lineage["algo.gamma"]), state["lr"].tolist()
 
