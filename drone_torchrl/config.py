@@ -463,7 +463,9 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
 
 
 def _override_values(override: Any) -> list[Any]:
-    """The value of a parsed override, or each value of a sweep."""
+    """The value of a parsed override, or each value of a sweep (an interval's: its two ends)."""
+    if override.is_sweep_override() and not override.is_discrete_sweep():
+        return [override.value().start, override.value().end]
     return list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
 
 

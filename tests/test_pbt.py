@@ -1,7 +1,7 @@
 """Population-based training inside a population run (``hydra/launcher=pbt``, drone_torchrl.training.pbt).
 
 - An exploit step copies the best agents' rows of the stacked state into the worst agents' rows
-  and perturbs or resamples the searched keys within their bounds; an agent keeps its seed and count.
+  and moves or resamples the searched keys within the sweep's values; an agent keeps its seed and count.
 - A killed and resumed PBT run takes the same steps (lineage) and flies the same episodes as an
   uninterrupted one.
 - An agent read back from the run (drone-eval / drone-export / resume ``agent=K``) has the values
@@ -59,8 +59,9 @@ def _pbt(resample: float) -> PBT:
 def test_an_exploit_step_copies_the_best_rows_into_the_worst_and_perturbs_their_values():
     """8 agents scored 0..7 (agent 7 best), quantile 0.25: agents 0 and 1 take the rows of agents
     drawn from 6 and 7 (weights, Adam's moments and steps), keep their seed and update count, and
-    get the parent's lr times 0.8 or 1.2 and gamma 0.99 x 0.8 or 1.0 (1.2 x 0.99 is past 1: kept at
-    1); each replacement is a lineage row. The same update gives the same step."""
+    get the lr next to the parent's in the sweep's list (agent 7's, the list's end: its own or the
+    one below) and gamma 0.99 (the list's only value); each replacement is a lineage row. The same
+    update gives the same step."""
     state, pbt = _state(8), _pbt(resample=0.0)
     pairs = pbt.step(state, [float(i) for i in range(8)], [True] * 8, update=10)
     assert sorted(agent for agent, _ in pairs) == [0, 1]
@@ -69,9 +70,8 @@ def test_an_exploit_step_copies_the_best_rows_into_the_worst_and_perturbs_their_
         for key in ("params", "exp_avg", "exp_avg_sq", "adam_steps"):
             assert torch.equal(state[key][agent], _state(8)[key][parent]), key
         assert int(state["seed"][agent]) == 50 + agent and int(state["counter"][agent]) == 7
-        ratio = float(state["lr"][agent]) / LR_SPACE[parent]
-        assert ratio == pytest.approx(0.8) or ratio == pytest.approx(1.2)
-        assert float(state["gamma"][agent]) in (pytest.approx(0.792), 1.0)
+        assert float(state["lr"][agent]) in (LR_SPACE[parent - 1], LR_SPACE[min(parent + 1, 7)])
+        assert float(state["gamma"][agent]) == pytest.approx(0.99)
     for agent in range(2, 8):  # the others are left as they were
         assert torch.equal(state["params"][agent], _state(8)["params"][agent])
     assert pbt.lineage["update"] == [10, 10]

@@ -4,11 +4,19 @@ Every ``every_updates`` updates of a population run (``hydra/launcher=pbt``), th
 ranked by their running-mean return. Each agent of the worst ``quantile`` then **exploits**: it
 takes the weights, Adam's moments and step count, per-agent hyper-parameters and running-mean
 window of an agent drawn from the best ``quantile`` (a copy of rows of the stacked state). It then
-**explores**: each searched key is, with probability ``resample_probability``, drawn again from
-the values the sweep gave that key, and otherwise is the parent's value times a factor drawn from
-``perturb``, kept inside the key's bounds. The defaults are Ray Tune's (``PopulationBasedTraining``:
-truncation quantile 0.25, factors 0.8 and 1.2, resample probability 0.25). Agents keep their own
-seeds, so a copy explores with noise of its own.
+**explores** inside the searched space, as Ray Tune's ``PopulationBasedTraining`` does:
+
+- a key the sweep gave as a list (``algo.lr=1e-4,3e-4,1e-3``) moves from the parent's value to a
+  neighbouring value of the sorted list, one step down or up with equal chance (an end stays where
+  it is when the step would leave the list), or, with probability ``resample_probability``, is
+  drawn again from the list. No value outside the list is ever tried.
+- a key the sweep gave as a range (``interval(low,high)``, or ``tag(log,interval(low,high))``:
+  :class:`Range`) is the parent's value times a factor drawn from ``perturb``, clipped to
+  ``[low, high]``, or, with probability ``resample_probability``, drawn again uniformly from the
+  range (log-uniformly where tagged ``log``).
+
+The defaults are Ray Tune's (truncation quantile 0.25, factors 0.8 and 1.2, resample probability
+0.25). Agents keep their own seeds, so a copy explores with noise of its own.
 
 The draws of an exploit step come from a generator keyed by the first agent's seed and the update
 number, and everything else they depend on (the windows, the state) is in the checkpoint: a killed
@@ -21,6 +29,8 @@ takes no part.
 from __future__ import annotations
 
 import math
+import sys
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -46,15 +56,50 @@ FRESH = -1
 
 
 @dataclass(frozen=True)
+class Range:
+    """A key searched over a range: ``key=interval(low,high)`` (``log``: ``tag(log,interval(low,high))``).
+
+    Attributes:
+        key: the searched key.
+        low: the range's lower end.
+        high: the range's upper end.
+        log: whether values are drawn log-uniformly (``low`` > 0).
+    """
+
+    key: str
+    low: float
+    high: float
+    log: bool = False
+
+    def draw(self, rng: np.random.Generator, size: int) -> np.ndarray:
+        """``size`` values drawn uniformly from the range (log-uniformly where ``log``)."""
+        if self.log:
+            return np.exp(rng.uniform(math.log(self.low), math.log(self.high), size))
+        return rng.uniform(self.low, self.high, size)
+
+    def first_values(self, seeds: Sequence[int]) -> list[float]:
+        """Each agent's first value: one draw from a generator keyed by its seed and the key.
+
+        The same sweep gives every agent the same value again (a resumed run's), whatever the
+        population's size or order.
+        """
+        tag = zlib.crc32(self.key.encode())
+        return [float(self.draw(np.random.default_rng([int(seed), tag]), 1)[0]) for seed in seeds]
+
+
+@dataclass(frozen=True)
 class PBTSettings:
     """``hydra/launcher=pbt``'s settings (``hydra.launcher.<field>``).
 
     Attributes:
         every_updates: updates between two exploit steps (every agent trains that many in between).
         quantile: the fraction of agents replaced at each step, and the fraction they copy from.
-        perturb: the factors an explored value is multiplied by (one drawn per key).
-        resample_probability: the chance that a key is drawn again from the sweep's values instead.
+        perturb: the factors an explored value of a range key is multiplied by (one drawn per key
+            and agent). A key searched over a list ignores it: it moves to a neighbouring value.
+        resample_probability: the chance that a key is drawn again from its list or range instead.
         keys: the searched keys (per-agent keys other than ``seed``).
+        ranges: the keys the sweep gave as a range (``interval``), set by the population sweeper
+            from the command line; the other searched keys are lists.
     """
 
     every_updates: int = 100
@@ -62,6 +107,7 @@ class PBTSettings:
     perturb: tuple[float, ...] = (0.8, 1.2)
     resample_probability: float = 0.25
     keys: tuple[str, ...] = field(default=("algo.lr", "algo.gamma"))
+    ranges: tuple[Range, ...] = ()
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> PBTSettings:
@@ -91,7 +137,11 @@ class PBTSettings:
 
     def record(self) -> dict[str, Any]:
         """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
-        return {"launcher": "pbt", **asdict(self)}
+        record = {"launcher": "pbt", **asdict(self)}
+        # A list-only search records no ranges: its record is the one runs made before ranges existed.
+        if not self.ranges:
+            del record["ranges"]
+        return record
 
     def check(self, cfg: Any) -> None:
         """A step inside the budget (``algo.episodes / algo.episodes_per_update`` updates)."""
@@ -103,10 +153,11 @@ class PBTSettings:
                 f"fewer than the budget's {updates} updates",
             )
 
-    def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PBT:
-        """The search of a population (``saved``: what its checkpoint holds of it, or None).
+    def bounds(self, cfg: Any) -> dict[str, tuple[float, float]]:
+        """Each searched key's ``(low, high)``: the values its rule allows under ``cfg``'s algorithm.
 
-        ``cfg`` is the population's group config, ``values`` what its sweep gave each agent.
+        Raises :class:`~.checks.ConfigError` (one line) for a key the algorithm does not have, or a
+        range (:attr:`ranges`) that reaches outside its key's values.
         """
         rules = schema_keys("config", algo=cfg.algo.name, logger=cfg.logger.backend)
         bounds = {}
@@ -117,6 +168,29 @@ class PBTSettings:
                     "hydra.launcher.keys", list(self.keys), f"keys that algo={cfg.algo.name} has"
                 )
             bounds[key] = (float(rule.low), float(rule.high))
+        for span in self.ranges:
+            low, high = bounds[span.key]
+            if not low <= span.low < span.high <= high:
+                text = f"interval({span.low},{span.high})"
+                raise ConfigError(
+                    f"{span.key}={f'tag(log,{text})' if span.log else text} is not allowed; expected "
+                    f"a range inside the values algo={cfg.algo.name} allows, [{low}, {high}]"
+                )
+        return bounds
+
+    def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PBT:
+        """The search of a population (``saved``: what its checkpoint holds of it, or None).
+
+        ``cfg`` is the population's group config, ``values`` what its sweep gave each agent.
+        """
+        bounds = self.bounds(cfg)
+        if not self.ranges and self.perturb != PBTSettings.perturb:
+            print(
+                f"drone-train: note: hydra.launcher.perturb={list(self.perturb)} is not used: every "
+                f"searched key ({', '.join(self.keys)}) is searched over a list, and moves to a "
+                "neighbouring value of it; perturb multiplies keys searched over interval(low,high)",
+                file=sys.stderr,
+            )
         lineage = None if saved is None else saved["lineage"]
         return PBT(self, values, bounds, int(values["seed"][0]), lineage)
 
@@ -196,9 +270,10 @@ class PBT(Search):
 
     Args:
         settings: what to search and how.
-        space: each searched key -> the values the sweep gave it, one per agent (what a resample
-            draws from, and the agents' first values).
-        bounds: each searched key -> its ``(low, high)`` (explored values are kept inside).
+        space: each searched key -> the values the sweep gave it, one per agent (the agents' first
+            values; a list key's distinct values are its list).
+        bounds: each searched key -> its ``(low, high)``, the values its rule allows (a range key's
+            explored values are kept inside these as well as inside its range).
         seed: the key of the steps' random draws (with the update number).
         lineage: the rows written so far (a resumed run's, from its checkpoint), column -> values.
     """
@@ -213,7 +288,8 @@ class PBT(Search):
     ) -> None:
         super().__init__(settings.keys, space, lineage)
         self.settings = settings
-        self.space = {key: sorted(set(space[key])) for key in settings.keys}
+        self.ranges = {r.key: r for r in settings.ranges}
+        self.space = {key: sorted(set(space[key])) for key in settings.keys if key not in self.ranges}
         self.bounds = dict(bounds)
         self.seed = int(seed)
 
@@ -249,16 +325,33 @@ class PBT(Search):
             for key in state.keys():  # noqa: SIM118  (a TensorDict iterates over its rows)
                 if key not in ("seed", "counter"):  # an agent keeps its own noise and update count
                     state[key][rows] = state[key][sources]
-        new = {}
-        for key in s.keys:
-            space = np.array(self.space[key])
-            resampled = rng.random(count) < s.resample_probability
-            drawn = space[rng.integers(len(space), size=count)]
-            factors = np.array(s.perturb)[rng.integers(len(s.perturb), size=count)]
-            values = np.where(resampled, drawn, np.array(self.current[key])[parents] * factors)
-            new[key] = np.clip(values, *self.bounds[key])
+        new = {key: self.explore(key, np.array(self.current[key])[parents], rng) for key in s.keys}
         self._set(state, update, worst.tolist(), parents.tolist(), new)
         return list(zip(worst.tolist(), parents.tolist(), strict=True))
+
+    def explore(self, key: str, values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The explored values of ``key`` from the parents' ``values``, with ``rng``'s draws.
+
+        A list key: a neighbouring value of the sorted list, or a value drawn from the list. A
+        range key: the value times a ``perturb`` factor clipped to the range, or a value drawn from it.
+        """
+        s = self.settings
+        count = len(values)
+        resampled = rng.random(count) < s.resample_probability
+        if key in self.ranges:
+            span = self.ranges[key]
+            factors = np.array(s.perturb)[rng.integers(len(s.perturb), size=count)]
+            moved = np.clip(values * factors, span.low, span.high)
+            drawn = span.draw(rng, count)
+            return np.clip(np.where(resampled, drawn, moved), *self.bounds[key])
+        space = np.array(self.space[key])
+        # The parent's place in the list: its nearest value (a run resumed from before lists kept
+        # their values may hold one off the list).
+        place = np.abs(space[None, :] - values[:, None]).argmin(axis=1)
+        steps = rng.choice(np.array([-1, 1]), size=count)
+        moved = space[np.clip(place + steps, 0, len(space) - 1)]
+        drawn = space[rng.integers(len(space), size=count)]
+        return np.where(resampled, drawn, moved)
 
 
 @dataclass(frozen=True)

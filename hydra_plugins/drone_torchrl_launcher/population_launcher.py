@@ -170,7 +170,12 @@ class _SearchLauncher(PopulationLauncher):
 
 
 class PBTLauncher(_SearchLauncher):
-    """``hydra/launcher=pbt``: each population run trained with population-based training."""
+    """``hydra/launcher=pbt``: each population run trained with population-based training.
+
+    A searched key given as a list moves among the list's values; one given as a range
+    (``interval``, drawn per agent by the population sweeper) is multiplied by ``perturb`` and
+    clipped to the range.
+    """
 
     settings_class = "PBTSettings"
 

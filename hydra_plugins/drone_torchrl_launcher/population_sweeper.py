@@ -7,6 +7,13 @@ and going on past failed jobs.
   applying them (an unknown key still fails), any other job is composed fully. Each job's values
   then pass :func:`drone_torchrl.config.validate`: a bad value stops the sweep with one line
   before any job starts.
+- A key searched by ``hydra/launcher=pbt`` may be given as a range: ``algo.lr=interval(1e-5,1e-2)``
+  or ``algo.lr=tag(log,interval(1e-5,1e-2))`` (the basic sweeper refuses an interval). The other
+  overrides make the grid of jobs (agents) as usual, and each job gets ``key=<value>`` drawn
+  from the range by a generator keyed by its ``seed`` and the key (:meth:`.pbt.Range.first_values`):
+  the same command gives each agent the same value again. The PBT launcher is told the range, which
+  its exploration keeps to (:class:`drone_torchrl.training.pbt.PBTSettings`). Any other launcher,
+  or a key PBT does not search, is refused in one line.
 - The basic sweeper raises the first failed job's error after its batch, so later batches never run
   and the end-of-sweep summary is skipped. Here every batch runs; the summary
   (``SweepSummary``) then lists each job's status and exits non-zero if any failed.
@@ -16,14 +23,17 @@ Everything else, grid expansion, batches, ``max_batch_size``, ``params``, is the
 
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from hydra.core.override_parser.types import Override, ValueType
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.plugins.sweeper import Sweeper
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig
 
+from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import basic_sweeper_class
 from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/sweeper=population)
 
@@ -42,6 +52,7 @@ class PopulationSweeper(Sweeper):
     def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None) -> None:
         self._basic = basic_sweeper_class()(max_batch_size=max_batch_size, params=params)
         self._basic.validate_batch_is_legal = self.validate_batch_is_legal
+        self._basic.split_arguments = self.split_arguments
 
     def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
         self.config, self.hydra_context = config, hydra_context
@@ -69,6 +80,37 @@ class PopulationSweeper(Sweeper):
             run_lock.release(sweep_dir)
             # A sweep refused before its first job leaves no folder (Hydra wrote only its multirun.yaml).
             remove_if_untouched(Path(sweep_dir), also=frozenset({"multirun.yaml"}))
+
+    def split_arguments(self, overrides: list[Override], max_batch_size: int | None) -> list[list[list[str]]]:
+        """The basic sweeper's batches of jobs, with each range (``interval``) drawn per job.
+
+        A range override is taken out of the grid; every job then gets ``key=<value>``, drawn from
+        the range with a generator keyed by the job's ``seed`` (the config's where the job sets
+        none). A range is refused in one line unless the launcher is ``pbt`` and searches the key.
+        """
+        ranges = [_range(o, self._launcher()) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
+        grid = [o for o in overrides if o.value_type != ValueType.INTERVAL_SWEEP]
+        batches = basic_sweeper_class().split_arguments(grid, max_batch_size)
+        if not ranges:
+            return batches
+        launcher = self._launcher()
+        launcher.search = replace(launcher.search, ranges=tuple(ranges))
+        assert self.config is not None
+        try:  # a range reaching past its key's values: one line before any job is drawn
+            launcher.search.bounds(self.config)
+        except ConfigError as err:
+            sys.exit(f"drone-train: error: {err}")
+        default_seed = int(self.config.seed)
+        for batch in batches:
+            seeds = [_job_seed(job, default_seed) for job in batch]
+            for span in ranges:
+                for job, value in zip(batch, span.first_values(seeds), strict=True):
+                    job.append(f"{span.key}={value!r}")
+        return batches
+
+    def _launcher(self) -> Any:
+        """The launcher the basic sweeper launches with (inside :class:`_GoOn`)."""
+        return self._basic.launcher.launcher
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
         """Every job composes, and every job's values pass the config checks: a bad value in a
@@ -106,6 +148,42 @@ class PopulationSweeper(Sweeper):
                 validate(cfg)
             except ConfigError as err:
                 refuse(err, overrides)
+
+
+def _range(override: Override, launcher: Any) -> Any:
+    """``key=interval(low,high)`` (``tag(log,...)``: log-uniform) as a :class:`.pbt.Range`, checked.
+
+    Exits with one line for a launcher other than ``pbt``, a key it does not search, or bad ends.
+    """
+    from drone_torchrl.training.pbt import PBTSettings, Range
+
+    key, sweep = override.key_or_group, override.value()
+    low, high, log = float(sweep.start), float(sweep.end), "log" in sweep.tags
+    text = f"{override.input_line} is not allowed; expected"
+    search = getattr(launcher, "search", None)
+    if not isinstance(search, PBTSettings):
+        sys.exit(
+            f"drone-train: error: {text} a list of values (e.g. {key}=1e-4,3e-4,1e-3): "
+            "a range is searched only by hydra/launcher=pbt"
+        )
+    if key not in search.keys:
+        sys.exit(
+            f"drone-train: error: {text} a list of values: a range is allowed only for a key "
+            f"PBT searches (hydra.launcher.keys={list(search.keys)})"
+        )
+    if not (low < high and (low > 0 or not log)):
+        allowed = "0 < low < high (a log range)" if log else "low < high"
+        sys.exit(f"drone-train: error: {text} interval(low,high) with {allowed}")
+    return Range(key, low, high, log)
+
+
+def _job_seed(job: Sequence[str], default: int) -> int:
+    """The seed a job's ``seed=N`` override sets, else ``default``."""
+    for line in job:
+        key, _, value = line.partition("=")
+        if key == "seed":
+            return int(value)
+    return default
 
 
 class _GoOn:

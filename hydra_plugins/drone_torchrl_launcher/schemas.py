@@ -33,7 +33,10 @@ class PBTLauncherConf:
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.PBTLauncher"
     every_updates: Any = 100
     quantile: Any = 0.25
+    # The factors a key searched over a range (interval(low,high)) is multiplied by; a key searched
+    # over a list moves to a neighbouring list value instead, and ignores them.
     perturb: Any = field(default_factory=lambda: [0.8, 1.2])
+    # The chance that an explored key is drawn again from its list or range instead.
     resample_probability: Any = 0.25
     keys: Any = field(default_factory=lambda: ["algo.lr", "algo.gamma"])
 
