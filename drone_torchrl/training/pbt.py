@@ -135,7 +135,9 @@ def recorded_keys(initial: Mapping[str, Any]) -> tuple[str, ...]:
 
 
 def complete_lineage(
-    lineage: Mapping[str, list] | None, initial: Mapping[str, Sequence[float]], keys: Sequence[str] | None = None
+    lineage: Mapping[str, list] | None,
+    initial: Mapping[str, Sequence[float]],
+    keys: Sequence[str] | None = None,
 ) -> dict[str, list]:
     """The lineage with a column for each of ``keys`` (default: :func:`recorded_keys` of ``initial``).
 
@@ -164,7 +166,9 @@ def complete_lineage(
 
 
 def final_values(
-    lineage: Mapping[str, list] | None, initial: Mapping[str, Sequence[Any]], keys: Sequence[str] | None = None
+    lineage: Mapping[str, list] | None,
+    initial: Mapping[str, Sequence[Any]],
+    keys: Sequence[str] | None = None,
 ) -> dict[str, list]:
     """Each agent's values at the end of ``lineage``: ``initial``'s, then each lineage row's.
 

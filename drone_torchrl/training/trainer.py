@@ -518,6 +518,8 @@ def _search_text(settings: dict | None) -> str:
         return "no search (hydra/launcher=population)"
     launcher = settings["launcher"]
     values = " ".join(
-        f"hydra.launcher.{key}={value}" for key, value in settings.items() if key not in ("launcher", "schedule")
+        f"hydra.launcher.{key}={value}"
+        for key, value in settings.items()
+        if key not in ("launcher", "schedule")
     )
     return f"hydra/launcher={launcher} {values}"
