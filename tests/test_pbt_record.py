@@ -55,6 +55,14 @@ def _cfgs(*overrides: str):
     return cfgs
 
 
+def _copied(state: dict, lineage: dict) -> tuple[list[float], list[float]]:
+    """Each agent's final gamma and lr, walking the lineage: an exploit copies the parent's gamma."""
+    gammas, lrs = list(state["agents"]["algo.gamma"]), list(state["agents"]["algo.lr"])
+    for agent, parent, lr in zip(lineage["agent"], lineage["parent"], lineage["algo.lr"], strict=True):
+        gammas[agent], lrs[agent] = gammas[parent], lr
+    return gammas, lrs
+
+
 @pytest.fixture(scope="module")
 def pbt_sweep(tmp_path_factory):
     """A sweep folder holding one finished PBT population run (4 agents, lr searched, 8 updates)."""
@@ -131,16 +139,14 @@ def test_a_fork_and_a_replay_of_a_pbt_agent_train_with_the_gamma_it_copied(pbt_s
     state = load_checkpoint(run.joinpath(*LAST))
     lineage = record_module.read_table(run / record_module.LINEAGE_TABLE)
     assert lineage["update"] == [2, 4, 6]
-    gammas = list(state["agents"]["algo.gamma"])
-    for agent, parent, gamma in zip(lineage["agent"], lineage["parent"], lineage["algo.gamma"], strict=True):
-        assert gamma == gammas[parent]
-        gammas[agent] = gamma
+    gammas, _ = _copied(state, lineage)
     changed = [a for a in range(4) if gammas[a] != state["agents"]["algo.gamma"][a]]
     assert changed, "the run copied no other gamma: the test shows nothing"
     for agent in range(4):
+        assert float(state["state"]["gamma"][agent]) == pytest.approx(gammas[agent])
         forked = record_module.agent_checkpoint(state, agent, run)
         assert forked["config"]["algo"]["gamma"] == gammas[agent]
-        assert float(state["state"]["gamma"][agent]) == pytest.approx(gammas[agent])
+    assert lineage["algo.gamma"] == [gammas[a] for a in lineage["agent"]]
     agent = changed[0]
     replay = ReplaySettings.of({"run": str(run), "agent": agent})
     steps = [(u, dict(v)) for u, v in replay.schedule]
@@ -178,8 +184,6 @@ def test_a_replay_resumed_after_its_run_changed_is_refused(pbt_sweep, tmp_path):
     replay = ReplaySettings.of({"run": str(source), "agent": agent})
     fresh = tmp_path / "replay"
     train_population(_cfgs("algo.episodes=4"), NAMES, fresh, search=replay)
-    saved = load_checkpoint(fresh.joinpath(*LAST))["search"]["settings"]
-    assert [(u, dict(v)) for u, v in saved["schedule"]] == [(u, dict(v)) for u, v in replay.schedule]
     state = load_checkpoint(source.joinpath(*LAST))
     state["search"]["lineage"]["algo.lr"] = [lr * 2 for lr in state["search"]["lineage"]["algo.lr"]]
     save_checkpoint(state, source.joinpath(*LAST))
@@ -188,7 +192,10 @@ def test_a_replay_resumed_after_its_run_changed_is_refused(pbt_sweep, tmp_path):
     with pytest.raises(ConfigError, match=r"hydra\.launcher\.run=.*schedule") as info:
         train_population(_cfgs("algo.episodes=6"), NAMES, fresh, search=changed)
     assert "\n" not in str(info.value)
-    assert load_checkpoint(fresh.joinpath(*LAST))["episodes_done"] == [4] * 4
+    saved = load_checkpoint(fresh.joinpath(*LAST))
+    assert saved["episodes_done"] == [4] * 4
+    steps = saved["search"]["settings"]["schedule"]
+    assert [(u, dict(v)) for u, v in steps] == [(u, dict(v)) for u, v in replay.schedule]
 
 
 def test_a_pbt_population_too_small_for_its_quantile_is_refused_before_anything_is_written(tmp_path):
@@ -212,16 +219,16 @@ def test_drone_report_labels_a_pbt_runs_agents_by_their_final_values(pbt_sweep, 
 
     run = pbt_sweep / "population_0"
     state = load_checkpoint(run.joinpath(*LAST))
-    final = record_module.agent_values(state)
-    replaced = sorted(set(record_module.read_table(run / record_module.LINEAGE_TABLE)["agent"]))
+    lineage = record_module.read_table(run / record_module.LINEAGE_TABLE)
+    gammas, lrs = _copied(state, lineage)
+    replaced = sorted(set(lineage["agent"]))
+    assert lrs[replaced[0]] != state["agents"]["algo.lr"][replaced[0]]
     runs = load_runs(pbt_sweep)
     assert len(runs) == 4
     for k, found in enumerate(runs):
         pairs = dict(setting_of(found.overrides, found.config))
-        assert float(pairs["algo.lr"]) == final["algo.lr"][k]
-        assert float(pairs["algo.gamma"]) == final["algo.gamma"][k]
+        assert (float(pairs["algo.lr"]), float(pairs["algo.gamma"])) == (lrs[k], gammas[k])
         assert bool(found.notes) == (k in replaced)
-    assert final["algo.lr"][replaced[0]] != state["agents"]["algo.lr"][replaced[0]]
     out = tmp_path / "report"
     report_main([str(pbt_sweep), "--no-pd", "--out", str(out)])
     assert not (out / "landscape.png").exists()
