@@ -61,7 +61,8 @@ def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path
     fig.set_layout_engine("constrained")  # room for the shared colour bar
     axes = fig.subplots(1, len(varying), squeeze=False)
     finals = [final for _, final, _ in drawn] or [0.0]
-    norm = matplotlib.colors.Normalize(min(finals), max(finals))
+    low, high = min(finals), max(finals)
+    norm = matplotlib.colors.Normalize(low, high if high > low else low + 1)  # equal finals: one colour
     colours = matplotlib.colormaps[COLOUR_MAP]
     for ax, key in zip(axes[0], varying, strict=True):
         for rank, (agent, final, steps) in reversed(list(enumerate(drawn))):  # the best drawn last, on top
@@ -84,8 +85,8 @@ def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path
     if drawn:
         axes[0][0].legend(fontsize="small")
     fig.colorbar(matplotlib.cm.ScalarMappable(norm, colours), ax=axes[0].tolist(), label="final return")
-    shown = "every agent" if len(drawn) == len(agents) else f"the best {len(drawn)} of {len(agents)} agents"
-    fig.suptitle(f"{Path(run_dir).name}: the values {shown}' weights were trained with", fontsize="medium")
+    shown = "every agent's" if len(drawn) == len(agents) else f"the best {len(drawn)} of {len(agents)} agents'"
+    fig.suptitle(f"{Path(run_dir).name}: the values {shown} weights were trained with", fontsize="medium")
     figure = write_figure(fig, Path(out_dir) / f"{prefix}{SCHEDULES_FIGURE}", dpi=FIGURE_DPI)
     rows = [
         [agent, final, update, *(values[k] for k in keys)]

@@ -258,11 +258,14 @@ def _check_quantile(quantile: float, agents: int) -> None:
     smallest = math.ceil(1 / quantile)
     while int(smallest * quantile) < 1:  # 1 / quantile rounded up may fall short by a rounding error
         smallest += 1
+    larger = (
+        f"at least 1/{agents} for a population of {agents} agents, or " if 1 / agents <= MAX_QUANTILE else ""
+    )
     raise ConfigError.of(
         "hydra.launcher.quantile",
         quantile,
-        f"at least 1/{agents} for a population of {agents} agents (int({agents} x {quantile:g}) = 0 agents "
-        f"would be replaced: no exploit step, an empty lineage), or train at least {smallest} agents",
+        f"{larger}a population of at least {smallest} agents (int({agents} x {quantile:g}) = 0 agents "
+        "would ever be replaced: no exploit step, an empty lineage)",
     )
 
 
