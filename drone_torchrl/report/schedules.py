@@ -85,7 +85,9 @@ def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path
     if drawn:
         axes[0][0].legend(fontsize="small")
     fig.colorbar(matplotlib.cm.ScalarMappable(norm, colours), ax=axes[0].tolist(), label="final return")
-    shown = "every agent's" if len(drawn) == len(agents) else f"the best {len(drawn)} of {len(agents)} agents'"
+    shown = (
+        "every agent's" if len(drawn) == len(agents) else f"the best {len(drawn)} of {len(agents)} agents'"
+    )
     fig.suptitle(f"{Path(run_dir).name}: the values {shown} weights were trained with", fontsize="medium")
     figure = write_figure(fig, Path(out_dir) / f"{prefix}{SCHEDULES_FIGURE}", dpi=FIGURE_DPI)
     rows = [
