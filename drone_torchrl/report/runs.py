@@ -161,6 +161,7 @@ def load_population(run_dir: Path) -> list[Run]:
         checkpoint = None
     searched = checkpoint is not None and bool(checkpoint.get("search"))
     final = population_record.agent_values(checkpoint) if searched else {}
+    first = population_record.agent_values(checkpoint, until=0) if searched else {}
     columns = {key: np.asarray(values) for key, values in rows.items()}
     owner = columns.get("agent", np.zeros(0, dtype=int))
     runs = []
@@ -174,7 +175,7 @@ def load_population(run_dir: Path) -> list[Run]:
             overrides = [o for o in overrides if o.partition("=")[0].lstrip(OVERRIDE_PREFIXES) not in final]
             overrides += [f"{key}={format_value(values[k])}" for key, values in final.items()]
             started = [
-                f"{key}={format_value(agents[key][k])}" for key in final if agents[key][k] != final[key][k]
+                f"{key}={format_value(first[key][k])}" for key in final if first[key][k] != final[key][k]
             ]
             if started:
                 notes.append(f"agent {k} of {run_dir.name} started as {' '.join(started)}")

@@ -54,7 +54,7 @@ from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.yaml_text import save_yaml
 from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, make_logger
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.pbt import Search, final_values
+from drone_torchrl.training.pbt import Search, complete_lineage, final_values
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import (
     _CAUSE_NAMES,
@@ -456,14 +456,19 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
     return path, state
 
 
-def agent_values(state: dict[str, Any]) -> dict[str, list]:
+def agent_values(state: dict[str, Any], until: int | None = None) -> dict[str, list]:
     """Each agent's values at the end of a population checkpoint: per-agent key -> one per agent.
 
     The sweep's values, then those its search (:mod:`.pbt`) gave each agent: the values its weights
-    were trained with last (:func:`~.pbt.final_values`).
+    were trained with last (:func:`~.pbt.final_values`). ``until``: after the search's changes up to
+    that update only (0: the values training started with; a replay sets them at update 0).
     """
     initial = {key: values for key, values in state["agents"].items() if key != "name"}
-    return final_values((state.get("search") or {}).get("lineage"), initial)
+    lineage = complete_lineage((state.get("search") or {}).get("lineage"), initial)
+    if until is not None:  # rows are appended in update order: a prefix
+        rows = sum(update <= until for update in lineage["update"])
+        lineage = {column: values[:rows] for column, values in lineage.items()}
+    return final_values(lineage, initial)
 
 
 def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str, Any]:
