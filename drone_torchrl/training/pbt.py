@@ -33,7 +33,7 @@ import torch
 from drone_torchrl.checks import ConfigError, is_number
 from drone_torchrl.config import per_agent_keys, schema_keys
 
-# The population state's entry of each key PBT can search.
+#: Each per-agent key a search can change -> its entry in the population state (the lineage records them all).
 STATE_KEYS = {"algo.lr": "lr", "algo.gamma": "gamma", "algo.weight_decay": "weight_decay"}
 # The largest truncation quantile: the worst and the best quantile must not overlap.
 MAX_QUANTILE = 0.5
