@@ -198,6 +198,20 @@ def test_a_replay_resumed_after_its_run_changed_is_refused(pbt_sweep, tmp_path):
     assert [(u, dict(v)) for u, v in steps] == [(u, dict(v)) for u, v in replay.schedule]
 
 
+def test_a_replay_whose_checkpoint_predates_saved_schedules_still_continues(pbt_sweep, tmp_path):
+    """A replay checkpoint whose settings hold no schedule (written before they did) continues to a
+    larger budget, now with the schedule saved."""
+    replay = ReplaySettings.of({"run": str(pbt_sweep / "population_0"), "agent": 0})
+    fresh = tmp_path / "replay"
+    train_population(_cfgs("algo.episodes=4"), NAMES, fresh, search=replay)
+    state = load_checkpoint(fresh.joinpath(*LAST))
+    del state["search"]["settings"]["schedule"]
+    save_checkpoint(state, fresh.joinpath(*LAST))
+    train_population(_cfgs("algo.episodes=6"), NAMES, fresh, search=replay)
+    state = load_checkpoint(fresh.joinpath(*LAST))
+    assert state["episodes_done"] == [6] * 4 and "schedule" in state["search"]["settings"]
+
+
 def test_a_pbt_population_too_small_for_its_quantile_is_refused_before_anything_is_written(tmp_path):
     """2 agents at quantile 0.25: int(2 x 0.25) = 0 agents would ever be replaced. Refused in one
     line naming hydra.launcher.quantile and the smallest population that works (4)."""

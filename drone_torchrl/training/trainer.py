@@ -497,6 +497,8 @@ def _population_checkpoint(
     if isinstance(search, ReplaySettings) and saved_search:  # it keeps following its saved schedule
         search.check_resume(saved_search["settings"])
     now_search = None if search is None else search.record()
+    if saved_search and now_search and "schedule" not in saved_search["settings"]:
+        now_search.pop("schedule", None)  # a replay from before replays kept their schedule
     if (saved_search and saved_search["settings"]) != now_search:
         raise ConfigError(
             f"resume: {path} was trained with {_search_text(saved_search and saved_search['settings'])}, "
