@@ -149,6 +149,9 @@ def load_population(run_dir: Path) -> list[Run]:
     """A population run's agents, each as the run it would be in a folder of its own.
 
     Its job's overrides, the group's config with its per-agent values, its status and its episodes.
+    An agent of a search (PBT, halving, a replay: :mod:`~drone_torchrl.training.pbt`) stands with the
+    values it was trained with at the end (its overrides and config name them; a note names the
+    values it started with where they differ).
     """
     agents, rows = population_record.read_agents(run_dir), population_record.read_episodes(run_dir)
     config = _load_yaml(run_dir / CONFIG_FILE, dict)
@@ -156,6 +159,9 @@ def load_population(run_dir: Path) -> list[Run]:
         checkpoint = load_checkpoint(run_dir / CHECKPOINT_DIR / LAST)
     except (CheckpointError, FileNotFoundError):
         checkpoint = None
+    searched = checkpoint is not None and bool(checkpoint.get("search"))
+    final = population_record.agent_values(checkpoint) if searched else {}
+    first = population_record.agent_values(checkpoint, until=0) if searched else {}
     columns = {key: np.asarray(values) for key, values in rows.items()}
     owner = columns.get("agent", np.zeros(0, dtype=int))
     runs = []
@@ -163,7 +169,16 @@ def load_population(run_dir: Path) -> list[Run]:
         own = OmegaConf.create(config)
         for key, values in agents.items():
             if key not in ("agent", "name"):
-                OmegaConf.update(own, key, values[k])
+                OmegaConf.update(own, key, final.get(key, values)[k])
+        overrides, notes = name.split(), []
+        if final:  # every changed key named, so that every agent's setting has the same keys
+            overrides = [o for o in overrides if o.partition("=")[0].lstrip(OVERRIDE_PREFIXES) not in final]
+            overrides += [f"{key}={format_value(values[k])}" for key, values in final.items()]
+            started = [
+                f"{key}={format_value(first[key][k])}" for key in final if first[key][k] != final[key][k]
+            ]
+            if started:
+                notes.append(f"agent {k} of {run_dir.name} started as {' '.join(started)}")
         mine = np.flatnonzero(owner == k)
         mine = mine[np.argsort(columns["episode"][mine], kind="stable")]
         if checkpoint is None:
@@ -175,7 +190,9 @@ def load_population(run_dir: Path) -> list[Run]:
         else:
             status, detail = STATUS_UNFINISHED, f"{checkpoint['episodes_done'][k]} episodes so far"
         agent_columns = {key: values[mine] for key, values in columns.items() if key != "agent"}
-        runs.append(Run(run_dir, name.split(), OmegaConf.to_container(own), status, detail, agent_columns))
+        runs.append(
+            Run(run_dir, overrides, OmegaConf.to_container(own), status, detail, agent_columns, notes)
+        )
     return runs
 
 

@@ -1,9 +1,10 @@
-"""PBT's schedules in ``drone-report``: the values the best agents of a PBT run were trained with.
+"""Searches' schedules in ``drone-report``: the values each agent of a PBT or halving run was trained with.
 
-For each population run of a sweep trained with ``hydra/launcher=pbt`` (its checkpoint holds a
-lineage), the best ``BEST_AGENTS`` agents by final return are followed back through the lineage
-(:func:`drone_torchrl.training.pbt.schedule`): ``pbt_schedules.png`` draws each searched key
-against the update, one line per agent, and ``pbt_schedules.csv`` lists the steps.
+For each population run of a sweep trained with a search (``hydra/launcher=pbt``, ``halving`` or
+``pbt_replay``: its checkpoint holds a lineage), every agent with a final return is followed back
+through the lineage (:func:`drone_torchrl.training.pbt.schedule`): ``pbt_schedules.png`` draws each
+key whose values change against the update, one line per agent coloured by its final return (the
+best agent thick and labelled), and ``pbt_schedules.csv`` lists every agent's steps, best first.
 """
 
 from __future__ import annotations
@@ -13,57 +14,85 @@ from pathlib import Path
 
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, load_checkpoint
 from drone_torchrl.io.storage import new_figure, write_csv, write_figure
-from drone_torchrl.training.pbt import schedule
+from drone_torchrl.training.pbt import recorded_keys, schedule
 
-BEST_AGENTS = 3
 SCHEDULES_FIGURE = "pbt_schedules.png"
 SCHEDULES_CSV = "pbt_schedules.csv"
 FIGURE_DPI = 120
 PANEL_SIZE = (5.0, 3.2)
+# The most agents drawn (the best by final return): beyond, lines hide each other; the CSV has all.
+MAX_DRAWN = 300
+LINE_WIDTH = 0.8
+LINE_ALPHA = 0.6
+BEST_LINE_WIDTH = 2.5
+COLOUR_MAP = "viridis"
 
 
 def pbt_runs(sweep_dir: Path) -> list[Path]:
-    """The population runs of ``sweep_dir`` (or ``sweep_dir`` itself) trained with PBT."""
+    """The population runs of ``sweep_dir`` (or ``sweep_dir`` itself) trained with a search (a lineage)."""
     folders = [Path(sweep_dir), *sorted(p for p in Path(sweep_dir).glob("population_*") if p.is_dir())]
     return [f for f in folders if (f / "lineage.parquet").is_file() and (f / CHECKPOINT_DIR / LAST).is_file()]
 
 
-def best_schedules(run_dir: Path, best: int = BEST_AGENTS) -> tuple[list[str], list[tuple[int, float, list]]]:
-    """The searched keys, and ``(agent, final return, schedule)`` of the ``best`` agents.
+def agent_schedules(run_dir: Path) -> tuple[list[str], list[tuple[int, float, list]]]:
+    """The recorded keys, and ``(agent, final return, schedule)`` of every agent with a final return.
 
-    The best are ranked by final return; agents without one (unfinished or diverged) are left out.
+    Ranked by final return, best first; agents without one (unfinished or diverged) are left out.
     """
     state = load_checkpoint(Path(run_dir) / CHECKPOINT_DIR / LAST)
-    settings = state["search"]["settings"]
-    keys = list(settings["keys"])
+    initial = {key: values for key, values in state["agents"].items() if key != "name"}
+    keys = list(recorded_keys(initial))
     finals = [math.nan if f is None else f["final_return"] for f in state["final"]]
     ranked = sorted((i for i in range(len(finals)) if not math.isnan(finals[i])), key=lambda i: -finals[i])
-    initial = {key: state["agents"][key] for key in keys}
     lineage = state["search"]["lineage"]
-    return keys, [(i, finals[i], schedule(lineage, initial, i, keys)) for i in ranked[:best]]
+    return keys, [(i, finals[i], schedule(lineage, initial, i, keys)) for i in ranked]
 
 
 def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path]:
-    """``<prefix>pbt_schedules.png`` and ``.csv`` of one PBT population run into ``out_dir``."""
-    keys, best = best_schedules(run_dir)
+    """``<prefix>pbt_schedules.png`` and ``.csv`` of one searched population run into ``out_dir``."""
+    import matplotlib
+
+    keys, agents = agent_schedules(run_dir)
     budget = max(int(e) for e in load_checkpoint(Path(run_dir) / CHECKPOINT_DIR / LAST)["updates_done"])
-    fig = new_figure((PANEL_SIZE[0] * len(keys), PANEL_SIZE[1]))
-    axes = fig.subplots(1, len(keys), squeeze=False)
-    for ax, key in zip(axes[0], keys, strict=True):
-        for agent, final, steps in best:
+    # A key no agent's schedule changes (e.g. an unsearched weight decay) gets no panel.
+    varying = [k for k in keys if len({v[k] for _, _, steps in agents for _, v in steps}) > 1] or keys[:1]
+    drawn = agents[:MAX_DRAWN]
+    fig = new_figure((PANEL_SIZE[0] * len(varying) + 1.0, PANEL_SIZE[1]))
+    fig.set_layout_engine("constrained")  # room for the shared colour bar
+    axes = fig.subplots(1, len(varying), squeeze=False)
+    finals = [final for _, final, _ in drawn] or [0.0]
+    low, high = min(finals), max(finals)
+    norm = matplotlib.colors.Normalize(low, high if high > low else low + 1)  # equal finals: one colour
+    colours = matplotlib.colormaps[COLOUR_MAP]
+    for ax, key in zip(axes[0], varying, strict=True):
+        for rank, (agent, final, steps) in reversed(list(enumerate(drawn))):  # the best drawn last, on top
             updates = [u for u, _ in steps] + [budget]
             values = [v[key] for _, v in steps]
-            ax.step(updates, [*values, values[-1]], where="post", label=f"agent {agent} (final {final:.0f})")
+            best = rank == 0
+            ax.step(
+                updates,
+                [*values, values[-1]],
+                where="post",
+                color=colours(norm(final)),
+                linewidth=BEST_LINE_WIDTH if best else LINE_WIDTH,
+                alpha=1.0 if best else LINE_ALPHA,
+                label=f"best: agent {agent} (final {final:.0f})" if best else None,
+            )
         ax.set_xlabel("update")
         ax.set_ylabel(key)
-        ax.set_yscale("log" if key == "algo.lr" else "linear")
-    axes[0][0].legend(fontsize="small")
-    fig.suptitle(f"{Path(run_dir).name}: the values the best agents' weights were trained with")
-    fig.tight_layout()
+        positive = all(v[key] > 0 for _, _, steps in drawn for _, v in steps)
+        ax.set_yscale("log" if key != "algo.gamma" and positive else "linear")
+    if drawn:
+        axes[0][0].legend(fontsize="small")
+    fig.colorbar(matplotlib.cm.ScalarMappable(norm, colours), ax=axes[0].tolist(), label="final return")
+    shown = (
+        "every agent's" if len(drawn) == len(agents) else f"the best {len(drawn)} of {len(agents)} agents'"
+    )
+    fig.suptitle(f"{Path(run_dir).name}: the values {shown} weights were trained with", fontsize="medium")
     figure = write_figure(fig, Path(out_dir) / f"{prefix}{SCHEDULES_FIGURE}", dpi=FIGURE_DPI)
     rows = [
         [agent, final, update, *(values[k] for k in keys)]
-        for agent, final, steps in best
+        for agent, final, steps in agents
         for update, values in steps
     ]
     table = write_csv(

@@ -23,7 +23,7 @@ from drone_torchrl.report.distribution import (
 from drone_torchrl.report.figures import RETURNS_FIGURE, STEPS_FIGURE, plot_curves
 from drone_torchrl.report.landscape import LANDSCAPE_FIGURE, landscape, write_landscape
 from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN
-from drone_torchrl.report.schedules import pbt_runs, write_schedules
+from drone_torchrl.report.schedules import SCHEDULES_FIGURE, pbt_runs, write_schedules
 from drone_torchrl.report.stats import PD_EPISODES, PD_SEED, PERCENT, STD_DDOF, ZONE_SHARE
 from drone_torchrl.report.sweep import SweepReport
 
@@ -237,8 +237,10 @@ def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = Fal
     """Write the report's figures and tables into ``out_dir``.
 
     Write ``steps.png``, ``returns.png``, ``finals.png``, ``summary.md`` and ``summary.csv`` into
-    ``out_dir``; for a two-key grid sweep also ``landscape.png`` and ``landscape.csv``
-    (:mod:`.landscape`); with ``paper_averaging`` also ``paper_averaging.png``.
+    ``out_dir``; for a two-key grid sweep of fixed values also ``landscape.png`` and
+    ``landscape.csv`` (:mod:`.landscape`; not for a search, whose agents' values change: one line
+    says so), and for each searched population run ``pbt_schedules.png`` and ``.csv``
+    (:mod:`.schedules`); with ``paper_averaging`` also ``paper_averaging.png``.
     """
     out_dir = Path(out_dir)
     distributions = [distribution(s, report.window) for s in report.settings if s.runs_with_episodes]
@@ -259,11 +261,16 @@ def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = Fal
             plot_paper_averaging(ordered, report.window, report.name, out_dir / PAPER_AVERAGING_FIGURE)
         )
         extra += "\n" + format_paper_averaging_section(report)
-    grid = landscape(report)
+    searched = pbt_runs(report.sweep_dir)
+    grid = None if searched else landscape(report)
+    if searched:  # a heat map's cells are fixed values: a search's agents did not keep theirs
+        print(
+            f"{report.sweep_dir}: no {LANDSCAPE_FIGURE}: its agents' values changed while they trained "
+            f"(a search: {', '.join(run.name for run in searched)}); {SCHEDULES_FIGURE} draws them"
+        )
     if grid is not None:
         paths += write_landscape(grid, out_dir)
-    searched = pbt_runs(report.sweep_dir)
-    for run in searched:  # population-based training: the best agents' schedules
+    for run in searched:  # a search's schedules: every agent's values over the updates
         paths += write_schedules(run, out_dir, "" if len(searched) == 1 else f"{run.name}_")
     md = out_dir / SUMMARY_MD
     summary = format_report(report) + "\n" + extra

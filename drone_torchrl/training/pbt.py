@@ -21,9 +21,10 @@ The defaults are Ray Tune's (truncation quantile 0.25, factors 0.8 and 1.2, resa
 The draws of an exploit step come from a generator keyed by the first agent's seed and the update
 number, and everything else they depend on (the windows, the state) is in the checkpoint: a killed
 and resumed run takes the same steps as an uninterrupted one. Each step appends one row per
-replaced agent to the run's lineage (update, agent, parent and the new values), kept in the
-checkpoint and written to ``lineage.parquet`` (:mod:`.population_record`). An agent that diverged
-takes no part.
+replaced agent to the run's lineage (update, agent, parent and the agent's values from then on of
+every key of :data:`STATE_KEYS`, searched or not: the copy gives it the parent's values of the keys
+not searched), kept in the checkpoint and written to ``lineage.parquet``
+(:mod:`.population_record`). An agent that diverged takes no part.
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ import torch
 from drone_torchrl.checks import ConfigError, is_number
 from drone_torchrl.config import per_agent_keys, schema_keys
 
-# The population state's entry of each key PBT can search.
+#: Each per-agent key a search can change -> its entry in the population state (the lineage records them all).
 STATE_KEYS = {"algo.lr": "lr", "algo.gamma": "gamma", "algo.weight_decay": "weight_decay"}
 # The largest truncation quantile: the worst and the best quantile must not overlap.
 MAX_QUANTILE = 0.5
@@ -143,8 +144,11 @@ class PBTSettings:
             del record["ranges"]
         return record
 
-    def check(self, cfg: Any) -> None:
-        """A step inside the budget (``algo.episodes / algo.episodes_per_update`` updates)."""
+    def check(self, cfg: Any, agents: int) -> None:
+        """A step inside the budget (``algo.episodes / algo.episodes_per_update`` updates).
+
+        And a population of ``agents`` large enough that the quantile is at least one agent.
+        """
         updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
         if self.every_updates >= updates:
             raise ConfigError.of(
@@ -152,6 +156,7 @@ class PBTSettings:
                 self.every_updates,
                 f"fewer than the budget's {updates} updates",
             )
+        _check_quantile(self.quantile, agents)
 
     def bounds(self, cfg: Any) -> dict[str, tuple[float, float]]:
         """Each searched key's ``(low, high)``: the values its rule allows under ``cfg``'s algorithm.
@@ -195,12 +200,74 @@ class PBTSettings:
         return PBT(self, values, bounds, int(values["seed"][0]), lineage)
 
 
+def recorded_keys(initial: Mapping[str, Any]) -> tuple[str, ...]:
+    """The keys of :data:`STATE_KEYS` that ``initial`` (key -> every agent's value) names, in that order.
+
+    A population's values name every per-agent key: the lineage records each of these.
+    """
+    return tuple(key for key in STATE_KEYS if key in initial)
+
+
+def complete_lineage(
+    lineage: Mapping[str, list] | None,
+    initial: Mapping[str, Sequence[float]],
+    keys: Sequence[str] | None = None,
+) -> dict[str, list]:
+    """The lineage with a column for each of ``keys`` (default: :func:`recorded_keys` of ``initial``).
+
+    A lineage written before it recorded every key has the searched keys' columns only. A missing
+    column's value is the one the agent's row held from that row on: its parent's value then (an
+    exploit copies the parent's whole row; a replay's parent is the agent itself), or the agent's
+    own for a restart from fresh weights (:data:`FRESH`: the slot keeps the keys not drawn).
+    """
+    keys = recorded_keys(initial) if keys is None else tuple(keys)
+    out = {column: list(values) for column, values in (lineage or {}).items()}
+    for column in LINEAGE_COLUMNS:
+        out.setdefault(column, [])
+    missing = [key for key in keys if key not in out]
+    if not missing:
+        return out
+    now = {key: [float(v) for v in initial[key]] for key in keys}
+    for key in missing:
+        out[key] = []
+    for row, (agent, parent) in enumerate(zip(out["agent"], out["parent"], strict=True)):
+        source = agent if parent == FRESH else parent
+        for key in missing:
+            out[key].append(now[key][source])
+        for key in keys:
+            now[key][agent] = float(out[key][row])
+    return out
+
+
+def final_values(
+    lineage: Mapping[str, list] | None,
+    initial: Mapping[str, Sequence[Any]],
+    keys: Sequence[str] | None = None,
+) -> dict[str, list]:
+    """Each agent's values at the end of ``lineage``: ``initial``'s, then each lineage row's.
+
+    ``keys`` default to :func:`recorded_keys` of ``initial``, and ``seed`` where ``initial`` has it
+    (a restart from fresh weights gives the slot a new seed).
+    """
+    keys = (*recorded_keys(initial), *(("seed",) if "seed" in initial else ())) if keys is None else keys
+    rows = complete_lineage(lineage, initial, [key for key in keys if key != "seed"])
+    out = {key: list(initial[key]) for key in keys}
+    for row, agent in enumerate(rows["agent"]):
+        for key in keys:
+            out[key][agent] = rows[key][row]
+    return out
+
+
 class Search:
-    """What PBT and its replay share: the searched keys' lineage and each agent's value now.
+    """What PBT and its replay share: the lineage and each agent's values now.
+
+    The lineage records every key of :data:`STATE_KEYS` that ``initial`` names, searched or not:
+    an exploit copies the parent's whole row, so a key not searched changes too.
 
     Args:
         keys: the searched keys.
-        initial: each searched key -> every agent's value from the sweep.
+        initial: each key -> every agent's value from the sweep (every recorded key: the searched
+            keys and the others of :data:`STATE_KEYS`).
         lineage: the rows written so far (a resumed run's, from its checkpoint), column -> values.
     """
 
@@ -210,14 +277,17 @@ class Search:
         self, keys: Sequence[str], initial: Mapping[str, Sequence[float]], lineage: Mapping[str, list] | None
     ) -> None:
         self.keys = tuple(keys)
-        columns = (*LINEAGE_COLUMNS, *self.keys)
-        self.lineage: dict[str, list] = {key: list((lineage or {}).get(key, [])) for key in columns}
-        # Each agent's value of each searched key now, exactly (the state holds gamma in the
+        self.recorded = recorded_keys(initial)
+        columns = (*LINEAGE_COLUMNS, *self.recorded)
+        # An older checkpoint's lineage may lack the keys that were not searched: filled in.
+        complete = complete_lineage(lineage, initial, self.recorded)
+        self.lineage: dict[str, list] = {key: complete[key] for key in columns}
+        # Each agent's value of each recorded key now, exactly (the state holds gamma in the
         # network's precision): the sweep's, then each lineage row's.
-        self.current = {key: [float(v) for v in initial[key]] for key in self.keys}
-        for row, agent in enumerate(self.lineage["agent"]):
-            for key in self.keys:
-                self.current[key][agent] = float(self.lineage[key][row])
+        self.current = {
+            key: [float(v) for v in values]
+            for key, values in final_values(self.lineage, initial, self.recorded).items()
+        }
 
     def start(self, state: Any) -> None:
         """A fresh run's state before its first update (a resumed one has its checkpoint's)."""
@@ -225,24 +295,52 @@ class Search:
     def _set(
         self, state: Any, update: int, agents: Sequence[int], parents: Sequence[int], new: Mapping[str, Any]
     ) -> None:
-        """Give ``agents`` the ``new`` values (key -> one per agent) in ``state`` and the lineage."""
+        """Give ``agents`` the ``new`` values (key -> one per agent) in ``state`` and the lineage.
+
+        A recorded key that ``new`` leaves out keeps the value the agent's row holds: its parent's
+        (the exploit copied it), or its own after a restart from fresh weights (:data:`FRESH`).
+        """
+        pairs = list(zip(agents, parents, strict=True))
+        values = {
+            key: [float(v) for v in new[key]]
+            if key in new
+            else [self.current[key][agent if parent == FRESH else parent] for agent, parent in pairs]
+            for key in self.recorded
+        }
         rows = torch.as_tensor(list(agents))
-        for key in self.keys:
+        for key in self.recorded:
             entry = state[STATE_KEYS[key]]
             with torch.no_grad():
-                entry[rows] = torch.as_tensor(np.asarray(new[key], dtype=np.float64), dtype=entry.dtype)
+                entry[rows] = torch.as_tensor(np.asarray(values[key], dtype=np.float64), dtype=entry.dtype)
         seeds = state["seed"][rows].tolist()
-        for i, (agent, parent) in enumerate(zip(agents, parents, strict=True)):
+        for i, (agent, parent) in enumerate(pairs):
             for column, value in zip(LINEAGE_COLUMNS, (update, agent, parent, seeds[i]), strict=True):
                 self.lineage[column].append(int(value))
-            for key in self.keys:
-                value = float(new[key][i])
-                self.lineage[key].append(value)
-                self.current[key][agent] = value
+            for key in self.recorded:
+                self.lineage[key].append(values[key][i])
+                self.current[key][agent] = values[key][i]
 
     def checkpoint(self) -> dict[str, Any]:
         """What a checkpoint keeps of the search: its settings and the lineage."""
         return {"settings": self.settings.record(), "lineage": self.lineage}
+
+
+def _check_quantile(quantile: float, agents: int) -> None:
+    """A population whose ``quantile`` rounds to at least one agent; else nothing would ever be exploited."""
+    if int(agents * quantile) >= 1:
+        return
+    smallest = math.ceil(1 / quantile)
+    while int(smallest * quantile) < 1:  # 1 / quantile rounded up may fall short by a rounding error
+        smallest += 1
+    larger = (
+        f"at least 1/{agents} for a population of {agents} agents, or " if 1 / agents <= MAX_QUANTILE else ""
+    )
+    raise ConfigError.of(
+        "hydra.launcher.quantile",
+        quantile,
+        f"{larger}a population of at least {smallest} agents (int({agents} x {quantile:g}) = 0 agents "
+        "would ever be replaced: no exploit step, an empty lineage)",
+    )
 
 
 def _list(value: Any) -> bool:
@@ -358,13 +456,15 @@ class PBT(Search):
 class ReplaySettings:
     """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT run had.
 
-    The run may also be a successive halving run.
+    The run may also be a successive halving run; it must have finished (every agent at its budget
+    or diverged).
 
     Attributes:
         run: the PBT population run (its folder).
         agent: the agent whose line of ancestors' values is replayed (default: the one with the
             best final return).
-        schedule: ``(update, ((key, value), ...))`` from update 0: that agent's values (:func:`schedule`).
+        schedule: ``(update, ((key, value), ...))`` from update 0: that agent's values of every
+            key the run's lineage records (:func:`schedule`). The replay's checkpoint keeps it.
     """
 
     run: str
@@ -394,6 +494,14 @@ class ReplaySettings:
                 "the folder of a PBT or halving run (hydra/launcher=pbt or halving)",
             )
         count = len(state["episodes_done"])
+        training = sum(f is None and e is None for f, e in zip(state["final"], state["failure"], strict=True))
+        if training:  # its lineage and final returns are not yet the run's
+            raise ConfigError.of(
+                "hydra.launcher.run",
+                run,
+                f"a finished PBT or halving run ({training} of its {count} agents are still training: "
+                "run its command again to finish it first)",
+            )
         agent = params.get("agent")
         if agent is None:  # the best final return
             finals = [-math.inf if f is None else f["final_return"] for f in state["final"]]
@@ -402,33 +510,67 @@ class ReplaySettings:
             raise ConfigError.of(
                 "hydra.launcher.agent", agent, f"an agent of {run}: an integer 0..{count - 1}"
             )
-        keys = tuple(search["settings"]["keys"])
-        initial = {key: state["agents"][key] for key in keys}
-        steps = schedule(search["lineage"], initial, agent, keys)
+        steps = schedule(search["lineage"], state["agents"], agent)
         frozen = tuple((update, tuple(values.items())) for update, values in steps)
         return cls(str(Path(str(run)).resolve()), agent, frozen)
 
     def record(self) -> dict[str, Any]:
-        """What a checkpoint keeps of these settings (the launcher, run and agent replayed)."""
-        return {"launcher": "pbt_replay", "run": self.run, "agent": self.agent}
+        """What a checkpoint keeps of these settings: the launcher, run and agent, and the schedule."""
+        steps = [[update, dict(values)] for update, values in self.schedule]
+        return {"launcher": "pbt_replay", "run": self.run, "agent": self.agent, "schedule": steps}
 
-    def check(self, cfg: Any) -> None:
-        """Any budget: the last values hold past the PBT run's."""
+    def check(self, cfg: Any, agents: int) -> None:
+        """Any budget and population: the last values hold past the PBT run's."""
+
+    def check_resume(self, saved: Mapping[str, Any]) -> None:
+        """A resumed replay follows the schedule its checkpoint keeps (``saved``: its settings' record).
+
+        :class:`~.checks.ConfigError` (one line) when the run replayed has changed since (another
+        run written in its folder): its agent's schedule is no longer the one this replay follows.
+        """
+        if saved.get("launcher") != "pbt_replay" or (saved.get("run"), saved.get("agent")) != (
+            self.run,
+            self.agent,
+        ):
+            return  # another search: the caller's comparison names both
+        if "schedule" in saved and saved["schedule"] != self.record()["schedule"]:
+            raise ConfigError.of(
+                "hydra.launcher.run",
+                self.run,
+                f"the run this replay started from, unchanged: agent {self.agent}'s schedule there is "
+                f"now {_schedule_text(self.record()['schedule'])}, this replay follows "
+                f"{_schedule_text(saved['schedule'])}; replay the new run in another hydra.sweep.dir",
+            )
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Replay:
         """The :class:`Replay` of a population of ``len(values["seed"])`` agents."""
         return Replay(self, len(values["seed"]), None if saved is None else saved["lineage"])
 
 
+def _schedule_text(steps: Sequence[Sequence[Any]]) -> str:
+    """A schedule in one short line: ``update 0: algo.lr=0.001 algo.gamma=0.99; update 4: ...``."""
+    return "; ".join(
+        f"update {update}: " + " ".join(f"{key}={value:.4g}" for key, value in dict(values).items())
+        for update, values in steps
+    )
+
+
 def schedule(
-    lineage: Mapping[str, list], initial: Mapping[str, Sequence[float]], agent: int, keys: Sequence[str]
+    lineage: Mapping[str, list],
+    initial: Mapping[str, Sequence[float]],
+    agent: int,
+    keys: Sequence[str] | None = None,
 ) -> list[tuple[int, dict[str, float]]]:
     """The values ``agent``'s weights were trained with, as ``[(update, values), ...]``.
 
     The list is ``[(0, the first values), (update, the values from then on), ...]``, following the
     agent's line of ancestors back through the lineage (an agent replaced at update ``u`` by a copy
-    of ``parent`` had ``parent``'s line before ``u``).
+    of ``parent`` had ``parent``'s line before ``u``). ``keys``: the values given (default: every
+    key of :data:`STATE_KEYS` that ``initial`` names; a column an older lineage lacks is filled by
+    :func:`complete_lineage`).
     """
+    keys = recorded_keys(initial) if keys is None else tuple(keys)
+    lineage = complete_lineage(lineage, initial, keys)
     steps = []
     current = agent
     for row in range(len(lineage["agent"]) - 1, -1, -1):
@@ -530,7 +672,7 @@ class HalvingSettings:
         keys = _searched_keys(params.get("keys", cls.keys), "successive halving")
         return cls(tuple(int(r) for r in rungs), float(fraction), keys)
 
-    def check(self, cfg: Any) -> None:
+    def check(self, cfg: Any, agents: int) -> None:
         """Every rung inside the budget (``algo.episodes / algo.episodes_per_update`` updates)."""
         updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
         if self.rungs[-1] >= updates:

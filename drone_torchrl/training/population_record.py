@@ -54,7 +54,7 @@ from drone_torchrl.io.streams import about, console
 from drone_torchrl.io.yaml_text import save_yaml
 from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, make_logger
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.pbt import PBT, STATE_KEYS
+from drone_torchrl.training.pbt import Search, complete_lineage, final_values
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import (
     _CAUSE_NAMES,
@@ -223,7 +223,7 @@ class PopulationRecord:
         self._last_flush = time.perf_counter()
         # The run's population-based training (:mod:`.pbt`), set by the trainer: its lineage goes
         # into each checkpoint and lineage.parquet.
-        self.search: PBT | None = None
+        self.search: Search | None = None
 
     # ------------------------------------------------------------------ episodes
     def _clear(self) -> None:
@@ -458,6 +458,21 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
     return path, state
 
 
+def agent_values(state: dict[str, Any], until: int | None = None) -> dict[str, list]:
+    """Each agent's values at the end of a population checkpoint: per-agent key -> one per agent.
+
+    The sweep's values, then those its search (:mod:`.pbt`) gave each agent: the values its weights
+    were trained with last (:func:`~.pbt.final_values`). ``until``: after the search's changes up to
+    that update only (0: the values training started with; a replay sets them at update 0).
+    """
+    initial = {key: values for key, values in state["agents"].items() if key != "name"}
+    lineage = complete_lineage((state.get("search") or {}).get("lineage"), initial)
+    if until is not None:  # rows are appended in update order: a prefix
+        rows = sum(update <= until for update in lineage["update"])
+        lineage = {column: values[:rows] for column, values in lineage.items()}
+    return final_values(lineage, initial)
+
+
 def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str, Any]:
     """Agent ``agent`` of a population checkpoint as a run's checkpoint.
 
@@ -473,12 +488,9 @@ def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str,
     for key, values in state["agents"].items():
         if key != "name":
             OmegaConf.update(cfg, key, values[agent])
-    lineage = (state.get("search") or {}).get("lineage") or {"agent": []}
-    for row, replaced in enumerate(lineage["agent"]):  # PBT's later values of the searched keys
-        if replaced == agent:
-            for key in (*STATE_KEYS, "seed"):
-                if key in lineage:
-                    OmegaConf.update(cfg, key, lineage[key][row])
+    # A search's later values of every key it changed (searched or copied with a parent's row).
+    for key, values in agent_values(state).items():
+        OmegaConf.update(cfg, key, values[agent])
     cfg.device = "cpu"
     one = Population([cfg])
     with torch.no_grad():  # the weights are a leaf that requires grad

@@ -37,7 +37,7 @@ from drone_torchrl.optimum import Optimum
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
-from drone_torchrl.training.pbt import FRESH, SearchSettings
+from drone_torchrl.training.pbt import FRESH, ReplaySettings, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import StopRequest, TrainingStopped, stop_on_signals
@@ -439,7 +439,7 @@ def train_population(
         )
     check_memory(cfg, agents=len(agents))
     if search is not None:
-        search.check(cfg)
+        search.check(cfg, len(agents))
     run_lock.hold(run_dir)
     try:
         checkpoint = _population_checkpoint(agents, names, run_dir, search)
@@ -503,7 +503,11 @@ def _population_checkpoint(
             "its hyper-parameters: drop those overrides or use another hydra.sweep.dir"
         )
     saved_search = checkpoint.get("search")
+    if isinstance(search, ReplaySettings) and saved_search:  # it keeps following its saved schedule
+        search.check_resume(saved_search["settings"])
     now_search = None if search is None else search.record()
+    if saved_search and now_search and "schedule" not in saved_search["settings"]:
+        now_search.pop("schedule", None)  # a replay from before replays kept their schedule
     if (saved_search and saved_search["settings"]) != now_search:
         raise ConfigError(
             f"resume: {path} was trained with {_search_text(saved_search and saved_search['settings'])}, "
@@ -524,5 +528,9 @@ def _search_text(settings: dict | None) -> str:
     if settings is None:
         return "no search (hydra/launcher=population)"
     launcher = settings["launcher"]
-    values = " ".join(f"hydra.launcher.{key}={value}" for key, value in settings.items() if key != "launcher")
+    values = " ".join(
+        f"hydra.launcher.{key}={value}"
+        for key, value in settings.items()
+        if key not in ("launcher", "schedule")
+    )
     return f"hydra/launcher={launcher} {values}"
