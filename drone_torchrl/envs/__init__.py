@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from drone_torchrl.lazy import lazy_getattr
 
 # Loaded on first use (PEP 562): ``import drone_torchrl`` imports this package for its Gymnasium
 # registration, which needs no torch, and a command's --help must not pay torch's import.
@@ -18,14 +17,4 @@ _LAZY = {
 __all__ = ["DroneEnv", "DroneGymEnv", "DroneParams", "TerminationCause", "make_env"]
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is not None:
-        return getattr(importlib.import_module(module), name)
-    # A submodule, as an eager package had it imported (drone_torchrl.envs.disturbances).
-    try:
-        return importlib.import_module(f"{__name__}.{name}")
-    except ModuleNotFoundError as err:
-        if err.name != f"{__name__}.{name}":
-            raise
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _LAZY)

@@ -41,8 +41,7 @@ Method:
 
 from __future__ import annotations
 
-import importlib
-from typing import Any
+from drone_torchrl.lazy import lazy_getattr
 
 #: The return whose first crossing by the running mean the report gives (drone-report --return-threshold).
 DEFAULT_RETURN_THRESHOLD = 2000.0
@@ -98,14 +97,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is not None:
-        return getattr(importlib.import_module(module), name)
-    # A submodule, as an eager package had it imported (drone_torchrl.envs.disturbances).
-    try:
-        return importlib.import_module(f"{__name__}.{name}")
-    except ModuleNotFoundError as err:
-        if err.name != f"{__name__}.{name}":
-            raise
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_getattr(__name__, _LAZY)
