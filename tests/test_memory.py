@@ -8,8 +8,12 @@ import pytest
 
 # Allocates and frees a 40 MB tensor (a 1024-agent loss tensor) 20 times, as updates do, and prints
 # how many minor page faults filling them took after the first.
+# The probe loads what a training process has loaded when Trainer calls keep_freed_memory: with
+# only the small memory module imported (the package loads its modules lazily), the heap is young
+# and small allocations split the freed block several times more often than in a real run.
 PROBE = """
 import resource, sys, torch
+import drone_torchrl.training.trainer
 from drone_torchrl.training.memory import keep_freed_memory
 took = keep_freed_memory() if sys.argv[1] == "keep" else None
 x = torch.ones(1024 * 300 * 32); del x
