@@ -59,7 +59,14 @@ from compare_sweeps import bootstrap_difference, finals  # noqa: E402  (a siblin
 
 from drone_torchrl.config import config_dir  # noqa: E402
 from drone_torchrl.report.distribution import BOOTSTRAP_SEED, distribution  # noqa: E402
-from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, group_runs, load_runs, setting_of  # noqa: E402
+from drone_torchrl.report.runs import (  # noqa: E402
+    COL_LENGTH,
+    COL_RETURN,
+    COL_WALL_CLOCK,
+    group_runs,
+    load_runs,
+    setting_of,
+)
 from drone_torchrl.report.stats import running_mean  # noqa: E402
 from drone_torchrl.report.sweep import default_window  # noqa: E402
 
@@ -94,8 +101,6 @@ def spread(values: Sequence[float], keep: int | None) -> list[float]:
     """``keep`` of ``values`` spread evenly, both ends included (all of them with ``None``)."""
     if keep is None or keep >= len(values):
         return list(values)
-    if keep == 1:
-        return [values[len(values) // 2]]
     return [values[round(i * (len(values) - 1) / (keep - 1))] for i in range(keep)]
 
 
@@ -406,7 +411,7 @@ def write_csv(rows: Sequence[Row], path: Path) -> None:
             ]
         )
         for r in rows:
-            diffs = [*(r.vs_grid or ("", "", "")), *(r.vs_paper or ("", "", ""))]
+            diffs = [f"{v:.1f}" if d else "" for d in (r.vs_grid, r.vs_paper) for v in (d or (0, 0, 0))]
             writer.writerow(
                 [r.tuning_seed if r.tuning_seed is not None else "", r.search, r.found, r.tuning_episodes]
                 + [
@@ -441,32 +446,38 @@ def protocol_sweeps(plan: Plan) -> list[tuple[int, int]]:
 def estimate(plan: Plan, out: Path, episodes: int) -> str:
     """The protocol's episodes, and its wall-clock from a timed population of the grid's size.
 
-    A population trains its agents in one batch, so on a CPU an update of up to the grid's agents
-    costs about as much as the grid's: each sweep is timed as its episodes per agent times the
-    measured seconds per update, plus the measured start of a command. Early episodes end sooner
-    than trained ones (up to ``env.max_steps``): the upper figure scales the measured updates to
-    full-length episodes.
+    A population steps its agents in one batch, so an update costs a fixed part plus a part per
+    agent-step. Both are fitted (least squares) to the measured time of each update of a
+    population of the grid's values against the mean length of its episodes; each sweep is then
+    its episodes per agent times the update's cost at its number of agents, plus the measured
+    start of a command. Trained agents fly longer than the measured ones: the low figure takes
+    episodes as long as measured, the high one every episode at ``env.max_steps``.
     """
     folder = out / "calibration" / f"episodes_{episodes}"
     sweep = run_sweep(
         folder, [*grid_overrides(plan, CALIBRATION_SEED)[:-1], f"algo.episodes={episodes}"], plan
     )
     runs = load_runs(folder)
-    trained = max(run.wall_clock() or 0.0 for run in runs)
-    per_update = trained / episodes
-    start = max(0.0, sweep.wall_clock_s - trained)
-    mean_length = float(np.mean(np.concatenate([run.columns[COL_LENGTH] for run in runs])))
-    full = runs[0].max_steps / mean_length
+    walls = np.stack([run.columns[COL_WALL_CLOCK] for run in runs]).max(axis=0)
+    lengths = np.stack([run.columns[COL_LENGTH] for run in runs]).mean(axis=0)
+    agents, max_steps = len(runs), runs[0].max_steps
+    per_step, fixed = np.polyfit(lengths[1:], np.diff(walls), 1) if np.ptp(lengths) else (0.0, 0.0)
+    if per_step <= 0 or fixed < 0:  # too few updates to tell the parts apart: all per step
+        per_step, fixed = (walls[-1] - walls[0]) / max(1.0, lengths[1:].sum()), 0.0
+    per_agent_step = per_step / agents
+    start = max(0.0, sweep.wall_clock_s - float(walls[-1]))
     sweeps = protocol_sweeps(plan)
-    total = sum(a * e for a, e in sweeps)
-    low = sum(start + e * per_update for _, e in sweeps)
-    high = sum(start + e * per_update * full for _, e in sweeps)
+
+    def minutes(length: float) -> float:
+        return sum(start + e * (fixed + per_agent_step * n * length) for n, e in sweeps) / 60
+
     return (
-        f"Estimate: {len(sweeps)} sweeps, {total:,} episodes. Measured on {len(runs)} agents x {episodes} "
-        f"episodes: {per_update * 1000:.1f} ms an update (mean episode {mean_length:.0f} of "
-        f"{runs[0].max_steps} steps), {start:.1f} s to start a command, "
-        f"{len(runs) * episodes / trained:,.0f} episodes/s. Wall-clock: {low / 60:.0f} min with episodes "
-        f"as long as measured, {high / 60:.0f} min if all were full length."
+        f"Estimate: {len(sweeps)} sweeps, {sum(n * e for n, e in sweeps):,} episodes. Measured on "
+        f"{agents} agents x {episodes} episodes ({agents * episodes / walls[-1]:,.0f} episodes/s, "
+        f"mean episode {lengths.mean():.0f} of {max_steps} steps): an update costs "
+        f"{fixed * 1e3:.2f} ms + {per_agent_step * 1e6:.2f} us an agent-step, a command starts in "
+        f"{start:.1f} s. Wall-clock: {minutes(float(lengths.mean())):.0f} min with episodes as long "
+        f"as measured, {minutes(max_steps):.0f} min with every episode {max_steps} steps."
     )
 
 
@@ -502,8 +513,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--calibration-episodes",
         type=int,
-        default=100,
-        help="episodes per agent of the timed population run of the estimate",
+        default=1500,
+        help="episodes per agent of the timed population run of the estimate (long enough that "
+        "episodes grow: the fit needs short and long ones)",
     )
     parser.add_argument("--estimate-only", action="store_true", help="print the cost, run no protocol")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every sweep, e.g. env.max_steps=20")
@@ -554,8 +566,12 @@ def main(argv: Sequence[str] | None = None) -> None:
     plan = make_plan(args)
     out = args.out
     settings = out / "settings.json"
-    if settings.is_file() and json.loads(settings.read_text()) != plan.as_json():
-        sys.exit(f"{settings} holds other settings: use another --out, or the command that wrote it")
+    # More tuning seeds may be added to a protocol later; anything else would mix two protocols.
+    if settings.is_file():
+        before, now = json.loads(settings.read_text()), plan.as_json()
+        changed = [key for key in now if key != "tuning_seeds" and before.get(key) != now[key]]
+        if changed:
+            sys.exit(f"{settings} holds other {', '.join(changed)}: use another --out, or its settings")
     out.mkdir(parents=True, exist_ok=True)
     settings.write_text(json.dumps(plan.as_json(), indent=1))
     print("Settings (fixed before any run):")
