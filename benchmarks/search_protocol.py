@@ -58,16 +58,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from compare_sweeps import bootstrap_difference, finals  # noqa: E402  (a sibling script)
 
 from drone_torchrl.config import config_dir  # noqa: E402
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, load_checkpoint  # noqa: E402
 from drone_torchrl.report.distribution import BOOTSTRAP_SEED, distribution  # noqa: E402
 from drone_torchrl.report.runs import (  # noqa: E402
     COL_LENGTH,
-    COL_RETURN,
     COL_WALL_CLOCK,
     group_runs,
     load_runs,
-    setting_of,
 )
-from drone_torchrl.report.stats import running_mean  # noqa: E402
 from drone_torchrl.report.sweep import default_window  # noqa: E402
 
 # The protocol, fixed before any test run (docs/sweeps.md's settings).
@@ -300,19 +298,21 @@ def best_cell(sweep: Path, window: int) -> tuple[dict[str, str], str]:
     medians = [distribution(s, window).median for s in settings]
     best = settings[int(np.argmax(medians))]
     values = {key: value for key, value in best.pairs if key in PAPER}
-    text = ", ".join(f"{k}={v}" for k, v in values.items())
+    text = ", ".join(f"{key.split('.')[-1]} {value}" for key, value in values.items())
     return values, f"{text} (final {max(medians):.0f})"
 
 
-def best_agent(sweep: Path, window: int) -> str:
-    """The best final agent of a search and the values it ended with."""
-    runs = load_runs(sweep)
-    ends = [running_mean(run.columns[COL_RETURN], window)[-1] if run.episodes else -math.inf for run in runs]
-    k = int(np.argmax(ends))
-    values = ", ".join(
-        f"{key}={v}" for key, v in setting_of(runs[k].overrides, runs[k].config) if key in PAPER
-    )
-    return f"agent {k} (final {ends[k]:.0f}): ends at {values}"
+def replayed(test: Path) -> str:
+    """The agent a replay followed (its checkpoint's record) and that agent's values over the updates."""
+    record = load_checkpoint(_population(test) / CHECKPOINT_DIR / LAST)["search"]["settings"]
+    source = load_checkpoint(Path(record["run"]) / CHECKPOINT_DIR / LAST)["final"][record["agent"]]
+    steps, last = [], None
+    for update, values in record["schedule"]:
+        mine = tuple((key, values[key]) for key in PAPER if key in values)
+        if mine != last:  # an exploit that kept the values is no change
+            steps.append(f"{update}: " + ", ".join(f"{key.split('.')[-1]} {v:.3g}" for key, v in mine))
+            last = mine
+    return f"agent {record['agent']} (final {source['final_return']:.0f}): {'; '.join(steps)}"
 
 
 @dataclass
@@ -333,8 +333,9 @@ class Row:
     vs_paper: tuple[float, float, float] | None
 
 
-def difference(before: np.ndarray, after: np.ndarray, rng: np.random.Generator) -> tuple[float, float, float]:
+def difference(before: np.ndarray, after: np.ndarray) -> tuple[float, float, float]:
     """(after - before) in the median, with its bootstrap 95% interval (compare_sweeps.py's)."""
+    rng = np.random.default_rng(BOOTSTRAP_SEED)  # each row's own: the same with more tuning seeds
     low, high = bootstrap_difference(before, after, lambda x: np.median(x, axis=-1), rng)
     return float(np.median(after) - np.median(before)), low, high
 
@@ -583,7 +584,6 @@ def main(argv: Sequence[str] | None = None) -> None:
         return
 
     window = default_window()
-    rng = np.random.default_rng(BOOTSTRAP_SEED)
     paper_test = run_sweep(
         out / "paper_default" / "test",
         ["hydra/launcher=population", *(f"{k}={v:g}" for k, v in plan.paper), *testing_overrides(plan)],
@@ -627,7 +627,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                 float(np.median(grid)),
                 float((grid >= zone).mean()),
                 None,
-                difference(paper, grid, rng),
+                difference(paper, grid),
             )
         )
         for search in plan.searches:
@@ -646,15 +646,15 @@ def main(argv: Sequence[str] | None = None) -> None:
                 Row(
                     seed,
                     search,
-                    best_agent(tuned.folder, window),
+                    replayed(test.folder),
                     spent(tuned.folder),
                     tuned.wall_clock_s,
                     tuned.resumed,
                     values.size,
                     float(np.median(values)),
                     float((values >= zone).mean()),
-                    difference(grid, values, rng),
-                    difference(paper, values, rng),
+                    difference(grid, values),
+                    difference(paper, values),
                 )
             )
     text = markdown(rows) + "\n" + summary(rows, plan) + "\n"
