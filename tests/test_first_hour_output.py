@@ -49,6 +49,8 @@ def _jobs(sweep: Path) -> list[Path]:
     return sorted(p for p in sweep.iterdir() if p.is_dir())
 
 
+# Slow stage: a real sweep process (several seconds of imports per job); the default suite stays near 5 minutes.
+@pytest.mark.slow
 def test_a_sweep_into_a_closed_pipe_trains_and_fails_no_job(tmp_path, command_here):
     """Piped into ``head``, a sweep trains every job, and its re-run finds them finished: no FAILED.txt."""
     sweep = tmp_path / "sweep"
@@ -84,6 +86,8 @@ def test_a_run_into_a_closed_pipe_exits_0_with_its_final_checkpoint(tmp_path):
     assert f"{run}: 2 episodes, running-mean(100) return {ckpt['final']['final_return']:.1f}" in log
 
 
+# Slow stage: a real sweep process (several seconds of imports per job); the default suite stays near 5 minutes.
+@pytest.mark.slow
 def test_a_job_that_fails_with_stdout_closed_is_failed_and_the_sweep_exits_nonzero(tmp_path):
     """A job that really fails (its checkpoints folder is a file) is the one failed job, stdout closed or not."""
     sweep = tmp_path / "sweep"

@@ -74,6 +74,8 @@ def _assert_same_state(before: dict, after: dict) -> None:
     assert after == before
 
 
+# Slow stage: drone-train in a process of its own (seconds of imports); the default suite stays near 5 minutes.
+@pytest.mark.slow
 def test_train_gives_the_numbers_of_drone_train(tmp_path):
     """The same config, from the command line (a process of its own) and from Python: the same run."""
     cli, api = tmp_path / "cli", tmp_path / "api"
