@@ -853,6 +853,7 @@ def test_a_population_run_refuses_stop_return_before_the_folder_exists(tmp_path)
 
 def test_the_pbt_launcher_refuses_through_the_command(tmp_path, command_here):
     """The same line reaches the terminal, and no sweep folder is made (drone-train in this process)."""
+    pytest.importorskip("pyarrow")  # without it the extras check refuses first (tests/test_extras.py)
     proc = command_here(
         train_app.run, "drone-train", "-m", "hydra/launcher=pbt", "hydra.launcher.quantile=0.7", "seed=0,1",
         *TINY, f"hydra.sweep.dir={tmp_path / 'sweep'}", cwd=tmp_path,

@@ -235,6 +235,7 @@ def test_a_range_sweep_draws_each_agents_first_value_by_its_seed_and_pbt_stays_i
 )
 def test_a_range_pbt_cannot_search_is_refused_in_one_line(tmp_path, command_here, overrides, line):
     """Before any folder is made, with the key, the value and what is allowed."""
+    pytest.importorskip("pyarrow")  # without it the extras check refuses first (tests/test_extras.py)
     from drone_torchrl.apps import train as train_app
 
     proc = command_here(
