@@ -34,7 +34,8 @@ wall-clock each search spent tuning; then the goal: for at least 6 of 8 tuning s
 share of fewer) the upper end of PBT minus grid is >= 0, and on every tuning seed PBT's median is at
 least the paper default's minus 100. ``results.md`` and ``results.csv`` in ``--out``.
 
-A PB2 search (``hydra/launcher=pb2``, not written yet) is added as one more entry of ``SEARCHES``.
+- ``pb2``: ``hydra/launcher=pb2`` (population-based bandits: PBT whose explore step a Gaussian
+  process chooses) with PBT's values, interval and budget, and ``pbt_replay`` of its best final agent.
 """
 
 from __future__ import annotations
@@ -195,12 +196,17 @@ def halving_overrides(plan: Plan, seed: int) -> list[str]:
     ]
 
 
+def pb2_overrides(plan: Plan, seed: int) -> list[str]:
+    """Population-based bandits on one tuning seed: PBT's command with hydra/launcher=pb2."""
+    return ["hydra/launcher=pb2", *pbt_overrides(plan, seed)[1:]]
+
+
 # A search: its name, the launcher it needs and its tuning command. Each is replayed with
-# hydra/launcher=pbt_replay of its best final agent. A PB2 launcher is added here by name, e.g.
-# "pb2": ("pb2", pb2_overrides), once hydra/launcher=pb2 exists.
+# hydra/launcher=pbt_replay of its best final agent.
 SEARCHES: dict[str, tuple[str, Callable[[Plan, int], list[str]]]] = {
     "pbt": ("pbt", pbt_overrides),
     "halving": ("halving", halving_overrides),
+    "pb2": ("pb2", pb2_overrides),
 }
 
 
@@ -437,6 +443,7 @@ def protocol_sweeps(plan: Plan) -> list[tuple[int, int]]:
     per_seed = [(grid, plan.grid_episodes), (tests, plan.test_episodes)]
     sizes = {
         "pbt": (len(plan.lrs) * len(plan.pbt_gammas), plan.pbt_episodes),
+        "pb2": (len(plan.lrs) * len(plan.pbt_gammas), plan.pbt_episodes),
         "halving": (grid, plan.halving_episodes),
     }
     for search in plan.searches:
@@ -567,10 +574,13 @@ def main(argv: Sequence[str] | None = None) -> None:
     plan = make_plan(args)
     out = args.out
     settings = out / "settings.json"
-    # More tuning seeds may be added to a protocol later; anything else would mix two protocols.
+    # More tuning seeds and searches may be added to a protocol later (each search has folders of
+    # its own); anything else would mix two protocols.
     if settings.is_file():
         before, now = json.loads(settings.read_text()), plan.as_json()
-        changed = [key for key in now if key != "tuning_seeds" and before.get(key) != now[key]]
+        changed = [
+            key for key in now if key not in ("tuning_seeds", "searches") and before.get(key) != now[key]
+        ]
         if changed:
             sys.exit(f"{settings} holds other {', '.join(changed)}: use another --out, or its settings")
     out.mkdir(parents=True, exist_ok=True)

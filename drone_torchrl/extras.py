@@ -60,6 +60,7 @@ _RAY = Needs("hydra_plugins.hydra_ray_launcher", "ray", "Hydra's Ray launcher pl
 LAUNCHERS: dict[str, Needs] = {
     "population": POPULATION,
     "pbt": POPULATION,
+    "pb2": POPULATION,
     "halving": POPULATION,
     "pbt_replay": POPULATION,
     "local_parallel": _JOBLIB,

@@ -32,7 +32,7 @@ _PREFIX_CHARS = 60
 #: not a folder per job) or a search (PBT, successive halving, a PBT agent replayed). The others (basic,
 #: fused, local_parallel, slurm, ...) train the same jobs into the same job folders, so the same grid
 #: run by another of them continues in its folder; their keys (cores, partition) are no matter either.
-SEARCH_LAUNCHERS = frozenset({"population", "pbt", "halving", "pbt_replay"})
+SEARCH_LAUNCHERS = frozenset({"population", "pbt", "pb2", "halving", "pbt_replay"})
 _LAUNCHER = "hydra/launcher"
 # Hydra overrides that pick the jobs (the sweeper and its params); the others (hydra.verbose,
 # hydra.job_logging, hydra.mode, ...) change how the sweep is logged, not what it is.

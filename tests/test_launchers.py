@@ -426,6 +426,7 @@ def test_drone_train_registers_every_launcher_and_sweeper_of_the_package(monkeyp
         "FusedLauncher",
         "PopulationLauncher",
         "PBTLauncher",
+        "PB2Launcher",
         "PBTReplayLauncher",
         "HalvingLauncher",
         "PopulationSweeper",

@@ -22,6 +22,7 @@ from test_population_run import AGENTS, COMMON, NAMES, _by_agent, _same
 from drone_torchrl.config import config_dir, validate
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.training import population_record as record_module
+from drone_torchrl.training.pb2 import PB2Settings
 from drone_torchrl.training.pbt import FRESH, PBT, HalvingSettings, PBTSettings, ReplaySettings, schedule
 from drone_torchrl.training.signals import TrainingStopped
 from drone_torchrl.training.trainer import train_population
@@ -109,18 +110,19 @@ SEARCH = PBTSettings(every_updates=2, quantile=0.34, resample_probability=0.25)
 
 
 HALVING = HalvingSettings(rungs=(2, 4), fraction=0.34)
+PB2_SEARCH = PB2Settings(every_updates=2, quantile=0.34)
 
 
-@pytest.mark.parametrize("search", [SEARCH, HALVING], ids=["pbt", "halving"])
+@pytest.mark.parametrize("search", [SEARCH, PB2_SEARCH, HALVING], ids=["pbt", "pb2", "halving"])
 def test_a_killed_and_resumed_search_takes_the_steps_of_an_uninterrupted_one(tmp_path, monkeypatch, search):
-    """3 agents, 12 episodes; PBT: an exploit step every 2 updates (one agent replaced each time);
+    """3 agents, 12 episodes; PBT and PB2: an exploit step every 2 updates (one agent replaced each time);
     halving: rungs at ages 2 and 4, the worst third stopped and restarted. SIGTERM at update 5
     stops it with a checkpoint; resumed to 12 it writes the uninterrupted run's lineage and every
     agent's episodes once, with the same returns. PBT's read-back agent has the lr PBT gave it."""
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     train_population(_cfgs("algo.episodes=12"), NAMES, whole, search=search)
     lineage = record_module.read_table(whole / record_module.LINEAGE_TABLE)
-    if search is SEARCH:
+    if search is not HALVING:
         assert lineage["update"] == [2, 4, 6, 8, 10]  # none after the last update: the budget is reached
     else:  # every agent meets rung 2 at update 2; restarted ones meet it again 2 updates later
         assert lineage["update"][0] == 2 and set(lineage["parent"]) == {FRESH}
@@ -221,11 +223,13 @@ def test_the_schedule_of_an_agent_follows_its_line_of_ancestors_back():
     ]
 
 
-def test_a_replay_trains_every_agent_with_the_pbt_agents_values(tmp_path):
-    """hydra/launcher=pbt_replay's search on fresh seeds: every agent gets the schedule's values at
-    its updates (the lineage holds one row per agent and change, and the state holds the last)."""
+@pytest.mark.parametrize("search", [SEARCH, PB2_SEARCH], ids=["pbt", "pb2"])
+def test_a_replay_trains_every_agent_with_the_pbt_agents_values(tmp_path, search):
+    """hydra/launcher=pbt_replay's search on fresh seeds (of a PBT or a PB2 run): every agent gets
+    the schedule's values at its updates (the lineage holds one row per agent and change, and the
+    state holds the last)."""
     run = tmp_path / "pbt"
-    train_population(_cfgs("algo.episodes=8"), NAMES, run, search=SEARCH)
+    train_population(_cfgs("algo.episodes=8"), NAMES, run, search=search)
     replay = ReplaySettings.of({"run": str(run), "agent": 1})
     steps = [(u, dict(v)) for u, v in replay.schedule]
     assert steps[0][0] == 0 and all(u % SEARCH.every_updates == 0 for u, _ in steps)

@@ -25,7 +25,7 @@ def protocol():
 def test_the_default_protocol_is_the_docs_searches_on_8_tuning_and_16_test_seeds(protocol):
     plan = protocol.make_plan(protocol.parse_args([]))
     assert plan.tuning_seeds == tuple(range(110, 118)) and plan.test_seeds == tuple(range(500, 516))
-    assert plan.searches == ("pbt", "halving")
+    assert plan.searches == ("pbt", "halving", "pb2")
     assert len(plan.lrs) * len(plan.grid_gammas) == 64  # the landscape's cells
     assert len(plan.lrs) * len(plan.pbt_gammas) == 32  # PBT's agents
     assert set(plan.pbt_gammas) < set(plan.grid_gammas)
@@ -33,8 +33,8 @@ def test_the_default_protocol_is_the_docs_searches_on_8_tuning_and_16_test_seeds
     assert 32 * plan.pbt_episodes == 0.1 * 4 * 64 * plan.grid_episodes
     assert (plan.pbt_every_updates, plan.halving_rungs, plan.halving_fraction) == (400, (300, 900), 0.67)
     sweeps = protocol.protocol_sweeps(plan)
-    assert len(sweeps) == 8 * 6 + 1
-    assert sum(n * e for n, e in sweeps) == 7_929_600
+    assert len(sweeps) == 8 * 8 + 1  # per tuning seed: the grid and 3 searches, each with its test sweep
+    assert sum(n * e for n, e in sweeps) == 7_929_600 + 8 * (32 * 4800 + 16 * 6000)  # + PB2
 
 
 def test_a_smoke_plan_shrinks_agents_and_budgets(protocol):
@@ -59,7 +59,7 @@ def test_a_smoke_plan_shrinks_agents_and_budgets(protocol):
         (["--episodes-fraction", "0"], "--episodes-fraction 0.0: must be in (0, 1]"),
         (["--episodes-fraction", "1.5"], "--episodes-fraction 1.5: must be in (0, 1]"),
         (["--max-values", "1"], "--max-values 1: must be at least 2"),
-        (["--searches", "pbt", "pb2"], "--searches pb2: unknown; known: pbt, halving"),
+        (["--searches", "pbt", "pb3"], "--searches pb3: unknown; known: pbt, halving, pb2"),
         (["seed=3"], "override seed=3: the protocol sets seed itself"),
         (["hydra.sweep.dir=x"], "override hydra.sweep.dir=x: the protocol sets hydra.sweep.dir itself"),
     ],
@@ -73,10 +73,10 @@ def test_a_bad_option_is_refused_in_one_line(protocol, capsys, argv, message):
 
 
 def test_a_search_whose_launcher_is_not_installed_is_refused(protocol, monkeypatch, capsys):
-    monkeypatch.setitem(protocol.SEARCHES, "pb2", ("pb2", protocol.pbt_overrides))
+    monkeypatch.setitem(protocol.SEARCHES, "pb9", ("pb9", protocol.pbt_overrides))
     with pytest.raises(SystemExit):
-        protocol.parse_args(["--searches", "pb2"])
-    assert "--searches pb2: no hydra/launcher=pb2 in this installation" in capsys.readouterr().err
+        protocol.parse_args(["--searches", "pb9"])
+    assert "--searches pb9: no hydra/launcher=pb9 in this installation" in capsys.readouterr().err
 
 
 def test_a_folder_of_other_settings_is_refused_before_any_run(protocol, tmp_path, capsys):

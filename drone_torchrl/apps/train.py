@@ -139,6 +139,7 @@ def register_plugins() -> None:
     from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
     from hydra_plugins.drone_torchrl_launcher.population_launcher import (
         HalvingLauncher,
+        PB2Launcher,
         PBTLauncher,
         PBTReplayLauncher,
         PopulationLauncher,
@@ -149,6 +150,7 @@ def register_plugins() -> None:
         FusedLauncher,
         PopulationLauncher,
         PBTLauncher,
+        PB2Launcher,
         PBTReplayLauncher,
         HalvingLauncher,
         PopulationSweeper,

@@ -423,9 +423,23 @@ class PBT(Search):
             for key in state.keys():  # noqa: SIM118  (a TensorDict iterates over its rows)
                 if key not in ("seed", "counter"):  # an agent keeps its own noise and update count
                     state[key][rows] = state[key][sources]
-        new = {key: self.explore(key, np.array(self.current[key])[parents], rng) for key in s.keys}
+        new = self.choose(worst, parents, scores, alive, update, rng)
         self._set(state, update, worst.tolist(), parents.tolist(), new)
         return list(zip(worst.tolist(), parents.tolist(), strict=True))
+
+    def choose(
+        self,
+        worst: np.ndarray,
+        parents: np.ndarray,
+        scores: Sequence[float],
+        alive: Sequence[bool],
+        update: int,
+        rng: np.random.Generator,
+    ) -> dict[str, np.ndarray]:
+        """The values the ``worst`` agents train with next (key -> one per agent): each explored from its parent's."""
+        return {
+            key: self.explore(key, np.array(self.current[key])[parents], rng) for key in self.settings.keys
+        }
 
     def explore(self, key: str, values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The explored values of ``key`` from the parents' ``values``, with ``rng``'s draws.
@@ -487,11 +501,11 @@ class ReplaySettings:
         except CheckpointError as err:
             raise ConfigError.of("hydra.launcher.run", run, f"a PBT population run ({err})") from None
         search = None if state is None else state.get("search")
-        if not search or search["settings"].get("launcher") not in ("pbt", "halving"):
+        if not search or search["settings"].get("launcher") not in ("pbt", "pb2", "halving"):
             raise ConfigError.of(
                 "hydra.launcher.run",
                 run,
-                "the folder of a PBT or halving run (hydra/launcher=pbt or halving)",
+                "the folder of a PBT, PB2 or halving run (hydra/launcher=pbt, pb2 or halving)",
             )
         count = len(state["episodes_done"])
         training = sum(f is None and e is None for f, e in zip(state["final"], state["failure"], strict=True))

@@ -13,6 +13,7 @@ return, as under the other launchers.
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import sys
@@ -158,13 +159,14 @@ class _SearchLauncher(PopulationLauncher):
     ``hydra.launcher.*``."""
 
     settings_class = ""
+    settings_module = "drone_torchrl.training.pbt"
 
     def __init__(self, **params: Any) -> None:
-        from drone_torchrl.training import pbt
-
         super().__init__()
         try:
-            self.search = getattr(pbt, self.settings_class).of(params)
+            self.search = getattr(importlib.import_module(self.settings_module), self.settings_class).of(
+                params
+            )
         except ConfigError as err:  # Hydra makes it before any job starts: one line, nothing written
             sys.exit(f"drone-train: error: {err}")
 
@@ -178,6 +180,14 @@ class PBTLauncher(_SearchLauncher):
     """
 
     settings_class = "PBTSettings"
+
+
+class PB2Launcher(_SearchLauncher):
+    """``hydra/launcher=pb2``: each population run trained with population-based bandits (PBT whose
+    explore step is chosen by a Gaussian process, :mod:`drone_torchrl.training.pb2`)."""
+
+    settings_class = "PB2Settings"
+    settings_module = "drone_torchrl.training.pb2"
 
 
 class PBTReplayLauncher(_SearchLauncher):

@@ -42,6 +42,17 @@ class PBTLauncherConf:
 
 
 @dataclass
+class PB2LauncherConf:
+    """``hydra/launcher=pb2``: PBT whose explore step is chosen by a Gaussian process (population-based
+    bandits, :mod:`drone_torchrl.training.pb2`). No perturb: nothing is explored at random."""
+
+    _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.PB2Launcher"
+    every_updates: Any = 100
+    quantile: Any = 0.25
+    keys: Any = field(default_factory=lambda: ["algo.lr", "algo.gamma"])
+
+
+@dataclass
 class HalvingLauncherConf:
     """``hydra/launcher=halving``: population runs with successive halving."""
 
@@ -69,6 +80,7 @@ for group, name, node in (
     ("hydra/launcher", "fused", FusedLauncherConf),
     ("hydra/launcher", "population", PopulationLauncherConf),
     ("hydra/launcher", "pbt", PBTLauncherConf),
+    ("hydra/launcher", "pb2", PB2LauncherConf),
     ("hydra/launcher", "pbt_replay", PBTReplayLauncherConf),
     ("hydra/launcher", "halving", HalvingLauncherConf),
     ("hydra/sweeper", "population", PopulationSweeperConf),

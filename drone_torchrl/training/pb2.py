@@ -1,0 +1,275 @@
+"""Population-based bandits (PB2): PBT whose explore step is chosen by a Gaussian process.
+
+``hydra/launcher=pb2`` exploits as :class:`~.pbt.PBT` does (every ``every_updates`` updates the worst
+``quantile`` of the agents copy the weights, Adam state and values of agents drawn from the best
+``quantile``), but explores as Parker-Holder et al. (NeurIPS 2020) and Ray Tune's ``PB2`` do: the
+new values are the ones a time-varying Gaussian process expects to improve the return most, by an
+upper confidence bound, rather than the parent's moved at random.
+
+- **Data.** At each step, every agent that takes part adds one point: the positions of the values
+  it trained with over the interval and the step's number, and its return's change over the
+  interval (the running-mean return now minus just after the previous step; an exploited agent's
+  "before" is its parent's, whose window it copied). Each step's changes are centred on their mean:
+  an agent is measured against the population in the same interval, which also makes the first
+  interval (every agent from fresh weights) usable. Ray Tune's PB2 conditions on the return before
+  the interval instead. The changes are then standardised and clipped to [-2, 2], as Ray Tune does.
+- **Model.** Squared-exponential in the values' positions times ``(1 - epsilon) ** (|i - j| / 2)``
+  in the steps' numbers (Bogunovic et al., 2016, the TV-GP-UCB kernel PB2 uses: older intervals
+  count less). Its length scale, ``epsilon`` and noise are the grid point of :data:`LENGTH_SCALES`,
+  :data:`EPSILONS`, :data:`NOISES` with the highest marginal likelihood (Ray Tune fits them with
+  GPy's optimiser; a grid needs no extra dependency and is deterministic).
+- **Choice.** Each replaced agent takes the candidate with the highest ``mean + kappa * variance``
+  at the next step, ``kappa = sqrt(0.2 log(0.4 n))`` for ``n`` points (Ray Tune's; 0 below 3
+  points; with no point at all, the highest variance). The variance
+  is the model's given also the values the population trains with next (the agents kept, and the
+  ones chosen before in the same step), so that two replaced agents are not sent to the same place.
+- **Space.** A key searched over a list is a position ``index / (len - 1)`` on the sorted list and
+  only the list's values are candidates (every combination while there are at most
+  :data:`CANDIDATES`, else that many drawn); a key searched over a range
+  (``interval``/``tag(log,interval)``) is its place in the range (in log space where tagged), with
+  :data:`CANDIDATES` drawn values. Nothing outside the searched space is ever tried.
+
+The draws (parents, candidates) come from a generator keyed by the first agent's seed and the
+update, and the data is in the checkpoint: a killed and resumed run takes the same steps.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from drone_torchrl.training.pbt import PBT, PBTSettings
+
+#: The grid of the model's length scale (in positions in [0, 1]), forgetting per step and noise.
+LENGTH_SCALES = (0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
+EPSILONS = (0.0, 0.05, 0.1, 0.2, 0.5)
+NOISES = (0.01, 0.1, 0.3, 1.0)
+#: The most candidates scored for one choice.
+CANDIDATES = 1024
+# Ray Tune's clip of the standardised changes.
+CLIP = 2.0
+
+
+@dataclass(frozen=True)
+class PB2Settings(PBTSettings):
+    """``hydra/launcher=pb2``'s settings: PBT's ``every_updates``, ``quantile``, ``keys`` (and ranges).
+
+    ``perturb`` and ``resample_probability`` are PBT's random explore: PB2 has none.
+    """
+
+    def record(self) -> dict[str, Any]:
+        """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
+        record = {"launcher": "pb2", **asdict(self)}
+        for unused in ("perturb", "resample_probability"):
+            del record[unused]
+        if not self.ranges:
+            del record["ranges"]
+        return record
+
+    def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PB2:
+        """The search of a population (``saved``: what its checkpoint holds of it, or None)."""
+        bounds = self.bounds(cfg)
+        lineage = None if saved is None else saved["lineage"]
+        data = None if saved is None else saved.get("data")
+        return PB2(self, values, bounds, int(values["seed"][0]), lineage, data)
+
+
+class PB2(PBT):
+    """PBT with PB2's explore step (the module's docstring).
+
+    Args:
+        settings: what to search.
+        space: each searched key -> the values the sweep gave it, one per agent.
+        bounds: each searched key -> the values its rule allows.
+        seed: the key of the steps' random draws (with the update number).
+        lineage: the rows written so far (a resumed run's), column -> values.
+        data: the model's data so far (a resumed run's, :meth:`checkpoint`'s ``data``).
+    """
+
+    def __init__(
+        self,
+        settings: PB2Settings,
+        space: Mapping[str, Sequence[float]],
+        bounds: Mapping[str, tuple[float, float]],
+        seed: int,
+        lineage: Mapping[str, list] | None = None,
+        data: Mapping[str, list] | None = None,
+    ) -> None:
+        super().__init__(settings, space, bounds, seed, lineage)
+        saved = dict(data or {})
+        self.steps: list[int] = list(saved.get("steps", []))
+        self.points: list[list[float]] = [list(p) for p in saved.get("points", [])]
+        self.changes: list[float] = list(saved.get("changes", []))
+        # Each agent's running-mean return just after the last step (None before the first).
+        self.before: list[float] | None = saved.get("before")
+
+    def checkpoint(self) -> dict[str, Any]:
+        """PBT's record and the model's data."""
+        data = {"steps": self.steps, "points": self.points, "changes": self.changes, "before": self.before}
+        return {**super().checkpoint(), "data": data}
+
+    def position(self, key: str, value: float) -> float:
+        """``value``'s place in ``key``'s searched space, in [0, 1]."""
+        if key in self.ranges:
+            span = self.ranges[key]
+            scale = math.log if span.log else float
+            return (scale(value) - scale(span.low)) / (scale(span.high) - scale(span.low))
+        space = self.space[key]
+        place = int(np.abs(np.array(space) - value).argmin())
+        return place / (len(space) - 1) if len(space) > 1 else 0.5
+
+    def value(self, key: str, position: float) -> float:
+        """The value at ``position`` of ``key``'s searched space (a list key: a value of the list)."""
+        if key in self.ranges:
+            span = self.ranges[key]
+            if span.log:
+                return math.exp(math.log(span.low) + position * (math.log(span.high) - math.log(span.low)))
+            return span.low + position * (span.high - span.low)
+        space = self.space[key]
+        return space[round(position * (len(space) - 1))]
+
+    def candidates(self, rng: np.random.Generator) -> np.ndarray:
+        """Positions to score (rows), every one a point of the searched space."""
+        keys = self.settings.keys
+        grids = [np.linspace(0, 1, len(self.space[k])) if k in self.space else None for k in keys]
+        if all(g is not None for g in grids) and math.prod(len(g) for g in grids) <= CANDIDATES:
+            return np.array(list(itertools.product(*grids)), dtype=np.float64).reshape(-1, len(keys))
+        columns = [
+            rng.uniform(0, 1, CANDIDATES) if g is None else g[rng.integers(len(g), size=CANDIDATES)]
+            for g in grids
+        ]
+        return np.stack(columns, axis=1)
+
+    def observe(self, scores: Sequence[float], alive: Sequence[bool], step: int) -> None:
+        """Add each taking-part agent's point of the interval that ends at ``step``."""
+        before = self.before if self.before is not None else [0.0] * len(scores)
+        rows = [
+            i
+            for i in range(len(scores))
+            if alive[i] and math.isfinite(scores[i]) and before[i] is not None and math.isfinite(before[i])
+        ]
+        if not rows:
+            return
+        changes = np.array([scores[i] - before[i] for i in rows])
+        changes -= changes.mean()
+        for i, change in zip(rows, changes.tolist(), strict=True):
+            self.steps.append(step)
+            self.points.append([self.position(key, self.current[key][i]) for key in self.settings.keys])
+            self.changes.append(change)
+
+    def choose(
+        self,
+        worst: np.ndarray,
+        parents: np.ndarray,
+        scores: Sequence[float],
+        alive: Sequence[bool],
+        update: int,
+        rng: np.random.Generator,
+    ) -> dict[str, np.ndarray]:
+        """Each of the ``worst`` agents' next values: the candidate of the highest upper confidence bound."""
+        step = update // self.settings.every_updates
+        self.observe(scores, alive, step)
+        after = [float(s) if math.isfinite(s) else math.nan for s in scores]
+        for agent, parent in zip(worst.tolist(), parents.tolist(), strict=True):
+            after[agent] = after[parent]  # the copied window: the agent goes on from its parent's return
+        self.before = after
+        keys = self.settings.keys
+        kept = [
+            i
+            for i in range(len(scores))
+            if alive[i] and i not in set(worst.tolist()) and math.isfinite(scores[i])
+        ]
+        pending = [[self.position(k, self.current[k][i]) for k in keys] for i in kept]
+        model = Model.fit(
+            np.array(self.steps, dtype=np.float64), np.array(self.points), np.array(self.changes)
+        )
+        options = self.candidates(rng)
+        chosen = []
+        for _ in worst:
+            score = model.upper_bound(options, step + 1, np.array(pending).reshape(-1, len(keys)))
+            best = options[int(np.argmax(score))]
+            chosen.append(best)
+            pending.append(best.tolist())
+        return {key: np.array([self.value(key, float(p[j])) for p in chosen]) for j, key in enumerate(keys)}
+
+
+@dataclass
+class Model:
+    """The time-varying Gaussian process of PB2's choice, fitted to standardised changes.
+
+    Attributes:
+        steps: each point's step.
+        points: each point's positions (rows).
+        targets: the standardised, clipped changes.
+        length: the squared-exponential's length scale.
+        epsilon: the forgetting per step.
+        noise: the noise variance (the signal's is 1).
+    """
+
+    steps: np.ndarray
+    points: np.ndarray
+    targets: np.ndarray
+    length: float
+    epsilon: float
+    noise: float
+
+    @classmethod
+    def fit(cls, steps: np.ndarray, points: np.ndarray, changes: np.ndarray) -> Model:
+        """The grid point of highest marginal likelihood for ``changes`` (no data: a prior)."""
+        if changes.size == 0:
+            return cls(steps, points.reshape(0, 0), changes, LENGTH_SCALES[0], 0.0, 1.0)
+        targets = np.clip((changes - changes.mean()) / (changes.std() + 1e-8), -CLIP, CLIP)
+        best, best_fit = None, -math.inf
+        for length, epsilon, noise in itertools.product(LENGTH_SCALES, EPSILONS, NOISES):
+            model = cls(steps, points, targets, length, epsilon, noise)
+            fit = model.log_likelihood()
+            if fit > best_fit:
+                best, best_fit = model, fit
+        assert best is not None
+        return best
+
+    def kernel(self, steps_a: np.ndarray, a: np.ndarray, steps_b: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The covariance of two sets of points: squared-exponential times the forgetting in time."""
+        squared = ((a[:, None, :] - b[None, :, :]) ** 2).sum(axis=-1)
+        apart = np.abs(steps_a[:, None] - steps_b[None, :])
+        return np.exp(-squared / self.length) * (1.0 - self.epsilon) ** (0.5 * apart)
+
+    def _factor(self, steps: np.ndarray, points: np.ndarray) -> np.ndarray:
+        gram = self.kernel(steps, points, steps, points) + self.noise * np.eye(len(points))
+        return np.linalg.cholesky(gram)
+
+    def log_likelihood(self) -> float:
+        """The marginal log-likelihood of the targets (up to a constant)."""
+        factor = self._factor(self.steps, self.points)
+        alpha = np.linalg.solve(factor, self.targets)
+        return float(-0.5 * alpha @ alpha - np.log(np.diag(factor)).sum())
+
+    def upper_bound(self, options: np.ndarray, step: int, pending: np.ndarray) -> np.ndarray:
+        """``mean + kappa * variance`` of each option at ``step``, the variance given ``pending`` too."""
+        at = np.full(len(options), float(step))
+        if self.targets.size == 0:
+            mean = np.zeros(len(options))
+        else:
+            factor = self._factor(self.steps, self.points)
+            cross = self.kernel(self.steps, self.points, at, options)
+            mean = cross.T @ np.linalg.solve(factor.T, np.linalg.solve(factor, self.targets))
+        # The variance also knows where the population trains next (no target needed for it).
+        steps = np.concatenate([self.steps, np.full(len(pending), float(step))])
+        points = (
+            np.concatenate([self.points.reshape(-1, options.shape[1]), pending]) if len(steps) else pending
+        )
+        if len(steps):
+            factor = self._factor(steps, points)
+            v = np.linalg.solve(factor, self.kernel(steps, points, at, options))
+            variance = np.clip(1.0 - (v**2).sum(axis=0), 0.0, None)
+        else:
+            variance = np.ones(len(options))
+        if self.targets.size == 0:  # nothing known yet: as far as possible from where agents train
+            return variance
+        kappa = math.sqrt(max(0.0, 0.2 * math.log(0.4 * self.targets.size)))
+        return mean + kappa * variance
