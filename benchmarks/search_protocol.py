@@ -17,6 +17,8 @@ hyperparameter optimisation in RL:
   ``hydra/launcher=pbt_replay`` of its best final agent on the test seeds;
 - ``halving``: ``hydra/launcher=halving`` over the 8 x 8 values (64 slots), 2,400 episodes each,
   ``rungs=[300,900]``, ``fraction=0.67``, and ``pbt_replay`` of its best final agent;
+- ``pb2``: ``hydra/launcher=pb2`` (population-based bandits: PBT whose explore step a Gaussian
+  process chooses) with PBT's values, interval and budget, and ``pbt_replay`` of its best final agent.
 - the paper's default (alpha 1e-4, gamma 0.99) on the test seeds, once.
 
 These settings (the module's constants, scaled by ``--episodes-fraction``) are fixed before any run:
@@ -34,8 +36,16 @@ wall-clock each search spent tuning; then the goal: for at least 6 of 8 tuning s
 share of fewer) the upper end of PBT minus grid is >= 0, and on every tuning seed PBT's median is at
 least the paper default's minus 100. ``results.md`` and ``results.csv`` in ``--out``.
 
-- ``pb2``: ``hydra/launcher=pb2`` (population-based bandits: PBT whose explore step a Gaussian
-  process chooses) with PBT's values, interval and budget, and ``pbt_replay`` of its best final agent.
+Two versions of a search are compared on the same grid: ``--drone-train PATH`` runs the searches'
+tuning and replay sweeps with another installation's ``drone-train`` (e.g. another checkout's
+venv; the grid and the paper default keep this one's), and ``--grid-from DIR`` reads the grid, its
+test sweeps and the paper default from an earlier protocol folder of the same settings (its
+``settings.json`` may differ only in the searches and tuning seeds) instead of running them again.
+Both are settings (``settings.json``); ``results.md`` and ``results.csv`` say which code ran each row::
+
+    python benchmarks/search_protocol.py --searches pbt --drone-train ../old/.venv/bin/drone-train \
+        --grid-from benchmarks/out/search_protocol --out benchmarks/out/search_protocol_old
+
 """
 
 from __future__ import annotations
@@ -51,6 +61,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from urllib.parse import unquote, urlparse
 
 import numpy as np
 from omegaconf import OmegaConf
@@ -68,6 +79,7 @@ from drone_torchrl.report.runs import (  # noqa: E402
     load_runs,
 )
 from drone_torchrl.report.sweep import default_window  # noqa: E402
+from drone_torchrl.training.pbt import schedule  # noqa: E402
 
 # The protocol, fixed before any test run (docs/sweeps.md's settings).
 TUNING_SEEDS = tuple(range(110, 118))
@@ -85,6 +97,45 @@ GOAL_SHARE = 6 / 8  # of the tuning seeds on which PBT's upper end vs the grid m
 PAPER_MARGIN = 100.0  # PBT's median may be at most this far below the paper default's
 COMMON = ("eval.every_episodes=0", "eval.video=false", "progress=false")
 CALIBRATION_SEED = 0
+# What --grid-from reads from an earlier protocol folder (under seed_<s>/ for each tuning seed).
+GRID_SWEEPS = ("grid", "grid_test")
+PAPER_SWEEP = Path("paper_default") / "test"
+# Settings that may differ between a protocol and the folder its grid is read from.
+NOT_THE_GRIDS = ("tuning_seeds", "searches", "drone_train", "grid_from")
+
+
+def own_drone_train() -> Path:
+    """The ``drone-train`` of the interpreter running this script (its venv's)."""
+    return Path(sys.executable).parent / "drone-train"
+
+
+def code_of(drone_train: Path) -> str:
+    """Which drone_torchrl ``drone_train`` runs: its version, and its checkout's commit if editable.
+
+    Asked of the interpreter beside it (a venv's ``bin``), which names the installed distribution's
+    source folder (``direct_url.json``) for an editable install; ``unknown`` when it cannot tell.
+    """
+    python = next((p for p in (drone_train.parent / n for n in ("python", "python3")) if p.is_file()), None)
+    if python is None:
+        return "drone_torchrl of unknown version"
+    script = (
+        "import importlib.metadata as m, json; d = m.distribution('drone_torchrl'); "
+        "print(json.dumps([d.version, json.loads(d.read_text('direct_url.json') or '{}').get('url', '')]))"
+    )
+    found = subprocess.run([str(python), "-I", "-c", script], capture_output=True, text=True)
+    if found.returncode:
+        return "drone_torchrl of unknown version"
+    version, url = json.loads(found.stdout)
+    text = f"drone_torchrl {version}"
+    if url.startswith("file://"):
+        source = unquote(urlparse(url).path)
+        commit = subprocess.run(
+            ["git", "-C", source, "describe", "--always", "--dirty", "--abbrev=7"],
+            capture_output=True,
+            text=True,
+        )
+        text += f" from {source}" + (f" at {commit.stdout.strip()}" if commit.returncode == 0 else "")
+    return text
 
 
 def landscape_values() -> tuple[list[float], list[float]]:
@@ -127,6 +178,10 @@ class Plan:
     halving_fraction: float
     paper: tuple[tuple[str, float], ...]
     overrides: tuple[str, ...]
+    drone_train: str
+    """The executable of the searches' tuning and replay sweeps."""
+    grid_from: str | None
+    """The earlier protocol folder the grid and paper default are read from (None: run here)."""
 
     def as_json(self) -> dict:
         """The plan as JSON data (tuples as lists, as they read back)."""
@@ -153,6 +208,8 @@ def make_plan(args: argparse.Namespace) -> Plan:
         halving_fraction=HALVING_FRACTION,
         paper=tuple(PAPER.items()),
         overrides=tuple(args.overrides),
+        drone_train=str(args.drone_train),
+        grid_from=None if args.grid_from is None else str(args.grid_from),
     )
 
 
@@ -238,17 +295,22 @@ class Sweep:
     resumed: bool
 
 
-def run_sweep(folder: Path, overrides: Sequence[str], plan: Plan) -> Sweep:
-    """``drone-train -m`` into ``folder``, or its record if it finished under the same command."""
-    command = [
-        str(Path(sys.executable).parent / "drone-train"),
-        "-m",
-        *overrides,
-        *COMMON,
-        *plan.overrides,
-        f"hydra.sweep.dir={folder}",
-    ]
-    done = folder.with_name(folder.name + ".done.json")
+def sweep_arguments(folder: Path, overrides: Sequence[str], plan: Plan) -> list[str]:
+    """The arguments of ``drone-train`` for one sweep into ``folder``."""
+    return ["-m", *overrides, *COMMON, *plan.overrides, f"hydra.sweep.dir={folder}"]
+
+
+def _done(folder: Path) -> Path:
+    return folder.with_name(folder.name + ".done.json")
+
+
+def run_sweep(folder: Path, overrides: Sequence[str], plan: Plan, drone_train: Path | None = None) -> Sweep:
+    """``drone-train -m`` into ``folder``, or its record if it finished under the same command.
+
+    ``drone_train``: the executable (default: this venv's).
+    """
+    command = [str(drone_train or own_drone_train()), *sweep_arguments(folder, overrides, plan)]
+    done = _done(folder)
     if done.is_file():
         record = json.loads(done.read_text())
         if record["command"] == command[1:]:
@@ -258,7 +320,7 @@ def run_sweep(folder: Path, overrides: Sequence[str], plan: Plan) -> Sweep:
     resumed = folder.exists()
     folder.parent.mkdir(parents=True, exist_ok=True)
     log = folder.with_name(folder.name + ".log")
-    print("$ drone-train", " ".join(command[1:]), f"> {log}", flush=True)
+    print("$", command[0] if drone_train else "drone-train", " ".join(command[1:]), f"> {log}", flush=True)
     start = time.perf_counter()
     with log.open("a") as out:
         code = subprocess.run(command, stdout=out, stderr=subprocess.STDOUT, env=_env()).returncode
@@ -268,6 +330,26 @@ def run_sweep(folder: Path, overrides: Sequence[str], plan: Plan) -> Sweep:
     done.write_text(json.dumps({"command": command[1:], "wall_clock_s": wall, "resumed": resumed}))
     print(f"  {wall:.1f} s", flush=True)
     return Sweep(folder, wall, resumed)
+
+
+def read_sweep(folder: Path, overrides: Sequence[str], plan: Plan) -> Sweep:
+    """A finished sweep of an earlier protocol (``--grid-from``): its record, checked against ours.
+
+    Its command must be the one this protocol would run, but for its folder (``hydra.sweep.dir``,
+    which may have been given relative to where that protocol ran).
+    """
+    done = _done(folder)
+    if not done.is_file():
+        sys.exit(f"--grid-from: {done} is missing: that protocol has not finished this sweep")
+    record = json.loads(done.read_text())
+
+    def own(arguments: Sequence[str]) -> list[str]:
+        return [a for a in arguments if not a.startswith("hydra.sweep.dir=")]
+
+    if own(record["command"]) != own(sweep_arguments(folder, overrides, plan)):
+        sys.exit(f"--grid-from: {done} was written by another command than this protocol's")
+    print(f"  {folder}: read ({record['wall_clock_s']:.1f} s)", flush=True)
+    return Sweep(folder, record["wall_clock_s"], record["resumed"])
 
 
 def _env() -> dict[str, str]:
@@ -309,16 +391,22 @@ def best_cell(sweep: Path, window: int) -> tuple[dict[str, str], str]:
 
 
 def replayed(test: Path) -> str:
-    """The agent a replay followed (its checkpoint's record) and that agent's values over the updates."""
+    """The agent a replay followed (its checkpoint's record) and that agent's values over the updates.
+
+    A replay written before its checkpoint kept the schedule has its run and agent only: the
+    schedule is then read from that run's lineage (what the replay itself read when it started).
+    """
     record = load_checkpoint(_population(test) / CHECKPOINT_DIR / LAST)["search"]["settings"]
-    source = load_checkpoint(Path(record["run"]) / CHECKPOINT_DIR / LAST)["final"][record["agent"]]
-    steps, last = [], None
-    for update, values in record["schedule"]:
+    run = load_checkpoint(Path(record["run"]) / CHECKPOINT_DIR / LAST)
+    source = run["final"][record["agent"]]
+    steps = record.get("schedule") or schedule(run["search"]["lineage"], run["agents"], record["agent"])
+    text, last = [], None
+    for update, values in steps:
         mine = tuple((key, values[key]) for key in PAPER if key in values)
         if mine != last:  # an exploit that kept the values is no change
-            steps.append(f"{update}: " + ", ".join(f"{key.split('.')[-1]} {v:.3g}" for key, v in mine))
+            text.append(f"{update}: " + ", ".join(f"{key.split('.')[-1]} {v:.3g}" for key, v in mine))
             last = mine
-    return f"agent {record['agent']} (final {source['final_return']:.0f}): {'; '.join(steps)}"
+    return f"agent {record['agent']} (final {source['final_return']:.0f}): {'; '.join(text)}"
 
 
 @dataclass
@@ -337,6 +425,8 @@ class Row:
     in_zone: float
     vs_grid: tuple[float, float, float] | None
     vs_paper: tuple[float, float, float] | None
+    code: str = ""
+    """Which code ran the row's sweeps (:func:`code_of`), or where they were read from."""
 
 
 def difference(before: np.ndarray, after: np.ndarray) -> tuple[float, float, float]:
@@ -351,8 +441,14 @@ def _fmt(diff: tuple[float, float, float] | None) -> str:
 
 
 def markdown(rows: Sequence[Row]) -> str:
-    """The table of every row."""
+    """The table of every row, after the code that ran them (each distinct ``code`` once)."""
+    codes = {}
+    for r in rows:
+        codes.setdefault(r.code, []).append(r.search)
     lines = [
+        "Code:",
+        *(f"- {', '.join(dict.fromkeys(searches))}: {code}" for code, searches in codes.items() if code),
+        "",
         "| tuning seed | search | found | tuning episodes | tuning wall-clock | test seeds: median final "
         "return | in the zone | minus grid's best cell [95% CI] | minus paper default [95% CI] |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -415,6 +511,7 @@ def write_csv(rows: Sequence[Row], path: Path) -> None:
                 "median",
                 "in_zone",
                 *(f"{d}_{p}" for d in ("vs_grid", "vs_paper") for p in ("diff", "low", "high")),
+                "code",
             ]
         )
         for r in rows:
@@ -428,6 +525,7 @@ def write_csv(rows: Sequence[Row], path: Path) -> None:
                     f"{r.median:.1f}",
                     f"{r.in_zone:.3f}",
                     *diffs,
+                    r.code,
                 ]
             )
 
@@ -525,6 +623,20 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="episodes per agent of the timed population run of the estimate (long enough that "
         "episodes grow: the fit needs short and long ones)",
     )
+    parser.add_argument(
+        "--drone-train",
+        type=Path,
+        default=own_drone_train(),
+        help="the drone-train of the searches' tuning and replay sweeps, e.g. another checkout's venv "
+        "(default: this venv's; the grid and paper default always run with this venv's)",
+    )
+    parser.add_argument(
+        "--grid-from",
+        type=Path,
+        default=None,
+        help="read the grid, its test sweeps and the paper default from this earlier protocol folder "
+        "(same settings but for the searches and tuning seeds) instead of running them",
+    )
     parser.add_argument("--estimate-only", action="store_true", help="print the cost, run no protocol")
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for every sweep, e.g. env.max_steps=20")
     args = parser.parse_args(argv)
@@ -548,6 +660,17 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         refuse(f"--max-values {args.max_values}: must be at least 2 (PBT needs 4 agents)")
     if args.calibration_episodes < 1:
         refuse(f"--calibration-episodes {args.calibration_episodes}: must be at least 1")
+    args.drone_train = args.drone_train.absolute()
+    if not (args.drone_train.is_file() and os.access(args.drone_train, os.X_OK)):
+        refuse(f"--drone-train {args.drone_train}: not an executable file")
+    if args.grid_from is not None:
+        args.grid_from = args.grid_from.absolute()
+        if not (args.grid_from / "settings.json").is_file():
+            refuse(f"--grid-from {args.grid_from}: no settings.json there (not a protocol's folder)")
+        if args.grid_from == args.out.absolute():
+            refuse(f"--grid-from {args.grid_from}: is --out; a protocol reads its own grid without it")
+        if args.estimate_only:
+            refuse("--grid-from with --estimate-only: the estimate runs no grid")
     unknown = [s for s in args.searches if s not in SEARCHES]
     if unknown:
         refuse(f"--searches {' '.join(unknown)}: unknown; known: {', '.join(SEARCHES)}")
@@ -574,28 +697,57 @@ def main(argv: Sequence[str] | None = None) -> None:
     plan = make_plan(args)
     out = args.out
     settings = out / "settings.json"
+    # Settings a folder written before they existed had: this venv's drone-train, its own grid.
+    earlier = {"drone_train": str(own_drone_train()), "grid_from": None}
     # More tuning seeds and searches may be added to a protocol later (each search has folders of
     # its own); anything else would mix two protocols.
     if settings.is_file():
         before, now = json.loads(settings.read_text()), plan.as_json()
         changed = [
-            key for key in now if key not in ("tuning_seeds", "searches") and before.get(key) != now[key]
+            key
+            for key in now
+            if key not in ("tuning_seeds", "searches") and before.get(key, earlier.get(key)) != now[key]
         ]
         if changed:
             sys.exit(f"{settings} holds other {', '.join(changed)}: use another --out, or its settings")
+    grid_out, take = out, run_sweep
+    if args.grid_from is not None:
+        grid_out, take = args.grid_from, read_sweep
+        theirs, now = json.loads((grid_out / "settings.json").read_text()), plan.as_json()
+        changed = [key for key in now if key not in NOT_THE_GRIDS and theirs.get(key) != now[key]]
+        if changed:
+            sys.exit(
+                f"--grid-from {grid_out}: its settings.json holds other {', '.join(changed)} "
+                f"({'; '.join(f'{k}: {theirs.get(k)} there, {now[k]} here' for k in changed)})"
+            )
+        missing = [
+            str(grid_out / f"seed_{seed}" / f"{name}.done.json")
+            for seed in plan.tuning_seeds
+            for name in GRID_SWEEPS
+            if not _done(grid_out / f"seed_{seed}" / name).is_file()
+        ]
+        if not _done(grid_out / PAPER_SWEEP).is_file():
+            missing.insert(0, str(_done(grid_out / PAPER_SWEEP)))
+        if missing:
+            sys.exit(f"--grid-from {grid_out}: unfinished sweeps, no {', '.join(missing)}")
     out.mkdir(parents=True, exist_ok=True)
     settings.write_text(json.dumps(plan.as_json(), indent=1))
     print("Settings (fixed before any run):")
     for key, value in plan.as_json().items():
         print(f"  {key}: {value}")
-    print(flush=True)
+    drone_train = Path(plan.drone_train)
+    grid_code = (
+        f"read from {grid_out}" if args.grid_from else f"{own_drone_train()} ({code_of(own_drone_train())})"
+    )
+    search_code = f"{drone_train} ({code_of(drone_train)})"
+    print(f"The grid and paper default: {grid_code}\nThe searches: {search_code}\n", flush=True)
     if args.estimate_only:
         print(estimate(plan, out, args.calibration_episodes))
         return
 
     window = default_window()
-    paper_test = run_sweep(
-        out / "paper_default" / "test",
+    paper_test = take(
+        grid_out / PAPER_SWEEP,
         ["hydra/launcher=population", *(f"{k}={v:g}" for k, v in plan.paper), *testing_overrides(plan)],
         plan,
     )
@@ -613,14 +765,15 @@ def main(argv: Sequence[str] | None = None) -> None:
             float((paper >= zone).mean()),
             None,
             None,
+            grid_code,
         )
     ]
     for seed in plan.tuning_seeds:
         base = out / f"seed_{seed}"
-        tuned = run_sweep(base / "grid", grid_overrides(plan, seed), plan)
+        tuned = take(grid_out / f"seed_{seed}" / "grid", grid_overrides(plan, seed), plan)
         cell, found = best_cell(tuned.folder, window)
-        test = run_sweep(
-            base / "grid_test",
+        test = take(
+            grid_out / f"seed_{seed}" / "grid_test",
             ["hydra/launcher=population", *(f"{k}={v}" for k, v in cell.items()), *testing_overrides(plan)],
             plan,
         )
@@ -638,10 +791,11 @@ def main(argv: Sequence[str] | None = None) -> None:
                 float((grid >= zone).mean()),
                 None,
                 difference(paper, grid),
+                grid_code,
             )
         )
         for search in plan.searches:
-            tuned = run_sweep(base / search, SEARCHES[search][1](plan, seed), plan)
+            tuned = run_sweep(base / search, SEARCHES[search][1](plan, seed), plan, drone_train)
             test = run_sweep(
                 base / f"{search}_test",
                 [
@@ -650,6 +804,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                     *testing_overrides(plan),
                 ],
                 plan,
+                drone_train,
             )
             values, _ = pooled_finals(test.folder, window)
             rows.append(
@@ -665,6 +820,7 @@ def main(argv: Sequence[str] | None = None) -> None:
                     float((values >= zone).mean()),
                     difference(grid, values),
                     difference(paper, values),
+                    search_code,
                 )
             )
     text = markdown(rows) + "\n" + summary(rows, plan) + "\n"

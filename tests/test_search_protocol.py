@@ -109,3 +109,147 @@ def test_the_goal_check(protocol, uppers, vs_paper, verdict):
     text = protocol.summary(rows, plan)
     assert text.rstrip().endswith(f"{verdict}.")
     assert f"on >= 6/8 tuning seeds: {sum(u >= 0 for u in uppers)}/8" in text
+
+
+# --------------------------------------------------------------------------------------------------
+# Comparing two versions: --drone-train, --grid-from, and a replay written before it kept a schedule
+
+
+def _executable(path: Path) -> Path:
+    path.write_text("#!/bin/sh\nexit 0\n")
+    path.chmod(0o755)
+    return path
+
+
+def test_the_searches_executable_and_the_grids_folder_are_settings(protocol, tmp_path):
+    plan = protocol.make_plan(protocol.parse_args([]))
+    assert plan.drone_train == str(Path(sys.executable).parent / "drone-train") and plan.grid_from is None
+    (tmp_path / "earlier").mkdir()
+    (tmp_path / "earlier" / "settings.json").write_text(json.dumps(plan.as_json()))
+    other = _executable(tmp_path / "drone-train")
+    argv = [
+        "--drone-train",
+        str(other),
+        "--grid-from",
+        str(tmp_path / "earlier"),
+        "--out",
+        str(tmp_path / "o"),
+    ]
+    settings = protocol.make_plan(protocol.parse_args(argv)).as_json()
+    assert (settings["drone_train"], settings["grid_from"]) == (str(other), str(tmp_path / "earlier"))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--drone-train", "{tmp}/nothing"], "--drone-train {tmp}/nothing: not an executable file"),
+        (["--grid-from", "{tmp}"], "--grid-from {tmp}: no settings.json there (not a protocol's folder)"),
+        (["--grid-from", "{tmp}/p", "--out", "{tmp}/p"], "--grid-from {tmp}/p: is --out"),
+        (["--grid-from", "{tmp}/p", "--estimate-only"], "--grid-from with --estimate-only: the estimate"),
+    ],
+)
+def test_a_bad_drone_train_or_grid_folder_is_refused_in_one_line(protocol, tmp_path, capsys, argv, message):
+    (tmp_path / "p").mkdir()
+    (tmp_path / "p" / "settings.json").write_text("{}")
+    with pytest.raises(SystemExit) as exit_info:
+        protocol.parse_args([a.format(tmp=tmp_path) for a in argv])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert message.format(tmp=tmp_path) in err and len(err.strip().splitlines()) == 1
+
+
+def _earlier(protocol, folder: Path, argv: list[str], **changes) -> None:
+    """An earlier protocol's folder: its settings.json (with ``changes``), no sweeps."""
+    folder.mkdir()
+    settings = protocol.make_plan(protocol.parse_args(argv)).as_json()
+    (folder / "settings.json").write_text(json.dumps({**settings, **changes}))
+
+
+def test_a_grid_folder_of_other_settings_or_unfinished_sweeps_is_refused_before_any_run(protocol, tmp_path):
+    argv = ["--out", str(tmp_path / "out"), "--tuning-seeds", "110", "--searches", "pbt"]
+    _earlier(protocol, tmp_path / "other", argv, pbt_episodes=1, test_episodes=2)
+    with pytest.raises(SystemExit, match=r"its settings.json holds other test_episodes, pbt_episodes "):
+        protocol.main([*argv, "--grid-from", str(tmp_path / "other")])
+    # the searches and tuning seeds may differ: the earlier protocol's grid is the same grid
+    _earlier(protocol, tmp_path / "same", argv, searches=["halving"], tuning_seeds=[111, 112])
+    (tmp_path / "same" / "paper_default").mkdir()
+    (tmp_path / "same" / "paper_default" / "test.done.json").write_text("{}")
+    with pytest.raises(SystemExit) as exit_info:
+        protocol.main([*argv, "--grid-from", str(tmp_path / "same")])
+    grid = tmp_path / "same" / "seed_110"
+    assert str(exit_info.value) == (
+        f"--grid-from {tmp_path / 'same'}: unfinished sweeps, no {grid / 'grid.done.json'}, "
+        f"{grid / 'grid_test.done.json'}"
+    )
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_folder_written_before_the_two_settings_existed_is_continued(protocol, tmp_path, monkeypatch):
+    argv = ["--out", str(tmp_path), "--episodes-fraction", "0.5"]
+    settings = protocol.make_plan(protocol.parse_args(argv)).as_json()
+    del settings["drone_train"], settings["grid_from"]  # it ran this venv's drone-train, its own grid
+    (tmp_path / "settings.json").write_text(json.dumps(settings))
+
+    def first_sweep(folder, overrides, plan, drone_train=None):
+        raise RuntimeError(f"run {folder.relative_to(tmp_path)}")
+
+    monkeypatch.setattr(protocol, "run_sweep", first_sweep)
+    with pytest.raises(RuntimeError, match="run paper_default/test"):
+        protocol.main(argv)
+    with pytest.raises(SystemExit, match="holds other drone_train: use another --out"):
+        protocol.main([*argv, "--drone-train", str(_executable(tmp_path / "drone-train"))])
+
+
+def test_an_earlier_protocols_sweep_is_read_where_it_ran(protocol, tmp_path, capsys):
+    plan = protocol.make_plan(protocol.parse_args(["--tuning-seeds", "110"]))
+    folder = tmp_path / "seed_110" / "grid"
+    folder.parent.mkdir()
+    overrides = protocol.grid_overrides(plan, 110)
+    # that protocol ran with a relative --out, from its own working directory
+    command = protocol.sweep_arguments(Path("benchmarks/out/p/seed_110/grid"), overrides, plan)
+    done = tmp_path / "seed_110" / "grid.done.json"
+    done.write_text(json.dumps({"command": command, "wall_clock_s": 49.8, "resumed": False}))
+    sweep = protocol.read_sweep(folder, overrides, plan)
+    assert (sweep.folder, sweep.wall_clock_s, sweep.resumed) == (folder, 49.8, False)
+    assert f"{folder}: read (49.8 s)" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="grid.done.json was written by another command"):
+        protocol.read_sweep(folder, protocol.grid_overrides(plan, 111), plan)
+
+
+def _population(folder: Path, **state) -> None:
+    """A population run's checkpoint holding ``state`` besides the keys every one has."""
+    from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, FORMAT_VERSION, LAST, save_checkpoint
+
+    (folder / CHECKPOINT_DIR).mkdir(parents=True)
+    keys = {"kind": "population", "format_version": FORMAT_VERSION, "backend": "torchrl", "state": {}}
+    keys |= {"config": {}, "episodes_done": [6, 6], "updates_done": [6, 6], "failure": [None, None]}
+    keys |= {"parts": [], "agents": {}, "final": [None, None]}
+    save_checkpoint({**keys, **state}, folder / CHECKPOINT_DIR / LAST)
+
+
+def test_a_replay_without_a_schedule_in_its_checkpoint_reads_it_from_its_runs_lineage(protocol, tmp_path):
+    run = tmp_path / "pbt" / "population_0"
+    lineage = {
+        "update": [4],
+        "agent": [1],
+        "parent": [0],
+        "seed": [7],
+        "algo.lr": [1.2e-3],
+        "algo.gamma": [0.99],
+    }
+    _population(
+        run,
+        agents={"algo.lr": [1e-3, 2e-3], "algo.gamma": [0.99, 0.95]},
+        final=[{"final_return": 2000.0}, {"final_return": 2500.0}],
+        search={"settings": {"launcher": "pbt", "keys": ["algo.lr", "algo.gamma"]}, "lineage": lineage},
+    )
+    record = {"launcher": "pbt_replay", "run": str(run), "agent": 1}  # as the replay wrote it before
+    _population(tmp_path / "old_test" / "population_0", search={"settings": record})
+    # agent 1 was a copy of agent 0 from update 4: agent 0's values before, its own from then on
+    assert protocol.replayed(tmp_path / "old_test") == (
+        "agent 1 (final 2500): 0: lr 0.001, gamma 0.99; 4: lr 0.0012, gamma 0.99"
+    )
+    # a replay's own schedule, when its checkpoint keeps one, is the one it followed
+    record["schedule"] = [[0, {"algo.lr": 3e-3, "algo.gamma": 0.9}]]
+    _population(tmp_path / "new_test" / "population_0", search={"settings": record})
+    assert protocol.replayed(tmp_path / "new_test") == "agent 1 (final 2500): 0: lr 0.003, gamma 0.9"
