@@ -213,7 +213,7 @@ def test_a_range_sweep_draws_each_agents_first_value_by_its_seed_and_pbt_stays_i
         (
             ["hydra/launcher=population", "algo.lr=interval(1e-5,1e-2)"],
             "algo.lr=interval(1e-5,1e-2) is not allowed; expected a list of values (e.g. "
-            "algo.lr=1e-4,3e-4,1e-3): a range is searched only by hydra/launcher=pbt",
+            "algo.lr=1e-4,3e-4,1e-3): a range is searched only by hydra/launcher=pbt or pb2",
         ),
         (
             ["hydra/launcher=pbt", "hydra.launcher.every_updates=1", "algo.weight_decay=interval(0,0.1)"],

@@ -46,9 +46,11 @@ import torch
 
 from drone_torchrl.training.pbt import PBT, PBTSettings
 
-#: The grid of the model's length scale (in positions in [0, 1]), forgetting per step and noise.
+#: The grid of the model's length scale (in positions in [0, 1]).
 LENGTH_SCALES = (0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
+#: The grid of the model's forgetting per step.
 EPSILONS = (0.0, 0.05, 0.1, 0.2, 0.5)
+#: The grid of the model's noise variance (the standardised signal's is 1).
 NOISES = (0.01, 0.1, 0.3, 1.0)
 #: The most candidates scored for one choice.
 CANDIDATES = 1024

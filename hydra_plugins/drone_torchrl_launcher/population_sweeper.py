@@ -164,7 +164,7 @@ def _range(override: Override, launcher: Any) -> Any:
     if not isinstance(search, PBTSettings):
         sys.exit(
             f"drone-train: error: {text} a list of values (e.g. {key}=1e-4,3e-4,1e-3): "
-            "a range is searched only by hydra/launcher=pbt"
+            "a range is searched only by hydra/launcher=pbt or pb2"
         )
     if key not in search.keys:
         sys.exit(
