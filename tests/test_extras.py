@@ -164,6 +164,7 @@ def test_launchers_that_need_no_pyarrow_are_not_refused_for_it(hide):
     assert {k for k, v in extras.LAUNCHERS.items() if v == extras.POPULATION} == {
         "population",
         "pbt",
+        "pb2",
         "halving",
         "pbt_replay",
     }
@@ -179,4 +180,4 @@ def test_the_population_record_names_the_same_extra_when_reached_another_way(hid
         population_record.read_table(Path("agents.parquet"))
     message = str(info.value)
     assert "\n" not in message and message.endswith("needs pyarrow: pip install 'drone_torchrl[population]'")
-    assert "hydra/launcher=population|pbt|halving|pbt_replay" in message
+    assert "hydra/launcher=population|pbt|pb2|halving|pbt_replay" in message
