@@ -470,7 +470,10 @@ def check_population(agents: AgentTable, search: SearchSettings | None = None) -
             cfg.eval.stop_return,
             "null with hydra/launcher=population (its agents train their whole budget together)",
         )
-    check_memory(cfg, agents=len(agents))
+    try:
+        check_memory(cfg, agents=len(agents))
+    except ConfigError as err:  # say that it is the population's size, not one agent's
+        raise ConfigError(f"{len(agents)} agents trained together in one population run: {err}") from None
     if search is not None:
         search.check(cfg, len(agents))
 
