@@ -131,7 +131,7 @@ def check_composed(overrides: list[str]) -> None:
 
 # The launchers that decide what is trained, not only where: a population run, a search. Without -m
 # Hydra ignores the launcher, so a single run would train something else than asked.
-POPULATION_LAUNCHERS = ("population", "pbt", "halving", "pbt_replay")
+POPULATION_LAUNCHERS = ("population", "pbt", "pb2", "halving", "pbt_replay")
 _LAUNCHER_KEY = "hydra.launcher."
 
 
