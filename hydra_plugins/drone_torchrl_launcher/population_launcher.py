@@ -17,9 +17,8 @@ import json
 import logging
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from hydra.core.utils import JobReturn, JobStatus, configure_log, setup_globals
 from omegaconf import OmegaConf, open_dict, read_write
@@ -194,8 +193,7 @@ class PopulationLauncher(FusedLauncher):
         return hydra_record, tables
 
 
-@dataclass
-class _Plan:
+class _Plan(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this module outside sys.modules
     """A batch as :meth:`PopulationLauncher.launch` trains it: Hydra's record, the groups (an agent table
     and its jobs' positions), each job's ``JobReturn``, each job's refusal (or None), and the refusals
     as ``(position, one-line error naming the job)``; ``one_config``: the jobs differ only in per-agent
@@ -205,8 +203,8 @@ class _Plan:
     groups: list[tuple[AgentTable, list[int]]]
     returns: list[JobReturn]
     errors: list[ConfigError | None]
-    refused: list[tuple[int, ConfigError]] = field(default_factory=list)
-    one_config: bool = False
+    refused: list[tuple[int, ConfigError]]
+    one_config: bool
 
 
 def _jobs(job_overrides: Sequence[Sequence[str]]) -> tuple[tuple[str, ...], ...]:
