@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 from pathlib import Path
 
 from drone_torchrl import extras, migrations
@@ -178,7 +179,7 @@ def check_launcher_keys(args: list[str]) -> None:
     launcher = next((o for o in parsed if o.key_or_group == "hydra/launcher"), None)
     options = [None] if launcher is None else _options("hydra/launcher", launcher.input_line.split("=", 1)[1])
     for option in options:
-        launcher_keys = _launcher_keys(choices + ([] if option is None else [f"hydra/launcher={option}"]))
+        launcher_keys = _launcher_keys((*choices, *([] if option is None else [f"hydra/launcher={option}"])))
         if launcher_keys is None:
             continue
         name, keys = launcher_keys
@@ -191,7 +192,8 @@ def check_launcher_keys(args: list[str]) -> None:
                 )
 
 
-def _launcher_keys(overrides: list[str]) -> tuple[str, list[str]] | None:
+@functools.cache  # a composition (about 0.3 s); the same command line asks once
+def _launcher_keys(overrides: tuple[str, ...]) -> tuple[str, list[str]] | None:
     """The launcher ``overrides`` choose (its option's name) and its keys (``_target_`` left out).
 
     None where Hydra cannot compose them (its own message says why, later).
@@ -204,7 +206,7 @@ def _launcher_keys(overrides: list[str]) -> tuple[str, list[str]] | None:
 
     try:
         with initialize_config_dir(config_dir(), version_base="1.3"):
-            cfg = compose("config", overrides=overrides, return_hydra_config=True)
+            cfg = compose("config", overrides=list(overrides), return_hydra_config=True)
     except HydraException:
         return None
     keys = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)

@@ -494,9 +494,12 @@ class ReplaySettings:
         population run, or for an agent it does not have.
         """
         from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
+        from drone_torchrl.io.storage import name_too_long
 
         run = params.get("run")
         path = Path(str(run)) / CHECKPOINT_DIR / LAST
+        if (too_long := name_too_long(path)) is not None:  # is_file() would raise ENAMETOOLONG
+            raise ConfigError.of("hydra.launcher.run", run, f"a folder name this file system takes ({too_long})")
         try:
             state = load_checkpoint(path) if run is not None and path.is_file() else None
         except CheckpointError as err:
