@@ -136,12 +136,12 @@ POPULATION_LAUNCHERS = ("population", "pbt", "pb2", "halving", "pbt_replay")
 _LAUNCHER_KEY = "hydra.launcher."
 
 
-def check_single_run(args: list[str]) -> None:
+def check_single_run(args: list[str], trains: bool = True) -> None:
     """Refuse, in one line, what only a sweep (``-m``) reads, on a command line without ``-m``.
 
-    A sweep override (``key=a,b``, ``key=interval(low,high)``: Hydra's message is several lines) and
-    a population or search launcher (:data:`POPULATION_LAUNCHERS`, which Hydra would ignore). Raises
-    :class:`~.checks.ConfigError`.
+    A sweep override (``key=a,b``, ``key=interval(low,high)``: Hydra's message is several lines) and,
+    where the command ``trains`` (not ``--cfg``, ``--info``), a population or search launcher
+    (:data:`POPULATION_LAUNCHERS`, which Hydra would ignore). Raises :class:`~.checks.ConfigError`.
     """
     for override in _parsed(args):
         key = override.key_or_group
@@ -150,7 +150,7 @@ def check_single_run(args: list[str]) -> None:
                 f"{override.input_line} is not allowed without -m: it gives several values (a sweep); give "
                 f"one value, write a list value as {key}=[a,b], or sweep it: drone-train -m {override.input_line}"
             )
-        if key == "hydra/launcher" and override.value() in POPULATION_LAUNCHERS:
+        if trains and key == "hydra/launcher" and override.value() in POPULATION_LAUNCHERS:
             raise ConfigError(
                 f"{override.input_line} is not allowed without -m: it trains the jobs of a sweep (a single "
                 f"run would ignore it); expected drone-train -m {override.input_line} <key>=<a>,<b>,... "

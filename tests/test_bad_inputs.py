@@ -921,6 +921,10 @@ LAUNCHER_REFUSALS = [
     (["--cfg", "job", "-m", "hydra/launcher=pbt", "seed=0,1"], ["--cfg", "-m"]),
     (["--info", "-m", "hydra/launcher=pbt", "seed=0,1"], ["--info", "-m"]),
     (["--cfg", "job", "algo.lr=1e-4,1e-3"], ["algo.lr=1e-4,1e-3", "-m"]),  # Hydra's ambiguous value
+    (
+        ["--cfg", "job", "hydra/launcher=pbt", "algo.lr=interval(1e-4,1e-3)"],
+        ["algo.lr=interval(1e-4,1e-3)", "-m"],
+    ),
     # Hydra's multi-line errors, or accepted silently (+)
     (
         ["-m", "hydra/launcher=pbt", "hydra.launcher.bogus=1", "seed=0,1"],

@@ -124,7 +124,7 @@ def _before_hydra() -> list[Path]:
         if flags.multirun:
             command_line.check_multirun(overrides)
             return []
-        command_line.check_single_run(flags.overrides)
+        command_line.check_single_run(flags.overrides, trains=not prints)
         if flags.cfg in ("job", "all") and flags.config_name is None and flags.config_dir is None:
             command_line.check_composed([a for a in flags.overrides])
         if prints:

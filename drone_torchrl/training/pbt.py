@@ -499,7 +499,9 @@ class ReplaySettings:
         run = params.get("run")
         path = Path(str(run)) / CHECKPOINT_DIR / LAST
         if (too_long := name_too_long(path)) is not None:  # is_file() would raise ENAMETOOLONG
-            raise ConfigError.of("hydra.launcher.run", run, f"a folder name this file system takes ({too_long})")
+            raise ConfigError.of(
+                "hydra.launcher.run", run, f"a folder name this file system takes ({too_long})"
+            )
         try:
             state = load_checkpoint(path) if run is not None and path.is_file() else None
         except CheckpointError as err:
