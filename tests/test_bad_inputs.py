@@ -1027,8 +1027,8 @@ def test_a_refused_sweep_leaves_an_existing_sweep_folder_byte_for_byte(tmp_path,
         ("pbt", ["hydra.launcher.every_updates=1", "hydra.launcher.quantile=0.5"]),
         ("halving", ["hydra.launcher.rungs=[1]"]),
         ("pbt_replay", ["hydra.launcher.run={pbt}"]),
-        pytest.param("fused", [], marks=pytest.mark.slow),  # these two took old keys already
-        pytest.param("basic", [], marks=pytest.mark.slow),
+        ("fused", []),  # these two took old keys already
+        ("basic", []),
     ],
 )
 def test_an_old_key_means_the_same_under_every_launcher(launcher, extra, tmp_path, command_here, request):
