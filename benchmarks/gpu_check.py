@@ -156,6 +156,12 @@ def main() -> None:
     parser.add_argument("--per-call", type=int, default=4, help="updates per call")
     parser.add_argument("--episodes", type=int, default=6000, help="drone-train's algo.episodes")
     args = parser.parse_args()
+    if args.device.startswith("cuda") and not torch.cuda.is_available():  # else a traceback at the first row
+        built = f"built with CUDA {torch.version.cuda}" if torch.version.cuda else "built without CUDA"
+        sys.exit(
+            f"gpu_check: error: --device {args.device} needs a GPU: torch {torch.__version__} here is {built} "
+            "and sees none (torch.cuda.is_available() is False); run it on the GPU machine, or pass --device cpu"
+        )
     agents = args.agents or (QUICK_AGENTS if args.quick else AGENTS)
     updates, per_call, episodes = (1, 2, 100) if args.quick else (args.updates, args.per_call, args.episodes)
     gpu = torch.cuda.get_device_name() if args.device.startswith("cuda") else platform.processor() or "CPU"

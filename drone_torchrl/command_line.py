@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 from pathlib import Path
 
 from drone_torchrl import extras, migrations
@@ -127,6 +128,106 @@ def check_composed(overrides: list[str]) -> None:
         cfg = compose("config", overrides=overrides)
     migrations.apply_legacy(cfg)
     validate(cfg)
+
+
+# The launchers that decide what is trained, not only where: a population run, a search. Without -m
+# Hydra ignores the launcher, so a single run would train something else than asked.
+POPULATION_LAUNCHERS = ("population", "pbt", "pb2", "halving", "pbt_replay")
+_LAUNCHER_KEY = "hydra.launcher."
+
+
+def check_single_run(args: list[str], trains: bool = True) -> None:
+    """Refuse, in one line, what only a sweep (``-m``) reads, on a command line without ``-m``.
+
+    A sweep override (``key=a,b``, ``key=interval(low,high)``: Hydra's message is several lines) and,
+    where the command ``trains`` (not ``--cfg``, ``--info``), a population or search launcher
+    (:data:`POPULATION_LAUNCHERS`, which Hydra would ignore). Raises :class:`~.checks.ConfigError`.
+    """
+    for override in _parsed(args):
+        key = override.key_or_group
+        if override.is_sweep_override():
+            raise ConfigError(
+                f"{override.input_line} is not allowed without -m: it gives several values (a sweep); give "
+                f"one value, write a list value as {key}=[a,b], or sweep it: drone-train -m {override.input_line}"
+            )
+        if trains and key == "hydra/launcher" and override.value() in POPULATION_LAUNCHERS:
+            raise ConfigError(
+                f"{override.input_line} is not allowed without -m: it trains the jobs of a sweep (a single "
+                f"run would ignore it); expected drone-train -m {override.input_line} <key>=<a>,<b>,... "
+                "(e.g. seed=0,1,2,3)"
+            )
+
+
+def check_launcher_keys(args: list[str]) -> None:
+    """Refuse, in one line, a ``hydra.launcher.<key>`` override that the chosen launcher does not have.
+
+    Hydra refuses an unknown one in several lines, and takes ``+hydra.launcher.<key>`` silently (or
+    fails when it makes the launcher). The launcher is the command line's ``hydra/launcher`` (each
+    option of a swept one), else the one the config and its chosen options give. Raises
+    :class:`~.checks.ConfigError` naming the key and the launcher's keys.
+    """
+    parsed = _parsed(args)
+    given = [o for o in parsed if o.key_or_group.startswith(_LAUNCHER_KEY)]
+    if not given:
+        return
+    # Group choices (+sweep=lr may set the launcher) composed as given; swept ones and values left out.
+    choices = [
+        o.input_line
+        for o in parsed
+        if "." not in o.key_or_group and o.key_or_group != "hydra/launcher" and not o.is_sweep_override()
+    ]
+    launcher = next((o for o in parsed if o.key_or_group == "hydra/launcher"), None)
+    options = [None] if launcher is None else _options("hydra/launcher", launcher.input_line.split("=", 1)[1])
+    for option in options:
+        launcher_keys = _launcher_keys((*choices, *([] if option is None else [f"hydra/launcher={option}"])))
+        if launcher_keys is None:
+            continue
+        name, keys = launcher_keys
+        for override in given:
+            key = override.key_or_group.removeprefix(_LAUNCHER_KEY).split(".")[0]
+            if key not in keys:
+                known = f"its keys: {', '.join(keys)}" if keys else "it takes no hydra.launcher keys"
+                raise ConfigError(
+                    f"{override.input_line} is not allowed: hydra/launcher={name} has no key {key!r}; {known}"
+                )
+
+
+@functools.cache  # a composition (about 0.3 s); the same command line asks once
+def _launcher_keys(overrides: tuple[str, ...]) -> tuple[str, list[str]] | None:
+    """The launcher ``overrides`` choose (its option's name) and its keys (``_target_`` left out).
+
+    None where Hydra cannot compose them (its own message says why, later).
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from drone_torchrl.config import config_dir
+
+    try:
+        with initialize_config_dir(config_dir(), version_base="1.3"):
+            cfg = compose("config", overrides=list(overrides), return_hydra_config=True)
+    except HydraException:
+        return None
+    keys = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
+    return str(cfg.hydra.runtime.choices["hydra/launcher"]), sorted(k for k in keys if k != "_target_")
+
+
+def _parsed(args: list[str]) -> list:
+    """The command line's overrides, parsed by Hydra (those it cannot parse are refused elsewhere)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    out = []
+    for arg in args:
+        if arg.startswith("-") or "=" not in arg:
+            continue
+        try:
+            out += parser.parse_overrides([arg])
+        except HydraException:  # refused in its own line by check_command_line
+            continue
+    return out
 
 
 def check_multirun(overrides: dict[str, str]) -> None:

@@ -942,6 +942,13 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
         raise ConfigError.of("eval.rollback_drop", drop, expected)
     if training:  # drone-eval reads a finished run's values: its logger is the training's business
         loggers.check_backend(cfg)  # after the values: a bad value is named whether or not the extra is there
+        if cfg.get("agent") is not None and cfg.get("resume") is None:  # else nothing reads it
+            raise ConfigError.of(
+                "agent",
+                cfg.agent,
+                "null without resume=: agent=K picks the agent of a population run to continue "
+                "(drone-train resume=<population run> agent=K), to fly (drone-eval) or export (drone-export)",
+            )
     if cfg.model.distribution == "tanh_normal" and cfg.env.max_thrust is None:
         raise ConfigError.of(
             "model.distribution",

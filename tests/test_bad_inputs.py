@@ -26,6 +26,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from test_run_folder import Disk, small_disk  # noqa: F401  (a fixture: a tmpfs to fill or make read-only)
 
 from drone_torchrl import loggers
@@ -860,6 +861,210 @@ def test_the_pbt_launcher_refuses_through_the_command(tmp_path, command_here):
     )  # fmt: skip
     _refused(proc, "hydra.launcher.quantile=0.7", "(0, 0.5]")
     assert not (tmp_path / "sweep").exists()
+
+
+# ------------------------------------------------------------------ searches and populations (issue 50)
+@pytest.fixture(scope="module")
+def pbt_run(tmp_path_factory) -> Path:
+    """A finished tiny PBT population run (two agents, an exploit step after each update): what
+    hydra/launcher=pbt_replay replays."""
+    if not POPULATION_EXTRA:
+        pytest.skip("a population run needs pyarrow: pip install 'drone_torchrl[population]'")
+    from drone_torchrl.training.pbt import PBTSettings
+
+    run = tmp_path_factory.mktemp("pbt") / "population_0"
+    names = ["seed=0 algo.lr=0.0001", "seed=1 algo.lr=0.001"]
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        agents = [compose("config", overrides=[*TINY, *name.split()]) for name in names]
+    for cfg in agents:
+        validate(cfg)
+    search = PBTSettings.of({"every_updates": 1, "quantile": 0.5, "keys": ["algo.lr"]})
+    train_population(agents, names, run, search=search)
+    return run
+
+
+def _drone_train(command_here, tmp_path: Path, args: list[str], pbt_run: Path | None = None):
+    """``drone-train <args> <TINY>`` in this process from ``tmp_path``, its sweep in ``tmp_path/sweep``;
+    ``{pbt}`` in an argument is the PBT run's folder. Flags come first, as argparse needs them."""
+    args = [a.format(pbt=pbt_run) for a in args]
+    sweep = [f"hydra.sweep.dir={tmp_path / 'sweep'}"] if "-m" in args else []
+    return command_here(train_app.run, "drone-train", *args, *TINY, *sweep, cwd=tmp_path)
+
+
+# (the command line before TINY, what its one stderr line must name). Each was a traceback, Hydra's
+# message in several lines, the reason on stdout, or a command that went on (exit 0).
+LAUNCHER_REFUSALS = [
+    # The launcher's refusals: were on stdout, then "1 population run(s) not started (the reason is above)"
+    (
+        ["-m", "hydra/launcher=halving", "seed=0,1"],
+        ["hydra.launcher.rungs=[500, 1500]", "below the budget of 2"],
+    ),
+    (
+        [
+            "-m",
+            "hydra/launcher=pbt",
+            "seed=0,1",
+            "hydra.launcher.every_updates=2",
+            "hydra.launcher.quantile=0.5",
+        ],
+        ["hydra.launcher.every_updates=2", "fewer than the budget's 2 updates"],
+    ),
+    (["-m", "hydra/launcher=population", "algo=ppo", "seed=0,1"], ["algo=ppo", "algo=reinforce"]),
+    # A search or population launcher without -m: trained a plain run (exit 0)
+    (["hydra/launcher=pbt", "hydra.launcher.every_updates=0"], ["hydra/launcher=pbt", "-m"]),
+    (["hydra/launcher=population"], ["hydra/launcher=population", "-m"]),
+    # Tracebacks
+    (
+        ["-m", "hydra/launcher=pbt", "hydra.launcher.keys=[algo.lr,algo.lr]", "algo.lr=1e-4,1e-3", "seed=0"],
+        ["hydra.launcher.keys", "each key once"],
+    ),
+    (["--cfg", "job", "-m", "hydra/launcher=pbt", "seed=0,1"], ["--cfg", "-m"]),
+    (["--info", "-m", "hydra/launcher=pbt", "seed=0,1"], ["--info", "-m"]),
+    (["--cfg", "job", "algo.lr=1e-4,1e-3"], ["algo.lr=1e-4,1e-3", "-m"]),  # Hydra's ambiguous value
+    (
+        ["--cfg", "job", "hydra/launcher=pbt", "algo.lr=interval(1e-4,1e-3)"],
+        ["algo.lr=interval(1e-4,1e-3)", "-m"],
+    ),
+    # Hydra's multi-line errors, or accepted silently (+)
+    (
+        ["-m", "hydra/launcher=pbt", "hydra.launcher.bogus=1", "seed=0,1"],
+        ["hydra.launcher.bogus=1", "every_updates, keys, perturb, quantile, resample_probability"],
+    ),
+    (
+        ["-m", "hydra/launcher=pbt", "hydra.launcher.rungs=[1]", "seed=0,1"],
+        ["hydra.launcher.rungs=[1]", "quantile"],
+    ),
+    (
+        [
+            "-m",
+            "hydra/launcher=pbt",
+            "+hydra.launcher.bogus=1",
+            "hydra.launcher.every_updates=1",
+            "hydra.launcher.quantile=0.5",
+            "seed=0,1",
+        ],
+        ["+hydra.launcher.bogus=1", "hydra/launcher=pbt"],
+    ),  # fmt: skip
+    (["-m", "hydra/launcher=population", "+hydra.launcher.bogus=1", "seed=0,1"], ["+hydra.launcher.bogus=1"]),
+    # Accepted nonsense
+    (
+        ["-m", "hydra/launcher=pbt", "hydra.launcher.perturb=[inf]", "seed=0,1"],
+        ["hydra.launcher.perturb=[inf]"],
+    ),
+    (["-m", "hydra/launcher=pbt", "hydra.launcher.perturb=[1e300]", "seed=0,1"], ["hydra.launcher.perturb"]),
+    (
+        ["-m", "hydra/launcher=halving", "hydra.launcher.rungs=[1]", "seed=0"],
+        ["hydra.launcher.fraction=0.5", "at least 2 agents"],
+    ),
+    (["agent=1"], ["agent=1", "resume="]),
+    (["-m", "hydra/launcher=population", "agent=1", "seed=0,1"], ["agent=1", "resume="]),
+    (
+        ["-m", "hydra/launcher=pbt_replay", "hydra.launcher.run={pbt}", "algo.lr=3e-4", "seed=5,6"],
+        ["algo.lr=0.0003", "hydra/launcher=pbt_replay"],
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ("args", "names"), LAUNCHER_REFUSALS, ids=[" ".join(a) for a, _ in LAUNCHER_REFUSALS]
+)
+def test_a_search_or_population_command_refuses_in_one_stderr_line(
+    args, names, tmp_path, command_here, request
+):
+    """Through drone-train (in this process): exit 1, one stderr line naming the key, the value and what
+    is allowed, nothing on stdout about it, and nothing written (no sweep or run folder)."""
+    if any("launcher=p" in a or "launcher=h" in a for a in args):
+        pytest.importorskip("pyarrow")  # without it the extras check refuses first (tests/test_extras.py)
+    pbt_run = request.getfixturevalue("pbt_run") if any("{pbt}" in a for a in args) else None
+    proc = _drone_train(command_here, tmp_path, args, pbt_run)
+    _refused(proc, *names)
+    assert "not started" not in proc.stdout
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_population_larger_than_the_memory_is_one_line_before_the_folder(
+    tmp_path, command_here, monkeypatch
+):
+    """The memory check of a population (each agent alone fits; 8 together do not): was on stdout."""
+    pytest.importorskip("pyarrow")
+    from drone_torchrl import algorithms
+    from drone_torchrl.training import memory_estimate
+
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=TINY)
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    learner = algorithms.get("reinforce").memory
+    one, eight = (memory_estimate.estimate(plain, n, learner).total for n in (1, 8))
+    monkeypatch.setattr(memory_estimate, "available_ram", lambda: ((one + eight) // 2, "MemAvailable"))
+    proc = _drone_train(command_here, tmp_path, ["-m", "hydra/launcher=population", "seed=range(0,8)"])
+    _refused(proc, "8 agents trained together in one population run", "more than the")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_refused_sweep_leaves_an_existing_sweep_folder_byte_for_byte(tmp_path, command_here):
+    """A refused command in a finished sweep's folder: its multirun.yaml (and the rest) is not rewritten."""
+    pytest.importorskip("pyarrow")
+    done = _drone_train(command_here, tmp_path, ["-m", "hydra/launcher=population", "seed=0,1"])
+    assert done.returncode == 0, done.stderr
+
+    def files() -> dict[Path, bytes]:
+        # .lock holds the last owner's process id, rewritten by whoever takes the folder
+        return {
+            p: p.read_bytes() for p in (tmp_path / "sweep").rglob("*") if p.is_file() and p.name != ".lock"
+        }
+
+    before = files()
+    assert tmp_path / "sweep" / "multirun.yaml" in before
+    proc = _drone_train(command_here, tmp_path, ["-m", "hydra/launcher=halving", "seed=0,1"])
+    assert files() == before
+    _refused(proc, "hydra.launcher.rungs")
+
+
+@pytest.mark.parametrize(
+    ("launcher", "extra"),
+    [
+        ("population", []),
+        ("pbt", ["hydra.launcher.every_updates=1", "hydra.launcher.quantile=0.5"]),
+        ("halving", ["hydra.launcher.rungs=[1]"]),
+        ("pbt_replay", ["hydra.launcher.run={pbt}"]),
+        ("fused", []),  # these two took old keys already
+        ("basic", []),
+    ],
+)
+def test_an_old_key_means_the_same_under_every_launcher(launcher, extra, tmp_path, command_here, request):
+    """``engine=fused`` (today's backend=fast) with a note, as in a single run: the population launchers
+    said "not started: legacy.engine is not a config key" per job, "0 finished", and exited 0."""
+    if launcher not in ("fused", "basic"):
+        pytest.importorskip("pyarrow")
+    pbt_run = request.getfixturevalue("pbt_run") if launcher == "pbt_replay" else None
+    args = ["-m", f"hydra/launcher={launcher}", "engine=fused", "compile=true", "seed=0,1", *extra]
+    proc = _drone_train(command_here, tmp_path, args, pbt_run)
+    assert proc.returncode == 0, proc.stderr
+    assert "note: engine=fused is now backend=fast" in proc.stderr
+    assert "not started" not in proc.stdout
+    runs = sorted(p.parent.parent for p in (tmp_path / "sweep").rglob("checkpoints/last.pt"))
+    assert len(runs) == (2 if launcher in ("fused", "basic") else 1), proc.stdout
+    for run in runs:
+        saved = OmegaConf.load(run / "config.yaml")
+        assert saved.backend == "fast" and "legacy" not in saved and "engine" not in saved
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+def test_the_gpu_check_without_cuda_is_one_line():
+    """``bash benchmarks/gpu_check.sh`` where torch has no CUDA: was an AssertionError traceback."""
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    proc = subprocess.run(
+        ["bash", str(root / "benchmarks" / "gpu_check.sh")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert proc.returncode == 1, proc.stderr
+    assert "Traceback" not in proc.stderr + proc.stdout
+    assert proc.stderr.strip().count("\n") == 0 and "--device cuda needs a GPU" in proc.stderr, proc.stderr
+    assert "--device cpu" in proc.stderr
 
 
 def test_at_least_100_rows():

@@ -53,8 +53,9 @@ def _base(key: str):
 # bounded thrust).
 OPTION_NEEDS = {"algo=sac": ("experiment=bounded",)}
 # What a key of the default config needs to take a value other than null, as its refusal says
-# (going back to the best evaluation is an on-policy learner's: algo=ppo or a2c).
-KEY_NEEDS = {"eval.rollback_drop": ("algo=ppo",)}
+# (going back to the best evaluation is an on-policy learner's: algo=ppo or a2c; the agent to continue
+# is a population run's, named by resume=).
+KEY_NEEDS = {"eval.rollback_drop": ("algo=ppo",), "agent": ("resume=population_0",)}
 
 
 @functools.cache

@@ -198,7 +198,8 @@ def test_a_population_too_big_for_memory_is_refused_with_the_estimate(tmp_path, 
 def test_a_sweep_whose_population_is_refused_for_memory_exits_non_zero(tmp_path):
     """The same refusal through drone-train -m hydra/launcher=population: each job fits (the sweeper's
     check), the population of 3 does not. The population has no folder for the sweep's summary to
-    count, so the command itself says so and exits non-zero (it said '0 failed' and exited 0)."""
+    count, so the command itself says so and exits non-zero (it said '0 failed' and exited 0), in one
+    stderr line before the sweep folder exists (the reason was on stdout)."""
     two = memory_estimate.estimate(_cfgs("algo.episodes=2")[0], 2, memory_estimate.reinforce_parts).total
     sweep = tmp_path / "sweep"
     argv = ["drone-train", "-m", "hydra/launcher=population", "seed=0,1,2", "algo.episodes=2", *COMMON]
@@ -216,10 +217,13 @@ def test_a_sweep_whose_population_is_refused_for_memory_exits_non_zero(tmp_path)
         [sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path, env=env
     )
     assert done.returncode != 0, done.stdout + done.stderr
-    assert "population_0: population not started: this config needs about" in done.stdout
-    assert "drone-train: 1 population run(s) not started" in done.stderr
-    assert "Traceback" not in done.stderr
-    assert not (sweep / "population_0").exists()
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr
+    assert lines[0].startswith(
+        "drone-train: error: 3 agents trained together in one population run: this config needs about"
+    )
+    assert "not started" not in done.stdout
+    assert not sweep.exists()
 
 
 def test_drone_eval_and_export_read_one_agent_back(tmp_path, monkeypatch):

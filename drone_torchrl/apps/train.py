@@ -111,11 +111,20 @@ def _before_hydra() -> list[Path]:
         overrides = command_line.overrides_of(args)
         command_line.check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
         prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
+        if flags.multirun and (flags.cfg or flags.info):  # Hydra: a ValueError traceback
+            flag = "--cfg" if flags.cfg else "--info"
+            raise ConfigError(
+                f"{flag} and -m are not allowed together: {flag} prints one job's config; drop -m and give "
+                "one value per key"
+            )
         if not prints and flags.config_name is None and flags.config_dir is None:
             check_default_folder("config", args)
+        if flags.config_name is None and flags.config_dir is None:
+            command_line.check_launcher_keys(flags.overrides)
         if flags.multirun:
             command_line.check_multirun(overrides)
             return []
+        command_line.check_single_run(flags.overrides, trains=not prints)
         if flags.cfg in ("job", "all") and flags.config_name is None and flags.config_dir is None:
             command_line.check_composed([a for a in flags.overrides])
         if prints:

@@ -47,6 +47,8 @@ from drone_torchrl.config import per_agent_keys, schema_keys
 STATE_KEYS = {"algo.lr": "lr", "algo.gamma": "gamma", "algo.weight_decay": "weight_decay"}
 # The largest truncation quantile: the worst and the best quantile must not overlap.
 MAX_QUANTILE = 0.5
+# The largest factor of hydra.launcher.perturb (the smallest: its inverse).
+MAX_FACTOR = 100.0
 # Updates until a replay's next change, when it has none left.
 NEVER = 2**62
 # The lineage's columns besides the searched keys.
@@ -124,9 +126,13 @@ class PBTSettings:
         if not (is_number(quantile) and 0 < quantile <= MAX_QUANTILE):
             raise ConfigError.of("hydra.launcher.quantile", quantile, f"a number in (0, {MAX_QUANTILE}]")
         perturb = params.get("perturb", cls.perturb)
-        if not (_list(perturb) and all(is_number(f) and f > 0 for f in perturb)):
+        # A factor past MAX_FACTOR (or below its inverse) sends any value to its range's end in one
+        # step: a resample, not a perturbation (and inf or nan would be clipped into a value no agent had).
+        if not (_list(perturb) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in perturb)):
             raise ConfigError.of(
-                "hydra.launcher.perturb", perturb, "a non-empty list of factors > 0, e.g. [0.8,1.2]"
+                "hydra.launcher.perturb",
+                perturb,
+                f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]",
             )
         resample = params.get("resample_probability", cls.resample_probability)
         if not (is_number(resample) and 0 <= resample <= 1):
@@ -156,7 +162,9 @@ class PBTSettings:
                 self.every_updates,
                 f"fewer than the budget's {updates} updates",
             )
-        _check_quantile(self.quantile, agents)
+        _check_share(
+            "hydra.launcher.quantile", self.quantile, agents, "replaced: no exploit step, an empty lineage"
+        )
 
     def bounds(self, cfg: Any) -> dict[str, tuple[float, float]]:
         """Each searched key's ``(low, high)``: the values its rule allows under ``cfg``'s algorithm.
@@ -325,21 +333,26 @@ class Search:
         return {"settings": self.settings.record(), "lineage": self.lineage}
 
 
-def _check_quantile(quantile: float, agents: int) -> None:
-    """A population whose ``quantile`` rounds to at least one agent; else nothing would ever be exploited."""
-    if int(agents * quantile) >= 1:
+def _check_share(
+    key: str, share: float, agents: int, outcome: str, most: float = MAX_QUANTILE, most_open: bool = False
+) -> None:
+    """Refuse a population of ``agents`` whose ``share`` of it rounds down to no agent.
+
+    ``key``: PBT's quantile or halving's fraction; nothing would ever be ``outcome``. ``most``: the
+    largest share the key allows (``most_open``: only below it).
+    """
+    if int(agents * share) >= 1:
         return
-    smallest = math.ceil(1 / quantile)
-    while int(smallest * quantile) < 1:  # 1 / quantile rounded up may fall short by a rounding error
+    smallest = math.ceil(1 / share)
+    while int(smallest * share) < 1:  # 1 / share rounded up may fall short by a rounding error
         smallest += 1
-    larger = (
-        f"at least 1/{agents} for a population of {agents} agents, or " if 1 / agents <= MAX_QUANTILE else ""
-    )
+    fits = 1 / agents < most or (1 / agents == most and not most_open)
+    larger = f"at least 1/{agents} for a population of {agents} agents, or " if fits else ""
     raise ConfigError.of(
-        "hydra.launcher.quantile",
-        quantile,
-        f"{larger}a population of at least {smallest} agents (int({agents} x {quantile:g}) = 0 agents "
-        "would ever be replaced: no exploit step, an empty lineage)",
+        key,
+        share,
+        f"{larger}a population of at least {smallest} agents (int({agents} x {share:g}) = 0 agents "
+        f"would ever be {outcome})",
     )
 
 
@@ -353,13 +366,15 @@ def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
     if not _list(keys):
         raise ConfigError.of("hydra.launcher.keys", keys, f"a non-empty list of {sorted(STATE_KEYS)}")
     for key in keys:
-        if key not in STATE_KEYS:
+        if not isinstance(key, str) or key not in STATE_KEYS:
             why = "a per-agent key" if key in per_agent_keys() else "not a per-agent key"
             raise ConfigError.of(
                 "hydra.launcher.keys",
                 list(keys),
                 f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} {search} cannot search)",
             )
+    if len(set(keys)) < len(keys):  # one lineage column per key: a repeated one has no meaning
+        raise ConfigError.of("hydra.launcher.keys", list(keys), "each key once, e.g. [algo.lr,algo.gamma]")
     return tuple(keys)
 
 
@@ -493,9 +508,14 @@ class ReplaySettings:
         population run, or for an agent it does not have.
         """
         from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
+        from drone_torchrl.io.storage import name_too_long
 
         run = params.get("run")
         path = Path(str(run)) / CHECKPOINT_DIR / LAST
+        if (too_long := name_too_long(path)) is not None:  # is_file() would raise ENAMETOOLONG
+            raise ConfigError.of(
+                "hydra.launcher.run", run, f"a folder name this file system takes ({too_long})"
+            )
         try:
             state = load_checkpoint(path) if run is not None and path.is_file() else None
         except CheckpointError as err:
@@ -687,7 +707,10 @@ class HalvingSettings:
         return cls(tuple(int(r) for r in rungs), float(fraction), keys)
 
     def check(self, cfg: Any, agents: int) -> None:
-        """Every rung inside the budget (``algo.episodes / algo.episodes_per_update`` updates)."""
+        """Every rung inside the budget (``algo.episodes / algo.episodes_per_update`` updates).
+
+        And a population of ``agents`` large enough that ``fraction`` of it is at least one agent.
+        """
         updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
         if self.rungs[-1] >= updates:
             raise ConfigError.of(
@@ -696,6 +719,9 @@ class HalvingSettings:
                 f"rungs below the budget of {updates} updates (algo.episodes={cfg.algo.episodes} / "
                 f"algo.episodes_per_update={cfg.algo.episodes_per_update})",
             )
+        _check_share(
+            "hydra.launcher.fraction", self.fraction, agents, "stopped at a rung: no halving", 1, True
+        )
 
     def record(self) -> dict[str, Any]:
         """What a checkpoint keeps of these settings."""

@@ -425,21 +425,7 @@ def train_population(
     agents = AgentTable.of(agents)
     cfg = agents.cfg
     run_dir = Path(run_dir)
-    if learner_class(cfg).max_agents(cfg) is not None:
-        raise ConfigError(
-            f"hydra/launcher=population trains a population with one learner: algo={cfg.algo.name} with "
-            f"backend={cfg.backend} trains one agent at a time; use algo=reinforce (or reinforce_plus) "
-            "with backend=fast, or hydra/launcher=fused"
-        )
-    if cfg.eval.get("stop_return") is not None:
-        raise ConfigError.of(
-            "eval.stop_return",
-            cfg.eval.stop_return,
-            "null with hydra/launcher=population (its agents train their whole budget together)",
-        )
-    check_memory(cfg, agents=len(agents))
-    if search is not None:
-        search.check(cfg, len(agents))
+    check_population(agents, search)
     run_lock.hold(run_dir)
     try:
         checkpoint = _population_checkpoint(agents, names, run_dir, search)
@@ -462,6 +448,34 @@ def train_population(
         return _population_outcomes(run_dir, finals, [run.failure for run in trainer.runs])
     finally:
         run_lock.release(run_dir)
+
+
+def check_population(agents: AgentTable, search: SearchSettings | None = None) -> None:
+    """What :func:`train_population` refuses of a group before any folder: its learner, budget and memory.
+
+    Raises :class:`~.checks.ConfigError` (one line): a learner that trains one agent at a time,
+    ``eval.stop_return``, a population larger than this machine's free memory, a search the budget
+    or the population's size cannot hold (``search.check``).
+    """
+    cfg = agents.cfg
+    if learner_class(cfg).max_agents(cfg) is not None:
+        raise ConfigError(
+            f"algo={cfg.algo.name} is not allowed with hydra/launcher=population (with backend={cfg.backend} it "
+            "trains one agent at a time); expected algo=reinforce (or reinforce_plus) with backend=fast, "
+            "or hydra/launcher=fused"
+        )
+    if cfg.eval.get("stop_return") is not None:
+        raise ConfigError.of(
+            "eval.stop_return",
+            cfg.eval.stop_return,
+            "null with hydra/launcher=population (its agents train their whole budget together)",
+        )
+    try:
+        check_memory(cfg, agents=len(agents))
+    except ConfigError as err:  # say that it is the population's size, not one agent's
+        raise ConfigError(f"{len(agents)} agents trained together in one population run: {err}") from None
+    if search is not None:
+        search.check(cfg, len(agents))
 
 
 def _population_outcomes(run_dir: Path, finals: Sequence, failures: Sequence) -> list[Outcome]:

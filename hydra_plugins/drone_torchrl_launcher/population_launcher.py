@@ -19,7 +19,7 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from hydra.core.utils import JobReturn, JobStatus, configure_log, setup_globals
 from omegaconf import OmegaConf, open_dict, read_write
@@ -40,6 +40,26 @@ POPULATION_DIR = "population_{}"
 
 class PopulationLauncher(FusedLauncher):
     search: SearchSettings | None = None
+    # The plan of each batch checked before the sweep folder was written (:meth:`check`), by its jobs.
+    _plans: dict[tuple[tuple[str, ...], ...], _Plan]
+
+    def check(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> None:
+        """Compose, group and check a batch's jobs as :meth:`launch` will train them, before any folder.
+
+        Raises :class:`~drone_torchrl.checks.ConfigError` (one line) for the first job or group refused:
+        a job's values, or what :func:`~drone_torchrl.training.trainer.check_population` refuses
+        (learner, budget, memory, a search the budget or the population cannot hold). The hydra/sweeper
+        =population sweeper calls it for every batch before it writes the sweep folder; the plan is
+        kept for :meth:`launch`.
+        """
+        from drone_torchrl.training.trainer import check_population
+
+        plan = self._plan(job_overrides, initial_job_idx)
+        if plan.refused:
+            raise plan.refused[0][1]
+        for agents, _ in plan.groups:
+            check_population(agents, self.search)
+        self._plans = {**getattr(self, "_plans", {}), _jobs(job_overrides): plan}
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         from drone_torchrl.training.trainer import Outcome, train_population
@@ -49,13 +69,19 @@ class PopulationLauncher(FusedLauncher):
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
         sweep_dir = Path(str(self.config.hydra.sweep.dir)).absolute()
         log.info(f"Launching {len(job_overrides)} jobs as population runs in {sweep_dir}")
-        returns: list[JobReturn] = [_JobReturn(overrides=list(overrides)) for overrides in job_overrides]
-        outcomes: list[Outcome | None] = [None] * len(job_overrides)
-        hydra_record, groups = self._one_table(job_overrides, returns) or self._tables(
-            job_overrides, initial_job_idx, returns, outcomes, sweep_dir
-        )
-        refused = 0
-        for number, (agents, members) in enumerate(groups):
+        plan = getattr(self, "_plans", {}).pop(_jobs(job_overrides), None)
+        try:  # unless checked before: another sweeper than hydra/sweeper=population
+            plan = plan or self._plan(job_overrides, initial_job_idx)
+        except ConfigError as err:
+            sys.exit(f"drone-train: error: {err}")
+        if plan.one_config:
+            log.info(
+                f"{len(job_overrides)} jobs differ only in per-agent values: one population from one config"
+            )
+        returns = plan.returns
+        outcomes = [None if e is None else Outcome(sweep_dir, error=e) for e in plan.errors]
+        refused = [err for _, err in plan.refused]
+        for number, (agents, members) in enumerate(plan.groups):
             run_dir = sweep_dir / POPULATION_DIR.format(number)
             names = [" ".join(job_overrides[i]) for i in members]
 
@@ -63,7 +89,7 @@ class PopulationLauncher(FusedLauncher):
                 record = run_dir / ".hydra"
                 record.mkdir(exist_ok=True)
                 save_yaml(cfg, record / "config.yaml")
-                save_yaml(hydra_record, record / "hydra.yaml")
+                save_yaml(plan.hydra_record, record / "hydra.yaml")
                 # One job a line in YAML's flow style (JSON's strings are YAML's): the block style
                 # of save_yaml takes seconds at tens of thousands of jobs.
                 lines = "".join(f"- {json.dumps(list(job_overrides[i]))}\n" for i in members)
@@ -71,10 +97,9 @@ class PopulationLauncher(FusedLauncher):
 
             try:
                 done = train_population(agents, names, run_dir, write_record, self.search)
-            except ConfigError as err:  # refused before training: one line, the other groups go on
-                print(f"{run_dir}: population not started: {err}")
+            except ConfigError as err:  # refused before training: the other groups go on
                 done = [Outcome(run_dir, error=err)] * len(members)
-                refused += 1
+                refused.append(err)
             for i, outcome in zip(members, done, strict=True):
                 outcomes[i] = outcome
         for ret, outcome in zip(returns, outcomes, strict=True):
@@ -84,9 +109,29 @@ class PopulationLauncher(FusedLauncher):
             else:
                 reason = f"{type(outcome.error).__name__}: {outcome.error}"
                 ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
-        if refused:  # it has no folder for the sweep's summary to count: a failure all the same
-            sys.exit(f"drone-train: {refused} population run(s) not started (the reason is above)")
+        if refused:  # no folder for the sweep's summary to count: a failure all the same, in one line
+            others = (
+                f" ({len(refused) - 1} other population run(s) not started too)" if len(refused) > 1 else ""
+            )
+            sys.exit(f"drone-train: error: {refused[0]}{others}")
         return returns
+
+    def _plan(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> _Plan:
+        """The batch's jobs composed, checked and grouped: one agent table per population run."""
+        returns: list[JobReturn] = [_JobReturn(overrides=list(overrides)) for overrides in job_overrides]
+        errors: list[ConfigError | None] = [None] * len(job_overrides)
+        one_table = self._one_table(job_overrides, returns)
+        hydra_record, groups = one_table or self._tables(job_overrides, returns, errors)
+        refused = [
+            (i, ConfigError(f"job #{initial_job_idx + i} ({' '.join(job_overrides[i])}): {err}"))
+            for i, err in enumerate(errors)
+            if err is not None
+        ]
+        self._check_jobs(job_overrides)
+        return _Plan(hydra_record, groups, returns, errors, refused, one_table is not None)
+
+    def _check_jobs(self, job_overrides: Sequence[Sequence[str]]) -> None:
+        """What this launcher refuses of the jobs' overrides themselves (:class:`ConfigError`); none here."""
 
     def _one_table(
         self, job_overrides: Sequence[Sequence[str]], returns: list[JobReturn]
@@ -94,6 +139,7 @@ class PopulationLauncher(FusedLauncher):
         """Jobs that differ only in numbers of the per-agent keys, and whose values all pass: one
         population from one config (:func:`.compose.agent_columns`), no config per job; else None.
         Each job's ``JobReturn.cfg`` is then the group's config (its own values: ``agents.parquet``)."""
+        from drone_torchrl import migrations
         from drone_torchrl.config import check_agent_values, per_agent_keys, validate
         from drone_torchrl.training.agents import AgentTable
         from hydra_plugins.drone_torchrl_launcher.compose import agent_columns
@@ -104,37 +150,32 @@ class PopulationLauncher(FusedLauncher):
             return None
         cfg, hydra, values = table
         try:
+            migrations.apply_legacy(cfg)  # old keys mean what they mean in a single run
             validate(cfg)
             check_agent_values(cfg, values)
         except ConfigError:  # the per-job path says which jobs, and trains the others
             return None
-        log.info(f"{len(job_overrides)} jobs differ only in per-agent values: one population from one config")
         for ret in returns:
             ret.cfg = cfg
         hydra_record = {"hydra": OmegaConf.to_container(hydra, resolve=False, enum_to_str=True)}
         return hydra_record, [(AgentTable(cfg, values), list(range(len(job_overrides))))]
 
     def _tables(
-        self,
-        job_overrides: Sequence[Sequence[str]],
-        initial_job_idx: int,
-        returns: list[JobReturn],
-        outcomes: list,
-        sweep_dir: Path,
+        self, job_overrides: Sequence[Sequence[str]], returns: list[JobReturn], errors: list
     ) -> tuple[dict | None, list[tuple[AgentTable, list[int]]]]:
-        """Each job's config composed and checked (a bad one fails alone), then grouped as the fused
-        launcher groups jobs: one agent table per group."""
+        """Each job's config composed and checked (a bad one's error in ``errors``), then grouped as the
+        fused launcher groups jobs: one agent table per group."""
+        from drone_torchrl import migrations
         from drone_torchrl.config import validate
         from drone_torchrl.training.agents import AgentTable
         from drone_torchrl.training.jobs import group_key
-        from drone_torchrl.training.trainer import Outcome
         from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
         groups: dict[str, list[int]] = {}
         hydra_record: dict | None = None
         configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
-        for position, (overrides, cfg) in enumerate(zip(job_overrides, configs, strict=True)):
+        for position, cfg in enumerate(configs):
             with read_write(cfg), open_dict(cfg):
                 if hydra_record is None:
                     hydra_record = {
@@ -143,14 +184,33 @@ class PopulationLauncher(FusedLauncher):
                 del cfg["hydra"]
             returns[position].cfg = cfg
             try:
+                migrations.apply_legacy(cfg)  # old keys mean what they mean in a single run
                 validate(cfg)
-            except ConfigError as err:  # this job only; the others train
-                print(f"job #{initial_job_idx + position} ({' '.join(overrides)}) not started: {err}")
-                outcomes[position] = Outcome(sweep_dir, error=err)
+            except ConfigError as err:
+                errors[position] = err
                 continue
             groups.setdefault(group_key(cfg), []).append(position)
         tables = [(AgentTable.of([returns[i].cfg for i in members]), members) for members in groups.values()]
         return hydra_record, tables
+
+
+class _Plan(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this module outside sys.modules
+    """A batch as :meth:`PopulationLauncher.launch` trains it: Hydra's record, the groups (an agent table
+    and its jobs' positions), each job's ``JobReturn``, each job's refusal (or None), and the refusals
+    as ``(position, one-line error naming the job)``; ``one_config``: the jobs differ only in per-agent
+    numbers (one config, :func:`.compose.agent_columns`)."""
+
+    hydra_record: dict | None
+    groups: list[tuple[AgentTable, list[int]]]
+    returns: list[JobReturn]
+    errors: list[ConfigError | None]
+    refused: list[tuple[int, ConfigError]]
+    one_config: bool
+
+
+def _jobs(job_overrides: Sequence[Sequence[str]]) -> tuple[tuple[str, ...], ...]:
+    """A batch's jobs as a key."""
+    return tuple(tuple(job) for job in job_overrides)
 
 
 class _SearchLauncher(PopulationLauncher):
@@ -196,6 +256,20 @@ class PBTReplayLauncher(_SearchLauncher):
     retrained on fresh seeds."""
 
     settings_class = "ReplaySettings"
+
+    def _check_jobs(self, job_overrides: Sequence[Sequence[str]]) -> None:
+        """Refuse a job that sets a key the replayed schedule sets: its value would never be used."""
+        assert self.search is not None
+        scheduled = {key for _, values in self.search.schedule for key, _ in values}
+        for job in job_overrides:
+            for line in job:
+                key = line.partition("=")[0].lstrip("+~")
+                if key in scheduled:
+                    raise ConfigError(
+                        f"{line} is not allowed with hydra/launcher=pbt_replay: the replayed schedule sets "
+                        f"{', '.join(sorted(scheduled))} (agent {self.search.agent} of {self.search.run}); "
+                        f"expected no {key}= (sweep seed= and the keys the schedule leaves)"
+                    )
 
 
 class HalvingLauncher(_SearchLauncher):

@@ -87,7 +87,32 @@ class PopulationSweeper(Sweeper):
         A range override is taken out of the grid; every job then gets ``key=<value>``, drawn from
         the range with a generator keyed by the job's ``seed`` (the config's where the job sets
         none). A range is refused in one line unless the launcher is ``pbt`` and searches the key.
+        Every batch is then checked (:meth:`_check`): Hydra writes the sweep folder after this.
         """
+        batches = self._split(overrides, max_batch_size)
+        self._check(batches)
+        return batches
+
+    def _check(self, batches: list[list[list[str]]]) -> None:
+        """Every batch checked before the basic sweeper writes the sweep folder (its ``multirun.yaml``).
+
+        Each job's values (:meth:`_check_batch`), then what the launcher refuses of the batch (a
+        population launcher's :meth:`~.population_launcher.PopulationLauncher.check`): a refused
+        command writes nothing. Exits with one line.
+        """
+        launcher, start = self._launcher(), 0
+        for batch in batches:
+            self._check_batch(batch)
+            if hasattr(launcher, "check"):
+                try:
+                    launcher.check(batch, start)
+                except ConfigError as err:
+                    sys.exit(f"drone-train: error: {err}")
+            start += len(batch)
+        self._checked = {id(batch) for batch in batches}
+
+    def _split(self, overrides: list[Override], max_batch_size: int | None) -> list[list[list[str]]]:
+        """The batches, each range drawn per job (:meth:`split_arguments`)."""
         ranges = [_range(o, self._launcher()) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
         grid = [o for o in overrides if o.value_type != ValueType.INTERVAL_SWEEP]
         batches = basic_sweeper_class().split_arguments(grid, max_batch_size)
@@ -113,6 +138,11 @@ class PopulationSweeper(Sweeper):
         return self._basic.launcher.launcher
 
     def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
+        """The basic sweeper's check of a batch before launching it: done for every batch already."""
+        if id(batch) not in getattr(self, "_checked", set()):
+            self._check_batch(batch)
+
+    def _check_batch(self, batch: Sequence[Sequence[str]]) -> None:
         """Every job composes, and every job's values pass the config checks: a bad value in a
         sweep is one line before any job folder exists, not a failed job per value."""
         from drone_torchrl import migrations
