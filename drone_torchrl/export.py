@@ -58,11 +58,12 @@ from drone_torchrl.config import (
     check_values,
     run_config,
 )
+from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.dynamics import (
+    ACTION_DIM,
     ALPHA_LIMIT,
     HOVER_THRUST,
     STATE_DIM,
-    STATE_NAMES,
     X_LIMIT,
     Z_MAX,
     Z_MIN,
@@ -291,6 +292,12 @@ def observation_dim(policy: DeterministicPolicy) -> int:
     return next(m for m in policy.modules() if isinstance(m, nn.Linear)).in_features
 
 
+def _observation_names(policy: DeterministicPolicy) -> tuple[str, ...]:
+    """Each entry of the policy's observations (:func:`~drone_torchrl.envs.disturbances.observation_names`)."""
+    observed = (observation_dim(policy) - STATE_DIM) // ACTION_DIM
+    return disturbances.observation_names({"observed_actions": observed})
+
+
 # ------------------------------------------------------------------------------- writing
 @contextlib.contextmanager
 def _quiet_onnx_exporter() -> Iterator[None]:
@@ -320,8 +327,7 @@ def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
     """What the ONNX model says about itself (its metadata_props)."""
     dtype = str(_dtype(policy)).removeprefix("torch.")
     return {
-        ONNX_INPUT: f"{dtype} [B, {observation_dim(policy)}]: {', '.join(STATE_NAMES)}"
-        + (", then the last commands (newest first)" if observation_dim(policy) > STATE_DIM else ""),
+        ONNX_INPUT: f"{dtype} [B, {observation_dim(policy)}]: {', '.join(_observation_names(policy))}",
         ONNX_OUTPUT: f"{dtype} [B, 2]: left, right motor commands, fractions of the weight",
         "distribution": policy.distribution,
         "max_thrust": "none" if policy.max_thrust is None else repr(float(policy.max_thrust)),

@@ -26,7 +26,7 @@ from omegaconf.errors import GrammarParseError
 from drone_torchrl import loggers
 from drone_torchrl.checks import FLOAT32_MAX, INT64_MAX, ConfigError
 from drone_torchrl.config import _every_key, _option_plugins, _options, config_dir, schema_keys, validate
-from drone_torchrl.envs import disturbances, drone_env, dynamics
+from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.kernels import ops
 from drone_torchrl.schema import Rule
 from drone_torchrl.training import memory_estimate
@@ -148,12 +148,12 @@ def _between(
 # the arena's relative to the defaults of the others (x_limit 2, zone_x_limit 0.8, z 0..4, zone
 # 2.2..3.2).
 ENV_RANGES = {
-    "env.mass": _between(drone_env.MIN_MASS, drone_env.MAX_MASS),
-    "env.motor_distance": _between(drone_env.MIN_MOTOR_DISTANCE, drone_env.MAX_MOTOR_DISTANCE),
-    "env.gravity": _between(0.0, drone_env.MAX_GRAVITY, low_open=True),
-    "env.dt": _between(0.0, drone_env.MAX_DT, low_open=True),
-    "env.max_thrust": st.one_of(st.none(), _between(0.0, drone_env.MAX_THRUST, low_open=True)),
-    "env.floor_tolerance": _between(0.0, drone_env.MAX_FLOOR_TOLERANCE),
+    "env.mass": _between(dynamics.MIN_MASS, dynamics.MAX_MASS),
+    "env.motor_distance": _between(dynamics.MIN_MOTOR_DISTANCE, dynamics.MAX_MOTOR_DISTANCE),
+    "env.gravity": _between(0.0, dynamics.MAX_GRAVITY, low_open=True),
+    "env.dt": _between(0.0, dynamics.MAX_DT, low_open=True),
+    "env.max_thrust": st.one_of(st.none(), _between(0.0, dynamics.MAX_THRUST, low_open=True)),
+    "env.floor_tolerance": _between(0.0, dynamics.MAX_FLOOR_TOLERANCE),
     "env.max_steps": st.integers(min_value=1, max_value=INT64_MAX),
     "env.reset_mode": st.sampled_from(dynamics.RESET_MODES),
     "env.x_limit": _between(dynamics.ZONE_X_LIMIT, dynamics.MAX_ARENA),

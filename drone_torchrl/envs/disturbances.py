@@ -109,8 +109,8 @@ class Disturbance:
 
     @property
     def observation_dim(self) -> int:
-        """Entries of an observation, the 6 state entries and 2 per observed past command."""
-        return dynamics.STATE_DIM + ACTION_DIM * self.observed_actions
+        """The observation's width: ``len(observation_names(self))``."""
+        return len(observation_names(self))
 
 
 # Upper bounds: a mass spread of 1 would allow a massless drone, a gain spread of 1 a dead motor.
@@ -168,6 +168,21 @@ def make(disturbance: Disturbance | Mapping[str, Any] | None) -> Disturbance:
         return Disturbance(**disturbance)
     except ValueError as err:  # named as the env argument's field: disturbance.wind=...
         raise ValueError(f"disturbance.{err}") from None
+
+
+def observation_names(disturbance: Disturbance | Mapping[str, Any] | None = None) -> tuple[str, ...]:
+    """What each entry of the policy's observation is, in order: the one home of its layout.
+
+    The state's six entries (``dynamics.STATE_NAMES``), then, with ``observed_actions=k``, the last
+    ``k`` commands newest first: ``a_l[t-1], a_r[t-1], ..., a_r[t-k]``. Its length is the width the
+    env's specs, the Gym twin, the networks, the memory estimate, the export and the kernels use
+    (the loader compares the kernels' ``observation_dim`` with it). ``disturbance``: what
+    :func:`make` takes (a config's ``env.disturbance`` too).
+    """
+    commands = range(1, make(disturbance).observed_actions + 1)
+    return dynamics.STATE_NAMES + tuple(
+        f"{motor}[t-{j}]" for j in commands for motor in dynamics.ACTION_NAMES
+    )
 
 
 class EpisodeDraw(NamedTuple):

@@ -158,8 +158,9 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
         return lib
 
 
-_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_env_consts", "dk_cuda_scratch_size", "dk_cuda_rollout",
+_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim", "dk_cuda_scratch_size", "dk_cuda_rollout",
                   "dk_cuda_reinforce")  # fmt: skip
+_NAMES = ("dk_env_constants", "dk_disturbance_constants", "dk_cuda_error")
 
 
 def _load(path: Path, double: bool) -> ctypes.CDLL:
@@ -167,11 +168,40 @@ def _load(path: Path, double: bool) -> ctypes.CDLL:
     for function in _INT64_RESULTS:
         if hasattr(lib, function):
             getattr(lib, function).restype = ctypes.c_int64
-    if hasattr(lib, "dk_cuda_error"):
-        lib.dk_cuda_error.restype = ctypes.c_char_p
+    for function in _NAMES:
+        if hasattr(lib, function):
+            getattr(lib, function).restype = ctypes.c_char_p
     if lib.dk_real_bytes() != (8 if double else 4):
         raise OSError(f"{path} was built for another precision")
+    _check_layout(lib, path)
     return lib
+
+
+def _check_layout(lib: ctypes.CDLL, path: Path) -> None:
+    """Raise OSError unless the kernels read the constants and see the observation Python packs.
+
+    The kernels' constants are offsets into the arrays :mod:`.ops` packs: each name at its offset
+    (``DK_ENV_CONSTANTS`` against ``ops.ENV_CONSTANTS``, which DroneParams' fields begin, and the
+    disturbance's), and the observation's width for every command memory.
+    """
+    from drone_torchrl.envs import disturbances
+    from drone_torchrl.kernels import ops  # it imports this module: here, not at the top
+
+    for function, packed in (
+        ("dk_env_constants", ops.ENV_CONSTANTS),
+        ("dk_disturbance_constants", ops.DISTURBANCE_CONSTANTS),
+    ):
+        read = tuple(getattr(lib, function)().decode().split(",")[:-1])
+        if read != packed:
+            raise OSError(
+                f"{path.name} reads the constants {read} where drone_torchrl packs {packed} (drone_kernels.cpp's list)"
+            )
+    for k in range(disturbances.MAX_STEPS_BACK + 1):
+        width = len(disturbances.observation_names({"observed_actions": k}))
+        if lib.dk_observation_dim(k) != width:
+            raise OSError(
+                f"{path.name} sees {lib.dk_observation_dim(k)} observation entries with {k} observed commands; drone_torchrl {width}"
+            )
 
 
 def nvcc() -> str | None:
