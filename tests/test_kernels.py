@@ -322,8 +322,12 @@ def test_the_kernels_read_every_constant_python_packs():
     assert env["floor"] == pytest.approx(-0.1) and env["max_thrust"] == env["squash_high"] == 2.0
     assert env["reset_air"] == 1.0 and env["arm_over_inertia"] == pytest.approx(0.5 / (0.4 * 0.25))
     assert env["bounds"] == 1.0 and env["zone_x_limit"] == 0.8 and env["zone_z_centre"] == pytest.approx(2.7)
-    paper = dict(zip(ops.ENV_CONSTANTS, ops.env_constants(dynamics.DroneParams(), None).tolist(), strict=True))
-    assert paper["max_thrust"] == paper["squash_high"] == -1.0 and paper["bounds"] == paper["reset_air"] == 0.0
+    paper = dict(
+        zip(ops.ENV_CONSTANTS, ops.env_constants(dynamics.DroneParams(), None).tolist(), strict=True)
+    )
+    assert (
+        paper["max_thrust"] == paper["squash_high"] == -1.0 and paper["bounds"] == paper["reset_air"] == 0.0
+    )
 
 
 def test_a_library_reading_other_constants_or_observations_is_refused_at_load(monkeypatch):
@@ -343,5 +347,3 @@ def test_a_library_reading_other_constants_or_observations_is_refused_at_load(mo
     monkeypatch.setattr(dynamics, "STATE_NAMES", (*dynamics.STATE_NAMES, "extra"))
     with pytest.raises(OSError, match="sees 6 observation entries with 0 observed commands; drone_torchrl 7"):
         build._load(path, double=False)
-
-
