@@ -19,7 +19,7 @@ from drone_torchrl import algorithms, loggers, migrations, schema, sweep_folder
 from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
-from drone_torchrl.envs.dynamics import PARAM_NAMES, DroneParams
+from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.schema import Rule
 from drone_torchrl.training import memory_estimate
 

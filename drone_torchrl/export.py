@@ -59,17 +59,8 @@ from drone_torchrl.config import (
     run_config,
 )
 from drone_torchrl.envs import disturbances
-from drone_torchrl.envs.dynamics import (
-    ACTION_DIM,
-    ALPHA_LIMIT,
-    HOVER_THRUST,
-    STATE_DIM,
-    X_LIMIT,
-    Z_MAX,
-    Z_MIN,
-    ZONE_Z_CENTRE,
-    clamp_action,
-)
+from drone_torchrl.envs.dynamics import ACTION_DIM, HOVER_THRUST, STATE_DIM, clamp_action
+from drone_torchrl.envs.params import ALPHA_LIMIT, X_LIMIT, Z_MAX, Z_MIN, ZONE_Z_CENTRE
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR
 from drone_torchrl.io.storage import name_too_long, unwritable, write_atomically
 from drone_torchrl.modules.factory import build_actor, build_policy

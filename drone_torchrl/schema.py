@@ -37,7 +37,8 @@ from omegaconf import MISSING, OmegaConf
 
 from drone_torchrl.checks import INT64_MAX, ConfigError, check_choice, check_number, check_sizes
 from drone_torchrl.envs.disturbances import MAX_GAIN_SPREAD, MAX_MASS_SPREAD, MAX_STEPS_BACK, Disturbance
-from drone_torchrl.envs.dynamics import DTYPES, PARAM, DroneParams
+from drone_torchrl.envs.dynamics import DTYPES
+from drone_torchrl.envs.params import PARAM, DroneParams
 from drone_torchrl.migrations import BACKENDS, REFERENCE
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS, MAX_DISTRIBUTION_EPS
 

@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from drone_torchrl.envs import dynamics
+from drone_torchrl.envs.params import PARAM_NAMES
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.episodes import counted_metrics, episode_stats
 from drone_torchrl.kernels import build, library, ops
@@ -316,7 +317,7 @@ def test_the_build_is_cached_per_source_and_machine(tmp_path):
 def test_the_kernels_read_every_constant_python_packs():
     # The kernels' own list (its order: their offsets) is Python's: DroneParams' fields first.
     read = tuple(library().dk_env_constants().decode().split(",")[:-1])
-    assert read == ops.ENV_CONSTANTS and read[: len(dynamics.PARAM_NAMES)] == dynamics.PARAM_NAMES
+    assert read == ops.ENV_CONSTANTS and read[: len(PARAM_NAMES)] == PARAM_NAMES
     params = dynamics.DroneParams(max_thrust=2.0, floor_tolerance=0.1, bounds="strict")
     env = dict(zip(ops.ENV_CONSTANTS, ops.env_constants(params, 2.0, "air").tolist(), strict=True))
     assert env["floor"] == pytest.approx(-0.1) and env["max_thrust"] == env["squash_high"] == 2.0

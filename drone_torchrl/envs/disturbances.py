@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 import torch
 
 from drone_torchrl.checks import as_override, is_number
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import dynamics, params
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, DroneParams, X, Z
 from drone_torchrl.training import rng
 
@@ -130,7 +130,7 @@ MAX_MAGNITUDES = {
     "gust": MAX_FORCE,
     "gust_time": MAX_TIME,
     "motor_lag": MAX_TIME,
-    "noise_position": dynamics.MAX_ARENA,
+    "noise_position": params.MAX_ARENA,
     "noise_angle": math.pi,
 }
 FIELDS = tuple(f.name for f in fields(Disturbance))

@@ -16,17 +16,8 @@ from torchrl.envs import EnvBase
 
 from drone_torchrl.checks import INT64_MAX, as_override
 from drone_torchrl.envs import disturbances, dynamics
-from drone_torchrl.envs.dynamics import (
-    ACTION_DIM,
-    DTYPES,
-    PARAM,
-    PARAM_NAMES,
-    RESET_MODES,
-    STATE_DIM,
-    Bound,
-    DroneParams,
-    TerminationCause,
-)
+from drone_torchrl.envs.dynamics import ACTION_DIM, DTYPES, RESET_MODES, STATE_DIM, TerminationCause
+from drone_torchrl.envs.params import PARAM, PARAM_NAMES, Bound, DroneParams
 
 RENDER_MODES = (None, "human", "rgb_array")
 
