@@ -8,7 +8,7 @@ Each ``conf/`` file lists its schema first in its defaults list (``/schema_confi
 schema lacks fails the composition, and a schema key a YAML leaves unset stays ``???`` (refused in
 one line by :func:`drone_torchrl.config.check_keys`). The values themselves stay in the YAML files
 with their comments; the dataclasses hold no defaults, but the env's physics and arena, whose
-defaults are :class:`~drone_torchrl.envs.dynamics.DroneParams`' (:class:`EnvConf`).
+defaults are :class:`~drone_torchrl.envs.params.DroneParams`' (:class:`EnvConf`).
 
 Every field is typed ``Any`` on purpose: OmegaConf's typed nodes convert what they can (``off`` to
 ``False``, ``1`` to ``1.0``, ``123`` to ``"123"``) and refuse the rest with a multi-line error during
@@ -245,38 +245,38 @@ class DisturbanceConf:
     observed_actions: Any = an_integer(low=0, high=MAX_STEPS_BACK, added=_NOMINAL.observed_actions)
 
 
-def _params_node() -> type:
-    """The env node's keys that are :class:`~.dynamics.DroneParams`' fields, with its defaults.
+def _param_key(f: dataclasses.Field) -> tuple[str, Any, Any]:
+    """The env node's key of :class:`~drone_torchrl.envs.params.DroneParams`' field ``f``, its default too.
 
-    The env checks their values itself (``make_params``); a choice (``bounds``) is checked here as
+    The env checks its value itself (``make_params``); a choice (``bounds``) is checked here as
     well. A field that came after the first runs (its ``Param.new``) is ``added`` as its default.
     """
-
-    def key(f: dataclasses.Field) -> Any:
-        param = f.metadata[PARAM]
-        added = {"added": f.default} if param.new else {}
-        rule = Rule("choice", choices=param.choices, **added) if param.choices else Rule(**added)
-        return field(default=f.default, metadata={RULE: rule})
-
-    return dataclasses.make_dataclass(
-        "DroneParamsConf", [(f.name, Any, key(f)) for f in dataclasses.fields(DroneParams)]
-    )
+    param = f.metadata[PARAM]
+    added = {"added": f.default} if param.new else {}
+    rule = Rule("choice", choices=param.choices, **added) if param.choices else Rule(**added)
+    return f.name, Any, field(default=f.default, metadata={RULE: rule})
 
 
-@dataclass
-class EnvConf(_params_node()):
-    """``env.*``: the DroneEnv arguments (the env checks them itself).
+EnvConf = dataclasses.make_dataclass(
+    "EnvConf",
+    [
+        *map(_param_key, dataclasses.fields(DroneParams)),
+        ("max_steps", Any, free()),
+        ("reset_mode", Any, free()),
+        ("dtype", Any, one_of(tuple(DTYPES), added="float32")),
+        ("disturbance", Any, open_section(DisturbanceConf)),
+        ("num_workers", Any, an_integer(low=0)),
+    ],
+    namespace={
+        "__module__": __name__,
+        "__doc__": """``env.*``: the DroneEnv arguments (the env checks them itself).
 
-    The drone's physics and arena are :class:`~.dynamics.DroneParams`' fields (their defaults
-    too: ``conf/env/drone.yaml`` does not restate them). ``dtype`` came after the first runs: a
-    checkpoint or run folder without it gets ``float32``.
-    """
-
-    max_steps: Any = free()
-    reset_mode: Any = free()
-    dtype: Any = one_of(tuple(DTYPES), added="float32")
-    disturbance: Any = open_section(DisturbanceConf)
-    num_workers: Any = an_integer(low=0)
+    The drone's physics and arena are :class:`~drone_torchrl.envs.params.DroneParams`' fields, their
+    defaults too (``conf/env/drone.yaml`` does not restate them). ``dtype`` came after the first
+    runs: a checkpoint or run folder without it gets ``float32``.
+    """,
+    },
+)
 
 
 @dataclass

@@ -109,7 +109,7 @@ class Disturbance:
 
     @property
     def observation_dim(self) -> int:
-        """The observation's width: ``len(observation_names(self))``."""
+        """Entries of an observation, ``len(observation_names(self))``."""
         return len(observation_names(self))
 
 

@@ -66,8 +66,8 @@ def _check_range(
 def make_params(**values: Any) -> DroneParams:
     """Validate the physical and arena arguments shared by both envs and bundle them.
 
-    Each field of :class:`DroneParams` left out is its default; each is checked in field order
-    against its :class:`~.dynamics.Param` (a bound named by an earlier field is that field's checked
+    Each field of :class:`~drone_torchrl.envs.params.DroneParams` left out is its default; each is
+    checked in field order against its :class:`~drone_torchrl.envs.params.Param` (a bound named by an earlier field is that field's checked
     value). A ValueError names the first argument out of range.
     """
     unknown = sorted(set(values) - set(PARAM_NAMES))
@@ -168,6 +168,7 @@ class DroneEnv(EnvBase):
     5      ``alpha_dot``  roll rate (rad/s)                                none
     =====  =============  ===============================================  =====================================================
 
+    Its layout, the observed commands included: :func:`~.disturbances.observation_names`.
     Also in every reset and step output: ``"termination_cause"`` (int64, ``[*batch, 1]``, a
     :class:`~.dynamics.TerminationCause` code) and ``"step_count"`` (int64, ``[*batch, 1]``).
 
@@ -215,11 +216,11 @@ class DroneEnv(EnvBase):
     ## Arguments
 
     - ``batch_size`` (list of int, default ``[]``): number of drones simulated together.
-    - ``params`` (a :class:`~.dynamics.DroneParams`, default the paper's) and any of its fields as
+    - ``params`` (a :class:`~drone_torchrl.envs.params.DroneParams`, default the paper's) and any of its fields as
       keywords (``max_thrust=1.0``, ``zone_x_limit=0.6``; a keyword overrides ``params``' field):
       the drone's physics (``mass``, ``motor_distance``, ``gravity``, ``dt``, ``max_thrust``,
       ``floor_tolerance``) and the arena (the domain, the target zone and ``bounds``). Their
-      defaults, units and ranges are the fields' (:class:`~.dynamics.DroneParams`, the one home).
+      defaults, units and ranges are the fields' (:class:`~drone_torchrl.envs.params.DroneParams`, the one home).
       Bounds are compared in ``dtype``: in float32 the nearest float32 to 0.8 is "on" the bound
       0.8. The paper's public code differs from its text: ``zone_x_limit=0.6 bounds=strict dtype=float64``.
     - ``max_steps`` (int >= 1, default 300): truncation length.

@@ -61,7 +61,7 @@ class Param:
 
     Attributes:
         doc: its meaning and unit.
-        low, high: its bounds (:data:`Bound`), ``low_open``/``high_open``: the bound itself excluded.
+        low, high: its bounds (a ``Bound``), ``low_open``/``high_open``: the bound itself excluded.
         optional: ``None`` is allowed too.
         choices: the values a string field allows (the kernels receive the value's index).
         new: came after the first runs; a saved config without it behaved as the default.
@@ -200,5 +200,5 @@ class DroneParams:
         return self.mass * self.gravity
 
 
-#: The env's physical and arena arguments: :class:`DroneParams`' fields, in order.
+#: The names of :class:`DroneParams`' fields in order (the env's physics and arena arguments).
 PARAM_NAMES = tuple(f.name for f in fields(DroneParams))

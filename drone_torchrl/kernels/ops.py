@@ -27,7 +27,8 @@ from typing import Any
 
 import torch
 
-from drone_torchrl.envs import disturbances, dynamics, params
+from drone_torchrl.envs import disturbances, dynamics
+from drone_torchrl.envs.params import PARAM, PARAM_NAMES, DroneParams
 from drone_torchrl.kernels.build import cuda_library, library, unavailable_reason
 
 #: The code of each activation as the kernels take it (``activation`` argument).
@@ -83,20 +84,20 @@ def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, s
 
 
 #: The drone's constants in the kernels' order (``DK_ENV_CONSTANTS`` in drone_kernels.cpp, whose
-#: names the loader compares with these): :class:`~drone_torchrl.envs.dynamics.DroneParams`' fields,
+#: names the loader compares with these): :class:`~drone_torchrl.envs.params.DroneParams`' fields,
 #: the values the kernels read derived from them (its properties), then what is not the drone's.
 ENV_CONSTANTS = (
-    *params.PARAM_NAMES,
+    *PARAM_NAMES,
     *("weight", "arm_over_inertia", "floor", "zone_z_centre"),
     *("reward_zone", "reward_alive", "reward_terminated", "reset_noise"),
     "squash_high",  # the TanhNormal head's upper bound; < 0: the Normal head
     "reset_air",  # 1: start states drawn around the zone's centre, 0: on the floor
 )
-_CHOICES = {f.name: f.metadata[params.PARAM].choices for f in fields(params.DroneParams)}
+_CHOICES = {f.name: f.metadata[PARAM].choices for f in fields(DroneParams)}
 
 
 def env_constants(
-    params: dynamics.DroneParams,
+    params: DroneParams,
     squash_high: float | None,
     reset_mode: str = "floor",
     device: torch.device | str = "cpu",
