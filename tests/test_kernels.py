@@ -339,9 +339,9 @@ def test_a_library_reading_other_constants_or_observations_is_refused_at_load(mo
     """
     path = Path(library()._name)
     assert build._load(path, double=False) is not None  # as built: it loads
-    names = list(ops.ENV_CONSTANTS)
+    names = list(build.ENV_CONSTANTS)
     names[1], names[2] = names[2], names[1]
-    monkeypatch.setattr(ops, "ENV_CONSTANTS", tuple(names))
+    monkeypatch.setattr(build, "ENV_CONSTANTS", tuple(names))
     with pytest.raises(OSError, match=r"reads the constants \('mass', 'motor_distance', 'gravity'"):
         build._load(path, double=False)
     monkeypatch.undo()

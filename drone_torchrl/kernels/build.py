@@ -44,6 +44,8 @@ import tempfile
 import threading
 from pathlib import Path
 
+from drone_torchrl.envs.params import PARAM_NAMES
+
 SOURCE = Path(__file__).with_name("drone_kernels.cpp")
 CACHE_ENV = "DRONE_TORCHRL_CACHE"
 # -ffp-contract=fast lets the compiler fuse a*b+c (as PyTorch's own CPU kernels do); no -ffast-math:
@@ -59,6 +61,18 @@ CUDA_ARCHS = ("-gencode=arch=compute_80,code=sm_80", "-gencode=arch=compute_90,c
 # -cudart static: the library needs only the driver at run time, not a CUDA toolkit.
 CUDA_FLAGS = ("-x", "cu", "-O3", "-std=c++17", "-shared", "-Xcompiler", "-fPIC", "-cudart", "static",
               "-diag-suppress", "128,177", *CUDA_ARCHS)  # fmt: skip
+
+#: The drone's constants in the kernels' order, which :func:`~.ops.env_constants` packs and a
+#: library's ``DK_ENV_CONSTANTS`` must name when it loads: the fields of
+#: :class:`~drone_torchrl.envs.params.DroneParams`, the values the kernels read derived from them
+#: (its properties), then what is not the drone's.
+ENV_CONSTANTS = (
+    *PARAM_NAMES,
+    *("weight", "arm_over_inertia", "floor", "zone_z_centre"),
+    *("reward_zone", "reward_alive", "reward_terminated", "reset_noise"),
+    "squash_high",  # the TanhNormal head's upper bound; < 0: the Normal head
+    "reset_air",  # 1: start states drawn around the zone's centre, 0: on the floor
+)
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -181,15 +195,15 @@ def _check_layout(lib: ctypes.CDLL, path: Path) -> None:
     """Raise OSError unless the kernels read the constants and see the observation Python packs.
 
     The kernels' constants are offsets into the arrays :mod:`.ops` packs: each name at its offset
-    (``DK_ENV_CONSTANTS`` against ``ops.ENV_CONSTANTS``, which DroneParams' fields begin, and the
-    disturbance's), and the observation's width for every command memory.
+    (``DK_ENV_CONSTANTS`` against :data:`ENV_CONSTANTS`, which DroneParams' fields begin, and the
+    disturbance's against ``disturbances.FIELDS``), and the observation's width for every command
+    memory (``disturbances.observation_names``).
     """
-    from drone_torchrl.envs import disturbances
-    from drone_torchrl.kernels import ops  # it imports this module: here, not at the top
+    from drone_torchrl.envs import disturbances  # torch: only once a library loads
 
     for function, packed in (
-        ("dk_env_constants", ops.ENV_CONSTANTS),
-        ("dk_disturbance_constants", ops.DISTURBANCE_CONSTANTS),
+        ("dk_env_constants", ENV_CONSTANTS),
+        ("dk_disturbance_constants", disturbances.FIELDS),
     ):
         read = tuple(getattr(lib, function)().decode().split(",")[:-1])
         if read != packed:

@@ -28,8 +28,8 @@ from typing import Any
 import torch
 
 from drone_torchrl.envs import disturbances, dynamics
-from drone_torchrl.envs.params import PARAM, PARAM_NAMES, DroneParams
-from drone_torchrl.kernels.build import cuda_library, library, unavailable_reason
+from drone_torchrl.envs.params import PARAM, DroneParams
+from drone_torchrl.kernels.build import ENV_CONSTANTS, cuda_library, library, unavailable_reason
 
 #: The code of each activation as the kernels take it (``activation`` argument).
 ACTIVATION_CODES = {"tanh": 0, "relu": 1, "elu": 2}
@@ -83,16 +83,6 @@ def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, s
         raise RuntimeError(f"ops.{function} on {device}: {lib.dk_cuda_error(_c64(code)).decode()}")
 
 
-#: The drone's constants in the kernels' order (``DK_ENV_CONSTANTS`` in drone_kernels.cpp, whose
-#: names the loader compares with these): :class:`~drone_torchrl.envs.params.DroneParams`' fields,
-#: the values the kernels read derived from them (its properties), then what is not the drone's.
-ENV_CONSTANTS = (
-    *PARAM_NAMES,
-    *("weight", "arm_over_inertia", "floor", "zone_z_centre"),
-    *("reward_zone", "reward_alive", "reward_terminated", "reset_noise"),
-    "squash_high",  # the TanhNormal head's upper bound; < 0: the Normal head
-    "reset_air",  # 1: start states drawn around the zone's centre, 0: on the floor
-)
 _CHOICES = {f.name: f.metadata[PARAM].choices for f in fields(DroneParams)}
 
 
