@@ -5,7 +5,7 @@
 (:class:`~drone_torchrl.envs.drone_env.DroneEnv`, ``make_params``), the config schema's ``env.*``
 keys with their defaults and the ``--help`` page's lines (:mod:`drone_torchrl.schema`,
 :mod:`drone_torchrl.apps.help`) and the fast engine's constants
-(:data:`drone_torchrl.kernels.ops.ENV_CONSTANTS`, compared with the kernels' own list when they
+(:data:`drone_torchrl.kernels.build.ENV_CONSTANTS`, compared with the kernels' own list when they
 load). Torch-free, so that a command's ``--help`` can read it.
 """
 
@@ -104,7 +104,7 @@ class DroneParams:
     meaning and range; from them follow :func:`~drone_torchrl.envs.drone_env.make_params` (the
     checks), :class:`~drone_torchrl.envs.drone_env.DroneEnv`'s keyword arguments, the config
     schema's ``env.*`` keys (their defaults too) and the fast engine's constants
-    (:data:`drone_torchrl.kernels.ops.ENV_CONSTANTS`). The defaults are the paper's (Table 2.1);
+    (:data:`drone_torchrl.kernels.build.ENV_CONSTANTS`). The defaults are the paper's (Table 2.1);
     the arena is the domain, the target zone and how a state on a bound counts.
     """
 

@@ -545,7 +545,7 @@ DK_HD inline void weight_grad(const V* d, int d_stride, const V* in, int in_stri
 // disturbances (envs/disturbances.py).
 
 // The env constants and the disturbance's magnitudes, in the order drone_torchrl/kernels/ops.py
-// packs them (ops.ENV_CONSTANTS: DroneParams' fields, bounds as 1 for strict and max_thrust < 0 for
+// packs them (build.ENV_CONSTANTS: DroneParams' fields, bounds as 1 for strict and max_thrust < 0 for
 // unbounded, then the values derived from them and the rest; ops.DISTURBANCE_CONSTANTS:
 // disturbances.FIELDS). One list each: the enums below and the names dk_env_constants() and
 // dk_disturbance_constants() give, which the loader (build.py) compares with Python's.

@@ -92,7 +92,7 @@ def env_constants(
     reset_mode: str = "floor",
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """The drone's constants (:data:`ENV_CONSTANTS`, float64): its physics and arena from ``params``.
+    """The drone's constants (:data:`~.build.ENV_CONSTANTS`, float64): its physics and arena from ``params``.
 
     A choice is its index (``bounds``: 1 is strict), ``None`` is -1 (``max_thrust``: unbounded).
     ``squash_high``: the TanhNormal head's upper bound (actions in ``[0, squash_high]``), or None
