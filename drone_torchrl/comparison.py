@@ -34,6 +34,7 @@ from drone_torchrl.config import (
 from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.heuristic import PDController
+from drone_torchrl.envs.params import DroneParams
 from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
 from drone_torchrl.io.storage import write_atomically, write_csv, write_figure
 from drone_torchrl.io.streams import console
@@ -74,7 +75,7 @@ TABLE_COLUMNS = (
 
 
 def plot_trajectory(
-    rollout: TensorDictBase, path: Path, title: str, params: dynamics.DroneParams | None = None
+    rollout: TensorDictBase, path: Path, title: str, params: DroneParams | None = None
 ) -> Path:
     """Plot the first episode's x-z path over the domain and target zone, and both thrusts over time.
 
@@ -89,7 +90,7 @@ def plot_trajectory(
     valid = valid_steps(first.get(("next", "done"))).squeeze(-1)
     states = torch.cat([first.get("observation")[:1], first.get(("next", "observation"))[valid]]).numpy()
     actions = first.get("action")[valid].numpy()
-    p = dynamics.DroneParams() if params is None else params
+    p = DroneParams() if params is None else params
     fig, (ax_path, ax_thrust) = plt.subplots(1, 2, figsize=(11, 4.5))
     ax_path.add_patch(
         plt.Rectangle(

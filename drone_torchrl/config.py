@@ -19,7 +19,7 @@ from drone_torchrl import algorithms, loggers, migrations, schema, sweep_folder
 from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
-from drone_torchrl.envs.dynamics import DroneParams
+from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.schema import Rule
 from drone_torchrl.training import memory_estimate
 
@@ -720,15 +720,9 @@ def run_config(saved: dict[str, Any]) -> DictConfig:
 _ABSENT = object()
 
 
-# The DroneEnv arguments that describe the episode rather than the drone, the precision and the
-# disturbances (drawn per episode around the nominal drone): the others are DroneParams' (the
-# physics and the arena, what the dynamics need).
-NOT_PARAMS = ("max_steps", "reset_mode", "dtype", "disturbance")
-
-
 def physics_params(kwargs: dict[str, Any]) -> DroneParams:
     """The validated physical parameters and arena among ``DroneEnv`` arguments (what the dynamics need)."""
-    return make_params(**{k: v for k, v in kwargs.items() if k not in NOT_PARAMS})
+    return make_params(**{k: v for k, v in kwargs.items() if k in PARAM_NAMES})
 
 
 def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:

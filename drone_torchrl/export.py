@@ -58,17 +58,9 @@ from drone_torchrl.config import (
     check_values,
     run_config,
 )
-from drone_torchrl.envs.dynamics import (
-    ALPHA_LIMIT,
-    HOVER_THRUST,
-    STATE_DIM,
-    STATE_NAMES,
-    X_LIMIT,
-    Z_MAX,
-    Z_MIN,
-    ZONE_Z_CENTRE,
-    clamp_action,
-)
+from drone_torchrl.envs import disturbances
+from drone_torchrl.envs.dynamics import ACTION_DIM, HOVER_THRUST, STATE_DIM, clamp_action
+from drone_torchrl.envs.params import ALPHA_LIMIT, X_LIMIT, Z_MAX, Z_MIN, ZONE_Z_CENTRE
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR
 from drone_torchrl.io.storage import name_too_long, unwritable, write_atomically
 from drone_torchrl.modules.factory import build_actor, build_policy
@@ -291,6 +283,12 @@ def observation_dim(policy: DeterministicPolicy) -> int:
     return next(m for m in policy.modules() if isinstance(m, nn.Linear)).in_features
 
 
+def _observation_names(policy: DeterministicPolicy) -> tuple[str, ...]:
+    """Each entry of the policy's observations (:func:`~drone_torchrl.envs.disturbances.observation_names`)."""
+    observed = (observation_dim(policy) - STATE_DIM) // ACTION_DIM
+    return disturbances.observation_names({"observed_actions": observed})
+
+
 # ------------------------------------------------------------------------------- writing
 @contextlib.contextmanager
 def _quiet_onnx_exporter() -> Iterator[None]:
@@ -320,8 +318,7 @@ def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
     """What the ONNX model says about itself (its metadata_props)."""
     dtype = str(_dtype(policy)).removeprefix("torch.")
     return {
-        ONNX_INPUT: f"{dtype} [B, {observation_dim(policy)}]: {', '.join(STATE_NAMES)}"
-        + (", then the last commands (newest first)" if observation_dim(policy) > STATE_DIM else ""),
+        ONNX_INPUT: f"{dtype} [B, {observation_dim(policy)}]: {', '.join(_observation_names(policy))}",
         ONNX_OUTPUT: f"{dtype} [B, 2]: left, right motor commands, fractions of the weight",
         "distribution": policy.distribution,
         "max_thrust": "none" if policy.max_thrust is None else repr(float(policy.max_thrust)),

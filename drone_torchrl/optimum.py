@@ -34,13 +34,13 @@ from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import dynamics, params
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, Z_DOT, DroneParams, Z
 from drone_torchrl.envs.heuristic import PDGains, pd_action
 from drone_torchrl.envs.rollout import Episodes, fly_reference
 
-ZONE_Z = (dynamics.ZONE_Z_MIN, dynamics.ZONE_Z_MAX)
-DOMAIN_Z = (dynamics.Z_MIN, dynamics.Z_MAX)
+ZONE_Z = (params.ZONE_Z_MIN, params.ZONE_Z_MAX)
+DOMAIN_Z = (params.Z_MIN, params.Z_MAX)
 # The reward of a step in the zone beyond that of any other surviving step (10 - 1).
 ZONE_BONUS = dynamics.REWARD_IN_ZONE - dynamics.REWARD_ALIVE
 FLOOR_START = (0.0, 0.0)  # (z, z_dot) of every floor start

@@ -7,7 +7,8 @@ Each ``conf/`` file lists its schema first in its defaults list (``/schema_confi
 ``/schema_algo_ppo@algo``...), so Hydra composes every config onto its dataclass: a YAML key the
 schema lacks fails the composition, and a schema key a YAML leaves unset stays ``???`` (refused in
 one line by :func:`drone_torchrl.config.check_keys`). The values themselves stay in the YAML files
-with their comments; the dataclasses hold no defaults.
+with their comments; the dataclasses hold no defaults, but the env's physics and arena, whose
+defaults are :class:`~drone_torchrl.envs.params.DroneParams`' (:class:`EnvConf`).
 
 Every field is typed ``Any`` on purpose: OmegaConf's typed nodes convert what they can (``off`` to
 ``False``, ``1`` to ``1.0``, ``123`` to ``"123"``) and refuse the rest with a multi-line error during
@@ -36,17 +37,8 @@ from omegaconf import MISSING, OmegaConf
 
 from drone_torchrl.checks import INT64_MAX, ConfigError, check_choice, check_number, check_sizes
 from drone_torchrl.envs.disturbances import MAX_GAIN_SPREAD, MAX_MASS_SPREAD, MAX_STEPS_BACK, Disturbance
-from drone_torchrl.envs.dynamics import (
-    ALPHA_LIMIT,
-    BOUNDS_MODES,
-    DTYPES,
-    X_LIMIT,
-    Z_MAX,
-    Z_MIN,
-    ZONE_X_LIMIT,
-    ZONE_Z_MAX,
-    ZONE_Z_MIN,
-)
+from drone_torchrl.envs.dynamics import DTYPES
+from drone_torchrl.envs.params import PARAM, DroneParams
 from drone_torchrl.migrations import BACKENDS, REFERENCE
 from drone_torchrl.modules.policy import ACTIVATIONS, DISTRIBUTIONS, MAX_DISTRIBUTION_EPS
 
@@ -253,34 +245,38 @@ class DisturbanceConf:
     observed_actions: Any = an_integer(low=0, high=MAX_STEPS_BACK, added=_NOMINAL.observed_actions)
 
 
-@dataclass
-class EnvConf:
-    """``env.*``: the DroneEnv arguments (the env checks them itself).
+def _param_key(f: dataclasses.Field) -> tuple[str, Any, Any]:
+    """The env node's key of :class:`~drone_torchrl.envs.params.DroneParams`' field ``f``, its default too.
 
-    make_params and check_arena hold their bounds, and how the arena's keys relate. The arena,
-    ``bounds`` and ``dtype`` came after the first runs: a checkpoint or run folder without them gets
-    the paper's values.
+    The env checks its value itself (``make_params``); a choice (``bounds``) is checked here as
+    well. A field that came after the first runs (its ``Param.new``) is ``added`` as its default.
     """
+    param = f.metadata[PARAM]
+    added = {"added": f.default} if param.new else {}
+    rule = Rule("choice", choices=param.choices, **added) if param.choices else Rule(**added)
+    return f.name, Any, field(default=f.default, metadata={RULE: rule})
 
-    mass: Any = free()
-    motor_distance: Any = free()
-    gravity: Any = free()
-    dt: Any = free()
-    max_steps: Any = free()
-    reset_mode: Any = free()
-    max_thrust: Any = free()
-    floor_tolerance: Any = free()
-    x_limit: Any = free(added=X_LIMIT)
-    z_min: Any = free(added=Z_MIN)
-    z_max: Any = free(added=Z_MAX)
-    alpha_limit: Any = free(added=ALPHA_LIMIT)
-    zone_x_limit: Any = free(added=ZONE_X_LIMIT)
-    zone_z_min: Any = free(added=ZONE_Z_MIN)
-    zone_z_max: Any = free(added=ZONE_Z_MAX)
-    bounds: Any = one_of(BOUNDS_MODES, added="inclusive")
-    dtype: Any = one_of(tuple(DTYPES), added="float32")
-    disturbance: Any = open_section(DisturbanceConf)
-    num_workers: Any = an_integer(low=0)
+
+EnvConf = dataclasses.make_dataclass(
+    "EnvConf",
+    [
+        *map(_param_key, dataclasses.fields(DroneParams)),
+        ("max_steps", Any, free()),
+        ("reset_mode", Any, free()),
+        ("dtype", Any, one_of(tuple(DTYPES), added="float32")),
+        ("disturbance", Any, open_section(DisturbanceConf)),
+        ("num_workers", Any, an_integer(low=0)),
+    ],
+    namespace={
+        "__module__": __name__,
+        "__doc__": """``env.*``: the DroneEnv arguments (the env checks them itself).
+
+    The drone's physics and arena are :class:`~drone_torchrl.envs.params.DroneParams`' fields, their
+    defaults too (``conf/env/drone.yaml`` does not restate them). ``dtype`` came after the first
+    runs: a checkpoint or run folder without it gets ``float32``.
+    """,
+    },
+)
 
 
 @dataclass

@@ -26,7 +26,7 @@ from omegaconf.errors import GrammarParseError
 from drone_torchrl import loggers
 from drone_torchrl.checks import FLOAT32_MAX, INT64_MAX, ConfigError
 from drone_torchrl.config import _every_key, _option_plugins, _options, config_dir, schema_keys, validate
-from drone_torchrl.envs import disturbances, drone_env, dynamics
+from drone_torchrl.envs import disturbances, dynamics, params
 from drone_torchrl.kernels import ops
 from drone_torchrl.schema import Rule
 from drone_torchrl.training import memory_estimate
@@ -149,21 +149,21 @@ def _between(
 # the arena's relative to the defaults of the others (x_limit 2, zone_x_limit 0.8, z 0..4, zone
 # 2.2..3.2).
 ENV_RANGES = {
-    "env.mass": _between(drone_env.MIN_MASS, drone_env.MAX_MASS),
-    "env.motor_distance": _between(drone_env.MIN_MOTOR_DISTANCE, drone_env.MAX_MOTOR_DISTANCE),
-    "env.gravity": _between(0.0, drone_env.MAX_GRAVITY, low_open=True),
-    "env.dt": _between(0.0, drone_env.MAX_DT, low_open=True),
-    "env.max_thrust": st.one_of(st.none(), _between(0.0, drone_env.MAX_THRUST, low_open=True)),
-    "env.floor_tolerance": _between(0.0, drone_env.MAX_FLOOR_TOLERANCE),
+    "env.mass": _between(params.MIN_MASS, params.MAX_MASS),
+    "env.motor_distance": _between(params.MIN_MOTOR_DISTANCE, params.MAX_MOTOR_DISTANCE),
+    "env.gravity": _between(0.0, params.MAX_GRAVITY, low_open=True),
+    "env.dt": _between(0.0, params.MAX_DT, low_open=True),
+    "env.max_thrust": st.one_of(st.none(), _between(0.0, params.MAX_THRUST, low_open=True)),
+    "env.floor_tolerance": _between(0.0, params.MAX_FLOOR_TOLERANCE),
     "env.max_steps": st.integers(min_value=1, max_value=INT64_MAX),
     "env.reset_mode": st.sampled_from(dynamics.RESET_MODES),
-    "env.x_limit": _between(dynamics.ZONE_X_LIMIT, dynamics.MAX_ARENA),
-    "env.z_min": _between(-dynamics.MAX_ARENA, dynamics.ZONE_Z_MIN),
-    "env.z_max": _between(dynamics.ZONE_Z_MAX, dynamics.MAX_ARENA),
+    "env.x_limit": _between(params.ZONE_X_LIMIT, params.MAX_ARENA),
+    "env.z_min": _between(-params.MAX_ARENA, params.ZONE_Z_MIN),
+    "env.z_max": _between(params.ZONE_Z_MAX, params.MAX_ARENA),
     "env.alpha_limit": _between(0.0, math.pi, low_open=True),
-    "env.zone_x_limit": _between(0.0, dynamics.X_LIMIT, low_open=True),
-    "env.zone_z_min": _between(dynamics.Z_MIN, dynamics.ZONE_Z_MAX, high_open=True),
-    "env.zone_z_max": _between(dynamics.ZONE_Z_MIN, dynamics.Z_MAX, low_open=True),
+    "env.zone_x_limit": _between(0.0, params.X_LIMIT, low_open=True),
+    "env.zone_z_min": _between(params.Z_MIN, params.ZONE_Z_MAX, high_open=True),
+    "env.zone_z_max": _between(params.ZONE_Z_MIN, params.Z_MAX, low_open=True),
     **{f"env.disturbance.{name}": _between(0.0, high) for name, high in disturbances.MAX_MAGNITUDES.items()},
     "env.disturbance.gust_time": _between(0.0, disturbances.MAX_TIME, low_open=True),
 }

@@ -313,3 +313,30 @@ def test_the_gymnasium_twin_flies_the_env_s_disturbed_episodes():
         assert reward == td["reward"].item() and terminated == td["terminated"].item()
         if terminated:
             break
+
+
+def test_one_observation_layout_names_every_entry_and_gives_every_width():
+    from torch import nn
+
+    from drone_torchrl import export
+    from drone_torchrl.envs import DroneEnv, DroneGymEnv
+    from drone_torchrl.modules.factory import observation_dim
+
+    d = {"observed_actions": 2}
+    names = dist.observation_names(d)
+    assert names == (*dynamics.STATE_NAMES, "a_l[t-1]", "a_r[t-1]", "a_l[t-2]", "a_r[t-2]")
+    assert dist.observation_names() == dynamics.STATE_NAMES
+    env = DroneEnv(batch_size=[3], disturbance=d)
+    assert env.observation_spec["observation"].shape == (3, 10)
+    assert DroneGymEnv(disturbance=d).observation_space.shape == (10,)
+    assert observation_dim({"env": {"disturbance": d}}) == observation_dim({"env": {}}) + 4 == 10
+    assert export._observation_names(nn.Sequential(nn.Linear(10, 4))) == names
+    # Each entry is what its name says: after commands (0.3, 0.7) then (0.4, 0.6), the newest first.
+    env.set_seed(0)
+    td = env.reset()
+    for command in ((0.3, 0.7), (0.4, 0.6)):
+        td["action"] = torch.tensor([command] * 3)
+        td = env.step(td)["next"]
+    seen = dict(zip(names, td["observation"][0].tolist(), strict=True))
+    assert [seen[n] for n in names[6:]] == pytest.approx([0.4, 0.6, 0.3, 0.7])
+    assert [seen[n] for n in dynamics.STATE_NAMES] == td["state"][0].tolist()

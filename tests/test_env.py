@@ -579,3 +579,20 @@ def test_edge_arguments_are_accepted():
     assert DroneEnv(floor_tolerance=1.0).floor_tolerance == 1.0
     assert DroneEnv(batch_size=3).batch_size == (3,)
     assert DroneEnv().batch_size == ()
+
+
+def test_params_and_keyword_overrides_build_one_checked_drone():
+    from drone_torchrl.envs.params import DroneParams
+
+    env = DroneEnv(batch_size=[2], params=DroneParams(max_thrust=2.0, zone_x_limit=0.6), gravity=5)
+    assert env.params == DroneParams(max_thrust=2.0, zone_x_limit=0.6, gravity=5.0)
+    assert (env.max_thrust, env.zone_x_limit, env.gravity, env.bounds) == (2.0, 0.6, 5.0, "inclusive")
+    assert env.action_spec.space.high.max() == 2.0
+    # A DroneParams built by hand is checked too, and an unknown keyword names itself.
+    with pytest.raises(
+        ValueError,
+        match=r"^zone_x_limit=3.0 is not allowed; expected a finite number > 0 and <= x_limit \(2.0\)$",
+    ):
+        DroneEnv(params=DroneParams(zone_x_limit=3.0))
+    with pytest.raises(TypeError, match="unexpected keyword argument 'mas'"):
+        DroneEnv(mas=1.0)

@@ -378,8 +378,8 @@ def test_the_ops_refuse_what_they_cannot_fly_in_one_line(obs_dim, disturbance, k
 
 
 def test_the_kernels_read_every_disturbance_constant_python_packs():
-    assert library().dk_disturbance_consts() == len(ops.DISTURBANCE_CONSTANTS)
-    assert ops.DISTURBANCE_CONSTANTS == disturbances.FIELDS
+    read = tuple(library().dk_disturbance_constants().decode().split(",")[:-1])
+    assert read == ops.DISTURBANCE_CONSTANTS == disturbances.FIELDS
     packed = ops.disturbance_constants({"wind": 0.2, "action_delay": 3, "observed_actions": 2})
     assert dict(zip(ops.DISTURBANCE_CONSTANTS, packed.tolist(), strict=True))["action_delay"] == 3.0
-    assert ops.observation_dim(packed) == 10 and ops.steps_back(packed) == (3, 2)
+    assert ops.steps_back(packed) == (3, 2)

@@ -12,11 +12,13 @@ import itertools
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 from drone_torchrl.envs import dynamics
+from drone_torchrl.envs.params import PARAM_NAMES
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.episodes import counted_metrics, episode_stats
 from drone_torchrl.kernels import build, library, ops
@@ -313,8 +315,36 @@ def test_the_build_is_cached_per_source_and_machine(tmp_path):
 
 
 def test_the_kernels_read_every_constant_python_packs():
-    assert library().dk_env_consts() == len(ops.ENV_CONSTANTS)
-    params = dynamics.DroneParams(max_thrust=2.0, floor_tolerance=0.1)
+    # The kernels' own list (its order: their offsets) is Python's: DroneParams' fields first.
+    read = tuple(library().dk_env_constants().decode().split(",")[:-1])
+    assert read == ops.ENV_CONSTANTS and read[: len(PARAM_NAMES)] == PARAM_NAMES
+    params = dynamics.DroneParams(max_thrust=2.0, floor_tolerance=0.1, bounds="strict")
     env = dict(zip(ops.ENV_CONSTANTS, ops.env_constants(params, 2.0, "air").tolist(), strict=True))
     assert env["floor"] == pytest.approx(-0.1) and env["max_thrust"] == env["squash_high"] == 2.0
     assert env["reset_air"] == 1.0 and env["arm_over_inertia"] == pytest.approx(0.5 / (0.4 * 0.25))
+    assert env["bounds"] == 1.0 and env["zone_x_limit"] == 0.8 and env["zone_z_centre"] == pytest.approx(2.7)
+    paper = dict(
+        zip(ops.ENV_CONSTANTS, ops.env_constants(dynamics.DroneParams(), None).tolist(), strict=True)
+    )
+    assert (
+        paper["max_thrust"] == paper["squash_high"] == -1.0 and paper["bounds"] == paper["reset_air"] == 0.0
+    )
+
+
+def test_a_library_reading_other_constants_or_observations_is_refused_at_load(monkeypatch):
+    """The names and offsets are checked when a library loads, not only their count.
+
+    Two constants swapped (the count unchanged), or an observation of another width, as after a
+    DroneParams field or an observation entry added on one side only: the loader refuses the library.
+    """
+    path = Path(library()._name)
+    assert build._load(path, double=False) is not None  # as built: it loads
+    names = list(build.ENV_CONSTANTS)
+    names[1], names[2] = names[2], names[1]
+    monkeypatch.setattr(build, "ENV_CONSTANTS", tuple(names))
+    with pytest.raises(OSError, match=r"reads the constants \('mass', 'motor_distance', 'gravity'"):
+        build._load(path, double=False)
+    monkeypatch.undo()
+    monkeypatch.setattr(dynamics, "STATE_NAMES", (*dynamics.STATE_NAMES, "extra"))
+    with pytest.raises(OSError, match="sees 6 observation entries with 0 observed commands; drone_torchrl 7"):
+        build._load(path, double=False)

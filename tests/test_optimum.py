@@ -23,6 +23,7 @@ import torch
 
 from drone_torchrl.envs import DroneEnv, dynamics
 from drone_torchrl.envs.dynamics import DroneParams
+from drone_torchrl.envs.params import ZONE_Z_MAX, ZONE_Z_MIN
 from drone_torchrl.episodes import episode_stats
 from drone_torchrl.evaluation import evaluate_pd, reference_optimum
 from drone_torchrl.optimum import (
@@ -63,7 +64,7 @@ def test_full_thrust_climb_by_hand():
     z = _fly_vertical([2.0] * 40)
     k = np.arange(1, 41)
     np.testing.assert_allclose(z, UNIT * k * (k + 1) / 2, rtol=1e-12)
-    assert int(np.argmax(z >= dynamics.ZONE_Z_MIN)) + 1 == 33
+    assert int(np.argmax(z >= ZONE_Z_MIN)) + 1 == 33
     assert z[32] == pytest.approx(2.201364, abs=1e-6) and z[31] == pytest.approx(2.071872, abs=1e-6)
 
 
@@ -71,17 +72,17 @@ def test_bang_bang_plan_by_hand_earns_the_bound():
     """28 steps at full thrust, then none until the apex (step 56), then hover: the zone from step 35."""
     plan = [2.0] * 28 + [0.0] * 28 + [1.0] * (STEPS - 56)
     z = _fly_vertical(plan)
-    in_zone = (z >= dynamics.ZONE_Z_MIN) & (z <= dynamics.ZONE_Z_MAX)
+    in_zone = (z >= ZONE_Z_MIN) & (z <= ZONE_Z_MAX)
     assert int(np.argmax(in_zone)) + 1 == 35 and in_zone[34:].all()
     assert z[34] == pytest.approx(574 * UNIT) and z.max() == pytest.approx(784 * UNIT)  # 2.2524, 3.0764 m
-    assert 29**2 * UNIT > dynamics.ZONE_Z_MAX  # one more step of full thrust overshoots
+    assert 29**2 * UNIT > ZONE_Z_MAX  # one more step of full thrust overshoots
     # Entering at 34 and staying: the entry speed u (units of g dt) overshoots by at least u (u - 1) / 2.
-    height = (dynamics.ZONE_Z_MAX - dynamics.ZONE_Z_MIN) / UNIT
+    height = (ZONE_Z_MAX - ZONE_Z_MIN) / UNIT
     u = (height + 0.5 * 23 * 24) / 23  # the largest u with 23 u - 23 * 24 / 2 <= height (23 <= u < 24)
     assert 23 * u - 23 * 24 / 2 == pytest.approx(height) and 23 <= u < 24
     reach = sum(min(i, u + 34 - i) for i in range(1, 35))  # speed <= i, and <= u + (34 - i)
     assert reach == pytest.approx(559.48, abs=0.01)
-    zone_floor = dynamics.ZONE_Z_MIN / UNIT
+    zone_floor = ZONE_Z_MIN / UNIT
     assert zone_floor == pytest.approx(560.652, abs=1e-3)
     assert reach < zone_floor  # the zone's floor is out of reach at step 34
 
@@ -134,7 +135,7 @@ def test_no_policy_beats_the_bound():
     assert pd["first_zone_step_max"] >= best.first_zone_step
     # One step more of full thrust than the hand plan: faster in, but it overshoots the zone.
     z = _fly_vertical([2.0] * 29 + [0.0] * 29 + [1.0] * (STEPS - 58))
-    in_zone = (z >= dynamics.ZONE_Z_MIN) & (z <= dynamics.ZONE_Z_MAX)
+    in_zone = (z >= ZONE_Z_MIN) & (z <= ZONE_Z_MAX)
     assert in_zone.sum() < best.zone_steps
 
 
@@ -144,9 +145,7 @@ def test_unbounded_thrust_reaches_the_ceiling():
     best = optimum(params, STEPS)
     assert (best.first_zone_step, best.best_return) == (1, 10.0 * STEPS)
     # The smallest pulse that lifts the drone to the zone's floor in one step: c_1 >= 1 + 2.2 / (g dt^2).
-    assert (
-        best.plan.collective[0] / 2 >= (1 + dynamics.ZONE_Z_MIN / UNIT) / 2 == pytest.approx(280.8, abs=0.1)
-    )
+    assert best.plan.collective[0] / 2 >= (1 + ZONE_Z_MIN / UNIT) / 2 == pytest.approx(280.8, abs=0.1)
     episodes, _ = fly_plan(_floor_starts(), params, STEPS)
     stats = episode_stats(episodes)
     assert torch.all(stats["return"] == 10.0 * STEPS) and torch.all(stats["first_zone_step"] == 1)

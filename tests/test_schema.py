@@ -209,3 +209,29 @@ def test_the_keys_are_every_plug_in_s_whoever_asks_first():
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True).stdout
     assert out.split() == ["True", "budget", "True"]
+
+
+def test_the_env_nodes_physics_and_arena_are_drone_params():
+    """One home: the schema's env keys for the drone are DroneParams' fields, with its defaults, and
+    no conf/ file restates them (a composed run gets the paper's drone all the same)."""
+    from dataclasses import asdict, fields
+
+    from drone_torchrl.envs.params import PARAM, PARAM_NAMES, DroneParams
+
+    env_keys = [f.name for f in fields(schema.EnvConf)]
+    assert env_keys[: len(PARAM_NAMES)] == list(PARAM_NAMES)
+    rules = {f.name: f.metadata.get(schema.RULE) for f in fields(schema.EnvConf)}
+    for f in fields(DroneParams):  # a field added after the first runs: an old config gets its default
+        assert rules[f.name].is_added == f.metadata[PARAM].new
+        assert not rules[f.name].is_added or rules[f.name].added == f.default
+    assert rules["bounds"].choices == ("inclusive", "strict")
+    yaml = OmegaConf.load(Path(config_dir()) / "env" / "drone.yaml")
+    assert not set(yaml) & set(PARAM_NAMES) and set(yaml) == {
+        "max_steps",
+        "reset_mode",
+        "dtype",
+        "num_workers",
+    }
+    with initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose("config", overrides=["env.max_thrust=1.5"])
+    assert {k: cfg.env[k] for k in PARAM_NAMES} == {**asdict(DroneParams()), "max_thrust": 1.5}

@@ -4,6 +4,7 @@ import inspect
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ from omegaconf import OmegaConf
 
 from drone_torchrl.config import ENV_ARGS, ConfigError, config_dir, validate
 from drone_torchrl.envs import DroneEnv, disturbances
+from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_COLUMNS, read_episodes
 from drone_torchrl.training.trainer import train
@@ -35,11 +37,13 @@ def test_defaults_are_the_paper():
     assert not cfg.algo.discount_weight and not cfg.algo.normalize_returns and cfg.algo.baseline == "none"
     assert cfg.seed == 0
     # Every DroneEnv argument that describes the drone or the episode is a config key, with the
-    # env's own default (the process settings batch_size/device/render_* are not).
+    # env's own default: DroneParams' fields (its keywords) and the episode's arguments (the process
+    # settings batch_size/device/render_* are not).
     params = inspect.signature(DroneEnv.__init__).parameters
-    physical = [n for n in params if n not in ("self", "batch_size", "device", "render_mode", "render_index")]
-    assert list(ENV_ARGS) == physical
-    defaults = {n: params[n].default for n in physical if n != "disturbance"}
+    process = ("self", "batch_size", "params", "device", "render_mode", "render_index", "overrides")
+    episode = [n for n in params if n not in process]
+    assert list(ENV_ARGS) == [*PARAM_NAMES, *episode]
+    defaults = {**asdict(DroneParams()), **{n: params[n].default for n in episode if n != "disturbance"}}
     assert {n: cfg.env[n] for n in defaults} == defaults
     # The env's default disturbance (None) is the nominal drone, which disturbance=none spells out.
     assert params["disturbance"].default is None

@@ -7,8 +7,10 @@ second and without importing torch:
 
 - The schemas (:mod:`drone_torchrl.schema` and each plug-in's) live in modules that import torch, so
   each schema a ``conf/`` defaults list names (``/schema_config@_here_``) is stood in for by an empty
-  config. The YAML files set every key anyway (the schema holds no values; it refuses what they lack),
-  so the keys and values are those of the real composition; a value is checked when the command runs.
+  config, but for the env's physics and arena (:class:`~drone_torchrl.envs.params.DroneParams`, torch-free,
+  their one home: defaults and meanings). The YAML files set every other key (the schema holds no
+  values; it refuses what they lack), so the keys and values are those of the real composition; a
+  value is checked when the command runs.
 - The meanings are the YAML files' own comments, their one home: a key's comment on its line, else
   the comment block right above it (up to its first full stop); a key the chosen option leaves
   uncommented takes the same key's comment in another option of its group (``algo.lr``). PyYAML and OmegaConf drop comments,
@@ -22,12 +24,16 @@ from __future__ import annotations
 import re
 import sys
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from drone_torchrl.envs.params import PARAM, DroneParams
+
 # The root-level configs a conf/ defaults list names: the schemas (``- /schema_config@_here_``).
 _ROOT_ENTRY = re.compile(r"^\s*-\s*/(\w+)@", re.MULTILINE)
+# The schemas with an env node, whose physics and arena keys (DroneParams') no conf/ file sets.
+_ENV_SCHEMAS = ("schema_config", "schema_eval")
 # ``key: value  # comment`` (a key is a plain word; conf/ quotes no keys).
 _KEY_LINE = re.compile(r"^(?P<indent>\s*)(?P<key>[A-Za-z_][\w-]*):(?:\s+(?P<rest>.*))?$")
 # A comment after a value: `` #`` outside quotes (conf/'s quoted values hold no ``#``).
@@ -167,7 +173,8 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
     for path in sorted(conf.rglob("*.yaml")):
         for name in _ROOT_ENTRY.findall(path.read_text(encoding="utf-8")):
             if name not in stored:  # the real schema, where a process has imported it, stays
-                store.store(name=name, node={}, provider="drone_torchrl.apps.help")
+                node = {"env": asdict(DroneParams())} if name in _ENV_SCHEMAS else {}
+                store.store(name=name, node=node, provider="drone_torchrl.apps.help")
                 stored.add(name)
     app = APPS_BY_CONFIG.get(config, App(config))
     try:
@@ -182,7 +189,8 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
             groups = [(g, sorted(loader.get_group_options(g)), choices.get(g)) for g in names]
     except (HydraException, OmegaConfBaseException) as err:
         raise HelpError(_one_line(str(err))) from None
-    meanings: dict[str, str] = {}
+    # The env's physics and arena: DroneParams' meanings, unless a chosen option's comment says more.
+    meanings = {f"env.{f.name}": f.metadata[PARAM].describe() for f in fields(DroneParams)}
     for default in defaults:  # in composition order: a later file's comment wins, as its value does
         path = conf / f"{default.config_path}.yaml"
         if default.package is None or default.package.startswith("hydra") or not path.is_file():

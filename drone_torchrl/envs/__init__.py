@@ -9,7 +9,7 @@ from drone_torchrl.lazy import lazy_getattr
 _LAZY = {
     "DroneEnv": "drone_torchrl.envs.drone_env",
     "DroneGymEnv": "drone_torchrl.envs.gym_env",
-    "DroneParams": "drone_torchrl.envs.dynamics",
+    "DroneParams": "drone_torchrl.envs.params",
     "TerminationCause": "drone_torchrl.envs.dynamics",
     "make_env": "drone_torchrl.envs.factory",
 }

@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 import torch
 
 from drone_torchrl.checks import as_override, is_number
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import dynamics, params
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, DroneParams, X, Z
 from drone_torchrl.training import rng
 
@@ -109,8 +109,8 @@ class Disturbance:
 
     @property
     def observation_dim(self) -> int:
-        """Entries of an observation, the 6 state entries and 2 per observed past command."""
-        return dynamics.STATE_DIM + ACTION_DIM * self.observed_actions
+        """Entries of an observation, ``len(observation_names(self))``."""
+        return len(observation_names(self))
 
 
 # Upper bounds: a mass spread of 1 would allow a massless drone, a gain spread of 1 a dead motor.
@@ -130,7 +130,7 @@ MAX_MAGNITUDES = {
     "gust": MAX_FORCE,
     "gust_time": MAX_TIME,
     "motor_lag": MAX_TIME,
-    "noise_position": dynamics.MAX_ARENA,
+    "noise_position": params.MAX_ARENA,
     "noise_angle": math.pi,
 }
 FIELDS = tuple(f.name for f in fields(Disturbance))
@@ -168,6 +168,21 @@ def make(disturbance: Disturbance | Mapping[str, Any] | None) -> Disturbance:
         return Disturbance(**disturbance)
     except ValueError as err:  # named as the env argument's field: disturbance.wind=...
         raise ValueError(f"disturbance.{err}") from None
+
+
+def observation_names(disturbance: Disturbance | Mapping[str, Any] | None = None) -> tuple[str, ...]:
+    """What each entry of the policy's observation is, in order: the one home of its layout.
+
+    The state's six entries (``dynamics.STATE_NAMES``), then, with ``observed_actions=k``, the last
+    ``k`` commands newest first: ``a_l[t-1], a_r[t-1], ..., a_r[t-k]``. Its length is the width the
+    env's specs, the Gym twin, the networks, the memory estimate, the export and the kernels use
+    (the loader compares the kernels' ``observation_dim`` with it). ``disturbance``: what
+    :func:`make` takes (a config's ``env.disturbance`` too).
+    """
+    commands = range(1, make(disturbance).observed_actions + 1)
+    return dynamics.STATE_NAMES + tuple(
+        f"{motor}[t-{j}]" for j in commands for motor in dynamics.ACTION_NAMES
+    )
 
 
 class EpisodeDraw(NamedTuple):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import fields
 from numbers import Integral, Real
 from typing import Any
 
@@ -15,48 +16,14 @@ from torchrl.envs import EnvBase
 
 from drone_torchrl.checks import INT64_MAX, as_override
 from drone_torchrl.envs import disturbances, dynamics
-from drone_torchrl.envs.dynamics import (
-    ACTION_DIM,
-    ALPHA_LIMIT,
-    BOUNDS_MODES,
-    DTYPES,
-    MAX_ARENA,
-    RESET_MODES,
-    STATE_DIM,
-    X_LIMIT,
-    Z_MAX,
-    Z_MIN,
-    ZONE_X_LIMIT,
-    ZONE_Z_MAX,
-    ZONE_Z_MIN,
-    DroneParams,
-    TerminationCause,
-)
+from drone_torchrl.envs.dynamics import ACTION_DIM, DTYPES, RESET_MODES, STATE_DIM, TerminationCause
+from drone_torchrl.envs.params import PARAM, PARAM_NAMES, Bound, DroneParams
 
 RENDER_MODES = (None, "human", "rgb_array")
 
 
-# Upper bounds of the physical arguments. Past them the task stops making sense: a step longer
-# than MAX_DT lets a hovering drone cross the 1 m target zone in one or two steps, gravity above
-# MAX_GRAVITY (10x Earth's) makes a 300-step episode a free fall, and a floor tolerance above
-# MAX_FLOOR_TOLERANCE would let the drone sink a quarter of the domain's height before "FLOOR".
-MAX_DT = 0.1
-MAX_GRAVITY = 100.0
-MAX_FLOOR_TOLERANCE = 1.0
-# The drone's size. Mass cancels out of the motion (thrust is a fraction of the weight), but the
-# weight m*g and the angular acceleration's 1/(m r) are float32 numbers: at 1e300 kg or 1e-40 kg
-# they overflow (a traceback, or episodes that end at their first step). A gram is lighter than
-# any drone that flies, ten tonnes heavier than any built; a motor distance of 1 cm to 100 m alike.
-MIN_MASS, MAX_MASS = 1e-3, 1e4
-MIN_MOTOR_DISTANCE, MAX_MOTOR_DISTANCE = 1e-2, 1e2
-# Thrust per motor in weights: 100 is a thrust-to-weight ratio of 200 (racing drones reach 10-20).
-MAX_THRUST = 100.0
 # The longest episode (steps): an int64 count.
 MAX_STEPS = INT64_MAX
-
-
-# A bound: named, ("z_min", 0.0) or ("0", 0.0), or a float shown as Python writes it (0.001).
-Bound = tuple[str, float] | float
 
 
 def _check_range(
@@ -96,71 +63,29 @@ def _check_range(
     return float(value)
 
 
-def check_arena(
-    x_limit: float = X_LIMIT,
-    z_min: float = Z_MIN,
-    z_max: float = Z_MAX,
-    alpha_limit: float = ALPHA_LIMIT,
-    zone_x_limit: float = ZONE_X_LIMIT,
-    zone_z_min: float = ZONE_Z_MIN,
-    zone_z_max: float = ZONE_Z_MAX,
-    bounds: str = "inclusive",
-) -> dict[str, float | str]:
-    """Validate the domain and the target zone; return them as floats (and ``bounds``).
-
-    The rules: positive half-widths, ``z_min < z_max``, a tilt limit in (0, pi], and a zone of
-    positive size inside the domain (its edges may lie on the domain's).
-    """
-    zero = ("0", 0.0)
-    arena = (f"{MAX_ARENA:g} m", MAX_ARENA)
-    x_limit = _check_range("x_limit", x_limit, zero, arena, low_open=True)
-    z_min = _check_range("z_min", z_min, (f"-{MAX_ARENA:g} m", -MAX_ARENA), arena)
-    z_max = _check_range("z_max", z_max, ("z_min", z_min), arena, low_open=True)
-    alpha_limit = _check_range("alpha_limit", alpha_limit, zero, ("pi", math.pi), low_open=True)
-    zone_x_limit = _check_range("zone_x_limit", zone_x_limit, zero, ("x_limit", x_limit), low_open=True)
-    zone_z_min = _check_range("zone_z_min", zone_z_min, ("z_min", z_min), ("z_max", z_max), high_open=True)
-    zone_z_max = _check_range(
-        "zone_z_max", zone_z_max, ("zone_z_min", zone_z_min), ("z_max", z_max), low_open=True
-    )
-    if bounds not in BOUNDS_MODES:
-        raise ValueError(f"bounds={as_override(bounds)} is not allowed; expected one of {BOUNDS_MODES}")
-    return {
-        "x_limit": x_limit,
-        "z_min": z_min,
-        "z_max": z_max,
-        "alpha_limit": alpha_limit,
-        "zone_x_limit": zone_x_limit,
-        "zone_z_min": zone_z_min,
-        "zone_z_max": zone_z_max,
-        "bounds": bounds,
-    }
-
-
-def make_params(
-    mass: float = 1.0,
-    motor_distance: float = 1.0,
-    gravity: float = 9.81,
-    dt: float = 0.02,
-    max_thrust: float | None = None,
-    floor_tolerance: float = 0.05,
-    **arena: float | str,
-) -> DroneParams:
+def make_params(**values: Any) -> DroneParams:
     """Validate the physical and arena arguments shared by both envs and bundle them.
 
-    ``arena``: the keyword arguments of :func:`check_arena`, each defaulting to the paper's.
+    Each field of :class:`~drone_torchrl.envs.params.DroneParams` left out is its default; each is
+    checked in field order against its :class:`~drone_torchrl.envs.params.Param` (a bound named by an earlier field is that field's checked
+    value). A ValueError names the first argument out of range.
     """
-    return DroneParams(
-        mass=_check_range("mass", mass, MIN_MASS, MAX_MASS),
-        motor_distance=_check_range("motor_distance", motor_distance, MIN_MOTOR_DISTANCE, MAX_MOTOR_DISTANCE),
-        # Thrust is a fraction of the weight m*g: with g = 0 no motor command could move the drone.
-        gravity=_check_range("gravity", gravity, 0.0, MAX_GRAVITY, low_open=True),
-        dt=_check_range("dt", dt, 0.0, MAX_DT, low_open=True),
-        max_thrust=None
-        if max_thrust is None
-        else _check_range("max_thrust", max_thrust, 0.0, MAX_THRUST, low_open=True),
-        floor_tolerance=_check_range("floor_tolerance", floor_tolerance, 0.0, MAX_FLOOR_TOLERANCE),
-        **check_arena(**arena),
-    )
+    unknown = sorted(set(values) - set(PARAM_NAMES))
+    if unknown:
+        raise TypeError(f"unexpected keyword argument {unknown[0]!r}; expected one of {PARAM_NAMES}")
+    checked: dict[str, Any] = {}
+    for f in fields(DroneParams):
+        rule, value = f.metadata[PARAM], values.get(f.name, f.default)
+        if rule.choices:
+            if value not in rule.choices:
+                raise ValueError(
+                    f"{f.name}={as_override(value)} is not allowed; expected one of {rule.choices}"
+                )
+        elif not (rule.optional and value is None):
+            low, high = ((b, checked[b]) if isinstance(b, str) else b for b in (rule.low, rule.high))
+            value = _check_range(f.name, value, low, high, low_open=rule.low_open, high_open=rule.high_open)
+        checked[f.name] = value
+    return DroneParams(**checked)
 
 
 def check_dtype(dtype: object) -> torch.dtype:
@@ -243,6 +168,7 @@ class DroneEnv(EnvBase):
     5      ``alpha_dot``  roll rate (rad/s)                                none
     =====  =============  ===============================================  =====================================================
 
+    Its layout, the observed commands included: :func:`~.disturbances.observation_names`.
     Also in every reset and step output: ``"termination_cause"`` (int64, ``[*batch, 1]``, a
     :class:`~.dynamics.TerminationCause` code) and ``"step_count"`` (int64, ``[*batch, 1]``).
 
@@ -290,43 +216,20 @@ class DroneEnv(EnvBase):
     ## Arguments
 
     - ``batch_size`` (list of int, default ``[]``): number of drones simulated together.
-    - ``mass`` (float > 0, default 1.0 kg). It has no effect on the motion: as in the paper, the
-      actions are thrusts as fractions of the weight ``m g`` and ``I_yy`` is proportional to ``m``,
-      so the mass cancels out of all three accelerations. It is an argument because the paper
-      lists it.
-    - ``motor_distance`` (float > 0, default 1.0 m): diagonal motor-to-motor distance; the lever
-      arm is half of it and ``I_yy = 2/5 m r^2``.
-    - ``gravity`` (float in (0, 100], default 9.81 m/s^2): not 0, since the thrust is a fraction
-      of the weight.
-    - ``dt`` (float in (0, 0.1], default 0.02 s): semi-implicit Euler step (50 Hz).
+    - ``params`` (a :class:`~drone_torchrl.envs.params.DroneParams`, default the paper's) and any of its fields as
+      keywords (``max_thrust=1.0``, ``zone_x_limit=0.6``; a keyword overrides ``params``' field):
+      the drone's physics (``mass``, ``motor_distance``, ``gravity``, ``dt``, ``max_thrust``,
+      ``floor_tolerance``) and the arena (the domain, the target zone and ``bounds``). Their
+      defaults, units and ranges are the fields' (:class:`~drone_torchrl.envs.params.DroneParams`, the one home).
+      Bounds are compared in ``dtype``: in float32 the nearest float32 to 0.8 is "on" the bound
+      0.8. The paper's public code differs from its text: ``zone_x_limit=0.6 bounds=strict dtype=float64``.
     - ``max_steps`` (int >= 1, default 300): truncation length.
     - ``reset_mode`` (``"floor"`` or ``"air"``, default ``"floor"``).
-    - ``max_thrust`` (float > 0 or None, default None): per-motor thrust limit as a fraction of the
-      weight; ``1.0`` is a thrust-to-weight ratio of 2.
-    - ``floor_tolerance`` (float in [0, 1], default 0.05 m).
     - ``dtype`` (``"float32"`` or ``"float64"``, or the torch dtype; default ``"float32"``): the
       precision of the state, the physics, the observations, the rewards and the specs. float64
       integrates the same equations in double precision (the paper's public code computes in
       numpy's float64); actions of another dtype are converted to it. Trajectories agree with
       float32's to float32 rounding over short horizons and drift apart later (chaotic flights).
-
-    Arena (the paper's Table 2.1 by default; lengths in m, angles in rad). Each changes the
-    termination bounds, the target zone (and so the reward), the start height and the drawing:
-
-    - ``x_limit`` (float > 0, default 2.0): the domain is ``|x| <= x_limit``.
-    - ``z_min``, ``z_max`` (floats, ``z_min < z_max``, default 0.0 and 4.0): the floor (where
-      ``"floor"`` resets start; hit below ``z_min - floor_tolerance``) and the ceiling.
-    - ``alpha_limit`` (float in (0, pi], default pi/3): the tilt bound, of the domain and the zone.
-    - ``zone_x_limit`` (float in (0, x_limit], default 0.8): the zone's half-width, ``|x| <= zone_x_limit``.
-    - ``zone_z_min``, ``zone_z_max`` (floats, ``z_min <= zone_z_min < zone_z_max <= z_max``,
-      default 2.2 and 3.2): the zone's heights; ``"air"`` resets start at their midpoint.
-    - ``bounds`` (``"inclusive"`` or ``"strict"``, default ``"inclusive"``): how a state exactly on
-      a bound counts. Inclusive (the paper's text): inside the domain and inside the zone.
-      Strict (the paper's public code, ``-0.6 < x < 0.6`` style): outside both, so it terminates,
-      or earns 1 instead of 10. Bounds are compared in ``dtype``: in float32 the nearest float32 to
-      0.8 is "on" the bound 0.8.
-
-    The paper's public code differs from its text: ``zone_x_limit=0.6 bounds=strict dtype=float64``.
 
     More:
 
@@ -360,45 +263,19 @@ class DroneEnv(EnvBase):
         self,
         batch_size: Sequence[int] | torch.Size | int | None = None,
         *,
-        mass: float = 1.0,
-        motor_distance: float = 1.0,
-        gravity: float = 9.81,
-        dt: float = 0.02,
+        params: DroneParams | None = None,
         max_steps: int = 300,
         reset_mode: str = "floor",
-        max_thrust: float | None = None,
-        floor_tolerance: float = 0.05,
-        x_limit: float = X_LIMIT,
-        z_min: float = Z_MIN,
-        z_max: float = Z_MAX,
-        alpha_limit: float = ALPHA_LIMIT,
-        zone_x_limit: float = ZONE_X_LIMIT,
-        zone_z_min: float = ZONE_Z_MIN,
-        zone_z_max: float = ZONE_Z_MAX,
-        bounds: str = "inclusive",
         dtype: str | torch.dtype = "float32",
         disturbance: disturbances.Disturbance | Mapping[str, Any] | None = None,
         device: torch.device | str = "cpu",
         render_mode: str | None = None,
         render_index: int = 0,
+        **overrides: Any,
     ) -> None:
         batch_size = _check_batch_size(batch_size)
-        self.params = make_params(
-            mass,
-            motor_distance,
-            gravity,
-            dt,
-            max_thrust,
-            floor_tolerance,
-            x_limit=x_limit,
-            z_min=z_min,
-            z_max=z_max,
-            alpha_limit=alpha_limit,
-            zone_x_limit=zone_x_limit,
-            zone_z_min=zone_z_min,
-            zone_z_max=zone_z_max,
-            bounds=bounds,
-        )
+        given = {} if params is None else {f.name: getattr(params, f.name) for f in fields(DroneParams)}
+        self.params = make_params(**{**given, **overrides})
         self.dtype = check_dtype(dtype)
         self.disturbance = disturbances.make(disturbance)
         # Nominal envs keep the plain step (and draw nothing more from the generator than before).
@@ -438,22 +315,6 @@ class DroneEnv(EnvBase):
         self._last_action = torch.zeros((*shape, ACTION_DIM), device=device, dtype=self.dtype)
         self._episode_return = torch.zeros(shape, device=device, dtype=self.dtype)
         self._internal = self._start_disturbances(shape) if self._disturbed else None
-
-    # Convenience views of the parameters, named like the constructor arguments.
-    mass = property(lambda self: self.params.mass)
-    motor_distance = property(lambda self: self.params.motor_distance)
-    gravity = property(lambda self: self.params.gravity)
-    dt = property(lambda self: self.params.dt)
-    max_thrust = property(lambda self: self.params.max_thrust)
-    floor_tolerance = property(lambda self: self.params.floor_tolerance)
-    x_limit = property(lambda self: self.params.x_limit)
-    z_min = property(lambda self: self.params.z_min)
-    z_max = property(lambda self: self.params.z_max)
-    alpha_limit = property(lambda self: self.params.alpha_limit)
-    zone_x_limit = property(lambda self: self.params.zone_x_limit)
-    zone_z_min = property(lambda self: self.params.zone_z_min)
-    zone_z_max = property(lambda self: self.params.zone_z_max)
-    bounds = property(lambda self: self.params.bounds)
 
     def _make_specs(self) -> None:
         bs = self.batch_size
@@ -641,3 +502,8 @@ class DroneEnv(EnvBase):
             self._renderer.close()
             self._renderer = None
         super().close(raise_if_closed=raise_if_closed)
+
+
+# Views of the parameters, named like the constructor arguments (env.max_thrust, env.zone_x_limit...).
+for _name in PARAM_NAMES:
+    setattr(DroneEnv, _name, property(lambda self, name=_name: getattr(self.params, name)))

@@ -10,33 +10,16 @@ State layout: ``[x, x_dot, z, z_dot, alpha, alpha_dot]`` in SI units, angles in 
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
 from enum import IntEnum
 
 import torch
 
-STATE_DIM = 6
-ACTION_DIM = 2
+from drone_torchrl.envs.params import DroneParams
+
 STATE_NAMES = ("x", "x_dot", "z", "z_dot", "alpha", "alpha_dot")
+ACTION_NAMES = ("a_l", "a_r")  # each motor's thrust as a fraction of the weight
+STATE_DIM, ACTION_DIM = len(STATE_NAMES), len(ACTION_NAMES)
 X, X_DOT, Z, Z_DOT, ALPHA, ALPHA_DOT = range(STATE_DIM)
-
-# Domain and target zone of the paper's Table 2.1 (angles converted to radians): the defaults of
-# DroneParams, whose fields (the env's arguments) the dynamics read.
-X_LIMIT = 2.0
-Z_MIN, Z_MAX = 0.0, 4.0
-ALPHA_LIMIT = math.pi / 3
-ZONE_X_LIMIT = 0.8
-ZONE_Z_MIN, ZONE_Z_MAX = 2.2, 3.2
-ZONE_Z_CENTRE = 0.5 * (ZONE_Z_MIN + ZONE_Z_MAX)
-# The arena's largest extent (|x_limit|, |z_min|, |z_max|, m): a kilometre. float32 positions there
-# still resolve 0.1 mm, far below what a drone moves in one step (dt = 0.02 s); at 1e300 m they are inf.
-MAX_ARENA = 1e3
-
-# How a state exactly on a bound counts. "inclusive" (the paper's text and the default): inside,
-# both for the domain (no termination) and for the target zone. "strict" (the paper's public code,
-# `-0.6 < x < 0.6` style): outside of both.
-BOUNDS_MODES = ("inclusive", "strict")
 
 # The precisions the physics runs in (env argument ``dtype``), by name.
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -62,64 +45,6 @@ class TerminationCause(IntEnum):
     FLOOR = 2
     CEILING = 3
     TILT = 4
-
-
-@dataclass(frozen=True)
-class DroneParams:
-    """The drone's physical parameters and its task's arena: everything :func:`step` needs.
-
-    The arena is the domain, the target zone and how a state on a bound counts. See
-    :class:`~drone_torchrl.envs.drone_env.DroneEnv` for the meaning of each; the defaults are the
-    paper's. Validated by :func:`drone_torchrl.envs.drone_env.make_params`.
-    """
-
-    mass: float = 1.0
-    motor_distance: float = 1.0
-    gravity: float = 9.81
-    dt: float = 0.02
-    max_thrust: float | None = None
-    floor_tolerance: float = 0.05
-    x_limit: float = X_LIMIT
-    z_min: float = Z_MIN
-    z_max: float = Z_MAX
-    alpha_limit: float = ALPHA_LIMIT
-    zone_x_limit: float = ZONE_X_LIMIT
-    zone_z_min: float = ZONE_Z_MIN
-    zone_z_max: float = ZONE_Z_MAX
-    bounds: str = "inclusive"
-
-    @property
-    def strict(self) -> bool:
-        """Whether a state exactly on a bound is outside (``bounds="strict"``).
-
-        On the domain's bound such a state terminates; on the zone's, it is not in the zone.
-        """
-        return self.bounds == "strict"
-
-    @property
-    def zone_z_centre(self) -> float:
-        """The target zone's centre height, where ``reset_mode="air"`` starts."""
-        return 0.5 * (self.zone_z_min + self.zone_z_max)
-
-    @property
-    def floor(self) -> float:
-        """The height below which (or on which, with strict bounds) the floor is hit."""
-        return self.z_min - self.floor_tolerance
-
-    @property
-    def lever_arm(self) -> float:
-        """``r``: half the diagonal motor-to-motor distance."""
-        return 0.5 * self.motor_distance
-
-    @property
-    def inertia(self) -> float:
-        """``I_yy = 2/5 m r^2`` (eq. 2.4, spherical mass distribution)."""
-        return 0.4 * self.mass * self.lever_arm**2
-
-    @property
-    def weight(self) -> float:
-        """The drone's weight ``m * g`` in newtons."""
-        return self.mass * self.gravity
 
 
 def clamp_action(action: torch.Tensor, max_thrust: float | None) -> torch.Tensor:

@@ -44,6 +44,8 @@ import tempfile
 import threading
 from pathlib import Path
 
+from drone_torchrl.envs.params import PARAM_NAMES
+
 SOURCE = Path(__file__).with_name("drone_kernels.cpp")
 CACHE_ENV = "DRONE_TORCHRL_CACHE"
 # -ffp-contract=fast lets the compiler fuse a*b+c (as PyTorch's own CPU kernels do); no -ffast-math:
@@ -59,6 +61,18 @@ CUDA_ARCHS = ("-gencode=arch=compute_80,code=sm_80", "-gencode=arch=compute_90,c
 # -cudart static: the library needs only the driver at run time, not a CUDA toolkit.
 CUDA_FLAGS = ("-x", "cu", "-O3", "-std=c++17", "-shared", "-Xcompiler", "-fPIC", "-cudart", "static",
               "-diag-suppress", "128,177", *CUDA_ARCHS)  # fmt: skip
+
+#: The drone's constants in the kernels' order, which :func:`~.ops.env_constants` packs and a
+#: library's ``DK_ENV_CONSTANTS`` must name when it loads: the fields of
+#: :class:`~drone_torchrl.envs.params.DroneParams`, the values the kernels read derived from them
+#: (its properties), then what is not the drone's.
+ENV_CONSTANTS = (
+    *PARAM_NAMES,
+    *("weight", "arm_over_inertia", "floor", "zone_z_centre"),
+    *("reward_zone", "reward_alive", "reward_terminated", "reset_noise"),
+    "squash_high",  # the TanhNormal head's upper bound; < 0: the Normal head
+    "reset_air",  # 1: start states drawn around the zone's centre, 0: on the floor
+)
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -158,8 +172,9 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
         return lib
 
 
-_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_env_consts", "dk_cuda_scratch_size", "dk_cuda_rollout",
+_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim", "dk_cuda_scratch_size", "dk_cuda_rollout",
                   "dk_cuda_reinforce")  # fmt: skip
+_NAMES = ("dk_env_constants", "dk_disturbance_constants", "dk_cuda_error")
 
 
 def _load(path: Path, double: bool) -> ctypes.CDLL:
@@ -167,11 +182,40 @@ def _load(path: Path, double: bool) -> ctypes.CDLL:
     for function in _INT64_RESULTS:
         if hasattr(lib, function):
             getattr(lib, function).restype = ctypes.c_int64
-    if hasattr(lib, "dk_cuda_error"):
-        lib.dk_cuda_error.restype = ctypes.c_char_p
+    for function in _NAMES:
+        if hasattr(lib, function):
+            getattr(lib, function).restype = ctypes.c_char_p
     if lib.dk_real_bytes() != (8 if double else 4):
         raise OSError(f"{path} was built for another precision")
+    _check_layout(lib, path)
     return lib
+
+
+def _check_layout(lib: ctypes.CDLL, path: Path) -> None:
+    """Raise OSError unless the kernels read the constants and see the observation Python packs.
+
+    The kernels' constants are offsets into the arrays :mod:`.ops` packs: each name at its offset
+    (``DK_ENV_CONSTANTS`` against :data:`ENV_CONSTANTS`, which DroneParams' fields begin, and the
+    disturbance's against ``disturbances.FIELDS``), and the observation's width for every command
+    memory (``disturbances.observation_names``).
+    """
+    from drone_torchrl.envs import disturbances  # torch: only once a library loads
+
+    for function, packed in (
+        ("dk_env_constants", ENV_CONSTANTS),
+        ("dk_disturbance_constants", disturbances.FIELDS),
+    ):
+        read = tuple(getattr(lib, function)().decode().split(",")[:-1])
+        if read != packed:
+            raise OSError(
+                f"{path.name} reads the constants {read} where drone_torchrl packs {packed} (drone_kernels.cpp's list)"
+            )
+    for k in range(disturbances.MAX_STEPS_BACK + 1):
+        width = len(disturbances.observation_names({"observed_actions": k}))
+        if lib.dk_observation_dim(k) != width:
+            raise OSError(
+                f"{path.name} sees {lib.dk_observation_dim(k)} observation entries with {k} observed commands; drone_torchrl {width}"
+            )
 
 
 def nvcc() -> str | None:

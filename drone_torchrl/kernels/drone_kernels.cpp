@@ -22,7 +22,7 @@
 // select()/both()/lane_any(), elementary functions through overloads (float32 polynomials for
 // vectors, the C library for scalars). build.scalar_check() (a test runs it) proves it: it
 // compiles this file with -DDK_SCALAR_CHECK, which leaves out every vector type and instantiates
-// each of them with V = float and V = double (the end of this file).
+// the loops that call them, and so each of them, with V = float and V = double (the end of this file).
 //
 // Parameters of one agent are one flat vector in ThreeNetPolicy.named_parameters() order:
 // for each hidden layer weight [out, in] then bias [out], then the mean head (weight [2, h], bias
@@ -544,20 +544,28 @@ DK_HD inline void weight_grad(const V* d, int d_stride, const V* in, int in_stri
 // The drone (envs/dynamics.py; eqs. 2.1-2.3 of the paper, semi-implicit Euler) and its
 // disturbances (envs/disturbances.py).
 
-// Env constants, in the order drone_torchrl/kernels/ops.py packs them.
-enum EnvConst {
-  kWeight, kMass, kGravity, kDt, kArmOverInertia, kMaxThrust /* < 0: unbounded */, kXLimit, kZMin, kZMax,
-  kAlphaLimit, kFloor /* z_min - floor_tolerance */, kZoneX, kZoneZMin, kZoneZMax, kRewardZone, kRewardAlive,
-  kRewardTerminated, kSquashHigh /* tanh_normal's high; < 0: normal head */,
-  kResetAir /* 1: start around the zone's centre; 0: on the floor */, kResetNoise, kZoneZCentre,
-  kStrict /* 1: a state on a bound is outside (the domain and the zone); 0: inside */, kEnvConsts
-};
+// The env constants and the disturbance's magnitudes, in the order drone_torchrl/kernels/ops.py
+// packs them (build.ENV_CONSTANTS: DroneParams' fields, bounds as 1 for strict and max_thrust < 0 for
+// unbounded, then the values derived from them and the rest; ops.DISTURBANCE_CONSTANTS:
+// disturbances.FIELDS). One list each: the enums below and the names dk_env_constants() and
+// dk_disturbance_constants() give, which the loader (build.py) compares with Python's.
+#define DK_ENV_CONSTANTS(X)                                                                                  \
+  X(mass) X(motor_distance) X(gravity) X(dt) X(max_thrust) X(floor_tolerance) X(x_limit) X(z_min) X(z_max)   \
+  X(alpha_limit) X(zone_x_limit) X(zone_z_min) X(zone_z_max) X(bounds) X(weight) X(arm_over_inertia) X(floor) \
+  X(zone_z_centre) X(reward_zone) X(reward_alive) X(reward_terminated) X(reset_noise) X(squash_high)        \
+  X(reset_air)
+#define DK_DISTURBANCE_CONSTANTS(X)                                                                          \
+  X(wind) X(gust) X(gust_time) X(mass) X(motor_gain) X(motor_lag) X(noise_position) X(noise_angle)           \
+  X(action_delay) X(observed_actions)
+#define DK_ENV_ENUM(name) env_##name,
+#define DK_DIST_ENUM(name) dist_##name,
+#define DK_NAME(name) #name ","
+enum EnvConst { DK_ENV_CONSTANTS(DK_ENV_ENUM) kEnvConsts };
+enum DistConst { DK_DISTURBANCE_CONSTANTS(DK_DIST_ENUM) kDistConsts };
 
-// Disturbance magnitudes, in the order of disturbances.FIELDS (ops.DISTURBANCE_CONSTANTS).
-enum DistConst {
-  kWind, kGust, kGustTime, kMassSpread, kMotorGain, kMotorLag, kNoisePosition, kNoiseAngle, kActionDelay,
-  kObservedActions, kDistConsts
-};
+// What the policy sees of a drone observing its last `observed` commands: the state, then the
+// commands newest first (disturbances.observation_names; the loader compares the widths).
+DK_HD constexpr int observation_dim(int observed) { return kStateDim + observed * kActionDim; }
 
 // TerminationCause codes.
 constexpr int kOutX = 1, kFloorHit = 2, kCeiling = 3, kTilt = 4;
@@ -575,15 +583,18 @@ struct EnvParams {
 template <class S>
 DK_HD inline EnvParams<S> env_params(const double* env, const Net& net) {
   EnvParams<S> e;
-  e.weight = env[kWeight], e.mass = env[kMass], e.gravity = env[kGravity], e.dt = env[kDt];
-  e.arm_over_inertia = env[kArmOverInertia], e.max_thrust = env[kMaxThrust], e.bounded = env[kMaxThrust] >= 0;
-  e.x_limit = env[kXLimit], e.z_min = env[kZMin], e.z_max = env[kZMax], e.alpha_limit = env[kAlphaLimit];
-  e.floor = env[kFloor], e.zone_x = env[kZoneX], e.zone_z_min = env[kZoneZMin], e.zone_z_max = env[kZoneZMax];
-  e.r_zone = env[kRewardZone], e.r_alive = env[kRewardAlive], e.r_term = env[kRewardTerminated];
-  e.high = env[kSquashHigh], e.half = env[kSquashHigh] / 2, e.log_half = e.high > 0 ? std::log(e.half) : 0;
+  e.weight = env[env_weight], e.mass = env[env_mass], e.gravity = env[env_gravity], e.dt = env[env_dt];
+  e.arm_over_inertia = env[env_arm_over_inertia], e.max_thrust = env[env_max_thrust];
+  e.bounded = env[env_max_thrust] >= 0;
+  e.x_limit = env[env_x_limit], e.z_min = env[env_z_min], e.z_max = env[env_z_max];
+  e.alpha_limit = env[env_alpha_limit], e.floor = env[env_floor], e.zone_x = env[env_zone_x_limit];
+  e.zone_z_min = env[env_zone_z_min], e.zone_z_max = env[env_zone_z_max];
+  e.r_zone = env[env_reward_zone], e.r_alive = env[env_reward_alive], e.r_term = env[env_reward_terminated];
+  e.high = env[env_squash_high], e.half = env[env_squash_high] / 2;
+  e.log_half = e.high > 0 ? std::log(e.half) : 0;
   e.squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe tanh and atanh
   e.min_std = net.min_std, e.dist_eps = net.dist_eps;
-  e.strict = env[kStrict] > 0;
+  e.strict = env[env_bounds] > 0;
   return e;
 }
 
@@ -601,15 +612,16 @@ DK_HD inline DistParams<S> dist_params(const double* c, double dt) {
   DistParams<S> d{};
   d.nominal = true;
   if (c == nullptr) return d;
-  for (int k = 0; k < kDistConsts; k++) d.nominal = d.nominal && (k == kGustTime || c[k] == 0);
-  d.wind = c[kWind], d.gust = c[kGust], d.mass = c[kMassSpread], d.motor_gain = c[kMotorGain];
-  d.noise_position = c[kNoisePosition], d.noise_angle = c[kNoiseAngle];
-  d.gusty = c[kGust] != 0, d.noisy = c[kNoisePosition] != 0 || c[kNoiseAngle] != 0, d.lagged = c[kMotorLag] != 0;
-  d.delay = static_cast<int>(c[kActionDelay]), d.observed = static_cast<int>(c[kObservedActions]);
-  const double decay = d.gusty ? std::exp(-dt / c[kGustTime]) : 0.0;
+  for (int k = 0; k < kDistConsts; k++) d.nominal = d.nominal && (k == dist_gust_time || c[k] == 0);
+  d.wind = c[dist_wind], d.gust = c[dist_gust], d.mass = c[dist_mass], d.motor_gain = c[dist_motor_gain];
+  d.noise_position = c[dist_noise_position], d.noise_angle = c[dist_noise_angle];
+  d.gusty = c[dist_gust] != 0, d.noisy = c[dist_noise_position] != 0 || c[dist_noise_angle] != 0;
+  d.lagged = c[dist_motor_lag] != 0;
+  d.delay = static_cast<int>(c[dist_action_delay]), d.observed = static_cast<int>(c[dist_observed_actions]);
+  const double decay = d.gusty ? std::exp(-dt / c[dist_gust_time]) : 0.0;
   d.gust_decay = decay;
-  d.gust_scale = c[kGust] * std::sqrt(1.0 - decay * decay);
-  d.lag = d.lagged ? 1.0 - std::exp(-dt / c[kMotorLag]) : 0.0;
+  d.gust_scale = c[dist_gust] * std::sqrt(1.0 - decay * decay);
+  d.lag = d.lagged ? 1.0 - std::exp(-dt / c[dist_motor_lag]) : 0.0;
   return d;
 }
 
@@ -630,11 +642,11 @@ struct Drone {
 // the jitter in float32, then the start point (the zone's centre or the floor) in S.
 template <class S>
 DK_HD inline S start_component(const double* env, uint64_t start_key, uint64_t episode, int k) {
-  const bool air = env[kResetAir] > 0;
+  const bool air = env[env_reset_air] > 0;
   const float u = uniform(start_key, episode * kStateDim + k);
-  const float jitter = (2.0f * u - 1.0f) * static_cast<float>(env[kResetNoise]);
+  const float jitter = (2.0f * u - 1.0f) * static_cast<float>(env[env_reset_noise]);
   const bool kept = air || k == 0 || k == 4;  // floor: x and alpha only
-  const S base = k != 2 ? S(0) : air ? S(env[kZoneZCentre]) : S(env[kZMin]);
+  const S base = k != 2 ? S(0) : air ? S(env[env_zone_z_centre]) : S(env[env_z_min]);
   return (kept ? S(jitter) : S(0)) + base;
 }
 
@@ -936,7 +948,7 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
     return saved[((n * layout.blocks + r / L) * layout.width + k) * L + r % L];
   };
   const EnvParams<S> e = env_params<S>(a.env, net);
-  const DistParams<S> d = dist_params<S>(a.dist, a.env[kDt]);
+  const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
   Drone<V> dr{};
   const int64_t T = a.steps, in_dim = net.in_dim;
   {
@@ -1228,7 +1240,7 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   constexpr int L = lanes_of<V>();
   const S* w = static_cast<const S*>(a.params);  // one agent: every lane reads the same weights
   const EnvParams<S> e = env_params<S>(a.env, net);
-  const DistParams<S> d = dist_params<S>(a.dist, a.env[kDt]);
+  const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
   const int64_t J = a.steps, in_dim = net.in_dim, delay = d.delay, observed = d.observed;
   Drone<V> dr{}, fresh{};
   auto in = [](const void* p, int64_t i) { return static_cast<const S*>(p)[i]; };
@@ -1409,9 +1421,10 @@ __attribute__((flatten)) void reinforce_agents(const Net& net, const GradArgs& g
 
 extern "C" {
 
-// How many drone and disturbance constants the kernels read (ops.ENV_CONSTANTS, DISTURBANCE_CONSTANTS).
-int64_t dk_env_consts() { return kEnvConsts; }
-int64_t dk_disturbance_consts() { return kDistConsts; }
+// The names of the constants the kernels read, in order, each followed by a comma; the observation's width.
+const char* dk_env_constants() { return DK_ENV_CONSTANTS(DK_NAME); }
+const char* dk_disturbance_constants() { return DK_DISTURBANCE_CONSTANTS(DK_NAME); }
+int64_t dk_observation_dim(int64_t observed) { return observation_dim(static_cast<int>(observed)); }
 
 // Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
 // row's episode terminates or `steps` steps. Writes the states ([rows, steps + 1, 6]: before each
@@ -1514,8 +1527,9 @@ inline unsigned grid_of(int64_t threads) {
 
 extern "C" {
 
-int64_t dk_env_consts() { return kEnvConsts; }
-int64_t dk_disturbance_consts() { return kDistConsts; }
+const char* dk_env_constants() { return DK_ENV_CONSTANTS(DK_NAME); }
+const char* dk_disturbance_constants() { return DK_DISTURBANCE_CONSTANTS(DK_NAME); }
+int64_t dk_observation_dim(int64_t observed) { return observation_dim(static_cast<int>(observed)); }
 int64_t dk_real_bytes() { return sizeof(Real); }
 
 // Scratch scalars of dk_cuda_rollout (rows rows) and dk_cuda_reinforce (agents agents).
@@ -1578,30 +1592,15 @@ const char* dk_cuda_error(int64_t code) { return cudaGetErrorString(static_cast<
 }  // extern "C"
 
 #else  // DK_SCALAR_CHECK
-// The scalar check (-DDK_SCALAR_CHECK): every single-source function with V = float and V = double,
-// compiled without the vector types, as a CUDA kernel (one thread per drone) will call them.
-#define DK_INSTANTIATE(V)                                                                                      \
-  template void action_normals<V>(const uint64_t*, const uint64_t*, V*);                                       \
-  template void forward<V, V>(const Net&, const V*, const V*, V*, V*, V*);                                     \
-  template void backward_deltas<V, V>(const Net&, const V*, const V*, const V*, const V*, V*);                 \
-  template void weight_grad<V>(const V*, int, const V*, int, int, int, int64_t, V*, V*);                       \
-  template EnvParams<V> env_params<V>(const double*, const Net&);                                              \
-  template DistParams<V> dist_params<V>(const double*, double);                                                \
-  template V start_component<V>(const double*, uint64_t, uint64_t, int);                                      \
-  template void start_episode<V>(const DistParams<V>&, Drone<V>&);                                             \
-  template void step_normals<V>(const DistParams<V>&, const Drone<V>&, const int64_t*, V*);                    \
-  template void observe<V>(const DistParams<V>&, const Drone<V>&, const V*, V*);                               \
-  template void policy_step<V, V>(const Net&, const EnvParams<V>&, const V*, const V*, V*, const V*, V*, V*,   \
-                                  V*);                                                                         \
-  template void drone_step<V>(const EnvParams<V>&, const DistParams<V>&, Drone<V>&, const V*, V, V*, V*, V*,   \
-                              V*);                                                                             \
-  template V log_prob_backward<V>(const EnvParams<V>&, const V*, const V*, const V*, V, V*, V*, V*);        \
-  template void fly_block<V>(const Net&, const RolloutArgs&, int64_t, V*, V*, V*);                             \
-  template void reinforce_agent<V>(const Net&, const GradArgs&, int64_t, V*, V*, V*);                          \
-  template void segment_block<V>(const Net&, const SegmentArgs&, int64_t, V*, V*);
-DK_INSTANTIATE(float)
-DK_INSTANTIATE(double)
-#undef DK_INSTANTIATE
+// The scalar check (-DDK_SCALAR_CHECK): the engine's single-source loops with V = float and
+// V = double, compiled without the vector types, as a CUDA kernel (one thread per drone) calls them.
+// Instantiating them instantiates every DK_HD function they call (no list of those to keep).
+template <class V>
+void scalar_check() {
+  (void)&fly_block<V>, (void)&reinforce_agent<V>, (void)&segment_block<V>;
+}
+template void scalar_check<float>();
+template void scalar_check<double>();
 
 }  // namespace
 

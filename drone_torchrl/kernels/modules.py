@@ -19,6 +19,7 @@ from typing import Any, NamedTuple
 import torch
 
 from drone_torchrl.envs import disturbances, dynamics
+from drone_torchrl.envs.params import DroneParams
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.kernels import ops
 from drone_torchrl.modules.stacked import StackedThreeNet
@@ -45,7 +46,7 @@ class KernelRollout:
     def __init__(
         self,
         stacked: StackedThreeNet,
-        params: dynamics.DroneParams,
+        params: DroneParams,
         squash_high: float | None,
         max_steps: int,
         reset_mode: str = "floor",

@@ -12,7 +12,8 @@
 
 Each takes the drone (:func:`env_constants`) and its disturbances (:func:`disturbance_constants`,
 the physics of :mod:`drone_torchrl.envs.disturbances`: wind, gusts, mass, motor gains, lag, delay,
-observation noise, observed commands); the policy then sees ``6 + 2 * observed_actions`` values.
+observation noise, observed commands); the policy then sees
+:func:`~drone_torchrl.envs.disturbances.observation_names`.
 Parameters are each agent's flat vector
 (:attr:`StackedThreeNet.flat <drone_torchrl.modules.stacked.StackedThreeNet.flat>`).
 """
@@ -21,12 +22,14 @@ from __future__ import annotations
 
 import ctypes
 from collections.abc import Mapping, Sequence
+from dataclasses import fields
 from typing import Any
 
 import torch
 
 from drone_torchrl.envs import disturbances, dynamics
-from drone_torchrl.kernels.build import cuda_library, library, unavailable_reason
+from drone_torchrl.envs.params import PARAM, DroneParams
+from drone_torchrl.kernels.build import ENV_CONSTANTS, cuda_library, library, unavailable_reason
 
 #: The code of each activation as the kernels take it (``activation`` argument).
 ACTIVATION_CODES = {"tanh": 0, "relu": 1, "elu": 2}
@@ -80,71 +83,37 @@ def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, s
         raise RuntimeError(f"ops.{function} on {device}: {lib.dk_cuda_error(_c64(code)).decode()}")
 
 
-#: The drone's constants in the kernels' order (``EnvConst`` in drone_kernels.cpp).
-ENV_CONSTANTS = (
-    "weight",
-    "mass",
-    "gravity",
-    "dt",
-    "arm_over_inertia",
-    "max_thrust",  # < 0: unbounded
-    "x_limit",
-    "z_min",
-    "z_max",
-    "alpha_limit",
-    "floor",  # z_min - floor_tolerance: below it the floor is hit
-    "zone_x",
-    "zone_z_min",
-    "zone_z_max",
-    "reward_zone",
-    "reward_alive",
-    "reward_terminated",
-    "squash_high",  # the TanhNormal head's upper bound; < 0: the Normal head
-    "reset_air",  # 1: start states drawn around the zone's centre, 0: on the floor
-    "reset_noise",
-    "zone_z_centre",
-    "strict",  # 1: a state exactly on a bound is outside (the domain and the zone); 0: inside
-)
+_CHOICES = {f.name: f.metadata[PARAM].choices for f in fields(DroneParams)}
 
 
 def env_constants(
-    params: dynamics.DroneParams,
+    params: DroneParams,
     squash_high: float | None,
     reset_mode: str = "floor",
     device: torch.device | str = "cpu",
 ) -> torch.Tensor:
-    """The drone's constants (:data:`ENV_CONSTANTS`, float64): its physics and arena from ``params``.
+    """The drone's constants (:data:`~.build.ENV_CONSTANTS`, float64): its physics and arena from ``params``.
 
-    The arena is the domain, the target zone and ``bounds``.
-
+    A choice is its index (``bounds``: 1 is strict), ``None`` is -1 (``max_thrust``: unbounded).
     ``squash_high``: the TanhNormal head's upper bound (actions in ``[0, squash_high]``), or None
     for the Normal head. ``reset_mode``: where the start states drawn in the kernel lie.
     """
-    values = {
-        "weight": params.weight,
-        "mass": params.mass,
-        "gravity": params.gravity,
-        "dt": params.dt,
-        "arm_over_inertia": params.lever_arm / params.inertia,
-        "max_thrust": -1.0 if params.max_thrust is None else params.max_thrust,
-        "x_limit": params.x_limit,
-        "z_min": params.z_min,
-        "z_max": params.z_max,
-        "alpha_limit": params.alpha_limit,
-        "floor": params.floor,
-        "zone_x": params.zone_x_limit,
-        "zone_z_min": params.zone_z_min,
-        "zone_z_max": params.zone_z_max,
+    others = {
         "reward_zone": dynamics.REWARD_IN_ZONE,
         "reward_alive": dynamics.REWARD_ALIVE,
         "reward_terminated": dynamics.REWARD_TERMINATED,
-        "squash_high": -1.0 if squash_high is None else float(squash_high),
-        "reset_air": float(reset_mode == "air"),
         "reset_noise": dynamics.RESET_NOISE,
-        "zone_z_centre": params.zone_z_centre,
-        "strict": float(params.strict),
+        "squash_high": squash_high,
+        "reset_air": reset_mode == "air",
     }
-    return torch.tensor([values[name] for name in ENV_CONSTANTS], dtype=torch.float64, device=device)
+
+    def number(name: str) -> float:
+        value = others[name] if name in others else getattr(params, name)
+        if _CHOICES.get(name):
+            return float(_CHOICES[name].index(value))
+        return -1.0 if value is None else float(value)
+
+    return torch.tensor([number(name) for name in ENV_CONSTANTS], dtype=torch.float64, device=device)
 
 
 #: The disturbance's magnitudes in the kernels' order (``DistConst`` in drone_kernels.cpp).
@@ -186,11 +155,6 @@ def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
     return int(disturbance[_DELAY]), int(disturbance[_OBSERVED])
 
 
-def observation_dim(disturbance: torch.Tensor | None) -> int:
-    """What the policy sees under ``disturbance`` (:func:`disturbance_constants`): ``6 + 2k``."""
-    return dynamics.STATE_DIM + dynamics.ACTION_DIM * steps_back(disturbance)[1]
-
-
 def param_count(in_dim: int, hidden: Sequence[int]) -> int:
     """The flat parameter count of a network with ``in_dim`` inputs and ``hidden`` sizes."""
     widths = [in_dim, *hidden]
@@ -210,7 +174,7 @@ def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.T
             f"action_delay and observed_actions {steps_back(disturbance)} are not allowed; expected "
             f"integers in [0, {disturbances.MAX_STEPS_BACK}] (the kernels' command memory)"
         )
-    in_dim = observation_dim(disturbance)
+    in_dim = len(disturbances.observation_names({"observed_actions": steps_back(disturbance)[1]}))
     if params.shape[-1] != param_count(in_dim, hidden):
         raise ValueError(
             f"params of {params.shape[-1]} values do not fit the policy of {in_dim} inputs and hidden "
@@ -253,7 +217,7 @@ def rollout(
     """Fly every active agent's ``E`` episodes until each ends or ``steps`` pass.
 
     Args:
-        params: ``[N, P]`` flat parameters (a policy of :func:`observation_dim` inputs).
+        params: ``[N, P]`` flat parameters (a policy of the observation's inputs).
         start: ``[N, E, 6]`` start states (None with ``rng``).
         noise: ``[N, E, steps, 2]`` standard normals (``action = f(loc + scale * noise)``), or None
             for the deterministic action (or with ``rng``).
@@ -281,7 +245,7 @@ def rollout(
     :class:`~.dynamics.TerminationCause` codes), ``length [N, E]`` (int64), ``returns [N, E, steps]`` (each
     step's discounted return-to-go, :func:`~drone_torchrl.objectives.reinforce.discounted_returns`),
     ``stats [N, E, 4]`` float64 (:data:`STAT_NAMES`) and, with ``observations``, what the policy
-    saw before each step ``[N, E, steps, observation_dim]`` (else an empty tensor); entries after
+    saw before each step ``[N, E, steps, D]`` (D: the observation's width) (else an empty tensor); entries after
     an episode's end hold zeros.
     """
     n, episodes = _rows(start, rng, active)

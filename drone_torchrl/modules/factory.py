@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import torch
 from omegaconf import DictConfig
@@ -31,13 +32,9 @@ def model_dtype(cfg: DictConfig) -> torch.dtype:
     return DTYPES[cfg.env.dtype]
 
 
-def observation_dim(cfg: DictConfig) -> int:
-    """Entries of the run's observations (6 state entries plus 2 per observed past command).
-
-    The 6 state entries and ``env.disturbance.observed_actions`` past commands (2 each); an
-    ``env.disturbance`` that leaves the key out observes none.
-    """
-    return disturbances.make(cfg.env.get("disturbance")).observation_dim
+def observation_dim(cfg: Mapping[str, Any]) -> int:
+    """Entries of a run's observations: :func:`~drone_torchrl.envs.disturbances.observation_names` of its ``env.disturbance``."""
+    return len(disturbances.observation_names(cfg["env"].get("disturbance")))
 
 
 def build_policy(cfg: DictConfig, seed: int | None = None) -> ThreeNetPolicy:

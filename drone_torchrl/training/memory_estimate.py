@@ -66,10 +66,10 @@ from itertools import pairwise
 from typing import Any
 
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.dynamics import ACTION_DIM, STATE_DIM
 from drone_torchrl.envs.rendering import FRAME_HEIGHT, FRAME_WIDTH
 from drone_torchrl.kernels.ops import AGENTS_PER_CALL, AGENTS_PER_EVALUATION
+from drone_torchrl.modules.factory import observation_dim
 
 #: The estimate is within this factor of what an update and an evaluation allocate, either way.
 STATED_FACTOR = 2.0
@@ -172,15 +172,10 @@ def mlp_parameters(widths: Sequence[int]) -> int:
     return sum(i * o + o for i, o in pairwise(widths))
 
 
-def observation_size(cfg: Mapping[str, Any]) -> int:
-    """The entries of one observation: the state, plus the last commands if the disturbance observes them."""
-    return disturbances.make(cfg["env"].get("disturbance")).observation_dim
-
-
 def policy_parameters(cfg: Mapping[str, Any]) -> int:
     """The three-net policy's parameters: the trunk and its two heads."""
     hidden = list(cfg["model"]["hidden_sizes"])
-    return mlp_parameters([observation_size(cfg), *hidden]) + 2 * mlp_parameters([hidden[-1], ACTION_DIM])
+    return mlp_parameters([observation_dim(cfg), *hidden]) + 2 * mlp_parameters([hidden[-1], ACTION_DIM])
 
 
 def rollout_bytes(b: int) -> int:
@@ -209,12 +204,12 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     if cfg["backend"] == "fast":
         # The kernel's buffers (listed in the module's docstring), for the agents of one kernel call.
         steps = steps // agents * min(agents, AGENTS_PER_CALL) if agents else 0
-        saved = observation_size(cfg) + sum(hidden) + KERNEL_SAVED_FLOATS_PER_STEP
+        saved = observation_dim(cfg) + sum(hidden) + KERNEL_SAVED_FLOATS_PER_STEP
         backward = sum(hidden) + KERNEL_FLOATS_PER_STEP
         per_step = (saved + backward) * b + INT64_BYTES
     else:
         per_step = (
-            rollout_bytes(b) + observation_size(cfg) * b + graph_bytes(hidden, b) + LOSS_FLOATS_PER_STEP * b
+            rollout_bytes(b) + observation_dim(cfg) * b + graph_bytes(hidden, b) + LOSS_FLOATS_PER_STEP * b
         )
     return {"REINFORCE's update": Part(steps * per_step, advice)}
 
@@ -226,7 +221,7 @@ def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     """
     algo = cfg["algo"]
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
-    d = observation_size(cfg)
+    d = observation_dim(cfg)
     value_hidden = list(algo["value_hidden_sizes"])
     frame = (2 * d + ON_POLICY_FLOATS_PER_FRAME) * b + ON_POLICY_INT_BYTES_PER_FRAME
     frames = agents * algo["num_envs"] * algo["steps_per_batch"]
@@ -251,7 +246,7 @@ def sac_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     """
     algo = cfg["algo"]
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
-    d = observation_size(cfg)
+    d = observation_dim(cfg)
     q_hidden = list(algo["qvalue_hidden_sizes"])
     stored = (2 * d + SAC_FLOATS_PER_FRAME) * b + SAC_FLAG_BYTES_PER_FRAME
     if algo["n_steps"] > 1:  # and each window's length
