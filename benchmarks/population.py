@@ -17,7 +17,7 @@ also times the real ``drone-train -m hydra/launcher=population 'seed=range(0,N)'
 its log line that the population is set up (Hydra and the sweep's N jobs included); memory: what the
 population added to this process per agent (a size after the first reuses memory the first
 freed: time one size per command for that figure), and the estimate of
-drone_torchrl.training.memory_estimate.
+drone_torchrl.memory_estimate.
 ``--per-call`` updates run per call of the update (the training loop runs up to
 ``trainer.MAX_UPDATES_PER_CALL``).
 Prints the median time per update over ``--repeats`` runs, the time per agent, the share of the
@@ -46,11 +46,11 @@ import torch
 import train_speed  # the script beside this one: python benchmarks/population.py
 from omegaconf import OmegaConf
 
+from drone_torchrl import memory_estimate
 from drone_torchrl.config import config_dir, per_agent_keys
-from drone_torchrl.training import memory_estimate
+from drone_torchrl.memory_estimate import reinforce_parts
 from drone_torchrl.training import population_record as record_module
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.trainer import Trainer
 
 IMPORTED = time.perf_counter()

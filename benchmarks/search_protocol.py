@@ -271,7 +271,7 @@ def available_launchers() -> set[str]:
     """The ``hydra/launcher`` options Hydra can compose: the plug-in's schemas and ``conf/``'s files."""
     from hydra.core.config_store import ConfigStore
 
-    import hydra_plugins.drone_torchrl_launcher.schemas  # noqa: F401  (stores the schemas)
+    import drone_torchrl.launcher_schemas  # noqa: F401  (stores the schemas)
 
     stored = {Path(name).stem for name in ConfigStore.instance().list("hydra/launcher")}
     return stored | {p.stem for p in (Path(config_dir()) / "hydra" / "launcher").glob("*.yaml")}

@@ -19,6 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
 
+from drone_torchrl import memory_estimate
 from drone_torchrl.config import (
     ConfigError,
     check_device,
@@ -42,7 +43,6 @@ from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.objectives.reinforce import valid_steps
 from drone_torchrl.optimum import Optimum
-from drone_torchrl.training import memory_estimate
 from drone_torchrl.training.population_record import open_agent
 
 PLOT_NAME = "trajectory.png"

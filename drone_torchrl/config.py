@@ -15,13 +15,13 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
-from drone_torchrl import algorithms, loggers, migrations, schema, sweep_folder
+from drone_torchrl import loggers, memory_estimate, migrations, schema, sweep_folder
 from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
+from drone_torchrl.registry import ALGORITHMS, RollbackLearner
 from drone_torchrl.schema import Rule
-from drone_torchrl.training import memory_estimate
 
 # The device kinds the code runs on. Others fail deep inside (mps has no float64 for the
 # population optimizer's per-agent scalars; meta holds no numbers), so they are refused up front.
@@ -60,7 +60,7 @@ def config_dir() -> str:
     # stores its own when imported: discovered here): all must be in Hydra's ConfigStore before
     # composing, also where Hydra's plugin scan does not see them (an editable install's
     # hydra_plugins is an import hook, not a folder).
-    import hydra_plugins.drone_torchrl_launcher.schemas  # noqa: F401
+    import drone_torchrl.launcher_schemas  # noqa: F401
 
     _discover_plugins()
 
@@ -84,7 +84,7 @@ RUN_FOLDER_ENTRIES = frozenset(
 _HYDRA_PREFIX = "hydra"
 # The registry of each plug-in group (drone_torchrl.schema.plugin_groups): its one-line error names
 # the registered plug-ins when a config names another; the plug-ins page lists them (plugin_docs).
-REGISTRIES = {"algo": algorithms.get, "logger": loggers.get}
+REGISTRIES = {"algo": ALGORITHMS.get, "logger": loggers.get}
 
 
 @functools.cache
@@ -106,7 +106,7 @@ def _discover_plugins() -> None:
     Each stores it when imported. The cached key lists above must not be made before they are (a
     caller that asks before any app ran).
     """
-    algorithms.names()
+    ALGORITHMS.names()
     loggers.BACKENDS.names()
 
 
@@ -762,11 +762,11 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
         return path, state
     name = OmegaConf.select(run_config(state["config"]), "algo.name")
     try:
-        algorithm = algorithms.get(name)
+        algorithm = ALGORITHMS.get(name)
     except ConfigError:
         raise ConfigError(
             f"{key}={str(path)!r} cannot be used: it was written by algo.name={name!r}, which is not installed "
-            f"(known: {list(algorithms.names())})"
+            f"(known: {list(ALGORITHMS.names())})"
         ) from None
     missing = [entry for entry in algorithm.checkpoint_keys if entry not in state]
     if missing:
@@ -794,7 +794,7 @@ def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig)
     meta.device = "meta"
     with torch.device("meta"):
         networks = {"actor": build_actor(meta)}
-        if "critic" in algorithms.get(cfg.algo.name).checkpoint_keys:  # PPO's and A2C's value network
+        if "critic" in ALGORITHMS.get(cfg.algo.name).checkpoint_keys:  # PPO's and A2C's value network
             networks["critic"] = build_critic(meta)
     try:
         for entry, module in networks.items():
@@ -924,14 +924,14 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
         )
         if reason is not None:
             raise ConfigError(f"backend=fast cannot take {reason}; backend=reference takes every option")
-    algorithms.get(cfg.algo.name).validate(cfg)
+    ALGORITHMS.get(cfg.algo.name).validate(cfg)
     for key, acts in (("stop_return", "it ends a run"), ("rollback_drop", "it acts")):
         if cfg.eval.get(key) is not None and not cfg.eval.every_episodes:
             expected = f"null unless eval.every_episodes > 0 ({acts} at a periodic evaluation)"
             raise ConfigError.of(f"eval.{key}", cfg.eval[key], expected)
     drop = cfg.eval.get("rollback_drop")
-    if drop is not None and not hasattr(algorithms.get(cfg.algo.name).learner, "after_evaluation"):
-        takers = [n for n in algorithms.names() if hasattr(algorithms.get(n).learner, "after_evaluation")]
+    if drop is not None and not issubclass(ALGORITHMS.get(cfg.algo.name).learner, RollbackLearner):
+        takers = [n for n in ALGORITHMS.names() if issubclass(ALGORITHMS.get(n).learner, RollbackLearner)]
         expected = f"null with algo={cfg.algo.name} (taken by algo={'/'.join(takers)})"
         raise ConfigError.of("eval.rollback_drop", drop, expected)
     if training:  # drone-eval reads a finished run's values: its logger is the training's business
@@ -966,8 +966,8 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
 def check_memory(cfg: Mapping[str, Any], agents: int = 1) -> None:
     """Refuse in one line a config whose memory exceeds what this machine has free.
 
-    The memory is :mod:`drone_torchrl.training.memory_estimate`'s, with ``agents`` runs trained
+    The memory is :mod:`drone_torchrl.memory_estimate`'s, with ``agents`` runs trained
     together in one process.
     """
-    learner = algorithms.get(cfg["algo"]["name"]).memory
+    learner = ALGORITHMS.get(cfg["algo"]["name"]).memory
     memory_estimate.check(memory_estimate.estimate(cfg, agents, learner), cfg["device"])

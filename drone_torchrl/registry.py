@@ -1,6 +1,8 @@
 """Plug-in registries: algorithms and logger backends are found by name the same way.
 
-The algorithms are :mod:`drone_torchrl.algorithms`, the logger backends :mod:`drone_torchrl.loggers`.
+The algorithms are :mod:`drone_torchrl.algorithms` (the registry :data:`ALGORITHMS`, :class:`Algorithm` and
+the learners' optional capabilities are here, below the config and the training loop that look them
+up), the logger backends :mod:`drone_torchrl.loggers`.
 
 A plug-in module calls :meth:`Registry.register` when imported. A registry imports the modules of
 its own package, and those another package names in its entry-point group, when a name is first
@@ -12,8 +14,11 @@ from __future__ import annotations
 import importlib
 import pkgutil
 import re
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from importlib import metadata
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 from drone_torchrl.checks import ConfigError
 
@@ -77,3 +82,53 @@ class Registry(Generic[T]):
                 f"one of {list(self.names())} (registered in {self.package} or '{self.entry_points}')",
             )
         return self._items[name]
+
+
+@dataclass(frozen=True)
+class Algorithm:
+    """One algorithm as the shared training loop sees it.
+
+    Attributes:
+        name: its ``algo.name``.
+        learner: the learner class; ``learner(jobs)`` trains up to ``learner.max_agents`` prepared
+            jobs (None: any number) behind ``update(state, k, active)``, or its own ``train`` (a
+            :class:`LoopLearner`); a :class:`RollbackLearner` takes ``eval.rollback_drop``.
+        validate: raises :class:`~drone_torchrl.checks.ConfigError` (one line) for values of its keys
+            that do not go together; each key's own bounds and choices (its schema's) are checked
+            before it is called. Gets the resolved config as nested dicts with attribute access.
+        checkpoint_keys: entries its learner adds to every checkpoint (a checkpoint without one is
+            refused when resumed, in one line).
+        summary: one line saying what it is.
+        memory: ``memory(cfg, agents)``: the bytes its learner allocates, by part
+            (:mod:`drone_torchrl.memory_estimate` derives them); a config whose estimate
+            exceeds the free memory is refused before any work. None: only the parts every run has.
+    """
+
+    name: str
+    learner: type
+    validate: Callable[[Mapping[str, Any]], None]
+    checkpoint_keys: tuple[str, ...] = ()
+    summary: str = ""
+    memory: Callable[[Mapping[str, Any], int], dict[str, Any]] | None = None
+
+
+#: The algorithms (:mod:`drone_torchrl.algorithms` and the ``drone_torchrl.algorithms`` entry points).
+ALGORITHMS: Registry[Algorithm] = Registry(
+    "algo.name", "drone_torchrl.algorithms", "drone_torchrl.algorithms"
+)
+
+
+class LoopLearner(ABC):
+    """A learner that runs its own loop (PPO's, A2C's) instead of the trainer calling ``update``."""
+
+    @abstractmethod
+    def train(self, trainer: Any, stop: Any) -> None:
+        """Train every active agent of ``trainer`` to its budget, or until ``stop`` is signalled."""
+
+
+class RollbackLearner(ABC):
+    """A learner that acts on ``eval.rollback_drop``: it rolls back after an evaluation that dropped."""
+
+    @abstractmethod
+    def after_evaluation(self, run: Any, best_before: float) -> None:
+        """Called after each periodic evaluation of ``run``; ``best_before`` is its best return before it."""

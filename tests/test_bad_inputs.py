@@ -987,8 +987,7 @@ def test_a_population_larger_than_the_memory_is_one_line_before_the_folder(
 ):
     """The memory check of a population (each agent alone fits; 8 together do not): was on stdout."""
     pytest.importorskip("pyarrow")
-    from drone_torchrl import algorithms
-    from drone_torchrl.training import memory_estimate
+    from drone_torchrl import algorithms, memory_estimate
 
     with initialize_config_dir(config_dir(), version_base="1.3"):
         cfg = compose("config", overrides=TINY)

@@ -23,13 +23,12 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 from omegaconf.errors import GrammarParseError
 
-from drone_torchrl import loggers
+from drone_torchrl import loggers, memory_estimate
 from drone_torchrl.checks import FLOAT32_MAX, INT64_MAX, ConfigError
 from drone_torchrl.config import _every_key, _option_plugins, _options, config_dir, schema_keys, validate
 from drone_torchrl.envs import disturbances, dynamics, params
 from drone_torchrl.kernels import ops
 from drone_torchrl.schema import Rule
-from drone_torchrl.training import memory_estimate
 
 KEYS = _every_key("config")
 # Hypothesis' examples per property (the test's runtime: about 4 ms an example).

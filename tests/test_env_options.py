@@ -18,12 +18,11 @@ from hydra import compose, initialize_config_dir
 
 import drone_torchrl  # noqa: F401  (registers Drone2D-v0)
 from drone_torchrl.config import config_dir, physics_params
-from drone_torchrl.envs import DroneEnv, dynamics
+from drone_torchrl.envs import DroneEnv, dynamics, rng
 from drone_torchrl.envs.dynamics import TerminationCause as C
 from drone_torchrl.kernels import build, library, ops
 from drone_torchrl.kernels.modules import KernelRollout
 from drone_torchrl.modules import StackedThreeNet, ThreeNetPolicy
-from drone_torchrl.training import rng
 
 NONE, OUT_X, FLOOR, CEILING, TILT = C.NONE, C.OUT_X, C.FLOOR, C.CEILING, C.TILT
 needs_kernels = pytest.mark.skipif(library() is None, reason=f"no C++ kernels: {build.unavailable_reason()}")

@@ -21,14 +21,13 @@ import torch
 from omegaconf import OmegaConf
 
 from drone_torchrl.config import config_dir
-from drone_torchrl.envs import DroneEnv, disturbances, dynamics
+from drone_torchrl.envs import DroneEnv, disturbances, dynamics, rng
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.kernels import build, library, ops
 from drone_torchrl.kernels.modules import KernelReinforce, KernelRollout, KernelSegments
 from drone_torchrl.modules import ActionSampler, StackedThreeNet, ThreeNetPolicy
 from drone_torchrl.modules.policy import actor_from_net, init_exploration
 from drone_torchrl.objectives.reinforce import ReinforceLoss, reinforce_terms, valid_steps
-from drone_torchrl.training import rng
 
 pytestmark = pytest.mark.skipif(
     library() is None, reason=f"C++ kernels unavailable: {build.unavailable_reason()}"

@@ -2,7 +2,7 @@
 
 Every step the rollout kernel flies is checked against ``dynamics.step`` and the stacked policy
 (teacher forcing: the PyTorch step is applied to the kernel's own state, so chaos cannot hide a
-difference), its random numbers against ``training.rng``, and the update kernel's loss and
+difference), its random numbers against ``envs.rng``, and the update kernel's loss and
 gradient against TorchRL's ``ReinforceLoss`` with autograd on the episodes the kernel flew.
 """
 
@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from drone_torchrl.envs import dynamics
+from drone_torchrl.envs import dynamics, rng
 from drone_torchrl.envs.params import PARAM_NAMES
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.episodes import counted_metrics, episode_stats
@@ -26,7 +26,6 @@ from drone_torchrl.kernels.modules import KernelReinforce, KernelRollout
 from drone_torchrl.modules import ActionSampler, StackedThreeNet, ThreeNetPolicy, make_actor
 from drone_torchrl.modules.policy import init_exploration
 from drone_torchrl.objectives.reinforce import ReinforceLoss, discounted_returns
-from drone_torchrl.training import rng
 
 pytestmark = pytest.mark.skipif(
     library() is None, reason=f"C++ kernels unavailable: {build.unavailable_reason()}"

@@ -1,4 +1,4 @@
-"""The memory estimator (drone_torchrl/training/memory_estimate.py): its shapes are the code's, it is
+"""The memory estimator (drone_torchrl/memory_estimate.py): its shapes are the code's, it is
 within its stated factor of what real configs allocate, and a config that does not fit in the memory
 this machine has free is refused in one line before any work."""
 
@@ -11,11 +11,10 @@ import sys
 import pytest
 from hydra import compose, initialize_config_dir
 
-from drone_torchrl import algorithms
+from drone_torchrl import algorithms, memory_estimate
 from drone_torchrl.config import ConfigError, _plain, check_keys, config_dir, validate
+from drone_torchrl.memory_estimate import STATED_FACTOR, estimate, policy_parameters
 from drone_torchrl.modules.factory import build_critic, build_policy
-from drone_torchrl.training import memory_estimate
-from drone_torchrl.training.memory_estimate import STATED_FACTOR, estimate, policy_parameters
 
 
 def _cfg(*overrides: str):

@@ -20,11 +20,11 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 
+from drone_torchrl import memory_estimate
 from drone_torchrl.config import ConfigError, config_dir, validate
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes as read_csv
-from drone_torchrl.training import memory_estimate
 from drone_torchrl.training import population_record as record_module
 from drone_torchrl.training.jobs import prepare
 from drone_torchrl.training.signals import TrainingStopped
@@ -205,7 +205,7 @@ def test_a_sweep_whose_population_is_refused_for_memory_exits_non_zero(tmp_path)
     argv = ["drone-train", "-m", "hydra/launcher=population", "seed=0,1,2", "algo.episodes=2", *COMMON]
     argv.append(f"hydra.sweep.dir={sweep}")
     script = (
-        "from drone_torchrl.training import memory_estimate\n"
+        "from drone_torchrl import memory_estimate\n"
         f"memory_estimate.available_ram = lambda: ({two}, 'MemAvailable')\n"
         "import sys\n"
         f"sys.argv = {argv!r}\n"

@@ -2,7 +2,7 @@
 
 import torch
 
-from drone_torchrl.training import rng
+from drone_torchrl.envs import rng
 
 
 def test_an_agents_numbers_do_not_depend_on_the_others():

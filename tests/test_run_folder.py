@@ -313,7 +313,7 @@ class Disk:
 # Where each kind of write happens: (object, attribute) patched to break the disk first.
 WRITES = {
     "csv": ("drone_torchrl.io.episodes_csv.EpisodeCSV", "flush", "episodes.csv"),
-    "tensorboard": ("drone_torchrl.io.tb_logger.RunLogger", "flush", "events.out.tfevents"),
+    "tensorboard": ("drone_torchrl.loggers.tb_logger.RunLogger", "flush", "events.out.tfevents"),
     "checkpoint": ("drone_torchrl.training.run", "save_checkpoint", "last.pt"),
     "video": ("drone_torchrl.training.run", "save_mp4", ".mp4"),
     "failed": ("drone_torchrl.training.run.RunRecord", "fail", "FAILED.txt"),

@@ -153,7 +153,7 @@ def test_hand_encoded_scalar_events_decode_as_tensorboards_own(step, scalars):
     """The logger's scalar events decode to the Event tensorboard's protobuf classes build."""
     from tensorboard.compat.proto import event_pb2, summary_pb2
 
-    from drone_torchrl.io.tb_logger import scalar_event, scalar_value
+    from drone_torchrl.loggers.tb_logger import scalar_event, scalar_value
 
     ours = event_pb2.Event.FromString(scalar_event(1.7e9, step, [scalar_value(t, v) for t, v in scalars]))
     values = [summary_pb2.Summary.Value(tag=t, simple_value=v) for t, v in scalars]

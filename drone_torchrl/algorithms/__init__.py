@@ -19,45 +19,16 @@ values). Another package adds algorithms by naming a module in the ``drone_torch
 entry-point group, and its YAML in ``conf/algo/`` of a Hydra search path.
 
 Modules are imported when an algorithm is first looked up (:class:`~drone_torchrl.registry.Registry`).
+The registry and :class:`Algorithm` live in :mod:`drone_torchrl.registry`, below the config and the
+training loop that look algorithms up (``from drone_torchrl.algorithms import Algorithm, register``
+works too).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass
-from typing import Any
+from drone_torchrl.registry import ALGORITHMS, Algorithm, LoopLearner, RollbackLearner
 
-from drone_torchrl.registry import Registry
-
-
-@dataclass(frozen=True)
-class Algorithm:
-    """One algorithm as the shared training loop sees it.
-
-    Attributes:
-        name: its ``algo.name``.
-        learner: the learner class; ``learner(jobs)`` trains up to ``learner.max_agents`` prepared
-            jobs (None: any number) behind ``update(state, k, active)`` or its own ``train``.
-        validate: raises :class:`~drone_torchrl.checks.ConfigError` (one line) for values of its keys
-            that do not go together; each key's own bounds and choices (its schema's) are checked
-            before it is called. Gets the resolved config as nested dicts with attribute access.
-        checkpoint_keys: entries its learner adds to every checkpoint (a checkpoint without one is
-            refused when resumed, in one line).
-        summary: one line saying what it is.
-        memory: ``memory(cfg, agents)``: the bytes its learner allocates, by part
-            (:mod:`drone_torchrl.training.memory_estimate` derives them); a config whose estimate
-            exceeds the free memory is refused before any work. None: only the parts every run has.
-    """
-
-    name: str
-    learner: type
-    validate: Callable[[Mapping[str, Any]], None]
-    checkpoint_keys: tuple[str, ...] = ()
-    summary: str = ""
-    memory: Callable[[Mapping[str, Any], int], dict[str, Any]] | None = None
-
-
-ALGORITHMS: Registry[Algorithm] = Registry("algo.name", __name__, "drone_torchrl.algorithms")
+__all__ = ["ALGORITHMS", "Algorithm", "LoopLearner", "RollbackLearner", "get", "names", "register"]
 
 
 def register(algorithm: Algorithm) -> Algorithm:
@@ -70,6 +41,6 @@ def names() -> tuple[str, ...]:
     return ALGORITHMS.names()
 
 
-def get(name: Any) -> Algorithm:
+def get(name: object) -> Algorithm:
     """The algorithm named ``name``; a one-line :class:`~drone_torchrl.checks.ConfigError` otherwise."""
     return ALGORITHMS.get(name)

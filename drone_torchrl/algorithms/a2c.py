@@ -24,8 +24,8 @@ from torchrl.objectives import A2CLoss, LossModule
 
 from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.algorithms.ppo import ADVANTAGE_EPS, OnPolicy, OnPolicyConf, validate_on_policy
+from drone_torchrl.memory_estimate import on_policy_parts
 from drone_torchrl.schema import a_number, one_of, store_plugin
-from drone_torchrl.training.memory_estimate import on_policy_parts
 
 # A2CLoss's value losses (torchrl.objectives.utils.distance_loss): |d|, d^2, Huber with delta 1.
 CRITIC_LOSSES = ("l1", "l2", "smooth_l1")

@@ -32,13 +32,14 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacem
 from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 
-from drone_torchrl.algorithms import Algorithm, register
+from drone_torchrl.algorithms import Algorithm, LoopLearner, RollbackLearner, register
 from drone_torchrl.algorithms.ppo_fast import PlainMinibatches, clip_ppo_losses, pre_image  # noqa: F401
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.episodes import EpisodeTracker
 from drone_torchrl.io.streams import about, console
+from drone_torchrl.memory_estimate import on_policy_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
 from drone_torchrl.schema import (
@@ -61,7 +62,6 @@ from drone_torchrl.schema import (
     free,
     store_plugin,
 )
-from drone_torchrl.training.memory_estimate import on_policy_parts
 from drone_torchrl.training.segments import FusedSegments
 
 if TYPE_CHECKING:
@@ -101,7 +101,7 @@ def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
     return batch[:, : last_step + 1]
 
 
-class OnPolicy:
+class OnPolicy(LoopLearner, RollbackLearner):
     """One actor-critic run: ``__init__`` builds it, ``train`` is its loop, ``_learn`` one batch's update.
 
     A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what its loss reports;

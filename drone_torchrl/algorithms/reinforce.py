@@ -17,6 +17,7 @@ from typing import Any
 
 from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.memory_estimate import reinforce_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
 from drone_torchrl.schema import (
@@ -36,7 +37,6 @@ from drone_torchrl.schema import (
 )
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.collectors import make_collector
-from drone_torchrl.training.memory_estimate import reinforce_parts
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.update import CHECKS, ReinforceUpdate
 

@@ -33,6 +33,7 @@ from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.algorithms.ppo import quiet, within_budget
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
+from drone_torchrl.memory_estimate import sac_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_policy, build_q_value
 from drone_torchrl.schema import (
@@ -49,7 +50,6 @@ from drone_torchrl.schema import (
     free,
     store_plugin,
 )
-from drone_torchrl.training.memory_estimate import sac_parts
 from drone_torchrl.training.segments import FusedSegments
 from drone_torchrl.training.update import UpdateOutput
 

@@ -166,7 +166,7 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
     from omegaconf.errors import OmegaConfBaseException
 
     # hydra/launcher=fused and hydra/sweeper=population, which the configs name (no torch).
-    import hydra_plugins.drone_torchrl_launcher.schemas  # noqa: F401
+    import drone_torchrl.launcher_schemas  # noqa: F401
 
     store = ConfigStore.instance()
     stored = {n.removesuffix(".yaml") for n in store.list("")}

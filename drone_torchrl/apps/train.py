@@ -164,9 +164,7 @@ def register_plugins() -> None:
         HalvingLauncher,
         PopulationSweeper,
     ]
-    if hasattr(slurm_launcher, "SlurmLauncher"):  # with the submitit extra
-        plugins += [slurm_launcher.SlurmLauncher, slurm_launcher.SlurmPopulationLauncher]
-    for plugin in plugins:
+    for plugin in plugins + list(slurm_launcher.PLUGINS):  # the SLURM ones with the submitit extra
         Plugins.instance().register(plugin)
 
 

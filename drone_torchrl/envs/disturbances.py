@@ -35,7 +35,7 @@ Lag and delay make the observation non-Markov (the thrust in effect is not in it
 ``observed_actions=k`` the last ``k`` commands the policy issued are appended to the observation,
 newest first (``6 + 2k`` entries).
 
-Randomness is counter-based (:mod:`drone_torchrl.training.rng`): each episode of each drone gets
+Randomness is counter-based (:mod:`drone_torchrl.envs.rng`): each episode of each drone gets
 one 64-bit key when it starts, and every number of that episode is a hash of (key, step, stream,
 index). An episode's disturbances are therefore the same whatever the batch it is flown in, its
 position in it, and the engine that flies it: only the key must match.
@@ -51,9 +51,8 @@ from typing import Any, NamedTuple
 import torch
 
 from drone_torchrl.checks import as_override, is_number
-from drone_torchrl.envs import dynamics, params
+from drone_torchrl.envs import dynamics, params, rng
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, DroneParams, X, Z
-from drone_torchrl.training import rng
 
 # Streams of the counter-based generator (distinct from the training engine's 1 and 2).
 EPISODE_STREAM = 11  # per-episode draws (wind, mass, gains, initial gust)

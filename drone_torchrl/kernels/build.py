@@ -172,19 +172,19 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
         return lib
 
 
-_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim", "dk_cuda_scratch_size", "dk_cuda_rollout",
-                  "dk_cuda_reinforce")  # fmt: skip
-_NAMES = ("dk_env_constants", "dk_disturbance_constants", "dk_cuda_error")
+_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim")
+_NAMES = ("dk_env_constants", "dk_disturbance_constants")
+# What only the CUDA build (cuda_library) exports.
+_CUDA_INT64_RESULTS = ("dk_cuda_scratch_size", "dk_cuda_rollout", "dk_cuda_reinforce")
+_CUDA_NAMES = ("dk_cuda_error",)
 
 
-def _load(path: Path, double: bool) -> ctypes.CDLL:
+def _load(path: Path, double: bool, cuda: bool = False) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(path))
-    for function in _INT64_RESULTS:
-        if hasattr(lib, function):
-            getattr(lib, function).restype = ctypes.c_int64
-    for function in _NAMES:
-        if hasattr(lib, function):
-            getattr(lib, function).restype = ctypes.c_char_p
+    for function in _INT64_RESULTS + (_CUDA_INT64_RESULTS if cuda else ()):
+        getattr(lib, function).restype = ctypes.c_int64
+    for function in _NAMES + (_CUDA_NAMES if cuda else ()):
+        getattr(lib, function).restype = ctypes.c_char_p
     if lib.dk_real_bytes() != (8 if double else 4):
         raise OSError(f"{path} was built for another precision")
     _check_layout(lib, path)
@@ -263,7 +263,7 @@ def cuda_library(double: bool = False) -> ctypes.CDLL | None:
                 )
                 if not path.is_file() and (why := build_cuda(path, double)) is not None:
                     raise OSError(why)
-            lib = _load(path, double)
+            lib = _load(path, double, cuda=True)
         except (OSError, subprocess.SubprocessError) as err:
             reason = f"{type(err).__name__}: {err}"
         _state[name], _state["reason"] = lib, reason

@@ -2,7 +2,7 @@
 // dynamics (disturbances, sampling included), one REINFORCE update's loss gradient through them,
 // and PPO/A2C's auto-resetting segments. Built and loaded by drone_torchrl/kernels/build.py and
 // called from PyTorch through drone_torchrl/kernels/ops.py; the PyTorch code they replace
-// (envs/dynamics.py, envs/disturbances.py, modules/stacked.py, training/rng.py,
+// (envs/dynamics.py, envs/disturbances.py, modules/stacked.py, envs/rng.py,
 // objectives/reinforce.py, envs/drone_env.py) stays the reference they are tested against.
 //
 // Why hand-written: per update the engine evaluates a 6-32-32-4 network up to 300 times in a
@@ -307,7 +307,7 @@ inline void sincos_v(F x, F* s, F* c) { sincos_f(x, s, c); }
 #endif  // DK_CPU
 
 // ------------------------------------------------------------------------------------------------
-// The counter-based random numbers of drone_torchrl/training/rng.py (SplitMix64's finaliser on
+// The counter-based random numbers of drone_torchrl/envs/rng.py (SplitMix64's finaliser on
 // (seed, counter, stream, index)): the same 64-bit integers, so the same uniforms exactly;
 // the normals' Box-Muller arithmetic (log, cos, sin) agrees with PyTorch's to a few ulp.
 

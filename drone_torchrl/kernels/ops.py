@@ -223,7 +223,7 @@ def rollout(
             for the deterministic action (or with ``rng``).
         rng: ``[N, E, 2]`` int64, each agent's seed and update counter (the same for its ``E``
             rows): the start states, the action noise and the episode keys are then drawn inside
-            the kernel, exactly where :mod:`drone_torchrl.training.rng` draws them (``uniform`` and
+            the kernel, exactly where :mod:`drone_torchrl.envs.rng` draws them (``uniform`` and
             ``keys`` bit for bit, ``normal`` to float rounding), and only for the steps flown.
         active: ``[N]`` bool; inactive agents fly nothing (length 0).
         env: :func:`env_constants`.

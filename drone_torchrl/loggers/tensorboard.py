@@ -1,6 +1,6 @@
 """``logger=tensorboard`` (the default): buffered TensorBoard event files in the run folder.
 
-The logger is :class:`~drone_torchrl.io.tb_logger.RunLogger`; the files go to
+The logger is :class:`~drone_torchrl.loggers.tb_logger.RunLogger`; the files go to
 ``<run>/<logger.exp_name>``.
 """
 
@@ -10,8 +10,8 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from drone_torchrl.io.tb_logger import RunLogger
 from drone_torchrl.loggers import Backend, register
+from drone_torchrl.loggers.tb_logger import RunLogger
 from drone_torchrl.schema import TensorBoardConf, store_plugin
 
 

@@ -27,6 +27,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
 from drone_torchrl.config import env_kwargs, physics_params
+from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.factory import make_env
 from drone_torchrl.kernels.modules import KernelRollout
 from drone_torchrl.migrations import FAST
@@ -94,7 +95,7 @@ class TorchRLCollector:
 
     def rng_state(self, agent: int) -> dict[str, torch.Tensor | None]:
         """What a checkpoint keeps of the random state: torch's global generator and the env's."""
-        generator = getattr(self.env, "_generator", None)
+        generator = self.env._generator if isinstance(self.env, DroneEnv) else None
         return {
             "torch": torch.get_rng_state(),
             "env": None if generator is None else generator.get_state(),
@@ -104,7 +105,7 @@ class TorchRLCollector:
     def set_rng_state(self, agent: int, state: dict[str, Any], episodes_done: int) -> None:
         """Restore the random state of :meth:`rng_state` (a parallel env is reseeded instead)."""
         torch.set_rng_state(state["torch"])
-        if hasattr(self.env, "_generator"):
+        if isinstance(self.env, DroneEnv):
             self.env._generator.set_state(state["env"])
         else:  # ParallelEnv workers own their generators: reseed deterministically instead.
             self.env.set_seed(self.cfg.seed + episodes_done)

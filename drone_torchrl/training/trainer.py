@@ -25,15 +25,16 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from drone_torchrl import algorithms
 from drone_torchrl.config import ConfigError, check_memory, env_kwargs, per_agent_keys
 from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
 from drone_torchrl.io.streams import about, console
+from drone_torchrl.kernels.modules import KernelRollout
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
+from drone_torchrl.registry import ALGORITHMS, LoopLearner
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
@@ -86,7 +87,7 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
 
 def learner_class(cfg: DictConfig) -> type:
     """The learner of ``algo.name``, from the algorithm registry (:mod:`drone_torchrl.algorithms`)."""
-    return algorithms.get(cfg.algo.name).learner
+    return ALGORITHMS.get(cfg.algo.name).learner
 
 
 class Trainer:
@@ -168,7 +169,9 @@ class Trainer:
                     self.evaluate(at_budget)
                     self.save(at_budget)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
-                    if hasattr(self.learner, "train"):  # its own loop: PPO's, A2C's (algorithms/ppo.py)
+                    if isinstance(
+                        self.learner, LoopLearner
+                    ):  # its own loop: PPO's, A2C's (algorithms/ppo.py)
                         self.learner.train(self, stop)
                         break
                     self.step(active)
@@ -263,7 +266,7 @@ class Trainer:
         # A population's agents a slice at a time (ops.AGENTS_PER_EVALUATION): the episodes of
         # one slice are held at once, whatever the population's size.
         flown = [(policy, n)]
-        if hasattr(policy, "rows"):
+        if isinstance(policy, KernelRollout):  # the fast engine's: a slice of the population at a time
             rows = [slice(i, min(n, i + AGENTS_PER_EVALUATION)) for i in range(0, n, AGENTS_PER_EVALUATION)]
             flown = [(policy.rows(r), r.stop - r.start) for r in rows]
         parts = [

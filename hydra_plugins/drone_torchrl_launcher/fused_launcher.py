@@ -34,8 +34,8 @@ from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
+from drone_torchrl import launcher_schemas  # noqa: F401  (registers hydra/launcher=fused)
 from drone_torchrl.io.yaml_text import save_yaml
-from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/launcher=fused)
 
 log = logging.getLogger(__name__)
 

@@ -33,9 +33,10 @@ from hydra.plugins.sweeper import Sweeper
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig
 
+from drone_torchrl import launcher_schemas  # noqa: F401  (registers hydra/sweeper=population)
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import basic_sweeper_class
-from hydra_plugins.drone_torchrl_launcher import schemas  # noqa: F401  (registers hydra/sweeper=population)
+from hydra_plugins.drone_torchrl_launcher.population_launcher import PopulationLauncher
 
 
 class PopulationSweeper(Sweeper):
@@ -103,7 +104,7 @@ class PopulationSweeper(Sweeper):
         launcher, start = self._launcher(), 0
         for batch in batches:
             self._check_batch(batch)
-            if hasattr(launcher, "check"):
+            if isinstance(launcher, PopulationLauncher):
                 try:
                     launcher.check(batch, start)
                 except ConfigError as err:

@@ -196,3 +196,7 @@ if _SubmititSlurm is not None:
             Singleton.set_state(singleton_state)
             setup_globals()
             return train_populations(self.hydra_context, self.config, group, numbers)
+
+
+# The launchers this module defines, for drone-train to register: none without the submitit extra.
+PLUGINS: tuple[type, ...] = () if _SubmititSlurm is None else (SlurmLauncher, SlurmPopulationLauncher)

@@ -1,7 +1,8 @@
-"""The config schemas of ``hydra/launcher=fused``, ``hydra/launcher=population`` and ``hydra/sweeper=population``, in Hydra's ConfigStore.
+"""The config schemas of our Hydra plug-ins (``hydra/launcher=fused``, ``population``, ... and ``hydra/sweeper=population``).
 
-Kept apart from the plugins (which import the training code when they run) so that composing the
-configs needs nothing but this module.
+Stored in Hydra's ConfigStore when imported. Kept apart from the plug-ins (``hydra_plugins/``, which
+import the training code when they run) and below the config, which needs them to compose: composing
+the configs needs nothing but this module.
 """
 
 from dataclasses import dataclass, field
@@ -16,19 +17,25 @@ BasicSweeperConf = basic_sweeper_conf()
 
 @dataclass
 class FusedLauncherConf:
+    """``hydra/launcher=fused``: a sweep's compatible jobs trained as one population."""
+
     _target_: str = "hydra_plugins.drone_torchrl_launcher.fused_launcher.FusedLauncher"
 
 
 @dataclass
 class PopulationLauncherConf:
+    """``hydra/launcher=population``: each population run of a sweep trained as one."""
+
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.PopulationLauncher"
 
 
 @dataclass
 class PBTLauncherConf:
-    """``hydra/launcher=pbt``: population runs with population-based training (see
-    :mod:`drone_torchrl.training.pbt`; Ray Tune's defaults). Typed Any so that a bad value reaches
-    the launcher's one-line check, not OmegaConf's type error."""
+    """``hydra/launcher=pbt``: population runs with population-based training.
+
+    See :mod:`drone_torchrl.training.pbt` (Ray Tune's defaults). Typed Any so that a bad value reaches
+    the launcher's one-line check, not OmegaConf's type error.
+    """
 
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.PBTLauncher"
     every_updates: Any = 100
@@ -43,8 +50,10 @@ class PBTLauncherConf:
 
 @dataclass
 class PB2LauncherConf:
-    """``hydra/launcher=pb2``: PBT whose explore step is chosen by a Gaussian process (population-based
-    bandits, :mod:`drone_torchrl.training.pb2`). No perturb: nothing is explored at random."""
+    """``hydra/launcher=pb2``: PBT whose explore step is chosen by a Gaussian process.
+
+    Population-based bandits (:mod:`drone_torchrl.training.pb2`). No perturb: nothing is explored at random.
+    """
 
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_launcher.PB2Launcher"
     every_updates: Any = 100
@@ -73,6 +82,8 @@ class PBTReplayLauncherConf:
 
 @dataclass
 class PopulationSweeperConf(BasicSweeperConf):
+    """``hydra/sweeper=population``: the basic sweeper with cheaper checks, going on past failed jobs."""
+
     _target_: str = "hydra_plugins.drone_torchrl_launcher.population_sweeper.PopulationSweeper"
 
 
@@ -96,6 +107,8 @@ else:
 
     @dataclass
     class SlurmPopulationConf(SlurmQueueConf):
+        """``hydra/launcher=submitit_slurm_population``: populations of sweep jobs, one SLURM job each."""
+
         _target_: str = "hydra_plugins.drone_torchrl_launcher.slurm_launcher.SlurmPopulationLauncher"
         # Sweep jobs trained together as one population in each SLURM job. Typed Any so that a bad
         # value (agents_per_job=abc) reaches the launcher's one-line check, not OmegaConf's type error.
