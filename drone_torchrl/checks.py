@@ -7,6 +7,7 @@ the cross-field checks use them.
 from __future__ import annotations
 
 import math
+from numbers import Integral, Real
 from pathlib import Path
 from typing import Any
 
@@ -51,39 +52,64 @@ def is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
+#: A bound of :func:`check_number`: a number, or ``(label, number)`` to show the label (``("z_min", 0.0)``
+#: reads ``z_min (0.0)``; a label that is not a name, ``("1000 m", 1000.0)``, reads as itself).
+Bound = float | tuple[str, float]
+
+
 def check_number(
     key: str,
     value: Any,
     *,
-    low: float | None = None,
-    high: float | None = None,
+    low: Bound | None = None,
+    high: Bound | None = None,
     low_open: bool = False,
+    high_open: bool = False,
     integer: bool = False,
-) -> None:
-    """Check that ``value`` of ``key`` is a finite number within the bounds.
+    dtype_range: bool = True,
+) -> Any:
+    """Check that ``value`` of ``key`` is a finite number within the bounds; return it.
 
-    With ``integer`` it must be an integer. Without an upper bound, it must be within float32's
-    range (an integer: int64's).
+    With ``integer`` it must be an integer. With ``dtype_range`` (config values) it must also be
+    within float32's range (an integer: int64's), the upper bound when there is no other; without it
+    (the env's arguments) any finite number is, and the message says "a finite number". The error is
+    one line naming the key, the value and the bounds.
     """
+    (low_label, low), (high_label, high) = (_bound_label(b) for b in (low, high))
     limit = INT64_MAX if integer else FLOAT32_MAX
-    numeric = is_number(value)
     # An int too large for a float (10**400) is compared as an int: math.isfinite would overflow.
-    if (
-        numeric
-        and (not integer or isinstance(value, int))
-        and (isinstance(value, int) or math.isfinite(value))
-        and -limit <= value <= limit
+    ok = (
+        isinstance(value, Real)
+        and not isinstance(value, bool)
+        and (not integer or isinstance(value, Integral))
+        and (isinstance(value, Integral) or math.isfinite(value))
+        and (not dtype_range or -limit <= value <= limit)
         and (low is None or value > low or (value == low and not low_open))
-        and (high is None or value <= high)
-    ):
-        return
+        and (high is None or value < high or (value == high and not high_open))
+    )
+    if ok:
+        return value
+    parts = [] if low is None else [f"{'>' if low_open else '>='} {low_label}"]
+    if high is not None:
+        parts.append(f"{'<' if high_open else '<='} {high_label}")
+    if not dtype_range:
+        raise ConfigError.of(key, value, " ".join(["a finite number", " and ".join(parts)]).rstrip())
     kind = "an integer" if integer else "a number"
     dtype = "int64" if integer else "float32"
-    if low is None and high is None:
+    if not parts:
         raise ConfigError.of(key, value, f"{kind} within {dtype}'s range, +-{limit}")
-    bounds = [] if low is None else [f"{'>' if low_open else '>='} {low}"]
-    bounds.append(f"<= {limit} ({dtype}'s largest)" if high is None else f"<= {high}")
-    raise ConfigError.of(key, value, f"{kind} {' and '.join(bounds)}")
+    if high is None:
+        parts.append(f"<= {limit} ({dtype}'s largest)")
+    raise ConfigError.of(key, value, f"{kind} {' and '.join(parts)}")
+
+
+def _bound_label(bound: Bound | None) -> tuple[str, float | None]:
+    """A bound as (how a message shows it, its value)."""
+    if bound is None or not isinstance(bound, tuple):
+        return f"{bound}", bound
+    label, number = bound
+    # A bound named by another argument shows its value too; a literal one ("1000 m") is its value.
+    return (f"{label} ({number!r})" if label.isidentifier() else label), number
 
 
 def check_choice(key: str, value: Any, choices: tuple, expected: str | None = None) -> None:

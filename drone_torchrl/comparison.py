@@ -33,7 +33,7 @@ from drone_torchrl.config import (
     validate,
 )
 from drone_torchrl.envs import disturbances, dynamics
-from drone_torchrl.envs.drone_env import DroneEnv
+from drone_torchrl.envs.drone_env import check_env_args
 from drone_torchrl.envs.heuristic import PDController
 from drone_torchrl.envs.params import DroneParams
 from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
@@ -259,7 +259,7 @@ def run_eval(
     else:
         kwargs = env_kwargs(cfg)
         try:
-            DroneEnv(**kwargs).close()  # the env validates its own arguments
+            check_env_args(**kwargs)
         except ValueError as err:
             raise ConfigError(f"env.{err}") from None
         policies = {}

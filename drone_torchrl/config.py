@@ -18,7 +18,7 @@ from omegaconf.errors import OmegaConfBaseException
 from drone_torchrl import loggers, memory_estimate, migrations, schema, sweep_folder
 from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs import disturbances
-from drone_torchrl.envs.drone_env import DroneEnv, make_params
+from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.registry import ALGORITHMS, RollbackLearner
 from drone_torchrl.schema import Rule
@@ -822,11 +822,10 @@ def _env_error(device: Any, kwargs: tuple[tuple[str, type, Any], ...]) -> str | 
     """What ``DroneEnv`` says of these arguments (``(name, type, value)``), or None; cached.
 
     The type is part of the key, since ``1``, ``1.0`` and ``True`` are equal keys but not equally
-    allowed. Cached because a sweep's jobs mostly share the arguments, and building the env is most
-    of a job's validation.
+    allowed. Cached because a sweep's jobs mostly share the arguments.
     """
     try:
-        DroneEnv(batch_size=[], device=device, **{name: value for name, _, value in kwargs}).close()
+        check_env_args(device=device, **{name: value for name, _, value in kwargs})
     except ValueError as err:
         message = str(err)
         return message if message.startswith("device=") else f"env.{message}"

@@ -18,7 +18,7 @@ from tensordict.nn import TensorDictModuleBase
 
 from drone_torchrl.config import physics_params
 from drone_torchrl.envs import dynamics
-from drone_torchrl.envs.drone_env import DroneEnv
+from drone_torchrl.envs.drone_env import DroneEnv, check_env_args
 from drone_torchrl.envs.heuristic import PDController, PDGains
 from drone_torchrl.envs.rollout import RolloutFn, fly_reference
 from drone_torchrl.episodes import cause_counts, episode_stats
@@ -97,7 +97,7 @@ def summarize(
 
 def max_return(env_kwargs: dict[str, Any]) -> float:
     """The return ceiling ``REWARD_IN_ZONE * max_steps`` (3000 for 300 steps)."""
-    return dynamics.REWARD_IN_ZONE * DroneEnv(batch_size=[], **env_kwargs).max_steps
+    return dynamics.REWARD_IN_ZONE * check_env_args(**env_kwargs).max_steps
 
 
 def reference_optimum(env_kwargs: dict[str, Any]) -> Optimum | None:
@@ -108,10 +108,9 @@ def reference_optimum(env_kwargs: dict[str, Any]) -> Optimum | None:
     pulse of hundreds of weights, so the PD controller is the practical reference), under
     disturbances (the bound is the nominal drone's) and where the bound is not derived.
     """
-    env = DroneEnv(batch_size=[], **env_kwargs)  # validates the arguments
-    params, max_steps, reset_mode = env.params, env.max_steps, env.reset_mode
-    disturbed = env.disturbance.active
-    env.close()
+    args = check_env_args(**env_kwargs)
+    params, max_steps, reset_mode = args.params, args.max_steps, args.reset_mode
+    disturbed = args.disturbance.active
     if params.max_thrust is None or disturbed:
         return None
     return env_optimum(params, max_steps, reset_mode)

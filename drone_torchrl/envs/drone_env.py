@@ -5,8 +5,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import fields
-from numbers import Integral, Real
-from typing import Any
+from numbers import Integral
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -14,53 +14,16 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from drone_torchrl.checks import INT64_MAX, as_override
+from drone_torchrl.checks import INT64_MAX, as_override, check_number
 from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.dynamics import ACTION_DIM, DTYPES, RESET_MODES, STATE_DIM, TerminationCause
-from drone_torchrl.envs.params import PARAM, PARAM_NAMES, Bound, DroneParams
+from drone_torchrl.envs.params import PARAM, PARAM_NAMES, DroneParams
 
 RENDER_MODES = (None, "human", "rgb_array")
 
 
 # The longest episode (steps): an int64 count.
 MAX_STEPS = INT64_MAX
-
-
-def _check_range(
-    name: str,
-    value: object,
-    low: Bound | None = None,
-    high: Bound | None = None,
-    *,
-    low_open: bool = False,
-    high_open: bool = False,
-) -> float:
-    """Check that ``value`` is a finite number within the bounds; return it as a float.
-
-    Else a ValueError naming the argument and the bounds (``expected a finite number > z_min (0.0)``).
-    """
-    low, high = ((str(b), b) if isinstance(b, float) else b for b in (low, high))
-    # A bound named by another argument shows its value too; a literal one ("0", "1000 m") is its value.
-    label = lambda bound: f"{bound[0]} ({bound[1]!r})" if bound[0].isidentifier() else bound[0]  # noqa: E731
-    parts = []
-    if low is not None:
-        parts.append(f"{'>' if low_open else '>='} {label(low)}")
-    if high is not None:
-        parts.append(f"{'<' if high_open else '<='} {label(high)}")
-    # A real number, not a bool, that is finite (an int is: math.isfinite overflows on 10**400).
-    ok = (
-        isinstance(value, Real)
-        and not isinstance(value, bool)
-        and (isinstance(value, Integral) or math.isfinite(value))
-    )
-    if ok and low is not None:
-        ok = value > low[1] or (value == low[1] and not low_open)
-    if ok and high is not None:
-        ok = value < high[1] or (value == high[1] and not high_open)
-    if not ok:
-        allowed = "a finite number" + (" " + " and ".join(parts) if parts else "")
-        raise ValueError(f"{name}={as_override(value)} is not allowed; expected {allowed}")
-    return float(value)
 
 
 def make_params(**values: Any) -> DroneParams:
@@ -83,7 +46,17 @@ def make_params(**values: Any) -> DroneParams:
                 )
         elif not (rule.optional and value is None):
             low, high = ((b, checked[b]) if isinstance(b, str) else b for b in (rule.low, rule.high))
-            value = _check_range(f.name, value, low, high, low_open=rule.low_open, high_open=rule.high_open)
+            value = float(
+                check_number(
+                    f.name,
+                    value,
+                    low=low,
+                    high=high,
+                    low_open=rule.low_open,
+                    high_open=rule.high_open,
+                    dtype_range=False,
+                )
+            )
         checked[f.name] = value
     return DroneParams(**checked)
 
@@ -125,6 +98,73 @@ def _check_batch_size(batch_size: object) -> torch.Size:
             f"batch_size={as_override(batch_size)} is not allowed; expected a list of positive integers, e.g. [] or [64]"
         )
     return torch.Size(batch_size)
+
+
+class EnvArgs(NamedTuple):
+    """:class:`DroneEnv`'s arguments, checked (:func:`check_env_args`)."""
+
+    batch_size: torch.Size
+    params: DroneParams
+    dtype: torch.dtype
+    disturbance: disturbances.Disturbance
+    device: torch.device
+    max_steps: int
+    reset_mode: str
+    render_mode: str | None
+    render_index: int
+
+
+def check_env_args(
+    batch_size: Sequence[int] | torch.Size | int | None = None,
+    *,
+    params: DroneParams | None = None,
+    max_steps: int = 300,
+    reset_mode: str = "floor",
+    dtype: str | torch.dtype = "float32",
+    disturbance: disturbances.Disturbance | Mapping[str, Any] | None = None,
+    device: torch.device | str = "cpu",
+    render_mode: str | None = None,
+    render_index: int = 0,
+    **overrides: Any,
+) -> EnvArgs:
+    """Check :class:`DroneEnv`'s arguments (the same, with the same defaults) without building an env.
+
+    Returns them checked; the first one not allowed raises a one-line ``ValueError`` naming it
+    (:class:`~drone_torchrl.checks.ConfigError` for a physical or arena argument). The config's
+    validation, drone-eval and the evaluator ask this, not an env built to be thrown away.
+    """
+    batch_size = _check_batch_size(batch_size)
+    given = {} if params is None else {f.name: getattr(params, f.name) for f in fields(DroneParams)}
+    checked = make_params(**{**given, **overrides})
+    torch_dtype = check_dtype(dtype)
+    disturbance = disturbances.make(disturbance)
+    check_episode_args(max_steps, reset_mode, render_mode)
+    try:
+        device = torch.device(device)
+    except (RuntimeError, TypeError) as err:
+        raise ValueError(
+            f"device={as_override(device)} is not allowed; expected e.g. 'cpu' or 'cuda:0'"
+        ) from err
+    n_envs = math.prod(batch_size)
+    if (
+        isinstance(render_index, bool)
+        or not isinstance(render_index, Integral)
+        or not 0 <= render_index < n_envs
+    ):
+        raise ValueError(
+            f"render_index={as_override(render_index)} is not allowed; expected an integer in [0, {n_envs - 1}]"
+        )
+    return EnvArgs(
+        batch_size,
+        checked,
+        torch_dtype,
+        disturbance,
+        device,
+        int(max_steps),
+        reset_mode,
+        render_mode,
+        int(render_index),
+    )
 
 
 class DroneEnv(EnvBase):
@@ -273,29 +313,22 @@ class DroneEnv(EnvBase):
         render_index: int = 0,
         **overrides: Any,
     ) -> None:
-        batch_size = _check_batch_size(batch_size)
-        given = {} if params is None else {f.name: getattr(params, f.name) for f in fields(DroneParams)}
-        self.params = make_params(**{**given, **overrides})
-        self.dtype = check_dtype(dtype)
-        self.disturbance = disturbances.make(disturbance)
+        args = check_env_args(
+            batch_size,
+            params=params,
+            max_steps=max_steps,
+            reset_mode=reset_mode,
+            dtype=dtype,
+            disturbance=disturbance,
+            device=device,
+            render_mode=render_mode,
+            render_index=render_index,
+            **overrides,
+        )
+        batch_size, device = args.batch_size, args.device
+        self.params, self.dtype, self.disturbance = args.params, args.dtype, args.disturbance
         # Nominal envs keep the plain step (and draw nothing more from the generator than before).
         self._disturbed = not self.disturbance.nominal
-        check_episode_args(max_steps, reset_mode, render_mode)
-        try:
-            device = torch.device(device)
-        except (RuntimeError, TypeError) as err:
-            raise ValueError(
-                f"device={as_override(device)} is not allowed; expected e.g. 'cpu' or 'cuda:0'"
-            ) from err
-        n_envs = math.prod(batch_size)
-        if (
-            isinstance(render_index, bool)
-            or not isinstance(render_index, Integral)
-            or not 0 <= render_index < n_envs
-        ):
-            raise ValueError(
-                f"render_index={as_override(render_index)} is not allowed; expected an integer in [0, {n_envs - 1}]"
-            )
         super().__init__(device=device, batch_size=batch_size)
         self.max_steps = int(max_steps)
         self.reset_mode = reset_mode

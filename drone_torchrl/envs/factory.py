@@ -9,7 +9,7 @@ from typing import Any
 
 from torchrl.envs import EnvBase, ParallelEnv, SerialEnv
 
-from drone_torchrl.envs.drone_env import DroneEnv
+from drone_torchrl.envs.drone_env import DroneEnv, check_env_args
 
 PARALLEL_MODES = ("process", "serial")
 
@@ -43,11 +43,9 @@ def make_env(
     if parallel not in PARALLEL_MODES:
         raise ValueError(f"parallel={parallel!r} is not allowed; expected one of {PARALLEL_MODES}")
     batch_size = [] if num_envs is None else [int(num_envs)]
-    # Build one env in this process first so that bad arguments fail here, not in a worker.
-    probe = DroneEnv(batch_size=batch_size, **env_kwargs)
     if num_workers == 0:
-        return probe
-    probe.close()
+        return DroneEnv(batch_size=batch_size, **env_kwargs)
+    check_env_args(batch_size, **env_kwargs)  # bad arguments fail here, not in a worker
     factory = partial(DroneEnv, batch_size=batch_size, **env_kwargs)
     if parallel == "serial":
         return SerialEnv(num_workers, factory)
