@@ -30,6 +30,7 @@ def _package_modules() -> set[str]:
 
 
 def _section(text: str, heading: str) -> str:
+    assert heading + "\n" in text, f"docs/engines.md has no {heading!r} section"
     start = text.index(heading + "\n") + len(heading)
     following = re.search(r"^#{2,3} ", text[start:], re.M)
     return text[start : start + following.start()] if following else text[start:]
