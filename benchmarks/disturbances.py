@@ -9,7 +9,7 @@ For each condition of ``conf/disturbance/`` (``none``, ``mild``, ``strong``), wi
 (evaluation seed 0: the same start states and, per condition, the same disturbance draws):
 
 - **PD**: the nominal PD controller (its gains were designed for the perfect model);
-- **PID, tuned**: :func:`drone_torchrl.tuning.tune_pid` for that condition on its own seeds (1000),
+- **PID, tuned**: :func:`pid_tuning.tune_pid` (``benchmarks/pid_tuning.py``) for that condition on its own seeds (1000),
   so RL is compared with the best classical controller this search finds for that condition;
 - **PPO**: ``drone-train algo=ppo experiment=bounded`` (trained on the nominal drone);
 - **PPO, randomised**: ``drone-train experiment=randomised``, trained under ``disturbance=strong``
@@ -112,11 +112,11 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks/disturbances"))
     args = parser.parse_args()
 
+    from pid_tuning import PIDController, tune_pid  # a sibling script: benchmarks/ is sys.path[0]
+
     from drone_torchrl.config import physics_params
     from drone_torchrl.envs.heuristic import PDController
-    from drone_torchrl.envs.pid import PIDController
     from drone_torchrl.evaluation import evaluate
-    from drone_torchrl.tuning import tune_pid
 
     args.out.mkdir(parents=True, exist_ok=True)
     nominal, randomised = list(args.nominal), list(args.randomised)

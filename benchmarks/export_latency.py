@@ -3,7 +3,7 @@
     python benchmarks/export_latency.py                       # fresh paper and bounded policies, batch 1
     python benchmarks/export_latency.py --checkpoint outputs/<date>/<time> --batches 1 64 4096
 
-Each policy is written as drone-export writes it (drone_torchrl.export.write_program: a torch.export
+Each policy is written as drone-export writes it (drone_torchrl.export.program_bytes: a torch.export
 program, and the ONNX model converted from it) into a temporary folder, checked against its actor,
 and timed on one thread, in turns, per batch size:
 
@@ -96,7 +96,7 @@ def main() -> None:
             files = {}
             for format in ("onnx", "pt2"):
                 files[format] = Path(folder) / f"{len(rows)}.{format}"
-                export.write_program(policy, files[format], format)
+                files[format].write_bytes(export.program_bytes(policy, format))
             expected = actor_commands(observations)
             diff = max(
                 (export.load_program(path, format)(observations) - expected).abs().max().item()

@@ -240,12 +240,6 @@ def load_policy(
     return (*policy_and_actor(net, cfg.model.distribution, cfg.env.max_thrust), path)
 
 
-def deterministic_policy(checkpoint: str | os.PathLike) -> tuple[DeterministicPolicy, Path]:
-    """The deterministic policy of a checkpoint or run folder (:class:`~.checks.ConfigError` if unusable)."""
-    policy, _, path = load_policy(checkpoint)
-    return policy, path
-
-
 def actor_commands(
     actor: ProbabilisticActor, observation: torch.Tensor, max_thrust: float | None
 ) -> torch.Tensor:
@@ -360,11 +354,6 @@ def program_bytes(policy: DeterministicPolicy, format: str) -> bytes:
 
     onnx.checker.check_model(data, full_check=True)
     return data
-
-
-def write_program(policy: DeterministicPolicy, path: str | os.PathLike, format: str) -> None:
-    """Write ``policy`` to ``path`` as ``format`` (``pt2`` or ``onnx``), unchecked (see :func:`export_policy`)."""
-    write_atomically(path, program_bytes(policy, format))
 
 
 # ------------------------------------------------------------------------------- running

@@ -1,14 +1,33 @@
-"""The PID controller (drone_torchrl.envs.pid) and its tuner (drone_torchrl.tuning)."""
+"""The PID controller and its tuner (``benchmarks/pid_tuning.py``, benchmarks/disturbances.py's baseline)."""
 
 from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
 from drone_torchrl.envs.dynamics import DroneParams
 from drone_torchrl.envs.heuristic import PDGains, pd_action
-from drone_torchrl.envs.pid import PIDController, PIDGains
 
+
+def _load_benchmark_module():
+    spec = importlib.util.spec_from_file_location(
+        "pid_tuning", Path(__file__).resolve().parents[1] / "benchmarks" / "pid_tuning.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up while it loads
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        del sys.modules[spec.name]
+    return module
+
+
+pid_tuning = _load_benchmark_module()
+PIDController, PIDGains = pid_tuning.PIDController, pid_tuning.PIDGains
 PARAMS = DroneParams(max_thrust=1.0)
 
 
@@ -42,3 +61,15 @@ def test_the_integrals_are_clamped():
     for _ in range(10):
         pid.act(obs)
     assert pid.integral[0, 0].item() == pytest.approx(-0.05)
+
+
+def test_the_tuner_keeps_the_pd_gains_unless_a_candidate_flies_better():
+    """Candidate 0 of the first round is the nominal PD: the result is never worse than PD."""
+    space = pid_tuning.SearchSpace(candidates=4, rounds=2, episodes=3)
+    gains, record = pid_tuning.tune_pid({"max_thrust": 1.0, "max_steps": 40}, space)
+    assert len(record["rounds"]) == 2
+    assert record["rounds"][0] >= record["nominal_return"]
+    assert record["rounds"][1] >= record["rounds"][0]  # each round keeps the best so far as candidate 0
+    assert isinstance(gains.ki_x, float) and gains.pd.kp_z == pytest.approx(
+        record["gains"]["altitude_frequency"] ** 2
+    )

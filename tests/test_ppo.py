@@ -22,7 +22,7 @@ from drone_torchrl.algorithms.ppo import OnPolicy
 from drone_torchrl.config import config_dir, run_config
 from drone_torchrl.envs import DroneEnv
 from drone_torchrl.episodes import EpisodeTracker, episode_stats
-from drone_torchrl.export import deterministic_policy, export_policy
+from drone_torchrl.export import export_policy, load_policy
 from drone_torchrl.io.checkpoint import load_checkpoint
 from drone_torchrl.io.episodes_csv import read_episodes
 from drone_torchrl.modules.factory import build_actor
@@ -158,7 +158,7 @@ def test_exported_policy_runs_with_plain_torch_and_matches_the_actor(tmp_path, p
         assert exported.min() >= 0 and exported.max() <= cfg.env.max_thrust
     assert exported.shape == (257, 2) and exported.dtype == torch.float32
     np.testing.assert_allclose(exported.numpy(), action.numpy(), rtol=1e-5, atol=1e-6)
-    policy, _ = deterministic_policy(run)
+    policy, _, _ = load_policy(run)
     np.testing.assert_allclose(policy(observations).detach().numpy(), action.numpy(), rtol=1e-6, atol=1e-7)
 
 

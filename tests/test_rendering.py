@@ -25,8 +25,8 @@ def _zone_pixels(frame: np.ndarray) -> int:
 
 def _zone_area_px(params=None) -> float:
     p = params or DroneEnv().params
-    left, top = R.world_to_pixel(-p.zone_x_limit, p.zone_z_max, p)
-    right, bottom = R.world_to_pixel(p.zone_x_limit, p.zone_z_min, p)
+    left, top = R.Layout(p).to_pixel(-p.zone_x_limit, p.zone_z_max)
+    right, bottom = R.Layout(p).to_pixel(p.zone_x_limit, p.zone_z_min)
     return (right - left) * (bottom - top)
 
 
@@ -65,8 +65,8 @@ def test_the_frame_draws_the_envs_own_zone_and_domain():
     area, paper_area = _zone_area_px(env.params), _zone_area_px()
     assert area < 0.25 * paper_area
     assert 0.5 * area < _zone_pixels(frame) <= 1.05 * area
-    left, _ = R.world_to_pixel(-3.0, 0.0, env.params)
-    right, _ = R.world_to_pixel(3.0, 0.0, env.params)
+    left, _ = R.Layout(env.params).to_pixel(-3.0, 0.0)
+    right, _ = R.Layout(env.params).to_pixel(3.0, 0.0)
     assert left >= R.MARGIN_LEFT and right <= R.FRAME_WIDTH - R.MARGIN_RIGHT  # the domain fits
 
 

@@ -115,7 +115,7 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
 
     # 2. Horizontal position -> desired tilt. x_ddot = -sin(alpha) T/m: tilt the opposite way.
     push = gains.kp_x * (gains.x_target - x) - gains.kd_x * x_dot
-    # torch.clamp: the gains may be tensors (a batch of candidate controllers, drone_torchrl.tuning).
+    # torch.clamp: the gains may be tensors (a batch of candidate controllers, benchmarks/pid_tuning.py).
     max_tilt = torch.as_tensor(gains.max_tilt, dtype=push.dtype, device=push.device).clamp(
         max=MAX_TILT_SHARE * params.alpha_limit
     )

@@ -113,14 +113,6 @@ class Layout:
         return float(np.clip(px, -PIXEL_CLIP, PIXEL_CLIP)), float(np.clip(py, -PIXEL_CLIP, PIXEL_CLIP))
 
 
-def world_to_pixel(x: float, z: float, params: DroneParams | None = None) -> tuple[float, float]:
-    """Screen coordinates of the world point ``(x, z)`` in ``params``' domain.
-
-    The default ``params`` is the paper's domain.
-    """
-    return Layout(DroneParams() if params is None else params).to_pixel(x, z)
-
-
 def _ticks(low: float, high: float) -> list[float]:
     """The grid lines' positions in ``[low, high]``: the multiples of :data:`GRID_SPACING_M`."""
     first, last = math.ceil(low / GRID_SPACING_M), math.floor(high / GRID_SPACING_M)

@@ -138,13 +138,11 @@ def fly_reference(
 ) -> Episodes:
     """Fly a TensorDict policy's deterministic episodes from ``start`` ``[*B, 6]`` in the reference env.
 
-    The policy: an actor, the PD or PID controller, a replayed plan; under disturbances with episode
+    The policy: an actor, the PD controller, a replayed plan; under disturbances with episode
     ``keys`` ``[*B]``. The reference: a ``DroneEnv(batch_size=B, **env_kwargs)`` and TorchRL's
     rollout, one episode per row.
     """
     env = DroneEnv(batch_size=list(start.shape[:-1]), device=device, **env_kwargs)
-    if callable(reset := getattr(policy, "reset", None)):
-        reset()  # a stateful controller (the PID's integrals) starts new episodes
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         rollout = env.rollout(
             env.max_steps,
