@@ -52,17 +52,12 @@ def is_number(value: Any) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
-#: A bound of :func:`check_number`: a number, or ``(label, number)`` to show the label (``("z_min", 0.0)``
-#: reads ``z_min (0.0)``; a label that is not a name, ``("1000 m", 1000.0)``, reads as itself).
-Bound = float | tuple[str, float]
-
-
 def check_number(
     key: str,
     value: Any,
     *,
-    low: Bound | None = None,
-    high: Bound | None = None,
+    low: float | tuple[str, float] | None = None,
+    high: float | tuple[str, float] | None = None,
     low_open: bool = False,
     high_open: bool = False,
     integer: bool = False,
@@ -70,6 +65,8 @@ def check_number(
 ) -> Any:
     """Check that ``value`` of ``key`` is a finite number within the bounds; return it.
 
+    A bound is a number, or ``(label, number)`` to show the label: ``("z_min", 0.0)`` reads
+    ``z_min (0.0)``, a label that is not a name (``("1000 m", 1000.0)``) reads as itself.
     With ``integer`` it must be an integer. With ``dtype_range`` (config values) it must also be
     within float32's range (an integer: int64's), the upper bound when there is no other; without it
     (the env's arguments) any finite number is, and the message says "a finite number". The error is
@@ -103,7 +100,7 @@ def check_number(
     raise ConfigError.of(key, value, f"{kind} {' and '.join(parts)}")
 
 
-def _bound_label(bound: Bound | None) -> tuple[str, float | None]:
+def _bound_label(bound: float | tuple[str, float] | None) -> tuple[str, float | None]:
     """A bound as (how a message shows it, its value)."""
     if bound is None or not isinstance(bound, tuple):
         return f"{bound}", bound

@@ -274,7 +274,7 @@ def estimate(
     """The memory of a training config with ``agents`` runs in one process.
 
     The config is resolved, as nested mappings. ``learner`` gives the algorithm's own parts (its
-    :class:`~drone_torchrl.algorithms.Algorithm`'s ``memory``; None: the parts every run has).
+    :class:`~drone_torchrl.registry.Algorithm`'s ``memory``; None: the parts every run has).
     """
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     steps = cfg["env"]["max_steps"]
