@@ -17,8 +17,6 @@ from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
-    CHECKPOINT_DIR,
-    LAST,
     is_last_of_its_run,
     resolve_checkpoint,
     run_dir_of,
@@ -138,14 +136,12 @@ def check_multirun(overrides: dict[str, str]) -> None:
         )
 
 
-def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]:
-    """Claim the folder a single run will write before Hydra writes into it.
-
-    Returns the folder claimed (or None) and overrides to add.
+def claim_run_folder(overrides: dict[str, str]) -> Path | None:
+    """Claim the folder a single run will write before Hydra writes into it; returns it (or None).
 
     - ``hydra.run.dir=<folder>``: refused inside a sweep folder (unless it is one of its jobs, which
-      then continues); claimed; if it already holds a run, Hydra is told not to rewrite that run's
-      ``.hydra/`` record (``hydra.output_subdir=null``): the record says how the run was started.
+      then continues); claimed. If it already holds a run, Hydra does not rewrite that run's
+      ``.hydra/`` record (``hydra.output_subdir``: :func:`~drone_torchrl.io.folders.record_subdir`).
     - ``resume=<run>`` (its last checkpoint): that run's folder is claimed.
     - ``resume=<another checkpoint>`` (a fork) with ``hydra.run.dir=<folder>``: refused unless the
       folder is new or empty (:func:`~drone_torchrl.io.folders.check_fork_folder`), before its lock
@@ -154,7 +150,6 @@ def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]
     Values Hydra resolves later (``${...}``) and paths that are not usable are left to the checks
     that report them.
     """
-    extra: list[str] = []
     resume = overrides.get("resume")
     path = None
     if resume not in (None, "", "null") and "${" not in resume:
@@ -172,10 +167,8 @@ def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]
         if path is not None and not is_last_of_its_run(path):
             check_fork_folder(folder, resume)
         run_lock.hold(folder)
-        if (folder / CHECKPOINT_DIR / LAST).is_file() and "hydra.output_subdir" not in overrides:
-            extra.append("hydra.output_subdir=null")
-        return folder, extra
+        return folder
     if path is not None and is_last_of_its_run(path):
         run_lock.hold(run_dir_of(path))
-        return run_dir_of(path), extra
-    return None, extra
+        return run_dir_of(path)
+    return None

@@ -20,6 +20,7 @@ from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import DroneEnv, make_params
 from drone_torchrl.envs.dynamics import DroneParams
+from drone_torchrl.io import folders
 from drone_torchrl.schema import Rule
 from drone_torchrl.training import memory_estimate
 
@@ -43,6 +44,8 @@ ENV_ADDED = {
 
 # Resolvers the configs use (registered at import: every process that composes imports this module).
 OmegaConf.register_new_resolver("drone_torchrl.job_dirname", migrations.job_dirname, replace=True)
+# Not cached: each job's folder is its own (drone_torchrl.io.folders.record_subdir).
+OmegaConf.register_new_resolver("drone_torchrl.record_subdir", folders.record_subdir, replace=True)
 # Cached as Hydra's ${now:} is: each job's config gets the sweep's value (drone_torchrl.sweep_folder).
 OmegaConf.register_new_resolver(
     "drone_torchrl.sweep_folder", sweep_folder.sweep_folder, replace=True, use_cache=True

@@ -120,10 +120,9 @@ def _before_hydra() -> list[Path]:
             command_line.check_composed([a for a in flags.overrides])
         if prints:
             return []
-        folder, extra = command_line.claim_run_folder(overrides)
+        folder = command_line.claim_run_folder(overrides)
     except (ConfigError, StorageError) as err:
         sys.exit(f"drone-train: error: {err}")
-    sys.argv.extend(extra)
     return [] if folder is None else [folder]
 
 
