@@ -146,7 +146,9 @@ def test_re_running_an_old_finished_sweep_keeps_each_job_s_hydra_record(tmp_path
     shutil.copytree(OLD_SWEEP, tmp_path / "multirun" / "adhoc")
     task = yaml.safe_load((OLD_SWEEP / "multirun.yaml").read_text())["hydra"]["overrides"]["task"]
     records = {p: p.read_bytes() for p in (tmp_path / "multirun" / "adhoc").glob("*/.hydra/*.yaml")}
-    assert len(records) == 6 and all(b"compile: true" in records[p] for p in records if p.name == "config.yaml")
+    assert len(records) == 6 and all(
+        b"compile: true" in records[p] for p in records if p.name == "config.yaml"
+    )
     again = drone_train(f"hydra/launcher={launcher}", *task, "sweep_name=adhoc", cwd=tmp_path)
     assert again.stdout.count("already finished (4 episodes)") == 2
     assert {p: p.read_bytes() for p in (tmp_path / "multirun" / "adhoc").glob("*/.hydra/*.yaml")} == records
