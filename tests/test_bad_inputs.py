@@ -15,6 +15,8 @@ import hashlib
 import importlib.util
 import math
 import os
+import resource
+import shlex
 import shutil
 import signal
 import subprocess
@@ -1452,3 +1454,125 @@ def test_two_runs_that_open_a_new_mlflow_store_together_both_complete(tmp_path):
         assert run.info.status == "FINISHED"
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "episode/return")]
         assert sorted(steps) == [1, 2, 3, 4]  # every episode once
+
+
+# ----------------------------------------------------------------------- population runs: storage
+# A two-agent population sweep, as a user types it (in a folder named by the test).
+POPULATION_SWEEP = [
+    "-m",
+    "hydra/launcher=population",
+    "algo.lr=1e-4,3e-4",
+    "seed=0",
+    *TINY[1:],
+    "checkpoint.keep_best=false",
+    "hydra.sweep.dir=sweep",
+]
+# A file-size limit (bytes) below a two-agent population checkpoint's (about 45 KB), above its other files.
+FILE_SIZE_LIMIT = 20_000
+
+
+def _continue_command(line: str, how: str = "continue with: ") -> list[str]:
+    """The arguments of the command a one-line refusal names after ``how``."""
+    words = shlex.split(line.rsplit(how, 1)[1])
+    assert words[0] == "drone-train", line
+    return words[1:]
+
+
+@pytest.mark.slow  # a drone-train process of its own (the limit is per process): about 10 s on 2 cores
+def test_a_file_size_limit_at_a_population_checkpoint_is_one_line(tmp_path, command_here):
+    """``drone-train -m hydra/launcher=population ...`` under a file-size limit (RLIMIT_FSIZE: EFBIG,
+    as a full disk) fails at its first checkpoint: a StorageError traceback before. Now one stderr
+    line naming the file and the command to start it again, no temporary file; that command,
+    without the limit, trains it."""
+    pytest.importorskip("pyarrow")
+    limited = subprocess.run(
+        [sys.executable, "-m", "drone_torchrl.apps.train", *POPULATION_SWEEP, "algo.episodes=2"],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        cwd=tmp_path,
+        env={**os.environ, "SDL_VIDEODRIVER": "dummy"},
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_SIZE_LIMIT, FILE_SIZE_LIMIT)),
+    )
+    last = tmp_path / "sweep" / "population_0" / "checkpoints" / "last.pt"
+    line = _refused(limited, f"cannot write {last.resolve()}", "File too large (EFBIG)", "start it again: ")
+    assert not last.exists() and not list(tmp_path.rglob("*.tmp"))
+    again = command_here(
+        train_app.run, "drone-train", *_continue_command(line, "start it again: "), cwd=tmp_path
+    )
+    assert again.returncode == 0, again.stderr
+    assert load_checkpoint(last)["episodes_done"] == [2, 2]
+
+
+def test_a_read_only_disk_during_a_population_run_is_one_line(small_disk, command_here, monkeypatch):  # noqa: F811
+    """The population's disk remounted read-only under it (after its first checkpoint): a
+    StorageError traceback, a second one from closing its logger on top. Now one stderr line naming
+    the file; once the disk is writable again, the command it names finishes every agent's
+    episodes, each once."""
+    pytest.importorskip("pyarrow")
+    from drone_torchrl.training import population_record
+
+    disk, save = Disk(small_disk, "read-only"), population_record.PopulationRecord.save
+
+    def break_at_the_second(record, state):
+        if (record.run_dir / "checkpoints" / "last.pt").is_file():
+            disk.break_()
+        return save(record, state)
+
+    monkeypatch.setattr(population_record.PopulationRecord, "save", break_at_the_second)
+    args = [*POPULATION_SWEEP, "algo.episodes=8", "checkpoint.every_episodes=2"]
+    try:
+        proc = command_here(train_app.run, "drone-train", *args, cwd=small_disk)
+    finally:
+        disk.repair()
+    monkeypatch.setattr(population_record.PopulationRecord, "save", save)
+    line = _refused(proc, "Read-only file system (EROFS)", "the last checkpoint is intact; continue with:")
+    again = command_here(train_app.run, "drone-train", *_continue_command(line), cwd=small_disk)
+    assert again.returncode == 0, again.stderr
+    rows = population_record.read_episodes(small_disk / "sweep" / "population_0")
+    assert sorted(zip(rows["agent"], rows["episode"], strict=True)) == [
+        (a, e) for a in (0, 1) for e in range(8)
+    ]
+
+
+def _damage_population(files: dict[str, Path], root: Path, how: str) -> Path:
+    """A copy of the fixture's population run as a sweep's job, damaged ``how``; returns the sweep."""
+    run = root / "sweep" / "population_0"
+    shutil.copytree(files["population"], run)
+    (run / ".hydra").mkdir()
+    part = run / "episodes" / "part-000001.parquet"
+    if how == "part_torn":
+        part.write_bytes(part.read_bytes()[: part.stat().st_size // 2])
+    elif how == "part_missing":
+        part.unlink()
+    elif how == "agents_missing":
+        (run / "agents.parquet").unlink()
+    elif how == "agents_foreign":
+        (run / "agents.parquet").write_bytes(b"PAR1 not a table")
+    elif how == "checkpoint_torn":
+        last = run / "checkpoints" / "last.pt"
+        last.write_bytes(last.read_bytes()[:1000])
+    return root / "sweep"
+
+
+@pytest.mark.parametrize(
+    ("how", "names"),
+    [
+        ("part_torn", "part-000001.parquet is not a readable Parquet file"),  # a pyarrow traceback
+        ("part_missing", "part-000001.parquet is missing"),  # reported without its episodes
+        ("agents_missing", "agents.parquet is missing"),  # "no job folder with an episodes.csv"
+        ("agents_foreign", "agents.parquet is not a readable Parquet file"),  # a pyarrow traceback
+        ("checkpoint_torn", "last.pt is not a readable checkpoint"),  # reported as "no checkpoint"
+    ],
+)
+def test_drone_report_on_a_damaged_population_run_is_one_line(files, tmp_path, capsys, how, names):
+    """drone-report on a population run with a damaged or missing Parquet file or checkpoint: one
+    line naming the file, exit 2, no report written."""
+    if not POPULATION_EXTRA:
+        pytest.skip("the population run's fixture needs pyarrow: pip install 'drone_torchrl[population]'")
+    sweep = _damage_population(files, tmp_path, how)
+    with pytest.raises(SystemExit) as info:
+        report_main([str(sweep), "--no-pd"])
+    assert info.value.code == 2
+    _one_line(capsys.readouterr().err, names)
+    assert not (sweep / "report").exists()

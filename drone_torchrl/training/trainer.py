@@ -311,11 +311,10 @@ class Trainer:
         """
         self.progress.close()
         self.learner.close()
-        if self.book is not None:
-            self.book.close(quietly)
-        for run in self.runs:
+        closes = [functools.partial(self.book.close, quietly)] if self.book is not None else []
+        for close in [*closes, *(run.close for run in self.runs)]:
             try:
-                run.close()
+                close()
             except Exception:  # noqa: BLE001  (a logger's own error, when another one is reported)
                 if not quietly:
                     raise

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,7 +25,7 @@ from hydra.core.utils import JobReturn, JobStatus, configure_log, setup_globals
 from omegaconf import OmegaConf, open_dict, read_write
 
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.io.storage import write_atomically
+from drone_torchrl.io.storage import StorageError, write_atomically
 from drone_torchrl.io.yaml_text import save_yaml
 from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher, JobFailed, _JobReturn
 
@@ -41,6 +42,7 @@ class PopulationLauncher(FusedLauncher):
     search: SearchSettings | None = None
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+        from drone_torchrl.training.jobs import continue_hint
         from drone_torchrl.training.trainer import Outcome, train_population
 
         setup_globals()
@@ -74,6 +76,9 @@ class PopulationLauncher(FusedLauncher):
                 print(f"{run_dir}: population not started: {err}")
                 done = [Outcome(run_dir, error=err)] * len(members)
                 refused += 1
+            except StorageError as err:  # a full or read-only disk: the groups after it would fail alike
+                command = shlex.join(["drone-train", *sys.argv[1:]])
+                sys.exit(f"drone-train: error: {err}; {continue_hint(run_dir, command)}")
             for i, outcome in zip(members, done, strict=True):
                 outcomes[i] = outcome
         for ret, outcome in zip(returns, outcomes, strict=True):
