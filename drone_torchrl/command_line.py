@@ -17,7 +17,9 @@ from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
+    CheckpointError,
     is_last_of_its_run,
+    load_checkpoint,
     resolve_checkpoint,
     run_dir_of,
 )
@@ -134,6 +136,38 @@ def check_multirun(overrides: dict[str, str]) -> None:
             f"resume={overrides['resume']} continues one run and cannot be swept (-m); to continue a sweep, "
             "run the same sweep command again: its finished jobs are skipped and the others resume"
         )
+
+
+def resumed_plugins(overrides: dict[str, str]) -> list[str]:
+    """The ``group=<option>`` choices a single run's ``resume=<checkpoint>`` is composed with.
+
+    The resumed run's plug-ins where they are not the defaults and the command line chooses no
+    option of their group (:func:`~drone_torchrl.config.resumed_choices`): ``resume=<a PPO run>
+    algo.target_kl=...`` is then checked and composed against PPO's keys. None for a checkpoint that
+    cannot be read (the resume refuses it in its own line).
+    """
+    from drone_torchrl import schema
+    from drone_torchrl.config import _option_plugins, group_names, resumed_choices, run_config, schema_keys
+
+    resume = overrides.get("resume")
+    if resume in (None, "", "null") or "${" in resume:
+        return []
+    # Only where they matter (a checkpoint may be GBs): a plug-in's key the default plug-in lacks,
+    # or a group choice (the keys it sets are told from the config composed with the run's plug-ins).
+    known = schema_keys("config", **_option_plugins("config", ()))
+    plugin_groups = schema.plugin_groups("config")
+    if not any(
+        key in group_names() or (key.split(".")[0] in plugin_groups and key not in known) for key in overrides
+    ):
+        return []
+    try:
+        state = load_checkpoint(resolve_checkpoint(resume))
+    except (FileNotFoundError, CheckpointError):
+        return []
+    if not isinstance(state, dict) or not isinstance(state.get("config"), dict):
+        return []
+    chosen = [key for key in overrides if key in group_names()]
+    return resumed_choices(run_config(state["config"]), chosen)
 
 
 def claim_run_folder(overrides: dict[str, str]) -> Path | None:

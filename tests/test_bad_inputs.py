@@ -1576,3 +1576,39 @@ def test_drone_report_on_a_damaged_population_run_is_one_line(files, tmp_path, c
     assert info.value.code == 2
     _one_line(capsys.readouterr().err, names)
     assert not (sweep / "report").exists()
+
+
+# ----------------------------------------------------------------- resume refusals that name the truth
+def test_a_resume_with_another_logger_names_only_what_the_command_changes(files, tmp_path, command_here):
+    """``resume=<run> logger=csv``: the refusal listed env.max_steps 20 -> 300 and eval.episodes
+    1 -> 10 too (keys the command never set: the run's values against the defaults). Now only the
+    keys the logger choice sets; the run is left byte for byte."""
+    run = tmp_path / "run"
+    shutil.copytree(files["run"], run)
+
+    def run_files() -> dict[Path, str]:  # but the lock, which the command claims
+        return {p: d for p, d in _snapshot(run).items() if p.name != ".lock"}
+
+    before = run_files()
+    proc = command_here(
+        train_app.run, "drone-train", f"resume={run}", "logger=csv", "algo.episodes=4", cwd=tmp_path
+    )
+    line = _refused(proc, "logger.backend 'tensorboard' -> 'csv'")
+    assert "env.max_steps" not in line and "eval.episodes" not in line
+    assert run_files() == before
+
+
+def test_a_ppo_run_s_own_keys_are_its_algo_s_on_resume(files, tmp_path, command_here):
+    """``resume=<a PPO run> algo.target_kl=0.02`` was "algo.target_kl is not a key of this algo; it
+    belongs to algo=ppo" (the command line was checked against the default algo, REINFORCE). Now it
+    is refused as a continued run's changed hyper-parameter, with both values; the same value is
+    taken, and the run goes on to its new budget."""
+    run = tmp_path / "ppo"
+    shutil.copytree(files["ppo"], run)
+    proc = command_here(train_app.run, "drone-train", f"resume={run}", "algo.target_kl=0.02", cwd=tmp_path)
+    _refused(proc, "algo.target_kl None -> 0.02", "keeps its hyper-parameters")
+    proc = command_here(
+        train_app.run, "drone-train", f"resume={run}", "algo.target_kl=null", "algo.episodes=4", cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert load_checkpoint(run / "checkpoints" / "last.pt")["episodes_done"] >= 4

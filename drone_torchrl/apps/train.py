@@ -19,7 +19,13 @@ from omegaconf import DictConfig
 
 from drone_torchrl import migrations
 from drone_torchrl.apps.help import answer_help
-from drone_torchrl.config import ConfigError, check_command_line, check_default_folder, config_dir
+from drone_torchrl.config import (
+    ConfigError,
+    check_command_line,
+    check_default_folder,
+    config_dir,
+    imply_choices,
+)
 from drone_torchrl.io.checkpoint import CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
@@ -101,8 +107,12 @@ def _before_hydra() -> list[Path]:
     sys.argv[1:] = args
     try:
         flags = command_line.parse_flags("drone-train", args)
-        check_command_line("drone-train", "config")
         overrides = command_line.overrides_of(args)
+        # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.
+        implied = [] if flags.multirun else command_line.resumed_plugins(overrides)
+        imply_choices(implied)
+        sys.argv.extend(implied)
+        check_command_line("drone-train", "config")
         command_line.check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
         prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
         if not prints and flags.config_name is None and flags.config_dir is None:
