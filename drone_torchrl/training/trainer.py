@@ -469,7 +469,9 @@ def train_population(
             )
         ):
             console.info(
-                f"{run_dir}: already finished ({len(agents)} agents); nothing to do", **about(run_dir)
+                f"{run_dir}: already finished ({len(agents)} agents); nothing to do (a larger "
+                f"algo.episodes with hydra.sweep.dir={run_dir.parent} trains them on)",
+                **about(run_dir),
             )
             return _population_outcomes(run_dir, checkpoint["final"], checkpoint["failure"])
         if before_training is not None and checkpoint is None:
