@@ -1504,35 +1504,43 @@ def test_a_file_size_limit_at_a_population_checkpoint_is_one_line(tmp_path, comm
     assert load_checkpoint(last)["episodes_done"] == [2, 2]
 
 
-def test_a_read_only_disk_during_a_population_run_is_one_line(small_disk, command_here, monkeypatch):  # noqa: F811
-    """The population's disk remounted read-only under it (after its first checkpoint): a
-    StorageError traceback, a second one from closing its logger on top. Now one stderr line naming
-    the file; once the disk is writable again, the command it names finishes every agent's
-    episodes, each once."""
+@pytest.mark.parametrize("launcher", ["population", "fused"])
+def test_a_read_only_disk_under_a_sweep_is_one_line(small_disk, command_here, monkeypatch, launcher):  # noqa: F811
+    """The disk remounted read-only under a sweep (after its first checkpoint). ``population``: a
+    StorageError traceback, a second one from closing its logger on top; ``fused``: exit 0, every
+    job "unfinished", no line at all. Now one stderr line naming the file and the command that
+    continues; once the disk is writable again, that command finishes every agent's episodes, each once."""
     pytest.importorskip("pyarrow")
-    from drone_torchrl.training import population_record
+    from drone_torchrl.training import population_record, run
 
-    disk, save = Disk(small_disk, "read-only"), population_record.PopulationRecord.save
+    record = population_record.PopulationRecord if launcher == "population" else run.RunRecord
+    disk, save = Disk(small_disk, "read-only"), record.save
 
-    def break_at_the_second(record, state):
-        if (record.run_dir / "checkpoints" / "last.pt").is_file():
+    def break_at_the_second(self, state):
+        if list(small_disk.glob("sweep/*/checkpoints/last.pt")):
             disk.break_()
-        return save(record, state)
+        return save(self, state)
 
-    monkeypatch.setattr(population_record.PopulationRecord, "save", break_at_the_second)
-    args = [*POPULATION_SWEEP, "algo.episodes=8", "checkpoint.every_episodes=2"]
+    monkeypatch.setattr(record, "save", break_at_the_second)
+    args = [*POPULATION_SWEEP, f"hydra/launcher={launcher}", "algo.episodes=8", "checkpoint.every_episodes=2"]
     try:
         proc = command_here(train_app.run, "drone-train", *args, cwd=small_disk)
     finally:
         disk.repair()
-    monkeypatch.setattr(population_record.PopulationRecord, "save", save)
-    line = _refused(proc, "Read-only file system (EROFS)", "the last checkpoint is intact; continue with:")
+    monkeypatch.setattr(record, "save", save)
+    line = _refused(proc, "Read-only file system (EROFS)", "checkpoint is intact; continue with:")
     again = command_here(train_app.run, "drone-train", *_continue_command(line), cwd=small_disk)
     assert again.returncode == 0, again.stderr
-    rows = population_record.read_episodes(small_disk / "sweep" / "population_0")
-    assert sorted(zip(rows["agent"], rows["episode"], strict=True)) == [
-        (a, e) for a in (0, 1) for e in range(8)
-    ]
+    if launcher == "population":
+        rows = population_record.read_episodes(small_disk / "sweep" / "population_0")
+        assert sorted(zip(rows["agent"], rows["episode"], strict=True)) == [
+            (a, e) for a in (0, 1) for e in range(8)
+        ]
+    else:
+        jobs = sorted(small_disk.glob("sweep/*/episodes.csv"))
+        assert len(jobs) == 2 and all(
+            read_episodes(job)[0]["episode"].tolist() == list(range(8)) for job in jobs
+        )
 
 
 def _damage_population(files: dict[str, Path], root: Path, how: str) -> Path:

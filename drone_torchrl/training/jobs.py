@@ -324,6 +324,11 @@ def continue_hint(run: Path, command: str | None = None) -> str:
     return "no checkpoint was written yet; start it again" + (f": {command}" if command else "")
 
 
+def this_command() -> str:
+    """This ``drone-train`` command line, for the shell: a sweep's is what continues it."""
+    return shlex.join(["drone-train", *sys.argv[1:]])
+
+
 def sweep_jobs(sweep_dir: Path) -> list[Path]:
     """Job folders of a sweep: those holding Hydra's ``.hydra/`` record."""
     return sorted(

@@ -31,6 +31,7 @@ from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
+from drone_torchrl.io.storage import StorageError
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
@@ -324,7 +325,8 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     """Train prepared jobs (:func:`~.jobs.prepare`), those that can share a population together.
 
     Finished jobs return at once; a group whose training raises is recorded as failed
-    (``<run>/FAILED.txt``) and the other groups go on. Each job's folder is let go when done
+    (``<run>/FAILED.txt``) and the other groups go on, but for a :class:`~drone_torchrl.io.storage.StorageError`
+    (a full or read-only disk would refuse them too), which is raised. Each job's folder is let go when done
     (:mod:`drone_torchrl.io.run_lock`).
     """
     try:
@@ -363,6 +365,8 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
                 check_memory(jobs[members[0]].cfg, agents=len(members))
             trainer = Trainer([jobs[i] for i in members])
             finals = trainer.train()
+        except StorageError:  # the disk refuses, not this group: the groups after it would fail alike
+            raise
         except Exception as err:  # noqa: BLE001  (recorded per job; the other groups go on)
             for i in members:
                 record_failure(jobs[i].run_dir, err)

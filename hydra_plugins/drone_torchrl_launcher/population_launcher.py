@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -42,7 +41,7 @@ class PopulationLauncher(FusedLauncher):
     search: SearchSettings | None = None
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        from drone_torchrl.training.jobs import continue_hint
+        from drone_torchrl.training.jobs import continue_hint, this_command
         from drone_torchrl.training.trainer import Outcome, train_population
 
         setup_globals()
@@ -77,8 +76,7 @@ class PopulationLauncher(FusedLauncher):
                 done = [Outcome(run_dir, error=err)] * len(members)
                 refused += 1
             except StorageError as err:  # a full or read-only disk: the groups after it would fail alike
-                command = shlex.join(["drone-train", *sys.argv[1:]])
-                sys.exit(f"drone-train: error: {err}; {continue_hint(run_dir, command)}")
+                sys.exit(f"drone-train: error: {err}; {continue_hint(run_dir, this_command())}")
             for i, outcome in zip(members, done, strict=True):
                 outcomes[i] = outcome
         for ret, outcome in zip(returns, outcomes, strict=True):
