@@ -475,7 +475,11 @@ TRAIN = [
     (["resume={emptydir}/nothing"], "resume"),
     (["resume={emptydir}"], "resume"),  # a folder without checkpoints/last.pt
     # A population run's checkpoint: which agent to continue (0 or 1); agent=K of one run's checkpoint.
-    (["resume={population}"], "agent"),
+    (["resume={population}"], "agent=null is not allowed"),
+    (
+        ["resume={population}", "algo.episodes=4"],
+        "to train the whole population on, run its sweep's command again",
+    ),
     (["resume={population}", "agent=2"], "agent"),
     (["resume={population}", "agent=-1"], "agent"),
     (["resume={run}", "agent=0"], "agent"),

@@ -491,6 +491,16 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
     :func:`agent_checkpoint`; ``agent`` is for population runs only.
     """
     path, state = open_checkpoint(key, location)
+    if is_population(state) and agent is None and key == "resume":
+        # resume= continues one run; a population is continued, or extended, by its sweep's command.
+        sweep = Path(path).parent.parent.parent
+        raise ConfigError.of(
+            "agent",
+            agent,
+            f"an agent of the population run {path}, 0..{len(state['episodes_done']) - 1} (it continues "
+            "alone, as a fork); to train the whole population on, run its sweep's command again with a "
+            f"larger algo.episodes and hydra.sweep.dir={sweep}",
+        )
     if is_population(state):
         return path, agent_checkpoint(state, agent, path)
     if agent is not None:
