@@ -1475,9 +1475,9 @@ POPULATION_SWEEP = [
 FILE_SIZE_LIMIT = 20_000
 
 
-def _continue_command(line: str, how: str = "continue with: ") -> list[str]:
-    """The arguments of the command a one-line refusal names after ``how``."""
-    words = shlex.split(line.rsplit(how, 1)[1])
+def _continue_command(line: str) -> list[str]:
+    """The arguments of the command a one-line refusal says continues the run (``continue with: ...``)."""
+    words = shlex.split(line.rsplit("continue with: ", 1)[1])
     assert words[0] == "drone-train", line
     return words[1:]
 
@@ -1486,8 +1486,8 @@ def _continue_command(line: str, how: str = "continue with: ") -> list[str]:
 def test_a_file_size_limit_at_a_population_checkpoint_is_one_line(tmp_path, command_here):
     """``drone-train -m hydra/launcher=population ...`` under a file-size limit (RLIMIT_FSIZE: EFBIG,
     as a full disk) fails at its first checkpoint: a StorageError traceback before. Now one stderr
-    line naming the file and the command to start it again, no temporary file; that command,
-    without the limit, trains it."""
+    line naming the file and the command that continues, no temporary file; that command, without
+    the limit, trains it."""
     pytest.importorskip("pyarrow")
     limited = subprocess.run(
         [sys.executable, "-m", "drone_torchrl.apps.train", *POPULATION_SWEEP, "algo.episodes=2"],
@@ -1499,11 +1499,9 @@ def test_a_file_size_limit_at_a_population_checkpoint_is_one_line(tmp_path, comm
         preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_SIZE_LIMIT, FILE_SIZE_LIMIT)),
     )
     last = tmp_path / "sweep" / "population_0" / "checkpoints" / "last.pt"
-    line = _refused(limited, f"cannot write {last.resolve()}", "File too large (EFBIG)", "start it again: ")
+    line = _refused(limited, f"cannot write {last.resolve()}", "File too large (EFBIG)", "continue with: ")
     assert not last.exists() and not list(tmp_path.rglob("*.tmp"))
-    again = command_here(
-        train_app.run, "drone-train", *_continue_command(line, "start it again: "), cwd=tmp_path
-    )
+    again = command_here(train_app.run, "drone-train", *_continue_command(line), cwd=tmp_path)
     assert again.returncode == 0, again.stderr
     assert load_checkpoint(last)["episodes_done"] == [2, 2]
 
@@ -1532,7 +1530,9 @@ def test_a_read_only_disk_under_a_sweep_is_one_line(small_disk, command_here, mo
     finally:
         disk.repair()
     monkeypatch.setattr(record, "save", save)
-    line = _refused(proc, "Read-only file system (EROFS)", "checkpoint is intact; continue with:")
+    line = _refused(
+        proc, "Read-only file system (EROFS)", "every checkpoint written is intact", "continue with:"
+    )
     again = command_here(train_app.run, "drone-train", *_continue_command(line), cwd=small_disk)
     assert again.returncode == 0, again.stderr
     if launcher == "population":

@@ -26,7 +26,7 @@ from drone_torchrl.config import (
     config_dir,
     imply_choices,
 )
-from drone_torchrl.io.checkpoint import CheckpointError
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
 from drone_torchrl.io.streams import console, guard_broken_pipes, keep_run_logs
@@ -41,7 +41,6 @@ EXIT_INTERRUPTED = 130
 @hydra.main(config_path=config_dir(), config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> float | None:
     """The Hydra app of ``drone-train``: train a run or a sweep's job; returns the job's final metric."""
-    from drone_torchrl.training.jobs import continue_hint
     from drone_torchrl.training.trainer import train
 
     guard_broken_pipes()  # also in a launcher's worker process
@@ -53,10 +52,10 @@ def main(cfg: DictConfig) -> float | None:
             sys.exit(f"drone-train: error: {err}")
         except StorageError as err:
             run = Path(cfg.resume) if cfg.resume else hydra_dir
-            sys.exit(f"drone-train: error: {err}; {continue_hint(run)}")
+            sys.exit(f"drone-train: error: {err}; {_continue_hint(run)}")
         except KeyboardInterrupt:
             run = Path(cfg.resume) if cfg.resume else hydra_dir
-            console.warning(f"drone-train: interrupted; {continue_hint(run)}")
+            console.warning(f"drone-train: interrupted; {_continue_hint(run)}")
             sys.exit(EXIT_INTERRUPTED)
         finally:
             # Refused, or resumed in the run's own folder: Hydra's folder for this call holds nothing.
@@ -75,6 +74,13 @@ def main(cfg: DictConfig) -> float | None:
             record_failure(job_dir, err)
         console.error(f"drone-train: job failed: {type(err).__name__}: {err}")
         raise
+
+
+def _continue_hint(run: Path) -> str:
+    """How to go on with ``run`` (a run folder, or the checkpoint ``resume`` named)."""
+    if run.is_file() or (run / CHECKPOINT_DIR / LAST).is_file():
+        return f"the last checkpoint is intact; continue with: drone-train resume={run}"
+    return "no checkpoint was written yet; start it again"
 
 
 def _stopped(stop: TrainingStopped) -> None:

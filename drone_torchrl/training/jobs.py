@@ -313,17 +313,6 @@ def job_status(job_dir: Path) -> tuple[str, str]:
     return "unfinished", f"{episodes} episodes so far"
 
 
-def continue_hint(run: Path, command: str | None = None) -> str:
-    """How to go on with ``run`` (a run folder, or the checkpoint ``resume`` named) after it stopped.
-
-    ``command``: the one that continues it (default: ``drone-train resume=<run>``; a population
-    run's is its sweep's command again).
-    """
-    if run.is_file() or (run / CHECKPOINT_DIR / LAST).is_file():
-        return f"the last checkpoint is intact; continue with: {command or f'drone-train resume={run}'}"
-    return "no checkpoint was written yet; start it again" + (f": {command}" if command else "")
-
-
 def this_command() -> str:
     """This ``drone-train`` command line, for the shell: a sweep's is what continues it."""
     return shlex.join(["drone-train", *sys.argv[1:]])

@@ -25,7 +25,6 @@ machines, each job then training alone.
 
 import logging
 import os
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -141,8 +140,7 @@ def train_populations(
     this machine (then :func:`~drone_torchrl.training.jobs.prepare` does not again)."""
     from drone_torchrl.config import ConfigError
     from drone_torchrl.io import run_lock
-    from drone_torchrl.io.storage import StorageError
-    from drone_torchrl.training.jobs import prepare, record_failure, this_command
+    from drone_torchrl.training.jobs import prepare, record_failure
     from drone_torchrl.training.trainer import Outcome, train_jobs
     from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
@@ -184,10 +182,6 @@ def train_populations(
             jobs.append(Outcome(run_dir, error=err))
     try:
         trained = iter(train_jobs([j for j in jobs if not isinstance(j, Outcome | int)]))
-    except StorageError as err:  # a full or read-only disk: one line, not a failed job per job
-        sys.exit(
-            f"drone-train: error: {err}; each job's last checkpoint is intact; continue with: {this_command()}"
-        )
     finally:
         for run_dir in folders:  # jobs refused before training are let go too
             run_lock.release(run_dir)

@@ -24,7 +24,7 @@ from hydra.core.utils import JobReturn, JobStatus, configure_log, setup_globals
 from omegaconf import OmegaConf, open_dict, read_write
 
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.io.storage import StorageError, write_atomically
+from drone_torchrl.io.storage import write_atomically
 from drone_torchrl.io.yaml_text import save_yaml
 from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher, JobFailed, _JobReturn
 
@@ -41,7 +41,6 @@ class PopulationLauncher(FusedLauncher):
     search: SearchSettings | None = None
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        from drone_torchrl.training.jobs import continue_hint, this_command
         from drone_torchrl.training.trainer import Outcome, train_population
 
         setup_globals()
@@ -75,8 +74,6 @@ class PopulationLauncher(FusedLauncher):
                 print(f"{run_dir}: population not started: {err}")
                 done = [Outcome(run_dir, error=err)] * len(members)
                 refused += 1
-            except StorageError as err:  # a full or read-only disk: the groups after it would fail alike
-                sys.exit(f"drone-train: error: {err}; {continue_hint(run_dir, this_command())}")
             for i, outcome in zip(members, done, strict=True):
                 outcomes[i] = outcome
         for ret, outcome in zip(returns, outcomes, strict=True):
