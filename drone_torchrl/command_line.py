@@ -18,9 +18,9 @@ from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
-    CHECKPOINT_DIR,
-    LAST,
+    CheckpointError,
     is_last_of_its_run,
+    load_checkpoint,
     resolve_checkpoint,
     run_dir_of,
 )
@@ -239,14 +239,44 @@ def check_multirun(overrides: dict[str, str]) -> None:
         )
 
 
-def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]:
-    """Claim the folder a single run will write before Hydra writes into it.
+def resumed_plugins(overrides: dict[str, str]) -> list[str]:
+    """The ``group=<option>`` choices a single run's ``resume=<checkpoint>`` is composed with.
 
-    Returns the folder claimed (or None) and overrides to add.
+    The resumed run's plug-ins where they are not the defaults and the command line chooses no
+    option of their group (:func:`~drone_torchrl.config.resumed_choices`): ``resume=<a PPO run>
+    algo.target_kl=...`` is then checked and composed against PPO's keys. None for a checkpoint that
+    cannot be read (the resume refuses it in its own line).
+    """
+    from drone_torchrl import schema
+    from drone_torchrl.config import _option_plugins, group_names, resumed_choices, run_config, schema_keys
+
+    resume = overrides.get("resume")
+    if resume in (None, "", "null") or "${" in resume:
+        return []
+    # Only where they matter (a checkpoint may be GBs): a plug-in's key the default plug-in lacks,
+    # or a group choice (the keys it sets are told from the config composed with the run's plug-ins).
+    known = schema_keys("config", **_option_plugins("config", ()))
+    plugin_groups = schema.plugin_groups("config")
+    if not any(
+        key in group_names() or (key.split(".")[0] in plugin_groups and key not in known) for key in overrides
+    ):
+        return []
+    try:
+        state = load_checkpoint(resolve_checkpoint(resume))
+    except (FileNotFoundError, CheckpointError):
+        return []
+    if not isinstance(state, dict) or not isinstance(state.get("config"), dict):
+        return []
+    chosen = [key for key in overrides if key in group_names()]
+    return resumed_choices(run_config(state["config"]), chosen)
+
+
+def claim_run_folder(overrides: dict[str, str]) -> Path | None:
+    """Claim the folder a single run will write before Hydra writes into it; returns it (or None).
 
     - ``hydra.run.dir=<folder>``: refused inside a sweep folder (unless it is one of its jobs, which
-      then continues); claimed; if it already holds a run, Hydra is told not to rewrite that run's
-      ``.hydra/`` record (``hydra.output_subdir=null``): the record says how the run was started.
+      then continues); claimed. If it already holds a run, Hydra does not rewrite that run's
+      ``.hydra/`` record (``hydra.output_subdir``: :func:`~drone_torchrl.io.folders.record_subdir`).
     - ``resume=<run>`` (its last checkpoint): that run's folder is claimed.
     - ``resume=<another checkpoint>`` (a fork) with ``hydra.run.dir=<folder>``: refused unless the
       folder is new or empty (:func:`~drone_torchrl.io.folders.check_fork_folder`), before its lock
@@ -255,7 +285,6 @@ def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]
     Values Hydra resolves later (``${...}``) and paths that are not usable are left to the checks
     that report them.
     """
-    extra: list[str] = []
     resume = overrides.get("resume")
     path = None
     if resume not in (None, "", "null") and "${" not in resume:
@@ -273,10 +302,8 @@ def claim_run_folder(overrides: dict[str, str]) -> tuple[Path | None, list[str]]
         if path is not None and not is_last_of_its_run(path):
             check_fork_folder(folder, resume)
         run_lock.hold(folder)
-        if (folder / CHECKPOINT_DIR / LAST).is_file() and "hydra.output_subdir" not in overrides:
-            extra.append("hydra.output_subdir=null")
-        return folder, extra
+        return folder
     if path is not None and is_last_of_its_run(path):
         run_lock.hold(run_dir_of(path))
-        return run_dir_of(path), extra
-    return None, extra
+        return run_dir_of(path)
+    return None

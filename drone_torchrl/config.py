@@ -20,6 +20,7 @@ from drone_torchrl.checks import ConfigError, plain_name
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
+from drone_torchrl.io import folders
 from drone_torchrl.registry import ALGORITHMS, RollbackLearner
 from drone_torchrl.schema import Rule
 
@@ -43,6 +44,8 @@ ENV_ADDED = {
 
 # Resolvers the configs use (registered at import: every process that composes imports this module).
 OmegaConf.register_new_resolver("drone_torchrl.job_dirname", migrations.job_dirname, replace=True)
+# Not cached: each job's folder is its own (drone_torchrl.io.folders.record_subdir).
+OmegaConf.register_new_resolver("drone_torchrl.record_subdir", folders.record_subdir, replace=True)
 # Cached as Hydra's ${now:} is: each job's config gets the sweep's value (drone_torchrl.sweep_folder).
 OmegaConf.register_new_resolver(
     "drone_torchrl.sweep_folder", sweep_folder.sweep_folder, replace=True, use_cache=True
@@ -158,15 +161,68 @@ def leaves(node: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+# The ``group=option`` choices drone-train added to a resumed run's command line (resumed_choices):
+# the run's own plug-ins, not keys the user set.
+_implied: list[str] = []
+
+
+def resumed_choices(saved: Mapping[str, Any], chosen: Iterable[str], name: str = "config") -> list[str]:
+    """What a command line that continues a run (``resume=``) is composed with besides its own overrides.
+
+    ``group=<option>`` of each plug-in group whose plug-in in ``saved`` (the run's config) is not the
+    default one and that ``chosen`` (the command line's groups) leaves alone: a PPO run's
+    ``algo.target_kl`` is then a key of its algo, as it is of the run. Nothing when ``chosen`` holds
+    the preset group, whose options may pick plug-ins themselves.
+    """
+    chosen = set(chosen)
+    if PRESET_GROUP in chosen:
+        return []
+    defaults = _option_plugins(name, ())
+    out = []
+    for group, rule in schema.plugin_groups(name).items():
+        plugin = OmegaConf.select(OmegaConf.create(dict(saved)), f"{group}.{rule.plugin_key}", default=None)
+        options = options_by_plugin(group, name).get(plugin, [])
+        if group not in chosen and plugin != defaults.get(group) and options:
+            out.append(f"{group}={plugin if plugin in options else options[0]}")
+    return out
+
+
+def imply_choices(choices: Iterable[str]) -> None:
+    """Record the choices (:func:`resumed_choices`) added to this process's command line: not the user's keys."""
+    _implied[:] = list(choices)
+
+
 def command_line_keys() -> set[str] | None:
-    """Keys (and group names) set on the command line of this Hydra job; None outside a Hydra app."""
+    """Keys (and group names) set on the command line of this Hydra job; None outside a Hydra app.
+
+    The choices drone-train added for a resumed run's plug-ins (:func:`imply_choices`) are not among them.
+    """
     from hydra.core.hydra_config import HydraConfig
 
     if not HydraConfig.initialized():
         return None
     # Unresolved: an override's value may be an interpolation that does not resolve (reported later).
     task = OmegaConf.to_container(HydraConfig.get().overrides.task, resolve=False)
-    return {str(o).split("=", 1)[0].lstrip("+~") for o in task}
+    implied = set(_implied)
+    return {str(o).split("=", 1)[0].lstrip("+~") for o in task if str(o) not in implied}
+
+
+@functools.cache
+def composed_leaves(overrides: tuple[str, ...] = (), name: str = "config") -> dict[str, Any]:
+    """Every leaf of ``conf/<name>.yaml`` composed with ``overrides`` (:func:`leaves`, completed)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    inside = GlobalHydra.instance().is_initialized()  # inside a Hydra app (or a test's initialize)
+    with nullcontext() if inside else initialize_config_dir(config_dir(), version_base="1.3"):
+        cfg = compose(name, overrides=list(overrides))
+    complete(cfg, name)
+    return leaves(cfg)
+
+
+def implied_choices() -> tuple[str, ...]:
+    """The choices :func:`imply_choices` recorded."""
+    return tuple(_implied)
 
 
 def _options(group: str) -> list[str]:

@@ -15,6 +15,8 @@ import hashlib
 import importlib.util
 import math
 import os
+import resource
+import shlex
 import shutil
 import signal
 import subprocess
@@ -474,7 +476,11 @@ TRAIN = [
     (["resume={emptydir}/nothing"], "resume"),
     (["resume={emptydir}"], "resume"),  # a folder without checkpoints/last.pt
     # A population run's checkpoint: which agent to continue (0 or 1); agent=K of one run's checkpoint.
-    (["resume={population}"], "agent"),
+    (["resume={population}"], "agent=null is not allowed"),
+    (
+        ["resume={population}", "algo.episodes=4"],
+        "to train the whole population on, run its sweep's command again",
+    ),
     (["resume={population}", "agent=2"], "agent"),
     (["resume={population}", "agent=-1"], "agent"),
     (["resume={run}", "agent=0"], "agent"),
@@ -1656,3 +1662,169 @@ def test_two_runs_that_open_a_new_mlflow_store_together_both_complete(tmp_path):
         assert run.info.status == "FINISHED"
         steps = [m.step for m in client.get_metric_history(run.info.run_id, "episode/return")]
         assert sorted(steps) == [1, 2, 3, 4]  # every episode once
+
+
+# ----------------------------------------------------------------------- population runs: storage
+# A two-agent population sweep, as a user types it (in a folder named by the test).
+POPULATION_SWEEP = [
+    "-m",
+    "hydra/launcher=population",
+    "algo.lr=1e-4,3e-4",
+    "seed=0",
+    *TINY[1:],
+    "checkpoint.keep_best=false",
+    "hydra.sweep.dir=sweep",
+]
+# A file-size limit (bytes) below a two-agent population checkpoint's (about 45 KB), above its other files.
+FILE_SIZE_LIMIT = 20_000
+
+
+def _continue_command(line: str) -> list[str]:
+    """The arguments of the command a one-line refusal says continues the run (``continue with: ...``)."""
+    words = shlex.split(line.rsplit("continue with: ", 1)[1])
+    assert words[0] == "drone-train", line
+    return words[1:]
+
+
+@pytest.mark.slow  # a drone-train process of its own (the limit is per process): about 10 s on 2 cores
+def test_a_file_size_limit_at_a_population_checkpoint_is_one_line(tmp_path, command_here):
+    """``drone-train -m hydra/launcher=population ...`` under a file-size limit (RLIMIT_FSIZE: EFBIG,
+    as a full disk) fails at its first checkpoint: a StorageError traceback before. Now one stderr
+    line naming the file and the command that continues, no temporary file; that command, without
+    the limit, trains it."""
+    pytest.importorskip("pyarrow")
+    limited = subprocess.run(
+        [sys.executable, "-m", "drone_torchrl.apps.train", *POPULATION_SWEEP, "algo.episodes=2"],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        cwd=tmp_path,
+        env={**os.environ, "SDL_VIDEODRIVER": "dummy"},
+        preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_SIZE_LIMIT, FILE_SIZE_LIMIT)),
+    )
+    last = tmp_path / "sweep" / "population_0" / "checkpoints" / "last.pt"
+    line = _refused(limited, f"cannot write {last.resolve()}", "File too large (EFBIG)", "continue with: ")
+    assert not last.exists() and not list(tmp_path.rglob("*.tmp"))
+    again = command_here(train_app.run, "drone-train", *_continue_command(line), cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert load_checkpoint(last)["episodes_done"] == [2, 2]
+
+
+@pytest.mark.parametrize("launcher", ["population", "fused"])
+def test_a_read_only_disk_under_a_sweep_is_one_line(small_disk, command_here, monkeypatch, launcher):  # noqa: F811
+    """The disk remounted read-only under a sweep (after its first checkpoint). ``population``: a
+    StorageError traceback, a second one from closing its logger on top; ``fused``: exit 0, every
+    job "unfinished", no line at all. Now one stderr line naming the file and the command that
+    continues; once the disk is writable again, that command finishes every agent's episodes, each once."""
+    pytest.importorskip("pyarrow")
+    from drone_torchrl.training import population_record, run
+
+    record = population_record.PopulationRecord if launcher == "population" else run.RunRecord
+    disk, save = Disk(small_disk, "read-only"), record.save
+
+    def break_at_the_second(self, state):
+        if list(small_disk.glob("sweep/*/checkpoints/last.pt")):
+            disk.break_()
+        return save(self, state)
+
+    monkeypatch.setattr(record, "save", break_at_the_second)
+    args = [*POPULATION_SWEEP, f"hydra/launcher={launcher}", "algo.episodes=8", "checkpoint.every_episodes=2"]
+    try:
+        proc = command_here(train_app.run, "drone-train", *args, cwd=small_disk)
+    finally:
+        disk.repair()
+    monkeypatch.setattr(record, "save", save)
+    line = _refused(
+        proc, "Read-only file system (EROFS)", "every checkpoint written is intact", "continue with:"
+    )
+    again = command_here(train_app.run, "drone-train", *_continue_command(line), cwd=small_disk)
+    assert again.returncode == 0, again.stderr
+    if launcher == "population":
+        rows = population_record.read_episodes(small_disk / "sweep" / "population_0")
+        assert sorted(zip(rows["agent"], rows["episode"], strict=True)) == [
+            (a, e) for a in (0, 1) for e in range(8)
+        ]
+    else:
+        jobs = sorted(small_disk.glob("sweep/*/episodes.csv"))
+        assert len(jobs) == 2 and all(
+            read_episodes(job)[0]["episode"].tolist() == list(range(8)) for job in jobs
+        )
+
+
+def _damage_population(files: dict[str, Path], root: Path, how: str) -> Path:
+    """A copy of the fixture's population run as a sweep's job, damaged ``how``; returns the sweep."""
+    run = root / "sweep" / "population_0"
+    shutil.copytree(files["population"], run)
+    (run / ".hydra").mkdir()
+    part = run / "episodes" / "part-000001.parquet"
+    if how == "part_torn":
+        part.write_bytes(part.read_bytes()[: part.stat().st_size // 2])
+    elif how == "part_missing":
+        part.unlink()
+    elif how == "agents_missing":
+        (run / "agents.parquet").unlink()
+    elif how == "agents_foreign":
+        (run / "agents.parquet").write_bytes(b"PAR1 not a table")
+    elif how == "checkpoint_torn":
+        last = run / "checkpoints" / "last.pt"
+        last.write_bytes(last.read_bytes()[:1000])
+    return root / "sweep"
+
+
+@pytest.mark.parametrize(
+    ("how", "names"),
+    [
+        ("part_torn", "part-000001.parquet is not a readable Parquet file"),  # a pyarrow traceback
+        ("part_missing", "part-000001.parquet is missing"),  # reported without its episodes
+        ("agents_missing", "agents.parquet is missing"),  # "no job folder with an episodes.csv"
+        ("agents_foreign", "agents.parquet is not a readable Parquet file"),  # a pyarrow traceback
+        ("checkpoint_torn", "last.pt is not a readable checkpoint"),  # reported as "no checkpoint"
+    ],
+)
+def test_drone_report_on_a_damaged_population_run_is_one_line(files, tmp_path, capsys, how, names):
+    """drone-report on a population run with a damaged or missing Parquet file or checkpoint: one
+    line naming the file, exit 2, no report written."""
+    if not POPULATION_EXTRA:
+        pytest.skip("the population run's fixture needs pyarrow: pip install 'drone_torchrl[population]'")
+    sweep = _damage_population(files, tmp_path, how)
+    with pytest.raises(SystemExit) as info:
+        report_main([str(sweep), "--no-pd"])
+    assert info.value.code == 2
+    _one_line(capsys.readouterr().err, names)
+    assert not (sweep / "report").exists()
+
+
+# ----------------------------------------------------------------- resume refusals that name the truth
+def test_a_resume_with_another_logger_names_only_what_the_command_changes(files, tmp_path, command_here):
+    """``resume=<run> logger=csv``: the refusal listed env.max_steps 20 -> 300 and eval.episodes
+    1 -> 10 too (keys the command never set: the run's values against the defaults). Now only the
+    keys the logger choice sets; the run is left byte for byte."""
+    run = tmp_path / "run"
+    shutil.copytree(files["run"], run)
+
+    def run_files() -> dict[Path, str]:  # but the lock, which the command claims
+        return {p: d for p, d in _snapshot(run).items() if p.name != ".lock"}
+
+    before = run_files()
+    proc = command_here(
+        train_app.run, "drone-train", f"resume={run}", "logger=csv", "algo.episodes=4", cwd=tmp_path
+    )
+    line = _refused(proc, "logger.backend 'tensorboard' -> 'csv'")
+    assert "env.max_steps" not in line and "eval.episodes" not in line
+    assert run_files() == before
+
+
+def test_a_ppo_run_s_own_keys_are_its_algo_s_on_resume(files, tmp_path, command_here):
+    """``resume=<a PPO run> algo.target_kl=0.02`` was "algo.target_kl is not a key of this algo; it
+    belongs to algo=ppo" (the command line was checked against the default algo, REINFORCE). Now it
+    is refused as a continued run's changed hyper-parameter, with both values; the same value is
+    taken, and the run goes on to its new budget."""
+    run = tmp_path / "ppo"
+    shutil.copytree(files["ppo"], run)
+    proc = command_here(train_app.run, "drone-train", f"resume={run}", "algo.target_kl=0.02", cwd=tmp_path)
+    _refused(proc, "algo.target_kl None -> 0.02", "keeps its hyper-parameters")
+    proc = command_here(
+        train_app.run, "drone-train", f"resume={run}", "algo.target_kl=null", "algo.episodes=4", cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert load_checkpoint(run / "checkpoints" / "last.pt")["episodes_done"] >= 4

@@ -21,6 +21,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from drone_torchrl import memory_estimate
+from drone_torchrl.apps import train as train_app
 from drone_torchrl.config import ConfigError, config_dir, validate
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import load_checkpoint
@@ -298,3 +299,48 @@ def test_resume_continues_one_agent_of_a_population_as_its_own_run(tmp_path):
     assert cols["return"].tolist() == pytest.approx([r for _, r, _, _ in expected], rel=1e-6)
     assert load_checkpoint(fork / "checkpoints" / "last.pt")["episodes_done"] == 12
     assert {p: p.read_bytes() for p in pop.rglob("*") if p.is_file() and p.name != ".lock"} == before
+
+
+EXTEND = ["env.max_steps=20", "eval.episodes=1", "eval.video=false", "progress=false", "seed=0"]
+SEARCHES = {
+    "population": [],
+    "pbt": ["hydra/launcher=pbt", "hydra.launcher.every_updates=2"],
+    "halving": ["hydra/launcher=halving", "hydra.launcher.rungs=[2,4]"],
+}
+
+
+@pytest.mark.parametrize("search", list(SEARCHES))
+def test_a_population_or_search_is_extended_by_raising_its_budget(tmp_path, command_here, search):
+    """``drone-train -m hydra/launcher=<population|pbt|halving> ... algo.episodes=8``, then the same
+    command with ``algo.episodes=16`` in its folder (``hydra.sweep.dir``): every agent continues to
+    16 episodes, as a single run does with ``resume=<run> algo.episodes=16``. The episodes and a
+    search's steps (the step due at update 8, skipped at the end of the first budget, included) are
+    those of the command given 16 episodes from the start; agents.parquet names the new budget and
+    ``.hydra/`` keeps how the run was started."""
+    launcher = SEARCHES[search] or ["hydra/launcher=population"]
+    command = ["-m", *launcher, "algo.lr=1e-4,3e-4,1e-3,3e-3", *EXTEND]
+
+    def drone_train(budget: int, folder: str) -> Path:
+        proc = command_here(
+            train_app.run, "drone-train", *command, f"algo.episodes={budget}", f"hydra.sweep.dir={folder}",
+            cwd=tmp_path,
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stderr
+        return tmp_path / folder / "population_0"
+
+    extended = drone_train(8, "extended")
+    record = (extended / ".hydra" / "overrides.yaml").read_bytes()
+    assert load_checkpoint(extended / "checkpoints" / "last.pt")["episodes_done"] == [8] * 4
+    assert drone_train(16, "extended") == extended
+    state = load_checkpoint(extended / "checkpoints" / "last.pt")
+    assert state["episodes_done"] == [16] * 4 and all(final is not None for final in state["final"])
+    assert all(name.endswith("algo.episodes=16") for name in record_module.read_agents(extended)["name"])
+    assert (extended / ".hydra" / "overrides.yaml").read_bytes() == record
+    direct = drone_train(16, "direct")
+    _same(_by_agent(extended), _by_agent(direct))
+    assert all(len(rows) == 16 for rows in _by_agent(extended).values())
+    if search != "population":
+        lineage = record_module.read_table(extended / record_module.LINEAGE_TABLE)
+        assert lineage == record_module.read_table(direct / record_module.LINEAGE_TABLE)
+        if search == "pbt":
+            assert lineage["update"] == [2, 4, 6, 8, 10, 12, 14]

@@ -136,3 +136,21 @@ def test_an_old_adhoc_folder_is_reached_with_sweep_name_adhoc(tmp_path, drone_tr
     assert _summary(again.stdout) == "sweep multirun/adhoc: 2 finished, 0 failed, 0 unfinished"
     assert again.stdout.count("already finished (4 episodes)") == 2
     assert [p.name for p in _sweeps(tmp_path)] == ["adhoc"]
+
+
+@pytest.mark.parametrize("launcher", ["basic", "fused"])
+def test_re_running_an_old_finished_sweep_keeps_each_job_s_hydra_record(tmp_path, drone_train, launcher):
+    """The old sweep's jobs are finished: its command again (today's keys for compile=true) skips them,
+    and their ``.hydra/`` records, how they were started (``engine: fused``, ``compile: true``), are
+    left byte for byte. A new sweep's jobs still get theirs."""
+    shutil.copytree(OLD_SWEEP, tmp_path / "multirun" / "adhoc")
+    task = yaml.safe_load((OLD_SWEEP / "multirun.yaml").read_text())["hydra"]["overrides"]["task"]
+    records = {p: p.read_bytes() for p in (tmp_path / "multirun" / "adhoc").glob("*/.hydra/*.yaml")}
+    assert len(records) == 6 and all(
+        b"compile: true" in records[p] for p in records if p.name == "config.yaml"
+    )
+    again = drone_train(f"hydra/launcher={launcher}", *task, "sweep_name=adhoc", cwd=tmp_path)
+    assert again.stdout.count("already finished (4 episodes)") == 2
+    assert {p: p.read_bytes() for p in (tmp_path / "multirun" / "adhoc").glob("*/.hydra/*.yaml")} == records
+    drone_train(f"hydra/launcher={launcher}", "seed=0,1", *TINY, "sweep_name=new", cwd=tmp_path)
+    assert len(list((tmp_path / "multirun" / "new").glob("*/.hydra/overrides.yaml"))) == 2

@@ -19,7 +19,13 @@ from omegaconf import DictConfig
 
 from drone_torchrl import migrations
 from drone_torchrl.apps.help import answer_help
-from drone_torchrl.config import ConfigError, check_command_line, check_default_folder, config_dir
+from drone_torchrl.config import (
+    ConfigError,
+    check_command_line,
+    check_default_folder,
+    config_dir,
+    imply_choices,
+)
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
@@ -107,8 +113,12 @@ def _before_hydra() -> list[Path]:
     sys.argv[1:] = args
     try:
         flags = command_line.parse_flags("drone-train", args)
-        check_command_line("drone-train", "config")
         overrides = command_line.overrides_of(args)
+        # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.
+        implied = [] if flags.multirun else command_line.resumed_plugins(overrides)
+        imply_choices(implied)
+        sys.argv.extend(implied)
+        check_command_line("drone-train", "config")
         command_line.check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
         prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
         if flags.multirun and (flags.cfg or flags.info):  # Hydra: a ValueError traceback
@@ -129,10 +139,9 @@ def _before_hydra() -> list[Path]:
             command_line.check_composed([a for a in flags.overrides])
         if prints:
             return []
-        folder, extra = command_line.claim_run_folder(overrides)
+        folder = command_line.claim_run_folder(overrides)
     except (ConfigError, StorageError) as err:
         sys.exit(f"drone-train: error: {err}")
-    sys.argv.extend(extra)
     return [] if folder is None else [folder]
 
 

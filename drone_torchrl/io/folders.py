@@ -1,16 +1,37 @@
-"""Run folders a command made but did not use, and the folders a fork may train in."""
+"""Run folders a command made but did not use, the folders a fork may train in, and their Hydra record."""
 
 from __future__ import annotations
 
 import shutil
 from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
 
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST
 from drone_torchrl.io.run_lock import LOCK_NAME
 
 #: What a run folder holds before the command's own code runs (Hydra's record and log, and the
 #: folder's lock, :mod:`drone_torchrl.io.run_lock`).
 HYDRA_ENTRIES = frozenset({".hydra", "train.log", "evaluate.log", "export.log", LOCK_NAME})
+#: Hydra's record of how a run was started (``hydra.output_subdir``'s default).
+HYDRA_RECORD = ".hydra"
+
+
+def record_subdir(*, _parent_: Any) -> str | None:
+    """``hydra.output_subdir`` of a run or job: :data:`HYDRA_RECORD`, or None for a folder that holds a run.
+
+    The ``drone_torchrl.record_subdir`` resolver (``conf/config.yaml``), read by every launcher once
+    the job's folder (``hydra.runtime.output_dir``, in ``_parent_``: Hydra's node) is known. A folder
+    whose ``checkpoints/last.pt`` exists keeps the record of how its run was started: a re-run that
+    finds it finished, continues it or is refused does not rewrite it (with its original keys, e.g.
+    an old ``engine: fused``).
+    """
+    folder = OmegaConf.select(_parent_, "runtime.output_dir", default=None, throw_on_missing=False)
+    if folder is not None and (Path(str(folder)) / CHECKPOINT_DIR / LAST).is_file():
+        return None
+    return HYDRA_RECORD
 
 
 def remove_if_untouched(run_dir: Path, root: Path | None = None, also: frozenset[str] = frozenset()) -> None:

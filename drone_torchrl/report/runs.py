@@ -153,12 +153,18 @@ def load_population(run_dir: Path) -> list[Run]:
     values it was trained with at the end (its overrides and config name them; a note names the
     values it started with where they differ).
     """
-    agents, rows = population_record.read_agents(run_dir), population_record.read_episodes(run_dir)
-    config = _load_yaml(run_dir / CONFIG_FILE, dict)
+    path = run_dir / CHECKPOINT_DIR / LAST
     try:
-        checkpoint = load_checkpoint(run_dir / CHECKPOINT_DIR / LAST)
-    except (CheckpointError, FileNotFoundError):
-        checkpoint = None
+        # Its agents' statuses and a search's values are in it: a damaged one is not "no checkpoint".
+        checkpoint = load_checkpoint(path) if path.is_file() else None
+    except CheckpointError as err:
+        raise ReportError(f"{err}: the population run {run_dir} cannot be reported") from None
+    try:
+        agents = population_record.read_agents(run_dir)
+        rows = population_record.read_episodes(run_dir, None if checkpoint is None else checkpoint["parts"])
+    except population_record.PopulationFileError as err:
+        raise ReportError(f"{err}: the population run {run_dir} cannot be reported") from None
+    config = _load_yaml(run_dir / CONFIG_FILE, dict)
     searched = checkpoint is not None and bool(checkpoint.get("search"))
     final = population_record.agent_values(checkpoint) if searched else {}
     first = population_record.agent_values(checkpoint, until=0) if searched else {}
@@ -254,7 +260,10 @@ def load_runs(sweep_dir: Path) -> list[Run]:
         raise ReportError(f"{sweep_dir} does not exist or is not a folder")
     runs = []
     for job in find_jobs(sweep_dir):
-        if (job / population_record.AGENTS_TABLE).is_file():
+        # A population run, also one whose agents.parquet is gone (load_population says so).
+        if (job / population_record.AGENTS_TABLE).is_file() or (
+            job / population_record.EPISODES_DIR
+        ).is_dir():
             runs += load_population(job)
         elif (run := load_run(job)) is not None:
             runs.append(run)

@@ -40,7 +40,9 @@ from drone_torchrl.config import (
     check_networks,
     command_line_keys,
     complete,
+    composed_leaves,
     group_names,
+    implied_choices,
     leaves,
     per_agent_keys,
     preset_notes,
@@ -202,6 +204,9 @@ def _prepare(
     return Job(saved, fork_dir, forked, None if of_population else parent)
 
 
+_UNSET = object()
+
+
 def _on(key: str, keys: set[str]) -> bool:
     """Whether the command line sets ``key`` (directly, or a list/dict above it)."""
     return any(key == k or key.startswith(f"{k}.") for k in keys)
@@ -210,13 +215,18 @@ def _on(key: str, keys: set[str]) -> bool:
 def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, path: Path) -> None:
     """Raise :class:`~.checks.ConfigError` naming every key the command line changes in a continued run.
 
-    Only keys set on the command line count (the config's defaults are not a request); a group
-    choice such as ``experiment=...`` may set any key, so then every key is compared.
+    Only keys set on the command line count (the config's defaults are not a request). A group
+    choice such as ``experiment=...`` or ``logger=csv`` may set any key: then also each key whose
+    value differs from the config composed without the command line's overrides (with the run's
+    own plug-ins, :func:`~drone_torchrl.config.resumed_choices`), the keys the choice set.
     """
     if keys is None:
         return
-    compare_all = any(k in group_names() for k in keys)
-    changed = kept_changes(saved, cfg, lambda key: key != "backend" and (compare_all or _on(key, keys)))
+    by_groups: set[str] = set()
+    if any(k in group_names() for k in keys):
+        baseline = composed_leaves(implied_choices())
+        by_groups = {key for key, value in leaves(cfg).items() if baseline.get(key, _UNSET) != value}
+    changed = kept_changes(saved, cfg, lambda key: key != "backend" and (key in by_groups or _on(key, keys)))
     if changed:
         raise ConfigError(
             f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued run keeps its "
@@ -301,6 +311,11 @@ def job_status(job_dir: Path) -> tuple[str, str]:
             f"{episodes} episodes, final running-mean return {ckpt['final']['final_return']:.1f}",
         )
     return "unfinished", f"{episodes} episodes so far"
+
+
+def this_command() -> str:
+    """This ``drone-train`` command line, for the shell: a sweep's is what continues it."""
+    return shlex.join(["drone-train", *sys.argv[1:]])
 
 
 def sweep_jobs(sweep_dir: Path) -> list[Path]:

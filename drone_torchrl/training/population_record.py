@@ -421,23 +421,67 @@ def is_population(checkpoint: dict[str, Any]) -> bool:
     return isinstance(checkpoint, dict) and checkpoint.get("kind") == POPULATION
 
 
-def read_episodes(run_dir: Path) -> dict[str, list]:
-    """Every episode a population run booked, its parts in the order written: column -> values."""
+class PopulationFileError(ValueError):
+    """A population run's Parquet file that is missing or cannot be read: one line naming it."""
+
+
+def _read(path: Path, columns: Sequence[str]) -> Any:
+    """One Parquet file of a population run as a pyarrow table that has ``columns``.
+
+    :class:`PopulationFileError` (one line naming the file) for a missing, damaged or foreign one.
+    """
     pa = _pyarrow()
-    parts = sorted((Path(run_dir) / EPISODES_DIR).glob("part-*.parquet"))
-    if not parts:
+    try:
+        table = pa.parquet.read_table(path)
+    except FileNotFoundError:
+        raise PopulationFileError(f"{path} is missing") from None
+    except (pa.ArrowException, OSError) as err:  # pyarrow's for a damaged file: ArrowInvalid, or its IO error
+        # pyarrow names the file first ("Could not open Parquet input source '<path>': <why>").
+        reason = (
+            str(err).strip().splitlines()[0].rpartition("': ")[2] if str(err).strip() else type(err).__name__
+        )
+        raise PopulationFileError(f"{path} is not a readable Parquet file ({reason})") from None
+    if missing := [column for column in columns if column not in table.column_names]:
+        raise PopulationFileError(f"{path} is not a population run's table: it has no {', '.join(missing)}")
+    return table
+
+
+def read_episodes(run_dir: Path, parts: int | None = None) -> dict[str, list]:
+    """Every episode a population run booked, its parts in the order written: column -> values.
+
+    ``parts``: how many its checkpoint counts (each of ``part-000001`` .. must be there; those
+    written after it may follow). :class:`PopulationFileError` for a part missing or damaged.
+    """
+    pa = _pyarrow()
+    folder = Path(run_dir) / EPISODES_DIR
+    paths = sorted(folder.glob("part-*.parquet"))
+    for number in range(1, (parts or 0) + 1):
+        if not (path := folder / f"part-{number:06d}.parquet").is_file():
+            raise PopulationFileError(
+                f"{path} is missing (the run's checkpoint counts {parts} episode parts)"
+            )
+    if not paths:
         return {}
-    return pa.concat_tables([pa.parquet.read_table(p) for p in parts]).to_pydict()
+    tables = [_read(path, ("agent", "episode", "return")) for path in paths]
+    try:
+        return pa.concat_tables(tables).to_pydict()
+    except pa.ArrowException as err:  # a part of another table's columns or types
+        raise PopulationFileError(
+            f"{folder}: its parts are not one table ({str(err).strip()[:200]})"
+        ) from None
 
 
 def read_agents(run_dir: Path) -> dict[str, list]:
-    """``agents.parquet``: column -> one value per agent."""
-    return read_table(Path(run_dir) / AGENTS_TABLE)
+    """``agents.parquet``: column -> one value per agent (:class:`PopulationFileError` if unreadable)."""
+    return _read(Path(run_dir) / AGENTS_TABLE, ("agent", "name")).to_pydict()
 
 
 def read_table(path: Path) -> dict[str, list]:
-    """A Parquet file of a population run (``agents.parquet``, ``lineage.parquet``): column -> values."""
-    return _pyarrow().parquet.read_table(Path(path)).to_pydict()
+    """A Parquet file of a population run (``agents.parquet``, ``lineage.parquet``): column -> values.
+
+    :class:`PopulationFileError` (one line) for a missing or damaged file.
+    """
+    return _read(Path(path), ()).to_pydict()
 
 
 def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[str, Any]]:
@@ -447,6 +491,16 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
     :func:`agent_checkpoint`; ``agent`` is for population runs only.
     """
     path, state = open_checkpoint(key, location)
+    if is_population(state) and agent is None and key == "resume":
+        # resume= continues one run; a population is continued, or extended, by its sweep's command.
+        sweep = Path(path).parent.parent.parent
+        raise ConfigError.of(
+            "agent",
+            agent,
+            f"an agent of the population run {path}, 0..{len(state['episodes_done']) - 1} (it continues "
+            "alone, as a fork); to train the whole population on, run its sweep's command again with a "
+            f"larger algo.episodes and hydra.sweep.dir={sweep}",
+        )
     if is_population(state):
         return path, agent_checkpoint(state, agent, path)
     if agent is not None:

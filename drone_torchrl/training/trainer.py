@@ -30,6 +30,7 @@ from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
+from drone_torchrl.io.storage import StorageError
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.kernels.modules import KernelRollout
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
@@ -115,6 +116,7 @@ class Trainer:
         self.learner = learner_class(cfg)(jobs)
         self.runs: list[AgentBook] = []
         self.book: PopulationRecord | None = None
+        self._search_step_pending = False
         try:
             if population_dir is not None:
                 if checkpoint is not None:
@@ -134,6 +136,13 @@ class Trainer:
                     self.book.search = search.make(cfg, self.book.values, saved)
                     if checkpoint is None:
                         self.book.search.start(self.learner.state)
+                    # A finished run given a larger budget: the step due at its last update was
+                    # skipped (no step at the end of a budget); taken first, the schedule goes on as
+                    # if the run had had the larger budget from the start.
+                    self._search_step_pending = checkpoint is not None and all(
+                        final is not None or failure is not None
+                        for final, failure in zip(checkpoint["final"], checkpoint["failure"], strict=True)
+                    )
             for job in jobs if population_dir is None else ():
                 self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
@@ -168,6 +177,10 @@ class Trainer:
                 if at_budget := [i for i, run in enumerate(self.runs) if run.finished and run.final is None]:
                     self.evaluate(at_budget)
                     self.save(at_budget)
+                if self._search_step_pending and (
+                    active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]
+                ):
+                    self.search_step(active)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
                     if isinstance(
                         self.learner, LoopLearner
@@ -238,16 +251,22 @@ class Trainer:
                     self.book.after_update()
         active = [i for i in active if not runs[i].failed]
         if search is not None and active and not any(runs[i].finished for i in active):
-            done = max(runs[i].updates_done for i in active)
-            if search.due(done):
-                scores = [run.running_return for run in runs]
-                for agent, parent in search.step(learner.state, scores, [not r.failed for r in runs], done):
-                    runs[agent].take_window(None if parent == FRESH else runs[parent])
+            self.search_step(active)
         if due := [i for i in active if runs[i].eval_due]:
             self.evaluate(due)
         if due := [i for i in active if runs[i].checkpoint_due]:
             self.save(due)
         return steps
+
+    def search_step(self, active: list[int]) -> None:
+        """The population's search step (:mod:`.pbt`) if one is due after the ``active`` agents' updates."""
+        assert self.book is not None and self.book.search is not None
+        search, runs = self.book.search, self.runs
+        done = max(runs[i].updates_done for i in active)
+        if search.due(done):
+            scores = [run.running_return for run in runs]
+            for agent, parent in search.step(self.learner.state, scores, [not r.failed for r in runs], done):
+                runs[agent].take_window(None if parent == FRESH else runs[parent])
 
     def save(self, agents: list[int]) -> None:
         """A checkpoint of each of ``agents`` (a population run: one of every agent)."""
@@ -296,11 +315,10 @@ class Trainer:
         """
         self.progress.close()
         self.learner.close()
-        if self.book is not None:
-            self.book.close(quietly)
-        for run in self.runs:
+        closes = [functools.partial(self.book.close, quietly)] if self.book is not None else []
+        for close in [*closes, *(run.close for run in self.runs)]:
             try:
-                run.close()
+                close()
             except Exception:  # noqa: BLE001  (a logger's own error, when another one is reported)
                 if not quietly:
                     raise
@@ -310,7 +328,8 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     """Train prepared jobs (:func:`~.jobs.prepare`), those that can share a population together.
 
     Finished jobs return at once; a group whose training raises is recorded as failed
-    (``<run>/FAILED.txt``) and the other groups go on. Each job's folder is let go when done
+    (``<run>/FAILED.txt``) and the other groups go on, but for a :class:`~drone_torchrl.io.storage.StorageError`
+    (a full or read-only disk would refuse them too), which is raised. Each job's folder is let go when done
     (:mod:`drone_torchrl.io.run_lock`).
     """
     try:
@@ -349,6 +368,8 @@ def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
                 check_memory(jobs[members[0]].cfg, agents=len(members))
             trainer = Trainer([jobs[i] for i in members])
             finals = trainer.train()
+        except StorageError:  # the disk refuses, not this group: the groups after it would fail alike
+            raise
         except Exception as err:  # noqa: BLE001  (recorded per job; the other groups go on)
             for i in members:
                 record_failure(jobs[i].run_dir, err)
@@ -421,7 +442,8 @@ def train_population(
     Refused in one line (:class:`~.checks.ConfigError`) before anything is written: a learner that does not
     train populations, a population larger than this machine's free memory, a folder another
     process holds, a checkpoint of other agents or hyper-parameters. ``before_training``: called
-    once the folder is this process's (the launcher writes Hydra's record then); ``search``: train
+    once the folder is this process's, when it holds no checkpoint yet (the launcher writes Hydra's
+    record then); ``search``: train
     it with population-based training (:mod:`.pbt`). One outcome per agent; SIGTERM stops it with a
     checkpoint (:class:`~.signals.TrainingStopped`).
     """
@@ -431,7 +453,7 @@ def train_population(
     check_population(agents, search)
     run_lock.hold(run_dir)
     try:
-        checkpoint = _population_checkpoint(agents, names, run_dir, search)
+        checkpoint = _population_checkpoint(agents, run_dir, search)
         budget = cfg.algo.episodes
         if checkpoint is not None and all(
             (final is not None and done >= budget) or failure is not None
@@ -440,10 +462,14 @@ def train_population(
             )
         ):
             console.info(
-                f"{run_dir}: already finished ({len(agents)} agents); nothing to do", **about(run_dir)
+                f"{run_dir}: already finished ({len(agents)} agents); nothing to do (a larger "
+                f"algo.episodes with hydra.sweep.dir={run_dir.parent} trains them on)",
+                **about(run_dir),
             )
             return _population_outcomes(run_dir, checkpoint["final"], checkpoint["failure"])
-        if before_training is not None:
+        if before_training is not None and checkpoint is None:
+            # A folder that holds a run keeps the record of how it was started, as a run folder's
+            # .hydra/ does (drone_torchrl.io.folders.record_subdir).
             before_training()
         trainer = Trainer(agents, run_dir, names, checkpoint, search)
         log.info(f"{run_dir}: {len(agents)} agents set up; training")
@@ -489,7 +515,7 @@ def _population_outcomes(run_dir: Path, finals: Sequence, failures: Sequence) ->
 
 
 def _population_checkpoint(
-    agents: AgentTable, names: Sequence[str], run_dir: Path, search: SearchSettings | None = None
+    agents: AgentTable, run_dir: Path, search: SearchSettings | None = None
 ) -> dict | None:
     """The population run's last checkpoint, if it has one, checked against the sweep's agents.
 
@@ -507,9 +533,13 @@ def _population_checkpoint(
         raise ConfigError(
             f"{run_dir} holds a single run's checkpoint, not a population's: use another hydra.sweep.dir"
         )
-    if checkpoint["agents"] != {"name": list(names), **agents.values}:
+    # The agents are their per-agent values, in order. Their names are their jobs' whole overrides,
+    # which hold the budget and process settings too: a raised algo.episodes names them anew
+    # (agents.parquet then does), as the other keys a continued run may change are checked below.
+    saved_values = {key: values for key, values in checkpoint["agents"].items() if key != "name"}
+    if saved_values != agents.values:
         raise ConfigError(
-            f"{path} holds {len(checkpoint['agents']['name'])} other agents (names or per-agent values differ "
+            f"{path} holds {len(checkpoint['agents']['name'])} other agents (per-agent values differ "
             "from this sweep's): run the sweep that wrote it, or use another hydra.sweep.dir"
         )
     per_agent = set(per_agent_keys())

@@ -219,13 +219,27 @@ def _job_seed(job: Sequence[str], default: int) -> int:
 
 class _GoOn:
     """A launcher as the basic sweeper sees it: failed jobs keep their error (Hydra's callbacks and
-    the job folders say FAILED), but do not stop the sweep."""
+    the job folders say FAILED), but do not stop the sweep.
+
+    A disk that refuses a write (:class:`~drone_torchrl.io.storage.StorageError`, out of a launcher
+    that trains in this process: ``fused``, ``population``, ``pbt``, ...) does: the jobs after it
+    would fail alike. One line then names the file and the command that continues.
+    """
 
     def __init__(self, launcher: Any) -> None:
         self.launcher = launcher
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        returns = self.launcher.launch(job_overrides, initial_job_idx=initial_job_idx)
+        from drone_torchrl.io.storage import StorageError
+        from drone_torchrl.training.jobs import this_command
+
+        try:
+            returns = self.launcher.launch(job_overrides, initial_job_idx=initial_job_idx)
+        except StorageError as err:  # checkpoints are replaced whole: the last of each job stands
+            sys.exit(
+                f"drone-train: error: {err}; every checkpoint written is intact (each job continues from its "
+                f"own); continue with: {this_command()}"
+            )
         for ret in returns:
             if ret.status == JobStatus.FAILED:
                 ret.status, ret.return_value = JobStatus.COMPLETED, None
