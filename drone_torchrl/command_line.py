@@ -25,7 +25,7 @@ from drone_torchrl.io.checkpoint import (
     run_dir_of,
 )
 from drone_torchrl.io.folders import check_fork_folder
-from drone_torchrl.sweep_folder import SWEEP_RECORD
+from drone_torchrl.sweep_folder import SEARCH_LAUNCHERS, SWEEP_RECORD
 
 
 def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
@@ -130,9 +130,6 @@ def check_composed(overrides: list[str]) -> None:
     validate(cfg)
 
 
-# The launchers that decide what is trained, not only where: a population run, a search. Without -m
-# Hydra ignores the launcher, so a single run would train something else than asked.
-POPULATION_LAUNCHERS = ("population", "pbt", "pb2", "halving", "pbt_replay")
 _LAUNCHER_KEY = "hydra.launcher."
 
 
@@ -141,7 +138,7 @@ def check_single_run(args: list[str], trains: bool = True) -> None:
 
     A sweep override (``key=a,b``, ``key=interval(low,high)``: Hydra's message is several lines) and,
     where the command ``trains`` (not ``--cfg``, ``--info``), a population or search launcher
-    (:data:`POPULATION_LAUNCHERS`, which Hydra would ignore). Raises :class:`~.checks.ConfigError`.
+    (:data:`~drone_torchrl.sweep_folder.SEARCH_LAUNCHERS`, which Hydra would ignore). Raises :class:`~.checks.ConfigError`.
     """
     for override in _parsed(args):
         key = override.key_or_group
@@ -150,7 +147,7 @@ def check_single_run(args: list[str], trains: bool = True) -> None:
                 f"{override.input_line} is not allowed without -m: it gives several values (a sweep); give "
                 f"one value, write a list value as {key}=[a,b], or sweep it: drone-train -m {override.input_line}"
             )
-        if trains and key == "hydra/launcher" and override.value() in POPULATION_LAUNCHERS:
+        if trains and key == "hydra/launcher" and override.value() in SEARCH_LAUNCHERS:
             raise ConfigError(
                 f"{override.input_line} is not allowed without -m: it trains the jobs of a sweep (a single "
                 f"run would ignore it); expected drone-train -m {override.input_line} <key>=<a>,<b>,... "

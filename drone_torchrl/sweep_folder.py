@@ -32,6 +32,8 @@ _PREFIX_CHARS = 60
 #: not a folder per job) or a search (PBT, successive halving, a PBT agent replayed). The others (basic,
 #: fused, local_parallel, slurm, ...) train the same jobs into the same job folders, so the same grid
 #: run by another of them continues in its folder; their keys (cores, partition) are no matter either.
+#: Without ``-m`` Hydra ignores a launcher, so a single run naming one of these would train something
+#: else than asked: ``drone-train`` refuses it (:func:`drone_torchrl.command_line.check_single_run`).
 SEARCH_LAUNCHERS = frozenset({"population", "pbt", "pb2", "halving", "pbt_replay"})
 _LAUNCHER = "hydra/launcher"
 # Hydra overrides that pick the jobs (the sweeper and its params); the others (hydra.verbose,

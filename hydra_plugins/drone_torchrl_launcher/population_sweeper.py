@@ -88,7 +88,7 @@ class PopulationSweeper(Sweeper):
         A range override is taken out of the grid; every job then gets ``key=<value>``, drawn from
         the range with a generator keyed by the job's ``seed`` (the config's where the job sets
         none). A range is refused in one line unless the launcher is ``pbt`` and searches the key.
-        Every batch is then checked (:meth:`_check`): Hydra writes the sweep folder after this.
+        Every batch is then checked (``_check``): Hydra writes the sweep folder after this.
         """
         batches = self._split(overrides, max_batch_size)
         self._check(batches)
