@@ -1054,6 +1054,7 @@ def test_an_old_key_means_the_same_under_every_launcher(launcher, extra, tmp_pat
         assert saved.backend == "fast" and "legacy" not in saved and "engine" not in saved
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
 def test_the_gpu_check_without_cuda_is_one_line():
     """``bash benchmarks/gpu_check.sh`` where torch has no CUDA: was an AssertionError traceback."""
@@ -1520,6 +1521,7 @@ def test_eval_export_report_on_a_full_or_read_only_disk_are_one_line(files, smal
     assert [p.name for p in tmp_path.iterdir()] == ["disk"]  # the tmpfs's mount point, nothing else
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 def test_a_write_that_runs_out_of_room_leaves_no_partial_file(files, small_disk, tmp_path, capsys):  # noqa: F811
     """A disk with a page free passes the checks before the work, then fills up under the write:
     one line naming the file, and no partial or temporary file (drone-export: exit -6 before)."""
@@ -1575,6 +1577,7 @@ run()
 """
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 @pytest.mark.parametrize("when", ["serialised", "writing"])
 def test_sigterm_during_an_export_leaves_no_file(files, tmp_path, when):
     """SIGTERM during drone-export left a partial file (``policy.pt2.tmp.pt2``): the export exits

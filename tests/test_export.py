@@ -217,6 +217,7 @@ def test_latency_is_measured_for_each_runtime(tmp_path, onnxruntime):
     assert torch.get_num_threads() == threads  # one thread while timing, restored after
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 def test_drone_export_onnx_prints_the_check_and_the_latency(tmp_path, onnxruntime):
     checkpoint = _checkpoint(tmp_path / "last.pt", "experiment=bounded")
     proc = subprocess.run(

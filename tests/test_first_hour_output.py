@@ -72,6 +72,7 @@ def _final(job: Path) -> str:
     return f"{load_checkpoint(job / 'checkpoints' / 'last.pt')['final']['final_return']:.1f}"
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 def test_a_run_into_a_closed_pipe_exits_0_with_its_final_checkpoint(tmp_path):
     """``drone-train ... | head -0`` trains to the end, exits 0, and its folder is a finished run's."""
     run = tmp_path / "run"

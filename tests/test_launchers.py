@@ -219,6 +219,7 @@ def test_slurm_preset_renders_an_sbatch_script(tmp_path, monkeypatch):
         assert line in sbatch, sbatch
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 def test_parallel_env_starts_inside_a_joblib_worker(tmp_path):
     """``env.num_workers>0`` under the joblib launcher: its workers' global start method is "loky",
     which a spawned ParallelEnv worker cannot re-apply unless make_env resets it to "spawn"."""

@@ -152,6 +152,7 @@ def test_an_owner_on_another_host_is_honoured_while_it_renews_its_lock(tmp_path,
     run_lock.release(folder)
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 def test_two_processes_on_one_run_folder_then_sigterm_and_resume(tmp_path, command_here):
     """The second process (same folder, or resume of it) is refused in one line naming the owner's
     pid; SIGTERM then stops the owner with a checkpoint (exit 143); its CSV holds episodes

@@ -88,6 +88,7 @@ def test_bad_values_are_named(override, key):
         validate(_cfg(override))
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 def test_cli_bad_value_is_one_line_and_nonzero(tmp_path):
     """The real command, refused: two processes side by side (each with its own run folder)."""
     cases = [
@@ -203,6 +204,7 @@ def test_reinforce_learns_to_stay_up(tmp_path, backend):
     assert lengths[-25:].mean() > 25
 
 
+@pytest.mark.slow  # over 5 s on 2 cores: the default suite keeps to about 5 minutes
 def test_console_scripts_run_from_any_folder(tmp_path):
     """The installed drone-train / drone-eval find their packaged configs outside the checkout."""
     from pathlib import Path
