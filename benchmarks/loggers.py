@@ -49,7 +49,6 @@ from drone_torchrl.loggers import EPISODE_SCALARS
 
 WRITERS = ("hand-written", "SummaryWriter", "TorchRL")
 CASES = ("single run", "population", "fused sweep")
-FLUSH_EVERY = 250  # checkpoint.every_episodes: the run records flush at every checkpoint
 
 SINGLE_TAGS = (
     *(f"episode/{k}" for k in EPISODE_SCALARS),
@@ -121,13 +120,13 @@ class Writer:
             raise ValueError(f"writer {kind!r}: one of {', '.join(WRITERS)}")
 
 
-def write(kind: str, folders: list[Path], data: list[Update]) -> None:
-    """Each of ``folders`` a run logging ``data`` (one update each step), runs interleaved as a sweep's."""
+def write(kind: str, folders: list[Path], data: list[Update], flush_every: int) -> None:
+    """Each of ``folders`` a run logging ``data`` (one update a step, a flush every ``flush_every``), interleaved."""
     writers = [Writer(kind, folder) for folder in folders]
     for n, scalars in enumerate(data, 1):
         for writer in writers:
             writer.log(scalars, n)
-        if n % FLUSH_EVERY == 0:
+        if n % flush_every == 0:
             for writer in writers:
                 writer.flush()
     for writer in writers:
@@ -171,13 +170,15 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--updates", type=int, default=1000, help="updates of the single run and population")
     parser.add_argument("--runs", type=int, default=8, help="runs of the fused sweep")
     parser.add_argument("--sweep-updates", type=int, default=250, help="updates of each sweep run")
+    # checkpoint.every_episodes' default: the run records flush at every checkpoint.
+    parser.add_argument("--flush-every", type=int, default=250, help="updates between flushes")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats (median)")
     parser.add_argument(
         "--import-repeats", type=int, default=3, help="fresh interpreters per import (0: none)"
     )
     parser.add_argument("--writers", nargs="+", default=list(WRITERS), choices=WRITERS)
     args = parser.parse_args(argv)
-    for key in ("updates", "runs", "sweep_updates", "repeats", "import_repeats"):
+    for key in ("updates", "runs", "sweep_updates", "flush_every", "repeats", "import_repeats"):
         least = 0 if key == "import_repeats" else 1
         if getattr(args, key) < least:
             parser.error(f"--{key.replace('_', '-')} {getattr(args, key)}: at least {least}")
@@ -195,7 +196,7 @@ def main(argv: list[str] | None = None) -> None:
     with tempfile.TemporaryDirectory(prefix="loggers-") as scratch:
         root = Path(scratch)
         for kind in args.writers:  # imports and first calls out of the timing (imports: timed below)
-            write(kind, [root / "warm-up" / kind], single[:1])
+            write(kind, [root / "warm-up" / kind], single[:1], args.flush_every)
         for repeat in range(args.repeats):
             order = args.writers[repeat % len(args.writers) :] + args.writers[: repeat % len(args.writers)]
             for case, (runs, data) in cases.items():
@@ -203,7 +204,7 @@ def main(argv: list[str] | None = None) -> None:
                     out = root / f"{repeat}" / case.replace(" ", "_") / kind
                     folders = [out / f"run_{i}" for i in range(runs)]
                     start = time.perf_counter()
-                    write(kind, folders, data)
+                    write(kind, folders, data, args.flush_every)
                     times.setdefault((kind, case), []).append(time.perf_counter() - start)
                     sizes[kind, case] = size(folders)
         # The last repeat's files, every writer's against the hand-written writer's.

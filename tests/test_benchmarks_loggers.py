@@ -7,14 +7,16 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-# Past one flush (every 250 updates), so flushing mid-run is part of what is compared.
+# Flushed mid-run too, so appending to an event file is part of what is compared.
 TINY = [
+    "--flush-every",
+    "7",
     "--updates",
-    "260",
+    "30",
     "--runs",
     "2",
     "--sweep-updates",
-    "260",
+    "30",
     "--repeats",
     "1",
     "--import-repeats",
@@ -43,7 +45,7 @@ def test_every_writer_and_case_has_a_row_and_reads_back_equal(bench, capsys):
     table = rows(capsys.readouterr().out)
     del table["writer", "case"]  # the header
     assert set(table) == {(w, c) for w in bench.WRITERS for c in bench.CASES}
-    scalars = {"single run": 260 * 14, "population": 260 * 6, "fused sweep": 2 * 260 * 14}
+    scalars = {"single run": 30 * 14, "population": 30 * 6, "fused sweep": 2 * 30 * 14}
     for (writer, case), (count, seconds, ratio, kib, equal) in table.items():
         assert int(count.replace(",", "")) == scalars[case]
         assert float(seconds) > 0 and int(kib) > 0
