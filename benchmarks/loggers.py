@@ -229,7 +229,7 @@ def main(argv: list[str] | None = None) -> None:
         for kind in args.writers:
             median = statistics.median(times[kind, case])
             print(
-                f"| {kind} | {case} | {scalars:,} | {median:.3f} | {median / base:.1f}x | "
+                f"| {kind} | {case} | {scalars:,} | {median:.3g} | {median / base:.1f}x | "
                 f"{sizes[kind, case] / 1024:.0f} | {'yes' if same[kind, case] else 'NO'} |"
             )
     if args.import_repeats:
