@@ -20,8 +20,8 @@ checkpoint's own last update and evaluation.
 Measured against ``SummaryWriter`` and TorchRL's ``TensorboardLogger`` (``benchmarks/loggers.py``,
 figures in docs/benchmarks.md: the same scalars at the same steps read back from all three), it
 writes a scalar 45 to 95 times faster; that matters for a single run and a fused sweep, where
-``SummaryWriter`` would add a tenth to a fifth to a default ``drone-train``'s time, and is why it is
-kept; a population's summaries (six scalars an update for all its agents: at 1,024 agents under
+either of the others would add a tenth to a fifth to a default ``drone-train``'s time, and is why
+it is kept; a population's summaries (six scalars an update for all its agents: at 1,024 agents under
 two thousandths of its training either way) would not need it.
 """
 
