@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import fields
@@ -299,41 +300,18 @@ class DroneEnv(EnvBase):
     metadata = {"render_modes": ["human", "rgb_array"], "render_fps": 50}
     batch_locked = True
 
-    def __init__(
-        self,
-        batch_size: Sequence[int] | torch.Size | int | None = None,
-        *,
-        params: DroneParams | None = None,
-        max_steps: int = 300,
-        reset_mode: str = "floor",
-        dtype: str | torch.dtype = "float32",
-        disturbance: disturbances.Disturbance | Mapping[str, Any] | None = None,
-        device: torch.device | str = "cpu",
-        render_mode: str | None = None,
-        render_index: int = 0,
-        **overrides: Any,
-    ) -> None:
-        args = check_env_args(
-            batch_size,
-            params=params,
-            max_steps=max_steps,
-            reset_mode=reset_mode,
-            dtype=dtype,
-            disturbance=disturbance,
-            device=device,
-            render_mode=render_mode,
-            render_index=render_index,
-            **overrides,
-        )
+    def __init__(self, batch_size: Sequence[int] | torch.Size | int | None = None, **options: Any) -> None:
+        # The keywords and their defaults are check_env_args' (their one list; __signature__ below
+        # shows them): params=, max_steps=, reset_mode=, dtype=, disturbance=, device=,
+        # render_mode=, render_index= and DroneParams' fields.
+        args = check_env_args(batch_size, **options)
         batch_size, device = args.batch_size, args.device
         self.params, self.dtype, self.disturbance = args.params, args.dtype, args.disturbance
         # Nominal envs keep the plain step (and draw nothing more from the generator than before).
         self._disturbed = not self.disturbance.nominal
         super().__init__(device=device, batch_size=batch_size)
-        self.max_steps = int(max_steps)
-        self.reset_mode = reset_mode
-        self.render_mode = render_mode
-        self.render_index = int(render_index)
+        self.max_steps, self.reset_mode = args.max_steps, args.reset_mode
+        self.render_mode, self.render_index = args.render_mode, args.render_index
         self._renderer = None
         # On the CPU whatever the env's device: a seed then gives the same start states on a GPU
         # as on the CPU (evaluations stay comparable), and a checkpoint's generator state loads on both.
@@ -348,6 +326,14 @@ class DroneEnv(EnvBase):
         self._last_action = torch.zeros((*shape, ACTION_DIM), device=device, dtype=self.dtype)
         self._episode_return = torch.zeros(shape, device=device, dtype=self.dtype)
         self._internal = self._start_disturbances(shape) if self._disturbed else None
+
+    __init__.__signature__ = inspect.Signature(  # help(), IDEs and Sphinx show check_env_args' keywords
+        [
+            inspect.Parameter("self", inspect.Parameter.POSITIONAL_OR_KEYWORD),
+            *inspect.signature(check_env_args).parameters.values(),
+        ],
+        return_annotation=None,
+    )
 
     def _make_specs(self) -> None:
         bs = self.batch_size
