@@ -355,13 +355,13 @@ def test_target_kl_ends_a_batch_s_epochs_at_the_first_minibatch_past_its_margin(
     }
     for (target, kls), expected in cases.items():
         learner = algorithms.get("ppo").learner([Job(_cfg(*small, f"algo.target_kl={target}"), run_dir=None)])
-        taken, sequence, losses = [], iter(kls), learner.losses
+        taken, sequence, losses = [], iter(kls), learner.minibatches.losses
 
         def given_kl(minibatch, losses=losses, sequence=sequence):
             return {**losses(minibatch), "kl_approx": torch.tensor(next(sequence))}
 
         step = learner.optimizer.step
-        learner.losses = given_kl
+        learner.minibatches.losses = given_kl
         learner.optimizer.step = lambda *a, step=step, taken=taken, **k: (taken.append(1), step(*a, **k))[1]
         metrics = learner._learn(next(learner._batches), 0)
         assert len(taken) == expected, (target, kls)

@@ -22,9 +22,8 @@ import torch
 from torch import nn
 from torchrl.objectives import A2CLoss, LossModule
 
-from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.algorithms.ppo import ADVANTAGE_EPS, OnPolicy, OnPolicyConf, validate_on_policy
-from drone_torchrl.memory_estimate import on_policy_parts
+from drone_torchrl.algorithms import register
+from drone_torchrl.algorithms.ppo import ADVANTAGE_EPS, OnPolicy, OnPolicyConf, on_policy
 from drone_torchrl.schema import a_number, one_of, store_plugin
 
 # A2CLoss's value losses (torchrl.objectives.utils.distance_loss): |d|, d^2, Huber with delta 1.
@@ -92,14 +91,4 @@ class A2CConf(OnPolicyConf):
 
 
 store_plugin("algo", "a2c", A2CConf)
-
-register(
-    Algorithm(
-        "a2c",
-        A2C,
-        validate_on_policy,
-        checkpoint_keys=("critic",),
-        summary="A2C on TorchRL's collector, GAE and A2CLoss",
-        memory=on_policy_parts,
-    )
-)
+register(on_policy("a2c", A2C, "A2C on TorchRL's collector, GAE and A2CLoss"))

@@ -1,14 +1,16 @@
 """PPO on the drone (``algo=ppo``), as TorchRL's ``sota-implementations/ppo`` runs it.
 
-Top to bottom: :class:`OnPolicy` builds the actor and critic, the loss (``ClipPPOLoss`` here,
-``A2CLoss`` in :mod:`.a2c`), TorchRL's :class:`~torchrl.objectives.value.GAE`, one Adam and the
-collector (``algo.num_envs`` drones of one batched, auto-resetting
-:class:`~drone_torchrl.envs.drone_env.DroneEnv`, ``algo.steps_per_batch`` steps a batch);
-:meth:`OnPolicy.train` is the loop, ``for batch in collector``: learn from it (``OnPolicy._learn``:
-GAE, then ``algo.epochs`` passes of minibatches: loss, backward, clip, step), book it in the
-:class:`~drone_torchrl.training.run.RunRecord` (``episodes.csv``, TensorBoard), evaluate and
-checkpoint on the schedule, stop on a non-finite loss or gradient, or on SIGTERM with a checkpoint.
-``backend=fast`` swaps three pieces for their twins in :mod:`.ppo_fast`.
+Top to bottom: :class:`OneRun`, what PPO, A2C and SAC share (one job, ``algo.num_envs`` drones flown
+by one actor); :class:`OnPolicy` builds the critic, the loss (``ClipPPOLoss`` here, ``A2CLoss`` in
+:mod:`.a2c`), TorchRL's :class:`~torchrl.objectives.value.GAE`, one Adam and the collector (one batched,
+auto-resetting :class:`~drone_torchrl.envs.drone_env.DroneEnv`, ``algo.steps_per_batch`` steps a
+batch); :meth:`OnPolicy.train` is the loop, ``for batch in collector``: learn from it
+(:meth:`OnPolicy._learn`: GAE, then ``algo.epochs`` passes of minibatch steps: loss, backward, clip,
+step), book it in the :class:`~drone_torchrl.training.run.RunRecord` (``episodes.csv``, TensorBoard),
+evaluate and checkpoint on the schedule, stop on a non-finite loss or gradient, or on SIGTERM with a
+checkpoint. The minibatches and their losses are :class:`Minibatches` (TorchRL's replay buffer and
+the loss module); ``backend=fast`` flies the batches on the C++ engine, steps a fused Adam and, for
+PPO without an entropy bonus, takes :class:`~.ppo_fast.PlainMinibatches` instead (:meth:`PPO.minibatches_of`).
 
 Only the drones' current episodes are not in a checkpoint: a resumed run starts them afresh (they
 were not booked, so no episode is lost or counted twice).
@@ -32,6 +34,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer, SamplerWithoutReplacem
 from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 
+from drone_torchrl import schema
 from drone_torchrl.algorithms import Algorithm, LoopLearner, RollbackLearner, register
 from drone_torchrl.algorithms.ppo_fast import PlainMinibatches, clip_ppo_losses, pre_image  # noqa: F401
 from drone_torchrl.checks import ConfigError
@@ -42,26 +45,6 @@ from drone_torchrl.io.streams import about, console
 from drone_torchrl.memory_estimate import on_policy_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
-from drone_torchrl.schema import (
-    ADAM_EPS,
-    ANNEAL_LR,
-    CRITIC_COEFF,
-    ENTROPY_COEFF,
-    EPISODES,
-    EPOCHS,
-    GAE_LAMBDA,
-    GAMMA,
-    LR,
-    MAX_GRAD_NORM,
-    MINIBATCH_SIZE,
-    NUM_ENVS,
-    REWARD_SCALE,
-    STEPS_PER_BATCH,
-    VALUE_HIDDEN_SIZES,
-    a_number,
-    free,
-    store_plugin,
-)
 from drone_torchrl.training.segments import FusedSegments
 
 if TYPE_CHECKING:
@@ -71,6 +54,9 @@ if TYPE_CHECKING:
 
 # Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
 ADVANTAGE_EPS = 1e-8
+# A batch's epochs stop where the approximate KL divergence exceeds this many times ``algo.target_kl``
+# (Stable-Baselines3's rule).
+KL_MARGIN = 1.5
 
 
 @contextlib.contextmanager
@@ -101,35 +87,107 @@ def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
     return batch[:, : last_step + 1]
 
 
-class OnPolicy(LoopLearner, RollbackLearner):
-    """One actor-critic run: ``__init__`` builds it, ``train`` is its loop, ``_learn`` one batch's update.
+def one_env(cfg: Mapping[str, Any]) -> None:
+    """``env.num_workers`` 0: a run's drones are one batched env (PPO's, A2C's and SAC's rule)."""
+    if cfg.env.num_workers:
+        raise ConfigError.of(
+            "env.num_workers",
+            cfg.env.num_workers,
+            f"0 with algo.name={cfg.algo.name} (algo.num_envs drones in one env)",
+        )
 
-    A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what its loss reports;
-    the losses summed and booked are the loss's ``loss_*`` outputs. It may also change what the loss
-    sees of the batch's advantages (:meth:`scale_advantage`) and how the gradients are clipped before
-    each step (:meth:`clip_gradients`).
+
+class OneRun:
+    """What PPO, A2C and SAC share: one job (no population), ``algo.num_envs`` drones flown by one actor.
+
+    A subclass sets ``self.generator``, the drones' random stream, which checkpoints keep.
 
     Args:
-        jobs: the one job trained (an actor-critic run trains no population), fresh or resumed.
+        cfg: the job's config.
     """
+
+    advice = "lower algo.lr"
+    eval_agents = None
 
     @staticmethod
     def max_agents(cfg) -> int:
         """One run per learner: it is a batch of drones already."""
         return 1
 
-    advice = "lower algo.lr"
-    eval_agents = None
+    def __init__(self, cfg) -> None:
+        self.cfg = cfg
+        self.net = build_policy(cfg, cfg.seed)
+        self.actor_module = build_actor(cfg, self.net, return_log_prob=True)
+        self.tracker = EpisodeTracker(cfg.algo.num_envs, cfg.device)
+
+    def actor(self, agent: int):
+        """The actor of the run's only agent (for videos)."""
+        return self.actor_module
+
+    def eval_policy(self):
+        """The policy the evaluator flies: the actor."""
+        return self.actor_module
+
+    def rng_entry(self) -> dict[str, Any]:
+        """A checkpoint's ``rng`` entry: torch's random state and the drones'."""
+        return {"torch": torch.get_rng_state(), "env": self.generator.get_state(), "agent": None}
+
+    def restore_rng(self, rng: Mapping[str, Any]) -> None:
+        """Put back the random states of a checkpoint's ``rng`` entry."""
+        torch.set_rng_state(rng["torch"])
+        self.generator.set_state(rng["env"])
+
+
+class Minibatches:
+    """The reference's minibatches: a batch's frames in TorchRL's replay buffer, scored by ``loss``.
+
+    ``frames`` frames at most, drawn without replacement within an epoch. The fast twin, with the
+    same three methods, is :class:`~.ppo_fast.PlainMinibatches`.
+    """
+
+    def __init__(self, loss: LossModule, frames: int, device: Any) -> None:
+        self.loss = loss
+        self.buffer = ReplayBuffer(
+            storage=LazyTensorStorage(frames, device=device), sampler=SamplerWithoutReplacement()
+        )
+
+    def hold(self, batch: TensorDictBase) -> int:
+        """Keep the batch's frames (``[frames]``) for this update's minibatches; how many there are."""
+        self.buffer.empty()  # a batch cut at the budget is smaller than the storage
+        with quiet("torchrl"):  # its storage announces its first allocation at INFO level
+            self.buffer.extend(batch)
+        return len(self.buffer)
+
+    def sample(self, size: int) -> TensorDictBase:
+        """``size`` of the held frames."""
+        return self.buffer.sample(size)
+
+    def losses(self, minibatch: TensorDictBase) -> Mapping[str, torch.Tensor]:
+        """The loss's outputs on one minibatch."""
+        return self.loss(minibatch)
+
+
+class OnPolicy(OneRun, LoopLearner, RollbackLearner):
+    """One actor-critic run: ``__init__`` builds it, ``train`` is its loop, ``_learn`` one batch's update.
+
+    A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what its loss reports;
+    the losses summed and booked are the loss's ``loss_*`` outputs. It may also change what the loss
+    sees of the batch's advantages (:meth:`scale_advantage`), how the gradients are clipped before
+    each step (:meth:`clip_gradients`) and the minibatches (:meth:`make_minibatches`).
+
+    Args:
+        jobs: the one job trained (an actor-critic run trains no population), fresh or resumed.
+    """
+
     #: What the loss reports besides its losses, booked as train/<name> where the loss has it
     #: (A2CLoss reports no entropy without an entropy bonus).
     diagnostics: tuple[str, ...] = ()
+    state = None  # no stacked state: update() is a memory probe's (tests/test_memory_estimate.py)
 
     def __init__(self, jobs) -> None:
         (job,) = jobs
-        cfg = self.cfg = job.cfg
-        algo = cfg.algo
-        net = build_policy(cfg, cfg.seed)
-        self.actor_module = build_actor(cfg, net, return_log_prob=True)
+        super().__init__(job.cfg)
+        cfg, algo = self.cfg, self.cfg.algo
         self.critic = build_critic(cfg)
         self.loss = self.make_loss(self.actor_module, self.critic)
         self.advantage = GAE(
@@ -142,39 +200,34 @@ class OnPolicy(LoopLearner, RollbackLearner):
         self.optimizer = torch.optim.Adam(
             self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None
         )
-        frames = algo.num_envs * algo.steps_per_batch
         if self.fused:
-            self.collector = FusedSegments(cfg, self.actor_module, net)
-            self._generator = self.collector.generator
+            self.collector = FusedSegments(cfg, self.actor_module, self.net)
+            self.generator = self.collector.generator
         else:
             self.env = DroneEnv(batch_size=[algo.num_envs], device=cfg.device, **env_kwargs(cfg))
             self.env.set_seed(cfg.seed)
-            self._generator = self.env._generator
+            self.generator = self.env._generator
         self.rollback_drop = cfg.eval.get("rollback_drop")
-        self.best_state: dict[str, Any] | None = None  # eval.rollback_drop's: see after_evaluation
+        # eval.rollback_drop's best state (see after_evaluation) and whether it was returned to.
+        self.best_state: dict[str, Any] | None = None
         self.returned_to_best = False
         if (checkpoint := job.checkpoint) is not None:
             self._load_best_state(checkpoint)
             self._restore(checkpoint)
-            torch.set_rng_state(checkpoint["rng"]["torch"])
-            self._generator.set_state(checkpoint["rng"]["env"])
+            self.restore_rng(checkpoint["rng"])
             if self.fused:
                 self.collector.restart()
         if not self.fused:  # made after the checkpoint: it resets the env from the restored generator
             self.collector = Collector(
                 self.env,
                 self.actor_module,
-                frames_per_batch=frames,
+                frames_per_batch=algo.num_envs * algo.steps_per_batch,
                 total_frames=-1,
                 device=cfg.device,
                 auto_register_policy_transforms=False,
             )
         self._batches = iter(self.collector)
-        self.buffer = ReplayBuffer(
-            storage=LazyTensorStorage(frames, device=cfg.device),
-            sampler=SamplerWithoutReplacement(),
-        )
-        self.tracker = EpisodeTracker(algo.num_envs, cfg.device)
+        self.minibatches = self.make_minibatches()
         reported = self.loss.out_keys
         self.loss_keys = tuple(k for k in reported if k.startswith("loss_"))
         self.reported = (*self.loss_keys, *(k for k in self.diagnostics if k in reported))
@@ -265,7 +318,11 @@ class OnPolicy(LoopLearner, RollbackLearner):
             self.returned_to_best = False
 
     def _learn(self, batch: TensorDictBase, episodes_done: int) -> dict[str, float]:
-        """GAE on the batch, then ``algo.epochs`` passes of minibatches; the last pass's ``train/*`` means."""
+        """GAE on the batch, then ``algo.epochs`` passes of minibatch steps; the last pass's ``train/*`` means.
+
+        Each step: the minibatch's losses (:attr:`minibatches`), their sum's backward pass, the
+        gradients clipped (:meth:`clip_gradients`), Adam's step.
+        """
         algo = self.cfg.algo
         if algo.anneal_lr:  # linearly to 0 at the budget, as TorchRL's and CleanRL's PPO do (by frames there)
             for group in self.optimizer.param_groups:
@@ -275,16 +332,18 @@ class OnPolicy(LoopLearner, RollbackLearner):
         with torch.no_grad():
             self.advantage(batch)
             batch.set("advantage", self.scale_advantage(batch.get("advantage")))
-        frames = self.hold_frames(batch.reshape(-1))
+        frames = self.minibatches.hold(batch.reshape(-1))
         # A batch cut at the budget may hold fewer frames than one minibatch: then one of all of them.
         size = min(algo.minibatch_size, frames)
         steps = frames // size
-        limit, means, stepped = self.kl_limit(), {}, 0
+        target_kl = algo.get("target_kl")  # PPO's (A2C has none)
+        limit = None if target_kl is None else KL_MARGIN * target_kl
+        means, stepped = {}, 0
         for _ in range(algo.epochs):
             sums: dict[str, torch.Tensor] = {}
             done = 0
             for _ in range(steps):
-                losses = self.losses(self.minibatch(size))
+                losses = self.minibatches.losses(self.minibatches.sample(size))
                 # Stable-Baselines3's early stop: before a step that would move the policy further
                 # from the one that flew the batch (never before the batch's first step).
                 if limit is not None and stepped and float(losses["kl_approx"]) > limit:
@@ -300,12 +359,6 @@ class OnPolicy(LoopLearner, RollbackLearner):
             means = {f"train/{k}": (v / steps).item() for k, v in sums.items()}
         return means
 
-    def kl_limit(self) -> float | None:
-        """The approximate KL divergence that ends a batch's epochs early; None: no limit."""
-        return None
-
-    state = None  # no stacked state: update() is a memory probe's (tests/test_memory_estimate.py)
-
     def update(self, state: None, k: int, active: torch.Tensor) -> tuple[None, None]:
         """``k`` batches learned from, not booked; the loop is :meth:`train`."""
         for _ in range(k):
@@ -316,27 +369,17 @@ class OnPolicy(LoopLearner, RollbackLearner):
         """The algorithm's TorchRL loss over ``actor`` and ``critic``, from ``self.cfg.algo``."""
         raise NotImplementedError
 
+    def make_minibatches(self) -> Minibatches | PlainMinibatches:
+        """Where :meth:`_learn` keeps a batch's frames and scores its minibatches: :class:`Minibatches`."""
+        algo = self.cfg.algo
+        return Minibatches(self.loss, algo.num_envs * algo.steps_per_batch, self.cfg.device)
+
     def scale_advantage(self, advantage: torch.Tensor) -> torch.Tensor:
         """The batch's advantages as the loss sees them.
 
         As GAE gave them here (ClipPPOLoss standardises each minibatch itself); A2C standardises the batch's.
         """
         return advantage
-
-    def hold_frames(self, batch: TensorDictBase) -> int:
-        """Keep the batch's frames (``[frames]``) for this update's minibatches; how many there are."""
-        self.buffer.empty()  # a batch cut at the budget is smaller than the storage
-        with quiet("torchrl"):  # its storage announces its first allocation at INFO level
-            self.buffer.extend(batch)
-        return len(self.buffer)
-
-    def minibatch(self, size: int) -> Any:
-        """``size`` of the held frames, drawn without replacement within an epoch."""
-        return self.buffer.sample(size)
-
-    def losses(self, minibatch: Any) -> Mapping[str, torch.Tensor]:
-        """The loss's outputs on one minibatch."""
-        return self.loss(minibatch)
 
     def clip_gradients(self) -> torch.Tensor:
         """Clip the loss's gradients before the optimizer's step; returns the norm, ``train/grad_norm``.
@@ -354,16 +397,9 @@ class OnPolicy(LoopLearner, RollbackLearner):
         """
         return self.collector.eval_policy() if self.fused else self.actor_module
 
-    def actor(self, agent: int):
-        """The actor (a run is one agent), for videos."""
-        return self.actor_module
-
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """The checkpoint entries the run record does not own: actor, critic, optimizer, RNG."""
-        entries = {
-            **self._learner_state(),
-            "rng": {"torch": torch.get_rng_state(), "env": self._generator.get_state(), "agent": None},
-        }
+        entries = {**self._learner_state(), "rng": self.rng_entry()}
         if self.rollback_drop is not None:
             entries["rollback"] = {"state": self.best_state, "returned": self.returned_to_best}
         return entries
@@ -382,19 +418,6 @@ class PPO(OnPolicy):
     """
 
     diagnostics = ("entropy", "kl_approx", "clip_fraction")
-    #: A batch's epochs stop where the approximate KL divergence exceeds this many times ``algo.target_kl``.
-    KL_MARGIN = 1.5
-
-    def kl_limit(self) -> float | None:
-        """``KL_MARGIN`` x ``algo.target_kl`` (Stable-Baselines3's rule), or None without one."""
-        target = self.cfg.algo.get("target_kl")
-        return None if target is None else self.KL_MARGIN * target
-
-    def __init__(self, jobs) -> None:
-        super().__init__(jobs)
-        if self.fused and not self.cfg.algo.entropy_coeff:  # the fast twin's minibatches and loss
-            plain = PlainMinibatches(self.cfg, self.loss, self.actor_module, self.critic)
-            self.hold_frames, self.minibatch, self.losses = plain.hold, plain.sample, plain.losses
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         """TorchRL's ``ClipPPOLoss`` over ``actor`` and ``critic``, from ``algo.*``."""
@@ -415,19 +438,23 @@ class PPO(OnPolicy):
             functional=False,
         )
 
+    def make_minibatches(self) -> Minibatches | PlainMinibatches:
+        """The fast twin without an entropy bonus on ``backend=fast``; otherwise the reference's.
+
+        The twin, :class:`~.ppo_fast.PlainMinibatches`, holds plain tensors and scores them by
+        :func:`~.ppo_fast.clip_ppo_losses`.
+        """
+        if self.fused and not self.cfg.algo.entropy_coeff:
+            return PlainMinibatches(self.cfg, self.loss, self.actor_module, self.critic)
+        return super().make_minibatches()
+
 
 def validate_on_policy(cfg: Mapping[str, Any]) -> None:
     """The rules of :class:`OnPolicy` that relate keys.
 
     Each key's bounds are its schema's: PPOConf here, A2CConf in a2c.py.
     """
-    name = cfg.algo.name
-    if cfg.env.num_workers:
-        raise ConfigError.of(
-            "env.num_workers",
-            cfg.env.num_workers,
-            f"0 with algo.name={name} (algo.num_envs drones in one env)",
-        )
+    one_env(cfg)
     if cfg.algo.get("dual_clip") is not None and (cfg.backend != FAST or cfg.algo.entropy_coeff):
         raise ConfigError.of(
             "algo.dual_clip",
@@ -444,50 +471,52 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
         )
 
 
+def on_policy(name: str, learner: type[OnPolicy], summary: str) -> Algorithm:
+    """The registry's entry of an :class:`OnPolicy` learner: its checks, checkpoint entry and memory."""
+    return Algorithm(
+        name,
+        learner,
+        validate_on_policy,
+        checkpoint_keys=("critic",),
+        summary=summary,
+        memory=on_policy_parts,
+    )
+
+
 @dataclass
 class OnPolicyConf:
     """``algo.*`` every on-policy algorithm has (the loop of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
 
-    name: Any = free()
-    lr: Any = LR.field()
-    anneal_lr: Any = ANNEAL_LR.field()
-    gamma: Any = GAMMA.field()
-    gae_lambda: Any = GAE_LAMBDA.field()
-    episodes: Any = EPISODES.field()
-    num_envs: Any = NUM_ENVS.field()
-    steps_per_batch: Any = STEPS_PER_BATCH.field()
-    epochs: Any = EPOCHS.field()
-    minibatch_size: Any = MINIBATCH_SIZE.field()
-    entropy_coeff: Any = ENTROPY_COEFF.field()
-    critic_coeff: Any = CRITIC_COEFF.field()
-    reward_scale: Any = REWARD_SCALE.field()
-    max_grad_norm: Any = MAX_GRAD_NORM.field()
-    adam_eps: Any = ADAM_EPS.field()
-    value_hidden_sizes: Any = VALUE_HIDDEN_SIZES.field()
+    name: Any = schema.free()
+    lr: Any = schema.LR.field()
+    anneal_lr: Any = schema.ANNEAL_LR.field()
+    gamma: Any = schema.GAMMA.field()
+    gae_lambda: Any = schema.GAE_LAMBDA.field()
+    episodes: Any = schema.EPISODES.field()
+    num_envs: Any = schema.NUM_ENVS.field()
+    steps_per_batch: Any = schema.STEPS_PER_BATCH.field()
+    epochs: Any = schema.EPOCHS.field()
+    minibatch_size: Any = schema.MINIBATCH_SIZE.field()
+    entropy_coeff: Any = schema.ENTROPY_COEFF.field()
+    critic_coeff: Any = schema.CRITIC_COEFF.field()
+    reward_scale: Any = schema.REWARD_SCALE.field()
+    max_grad_norm: Any = schema.MAX_GRAD_NORM.field()
+    adam_eps: Any = schema.ADAM_EPS.field()
+    value_hidden_sizes: Any = schema.VALUE_HIDDEN_SIZES.field()
 
 
 @dataclass
 class PPOConf(OnPolicyConf):
     """``algo.*`` of ``algo.name=ppo``: the on-policy keys and the clipping range."""
 
-    clip_epsilon: Any = a_number(low=0, low_open=True, high=1)
+    clip_epsilon: Any = schema.a_number(low=0, low_open=True, high=1)
     # Stable-Baselines3's target_kl: a batch's epochs stop at the first minibatch whose approximate
     # KL divergence from the policy that flew the batch exceeds 1.5 target_kl (null: never).
-    target_kl: Any = a_number(low=0, low_open=True, optional=True, added=None)
+    target_kl: Any = schema.a_number(low=0, low_open=True, optional=True, added=None)
     # Dual-clip PPO: the importance ratio bounded by this (> 1), so a minibatch whose ratios overflow
     # cannot throw the policy off; backend=fast only (TorchRL's ClipPPOLoss has no such bound).
-    dual_clip: Any = a_number(low=1, low_open=True, optional=True, added=None)
+    dual_clip: Any = schema.a_number(low=1, low_open=True, optional=True, added=None)
 
 
-store_plugin("algo", "ppo", PPOConf)
-
-register(
-    Algorithm(
-        "ppo",
-        PPO,
-        validate_on_policy,
-        checkpoint_keys=("critic",),
-        summary="PPO on TorchRL's collector, GAE and ClipPPOLoss",
-        memory=on_policy_parts,
-    )
-)
+schema.store_plugin("algo", "ppo", PPOConf)
+register(on_policy("ppo", PPO, "PPO on TorchRL's collector, GAE and ClipPPOLoss"))

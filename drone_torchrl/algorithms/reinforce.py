@@ -15,26 +15,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from drone_torchrl import schema
 from drone_torchrl.algorithms import Algorithm, register
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.memory_estimate import reinforce_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
-from drone_torchrl.schema import (
-    ADAM_EPS,
-    EPISODES,
-    GAMMA,
-    LR,
-    MAX_GRAD_NORM,
-    MAX_PARALLEL_EPISODES,
-    OPTIMIZERS,
-    a_flag,
-    a_number,
-    an_integer,
-    free,
-    one_of,
-    store_plugin,
-)
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.collectors import make_collector
 from drone_torchrl.training.population import Population
@@ -127,22 +113,22 @@ def validate(cfg: Mapping[str, Any]) -> None:
 class ReinforceConf:
     """``algo.*`` of ``algo.name=reinforce`` (``algo=reinforce``, ``algo=reinforce_plus``)."""
 
-    name: Any = free()
-    lr: Any = LR.field()
-    gamma: Any = GAMMA.field()
-    episodes: Any = EPISODES.field()
-    episodes_per_update: Any = an_integer(low=1, high=MAX_PARALLEL_EPISODES)
-    adam_eps: Any = ADAM_EPS.field()
-    max_grad_norm: Any = MAX_GRAD_NORM.field()
-    discount_weight: Any = a_flag()
-    normalize_returns: Any = a_flag()
-    baseline: Any = one_of(BASELINES)
-    optimizer: Any = one_of(OPTIMIZERS, added="adam")
-    log_prob_reduction: Any = one_of(LOG_PROB_REDUCTIONS, added="sum")
-    weight_decay: Any = a_number(low=0, high=1, per_agent=True, added=0.0)
+    name: Any = schema.free()
+    lr: Any = schema.LR.field()
+    gamma: Any = schema.GAMMA.field()
+    episodes: Any = schema.EPISODES.field()
+    episodes_per_update: Any = schema.an_integer(low=1, high=schema.MAX_PARALLEL_EPISODES)
+    adam_eps: Any = schema.ADAM_EPS.field()
+    max_grad_norm: Any = schema.MAX_GRAD_NORM.field()
+    discount_weight: Any = schema.a_flag()
+    normalize_returns: Any = schema.a_flag()
+    baseline: Any = schema.one_of(BASELINES)
+    optimizer: Any = schema.one_of(schema.OPTIMIZERS, added="adam")
+    log_prob_reduction: Any = schema.one_of(LOG_PROB_REDUCTIONS, added="sum")
+    weight_decay: Any = schema.a_number(low=0, high=1, per_agent=True, added=0.0)
 
 
-store_plugin("algo", "reinforce", ReinforceConf)
+schema.store_plugin("algo", "reinforce", ReinforceConf)
 
 register(
     Algorithm(

@@ -29,27 +29,14 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, MultiStep, RandomSampler, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
+from drone_torchrl import schema
 from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.algorithms.ppo import quiet, within_budget
+from drone_torchrl.algorithms.ppo import OneRun, one_env, quiet, within_budget
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
+from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.memory_estimate import sac_parts
 from drone_torchrl.migrations import FAST
-from drone_torchrl.modules.factory import build_actor, build_policy, build_q_value
-from drone_torchrl.schema import (
-    EPISODES,
-    GAMMA,
-    LR,
-    MAX_LR,
-    NUM_ENVS,
-    REWARD_SCALE,
-    STEPS_PER_BATCH,
-    VALUE_HIDDEN_SIZES,
-    a_number,
-    an_integer,
-    free,
-    store_plugin,
-)
+from drone_torchrl.modules.factory import build_q_value
 from drone_torchrl.training.segments import FusedSegments
 from drone_torchrl.training.update import UpdateOutput
 
@@ -77,16 +64,15 @@ def update_output(
     active: torch.Tensor,
 ) -> UpdateOutput:
     """One agent's ``k`` updates in the update contract's layout (episodes padded, a ``"valid"`` mask)."""
-    k = len(metrics)
     most = max(1, *(len(e["return"]) for e in episodes))
-    padded = {key: [[e[key] + [0] * (most - len(e[key]))] for e in episodes] for key in EPISODE_KEYS}
+    padded = {
+        key: torch.tensor([[e[key] + [0] * (most - len(e[key]))] for e in episodes]) for key in EPISODE_KEYS
+    }
     valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
     values = torch.tensor([[[m[name] for name in checks]] for m in metrics], dtype=torch.float64)
     out = {name: values[..., i] for i, name in enumerate(checks)}
-    out["active"] = active.reshape(1, 1).expand(k, 1)
-    out["checks"] = values.isfinite()
-    stats = {key: torch.tensor(padded[key]) for key in EPISODE_KEYS}
-    return UpdateOutput(out, {**stats, "valid": torch.tensor(valid)})
+    out.update(active=active.reshape(1, 1).expand(len(metrics), 1), checks=values.isfinite())
+    return UpdateOutput(out, {**padded, "valid": torch.tensor(valid)})
 
 
 def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
@@ -105,7 +91,7 @@ def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
     return out.select(*FRAME_KEYS, "steps_to_next_obs")
 
 
-class SAC:
+class SAC(OneRun):
     """One SAC run behind the update contract (:mod:`drone_torchrl.training.update`).
 
     Each update flies one batch, stores it and takes ``algo.updates_per_batch`` gradient steps.
@@ -114,22 +100,13 @@ class SAC:
         jobs: the one job trained (SAC trains no population): its ``cfg``.
     """
 
-    advice = "lower algo.lr"
     episodes_per_update = None  # the episodes a batch finishes vary: one update per call
-    eval_agents = None
     checks = tuple(f"train/{k}" for k in REPORTED)
-
-    @staticmethod
-    def max_agents(cfg) -> int:
-        """One run per learner: it is a batch of drones already."""
-        return 1
 
     def __init__(self, jobs) -> None:
         (job,) = jobs
-        cfg = self.cfg = job.cfg
-        algo = cfg.algo
-        net = build_policy(cfg, cfg.seed)
-        self.actor_module = build_actor(cfg, net, return_log_prob=True)
+        super().__init__(job.cfg)
+        cfg, algo = self.cfg, self.cfg.algo
         self.loss = SACLoss(
             self.actor_module,
             build_q_value(cfg),
@@ -148,17 +125,16 @@ class SAC:
             ],
             lr=algo.lr,
         )
-        self.collector = FusedSegments(cfg, self.actor_module, net)
+        self.collector = FusedSegments(cfg, self.actor_module, self.net)
+        self.generator = self.collector.generator
         self.buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(algo.buffer_size, device=cfg.device),
             sampler=RandomSampler(),
             batch_size=algo.batch_size,
         )
-        self.tracker = EpisodeTracker(algo.num_envs, cfg.device)
         # False after a batch cut at the budget: its drones flew on past the cut, unbooked.
         self.carried_on = True
-        checkpoint = job.checkpoint
-        if checkpoint is not None:
+        if (checkpoint := job.checkpoint) is not None:
             self._restore(checkpoint)
         done = 0 if checkpoint is None else checkpoint["episodes_done"]
         self.state = TensorDict({"episodes_done": torch.tensor([done])}, batch_size=[1])
@@ -168,8 +144,7 @@ class SAC:
         self.actor_module.load_state_dict(checkpoint["actor"])
         self.loss.load_state_dict({**self.loss.state_dict(), **checkpoint["qvalue"]})
         self.optimizer.load_state_dict(checkpoint["optimizer"])
-        torch.set_rng_state(checkpoint["rng"]["torch"])
-        self.collector.generator.set_state(checkpoint["rng"]["env"])
+        self.restore_rng(checkpoint["rng"])
         saved = checkpoint["replay_buffer"]
         frames = TensorDict(saved["frames"]).auto_batch_size_(batch_dims=1)
         if len(frames):
@@ -227,14 +202,6 @@ class SAC:
                 sums[key] = sums.get(key, 0) + losses[key].detach()
         return {f"train/{key}": (value / steps).item() for key, value in sums.items()}
 
-    def eval_policy(self):
-        """The policy the evaluator flies (the actor)."""
-        return self.actor_module
-
-    def actor(self, agent: int):
-        """The actor of the run's only agent."""
-        return self.actor_module
-
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """Everything the next update depends on, as checkpoint entries.
 
@@ -248,11 +215,7 @@ class SAC:
             "actor": self.actor_module.state_dict(),
             "qvalue": {k: v for k, v in self.loss.state_dict().items() if not k.startswith("actor_network")},
             "optimizer": self.optimizer.state_dict(),
-            "rng": {
-                "torch": torch.get_rng_state(),
-                "env": self.collector.generator.get_state(),
-                "agent": None,
-            },
+            "rng": self.rng_entry(),
             "replay_buffer": {"frames": filled.cpu().to_dict(), "writer": self.buffer.writer.state_dict()},
             "drones": {
                 "carried": self.collector.carried() if self.carried_on else None,
@@ -273,10 +236,7 @@ def validate(cfg: Mapping[str, Any]) -> None:
             "'fast' with algo.name=sac (a resumed SAC run carries on its drones' episodes, which "
             "TorchRL's collector does not expose)",
         )
-    if cfg.env.num_workers:
-        raise ConfigError.of(
-            "env.num_workers", cfg.env.num_workers, "0 with algo.name=sac (algo.num_envs drones in one env)"
-        )
+    one_env(cfg)
     if cfg.model.distribution != "tanh_normal":
         raise ConfigError.of(
             "model.distribution",
@@ -297,25 +257,25 @@ def validate(cfg: Mapping[str, Any]) -> None:
 class SACConf:
     """``algo.*`` of ``algo.name=sac``."""
 
-    name: Any = free()
-    lr: Any = LR.field()
-    alpha_lr: Any = a_number(low=0, low_open=True, high=MAX_LR)  # lr's bounds; one agent a run
-    gamma: Any = GAMMA.field()
-    episodes: Any = EPISODES.field()
-    num_envs: Any = NUM_ENVS.field()
-    steps_per_batch: Any = STEPS_PER_BATCH.field()
-    buffer_size: Any = an_integer(low=1)
-    batch_size: Any = an_integer(low=1)
-    updates_per_batch: Any = an_integer(low=1)
-    n_steps: Any = an_integer(low=1, high="env.max_steps")  # a longer window than an episode: no use
-    tau: Any = a_number(low=0, low_open=True, high=1)
-    alpha_init: Any = a_number(low=0, low_open=True)
-    target_entropy: Any = a_number()
-    reward_scale: Any = REWARD_SCALE.field()
-    qvalue_hidden_sizes: Any = VALUE_HIDDEN_SIZES.field()
+    name: Any = schema.free()
+    lr: Any = schema.LR.field()
+    alpha_lr: Any = schema.a_number(low=0, low_open=True, high=schema.MAX_LR)  # lr's bounds; one agent a run
+    gamma: Any = schema.GAMMA.field()
+    episodes: Any = schema.EPISODES.field()
+    num_envs: Any = schema.NUM_ENVS.field()
+    steps_per_batch: Any = schema.STEPS_PER_BATCH.field()
+    buffer_size: Any = schema.an_integer(low=1)
+    batch_size: Any = schema.an_integer(low=1)
+    updates_per_batch: Any = schema.an_integer(low=1)
+    n_steps: Any = schema.an_integer(low=1, high="env.max_steps")  # a longer window than an episode: no use
+    tau: Any = schema.a_number(low=0, low_open=True, high=1)
+    alpha_init: Any = schema.a_number(low=0, low_open=True)
+    target_entropy: Any = schema.a_number()
+    reward_scale: Any = schema.REWARD_SCALE.field()
+    qvalue_hidden_sizes: Any = schema.VALUE_HIDDEN_SIZES.field()
 
 
-store_plugin("algo", "sac", SACConf)
+schema.store_plugin("algo", "sac", SACConf)
 
 register(
     Algorithm(
