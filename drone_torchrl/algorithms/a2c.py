@@ -66,14 +66,10 @@ class A2C(OnPolicy):
         algo = self.cfg.algo
         if algo.critic_max_grad_norm is None:
             return super().clip_gradients()
-        norms = [
-            nn.utils.clip_grad_norm_(net.parameters(), math.inf if limit is None else limit)
-            for net, limit in (
-                (self.actor_module, algo.max_grad_norm),
-                (self.critic, algo.critic_max_grad_norm),
-            )
-        ]
-        return torch.stack(norms).norm()
+        limit = math.inf if algo.max_grad_norm is None else algo.max_grad_norm
+        actor = nn.utils.clip_grad_norm_(self.actor_module.parameters(), limit)
+        critic = nn.utils.clip_grad_norm_(self.critic.parameters(), algo.critic_max_grad_norm)
+        return torch.stack([actor, critic]).norm()
 
 
 @dataclass

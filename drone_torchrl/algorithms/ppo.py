@@ -18,11 +18,10 @@ were not booked, so no episode is lost or counted twice).
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import logging
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -54,21 +53,13 @@ if TYPE_CHECKING:
 
 # Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
 ADVANTAGE_EPS = 1e-8
+# TorchRL's storages announce their first allocation at INFO level, on stdout: not a run's news.
+logging.getLogger("torchrl").addFilter(
+    lambda record: not record.getMessage().startswith("Initialized LazyTensorStorage")
+)
 # A batch's epochs stop where the approximate KL divergence exceeds this many times ``algo.target_kl``
 # (Stable-Baselines3's rule).
 KL_MARGIN = 1.5
-
-
-@contextlib.contextmanager
-def quiet(logger_name: str) -> Iterator[None]:
-    """Raise logger ``logger_name`` to WARNING inside the block (no INFO messages), then restore it."""
-    logger = logging.getLogger(logger_name)
-    level = logger.level
-    logger.setLevel(logging.WARNING)
-    try:
-        yield
-    finally:
-        logger.setLevel(level)
 
 
 def within_budget(batch: TensorDictBase, remaining: int) -> TensorDictBase:
@@ -154,8 +145,7 @@ class Minibatches:
     def hold(self, batch: TensorDictBase) -> int:
         """Keep the batch's frames (``[frames]``) for this update's minibatches; how many there are."""
         self.buffer.empty()  # a batch cut at the budget is smaller than the storage
-        with quiet("torchrl"):  # its storage announces its first allocation at INFO level
-            self.buffer.extend(batch)
+        self.buffer.extend(batch)
         return len(self.buffer)
 
     def sample(self, size: int) -> TensorDictBase:

@@ -31,7 +31,7 @@ from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
 from drone_torchrl import schema
 from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.algorithms.ppo import OneRun, one_env, quiet, within_budget
+from drone_torchrl.algorithms.ppo import OneRun, one_env, within_budget
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.memory_estimate import sac_parts
@@ -148,8 +148,7 @@ class SAC(OneRun):
         saved = checkpoint["replay_buffer"]
         frames = TensorDict(saved["frames"]).auto_batch_size_(batch_dims=1)
         if len(frames):
-            with quiet("torchrl"):  # its storage announces its first allocation at INFO level
-                self.buffer.extend(frames.to(self.cfg.device))
+            self.buffer.extend(frames.to(self.cfg.device))
         self.buffer.writer.load_state_dict(saved["writer"])
         drones = checkpoint["drones"]
         if drones["carried"] is None:  # its last batch was cut at the budget: start afresh
@@ -181,8 +180,7 @@ class SAC(OneRun):
         frames.set(("next", "reward"), frames.get(("next", "reward")) * algo.reward_scale)
         if algo.n_steps > 1:
             frames = n_step(frames, algo.gamma, algo.n_steps)
-        with quiet("torchrl"):
-            self.buffer.extend(frames.reshape(-1))
+        self.buffer.extend(frames.reshape(-1))
 
     def _learn(self) -> dict[str, float]:
         """``algo.updates_per_batch`` gradient steps of the actor, Q-networks and temperature.
