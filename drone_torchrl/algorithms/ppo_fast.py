@@ -1,9 +1,11 @@
 """``backend=fast``'s PPO, beside the reference in :mod:`drone_torchrl.algorithms.ppo`.
 
 As LeanRL keeps its compiled variants apart: the C++ engine's batches (:class:`~drone_torchrl.training.segments.FusedSegments`),
-Adam's fused kernel, and, without an entropy bonus, plain-tensor minibatches scored by
-:func:`~drone_torchrl.algorithms.ppo_fast.clip_ppo_losses` (what ``ClipPPOLoss`` computes, without
-TensorDict's machinery). Tested equal: tests/test_ppo.py, test_segments.py.
+Adam's fused kernel, and, without an entropy bonus, :class:`PlainMinibatches`, the twin of the
+reference's :class:`~drone_torchrl.algorithms.ppo.Minibatches` that
+:meth:`~drone_torchrl.algorithms.ppo.PPO.make_minibatches` picks: plain-tensor minibatches scored by
+:func:`clip_ppo_losses` (what ``ClipPPOLoss`` computes, without TensorDict's machinery). Tested
+equal: tests/test_ppo.py, test_segments.py.
 """
 
 from __future__ import annotations
@@ -84,7 +86,8 @@ def clip_ppo_losses(
 class PlainMinibatches:
     """Plain-tensor replay buffer and ``ClipPPOLoss`` of a run (``cfg``, ``loss``, ``actor``, ``critic``).
 
-    Minibatches are drawn without replacement within an epoch and scored by :func:`clip_ppo_losses`.
+    Minibatches are drawn without replacement within an epoch and scored by :func:`clip_ppo_losses`;
+    the same three methods as the reference's :class:`~drone_torchrl.algorithms.ppo.Minibatches`.
     """
 
     def __init__(self, cfg: Any, loss: nn.Module, actor: nn.Module, critic: nn.Module) -> None:
