@@ -99,6 +99,7 @@ class OneRun:
 
     advice = "lower algo.lr"
     eval_agents = None
+    state = None  # no stacked state: one agent (OnPolicy's update() is a memory probe's)
 
     @staticmethod
     def max_agents(cfg) -> int:
@@ -172,7 +173,6 @@ class OnPolicy(OneRun, LoopLearner, RollbackLearner):
     #: What the loss reports besides its losses, booked as train/<name> where the loss has it
     #: (A2CLoss reports no entropy without an entropy bonus).
     diagnostics: tuple[str, ...] = ()
-    state = None  # no stacked state: update() is a memory probe's (tests/test_memory_estimate.py)
 
     def __init__(self, jobs) -> None:
         (job,) = jobs

@@ -136,9 +136,7 @@ class SAC(OneRun):
         self.carried_on = True
         if (checkpoint := job.checkpoint) is not None:
             self._restore(checkpoint)
-        done = 0 if checkpoint is None else checkpoint["episodes_done"]
-        self.state = TensorDict({"episodes_done": torch.tensor([done])}, batch_size=[1])
-        self.budget = algo.episodes
+        self.episodes_done = 0 if checkpoint is None else checkpoint["episodes_done"]
 
     def _restore(self, checkpoint: Mapping[str, Any]) -> None:
         self.actor_module.load_state_dict(checkpoint["actor"])
@@ -157,21 +155,18 @@ class SAC(OneRun):
             self.collector.carry_on(drones["carried"])
             self.tracker.load_state(drones["episodes"])
 
-    def update(
-        self, state: TensorDictBase, k: int, active: torch.Tensor
-    ) -> tuple[TensorDictBase, UpdateOutput]:
+    def update(self, state: None, k: int, active: torch.Tensor) -> tuple[None, UpdateOutput]:
         """Run ``k`` updates (fly, store, train); returns ``state`` and their metrics and episodes."""
         metrics: list[dict[str, float]] = []
         episodes: list[dict[str, list]] = []
         for _ in range(k):
             flown = next(self.collector)
-            batch = within_budget(flown, self.budget - int(state["episodes_done"]))
+            batch = within_budget(flown, self.cfg.algo.episodes - self.episodes_done)
             self.carried_on = batch.shape[1] == flown.shape[1]
-            ended = self.tracker.update(batch)
+            episodes.append(self.tracker.update(batch))
             self._store(batch)
             metrics.append(self._learn())
-            state["episodes_done"] += len(ended["return"])
-            episodes.append(ended)
+            self.episodes_done += len(episodes[-1]["return"])
         return state, update_output(metrics, episodes, self.checks, active)
 
     def _store(self, batch: TensorDictBase) -> None:
