@@ -41,7 +41,7 @@ from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.pbt import FRESH, ReplaySettings, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
-from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
+from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, Record, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import StopRequest, TrainingStopped, stop_on_signals
 
 #: The most updates per call of a learner's update; the loop copies a call's metrics and episodes to
@@ -115,6 +115,7 @@ class Trainer:
             keep_freed_memory()
         self.learner = learner_class(cfg)(jobs)
         self.runs: list[AgentBook] = []
+        self.records: list[Record] = []  # a run folder each: the runs', or the population's
         self.book: PopulationRecord | None = None
         self._search_step_pending = False
         try:
@@ -130,7 +131,7 @@ class Trainer:
                     cfg.backend,
                     checkpoint,
                 )
-                self.runs = list(self.book.agents)
+                self.records, self.runs = [self.book], list(self.book.agents)
                 if search is not None:
                     saved = None if checkpoint is None else checkpoint["search"]
                     self.book.search = search.make(cfg, self.book.values, saved)
@@ -145,6 +146,7 @@ class Trainer:
                     )
             for job in jobs if population_dir is None else ():
                 self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
+                self.records.append(self.runs[-1])
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
             self.progress = Progress([], False)
             self.close(quietly=True)
@@ -315,10 +317,9 @@ class Trainer:
         """
         self.progress.close()
         self.learner.close()
-        closes = [functools.partial(self.book.close, quietly)] if self.book is not None else []
-        for close in [*closes, *(run.close for run in self.runs)]:
+        for record in self.records:
             try:
-                close()
+                record.close(quietly)
             except Exception:  # noqa: BLE001  (a logger's own error, when another one is reported)
                 if not quietly:
                     raise
