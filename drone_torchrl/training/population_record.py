@@ -238,11 +238,6 @@ class PopulationRecord(Record):
         """The logger's step, the episodes of the agent furthest on (the agents go in step)."""
         return max(agent.episodes_done for agent in self.agents)
 
-    @property
-    def wall_clock(self) -> float:
-        """Seconds the run has trained (all agents train together)."""
-        return self.agents[0].wall_clock
-
     def summary(self) -> dict[str, float]:
         """Quantiles of the agents' running-mean return, the best agent and the number alive."""
         alive = [a for a in self.agents if not a.failed]
@@ -328,7 +323,7 @@ class PopulationRecord(Record):
             "agents": {"name": self.names, **self.values},
             "episodes_done": [a.episodes_done for a in self.agents],
             "updates_done": [a.updates_done for a in self.agents],
-            "wall_clock_s": self.wall_clock,
+            "wall_clock_s": self.agents[0].wall_clock,  # all agents train together
             "best_eval_return": [a.best_eval for a in self.agents],
             "recent_returns": recent("recent_returns"),
             "recent_lengths": recent("recent_lengths"),

@@ -4,7 +4,10 @@ A :class:`RunRecord` owns a run folder: the episode counters, ``episodes.csv``, 
 run, the evaluation schedule and its videos, ``best.pt`` and ``last.pt``, the final metrics, and
 what a resumed run picks up again. It is fed finished episodes (however many an update brings,
 from however many envs) and the update's training metrics; it never sees a policy or a batch, so
-every collector and every algorithm shares it.
+every collector and every algorithm shares it. A population run's folder
+(:mod:`.population_record`) is written through the same :class:`Record` interface: the set-up,
+``config.yaml``, the logger, the flushes that renew the folder's lock, ``last.pt`` after the rows it
+counts, and the close that tells the logger how the run ended.
 
 The learner's own state (policy, optimizer, RNG streams) is handed in as a dict when a checkpoint
 is written: the record adds its counters and the config (see :mod:`drone_torchrl.io.checkpoint`).
