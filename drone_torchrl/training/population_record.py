@@ -157,10 +157,9 @@ class PopulationRecord(Record):
         self.eval_returns = [math.nan] * n
         self.parts = 0 if checkpoint is None else int(checkpoint["parts"])
         if checkpoint is not None:
-            for agent, failure in zip(self.agents, checkpoint["failure"], strict=True):
-                agent.failure = failure
-            for agent, final in zip(self.agents, checkpoint["final"], strict=True):
-                agent.final = final if agent.finished else None  # a larger budget trains it on
+            ended = zip(self.agents, checkpoint["final"], checkpoint["failure"], strict=True)
+            for agent, final, failure in ended:  # a final agent given a larger budget trains on
+                agent.final, agent.failure = (final if agent.finished else None), failure
         self.updates = 0 if checkpoint is None else int(checkpoint["population_updates"])
         self._columns: dict[str, list] = {}
         # Failed agent -> its rows of the stacked state in the last checkpoint (finite), kept in
@@ -306,13 +305,9 @@ class PopulationRecord(Record):
                     tensor[agent] = rows[key]
             stacked[key] = tensor
 
-        def recent(name: str) -> torch.Tensor:
-            out = torch.zeros(len(self.agents), window, dtype=torch.float64)
-            for i, agent in enumerate(self.agents):
-                values = getattr(agent, name)
-                if values:
-                    out[i, : len(values)] = torch.tensor(list(values), dtype=torch.float64)
-            return out
+        def recent(name: str) -> torch.Tensor:  # each agent's window, zero-padded to [N, window]
+            windows = (list(getattr(agent, name)) for agent in self.agents)
+            return torch.tensor([w + [0.0] * (window - len(w)) for w in windows], dtype=torch.float64)
 
         return {
             "format_version": FORMAT_VERSION,
