@@ -184,9 +184,8 @@ class Trainer:
                 ):
                     self.search_step(active)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
-                    if isinstance(
-                        self.learner, LoopLearner
-                    ):  # its own loop: PPO's, A2C's (algorithms/ppo.py)
+                    # A learner with its own loop: PPO's, A2C's (algorithms/ppo.py).
+                    if isinstance(self.learner, LoopLearner):
                         self.learner.train(self, stop)
                         break
                     self.step(active)
