@@ -131,10 +131,6 @@ class EpisodeCSV:
             csv.DictWriter(f, fieldnames=CSV_COLUMNS).writerows(self._rows)
         self._rows.clear()
 
-    def close(self) -> None:
-        """Append the buffered rows; the file is not held open, so nothing else is released."""
-        self.flush()
-
 
 class EpisodeCSVError(ValueError):
     """An ``episodes.csv`` that cannot be read: one line naming the file."""

@@ -49,15 +49,6 @@ class RunFolderBusy(ConfigError):
     """A run folder another live process owns: one line naming the folder and the owner."""
 
 
-def _owner_record() -> dict[str, object]:
-    return {
-        "host": socket.gethostname(),
-        "pid": os.getpid(),
-        "since": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "slurm_job_id": os.environ.get("SLURM_JOB_ID"),
-    }
-
-
 def _read_owner(fd: int) -> dict[str, object]:
     os.lseek(fd, 0, os.SEEK_SET)
     text = os.read(fd, 4096).decode("utf-8", "replace")
@@ -102,17 +93,18 @@ def hold(folder: str | os.PathLike) -> Path:
         owner = _read_owner(fd)
         age = time.time() - os.fstat(fd).st_mtime
         foreign = owner.get("host") not in (None, socket.gethostname())
-        job = owner.get("slurm_job_id")
-        same_job = job is not None and job == os.environ.get("SLURM_JOB_ID")
+        job, job_id = owner.get("slurm_job_id"), os.environ.get("SLURM_JOB_ID")
+        same_job = job is not None and job == job_id
         if foreign and not same_job and age < STALE_AFTER_S:
             raise RunFolderBusy(
                 f"{folder} is in use by {_describe(owner)}, renewed {age:.0f} s ago (this filesystem's flock "
                 f"does not reach across hosts); if that process is gone, wait {STALE_AFTER_S - age:.0f} s or "
                 f"delete {path}"
             )
-        record = json.dumps(_owner_record()).encode()
+        since = time.strftime("%Y-%m-%d %H:%M:%S")
+        record = {"host": socket.gethostname(), "pid": os.getpid(), "since": since, "slurm_job_id": job_id}
         with writing(path):
-            path.write_bytes(record)
+            path.write_bytes(json.dumps(record).encode())
     except BaseException:
         os.close(fd)
         raise

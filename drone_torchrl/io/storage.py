@@ -191,13 +191,11 @@ def unwritable(folder: str | os.PathLike, room: int = 1) -> str | None:
 
 def _nearest_existing(path: Path) -> Path:
     """``path`` or the nearest folder above it that exists."""
-    while not _exists(path) and path != path.parent:
+    while path != path.parent:
+        try:
+            if path.exists():
+                break
+        except OSError:  # a component too long, or not a folder: not an existing folder
+            pass
         path = path.parent
     return path
-
-
-def _exists(path: Path) -> bool:
-    try:
-        return path.exists()
-    except OSError:  # a component too long, or not a folder: not an existing folder
-        return False

@@ -15,7 +15,7 @@ uninterrupted run's.
 from __future__ import annotations
 
 import csv
-import os
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.episodes_csv import is_text, open_csv
-from drone_torchrl.io.storage import writing
+from drone_torchrl.io.storage import write_csv, writing
 from drone_torchrl.loggers import Backend, Logger, flatten_config, register
 from drone_torchrl.schema import IF_SET, TensorBoardConf, free, store_plugin
 
@@ -58,7 +58,7 @@ class CSVLogger(Logger):
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         """Write the flattened config and the final ``metrics`` (as ``hparam/*``) to the hparams file."""
         entries = {**flatten_config(cfg), **{f"hparam/{k}": v for k, v in metrics.items()}}
-        _write_atomically(self.log_dir / HPARAMS, ("key", "value"), entries.items())
+        write_csv(self.log_dir / HPARAMS, ("key", "value"), entries.items())
 
     def flush(self) -> None:
         """Append the buffered rows to the scalars CSV (with its header when the file is new)."""
@@ -83,32 +83,16 @@ def _keep_until(path: Path, step: int) -> None:
     """Rewrite ``path`` with its rows up to ``step``, dropping torn lines (a kill's) and non-UTF-8 rows."""
     with open_csv(path) as f:
         rows = list(csv.reader(f))
-    kept = [
-        row
-        for row in rows[1:]
-        if len(row) == len(HEADER) and is_text(row) and _step(row[0]) is not None and _step(row[0]) <= step
-    ]
-    _write_atomically(path, HEADER, kept)
+    kept = [row for row in rows[1:] if len(row) == len(HEADER) and is_text(row) and _step(row[0]) <= step]
+    write_csv(path, HEADER, kept)
 
 
-def _step(text: str) -> int | None:
+def _step(text: str) -> float:
+    """A row's step (inf for one that is not an integer: a torn or garbled row)."""
     try:
         return int(text)
     except ValueError:
-        return None
-
-
-def _write_atomically(path: Path, header: tuple[str, ...], rows: Iterable) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with writing(path, tmp):
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with tmp.open("w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(header)
-            writer.writerows(rows)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        return math.inf
 
 
 def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> CSVLogger:

@@ -3,8 +3,8 @@
 TorchRL's ``TensorboardLogger`` keeps a ``SummaryWriter`` (an open event file and a writer thread)
 for the life of a run and sends every scalar through the thread's queue, one by one. A
 population of a thousand runs cannot hold a thousand writers, and at that rate its logging would
-cost more than its training. :class:`RunLogger` keeps TorchRL's logging calls (``log_scalar``,
-``log_metrics``) but buffers them, and :meth:`RunLogger.flush` appends them to the run's event file
+cost more than its training. :class:`RunLogger` buffers the scalars (``log_scalars``,
+``log_metrics``), and :meth:`RunLogger.flush` appends them to the run's event file
 as TensorBoard records (tensorboard's own ``Event`` protos, one per step holding all of that step's
 scalars, as ``tf.summary.merge_all`` writes them; no thread), opening the file only for that. The
 records' CRC32C checksums come from ``google-crc32c`` (C): tensorboard's ``RecordWriter`` computes
@@ -118,16 +118,11 @@ class RunLogger(Logger):
     """
 
     def __init__(self, exp_name: str, log_dir: str | Path, purge_step: int | None = None) -> None:
-        self.exp_name = exp_name
         self.log_dir = Path(log_dir) / exp_name
         self._purge_step = purge_step
         self._scalars: list[tuple[str, float, int]] = []
         self._summaries: list = []  # (step, a ready-made Summary proto): videos, hparams
         self._events: Path | None = None
-
-    def log_scalar(self, name: str, value: float, step: int) -> None:
-        """Buffer one scalar ``value`` of tag ``name`` at ``step``."""
-        self._scalars.append((name, value, step))
 
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
         """``(tag, value, step)`` triples, as many as come."""

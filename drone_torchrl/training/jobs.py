@@ -21,6 +21,7 @@ Resume rules (:func:`prepare`):
 
 from __future__ import annotations
 
+import contextlib
 import math
 import shlex
 import sys
@@ -277,11 +278,9 @@ def record_failure(run_dir: Path, error: BaseException) -> str:
     reason = f"{type(error).__name__}: {error}"
     if isinstance(error, run_lock.RunFolderBusy):
         return reason
-    try:
+    with contextlib.suppress(OSError):
         run_dir.mkdir(parents=True, exist_ok=True)
         (run_dir / FAILED_FILE).write_text("".join(traceback.format_exception(error)))
-    except OSError:
-        pass
     return reason
 
 

@@ -28,17 +28,12 @@ from drone_torchrl.compat import fused_adam
 CLIP_EPS = 1e-6
 
 
-def grad_norms(grad: torch.Tensor) -> torch.Tensor:
-    """Each agent's gradient 2-norm over all its parameters: ``[N]`` from an ``[N, P]`` gradient."""
-    return grad.pow(2).sum(1).sqrt()
-
-
 def clip_grad_norms(grad: torch.Tensor, max_norm: float) -> torch.Tensor:
     """Clip each agent's row of ``grad`` ``[N, P]`` in place to ``max_norm``; returns the norms before.
 
     ``max_norm=inf`` clips nothing.
     """
-    norms = grad_norms(grad)
+    norms = grad.pow(2).sum(1).sqrt()  # each agent's 2-norm over all its parameters
     if max_norm != float("inf"):
         grad.mul_((max_norm / (norms + CLIP_EPS)).clamp(max=1.0).unsqueeze(1))
     return norms

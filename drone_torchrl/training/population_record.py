@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import io
 import math
-import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -40,30 +39,13 @@ from drone_torchrl import extras
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import open_checkpoint, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
-from drone_torchrl.io import run_lock
-from drone_torchrl.io.checkpoint import (
-    CHECKPOINT_DIR,
-    FORMAT_VERSION,
-    LAST,
-    POPULATION,
-    load_checkpoint,
-    save_checkpoint,
-)
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, FORMAT_VERSION, LAST, POPULATION, load_checkpoint
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.streams import about, console
-from drone_torchrl.io.yaml_text import save_yaml
-from drone_torchrl.loggers import FAILED, FINISHED, STOPPED, make_logger
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.pbt import Search, complete_lineage, final_values
 from drone_torchrl.training.population import Population
-from drone_torchrl.training.run import (
-    _CAUSE_NAMES,
-    CONFIG_NAME,
-    FAILED_FILE,
-    AgentBook,
-    Schedule,
-    TrainingDiverged,
-)
+from drone_torchrl.training.run import _CAUSE_NAMES, AgentBook, Record, Schedule, TrainingDiverged
 
 AGENTS_TABLE = "agents.parquet"
 LINEAGE_TABLE = "lineage.parquet"
@@ -115,12 +97,7 @@ class PopulationAgent(AgentBook):
         schedule: Schedule | None = None,
     ) -> None:
         super().__init__(cfg, counters, schedule)
-        self.owner, self.index = owner, index
-
-    @property
-    def run_dir(self) -> Path:
-        """The population's run folder."""
-        return self.owner.run_dir
+        self.owner, self.index, self.run_dir = owner, index, owner.run_dir
 
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
         """Book one update's episodes and add them to the population's rows."""
@@ -141,11 +118,8 @@ class PopulationAgent(AgentBook):
             **about(self.run_dir),
         )
 
-    def close(self) -> None:
-        """Nothing to close: the population's files are closed once, by :meth:`PopulationRecord.close`."""
 
-
-class PopulationRecord:
+class PopulationRecord(Record):
     """The folder and files of a population run (see the module's docstring).
 
     Args:
@@ -168,12 +142,9 @@ class PopulationRecord:
         agents = AgentTable.of(agents)
         self.cfg = cfg = agents.cfg
         self.run_dir = run_dir = Path(run_dir)
-        self.backend = backend
-        self.config = OmegaConf.to_container(cfg, resolve=True)
         self.values = agents.values
         self.names = list(names)
         self.every_updates = int(cfg.logger.every_updates)
-        self.flush_every_s = float(cfg.logger.flush_every_s)
         n = len(agents)
         # Every agent's book holds the group's config: the per-agent keys are the table's.
         schedule = Schedule.of(cfg)
@@ -186,26 +157,25 @@ class PopulationRecord:
         self.eval_returns = [math.nan] * n
         self.parts = 0 if checkpoint is None else int(checkpoint["parts"])
         if checkpoint is not None:
-            for agent, failure in zip(self.agents, checkpoint["failure"], strict=True):
-                agent.failure = failure
-            for agent, final in zip(self.agents, checkpoint["final"], strict=True):
-                agent.final = final if agent.finished else None  # a larger budget trains it on
+            ended = zip(self.agents, checkpoint["final"], checkpoint["failure"], strict=True)
+            for agent, final, failure in ended:  # a final agent given a larger budget trains on
+                agent.final, agent.failure = (final if agent.finished else None), failure
         self.updates = 0 if checkpoint is None else int(checkpoint["population_updates"])
         self._columns: dict[str, list] = {}
         # Failed agent -> its rows of the stacked state in the last checkpoint (finite), kept in
         # the checkpoints that follow instead of its diverged weights.
         self._last_finite: dict[int, dict[str, torch.Tensor]] = {}
         self._clear()
-        with writing(run_dir / CHECKPOINT_DIR):
-            (run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
+        self.open(cfg, run_dir, backend, None if checkpoint is None else self.step)
+        with writing(run_dir / EPISODES_DIR):
             (run_dir / EPISODES_DIR).mkdir(exist_ok=True)
-            (run_dir / FAILED_FILE).unlink(missing_ok=True)
-        dropped = self._drop_parts_past_checkpoint()
-        save_yaml(cfg, run_dir / CONFIG_NAME)
+        # The parts the checkpoint does not cover (written after it) are trained again.
+        past = [p for p in (run_dir / EPISODES_DIR).glob("part-*.parquet") if int(p.stem[5:]) > self.parts]
+        for path in past:
+            path.unlink()
         self._write_table(
             {"agent": list(range(n)), "name": self.names, **self.values}, run_dir / AGENTS_TABLE
         )
-        self.logger = make_logger(cfg, run_dir, None if checkpoint is None else self.step)
         if cfg.eval.video or cfg.checkpoint.keep_best:
             console.info(
                 f"{run_dir}: a population run keeps one stacked checkpoint and no videos, so "
@@ -216,11 +186,9 @@ class PopulationRecord:
         if checkpoint is not None:
             console.info(
                 f"{run_dir}: {n} agents continuing from their checkpoint ({self.step} episodes each); "
-                f"{dropped} episode part(s) written after it removed (those episodes are trained again)",
+                f"{len(past)} episode part(s) written after it removed (those episodes are trained again)",
                 **about(run_dir),
             )
-        self._closed = False
-        self._last_flush = time.perf_counter()
         # The run's population-based training (:mod:`.pbt`), set by the trainer: its lineage goes
         # into each checkpoint and lineage.parquet.
         self.search: Search | None = None
@@ -246,7 +214,8 @@ class PopulationRecord:
         self.pa.parquet.write_table(self.pa.table(columns), buffer)
         write_atomically(path, buffer.getbuffer())
 
-    def _write_part(self) -> None:
+    def write_rows(self) -> None:
+        """Write the buffered rows as the next episode part."""
         cols = self._columns
         if not cols["agent"]:
             return
@@ -262,25 +231,11 @@ class PopulationRecord:
         self.parts += 1
         self._clear()
 
-    def _drop_parts_past_checkpoint(self) -> int:
-        """Remove the episode parts the checkpoint does not cover (written after it)."""
-        past = [
-            p for p in (self.run_dir / EPISODES_DIR).glob("part-*.parquet") if int(p.stem[5:]) > self.parts
-        ]
-        for path in past:
-            path.unlink()
-        return len(past)
-
     # ------------------------------------------------------------------ summaries
     @property
     def step(self) -> int:
         """The logger's step, the episodes of the agent furthest on (the agents go in step)."""
         return max(agent.episodes_done for agent in self.agents)
-
-    @property
-    def wall_clock(self) -> float:
-        """Seconds the run has trained (all agents train together)."""
-        return self.agents[0].wall_clock
 
     def summary(self) -> dict[str, float]:
         """Quantiles of the agents' running-mean return, the best agent and the number alive."""
@@ -297,8 +252,7 @@ class PopulationRecord:
         self.updates += 1
         if self.updates % self.every_updates == 0:
             self.logger.log_metrics(self.summary(), step=self.step)
-        if time.perf_counter() - self._last_flush > self.flush_every_s:
-            self.flush()
+        self.flush_if_due()
 
     def after_eval(self) -> None:
         """Log the evaluation's quantiles over the agents and the best agent."""
@@ -323,8 +277,7 @@ class PopulationRecord:
         The state is ``state``'s stacked tensors, written after the episodes it counts; at the end
         the final summary is written too.
         """
-        self.flush()
-        save_checkpoint(self._checkpoint(state), self.run_dir / CHECKPOINT_DIR / LAST)
+        self.write_last(state)
         if self.search is not None:  # the lineage as far as the checkpoint: a resume starts there
             self._write_table(self.search.lineage, self.run_dir / LINEAGE_TABLE)
         for agent in self.agents:
@@ -337,7 +290,8 @@ class PopulationRecord:
                 )
             self.close()
 
-    def _checkpoint(self, state: dict[str, torch.Tensor]) -> dict[str, Any]:
+    def checkpoint_state(self, state: dict[str, torch.Tensor]) -> dict[str, Any]:
+        """The population's checkpoint: ``state``'s stacked tensors, every agent's counters, the search's record."""
         window = self.agents[0].window
         failed = torch.tensor([a.failed for a in self.agents])
         stacked = {}
@@ -351,13 +305,9 @@ class PopulationRecord:
                     tensor[agent] = rows[key]
             stacked[key] = tensor
 
-        def recent(name: str) -> torch.Tensor:
-            out = torch.zeros(len(self.agents), window, dtype=torch.float64)
-            for i, agent in enumerate(self.agents):
-                values = getattr(agent, name)
-                if values:
-                    out[i, : len(values)] = torch.tensor(list(values), dtype=torch.float64)
-            return out
+        def recent(name: str) -> torch.Tensor:  # each agent's window, zero-padded to [N, window]
+            windows = (list(getattr(agent, name)) for agent in self.agents)
+            return torch.tensor([w + [0.0] * (window - len(w)) for w in windows], dtype=torch.float64)
 
         return {
             "format_version": FORMAT_VERSION,
@@ -368,7 +318,7 @@ class PopulationRecord:
             "agents": {"name": self.names, **self.values},
             "episodes_done": [a.episodes_done for a in self.agents],
             "updates_done": [a.updates_done for a in self.agents],
-            "wall_clock_s": self.wall_clock,
+            "wall_clock_s": self.agents[0].wall_clock,  # all agents train together
             "best_eval_return": [a.best_eval for a in self.agents],
             "recent_returns": recent("recent_returns"),
             "recent_lengths": recent("recent_lengths"),
@@ -379,28 +329,6 @@ class PopulationRecord:
             "population_updates": self.updates,
             "search": None if self.search is None else self.search.checkpoint(),
         }
-
-    def flush(self) -> None:
-        """Write the buffered rows and scalars, and renew the run folder's lock."""
-        self._write_part()
-        self.logger.flush()
-        run_lock.renew(self.run_dir)
-        self._last_flush = time.perf_counter()
-
-    def close(self, quietly: bool = False) -> None:
-        """Write what is buffered and close the logger, once."""
-        if self._closed:
-            return
-        self._closed = True
-        try:
-            self._write_part()
-        except OSError:
-            if not quietly:
-                raise
-        failed = all(a.failed for a in self.agents)
-        done = all(a.failed or a.final is not None for a in self.agents)
-        self.logger.close(FAILED if failed else FINISHED if done else STOPPED)
-        run_lock.renew(self.run_dir)
 
 
 def _agent_counters(checkpoint: dict[str, Any], i: int) -> dict[str, Any]:

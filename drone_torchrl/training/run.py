@@ -4,7 +4,10 @@ A :class:`RunRecord` owns a run folder: the episode counters, ``episodes.csv``, 
 run, the evaluation schedule and its videos, ``best.pt`` and ``last.pt``, the final metrics, and
 what a resumed run picks up again. It is fed finished episodes (however many an update brings,
 from however many envs) and the update's training metrics; it never sees a policy or a batch, so
-every collector and every algorithm shares it.
+every collector and every algorithm shares it. A population run's folder
+(:mod:`.population_record`) is written through the same :class:`Record` interface: the set-up,
+``config.yaml``, the logger, the flushes that renew the folder's lock, ``last.pt`` after the rows it
+counts, and the close that tells the logger how the run ended.
 
 The learner's own state (policy, optimizer, RNG streams) is handed in as a dict when a checkpoint
 is written: the record adds its counters and the config (see :mod:`drone_torchrl.io.checkpoint`).
@@ -255,7 +258,85 @@ class AgentBook:
             self.next_checkpoint += self.checkpoint_every
 
 
-class RunRecord(AgentBook):
+class Record:
+    """A run folder's record, whichever rows it keeps: its config, logger, lock, flushes and close.
+
+    The one writer interface of both layouts: :class:`RunRecord` (one agent: ``episodes.csv``,
+    ``best.pt``, videos) and :class:`~.population_record.PopulationRecord` (N agents: Parquet
+    parts, one stacked checkpoint). A subclass sets :attr:`agents`, writes its buffered rows in
+    :meth:`write_rows` and says what its checkpoint holds in :meth:`checkpoint_state`; the files and
+    checkpoint layouts stay each its own (old runs of either kind resume as they did).
+    """
+
+    agents: Sequence[AgentBook]
+
+    def open(self, cfg: DictConfig, run_dir: Path, backend: str, resumed_at: int | None) -> None:
+        """Make the folder (``checkpoints/``, no ``FAILED.txt``), write ``config.yaml``, start the logger."""
+        # The resolved config as plain data, for checkpoints and the logger's hparams (made once:
+        # OmegaConf.to_container is slow to repeat, and the config does not change during a run).
+        self.config = OmegaConf.to_container(cfg, resolve=True)
+        self.run_dir = run_dir = Path(run_dir)
+        self.backend = backend
+        self.flush_every_s = float(cfg.logger.flush_every_s)
+        self._closed = False
+        with writing(run_dir / CHECKPOINT_DIR):
+            (run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
+            (run_dir / FAILED_FILE).unlink(missing_ok=True)
+        save_yaml(cfg, run_dir / CONFIG_NAME)
+        self.logger = make_logger(cfg, run_dir, resumed_at)
+        self._last_flush = time.perf_counter()
+
+    def write_rows(self) -> None:
+        """Write the buffered episode rows."""
+        raise NotImplementedError
+
+    def checkpoint_state(self, learner: Any) -> dict[str, Any]:
+        """What a checkpoint holds: the learner's state (``learner``) with the record's counters and config."""
+        raise NotImplementedError
+
+    def write_last(self, learner: Any) -> None:
+        """Write ``checkpoints/last.pt`` of the learner's state, after the rows it counts."""
+        self.flush()
+        save_checkpoint(self.checkpoint_state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
+
+    def flush_if_due(self) -> None:
+        """:meth:`flush` every ``logger.flush_every_s`` seconds."""
+        if time.perf_counter() - self._last_flush > self.flush_every_s:
+            self.flush()
+
+    def flush(self) -> None:
+        """Write the buffered rows and logger scalars, and renew the run folder's lock.
+
+        Files are open only while this runs. The renewed lock is what another host reads as "its
+        owner is alive".
+        """
+        self.write_rows()
+        self.logger.flush()
+        run_lock.renew(self.run_dir)
+        self._last_flush = time.perf_counter()
+
+    def close(self, quietly: bool = False) -> None:
+        """Write what is buffered and close the logger, once, telling it how the run ended.
+
+        Failed when every agent failed, finished when every other one did, else stopped: a backend
+        with a service or open run, as W&B and MLflow have, records that outcome. ``quietly``:
+        while another error stops training, rows the disk refuses are left unwritten.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.write_rows()
+        except OSError:
+            if not quietly:
+                raise
+        failed = all(a.failed for a in self.agents)
+        done = all(a.failed or a.final is not None for a in self.agents)
+        self.logger.close(FAILED if failed else FINISHED if done else STOPPED)
+        run_lock.renew(self.run_dir)
+
+
+class RunRecord(AgentBook, Record):
     """One agent's run folder and its bookkeeping.
 
     Args:
@@ -277,20 +358,9 @@ class RunRecord(AgentBook):
         parent_dir: Path | None = None,
     ) -> None:
         super().__init__(cfg, checkpoint)
-        # The resolved config as plain data, for checkpoints and TensorBoard's hparams (made once:
-        # OmegaConf.to_container is slow to repeat, and the config does not change during a run).
-        self.config = OmegaConf.to_container(cfg, resolve=True)
-        self.run_dir = Path(run_dir)
-        self.backend = backend
-        self.flush_every_s = float(cfg.logger.flush_every_s)
-        self._closed = False
-
-        with writing(self.run_dir / CHECKPOINT_DIR):
-            (self.run_dir / CHECKPOINT_DIR).mkdir(parents=True, exist_ok=True)
-            (self.run_dir / FAILED_FILE).unlink(missing_ok=True)
-        save_yaml(cfg, self.run_dir / CONFIG_NAME)
+        self.agents = (self,)
         resumed = checkpoint is not None
-        self.logger = make_logger(cfg, self.run_dir, self.episodes_done if resumed else None)
+        self.open(cfg, run_dir, backend, self.episodes_done if resumed else None)
         self.csv = EpisodeCSV(
             self.run_dir / CSV_NAME,
             keep_episodes=self.episodes_done,
@@ -313,6 +383,10 @@ class RunRecord(AgentBook):
         with writing(path):
             path.write_text(f"{TrainingDiverged.__name__}: {reason}\n")
         self.close()
+
+    def write_rows(self) -> None:
+        """Append the buffered rows to ``episodes.csv``."""
+        self.csv.flush()
 
     # ------------------------------------------------------------------ training
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
@@ -337,8 +411,7 @@ class RunRecord(AgentBook):
                 "train/running_mean_length": self.running_length,
             }
             log_update(self.logger, rows, metrics, step=self.episodes_done)
-        if time.perf_counter() - self._last_flush > self.flush_every_s:
-            self.flush()
+        self.flush_if_due()
 
     # ------------------------------------------------------------------ evaluation
     def record_eval(
@@ -350,34 +423,28 @@ class RunRecord(AgentBook):
         """Book an evaluation: TensorBoard, ``best.pt`` when it is the best so far, and a video.
 
         The evaluation's numbers are the ``return``, ``length`` and ``time_in_zone`` means; the
-        video, of ``actor()``, only with ``eval.video``.
+        video, of ``actor()``, only with ``eval.video``. The video is
+        ``<run>/videos/episode_<step>.mp4`` and TensorBoard's ``eval/video``: ``logger.video_stride``
+        thins the frames (the playback rate is divided alike, so it stays real time) and, for
+        TensorBoard only, the pixels (a GIF there, 4x smaller).
         """
         cfg = self.cfg
         step = self.episodes_done
         self.logger.log_metrics({f"eval/{k}": v for k, v in result.items()}, step=step)
         if cfg.checkpoint.keep_best and result["return"] > self.best_eval:
             self.best_eval = result["return"]
-            save_checkpoint(self._state(learner_state()), self.run_dir / CHECKPOINT_DIR / BEST)
+            save_checkpoint(self.checkpoint_state(learner_state()), self.run_dir / CHECKPOINT_DIR / BEST)
         if cfg.eval.video:
-            self._video(actor(), step)
+            stride = cfg.logger.video_stride
+            frames = record_video(actor(), env_kwargs(cfg), cfg.eval.seed, cfg.device, frame_stride=stride)
+            fps = 1 / (cfg.env.dt * stride)
+            save_mp4(frames, self.run_dir / VIDEO_DIR / f"episode_{step:06d}.mp4", fps)
+            self.logger.log_frames("eval/video", frames[:, ::stride, ::stride], step=step, fps=fps)
         self.book_eval(result)
 
-    def _video(self, actor: Any, step: int) -> Path:
-        """``<run>/videos/episode_<step>.mp4`` and TensorBoard's ``eval/video``.
-
-        ``logger.video_stride`` thins the frames (the playback rate is divided alike, so it stays
-        real time) and, for TensorBoard only, the pixels (a GIF there, 4x smaller).
-        """
-        cfg = self.cfg
-        stride = cfg.logger.video_stride
-        frames = record_video(actor, env_kwargs(cfg), cfg.eval.seed, cfg.device, frame_stride=stride)
-        fps = 1 / (cfg.env.dt * stride)
-        path = save_mp4(frames, self.run_dir / VIDEO_DIR / f"episode_{step:06d}.mp4", fps)
-        self.logger.log_frames("eval/video", frames[:, ::stride, ::stride], step=step, fps=fps)
-        return path
-
     # ------------------------------------------------------------------ checkpoints
-    def _state(self, learner: dict[str, Any]) -> dict[str, Any]:
+    def checkpoint_state(self, learner: dict[str, Any]) -> dict[str, Any]:
+        """A run's checkpoint: ``learner`` (actor, optimizer, RNG streams...), counters, config, final metrics."""
         return {
             "format_version": FORMAT_VERSION,
             "backend": self.backend,
@@ -389,36 +456,11 @@ class RunRecord(AgentBook):
 
     def save(self, learner: dict[str, Any]) -> None:
         """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close."""
-        self.flush()  # the CSV holds every episode the checkpoint counts
-        save_checkpoint(self._state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
+        self.write_last(learner)
         self.book_save()
         if self.finished and self.final is not None:
             self.logger.log_final_hparams(self.config, self.final)
             self.close()
-
-    def flush(self) -> None:
-        """Write the buffered CSV rows and logger scalars, and renew the run folder's lock.
-
-        The scalars are TensorBoard's; files are open only while this runs. The renewed lock is what
-        another host reads as "its owner is alive".
-        """
-        self.csv.flush()
-        self.logger.flush()
-        run_lock.renew(self.run_dir)
-        self._last_flush = time.perf_counter()
-
-    def close(self) -> None:
-        """Flush and finish the logger, once, telling it whether the run finished, failed or stopped.
-
-        A backend with a service or open run, as W&B and MLflow have, records that outcome.
-        """
-        if self._closed:
-            return
-        self._closed = True
-        self.csv.flush()
-        status = FAILED if self.failed else FINISHED if self.final is not None else STOPPED
-        self.logger.close(status)
-        run_lock.renew(self.run_dir)
 
 
 class Progress:

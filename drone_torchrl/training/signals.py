@@ -16,9 +16,10 @@ the signal raises :class:`Interrupted`, so the temporary files of a write in fli
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -26,12 +27,30 @@ from pathlib import Path
 STOP_SIGNALS = (signal.SIGTERM, signal.SIGUSR1)
 
 
-class TrainingStopped(BaseException):
-    """Training ended early on a signal, every active run checkpointed.
+class Interrupted(BaseException):
+    """A stop signal received inside :func:`interrupt_on_signals`, raised where the program was.
 
+    So ``finally`` blocks and :func:`~drone_torchrl.io.storage.writing` clean up on the way out.
     A ``BaseException``, like ``KeyboardInterrupt``: it is not a failure of the job, so the handlers
     that record failed jobs (``except Exception``) let it pass to the command, which exits with
     :attr:`exit_code`.
+
+    Args:
+        signum: the signal received.
+    """
+
+    def __init__(self, signum: int) -> None:
+        self.signum = signum
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+
+    @property
+    def exit_code(self) -> int:
+        """The command's exit status, ``128 +`` the signal's number."""
+        return 128 + self.signum
+
+
+class TrainingStopped(Interrupted):
+    """Training ended early on a signal, every active run checkpointed.
 
     Args:
         signum: the signal that stopped training.
@@ -39,14 +58,8 @@ class TrainingStopped(BaseException):
     """
 
     def __init__(self, signum: int, run_dirs: list[Path]) -> None:
-        self.signum = signum
+        super().__init__(signum)
         self.run_dirs = run_dirs
-        super().__init__(f"stopped by {signal.Signals(signum).name}")
-
-    @property
-    def exit_code(self) -> int:
-        """The command's exit status, ``128 +`` the signal's number."""
-        return 128 + self.signum
 
 
 class StopRequest:
@@ -64,6 +77,23 @@ _active: list[StopRequest] = []  # the request of the outermost block running no
 
 
 @contextmanager
+def _handling(handler: Callable[[int, object], None]) -> Iterator[None]:
+    """``handler`` for :data:`STOP_SIGNALS` while the block runs; the handlers in place before after.
+
+    Outside the main thread Python cannot install handlers: the signals keep their meaning.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = {signum: signal.signal(signum, handler) for signum in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, old in previous.items():
+            signal.signal(signum, old)
+
+
+@contextmanager
 def stop_on_signals() -> Iterator[StopRequest]:
     """Catch :data:`STOP_SIGNALS` as a :class:`StopRequest` while the block runs.
 
@@ -78,52 +108,22 @@ def stop_on_signals() -> Iterator[StopRequest]:
     if threading.current_thread() is not threading.main_thread():
         yield request
         return
-    previous = {signum: signal.signal(signum, request) for signum in STOP_SIGNALS}
     _active.append(request)
     try:
-        yield request
+        with _handling(request):
+            yield request
     finally:
         _active.clear()
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-
-
-class Interrupted(BaseException):
-    """A stop signal received inside :func:`interrupt_on_signals`, raised where the program was.
-
-    So ``finally`` blocks and :func:`~drone_torchrl.io.storage.writing` clean up on the way out.
-
-    Args:
-        signum: the signal received.
-    """
-
-    def __init__(self, signum: int) -> None:
-        self.signum = signum
-        super().__init__(f"stopped by {signal.Signals(signum).name}")
-
-    @property
-    def exit_code(self) -> int:
-        """The command's exit status, ``128 +`` the signal's number."""
-        return 128 + self.signum
 
 
 def _interrupt(signum: int, frame: object) -> None:
     raise Interrupted(signum)
 
 
-@contextmanager
-def interrupt_on_signals() -> Iterator[None]:
+def interrupt_on_signals() -> contextlib.AbstractContextManager[None]:
     """Make :data:`STOP_SIGNALS` raise :class:`Interrupted` while the block runs.
 
     The handlers in place before are restored after; outside the main thread the signals keep
     their meaning.
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {signum: signal.signal(signum, _interrupt) for signum in STOP_SIGNALS}
-    try:
-        yield
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
+    return _handling(_interrupt)

@@ -41,7 +41,7 @@ from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.pbt import FRESH, ReplaySettings, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
-from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, RunRecord, TrainingDiverged
+from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, Record, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import StopRequest, TrainingStopped, stop_on_signals
 
 #: The most updates per call of a learner's update; the loop copies a call's metrics and episodes to
@@ -115,6 +115,7 @@ class Trainer:
             keep_freed_memory()
         self.learner = learner_class(cfg)(jobs)
         self.runs: list[AgentBook] = []
+        self.records: list[Record] = []  # a run folder each: the runs', or the population's
         self.book: PopulationRecord | None = None
         self._search_step_pending = False
         try:
@@ -130,7 +131,7 @@ class Trainer:
                     cfg.backend,
                     checkpoint,
                 )
-                self.runs = list(self.book.agents)
+                self.records, self.runs = [self.book], list(self.book.agents)
                 if search is not None:
                     saved = None if checkpoint is None else checkpoint["search"]
                     self.book.search = search.make(cfg, self.book.values, saved)
@@ -145,6 +146,7 @@ class Trainer:
                     )
             for job in jobs if population_dir is None else ():
                 self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
+                self.records.append(self.runs[-1])
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
             self.progress = Progress([], False)
             self.close(quietly=True)
@@ -182,9 +184,8 @@ class Trainer:
                 ):
                     self.search_step(active)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
-                    if isinstance(
-                        self.learner, LoopLearner
-                    ):  # its own loop: PPO's, A2C's (algorithms/ppo.py)
+                    # A learner with its own loop: PPO's, A2C's (algorithms/ppo.py).
+                    if isinstance(self.learner, LoopLearner):
                         self.learner.train(self, stop)
                         break
                     self.step(active)
@@ -315,10 +316,9 @@ class Trainer:
         """
         self.progress.close()
         self.learner.close()
-        closes = [functools.partial(self.book.close, quietly)] if self.book is not None else []
-        for close in [*closes, *(run.close for run in self.runs)]:
+        for record in self.records:
             try:
-                close()
+                record.close(quietly)
             except Exception:  # noqa: BLE001  (a logger's own error, when another one is reported)
                 if not quietly:
                     raise
@@ -330,72 +330,68 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     Finished jobs return at once; a group whose training raises is recorded as failed
     (``<run>/FAILED.txt``) and the other groups go on, but for a :class:`~drone_torchrl.io.storage.StorageError`
     (a full or read-only disk would refuse them too), which is raised. Each job's folder is let go when done
-    (:mod:`drone_torchrl.io.run_lock`).
+    (:mod:`drone_torchrl.io.run_lock`). A signal between two groups stops before the next one starts.
     """
-    try:
-        with stop_on_signals():  # a signal between two groups stops before the next one starts
-            return _train_jobs(jobs)
-    finally:
-        for job in jobs:
-            run_lock.release(job.run_dir)
-
-
-def _train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     outcomes = [Outcome(job.run_dir) for job in jobs]
     groups: dict[str, list[int]] = {}
     for i, job in enumerate(jobs):
-        if job.already_finished:
-            console.info(
-                f"{job.run_dir}: already finished ({job.checkpoint['episodes_done']} episodes); nothing to do",
-                **about(job.run_dir),
-            )
-            outcomes[i].final = job.checkpoint["final"]
-            (job.run_dir / FAILED_FILE).unlink(missing_ok=True)  # left by a refused re-run
-        else:
+        if not job.already_finished:
             groups.setdefault(group_key(job.cfg), []).append(i)
+            continue
+        console.info(
+            f"{job.run_dir}: already finished ({job.checkpoint['episodes_done']} episodes); nothing to do",
+            **about(job.run_dir),
+        )
+        outcomes[i].final = job.checkpoint["final"]
+        (job.run_dir / FAILED_FILE).unlink(missing_ok=True)  # left by a refused re-run
     # A learner trains up to max_agents jobs at once (PPO: one; REINFORCE: a whole group).
     batches = []
     for members in groups.values():
         cfg = jobs[members[0]].cfg
         size = learner_class(cfg).max_agents(cfg) or len(members)
         batches += [members[start : start + size] for start in range(0, len(members), size)]
-    for members in batches:
+    try:
         with stop_on_signals() as stop:
-            if stop.signum is not None:  # the groups trained so far have written their checkpoints
-                raise TrainingStopped(stop.signum, [])
-        try:
-            if len(members) > 1:  # each job's config fits; do they, trained together?
-                check_memory(jobs[members[0]].cfg, agents=len(members))
-            trainer = Trainer([jobs[i] for i in members])
-            finals = trainer.train()
-        except StorageError:  # the disk refuses, not this group: the groups after it would fail alike
-            raise
-        except Exception as err:  # noqa: BLE001  (recorded per job; the other groups go on)
-            for i in members:
-                record_failure(jobs[i].run_dir, err)
-                outcomes[i].error = err
-            continue
-        for i, final in zip(members, finals, strict=True):
-            if final is None:  # the agent diverged (its run record wrote FAILED.txt)
-                outcomes[i].error = TrainingDiverged(trainer.runs[members.index(i)].failure)
-                if len(jobs) > 1:
-                    console.info(f"{jobs[i].run_dir}: failed: {outcomes[i].error}", **about(jobs[i].run_dir))
-                continue
-            outcomes[i].final = final
-            _report(jobs[i], final, trainer.runs[members.index(i)])
+            for members in batches:
+                if stop.signum is not None:  # the groups trained so far have written their checkpoints
+                    raise TrainingStopped(stop.signum, [])
+                try:
+                    if len(members) > 1:  # each job's config fits; do they, trained together?
+                        check_memory(jobs[members[0]].cfg, agents=len(members))
+                    trainer = Trainer([jobs[i] for i in members])
+                    trainer.train()
+                except StorageError:  # the disk refuses, not this group: the groups after it would fail alike
+                    raise
+                except Exception as err:  # noqa: BLE001  (recorded per job; the other groups go on)
+                    for i in members:
+                        record_failure(jobs[i].run_dir, err)
+                        outcomes[i].error = err
+                    continue
+                for i, run in zip(members, trainer.runs, strict=True):
+                    _report(jobs[i].run_dir, run, outcomes[i], len(jobs) > 1)
+    finally:
+        for job in jobs:
+            run_lock.release(job.run_dir)
     return outcomes
 
 
-def _report(job: Job, final: dict[str, float], run: AgentBook) -> None:
+def _report(run_dir: Path, run: AgentBook, outcome: Outcome, several: bool) -> None:
+    """Set the run's outcome and say how it ended (a failure only where ``several`` jobs trained)."""
+    if run.final is None:  # the agent diverged (its run record wrote FAILED.txt)
+        outcome.error = TrainingDiverged(run.failure)
+        if several:
+            console.info(f"{run_dir}: failed: {outcome.error}", **about(run_dir))
+        return
+    outcome.final = final = run.final
     # Finished short of its budget: an evaluation reached eval.stop_return.
     stopped = (
         "" if run.episodes_done >= run.budget else f" (an evaluation at eval.stop_return={run.stop_return:g})"
     )
     console.info(
-        f"{job.run_dir}: {run.episodes_done} episodes{stopped}, running-mean({RUNNING_MEAN_WINDOW}) "
+        f"{run_dir}: {run.episodes_done} episodes{stopped}, running-mean({RUNNING_MEAN_WINDOW}) "
         f"return {final['final_return']:.1f}, length {final['final_length']:.1f}, "
         f"eval return {final['eval_return']:.1f}, {final['wall_clock_s']:.0f} s",
-        **about(job.run_dir),
+        **about(run_dir),
     )
 
 

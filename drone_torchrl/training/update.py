@@ -123,24 +123,19 @@ class ReinforceUpdate:
         )
 
     def _autograd_gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
-        params = state["params"]
-        terms, episodes, std = self._score_rollout(self.collector.collect(j, active))
-        params.grad = None
-        terms["loss_reinforce"].backward()
-        grad, params.grad = params.grad, None
-        valid = episodes.valid().unsqueeze(-1)
-        finite = ~(~episodes.action.isfinite() & valid).flatten(1).any(1)
-        stats = episode_stats(episodes)
-        return Gradient(grad, terms["loss_per_agent"], std, finite, {key: stats[key] for key in EPISODE_KEYS})
-
-    def _score_rollout(self, batch: TensorDictBase) -> tuple[dict, Episodes, torch.Tensor]:
-        """The loss terms, episodes and mean policy std of a TorchRL rollout (``[N, E, T]``)."""
+        """The TorchRL rollout's (``[N, E, T]``) loss terms, episodes and mean policy std, and autograd."""
+        params, batch = state["params"], self.collector.collect(j, active)
         terms = self.loss(batch)
         episodes = Episodes.from_rollout(batch)
         valid = episodes.valid().unsqueeze(-1)
         scale = batch.get("scale").detach()  # written by the actor while the loss scored the batch
         std = (scale * valid).sum((1, 2, 3)) / (valid.sum((1, 2, 3)) * scale.shape[-1])
-        return terms, episodes, std
+        params.grad = None
+        terms["loss_reinforce"].backward()
+        grad, params.grad = params.grad, None
+        finite = ~(~episodes.action.isfinite() & valid).flatten(1).any(1)
+        stats = episode_stats(episodes)
+        return Gradient(grad, terms["loss_per_agent"], std, finite, {key: stats[key] for key in EPISODE_KEYS})
 
     def __call__(
         self, state: TensorDictBase, k: int, active: torch.Tensor
