@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 from pathlib import Path
 
 from drone_torchrl import extras, migrations
@@ -163,6 +162,11 @@ def check_launcher_keys(args: list[str]) -> None:
     option of a swept one), else the one the config and its chosen options give. Raises
     :class:`~.checks.ConfigError` naming the key and the launcher's keys.
     """
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from drone_torchrl.config import _composed
+
     parsed = _parsed(args)
     given = [o for o in parsed if o.key_or_group.startswith(_LAUNCHER_KEY)]
     if not given:
@@ -176,10 +180,12 @@ def check_launcher_keys(args: list[str]) -> None:
     launcher = next((o for o in parsed if o.key_or_group == "hydra/launcher"), None)
     options = [None] if launcher is None else _options("hydra/launcher", launcher.input_line.split("=", 1)[1])
     for option in options:
-        launcher_keys = _launcher_keys((*choices, *([] if option is None else [f"hydra/launcher={option}"])))
-        if launcher_keys is None:
+        try:  # the launcher these choices compose (the checks' compositions are cached)
+            cfg = _composed("config", (*choices, *([] if option is None else [f"hydra/launcher={option}"])))
+        except HydraException:  # Hydra's own message says why, later
             continue
-        name, keys = launcher_keys
+        name = cfg.hydra.runtime.choices["hydra/launcher"]
+        keys = sorted(k for k in OmegaConf.to_container(cfg.hydra.launcher, resolve=False) if k != "_target_")
         for override in given:
             key = override.key_or_group.removeprefix(_LAUNCHER_KEY).split(".")[0]
             if key not in keys:
@@ -187,27 +193,6 @@ def check_launcher_keys(args: list[str]) -> None:
                 raise ConfigError(
                     f"{override.input_line} is not allowed: hydra/launcher={name} has no key {key!r}; {known}"
                 )
-
-
-@functools.cache  # a composition (about 0.3 s); the same command line asks once
-def _launcher_keys(overrides: tuple[str, ...]) -> tuple[str, list[str]] | None:
-    """The launcher ``overrides`` choose (its option's name) and its keys (``_target_`` left out).
-
-    None where Hydra cannot compose them (its own message says why, later).
-    """
-    from hydra import compose, initialize_config_dir
-    from hydra.errors import HydraException
-    from omegaconf import OmegaConf
-
-    from drone_torchrl.config import config_dir
-
-    try:
-        with initialize_config_dir(config_dir(), version_base="1.3"):
-            cfg = compose("config", overrides=list(overrides), return_hydra_config=True)
-    except HydraException:
-        return None
-    keys = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
-    return str(cfg.hydra.runtime.choices["hydra/launcher"]), sorted(k for k in keys if k != "_target_")
 
 
 def _parsed(args: list[str]) -> list:

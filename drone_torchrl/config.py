@@ -100,7 +100,7 @@ def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
     """
     _discover_plugins()  # a plug-in not imported yet has no stored schema: its keys would be missing
     nodes = {group: schema.plugin_schema(group, plugin) for group, plugin in plugins.items()}
-    return dict(schema.fields(schema.primary_schema(name), nodes))
+    return dict(schema.fields(schema.PRIMARY[name], nodes))
 
 
 def _discover_plugins() -> None:
@@ -111,13 +111,6 @@ def _discover_plugins() -> None:
     """
     ALGORITHMS.names()
     loggers.BACKENDS.names()
-
-
-@functools.cache
-def _checks(name: str, plugins: tuple[tuple[str, str], ...]) -> tuple[tuple[str, tuple[str, ...], Rule], ...]:
-    """The rules :func:`check_values` runs: ``(key, its path, rule)``, keys the code checks left out."""
-    keys = schema_keys(name, **dict(plugins))
-    return tuple((key, tuple(key.split(".")), rule) for key, rule in keys.items() if rule.kind != "free")
 
 
 @functools.cache
@@ -207,17 +200,9 @@ def command_line_keys() -> set[str] | None:
     return {str(o).split("=", 1)[0].lstrip("+~") for o in task if str(o) not in implied}
 
 
-@functools.cache
 def composed_leaves(overrides: tuple[str, ...] = (), name: str = "config") -> dict[str, Any]:
     """Every leaf of ``conf/<name>.yaml`` composed with ``overrides`` (:func:`leaves`, completed)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    inside = GlobalHydra.instance().is_initialized()  # inside a Hydra app (or a test's initialize)
-    with nullcontext() if inside else initialize_config_dir(config_dir(), version_base="1.3"):
-        cfg = compose(name, overrides=list(overrides))
-    complete(cfg, name)
-    return leaves(cfg)
+    return leaves(_composed(name, tuple(overrides)))
 
 
 def implied_choices() -> tuple[str, ...]:
@@ -281,15 +266,20 @@ def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str
     option's file name is free, so only Hydra knows its plug-in: several options may share one
     (reinforce_plus is REINFORCE with other values).
     """
-    return _composed(name, tuple(f"{group}={option}" for group, option in choices))[0]
+    # A default option is left out: the default composition (the checks' first) serves it.
+    default = _chosen(name, ()) if choices else {}
+    cfg = _composed(name, tuple(f"{g}={o}" for g, o in choices if default.get(g) != o))
+    return {
+        group: OmegaConf.select(cfg, f"{group}.{rule.plugin_key}", default=None)
+        for group, rule in schema.plugin_groups(name).items()
+    }
 
 
 @functools.cache
-def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | None], dict[str, str]]:
-    """``conf/<name>.yaml`` composed by Hydra with these group overrides: its plug-ins and options.
+def _composed(name: str, overrides: tuple[str, ...]) -> DictConfig:
+    """``conf/<name>.yaml`` composed by Hydra with ``overrides``, completed, Hydra's node included.
 
-    Returns the plug-in of each plug-in group (:func:`_option_plugins`), and the option of each
-    config group (Hydra's own left out).
+    Cached: the checks ask for the same composition (about 0.2 s) several times.
     """
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -297,12 +287,14 @@ def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | No
     inside = GlobalHydra.instance().is_initialized()  # inside a Hydra app (or a test's initialize)
     with nullcontext() if inside else initialize_config_dir(config_dir(), version_base="1.3"):
         cfg = compose(name, overrides=list(overrides), return_hydra_config=True)
-    plugins = {
-        group: OmegaConf.select(cfg, f"{group}.{rule.plugin_key}", default=None)
-        for group, rule in schema.plugin_groups(name).items()
-    }
-    choices = cfg.hydra.runtime.choices
-    return plugins, {g: choices[g] for g in choices if g.split("/")[0] != _HYDRA_PREFIX}
+    complete(cfg, name)
+    return cfg
+
+
+def _chosen(name: str, overrides: tuple[str, ...]) -> dict[str, str]:
+    """The option of each config group (Hydra's own left out) of :func:`_composed`."""
+    choices = _composed(name, overrides).hydra.runtime.choices
+    return {g: choices[g] for g in choices if g.split("/")[0] != _HYDRA_PREFIX}
 
 
 def _resolved(cfg: DictConfig | Mapping) -> Mapping:
@@ -331,11 +323,11 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
     """Refuse keys the schema does not have, keys without a value, and plug-ins without a schema.
 
     The schema is that of ``conf/<name>.yaml``; a key it lacks was e.g. added with ``+``. Returns
-    the config as resolved plain data (``???`` and interpolations to nothing are refused).
+    the config as resolved plain data with attribute access (``???`` and interpolations to nothing
+    are refused).
     """
     try:
         resolved = _resolved(cfg)
-        leaves(resolved)
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
         key = getattr(err, "full_key", None) or "a config value"
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
@@ -351,7 +343,7 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
         # A list or dict value (e.g. model.hidden_sizes) may hold any shape of its own.
         if key not in known and not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
             raise _unknown(key, known)
-    return resolved
+    return _plain(resolved)
 
 
 @functools.cache
@@ -365,7 +357,7 @@ def _section_defaults(name: str) -> dict[str, dict[str, Any]]:
         section: {
             k.removeprefix(f"{section}."): r.added for k, r in keys.items() if k.startswith(f"{section}.")
         }
-        for section in schema.open_sections(schema.primary_schema(name))
+        for section in schema.open_sections(schema.PRIMARY[name])
     }
 
 
@@ -429,11 +421,8 @@ def check_values(resolved: Mapping, name: str = "config") -> None:
     ``resolved``: nested dicts, keys checked by :func:`check_keys`. The first value a rule refuses
     raises :class:`~.checks.ConfigError`.
     """
-    for key, path, rule in _checks(name, tuple(_plugins(resolved, name).items())):
-        value = resolved
-        for part in path:
-            value = value[part]
-        rule.check(key, value, resolved)
+    for key, rule in schema_keys(name, **_plugins(resolved, name)).items():
+        rule.check(key, _get(resolved, key), resolved)
 
 
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
@@ -465,8 +454,17 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
     groups = group_names()
     plugin_keys = {f"{group}.{rule.plugin_key}": group for group, rule in schema.plugin_groups(name).items()}
     for override in parsed:
-        if override.key_or_group in plugin_keys and not override.is_delete():
-            raise _plugin_key_set(override, plugin_keys[override.key_or_group], name)
+        group = plugin_keys.get(override.key_or_group)
+        if group is not None and not override.is_delete():
+            # The plug-in comes with its keys, so it is chosen with its group, which sets the key;
+            # setting the key alone leaves the other plug-in's keys.
+            value = _override_values(override)[0]
+            options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
+            how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
+            raise ConfigError(
+                f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, "
+                f"with its plug-in's keys); choose it with {how}"
+            )
     _check_presets(parsed, name)
     known = _override_keys(parsed, name)
     if known is None:  # Hydra cannot compose these group options: its own message says why
@@ -523,21 +521,6 @@ def _override_values(override: Any) -> list[Any]:
     if override.is_sweep_override() and not override.is_discrete_sweep():
         return [override.value().start, override.value().end]
     return list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
-
-
-def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
-    """The one line for ``algo.name=ppo``: a plug-in is chosen with its group (``algo=ppo``).
-
-    The plug-in comes with its keys, so it is chosen with its group, which sets the key; setting
-    the key alone leaves the other plug-in's keys.
-    """
-    value = _override_values(override)[0]
-    options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
-    how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
-    return ConfigError(
-        f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, with its "
-        f"plug-in's keys); choose it with {how}"
-    )
 
 
 def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list[str]) -> None:
@@ -610,7 +593,7 @@ def _check_presets(parsed: list, name: str) -> None:
     E.g. ``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its keys. The refusal names the
     preset it builds on as the way.
     """
-    if PRESET_GROUP not in group_names() or not schema.plugin_groups(name):
+    if not schema.plugin_groups(name):
         return
     for combination in _combinations(parsed):
         chosen = dict(combination)
@@ -618,8 +601,8 @@ def _check_presets(parsed: list, name: str) -> None:
         if preset is None:
             continue
         try:
-            _, bare = _composed(name, (f"~{PRESET_GROUP}",))
-            _, picked = _composed(name, (f"{PRESET_GROUP}={preset}",))
+            bare = _chosen(name, (f"~{PRESET_GROUP}",))
+            picked = _chosen(name, (f"{PRESET_GROUP}={preset}",))
         except Exception:  # noqa: BLE001  (an option Hydra cannot compose: Hydra's message says why)
             return
         own = {g: o for g, o in picked.items() if g != PRESET_GROUP and bare.get(g) != o}
@@ -627,7 +610,9 @@ def _check_presets(parsed: list, name: str) -> None:
             mine, theirs = chosen.get(group), own.get(group)
             if mine is None or theirs is None or mine == theirs:
                 continue
-            bases = _preset_bases(preset)
+            # The presets it builds on: the options of its own group in its defaults list.
+            defaults = OmegaConf.load(Path(config_dir()) / PRESET_GROUP / f"{preset}.yaml").get("defaults")
+            bases = [d for d in defaults or [] if isinstance(d, str) and d in _options(PRESET_GROUP)]
             way = (
                 f"{PRESET_GROUP}={bases[0]} {group}={mine}"
                 if bases
@@ -639,12 +624,6 @@ def _check_presets(parsed: list, name: str) -> None:
                 f"take {group}={mine}; for {group}={mine} use {way}"
                 + (f" (it also sets {also})" if also else "")
             )
-
-
-def _preset_bases(preset: str) -> list[str]:
-    """The presets ``preset`` builds on: the options of its own group in its defaults list."""
-    defaults = OmegaConf.load(Path(config_dir()) / PRESET_GROUP / f"{preset}.yaml").get("defaults") or []
-    return [d for d in defaults if isinstance(d, str) and d in _options(PRESET_GROUP)]
 
 
 def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
@@ -664,14 +643,15 @@ def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
         if option is None or not folder.is_dir():
             continue
         plugin = _option_plugins(name, ((group, option),))[group]
-        own = _preset_keys(folder / str(plugin) / f"{preset}.yaml")
-        others = [
-            k
+        keys = {
+            p.name: leaves(OmegaConf.load(p / f"{preset}.yaml"))
             for p in sorted(folder.iterdir())
-            if p.name != plugin
-            for k in _preset_keys(p / f"{preset}.yaml")
+            if (p / f"{preset}.yaml").is_file()
+        }
+        own = keys.pop(str(plugin), {})
+        dropped = [
+            f"{group}.{k}" for k in dict.fromkeys(k for other in keys.values() for k in other) if k not in own
         ]
-        dropped = [f"{group}.{k}" for k in dict.fromkeys(others) if k not in own]
         if dropped:
             notes.append(
                 f"{PRESET_GROUP}={preset}: {', '.join(dropped)} do not apply to {group}={option}; dropped"
@@ -679,19 +659,15 @@ def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
     return notes
 
 
-def _preset_keys(path: Path) -> list[str]:
-    return list(leaves(OmegaConf.load(path))) if path.is_file() else []
+def _check_folder_name(key: str, value: Any, expected: str, taken: Iterable[str] = ()) -> None:
+    """Check that ``value`` of ``key`` names one folder, none of ``taken``, of a length the file system allows.
 
-
-def _check_folder_name(key: str, value: Any, expected: str) -> None:
-    """Check that ``value`` of ``key`` names one folder, of a length the file system allows.
-
-    Not one folder (:func:`plain_name`): the message asks for ``expected``. The length is the
-    working folder's file system's (where run and sweep folders go by default).
+    Not one folder (:func:`plain_name`) or a taken name: the message asks for ``expected``. The
+    length is the working folder's file system's (where run and sweep folders go by default).
     """
     from drone_torchrl.io.storage import name_too_long
 
-    if not plain_name(value):
+    if not plain_name(value) or value in taken:
         raise ConfigError.of(key, value, expected)
     if (too_long := name_too_long(value)) is not None:
         raise ConfigError.of(key, value, f"a folder name this file system takes ({too_long})")
@@ -873,21 +849,6 @@ def check_device(device: Any) -> None:
         raise ConfigError.of("device", device, "'cpu' here (this torch build or machine has no CUDA device)")
 
 
-@functools.lru_cache(maxsize=64)
-def _env_error(device: Any, kwargs: tuple[tuple[str, type, Any], ...]) -> str | None:
-    """What ``DroneEnv`` says of these arguments (``(name, type, value)``), or None; cached.
-
-    The type is part of the key, since ``1``, ``1.0`` and ``True`` are equal keys but not equally
-    allowed. Cached because a sweep's jobs mostly share the arguments.
-    """
-    try:
-        check_env_args(device=device, **{name: value for name, _, value in kwargs})
-    except ValueError as err:
-        message = str(err)
-        return message if message.startswith("device=") else f"env.{message}"
-    return None
-
-
 class _Plain(dict):
     """A resolved config as nested dicts with attribute access (``cfg.algo.lr``), for validation.
 
@@ -918,7 +879,7 @@ def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> 
     column's ends. Thousands of agents cost a few config checks, not one each.
     """
     resolved = check_keys(cfg)
-    rules = {key: rule for key, _, rule in _checks("config", tuple(_plugins(resolved, "config").items()))}
+    rules = schema_keys("config", **_plugins(resolved, "config"))
     varying = {key: column for key, column in values.items() if len(set(column)) > 1}
     for key, column in varying.items():
         for value in dict.fromkeys(column):
@@ -956,15 +917,14 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
     ``training``: the config is about to train here, so its logger's extra must be installed and its memory
     must fit (``drone-eval`` reads a checkpoint's config for its values only).
     """
-    cfg = _plain(check_keys(cfg))  # also refuses ??? and interpolations to nothing, in one line
+    cfg = check_keys(cfg)  # also refuses ??? and interpolations to nothing, in one line
     check_device(cfg.device)
-    kwargs = tuple((name, type(value), value) for name, value in env_kwargs(cfg).items())
-    try:
-        error = _env_error(cfg.device, kwargs)
-    except TypeError:  # an unhashable value (a list where a number belongs): no cache
-        error = _env_error.__wrapped__(cfg.device, kwargs)
-    if error is not None:
-        raise ConfigError(error)
+    kwargs = env_kwargs(cfg)
+    try:  # the env's own checks of its arguments (the schema leaves them to it), no env built
+        check_env_args(device=cfg.device, **kwargs)
+    except ValueError as err:
+        message = str(err)
+        raise ConfigError(message if message.startswith("device=") else f"env.{message}") from None
     check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
     if cfg.backend == migrations.FAST:
         from drone_torchrl.kernels.coverage import fast_refusal
@@ -974,7 +934,7 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             cfg.model.hidden_sizes,
             cfg.model.activation,
             cfg.env.dtype,
-            disturbances.make(env_kwargs(cfg)["disturbance"]),
+            disturbances.make(kwargs["disturbance"]),
             cfg.algo.name,
         )
         if reason is not None:
@@ -1004,14 +964,11 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             "tanh_normal",
             "'normal' unless env.max_thrust is set (e.g. env.max_thrust=1.0)",
         )
-    name = cfg.logger.exp_name
     expected = (
         f"a new folder name inside the run folder (no '/' or '..', none of {sorted(RUN_FOLDER_ENTRIES)}), "
         "e.g. tensorboard"
     )
-    if isinstance(name, str) and name in RUN_FOLDER_ENTRIES:
-        raise ConfigError.of("logger.exp_name", name, expected)
-    _check_folder_name("logger.exp_name", name, expected)
+    _check_folder_name("logger.exp_name", cfg.logger.exp_name, expected, RUN_FOLDER_ENTRIES)
     if cfg.sweep_name is not None:  # null: an ad-hoc sweep, its folder named by its overrides
         _check_folder_name("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
     if training:

@@ -406,11 +406,17 @@ PREFIX = "schema"
 PRIMARY = {"config": TrainConfig, "eval": EvalConfig, "export": ExportConfig}
 
 
+# Every schema stored, by its name: the checks read the dataclasses here, not back from the
+# ConfigStore (which copies a node at every load, and a population validates every job).
+_SCHEMAS: dict[str, type] = {}
+
+
 def _store(name: str, node: type) -> None:
     stored = OmegaConf.structured(node)
     for key in open_sections(node):  # Hydra keeps a node's own struct flag through composition
         OmegaConf.set_struct(OmegaConf.select(stored, key), False)
     ConfigStore.instance().store(name=name, node=stored, provider="drone_torchrl")
+    _SCHEMAS[name] = node
 
 
 def open_sections(node: type, prefix: str = "") -> Iterator[str]:
@@ -438,33 +444,9 @@ for _name, _node in PRIMARY.items():
 
 
 # ------------------------------------------------------------------------------ reading it back
-def _stored_names() -> list[str]:
-    """The names of the configs stored at the ConfigStore's root, without ``.yaml``."""
-    return [n.removesuffix(".yaml") for n in ConfigStore.instance().list("") if n.endswith(".yaml")]
-
-
-def _stored(name: str) -> type | None:
-    """The dataclass stored as ``name`` in Hydra's ConfigStore (``schema_algo_ppo``), or None."""
-    if name not in _found and name in _stored_names():
-        # Kept: the store copies a node at every load, and a population validates every job.
-        _found[name] = OmegaConf.get_type(ConfigStore.instance().load(f"{name}.yaml").node)
-    return _found.get(name)
-
-
-_found: dict[str, type] = {}
-
-
-def primary_schema(name: str) -> type:
-    """The schema of ``conf/<name>.yaml`` (``config``, ``eval``, ``export``)."""
-    node = _stored(f"{PREFIX}_{name}")
-    if node is None:
-        raise KeyError(f"no schema for conf/{name}.yaml in Hydra's ConfigStore")
-    return node
-
-
 def plugin_schema(group: str, plugin: Any) -> type | None:
     """The schema of plug-in ``plugin`` of ``group``, or None if none is stored."""
-    return _stored(f"{PREFIX}_{group}_{plugin}") if isinstance(plugin, str) and plugin else None
+    return _SCHEMAS.get(f"{PREFIX}_{group}_{plugin}") if isinstance(plugin, str) and plugin else None
 
 
 @functools.cache
@@ -475,7 +457,7 @@ def plugin_groups(name: str = "config") -> dict[str, Rule]:
     """
     return {
         f.name: rule
-        for f in dataclasses.fields(primary_schema(name))
+        for f in dataclasses.fields(PRIMARY[name])
         if (rule := f.metadata.get(RULE)) is not None and rule.plugin_key
     }
 
@@ -504,4 +486,4 @@ def fields(node: type, plugins: Mapping[str, type | None], prefix: str = "") -> 
 def stored_plugins(group: str) -> list[str]:
     """The plug-ins of ``group`` whose schemas are in the ConfigStore, sorted."""
     prefix = f"{PREFIX}_{group}_"
-    return sorted(n.removeprefix(prefix) for n in _stored_names() if n.startswith(prefix))
+    return sorted(n.removeprefix(prefix) for n in _SCHEMAS if n.startswith(prefix))
