@@ -7,7 +7,7 @@ import dataclasses
 import difflib
 import functools
 import itertools
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
@@ -16,7 +16,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import loggers, memory_estimate, migrations, schema, sweep_folder
-from drone_torchrl.checks import ConfigError, plain_name
+from drone_torchrl.checks import ConfigError, dotted, plain_name
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
@@ -154,34 +154,17 @@ def leaves(node: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-# The ``group=option`` choices drone-train added to a resumed run's command line (resumed_choices):
+# The ``group=option`` choices drone-train added to a resumed run's command line
+# (drone_torchrl.command_line.resumed_plugins):
 # the run's own plug-ins, not keys the user set.
 _implied: list[str] = []
 
 
-def resumed_choices(saved: Mapping[str, Any], chosen: Iterable[str], name: str = "config") -> list[str]:
-    """What a command line that continues a run (``resume=``) is composed with besides its own overrides.
-
-    ``group=<option>`` of each plug-in group whose plug-in in ``saved`` (the run's config) is not the
-    default one and that ``chosen`` (the command line's groups) leaves alone: a PPO run's
-    ``algo.target_kl`` is then a key of its algo, as it is of the run. Nothing when ``chosen`` holds
-    the preset group, whose options may pick plug-ins themselves.
-    """
-    chosen = set(chosen)
-    if PRESET_GROUP in chosen:
-        return []
-    defaults = _option_plugins(name, ())
-    out = []
-    for group, rule in schema.plugin_groups(name).items():
-        plugin = OmegaConf.select(OmegaConf.create(dict(saved)), f"{group}.{rule.plugin_key}", default=None)
-        options = options_by_plugin(group, name).get(plugin, [])
-        if group not in chosen and plugin != defaults.get(group) and options:
-            out.append(f"{group}={plugin if plugin in options else options[0]}")
-    return out
-
-
 def imply_choices(choices: Iterable[str]) -> None:
-    """Record the choices (:func:`resumed_choices`) added to this process's command line: not the user's keys."""
+    """Record the choices added to this process's command line for a resumed run: not the user's keys.
+
+    They are :func:`drone_torchrl.command_line.resumed_plugins`'.
+    """
     _implied[:] = list(choices)
 
 
@@ -297,28 +280,6 @@ def _chosen(name: str, overrides: tuple[str, ...]) -> dict[str, str]:
     return {g: choices[g] for g in choices if g.split("/")[0] != _HYDRA_PREFIX}
 
 
-def _resolved(cfg: DictConfig | Mapping) -> Mapping:
-    """The config as plain data, resolved (a ``???`` value raises), Hydra's own node left out.
-
-    At once rather than node by node through OmegaConf, which costs more than twice as much.
-    """
-    if not isinstance(cfg, DictConfig):
-        return cfg
-    out: dict[str, Any] = {}
-    for key in cfg:
-        if key == _HYDRA_PREFIX:
-            continue
-        value = cfg[key]
-        if isinstance(value, DictConfig | ListConfig):
-            try:
-                value = OmegaConf.to_container(value, resolve=True, throw_on_missing=True)
-            except OmegaConfBaseException:
-                leaves(value)  # read node by node: the error then names the key from the root
-                raise
-        out[str(key)] = value
-    return out
-
-
 def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
     """Refuse keys the schema does not have, keys without a value, and plug-ins without a schema.
 
@@ -326,15 +287,26 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
     the config as resolved plain data with attribute access (``???`` and interpolations to nothing
     are refused).
     """
+    # The config as plain data, resolved, Hydra's own node left out: each section at once rather
+    # than node by node through OmegaConf, which costs more than twice as much.
+    resolved: Any = {} if isinstance(cfg, DictConfig) else cfg
     try:
-        resolved = _resolved(cfg)
+        for key in (k for k in cfg if k != _HYDRA_PREFIX) if isinstance(cfg, DictConfig) else ():
+            value = cfg[key]
+            if isinstance(value, DictConfig | ListConfig):
+                try:
+                    value = OmegaConf.to_container(value, resolve=True, throw_on_missing=True)
+                except OmegaConfBaseException:
+                    leaves(value)  # read node by node: the error then names the key from the root
+                    raise
+            resolved[str(key)] = value
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
         key = getattr(err, "full_key", None) or "a config value"
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"{key} cannot be read: {first}") from None
     known = schema_keys(name, **_plugins(resolved, name))
     for section in complete(resolved, name):  # set to something else than its keys: null, a number...
-        _check_section(section, _get(resolved, section), known, group_names())
+        _check_section(section, dotted(resolved, section), known, group_names())
     given = leaves(resolved)
     missing = [k for k in known if k not in given and not any(g.startswith(f"{k}.") for g in given)]
     if missing:
@@ -344,28 +316,6 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
         if key not in known and not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
             raise _unknown(key, known)
     return _plain(resolved)
-
-
-@functools.cache
-def _section_defaults(name: str) -> dict[str, dict[str, Any]]:
-    """Each open section of ``conf/<name>.yaml`` with the ``added`` value of each of its keys.
-
-    ``{"env.disturbance": {"wind": 0.0, ...}}`` (:func:`drone_torchrl.schema.open_section`).
-    """
-    keys = schema_keys(name)
-    return {
-        section: {
-            k.removeprefix(f"{section}."): r.added for k, r in keys.items() if k.startswith(f"{section}.")
-        }
-        for section in schema.open_sections(schema.PRIMARY[name])
-    }
-
-
-def _get(cfg: Mapping, key: str) -> Any:
-    """The value at dotted ``key`` of nested mappings, or None where a part is absent."""
-    for part in key.split("."):
-        cfg = cfg.get(part) if isinstance(cfg, Mapping) else None
-    return cfg
 
 
 def complete(cfg: DictConfig | dict, name: str = "config") -> list[str]:
@@ -383,9 +333,9 @@ def complete(cfg: DictConfig | dict, name: str = "config") -> list[str]:
         :func:`check_keys` to refuse).
     """
     refused = []
-    for section, defaults in _section_defaults(name).items():
+    for section, defaults in schema.open_sections(schema.PRIMARY[name]).items():
         parent_key, _, last = section.rpartition(".")
-        parent = _get(cfg, parent_key)
+        parent = dotted(cfg, parent_key)
         if not isinstance(parent, Mapping) or last not in parent:
             continue
         given = parent[last]
@@ -422,7 +372,7 @@ def check_values(resolved: Mapping, name: str = "config") -> None:
     raises :class:`~.checks.ConfigError`.
     """
     for key, rule in schema_keys(name, **_plugins(resolved, name)).items():
-        rule.check(key, _get(resolved, key), resolved)
+        rule.check(key, dotted(resolved, key), resolved)
 
 
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
@@ -432,25 +382,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
     key (with or without ``+``), an unknown group option, a run folder that is a file, and an
     override Hydra cannot parse (its grammar error in one line).
     """
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-
-    parser = OverridesParser.create()
-    parsed = []
-    for override in overrides:
-        try:
-            parsed += parser.parse_overrides([override])
-        except HydraException as err:
-            lines = [
-                line
-                for line in str(err).splitlines()
-                if line.strip() and not line.startswith("Error parsing")
-            ]
-            reason = lines[0] if lines else type(err).__name__
-            raise ConfigError(
-                f"{override} cannot be parsed: {reason} (Hydra's override syntax: key=value, "
-                "key=[a,b] for a list, quote values with special characters)"
-            ) from None
+    parsed = parse_overrides(overrides)
     groups = group_names()
     plugin_keys = {f"{group}.{rule.plugin_key}": group for group, rule in schema.plugin_groups(name).items()}
     for override in parsed:
@@ -465,7 +397,6 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                 f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, "
                 f"with its plug-in's keys); choose it with {how}"
             )
-    _check_presets(parsed, name)
     known = _override_keys(parsed, name)
     if known is None:  # Hydra cannot compose these group options: its own message says why
         return
@@ -516,6 +447,36 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             raise _unknown(key, known)
 
 
+def parse_overrides(overrides: Iterable[str], strict: bool = True) -> list:
+    """The overrides parsed by Hydra, one by one.
+
+    One Hydra cannot parse is refused in one line (its grammar error), or left out when not
+    ``strict`` (:func:`check_overrides` refuses it).
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    parsed = []
+    for override in overrides:
+        try:
+            parsed += parser.parse_overrides([override])
+        except HydraException as err:
+            if not strict:
+                continue
+            lines = [
+                line
+                for line in str(err).splitlines()
+                if line.strip() and not line.startswith("Error parsing")
+            ]
+            reason = lines[0] if lines else type(err).__name__
+            raise ConfigError(
+                f"{override} cannot be parsed: {reason} (Hydra's override syntax: key=value, "
+                "key=[a,b] for a list, quote values with special characters)"
+            ) from None
+    return parsed
+
+
 def _override_values(override: Any) -> list[Any]:
     """The value of a parsed override, or each value of a sweep (an interval's: its two ends)."""
     if override.is_sweep_override() and not override.is_discrete_sweep():
@@ -543,43 +504,6 @@ def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list
     raise ConfigError.of(key, value, f"its keys set one by one (e.g. {first}=...){preset}")
 
 
-def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
-    """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick, or None.
-
-    The options picked are the last plain one of each group, or every option a sweep names; an
-    option of any group may pick the plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``.
-    None if Hydra cannot compose those. Over a sweep, the keys every one of its jobs has.
-    """
-    if not schema.plugin_groups(name):
-        return schema_keys(name)
-    known: dict[str, Rule] | None = None
-    for combination in _combinations(parsed):
-        try:
-            keys = schema_keys(name, **_option_plugins(name, combination))
-        except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
-            return None
-        known = keys if known is None else {k: rule for k, rule in known.items() if k in keys}
-    return known
-
-
-def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
-    """Every combination of the group options the overrides pick, ``(("algo", "ppo"), ...)``.
-
-    The last plain one of each group, or every option a sweep names.
-    """
-    groups = group_names()
-    picks: dict[str, list[str]] = {}
-    for override in parsed:
-        group = override.key_or_group
-        if group not in groups or override.is_delete():
-            continue
-        values = _override_values(override)
-        options = [v for v in values if v in _options(group)]
-        if options:
-            picks[group] = options
-    return itertools.product(*([(g, o) for o in opts] for g, opts in picks.items()))
-
-
 # The group whose options are presets (experiment=bounded). A preset's keys of one plug-in live in
 # conf/<plug-in group>/presets/<plug-in>/<preset>.yaml, which that plug-in's options include
 # (conf/algo/reinforce.yaml), so they reach only that plug-in.
@@ -587,26 +511,36 @@ PRESET_GROUP = "experiment"
 PLUGIN_PRESETS = "presets"
 
 
-def _check_presets(parsed: list, name: str) -> None:
-    """Refuse a preset that picks a plug-in together with another plug-in on the command line.
+def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
+    """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick, or None.
 
-    E.g. ``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its keys. The refusal names the
-    preset it builds on as the way.
+    The options picked are the last plain one of each group, or every option a sweep names; an
+    option of any group may pick the plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``.
+    None if Hydra cannot compose those. Over a sweep, the keys every one of its jobs has. A preset
+    that picks a plug-in given another on the command line is refused, naming the preset it
+    builds on as the way.
     """
-    if not schema.plugin_groups(name):
-        return
-    for combination in _combinations(parsed):
+    plugin_groups = schema.plugin_groups(name)
+    if not plugin_groups:
+        return schema_keys(name)
+    picks: dict[str, list[str]] = {}
+    groups = group_names()
+    for override in parsed:
+        group = override.key_or_group
+        if group in groups and not override.is_delete():
+            options = [v for v in _override_values(override) if v in _options(group)]
+            picks[group] = options or picks.get(group, [])
+    known: dict[str, Rule] | None = None
+    for combination in itertools.product(*([(g, o) for o in opts] for g, opts in picks.items() if opts)):
         chosen = dict(combination)
-        preset = chosen.get(PRESET_GROUP)
-        if preset is None:
-            continue
-        try:
-            bare = _chosen(name, (f"~{PRESET_GROUP}",))
-            picked = _chosen(name, (f"{PRESET_GROUP}={preset}",))
-        except Exception:  # noqa: BLE001  (an option Hydra cannot compose: Hydra's message says why)
-            return
-        own = {g: o for g, o in picked.items() if g != PRESET_GROUP and bare.get(g) != o}
-        for group in schema.plugin_groups(name):
+        preset, own = chosen.get(PRESET_GROUP), {}
+        if preset is not None:  # the plug-ins the preset picks: its choices that differ from none's
+            try:  # an option Hydra cannot compose (a broken file): Hydra's own message says what
+                bare, picked = (_chosen(name, (o,)) for o in (f"~{PRESET_GROUP}", f"{PRESET_GROUP}={preset}"))
+            except Exception:  # noqa: BLE001
+                return None
+            own = {g: o for g, o in picked.items() if g != PRESET_GROUP and bare.get(g) != o}
+        for group in plugin_groups:
             mine, theirs = chosen.get(group), own.get(group)
             if mine is None or theirs is None or mine == theirs:
                 continue
@@ -624,6 +558,12 @@ def _check_presets(parsed: list, name: str) -> None:
                 f"take {group}={mine}; for {group}={mine} use {way}"
                 + (f" (it also sets {also})" if also else "")
             )
+        try:
+            keys = schema_keys(name, **_option_plugins(name, combination))
+        except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
+            return None
+        known = keys if known is None else {k: rule for k, rule in known.items() if k in keys}
+    return known
 
 
 def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
@@ -707,7 +647,7 @@ def check_default_folder(name: str, args: Iterable[str]) -> None:
     if any(a.split("=", 1)[0].lstrip("+") == key for a in args):
         return  # checked with the other overrides
     node = OmegaConf.to_container(OmegaConf.load(Path(config_dir()) / f"{name}.yaml"), resolve=False)
-    _check_folder(key, _get(node, key))
+    _check_folder(key, dotted(node, key))
 
 
 def check_command_line(prog: str, name: str) -> None:
@@ -767,7 +707,10 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     if isinstance(kwargs["disturbance"], DictConfig):  # the env takes a plain mapping
         kwargs["disturbance"] = OmegaConf.to_container(kwargs["disturbance"])
     if isinstance(kwargs["disturbance"], Mapping):  # the keys an open section leaves out: nominal
-        kwargs["disturbance"] = {**_section_defaults("config")["env.disturbance"], **kwargs["disturbance"]}
+        kwargs["disturbance"] = {
+            **schema.open_sections(schema.TrainConfig)["env.disturbance"],
+            **kwargs["disturbance"],
+        }
     return kwargs
 
 
@@ -878,9 +821,11 @@ def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> 
     so the checks that relate them to other keys (an algorithm's own) meet their worst case at a
     column's ends. Thousands of agents cost a few config checks, not one each.
     """
+    varying = {key: column for key, column in values.items() if len(set(column)) > 1}
+    if not varying:  # every agent's config is cfg, which passed
+        return
     resolved = check_keys(cfg)
     rules = schema_keys("config", **_plugins(resolved, "config"))
-    varying = {key: column for key, column in values.items() if len(set(column)) > 1}
     for key, column in varying.items():
         for value in dict.fromkeys(column):
             try:
