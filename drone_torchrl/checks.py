@@ -1,7 +1,8 @@
 """The one-line checks of config values: :class:`~.checks.ConfigError` and its checks.
 
-The checks are of numbers, choices and lists; the schema's rules (:mod:`drone_torchrl.schema`) and
-the cross-field checks use them.
+The range check of numbers (:func:`check_number`, the one range checker) is the schema's rules'
+(:mod:`drone_torchrl.schema`, which check choices and lists themselves), the env's and the
+cross-field checks'.
 """
 
 from __future__ import annotations

@@ -185,7 +185,9 @@ def command_line_keys() -> set[str] | None:
 
 def composed_leaves(overrides: tuple[str, ...] = (), name: str = "config") -> dict[str, Any]:
     """Every leaf of ``conf/<name>.yaml`` composed with ``overrides`` (:func:`leaves`, completed)."""
-    return leaves(_composed(name, tuple(overrides)))
+    cfg = _composed(name, tuple(overrides))
+    complete(cfg, name)
+    return leaves(cfg)
 
 
 def implied_choices() -> tuple[str, ...]:
@@ -260,7 +262,7 @@ def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str
 
 @functools.cache
 def _composed(name: str, overrides: tuple[str, ...]) -> DictConfig:
-    """``conf/<name>.yaml`` composed by Hydra with ``overrides``, completed, Hydra's node included.
+    """``conf/<name>.yaml`` composed by Hydra with ``overrides``, Hydra's node included.
 
     Cached: the checks ask for the same composition (about 0.2 s) several times.
     """
@@ -269,9 +271,7 @@ def _composed(name: str, overrides: tuple[str, ...]) -> DictConfig:
 
     inside = GlobalHydra.instance().is_initialized()  # inside a Hydra app (or a test's initialize)
     with nullcontext() if inside else initialize_config_dir(config_dir(), version_base="1.3"):
-        cfg = compose(name, overrides=list(overrides), return_hydra_config=True)
-    complete(cfg, name)
-    return cfg
+        return compose(name, overrides=list(overrides), return_hydra_config=True)
 
 
 def _chosen(name: str, overrides: tuple[str, ...]) -> dict[str, str]:
