@@ -239,8 +239,10 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
     out = []
     for group, rule in plugin_groups.items():
         plugin = dotted(saved, f"{group}.{rule.plugin_key}")
-        options = options_by_plugin(group).get(plugin, [])
-        if group not in chosen and plugin != defaults.get(group) and options:
+        if group in chosen or plugin == defaults.get(group):
+            continue
+        options = options_by_plugin(group).get(plugin, [])  # composes each option of the group
+        if options:
             out.append(f"{group}={plugin if plugin in options else options[0]}")
     return out
 
