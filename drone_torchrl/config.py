@@ -464,12 +464,8 @@ def parse_overrides(overrides: Iterable[str], strict: bool = True) -> list:
         except HydraException as err:
             if not strict:
                 continue
-            lines = [
-                line
-                for line in str(err).splitlines()
-                if line.strip() and not line.startswith("Error parsing")
-            ]
-            reason = lines[0] if lines else type(err).__name__
+            lines = (x for x in str(err).splitlines() if x.strip() and not x.startswith("Error parsing"))
+            reason = next(lines, type(err).__name__)  # Hydra's first line of substance
             raise ConfigError(
                 f"{override} cannot be parsed: {reason} (Hydra's override syntax: key=value, "
                 "key=[a,b] for a list, quote values with special characters)"
