@@ -815,7 +815,8 @@ def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> 
     :class:`AgentValueError` naming the agent. Then the config with every column's smallest values,
     and the one with its largest, pass :func:`validate` whole: the per-agent keys' rules are bounds,
     so the checks that relate them to other keys (an algorithm's own) meet their worst case at a
-    column's ends. Thousands of agents cost a few config checks, not one each.
+    column's ends (an end that is ``cfg`` itself is not checked again). Thousands of agents cost a
+    few config checks, not one each.
     """
     varying = {key: column for key, column in values.items() if len(set(column)) > 1}
     if not varying:  # every agent's config is cfg, which passed
@@ -829,9 +830,13 @@ def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> 
             except ConfigError as err:
                 raise AgentValueError(column.index(value), str(err)) from None
     for pick in (min, max):
+        values_at_end = {key: pick(column) for key, column in varying.items()}
+        typed = {key: (type(value), value) for key, value in values_at_end.items()}
+        if typed == {key: (type(v := OmegaConf.select(cfg, key)), v) for key in varying}:
+            continue  # cfg itself (its agent is at this end), which passed
         end = cfg.copy()
-        for key, column in varying.items():
-            OmegaConf.update(end, key, pick(column))
+        for key, value in values_at_end.items():
+            OmegaConf.update(end, key, value)
         try:
             validate(end)
         except ConfigError as err:
