@@ -1,12 +1,14 @@
 """The one-line checks of config values: :class:`~.checks.ConfigError` and its checks.
 
-The checks are of numbers, choices and lists; the schema's rules (:mod:`drone_torchrl.schema`) and
-the cross-field checks use them.
+The range check of numbers (:func:`check_number`, the one range checker) is the schema's rules'
+(:mod:`drone_torchrl.schema`, which check choices and lists themselves), the env's and the
+cross-field checks'.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from numbers import Integral, Real
 from pathlib import Path
 from typing import Any
@@ -72,7 +74,11 @@ def check_number(
     (the env's arguments) any finite number is, and the message says "a finite number". The error is
     one line naming the key, the value and the bounds.
     """
-    (low_label, low), (high_label, high) = (_bound_label(b) for b in (low, high))
+    # A bound named by another argument shows its value too; a literal one ("1000 m") is its value.
+    (low_label, low), (high_label, high) = (
+        (f"{b[0]} ({b[1]!r})" if b[0].isidentifier() else b[0], b[1]) if isinstance(b, tuple) else (f"{b}", b)
+        for b in (low, high)
+    )
     limit = INT64_MAX if integer else FLOAT32_MAX
     # An int too large for a float (10**400) is compared as an int: math.isfinite would overflow.
     ok = (
@@ -100,26 +106,8 @@ def check_number(
     raise ConfigError.of(key, value, f"{kind} {' and '.join(parts)}")
 
 
-def _bound_label(bound: float | tuple[str, float] | None) -> tuple[str, float | None]:
-    """A bound as (how a message shows it, its value)."""
-    if bound is None or not isinstance(bound, tuple):
-        return f"{bound}", bound
-    label, number = bound
-    # A bound named by another argument shows its value too; a literal one ("1000 m") is its value.
-    return (f"{label} ({number!r})" if label.isidentifier() else label), number
-
-
-def check_choice(key: str, value: Any, choices: tuple, expected: str | None = None) -> None:
-    """``value`` of ``key`` is one of ``choices``."""
-    if value not in choices:
-        raise ConfigError.of(key, value, expected or f"one of {list(choices)}")
-
-
-def check_sizes(key: str, value: Any) -> None:
-    """``value`` of ``key`` is a non-empty list of layer sizes."""
-    if (
-        not isinstance(value, list)
-        or not value
-        or not all(isinstance(s, int) and not isinstance(s, bool) and 1 <= s <= INT64_MAX for s in value)
-    ):
-        raise ConfigError.of(key, value, "a non-empty list of integers >= 1, e.g. [32,32]")
+def dotted(cfg: Any, key: str) -> Any:
+    """The value at dotted ``key`` (``algo.lr``) of nested mappings, or None where a part is absent."""
+    for part in key.split("."):
+        cfg = cfg.get(part) if isinstance(cfg, Mapping) else None
+    return cfg

@@ -10,11 +10,10 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 from pathlib import Path
 
 from drone_torchrl import extras, migrations
-from drone_torchrl.checks import ConfigError
+from drone_torchrl.checks import ConfigError, dotted
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
@@ -81,38 +80,24 @@ def check_extras(overrides: dict[str, str]) -> None:
     if "hydra/launcher" in overrides:
         for option in _options("hydra/launcher", overrides["hydra/launcher"]):
             extras.check(f"hydra/launcher={option}", extras.LAUNCHERS.get(option))
-    if "logger" in overrides:
-        for option in _options("logger", overrides["logger"]):
-            extras.check(f"logger={option}", _logger_needs(option))
-
-
-def _logger_needs(option: str) -> extras.Needs | None:
-    """What ``logger=<option>`` needs; None for an option Hydra cannot compose (it says why, later)."""
     from hydra.errors import HydraException
 
     from drone_torchrl import loggers
     from drone_torchrl.config import _option_plugins
 
-    try:
-        # Hydra composes the option (its file names its backend, or inherits one): about 0.2 s.
-        return loggers.get(_option_plugins("config", (("logger", option),))["logger"]).needs
-    except (HydraException, ConfigError):
-        return None
+    for option in _options("logger", overrides["logger"]) if "logger" in overrides else []:
+        try:  # Hydra composes the option (its file names its backend, or inherits one)
+            needs = loggers.get(_option_plugins("config", (("logger", option),))["logger"]).needs
+        except (HydraException, ConfigError):  # an option Hydra cannot compose: it says why, later
+            continue
+        extras.check(f"logger={option}", needs)
 
 
 def _options(group: str, value: str) -> list[str]:
     """The options of ``group=value`` as Hydra reads them: one, or each of a sweep's."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
+    from drone_torchrl.config import _override_values
 
-    try:
-        (override,) = OverridesParser.create().parse_overrides([f"{group}={value}"])
-    except HydraException:  # refused in its own line by check_command_line
-        return []
-    if override.is_sweep_override():
-        return [str(option) for option in override.sweep_string_iterator()]
-    option = override.value()
-    return [option] if isinstance(option, str) else []
+    return [v for o in _parsed([f"{group}={value}"]) for v in _override_values(o) if isinstance(v, str)]
 
 
 def check_composed(overrides: list[str]) -> None:
@@ -163,6 +148,11 @@ def check_launcher_keys(args: list[str]) -> None:
     option of a swept one), else the one the config and its chosen options give. Raises
     :class:`~.checks.ConfigError` naming the key and the launcher's keys.
     """
+    from hydra.errors import HydraException
+    from omegaconf import OmegaConf
+
+    from drone_torchrl.config import _composed
+
     parsed = _parsed(args)
     given = [o for o in parsed if o.key_or_group.startswith(_LAUNCHER_KEY)]
     if not given:
@@ -176,10 +166,12 @@ def check_launcher_keys(args: list[str]) -> None:
     launcher = next((o for o in parsed if o.key_or_group == "hydra/launcher"), None)
     options = [None] if launcher is None else _options("hydra/launcher", launcher.input_line.split("=", 1)[1])
     for option in options:
-        launcher_keys = _launcher_keys((*choices, *([] if option is None else [f"hydra/launcher={option}"])))
-        if launcher_keys is None:
+        try:  # the launcher these choices compose (the checks' compositions are cached)
+            cfg = _composed("config", (*choices, *([] if option is None else [f"hydra/launcher={option}"])))
+        except HydraException:  # Hydra's own message says why, later
             continue
-        name, keys = launcher_keys
+        name = cfg.hydra.runtime.choices["hydra/launcher"]
+        keys = sorted(k for k in OmegaConf.to_container(cfg.hydra.launcher, resolve=False) if k != "_target_")
         for override in given:
             key = override.key_or_group.removeprefix(_LAUNCHER_KEY).split(".")[0]
             if key not in keys:
@@ -189,42 +181,11 @@ def check_launcher_keys(args: list[str]) -> None:
                 )
 
 
-@functools.cache  # a composition (about 0.3 s); the same command line asks once
-def _launcher_keys(overrides: tuple[str, ...]) -> tuple[str, list[str]] | None:
-    """The launcher ``overrides`` choose (its option's name) and its keys (``_target_`` left out).
-
-    None where Hydra cannot compose them (its own message says why, later).
-    """
-    from hydra import compose, initialize_config_dir
-    from hydra.errors import HydraException
-    from omegaconf import OmegaConf
-
-    from drone_torchrl.config import config_dir
-
-    try:
-        with initialize_config_dir(config_dir(), version_base="1.3"):
-            cfg = compose("config", overrides=list(overrides), return_hydra_config=True)
-    except HydraException:
-        return None
-    keys = OmegaConf.to_container(cfg.hydra.launcher, resolve=False)
-    return str(cfg.hydra.runtime.choices["hydra/launcher"]), sorted(k for k in keys if k != "_target_")
-
-
 def _parsed(args: list[str]) -> list:
     """The command line's overrides, parsed by Hydra (those it cannot parse are refused elsewhere)."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
+    from drone_torchrl.config import parse_overrides
 
-    parser = OverridesParser.create()
-    out = []
-    for arg in args:
-        if arg.startswith("-") or "=" not in arg:
-            continue
-        try:
-            out += parser.parse_overrides([arg])
-        except HydraException:  # refused in its own line by check_command_line
-            continue
-    return out
+    return parse_overrides([a for a in args if not a.startswith("-") and "=" in a], strict=False)
 
 
 def check_multirun(overrides: dict[str, str]) -> None:
@@ -240,22 +201,32 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
     """The ``group=<option>`` choices a single run's ``resume=<checkpoint>`` is composed with.
 
     The resumed run's plug-ins where they are not the defaults and the command line chooses no
-    option of their group (:func:`~drone_torchrl.config.resumed_choices`): ``resume=<a PPO run>
-    algo.target_kl=...`` is then checked and composed against PPO's keys. None for a checkpoint that
-    cannot be read (the resume refuses it in its own line).
+    option of their group: ``resume=<a PPO run> algo.target_kl=...`` is then checked and composed
+    against PPO's keys, as they are keys of the run. None for a checkpoint that cannot be read (the
+    resume refuses it in its own line), nor when the command line chooses a preset, whose options
+    may pick plug-ins themselves.
     """
     from drone_torchrl import schema
-    from drone_torchrl.config import _option_plugins, group_names, resumed_choices, run_config, schema_keys
+    from drone_torchrl.config import (
+        PRESET_GROUP,
+        _option_plugins,
+        group_names,
+        options_by_plugin,
+        run_config,
+        schema_keys,
+    )
 
     resume = overrides.get("resume")
     if resume in (None, "", "null") or "${" in resume:
         return []
     # Only where they matter (a checkpoint may be GBs): a plug-in's key the default plug-in lacks,
     # or a group choice (the keys it sets are told from the config composed with the run's plug-ins).
-    known = schema_keys("config", **_option_plugins("config", ()))
+    defaults = _option_plugins("config", ())
+    known = schema_keys("config", **defaults)
     plugin_groups = schema.plugin_groups("config")
-    if not any(
-        key in group_names() or (key.split(".")[0] in plugin_groups and key not in known) for key in overrides
+    chosen = {key for key in overrides if key in group_names()}
+    if PRESET_GROUP in chosen or not any(
+        key in chosen or (key.split(".")[0] in plugin_groups and key not in known) for key in overrides
     ):
         return []
     try:
@@ -264,8 +235,16 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
         return []
     if not isinstance(state, dict) or not isinstance(state.get("config"), dict):
         return []
-    chosen = [key for key in overrides if key in group_names()]
-    return resumed_choices(run_config(state["config"]), chosen)
+    saved = run_config(state["config"])
+    out = []
+    for group, rule in plugin_groups.items():
+        plugin = dotted(saved, f"{group}.{rule.plugin_key}")
+        if group in chosen or plugin == defaults.get(group):
+            continue
+        options = options_by_plugin(group).get(plugin, [])  # composes each option of the group
+        if options:
+            out.append(f"{group}={plugin if plugin in options else options[0]}")
+    return out
 
 
 def claim_run_folder(overrides: dict[str, str]) -> Path | None:

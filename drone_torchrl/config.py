@@ -7,7 +7,7 @@ import dataclasses
 import difflib
 import functools
 import itertools
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
@@ -16,7 +16,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import loggers, memory_estimate, migrations, schema, sweep_folder
-from drone_torchrl.checks import ConfigError, plain_name
+from drone_torchrl.checks import ConfigError, dotted, plain_name
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
@@ -100,7 +100,7 @@ def schema_keys(name: str = "config", **plugins: str | None) -> dict[str, Rule]:
     """
     _discover_plugins()  # a plug-in not imported yet has no stored schema: its keys would be missing
     nodes = {group: schema.plugin_schema(group, plugin) for group, plugin in plugins.items()}
-    return dict(schema.fields(schema.primary_schema(name), nodes))
+    return dict(schema.fields(schema.PRIMARY[name], nodes))
 
 
 def _discover_plugins() -> None:
@@ -111,13 +111,6 @@ def _discover_plugins() -> None:
     """
     ALGORITHMS.names()
     loggers.BACKENDS.names()
-
-
-@functools.cache
-def _checks(name: str, plugins: tuple[tuple[str, str], ...]) -> tuple[tuple[str, tuple[str, ...], Rule], ...]:
-    """The rules :func:`check_values` runs: ``(key, its path, rule)``, keys the code checks left out."""
-    keys = schema_keys(name, **dict(plugins))
-    return tuple((key, tuple(key.split(".")), rule) for key, rule in keys.items() if rule.kind != "free")
 
 
 @functools.cache
@@ -161,34 +154,17 @@ def leaves(node: Any, prefix: str = "") -> dict[str, Any]:
     return out
 
 
-# The ``group=option`` choices drone-train added to a resumed run's command line (resumed_choices):
+# The ``group=option`` choices drone-train added to a resumed run's command line
+# (drone_torchrl.command_line.resumed_plugins):
 # the run's own plug-ins, not keys the user set.
 _implied: list[str] = []
 
 
-def resumed_choices(saved: Mapping[str, Any], chosen: Iterable[str], name: str = "config") -> list[str]:
-    """What a command line that continues a run (``resume=``) is composed with besides its own overrides.
-
-    ``group=<option>`` of each plug-in group whose plug-in in ``saved`` (the run's config) is not the
-    default one and that ``chosen`` (the command line's groups) leaves alone: a PPO run's
-    ``algo.target_kl`` is then a key of its algo, as it is of the run. Nothing when ``chosen`` holds
-    the preset group, whose options may pick plug-ins themselves.
-    """
-    chosen = set(chosen)
-    if PRESET_GROUP in chosen:
-        return []
-    defaults = _option_plugins(name, ())
-    out = []
-    for group, rule in schema.plugin_groups(name).items():
-        plugin = OmegaConf.select(OmegaConf.create(dict(saved)), f"{group}.{rule.plugin_key}", default=None)
-        options = options_by_plugin(group, name).get(plugin, [])
-        if group not in chosen and plugin != defaults.get(group) and options:
-            out.append(f"{group}={plugin if plugin in options else options[0]}")
-    return out
-
-
 def imply_choices(choices: Iterable[str]) -> None:
-    """Record the choices (:func:`resumed_choices`) added to this process's command line: not the user's keys."""
+    """Record the choices added to this process's command line for a resumed run: not the user's keys.
+
+    They are :func:`drone_torchrl.command_line.resumed_plugins`'.
+    """
     _implied[:] = list(choices)
 
 
@@ -207,15 +183,9 @@ def command_line_keys() -> set[str] | None:
     return {str(o).split("=", 1)[0].lstrip("+~") for o in task if str(o) not in implied}
 
 
-@functools.cache
 def composed_leaves(overrides: tuple[str, ...] = (), name: str = "config") -> dict[str, Any]:
     """Every leaf of ``conf/<name>.yaml`` composed with ``overrides`` (:func:`leaves`, completed)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    inside = GlobalHydra.instance().is_initialized()  # inside a Hydra app (or a test's initialize)
-    with nullcontext() if inside else initialize_config_dir(config_dir(), version_base="1.3"):
-        cfg = compose(name, overrides=list(overrides))
+    cfg = _composed(name, tuple(overrides))
     complete(cfg, name)
     return leaves(cfg)
 
@@ -281,68 +251,62 @@ def _option_plugins(name: str, choices: tuple[tuple[str, str], ...]) -> dict[str
     option's file name is free, so only Hydra knows its plug-in: several options may share one
     (reinforce_plus is REINFORCE with other values).
     """
-    return _composed(name, tuple(f"{group}={option}" for group, option in choices))[0]
+    # A default option is left out: the default composition (the checks' first) serves it.
+    default = _chosen(name, ()) if choices else {}
+    cfg = _composed(name, tuple(f"{g}={o}" for g, o in choices if default.get(g) != o))
+    return {
+        group: OmegaConf.select(cfg, f"{group}.{rule.plugin_key}", default=None)
+        for group, rule in schema.plugin_groups(name).items()
+    }
 
 
 @functools.cache
-def _composed(name: str, overrides: tuple[str, ...]) -> tuple[dict[str, str | None], dict[str, str]]:
-    """``conf/<name>.yaml`` composed by Hydra with these group overrides: its plug-ins and options.
+def _composed(name: str, overrides: tuple[str, ...]) -> DictConfig:
+    """``conf/<name>.yaml`` composed by Hydra with ``overrides``, Hydra's node included.
 
-    Returns the plug-in of each plug-in group (:func:`_option_plugins`), and the option of each
-    config group (Hydra's own left out).
+    Cached: the checks ask for the same composition (about 0.2 s) several times.
     """
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     inside = GlobalHydra.instance().is_initialized()  # inside a Hydra app (or a test's initialize)
     with nullcontext() if inside else initialize_config_dir(config_dir(), version_base="1.3"):
-        cfg = compose(name, overrides=list(overrides), return_hydra_config=True)
-    plugins = {
-        group: OmegaConf.select(cfg, f"{group}.{rule.plugin_key}", default=None)
-        for group, rule in schema.plugin_groups(name).items()
-    }
-    choices = cfg.hydra.runtime.choices
-    return plugins, {g: choices[g] for g in choices if g.split("/")[0] != _HYDRA_PREFIX}
+        return compose(name, overrides=list(overrides), return_hydra_config=True)
 
 
-def _resolved(cfg: DictConfig | Mapping) -> Mapping:
-    """The config as plain data, resolved (a ``???`` value raises), Hydra's own node left out.
-
-    At once rather than node by node through OmegaConf, which costs more than twice as much.
-    """
-    if not isinstance(cfg, DictConfig):
-        return cfg
-    out: dict[str, Any] = {}
-    for key in cfg:
-        if key == _HYDRA_PREFIX:
-            continue
-        value = cfg[key]
-        if isinstance(value, DictConfig | ListConfig):
-            try:
-                value = OmegaConf.to_container(value, resolve=True, throw_on_missing=True)
-            except OmegaConfBaseException:
-                leaves(value)  # read node by node: the error then names the key from the root
-                raise
-        out[str(key)] = value
-    return out
+def _chosen(name: str, overrides: tuple[str, ...]) -> dict[str, str]:
+    """The option of each config group (Hydra's own left out) of :func:`_composed`."""
+    choices = _composed(name, overrides).hydra.runtime.choices
+    return {g: choices[g] for g in choices if g.split("/")[0] != _HYDRA_PREFIX}
 
 
 def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
     """Refuse keys the schema does not have, keys without a value, and plug-ins without a schema.
 
     The schema is that of ``conf/<name>.yaml``; a key it lacks was e.g. added with ``+``. Returns
-    the config as resolved plain data (``???`` and interpolations to nothing are refused).
+    the config as resolved plain data with attribute access (``???`` and interpolations to nothing
+    are refused).
     """
+    # The config as plain data, resolved, Hydra's own node left out: each section at once rather
+    # than node by node through OmegaConf, which costs more than twice as much.
+    resolved: Any = {} if isinstance(cfg, DictConfig) else cfg
     try:
-        resolved = _resolved(cfg)
-        leaves(resolved)
+        for key in (k for k in cfg if k != _HYDRA_PREFIX) if isinstance(cfg, DictConfig) else ():
+            value = cfg[key]
+            if isinstance(value, DictConfig | ListConfig):
+                try:
+                    value = OmegaConf.to_container(value, resolve=True, throw_on_missing=True)
+                except OmegaConfBaseException:
+                    leaves(value)  # read node by node: the error then names the key from the root
+                    raise
+            resolved[str(key)] = value
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
         key = getattr(err, "full_key", None) or "a config value"
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"{key} cannot be read: {first}") from None
     known = schema_keys(name, **_plugins(resolved, name))
     for section in complete(resolved, name):  # set to something else than its keys: null, a number...
-        _check_section(section, _get(resolved, section), known, group_names())
+        _check_section(section, dotted(resolved, section), known, group_names())
     given = leaves(resolved)
     missing = [k for k in known if k not in given and not any(g.startswith(f"{k}.") for g in given)]
     if missing:
@@ -351,29 +315,7 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
         # A list or dict value (e.g. model.hidden_sizes) may hold any shape of its own.
         if key not in known and not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
             raise _unknown(key, known)
-    return resolved
-
-
-@functools.cache
-def _section_defaults(name: str) -> dict[str, dict[str, Any]]:
-    """Each open section of ``conf/<name>.yaml`` with the ``added`` value of each of its keys.
-
-    ``{"env.disturbance": {"wind": 0.0, ...}}`` (:func:`drone_torchrl.schema.open_section`).
-    """
-    keys = schema_keys(name)
-    return {
-        section: {
-            k.removeprefix(f"{section}."): r.added for k, r in keys.items() if k.startswith(f"{section}.")
-        }
-        for section in schema.open_sections(schema.primary_schema(name))
-    }
-
-
-def _get(cfg: Mapping, key: str) -> Any:
-    """The value at dotted ``key`` of nested mappings, or None where a part is absent."""
-    for part in key.split("."):
-        cfg = cfg.get(part) if isinstance(cfg, Mapping) else None
-    return cfg
+    return _plain(resolved)
 
 
 def complete(cfg: DictConfig | dict, name: str = "config") -> list[str]:
@@ -391,9 +333,9 @@ def complete(cfg: DictConfig | dict, name: str = "config") -> list[str]:
         :func:`check_keys` to refuse).
     """
     refused = []
-    for section, defaults in _section_defaults(name).items():
+    for section, defaults in schema.open_sections(schema.PRIMARY[name]).items():
         parent_key, _, last = section.rpartition(".")
-        parent = _get(cfg, parent_key)
+        parent = dotted(cfg, parent_key)
         if not isinstance(parent, Mapping) or last not in parent:
             continue
         given = parent[last]
@@ -429,11 +371,8 @@ def check_values(resolved: Mapping, name: str = "config") -> None:
     ``resolved``: nested dicts, keys checked by :func:`check_keys`. The first value a rule refuses
     raises :class:`~.checks.ConfigError`.
     """
-    for key, path, rule in _checks(name, tuple(_plugins(resolved, name).items())):
-        value = resolved
-        for part in path:
-            value = value[part]
-        rule.check(key, value, resolved)
+    for key, rule in schema_keys(name, **_plugins(resolved, name)).items():
+        rule.check(key, dotted(resolved, key), resolved)
 
 
 def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
@@ -443,31 +382,21 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
     key (with or without ``+``), an unknown group option, a run folder that is a file, and an
     override Hydra cannot parse (its grammar error in one line).
     """
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-
-    parser = OverridesParser.create()
-    parsed = []
-    for override in overrides:
-        try:
-            parsed += parser.parse_overrides([override])
-        except HydraException as err:
-            lines = [
-                line
-                for line in str(err).splitlines()
-                if line.strip() and not line.startswith("Error parsing")
-            ]
-            reason = lines[0] if lines else type(err).__name__
-            raise ConfigError(
-                f"{override} cannot be parsed: {reason} (Hydra's override syntax: key=value, "
-                "key=[a,b] for a list, quote values with special characters)"
-            ) from None
+    parsed = parse_overrides(overrides)
     groups = group_names()
     plugin_keys = {f"{group}.{rule.plugin_key}": group for group, rule in schema.plugin_groups(name).items()}
     for override in parsed:
-        if override.key_or_group in plugin_keys and not override.is_delete():
-            raise _plugin_key_set(override, plugin_keys[override.key_or_group], name)
-    _check_presets(parsed, name)
+        group = plugin_keys.get(override.key_or_group)
+        if group is not None and not override.is_delete():
+            # The plug-in comes with its keys, so it is chosen with its group, which sets the key;
+            # setting the key alone leaves the other plug-in's keys.
+            value = _override_values(override)[0]
+            options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
+            how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
+            raise ConfigError(
+                f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, "
+                f"with its plug-in's keys); choose it with {how}"
+            )
     known = _override_keys(parsed, name)
     if known is None:  # Hydra cannot compose these group options: its own message says why
         return
@@ -518,26 +447,37 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             raise _unknown(key, known)
 
 
+def parse_overrides(overrides: Iterable[str], strict: bool = True) -> list:
+    """The overrides parsed by Hydra, one by one.
+
+    One Hydra cannot parse is refused in one line (its grammar error), or left out when not
+    ``strict`` (:func:`check_overrides` refuses it).
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    parsed = []
+    for override in overrides:
+        try:
+            parsed += parser.parse_overrides([override])
+        except HydraException as err:
+            if not strict:
+                continue
+            lines = (x for x in str(err).splitlines() if x.strip() and not x.startswith("Error parsing"))
+            reason = next(lines, type(err).__name__)  # Hydra's first line of substance
+            raise ConfigError(
+                f"{override} cannot be parsed: {reason} (Hydra's override syntax: key=value, "
+                "key=[a,b] for a list, quote values with special characters)"
+            ) from None
+    return parsed
+
+
 def _override_values(override: Any) -> list[Any]:
     """The value of a parsed override, or each value of a sweep (an interval's: its two ends)."""
     if override.is_sweep_override() and not override.is_discrete_sweep():
         return [override.value().start, override.value().end]
     return list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
-
-
-def _plugin_key_set(override: Any, group: str, name: str) -> ConfigError:
-    """The one line for ``algo.name=ppo``: a plug-in is chosen with its group (``algo=ppo``).
-
-    The plug-in comes with its keys, so it is chosen with its group, which sets the key; setting
-    the key alone leaves the other plug-in's keys.
-    """
-    value = _override_values(override)[0]
-    options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
-    how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
-    return ConfigError(
-        f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, with its "
-        f"plug-in's keys); choose it with {how}"
-    )
 
 
 def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list[str]) -> None:
@@ -560,43 +500,6 @@ def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list
     raise ConfigError.of(key, value, f"its keys set one by one (e.g. {first}=...){preset}")
 
 
-def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
-    """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick, or None.
-
-    The options picked are the last plain one of each group, or every option a sweep names; an
-    option of any group may pick the plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``.
-    None if Hydra cannot compose those. Over a sweep, the keys every one of its jobs has.
-    """
-    if not schema.plugin_groups(name):
-        return schema_keys(name)
-    known: dict[str, Rule] | None = None
-    for combination in _combinations(parsed):
-        try:
-            keys = schema_keys(name, **_option_plugins(name, combination))
-        except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
-            return None
-        known = keys if known is None else {k: rule for k, rule in known.items() if k in keys}
-    return known
-
-
-def _combinations(parsed: list) -> Iterator[tuple[tuple[str, str], ...]]:
-    """Every combination of the group options the overrides pick, ``(("algo", "ppo"), ...)``.
-
-    The last plain one of each group, or every option a sweep names.
-    """
-    groups = group_names()
-    picks: dict[str, list[str]] = {}
-    for override in parsed:
-        group = override.key_or_group
-        if group not in groups or override.is_delete():
-            continue
-        values = _override_values(override)
-        options = [v for v in values if v in _options(group)]
-        if options:
-            picks[group] = options
-    return itertools.product(*([(g, o) for o in opts] for g, opts in picks.items()))
-
-
 # The group whose options are presets (experiment=bounded). A preset's keys of one plug-in live in
 # conf/<plug-in group>/presets/<plug-in>/<preset>.yaml, which that plug-in's options include
 # (conf/algo/reinforce.yaml), so they reach only that plug-in.
@@ -604,30 +507,42 @@ PRESET_GROUP = "experiment"
 PLUGIN_PRESETS = "presets"
 
 
-def _check_presets(parsed: list, name: str) -> None:
-    """Refuse a preset that picks a plug-in together with another plug-in on the command line.
+def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
+    """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick, or None.
 
-    E.g. ``experiment=hover_optimal`` picks ``algo=ppo`` and tunes its keys. The refusal names the
-    preset it builds on as the way.
+    The options picked are the last plain one of each group, or every option a sweep names; an
+    option of any group may pick the plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``.
+    None if Hydra cannot compose those. Over a sweep, the keys every one of its jobs has. A preset
+    that picks a plug-in given another on the command line is refused, naming the preset it
+    builds on as the way.
     """
-    if PRESET_GROUP not in group_names() or not schema.plugin_groups(name):
-        return
-    for combination in _combinations(parsed):
+    plugin_groups = schema.plugin_groups(name)
+    if not plugin_groups:
+        return schema_keys(name)
+    picks: dict[str, list[str]] = {}
+    groups = group_names()
+    for override in parsed:
+        group = override.key_or_group
+        if group in groups and not override.is_delete():
+            options = [v for v in _override_values(override) if v in _options(group)]
+            picks[group] = options or picks.get(group, [])
+    known: dict[str, Rule] | None = None
+    for combination in itertools.product(*([(g, o) for o in opts] for g, opts in picks.items() if opts)):
         chosen = dict(combination)
-        preset = chosen.get(PRESET_GROUP)
-        if preset is None:
-            continue
-        try:
-            _, bare = _composed(name, (f"~{PRESET_GROUP}",))
-            _, picked = _composed(name, (f"{PRESET_GROUP}={preset}",))
-        except Exception:  # noqa: BLE001  (an option Hydra cannot compose: Hydra's message says why)
-            return
-        own = {g: o for g, o in picked.items() if g != PRESET_GROUP and bare.get(g) != o}
-        for group in schema.plugin_groups(name):
+        preset, own = chosen.get(PRESET_GROUP), {}
+        if preset is not None:  # the plug-ins the preset picks: its choices that differ from none's
+            try:  # an option Hydra cannot compose (a broken file): Hydra's own message says what
+                bare, picked = (_chosen(name, (o,)) for o in (f"~{PRESET_GROUP}", f"{PRESET_GROUP}={preset}"))
+            except Exception:  # noqa: BLE001
+                return None
+            own = {g: o for g, o in picked.items() if g != PRESET_GROUP and bare.get(g) != o}
+        for group in plugin_groups:
             mine, theirs = chosen.get(group), own.get(group)
             if mine is None or theirs is None or mine == theirs:
                 continue
-            bases = _preset_bases(preset)
+            # The presets it builds on: the options of its own group in its defaults list.
+            defaults = OmegaConf.load(Path(config_dir()) / PRESET_GROUP / f"{preset}.yaml").get("defaults")
+            bases = [d for d in defaults or [] if isinstance(d, str) and d in _options(PRESET_GROUP)]
             way = (
                 f"{PRESET_GROUP}={bases[0]} {group}={mine}"
                 if bases
@@ -639,12 +554,12 @@ def _check_presets(parsed: list, name: str) -> None:
                 f"take {group}={mine}; for {group}={mine} use {way}"
                 + (f" (it also sets {also})" if also else "")
             )
-
-
-def _preset_bases(preset: str) -> list[str]:
-    """The presets ``preset`` builds on: the options of its own group in its defaults list."""
-    defaults = OmegaConf.load(Path(config_dir()) / PRESET_GROUP / f"{preset}.yaml").get("defaults") or []
-    return [d for d in defaults if isinstance(d, str) and d in _options(PRESET_GROUP)]
+        try:
+            keys = schema_keys(name, **_option_plugins(name, combination))
+        except Exception:  # noqa: BLE001  (e.g. a broken option file: Hydra's own message says what)
+            return None
+        known = keys if known is None else {k: rule for k, rule in known.items() if k in keys}
+    return known
 
 
 def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
@@ -664,14 +579,15 @@ def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
         if option is None or not folder.is_dir():
             continue
         plugin = _option_plugins(name, ((group, option),))[group]
-        own = _preset_keys(folder / str(plugin) / f"{preset}.yaml")
-        others = [
-            k
+        keys = {
+            p.name: leaves(OmegaConf.load(p / f"{preset}.yaml"))
             for p in sorted(folder.iterdir())
-            if p.name != plugin
-            for k in _preset_keys(p / f"{preset}.yaml")
+            if (p / f"{preset}.yaml").is_file()
+        }
+        own = keys.pop(str(plugin), {})
+        dropped = [
+            f"{group}.{k}" for k in dict.fromkeys(k for other in keys.values() for k in other) if k not in own
         ]
-        dropped = [f"{group}.{k}" for k in dict.fromkeys(others) if k not in own]
         if dropped:
             notes.append(
                 f"{PRESET_GROUP}={preset}: {', '.join(dropped)} do not apply to {group}={option}; dropped"
@@ -679,19 +595,15 @@ def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
     return notes
 
 
-def _preset_keys(path: Path) -> list[str]:
-    return list(leaves(OmegaConf.load(path))) if path.is_file() else []
+def _check_folder_name(key: str, value: Any, expected: str, taken: Iterable[str] = ()) -> None:
+    """Check that ``value`` of ``key`` names one folder, none of ``taken``, of a length the file system allows.
 
-
-def _check_folder_name(key: str, value: Any, expected: str) -> None:
-    """Check that ``value`` of ``key`` names one folder, of a length the file system allows.
-
-    Not one folder (:func:`plain_name`): the message asks for ``expected``. The length is the
-    working folder's file system's (where run and sweep folders go by default).
+    Not one folder (:func:`plain_name`) or a taken name: the message asks for ``expected``. The
+    length is the working folder's file system's (where run and sweep folders go by default).
     """
     from drone_torchrl.io.storage import name_too_long
 
-    if not plain_name(value):
+    if not plain_name(value) or value in taken:
         raise ConfigError.of(key, value, expected)
     if (too_long := name_too_long(value)) is not None:
         raise ConfigError.of(key, value, f"a folder name this file system takes ({too_long})")
@@ -731,7 +643,7 @@ def check_default_folder(name: str, args: Iterable[str]) -> None:
     if any(a.split("=", 1)[0].lstrip("+") == key for a in args):
         return  # checked with the other overrides
     node = OmegaConf.to_container(OmegaConf.load(Path(config_dir()) / f"{name}.yaml"), resolve=False)
-    _check_folder(key, _get(node, key))
+    _check_folder(key, dotted(node, key))
 
 
 def check_command_line(prog: str, name: str) -> None:
@@ -791,7 +703,10 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     if isinstance(kwargs["disturbance"], DictConfig):  # the env takes a plain mapping
         kwargs["disturbance"] = OmegaConf.to_container(kwargs["disturbance"])
     if isinstance(kwargs["disturbance"], Mapping):  # the keys an open section leaves out: nominal
-        kwargs["disturbance"] = {**_section_defaults("config")["env.disturbance"], **kwargs["disturbance"]}
+        kwargs["disturbance"] = {
+            **schema.open_sections(schema.TrainConfig)["env.disturbance"],
+            **kwargs["disturbance"],
+        }
     return kwargs
 
 
@@ -873,21 +788,6 @@ def check_device(device: Any) -> None:
         raise ConfigError.of("device", device, "'cpu' here (this torch build or machine has no CUDA device)")
 
 
-@functools.lru_cache(maxsize=64)
-def _env_error(device: Any, kwargs: tuple[tuple[str, type, Any], ...]) -> str | None:
-    """What ``DroneEnv`` says of these arguments (``(name, type, value)``), or None; cached.
-
-    The type is part of the key, since ``1``, ``1.0`` and ``True`` are equal keys but not equally
-    allowed. Cached because a sweep's jobs mostly share the arguments.
-    """
-    try:
-        check_env_args(device=device, **{name: value for name, _, value in kwargs})
-    except ValueError as err:
-        message = str(err)
-        return message if message.startswith("device=") else f"env.{message}"
-    return None
-
-
 class _Plain(dict):
     """A resolved config as nested dicts with attribute access (``cfg.algo.lr``), for validation.
 
@@ -915,11 +815,14 @@ def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> 
     :class:`AgentValueError` naming the agent. Then the config with every column's smallest values,
     and the one with its largest, pass :func:`validate` whole: the per-agent keys' rules are bounds,
     so the checks that relate them to other keys (an algorithm's own) meet their worst case at a
-    column's ends. Thousands of agents cost a few config checks, not one each.
+    column's ends (an end that is ``cfg`` itself is not checked again). Thousands of agents cost a
+    few config checks, not one each.
     """
-    resolved = check_keys(cfg)
-    rules = {key: rule for key, _, rule in _checks("config", tuple(_plugins(resolved, "config").items()))}
     varying = {key: column for key, column in values.items() if len(set(column)) > 1}
+    if not varying:  # every agent's config is cfg, which passed
+        return
+    resolved = check_keys(cfg)
+    rules = schema_keys("config", **_plugins(resolved, "config"))
     for key, column in varying.items():
         for value in dict.fromkeys(column):
             try:
@@ -927,9 +830,13 @@ def check_agent_values(cfg: DictConfig, values: Mapping[str, Sequence[Any]]) -> 
             except ConfigError as err:
                 raise AgentValueError(column.index(value), str(err)) from None
     for pick in (min, max):
+        values_at_end = {key: pick(column) for key, column in varying.items()}
+        typed = {key: (type(value), value) for key, value in values_at_end.items()}
+        if typed == {key: (type(v := OmegaConf.select(cfg, key)), v) for key in varying}:
+            continue  # cfg itself (its agent is at this end), which passed
         end = cfg.copy()
-        for key, column in varying.items():
-            OmegaConf.update(end, key, pick(column))
+        for key, value in values_at_end.items():
+            OmegaConf.update(end, key, value)
         try:
             validate(end)
         except ConfigError as err:
@@ -956,15 +863,14 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
     ``training``: the config is about to train here, so its logger's extra must be installed and its memory
     must fit (``drone-eval`` reads a checkpoint's config for its values only).
     """
-    cfg = _plain(check_keys(cfg))  # also refuses ??? and interpolations to nothing, in one line
+    cfg = check_keys(cfg)  # also refuses ??? and interpolations to nothing, in one line
     check_device(cfg.device)
-    kwargs = tuple((name, type(value), value) for name, value in env_kwargs(cfg).items())
-    try:
-        error = _env_error(cfg.device, kwargs)
-    except TypeError:  # an unhashable value (a list where a number belongs): no cache
-        error = _env_error.__wrapped__(cfg.device, kwargs)
-    if error is not None:
-        raise ConfigError(error)
+    kwargs = env_kwargs(cfg)
+    try:  # the env's own checks of its arguments (the schema leaves them to it), no env built
+        check_env_args(device=cfg.device, **kwargs)
+    except ValueError as err:
+        message = str(err)
+        raise ConfigError(message if message.startswith("device=") else f"env.{message}") from None
     check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
     if cfg.backend == migrations.FAST:
         from drone_torchrl.kernels.coverage import fast_refusal
@@ -974,7 +880,7 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             cfg.model.hidden_sizes,
             cfg.model.activation,
             cfg.env.dtype,
-            disturbances.make(env_kwargs(cfg)["disturbance"]),
+            disturbances.make(kwargs["disturbance"]),
             cfg.algo.name,
         )
         if reason is not None:
@@ -1004,14 +910,11 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             "tanh_normal",
             "'normal' unless env.max_thrust is set (e.g. env.max_thrust=1.0)",
         )
-    name = cfg.logger.exp_name
     expected = (
         f"a new folder name inside the run folder (no '/' or '..', none of {sorted(RUN_FOLDER_ENTRIES)}), "
         "e.g. tensorboard"
     )
-    if isinstance(name, str) and name in RUN_FOLDER_ENTRIES:
-        raise ConfigError.of("logger.exp_name", name, expected)
-    _check_folder_name("logger.exp_name", name, expected)
+    _check_folder_name("logger.exp_name", cfg.logger.exp_name, expected, RUN_FOLDER_ENTRIES)
     if cfg.sweep_name is not None:  # null: an ad-hoc sweep, its folder named by its overrides
         _check_folder_name("sweep_name", cfg.sweep_name, "a folder name (no '/' or '..'), e.g. lr")
     if training:

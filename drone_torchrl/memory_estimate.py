@@ -148,14 +148,9 @@ class MemoryEstimate:
         """Bytes of all the parts together."""
         return sum(part.bytes for part in self.parts.values())
 
-    def on(self, host: bool) -> int:
-        """Bytes on the host (``True``) or on the run's device."""
-        return sum(part.bytes for part in self.parts.values() if part.host == host)
-
-    def largest(self, host: bool | None = None) -> tuple[str, Part]:
-        """The largest part (on the host, on the device, or either: None)."""
-        parts = [item for item in self.parts.items() if host is None or item[1].host == host]
-        return max(parts, key=lambda item: item[1].bytes)
+    def on(self, host: bool | None) -> int:
+        """Bytes on the host (``True``), on the run's device (``False``) or on either (None)."""
+        return sum(part.bytes for part in self.parts.values() if host is None or part.host == host)
 
 
 def size(n: float) -> str:
@@ -352,10 +347,11 @@ def check(memory: MemoryEstimate, device: Any) -> None:
     checks = [(False, gpu, "of GPU memory")] if gpu is not None else []
     checks.append((None if gpu is None else True, available_ram(), "of RAM"))
     for side, free, what in checks:
-        needed = memory.total if side is None else memory.on(side)
+        needed = memory.on(side)
         if free is None or needed <= free[0]:
             continue
-        name, part = memory.largest(side)
+        parts = [item for item in memory.parts.items() if side is None or item[1].host == side]
+        name, part = max(parts, key=lambda item: item[1].bytes)
         raise ConfigError(
             f"this config needs about {size(needed)} of memory, more than the {size(free[0])} {what} "
             f"available ({free[1]}); the largest part is {name}, {size(part.bytes)}: {part.advice}"

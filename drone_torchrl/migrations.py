@@ -116,9 +116,9 @@ _PREFIX = f"+{LEGACY}."
 def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
     """The command line with old-key overrides passed as ``+legacy.key=value``, and notes to print.
 
-    Each old-key override is ``key=value``; each note is one line. A value the old key never took,
-    or a command line that sets both an old key and ``backend`` (which one would win is not
-    obvious), raises ``ValueError``.
+    Each old-key override is ``key=value``; each note is one line, what the key is now. A value the
+    old key never took, or a command line that sets both an old key and ``backend`` (which one
+    would win is not obvious), raises ``ValueError``.
     """
     out, notes, replaced = [], [], []
     for arg in args:
@@ -126,8 +126,26 @@ def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
         if arg.startswith("-") or not sep or not is_old_key(key):
             out.append(arg)
             continue
-        notes.append(override_note(key, value))
-        replaced += [key] if key in REPLACED else []
+        if key in REPLACED:
+            backend = _AS_BACKEND.get(value.strip())
+            if backend is None:
+                choices = " or ".join(f"{old} (backend={new})" for old, new in _AS_BACKEND.items())
+                raise ValueError(f"{key}={value!r} is not allowed; expected {choices}")
+            notes.append(
+                f"note: {key}={value} is now backend={backend} (the key that picks the implementation)"
+            )
+            replaced.append(key)
+        elif key in DROPPED:
+            notes.append(
+                f"note: {key}={value} is ignored: it tuned the fused engine's PyTorch path, which backend=fast "
+                "(compiled C++, whole episodes per call) replaced"
+            )
+        elif not _is_fixed_value(key, value):
+            raise ValueError(fixed_refusal(key, value))
+        else:
+            notes.append(
+                f"note: {key}={value} is ignored: the key was removed, every run uses it ({FIXED[key][1]})"
+            )
         out.append(f"{_PREFIX}{arg}")
     if replaced and any(a.partition("=")[0].lstrip("+") == "backend" for a in args):
         raise ValueError(
@@ -173,29 +191,6 @@ def job_dirname(override_dirname: str) -> str:
     return ",".join(sorted(item.removeprefix(_PREFIX) for item in items))
 
 
-def override_note(key: str, value: str) -> str:
-    """The one-line note to print for ``key=value``, an old key on the command line: what it is now.
-
-    A value the old key never took raises ``ValueError``.
-    """
-    if key in REPLACED:
-        backend = _AS_BACKEND.get(str(value).strip())
-        if backend is None:
-            choices = " or ".join(f"{old} (backend={new})" for old, new in _AS_BACKEND.items())
-            raise ValueError(f"{key}={value!r} is not allowed; expected {choices}")
-        return f"note: {key}={value} is now backend={backend} (the key that picks the implementation)"
-    if key in DROPPED:
-        return (
-            f"note: {key}={value} is ignored: it tuned the fused engine's PyTorch path, which backend=fast "
-            "(compiled C++, whole episodes per call) replaced"
-        )
-    if key in FIXED:
-        if not _is_fixed_value(key, value):
-            raise ValueError(fixed_refusal(key, value))
-        return f"note: {key}={value} is ignored: the key was removed, every run uses it ({FIXED[key][1]})"
-    raise KeyError(key)
-
-
 def is_old_key(key: str) -> bool:
-    """Whether ``key`` is one of the keys :func:`override_note` reads."""
+    """Whether ``key`` is an old key :func:`legacy_arguments` reads on a command line."""
     return key in REPLACED or key in DROPPED or key in FIXED

@@ -18,8 +18,8 @@ holds: a key the schema lacks cannot be set without ``+`` (which
 :func:`~drone_torchrl.config.check_overrides` refuses first), and a key of a nested schema cannot be
 deleted (OmegaConf refuses deleting fields of a dataclass; ``check_overrides`` says so first).
 
-Plug-in groups (``algo``, ``logger``): the top-level field is a :func:`plugin_group` naming the key
-that names the plug-in (``algo.name``); each plug-in's own schema is stored as
+Plug-in groups (``algo``, ``logger``): the top-level field is a :class:`Rule` whose ``plugin_key``
+is the key that names the plug-in (``algo.name``); each plug-in's own schema is stored as
 ``schema_<group>_<plug-in>`` (:func:`store_plugin`), and the options of the group (any number per
 plug-in: ``algo=reinforce_plus`` is REINFORCE's schema with other values) list it in their defaults.
 """
@@ -35,7 +35,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
-from drone_torchrl.checks import INT64_MAX, ConfigError, check_choice, check_number, check_sizes
+from drone_torchrl.checks import INT64_MAX, ConfigError, check_number, dotted
 from drone_torchrl.envs.disturbances import MAX_GAIN_SPREAD, MAX_MASS_SPREAD, MAX_STEPS_BACK, Disturbance
 from drone_torchrl.envs.dynamics import DTYPES
 from drone_torchrl.envs.params import PARAM, DroneParams
@@ -120,41 +120,30 @@ class Rule:
         if kind == "free" or (self.optional and value is None):
             return
         if kind == "number" or kind == "integer":
-            check_number(
-                key,
-                value,
-                low=_bound(self.low, cfg),
-                high=_bound(self.high, cfg),
-                low_open=self.low_open,
-                integer=kind == "integer",
-            )
-        elif kind == "flag":
-            if not isinstance(value, bool):
-                raise ConfigError.of(key, value, "true or false")
+            low, high = (dotted(cfg, b) if isinstance(b, str) else b for b in (self.low, self.high))
+            check_number(key, value, low=low, high=high, low_open=self.low_open, integer=kind == "integer")
+            return
+        if kind == "flag":
+            ok, expected = isinstance(value, bool), "true or false"
         elif kind == "choice":
-            check_choice(key, value, self.choices, self.expected)
+            ok, expected = value in self.choices, self.expected or f"one of {list(self.choices)}"
         elif kind == "sizes":
-            check_sizes(key, value)
+            ok = isinstance(value, list) and bool(value)
+            ok = ok and all(
+                isinstance(s, int) and not isinstance(s, bool) and 1 <= s <= INT64_MAX for s in value
+            )
+            expected = "a non-empty list of integers >= 1, e.g. [32,32]"
         elif kind == "text":
-            if not isinstance(value, str) or not value.strip():
-                raise ConfigError.of(
-                    key, value, "null or a non-empty string" if self.optional else "a non-empty string"
-                )
+            ok = isinstance(value, str) and bool(value.strip())
+            expected = "null or a non-empty string" if self.optional else "a non-empty string"
         else:
             raise AssertionError(f"unknown rule kind {kind!r} of {key}")
+        if not ok:
+            raise ConfigError.of(key, value, expected)
 
     def field(self) -> Any:
         """A dataclass field of this rule, its value to come from the YAML files."""
         return field(default=MISSING, metadata={RULE: self})
-
-
-def _bound(bound: float | str | None, cfg: Mapping[str, Any]) -> float | None:
-    if not isinstance(bound, str):
-        return bound
-    value: Any = cfg
-    for part in bound.split("."):
-        value = value[part]
-    return value
 
 
 # Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``.
@@ -178,11 +167,6 @@ def one_of(choices: tuple, **rule: Any) -> Any:
     return Rule("choice", choices=tuple(choices), **rule).field()
 
 
-def layer_sizes(**rule: Any) -> Any:
-    """A config field holding a list of layer widths, checked by a :class:`Rule`."""
-    return Rule("sizes", **rule).field()
-
-
 def a_text(**rule: Any) -> Any:
     """A config field holding a string, checked by a :class:`Rule`."""
     return Rule("text", **rule).field()
@@ -191,14 +175,6 @@ def a_text(**rule: Any) -> Any:
 def free(**rule: Any) -> Any:
     """A key the code checks itself (the env's arguments, paths, folder names, devices)."""
     return Rule(**rule).field()
-
-
-def plugin_group(key: str, added: str) -> Any:
-    """The field of a plug-in group: ``key`` of the group names the plug-in.
-
-    Its schema: ``schema_<group>_<plug-in>``. A config without it is from before plug-ins, as ``added``.
-    """
-    return Rule(plugin_key=key, added=added).field()
 
 
 # The metadata key of an open section's schema (:func:`open_section`).
@@ -284,7 +260,7 @@ class ModelConf:
     """``model.*``: the three-net policy."""
 
     distribution: Any = one_of(DISTRIBUTIONS)
-    hidden_sizes: Any = layer_sizes()
+    hidden_sizes: Any = Rule("sizes").field()
     activation: Any = one_of(tuple(ACTIVATIONS))
     min_std: Any = a_number(low=0, high=MAX_INIT_STD)
     init_std: Any = a_number(low="model.min_std", low_open=True, high=MAX_INIT_STD, optional=True, added=None)
@@ -320,8 +296,10 @@ class TrainConfig:
 
     env: EnvConf = field(default_factory=EnvConf)
     model: ModelConf = field(default_factory=ModelConf)
-    algo: Any = plugin_group("name", added="reinforce")
-    logger: Any = plugin_group("backend", added="tensorboard")
+    # The plug-in groups: their key that names the plug-in, whose schema is schema_<group>_<plug-in>;
+    # a config without it is from before plug-ins, as added.
+    algo: Any = Rule(plugin_key="name", added="reinforce").field()
+    logger: Any = Rule(plugin_key="backend", added="tensorboard").field()
     seed: Any = an_integer(low=0, high=MAX_SEED, per_agent=True)
     # A run continues with the backend that wrote it (their random draws differ); configs saved
     # before the key existed name it through engine/algo.collector (drone_torchrl/migrations.py).
@@ -406,20 +384,33 @@ PREFIX = "schema"
 PRIMARY = {"config": TrainConfig, "eval": EvalConfig, "export": ExportConfig}
 
 
+# Every schema stored, by its name: the checks read the dataclasses here, not back from the
+# ConfigStore (which copies a node at every load, and a population validates every job).
+_SCHEMAS: dict[str, type] = {}
+
+
 def _store(name: str, node: type) -> None:
     stored = OmegaConf.structured(node)
     for key in open_sections(node):  # Hydra keeps a node's own struct flag through composition
         OmegaConf.set_struct(OmegaConf.select(stored, key), False)
     ConfigStore.instance().store(name=name, node=stored, provider="drone_torchrl")
+    _SCHEMAS[name] = node
 
 
-def open_sections(node: type, prefix: str = "") -> Iterator[str]:
-    """The keys of schema ``node``'s :func:`open_section` fields (``env.disturbance``), nested ones too."""
+@functools.cache
+def open_sections(node: type, prefix: str = "") -> dict[str, dict[str, Any]]:
+    """Schema ``node``'s :func:`open_section` fields, nested ones too, with the ``added`` value of each key.
+
+    ``{"env.disturbance": {"wind": 0.0, ...}}``: what a key the section leaves out is.
+    """
+    out = {}
     for f in dataclasses.fields(node):
-        if f.metadata.get(SECTION) is not None:
-            yield f"{prefix}{f.name}"
+        section = f.metadata.get(SECTION)
+        if section is not None:
+            out[f"{prefix}{f.name}"] = {g.name: g.metadata[RULE].added for g in dataclasses.fields(section)}
         elif dataclasses.is_dataclass(f.default_factory):
-            yield from open_sections(f.default_factory, f"{prefix}{f.name}.")
+            out.update(open_sections(f.default_factory, f"{prefix}{f.name}."))
+    return out
 
 
 def store_plugin(group: str, plugin: str, node: type) -> None:
@@ -438,33 +429,9 @@ for _name, _node in PRIMARY.items():
 
 
 # ------------------------------------------------------------------------------ reading it back
-def _stored_names() -> list[str]:
-    """The names of the configs stored at the ConfigStore's root, without ``.yaml``."""
-    return [n.removesuffix(".yaml") for n in ConfigStore.instance().list("") if n.endswith(".yaml")]
-
-
-def _stored(name: str) -> type | None:
-    """The dataclass stored as ``name`` in Hydra's ConfigStore (``schema_algo_ppo``), or None."""
-    if name not in _found and name in _stored_names():
-        # Kept: the store copies a node at every load, and a population validates every job.
-        _found[name] = OmegaConf.get_type(ConfigStore.instance().load(f"{name}.yaml").node)
-    return _found.get(name)
-
-
-_found: dict[str, type] = {}
-
-
-def primary_schema(name: str) -> type:
-    """The schema of ``conf/<name>.yaml`` (``config``, ``eval``, ``export``)."""
-    node = _stored(f"{PREFIX}_{name}")
-    if node is None:
-        raise KeyError(f"no schema for conf/{name}.yaml in Hydra's ConfigStore")
-    return node
-
-
 def plugin_schema(group: str, plugin: Any) -> type | None:
     """The schema of plug-in ``plugin`` of ``group``, or None if none is stored."""
-    return _stored(f"{PREFIX}_{group}_{plugin}") if isinstance(plugin, str) and plugin else None
+    return _SCHEMAS.get(f"{PREFIX}_{group}_{plugin}") if isinstance(plugin, str) and plugin else None
 
 
 @functools.cache
@@ -475,7 +442,7 @@ def plugin_groups(name: str = "config") -> dict[str, Rule]:
     """
     return {
         f.name: rule
-        for f in dataclasses.fields(primary_schema(name))
+        for f in dataclasses.fields(PRIMARY[name])
         if (rule := f.metadata.get(RULE)) is not None and rule.plugin_key
     }
 
@@ -504,4 +471,4 @@ def fields(node: type, plugins: Mapping[str, type | None], prefix: str = "") -> 
 def stored_plugins(group: str) -> list[str]:
     """The plug-ins of ``group`` whose schemas are in the ConfigStore, sorted."""
     prefix = f"{PREFIX}_{group}_"
-    return sorted(n.removeprefix(prefix) for n in _stored_names() if n.startswith(prefix))
+    return sorted(n.removeprefix(prefix) for n in _SCHEMAS if n.startswith(prefix))

@@ -15,7 +15,6 @@ on any launcher, gets the sweep's folder.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 from collections.abc import Iterable
 from pathlib import Path
@@ -46,25 +45,6 @@ def _key(override: str) -> str:
     return override.partition("=")[0].lstrip("+~")
 
 
-@functools.cache
-def _process_keys() -> frozenset[str]:
-    """The schema's ``PROCESS`` keys (the run's own keys: no plug-in has one)."""
-    from drone_torchrl import schema
-
-    return frozenset(
-        key for key, rule in schema.fields(schema.TrainConfig, {}) if rule.on_resume == schema.PROCESS
-    )
-
-
-def _defines_the_search(key: str) -> bool:
-    """Whether a task override with ``key`` enters the folder's hash.
-
-    Keys that only say where and how this process runs (the schema's ``PROCESS`` keys: ``device``,
-    ``threads``, ``progress``, ...) do not, nor ``sweep_name`` (an ad-hoc sweep has none).
-    """
-    return key != "sweep_name" and key not in _process_keys()
-
-
 def search_overrides(task: Iterable[str], hydra: Iterable[str] = ()) -> list[str]:
     """The overrides that name an ad-hoc sweep's folder, sorted (their order on the line is no matter).
 
@@ -73,7 +53,13 @@ def search_overrides(task: Iterable[str], hydra: Iterable[str] = ()) -> list[str
     :data:`SEARCH_LAUNCHERS` launcher with its keys (a PBT search and a plain grid over the same
     values differ; a grid run by ``fused`` or ``slurm`` is the grid run by ``basic``).
     """
-    chosen = [str(o) for o in task if _defines_the_search(_key(str(o)))]
+    from drone_torchrl import schema
+
+    # Keys that only say where and how this process runs (the schema's PROCESS keys: device, threads,
+    # progress...; no plug-in has one) do not enter the hash, nor sweep_name (an ad-hoc sweep has none).
+    process = (k for k, rule in schema.fields(schema.TrainConfig, {}) if rule.on_resume == schema.PROCESS)
+    skip = {"sweep_name", *process}
+    chosen = [str(o) for o in task if _key(str(o)) not in skip]
     hydra = [str(o) for o in hydra]
     launcher = next((o.partition("=")[2] for o in reversed(hydra) if _key(o) == _LAUNCHER), None)
     search = (_SWEEPER + (_LAUNCHER, "hydra.launcher.")) if launcher in SEARCH_LAUNCHERS else _SWEEPER
@@ -81,31 +67,24 @@ def search_overrides(task: Iterable[str], hydra: Iterable[str] = ()) -> list[str
     return sorted(chosen)
 
 
-def adhoc_name(task: Iterable[str], hydra: Iterable[str] = ()) -> str:
-    """An ad-hoc sweep's folder name, ``<swept keys>-<hash>``, e.g. ``algo.lr,seed-1c9a4f0e``.
+def sweep_folder(sweep_name: str | None, task: Iterable[str], hydra: Iterable[str] = ()) -> str:
+    """The sweep folder's name under ``multirun/``: ``sweep_name``, or for an ad-hoc sweep (null) its own.
 
-    The prefix lists the keys given several values (``adhoc`` when none is), the hash covers
-    :func:`search_overrides`.
+    The ``drone_torchrl.sweep_folder`` resolver of ``hydra.sweep.dir`` (``conf/config.yaml``),
+    given ``sweep_name``, ``hydra.overrides.task`` and ``hydra.overrides.hydra``. An ad-hoc sweep's
+    name is ``<swept keys>-<hash>``, e.g. ``algo.lr,seed-1c9a4f0e``: the keys given several values
+    (``adhoc`` when none is), and a hash of :func:`search_overrides`.
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
+    if sweep_name is not None:
+        return str(sweep_name)
     overrides = search_overrides(task, hydra)
     digest = hashlib.sha256("\n".join(overrides).encode()).hexdigest()[:HASH_DIGITS]
     parsed = OverridesParser.create().parse_overrides([o for o in overrides if not o.startswith("hydra")])
     swept = sorted({o.key_or_group.replace("/", ".") for o in parsed if o.is_sweep_override()})
     prefix = ",".join(swept)[:_PREFIX_CHARS] or OLD_ADHOC
     return f"{prefix}-{digest}"
-
-
-def sweep_folder(sweep_name: str | None, task: Iterable[str], hydra: Iterable[str] = ()) -> str:
-    """The sweep folder's name under ``multirun/``: ``sweep_name``, or :func:`adhoc_name` when it is null.
-
-    The ``drone_torchrl.sweep_folder`` resolver of ``hydra.sweep.dir`` (``conf/config.yaml``),
-    given ``sweep_name``, ``hydra.overrides.task`` and ``hydra.overrides.hydra``.
-    """
-    if sweep_name is not None:
-        return str(sweep_name)
-    return adhoc_name(task, hydra)
 
 
 def group_name(sweep_name: str | None, run_dir: Path) -> str:

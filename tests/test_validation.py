@@ -6,7 +6,6 @@ from __future__ import annotations
 import pytest
 from hydra import compose, initialize_config_dir
 
-from drone_torchrl import config as config_module
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import config_dir, env_kwargs, validate
 from drone_torchrl.envs import drone_env
@@ -20,15 +19,12 @@ def _cfg(*overrides: str):
 
 @pytest.fixture
 def no_env(monkeypatch):
-    """Building a DroneEnv fails the test; the env-argument cache starts empty."""
+    """Building a DroneEnv fails the test."""
 
     def refuse(self, *args, **kwargs):
         raise AssertionError("a DroneEnv was built")
 
-    config_module._env_error.cache_clear()
     monkeypatch.setattr(drone_env.DroneEnv, "__init__", refuse)
-    yield
-    config_module._env_error.cache_clear()
 
 
 def test_validation_builds_no_env(no_env):

@@ -219,7 +219,7 @@ def _refuse_changes(cfg: DictConfig, saved: DictConfig, keys: set[str] | None, p
     Only keys set on the command line count (the config's defaults are not a request). A group
     choice such as ``experiment=...`` or ``logger=csv`` may set any key: then also each key whose
     value differs from the config composed without the command line's overrides (with the run's
-    own plug-ins, :func:`~drone_torchrl.config.resumed_choices`), the keys the choice set.
+    own plug-ins, :func:`~drone_torchrl.command_line.resumed_plugins`), the keys the choice set.
     """
     if keys is None:
         return
