@@ -38,13 +38,13 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from drone_torchrl.training.pbt import PBT, PBTSettings
+from drone_torchrl.training.pbt import PBT, Exploit, PBTSettings
 
 #: The grid of the model's length scale (in positions in [0, 1]).
 LENGTH_SCALES = (0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
@@ -65,14 +65,8 @@ class PB2Settings(PBTSettings):
     ``perturb`` and ``resample_probability`` are PBT's random explore: PB2 has none.
     """
 
-    def record(self) -> dict[str, Any]:
-        """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
-        record = {"launcher": "pb2", **asdict(self)}
-        for unused in ("perturb", "resample_probability"):
-            del record[unused]
-        if not self.ranges:
-            del record["ranges"]
-        return record
+    launcher: ClassVar[str] = "pb2"
+    unused: ClassVar[tuple[str, ...]] = ("perturb", "resample_probability")
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PB2:
         """The search of a population (``saved``: what its checkpoint holds of it, or None)."""
@@ -165,27 +159,20 @@ class PB2(PBT):
             self.points.append([self.position(key, self.current[key][i]) for key in self.settings.keys])
             self.changes.append(change)
 
-    def choose(
-        self,
-        worst: np.ndarray,
-        parents: np.ndarray,
-        scores: Sequence[float],
-        alive: Sequence[bool],
-        update: int,
-        rng: np.random.Generator,
-    ) -> dict[str, np.ndarray]:
-        """Each of the ``worst`` agents' next values: the candidate of the highest upper confidence bound."""
-        step = update // self.settings.every_updates
-        self.observe(scores, alive, step)
+    def choose(self, step: Exploit) -> dict[str, np.ndarray]:
+        """Each replaced agent's next values: the candidate of the highest upper confidence bound."""
+        worst, scores = step.worst, step.scores
+        number = step.update // self.settings.every_updates
+        self.observe(scores, step.alive, number)
         after = [float(s) if math.isfinite(s) else math.nan for s in scores]
-        for agent, parent in zip(worst.tolist(), parents.tolist(), strict=True):
+        for agent, parent in zip(worst.tolist(), step.parents.tolist(), strict=True):
             after[agent] = after[parent]  # the copied window: the agent goes on from its parent's return
         self.before = after
         keys = self.settings.keys
         kept = [
             i
             for i in range(len(scores))
-            if alive[i] and i not in set(worst.tolist()) and math.isfinite(scores[i])
+            if step.alive[i] and i not in set(worst.tolist()) and math.isfinite(scores[i])
         ]
         pending = [[self.position(k, self.current[k][i]) for k in keys] for i in kept]
         threads = torch.get_num_threads()
@@ -193,7 +180,7 @@ class PB2(PBT):
         # trainer's were 12x slower on 2 cores (a 350-point fit: 10.5 s on 2 threads, 0.85 s on 1).
         torch.set_num_threads(1)
         try:
-            return self._choose(keys, pending, worst, step, rng)
+            return self._choose(keys, pending, worst, number, step.rng)
         finally:
             torch.set_num_threads(threads)
 

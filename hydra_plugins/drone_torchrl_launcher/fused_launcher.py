@@ -1,7 +1,9 @@
-"""``hydra/launcher=fused``: the jobs of a sweep trained as populations, each job keeping its own folder.
+"""The jobs of a sweep trained as populations, each job keeping its own folder (``hydra/launcher=fused``).
 
-Hydra's launchers run one job per process (or one after another). REINFORCE on this drone is so
-small that a job spends its time in per-step overhead, not arithmetic, so this launcher gives
+What :class:`.population_launcher.PopulationLauncher` does with ``folders=job`` (the ``fused``
+option), and ``slurm_population`` in each of its SLURM jobs. Hydra's launchers run one job per
+process (or one after another). REINFORCE on this drone is so small that a job spends its time in
+per-step overhead, not arithmetic, so :func:`train_populations` gives
 each job its folder, ``.hydra/`` record (``config.yaml``, ``hydra.yaml``, ``overrides.yaml``) and
 log file like the basic launcher, and then trains all compatible jobs (configs equal but for
 ``seed``, ``algo.lr``, ``algo.gamma``, ``algo.weight_decay``) as one population with
@@ -27,14 +29,13 @@ import logging
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
-from hydra.core.utils import JobReturn, JobStatus, configure_log, filter_overrides, setup_globals
+from hydra.core.utils import JobReturn, JobStatus, filter_overrides
 from hydra.errors import CompactHydraException
-from hydra.plugins.launcher import Launcher
-from hydra.types import HydraContext, TaskFunction
+from hydra.types import HydraContext
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from drone_torchrl import launcher_schemas  # noqa: F401  (registers hydra/launcher=fused)
 from drone_torchrl.io.yaml_text import save_yaml
 
 log = logging.getLogger(__name__)
@@ -98,32 +99,6 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
     if log_file is not None:
         Path(log_file).touch()
     return ret, Path(output_dir)
-
-
-class FusedLauncher(Launcher):
-    config: DictConfig | None = None
-    hydra_context: HydraContext | None = None
-    task_function: TaskFunction | None = None
-
-    def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
-        self.config, self.hydra_context, self.task_function = config, hydra_context, task_function
-
-    def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        from drone_torchrl.training.jobs import sweep_summary
-
-        setup_globals()
-        assert self.config is not None and self.hydra_context is not None
-        configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
-        # hydra/sweeper=population validates every job's config before launching its batch, and prints
-        # the end-of-sweep summary itself.
-        validated = str(self.config.hydra.sweeper._target_).endswith("PopulationSweeper")
-        numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
-        returns = train_populations(self.hydra_context, self.config, job_overrides, numbers, validated)
-        failed = any(ret.status == JobStatus.FAILED for ret in returns)
-        if failed and not validated:
-            # Another sweeper stops at the first failed job and skips the end-of-sweep summary.
-            print(sweep_summary(Path(str(self.config.hydra.sweep.dir))))
-        return returns
 
 
 def train_populations(
@@ -191,10 +166,15 @@ def train_populations(
             outcomes[job] if isinstance(job, int) else job if isinstance(job, Outcome) else next(trained)
         )
     for ret, outcome in zip(returns, outcomes, strict=True):
-        if outcome.error is None:
-            ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
-        else:
-            reason = f"{type(outcome.error).__name__}: {outcome.error}"
-            ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
+        report(ret, outcome)
         hydra_context.callbacks.on_job_end(config=ret.cfg, job_return=ret)
     return returns
+
+
+def report(ret: JobReturn, outcome: Any) -> None:
+    """Set a job's Hydra status and return value from its :class:`~drone_torchrl.training.trainer.Outcome`."""
+    if outcome.error is None:
+        ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
+    else:
+        reason = f"{type(outcome.error).__name__}: {outcome.error}"
+        ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")

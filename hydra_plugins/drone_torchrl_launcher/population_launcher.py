@@ -1,14 +1,22 @@
-"""``hydra/launcher=population``: each group of a sweep's jobs trained as ONE population run, in ONE folder.
+"""The one launcher of a sweep trained as one batch: ``hydra/launcher=population``, ``fused`` and the searches.
 
-The fused launcher gives every job its folder (lock, ``.hydra/``, CSV, logger, checkpoints); at
-tens of thousands of agents that bookkeeping is most of the work. Here the jobs are grouped as the
-fused launcher groups them (configs equal but for the per-agent keys: ``seed``, ``algo.lr``,
-``algo.gamma``, ``algo.weight_decay``); each group becomes one population run
-(:mod:`drone_torchrl.training.population_record`) in ``<hydra.sweep.dir>/population_<g>``, with one
-``.hydra/`` record (``config.yaml``: the group's first job, ``overrides.yaml``: every job's
-overrides). Running the same command again continues each population from its checkpoint
-(finished ones return at once). Each job's Hydra return value is its agent's final running-mean
-return, as under the other launchers.
+Its keys (``conf/hydra/launcher/population.yaml``; each other option there is it with keys preset):
+
+- ``search``: ``none``, ``pbt``, ``pb2``, ``halving`` or ``replay`` (:data:`SEARCHES`); the search's
+  own settings are the launcher's other keys (``hydra/launcher=pbt``, ``pb2``, ``halving`` and
+  ``pbt_replay`` preset ``search`` and them), read by its settings class in
+  :mod:`drone_torchrl.training.pbt` / :mod:`~drone_torchrl.training.pb2`.
+- ``folders``: ``population`` (the default): the jobs are grouped as ``fused`` groups them (configs
+  equal but for the per-agent keys: ``seed``, ``algo.lr``, ``algo.gamma``, ``algo.weight_decay``);
+  each group becomes one population run (:mod:`drone_torchrl.training.population_record`) in
+  ``<hydra.sweep.dir>/population_<g>``, with one ``.hydra/`` record (``config.yaml``: the group's
+  first job, ``overrides.yaml``: every job's overrides). Running the same command again continues
+  each population from its checkpoint (finished ones return at once). ``job``
+  (``hydra/launcher=fused``, no search): every job keeps its own folder, lock, ``.hydra/``, CSV,
+  logger and checkpoints (:func:`.fused_launcher.train_populations`, which ``slurm_population``
+  runs on each node); at tens of thousands of agents that bookkeeping is most of the work.
+
+Each job's Hydra return value is its agent's final running-mean return, under any launcher.
 """
 
 from __future__ import annotations
@@ -22,12 +30,14 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from hydra.core.utils import JobReturn, JobStatus, configure_log, setup_globals
-from omegaconf import OmegaConf, open_dict, read_write
+from hydra.plugins.launcher import Launcher
+from hydra.types import HydraContext, TaskFunction
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.io.storage import write_atomically
 from drone_torchrl.io.yaml_text import save_yaml
-from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher, JobFailed, _JobReturn
+from hydra_plugins.drone_torchrl_launcher.fused_launcher import _JobReturn, report, train_populations
 
 if TYPE_CHECKING:
     from drone_torchrl.training.agents import AgentTable
@@ -36,12 +46,38 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 POPULATION_DIR = "population_{}"
+#: Each search: its settings class (``module:class``; the plug-in imports no training code until it
+#: runs) and the ``hydra.launcher`` keys it reads.
+SEARCHES = {
+    "pbt": (
+        "drone_torchrl.training.pbt:PBTSettings",
+        ("every_updates", "quantile", "perturb", "resample_probability", "keys"),
+    ),
+    "pb2": ("drone_torchrl.training.pb2:PB2Settings", ("every_updates", "quantile", "keys")),
+    "halving": ("drone_torchrl.training.pbt:HalvingSettings", ("rungs", "fraction", "keys")),
+    "replay": ("drone_torchrl.training.pbt:ReplaySettings", ("run", "agent")),
+}
 
 
-class PopulationLauncher(FusedLauncher):
-    search: SearchSettings | None = None
-    # The plan of each batch checked before the sweep folder was written (:meth:`check`), by its jobs.
-    _plans: dict[tuple[tuple[str, ...], ...], _Plan]
+class PopulationLauncher(Launcher):
+    """A sweep trained as one batch (the module's docstring); ``settings``: the search's keys."""
+
+    config: DictConfig | None = None
+    hydra_context: HydraContext | None = None
+    task_function: TaskFunction | None = None
+
+    def __init__(self, search: str = "none", folders: str = "population", **settings: Any) -> None:
+        self.per_job = folders == "job"
+        # The plan of each batch checked before the sweep folder was written (:meth:`check`), by its jobs.
+        self._plans: dict[tuple[tuple[str, ...], ...], _Plan] = {}
+        self.replay = search == "replay"
+        try:
+            self.search: SearchSettings | None = _settings(search, folders, settings)
+        except ConfigError as err:  # Hydra makes it before any job starts: one line, nothing written
+            sys.exit(f"drone-train: error: {err}")
+
+    def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
+        self.config, self.hydra_context, self.task_function = config, hydra_context, task_function
 
     def check(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> None:
         """Compose, group and check a batch's jobs as :meth:`launch` will train them, before any folder.
@@ -50,26 +86,39 @@ class PopulationLauncher(FusedLauncher):
         a job's values, or what :func:`~drone_torchrl.training.trainer.check_population` refuses
         (learner, budget, memory, a search the budget or the population cannot hold). The hydra/sweeper
         =population sweeper calls it for every batch before it writes the sweep folder; the plan is
-        kept for :meth:`launch`.
+        kept for :meth:`launch`. Jobs in folders of their own (``folders=job``) are each checked by the sweeper.
         """
         from drone_torchrl.training.trainer import check_population
 
+        if self.per_job:
+            return
         plan = self._plan(job_overrides, initial_job_idx)
         if plan.refused:
             raise plan.refused[0][1]
         for agents, _ in plan.groups:
             check_population(agents, self.search)
-        self._plans = {**getattr(self, "_plans", {}), _jobs(job_overrides): plan}
+        self._plans[_jobs(job_overrides)] = plan
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+        from drone_torchrl.training.jobs import sweep_summary
         from drone_torchrl.training.trainer import Outcome, train_population
 
         setup_globals()
         assert self.config is not None and self.hydra_context is not None
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
+        if self.per_job:
+            # hydra/sweeper=population validates every job's config before launching its batch, and
+            # prints the end-of-sweep summary itself.
+            validated = str(self.config.hydra.sweeper._target_).endswith("PopulationSweeper")
+            numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
+            returns = train_populations(self.hydra_context, self.config, job_overrides, numbers, validated)
+            if not validated and any(ret.status == JobStatus.FAILED for ret in returns):
+                # Another sweeper stops at the first failed job and skips the end-of-sweep summary.
+                print(sweep_summary(Path(str(self.config.hydra.sweep.dir))))
+            return returns
         sweep_dir = Path(str(self.config.hydra.sweep.dir)).absolute()
         log.info(f"Launching {len(job_overrides)} jobs as population runs in {sweep_dir}")
-        plan = getattr(self, "_plans", {}).pop(_jobs(job_overrides), None)
+        plan = self._plans.pop(_jobs(job_overrides), None)
         try:  # unless checked before: another sweeper than hydra/sweeper=population
             plan = plan or self._plan(job_overrides, initial_job_idx)
         except ConfigError as err:
@@ -103,12 +152,7 @@ class PopulationLauncher(FusedLauncher):
             for i, outcome in zip(members, done, strict=True):
                 outcomes[i] = outcome
         for ret, outcome in zip(returns, outcomes, strict=True):
-            assert outcome is not None
-            if outcome.error is None:
-                ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
-            else:
-                reason = f"{type(outcome.error).__name__}: {outcome.error}"
-                ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
+            report(ret, outcome)
         if refused:  # no folder for the sweep's summary to count: a failure all the same, in one line
             others = (
                 f" ({len(refused) - 1} other population run(s) not started too)" if len(refused) > 1 else ""
@@ -127,11 +171,9 @@ class PopulationLauncher(FusedLauncher):
             for i, err in enumerate(errors)
             if err is not None
         ]
-        self._check_jobs(job_overrides)
+        if self.replay:
+            _refuse_scheduled_keys(self.search, job_overrides)
         return _Plan(hydra_record, groups, returns, errors, refused, one_table is not None)
-
-    def _check_jobs(self, job_overrides: Sequence[Sequence[str]]) -> None:
-        """What this launcher refuses of the jobs' overrides themselves (:class:`ConfigError`); none here."""
 
     def _one_table(
         self, job_overrides: Sequence[Sequence[str]], returns: list[JobReturn]
@@ -213,66 +255,36 @@ def _jobs(job_overrides: Sequence[Sequence[str]]) -> tuple[tuple[str, ...], ...]
     return tuple(tuple(job) for job in job_overrides)
 
 
-class _SearchLauncher(PopulationLauncher):
-    """A population launcher whose runs search (:mod:`drone_torchrl.training.pbt`): its settings
-    class (by name: the plug-in module imports no training code until it runs) reads
-    ``hydra.launcher.*``."""
-
-    settings_class = ""
-    settings_module = "drone_torchrl.training.pbt"
-
-    def __init__(self, **params: Any) -> None:
-        super().__init__()
-        try:
-            self.search = getattr(importlib.import_module(self.settings_module), self.settings_class).of(
-                params
+def _settings(search: Any, folders: Any, settings: dict[str, Any]) -> SearchSettings | None:
+    """The search's settings from the launcher's keys, each checked (:class:`ConfigError`, one line)."""
+    if folders not in ("population", "job"):
+        expected = "population (a folder per population run) or job (a folder per job)"
+        raise ConfigError(f"hydra.launcher.folders={folders} is not allowed; expected {expected}")
+    if search != "none" and (not isinstance(search, str) or search not in SEARCHES or folders == "job"):
+        expected = (
+            "none with hydra.launcher.folders=job" if folders == "job" else "none, " + ", ".join(SEARCHES)
+        )
+        raise ConfigError(f"hydra.launcher.search={search} is not allowed; expected {expected}")
+    path, keys = SEARCHES.get(search, ("", ()))
+    for key, value in settings.items():
+        if key not in keys:
+            raise ConfigError(
+                f"hydra.launcher.{key}={value} is not allowed: hydra.launcher.search={search} has no key "
+                f"{key!r}; its keys: {', '.join(sorted(keys)) or 'none'}"
             )
-        except ConfigError as err:  # Hydra makes it before any job starts: one line, nothing written
-            sys.exit(f"drone-train: error: {err}")
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name).of(settings) if path else None
 
 
-class PBTLauncher(_SearchLauncher):
-    """``hydra/launcher=pbt``: each population run trained with population-based training.
-
-    A searched key given as a list moves among the list's values; one given as a range
-    (``interval``, drawn per agent by the population sweeper) is multiplied by ``perturb`` and
-    clipped to the range.
-    """
-
-    settings_class = "PBTSettings"
-
-
-class PB2Launcher(_SearchLauncher):
-    """``hydra/launcher=pb2``: each population run trained with population-based bandits (PBT whose
-    explore step is chosen by a Gaussian process, :mod:`drone_torchrl.training.pb2`)."""
-
-    settings_class = "PB2Settings"
-    settings_module = "drone_torchrl.training.pb2"
-
-
-class PBTReplayLauncher(_SearchLauncher):
-    """``hydra/launcher=pbt_replay``: each agent trained with the values one agent of a PBT run had,
-    at the updates it had them (``hydra.launcher.run``, ``hydra.launcher.agent``): a PBT result
-    retrained on fresh seeds."""
-
-    settings_class = "ReplaySettings"
-
-    def _check_jobs(self, job_overrides: Sequence[Sequence[str]]) -> None:
-        """Refuse a job that sets a key the replayed schedule sets: its value would never be used."""
-        assert self.search is not None
-        scheduled = {key for _, values in self.search.schedule for key, _ in values}
-        for job in job_overrides:
-            for line in job:
-                key = line.partition("=")[0].lstrip("+~")
-                if key in scheduled:
-                    raise ConfigError(
-                        f"{line} is not allowed with hydra/launcher=pbt_replay: the replayed schedule sets "
-                        f"{', '.join(sorted(scheduled))} (agent {self.search.agent} of {self.search.run}); "
-                        f"expected no {key}= (sweep seed= and the keys the schedule leaves)"
-                    )
-
-
-class HalvingLauncher(_SearchLauncher):
-    """``hydra/launcher=halving``: each population run trained with successive halving."""
-
-    settings_class = "HalvingSettings"
+def _refuse_scheduled_keys(search: Any, job_overrides: Sequence[Sequence[str]]) -> None:
+    """Refuse a job of a replay that sets a key the replayed schedule sets: its value would never be used."""
+    scheduled = {key for _, values in search.schedule for key, _ in values}
+    for job in job_overrides:
+        for line in job:
+            key = line.partition("=")[0].lstrip("+~")
+            if key in scheduled:
+                raise ConfigError(
+                    f"{line} is not allowed with hydra/launcher=pbt_replay: the replayed schedule sets "
+                    f"{', '.join(sorted(scheduled))} (agent {search.agent} of {search.run}); "
+                    f"expected no {key}= (sweep seed= and the keys the schedule leaves)"
+                )
