@@ -260,24 +260,23 @@ class Model:
         steps = np.concatenate([self.steps, np.full(len(pending), float(step))])
         points = np.concatenate([self.points.reshape(-1, options.shape[1]), pending])
         if len(steps):
-            factor = torch.linalg.cholesky(
-                self.kernel(steps, points, steps, points)
-                + self.noise * torch.eye(len(steps), dtype=torch.float64)
-            )
+            factor = self._factor(steps, points)
             v = torch.linalg.solve_triangular(factor, self.kernel(steps, points, at, options), upper=False)
             variance = torch.clamp(1.0 - (v**2).sum(dim=0), min=0.0).numpy()
         else:
             variance = np.ones(len(options))
         if self.targets.size == 0:  # nothing known yet: as far as possible from where agents train
             return variance
-        factor = torch.linalg.cholesky(
-            self.kernel(self.steps, self.points, self.steps, self.points)
-            + self.noise * torch.eye(len(self.targets), dtype=torch.float64)
-        )
+        factor = self._factor(self.steps, self.points)
         weights = torch.cholesky_solve(torch.as_tensor(self.targets, dtype=torch.float64)[:, None], factor)
         mean = (self.kernel(self.steps, self.points, at, options).T @ weights)[:, 0].numpy()
         kappa = math.sqrt(max(0.0, 0.2 * math.log(0.4 * self.targets.size)))
         return mean + kappa * variance
+
+    def _factor(self, steps: np.ndarray, points: np.ndarray) -> torch.Tensor:
+        """The Cholesky factor of the points' covariance with the noise on its diagonal."""
+        noise = self.noise * torch.eye(len(steps), dtype=torch.float64)
+        return torch.linalg.cholesky(self.kernel(steps, points, steps, points) + noise)
 
 
 def _distances(

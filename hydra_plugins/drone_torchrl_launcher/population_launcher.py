@@ -21,6 +21,7 @@ Each job's Hydra return value is its agent's final running-mean return, under an
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import logging
@@ -46,16 +47,13 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 POPULATION_DIR = "population_{}"
-#: Each search: its settings class (``module:class``; the plug-in imports no training code until it
-#: runs) and the ``hydra.launcher`` keys it reads.
+#: Each search's settings class (``module:class``; the plug-in imports no training code until it runs):
+#: its fields are the search's ``hydra.launcher`` keys (but those it derives, and its ``unused``).
 SEARCHES = {
-    "pbt": (
-        "drone_torchrl.training.pbt:PBTSettings",
-        ("every_updates", "quantile", "perturb", "resample_probability", "keys"),
-    ),
-    "pb2": ("drone_torchrl.training.pb2:PB2Settings", ("every_updates", "quantile", "keys")),
-    "halving": ("drone_torchrl.training.pbt:HalvingSettings", ("rungs", "fraction", "keys")),
-    "replay": ("drone_torchrl.training.pbt:ReplaySettings", ("run", "agent")),
+    "pbt": "drone_torchrl.training.pbt:PBTSettings",
+    "pb2": "drone_torchrl.training.pb2:PB2Settings",
+    "halving": "drone_torchrl.training.pbt:HalvingSettings",
+    "replay": "drone_torchrl.training.pbt:ReplaySettings",
 }
 
 
@@ -94,7 +92,7 @@ class PopulationLauncher(Launcher):
             return
         plan = self._plan(job_overrides, initial_job_idx)
         if plan.refused:
-            raise plan.refused[0][1]
+            raise plan.refused[0]
         for agents, _ in plan.groups:
             check_population(agents, self.search)
         self._plans[_jobs(job_overrides)] = plan
@@ -129,7 +127,7 @@ class PopulationLauncher(Launcher):
             )
         returns = plan.returns
         outcomes = [None if e is None else Outcome(sweep_dir, error=e) for e in plan.errors]
-        refused = [err for _, err in plan.refused]
+        refused = list(plan.refused)
         for number, (agents, members) in enumerate(plan.groups):
             run_dir = sweep_dir / POPULATION_DIR.format(number)
             names = [" ".join(job_overrides[i]) for i in members]
@@ -167,7 +165,7 @@ class PopulationLauncher(Launcher):
         one_table = self._one_table(job_overrides, returns)
         hydra_record, groups = one_table or self._tables(job_overrides, returns, errors)
         refused = [
-            (i, ConfigError(f"job #{initial_job_idx + i} ({' '.join(job_overrides[i])}): {err}"))
+            ConfigError(f"job #{initial_job_idx + i} ({' '.join(job_overrides[i])}): {err}")
             for i, err in enumerate(errors)
             if err is not None
         ]
@@ -181,10 +179,9 @@ class PopulationLauncher(Launcher):
         """Jobs that differ only in numbers of the per-agent keys, and whose values all pass: one
         population from one config (:func:`.compose.agent_columns`), no config per job; else None.
         Each job's ``JobReturn.cfg`` is then the group's config (its own values: ``agents.parquet``)."""
-        from drone_torchrl import migrations
-        from drone_torchrl.config import check_agent_values, per_agent_keys, validate
+        from drone_torchrl.config import per_agent_keys
         from drone_torchrl.training.agents import AgentTable
-        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns
+        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, checked
 
         assert self.config is not None and self.hydra_context is not None
         table = agent_columns(self.hydra_context.config_loader, self.config, job_overrides, per_agent_keys())
@@ -192,9 +189,7 @@ class PopulationLauncher(Launcher):
             return None
         cfg, hydra, values = table
         try:
-            migrations.apply_legacy(cfg)  # old keys mean what they mean in a single run
-            validate(cfg)
-            check_agent_values(cfg, values)
+            checked(cfg, values)
         except ConfigError:  # the per-job path says which jobs, and trains the others
             return None
         for ret in returns:
@@ -207,11 +202,9 @@ class PopulationLauncher(Launcher):
     ) -> tuple[dict | None, list[tuple[AgentTable, list[int]]]]:
         """Each job's config composed and checked (a bad one's error in ``errors``), then grouped as the
         fused launcher groups jobs: one agent table per group."""
-        from drone_torchrl import migrations
-        from drone_torchrl.config import validate
         from drone_torchrl.training.agents import AgentTable
         from drone_torchrl.training.jobs import group_key
-        from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+        from hydra_plugins.drone_torchrl_launcher.compose import checked, sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
         groups: dict[str, list[int]] = {}
@@ -226,8 +219,7 @@ class PopulationLauncher(Launcher):
                 del cfg["hydra"]
             returns[position].cfg = cfg
             try:
-                migrations.apply_legacy(cfg)  # old keys mean what they mean in a single run
-                validate(cfg)
+                checked(cfg)
             except ConfigError as err:
                 errors[position] = err
                 continue
@@ -239,14 +231,14 @@ class PopulationLauncher(Launcher):
 class _Plan(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this module outside sys.modules
     """A batch as :meth:`PopulationLauncher.launch` trains it: Hydra's record, the groups (an agent table
     and its jobs' positions), each job's ``JobReturn``, each job's refusal (or None), and the refusals
-    as ``(position, one-line error naming the job)``; ``one_config``: the jobs differ only in per-agent
+    as one-line errors naming their jobs; ``one_config``: the jobs differ only in per-agent
     numbers (one config, :func:`.compose.agent_columns`)."""
 
     hydra_record: dict | None
     groups: list[tuple[AgentTable, list[int]]]
     returns: list[JobReturn]
     errors: list[ConfigError | None]
-    refused: list[tuple[int, ConfigError]]
+    refused: list[ConfigError]
     one_config: bool
 
 
@@ -265,15 +257,17 @@ def _settings(search: Any, folders: Any, settings: dict[str, Any]) -> SearchSett
             "none with hydra.launcher.folders=job" if folders == "job" else "none, " + ", ".join(SEARCHES)
         )
         raise ConfigError(f"hydra.launcher.search={search} is not allowed; expected {expected}")
-    path, keys = SEARCHES.get(search, ("", ()))
+    module, _, name = SEARCHES.get(search, "").partition(":")
+    settings_class = getattr(importlib.import_module(module), name) if module else None
+    derived = ("ranges", "schedule", *getattr(settings_class, "unused", ()))
+    keys = [f.name for f in dataclasses.fields(settings_class) if f.name not in derived] if module else []
     for key, value in settings.items():
         if key not in keys:
             raise ConfigError(
                 f"hydra.launcher.{key}={value} is not allowed: hydra.launcher.search={search} has no key "
                 f"{key!r}; its keys: {', '.join(sorted(keys)) or 'none'}"
             )
-    module, _, name = path.partition(":")
-    return getattr(importlib.import_module(module), name).of(settings) if path else None
+    return settings_class.of(settings) if settings_class else None
 
 
 def _refuse_scheduled_keys(search: Any, job_overrides: Sequence[Sequence[str]]) -> None:
