@@ -35,7 +35,7 @@ from hydra.plugins.launcher import Launcher
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from drone_torchrl.checks import ConfigError
+from drone_torchrl.checks import ConfigError, as_override
 from drone_torchrl.io.storage import write_atomically
 from drone_torchrl.io.yaml_text import save_yaml
 from hydra_plugins.drone_torchrl_launcher.fused_launcher import _JobReturn, report, train_populations
@@ -251,12 +251,12 @@ def _settings(search: Any, folders: Any, settings: dict[str, Any]) -> SearchSett
     """The search's settings from the launcher's keys, each checked (:class:`ConfigError`, one line)."""
     if folders not in ("population", "job"):
         expected = "population (a folder per population run) or job (a folder per job)"
-        raise ConfigError(f"hydra.launcher.folders={folders} is not allowed; expected {expected}")
+        raise ConfigError(f"hydra.launcher.folders={_typed(folders)} is not allowed; expected {expected}")
     if search != "none" and (not isinstance(search, str) or search not in SEARCHES or folders == "job"):
         expected = (
             "none with hydra.launcher.folders=job" if folders == "job" else "none, " + ", ".join(SEARCHES)
         )
-        raise ConfigError(f"hydra.launcher.search={search} is not allowed; expected {expected}")
+        raise ConfigError(f"hydra.launcher.search={_typed(search)} is not allowed; expected {expected}")
     module, _, name = SEARCHES.get(search, "").partition(":")
     settings_class = getattr(importlib.import_module(module), name) if module else None
     derived = ("ranges", "schedule", *getattr(settings_class, "unused", ()))
@@ -264,10 +264,15 @@ def _settings(search: Any, folders: Any, settings: dict[str, Any]) -> SearchSett
     for key, value in settings.items():
         if key not in keys:
             raise ConfigError(
-                f"hydra.launcher.{key}={value} is not allowed: hydra.launcher.search={search} has no key "
+                f"hydra.launcher.{key}={_typed(value)} is not allowed: hydra.launcher.search={search} has no key "
                 f"{key!r}; its keys: {', '.join(sorted(keys)) or 'none'}"
             )
     return settings_class.of(settings) if settings_class else None
+
+
+def _typed(value: Any) -> str:
+    """``value`` as the command line gives it (a string as it is, null as null)."""
+    return value if isinstance(value, str) else as_override(value)
 
 
 def _refuse_scheduled_keys(search: Any, job_overrides: Sequence[Sequence[str]]) -> None:
