@@ -578,10 +578,7 @@ class ReplaySettings:
         :class:`~.checks.ConfigError` (one line) when the run replayed has changed since (another
         run written in its folder): its agent's schedule is no longer the one this replay follows.
         """
-        if saved.get("launcher") != "pbt_replay" or (saved.get("run"), saved.get("agent")) != (
-            self.run,
-            self.agent,
-        ):
+        if [saved.get(key) for key in ("launcher", "run", "agent")] != ["pbt_replay", self.run, self.agent]:
             return  # another search: the caller's comparison names both
         if "schedule" in saved and saved["schedule"] != self.record()["schedule"]:
             raise ConfigError.of(

@@ -115,7 +115,7 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
         output_dir = job_output_dir(cfg, idx)
         cfg.hydra.runtime.output_dir = output_dir
         log_file = OmegaConf.select(cfg, "hydra.job_logging.handlers.file.filename", default=None)
-        hydra_cfg = {"hydra": OmegaConf.to_container(cfg.hydra, resolve=False, enum_to_str=True)}
+        hydra_cfg = _hydra_record(cfg.hydra)
         ret = _JobReturn(overrides=list(cfg.hydra.overrides.task), working_dir=os.getcwd())
         ret.task_name = cfg.hydra.job.name
         output_subdir = cfg.hydra.output_subdir
@@ -202,6 +202,11 @@ def train_populations(
         _report(ret, outcome)
         hydra_context.callbacks.on_job_end(config=ret.cfg, job_return=ret)
     return returns
+
+
+def _hydra_record(hydra: DictConfig) -> dict:
+    """What ``.hydra/hydra.yaml`` holds of a job's ``hydra`` node: the node as written, unresolved."""
+    return {"hydra": OmegaConf.to_container(hydra, resolve=False, enum_to_str=True)}
 
 
 def _report(ret: JobReturn, outcome: Any) -> None:
@@ -350,7 +355,7 @@ class PopulationLauncher(Launcher):
             return None
         for ret in returns:
             ret.cfg = cfg
-        hydra_record = {"hydra": OmegaConf.to_container(hydra, resolve=False, enum_to_str=True)}
+        hydra_record = _hydra_record(hydra)
         return hydra_record, [(AgentTable(cfg, values), list(range(len(job_overrides))))]
 
     def _tables(
@@ -368,10 +373,7 @@ class PopulationLauncher(Launcher):
         configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
         for position, cfg in enumerate(configs):
             with read_write(cfg), open_dict(cfg):
-                if hydra_record is None:
-                    hydra_record = {
-                        "hydra": OmegaConf.to_container(cfg.hydra, resolve=False, enum_to_str=True)
-                    }
+                hydra_record = hydra_record or _hydra_record(cfg.hydra)
                 del cfg["hydra"]
             returns[position].cfg = cfg
             try:
