@@ -68,6 +68,5 @@ nitpick_ignore_regex = [
     ("py:class", r"Dict\[str"),
     # Private bases and nested classes that autodoc names (show-inheritance, annotations) but that are
     # not documented, being private.
-    ("py:class", r"hydra_plugins\.drone_torchrl_launcher\.population_launcher\._SearchLauncher"),
     ("py:class", r"drone_torchrl\.objectives\.reinforce\.ReinforceLoss\._AcceptedKeys"),
 ]

@@ -784,24 +784,30 @@ def test_drone_report_refuses(argv, names, files, tmp_path, capsys):
     assert _snapshot(files["run"].parent) == before
 
 
-# hydra/launcher=pbt's, halving's and pbt_replay's settings (drone_torchrl.training.pbt): refused
-# when Hydra makes the launcher, before any job starts.
+# hydra/launcher=pbt's, halving's and pbt_replay's settings (drone_torchrl.training.pbt), by their
+# hydra.launcher.search: refused when Hydra makes the launcher, before any job starts.
 SEARCH_LAUNCHERS = [
-    ("PBTLauncher", {"quantile": 0.6}, "hydra.launcher.quantile"),
-    ("PBTLauncher", {"quantile": 0}, "hydra.launcher.quantile"),
-    ("PBTLauncher", {"every_updates": 0}, "hydra.launcher.every_updates"),
-    ("PBTLauncher", {"perturb": []}, "hydra.launcher.perturb"),
-    ("PBTLauncher", {"perturb": [0.8, -1.2]}, "hydra.launcher.perturb"),
-    ("PBTLauncher", {"resample_probability": 1.5}, "hydra.launcher.resample_probability"),
-    ("PBTLauncher", {"keys": ["seed"]}, "'seed' is a per-agent key PBT cannot search"),
-    ("PBTLauncher", {"keys": ["model.hidden_sizes"]}, "'model.hidden_sizes' is not a per-agent key"),
-    ("PBTLauncher", {"keys": []}, "hydra.launcher.keys"),
-    ("HalvingLauncher", {"rungs": []}, "hydra.launcher.rungs"),
-    ("HalvingLauncher", {"rungs": [1500, 500]}, "hydra.launcher.rungs"),
-    ("HalvingLauncher", {"rungs": [0, 5]}, "hydra.launcher.rungs"),
-    ("HalvingLauncher", {"fraction": 1}, "hydra.launcher.fraction"),
-    ("HalvingLauncher", {"keys": ["seed"]}, "'seed' is a per-agent key successive halving cannot search"),
-    ("PBTReplayLauncher", {"run": "/nowhere"}, "hydra.launcher.run"),
+    ("pbt", {"quantile": 0.6}, "hydra.launcher.quantile"),
+    ("pbt", {"quantile": 0}, "hydra.launcher.quantile"),
+    ("pbt", {"every_updates": 0}, "hydra.launcher.every_updates"),
+    ("pbt", {"perturb": []}, "hydra.launcher.perturb"),
+    ("pbt", {"perturb": [0.8, -1.2]}, "hydra.launcher.perturb"),
+    ("pbt", {"resample_probability": 1.5}, "hydra.launcher.resample_probability"),
+    ("pbt", {"keys": ["seed"]}, "'seed' is a per-agent key PBT cannot search"),
+    ("pbt", {"keys": ["model.hidden_sizes"]}, "'model.hidden_sizes' is not a per-agent key"),
+    ("pbt", {"keys": []}, "hydra.launcher.keys"),
+    ("halving", {"rungs": []}, "hydra.launcher.rungs"),
+    ("halving", {"rungs": [1500, 500]}, "hydra.launcher.rungs"),
+    ("halving", {"rungs": [0, 5]}, "hydra.launcher.rungs"),
+    ("halving", {"fraction": 1}, "hydra.launcher.fraction"),
+    ("halving", {"keys": ["seed"]}, "'seed' is a per-agent key successive halving cannot search"),
+    ("replay", {"run": "/nowhere"}, "hydra.launcher.run"),
+    # The one launcher's own keys: a search it does not have, a key its search does not read
+    ("bogus", {}, "hydra.launcher.search=bogus"),
+    ([1], {}, "hydra.launcher.search=[1]"),
+    ("halving", {"every_updates": 5}, "hydra.launcher.search=halving has no key 'every_updates'"),
+    ("none", {"folders": "jobs"}, "hydra.launcher.folders"),
+    ("pbt", {"folders": "job"}, "hydra.launcher.search=pbt"),
 ]
 
 
@@ -809,10 +815,10 @@ SEARCH_LAUNCHERS = [
     ("launcher", "params", "names"), SEARCH_LAUNCHERS, ids=[f"{n}-{p}" for n, p, _ in SEARCH_LAUNCHERS]
 )
 def test_the_search_launchers_refuse(launcher, params, names):
-    from hydra_plugins.drone_torchrl_launcher import population_launcher
+    from hydra_plugins.drone_torchrl_launcher.population_launcher import PopulationLauncher
 
     with pytest.raises(SystemExit) as info:
-        getattr(population_launcher, launcher)(**params)
+        PopulationLauncher(search=launcher, **params)
     _one_line(str(info.value.code), names)
     assert str(info.value.code).startswith("drone-train: error: hydra.launcher.")
 

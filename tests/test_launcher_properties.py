@@ -10,8 +10,8 @@ checks the config schema.
 - Accepted settings are usable: PBT's explore step keeps every value on the searched list, or inside
   the searched range and finite; a halving search either fits its budget and population or is
   refused naming the key; its first rung is the first step due.
-- Any ``hydra.launcher.<name>`` on drone-train's command line (the population launchers take no key,
-  the search launchers theirs): accepted exactly when the launcher has the key, else one line naming
+- Any ``hydra.launcher.<name>`` on drone-train's command line (the population launcher takes
+  ``search``, ``fused`` ``folders``, the search launchers ``search`` and theirs): accepted exactly when the launcher has the key, else one line naming
   the override and the launcher (:func:`drone_torchrl.command_line.check_launcher_keys`).
 
 No training: each example checks settings and one explore step (a few ms).
@@ -208,12 +208,13 @@ def test_a_replay_of_anything_but_a_finished_search_is_refused_in_one_line(run, 
     assert str(info.value).startswith("hydra.launcher.run="), str(info.value)
 
 
+# One launcher, preset: its search (the fused option: its folders) and the search's keys.
 LAUNCHER_KEYS = {
-    "population": [],
-    "fused": [],
-    "pbt": list(PBT_VALUES),
-    "halving": list(HALVING_VALUES),
-    "pbt_replay": ["run", "agent"],
+    "population": ["search"],
+    "fused": ["folders"],
+    "pbt": ["search", *PBT_VALUES],
+    "halving": ["search", *HALVING_VALUES],
+    "pbt_replay": ["search", "run", "agent"],
 }
 
 

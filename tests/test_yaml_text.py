@@ -6,7 +6,7 @@ from omegaconf import OmegaConf
 
 from drone_torchrl.config import config_dir
 from drone_torchrl.io.yaml_text import save_yaml, to_yaml
-from hydra_plugins.drone_torchrl_launcher.fused_launcher import _JobReturn
+from hydra_plugins.drone_torchrl_launcher.population_launcher import _JobReturn
 
 AWKWARD = {
     "number_like": ["1e-3", "0x1F", "3.0", "1_000", ".5", "-7"],

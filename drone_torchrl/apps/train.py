@@ -154,25 +154,10 @@ def register_plugins() -> None:
     from hydra.core.plugins import Plugins
 
     from hydra_plugins.drone_torchrl_launcher import slurm_launcher
-    from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
-    from hydra_plugins.drone_torchrl_launcher.population_launcher import (
-        HalvingLauncher,
-        PB2Launcher,
-        PBTLauncher,
-        PBTReplayLauncher,
-        PopulationLauncher,
-    )
+    from hydra_plugins.drone_torchrl_launcher.population_launcher import PopulationLauncher
     from hydra_plugins.drone_torchrl_launcher.population_sweeper import PopulationSweeper
 
-    plugins = [
-        FusedLauncher,
-        PopulationLauncher,
-        PBTLauncher,
-        PB2Launcher,
-        PBTReplayLauncher,
-        HalvingLauncher,
-        PopulationSweeper,
-    ]
+    plugins = [PopulationLauncher, PopulationSweeper]
     for plugin in plugins + list(slurm_launcher.PLUGINS):  # the SLURM ones with the submitit extra
         Plugins.instance().register(plugin)
 

@@ -38,13 +38,13 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
 
-from drone_torchrl.training.pbt import PBT, PBTSettings
+from drone_torchrl.training.pbt import PBT, Exploit, PBTSettings
 
 #: The grid of the model's length scale (in positions in [0, 1]).
 LENGTH_SCALES = (0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
@@ -65,14 +65,8 @@ class PB2Settings(PBTSettings):
     ``perturb`` and ``resample_probability`` are PBT's random explore: PB2 has none.
     """
 
-    def record(self) -> dict[str, Any]:
-        """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
-        record = {"launcher": "pb2", **asdict(self)}
-        for unused in ("perturb", "resample_probability"):
-            del record[unused]
-        if not self.ranges:
-            del record["ranges"]
-        return record
+    launcher: ClassVar[str] = "pb2"
+    unused: ClassVar[tuple[str, ...]] = ("perturb", "resample_probability")
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PB2:
         """The search of a population (``saved``: what its checkpoint holds of it, or None)."""
@@ -165,27 +159,20 @@ class PB2(PBT):
             self.points.append([self.position(key, self.current[key][i]) for key in self.settings.keys])
             self.changes.append(change)
 
-    def choose(
-        self,
-        worst: np.ndarray,
-        parents: np.ndarray,
-        scores: Sequence[float],
-        alive: Sequence[bool],
-        update: int,
-        rng: np.random.Generator,
-    ) -> dict[str, np.ndarray]:
-        """Each of the ``worst`` agents' next values: the candidate of the highest upper confidence bound."""
-        step = update // self.settings.every_updates
-        self.observe(scores, alive, step)
+    def choose(self, step: Exploit) -> dict[str, np.ndarray]:
+        """Each replaced agent's next values: the candidate of the highest upper confidence bound."""
+        worst, scores = step.worst, step.scores
+        number = step.update // self.settings.every_updates
+        self.observe(scores, step.alive, number)
         after = [float(s) if math.isfinite(s) else math.nan for s in scores]
-        for agent, parent in zip(worst.tolist(), parents.tolist(), strict=True):
+        for agent, parent in zip(worst.tolist(), step.parents.tolist(), strict=True):
             after[agent] = after[parent]  # the copied window: the agent goes on from its parent's return
         self.before = after
         keys = self.settings.keys
         kept = [
             i
             for i in range(len(scores))
-            if alive[i] and i not in set(worst.tolist()) and math.isfinite(scores[i])
+            if step.alive[i] and i not in set(worst.tolist()) and math.isfinite(scores[i])
         ]
         pending = [[self.position(k, self.current[k][i]) for k in keys] for i in kept]
         threads = torch.get_num_threads()
@@ -193,7 +180,7 @@ class PB2(PBT):
         # trainer's were 12x slower on 2 cores (a 350-point fit: 10.5 s on 2 threads, 0.85 s on 1).
         torch.set_num_threads(1)
         try:
-            return self._choose(keys, pending, worst, step, rng)
+            return self._choose(keys, pending, worst, number, step.rng)
         finally:
             torch.set_num_threads(threads)
 
@@ -273,24 +260,23 @@ class Model:
         steps = np.concatenate([self.steps, np.full(len(pending), float(step))])
         points = np.concatenate([self.points.reshape(-1, options.shape[1]), pending])
         if len(steps):
-            factor = torch.linalg.cholesky(
-                self.kernel(steps, points, steps, points)
-                + self.noise * torch.eye(len(steps), dtype=torch.float64)
-            )
+            factor = self._factor(steps, points)
             v = torch.linalg.solve_triangular(factor, self.kernel(steps, points, at, options), upper=False)
             variance = torch.clamp(1.0 - (v**2).sum(dim=0), min=0.0).numpy()
         else:
             variance = np.ones(len(options))
         if self.targets.size == 0:  # nothing known yet: as far as possible from where agents train
             return variance
-        factor = torch.linalg.cholesky(
-            self.kernel(self.steps, self.points, self.steps, self.points)
-            + self.noise * torch.eye(len(self.targets), dtype=torch.float64)
-        )
+        factor = self._factor(self.steps, self.points)
         weights = torch.cholesky_solve(torch.as_tensor(self.targets, dtype=torch.float64)[:, None], factor)
         mean = (self.kernel(self.steps, self.points, at, options).T @ weights)[:, 0].numpy()
         kappa = math.sqrt(max(0.0, 0.2 * math.log(0.4 * self.targets.size)))
         return mean + kappa * variance
+
+    def _factor(self, steps: np.ndarray, points: np.ndarray) -> torch.Tensor:
+        """The Cholesky factor of the points' covariance with the noise on its diagonal."""
+        noise = self.noise * torch.eye(len(steps), dtype=torch.float64)
+        return torch.linalg.cholesky(self.kernel(steps, points, steps, points) + noise)
 
 
 def _distances(

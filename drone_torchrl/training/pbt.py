@@ -35,7 +35,7 @@ import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 import torch
@@ -111,6 +111,9 @@ class PBTSettings:
     resample_probability: float = 0.25
     keys: tuple[str, ...] = field(default=("algo.lr", "algo.gamma"))
     ranges: tuple[Range, ...] = ()
+    #: The search's name in a checkpoint, and the settings it does not use (left out of its record).
+    launcher: ClassVar[str] = "pbt"
+    unused: ClassVar[tuple[str, ...]] = ()
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> PBTSettings:
@@ -144,10 +147,10 @@ class PBTSettings:
 
     def record(self) -> dict[str, Any]:
         """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
-        record = {"launcher": "pbt", **asdict(self)}
+        record = {"launcher": self.launcher, **asdict(self)}
         # A list-only search records no ranges: its record is the one runs made before ranges existed.
-        if not self.ranges:
-            del record["ranges"]
+        for unused in (*self.unused, *(() if self.ranges else ("ranges",))):
+            del record[unused]
         return record
 
     def check(self, cfg: Any, agents: int) -> None:
@@ -378,6 +381,26 @@ def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
     return tuple(keys)
 
 
+class Exploit(NamedTuple):
+    """One exploit step, as its explore step (:meth:`PBT.choose`) sees it.
+
+    Attributes:
+        worst: the agents replaced.
+        parents: each one's parent (the agent whose rows it copied).
+        scores: every agent's running-mean return.
+        alive: whether each agent takes part.
+        update: the updates done.
+        rng: the step's generator (keyed by the first agent's seed and ``update``).
+    """
+
+    worst: np.ndarray
+    parents: np.ndarray
+    scores: Sequence[float]
+    alive: Sequence[bool]
+    update: int
+    rng: np.random.Generator
+
+
 class PBT(Search):
     """The exploit and explore steps of one population run.
 
@@ -438,22 +461,15 @@ class PBT(Search):
             for key in state.keys():  # noqa: SIM118  (a TensorDict iterates over its rows)
                 if key not in ("seed", "counter"):  # an agent keeps its own noise and update count
                     state[key][rows] = state[key][sources]
-        new = self.choose(worst, parents, scores, alive, update, rng)
+        new = self.choose(Exploit(worst, parents, scores, alive, update, rng))
         self._set(state, update, worst.tolist(), parents.tolist(), new)
         return list(zip(worst.tolist(), parents.tolist(), strict=True))
 
-    def choose(
-        self,
-        worst: np.ndarray,
-        parents: np.ndarray,
-        scores: Sequence[float],
-        alive: Sequence[bool],
-        update: int,
-        rng: np.random.Generator,
-    ) -> dict[str, np.ndarray]:
-        """The values the ``worst`` agents train with next (key -> one per agent): each explored from its parent's."""
+    def choose(self, step: Exploit) -> dict[str, np.ndarray]:
+        """The values the replaced agents train with next (key -> one per agent): each explored from its parent's."""
+        current, rng = self.current, step.rng
         return {
-            key: self.explore(key, np.array(self.current[key])[parents], rng) for key in self.settings.keys
+            key: self.explore(key, np.array(current[key])[step.parents], rng) for key in self.settings.keys
         }
 
     def explore(self, key: str, values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -562,10 +578,7 @@ class ReplaySettings:
         :class:`~.checks.ConfigError` (one line) when the run replayed has changed since (another
         run written in its folder): its agent's schedule is no longer the one this replay follows.
         """
-        if saved.get("launcher") != "pbt_replay" or (saved.get("run"), saved.get("agent")) != (
-            self.run,
-            self.agent,
-        ):
+        if [saved.get(key) for key in ("launcher", "run", "agent")] != ["pbt_replay", self.run, self.agent]:
             return  # another search: the caller's comparison names both
         if "schedule" in saved and saved["schedule"] != self.record()["schedule"]:
             raise ConfigError.of(

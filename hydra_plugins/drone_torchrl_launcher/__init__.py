@@ -1,1 +1,1 @@
-"""Hydra launcher ``fused``: runs the jobs of a multirun as one batch of agents in one process."""
+"""Our Hydra plug-ins: one launcher that trains a sweep as one batch (``fused``, ``population`` and the searches), the population sweeper, and the SLURM launchers."""

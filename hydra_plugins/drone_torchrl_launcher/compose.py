@@ -140,6 +140,18 @@ def agent_columns(
     return template, hydra, values
 
 
+def checked(cfg: DictConfig, values: dict[str, list] | None = None) -> None:
+    """A job's config (or a population's, ``values`` each agent's) as a single run takes it: old
+    keys migrated to today's, then every value checked (:class:`~drone_torchrl.checks.ConfigError`)."""
+    from drone_torchrl import migrations
+    from drone_torchrl.config import check_agent_values, validate
+
+    migrations.apply_legacy(cfg)
+    validate(cfg)
+    if values is not None:
+        check_agent_values(cfg, values)
+
+
 def _number(text: str) -> int | float | None:
     """``text`` as Hydra reads it, if it is a plainly written int or float."""
     if _INT.fullmatch(text):

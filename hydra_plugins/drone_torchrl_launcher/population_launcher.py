@@ -1,33 +1,61 @@
-"""``hydra/launcher=population``: each group of a sweep's jobs trained as ONE population run, in ONE folder.
+"""The one launcher of a sweep trained as one batch: ``hydra/launcher=population``, ``fused`` and the searches.
 
-The fused launcher gives every job its folder (lock, ``.hydra/``, CSV, logger, checkpoints); at
-tens of thousands of agents that bookkeeping is most of the work. Here the jobs are grouped as the
-fused launcher groups them (configs equal but for the per-agent keys: ``seed``, ``algo.lr``,
-``algo.gamma``, ``algo.weight_decay``); each group becomes one population run
-(:mod:`drone_torchrl.training.population_record`) in ``<hydra.sweep.dir>/population_<g>``, with one
-``.hydra/`` record (``config.yaml``: the group's first job, ``overrides.yaml``: every job's
-overrides). Running the same command again continues each population from its checkpoint
-(finished ones return at once). Each job's Hydra return value is its agent's final running-mean
-return, as under the other launchers.
+Its keys (``conf/hydra/launcher/population.yaml``; each other option there is it with keys preset):
+
+- ``search``: ``none``, ``pbt``, ``pb2``, ``halving`` or ``replay`` (:data:`SEARCHES`); the search's
+  own settings are the launcher's other keys (``hydra/launcher=pbt``, ``pb2``, ``halving`` and
+  ``pbt_replay`` preset ``search`` and them), read by its settings class in
+  :mod:`drone_torchrl.training.pbt` / :mod:`~drone_torchrl.training.pb2`.
+- ``folders``: ``population`` (the default): the jobs are grouped as ``fused`` groups them (configs
+  equal but for the per-agent keys: ``seed``, ``algo.lr``, ``algo.gamma``, ``algo.weight_decay``);
+  each group becomes one population run (:mod:`drone_torchrl.training.population_record`) in
+  ``<hydra.sweep.dir>/population_<g>``, with one ``.hydra/`` record (``config.yaml``: the group's
+  first job, ``overrides.yaml``: every job's overrides). Running the same command again continues
+  each population from its checkpoint (finished ones return at once). ``job``
+  (``hydra/launcher=fused``, no search): every job keeps its own folder, lock, ``.hydra/``, CSV,
+  logger and checkpoints (:func:`train_populations`, which ``slurm_population`` runs in each of
+  its SLURM jobs); at tens of thousands of agents that bookkeeping is most of the work.
+
+Job folders (``folders=job``): Hydra's launchers run one job per process (or one after another).
+REINFORCE on this drone is so small that a job spends its time in per-step overhead, not
+arithmetic, so :func:`train_populations` gives each job its folder, ``.hydra/`` record
+(``config.yaml``, ``hydra.yaml``, ``overrides.yaml``) and log file like the basic launcher, and then
+trains all compatible jobs as one population with ``backend=fast``
+(:func:`drone_torchrl.training.trainer.train_jobs`; a learner that trains one agent at a time,
+PPO's or the reference's, trains them one after another). Each job still ends with its own CSV,
+TensorBoard run and checkpoints, so ``drone-report`` and ``resume`` work unchanged. It sets the
+folders up itself (``_job_folder()``) instead of through Hydra's ``run_job``: that one deep-copies
+the whole config (Hydra's part included) four times and re-configures logging per job, a large
+part of a sweep of small jobs; here nothing runs inside a job until training, so it only needs the
+files. A job that fails is reported as failed (Hydra then exits non-zero after printing the sweep
+summary); the other jobs still train. A job that repeats an earlier one (the same folder, e.g.
+``seed=0,0``) is trained once and both report its outcome, as with the basic launcher, whose second
+run would find the job finished.
+
+Each job's Hydra return value is its agent's final running-mean return, under any launcher.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, NamedTuple
 
-from hydra.core.utils import JobReturn, JobStatus, configure_log, setup_globals
-from omegaconf import OmegaConf, open_dict, read_write
+from hydra.core.utils import JobReturn, JobStatus, configure_log, filter_overrides, setup_globals
+from hydra.errors import CompactHydraException
+from hydra.plugins.launcher import Launcher
+from hydra.types import HydraContext, TaskFunction
+from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
-from drone_torchrl.checks import ConfigError
+from drone_torchrl.checks import ConfigError, as_override
 from drone_torchrl.io.storage import write_atomically
 from drone_torchrl.io.yaml_text import save_yaml
-from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher, JobFailed, _JobReturn
 
 if TYPE_CHECKING:
     from drone_torchrl.training.agents import AgentTable
@@ -36,12 +64,179 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 POPULATION_DIR = "population_{}"
+#: Each search's settings class (``module:class``; the plug-in imports no training code until it runs):
+#: its fields are the search's ``hydra.launcher`` keys (but those it derives, and its ``unused``).
+SEARCHES = {
+    "pbt": "drone_torchrl.training.pbt:PBTSettings",
+    "pb2": "drone_torchrl.training.pb2:PB2Settings",
+    "halving": "drone_torchrl.training.pbt:HalvingSettings",
+    "replay": "drone_torchrl.training.pbt:ReplaySettings",
+}
 
 
-class PopulationLauncher(FusedLauncher):
-    search: SearchSettings | None = None
-    # The plan of each batch checked before the sweep folder was written (:meth:`check`), by its jobs.
-    _plans: dict[tuple[tuple[str, ...], ...], _Plan]
+class JobFailed(CompactHydraException):
+    """A job of a fused sweep that failed: one line (the traceback is in ``<job>/FAILED.txt``)."""
+
+
+class _JobReturn(JobReturn):
+    """A ``JobReturn`` whose ``hydra_cfg`` is built from its plain container when first read: nothing
+    here reads it, and building a ``DictConfig`` of Hydra's node took a third of a job's set-up."""
+
+    _hydra_container: dict | None = None
+    _hydra_cfg: DictConfig | None = None
+
+    @property  # type: ignore[override]
+    def hydra_cfg(self) -> DictConfig | None:
+        if self._hydra_cfg is None and self._hydra_container is not None:
+            self._hydra_cfg = OmegaConf.create(self._hydra_container)
+        return self._hydra_cfg
+
+    @hydra_cfg.setter
+    def hydra_cfg(self, value: DictConfig | None) -> None:
+        self._hydra_cfg = value
+
+
+def job_output_dir(cfg: DictConfig, idx: int) -> str:
+    """Job number ``idx``'s folder (``hydra.sweep.dir``/``hydra.sweep.subdir``, absolute); sets the
+    job's number and id in ``cfg``'s ``hydra`` node first, as the subdir may name them."""
+    with read_write(cfg), open_dict(cfg):
+        cfg.hydra.job.id = cfg.hydra.job.num = idx
+        subdir = str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
+    return os.path.abspath(os.path.join(str(cfg.hydra.sweep.dir), subdir))
+
+
+def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple[JobReturn, Path]:
+    """The job's folder with what Hydra's ``run_job`` writes before it calls the task: ``.hydra/``
+    and the (empty) job log; returns the job's ``JobReturn`` and folder. ``cfg`` (this job's own
+    config; its ``hydra`` node may be shared with other jobs) loses its ``hydra`` node: the returned
+    ``JobReturn.cfg`` is the job's config. Hydra callbacks' ``on_job_start`` get the job's whole
+    config; its ``hydra`` node may be rewritten for the next job afterwards (keep a copy, not it)."""
+    with read_write(cfg), open_dict(cfg):
+        output_dir = job_output_dir(cfg, idx)
+        cfg.hydra.runtime.output_dir = output_dir
+        log_file = OmegaConf.select(cfg, "hydra.job_logging.handlers.file.filename", default=None)
+        hydra_cfg = _hydra_record(cfg.hydra)
+        ret = _JobReturn(overrides=list(cfg.hydra.overrides.task), working_dir=os.getcwd())
+        ret.task_name = cfg.hydra.job.name
+        output_subdir = cfg.hydra.output_subdir
+        hydra_context.callbacks.on_job_start(config=cfg, task_function=None)
+        del cfg["hydra"]
+    ret.cfg, ret._hydra_container = cfg, hydra_cfg
+    Path(output_dir).mkdir(parents=True, exist_ok=True)
+    if output_subdir is not None:
+        record = Path(output_dir) / output_subdir
+        record.mkdir(exist_ok=True)
+        save_yaml(cfg, record / "config.yaml")
+        save_yaml(hydra_cfg, record / "hydra.yaml")
+        save_yaml(ret.overrides, record / "overrides.yaml")
+    if log_file is not None:
+        Path(log_file).touch()
+    return ret, Path(output_dir)
+
+
+def train_populations(
+    hydra_context: HydraContext,
+    config: DictConfig,
+    job_overrides: Sequence[Sequence[str]],
+    job_numbers: Sequence[int],
+    validated: bool = False,
+) -> list[JobReturn]:
+    """Set up the jobs' folders and train them, those that can share a population together (in this
+    process); one ``JobReturn`` per job. The fused launcher runs it on this machine, the
+    ``slurm_population`` launcher inside each of its SLURM jobs. ``job_numbers``: each job's Hydra
+    job number (``hydra.job.num``). ``validated``: the sweeper has validated every job's config on
+    this machine (then :func:`~drone_torchrl.training.jobs.prepare` does not again)."""
+    from drone_torchrl.config import ConfigError
+    from drone_torchrl.io import run_lock
+    from drone_torchrl.training.jobs import prepare, record_failure
+    from drone_torchrl.training.trainer import Outcome, train_jobs
+    from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+
+    Path(str(config.hydra.sweep.dir)).mkdir(parents=True, exist_ok=True)
+    log.info(f"Launching {len(job_overrides)} jobs as populations")
+    # Per job: its prepared Job, its Outcome if it failed before training, or, for a job that repeats
+    # an earlier one (seed=0,0: the same folder), the earlier one's position: it trains once.
+    jobs: list = []
+    folders: dict[Path, int] = {}  # run folder -> the position of the job that owns it
+    returns: list[JobReturn] = []
+    configs = sweep_configs(hydra_context.config_loader, config, job_overrides)
+    for position, (idx, overrides, sweep_config) in enumerate(
+        zip(job_numbers, job_overrides, configs, strict=True)
+    ):
+        log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
+        folder = job_output_dir(sweep_config, idx)
+        try:
+            run_lock.hold(folder)  # the job's folder is this process's before anything is written into it
+        except (ConfigError, OSError) as err:
+            print(f"{folder}: job not started: {err}")
+            ret = _JobReturn(overrides=list(overrides))
+            ret.cfg = sweep_config
+            returns.append(ret)
+            jobs.append(Outcome(Path(folder), error=err))
+            continue
+        ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
+        returns.append(ret)
+        if run_dir in folders:
+            first = job_numbers[folders[run_dir]]
+            print(f"{run_dir}: job #{idx} is job #{first} again (the same folder); trained once")
+            jobs.append(folders[run_dir])
+            continue
+        folders[run_dir] = position
+        # Training comes later, for all jobs at once; here each job is checked and registered.
+        try:
+            jobs.append(prepare(ret.cfg, run_dir, requested=overrides, validated=validated))
+        except Exception as err:  # noqa: BLE001  (recorded; the other jobs go on)
+            print(f"{run_dir}: job failed: {record_failure(run_dir, err)}")
+            jobs.append(Outcome(run_dir, error=err))
+    try:
+        trained = iter(train_jobs([j for j in jobs if not isinstance(j, Outcome | int)]))
+    finally:
+        for run_dir in folders:  # jobs refused before training are let go too
+            run_lock.release(run_dir)
+    outcomes: list[Outcome] = []
+    for job in jobs:
+        outcomes.append(
+            outcomes[job] if isinstance(job, int) else job if isinstance(job, Outcome) else next(trained)
+        )
+    for ret, outcome in zip(returns, outcomes, strict=True):
+        _report(ret, outcome)
+        hydra_context.callbacks.on_job_end(config=ret.cfg, job_return=ret)
+    return returns
+
+
+def _hydra_record(hydra: DictConfig) -> dict:
+    """What ``.hydra/hydra.yaml`` holds of a job's ``hydra`` node: the node as written, unresolved."""
+    return {"hydra": OmegaConf.to_container(hydra, resolve=False, enum_to_str=True)}
+
+
+def _report(ret: JobReturn, outcome: Any) -> None:
+    """Set a job's Hydra status and return value from its :class:`~drone_torchrl.training.trainer.Outcome`."""
+    if outcome.error is None:
+        ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
+    else:
+        reason = f"{type(outcome.error).__name__}: {outcome.error}"
+        ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
+
+
+class PopulationLauncher(Launcher):
+    """A sweep trained as one batch (the module's docstring); ``settings``: the search's keys."""
+
+    config: DictConfig | None = None
+    hydra_context: HydraContext | None = None
+    task_function: TaskFunction | None = None
+
+    def __init__(self, search: str = "none", folders: str = "population", **settings: Any) -> None:
+        self.per_job = folders == "job"
+        # The plan of each batch checked before the sweep folder was written (:meth:`check`), by its jobs.
+        self._plans: dict[tuple[tuple[str, ...], ...], _Plan] = {}
+        self.replay = search == "replay"
+        try:
+            self.search: SearchSettings | None = _settings(search, folders, settings)
+        except ConfigError as err:  # Hydra makes it before any job starts: one line, nothing written
+            sys.exit(f"drone-train: error: {err}")
+
+    def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
+        self.config, self.hydra_context, self.task_function = config, hydra_context, task_function
 
     def check(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> None:
         """Compose, group and check a batch's jobs as :meth:`launch` will train them, before any folder.
@@ -50,26 +245,39 @@ class PopulationLauncher(FusedLauncher):
         a job's values, or what :func:`~drone_torchrl.training.trainer.check_population` refuses
         (learner, budget, memory, a search the budget or the population cannot hold). The hydra/sweeper
         =population sweeper calls it for every batch before it writes the sweep folder; the plan is
-        kept for :meth:`launch`.
+        kept for :meth:`launch`. Jobs in folders of their own (``folders=job``) are each checked by the sweeper.
         """
         from drone_torchrl.training.trainer import check_population
 
+        if self.per_job:
+            return
         plan = self._plan(job_overrides, initial_job_idx)
         if plan.refused:
-            raise plan.refused[0][1]
+            raise plan.refused[0]
         for agents, _ in plan.groups:
             check_population(agents, self.search)
-        self._plans = {**getattr(self, "_plans", {}), _jobs(job_overrides): plan}
+        self._plans[_jobs(job_overrides)] = plan
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+        from drone_torchrl.training.jobs import sweep_summary
         from drone_torchrl.training.trainer import Outcome, train_population
 
         setup_globals()
         assert self.config is not None and self.hydra_context is not None
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
+        if self.per_job:
+            # hydra/sweeper=population validates every job's config before launching its batch, and
+            # prints the end-of-sweep summary itself.
+            validated = str(self.config.hydra.sweeper._target_).endswith("PopulationSweeper")
+            numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
+            returns = train_populations(self.hydra_context, self.config, job_overrides, numbers, validated)
+            if not validated and any(ret.status == JobStatus.FAILED for ret in returns):
+                # Another sweeper stops at the first failed job and skips the end-of-sweep summary.
+                print(sweep_summary(Path(str(self.config.hydra.sweep.dir))))
+            return returns
         sweep_dir = Path(str(self.config.hydra.sweep.dir)).absolute()
         log.info(f"Launching {len(job_overrides)} jobs as population runs in {sweep_dir}")
-        plan = getattr(self, "_plans", {}).pop(_jobs(job_overrides), None)
+        plan = self._plans.pop(_jobs(job_overrides), None)
         try:  # unless checked before: another sweeper than hydra/sweeper=population
             plan = plan or self._plan(job_overrides, initial_job_idx)
         except ConfigError as err:
@@ -80,7 +288,7 @@ class PopulationLauncher(FusedLauncher):
             )
         returns = plan.returns
         outcomes = [None if e is None else Outcome(sweep_dir, error=e) for e in plan.errors]
-        refused = [err for _, err in plan.refused]
+        refused = list(plan.refused)
         for number, (agents, members) in enumerate(plan.groups):
             run_dir = sweep_dir / POPULATION_DIR.format(number)
             names = [" ".join(job_overrides[i]) for i in members]
@@ -103,12 +311,7 @@ class PopulationLauncher(FusedLauncher):
             for i, outcome in zip(members, done, strict=True):
                 outcomes[i] = outcome
         for ret, outcome in zip(returns, outcomes, strict=True):
-            assert outcome is not None
-            if outcome.error is None:
-                ret.status, ret.return_value = JobStatus.COMPLETED, outcome.final_return
-            else:
-                reason = f"{type(outcome.error).__name__}: {outcome.error}"
-                ret.status, ret.return_value = JobStatus.FAILED, JobFailed(f"{outcome.run_dir}: {reason}")
+            _report(ret, outcome)
         if refused:  # no folder for the sweep's summary to count: a failure all the same, in one line
             others = (
                 f" ({len(refused) - 1} other population run(s) not started too)" if len(refused) > 1 else ""
@@ -123,15 +326,13 @@ class PopulationLauncher(FusedLauncher):
         one_table = self._one_table(job_overrides, returns)
         hydra_record, groups = one_table or self._tables(job_overrides, returns, errors)
         refused = [
-            (i, ConfigError(f"job #{initial_job_idx + i} ({' '.join(job_overrides[i])}): {err}"))
+            ConfigError(f"job #{initial_job_idx + i} ({' '.join(job_overrides[i])}): {err}")
             for i, err in enumerate(errors)
             if err is not None
         ]
-        self._check_jobs(job_overrides)
+        if self.replay:
+            _refuse_scheduled_keys(self.search, job_overrides)
         return _Plan(hydra_record, groups, returns, errors, refused, one_table is not None)
-
-    def _check_jobs(self, job_overrides: Sequence[Sequence[str]]) -> None:
-        """What this launcher refuses of the jobs' overrides themselves (:class:`ConfigError`); none here."""
 
     def _one_table(
         self, job_overrides: Sequence[Sequence[str]], returns: list[JobReturn]
@@ -139,10 +340,9 @@ class PopulationLauncher(FusedLauncher):
         """Jobs that differ only in numbers of the per-agent keys, and whose values all pass: one
         population from one config (:func:`.compose.agent_columns`), no config per job; else None.
         Each job's ``JobReturn.cfg`` is then the group's config (its own values: ``agents.parquet``)."""
-        from drone_torchrl import migrations
-        from drone_torchrl.config import check_agent_values, per_agent_keys, validate
+        from drone_torchrl.config import per_agent_keys
         from drone_torchrl.training.agents import AgentTable
-        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns
+        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, checked
 
         assert self.config is not None and self.hydra_context is not None
         table = agent_columns(self.hydra_context.config_loader, self.config, job_overrides, per_agent_keys())
@@ -150,14 +350,12 @@ class PopulationLauncher(FusedLauncher):
             return None
         cfg, hydra, values = table
         try:
-            migrations.apply_legacy(cfg)  # old keys mean what they mean in a single run
-            validate(cfg)
-            check_agent_values(cfg, values)
+            checked(cfg, values)
         except ConfigError:  # the per-job path says which jobs, and trains the others
             return None
         for ret in returns:
             ret.cfg = cfg
-        hydra_record = {"hydra": OmegaConf.to_container(hydra, resolve=False, enum_to_str=True)}
+        hydra_record = _hydra_record(hydra)
         return hydra_record, [(AgentTable(cfg, values), list(range(len(job_overrides))))]
 
     def _tables(
@@ -165,11 +363,9 @@ class PopulationLauncher(FusedLauncher):
     ) -> tuple[dict | None, list[tuple[AgentTable, list[int]]]]:
         """Each job's config composed and checked (a bad one's error in ``errors``), then grouped as the
         fused launcher groups jobs: one agent table per group."""
-        from drone_torchrl import migrations
-        from drone_torchrl.config import validate
         from drone_torchrl.training.agents import AgentTable
         from drone_torchrl.training.jobs import group_key
-        from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+        from hydra_plugins.drone_torchrl_launcher.compose import checked, sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
         groups: dict[str, list[int]] = {}
@@ -177,15 +373,11 @@ class PopulationLauncher(FusedLauncher):
         configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
         for position, cfg in enumerate(configs):
             with read_write(cfg), open_dict(cfg):
-                if hydra_record is None:
-                    hydra_record = {
-                        "hydra": OmegaConf.to_container(cfg.hydra, resolve=False, enum_to_str=True)
-                    }
+                hydra_record = hydra_record or _hydra_record(cfg.hydra)
                 del cfg["hydra"]
             returns[position].cfg = cfg
             try:
-                migrations.apply_legacy(cfg)  # old keys mean what they mean in a single run
-                validate(cfg)
+                checked(cfg)
             except ConfigError as err:
                 errors[position] = err
                 continue
@@ -197,14 +389,14 @@ class PopulationLauncher(FusedLauncher):
 class _Plan(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this module outside sys.modules
     """A batch as :meth:`PopulationLauncher.launch` trains it: Hydra's record, the groups (an agent table
     and its jobs' positions), each job's ``JobReturn``, each job's refusal (or None), and the refusals
-    as ``(position, one-line error naming the job)``; ``one_config``: the jobs differ only in per-agent
+    as one-line errors naming their jobs; ``one_config``: the jobs differ only in per-agent
     numbers (one config, :func:`.compose.agent_columns`)."""
 
     hydra_record: dict | None
     groups: list[tuple[AgentTable, list[int]]]
     returns: list[JobReturn]
     errors: list[ConfigError | None]
-    refused: list[tuple[int, ConfigError]]
+    refused: list[ConfigError]
     one_config: bool
 
 
@@ -213,66 +405,43 @@ def _jobs(job_overrides: Sequence[Sequence[str]]) -> tuple[tuple[str, ...], ...]
     return tuple(tuple(job) for job in job_overrides)
 
 
-class _SearchLauncher(PopulationLauncher):
-    """A population launcher whose runs search (:mod:`drone_torchrl.training.pbt`): its settings
-    class (by name: the plug-in module imports no training code until it runs) reads
-    ``hydra.launcher.*``."""
-
-    settings_class = ""
-    settings_module = "drone_torchrl.training.pbt"
-
-    def __init__(self, **params: Any) -> None:
-        super().__init__()
-        try:
-            self.search = getattr(importlib.import_module(self.settings_module), self.settings_class).of(
-                params
+def _settings(search: Any, folders: Any, settings: dict[str, Any]) -> SearchSettings | None:
+    """The search's settings from the launcher's keys, each checked (:class:`ConfigError`, one line)."""
+    if folders not in ("population", "job"):
+        expected = "population (a folder per population run) or job (a folder per job)"
+        raise ConfigError(f"hydra.launcher.folders={_typed(folders)} is not allowed; expected {expected}")
+    if search != "none" and (not isinstance(search, str) or search not in SEARCHES or folders == "job"):
+        expected = (
+            "none with hydra.launcher.folders=job" if folders == "job" else "none, " + ", ".join(SEARCHES)
+        )
+        raise ConfigError(f"hydra.launcher.search={_typed(search)} is not allowed; expected {expected}")
+    module, _, name = SEARCHES.get(search, "").partition(":")
+    settings_class = getattr(importlib.import_module(module), name) if module else None
+    derived = ("ranges", "schedule", *getattr(settings_class, "unused", ()))
+    keys = [f.name for f in dataclasses.fields(settings_class) if f.name not in derived] if module else []
+    for key, value in settings.items():
+        if key not in keys:
+            raise ConfigError(
+                f"hydra.launcher.{key}={_typed(value)} is not allowed: hydra.launcher.search={search} has no key "
+                f"{key!r}; its keys: {', '.join(sorted(keys)) or 'none'}"
             )
-        except ConfigError as err:  # Hydra makes it before any job starts: one line, nothing written
-            sys.exit(f"drone-train: error: {err}")
+    return settings_class.of(settings) if settings_class else None
 
 
-class PBTLauncher(_SearchLauncher):
-    """``hydra/launcher=pbt``: each population run trained with population-based training.
-
-    A searched key given as a list moves among the list's values; one given as a range
-    (``interval``, drawn per agent by the population sweeper) is multiplied by ``perturb`` and
-    clipped to the range.
-    """
-
-    settings_class = "PBTSettings"
+def _typed(value: Any) -> str:
+    """``value`` as the command line gives it (a string as it is, null as null)."""
+    return value if isinstance(value, str) else as_override(value)
 
 
-class PB2Launcher(_SearchLauncher):
-    """``hydra/launcher=pb2``: each population run trained with population-based bandits (PBT whose
-    explore step is chosen by a Gaussian process, :mod:`drone_torchrl.training.pb2`)."""
-
-    settings_class = "PB2Settings"
-    settings_module = "drone_torchrl.training.pb2"
-
-
-class PBTReplayLauncher(_SearchLauncher):
-    """``hydra/launcher=pbt_replay``: each agent trained with the values one agent of a PBT run had,
-    at the updates it had them (``hydra.launcher.run``, ``hydra.launcher.agent``): a PBT result
-    retrained on fresh seeds."""
-
-    settings_class = "ReplaySettings"
-
-    def _check_jobs(self, job_overrides: Sequence[Sequence[str]]) -> None:
-        """Refuse a job that sets a key the replayed schedule sets: its value would never be used."""
-        assert self.search is not None
-        scheduled = {key for _, values in self.search.schedule for key, _ in values}
-        for job in job_overrides:
-            for line in job:
-                key = line.partition("=")[0].lstrip("+~")
-                if key in scheduled:
-                    raise ConfigError(
-                        f"{line} is not allowed with hydra/launcher=pbt_replay: the replayed schedule sets "
-                        f"{', '.join(sorted(scheduled))} (agent {self.search.agent} of {self.search.run}); "
-                        f"expected no {key}= (sweep seed= and the keys the schedule leaves)"
-                    )
-
-
-class HalvingLauncher(_SearchLauncher):
-    """``hydra/launcher=halving``: each population run trained with successive halving."""
-
-    settings_class = "HalvingSettings"
+def _refuse_scheduled_keys(search: Any, job_overrides: Sequence[Sequence[str]]) -> None:
+    """Refuse a job of a replay that sets a key the replayed schedule sets: its value would never be used."""
+    scheduled = {key for _, values in search.schedule for key, _ in values}
+    for job in job_overrides:
+        for line in job:
+            key = line.partition("=")[0].lstrip("+~")
+            if key in scheduled:
+                raise ConfigError(
+                    f"{line} is not allowed with hydra/launcher=pbt_replay: the replayed schedule sets "
+                    f"{', '.join(sorted(scheduled))} (agent {search.agent} of {search.run}); "
+                    f"expected no {key}= (sweep seed= and the keys the schedule leaves)"
+                )

@@ -146,10 +146,8 @@ class PopulationSweeper(Sweeper):
     def _check_batch(self, batch: Sequence[Sequence[str]]) -> None:
         """Every job composes, and every job's values pass the config checks: a bad value in a
         sweep is one line before any job folder exists, not a failed job per value."""
-        from drone_torchrl import migrations
-        from drone_torchrl.checks import ConfigError
-        from drone_torchrl.config import AgentValueError, check_agent_values, per_agent_keys, validate
-        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, sweep_configs
+        from drone_torchrl.config import AgentValueError, per_agent_keys
+        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, checked, sweep_configs
 
         assert self.config is not None and self.hydra_context is not None
 
@@ -163,9 +161,7 @@ class PopulationSweeper(Sweeper):
         if table is not None:  # jobs that differ only in per-agent numbers: one config, checked once
             cfg, _, values = table
             try:
-                migrations.apply_legacy(cfg)
-                validate(cfg)
-                check_agent_values(cfg, values)
+                checked(cfg, values)
             except AgentValueError as err:
                 refuse(err, batch[err.agent])
             except ConfigError as err:
@@ -175,8 +171,7 @@ class PopulationSweeper(Sweeper):
             batch, sweep_configs(loader, self.config, batch, task_only=True), strict=True
         ):
             try:
-                migrations.apply_legacy(cfg)
-                validate(cfg)
+                checked(cfg)
             except ConfigError as err:
                 refuse(err, overrides)
 

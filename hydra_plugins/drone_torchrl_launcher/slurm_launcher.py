@@ -2,7 +2,7 @@
 
 - ``slurm``: one SLURM job per sweep job (Hydra's submitit launcher, see below).
 - ``slurm_population``: the sweep cut into populations of ``agents_per_job`` jobs, one SLURM job each, which
-  trains its jobs as one population with the fast engine (:func:`~.fused_launcher.train_populations`, as
+  trains its jobs as one population with the fast engine (:func:`~.population_launcher.train_populations`, as
   ``hydra/launcher=fused`` does on one machine; on the node's GPU with ``device=cuda``). A 256-agent landscape
   is then 8 cluster jobs of 32 agents instead of 256 jobs of a few seconds of work each. Every job folder is
   the one it would have alone. Jobs that share a folder (``seed=0,0``, or values of keys left out of folder
@@ -124,7 +124,7 @@ if _SubmititSlurm is not None:
         def _unfinished(self, job, overrides: list[str], idx: int) -> JobReturn:
             """A FAILED return (and ``FAILED.txt``) for a job whose SLURM job ended before it finished."""
             from drone_torchrl.training.jobs import record_failure
-            from hydra_plugins.drone_torchrl_launcher.fused_launcher import JobFailed
+            from hydra_plugins.drone_torchrl_launcher.population_launcher import JobFailed
 
             state = job.state
             cfg = self.hydra_context.config_loader.load_sweep_config(self.config, overrides)
@@ -155,7 +155,7 @@ if _SubmititSlurm is not None:
             from submitit.core.utils import UncompletedJobError
 
             from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
-            from hydra_plugins.drone_torchrl_launcher.fused_launcher import job_output_dir
+            from hydra_plugins.drone_torchrl_launcher.population_launcher import job_output_dir
 
             assert self.config is not None and self.hydra_context is not None
             per_job = submitit_params(self)["agents_per_job"]
@@ -191,7 +191,7 @@ if _SubmititSlurm is not None:
             """Inside the SLURM job: the group's folders, then one population (``checkpoint`` requeues it)."""
             from hydra.core.utils import setup_globals
 
-            from hydra_plugins.drone_torchrl_launcher.fused_launcher import train_populations
+            from hydra_plugins.drone_torchrl_launcher.population_launcher import train_populations
 
             Singleton.set_state(singleton_state)
             setup_globals()
