@@ -139,4 +139,21 @@ def test_hover_optimal_trains_on_the_reference_engine(tmp_path):
 def _episodes(run) -> list[dict[str, str]]:
     """episodes.csv's rows without their wall-clock column."""
     with open(run / "episodes.csv", newline="") as f:
-        return [{k: v for k, v in row.items() if k != "wall_time"} for row in csv.DictReader(f)]
+        return [{k: v for k, v in row.items() if k != "wall_clock_s"} for row in csv.DictReader(f)]
+
+
+def test_a_fast_engine_run_is_a_function_of_its_seed_on_one_thread_or_two(tmp_path):
+    """experiment=hover_optimal (the fast engine's PPO, dual-clipped) on 100 episodes, about 4 batches
+    of 10 epochs: the same seed gives the same episodes.csv, but for its wall clock, twice on one
+    thread and once on two (the C++ engine splits its drones over threads, torch its matmuls)."""
+    runs, threads_before = {}, torch.get_num_threads()
+    try:  # a run sets torch's threads and leaves them: the next tests' are put back
+        for name, threads in (("first", 1), ("again", 1), ("two threads", 2)):
+            overrides = ["experiment=hover_optimal", "algo.episodes=100", f"threads={threads}", *QUIET]
+            train(_cfg(*overrides), tmp_path / name)
+            runs[name] = _episodes(tmp_path / name)
+    finally:
+        torch.set_num_threads(threads_before)
+    assert len(runs["first"]) >= 100
+    assert runs["again"] == runs["first"]
+    assert runs["two threads"] == runs["first"]
