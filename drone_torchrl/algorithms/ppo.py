@@ -439,8 +439,8 @@ class PPO(OnPolicy):
         """TorchRL's ``ClipPPOLoss`` over ``actor`` and ``critic``, from ``algo.*``; with ``algo.dual_clip``, :class:`DualClipPPOLoss`."""
         algo = self.cfg.algo
         dual_clip = algo.get("dual_clip")
-        bound = {} if dual_clip is None else {"dual_clip": dual_clip}
-        return (ClipPPOLoss if dual_clip is None else DualClipPPOLoss)(
+        loss, bound = (ClipPPOLoss, {}) if dual_clip is None else (DualClipPPOLoss, {"dual_clip": dual_clip})
+        return loss(
             actor,
             critic,
             clip_epsilon=algo.clip_epsilon,

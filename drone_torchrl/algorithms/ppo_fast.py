@@ -61,7 +61,8 @@ def clip_ppo_losses(
     log importance ratio is clamped at ``log(dual_clip)`` before the clipped objective, which bounds a
     negative advantage's term by ``dual_clip x advantage`` and, for ``dual_clip >= 1 + clip_epsilon``,
     leaves the rest of it as it is (a positive advantage's ratio above ``1 + clip_epsilon`` is
-    clipped anyway). None: ClipPPOLoss's objective. The reference twin is
+    clipped anyway; below that, a positive advantage's ratio is bounded by ``dual_clip`` too).
+    None: ClipPPOLoss's objective. The reference twin is
     :class:`~drone_torchrl.algorithms.ppo.DualClipPPOLoss`.
     """
     observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
