@@ -34,9 +34,7 @@ from drone_torchrl.training.jobs import prepare
 
 def _learner(backend: str, overrides: list[str], run_dir: Path) -> OnPolicy:
     with initialize_config_dir(config_dir(), version_base="1.3"):
-        # The dual clip is the fast loss's alone: the reference's batches are timed without it.
-        bound = [] if backend == "fast" else ["algo.dual_clip=null"]
-        cfg = compose("config", overrides=[*overrides, f"backend={backend}", *bound])
+        cfg = compose("config", overrides=[*overrides, f"backend={backend}"])
     job = prepare(cfg, run_dir)
     return algorithms.get(cfg.algo.name).learner([job])
 

@@ -401,8 +401,8 @@ TRAIN = [
     (["algo=ppo", "algo.target_kl=0"], "algo.target_kl"),
     (["algo=a2c", "algo.target_kl=0.01"], "algo.target_kl"),
     (["algo=ppo", "algo.dual_clip=1"], "algo.dual_clip"),
-    (["algo=ppo", "algo.dual_clip=3"], "algo.dual_clip"),
-    (["algo=ppo", "backend=fast", "algo.entropy_coeff=0.01", "algo.dual_clip=3"], "algo.dual_clip"),
+    (["algo=ppo", "algo.dual_clip=0.5"], "algo.dual_clip"),
+    (["algo=ppo", "algo.dual_clip=high"], "algo.dual_clip"),
     # eval.stop_return ends a run at a periodic evaluation: none, nothing would stop it.
     (["eval.stop_return=2685", "eval.every_episodes=0"], "eval.stop_return"),
     (["eval.stop_return=high"], "eval.stop_return"),

@@ -185,11 +185,6 @@ RELATED = {
     "algo.buffer_size": lambda cfg: (None, lambda v: {"algo.batch_size": min(v, cfg.algo.batch_size)}),
     # REINFORCE's budget is a multiple of the episodes of an update
     "algo.episodes_per_update": lambda cfg: (None, lambda v: {"algo.episodes": v}),
-    # the dual clip is the fast loss's: backend=fast, no entropy bonus (as its refusal says)
-    "algo.dual_clip": lambda cfg: (
-        None,
-        lambda v: {} if v is None else {"backend": "fast", "algo.entropy_coeff": 0.0},
-    ),
     # backend=fast's kernels take layers up to ops.MAX_WIDTH wide (its refusal names backend=reference)
     "model.hidden_sizes": lambda cfg: (
         None,

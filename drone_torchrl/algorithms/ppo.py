@@ -400,6 +400,32 @@ class OnPolicy(OneRun, LoopLearner, RollbackLearner):
             self.collector.shutdown()
 
 
+class DualClipPPOLoss(ClipPPOLoss):
+    """``ClipPPOLoss`` with dual-clip PPO's bound (Ye et al. 2020): the reference twin of ``algo.dual_clip``.
+
+    The log importance ratio is clamped at ``log(dual_clip)`` before ``ClipPPOLoss``'s clipped
+    objective, as :func:`~.ppo_fast.clip_ppo_losses` does: a negative advantage's term is then at
+    least ``dual_clip x advantage`` (its gradient 0 past the bound), however far the ratio went.
+    Written by hand because TorchRL 0.14.1 has no dual clip: ``max_importance_ratio`` caps the
+    ratio by lifting the behaviour log-probability, which keeps a rescaled gradient and scales the
+    clipped term too. Only :meth:`_log_weight` is overridden, so the entropy bonus, critic and
+    diagnostics are ``ClipPPOLoss``'s (``kl_approx`` from the unclamped log-probabilities).
+
+    Args:
+        *args: ``ClipPPOLoss``'s.
+        dual_clip: the ratio's bound, > 1.
+        **kwargs: ``ClipPPOLoss``'s.
+    """
+
+    def __init__(self, *args: Any, dual_clip: float, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.log_dual_clip = math.log(dual_clip)
+
+    def _log_weight(self, tensordict: TensorDictBase, adv_shape: torch.Size) -> tuple:
+        log_weight, *rest = super()._log_weight(tensordict, adv_shape)
+        return (log_weight.clamp(max=self.log_dual_clip), *rest)
+
+
 class PPO(OnPolicy):
     """PPO: TorchRL's ``ClipPPOLoss`` (clipped ratio, normalised advantages).
 
@@ -410,9 +436,11 @@ class PPO(OnPolicy):
     diagnostics = ("entropy", "kl_approx", "clip_fraction")
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
-        """TorchRL's ``ClipPPOLoss`` over ``actor`` and ``critic``, from ``algo.*``."""
+        """TorchRL's ``ClipPPOLoss`` over ``actor`` and ``critic``, from ``algo.*``; with ``algo.dual_clip``, :class:`DualClipPPOLoss`."""
         algo = self.cfg.algo
-        return ClipPPOLoss(
+        dual_clip = algo.get("dual_clip")
+        loss, bound = (ClipPPOLoss, {}) if dual_clip is None else (DualClipPPOLoss, {"dual_clip": dual_clip})
+        return loss(
             actor,
             critic,
             clip_epsilon=algo.clip_epsilon,
@@ -426,6 +454,7 @@ class PPO(OnPolicy):
             # loss and gradients (tests/test_ppo.py), without TensorDict's parameter swapping on
             # each call; checkpoints and Adam's state keep their order.
             functional=False,
+            **bound,
         )
 
     def make_minibatches(self) -> Minibatches | PlainMinibatches:
@@ -445,13 +474,6 @@ def validate_on_policy(cfg: Mapping[str, Any]) -> None:
     Each key's bounds are its schema's: PPOConf here, A2CConf in a2c.py.
     """
     one_env(cfg)
-    if cfg.algo.get("dual_clip") is not None and (cfg.backend != FAST or cfg.algo.entropy_coeff):
-        raise ConfigError.of(
-            "algo.dual_clip",
-            cfg.algo.dual_clip,
-            "null unless backend=fast and algo.entropy_coeff=0 (the fast loss bounds the ratio; "
-            "TorchRL's ClipPPOLoss has no dual clip)",
-        )
     frames = cfg.algo.num_envs * cfg.algo.steps_per_batch
     if frames % cfg.algo.minibatch_size:
         raise ConfigError.of(
@@ -504,7 +526,7 @@ class PPOConf(OnPolicyConf):
     # KL divergence from the policy that flew the batch exceeds 1.5 target_kl (null: never).
     target_kl: Any = schema.a_number(low=0, low_open=True, optional=True, added=None)
     # Dual-clip PPO: the importance ratio bounded by this (> 1), so a minibatch whose ratios overflow
-    # cannot throw the policy off; backend=fast only (TorchRL's ClipPPOLoss has no such bound).
+    # cannot throw the policy off (DualClipPPOLoss, and clip_ppo_losses on backend=fast).
     dual_clip: Any = schema.a_number(low=1, low_open=True, optional=True, added=None)
 
 

@@ -58,9 +58,12 @@ def clip_ppo_losses(
     ``kl_approx``: the same values and gradients to float rounding (tests/test_ppo.py).
 
     ``dual_clip`` (Ye et al. 2020, "Mastering Complex Control in MOBA Games with Deep RL"): the
-    importance ratio is bounded by it, which bounds a negative advantage's term by
-    ``dual_clip x advantage`` and leaves the rest of the clipped objective as it is (for a positive
-    advantage a ratio above ``1 + clip_epsilon`` is clipped anyway). None: ClipPPOLoss's objective.
+    log importance ratio is clamped at ``log(dual_clip)`` before the clipped objective, which bounds a
+    negative advantage's term by ``dual_clip x advantage`` and, for ``dual_clip >= 1 + clip_epsilon``,
+    leaves the rest of it as it is (a positive advantage's ratio above ``1 + clip_epsilon`` is
+    clipped anyway; below that, a positive advantage's ratio is bounded by ``dual_clip`` too).
+    None: ClipPPOLoss's objective. The reference twin is
+    :class:`~drone_torchrl.algorithms.ppo.DualClipPPOLoss`.
     """
     observation, normal, log_det, flown_log_prob, advantage, value_target = minibatch
     # TorchRL's standardisation: the minibatch's mean and (unbiased) std, the std floored at float32's resolution.
@@ -71,9 +74,10 @@ def clip_ppo_losses(
     log_density = -((normal - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
     log_prob = log_density.sum(-1) - log_det
     log_weight = (log_prob - flown_log_prob).unsqueeze(-1)
+    if dual_clip is not None:
+        log_weight = log_weight.clamp(max=math.log(dual_clip))
     clipped = log_weight.clamp((-clip_epsilon).log1p(), clip_epsilon.log1p())
-    ratio = (log_weight if dual_clip is None else log_weight.clamp(max=math.log(dual_clip))).exp()
-    gain = torch.minimum(ratio * advantage, clipped.exp() * advantage)
+    gain = torch.minimum(log_weight.exp() * advantage, clipped.exp() * advantage)
     loss_critic = functional.smooth_l1_loss(value_target, value(observation), reduction="none")
     return {
         "loss_objective": -gain.mean(),
