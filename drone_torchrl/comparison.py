@@ -37,7 +37,7 @@ from drone_torchrl.envs.drone_env import check_env_args
 from drone_torchrl.envs.heuristic import PDController
 from drone_torchrl.envs.params import DroneParams
 from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
-from drone_torchrl.io.storage import write_atomically, write_csv, write_figure
+from drone_torchrl.io.storage import new_figure, write_atomically, write_csv, write_figure
 from drone_torchrl.io.streams import console
 from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
@@ -81,27 +81,17 @@ def plot_trajectory(
 
     The domain and zone are those of ``params`` (default: the paper's).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
 
     first = rollout[0]
     valid = valid_steps(first.get(("next", "done"))).squeeze(-1)
     states = torch.cat([first.get("observation")[:1], first.get(("next", "observation"))[valid]]).numpy()
     actions = first.get("action")[valid].numpy()
     p = DroneParams() if params is None else params
-    fig, (ax_path, ax_thrust) = plt.subplots(1, 2, figsize=(11, 4.5))
-    ax_path.add_patch(
-        plt.Rectangle(
-            (-p.zone_x_limit, p.zone_z_min),
-            2 * p.zone_x_limit,
-            p.zone_z_max - p.zone_z_min,
-            color="tab:green",
-            alpha=0.2,
-            label="target zone",
-        )
-    )
+    fig = new_figure((11, 4.5))
+    ax_path, ax_thrust = fig.subplots(1, 2)
+    zone = (-p.zone_x_limit, p.zone_z_min), 2 * p.zone_x_limit, p.zone_z_max - p.zone_z_min
+    ax_path.add_patch(Rectangle(*zone, color="tab:green", alpha=0.2, label="target zone"))
     ax_path.plot(states[:, dynamics.X], states[:, dynamics.Z], color="tab:blue", label="path")
     ax_path.plot(states[0, dynamics.X], states[0, dynamics.Z], "o", color="tab:blue", label="start")
     ax_path.set(xlim=(-p.x_limit, p.x_limit), ylim=(p.z_min, p.z_max))
@@ -118,10 +108,7 @@ def plot_trajectory(
     ax_thrust.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    try:
-        return write_figure(fig, path, dpi=100)
-    finally:
-        plt.close(fig)
+    return write_figure(fig, path, dpi=100)
 
 
 def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> None:
@@ -202,20 +189,10 @@ def write_table(out_dir: Path, rows: list[dict[str, Any]], settings: dict[str, A
     """
     header = list(rows[0])
     table = write_csv(out_dir / TABLE_NAME, header, ([row[k] for k in header] for row in rows))
-    document = _json_numbers({**settings, "policies": rows})
+    # JSON has no NaN: json writes it as NaN, and reading that back as None writes it as null.
+    document = json.loads(json.dumps({**settings, "policies": rows}), parse_constant=lambda _: None)
     text = json.dumps(document, indent=2, allow_nan=False) + "\n"
     return table, write_atomically(out_dir / SETTINGS_NAME, text.encode())
-
-
-def _json_numbers(value: Any) -> Any:
-    """``value`` with every NaN as None (JSON has no NaN)."""
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_numbers(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_numbers(v) for v in value]
-    return value
 
 
 def run_eval(
@@ -300,17 +277,9 @@ def run_eval(
             f"episode ends: {causes} (NONE = truncated; the others are crashes)"
         )
     if table:
-        settings = {
-            "checkpoint": None if cfg.checkpoint is None else str(path),
-            "agent": cfg.agent,
-            "episodes": cfg.episodes,
-            "seed": cfg.seed,
-            "device": cfg.device,
-            "env": kwargs,
-            "ceiling": ceiling,
-            "optimum": best,
-            "pd_return": pd_return,
-        }
+        settings = {"checkpoint": None if cfg.checkpoint is None else str(path)}
+        settings |= {key: cfg[key] for key in ("agent", "episodes", "seed", "device")}
+        settings |= {"env": kwargs, "ceiling": ceiling, "optimum": best, "pd_return": pd_return}
         csv_file, json_file = write_table(out_dir, table_rows(results), settings)
         console.info(f"wrote {csv_file} and {json_file}")
     main_name = next(iter(policies))

@@ -401,7 +401,7 @@ def check_output_folder(output: Path, given: bool = True) -> None:
 
 
 def export_policy(
-    checkpoint: str | os.PathLike,
+    checkpoint: str | os.PathLike | None,
     output: str | os.PathLike | None = None,
     format: str | None = None,
     agent: int | None = None,
@@ -416,6 +416,8 @@ def export_policy(
     format, output = resolve_output(format, output)
     if format == "onnx":
         check_onnx_extra()
+    if checkpoint is None:
+        raise ConfigError.of("checkpoint", None, "a checkpoint file or a run folder")
     if output is not None:
         check_output_folder(output)
     policy, actor, path = load_policy(checkpoint, agent)
@@ -447,12 +449,7 @@ def run_export(cfg: Mapping[str, Any]) -> Exported:
     """drone-export's work on its composed config (``conf/export.yaml``): the keys and values first."""
     resolved = check_keys(cfg, "export")
     check_values(resolved, "export")
-    format, output = resolve_output(resolved["format"], resolved["output"])
-    if format == "onnx":
-        check_onnx_extra()
-    if resolved["checkpoint"] is None:
-        raise ConfigError.of("checkpoint", None, "a checkpoint file or a run folder")
-    return export_policy(resolved["checkpoint"], output, format, resolved["agent"])
+    return export_policy(resolved["checkpoint"], resolved["output"], resolved["format"], resolved["agent"])
 
 
 # ------------------------------------------------------------------------------- latency
@@ -465,18 +462,6 @@ def one_thread() -> Iterator[None]:
         yield
     finally:
         torch.set_num_threads(threads)
-
-
-def median_us(
-    call: Callable[[], Any],
-    repeats: int = LATENCY_REPEATS,
-    calls: int = LATENCY_CALLS,
-    warmup: int = LATENCY_WARMUP,
-) -> float:
-    """The median over ``repeats`` of the mean time of one ``call()`` in ``calls``, in microseconds."""
-    timer = timeit.Timer(call, "import gc; gc.enable()")  # timeit pauses the garbage collector otherwise
-    timer.timeit(warmup)
-    return statistics.median(timer.repeat(repeats, calls)) / calls * US_PER_S
 
 
 def forward_passes(
@@ -501,7 +486,22 @@ def forward_passes(
     return passes
 
 
-def latencies(passes: Mapping[str, Callable[[], Any]], **timing: int) -> dict[str, float]:
-    """:func:`median_us` of each pass, on one thread and in inference mode (torch's)."""
+def latencies(
+    passes: Mapping[str, Callable[[], Any]],
+    repeats: int = LATENCY_REPEATS,
+    calls: int = LATENCY_CALLS,
+    warmup: int = LATENCY_WARMUP,
+) -> dict[str, float]:
+    """Each pass's median over ``repeats`` of the mean time of one call in ``calls``, in microseconds.
+
+    After ``warmup`` untimed calls; on one thread and in inference mode (torch's).
+    """
+    times = {}
     with one_thread(), torch.inference_mode():
-        return {name: median_us(call, **timing) for name, call in passes.items()}
+        for name, call in passes.items():
+            timer = timeit.Timer(
+                call, "import gc; gc.enable()"
+            )  # timeit pauses the garbage collector otherwise
+            timer.timeit(warmup)
+            times[name] = statistics.median(timer.repeat(repeats, calls)) / calls * US_PER_S
+    return times

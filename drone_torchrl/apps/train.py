@@ -153,27 +153,13 @@ def register_plugins() -> None:
     """
     from hydra.core.plugins import Plugins
 
-    from hydra_plugins.drone_torchrl_launcher import slurm_launcher
-    from hydra_plugins.drone_torchrl_launcher.fused_launcher import FusedLauncher
-    from hydra_plugins.drone_torchrl_launcher.population_launcher import (
-        HalvingLauncher,
-        PB2Launcher,
-        PBTLauncher,
-        PBTReplayLauncher,
-        PopulationLauncher,
-    )
-    from hydra_plugins.drone_torchrl_launcher.population_sweeper import PopulationSweeper
+    from hydra_plugins.drone_torchrl_launcher import fused_launcher, population_sweeper, slurm_launcher
+    from hydra_plugins.drone_torchrl_launcher import population_launcher as population
 
-    plugins = [
-        FusedLauncher,
-        PopulationLauncher,
-        PBTLauncher,
-        PB2Launcher,
-        PBTReplayLauncher,
-        HalvingLauncher,
-        PopulationSweeper,
-    ]
-    for plugin in plugins + list(slurm_launcher.PLUGINS):  # the SLURM ones with the submitit extra
+    launchers = [fused_launcher.FusedLauncher, population.PopulationLauncher, population.PBTLauncher]
+    launchers += [population.PB2Launcher, population.PBTReplayLauncher, population.HalvingLauncher]
+    # The SLURM ones come with the submitit extra.
+    for plugin in [*launchers, population_sweeper.PopulationSweeper, *slurm_launcher.PLUGINS]:
         Plugins.instance().register(plugin)
 
 

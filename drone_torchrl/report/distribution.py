@@ -13,7 +13,7 @@ Per setting, :func:`distribution` gives:
 - the band of 4-seed means (bootstrap: 4 seeds drawn without replacement, as a 4-seed study would
   draw them): the spread a paper-sized study sees;
 - with bounded thrust, the median as a share of the best achievable return
-  (:func:`~drone_torchrl.report.stats.optimum_return`).
+  (:func:`~drone_torchrl.report.stats.optimum_reference`).
 
 :func:`paper_averaged_curves` redraws the paper's figures 4.2 and 4.4 the way its public analysis
 code computes them: the list of runs is never reset between settings, so the curve drawn for the
@@ -34,10 +34,9 @@ from drone_torchrl.report.stats import (
     PERCENT,
     ZONE_SHARE,
     aggregate_over_seeds,
-    first_crossing,
-    optimum_return,
     run_curves,
     setting_curve,
+    summarize,
 )
 
 BOOTSTRAP_SAMPLES = 10_000
@@ -108,22 +107,21 @@ def small_study_band(
 
 
 def distribution(setting: Setting, window: int) -> Distribution:
-    """The final-value distribution of ``setting``'s runs that have episodes."""
-    returns = run_curves(setting, COL_RETURN, window)
-    lengths = run_curves(setting, COL_LENGTH, window)
-    if not returns:
+    """The final-value distribution of ``setting``'s runs that have episodes (of its :func:`~.stats.summarize`)."""
+    summary = summarize(setting, window)
+    if not summary.final_returns:
         raise ReportError(f"{setting.label}: no run has episodes")
-    finals = np.array([curve[-1] for curve in returns])
+    finals = np.array(summary.final_returns)
     rng = np.random.default_rng(BOOTSTRAP_SEED)
     return Distribution(
         label=setting.label,
         final_returns=finals,
-        final_lengths=np.array([curve[-1] for curve in lengths]),
-        reached_full_length=sum(first_crossing(c, setting.max_steps) is not None for c in lengths),
-        in_zone=int((finals >= ZONE_SHARE * setting.ceiling).sum()),
+        final_lengths=np.array(summary.final_lengths),
+        reached_full_length=len(summary.length_cap.episodes),
+        in_zone=int((finals >= ZONE_SHARE * summary.ceiling).sum()),
         median_ci=bootstrap_median_ci(finals, rng),
         four_seed_band=small_study_band(finals, rng),
-        optimum=optimum_return(setting.env_kwargs),
+        optimum=summary.optimum,
     )
 
 

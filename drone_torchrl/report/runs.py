@@ -114,10 +114,6 @@ class Run:
                 self._required(f"env.{name}")
         return env_kwargs(self.config)
 
-    def wall_clock(self) -> float | None:
-        """The run's last ``wall_clock_s`` (``None`` without episodes)."""
-        return float(self.columns[COL_WALL_CLOCK][-1]) if self.episodes else None
-
 
 def _load_yaml(path: Path, kind: type) -> Any:
     """A YAML file as plain data of ``kind`` (dict or list); :class:`ReportError` if it is not one."""
@@ -306,11 +302,6 @@ def format_value(value: Any) -> str:
     return str(value)
 
 
-def is_setting_key(key: str) -> bool:
-    """Whether an override key defines a setting (not the seed, the sweep preset, bookkeeping...)."""
-    return key not in NON_SETTING_KEYS and not key.startswith(NON_SETTING_PREFIXES)
-
-
 def setting_of(overrides: Sequence[str], config: dict[str, Any]) -> tuple[tuple[str, str], ...]:
     """The ``(key, value)`` pairs that define a job's setting, in override order.
 
@@ -321,7 +312,7 @@ def setting_of(overrides: Sequence[str], config: dict[str, Any]) -> tuple[tuple[
     for item in overrides:
         name, _, raw = item.partition("=")
         key = name.lstrip(OVERRIDE_PREFIXES)
-        if not is_setting_key(key):
+        if key in NON_SETTING_KEYS or key.startswith(NON_SETTING_PREFIXES):
             continue
         found, value = _lookup(config, key)
         pairs.append((key, format_value(value) if found else raw))
@@ -366,14 +357,9 @@ def _sort_key(value: str | None) -> tuple[int, float, str]:
         return (1, 0.0, value)
 
 
-def budgets(runs: Sequence[Run]) -> list[Any]:
-    """The distinct budgets (``algo.episodes``) of ``runs``, sorted; more than one: a mixed folder."""
-    return sorted({run.budget for run in runs if run.budget is not None}, key=lambda b: _sort_key(str(b)))
-
-
 def mixed_budgets(runs: Sequence[Run]) -> str | None:
     """The line saying that ``runs`` mix budgets (``algo.episodes=2, 3``), or ``None`` if they do not."""
-    found = budgets(runs)
+    found = sorted({run.budget for run in runs if run.budget is not None}, key=lambda b: _sort_key(str(b)))
     if len(found) < 2:
         return None
     return f"its runs mix budgets ({BUDGET_KEY}={LABEL_SEPARATOR.join(format_value(b) for b in found)})"
