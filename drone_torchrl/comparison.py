@@ -111,11 +111,13 @@ def plot_trajectory(
     return write_figure(fig, path, dpi=100)
 
 
-def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> None:
-    """Refuse an ``env.*`` override that differs from the checkpoint's run: it flies in its own env.
+def _flown_env(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> dict:
+    """The checkpoint's run's env under the disturbances drone-eval was asked for.
 
-    Such an override is refused, not ignored. The disturbances are the evaluation's conditions
-    (:func:`_flown_env`), not the run's. ``keys``: those the caller set.
+    The disturbances are ``disturbance=...``'s, the evaluation's conditions; the run's
+    ``observed_actions`` is kept, since it is the policy's input layout, not a condition. Any other
+    ``env.*`` override that differs from the run's is refused, not ignored: the checkpoint flies in
+    its own env. ``keys``: those the caller set.
     """
     changed = [
         f"env.{name} {run_env[name]!r} -> {cfg.env[name]!r}"
@@ -129,14 +131,6 @@ def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path, keys: set[
             f"checkpoint={str(path)!r} flies in the env it was trained in; the command line changes "
             f"{'; '.join(changed)}: drop those overrides"
         )
-
-
-def _flown_env(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> dict:
-    """The run's env under the disturbances drone-eval was asked for.
-
-    The disturbances are ``disturbance=...``'s; the run's ``observed_actions`` is kept, since it is
-    the policy's input layout, not a condition. ``keys``: those the caller set.
-    """
     asked = env_kwargs(cfg)["disturbance"]
     trained = disturbances.make(run_env["disturbance"]).observed_actions
     if asked["observed_actions"] != trained and "env.disturbance.observed_actions" in keys:
@@ -228,9 +222,7 @@ def run_eval(
             raise ConfigError(
                 f"checkpoint={str(path)!r} cannot be used: {type(err).__name__}: {err}"
             ) from None
-        kwargs = env_kwargs(run_cfg)
-        _refuse_env_overrides(cfg, kwargs, path, keys)
-        kwargs = _flown_env(cfg, kwargs, path, keys)
+        kwargs = _flown_env(cfg, env_kwargs(run_cfg), path, keys)
         actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:

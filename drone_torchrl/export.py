@@ -464,6 +464,18 @@ def one_thread() -> Iterator[None]:
         torch.set_num_threads(threads)
 
 
+def median_us(
+    call: Callable[[], Any],
+    repeats: int = LATENCY_REPEATS,
+    calls: int = LATENCY_CALLS,
+    warmup: int = LATENCY_WARMUP,
+) -> float:
+    """The median over ``repeats`` of the mean time of one ``call()`` in ``calls``, in microseconds."""
+    timer = timeit.Timer(call, "import gc; gc.enable()")  # timeit pauses the garbage collector otherwise
+    timer.timeit(warmup)
+    return statistics.median(timer.repeat(repeats, calls)) / calls * US_PER_S
+
+
 def forward_passes(
     policy: DeterministicPolicy, files: Mapping[str, str | os.PathLike], batch: int = 1
 ) -> dict[str, Callable[[], Any]]:
@@ -486,22 +498,7 @@ def forward_passes(
     return passes
 
 
-def latencies(
-    passes: Mapping[str, Callable[[], Any]],
-    repeats: int = LATENCY_REPEATS,
-    calls: int = LATENCY_CALLS,
-    warmup: int = LATENCY_WARMUP,
-) -> dict[str, float]:
-    """Each pass's median over ``repeats`` of the mean time of one call in ``calls``, in microseconds.
-
-    After ``warmup`` untimed calls; on one thread and in inference mode (torch's).
-    """
-    times = {}
+def latencies(passes: Mapping[str, Callable[[], Any]], **timing: int) -> dict[str, float]:
+    """:func:`median_us` of each pass, on one thread and in inference mode (torch's)."""
     with one_thread(), torch.inference_mode():
-        for name, call in passes.items():
-            timer = timeit.Timer(
-                call, "import gc; gc.enable()"
-            )  # timeit pauses the garbage collector otherwise
-            timer.timeit(warmup)
-            times[name] = statistics.median(timer.repeat(repeats, calls)) / calls * US_PER_S
-    return times
+        return {name: median_us(call, **timing) for name, call in passes.items()}

@@ -153,12 +153,9 @@ def load_population(run_dir: Path) -> list[Run]:
     try:
         # Its agents' statuses and a search's values are in it: a damaged one is not "no checkpoint".
         checkpoint = load_checkpoint(path) if path.is_file() else None
-    except CheckpointError as err:
-        raise ReportError(f"{err}: the population run {run_dir} cannot be reported") from None
-    try:
         agents = population_record.read_agents(run_dir)
         rows = population_record.read_episodes(run_dir, None if checkpoint is None else checkpoint["parts"])
-    except population_record.PopulationFileError as err:
+    except (CheckpointError, population_record.PopulationFileError) as err:
         raise ReportError(f"{err}: the population run {run_dir} cannot be reported") from None
     config = _load_yaml(run_dir / CONFIG_FILE, dict)
     searched = checkpoint is not None and bool(checkpoint.get("search"))
