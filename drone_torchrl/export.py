@@ -51,13 +51,7 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
-from drone_torchrl.config import (
-    ConfigError,
-    check_keys,
-    check_networks,
-    check_values,
-    run_config,
-)
+from drone_torchrl.config import ConfigError, check_keys, check_networks, check_values, run_config
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.dynamics import ACTION_DIM, HOVER_THRUST, STATE_DIM, clamp_action
 from drone_torchrl.envs.params import ALPHA_LIMIT, X_LIMIT, Z_MAX, Z_MIN, ZONE_Z_CENTRE

@@ -191,10 +191,7 @@ def zone_margin(
 
 
 def earliest_zone_step(
-    params: DroneParams,
-    steps: int,
-    start: Start = FLOOR_START,
-    thrust_cap: float | None = None,
+    params: DroneParams, steps: int, start: Start = FLOOR_START, thrust_cap: float | None = None
 ) -> VerticalPlan | None:
     """The largest-margin plan of the earliest step from which the drone can stay in the zone.
 
@@ -237,11 +234,7 @@ def _height_range(params: DroneParams, steps: int, start: Start, cap: float) -> 
     return fly(0.0), fly(cap)
 
 
-def max_zone_steps(
-    params: DroneParams,
-    steps: int,
-    start: Start = FLOOR_START,
-) -> int:
+def max_zone_steps(params: DroneParams, steps: int, start: Start = FLOOR_START) -> int:
     """The most steps whose end state can lie in the zone, over every vertical thrust sequence.
 
     The sequences have ``c`` in ``[0, 2 max_thrust]``; one MILP, bounded thrust only.
@@ -290,11 +283,7 @@ def max_zone_steps(
     return min(n, math.floor(-bound + MARGIN_TOLERANCE))
 
 
-def optimum(
-    params: DroneParams,
-    steps: int,
-    start: Start = FLOOR_START,
-) -> Optimum:
+def optimum(params: DroneParams, steps: int, start: Start = FLOOR_START) -> Optimum:
     """The best achievable return from the vertical start ``start`` (see :class:`Optimum`).
 
     Bounded thrust: the count of :func:`max_zone_steps` (MILP) bounds the return; the earliest
@@ -356,10 +345,7 @@ def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum
 
 
 def fly_plan(
-    start: torch.Tensor,
-    params: DroneParams,
-    max_steps: int,
-    gains: PDGains | None = None,
+    start: torch.Tensor, params: DroneParams, max_steps: int, gains: PDGains | None = None
 ) -> tuple[Episodes, VerticalPlan]:
     """Replay an optimal vertical plan from the floor starts ``start`` ``[B, 6]``.
 

@@ -44,10 +44,7 @@ BOOTSTRAP_SEED = 0
 CONFIDENCE = 0.95
 PAPER_STUDY_SEEDS = 4
 # The settings in the order the paper's analysis code appends their runs (figures 4.2 and 4.4).
-PAPER_ORDER = {
-    "algo.lr": (5e-5, 1e-4, 5e-4, 1e-3),
-    "algo.gamma": (0.999, 0.99, 0.95, 0.9),
-}
+PAPER_ORDER = {"algo.lr": (5e-5, 1e-4, 5e-4, 1e-3), "algo.gamma": (0.999, 0.99, 0.95, 0.9)}
 DISTRIBUTION_FIGURE = "finals.png"
 PAPER_AVERAGING_FIGURE = "paper_averaging.png"
 
