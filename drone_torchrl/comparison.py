@@ -94,8 +94,8 @@ def plot_trajectory(
     ax_path.add_patch(Rectangle(*zone, color="tab:green", alpha=0.2, label="target zone"))
     ax_path.plot(states[:, dynamics.X], states[:, dynamics.Z], color="tab:blue", label="path")
     ax_path.plot(states[0, dynamics.X], states[0, dynamics.Z], "o", color="tab:blue", label="start")
-    ax_path.set(xlim=(-p.x_limit, p.x_limit), ylim=(p.z_min, p.z_max))
-    ax_path.set(xlabel="x [m]", ylabel="z [m]", aspect="equal", title="path")
+    ax_path.set(xlim=(-p.x_limit, p.x_limit), ylim=(p.z_min, p.z_max), xlabel="x [m]", ylabel="z [m]")
+    ax_path.set(aspect="equal", title="path")
     ax_path.grid(alpha=0.3)
     ax_path.legend(loc="lower right", fontsize=8)
     steps = np.arange(1, len(actions) + 1)
@@ -158,10 +158,13 @@ def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
     )
 
 
-def table_rows(results: dict[str, dict]) -> list[dict[str, Any]]:
-    """The table's rows, one per policy: ``policy``, :data:`TABLE_COLUMNS`, then ``ends_<CAUSE>``.
+def write_table(out_dir: Path, results: dict[str, dict], settings: dict[str, Any]) -> tuple[Path, Path]:
+    """Write the table as :data:`TABLE_NAME` and, with the settings, :data:`SETTINGS_NAME`, atomically.
 
-    ``crashes`` counts the episodes that terminated (every cause but ``NONE``, the truncated ones).
+    One row per policy: ``policy``, :data:`TABLE_COLUMNS`, then ``ends_<CAUSE>``; ``crashes`` counts
+    the episodes that terminated (every cause but ``NONE``, the truncated ones). A number that is not
+    one (no optimum, no episode reached the zone) is ``nan`` in the CSV and ``null`` in the JSON
+    (which has no NaN).
     """
     rows = []
     for name, r in results.items():
@@ -172,17 +175,7 @@ def table_rows(results: dict[str, dict]) -> list[dict[str, Any]]:
         rows.append(
             {"policy": name, **{k: r[k] for k in TABLE_COLUMNS if k != "crashes"}, "crashes": crashes, **ends}
         )
-    return rows
-
-
-def write_table(out_dir: Path, rows: list[dict[str, Any]], settings: dict[str, Any]) -> tuple[Path, Path]:
-    """Write the table as :data:`TABLE_NAME` and, with the settings, :data:`SETTINGS_NAME`, atomically.
-
-    A number that is not one (no optimum, no episode reached the zone) is ``nan`` in the CSV and
-    ``null`` in the JSON (which has no NaN).
-    """
-    header = list(rows[0])
-    table = write_csv(out_dir / TABLE_NAME, header, ([row[k] for k in header] for row in rows))
+    table = write_csv(out_dir / TABLE_NAME, list(rows[0]), (list(row.values()) for row in rows))
     # JSON has no NaN: json writes it as NaN, and reading that back as None writes it as null.
     document = json.loads(json.dumps({**settings, "policies": rows}), parse_constant=lambda _: None)
     text = json.dumps(document, indent=2, allow_nan=False) + "\n"
@@ -257,12 +250,11 @@ def run_eval(
     console.info(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
     console.info(optimum_line(kwargs, optimum, ceiling))
     for name, r in results.items():
-        vs_pd = r["pct_of_pd"]
         vs_optimum = "" if best is None else f"{r['pct_of_optimum']:.1f}% of the optimum {best:.0f}, "
         causes = ", ".join(f"{k} {v}" for k, v in r["causes"].items() if v)
         console.info(
             f"{name}: return {r['return_mean']:.1f} +- {r['return_std']:.1f} "
-            f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_optimum}{vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
+            f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_optimum}{r['pct_of_pd']:.1f}% of PD), length {r['length_mean']:.1f}, "
             f"time in zone {100 * r['time_in_zone']:.1f}%, first in the zone at step {r['first_zone_step_mean']:.1f} "
             f"(reached in {100 * r['reached_fraction']:.0f}%), thrust mean {r['thrust_mean']:.3f} max {r['thrust_max']:.3f} "
             f"x weight, negative thrust {100 * r['negative_thrust_fraction']:.1f}%; "
@@ -272,7 +264,7 @@ def run_eval(
         settings = {"checkpoint": None if cfg.checkpoint is None else str(path)}
         settings |= {key: cfg[key] for key in ("agent", "episodes", "seed", "device")}
         settings |= {"env": kwargs, "ceiling": ceiling, "optimum": best, "pd_return": pd_return}
-        csv_file, json_file = write_table(out_dir, table_rows(results), settings)
+        csv_file, json_file = write_table(out_dir, results, settings)
         console.info(f"wrote {csv_file} and {json_file}")
     main_name = next(iter(policies))
     if cfg.plot:

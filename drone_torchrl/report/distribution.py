@@ -85,13 +85,6 @@ def percentile_tails() -> tuple[float, float]:
     return 100 * (1 - CONFIDENCE) / 2, 100 * (1 + CONFIDENCE) / 2
 
 
-def bootstrap_median_ci(values: np.ndarray, rng: np.random.Generator) -> tuple[float, float]:
-    """Percentile bootstrap interval of the median (resampling the seeds with replacement)."""
-    samples = rng.choice(values, size=(BOOTSTRAP_SAMPLES, values.size), replace=True)
-    low, high = np.percentile(np.median(samples, axis=1), percentile_tails())
-    return float(low), float(high)
-
-
 def small_study_band(
     values: np.ndarray, rng: np.random.Generator, seeds: int = PAPER_STUDY_SEEDS
 ) -> tuple[float, float]:
@@ -110,13 +103,16 @@ def distribution(setting: Setting, window: int) -> Distribution:
         raise ReportError(f"{setting.label}: no run has episodes")
     finals = np.array(summary.final_returns)
     rng = np.random.default_rng(BOOTSTRAP_SEED)
+    # The median's percentile bootstrap interval: the seeds resampled with replacement.
+    samples = rng.choice(finals, size=(BOOTSTRAP_SAMPLES, finals.size), replace=True)
+    ci_low, ci_high = np.percentile(np.median(samples, axis=1), percentile_tails())
     return Distribution(
         label=setting.label,
         final_returns=finals,
         final_lengths=np.array(summary.final_lengths),
         reached_full_length=len(summary.length_cap.episodes),
         in_zone=int((finals >= ZONE_SHARE * summary.ceiling).sum()),
-        median_ci=bootstrap_median_ci(finals, rng),
+        median_ci=(float(ci_low), float(ci_high)),
         four_seed_band=small_study_band(finals, rng),
         optimum=summary.optimum,
     )

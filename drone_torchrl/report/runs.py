@@ -84,7 +84,8 @@ class Run:
     @property
     def seed(self) -> Any:
         """The run's seed (from its config, else its overrides)."""
-        return self.config.get(SEED_KEY, override_value(self.overrides, SEED_KEY))
+        given = {k.lstrip(OVERRIDE_PREFIXES): v for k, _, v in (o.partition("=") for o in self.overrides)}
+        return self.config.get(SEED_KEY, given.get(SEED_KEY))
 
     def _required(self, key: str) -> Any:
         found, value = _lookup(self.config, key)
@@ -130,15 +131,6 @@ def _load_yaml(path: Path, kind: type) -> Any:
         return OmegaConf.to_container(cfg, resolve=True)
     except Exception:  # noqa: BLE001 - Hydra-only interpolations (${hydra:...}) stay unresolved
         return OmegaConf.to_container(cfg, resolve=False)
-
-
-def override_value(overrides: Sequence[str], key: str) -> str | None:
-    """The raw value of ``key`` (or ``+key``/``++key``) among ``key=value`` override strings."""
-    for item in overrides:
-        name, _, value = item.partition("=")
-        if name.lstrip(OVERRIDE_PREFIXES) == key:
-            return value
-    return None
 
 
 def load_population(run_dir: Path) -> list[Run]:

@@ -377,14 +377,9 @@ def build_report(
     window = RUNNING_MEAN_WINDOW if window is None else window
     runs = load_runs(Path(sweep_dir)) if runs is None else runs
     settings = group_runs(runs)
+    summaries = [summarize(s, window, return_threshold) for s in settings]
     report = SweepReport(
-        Path(sweep_dir),
-        window,
-        return_threshold,
-        settings,
-        [summarize(s, window, return_threshold) for s in settings],
-        {},
-        mixed_budgets=mixed_budgets(runs),
+        Path(sweep_dir), window, return_threshold, settings, summaries, {}, mixed_budgets=mixed_budgets(runs)
     )
     by_env: dict[str, list[str]] = {}
     for s in settings:

@@ -23,7 +23,7 @@ from drone_torchrl.report.distribution import (
     plot_paper_averaging,
 )
 from drone_torchrl.report.landscape import LANDSCAPE_FIGURE, landscape, write_landscape
-from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, STATUS_FINISHED, Setting
+from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, STATUS_FINISHED
 from drone_torchrl.report.schedules import SCHEDULES_FIGURE, pbt_runs, write_schedules
 from drone_torchrl.report.stats import (
     OPTIMUM_LABEL,
@@ -44,13 +44,6 @@ SUMMARY_MD = "summary.md"
 SUMMARY_CSV = "summary.csv"
 
 
-def _legend_label(setting: Setting) -> str:
-    n = len(setting.runs)
-    pending = n - sum(r.status == STATUS_FINISHED for r in setting.runs)
-    seeds = f"{n} seed{'s' if n != 1 else ''}"
-    return f"{setting.label} ({seeds}, {pending} not finished)" if pending else f"{setting.label} ({seeds})"
-
-
 def plot_curves(report: SweepReport, column: str, path: Path) -> Path:
     """One running-mean curve per setting with a mean +- std band, plus reference lines; a PNG."""
     fig = new_figure((9.0, 5.5))
@@ -58,7 +51,9 @@ def plot_curves(report: SweepReport, column: str, path: Path) -> Path:
     for setting in report.settings:
         stats = setting_curve(setting, column, report.window)
         x = np.arange(stats.mean.size)
-        (line,) = ax.plot(x, stats.mean, linewidth=1.5, label=_legend_label(setting))
+        n, pending = len(setting.runs), sum(r.status != STATUS_FINISHED for r in setting.runs)
+        seeds = f"{n} seed{'s' if n != 1 else ''}" + (f", {pending} not finished" if pending else "")
+        (line,) = ax.plot(x, stats.mean, linewidth=1.5, label=f"{setting.label} ({seeds})")
         ax.fill_between(x, stats.mean - stats.std, stats.mean + stats.std, color=line.get_color(), alpha=0.2)
     if column == COL_LENGTH:
         for max_steps in sorted({s.max_steps for s in report.settings}):
