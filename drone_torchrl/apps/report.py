@@ -71,13 +71,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--out",
         type=_folder,
-        default=None,
         help="output folder (default: <sweep>/report; with several sweeps: <out>/<sweep name>)",
     )
     parser.add_argument(
         "--window",
         type=_positive_int,
-        default=None,
         help="running-mean window in episodes (default: a run's, the paper's 100)",
     )
     parser.add_argument(

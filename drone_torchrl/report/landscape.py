@@ -134,15 +134,8 @@ def plot_landscape(grid: Landscape, path: Path) -> Path:
             cell = shown[row, col]
             rgb = colours(image.norm(cell))[:3] if np.isfinite(cell) else (1.0, 1.0, 1.0)
             bright = 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2] > 0.5  # ITU-R BT.601 luminance
-            ax.text(
-                col,
-                row,
-                _format(value, kind),
-                ha="center",
-                va="center",
-                fontsize=7,
-                color="black" if bright else "white",
-            )
+            text = "black" if bright else "white"
+            ax.text(col, row, _format(value, kind), ha="center", va="center", fontsize=7, color=text)
         ax.set_xticks(range(len(grid.x_values)), [f"{v:.3g}" for v in grid.x_values], rotation=45)
         ax.set_yticks(range(len(grid.y_values)), [f"{v:.5g}" for v in grid.y_values])
         ax.set_xlabel(grid.x_key)

@@ -56,15 +56,10 @@ def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path
             updates = [u for u, _ in steps] + [budget]
             values = [v[key] for _, v in steps]
             best = rank == 0
-            ax.step(
-                updates,
-                [*values, values[-1]],
-                where="post",
-                color=colours(norm(final)),
-                linewidth=2.5 if best else 0.8,
-                alpha=1.0 if best else 0.6,
-                label=f"best: agent {agent} (final {final:.0f})" if best else None,
-            )
+            label = f"best: agent {agent} (final {final:.0f})" if best else None
+            width, alpha = (2.5, 1.0) if best else (0.8, 0.6)
+            line = {"color": colours(norm(final)), "linewidth": width, "alpha": alpha, "label": label}
+            ax.step(updates, [*values, values[-1]], where="post", **line)
         ax.set_xlabel("update")
         ax.set_ylabel(key)
         positive = all(v[key] > 0 for _, _, steps in drawn for _, v in steps)
