@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.report.distribution import (
     BOOTSTRAP_SAMPLES,
     BOOTSTRAP_SEED,
@@ -28,7 +29,6 @@ from drone_torchrl.report.distribution import (
 )
 from drone_torchrl.report.runs import group_runs, load_runs
 from drone_torchrl.report.stats import ZONE_SHARE
-from drone_torchrl.report.sweep import default_window
 
 
 def finals(sweep: Path, window: int) -> dict[str, tuple[np.ndarray, float]]:
@@ -60,7 +60,7 @@ def main() -> None:
         "a sweep of one setting labels it 'all'); repeatable",
     )
     args = parser.parse_args()
-    window = default_window()
+    window = RUNNING_MEAN_WINDOW
     old, new = finals(args.before, window), finals(args.after, window)
     if args.pair:
         missing = [b for b, _ in args.pair if b not in old] + [a for _, a in args.pair if a not in new]

@@ -70,6 +70,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from compare_sweeps import bootstrap_difference, finals  # noqa: E402  (a sibling script)
 
 from drone_torchrl.config import config_dir  # noqa: E402
+from drone_torchrl.episodes import RUNNING_MEAN_WINDOW  # noqa: E402
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, load_checkpoint  # noqa: E402
 from drone_torchrl.report.distribution import BOOTSTRAP_SEED, distribution  # noqa: E402
 from drone_torchrl.report.runs import (  # noqa: E402
@@ -78,7 +79,6 @@ from drone_torchrl.report.runs import (  # noqa: E402
     group_runs,
     load_runs,
 )
-from drone_torchrl.report.sweep import default_window  # noqa: E402
 from drone_torchrl.training.pbt import schedule  # noqa: E402
 
 # The protocol, fixed before any test run (docs/sweeps.md's settings).
@@ -745,7 +745,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         print(estimate(plan, out, args.calibration_episodes))
         return
 
-    window = default_window()
+    window = RUNNING_MEAN_WINDOW
     paper_test = take(
         grid_out / PAPER_SWEEP,
         ["hydra/launcher=population", *(f"{k}={v:g}" for k, v in plan.paper), *testing_overrides(plan)],

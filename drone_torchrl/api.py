@@ -191,10 +191,9 @@ def evaluate(*overrides: str, out_dir: str | os.PathLike | None = None, **values
         cfg, folder = _compose(EVAL_CONFIG, args)
         with _process_state(cfg.device):
             results = run_eval(cfg, folder, _keys(args))
+    folder = folder.resolve()
     return EvalResult(
-        results,
-        folder.resolve() / PLOT_NAME if cfg.plot else None,
-        folder.resolve() / VIDEO_NAME if cfg.video else None,
+        results, folder / PLOT_NAME if cfg.plot else None, folder / VIDEO_NAME if cfg.video else None
     )
 
 

@@ -37,7 +37,7 @@ from drone_torchrl.envs.drone_env import check_env_args
 from drone_torchrl.envs.heuristic import PDController
 from drone_torchrl.envs.params import DroneParams
 from drone_torchrl.evaluation import evaluate, max_return, reference_optimum, summarize
-from drone_torchrl.io.storage import write_atomically, write_csv, write_figure
+from drone_torchrl.io.storage import new_figure, write_atomically, write_csv, write_figure
 from drone_torchrl.io.streams import console
 from drone_torchrl.io.video import record_video, save_gif
 from drone_torchrl.modules.factory import build_actor
@@ -81,31 +81,21 @@ def plot_trajectory(
 
     The domain and zone are those of ``params`` (default: the paper's).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
 
     first = rollout[0]
     valid = valid_steps(first.get(("next", "done"))).squeeze(-1)
     states = torch.cat([first.get("observation")[:1], first.get(("next", "observation"))[valid]]).numpy()
     actions = first.get("action")[valid].numpy()
     p = DroneParams() if params is None else params
-    fig, (ax_path, ax_thrust) = plt.subplots(1, 2, figsize=(11, 4.5))
-    ax_path.add_patch(
-        plt.Rectangle(
-            (-p.zone_x_limit, p.zone_z_min),
-            2 * p.zone_x_limit,
-            p.zone_z_max - p.zone_z_min,
-            color="tab:green",
-            alpha=0.2,
-            label="target zone",
-        )
-    )
+    fig = new_figure((11, 4.5))
+    ax_path, ax_thrust = fig.subplots(1, 2)
+    zone = (-p.zone_x_limit, p.zone_z_min), 2 * p.zone_x_limit, p.zone_z_max - p.zone_z_min
+    ax_path.add_patch(Rectangle(*zone, color="tab:green", alpha=0.2, label="target zone"))
     ax_path.plot(states[:, dynamics.X], states[:, dynamics.Z], color="tab:blue", label="path")
     ax_path.plot(states[0, dynamics.X], states[0, dynamics.Z], "o", color="tab:blue", label="start")
-    ax_path.set(xlim=(-p.x_limit, p.x_limit), ylim=(p.z_min, p.z_max))
-    ax_path.set(xlabel="x [m]", ylabel="z [m]", aspect="equal", title="path")
+    ax_path.set(xlim=(-p.x_limit, p.x_limit), ylim=(p.z_min, p.z_max), xlabel="x [m]", ylabel="z [m]")
+    ax_path.set(aspect="equal", title="path")
     ax_path.grid(alpha=0.3)
     ax_path.legend(loc="lower right", fontsize=8)
     steps = np.arange(1, len(actions) + 1)
@@ -118,17 +108,16 @@ def plot_trajectory(
     ax_thrust.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    try:
-        return write_figure(fig, path, dpi=100)
-    finally:
-        plt.close(fig)
+    return write_figure(fig, path, dpi=100)
 
 
-def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> None:
-    """Refuse an ``env.*`` override that differs from the checkpoint's run: it flies in its own env.
+def _flown_env(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> dict:
+    """The checkpoint's run's env under the disturbances drone-eval was asked for.
 
-    Such an override is refused, not ignored. The disturbances are the evaluation's conditions
-    (:func:`_flown_env`), not the run's. ``keys``: those the caller set.
+    The disturbances are ``disturbance=...``'s, the evaluation's conditions; the run's
+    ``observed_actions`` is kept, since it is the policy's input layout, not a condition. Any other
+    ``env.*`` override that differs from the run's is refused, not ignored: the checkpoint flies in
+    its own env. ``keys``: those the caller set.
     """
     changed = [
         f"env.{name} {run_env[name]!r} -> {cfg.env[name]!r}"
@@ -142,14 +131,6 @@ def _refuse_env_overrides(cfg: DictConfig, run_env: dict, path: Path, keys: set[
             f"checkpoint={str(path)!r} flies in the env it was trained in; the command line changes "
             f"{'; '.join(changed)}: drop those overrides"
         )
-
-
-def _flown_env(cfg: DictConfig, run_env: dict, path: Path, keys: set[str]) -> dict:
-    """The run's env under the disturbances drone-eval was asked for.
-
-    The disturbances are ``disturbance=...``'s; the run's ``observed_actions`` is kept, since it is
-    the policy's input layout, not a condition. ``keys``: those the caller set.
-    """
     asked = env_kwargs(cfg)["disturbance"]
     trained = disturbances.make(run_env["disturbance"]).observed_actions
     if asked["observed_actions"] != trained and "env.disturbance.observed_actions" in keys:
@@ -177,10 +158,13 @@ def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
     )
 
 
-def table_rows(results: dict[str, dict]) -> list[dict[str, Any]]:
-    """The table's rows, one per policy: ``policy``, :data:`TABLE_COLUMNS`, then ``ends_<CAUSE>``.
+def write_table(out_dir: Path, results: dict[str, dict], settings: dict[str, Any]) -> tuple[Path, Path]:
+    """Write the table as :data:`TABLE_NAME` and, with the settings, :data:`SETTINGS_NAME`, atomically.
 
-    ``crashes`` counts the episodes that terminated (every cause but ``NONE``, the truncated ones).
+    One row per policy: ``policy``, :data:`TABLE_COLUMNS`, then ``ends_<CAUSE>``; ``crashes`` counts
+    the episodes that terminated (every cause but ``NONE``, the truncated ones). A number that is not
+    one (no optimum, no episode reached the zone) is ``nan`` in the CSV and ``null`` in the JSON
+    (which has no NaN).
     """
     rows = []
     for name, r in results.items():
@@ -191,31 +175,11 @@ def table_rows(results: dict[str, dict]) -> list[dict[str, Any]]:
         rows.append(
             {"policy": name, **{k: r[k] for k in TABLE_COLUMNS if k != "crashes"}, "crashes": crashes, **ends}
         )
-    return rows
-
-
-def write_table(out_dir: Path, rows: list[dict[str, Any]], settings: dict[str, Any]) -> tuple[Path, Path]:
-    """Write the table as :data:`TABLE_NAME` and, with the settings, :data:`SETTINGS_NAME`, atomically.
-
-    A number that is not one (no optimum, no episode reached the zone) is ``nan`` in the CSV and
-    ``null`` in the JSON (which has no NaN).
-    """
-    header = list(rows[0])
-    table = write_csv(out_dir / TABLE_NAME, header, ([row[k] for k in header] for row in rows))
-    document = _json_numbers({**settings, "policies": rows})
+    table = write_csv(out_dir / TABLE_NAME, list(rows[0]), (list(row.values()) for row in rows))
+    # JSON has no NaN: json writes it as NaN, and reading that back as None writes it as null.
+    document = json.loads(json.dumps({**settings, "policies": rows}), parse_constant=lambda _: None)
     text = json.dumps(document, indent=2, allow_nan=False) + "\n"
     return table, write_atomically(out_dir / SETTINGS_NAME, text.encode())
-
-
-def _json_numbers(value: Any) -> Any:
-    """``value`` with every NaN as None (JSON has no NaN)."""
-    if isinstance(value, float) and math.isnan(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_numbers(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_numbers(v) for v in value]
-    return value
 
 
 def run_eval(
@@ -251,9 +215,7 @@ def run_eval(
             raise ConfigError(
                 f"checkpoint={str(path)!r} cannot be used: {type(err).__name__}: {err}"
             ) from None
-        kwargs = env_kwargs(run_cfg)
-        _refuse_env_overrides(cfg, kwargs, path, keys)
-        kwargs = _flown_env(cfg, kwargs, path, keys)
+        kwargs = _flown_env(cfg, env_kwargs(run_cfg), path, keys)
         actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:
@@ -288,30 +250,21 @@ def run_eval(
     console.info(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
     console.info(optimum_line(kwargs, optimum, ceiling))
     for name, r in results.items():
-        vs_pd = r["pct_of_pd"]
         vs_optimum = "" if best is None else f"{r['pct_of_optimum']:.1f}% of the optimum {best:.0f}, "
         causes = ", ".join(f"{k} {v}" for k, v in r["causes"].items() if v)
         console.info(
             f"{name}: return {r['return_mean']:.1f} +- {r['return_std']:.1f} "
-            f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_optimum}{vs_pd:.1f}% of PD), length {r['length_mean']:.1f}, "
+            f"({r['pct_of_max']:.1f}% of {ceiling:.0f}, {vs_optimum}{r['pct_of_pd']:.1f}% of PD), length {r['length_mean']:.1f}, "
             f"time in zone {100 * r['time_in_zone']:.1f}%, first in the zone at step {r['first_zone_step_mean']:.1f} "
             f"(reached in {100 * r['reached_fraction']:.0f}%), thrust mean {r['thrust_mean']:.3f} max {r['thrust_max']:.3f} "
             f"x weight, negative thrust {100 * r['negative_thrust_fraction']:.1f}%; "
             f"episode ends: {causes} (NONE = truncated; the others are crashes)"
         )
     if table:
-        settings = {
-            "checkpoint": None if cfg.checkpoint is None else str(path),
-            "agent": cfg.agent,
-            "episodes": cfg.episodes,
-            "seed": cfg.seed,
-            "device": cfg.device,
-            "env": kwargs,
-            "ceiling": ceiling,
-            "optimum": best,
-            "pd_return": pd_return,
-        }
-        csv_file, json_file = write_table(out_dir, table_rows(results), settings)
+        settings = {"checkpoint": None if cfg.checkpoint is None else str(path)}
+        settings |= {key: cfg[key] for key in ("agent", "episodes", "seed", "device")}
+        settings |= {"env": kwargs, "ceiling": ceiling, "optimum": best, "pd_return": pd_return}
+        csv_file, json_file = write_table(out_dir, results, settings)
         console.info(f"wrote {csv_file} and {json_file}")
     main_name = next(iter(policies))
     if cfg.plot:

@@ -109,11 +109,9 @@ def reference_optimum(env_kwargs: dict[str, Any]) -> Optimum | None:
     disturbances (the bound is the nominal drone's) and where the bound is not derived.
     """
     args = check_env_args(**env_kwargs)
-    params, max_steps, reset_mode = args.params, args.max_steps, args.reset_mode
-    disturbed = args.disturbance.active
-    if params.max_thrust is None or disturbed:
+    if args.params.max_thrust is None or args.disturbance.active:
         return None
-    return env_optimum(params, max_steps, reset_mode)
+    return env_optimum(args.params, args.max_steps, args.reset_mode)
 
 
 def evaluate_pd(

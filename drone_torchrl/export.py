@@ -51,13 +51,7 @@ from torch import nn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor
 
-from drone_torchrl.config import (
-    ConfigError,
-    check_keys,
-    check_networks,
-    check_values,
-    run_config,
-)
+from drone_torchrl.config import ConfigError, check_keys, check_networks, check_values, run_config
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.dynamics import ACTION_DIM, HOVER_THRUST, STATE_DIM, clamp_action
 from drone_torchrl.envs.params import ALPHA_LIMIT, X_LIMIT, Z_MAX, Z_MIN, ZONE_Z_CENTRE
@@ -401,7 +395,7 @@ def check_output_folder(output: Path, given: bool = True) -> None:
 
 
 def export_policy(
-    checkpoint: str | os.PathLike,
+    checkpoint: str | os.PathLike | None,
     output: str | os.PathLike | None = None,
     format: str | None = None,
     agent: int | None = None,
@@ -416,6 +410,8 @@ def export_policy(
     format, output = resolve_output(format, output)
     if format == "onnx":
         check_onnx_extra()
+    if checkpoint is None:
+        raise ConfigError.of("checkpoint", None, "a checkpoint file or a run folder")
     if output is not None:
         check_output_folder(output)
     policy, actor, path = load_policy(checkpoint, agent)
@@ -447,12 +443,7 @@ def run_export(cfg: Mapping[str, Any]) -> Exported:
     """drone-export's work on its composed config (``conf/export.yaml``): the keys and values first."""
     resolved = check_keys(cfg, "export")
     check_values(resolved, "export")
-    format, output = resolve_output(resolved["format"], resolved["output"])
-    if format == "onnx":
-        check_onnx_extra()
-    if resolved["checkpoint"] is None:
-        raise ConfigError.of("checkpoint", None, "a checkpoint file or a run folder")
-    return export_policy(resolved["checkpoint"], output, format, resolved["agent"])
+    return export_policy(resolved["checkpoint"], resolved["output"], resolved["format"], resolved["agent"])
 
 
 # ------------------------------------------------------------------------------- latency

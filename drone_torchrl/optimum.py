@@ -34,13 +34,11 @@ from scipy.optimize import Bounds, LinearConstraint, linprog, milp
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from drone_torchrl.envs import dynamics, params
+from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, Z_DOT, DroneParams, Z
 from drone_torchrl.envs.heuristic import PDGains, pd_action
 from drone_torchrl.envs.rollout import Episodes, fly_reference
 
-ZONE_Z = (params.ZONE_Z_MIN, params.ZONE_Z_MAX)
-DOMAIN_Z = (params.Z_MIN, params.Z_MAX)
 # The reward of a step in the zone beyond that of any other surviving step (10 - 1).
 ZONE_BONUS = dynamics.REWARD_IN_ZONE - dynamics.REWARD_ALIVE
 FLOOR_START = (0.0, 0.0)  # (z, z_dot) of every floor start
@@ -153,8 +151,6 @@ def zone_margin(
     steps: int,
     first_zone_step: int,
     start: Start = FLOOR_START,
-    zone_z: tuple[float, float] = ZONE_Z,
-    domain_z: tuple[float, float] = DOMAIN_Z,
     thrust_cap: float | None = None,
 ) -> VerticalPlan | None:
     """The vertical plan that stays in the zone from ``first_zone_step`` with the largest margin.
@@ -163,7 +159,7 @@ def zone_margin(
     be held from that step.
 
     Every step keeps ``z`` inside the domain (the floor with its tolerance); the steps from
-    ``first_zone_step`` on keep ``zone_z[0] + margin <= z <= zone_z[1] - margin``; ``c`` lies in
+    ``first_zone_step`` on keep ``zone_z_min + margin <= z <= zone_z_max - margin`` (``params``' zone); ``c`` lies in
     ``[0, thrust_cap]`` (``thrust_cap=None``: :func:`collective_limit`, and free when the thrust is
     unbounded). Returns ``None`` if even the domain cannot be kept.
     """
@@ -179,8 +175,10 @@ def zone_margin(
     a_ub = sparse.vstack(
         [sparse.hstack([zero, zero, -held, margin]), sparse.hstack([zero, zero, held, margin])], format="csr"
     )
-    b_ub = np.concatenate([np.full(held.shape[0], -zone_z[0]), np.full(held.shape[0], zone_z[1])])
-    low, high = domain_z[0] - params.floor_tolerance, domain_z[1]  # the floor counts as hit only below it
+    b_ub = np.concatenate(
+        [np.full(held.shape[0], -params.zone_z_min), np.full(held.shape[0], params.zone_z_max)]
+    )
+    low, high = params.z_min - params.floor_tolerance, params.z_max  # the floor counts as hit only below it
     bounds = [(0.0, cap) if cap is not None else (None, None)] * n + [(None, None)] * n + [(low, high)] * n
     bounds.append((None, None))
     objective = np.zeros(3 * n + 1)
@@ -193,12 +191,7 @@ def zone_margin(
 
 
 def earliest_zone_step(
-    params: DroneParams,
-    steps: int,
-    start: Start = FLOOR_START,
-    zone_z: tuple[float, float] = ZONE_Z,
-    domain_z: tuple[float, float] = DOMAIN_Z,
-    thrust_cap: float | None = None,
+    params: DroneParams, steps: int, start: Start = FLOOR_START, thrust_cap: float | None = None
 ) -> VerticalPlan | None:
     """The largest-margin plan of the earliest step from which the drone can stay in the zone.
 
@@ -210,7 +203,7 @@ def earliest_zone_step(
     """
 
     def holds(k: int) -> VerticalPlan | None:
-        plan = zone_margin(params, steps, k, start, zone_z, domain_z, thrust_cap)
+        plan = zone_margin(params, steps, k, start, thrust_cap)
         return plan if plan is not None and plan.margin >= -MARGIN_TOLERANCE else None
 
     best = holds(steps)
@@ -241,12 +234,7 @@ def _height_range(params: DroneParams, steps: int, start: Start, cap: float) -> 
     return fly(0.0), fly(cap)
 
 
-def max_zone_steps(
-    params: DroneParams,
-    steps: int,
-    start: Start = FLOOR_START,
-    zone_z: tuple[float, float] = ZONE_Z,
-) -> int:
+def max_zone_steps(params: DroneParams, steps: int, start: Start = FLOOR_START) -> int:
     """The most steps whose end state can lie in the zone, over every vertical thrust sequence.
 
     The sequences have ``c`` in ``[0, 2 max_thrust]``; one MILP, bounded thrust only.
@@ -263,8 +251,8 @@ def max_zone_steps(
     n = steps
     a_eq, b_eq = _recursion(params, n, start, extra=n)
     z_low, z_high = _height_range(params, n, start, cap)
-    big_low = np.maximum(zone_z[0] - z_low, 0.0)  # -z_t + M b_t <= -z_min + M
-    big_high = np.maximum(z_high - zone_z[1], 0.0)  # z_t + M b_t <= z_max + M
+    big_low = np.maximum(params.zone_z_min - z_low, 0.0)  # -z_t + M b_t <= -z_min + M
+    big_high = np.maximum(z_high - params.zone_z_max, 0.0)  # z_t + M b_t <= z_max + M
     eye = sparse.eye_array(n, format="csr")
     zero = sparse.csr_array((n, n))
     rows = sparse.vstack(
@@ -274,7 +262,7 @@ def max_zone_steps(
         ],
         format="csr",
     )
-    upper = np.concatenate([big_low - zone_z[0], big_high + zone_z[1]])
+    upper = np.concatenate([big_low - params.zone_z_min, big_high + params.zone_z_max])
     inf = np.inf
     lower_bounds = np.concatenate([np.zeros(n), np.full(2 * n, -inf), np.zeros(n)])
     upper_bounds = np.concatenate([np.full(n, cap), np.full(2 * n, inf), np.ones(n)])
@@ -295,13 +283,7 @@ def max_zone_steps(
     return min(n, math.floor(-bound + MARGIN_TOLERANCE))
 
 
-def optimum(
-    params: DroneParams,
-    steps: int,
-    start: Start = FLOOR_START,
-    zone_z: tuple[float, float] = ZONE_Z,
-    domain_z: tuple[float, float] = DOMAIN_Z,
-) -> Optimum:
+def optimum(params: DroneParams, steps: int, start: Start = FLOOR_START) -> Optimum:
     """The best achievable return from the vertical start ``start`` (see :class:`Optimum`).
 
     Bounded thrust: the count of :func:`max_zone_steps` (MILP) bounds the return; the earliest
@@ -309,12 +291,12 @@ def optimum(
     no limit on ``c``, so the zone is held from the first step (a thrust pulse of several hundred
     weights); the bound is then the ceiling ``10 * steps``.
     """
-    plan = earliest_zone_step(params, steps, start, zone_z, domain_z)
+    plan = earliest_zone_step(params, steps, start)
     if params.max_thrust is None:
         # c_1 alone puts z_1 anywhere and c_2 stops the drone there: the LPs find k* = 1, N = steps.
         zone_steps = 0 if plan is None else steps - plan.first_zone_step + 1
     else:
-        zone_steps = max_zone_steps(params, steps, start, zone_z)
+        zone_steps = max_zone_steps(params, steps, start)
     first = 0 if plan is None else plan.first_zone_step
     return Optimum(steps, zone_steps, first, plan)
 
@@ -354,22 +336,16 @@ def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum
     if params.max_thrust is not None and params.max_thrust < HOVER_THRUST:
         return None
     corners = start_box(reset_mode, params)
-    zone_z, domain_z = (params.zone_z_min, params.zone_z_max), (params.z_min, params.z_max)
     if len(corners) == 1:
-        return optimum(params, max_steps, corners[0], zone_z, domain_z)
-    plans = [zone_margin(params, max_steps, 1, corner, zone_z, domain_z) for corner in corners]
+        return optimum(params, max_steps, corners[0])
+    plans = [zone_margin(params, max_steps, 1, corner) for corner in corners]
     if any(plan is None or plan.margin < -MARGIN_TOLERANCE for plan in plans):
         return None
     return Optimum(max_steps, max_steps, 1, None)
 
 
 def fly_plan(
-    start: torch.Tensor,
-    params: DroneParams,
-    max_steps: int,
-    zone_z: tuple[float, float] = ZONE_Z,
-    domain_z: tuple[float, float] = DOMAIN_Z,
-    gains: PDGains | None = None,
+    start: torch.Tensor, params: DroneParams, max_steps: int, gains: PDGains | None = None
 ) -> tuple[Episodes, VerticalPlan]:
     """Replay an optimal vertical plan from the floor starts ``start`` ``[B, 6]``.
 
@@ -387,9 +363,7 @@ def fly_plan(
     if not torch.all(start[..., Z] == FLOOR_START[0]) or not torch.all(start[..., Z_DOT] == FLOOR_START[1]):
         raise ValueError("fly_plan replays floor starts (z = z_dot = 0)")
     tilt = float(start[..., ALPHA].abs().max())
-    plan = earliest_zone_step(
-        params, max_steps, FLOOR_START, zone_z, domain_z, thrust_cap=collective_limit(params, tilt)
-    )
+    plan = earliest_zone_step(params, max_steps, FLOOR_START, thrust_cap=collective_limit(params, tilt))
     if plan is None:
         raise ValueError("the zone cannot be held from any step with these parameters")
     policy = _PlanPolicy(torch.as_tensor(plan.collective, dtype=start.dtype), plan.apex_step, params, gains)

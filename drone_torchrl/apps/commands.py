@@ -8,32 +8,29 @@ run it. Output piped into ``head`` never stops a command, its help page included
 
 from __future__ import annotations
 
+import importlib
+
 from drone_torchrl.apps.help import answer_help
 from drone_torchrl.io.streams import guard_broken_pipes
 
 
+def _command(prog: str, app: str) -> None:
+    """``prog``: its help page if asked for, else ``drone_torchrl.apps.<app>.run()``."""
+    guard_broken_pipes()
+    answer_help(prog)
+    importlib.import_module(f"drone_torchrl.apps.{app}").run()
+
+
 def train() -> None:
     """``drone-train`` (:func:`drone_torchrl.apps.train.run`)."""
-    guard_broken_pipes()
-    answer_help("drone-train")
-    from drone_torchrl.apps.train import run
-
-    run()
+    _command("drone-train", "train")
 
 
 def evaluate() -> None:
     """``drone-eval`` (:func:`drone_torchrl.apps.evaluate.run`)."""
-    guard_broken_pipes()
-    answer_help("drone-eval")
-    from drone_torchrl.apps.evaluate import run
-
-    run()
+    _command("drone-eval", "evaluate")
 
 
 def export() -> None:
     """``drone-export`` (:func:`drone_torchrl.apps.export.run`)."""
-    guard_broken_pipes()
-    answer_help("drone-export")
-    from drone_torchrl.apps.export import run
-
-    run()
+    _command("drone-export", "export")

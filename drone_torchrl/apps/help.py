@@ -24,7 +24,7 @@ from __future__ import annotations
 import re
 import sys
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, fields
 from pathlib import Path
 from typing import Any
 
@@ -42,24 +42,12 @@ _INLINE_COMMENT = re.compile(r"\s#\s?(?P<comment>.*)$")
 _OTHER_CONFIG = ("--config-path", "-cp", "--config-name", "-cn", "--config-dir", "-cd")
 
 
-@dataclass(frozen=True)
-class App:
-    """One Hydra command.
-
-    Attributes:
-        config: its primary config, ``conf/<config>.yaml``.
-        groups: groups its defaults list does not choose that it takes all the same
-            (``+sweep=lr``, ``hydra/launcher=population``).
-    """
-
-    config: str
-    groups: tuple[str, ...] = ()
-
-
+# Each command's primary config (conf/<config>.yaml), and the groups its defaults list does not
+# choose that it takes all the same (+sweep=lr, hydra/launcher=population).
 APPS = {
-    "drone-train": App("config", groups=("sweep", "hydra/launcher")),
-    "drone-eval": App("eval"),
-    "drone-export": App("export"),
+    "drone-train": ("config", ("sweep", "hydra/launcher")),
+    "drone-eval": ("eval", ()),
+    "drone-export": ("export", ()),
 }
 
 
@@ -72,23 +60,19 @@ def conf_folder() -> Path:
     raise FileNotFoundError(f"drone_torchrl's conf/ folder is missing (looked in {package} and its parent)")
 
 
-def wants_help(args: Sequence[str]) -> bool:
-    """Whether the command line asks for the page (``--help`` or ``-h``, not for another config)."""
-    return any(a in ("--help", "-h") for a in args) and not any(
-        a.split("=", 1)[0] in _OTHER_CONFIG for a in args
-    )
-
-
 def answer_help(prog: str, args: Sequence[str] | None = None) -> None:
     """Print ``prog``'s page and exit 0 if ``args`` (the command line's if None) ask for it.
 
-    A command line Hydra cannot compose exits 1 with one line on stderr.
+    They ask with ``--help`` or ``-h``, unless they choose another config (Hydra's own help then
+    applies). A command line Hydra cannot compose exits 1 with one line on stderr.
     """
+    from drone_torchrl.compat import hydra_args_parser
+
     args = sys.argv[1:] if args is None else list(args)
-    if not wants_help(args):
+    if not any(a in ("--help", "-h") for a in args) or any(a.split("=", 1)[0] in _OTHER_CONFIG for a in args):
         return
     try:
-        text = page(prog, overrides_in(args))
+        text = page(prog, hydra_args_parser().parse_known_args(args)[0].overrides)
     except HelpError as err:
         sys.exit(f"{prog}: error: {err}")
     print(text)
@@ -99,63 +83,48 @@ class HelpError(Exception):
     """The command line's overrides do not compose (Hydra's message, in one line)."""
 
 
-def overrides_in(args: Sequence[str]) -> list[str]:
-    """The ``key=value`` overrides of a command line, as Hydra's own parser reads them."""
-    from drone_torchrl.compat import hydra_args_parser
-
-    known, _ = hydra_args_parser().parse_known_args(list(args))
-    return list(known.overrides)
-
-
 def page(prog: str, overrides: Sequence[str] = ()) -> str:
     """The ``--help`` page of ``prog`` (``drone-train``...), its config composed with ``overrides``."""
-    app = APPS[prog]
+    config, extra_groups = APPS[prog]
     conf = conf_folder()
-    composed = compose(conf, app.config, overrides)
+    groups, keys = compose(conf, config, overrides, extra_groups)
     lines = [
-        f"{prog}: {_summary(conf / f'{app.config}.yaml')}",
+        f"{prog}: {_summary(conf / f'{config}.yaml')}",
         "",
         f"Usage: {prog} [GROUP=OPTION ...] [KEY=VALUE ...]",
         f"       {prog} --cfg job [...]   print the composed config and exit",
         f"       {prog} --hydra-help      Hydra's own flags (-m, --config-dir, ...)",
     ]
-    if composed.groups:  # drone-export has none
+    if groups:  # drone-export has none
         lines += [
             "",
             f"Config groups (GROUP=OPTION; * marks the option chosen, a + is needed for groups {prog} "
             "does not choose by default):",
         ]
-    for group, options, chosen in composed.groups:
+    for group, options, chosen in groups:
         marked = " | ".join(f"{o}*" if o == chosen else o for o in options)
         lines.append(f"  {group if chosen is not None else '+' + group}: {marked}")
         for option in options:
-            summary = _option_summary(conf, group, option)
+            summary = _summary(conf / group / f"{option}.yaml", rf"\+?{re.escape(group)}={re.escape(option)}")
             if summary:
                 lines.append(f"      {option:<{max(map(len, options))}}  {summary}")
-    lines += ["", f"Keys (KEY=VALUE), with their values in conf/{app.config}.yaml as composed:"]
-    width = max(len(key) + len(value) for key, value, _ in composed.keys) + 3
-    for key, value, meaning in composed.keys:
+    lines += ["", f"Keys (KEY=VALUE), with their values in conf/{config}.yaml as composed:"]
+    width = max(len(key) + len(value) for key, value, _ in keys) + 3
+    for key, value, meaning in keys:
         lines.append(f"  {f'{key}={value}':<{width}}  {meaning}".rstrip())
     lines += ["", "Meanings are the comments of conf/'s YAML files; docs/training.md has the full story."]
     return "\n".join(lines)
 
 
-@dataclass(frozen=True)
-class Composed:
-    """What the page shows of a composed config.
+def compose(
+    conf: Path, config: str, overrides: Sequence[str] = (), extra_groups: Sequence[str] = ()
+) -> tuple[list[tuple[str, list[str], str | None]], list[tuple[str, str, str]]]:
+    """Compose ``conf/<config>.yaml`` with Hydra, the schemas stood in for (see the module's docstring).
 
-    Attributes:
-        groups: ``(group, options, chosen)``; ``chosen`` is None for a group the defaults list does
-            not choose.
-        keys: ``(key, value, meaning)`` for every key, in the config's order.
+    Returns the groups, each as ``(group, options, chosen)`` (``chosen`` is None for a group of
+    ``extra_groups`` the defaults list does not choose), and ``(key, value, meaning)`` of every key,
+    in the config's order.
     """
-
-    groups: list[tuple[str, list[str], str | None]]
-    keys: list[tuple[str, str, str]]
-
-
-def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
-    """Compose ``conf/<config>.yaml`` with Hydra, the schemas stood in for (see the module's docstring)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.config_store import ConfigStore
@@ -176,7 +145,6 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
                 node = {"env": asdict(DroneParams())} if name in _ENV_SCHEMAS else {}
                 store.store(name=name, node=node, provider="drone_torchrl.apps.help")
                 stored.add(name)
-    app = APPS_BY_CONFIG.get(config, App(config))
     try:
         with initialize_config_dir(str(conf), version_base="1.3", job_name=config):
             cfg = hydra_compose(config, overrides=list(overrides), return_hydra_config=True)
@@ -185,7 +153,7 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
             defaults = loader.compute_defaults_list(config, list(overrides), RunMode.RUN).defaults
             # The groups the defaults list chooses, in its order (conf/<group>/<option>), then the app's others.
             names = [d.config_path.rpartition("/")[0] for d in defaults if d.config_path]
-            names = [g for g in dict.fromkeys(names) if g in choices and "/" not in g] + list(app.groups)
+            names = [g for g in dict.fromkeys(names) if g in choices and "/" not in g] + list(extra_groups)
             groups = [(g, sorted(loader.get_group_options(g)), choices.get(g)) for g in names]
     except (HydraException, OmegaConfBaseException) as err:
         raise HelpError(_one_line(str(err))) from None
@@ -212,10 +180,7 @@ def compose(conf: Path, config: str, overrides: Sequence[str] = ()) -> Composed:
     assert isinstance(values, dict)
     values.pop("hydra")
     keys = [(key, _show(value), meanings.get(key, "")) for key, value in _leaves(values)]
-    return Composed(groups=groups, keys=keys)
-
-
-APPS_BY_CONFIG = {app.config: app for app in APPS.values()}
+    return groups, keys
 
 
 def _one_line(message: str) -> str:
@@ -293,17 +258,12 @@ def _header(text: str) -> str:
     return _first_sentence(block)
 
 
-def _summary(path: Path) -> str:
-    """What a primary config's command does: its header, without the ``drone-xxx:`` it starts with."""
-    return re.sub(r"^[\w-]+:\s*", "", _header(path.read_text(encoding="utf-8")))
+def _summary(path: Path, prefix: str = r"[\w-]+") -> str:
+    """What a config does: its header, without the ``drone-xxx:`` (``prefix``, a regex) it starts with.
 
-
-def _option_summary(conf: Path, group: str, option: str) -> str:
-    """What option ``option`` of ``group`` is: its file's header, without ``group=option:``."""
-    path = conf / group / f"{option}.yaml"
-    if not path.is_file():  # an option in Hydra's ConfigStore (hydra/launcher=fused): no file
-        return ""
-    return re.sub(rf"^\+?{re.escape(group)}={re.escape(option)}:\s*", "", _header(path.read_text("utf-8")))
+    An option in Hydra's ConfigStore (hydra/launcher=fused) has no file, and no summary.
+    """
+    return re.sub(rf"^{prefix}:\s*", "", _header(path.read_text("utf-8"))) if path.is_file() else ""
 
 
 def _leaves(node: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, Any]]:

@@ -11,9 +11,9 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from drone_torchrl.io.storage import StorageError, unwritable
 from drone_torchrl.io.streams import guard_broken_pipes
@@ -24,22 +24,21 @@ EXIT_ERROR = 2
 
 
 def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected an integer >= 1")
-    return value
+    return _checked(text, int, lambda value: value >= 1, "an integer >= 1")
 
 
 def _finite(text: str) -> float:
+    return _checked(text, float, math.isfinite, "a finite number")
+
+
+def _checked(text: str, kind: type, good: Callable[[Any], bool], expected: str) -> Any:
+    """``kind(text)`` if it is ``good``; else argparse's error, in one line."""
     try:
-        value = float(text)
+        value = kind(text)
     except ValueError:
-        value = math.nan
-    if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected a finite number")
+        value = None
+    if value is None or not good(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected {expected}")
     return value
 
 
@@ -72,13 +71,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--out",
         type=_folder,
-        default=None,
         help="output folder (default: <sweep>/report; with several sweeps: <out>/<sweep name>)",
     )
     parser.add_argument(
         "--window",
         type=_positive_int,
-        default=None,
         help="running-mean window in episodes (default: a run's, the paper's 100)",
     )
     parser.add_argument(
@@ -104,7 +101,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     # Imported once the command line is read: they import torch (seconds), which --help does without.
     from drone_torchrl.report.distribution import paper_order
     from drone_torchrl.report.runs import ReportError, failed_without_episodes, group_runs, load_runs
-    from drone_torchrl.report.sweep import build_report
+    from drone_torchrl.report.stats import build_report
     from drone_torchrl.report.tables import (
         format_paper_averaging_section,
         format_report,

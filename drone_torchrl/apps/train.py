@@ -44,23 +44,20 @@ def main(cfg: DictConfig) -> float | None:
     from drone_torchrl.training.trainer import train
 
     guard_broken_pipes()  # also in a launcher's worker process
+    job_dir = Path(HydraConfig.get().runtime.output_dir)
     if HydraConfig.get().mode != RunMode.MULTIRUN:
-        hydra_dir = Path(HydraConfig.get().runtime.output_dir)
         try:
             return train(cfg, show_next_steps=True)
         except (ConfigError, CheckpointError, TrainingDiverged) as err:
             sys.exit(f"drone-train: error: {err}")
         except StorageError as err:
-            run = Path(cfg.resume) if cfg.resume else hydra_dir
-            sys.exit(f"drone-train: error: {err}; {_continue_hint(run)}")
+            sys.exit(f"drone-train: error: {err}; {_continue_hint(cfg, job_dir)}")
         except KeyboardInterrupt:
-            run = Path(cfg.resume) if cfg.resume else hydra_dir
-            console.warning(f"drone-train: interrupted; {_continue_hint(run)}")
+            console.warning(f"drone-train: interrupted; {_continue_hint(cfg, job_dir)}")
             sys.exit(EXIT_INTERRUPTED)
         finally:
             # Refused, or resumed in the run's own folder: Hydra's folder for this call holds nothing.
-            remove_if_untouched(hydra_dir)
-    job_dir = Path(HydraConfig.get().runtime.output_dir)
+            remove_if_untouched(job_dir)
     try:
         return train(cfg)
     except Exception as err:
@@ -76,8 +73,9 @@ def main(cfg: DictConfig) -> float | None:
         raise
 
 
-def _continue_hint(run: Path) -> str:
-    """How to go on with ``run`` (a run folder, or the checkpoint ``resume`` named)."""
+def _continue_hint(cfg: DictConfig, job_dir: Path) -> str:
+    """How to go on with the run: ``resume``'s (a run folder or a checkpoint), else ``job_dir``."""
+    run = Path(cfg.resume) if cfg.resume else job_dir
     if run.is_file() or (run / CHECKPOINT_DIR / LAST).is_file():
         return f"the last checkpoint is intact; continue with: drone-train resume={run}"
     return "no checkpoint was written yet; start it again"
@@ -157,8 +155,8 @@ def register_plugins() -> None:
     from hydra_plugins.drone_torchrl_launcher.population_launcher import PopulationLauncher
     from hydra_plugins.drone_torchrl_launcher.population_sweeper import PopulationSweeper
 
-    plugins = [PopulationLauncher, PopulationSweeper]
-    for plugin in plugins + list(slurm_launcher.PLUGINS):  # the SLURM ones with the submitit extra
+    # The SLURM ones come with the submitit extra.
+    for plugin in [PopulationLauncher, PopulationSweeper, *slurm_launcher.PLUGINS]:
         Plugins.instance().register(plugin)
 
 

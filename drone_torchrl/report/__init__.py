@@ -3,8 +3,8 @@
 A report reads only the files a sweep job leaves on disk (``episodes.csv``, ``config.yaml``,
 ``.hydra/overrides.yaml`` and ``checkpoints/last.pt``), so it works on sweeps that are still
 running and on jobs trained by any engine writing those files. Modules: :mod:`.runs` (job
-folders, settings), :mod:`.stats` (the numbers), :mod:`.sweep` (one sweep's report),
-:mod:`.figures` and :mod:`.tables` (the files written).
+folders, settings), :mod:`.stats` (the numbers, one sweep's report), :mod:`.tables` (the files
+written, its curves' figures too), :mod:`.distribution`, :mod:`.landscape` and :mod:`.schedules`.
 
 Method:
 
@@ -49,52 +49,17 @@ DEFAULT_RETURN_THRESHOLD = 2000.0
 # Loaded on first use (PEP 562): drone-report's command line (drone_torchrl/apps/report.py) and its
 # --help need none of them, and they import torch.
 _LAZY = {
-    "ReportError": "drone_torchrl.report.runs",
-    "Run": "drone_torchrl.report.runs",
-    "Setting": "drone_torchrl.report.runs",
-    "group_runs": "drone_torchrl.report.runs",
-    "load_runs": "drone_torchrl.report.runs",
-    "setting_of": "drone_torchrl.report.runs",
-    "Crossing": "drone_torchrl.report.stats",
-    "SeedStats": "drone_torchrl.report.stats",
-    "SettingSummary": "drone_torchrl.report.stats",
-    "aggregate_over_seeds": "drone_torchrl.report.stats",
-    "first_crossing": "drone_torchrl.report.stats",
-    "pd_reference": "drone_torchrl.report.stats",
-    "running_mean": "drone_torchrl.report.stats",
-    "setting_curve": "drone_torchrl.report.stats",
-    "summarize": "drone_torchrl.report.stats",
-    "verdict": "drone_torchrl.report.stats",
-    "SweepReport": "drone_torchrl.report.sweep",
-    "build_report": "drone_torchrl.report.sweep",
-    "format_report": "drone_torchrl.report.tables",
-    "format_table": "drone_torchrl.report.tables",
-    "write_report": "drone_torchrl.report.tables",
+    name: f"drone_torchrl.report.{module}"
+    for module, names in {
+        "runs": "ReportError Run Setting group_runs load_runs setting_of",
+        "stats": "Crossing SeedStats SettingSummary SweepReport aggregate_over_seeds build_report first_crossing "
+        "pd_reference running_mean setting_curve summarize verdict",
+        "tables": "format_report format_table write_report",
+    }.items()
+    for name in names.split()
 }
 
-__all__ = [
-    "Crossing",
-    "ReportError",
-    "Run",
-    "SeedStats",
-    "Setting",
-    "SettingSummary",
-    "SweepReport",
-    "aggregate_over_seeds",
-    "build_report",
-    "first_crossing",
-    "format_report",
-    "format_table",
-    "group_runs",
-    "load_runs",
-    "pd_reference",
-    "running_mean",
-    "setting_curve",
-    "setting_of",
-    "summarize",
-    "verdict",
-    "write_report",
-]
+__all__ = sorted(_LAZY)
 
 
 __getattr__ = lazy_getattr(__name__, _LAZY)

@@ -13,7 +13,7 @@ Per setting, :func:`distribution` gives:
 - the band of 4-seed means (bootstrap: 4 seeds drawn without replacement, as a 4-seed study would
   draw them): the spread a paper-sized study sees;
 - with bounded thrust, the median as a share of the best achievable return
-  (:func:`~drone_torchrl.report.stats.optimum_return`).
+  (:func:`~drone_torchrl.report.stats.optimum_reference`).
 
 :func:`paper_averaged_curves` redraws the paper's figures 4.2 and 4.4 the way its public analysis
 code computes them: the list of runs is never reset between settings, so the curve drawn for the
@@ -34,10 +34,9 @@ from drone_torchrl.report.stats import (
     PERCENT,
     ZONE_SHARE,
     aggregate_over_seeds,
-    first_crossing,
-    optimum_return,
     run_curves,
     setting_curve,
+    summarize,
 )
 
 BOOTSTRAP_SAMPLES = 10_000
@@ -45,10 +44,7 @@ BOOTSTRAP_SEED = 0
 CONFIDENCE = 0.95
 PAPER_STUDY_SEEDS = 4
 # The settings in the order the paper's analysis code appends their runs (figures 4.2 and 4.4).
-PAPER_ORDER = {
-    "algo.lr": (5e-5, 1e-4, 5e-4, 1e-3),
-    "algo.gamma": (0.999, 0.99, 0.95, 0.9),
-}
+PAPER_ORDER = {"algo.lr": (5e-5, 1e-4, 5e-4, 1e-3), "algo.gamma": (0.999, 0.99, 0.95, 0.9)}
 DISTRIBUTION_FIGURE = "finals.png"
 PAPER_AVERAGING_FIGURE = "paper_averaging.png"
 
@@ -89,13 +85,6 @@ def percentile_tails() -> tuple[float, float]:
     return 100 * (1 - CONFIDENCE) / 2, 100 * (1 + CONFIDENCE) / 2
 
 
-def bootstrap_median_ci(values: np.ndarray, rng: np.random.Generator) -> tuple[float, float]:
-    """Percentile bootstrap interval of the median (resampling the seeds with replacement)."""
-    samples = rng.choice(values, size=(BOOTSTRAP_SAMPLES, values.size), replace=True)
-    low, high = np.percentile(np.median(samples, axis=1), percentile_tails())
-    return float(low), float(high)
-
-
 def small_study_band(
     values: np.ndarray, rng: np.random.Generator, seeds: int = PAPER_STUDY_SEEDS
 ) -> tuple[float, float]:
@@ -108,22 +97,24 @@ def small_study_band(
 
 
 def distribution(setting: Setting, window: int) -> Distribution:
-    """The final-value distribution of ``setting``'s runs that have episodes."""
-    returns = run_curves(setting, COL_RETURN, window)
-    lengths = run_curves(setting, COL_LENGTH, window)
-    if not returns:
+    """The final-value distribution of ``setting``'s runs that have episodes (of its :func:`~.stats.summarize`)."""
+    summary = summarize(setting, window)
+    if not summary.final_returns:
         raise ReportError(f"{setting.label}: no run has episodes")
-    finals = np.array([curve[-1] for curve in returns])
+    finals = np.array(summary.final_returns)
     rng = np.random.default_rng(BOOTSTRAP_SEED)
+    # The median's percentile bootstrap interval: the seeds resampled with replacement.
+    samples = rng.choice(finals, size=(BOOTSTRAP_SAMPLES, finals.size), replace=True)
+    ci_low, ci_high = np.percentile(np.median(samples, axis=1), percentile_tails())
     return Distribution(
         label=setting.label,
         final_returns=finals,
-        final_lengths=np.array([curve[-1] for curve in lengths]),
-        reached_full_length=sum(first_crossing(c, setting.max_steps) is not None for c in lengths),
-        in_zone=int((finals >= ZONE_SHARE * setting.ceiling).sum()),
-        median_ci=bootstrap_median_ci(finals, rng),
+        final_lengths=np.array(summary.final_lengths),
+        reached_full_length=len(summary.length_cap.episodes),
+        in_zone=int((finals >= ZONE_SHARE * summary.ceiling).sum()),
+        median_ci=(float(ci_low), float(ci_high)),
         four_seed_band=small_study_band(finals, rng),
-        optimum=optimum_return(setting.env_kwargs),
+        optimum=summary.optimum,
     )
 
 

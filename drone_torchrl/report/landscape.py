@@ -23,8 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from drone_torchrl.io.storage import new_figure, write_csv, write_figure
-from drone_torchrl.report.stats import ZONE_SHARE, SettingSummary
-from drone_torchrl.report.sweep import SweepReport
+from drone_torchrl.report.stats import ZONE_SHARE, SettingSummary, SweepReport
 
 PAPER_SETTING = {"algo.lr": 1e-4, "algo.gamma": 0.99}
 LANDSCAPE_FIGURE = "landscape.png"
@@ -32,14 +31,7 @@ LANDSCAPE_CSV = "landscape.csv"
 # Its columns after the two keys' values.
 LANDSCAPE_CSV_COLUMNS = ("seeds", "median_final_return", "zone_fraction", "median_full_length_episode")
 MIN_VALUES_PER_AXIS = 2
-FIGURE_SIZE = (16.0, 5.0)
-FIGURE_DPI = 120
-ANNOTATION_SIZE = 7
-MARKER_SIZE = 14
 NEVER = "never"
-NEVER_COLOUR = "lightgrey"
-LUMINANCE = (0.299, 0.587, 0.114)  # ITU-R BT.601 weights of red, green, blue
-DARK_TEXT_ABOVE = 0.5
 
 
 def _axis_position(key: str, value: float) -> float:
@@ -120,7 +112,7 @@ def plot_landscape(grid: Landscape, path: Path) -> Path:
     """Three heat maps side by side, values written in the cells, the paper's setting marked."""
     import matplotlib
 
-    fig = new_figure(FIGURE_SIZE)
+    fig = new_figure((16.0, 5.0))
     marker = _paper_marker(grid)
     panels = [
         ("median final return (running mean)", grid.median_return, "value", "viridis"),
@@ -135,34 +127,27 @@ def plot_landscape(grid: Landscape, path: Path) -> Path:
     for i, (title, values, kind, cmap) in enumerate(panels):
         ax = fig.add_subplot(1, len(panels), i + 1)
         shown = np.where(np.isinf(values), np.nan, values)
-        colours = matplotlib.colormaps[cmap].with_extremes(bad=NEVER_COLOUR)
+        colours = matplotlib.colormaps[cmap].with_extremes(bad="lightgrey")
         image = ax.imshow(shown, origin="lower", cmap=colours, aspect="auto")
         fig.colorbar(image, ax=ax, shrink=0.8)
         for (row, col), value in np.ndenumerate(values):
             cell = shown[row, col]
             rgb = colours(image.norm(cell))[:3] if np.isfinite(cell) else (1.0, 1.0, 1.0)
-            bright = sum(w * c for w, c in zip(LUMINANCE, rgb, strict=True)) > DARK_TEXT_ABOVE
-            ax.text(
-                col,
-                row,
-                _format(value, kind),
-                ha="center",
-                va="center",
-                fontsize=ANNOTATION_SIZE,
-                color="black" if bright else "white",
-            )
+            bright = 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2] > 0.5  # ITU-R BT.601 luminance
+            text = "black" if bright else "white"
+            ax.text(col, row, _format(value, kind), ha="center", va="center", fontsize=7, color=text)
         ax.set_xticks(range(len(grid.x_values)), [f"{v:.3g}" for v in grid.x_values], rotation=45)
         ax.set_yticks(range(len(grid.y_values)), [f"{v:.5g}" for v in grid.y_values])
         ax.set_xlabel(grid.x_key)
         ax.set_ylabel(grid.y_key)
         ax.set_title(title, fontsize="medium")
         if marker is not None:
-            ax.plot(*marker, marker="*", color="red", markersize=MARKER_SIZE, markeredgecolor="white")
+            ax.plot(*marker, marker="*", color="red", markersize=14, markeredgecolor="white")
     if marker is not None:
         paper = ", ".join(f"{key} {value:g}" for key, value in PAPER_SETTING.items())
         fig.suptitle(f"red star: the paper's setting ({paper}); grey: never", fontsize="medium")
     fig.tight_layout()
-    return write_figure(fig, path, dpi=FIGURE_DPI)
+    return write_figure(fig, path, dpi=120)
 
 
 def _paper_marker(grid: Landscape) -> tuple[float, float] | None:

@@ -84,7 +84,8 @@ class Run:
     @property
     def seed(self) -> Any:
         """The run's seed (from its config, else its overrides)."""
-        return self.config.get(SEED_KEY, override_value(self.overrides, SEED_KEY))
+        given = {k.lstrip(OVERRIDE_PREFIXES): v for k, _, v in (o.partition("=") for o in self.overrides)}
+        return self.config.get(SEED_KEY, given.get(SEED_KEY))
 
     def _required(self, key: str) -> Any:
         found, value = _lookup(self.config, key)
@@ -114,10 +115,6 @@ class Run:
                 self._required(f"env.{name}")
         return env_kwargs(self.config)
 
-    def wall_clock(self) -> float | None:
-        """The run's last ``wall_clock_s`` (``None`` without episodes)."""
-        return float(self.columns[COL_WALL_CLOCK][-1]) if self.episodes else None
-
 
 def _load_yaml(path: Path, kind: type) -> Any:
     """A YAML file as plain data of ``kind`` (dict or list); :class:`ReportError` if it is not one."""
@@ -136,15 +133,6 @@ def _load_yaml(path: Path, kind: type) -> Any:
         return OmegaConf.to_container(cfg, resolve=False)
 
 
-def override_value(overrides: Sequence[str], key: str) -> str | None:
-    """The raw value of ``key`` (or ``+key``/``++key``) among ``key=value`` override strings."""
-    for item in overrides:
-        name, _, value = item.partition("=")
-        if name.lstrip(OVERRIDE_PREFIXES) == key:
-            return value
-    return None
-
-
 def load_population(run_dir: Path) -> list[Run]:
     """A population run's agents, each as the run it would be in a folder of its own.
 
@@ -157,12 +145,9 @@ def load_population(run_dir: Path) -> list[Run]:
     try:
         # Its agents' statuses and a search's values are in it: a damaged one is not "no checkpoint".
         checkpoint = load_checkpoint(path) if path.is_file() else None
-    except CheckpointError as err:
-        raise ReportError(f"{err}: the population run {run_dir} cannot be reported") from None
-    try:
         agents = population_record.read_agents(run_dir)
         rows = population_record.read_episodes(run_dir, None if checkpoint is None else checkpoint["parts"])
-    except population_record.PopulationFileError as err:
+    except (CheckpointError, population_record.PopulationFileError) as err:
         raise ReportError(f"{err}: the population run {run_dir} cannot be reported") from None
     config = _load_yaml(run_dir / CONFIG_FILE, dict)
     searched = checkpoint is not None and bool(checkpoint.get("search"))
@@ -306,11 +291,6 @@ def format_value(value: Any) -> str:
     return str(value)
 
 
-def is_setting_key(key: str) -> bool:
-    """Whether an override key defines a setting (not the seed, the sweep preset, bookkeeping...)."""
-    return key not in NON_SETTING_KEYS and not key.startswith(NON_SETTING_PREFIXES)
-
-
 def setting_of(overrides: Sequence[str], config: dict[str, Any]) -> tuple[tuple[str, str], ...]:
     """The ``(key, value)`` pairs that define a job's setting, in override order.
 
@@ -321,7 +301,7 @@ def setting_of(overrides: Sequence[str], config: dict[str, Any]) -> tuple[tuple[
     for item in overrides:
         name, _, raw = item.partition("=")
         key = name.lstrip(OVERRIDE_PREFIXES)
-        if not is_setting_key(key):
+        if key in NON_SETTING_KEYS or key.startswith(NON_SETTING_PREFIXES):
             continue
         found, value = _lookup(config, key)
         pairs.append((key, format_value(value) if found else raw))
@@ -366,14 +346,9 @@ def _sort_key(value: str | None) -> tuple[int, float, str]:
         return (1, 0.0, value)
 
 
-def budgets(runs: Sequence[Run]) -> list[Any]:
-    """The distinct budgets (``algo.episodes``) of ``runs``, sorted; more than one: a mixed folder."""
-    return sorted({run.budget for run in runs if run.budget is not None}, key=lambda b: _sort_key(str(b)))
-
-
 def mixed_budgets(runs: Sequence[Run]) -> str | None:
     """The line saying that ``runs`` mix budgets (``algo.episodes=2, 3``), or ``None`` if they do not."""
-    found = budgets(runs)
+    found = sorted({run.budget for run in runs if run.budget is not None}, key=lambda b: _sort_key(str(b)))
     if len(found) < 2:
         return None
     return f"its runs mix budgets ({BUDGET_KEY}={LABEL_SEPARATOR.join(format_value(b) for b in found)})"

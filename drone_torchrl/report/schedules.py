@@ -18,14 +18,9 @@ from drone_torchrl.training.pbt import recorded_keys, schedule
 
 SCHEDULES_FIGURE = "pbt_schedules.png"
 SCHEDULES_CSV = "pbt_schedules.csv"
-FIGURE_DPI = 120
 PANEL_SIZE = (5.0, 3.2)
 # The most agents drawn (the best by final return): beyond, lines hide each other; the CSV has all.
 MAX_DRAWN = 300
-LINE_WIDTH = 0.8
-LINE_ALPHA = 0.6
-BEST_LINE_WIDTH = 2.5
-COLOUR_MAP = "viridis"
 
 
 def pbt_runs(sweep_dir: Path) -> list[Path]:
@@ -34,26 +29,18 @@ def pbt_runs(sweep_dir: Path) -> list[Path]:
     return [f for f in folders if (f / "lineage.parquet").is_file() and (f / CHECKPOINT_DIR / LAST).is_file()]
 
 
-def agent_schedules(run_dir: Path) -> tuple[list[str], list[tuple[int, float, list]]]:
-    """The recorded keys, and ``(agent, final return, schedule)`` of every agent with a final return.
-
-    Ranked by final return, best first; agents without one (unfinished or diverged) are left out.
-    """
-    state = load_checkpoint(Path(run_dir) / CHECKPOINT_DIR / LAST)
-    initial = {key: values for key, values in state["agents"].items() if key != "name"}
-    keys = list(recorded_keys(initial))
-    finals = [math.nan if f is None else f["final_return"] for f in state["final"]]
-    ranked = sorted((i for i in range(len(finals)) if not math.isnan(finals[i])), key=lambda i: -finals[i])
-    lineage = state["search"]["lineage"]
-    return keys, [(i, finals[i], schedule(lineage, initial, i, keys)) for i in ranked]
-
-
 def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path]:
     """``<prefix>pbt_schedules.png`` and ``.csv`` of one searched population run into ``out_dir``."""
     import matplotlib
 
-    keys, agents = agent_schedules(run_dir)
-    budget = max(int(e) for e in load_checkpoint(Path(run_dir) / CHECKPOINT_DIR / LAST)["updates_done"])
+    state = load_checkpoint(Path(run_dir) / CHECKPOINT_DIR / LAST)
+    budget = max(int(e) for e in state["updates_done"])
+    initial = {key: values for key, values in state["agents"].items() if key != "name"}
+    keys = list(recorded_keys(initial))
+    # Every agent with a final return, best first (unfinished or diverged agents have none).
+    finals = [math.nan if f is None else f["final_return"] for f in state["final"]]
+    ranked = sorted((i for i in range(len(finals)) if not math.isnan(finals[i])), key=lambda i: -finals[i])
+    agents = [(i, finals[i], schedule(state["search"]["lineage"], initial, i, keys)) for i in ranked]
     # A key no agent's schedule changes (e.g. an unsearched weight decay) gets no panel.
     varying = [k for k in keys if len({v[k] for _, _, steps in agents for _, v in steps}) > 1] or keys[:1]
     drawn = agents[:MAX_DRAWN]
@@ -63,21 +50,16 @@ def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path
     finals = [final for _, final, _ in drawn] or [0.0]
     low, high = min(finals), max(finals)
     norm = matplotlib.colors.Normalize(low, high if high > low else low + 1)  # equal finals: one colour
-    colours = matplotlib.colormaps[COLOUR_MAP]
+    colours = matplotlib.colormaps["viridis"]
     for ax, key in zip(axes[0], varying, strict=True):
         for rank, (agent, final, steps) in reversed(list(enumerate(drawn))):  # the best drawn last, on top
             updates = [u for u, _ in steps] + [budget]
             values = [v[key] for _, v in steps]
             best = rank == 0
-            ax.step(
-                updates,
-                [*values, values[-1]],
-                where="post",
-                color=colours(norm(final)),
-                linewidth=BEST_LINE_WIDTH if best else LINE_WIDTH,
-                alpha=1.0 if best else LINE_ALPHA,
-                label=f"best: agent {agent} (final {final:.0f})" if best else None,
-            )
+            label = f"best: agent {agent} (final {final:.0f})" if best else None
+            width, alpha = (2.5, 1.0) if best else (0.8, 0.6)
+            line = {"color": colours(norm(final)), "linewidth": width, "alpha": alpha, "label": label}
+            ax.step(updates, [*values, values[-1]], where="post", **line)
         ax.set_xlabel("update")
         ax.set_ylabel(key)
         positive = all(v[key] > 0 for _, _, steps in drawn for _, v in steps)
@@ -89,7 +71,7 @@ def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path
         "every agent's" if len(drawn) == len(agents) else f"the best {len(drawn)} of {len(agents)} agents'"
     )
     fig.suptitle(f"{Path(run_dir).name}: the values {shown} weights were trained with", fontsize="medium")
-    figure = write_figure(fig, Path(out_dir) / f"{prefix}{SCHEDULES_FIGURE}", dpi=FIGURE_DPI)
+    figure = write_figure(fig, Path(out_dir) / f"{prefix}{SCHEDULES_FIGURE}", dpi=120)
     rows = [
         [agent, final, update, *(values[k] for k in keys)]
         for agent, final, steps in agents

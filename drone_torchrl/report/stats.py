@@ -1,8 +1,8 @@
 """The numbers of a sweep report: statistics over seeds, thresholds, verdict and references.
 
 That is: running means, statistics over seeds, threshold crossings, the summary of each setting,
-the verdict, the PD controller's reference return and the best achievable return
-(:mod:`drone_torchrl.optimum`).
+the verdict, the PD controller's reference return, the best achievable return
+(:mod:`drone_torchrl.optimum`), and :class:`SweepReport`, all of one sweep folder.
 """
 
 from __future__ import annotations
@@ -11,11 +11,13 @@ import functools
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate_pd, reference_optimum
 from drone_torchrl.optimum import Optimum
 from drone_torchrl.report import DEFAULT_RETURN_THRESHOLD
@@ -23,11 +25,16 @@ from drone_torchrl.report.runs import (
     COL_LENGTH,
     COL_NEGATIVE_THRUST,
     COL_RETURN,
+    COL_WALL_CLOCK,
     LABEL_SEPARATOR,
     STATUS_FAILED,
     STATUS_FINISHED,
     STATUS_UNFINISHED,
+    Run,
     Setting,
+    group_runs,
+    load_runs,
+    mixed_budgets,
 )
 
 #: A seed "ends in the zone" when its final running-mean return is at least this share of the ceiling
@@ -153,6 +160,7 @@ class SettingSummary:
     max_steps: int
     ceiling: float
     final_returns: list[float]
+    final_lengths: list[float]
     length_cap: Crossing
     return_threshold: Crossing
     final_negative_thrust: float
@@ -220,13 +228,14 @@ def summarize(
     lengths = run_curves(setting, COL_LENGTH, window)
     returns = run_curves(setting, COL_RETURN, window)
     negative = [c[-1] for c in run_curves(setting, COL_NEGATIVE_THRUST, window)]
-    clocks = [r.wall_clock() for r in setting.runs_with_episodes]
+    clocks = [float(r.columns[COL_WALL_CLOCK][-1]) for r in setting.runs_with_episodes]
 
     def crossing(curves: list[np.ndarray], threshold: float) -> Crossing:
         hits = [first_crossing(c, threshold) for c in curves]
         return Crossing(threshold, [h for h in hits if h is not None], len(curves))
 
     episodes = [r.episodes for r in setting.runs]
+    best = optimum_reference(env_key(setting.env_kwargs))
     return SettingSummary(
         label=setting.label,
         seeds_finished=sum(r.status == STATUS_FINISHED for r in setting.runs),
@@ -236,13 +245,14 @@ def summarize(
         max_steps=setting.max_steps,
         ceiling=setting.ceiling,
         final_returns=[float(c[-1]) for c in returns],
+        final_lengths=[float(c[-1]) for c in lengths],
         length_cap=crossing(lengths, setting.max_steps),
         return_threshold=crossing(returns, return_threshold),
         final_negative_thrust=float(np.mean(negative)) if negative else math.nan,
         wall_clock_mean_s=float(np.mean(clocks)) if clocks else math.nan,
         wall_clock_total_s=float(np.sum(clocks)) if clocks else math.nan,
         notes=progress_notes(setting),
-        optimum=optimum_return(setting.env_kwargs),
+        optimum=None if best is None else best.best_return,
     )
 
 
@@ -303,19 +313,82 @@ def pd_reference(env_kwargs: dict[str, Any]) -> float:
 
 
 @functools.cache
-def _optimum(env_json: str) -> Optimum | None:
-    return reference_optimum(json.loads(env_json))
-
-
-def optimum_reference(env_kwargs: dict[str, Any]) -> Optimum | None:
-    """The best achievable return of every episode in this env with bounded thrust, or ``None``.
+def optimum_reference(env_json: str) -> Optimum | None:
+    """The best achievable return of every episode in this env (:func:`env_key`) with bounded thrust, or ``None``.
 
     Computed by :func:`drone_torchrl.evaluation.reference_optimum`; cached per env setting.
     """
-    return _optimum(env_key(env_kwargs))
+    return reference_optimum(json.loads(env_json))
 
 
-def optimum_return(env_kwargs: dict[str, Any]) -> float | None:
-    """:func:`optimum_reference`'s best return, or ``None``."""
-    found = optimum_reference(env_kwargs)
-    return None if found is None else found.best_return
+# --------------------------------------------------------------------------------------------------
+# One sweep's report
+
+PD_LABEL = "PD controller"
+OPTIMUM_LABEL = "optimum"
+
+
+@dataclass
+class SweepReport:
+    """Everything reported about one sweep folder."""
+
+    sweep_dir: Path
+    window: int
+    return_threshold: float
+    settings: list[Setting]
+    summaries: list[SettingSummary]
+    pd_returns: dict[str, float]
+    """PD reference return per distinct env setting, keyed by the labels of the settings using it."""
+    optima: dict[str, Optimum] = field(default_factory=dict)
+    """The best achievable return per distinct env setting with bounded thrust (``"optimum"``, or
+    ``"optimum (<labels>)"`` when the settings differ in their env)."""
+    mixed_budgets: str | None = None
+    """The line saying the runs mix budgets (:func:`~drone_torchrl.report.runs.mixed_budgets`), or ``None``."""
+
+    @property
+    def name(self) -> str:
+        """The sweep folder's name."""
+        return self.sweep_dir.resolve().name
+
+    @property
+    def verdict(self) -> str:
+        """The verdict line on the sweep's settings; none is named best when the runs mix budgets.
+
+        A run given more episodes ends further along, so a best across budgets would rank budgets,
+        not settings.
+        """
+        if self.mixed_budgets is not None:
+            return f"best: none named: {self.mixed_budgets}; compare runs of one budget"
+        return verdict(self.summaries)
+
+
+def build_report(
+    sweep_dir: Path,
+    window: int | None = None,
+    return_threshold: float = DEFAULT_RETURN_THRESHOLD,
+    pd: bool = True,
+    runs: Sequence[Run] | None = None,
+) -> SweepReport:
+    """Read a sweep folder and compute its settings, table rows, PD references and optima.
+
+    Already loaded ``runs`` are used instead of reading them again. The PD references are ``pd``;
+    ``window=None`` is a run's own (:data:`~drone_torchrl.episodes.RUNNING_MEAN_WINDOW`, the paper's 100).
+    """
+    window = RUNNING_MEAN_WINDOW if window is None else window
+    runs = load_runs(Path(sweep_dir)) if runs is None else runs
+    settings = group_runs(runs)
+    summaries = [summarize(s, window, return_threshold) for s in settings]
+    report = SweepReport(
+        Path(sweep_dir), window, return_threshold, settings, summaries, {}, mixed_budgets=mixed_budgets(runs)
+    )
+    by_env: dict[str, list[str]] = {}
+    for s in settings:
+        by_env.setdefault(env_key(s.env_kwargs), []).append(s.label)
+    for env_json, labels in by_env.items():
+        suffix = "" if len(by_env) == 1 else f" ({LABEL_SEPARATOR.join(labels)})"
+        best = optimum_reference(env_json)
+        if best is not None:
+            report.optima[OPTIMUM_LABEL + suffix] = best
+        if pd:
+            report.pd_returns[PD_LABEL + suffix] = _pd_return(env_json)
+    return report

@@ -1,4 +1,4 @@
-"""The report's tables and files: ``summary.md`` and ``summary.csv`` next to the figures."""
+"""The report's files: ``summary.md`` and ``summary.csv``, and the running-mean curves ``steps.png`` and ``returns.png``."""
 
 from __future__ import annotations
 
@@ -7,7 +7,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from drone_torchrl.io.storage import write_atomically, write_csv
+import numpy as np
+
+from drone_torchrl.io.storage import new_figure, write_atomically, write_csv, write_figure
 from drone_torchrl.report.distribution import (
     CONFIDENCE,
     DISTRIBUTION_FIGURE,
@@ -20,48 +22,64 @@ from drone_torchrl.report.distribution import (
     plot_distributions,
     plot_paper_averaging,
 )
-from drone_torchrl.report.figures import RETURNS_FIGURE, STEPS_FIGURE, plot_curves
 from drone_torchrl.report.landscape import LANDSCAPE_FIGURE, landscape, write_landscape
-from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN
+from drone_torchrl.report.runs import COL_LENGTH, COL_RETURN, STATUS_FINISHED
 from drone_torchrl.report.schedules import SCHEDULES_FIGURE, pbt_runs, write_schedules
-from drone_torchrl.report.stats import PD_EPISODES, PD_SEED, PERCENT, STD_DDOF, ZONE_SHARE
-from drone_torchrl.report.sweep import SweepReport
+from drone_torchrl.report.stats import (
+    OPTIMUM_LABEL,
+    PD_EPISODES,
+    PD_LABEL,
+    PD_SEED,
+    PERCENT,
+    STD_DDOF,
+    ZONE_SHARE,
+    SweepReport,
+    setting_curve,
+)
 
+STEPS_FIGURE = "steps.png"
+RETURNS_FIGURE = "returns.png"
 REPORT_DIR = "report"
 SUMMARY_MD = "summary.md"
 SUMMARY_CSV = "summary.csv"
 
-SECONDS_PER_MINUTE = 60.0
-SECONDS_PER_HOUR = 3600.0
 
-#: The columns of ``summary.csv``, one row per setting of the sweep.
-SUMMARY_CSV_COLUMNS = (
-    "setting",
-    "seeds_finished",
-    "seeds_total",
-    "episodes_min",
-    "episodes_max",
-    "final_return_mean",
-    "final_return_std",
-    "return_ceiling",
-    "final_return_pct_of_ceiling",
-    "optimum_return",
-    "final_return_pct_of_optimum",
-    "max_steps",
-    "length_cap_episode_mean",
-    "length_cap_seeds_reached",
-    "return_threshold",
-    "return_threshold_episode_mean",
-    "return_threshold_seeds_reached",
-    "final_negative_thrust_fraction",
-    "wall_clock_mean_s",
-    "wall_clock_total_s",
-    "notes",
-)
+def plot_curves(report: SweepReport, column: str, path: Path) -> Path:
+    """One running-mean curve per setting with a mean +- std band, plus reference lines; a PNG."""
+    fig = new_figure((9.0, 5.5))
+    ax = fig.add_subplot()
+    for setting in report.settings:
+        stats = setting_curve(setting, column, report.window)
+        x = np.arange(stats.mean.size)
+        n, pending = len(setting.runs), sum(r.status != STATUS_FINISHED for r in setting.runs)
+        seeds = f"{n} seed{'s' if n != 1 else ''}" + (f", {pending} not finished" if pending else "")
+        (line,) = ax.plot(x, stats.mean, linewidth=1.5, label=f"{setting.label} ({seeds})")
+        ax.fill_between(x, stats.mean - stats.std, stats.mean + stats.std, color=line.get_color(), alpha=0.2)
+    if column == COL_LENGTH:
+        for max_steps in sorted({s.max_steps for s in report.settings}):
+            ax.axhline(max_steps, linestyle="--", color="black", label=f"cap: {max_steps} steps")
+        ylabel, what = "steps per episode", "Episode length"
+    else:
+        for ceiling in sorted({s.ceiling for s in report.settings}):
+            ax.axhline(ceiling, linestyle="--", color="black", label=f"ceiling: {ceiling:g}")
+        for name, value in report.pd_returns.items():
+            ax.axhline(value, linestyle=":", color="dimgray", label=f"{name}: {value:.0f}")
+        for name, best in report.optima.items():
+            ax.axhline(
+                best.best_return, linestyle="-.", color="darkred", label=f"{name}: {best.best_return:.0f}"
+            )
+        ylabel, what = "return per episode", "Return"
+    ax.set_xlabel("episode")
+    ax.set_ylabel(f"{ylabel} (running mean over {report.window})")
+    ax.set_title(f"{report.name}: {what.lower()}, mean +- std over seeds")
+    ax.grid(alpha=0.2)
+    ax.legend(loc="best", fontsize="small")
+    fig.tight_layout()
+    return write_figure(fig, path, dpi=120)
 
 
 def summary_rows(report: SweepReport) -> list[dict[str, Any]]:
-    """The summary table as dicts with :data:`SUMMARY_CSV_COLUMNS` (raw numbers; empty = never)."""
+    """The rows of ``summary.csv``, one per setting: its columns in order (raw numbers; empty = never)."""
     return [
         {
             "setting": s.label,
@@ -99,10 +117,9 @@ def _common(values: set) -> str:
 def _duration(seconds: float) -> str:
     if math.isnan(seconds):
         return "-"
-    if seconds >= SECONDS_PER_HOUR:
-        return f"{seconds / SECONDS_PER_HOUR:.1f} h"
-    if seconds >= SECONDS_PER_MINUTE:
-        return f"{seconds / SECONDS_PER_MINUTE:.1f} min"
+    for unit, size in (("h", 3600.0), ("min", 60.0)):
+        if seconds >= size:
+            return f"{seconds / size:.1f} {unit}"
     return f"{seconds:.1f} s"
 
 
@@ -176,9 +193,9 @@ def format_report(report: SweepReport, figures: bool = True) -> str:
             if len(ceilings) == 1
             else []
         )
-        optimum = report.pd_optima.get(name)
-        if optimum is not None:
-            shares.append(f"{PERCENT * value / optimum:.1f}% of the optimum {optimum:g}")
+        best = report.optima.get(OPTIMUM_LABEL + name.removeprefix(PD_LABEL))  # the same env's
+        if best is not None:
+            shares.append(f"{PERCENT * value / best.best_return:.1f}% of the optimum {best.best_return:g}")
         share = f" ({', '.join(shares)})" if shares else ""
         lines.append(f"{name}: mean return {value:.0f}{share} over {PD_EPISODES} episodes, seed {PD_SEED}.")
     for name, best in report.optima.items():
@@ -195,41 +212,34 @@ def format_report(report: SweepReport, figures: bool = True) -> str:
     return "\n".join(lines)
 
 
+def _section(title: str, text: str, table: str, figure: str) -> str:
+    """A section of ``summary.md``: its title, text and table, then its figure's link."""
+    return "\n".join(
+        [f"## {title}", "", text, "", table, "", f"![{figure[:-4].replace('_', ' ')}]({figure})", ""]
+    )
+
+
 def format_seeds(report: SweepReport, distributions: list) -> str:
     """The seeds' distribution per setting (:mod:`.distribution`): its section of ``summary.md``."""
-    return "\n".join(
-        [
-            "## How the seeds end",
-            "",
-            "Final = each run's last running-mean value. CI: percentile bootstrap of the median. Full "
-            "length: the running-mean length reaches the cap. In the zone: final return >= "
-            f"{ZONE_SHARE:g} x the ceiling. Mean of {PAPER_STUDY_SEEDS} seeds: the central "
-            f"{CONFIDENCE:.0%} of the means of {PAPER_STUDY_SEEDS} seeds drawn without replacement "
-            "(what a study with that many seeds could have reported).",
-            "",
-            format_distributions(distributions),
-            "",
-            f"![finals]({DISTRIBUTION_FIGURE})",
-            "",
-        ]
+    text = (
+        "Final = each run's last running-mean value. CI: percentile bootstrap of the median. Full "
+        "length: the running-mean length reaches the cap. In the zone: final return >= "
+        f"{ZONE_SHARE:g} x the ceiling. Mean of {PAPER_STUDY_SEEDS} seeds: the central "
+        f"{CONFIDENCE:.0%} of the means of {PAPER_STUDY_SEEDS} seeds drawn without replacement "
+        "(what a study with that many seeds could have reported)."
     )
+    return _section("How the seeds end", text, format_distributions(distributions), DISTRIBUTION_FIGURE)
 
 
 def format_paper_averaging_section(report: SweepReport) -> str:
     """The markdown section of the sweep's settings averaged as the paper does, in the paper's order."""
     key, ordered = paper_order(report.settings)
-    return "\n".join(
-        [
-            "## As the paper averages",
-            "",
-            f"The paper's analysis code never resets its list of runs between settings: the curve of the "
-            f"k-th {key} setting (in the paper's order) is the mean over the runs of settings 1..k.",
-            "",
-            format_paper_averaging(ordered, report.window),
-            "",
-            f"![paper averaging]({PAPER_AVERAGING_FIGURE})",
-            "",
-        ]
+    text = (
+        f"The paper's analysis code never resets its list of runs between settings: the curve of the "
+        f"k-th {key} setting (in the paper's order) is the mean over the runs of settings 1..k."
+    )
+    return _section(
+        "As the paper averages", text, format_paper_averaging(ordered, report.window), PAPER_AVERAGING_FIGURE
     )
 
 
@@ -276,8 +286,9 @@ def write_report(report: SweepReport, out_dir: Path, paper_averaging: bool = Fal
     summary = format_report(report) + "\n" + extra
     summary += f"\n![landscape]({LANDSCAPE_FIGURE})\n" if grid is not None else ""
     write_atomically(md, summary.encode())
-    rows = [[row[column] for column in SUMMARY_CSV_COLUMNS] for row in summary_rows(report)]
-    return [*paths, md, write_csv(out_dir / SUMMARY_CSV, SUMMARY_CSV_COLUMNS, rows)]
+    rows = summary_rows(report)
+    table = write_csv(out_dir / SUMMARY_CSV, list(rows[0]), [list(row.values()) for row in rows])
+    return [*paths, md, table]
 
 
 def output_dirs(sweep_dirs: Sequence[Path], out: Path | None) -> list[Path]:
