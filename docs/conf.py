@@ -58,10 +58,10 @@ nitpick_ignore_regex = [
     # Gymnasium, PyArrow, MLflow: the optional extras' packages.
     (_ANY_ROLE, r"(gymnasium|pyarrow|mlflow)(\..*)?"),
     # The standard library: Python's own inventory is not loaded either.
-    (_ANY_ROLE, r"(abc|typing|collections\.abc|pathlib|os|enum|ctypes|argparse|csv|logging)(\..*)?"),
+    (_ANY_ROLE, r"(abc|typing|collections\.abc|pathlib|os|enum|ctypes|argparse|csv|logging|contextlib)(\..*)?"),
     # The same classes unqualified: autodoc leaves a class's ``__init__`` annotations as written
     # (``from __future__ import annotations``), so they name the imports above by their short names.
-    ("py:class", r"Path|DictConfig|ProbabilisticActor|ProbabilisticTensorDictSequential"),
+    ("py:class", r"Path|DictConfig|ProbabilisticActor|ProbabilisticTensorDictSequential|LossModule"),
     # Hydra's submitit plug-in (the `submitit` extra), which the SLURM launchers extend, and the
     # `Dict[str, ...]` it annotates with (typing's old alias).
     (_ANY_ROLE, r"hydra_plugins\.hydra_submitit_launcher(\..*)?"),

@@ -5,12 +5,12 @@ by one actor); :class:`OnPolicy` builds the critic, the loss (``ClipPPOLoss`` he
 :mod:`.a2c`), TorchRL's :class:`~torchrl.objectives.value.GAE`, one Adam and the collector (one batched,
 auto-resetting :class:`~drone_torchrl.envs.drone_env.DroneEnv`, ``algo.steps_per_batch`` steps a
 batch); :meth:`OnPolicy.train` is the loop, ``for batch in collector``: learn from it
-(:meth:`OnPolicy._learn`: GAE, then ``algo.epochs`` passes of minibatch steps: loss, backward, clip,
+(``OnPolicy._learn``: GAE, then ``algo.epochs`` passes of minibatch steps: loss, backward, clip,
 step), book it in the :class:`~drone_torchrl.training.run.RunRecord` (``episodes.csv``, TensorBoard),
 evaluate and checkpoint on the schedule, stop on a non-finite loss or gradient, or on SIGTERM with a
 checkpoint. The minibatches and their losses are :class:`Minibatches` (TorchRL's replay buffer and
 the loss module); ``backend=fast`` flies the batches on the C++ engine, steps a fused Adam and, for
-PPO without an entropy bonus, takes :class:`~.ppo_fast.PlainMinibatches` instead (:meth:`PPO.minibatches_of`).
+PPO without an entropy bonus, takes :class:`~.ppo_fast.PlainMinibatches` instead (:meth:`PPO.make_minibatches`).
 
 Only the drones' current episodes are not in a checkpoint: a resumed run starts them afresh (they
 were not booked, so no episode is lost or counted twice).
@@ -360,7 +360,7 @@ class OnPolicy(OneRun, LoopLearner, RollbackLearner):
         raise NotImplementedError
 
     def make_minibatches(self) -> Minibatches | PlainMinibatches:
-        """Where :meth:`_learn` keeps a batch's frames and scores its minibatches: :class:`Minibatches`."""
+        """Where ``_learn`` keeps a batch's frames and scores its minibatches: :class:`Minibatches`."""
         algo = self.cfg.algo
         return Minibatches(self.loss, algo.num_envs * algo.steps_per_batch, self.cfg.device)
 
@@ -408,7 +408,7 @@ class DualClipPPOLoss(ClipPPOLoss):
     least ``dual_clip x advantage`` (its gradient 0 past the bound), however far the ratio went.
     Written by hand because TorchRL 0.14.1 has no dual clip: ``max_importance_ratio`` caps the
     ratio by lifting the behaviour log-probability, which keeps a rescaled gradient and scales the
-    clipped term too. Only :meth:`_log_weight` is overridden, so the entropy bonus, critic and
+    clipped term too. Only ``_log_weight`` is overridden, so the entropy bonus, critic and
     diagnostics are ``ClipPPOLoss``'s (``kl_approx`` from the unclamped log-probabilities).
 
     Args:

@@ -384,13 +384,10 @@ def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
 class Exploit(NamedTuple):
     """One exploit step, as its explore step (:meth:`PBT.choose`) sees it.
 
-    Attributes:
-        worst: the agents replaced.
-        parents: each one's parent (the agent whose rows it copied).
-        scores: every agent's running-mean return.
-        alive: whether each agent takes part.
-        update: the updates done.
-        rng: the step's generator (keyed by the first agent's seed and ``update``).
+    ``worst``: the agents replaced; ``parents``: each one's parent (the agent whose rows it copied);
+    ``scores``: every agent's running-mean return; ``alive``: whether each agent takes part;
+    ``update``: the updates done; ``rng``: the step's generator (keyed by the first agent's seed and
+    ``update``).
     """
 
     worst: np.ndarray

@@ -263,7 +263,7 @@ class Record:
 
     The one writer interface of both layouts: :class:`RunRecord` (one agent: ``episodes.csv``,
     ``best.pt``, videos) and :class:`~.population_record.PopulationRecord` (N agents: Parquet
-    parts, one stacked checkpoint). A subclass sets :attr:`agents`, writes its buffered rows in
+    parts, one stacked checkpoint). A subclass sets ``agents``, writes its buffered rows in
     :meth:`write_rows` and says what its checkpoint holds in :meth:`checkpoint_state`; the files and
     checkpoint layouts stay each its own (old runs of either kind resume as they did).
     """
