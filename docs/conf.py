@@ -58,7 +58,10 @@ nitpick_ignore_regex = [
     # Gymnasium, PyArrow, MLflow: the optional extras' packages.
     (_ANY_ROLE, r"(gymnasium|pyarrow|mlflow)(\..*)?"),
     # The standard library: Python's own inventory is not loaded either.
-    (_ANY_ROLE, r"(abc|typing|collections\.abc|pathlib|os|enum|ctypes|argparse|csv|logging|contextlib)(\..*)?"),
+    (
+        _ANY_ROLE,
+        r"(abc|typing|collections\.abc|pathlib|os|enum|ctypes|argparse|csv|logging|contextlib)(\..*)?",
+    ),
     # The same classes unqualified: autodoc leaves a class's ``__init__`` annotations as written
     # (``from __future__ import annotations``), so they name the imports above by their short names.
     ("py:class", r"Path|DictConfig|ProbabilisticActor|ProbabilisticTensorDictSequential|LossModule"),
