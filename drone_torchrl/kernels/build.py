@@ -172,16 +172,17 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
         return lib
 
 
+# The functions whose result is an int64 or a name: every build's, then the CPU's or the CUDA one's own.
 _INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim")
 _NAMES = ("dk_env_constants", "dk_disturbance_constants")
-# What only the CUDA build (cuda_library) exports.
+_CPU_INT64_RESULTS = ("dk_rollout", "dk_reinforce", "dk_segments")
 _CUDA_INT64_RESULTS = ("dk_cuda_scratch_size", "dk_cuda_rollout", "dk_cuda_reinforce")
 _CUDA_NAMES = ("dk_cuda_error",)
 
 
 def _load(path: Path, double: bool, cuda: bool = False) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(path))
-    for function in _INT64_RESULTS + (_CUDA_INT64_RESULTS if cuda else ()):
+    for function in _INT64_RESULTS + (_CUDA_INT64_RESULTS if cuda else _CPU_INT64_RESULTS):
         getattr(lib, function).restype = ctypes.c_int64
     for function in _NAMES + (_CUDA_NAMES if cuda else ()):
         getattr(lib, function).restype = ctypes.c_char_p
