@@ -47,17 +47,8 @@ def make_params(**values: Any) -> DroneParams:
                 )
         elif not (rule.optional and value is None):
             low, high = ((b, checked[b]) if isinstance(b, str) else b for b in (rule.low, rule.high))
-            value = float(
-                check_number(
-                    f.name,
-                    value,
-                    low=low,
-                    high=high,
-                    low_open=rule.low_open,
-                    high_open=rule.high_open,
-                    dtype_range=False,
-                )
-            )
+            bounds = {"low": low, "high": high, "low_open": rule.low_open, "high_open": rule.high_open}
+            value = float(check_number(f.name, value, **bounds, dtype_range=False))
         checked[f.name] = value
     return DroneParams(**checked)
 
@@ -70,31 +61,27 @@ def check_dtype(dtype: object) -> torch.dtype:
     raise ValueError(f"dtype={as_override(dtype)} is not allowed; expected one of {tuple(DTYPES)}")
 
 
+def _is_int(value: object) -> bool:
+    return isinstance(value, Integral) and not isinstance(value, bool)
+
+
 def check_episode_args(max_steps: object, reset_mode: object, render_mode: object) -> None:
     """Validate the episode arguments shared by both envs."""
-    if isinstance(max_steps, bool) or not isinstance(max_steps, Integral) or not 1 <= max_steps <= MAX_STEPS:
+    if not _is_int(max_steps) or not 1 <= max_steps <= MAX_STEPS:
         raise ValueError(
             f"max_steps={as_override(max_steps)} is not allowed; expected an integer >= 1 and <= {MAX_STEPS}"
         )
-    if reset_mode not in RESET_MODES:
-        raise ValueError(
-            f"reset_mode={as_override(reset_mode)} is not allowed; expected one of {RESET_MODES}"
-        )
-    if render_mode not in RENDER_MODES:
-        raise ValueError(
-            f"render_mode={as_override(render_mode)} is not allowed; expected one of {RENDER_MODES}"
-        )
+    allowed = {"reset_mode": RESET_MODES, "render_mode": RENDER_MODES}
+    for (name, choices), value in zip(allowed.items(), (reset_mode, render_mode), strict=True):
+        if value not in choices:
+            raise ValueError(f"{name}={as_override(value)} is not allowed; expected one of {choices}")
 
 
 def _check_batch_size(batch_size: object) -> torch.Size:
-    if isinstance(batch_size, Integral) and not isinstance(batch_size, bool):
-        batch_size = [batch_size]
-    if batch_size is None:
-        batch_size = []
-    ok = isinstance(batch_size, Sequence | torch.Size) and all(
-        isinstance(n, Integral) and not isinstance(n, bool) and n >= 1 for n in batch_size
-    )
-    if not ok:
+    batch_size = [batch_size] if _is_int(batch_size) else [] if batch_size is None else batch_size
+    if not isinstance(batch_size, Sequence | torch.Size) or not all(
+        _is_int(n) and n >= 1 for n in batch_size
+    ):
         raise ValueError(
             f"batch_size={as_override(batch_size)} is not allowed; expected a list of positive integers, e.g. [] or [64]"
         )
@@ -136,9 +123,8 @@ def check_env_args(
     """
     batch_size = _check_batch_size(batch_size)
     given = {} if params is None else {f.name: getattr(params, f.name) for f in fields(DroneParams)}
-    checked = make_params(**{**given, **overrides})
-    torch_dtype = check_dtype(dtype)
-    disturbance = disturbances.make(disturbance)
+    params = make_params(**{**given, **overrides})
+    dtype, disturbance = check_dtype(dtype), disturbances.make(disturbance)
     check_episode_args(max_steps, reset_mode, render_mode)
     try:
         device = torch.device(device)
@@ -147,25 +133,12 @@ def check_env_args(
             f"device={as_override(device)} is not allowed; expected e.g. 'cpu' or 'cuda:0'"
         ) from err
     n_envs = math.prod(batch_size)
-    if (
-        isinstance(render_index, bool)
-        or not isinstance(render_index, Integral)
-        or not 0 <= render_index < n_envs
-    ):
+    if not _is_int(render_index) or not 0 <= render_index < n_envs:
         raise ValueError(
             f"render_index={as_override(render_index)} is not allowed; expected an integer in [0, {n_envs - 1}]"
         )
-    return EnvArgs(
-        batch_size,
-        checked,
-        torch_dtype,
-        disturbance,
-        device,
-        int(max_steps),
-        reset_mode,
-        render_mode,
-        int(render_index),
-    )
+    steps, index = int(max_steps), int(render_index)
+    return EnvArgs(batch_size, params, dtype, disturbance, device, steps, reset_mode, render_mode, index)
 
 
 class DroneEnv(EnvBase):

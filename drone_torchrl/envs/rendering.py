@@ -25,12 +25,10 @@ RENDER_MODES = ("human", "rgb_array")
 WINDOW_TITLE = "Drone2D"
 
 # ----------------------------------------------------------------------------- layout (pixels)
-FRAME_WIDTH = 600
-FRAME_HEIGHT = 600
+FRAME_WIDTH = FRAME_HEIGHT = 600
 HEADER_HEIGHT = 56  # text overlay band above the domain
 DOMAIN_TOP_GAP = 10  # room for the top z tick label below the header
-MARGIN_LEFT = 50  # z tick labels
-MARGIN_RIGHT = 50
+MARGIN_LEFT = MARGIN_RIGHT = 50  # the left one holds the z tick labels
 MARGIN_BOTTOM = 40  # x tick labels
 GRID_SPACING_M = 1.0
 # The area the domain is fitted into (keeping its aspect ratio, centred horizontally).
@@ -41,13 +39,8 @@ DOMAIN_TOP_PX = HEADER_HEIGHT + DOMAIN_TOP_GAP
 # away (the state is unbounded after termination) never overflows pygame's integer coordinates.
 PIXEL_CLIP = 10 * max(FRAME_WIDTH, FRAME_HEIGHT)
 
-GRID_LINE_WIDTH = 1
-BORDER_LINE_WIDTH = 2
-FLOOR_LINE_WIDTH = 4
-ZONE_EDGE_WIDTH = 2
-BODY_THICKNESS_PX = 8
-MOTOR_RADIUS_PX = 9
-HUB_RADIUS_PX = 5
+GRID_LINE_WIDTH, BORDER_LINE_WIDTH, FLOOR_LINE_WIDTH, ZONE_EDGE_WIDTH = 1, 2, 4, 2
+BODY_THICKNESS_PX, MOTOR_RADIUS_PX, HUB_RADIUS_PX = 8, 9, 5
 TICK_LABEL_GAP_PX = 6
 
 # Thrust arrows: length in metres per unit of thrust fraction (0.5 = hover -> 0.5 m), capped so an
@@ -61,10 +54,8 @@ ARROW_HEAD_HALF_WIDTH_PX = 8
 ARROW_HEAD_MAX_FRACTION = 0.5  # the head takes at most this share of a short arrow
 
 # ----------------------------------------------------------------------------- text
-FONT_SIZE = 24  # pygame's bundled default font, so it works headless and offline
-TICK_FONT_SIZE = 20
-TEXT_LEFT_PX = 10
-TEXT_TOP_PX = 8
+FONT_SIZE, TICK_FONT_SIZE = 24, 20  # pygame's bundled default font, so it works headless and offline
+TEXT_LEFT_PX, TEXT_TOP_PX = 10, 8
 TEXT_LINE_SPACING_PX = 24
 TEXT_ITEM_GAP_PX = 28  # between the items of one header line
 
@@ -80,10 +71,8 @@ ZONE_ALPHA = 80  # of 255: the zone is a translucent fill over the domain
 ZONE_EDGE_COLOUR = (40, 140, 55)
 BODY_COLOUR = (40, 40, 40)
 HUB_COLOUR = (110, 110, 110)
-MOTOR_LEFT_COLOUR = (30, 90, 200)
-MOTOR_RIGHT_COLOUR = (150, 50, 180)
-THRUST_POSITIVE_COLOUR = (240, 150, 0)
-THRUST_NEGATIVE_COLOUR = (220, 30, 30)
+MOTOR_LEFT_COLOUR, MOTOR_RIGHT_COLOUR = (30, 90, 200), (150, 50, 180)
+THRUST_POSITIVE_COLOUR, THRUST_NEGATIVE_COLOUR = (240, 150, 0), (220, 30, 30)
 TEXT_COLOUR = (20, 20, 20)
 TERMINATED_TEXT_COLOUR = (160, 0, 0)
 TICK_TEXT_COLOUR = (90, 90, 90)

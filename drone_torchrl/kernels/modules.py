@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 
@@ -22,6 +22,7 @@ from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.params import DroneParams
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.kernels import ops
+from drone_torchrl.kernels.ops import Carried, Segment
 from drone_torchrl.modules.stacked import StackedThreeNet
 
 #: A disturbance as the modules take it (a :class:`~drone_torchrl.envs.disturbances.Disturbance`, its
@@ -136,38 +137,6 @@ class KernelReinforce:
         )  # fmt: skip
 
 
-class Segment(NamedTuple):
-    """One call's steps of each drone, ``[n, steps, ...]``, keyed as TorchRL's collector keys them.
-
-    The keys are the env's: ``observation``, ``action``, ``step_count`` and ``next``'s
-    ``observation``, ``reward``, ``termination_cause``, ``terminated``, ``truncated``.
-    """
-
-    observation: torch.Tensor
-    action: torch.Tensor
-    reward: torch.Tensor
-    next_observation: torch.Tensor
-    cause: torch.Tensor
-    terminated: torch.Tensor
-    truncated: torch.Tensor
-    step_count: torch.Tensor
-
-
-class Carried(NamedTuple):
-    """What each drone carries from one call to the next.
-
-    See ``ops.segments``. ``t = -1`` where a new episode starts at the next call's first step.
-    """
-
-    state: torch.Tensor
-    t: torch.Tensor
-    key: torch.Tensor
-    gust: torch.Tensor
-    thrust: torch.Tensor
-    pending: torch.Tensor
-    issued: torch.Tensor
-
-
 class KernelSegments:
     """``n`` drones of one agent flown by the C++ kernel with auto-reset, ``steps`` steps a call.
 
@@ -211,9 +180,8 @@ class KernelSegments:
         episode at that step (keys: None for the nominal drone).
         """
         r = self.rollout
-        out = ops.segments(
-            r.stacked.flat.detach()[0], *self.carried, noise, fresh, fresh_keys, r.max_steps, r.env,
+        segment, self.carried = ops.segments(
+            r.stacked.flat.detach()[0], self.carried, noise, fresh, fresh_keys, r.max_steps, r.env,
             r.disturbance, r.hidden, r.activation, r.stacked.min_std, r.stacked.distribution_eps,
         )  # fmt: skip
-        self.carried = Carried(*out[len(Segment._fields) :])
-        return Segment(*out[: len(Segment._fields)])
+        return segment

@@ -23,7 +23,7 @@ from __future__ import annotations
 import ctypes
 from collections.abc import Mapping, Sequence
 from dataclasses import fields
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -345,19 +345,47 @@ def reinforce(
     return grad, loss, std_mean, actions_finite, length, counts
 
 
-# What ops.segments carries from one call to the next, in its order.
-_CARRIED = ("state", "t", "key", "gust", "thrust", "pending", "issued")
+class Carried(NamedTuple):
+    """What each drone carries from one :func:`segments` call to the next (``n`` drones).
+
+    ``state`` ``[n, 6]``, its physical state; ``t`` ``[n]`` int64, its episode's step count (``-1``:
+    its episode ended, a new one starts at the next call's step 0; a first call passes ``t = -1``
+    everywhere, and the other values are then not read); ``key`` ``[n]`` int64, its episode key; the
+    disturbances' internal state (:class:`drone_torchrl.envs.disturbances.Internal`): ``gust``
+    ``[n]``, the gust force / nominal weight, ``thrust`` ``[n, 2]``, the motors' thrust fractions in
+    effect (lag), ``pending`` ``[n, action_delay, 2]``, the commands issued but not yet acting,
+    oldest first, ``issued`` ``[n, observed_actions, 2]``, the last commands issued, newest first.
+    """
+
+    state: torch.Tensor
+    t: torch.Tensor
+    key: torch.Tensor
+    gust: torch.Tensor
+    thrust: torch.Tensor
+    pending: torch.Tensor
+    issued: torch.Tensor
+
+
+class Segment(NamedTuple):
+    """One call's steps of each drone, ``[n, steps, ...]``, keyed as TorchRL's collector keys them.
+
+    The keys are the env's: ``observation``, ``action``, ``step_count`` and ``next``'s
+    ``observation``, ``reward``, ``termination_cause``, ``terminated``, ``truncated``.
+    """
+
+    observation: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    next_observation: torch.Tensor
+    cause: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    step_count: torch.Tensor
 
 
 def segments(
     params: torch.Tensor,
-    state: torch.Tensor,
-    t: torch.Tensor,
-    key: torch.Tensor,
-    gust: torch.Tensor,
-    thrust: torch.Tensor,
-    pending: torch.Tensor,
-    issued: torch.Tensor,
+    carried: Carried,
     noise: torch.Tensor,
     fresh: torch.Tensor,
     fresh_keys: torch.Tensor | None,
@@ -368,7 +396,7 @@ def segments(
     activation: int,
     min_std: float,
     dist_eps: float = 0.0,
-) -> tuple[torch.Tensor, ...]:
+) -> tuple[Segment, Carried]:
     """Fly ``n`` drones of one agent ``steps`` steps with auto-reset.
 
     What TorchRL's collector gives over a batched :class:`~drone_torchrl.envs.drone_env.DroneEnv` (``done =
@@ -376,17 +404,7 @@ def segments(
 
     Args:
         params: ``[P]`` the agent's flat parameters.
-        state: ``[n, 6]`` each drone's physical state, carried from the last call (as are the
-            next six: what it returned).
-        t: ``[n]`` int64, its episode's step count (``-1``: its episode ended, a new one starts at
-            this call's step 0). A first call passes ``t = -1`` everywhere (the other carried
-            values are then not read).
-        key: ``[n]`` int64, its episode key.
-        gust: ``[n]``, its gust force / nominal weight (the disturbances' internal state,
-            :class:`drone_torchrl.envs.disturbances.Internal`, as are the next three).
-        thrust: ``[n, 2]``, the motors' thrust fractions in effect (lag).
-        pending: ``[n, action_delay, 2]``, the commands issued but not yet acting, oldest first.
-        issued: ``[n, observed_actions, 2]``, the last commands issued, newest first.
+        carried: what each drone carries from the last call (what it returned).
         noise: ``[n, steps, 2]`` standard normals of the actions.
         fresh: ``[n, steps, 6]`` start states: a drone that starts a new episode at step ``j``
             starts from ``fresh[d, j]``.
@@ -400,12 +418,12 @@ def segments(
         min_std: the std's floor, as for :func:`rollout`.
         dist_eps: the distribution's epsilon, as for :func:`rollout`.
 
-    Returns, per step ``[n, steps, ...]``: the observation the policy saw, the action, the reward,
-    the next observation (what the env returns after the step: at the step count after it, with
-    its noise; after an episode's last step, the terminal state's), the termination cause (int64),
-    terminated and truncated (bool: the step count reached ``max_steps`` without terminating) and
-    the step count before the step (int64); then the carried state after the last step, as the
-    inputs lay it out (``t = -1`` where the last step ended the episode).
+    Returns the steps: per step ``[n, steps, ...]``, the observation the policy saw, the action, the
+    reward, the next observation (what the env returns after the step: at the step count after it,
+    with its noise; after an episode's last step, the terminal state's), the termination cause
+    (int64), terminated and truncated (bool: the step count reached ``max_steps`` without
+    terminating) and the step count before the step (int64). Then what is carried after the last
+    step (``t = -1`` where the last step ended the episode).
     """
     if params.device.type != "cpu":
         raise ValueError(f"ops.segments runs on the CPU only; params are on {params.device}")
@@ -416,9 +434,7 @@ def segments(
         "pending": (n, delay, a), "issued": (n, observed, a), "fresh": (n, steps, dynamics.STATE_DIM),
         "fresh_keys": (n, steps),
     }  # fmt: skip
-    given = {"state": state, "t": t, "key": key, "gust": gust, "thrust": thrust, "pending": pending}
-    given |= {"issued": issued, "fresh": fresh, "fresh_keys": fresh_keys}
-    for name, tensor in given.items():
+    for name, tensor in {**carried._asdict(), "fresh": fresh, "fresh_keys": fresh_keys}.items():
         if tensor is not None and tuple(tensor.shape) != shapes[name]:
             raise ValueError(
                 f"ops.segments: {name} of shape {list(tensor.shape)}; expected {list(shapes[name])}"
@@ -427,20 +443,18 @@ def segments(
     if fresh_keys is None and disturbance is not None:
         raise ValueError("ops.segments under disturbances needs fresh_keys")
     dtype, i64 = params.dtype, torch.int64
+    kinds = {"t": i64, "key": i64}  # the carried integers; the rest is real
     # Per step: the observation, the action, the reward and the next observation; the cause,
     # terminated, truncated and the step count. Then what is carried out.
     out = [torch.empty(shape, dtype=dtype) for shape in ((n, steps, in_dim), (n, steps, a), (n, steps))]
     out += [torch.empty(n, steps, in_dim, dtype=dtype)]
     out += [torch.empty(n, steps, dtype=kind) for kind in (i64, torch.bool, torch.bool, i64)]
-    out += [torch.empty(shapes[k], dtype=i64 if k in ("t", "key") else dtype) for k in _CARRIED]
+    out += [torch.empty(shapes[k], dtype=kinds.get(k, dtype)) for k in Carried._fields]
     # Bound to names: a pointer is only valid while its tensor lives.
-    state, gust, thrust, pending, issued, noise, fresh = (
-        _to(x, dtype) for x in (state, gust, thrust, pending, issued, noise, fresh)
-    )
-    params, t, key, fresh_keys = params.contiguous(), _to(t, i64), _to(key, i64), _to(fresh_keys, i64)
-    env = _to(env, torch.float64)
+    carried = [_to(x, kinds.get(k, dtype)) for k, x in zip(Carried._fields, carried, strict=True)]
+    params, noise, fresh = params.contiguous(), _to(noise, dtype), _to(fresh, dtype)
+    fresh_keys, env = _to(fresh_keys, i64), _to(env, torch.float64)
     args = [*_net(in_dim, hidden, activation, min_std, dist_eps), _c64(n), _c64(steps), _c64(max_steps)]
-    args += [_p(x) for x in (params, state, t, key, gust, thrust, pending, issued, noise, fresh)]
-    args += [_p(x) for x in (fresh_keys, env, disturbance, *out)]
+    args += [_p(x) for x in (params, *carried, noise, fresh, fresh_keys, env, disturbance, *out)]
     _launch(_lib(dtype), "segments", params.device, args)
-    return tuple(out)
+    return Segment(*out[: len(Segment._fields)]), Carried(*out[len(Segment._fields) :])
