@@ -380,37 +380,27 @@ class DroneEnv(EnvBase):
             mask = tensordict.get("_reset").reshape(self.batch_size)
         # One count decides between a full and a partial reset (cheaper than mask.all() at large batch).
         n_reset = None if mask is None or self.batch_size == () else int(mask.sum())
-        if n_reset is None or n_reset == mask.numel():
-            self._state = dynamics.initial_state(
-                self.batch_size, self.reset_mode, self._generator, self.device, self.dtype, self.params
-            )
-            # The counters are replaced, never written in place, so _output can hand them out
-            # without a copy (the last action may even be the caller's own tensor, see _step).
-            self._step_count = torch.zeros_like(self._step_count)
-            self._cause = torch.zeros_like(self._cause)
-            if self._disturbed:
-                self._internal = self._start_disturbances(tuple(self.batch_size))
-            if self.render_mode is not None:
-                self._episode_return = torch.zeros_like(self._episode_return)
-                self._last_action = torch.zeros_like(self._last_action)
+        full = n_reset is None or n_reset == mask.numel()
+        shape = tuple(self.batch_size) if full else (n_reset,)
+        # A partial reset finds the integer indices once (same rows, same row-major order as
+        # boolean-mask writes, which would search the mask again for every tensor). The counters are
+        # replaced, never written in place, so _output can hand them out without a copy (the last
+        # action may even be the caller's own tensor, see _step).
+        index = None if full else mask.nonzero(as_tuple=True)
+        zero = torch.zeros_like if full else lambda t: t.index_put(index, t.new_zeros(()))
+        start = dynamics.initial_state(
+            shape, self.reset_mode, self._generator, self.device, self.dtype, self.params
+        )
+        if full:
+            self._state = start
         else:
-            # Integer indices found once (same rows, same row-major order as boolean-mask writes,
-            # which would search the mask again for every tensor).
-            index = mask.nonzero(as_tuple=True)
-            self._state[index] = dynamics.initial_state(
-                (n_reset,), self.reset_mode, self._generator, self.device, self.dtype, self.params
-            )
-            # Out of place, for the same reason as above.
-            self._step_count = self._step_count.index_put(index, self._step_count.new_zeros(()))
-            self._cause = self._cause.index_put(index, self._cause.new_zeros(()))
-            if self._disturbed:
-                fresh = self._start_disturbances((n_reset,))
-                self._internal = disturbances.replace_rows(self._internal, index, fresh)
-            if self.render_mode is not None:
-                self._episode_return = self._episode_return.index_put(
-                    index, self._episode_return.new_zeros(())
-                )
-                self._last_action = self._last_action.index_put(index, self._last_action.new_zeros(()))
+            self._state[index] = start
+        self._step_count, self._cause = zero(self._step_count), zero(self._cause)
+        if self._disturbed:
+            fresh = self._start_disturbances(shape)
+            self._internal = fresh if full else disturbances.replace_rows(self._internal, index, fresh)
+        if self.render_mode is not None:
+            self._episode_return, self._last_action = zero(self._episode_return), zero(self._last_action)
         if self.render_mode == "human":
             self.render()
         return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))

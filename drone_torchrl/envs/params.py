@@ -81,10 +81,8 @@ class Param:
         if self.choices:
             return f"{self.doc}; {' | '.join(self.choices)}"
         label = lambda b: b if isinstance(b, str) else b[0] if isinstance(b, tuple) else f"{b:g}"  # noqa: E731
-        low, high = (
-            f"{'(' if self.low_open else '['}{label(self.low)}",
-            f"{label(self.high)}{')' if self.high_open else ']'}",
-        )
+        low = f"{'(' if self.low_open else '['}{label(self.low)}"
+        high = f"{label(self.high)}{')' if self.high_open else ']'}"
         return f"{self.doc}; in {low}, {high}" + (" or null" if self.optional else "")
 
 

@@ -156,9 +156,7 @@ class DroneRenderer:
         p, to_pixel = self.params, self.layout.to_pixel
         surface = pygame.Surface((FRAME_WIDTH, FRAME_HEIGHT))
         surface.fill(MARGIN_COLOUR)
-        left, top = to_pixel(-p.x_limit, p.z_max)
-        right, bottom = to_pixel(p.x_limit, p.z_min)
-        domain = pygame.Rect(round(left), round(top), round(right - left), round(bottom - top))
+        (left, top, right, bottom), domain = self._box(p.x_limit, p.z_min, p.z_max)
         surface.fill(DOMAIN_COLOUR, domain)
 
         x_ticks, z_ticks = _ticks(-p.x_limit, p.x_limit), _ticks(p.z_min, p.z_max)
@@ -176,11 +174,7 @@ class DroneRenderer:
         _, title_z = to_pixel(-p.x_limit, (z_ticks[-1] if z_ticks else p.z_max) - 0.5 * GRID_SPACING_M)
         self._tick_label(surface, "z [m]", (left - TICK_LABEL_GAP_PX, title_z), "midright")
 
-        zone_left, zone_top = to_pixel(-p.zone_x_limit, p.zone_z_max)
-        zone_right, zone_bottom = to_pixel(p.zone_x_limit, p.zone_z_min)
-        zone = pygame.Rect(
-            round(zone_left), round(zone_top), round(zone_right - zone_left), round(zone_bottom - zone_top)
-        )
+        _, zone = self._box(p.zone_x_limit, p.zone_z_min, p.zone_z_max)
         fill = pygame.Surface(zone.size, pygame.SRCALPHA)
         fill.fill((*ZONE_COLOUR, ZONE_ALPHA))
         surface.blit(fill, zone.topleft)
@@ -189,6 +183,13 @@ class DroneRenderer:
         pygame.draw.rect(surface, BORDER_COLOUR, domain, BORDER_LINE_WIDTH)
         pygame.draw.line(surface, FLOOR_COLOUR, (left, bottom), (right, bottom), FLOOR_LINE_WIDTH)
         return surface
+
+    def _box(self, x_limit: float, z_low: float, z_high: float):
+        """The world box ``|x| <= x_limit``, ``z_low <= z <= z_high`` on screen: its edges and its Rect."""
+        left, top = self.layout.to_pixel(-x_limit, z_high)
+        right, bottom = self.layout.to_pixel(x_limit, z_low)
+        rect = self._pygame.Rect(round(left), round(top), round(right - left), round(bottom - top))
+        return (left, top, right, bottom), rect
 
     def _tick_label(self, surface, text: str, position: tuple[float, float], anchor: str) -> None:
         """A grid or axis label whose ``anchor`` point (``"midtop"``, ...) lies on ``position``."""

@@ -121,22 +121,18 @@ using F = float __attribute__((vector_size(kVectorBytes)));
 using D = double __attribute__((vector_size(kVectorBytes)));
 using I32 = int32_t __attribute__((vector_size(kVectorBytes)));
 
-template <>
-struct LaneTraits<F> {
-  using Scalar = float;
-  using Float = F;
-  static constexpr int kLanes = 8;
-};
-template <>
-struct LaneTraits<D> {
-  using Scalar = double;
-  using Float = F;  // lanes 4-7 unused
-  static constexpr int kLanes = 4;
-};
-inline float lane(F x, int l) { return x[l]; }
-inline double lane(D x, int l) { return x[l]; }
-inline void set_lane(F& x, int l, float v) { x[l] = v; }
-inline void set_lane(D& x, int l, double v) { x[l] = v; }
+// A vector of n lanes of S; its Box-Muller draws in float32 lanes (float64's lanes 4-7 unused).
+#define DK_VECTOR(V, S, n)                               \
+  template <>                                            \
+  struct LaneTraits<V> {                                 \
+    using Scalar = S;                                    \
+    using Float = F;                                     \
+    static constexpr int kLanes = n;                     \
+  };                                                     \
+  inline S lane(V x, int l) { return x[l]; }             \
+  inline void set_lane(V& x, int l, S v) { x[l] = v; }
+DK_VECTOR(F, float, 8)
+DK_VECTOR(D, double, 4)
 template <class M>
 inline bool lane_any(M m) {
   bool any = false;
@@ -161,7 +157,14 @@ inline void sincos_v(D x, D* s, D* c) {
 }
 
 // float32: polynomial approximations within a few ulp (Cephes' and Eigen's coefficients), so they
-// vectorise.
+// vectorise. horner: c[0] x^(N-1) + ... + c[N-1].
+template <int N>
+inline F horner(F x, const float (&c)[N]) {
+  F y = splat<F>(c[0]);
+  for (int i = 1; i < N; i++) y = y * x + c[i];
+  return y;
+}
+
 inline F exp_v(F x0) {
   F x = clamp(x0, -87.3365448f, 88.0f);
   F n = x * 1.44269504088896341f + 0.5f;
@@ -171,12 +174,8 @@ inline F exp_v(F x0) {
   x = x - fn * 0.693359375f;
   x = x - fn * -2.12194440e-4f;
   F z = x * x;
-  F y = splat<F>(1.9875691500e-4f);
-  y = y * x + 1.3981999507e-3f;
-  y = y * x + 8.3334519073e-3f;
-  y = y * x + 4.1665795894e-2f;
-  y = y * x + 1.6666665459e-1f;
-  y = y * x + 5.0000001201e-1f;
+  F y = horner(x, {1.9875691500e-4f, 1.3981999507e-3f, 8.3334519073e-3f, 4.1665795894e-2f, 1.6666665459e-1f,
+                   5.0000001201e-1f});
   y = y * z + x + 1.0f;
   I32 bits = (ni + 127) << 23;
   F scale;
@@ -196,15 +195,8 @@ inline F log_v(F x) {
   e -= small & 1;
   m = small ? m + m - 1.0f : m - 1.0f;
   F z = m * m;
-  F y = splat<F>(7.0376836292e-2f);
-  y = y * m - 1.1514610310e-1f;
-  y = y * m + 1.1676998740e-1f;
-  y = y * m - 1.2420140846e-1f;
-  y = y * m + 1.4249322787e-1f;
-  y = y * m - 1.6668057665e-1f;
-  y = y * m + 2.0000714765e-1f;
-  y = y * m - 2.4999993993e-1f;
-  y = y * m + 3.3333331174e-1f;
+  F y = horner(m, {7.0376836292e-2f, -1.1514610310e-1f, 1.1676998740e-1f, -1.2420140846e-1f, 1.4249322787e-1f,
+                   -1.6668057665e-1f, 2.0000714765e-1f, -2.4999993993e-1f, 3.3333331174e-1f});
   y = y * m * z;
   F fe = __builtin_convertvector(e, F);
   y = y + fe * -2.12194440e-4f;
@@ -223,18 +215,9 @@ inline F tanh_v(F x) {
   // Eigen's rational approximation (ptanh_float), exact to a few ulp over [-7.9, 7.9].
   x = clamp(x, -7.90531110763549805f, 7.90531110763549805f);
   F x2 = x * x;
-  F p = splat<F>(-2.76076847742355e-16f);
-  p = p * x2 + 2.00018790482477e-13f;
-  p = p * x2 - 8.60467152213735e-11f;
-  p = p * x2 + 5.12229709037114e-08f;
-  p = p * x2 + 1.48572235717979e-05f;
-  p = p * x2 + 6.37261928875436e-04f;
-  p = p * x2 + 4.89352455891786e-03f;
-  p = p * x;
-  F q = splat<F>(1.19825839466702e-06f);
-  q = q * x2 + 1.18534705686654e-04f;
-  q = q * x2 + 2.26843463243900e-03f;
-  q = q * x2 + 4.89352518554385e-03f;
+  F p = horner(x2, {-2.76076847742355e-16f, 2.00018790482477e-13f, -8.60467152213735e-11f, 5.12229709037114e-08f,
+                    1.48572235717979e-05f, 6.37261928875436e-04f, 4.89352455891786e-03f}) * x;
+  F q = horner(x2, {1.19825839466702e-06f, 1.18534705686654e-04f, 2.26843463243900e-03f, 4.89352518554385e-03f});
   return vabs(x) < 0.0004f ? x : p / q;
 }
 
@@ -343,7 +326,6 @@ enum Activation { kTanh = 0, kRelu = 1, kElu = 2 };
 struct Net {
   int in_dim;
   int n_hidden;
-  int hidden[kMaxLayers];
   int activation;
   double min_std;
   // Added to the mean and to the std (ThreeNetPolicy's distribution_eps): Normal(mu + eps, sigma + eps).
@@ -356,7 +338,7 @@ struct Net {
   int activations;  // hidden outputs of one row
 
   DK_HD int last() const { return width[n_hidden]; }
-  DK_HD int out(int l) const { return l < n_hidden ? hidden[l] : kActionDim; }
+  DK_HD int out(int l) const { return l < n_hidden ? width[l + 1] : kActionDim; }  // layer l's outputs
 };
 
 template <class V>
@@ -418,7 +400,7 @@ DK_HD inline void forward(const Net& net, const W* w, const V* x, V* acts, V* lo
   const V* input = x;
   V* out = acts;
   for (int l = 0; l < net.n_hidden; l++) {
-    const int n = net.hidden[l], in = net.width[l];
+    const int n = net.out(l), in = net.width[l];
     matvec(w + net.offset[l], in, 1, w + net.offset[l] + n * in, input, in, n, out);
     for (int o = 0; o < n; o++) out[o] = activate(out[o], net.activation);
     input = out;
@@ -440,10 +422,10 @@ DK_HD inline void backward_deltas(const Net& net, const W* w, const V* acts, con
   int act_offset[kMaxLayers], aoff = 0;
   for (int l = 0; l < net.n_hidden; l++) {
     act_offset[l] = aoff;
-    aoff += net.hidden[l];
+    aoff += net.out(l);
   }
   // d(last hidden output) = Wm^T d_loc + Ws^T d_pre, then through the activation.
-  const int top = net.n_hidden - 1, n_top = net.hidden[top];
+  const int top = net.n_hidden - 1, n_top = net.out(top);
   const W* wm = w + net.offset[net.n_hidden];
   const W* ws = w + net.offset[net.n_hidden + 1];
   V* d = deltas + act_offset[top];
@@ -453,7 +435,7 @@ DK_HD inline void backward_deltas(const Net& net, const W* w, const V* acts, con
   for (int i = 0; i < n_top; i++)
     d[i] = (d[i] + from_std[i]) * activation_grad(acts[act_offset[top] + i], net.activation);
   for (int l = top; l > 0; l--) {
-    const int n = net.hidden[l], n_in = net.width[l];
+    const int n = net.out(l), n_in = net.width[l];
     const W* wl = w + net.offset[l];
     const V* dl = deltas + act_offset[l];
     V* below = deltas + act_offset[l - 1];
@@ -523,29 +505,24 @@ constexpr int kOutX = 1, kFloorHit = 2, kCeiling = 3, kTilt = 4;
 constexpr double kHover = 0.5;  // dynamics.HOVER_THRUST
 constexpr int kEpisodeUniforms = 4;  // disturbances._EPISODE_UNIFORMS: wind, mass, two gains
 
+// The env constants in S, each named as in DK_ENV_CONSTANTS, and what the kernels derive from them.
+#define DK_ENV_FIELD(name) S name;
+#define DK_ENV_READ(name) e.name = env[env_##name];
 template <class S>
 struct EnvParams {
-  S weight, mass, gravity, dt, arm_over_inertia, max_thrust, x_limit, z_min, z_max, alpha_limit, floor;
-  S zone_x, zone_z_min, zone_z_max, r_zone, r_alive, r_term, high, half, log_half, squash_lim;
-  S min_std, dist_eps;
+  DK_ENV_CONSTANTS(DK_ENV_FIELD)
+  S half, log_half, squash_lim, min_std, dist_eps;
   bool bounded, strict;
 };
 
 template <class S>
 DK_HD inline EnvParams<S> env_params(const double* env, const Net& net) {
   EnvParams<S> e;
-  e.weight = env[env_weight], e.mass = env[env_mass], e.gravity = env[env_gravity], e.dt = env[env_dt];
-  e.arm_over_inertia = env[env_arm_over_inertia], e.max_thrust = env[env_max_thrust];
-  e.bounded = env[env_max_thrust] >= 0;
-  e.x_limit = env[env_x_limit], e.z_min = env[env_z_min], e.z_max = env[env_z_max];
-  e.alpha_limit = env[env_alpha_limit], e.floor = env[env_floor], e.zone_x = env[env_zone_x_limit];
-  e.zone_z_min = env[env_zone_z_min], e.zone_z_max = env[env_zone_z_max];
-  e.r_zone = env[env_reward_zone], e.r_alive = env[env_reward_alive], e.r_term = env[env_reward_terminated];
-  e.high = env[env_squash_high], e.half = env[env_squash_high] / 2;
-  e.log_half = e.high > 0 ? std::log(e.half) : 0;
+  DK_ENV_CONSTANTS(DK_ENV_READ)
+  e.half = env[env_squash_high] / 2, e.log_half = e.squash_high > 0 ? std::log(e.half) : 0;
   e.squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe tanh and atanh
   e.min_std = net.min_std, e.dist_eps = net.dist_eps;
-  e.strict = env[env_bounds] > 0;
+  e.bounded = env[env_max_thrust] >= 0, e.strict = env[env_bounds] > 0;
   return e;
 }
 
@@ -601,29 +578,46 @@ DK_HD inline S start_component(const double* env, uint64_t start_key, uint64_t e
   return (kept ? S(jitter) : S(0)) + base;
 }
 
-// disturbances.draw_episode and disturbances.start: each lane's episode's draws and initial
-// internal state from its key (dr.key). The physical state is left alone.
+// disturbances.draw_episode and disturbances.start: the episode's draws and initial internal state
+// of each lane (of those `only` names, when given) from its key (dr.key). The physical state is
+// left alone.
 template <class V>
-DK_HD inline void start_episode(const DistParams<ScalarOf<V>>& d, Drone<V>& dr) {
+DK_HD inline void start_episode(const DistParams<ScalarOf<V>>& d, Drone<V>& dr, const bool* only = nullptr) {
   using S = ScalarOf<V>;
-  V u[kEpisodeUniforms + 2];
+  V u[kEpisodeUniforms + 2] = {}, chosen{};
   for (int l = 0; l < lanes_of<V>(); l++) {
+    if (only && !only[l]) continue;
+    set_lane(chosen, l, S(1));
     dr.mixed[l] = mix(dr.key[l]);
     const uint64_t k = mixed_stream_key(dr.mixed[l], 0, kEpisodeStream);
     for (int i = 0; i < kEpisodeUniforms + 2; i++) set_lane(u[i], l, S(uniform(k, i)));
   }
+  const auto on = chosen != S(0);
   V spread[kEpisodeUniforms];
   for (int i = 0; i < kEpisodeUniforms; i++) spread[i] = S(2) * u[i] - S(1);
-  dr.wind = d.wind * spread[0];
-  dr.mass_ratio = S(1) + d.mass * spread[1];
-  for (int m = 0; m < kActionDim; m++) dr.gain[m] = S(1) + d.motor_gain * spread[2 + m];
+  dr.wind = select(on, d.wind * spread[0], dr.wind);
+  dr.mass_ratio = select(on, S(1) + d.mass * spread[1], dr.mass_ratio);
+  for (int m = 0; m < kActionDim; m++) dr.gain[m] = select(on, S(1) + d.motor_gain * spread[2 + m], dr.gain[m]);
   V first, second;  // the normal pair of uniforms 4 and 5: the stationary law's first gust
   box_muller(u[kEpisodeUniforms], u[kEpisodeUniforms + 1], &first, &second);
-  dr.gust = d.gust * first;
+  dr.gust = select(on, d.gust * first, dr.gust);
   for (int m = 0; m < kActionDim; m++) {
-    dr.thrust[m] = splat<V>(S(kHover));
-    for (int j = 0; j < d.delay; j++) dr.pending[j][m] = splat<V>(S(kHover));
-    for (int j = 0; j < d.observed; j++) dr.issued[j][m] = V{};
+    dr.thrust[m] = select(on, splat<V>(S(kHover)), dr.thrust[m]);
+    for (int j = 0; j < d.delay; j++) dr.pending[j][m] = select(on, splat<V>(S(kHover)), dr.pending[j][m]);
+    for (int j = 0; j < d.observed; j++) dr.issued[j][m] = select(on, V{}, dr.issued[j][m]);
+  }
+}
+
+// What a drone carries from one segments call to the next besides its state and key
+// (disturbances.Internal): fn(k, i, value) for each value, i its place in row r of carried tensor k
+// (SegmentArgs' internal: gust, thrust, pending, issued).
+template <class V, class Fn>
+DK_HD inline void each_internal(const DistParams<ScalarOf<V>>& d, Drone<V>& dr, int64_t r, Fn fn) {
+  fn(0, r, dr.gust);
+  for (int m = 0; m < kActionDim; m++) {
+    fn(1, r * kActionDim + m, dr.thrust[m]);
+    for (int j = 0; j < d.delay; j++) fn(2, (r * d.delay + j) * kActionDim + m, dr.pending[j][m]);
+    for (int j = 0; j < d.observed; j++) fn(3, (r * d.observed + j) * kActionDim + m, dr.issued[j][m]);
   }
 }
 
@@ -666,7 +660,7 @@ DK_HD inline void policy_step(const Net& net, const EnvParams<ScalarOf<V>>& e, c
     if (e.dist_eps != 0) loc[m] = loc[m] + e.dist_eps;
     V u = loc[m];
     if (z) u = loc[m] + (softplus(pre[m]) + e.min_std + e.dist_eps) * z[m];
-    if (e.high > 0) u = e.half + e.half * clamp(tanh_v(u), -e.squash_lim, e.squash_lim);
+    if (e.squash_high > 0) u = e.half + e.half * clamp(tanh_v(u), -e.squash_lim, e.squash_lim);
     act[m] = u;
   }
 }
@@ -695,9 +689,10 @@ DK_HD inline void judge(const EnvParams<ScalarOf<V>>& e, const V* n, V* reward, 
   c = select(beyond(st, n[2], e.z_max), splat<V>(S(kCeiling)), c);
   c = select(beyond(st, e.floor, n[2]), splat<V>(S(kFloorHit)), c);
   c = select(beyond(st, ax, e.x_limit), splat<V>(S(kOutX)), c);
-  const auto in = both(both(within(st, ax, e.zone_x), within(st, e.zone_z_min, n[2])),
+  const auto in = both(both(within(st, ax, e.zone_x_limit), within(st, e.zone_z_min, n[2])),
                        both(within(st, n[2], e.zone_z_max), within(st, aa, e.alpha_limit)));
-  *reward = select(c != S(0), splat<V>(e.r_term), select(in, splat<V>(e.r_zone), splat<V>(e.r_alive)));
+  *reward = select(c != S(0), splat<V>(e.reward_terminated),
+                   select(in, splat<V>(e.reward_zone), splat<V>(e.reward_alive)));
   *cause = c;
   *zone = select(in, splat<V>(S(1)), V{});
 }
@@ -777,7 +772,7 @@ DK_HD inline V log_prob_backward(const EnvParams<ScalarOf<V>>& e, const V* loc, 
   for (int m = 0; m < kActionDim; m++) {
     scale[m] = softplus(pre[m]) + e.min_std + e.dist_eps;
     V sample = action[m];
-    if (e.high > 0) {
+    if (e.squash_high > 0) {
       const V y = clamp((action[m] - e.half) / e.half, -e.squash_lim, e.squash_lim);
       sample = S(0.5) * (log1p_v(y) - log1p_v(-y));  // atanh
       // log |d action / d sample| of the tanh and the affine map (TanhTransform's formula).
@@ -1116,12 +1111,12 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
     const int n_out = net.out(l), n_in = net.width[l];
     const int prev = l < net.n_hidden ? l - 1 : net.n_hidden - 1;
     const V* input = prev < 0 ? saved + layout.x() : saved + layout.acts() + start;
-    const V* d = l < net.n_hidden ? deltas + start + (l ? net.hidden[l - 1] : 0)
+    const V* d = l < net.n_hidden ? deltas + start + (l ? net.out(l - 1) : 0)
                                   : heads + (l - net.n_hidden) * kActionDim;
     const int d_stride = l < net.n_hidden ? act_w : 2 * kActionDim;
     V* gw = grad + net.offset[l];
     weight_grad(d, d_stride, input, layout.width, n_out, n_in, used, gw, gw + n_out * n_in);
-    if (l > 0 && l < net.n_hidden) start += net.hidden[l - 1];
+    if (l > 0 && l < net.n_hidden) start += net.out(l - 1);
   }
   for (int k = 0; k < p; k++) {
     S sum = 0;
@@ -1138,15 +1133,12 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
 struct SegmentArgs {
   int64_t n, steps, max_steps;
   const void* params;  // [P]
-  // Carried in: state [n, 6], t [n] (< 0: a new episode starts at step 0), key [n], gust [n],
-  // thrust [n, 2], pending [n, delay, 2], issued [n, observed, 2].
+  // Carried in: state [n, 6], t [n] (< 0: a new episode starts at step 0), key [n], and the
+  // internal state: gust [n], thrust [n, 2], pending [n, delay, 2], issued [n, observed, 2].
   const void* state;
   const int64_t* t;
   const int64_t* key;
-  const void* gust;
-  const void* thrust;
-  const void* pending;
-  const void* issued;
+  const void* internal[4];
   const void* noise;           // [n, steps, 2]
   const void* fresh;           // [n, steps, 6]
   const int64_t* fresh_keys;   // [n, steps]; null: the nominal drone
@@ -1165,10 +1157,7 @@ struct SegmentArgs {
   void* state_out;
   int64_t* t_out;
   int64_t* key_out;
-  void* gust_out;
-  void* thrust_out;
-  void* pending_out;
-  void* issued_out;
+  void* internal_out[4];
 };
 
 // Drones b * L .. b * L + L - 1 of dk_segments. Scratch: acts of max(net.activations, 1), x of
@@ -1180,8 +1169,8 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   const S* w = static_cast<const S*>(a.params);  // one agent: every lane reads the same weights
   const EnvParams<S> e = env_params<S>(a.env, net);
   const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
-  const int64_t J = a.steps, in_dim = net.in_dim, delay = d.delay, observed = d.observed;
-  Drone<V> dr{}, fresh{};
+  const int64_t J = a.steps, in_dim = net.in_dim;
+  Drone<V> dr{};
   auto in = [](const void* p, int64_t i) { return static_cast<const S*>(p)[i]; };
   auto out = [](void* p, int64_t i) -> S& { return static_cast<S*>(p)[i]; };
   const int64_t row0 = b * L;
@@ -1198,17 +1187,8 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   }
   if (!d.nominal) {
     start_episode(d, dr);  // the episode's draws; its internal state is the carried one
-    for (int l = 0; l < L; l++) {
-      const int64_t r = row[l];
-      set_lane(dr.gust, l, in(a.gust, r));
-      for (int m = 0; m < kActionDim; m++) {
-        set_lane(dr.thrust[m], l, in(a.thrust, r * kActionDim + m));
-        for (int j = 0; j < delay; j++)
-          set_lane(dr.pending[j][m], l, in(a.pending, (r * delay + j) * kActionDim + m));
-        for (int j = 0; j < observed; j++)
-          set_lane(dr.issued[j][m], l, in(a.issued, (r * observed + j) * kActionDim + m));
-      }
-    }
+    for (int l = 0; l < L; l++)
+      each_internal(d, dr, row[l], [&](int k, int64_t i, V& v) { set_lane(v, l, in(a.internal[k], i)); });
   }
   V n[4] = {};
   bool seen = false;  // x holds the observation at t (the last step's next observation)
@@ -1217,26 +1197,13 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
     for (int l = 0; l < L; l++) any_restart = any_restart || restart[l];
     if (any_restart) {  // new episodes from step j: start state fresh[., j], key fresh_keys[., j]
       for (int l = 0; l < L; l++) {
-        fresh.key[l] = restart[l] && a.fresh_keys ? a.fresh_keys[row[l] * J + j] : dr.key[l];
-      }
-      if (!d.nominal) start_episode(d, fresh);
-      for (int l = 0; l < L; l++) {
         if (!restart[l]) continue;
         t[l] = 0;
-        restart[l] = false;
         for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.fresh, (row[l] * J + j) * kStateDim + k));
-        dr.key[l] = fresh.key[l];
-        dr.mixed[l] = fresh.mixed[l];
-        set_lane(dr.wind, l, lane(fresh.wind, l));
-        set_lane(dr.mass_ratio, l, lane(fresh.mass_ratio, l));
-        set_lane(dr.gust, l, lane(fresh.gust, l));
-        for (int m = 0; m < kActionDim; m++) {
-          set_lane(dr.gain[m], l, lane(fresh.gain[m], l));
-          set_lane(dr.thrust[m], l, lane(fresh.thrust[m], l));
-          for (int i = 0; i < delay; i++) set_lane(dr.pending[i][m], l, lane(fresh.pending[i][m], l));
-          for (int i = 0; i < observed; i++) set_lane(dr.issued[i][m], l, lane(fresh.issued[i][m], l));
-        }
+        if (a.fresh_keys) dr.key[l] = a.fresh_keys[row[l] * J + j];
       }
+      if (!d.nominal) start_episode(d, dr, restart);
+      for (int l = 0; l < L; l++) restart[l] = false;
       seen = false;
     }
     if (!seen) {
@@ -1278,31 +1245,22 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
     for (int k = 0; k < kStateDim; k++) out(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
     a.t_out[r] = restart[l] ? -1 : t[l];
     a.key_out[r] = static_cast<int64_t>(dr.key[l]);
-    out(a.gust_out, r) = d.nominal ? S(0) : lane(dr.gust, l);
-    for (int m = 0; m < kActionDim; m++) {
-      out(a.thrust_out, r * kActionDim + m) = d.nominal ? S(kHover) : lane(dr.thrust[m], l);
-      for (int i = 0; i < delay; i++) out(a.pending_out, (r * delay + i) * kActionDim + m) = lane(dr.pending[i][m], l);
-      for (int i = 0; i < observed; i++)
-        out(a.issued_out, (r * observed + i) * kActionDim + m) = lane(dr.issued[i][m], l);
-    }
+    // The nominal drone carries nothing: its gust 0 and its thrust the hover command, as at a start.
+    each_internal(d, dr, r, [&](int k, int64_t i, V& v) {
+      out(a.internal_out[k], i) = d.nominal ? S(k == 1 ? kHover : 0) : lane(v, l);
+    });
   }
 }
 
 DK_HD Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation, double min_std,
              double dist_eps) {
   Net net{};
-  net.in_dim = static_cast<int>(in_dim);
-  net.n_hidden = static_cast<int>(n_hidden);
-  net.activation = static_cast<int>(activation);
-  net.min_std = min_std;
-  net.dist_eps = dist_eps;
+  net.in_dim = static_cast<int>(in_dim), net.n_hidden = static_cast<int>(n_hidden);
+  net.activation = static_cast<int>(activation), net.min_std = min_std, net.dist_eps = dist_eps;
   int off = 0, in = net.in_dim;
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n = l < net.n_hidden ? static_cast<int>(hidden[l]) : kActionDim;
-    if (l < net.n_hidden) {
-      net.hidden[l] = n;
-      net.activations += n;
-    }
+    if (l < net.n_hidden) net.activations += n;
     net.offset[l] = off;
     net.width[l] = in;
     off += n * in + n;
@@ -1487,10 +1445,9 @@ int64_t dk_segments(int64_t threads, void*, int64_t in_dim, int64_t n_hidden, co
                     uint8_t* truncated, int64_t* step_count, void* state_out, int64_t* t_out, int64_t* key_out,
                     void* gust_out, void* thrust_out, void* pending_out, void* issued_out, void*) {
   const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  SegmentArgs a{n,          steps,     max_steps, params,     state,      t,          key,        gust,
-                thrust,     pending,   issued,    noise,      fresh,      fresh_keys, env,        dist,
-                obs,        action,    reward,    next_obs,   cause,      terminated, truncated,  step_count,
-                state_out,  t_out,     key_out,   gust_out,   thrust_out, pending_out, issued_out};
+  SegmentArgs a{n,     steps, max_steps, params, state, t, key, {gust, thrust, pending, issued}, noise, fresh,
+                fresh_keys, env, dist, obs, action, reward, next_obs, cause, terminated, truncated, step_count,
+                state_out, t_out, key_out, {gust_out, thrust_out, pending_out, issued_out}};
   parallel_blocks(blocks_of(n), threads, [&](int64_t first, int64_t last) {
     std::vector<Lanes> acts(activation_width(net)), x(net.in_dim);
     for (int64_t b = first; b < last; b++) segment_block(net, a, b, acts.data(), x.data());

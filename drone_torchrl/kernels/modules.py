@@ -97,14 +97,8 @@ class KernelRollout:
             not self.nominal,
         )  # fmt: skip
         steps = max(int(length.max()), 1)  # the longest episode; the rest of the buffers is zeros
-        return Episodes(
-            states[..., : steps + 1, :],
-            action[..., :steps, :],
-            reward[..., :steps],
-            cause[..., :steps],
-            length,
-            None if self.nominal else seen[..., :steps, :],
-        )
+        cut = (states[..., : steps + 1, :], action[..., :steps, :], reward[..., :steps], cause[..., :steps])
+        return Episodes(*cut, length, None if self.nominal else seen[..., :steps, :])
 
 
 class KernelReinforce:
