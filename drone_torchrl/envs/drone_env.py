@@ -61,13 +61,14 @@ def check_dtype(dtype: object) -> torch.dtype:
     raise ValueError(f"dtype={as_override(dtype)} is not allowed; expected one of {tuple(DTYPES)}")
 
 
-def _is_int(value: object) -> bool:
+def is_integer(value: object) -> bool:
+    """Whether ``value`` is an integer (a bool, though an int to Python, is not)."""
     return isinstance(value, Integral) and not isinstance(value, bool)
 
 
 def check_episode_args(max_steps: object, reset_mode: object, render_mode: object) -> None:
     """Validate the episode arguments shared by both envs."""
-    if not _is_int(max_steps) or not 1 <= max_steps <= MAX_STEPS:
+    if not is_integer(max_steps) or not 1 <= max_steps <= MAX_STEPS:
         raise ValueError(
             f"max_steps={as_override(max_steps)} is not allowed; expected an integer >= 1 and <= {MAX_STEPS}"
         )
@@ -78,9 +79,9 @@ def check_episode_args(max_steps: object, reset_mode: object, render_mode: objec
 
 
 def _check_batch_size(batch_size: object) -> torch.Size:
-    batch_size = [batch_size] if _is_int(batch_size) else [] if batch_size is None else batch_size
+    batch_size = [batch_size] if is_integer(batch_size) else [] if batch_size is None else batch_size
     if not isinstance(batch_size, Sequence | torch.Size) or not all(
-        _is_int(n) and n >= 1 for n in batch_size
+        is_integer(n) and n >= 1 for n in batch_size
     ):
         raise ValueError(
             f"batch_size={as_override(batch_size)} is not allowed; expected a list of positive integers, e.g. [] or [64]"
@@ -133,7 +134,7 @@ def check_env_args(
             f"device={as_override(device)} is not allowed; expected e.g. 'cpu' or 'cuda:0'"
         ) from err
     n_envs = math.prod(batch_size)
-    if not _is_int(render_index) or not 0 <= render_index < n_envs:
+    if not is_integer(render_index) or not 0 <= render_index < n_envs:
         raise ValueError(
             f"render_index={as_override(render_index)} is not allowed; expected an integer in [0, {n_envs - 1}]"
         )
@@ -470,12 +471,10 @@ class DroneEnv(EnvBase):
             self._renderer = DroneRenderer(self.render_mode, self.params, self.metadata["render_fps"])
         i = self.render_index if index is None else index
         flat = lambda t: t.reshape(-1, *t.shape[len(self.batch_size) :])[i]  # noqa: E731
+        state, action = flat(self._state).cpu().numpy(), flat(self._last_action).cpu().numpy()
+        step, episode_return = int(flat(self._step_count)), float(flat(self._episode_return))
         return self._renderer.draw(
-            state=flat(self._state).cpu().numpy(),
-            action=flat(self._last_action).cpu().numpy(),
-            step=int(flat(self._step_count)),
-            episode_return=float(flat(self._episode_return)),
-            cause=TerminationCause(int(flat(self._cause))),
+            state, action, step, episode_return, TerminationCause(int(flat(self._cause)))
         )
 
     def close(self, *, raise_if_closed: bool = True) -> None:

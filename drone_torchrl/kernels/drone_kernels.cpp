@@ -157,11 +157,12 @@ inline void sincos_v(D x, D* s, D* c) {
 }
 
 // float32: polynomial approximations within a few ulp (Cephes' and Eigen's coefficients), so they
-// vectorise. horner: c[0] x^(N-1) + ... + c[N-1].
-template <int N>
-inline F horner(F x, const float (&c)[N]) {
-  F y = splat<F>(c[0]);
-  for (int i = 1; i < N; i++) y = y * x + c[i];
+// vectorise. horner(x, c0, c1, ..., cn): c0 x^n + c1 x^(n-1) + ... + cn (the coefficients literals
+// the compiler sees, as when written out).
+template <class... C>
+inline F horner(F x, float c0, C... c) {
+  F y = splat<F>(c0);
+  ((y = y * x + c), ...);
   return y;
 }
 
@@ -174,8 +175,8 @@ inline F exp_v(F x0) {
   x = x - fn * 0.693359375f;
   x = x - fn * -2.12194440e-4f;
   F z = x * x;
-  F y = horner(x, {1.9875691500e-4f, 1.3981999507e-3f, 8.3334519073e-3f, 4.1665795894e-2f, 1.6666665459e-1f,
-                   5.0000001201e-1f});
+  F y = horner(x, 1.9875691500e-4f, 1.3981999507e-3f, 8.3334519073e-3f, 4.1665795894e-2f, 1.6666665459e-1f,
+                   5.0000001201e-1f);
   y = y * z + x + 1.0f;
   I32 bits = (ni + 127) << 23;
   F scale;
@@ -195,8 +196,8 @@ inline F log_v(F x) {
   e -= small & 1;
   m = small ? m + m - 1.0f : m - 1.0f;
   F z = m * m;
-  F y = horner(m, {7.0376836292e-2f, -1.1514610310e-1f, 1.1676998740e-1f, -1.2420140846e-1f, 1.4249322787e-1f,
-                   -1.6668057665e-1f, 2.0000714765e-1f, -2.4999993993e-1f, 3.3333331174e-1f});
+  F y = horner(m, 7.0376836292e-2f, -1.1514610310e-1f, 1.1676998740e-1f, -1.2420140846e-1f, 1.4249322787e-1f,
+                   -1.6668057665e-1f, 2.0000714765e-1f, -2.4999993993e-1f, 3.3333331174e-1f);
   y = y * m * z;
   F fe = __builtin_convertvector(e, F);
   y = y + fe * -2.12194440e-4f;
@@ -215,9 +216,9 @@ inline F tanh_v(F x) {
   // Eigen's rational approximation (ptanh_float), exact to a few ulp over [-7.9, 7.9].
   x = clamp(x, -7.90531110763549805f, 7.90531110763549805f);
   F x2 = x * x;
-  F p = horner(x2, {-2.76076847742355e-16f, 2.00018790482477e-13f, -8.60467152213735e-11f, 5.12229709037114e-08f,
-                    1.48572235717979e-05f, 6.37261928875436e-04f, 4.89352455891786e-03f}) * x;
-  F q = horner(x2, {1.19825839466702e-06f, 1.18534705686654e-04f, 2.26843463243900e-03f, 4.89352518554385e-03f});
+  F p = horner(x2, -2.76076847742355e-16f, 2.00018790482477e-13f, -8.60467152213735e-11f, 5.12229709037114e-08f,
+                    1.48572235717979e-05f, 6.37261928875436e-04f, 4.89352455891786e-03f) * x;
+  F q = horner(x2, 1.19825839466702e-06f, 1.18534705686654e-04f, 2.26843463243900e-03f, 4.89352518554385e-03f);
   return vabs(x) < 0.0004f ? x : p / q;
 }
 
