@@ -246,23 +246,15 @@ class DroneRenderer:
         """Header text: step, return and cause on the first line, thrusts and tilt on the second."""
         self._canvas.fill(HEADER_COLOUR, (0, 0, FRAME_WIDTH, HEADER_HEIGHT))
         cause = TerminationCause(int(cause))
-        cause_colour = TEXT_COLOUR if cause == TerminationCause.NONE else TERMINATED_TEXT_COLOUR
+        ink, alarm = TEXT_COLOUR, TEXT_COLOUR if cause == TerminationCause.NONE else TERMINATED_TEXT_COLOUR
         a_l, a_r = (float(a) for a in action)
         alpha_deg = math.degrees(float(state[ALPHA]))
         lines = (
-            (
-                (f"step {step}", TEXT_COLOUR),
-                (f"return {episode_return:.1f}", TEXT_COLOUR),
-                (f"cause {cause.name}", cause_colour),
-            ),
-            (
-                (f"thrust L {a_l:+.2f}  R {a_r:+.2f} (x weight)", TEXT_COLOUR),
-                (f"alpha {alpha_deg:+.1f} deg", TEXT_COLOUR),
-            ),
+            [(f"step {step}", ink), (f"return {episode_return:.1f}", ink), (f"cause {cause.name}", alarm)],
+            [(f"thrust L {a_l:+.2f}  R {a_r:+.2f} (x weight)", ink), (f"alpha {alpha_deg:+.1f} deg", ink)],
         )
         for row, items in enumerate(lines):
-            left = TEXT_LEFT_PX
-            top = TEXT_TOP_PX + row * TEXT_LINE_SPACING_PX
+            left, top = TEXT_LEFT_PX, TEXT_TOP_PX + row * TEXT_LINE_SPACING_PX
             for text, colour in items:
                 image = self._font.render(text, True, colour)
                 self._canvas.blit(image, (left, top))
