@@ -47,17 +47,8 @@ def make_params(**values: Any) -> DroneParams:
                 )
         elif not (rule.optional and value is None):
             low, high = ((b, checked[b]) if isinstance(b, str) else b for b in (rule.low, rule.high))
-            value = float(
-                check_number(
-                    f.name,
-                    value,
-                    low=low,
-                    high=high,
-                    low_open=rule.low_open,
-                    high_open=rule.high_open,
-                    dtype_range=False,
-                )
-            )
+            bounds = {"low": low, "high": high, "low_open": rule.low_open, "high_open": rule.high_open}
+            value = float(check_number(f.name, value, **bounds, dtype_range=False))
         checked[f.name] = value
     return DroneParams(**checked)
 
@@ -70,31 +61,28 @@ def check_dtype(dtype: object) -> torch.dtype:
     raise ValueError(f"dtype={as_override(dtype)} is not allowed; expected one of {tuple(DTYPES)}")
 
 
+def is_integer(value: object) -> bool:
+    """Whether ``value`` is an integer (a bool, though an int to Python, is not)."""
+    return isinstance(value, Integral) and not isinstance(value, bool)
+
+
 def check_episode_args(max_steps: object, reset_mode: object, render_mode: object) -> None:
     """Validate the episode arguments shared by both envs."""
-    if isinstance(max_steps, bool) or not isinstance(max_steps, Integral) or not 1 <= max_steps <= MAX_STEPS:
+    if not is_integer(max_steps) or not 1 <= max_steps <= MAX_STEPS:
         raise ValueError(
             f"max_steps={as_override(max_steps)} is not allowed; expected an integer >= 1 and <= {MAX_STEPS}"
         )
-    if reset_mode not in RESET_MODES:
-        raise ValueError(
-            f"reset_mode={as_override(reset_mode)} is not allowed; expected one of {RESET_MODES}"
-        )
-    if render_mode not in RENDER_MODES:
-        raise ValueError(
-            f"render_mode={as_override(render_mode)} is not allowed; expected one of {RENDER_MODES}"
-        )
+    allowed = {"reset_mode": RESET_MODES, "render_mode": RENDER_MODES}
+    for (name, choices), value in zip(allowed.items(), (reset_mode, render_mode), strict=True):
+        if value not in choices:
+            raise ValueError(f"{name}={as_override(value)} is not allowed; expected one of {choices}")
 
 
 def _check_batch_size(batch_size: object) -> torch.Size:
-    if isinstance(batch_size, Integral) and not isinstance(batch_size, bool):
-        batch_size = [batch_size]
-    if batch_size is None:
-        batch_size = []
-    ok = isinstance(batch_size, Sequence | torch.Size) and all(
-        isinstance(n, Integral) and not isinstance(n, bool) and n >= 1 for n in batch_size
-    )
-    if not ok:
+    batch_size = [batch_size] if is_integer(batch_size) else [] if batch_size is None else batch_size
+    if not isinstance(batch_size, Sequence | torch.Size) or not all(
+        is_integer(n) and n >= 1 for n in batch_size
+    ):
         raise ValueError(
             f"batch_size={as_override(batch_size)} is not allowed; expected a list of positive integers, e.g. [] or [64]"
         )
@@ -136,9 +124,8 @@ def check_env_args(
     """
     batch_size = _check_batch_size(batch_size)
     given = {} if params is None else {f.name: getattr(params, f.name) for f in fields(DroneParams)}
-    checked = make_params(**{**given, **overrides})
-    torch_dtype = check_dtype(dtype)
-    disturbance = disturbances.make(disturbance)
+    params = make_params(**{**given, **overrides})
+    dtype, disturbance = check_dtype(dtype), disturbances.make(disturbance)
     check_episode_args(max_steps, reset_mode, render_mode)
     try:
         device = torch.device(device)
@@ -147,25 +134,12 @@ def check_env_args(
             f"device={as_override(device)} is not allowed; expected e.g. 'cpu' or 'cuda:0'"
         ) from err
     n_envs = math.prod(batch_size)
-    if (
-        isinstance(render_index, bool)
-        or not isinstance(render_index, Integral)
-        or not 0 <= render_index < n_envs
-    ):
+    if not is_integer(render_index) or not 0 <= render_index < n_envs:
         raise ValueError(
             f"render_index={as_override(render_index)} is not allowed; expected an integer in [0, {n_envs - 1}]"
         )
-    return EnvArgs(
-        batch_size,
-        checked,
-        torch_dtype,
-        disturbance,
-        device,
-        int(max_steps),
-        reset_mode,
-        render_mode,
-        int(render_index),
-    )
+    steps, index = int(max_steps), int(render_index)
+    return EnvArgs(batch_size, params, dtype, disturbance, device, steps, reset_mode, render_mode, index)
 
 
 class DroneEnv(EnvBase):
@@ -407,37 +381,27 @@ class DroneEnv(EnvBase):
             mask = tensordict.get("_reset").reshape(self.batch_size)
         # One count decides between a full and a partial reset (cheaper than mask.all() at large batch).
         n_reset = None if mask is None or self.batch_size == () else int(mask.sum())
-        if n_reset is None or n_reset == mask.numel():
-            self._state = dynamics.initial_state(
-                self.batch_size, self.reset_mode, self._generator, self.device, self.dtype, self.params
-            )
-            # The counters are replaced, never written in place, so _output can hand them out
-            # without a copy (the last action may even be the caller's own tensor, see _step).
-            self._step_count = torch.zeros_like(self._step_count)
-            self._cause = torch.zeros_like(self._cause)
-            if self._disturbed:
-                self._internal = self._start_disturbances(tuple(self.batch_size))
-            if self.render_mode is not None:
-                self._episode_return = torch.zeros_like(self._episode_return)
-                self._last_action = torch.zeros_like(self._last_action)
+        full = n_reset is None or n_reset == mask.numel()
+        shape = tuple(self.batch_size) if full else (n_reset,)
+        # A partial reset finds the integer indices once (same rows, same row-major order as
+        # boolean-mask writes, which would search the mask again for every tensor). The counters are
+        # replaced, never written in place, so _output can hand them out without a copy (the last
+        # action may even be the caller's own tensor, see _step).
+        index = None if full else mask.nonzero(as_tuple=True)
+        zero = torch.zeros_like if full else lambda t: t.index_put(index, t.new_zeros(()))
+        start = dynamics.initial_state(
+            shape, self.reset_mode, self._generator, self.device, self.dtype, self.params
+        )
+        if full:
+            self._state = start
         else:
-            # Integer indices found once (same rows, same row-major order as boolean-mask writes,
-            # which would search the mask again for every tensor).
-            index = mask.nonzero(as_tuple=True)
-            self._state[index] = dynamics.initial_state(
-                (n_reset,), self.reset_mode, self._generator, self.device, self.dtype, self.params
-            )
-            # Out of place, for the same reason as above.
-            self._step_count = self._step_count.index_put(index, self._step_count.new_zeros(()))
-            self._cause = self._cause.index_put(index, self._cause.new_zeros(()))
-            if self._disturbed:
-                fresh = self._start_disturbances((n_reset,))
-                self._internal = disturbances.replace_rows(self._internal, index, fresh)
-            if self.render_mode is not None:
-                self._episode_return = self._episode_return.index_put(
-                    index, self._episode_return.new_zeros(())
-                )
-                self._last_action = self._last_action.index_put(index, self._last_action.new_zeros(()))
+            self._state[index] = start
+        self._step_count, self._cause = zero(self._step_count), zero(self._cause)
+        if self._disturbed:
+            fresh = self._start_disturbances(shape)
+            self._internal = fresh if full else disturbances.replace_rows(self._internal, index, fresh)
+        if self.render_mode is not None:
+            self._episode_return, self._last_action = zero(self._episode_return), zero(self._last_action)
         if self.render_mode == "human":
             self.render()
         return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
@@ -507,12 +471,10 @@ class DroneEnv(EnvBase):
             self._renderer = DroneRenderer(self.render_mode, self.params, self.metadata["render_fps"])
         i = self.render_index if index is None else index
         flat = lambda t: t.reshape(-1, *t.shape[len(self.batch_size) :])[i]  # noqa: E731
+        state, action = flat(self._state).cpu().numpy(), flat(self._last_action).cpu().numpy()
+        step, episode_return = int(flat(self._step_count)), float(flat(self._episode_return))
         return self._renderer.draw(
-            state=flat(self._state).cpu().numpy(),
-            action=flat(self._last_action).cpu().numpy(),
-            step=int(flat(self._step_count)),
-            episode_return=float(flat(self._episode_return)),
-            cause=TerminationCause(int(flat(self._cause))),
+            state, action, step, episode_return, TerminationCause(int(flat(self._cause)))
         )
 
     def close(self, *, raise_if_closed: bool = True) -> None:

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import multiprocessing as mp
 from functools import partial
-from numbers import Integral
 from typing import Any
 
 from torchrl.envs import EnvBase, ParallelEnv, SerialEnv
 
-from drone_torchrl.envs.drone_env import DroneEnv, check_env_args
+from drone_torchrl.envs.drone_env import DroneEnv, check_env_args, is_integer
 
 PARALLEL_MODES = ("process", "serial")
 
@@ -34,11 +33,9 @@ def make_env(
     ``ParallelEnv`` workers are always started with the ``"spawn"`` method: TorchRL's default, and
     the one that works under Hydra's joblib launcher, whose processes report ``"loky"``.
     """
-    if num_envs is not None and (
-        isinstance(num_envs, bool) or not isinstance(num_envs, Integral) or num_envs < 1
-    ):
+    if num_envs is not None and (not is_integer(num_envs) or num_envs < 1):
         raise ValueError(f"num_envs={num_envs!r} is not allowed; expected None or an integer >= 1")
-    if isinstance(num_workers, bool) or not isinstance(num_workers, Integral) or num_workers < 0:
+    if not is_integer(num_workers) or num_workers < 0:
         raise ValueError(f"num_workers={num_workers!r} is not allowed; expected an integer >= 0")
     if parallel not in PARALLEL_MODES:
         raise ValueError(f"parallel={parallel!r} is not allowed; expected one of {PARALLEL_MODES}")

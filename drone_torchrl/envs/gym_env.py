@@ -41,13 +41,9 @@ class DroneGymEnv(gym.Env):
         for batch_only in ("batch_size", "device", "render_index"):
             if batch_only in env_kwargs:
                 raise TypeError(f"DroneGymEnv.__init__() got an unexpected keyword argument '{batch_only}'")
-        self.env = DroneEnv(batch_size=[], render_mode=render_mode, **env_kwargs)
-        self.params, self.dtype, self.disturbance = self.env.params, self.env.dtype, self.env.disturbance
-        self.max_steps, self.reset_mode, self.render_mode = (
-            self.env.max_steps,
-            self.env.reset_mode,
-            render_mode,
-        )
+        env = self.env = DroneEnv(batch_size=[], render_mode=render_mode, **env_kwargs)
+        self.params, self.dtype, self.disturbance = env.params, env.dtype, env.disturbance
+        self.max_steps, self.reset_mode, self.render_mode = env.max_steps, env.reset_mode, render_mode
         self._np_dtype = np.float64 if self.dtype == torch.float64 else np.float32
         obs_dim = self.disturbance.observation_dim
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=self._np_dtype)

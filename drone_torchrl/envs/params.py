@@ -81,10 +81,8 @@ class Param:
         if self.choices:
             return f"{self.doc}; {' | '.join(self.choices)}"
         label = lambda b: b if isinstance(b, str) else b[0] if isinstance(b, tuple) else f"{b:g}"  # noqa: E731
-        low, high = (
-            f"{'(' if self.low_open else '['}{label(self.low)}",
-            f"{label(self.high)}{')' if self.high_open else ']'}",
-        )
+        low = f"{'(' if self.low_open else '['}{label(self.low)}"
+        high = f"{label(self.high)}{')' if self.high_open else ']'}"
         return f"{self.doc}; in {low}, {high}" + (" or null" if self.optional else "")
 
 
@@ -130,25 +128,18 @@ class DroneParams:
         X_LIMIT, "m, the domain is |x| <= x_limit", low=_ZERO, high=_ARENA, low_open=True, new=True
     )
     z_min: float = _param(
-        Z_MIN,
-        'm, the floor ("floor" resets start here)',
-        low=(f"-{MAX_ARENA:g} m", -MAX_ARENA),
-        high=_ARENA,
+        Z_MIN, 'm, the floor ("floor" resets start here)', low=(f"-{MAX_ARENA:g} m", -MAX_ARENA), high=_ARENA,
         new=True,
-    )
+    )  # fmt: skip
     z_max: float = _param(Z_MAX, "m, the ceiling", low="z_min", high=_ARENA, low_open=True, new=True)
     alpha_limit: float = _param(
         ALPHA_LIMIT, "rad, the tilt bound of the domain and the zone (pi/3: 60 deg)",
         low=_ZERO, high=("pi", math.pi), low_open=True, new=True,
     )  # fmt: skip
     zone_x_limit: float = _param(
-        ZONE_X_LIMIT,
-        "m, the target zone is |x| <= zone_x_limit",
-        low=_ZERO,
-        high="x_limit",
-        low_open=True,
+        ZONE_X_LIMIT, "m, the target zone is |x| <= zone_x_limit", low=_ZERO, high="x_limit", low_open=True,
         new=True,
-    )
+    )  # fmt: skip
     zone_z_min: float = _param(
         ZONE_Z_MIN, "m, the bottom of the target zone", low="z_min", high="z_max", high_open=True, new=True
     )

@@ -25,12 +25,10 @@ RENDER_MODES = ("human", "rgb_array")
 WINDOW_TITLE = "Drone2D"
 
 # ----------------------------------------------------------------------------- layout (pixels)
-FRAME_WIDTH = 600
-FRAME_HEIGHT = 600
+FRAME_WIDTH = FRAME_HEIGHT = 600
 HEADER_HEIGHT = 56  # text overlay band above the domain
 DOMAIN_TOP_GAP = 10  # room for the top z tick label below the header
-MARGIN_LEFT = 50  # z tick labels
-MARGIN_RIGHT = 50
+MARGIN_LEFT = MARGIN_RIGHT = 50  # the left one holds the z tick labels
 MARGIN_BOTTOM = 40  # x tick labels
 GRID_SPACING_M = 1.0
 # The area the domain is fitted into (keeping its aspect ratio, centred horizontally).
@@ -41,13 +39,8 @@ DOMAIN_TOP_PX = HEADER_HEIGHT + DOMAIN_TOP_GAP
 # away (the state is unbounded after termination) never overflows pygame's integer coordinates.
 PIXEL_CLIP = 10 * max(FRAME_WIDTH, FRAME_HEIGHT)
 
-GRID_LINE_WIDTH = 1
-BORDER_LINE_WIDTH = 2
-FLOOR_LINE_WIDTH = 4
-ZONE_EDGE_WIDTH = 2
-BODY_THICKNESS_PX = 8
-MOTOR_RADIUS_PX = 9
-HUB_RADIUS_PX = 5
+GRID_LINE_WIDTH, BORDER_LINE_WIDTH, FLOOR_LINE_WIDTH, ZONE_EDGE_WIDTH = 1, 2, 4, 2
+BODY_THICKNESS_PX, MOTOR_RADIUS_PX, HUB_RADIUS_PX = 8, 9, 5
 TICK_LABEL_GAP_PX = 6
 
 # Thrust arrows: length in metres per unit of thrust fraction (0.5 = hover -> 0.5 m), capped so an
@@ -61,10 +54,8 @@ ARROW_HEAD_HALF_WIDTH_PX = 8
 ARROW_HEAD_MAX_FRACTION = 0.5  # the head takes at most this share of a short arrow
 
 # ----------------------------------------------------------------------------- text
-FONT_SIZE = 24  # pygame's bundled default font, so it works headless and offline
-TICK_FONT_SIZE = 20
-TEXT_LEFT_PX = 10
-TEXT_TOP_PX = 8
+FONT_SIZE, TICK_FONT_SIZE = 24, 20  # pygame's bundled default font, so it works headless and offline
+TEXT_LEFT_PX, TEXT_TOP_PX = 10, 8
 TEXT_LINE_SPACING_PX = 24
 TEXT_ITEM_GAP_PX = 28  # between the items of one header line
 
@@ -80,10 +71,8 @@ ZONE_ALPHA = 80  # of 255: the zone is a translucent fill over the domain
 ZONE_EDGE_COLOUR = (40, 140, 55)
 BODY_COLOUR = (40, 40, 40)
 HUB_COLOUR = (110, 110, 110)
-MOTOR_LEFT_COLOUR = (30, 90, 200)
-MOTOR_RIGHT_COLOUR = (150, 50, 180)
-THRUST_POSITIVE_COLOUR = (240, 150, 0)
-THRUST_NEGATIVE_COLOUR = (220, 30, 30)
+MOTOR_LEFT_COLOUR, MOTOR_RIGHT_COLOUR = (30, 90, 200), (150, 50, 180)
+THRUST_POSITIVE_COLOUR, THRUST_NEGATIVE_COLOUR = (240, 150, 0), (220, 30, 30)
 TEXT_COLOUR = (20, 20, 20)
 TERMINATED_TEXT_COLOUR = (160, 0, 0)
 TICK_TEXT_COLOUR = (90, 90, 90)
@@ -167,9 +156,7 @@ class DroneRenderer:
         p, to_pixel = self.params, self.layout.to_pixel
         surface = pygame.Surface((FRAME_WIDTH, FRAME_HEIGHT))
         surface.fill(MARGIN_COLOUR)
-        left, top = to_pixel(-p.x_limit, p.z_max)
-        right, bottom = to_pixel(p.x_limit, p.z_min)
-        domain = pygame.Rect(round(left), round(top), round(right - left), round(bottom - top))
+        (left, top, right, bottom), domain = self._box(p.x_limit, p.z_min, p.z_max)
         surface.fill(DOMAIN_COLOUR, domain)
 
         x_ticks, z_ticks = _ticks(-p.x_limit, p.x_limit), _ticks(p.z_min, p.z_max)
@@ -187,11 +174,7 @@ class DroneRenderer:
         _, title_z = to_pixel(-p.x_limit, (z_ticks[-1] if z_ticks else p.z_max) - 0.5 * GRID_SPACING_M)
         self._tick_label(surface, "z [m]", (left - TICK_LABEL_GAP_PX, title_z), "midright")
 
-        zone_left, zone_top = to_pixel(-p.zone_x_limit, p.zone_z_max)
-        zone_right, zone_bottom = to_pixel(p.zone_x_limit, p.zone_z_min)
-        zone = pygame.Rect(
-            round(zone_left), round(zone_top), round(zone_right - zone_left), round(zone_bottom - zone_top)
-        )
+        _, zone = self._box(p.zone_x_limit, p.zone_z_min, p.zone_z_max)
         fill = pygame.Surface(zone.size, pygame.SRCALPHA)
         fill.fill((*ZONE_COLOUR, ZONE_ALPHA))
         surface.blit(fill, zone.topleft)
@@ -200,6 +183,13 @@ class DroneRenderer:
         pygame.draw.rect(surface, BORDER_COLOUR, domain, BORDER_LINE_WIDTH)
         pygame.draw.line(surface, FLOOR_COLOUR, (left, bottom), (right, bottom), FLOOR_LINE_WIDTH)
         return surface
+
+    def _box(self, x_limit: float, z_low: float, z_high: float):
+        """The world box ``|x| <= x_limit``, ``z_low <= z <= z_high`` on screen: its edges and its Rect."""
+        left, top = self.layout.to_pixel(-x_limit, z_high)
+        right, bottom = self.layout.to_pixel(x_limit, z_low)
+        rect = self._pygame.Rect(round(left), round(top), round(right - left), round(bottom - top))
+        return (left, top, right, bottom), rect
 
     def _tick_label(self, surface, text: str, position: tuple[float, float], anchor: str) -> None:
         """A grid or axis label whose ``anchor`` point (``"midtop"``, ...) lies on ``position``."""
@@ -256,23 +246,15 @@ class DroneRenderer:
         """Header text: step, return and cause on the first line, thrusts and tilt on the second."""
         self._canvas.fill(HEADER_COLOUR, (0, 0, FRAME_WIDTH, HEADER_HEIGHT))
         cause = TerminationCause(int(cause))
-        cause_colour = TEXT_COLOUR if cause == TerminationCause.NONE else TERMINATED_TEXT_COLOUR
+        ink, alarm = TEXT_COLOUR, TEXT_COLOUR if cause == TerminationCause.NONE else TERMINATED_TEXT_COLOUR
         a_l, a_r = (float(a) for a in action)
         alpha_deg = math.degrees(float(state[ALPHA]))
         lines = (
-            (
-                (f"step {step}", TEXT_COLOUR),
-                (f"return {episode_return:.1f}", TEXT_COLOUR),
-                (f"cause {cause.name}", cause_colour),
-            ),
-            (
-                (f"thrust L {a_l:+.2f}  R {a_r:+.2f} (x weight)", TEXT_COLOUR),
-                (f"alpha {alpha_deg:+.1f} deg", TEXT_COLOUR),
-            ),
+            [(f"step {step}", ink), (f"return {episode_return:.1f}", ink), (f"cause {cause.name}", alarm)],
+            [(f"thrust L {a_l:+.2f}  R {a_r:+.2f} (x weight)", ink), (f"alpha {alpha_deg:+.1f} deg", ink)],
         )
         for row, items in enumerate(lines):
-            left = TEXT_LEFT_PX
-            top = TEXT_TOP_PX + row * TEXT_LINE_SPACING_PX
+            left, top = TEXT_LEFT_PX, TEXT_TOP_PX + row * TEXT_LINE_SPACING_PX
             for text, colour in items:
                 image = self._font.render(text, True, colour)
                 self._canvas.blit(image, (left, top))

@@ -42,6 +42,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 from drone_torchrl.envs.params import PARAM_NAMES
@@ -92,9 +93,13 @@ def _cached(name: str, *inputs: str) -> Path:
     return cache_dir() / f"drone_kernels-{name}-{key}.so"
 
 
-def _compiler() -> str | None:
-    candidates = [os.environ.get("CXX"), "c++", "g++", "clang++"]
+def _which(*candidates: str | None) -> str | None:
+    """The path of the first of ``candidates`` (names or paths, None skipped) that is found."""
     return next((found for c in candidates if c and (found := shutil.which(c))), None)
+
+
+def _compiler() -> str | None:
+    return _which(os.environ.get("CXX"), "c++", "g++", "clang++")
 
 
 def _cpu_signature() -> str:
@@ -144,6 +149,25 @@ def _build(compiler: str, target: Path, precision: tuple[str, ...]) -> str | Non
     return why
 
 
+class _Unavailable(Exception):
+    """Why a library cannot be had, in a message that is the reason as it stands."""
+
+
+def _once(name: str, load: Callable[[], ctypes.CDLL]) -> ctypes.CDLL | None:
+    """``load()``'s library, loaded once per process; None where it failed (:func:`unavailable_reason`)."""
+    with _lock:
+        if name not in _state:
+            lib, reason = None, None
+            try:
+                lib = load()
+            except _Unavailable as err:
+                reason = str(err)
+            except (OSError, subprocess.SubprocessError) as err:
+                reason = f"{type(err).__name__}: {err}"
+            _state[name], _state["reason"] = lib, reason
+        return _state[name]  # type: ignore[return-value]
+
+
 def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
     """The loaded kernels for float32 (or float64) tensors, built on first use; None if they cannot be.
 
@@ -151,37 +175,31 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
     """
     name = ("scalar-" if scalar else "") + ("float64" if double else "float32")
     precision = (f"-DDK_DOUBLE={int(double)}",) + (SCALAR_ENGINE_FLAGS if scalar else ())
-    with _lock:
-        if name in _state:
-            return _state[name]  # type: ignore[return-value]
-        lib, reason = None, None
+
+    def load() -> ctypes.CDLL:
         compiler = _compiler()
         if compiler is None:
-            reason = "no C++ compiler found (set CXX, or install g++ or clang++)"
-        else:
-            try:
-                flags = " ".join(BASE_FLAGS + precision + ARCH_FLAGS)
-                path = _cached(name, SOURCE.read_text(), _version(compiler), flags, _cpu_signature())
-                if not path.is_file():
-                    reason = _build(compiler, path, precision)
-                if reason is None:
-                    lib = _load(path, double)
-            except (OSError, subprocess.SubprocessError) as err:
-                reason = f"{type(err).__name__}: {err}"
-        _state[name], _state["reason"] = lib, reason
-        return lib
+            raise _Unavailable("no C++ compiler found (set CXX, or install g++ or clang++)")
+        flags = " ".join(BASE_FLAGS + precision + ARCH_FLAGS)
+        path = _cached(name, SOURCE.read_text(), _version(compiler), flags, _cpu_signature())
+        if not path.is_file() and (why := _build(compiler, path, precision)) is not None:
+            raise _Unavailable(why)
+        return _load(path, double)
+
+    return _once(name, load)
 
 
+# The functions whose result is an int64 or a name: every build's, then the CPU's or the CUDA one's own.
 _INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim")
 _NAMES = ("dk_env_constants", "dk_disturbance_constants")
-# What only the CUDA build (cuda_library) exports.
+_CPU_INT64_RESULTS = ("dk_rollout", "dk_reinforce", "dk_segments")
 _CUDA_INT64_RESULTS = ("dk_cuda_scratch_size", "dk_cuda_rollout", "dk_cuda_reinforce")
 _CUDA_NAMES = ("dk_cuda_error",)
 
 
 def _load(path: Path, double: bool, cuda: bool = False) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(path))
-    for function in _INT64_RESULTS + (_CUDA_INT64_RESULTS if cuda else ()):
+    for function in _INT64_RESULTS + (_CUDA_INT64_RESULTS if cuda else _CPU_INT64_RESULTS):
         getattr(lib, function).restype = ctypes.c_int64
     for function in _NAMES + (_CUDA_NAMES if cuda else ()):
         getattr(lib, function).restype = ctypes.c_char_p
@@ -224,11 +242,10 @@ def nvcc() -> str | None:
     ``$NVCC``, else ``nvcc`` on ``PATH``, else the CUDA toolkit's, else the one the ``cuda`` extra
     installs (PyPI's ``nvidia-cuda-nvcc``).
     """
-    candidates = [os.environ.get("NVCC"), "nvcc", "/usr/local/cuda/bin/nvcc"]
     spec = importlib.util.find_spec("nvidia")
-    for folder in (spec.submodule_search_locations or []) if spec else []:
-        candidates.append(str(Path(folder, "cu13", "bin", "nvcc")))
-    return next((found for c in candidates if c and (found := shutil.which(c))), None)
+    folders = (spec.submodule_search_locations or []) if spec else []
+    pip = [str(Path(folder, "cu13", "bin", "nvcc")) for folder in folders]  # the cuda extra's
+    return _which(os.environ.get("NVCC"), "nvcc", "/usr/local/cuda/bin/nvcc", *pip)
 
 
 def build_cuda(target: Path, double: bool = False) -> str | None:
@@ -246,28 +263,20 @@ def cuda_library(double: bool = False) -> ctypes.CDLL | None:
     and cached; None where neither works (:func:`unavailable_reason` says why).
     """
     name = "cuda-" + ("float64" if double else "float32")
-    with _lock:
-        if name in _state:
-            return _state[name]  # type: ignore[return-value]
-        lib, reason = None, None
-        try:
-            given = os.environ.get(CUDA_LIBRARY_ENV)
-            if given and not double:
-                path = Path(given)
-            else:
-                compiler = nvcc()
-                if compiler is None:
-                    raise OSError(f"no nvcc found and ${CUDA_LIBRARY_ENV} not set")
-                path = _cached(
-                    name, SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double)
-                )
-                if not path.is_file() and (why := build_cuda(path, double)) is not None:
-                    raise OSError(why)
-            lib = _load(path, double, cuda=True)
-        except (OSError, subprocess.SubprocessError) as err:
-            reason = f"{type(err).__name__}: {err}"
-        _state[name], _state["reason"] = lib, reason
-        return lib
+
+    def load() -> ctypes.CDLL:
+        given = os.environ.get(CUDA_LIBRARY_ENV)
+        if given and not double:
+            return _load(Path(given), double, cuda=True)
+        compiler = nvcc()
+        if compiler is None:
+            raise OSError(f"no nvcc found and ${CUDA_LIBRARY_ENV} not set")
+        path = _cached(name, SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double))
+        if not path.is_file() and (why := build_cuda(path, double)) is not None:
+            raise OSError(why)
+        return _load(path, double, cuda=True)
+
+    return _once(name, load)
 
 
 def unavailable_reason() -> str | None:

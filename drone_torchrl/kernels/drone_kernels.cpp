@@ -77,10 +77,6 @@ template <class V>
 DK_HD inline V splat(ScalarOf<V> x) {
   return V{} + x;
 }
-DK_HD inline float lane(float x, int) { return x; }
-DK_HD inline double lane(double x, int) { return x; }
-DK_HD inline void set_lane(float& x, int, float v) { x = v; }
-DK_HD inline void set_lane(double& x, int, double v) { x = v; }
 DK_HD inline bool lane_any(bool m) { return m; }
 // A mask is what a comparison gives: bool for scalars, a vector of 0 / -1 for vectors.
 template <class M, class V>
@@ -103,65 +99,40 @@ DK_HD inline V clamp(V x, S lo, S hi) {
   return select(x < lo, V{} + lo, select(x > hi, V{} + hi, x));
 }
 
-// Elementary functions on scalars: the C library (a CUDA build maps them to its own).
-DK_HD inline float exp_v(float x) { return std::exp(x); }
-DK_HD inline double exp_v(double x) { return std::exp(x); }
-DK_HD inline float log_v(float x) { return std::log(x); }
-DK_HD inline double log_v(double x) { return std::log(x); }
-DK_HD inline float log1p_v(float x) { return std::log1p(x); }
-DK_HD inline double log1p_v(double x) { return std::log1p(x); }
-DK_HD inline float tanh_v(float x) { return std::tanh(x); }
-DK_HD inline double tanh_v(double x) { return std::tanh(x); }
-DK_HD inline float sqrt_v(float x) { return std::sqrt(x); }
-DK_HD inline double sqrt_v(double x) { return std::sqrt(x); }
-DK_HD inline void sincos_v(float x, float* s, float* c) {
-  *s = std::sin(x);
-  *c = std::cos(x);
-}
-DK_HD inline void sincos_v(double x, double* s, double* c) {
-  *s = std::sin(x);
-  *c = std::cos(x);
-}
+// A scalar is one lane; its elementary functions are the C library's (a CUDA build maps them to its own).
+#define DK_SCALAR(S)                                          \
+  DK_HD inline S lane(S x, int) { return x; }                 \
+  DK_HD inline void set_lane(S& x, int, S v) { x = v; }       \
+  DK_HD inline S exp_v(S x) { return std::exp(x); }           \
+  DK_HD inline S log_v(S x) { return std::log(x); }           \
+  DK_HD inline S log1p_v(S x) { return std::log1p(x); }       \
+  DK_HD inline S tanh_v(S x) { return std::tanh(x); }         \
+  DK_HD inline S sqrt_v(S x) { return std::sqrt(x); }         \
+  DK_HD inline void sincos_v(S x, S* s, S* c) { *s = std::sin(x), *c = std::cos(x); }
+DK_SCALAR(float)
+DK_SCALAR(double)
 
 #if DK_CPU
 // ------------------------------------------------------------------------------------------------
 // GCC's vector extensions (portable: the compiler picks the machine's instructions).
 
 constexpr int kVectorBytes = 32;
-
-// GCC's vector extensions cannot take a template parameter's type directly: one typedef each.
-template <class S>
-struct VecOf;
-template <>
-struct VecOf<float> {
-  typedef float type __attribute__((vector_size(kVectorBytes)));
-};
-template <>
-struct VecOf<double> {
-  typedef double type __attribute__((vector_size(kVectorBytes)));
-};
-template <class S>
-using Vec = typename VecOf<S>::type;
-using F = Vec<float>;
-using D = Vec<double>;
+using F = float __attribute__((vector_size(kVectorBytes)));
+using D = double __attribute__((vector_size(kVectorBytes)));
 using I32 = int32_t __attribute__((vector_size(kVectorBytes)));
 
-template <>
-struct LaneTraits<F> {
-  using Scalar = float;
-  using Float = F;
-  static constexpr int kLanes = 8;
-};
-template <>
-struct LaneTraits<D> {
-  using Scalar = double;
-  using Float = F;  // lanes 4-7 unused
-  static constexpr int kLanes = 4;
-};
-inline float lane(F x, int l) { return x[l]; }
-inline double lane(D x, int l) { return x[l]; }
-inline void set_lane(F& x, int l, float v) { x[l] = v; }
-inline void set_lane(D& x, int l, double v) { x[l] = v; }
+// A vector of n lanes of S; its Box-Muller draws in float32 lanes (float64's lanes 4-7 unused).
+#define DK_VECTOR(V, S, n)                               \
+  template <>                                            \
+  struct LaneTraits<V> {                                 \
+    using Scalar = S;                                    \
+    using Float = F;                                     \
+    static constexpr int kLanes = n;                     \
+  };                                                     \
+  inline S lane(V x, int l) { return x[l]; }             \
+  inline void set_lane(V& x, int l, S v) { x[l] = v; }
+DK_VECTOR(F, float, 8)
+DK_VECTOR(D, double, 4)
 template <class M>
 inline bool lane_any(M m) {
   bool any = false;
@@ -169,10 +140,33 @@ inline bool lane_any(M m) {
   return any;
 }
 
-// float32: polynomial approximations within a few ulp (Cephes' and Eigen's coefficients), so they
-// vectorise; float64: the C library per lane.
+// float64: the C library lane by lane (float32's square root too: one vector instruction).
+#define DK_PER_LANE(V, name, fn)                                              \
+  inline V name(V x) {                                                        \
+    for (unsigned l = 0; l < sizeof(V) / sizeof(x[0]); l++) x[l] = fn(x[l]); \
+    return x;                                                                 \
+  }
+DK_PER_LANE(F, sqrt_v, std::sqrt)
+DK_PER_LANE(D, exp_v, std::exp)
+DK_PER_LANE(D, log_v, std::log)
+DK_PER_LANE(D, log1p_v, std::log1p)
+DK_PER_LANE(D, tanh_v, std::tanh)
+DK_PER_LANE(D, sqrt_v, std::sqrt)
+inline void sincos_v(D x, D* s, D* c) {
+  for (int l = 0; l < 4; l++) (*s)[l] = std::sin(x[l]), (*c)[l] = std::cos(x[l]);
+}
 
-inline F exp_f(F x0) {
+// float32: polynomial approximations within a few ulp (Cephes' and Eigen's coefficients), so they
+// vectorise. horner(x, c0, c1, ..., cn): c0 x^n + c1 x^(n-1) + ... + cn (the coefficients literals
+// the compiler sees, as when written out).
+template <class... C>
+inline F horner(F x, float c0, C... c) {
+  F y = splat<F>(c0);
+  ((y = y * x + c), ...);
+  return y;
+}
+
+inline F exp_v(F x0) {
   F x = clamp(x0, -87.3365448f, 88.0f);
   F n = x * 1.44269504088896341f + 0.5f;
   I32 ni = __builtin_convertvector(n, I32);
@@ -181,12 +175,8 @@ inline F exp_f(F x0) {
   x = x - fn * 0.693359375f;
   x = x - fn * -2.12194440e-4f;
   F z = x * x;
-  F y = splat<F>(1.9875691500e-4f);
-  y = y * x + 1.3981999507e-3f;
-  y = y * x + 8.3334519073e-3f;
-  y = y * x + 4.1665795894e-2f;
-  y = y * x + 1.6666665459e-1f;
-  y = y * x + 5.0000001201e-1f;
+  F y = horner(x, 1.9875691500e-4f, 1.3981999507e-3f, 8.3334519073e-3f, 4.1665795894e-2f, 1.6666665459e-1f,
+                   5.0000001201e-1f);
   y = y * z + x + 1.0f;
   I32 bits = (ni + 127) << 23;
   F scale;
@@ -195,7 +185,7 @@ inline F exp_f(F x0) {
 }
 
 // log(x) for x > 0 (Cephes logf).
-inline F log_f(F x) {
+inline F log_v(F x) {
   I32 bits;
   std::memcpy(&bits, &x, sizeof bits);
   I32 e = ((bits >> 23) & 0xff) - 126;
@@ -206,15 +196,8 @@ inline F log_f(F x) {
   e -= small & 1;
   m = small ? m + m - 1.0f : m - 1.0f;
   F z = m * m;
-  F y = splat<F>(7.0376836292e-2f);
-  y = y * m - 1.1514610310e-1f;
-  y = y * m + 1.1676998740e-1f;
-  y = y * m - 1.2420140846e-1f;
-  y = y * m + 1.4249322787e-1f;
-  y = y * m - 1.6668057665e-1f;
-  y = y * m + 2.0000714765e-1f;
-  y = y * m - 2.4999993993e-1f;
-  y = y * m + 3.3333331174e-1f;
+  F y = horner(m, 7.0376836292e-2f, -1.1514610310e-1f, 1.1676998740e-1f, -1.2420140846e-1f, 1.4249322787e-1f,
+                   -1.6668057665e-1f, 2.0000714765e-1f, -2.4999993993e-1f, 3.3333331174e-1f);
   y = y * m * z;
   F fe = __builtin_convertvector(e, F);
   y = y + fe * -2.12194440e-4f;
@@ -222,39 +205,25 @@ inline F log_f(F x) {
   return x == x ? m + y + fe * 0.693359375f : x;
 }
 
-inline F sqrt_f(F x) {
-  for (int l = 0; l < 8; l++) x[l] = std::sqrt(x[l]);  // compiles to one vector square root
-  return x;
-}
-
-// log(1 + x) for x >= 0, accurate for small x (Goldberg's trick on log_f).
-inline F log1p_f(F x) {
+// log(1 + x) for x >= 0, accurate for small x (Goldberg's trick on log_v).
+inline F log1p_v(F x) {
   F u = x + 1.0f;
   F d = u - 1.0f;
-  return d == 0 ? x : log_f(u) * (x / d);
+  return d == 0 ? x : log_v(u) * (x / d);
 }
 
-inline F tanh_f(F x) {
+inline F tanh_v(F x) {
   // Eigen's rational approximation (ptanh_float), exact to a few ulp over [-7.9, 7.9].
   x = clamp(x, -7.90531110763549805f, 7.90531110763549805f);
   F x2 = x * x;
-  F p = splat<F>(-2.76076847742355e-16f);
-  p = p * x2 + 2.00018790482477e-13f;
-  p = p * x2 - 8.60467152213735e-11f;
-  p = p * x2 + 5.12229709037114e-08f;
-  p = p * x2 + 1.48572235717979e-05f;
-  p = p * x2 + 6.37261928875436e-04f;
-  p = p * x2 + 4.89352455891786e-03f;
-  p = p * x;
-  F q = splat<F>(1.19825839466702e-06f);
-  q = q * x2 + 1.18534705686654e-04f;
-  q = q * x2 + 2.26843463243900e-03f;
-  q = q * x2 + 4.89352518554385e-03f;
+  F p = horner(x2, -2.76076847742355e-16f, 2.00018790482477e-13f, -8.60467152213735e-11f, 5.12229709037114e-08f,
+                    1.48572235717979e-05f, 6.37261928875436e-04f, 4.89352455891786e-03f) * x;
+  F q = horner(x2, 1.19825839466702e-06f, 1.18534705686654e-04f, 2.26843463243900e-03f, 4.89352518554385e-03f);
   return vabs(x) < 0.0004f ? x : p / q;
 }
 
 // sin and cos (Cephes sinf/cosf: reduction by pi/4 in three parts, then the octant's polynomial).
-inline void sincos_f(F x0, F* s, F* c) {
+inline void sincos_v(F x0, F* s, F* c) {
   F x = x0;
   F sign_s = x < 0 ? splat<F>(-1.0f) : splat<F>(1.0f);
   x = vabs(x);
@@ -283,27 +252,6 @@ inline void sincos_f(F x0, F* s, F* c) {
       }
 }
 
-template <class Fn>
-inline D per_lane(D x, Fn fn) {
-  for (int l = 0; l < 4; l++) x[l] = fn(x[l]);
-  return x;
-}
-
-inline D exp_v(D x) { return per_lane(x, [](double v) { return std::exp(v); }); }
-inline D log_v(D x) { return per_lane(x, [](double v) { return std::log(v); }); }
-inline D log1p_v(D x) { return per_lane(x, [](double v) { return std::log1p(v); }); }
-inline D tanh_v(D x) { return per_lane(x, [](double v) { return std::tanh(v); }); }
-inline D sqrt_v(D x) { return per_lane(x, [](double v) { return std::sqrt(v); }); }
-inline void sincos_v(D x, D* s, D* c) {
-  *s = per_lane(x, [](double v) { return std::sin(v); });
-  *c = per_lane(x, [](double v) { return std::cos(v); });
-}
-inline F exp_v(F x) { return exp_f(x); }
-inline F log_v(F x) { return log_f(x); }
-inline F log1p_v(F x) { return log1p_f(x); }
-inline F tanh_v(F x) { return tanh_f(x); }
-inline F sqrt_v(F x) { return sqrt_f(x); }
-inline void sincos_v(F x, F* s, F* c) { sincos_f(x, s, c); }
 #endif  // DK_CPU
 
 // ------------------------------------------------------------------------------------------------
@@ -379,7 +327,6 @@ enum Activation { kTanh = 0, kRelu = 1, kElu = 2 };
 struct Net {
   int in_dim;
   int n_hidden;
-  int hidden[kMaxLayers];
   int activation;
   double min_std;
   // Added to the mean and to the std (ThreeNetPolicy's distribution_eps): Normal(mu + eps, sigma + eps).
@@ -392,7 +339,7 @@ struct Net {
   int activations;  // hidden outputs of one row
 
   DK_HD int last() const { return width[n_hidden]; }
-  DK_HD int out(int l) const { return l < n_hidden ? hidden[l] : kActionDim; }
+  DK_HD int out(int l) const { return l < n_hidden ? width[l + 1] : kActionDim; }  // layer l's outputs
 };
 
 template <class V>
@@ -416,48 +363,35 @@ DK_HD inline V softplus(V x) {
   return select(x > 20, x, log1p_v(exp_v(x)));
 }
 
-// out[o] = bias[o] + sum_i w[o * in + i] * x[i] for o < n, summed in order of i. Eight outputs at a
-// time: eight independent accumulator chains keep the FMA units busy (one chain per output would
-// wait on each FMA's latency). W is V (each lane its own agent's weights) or its scalar (every
-// lane the same agent); per lane the arithmetic is the same.
+// out[o] = bias[o] + sum_i w[o * row + i * col] * x[i] for o < n, summed in order of i (bias null:
+// 0): W x + b with (row, col) = (in, 1), the transposed product W^T d with (1, W's width). Eight
+// outputs at a time: eight independent accumulator chains keep the FMA units busy (one chain per
+// output would wait on each FMA's latency). W is V (each lane its own agent's weights) or its
+// scalar (every lane the same agent); per lane the arithmetic is the same.
 template <class V, class W>
-DK_HD inline void matvec(const W* w, const W* bias, const V* x, int in, int n, V* out) {
+DK_HD inline void matvec(const W* w, int row, int col, const W* bias, const V* x, int in, int n, V* out) {
   constexpr int kTile = 8;
   int o = 0;
   for (; o + kTile <= n; o += kTile) {
     V acc[kTile];
-    for (int k = 0; k < kTile; k++) acc[k] = V{} + bias[o + k];
+    for (int k = 0; k < kTile; k++) acc[k] = bias ? V{} + bias[o + k] : V{};
     for (int i = 0; i < in; i++) {
       const V xi = x[i];
-      for (int k = 0; k < kTile; k++) acc[k] += w[(o + k) * in + i] * xi;
+      for (int k = 0; k < kTile; k++) acc[k] += w[(o + k) * row + i * col] * xi;
     }
     for (int k = 0; k < kTile; k++) out[o + k] = acc[k];
   }
   for (; o < n; o++) {
-    V acc = V{} + bias[o];
-    for (int i = 0; i < in; i++) acc += w[o * in + i] * x[i];
+    V acc = bias ? V{} + bias[o] : V{};
+    for (int i = 0; i < in; i++) acc += w[o * row + i * col] * x[i];
     out[o] = acc;
   }
 }
 
-// out[i] = sum_o w[o * in + i] * d[o] for i < in (the transposed product of matvec), eight at a time.
+// out[i] = sum_o w[o * in + i] * d[o] for i < in: the backward's product with the weights [n, in].
 template <class V, class W>
 DK_HD inline void matvec_t(const W* w, const V* d, int n, int in, V* out) {
-  constexpr int kTile = 8;
-  int i = 0;
-  for (; i + kTile <= in; i += kTile) {
-    V acc[kTile] = {};
-    for (int o = 0; o < n; o++) {
-      const V d_o = d[o];
-      for (int k = 0; k < kTile; k++) acc[k] += w[o * in + i + k] * d_o;
-    }
-    for (int k = 0; k < kTile; k++) out[i + k] = acc[k];
-  }
-  for (; i < in; i++) {
-    V acc = V{};
-    for (int o = 0; o < n; o++) acc += w[o * in + i] * d[o];
-    out[i] = acc;
-  }
+  matvec(w, 1, in, static_cast<const W*>(nullptr), d, n, in, out);
 }
 
 // The forward pass from inputs x: the hidden outputs (acts, layer after layer), loc, and the std
@@ -467,8 +401,8 @@ DK_HD inline void forward(const Net& net, const W* w, const V* x, V* acts, V* lo
   const V* input = x;
   V* out = acts;
   for (int l = 0; l < net.n_hidden; l++) {
-    const int n = net.hidden[l], in = net.width[l];
-    matvec(w + net.offset[l], w + net.offset[l] + n * in, input, in, n, out);
+    const int n = net.out(l), in = net.width[l];
+    matvec(w + net.offset[l], in, 1, w + net.offset[l] + n * in, input, in, n, out);
     for (int o = 0; o < n; o++) out[o] = activate(out[o], net.activation);
     input = out;
     out += n;
@@ -476,7 +410,7 @@ DK_HD inline void forward(const Net& net, const W* w, const V* x, V* acts, V* lo
   const int in = net.last();
   for (int head = 0; head < 2; head++) {
     const W* hw = w + net.offset[net.n_hidden + head];
-    matvec(hw, hw + kActionDim * in, input, in, kActionDim, head == 0 ? loc : pre_std);
+    matvec(hw, in, 1, hw + kActionDim * in, input, in, kActionDim, head == 0 ? loc : pre_std);
   }
 }
 
@@ -489,10 +423,10 @@ DK_HD inline void backward_deltas(const Net& net, const W* w, const V* acts, con
   int act_offset[kMaxLayers], aoff = 0;
   for (int l = 0; l < net.n_hidden; l++) {
     act_offset[l] = aoff;
-    aoff += net.hidden[l];
+    aoff += net.out(l);
   }
   // d(last hidden output) = Wm^T d_loc + Ws^T d_pre, then through the activation.
-  const int top = net.n_hidden - 1, n_top = net.hidden[top];
+  const int top = net.n_hidden - 1, n_top = net.out(top);
   const W* wm = w + net.offset[net.n_hidden];
   const W* ws = w + net.offset[net.n_hidden + 1];
   V* d = deltas + act_offset[top];
@@ -502,7 +436,7 @@ DK_HD inline void backward_deltas(const Net& net, const W* w, const V* acts, con
   for (int i = 0; i < n_top; i++)
     d[i] = (d[i] + from_std[i]) * activation_grad(acts[act_offset[top] + i], net.activation);
   for (int l = top; l > 0; l--) {
-    const int n = net.hidden[l], n_in = net.width[l];
+    const int n = net.out(l), n_in = net.width[l];
     const W* wl = w + net.offset[l];
     const V* dl = deltas + act_offset[l];
     V* below = deltas + act_offset[l - 1];
@@ -572,29 +506,24 @@ constexpr int kOutX = 1, kFloorHit = 2, kCeiling = 3, kTilt = 4;
 constexpr double kHover = 0.5;  // dynamics.HOVER_THRUST
 constexpr int kEpisodeUniforms = 4;  // disturbances._EPISODE_UNIFORMS: wind, mass, two gains
 
+// The env constants in S, each named as in DK_ENV_CONSTANTS, and what the kernels derive from them.
+#define DK_ENV_FIELD(name) S name;
+#define DK_ENV_READ(name) e.name = env[env_##name];
 template <class S>
 struct EnvParams {
-  S weight, mass, gravity, dt, arm_over_inertia, max_thrust, x_limit, z_min, z_max, alpha_limit, floor;
-  S zone_x, zone_z_min, zone_z_max, r_zone, r_alive, r_term, high, half, log_half, squash_lim;
-  S min_std, dist_eps;
+  DK_ENV_CONSTANTS(DK_ENV_FIELD)
+  S half, log_half, squash_lim, min_std, dist_eps;
   bool bounded, strict;
 };
 
 template <class S>
 DK_HD inline EnvParams<S> env_params(const double* env, const Net& net) {
   EnvParams<S> e;
-  e.weight = env[env_weight], e.mass = env[env_mass], e.gravity = env[env_gravity], e.dt = env[env_dt];
-  e.arm_over_inertia = env[env_arm_over_inertia], e.max_thrust = env[env_max_thrust];
-  e.bounded = env[env_max_thrust] >= 0;
-  e.x_limit = env[env_x_limit], e.z_min = env[env_z_min], e.z_max = env[env_z_max];
-  e.alpha_limit = env[env_alpha_limit], e.floor = env[env_floor], e.zone_x = env[env_zone_x_limit];
-  e.zone_z_min = env[env_zone_z_min], e.zone_z_max = env[env_zone_z_max];
-  e.r_zone = env[env_reward_zone], e.r_alive = env[env_reward_alive], e.r_term = env[env_reward_terminated];
-  e.high = env[env_squash_high], e.half = env[env_squash_high] / 2;
-  e.log_half = e.high > 0 ? std::log(e.half) : 0;
+  DK_ENV_CONSTANTS(DK_ENV_READ)
+  e.half = env[env_squash_high] / 2, e.log_half = e.squash_high > 0 ? std::log(e.half) : 0;
   e.squash_lim = S(1) - (sizeof(S) == 4 ? S(1e-6) : S(1e-15));  // TorchRL's safe tanh and atanh
   e.min_std = net.min_std, e.dist_eps = net.dist_eps;
-  e.strict = env[env_bounds] > 0;
+  e.bounded = env[env_max_thrust] >= 0, e.strict = env[env_bounds] > 0;
   return e;
 }
 
@@ -650,29 +579,46 @@ DK_HD inline S start_component(const double* env, uint64_t start_key, uint64_t e
   return (kept ? S(jitter) : S(0)) + base;
 }
 
-// disturbances.draw_episode and disturbances.start: each lane's episode's draws and initial
-// internal state from its key (dr.key). The physical state is left alone.
+// disturbances.draw_episode and disturbances.start: the episode's draws and initial internal state
+// of each lane (of those `only` names, when given) from its key (dr.key). The physical state is
+// left alone.
 template <class V>
-DK_HD inline void start_episode(const DistParams<ScalarOf<V>>& d, Drone<V>& dr) {
+DK_HD inline void start_episode(const DistParams<ScalarOf<V>>& d, Drone<V>& dr, const bool* only = nullptr) {
   using S = ScalarOf<V>;
-  V u[kEpisodeUniforms + 2];
+  V u[kEpisodeUniforms + 2] = {}, chosen{};
   for (int l = 0; l < lanes_of<V>(); l++) {
+    if (only && !only[l]) continue;
+    set_lane(chosen, l, S(1));
     dr.mixed[l] = mix(dr.key[l]);
     const uint64_t k = mixed_stream_key(dr.mixed[l], 0, kEpisodeStream);
     for (int i = 0; i < kEpisodeUniforms + 2; i++) set_lane(u[i], l, S(uniform(k, i)));
   }
+  const auto on = chosen != S(0);
   V spread[kEpisodeUniforms];
   for (int i = 0; i < kEpisodeUniforms; i++) spread[i] = S(2) * u[i] - S(1);
-  dr.wind = d.wind * spread[0];
-  dr.mass_ratio = S(1) + d.mass * spread[1];
-  for (int m = 0; m < kActionDim; m++) dr.gain[m] = S(1) + d.motor_gain * spread[2 + m];
+  dr.wind = select(on, d.wind * spread[0], dr.wind);
+  dr.mass_ratio = select(on, S(1) + d.mass * spread[1], dr.mass_ratio);
+  for (int m = 0; m < kActionDim; m++) dr.gain[m] = select(on, S(1) + d.motor_gain * spread[2 + m], dr.gain[m]);
   V first, second;  // the normal pair of uniforms 4 and 5: the stationary law's first gust
   box_muller(u[kEpisodeUniforms], u[kEpisodeUniforms + 1], &first, &second);
-  dr.gust = d.gust * first;
+  dr.gust = select(on, d.gust * first, dr.gust);
   for (int m = 0; m < kActionDim; m++) {
-    dr.thrust[m] = splat<V>(S(kHover));
-    for (int j = 0; j < d.delay; j++) dr.pending[j][m] = splat<V>(S(kHover));
-    for (int j = 0; j < d.observed; j++) dr.issued[j][m] = V{};
+    dr.thrust[m] = select(on, splat<V>(S(kHover)), dr.thrust[m]);
+    for (int j = 0; j < d.delay; j++) dr.pending[j][m] = select(on, splat<V>(S(kHover)), dr.pending[j][m]);
+    for (int j = 0; j < d.observed; j++) dr.issued[j][m] = select(on, V{}, dr.issued[j][m]);
+  }
+}
+
+// What a drone carries from one segments call to the next besides its state and key
+// (disturbances.Internal): fn(k, i, value) for each value, i its place in row r of carried tensor k
+// (SegmentArgs' internal: gust, thrust, pending, issued).
+template <class V, class Fn>
+DK_HD inline void each_internal(const DistParams<ScalarOf<V>>& d, Drone<V>& dr, int64_t r, Fn fn) {
+  fn(0, r, dr.gust);
+  for (int m = 0; m < kActionDim; m++) {
+    fn(1, r * kActionDim + m, dr.thrust[m]);
+    for (int j = 0; j < d.delay; j++) fn(2, (r * d.delay + j) * kActionDim + m, dr.pending[j][m]);
+    for (int j = 0; j < d.observed; j++) fn(3, (r * d.observed + j) * kActionDim + m, dr.issued[j][m]);
   }
 }
 
@@ -715,29 +661,21 @@ DK_HD inline void policy_step(const Net& net, const EnvParams<ScalarOf<V>>& e, c
     if (e.dist_eps != 0) loc[m] = loc[m] + e.dist_eps;
     V u = loc[m];
     if (z) u = loc[m] + (softplus(pre[m]) + e.min_std + e.dist_eps) * z[m];
-    if (e.high > 0) u = e.half + e.half * clamp(tanh_v(u), -e.squash_lim, e.squash_lim);
+    if (e.squash_high > 0) u = e.half + e.half * clamp(tanh_v(u), -e.squash_lim, e.squash_lim);
     act[m] = u;
   }
 }
 
-// dynamics.termination_cause: beyond an upper (lower) bound is > (<), or >= (<=) with strict
-// bounds. dynamics.in_target_zone: within an upper (lower) bound is <= (>=), or < (>) strict.
-// (Each written out: a negated comparison would count NaN as inside the zone.)
-template <class V, class S>
-DK_HD inline auto above(bool strict, V v, S bound) {
-  return strict ? v >= bound : v > bound;
+// dynamics.termination_cause: a beyond b is a > b, or a >= b with strict bounds (a value beyond an
+// upper bound, or a lower bound beyond the value). dynamics.in_target_zone: a within b is a <= b, or
+// a < b strict. (Each written out: a negated comparison would count NaN as inside the zone.)
+template <class A, class B>
+DK_HD inline auto beyond(bool strict, A a, B b) {
+  return strict ? a >= b : a > b;
 }
-template <class V, class S>
-DK_HD inline auto below(bool strict, V v, S bound) {
-  return strict ? v <= bound : v < bound;
-}
-template <class V, class S>
-DK_HD inline auto under(bool strict, V v, S bound) {
-  return strict ? v < bound : v <= bound;
-}
-template <class V, class S>
-DK_HD inline auto over(bool strict, V v, S bound) {
-  return strict ? v > bound : v >= bound;
+template <class A, class B>
+DK_HD inline auto within(bool strict, A a, B b) {
+  return strict ? a < b : a <= b;
 }
 
 // The termination cause (a TerminationCause code as a number), the reward and whether the state
@@ -748,13 +686,14 @@ DK_HD inline void judge(const EnvParams<ScalarOf<V>>& e, const V* n, V* reward, 
   const bool st = e.strict;
   const V ax = vabs(n[0]), aa = vabs(n[4]);
   // The lowest non-zero code wins: assign from the highest down.
-  V c = select(above(st, aa, e.alpha_limit), splat<V>(S(kTilt)), V{});
-  c = select(above(st, n[2], e.z_max), splat<V>(S(kCeiling)), c);
-  c = select(below(st, n[2], e.floor), splat<V>(S(kFloorHit)), c);
-  c = select(above(st, ax, e.x_limit), splat<V>(S(kOutX)), c);
-  const auto in = both(both(under(st, ax, e.zone_x), over(st, n[2], e.zone_z_min)),
-                       both(under(st, n[2], e.zone_z_max), under(st, aa, e.alpha_limit)));
-  *reward = select(c != S(0), splat<V>(e.r_term), select(in, splat<V>(e.r_zone), splat<V>(e.r_alive)));
+  V c = select(beyond(st, aa, e.alpha_limit), splat<V>(S(kTilt)), V{});
+  c = select(beyond(st, n[2], e.z_max), splat<V>(S(kCeiling)), c);
+  c = select(beyond(st, e.floor, n[2]), splat<V>(S(kFloorHit)), c);
+  c = select(beyond(st, ax, e.x_limit), splat<V>(S(kOutX)), c);
+  const auto in = both(both(within(st, ax, e.zone_x_limit), within(st, e.zone_z_min, n[2])),
+                       both(within(st, n[2], e.zone_z_max), within(st, aa, e.alpha_limit)));
+  *reward = select(c != S(0), splat<V>(e.reward_terminated),
+                   select(in, splat<V>(e.reward_zone), splat<V>(e.reward_alive)));
   *cause = c;
   *zone = select(in, splat<V>(S(1)), V{});
 }
@@ -834,7 +773,7 @@ DK_HD inline V log_prob_backward(const EnvParams<ScalarOf<V>>& e, const V* loc, 
   for (int m = 0; m < kActionDim; m++) {
     scale[m] = softplus(pre[m]) + e.min_std + e.dist_eps;
     V sample = action[m];
-    if (e.high > 0) {
+    if (e.squash_high > 0) {
       const V y = clamp((action[m] - e.half) / e.half, -e.squash_lim, e.squash_lim);
       sample = S(0.5) * (log1p_v(y) - log1p_v(-y));  // atanh
       // log |d action / d sample| of the tanh and the affine map (TanhTransform's formula).
@@ -951,112 +890,110 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
   const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
   Drone<V> dr{};
   const int64_t T = a.steps, in_dim = net.in_dim;
-  {
-    const int64_t row0 = b * L;
-    const int count = static_cast<int>(row0 + L <= a.rows ? L : a.rows - row0);
-    int64_t agent[L];
-    bool live[L];
+  const int64_t row0 = b * L;
+  const int count = static_cast<int>(row0 + L <= a.rows ? L : a.rows - row0);
+  int64_t agent[L];
+  bool live[L];
+  for (int l = 0; l < L; l++) {
+    agent[l] = (row0 + (l < count ? l : 0)) / a.episodes;
+    live[l] = l < count && a.active[agent[l]];
+  }
+  for (int l = 0; l < count; l++) {
+    a.length[row0 + l] = 0;
+    for (int k = 0; k < kStats; k++) a.stats[(row0 + l) * kStats + k] = 0;
+  }
+  bool any = false;
+  for (int l = 0; l < L; l++) any = any || live[l];
+  if (!any) return;
+  const V* w = lane_weights(net, params, agent, wbuf);
+  // The stream keys of each lane's agent, and the row's episode index within its agent.
+  uint64_t noise_key[L], episode[L];
+  for (int l = 0; l < L; l++) {
+    const int64_t row = row0 + (l < count ? l : 0);
+    episode[l] = row % a.episodes;
+    if (a.rng) {
+      const uint64_t seed = a.rng[2 * row], counter = a.rng[2 * row + 1];
+      noise_key[l] = stream_key(seed, counter, kActionNoise);
+      const uint64_t start_key = stream_key(seed, counter, kStartStates);
+      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start_component<S>(a.env, start_key, episode[l], k));
+      dr.key[l] = a.keys ? a.keys[row] : episode_key(seed, counter, episode[l]);
+    } else {
+      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start[row * kStateDim + k]);
+      dr.key[l] = a.keys ? a.keys[row] : 0;
+    }
+  }
+  if (!d.nominal) start_episode(d, dr);
+  const bool stochastic = noise || a.rng;
+  V n[4] = {};
+  for (int64_t t = 0; t < T && any; t++) {
+    int64_t steps[L];
+    uint64_t pair[L];
     for (int l = 0; l < L; l++) {
-      agent[l] = (row0 + (l < count ? l : 0)) / a.episodes;
-      live[l] = l < count && a.active[agent[l]];
+      steps[l] = t;
+      pair[l] = static_cast<uint64_t>(t) * a.episodes + episode[l];
     }
+    step_normals(d, dr, steps, n);
+    observe(d, dr, n, x);
+    V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
+    if (a.rng) {
+      action_normals(noise_key, pair, z);
+    } else if (noise) {
+      for (int m = 0; m < kActionDim; m++)
+        for (int l = 0; l < L; l++) set_lane(z[m], l, live[l] ? noise[((row0 + l) * T + t) * kActionDim + m] : S(0));
+    }
+    policy_step(net, e, w, x, acts, stochastic ? z : nullptr, loc, pre, act);
+    V next[kStateDim], r, cause, zone;
+    drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
+    any = false;
     for (int l = 0; l < count; l++) {
-      a.length[row0 + l] = 0;
-      for (int k = 0; k < kStats; k++) a.stats[(row0 + l) * kStats + k] = 0;
-    }
-    bool any = false;
-    for (int l = 0; l < L; l++) any = any || live[l];
-    if (!any) return;
-    const V* w = lane_weights(net, params, agent, wbuf);
-    // The stream keys of each lane's agent, and the row's episode index within its agent.
-    uint64_t noise_key[L], episode[L];
-    for (int l = 0; l < L; l++) {
-      const int64_t row = row0 + (l < count ? l : 0);
-      episode[l] = row % a.episodes;
-      if (a.rng) {
-        const uint64_t seed = a.rng[2 * row], counter = a.rng[2 * row + 1];
-        noise_key[l] = stream_key(seed, counter, kActionNoise);
-        const uint64_t start_key = stream_key(seed, counter, kStartStates);
-        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start_component<S>(a.env, start_key, episode[l], k));
-        dr.key[l] = a.keys ? a.keys[row] : episode_key(seed, counter, episode[l]);
-      } else {
-        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start[row * kStateDim + k]);
-        dr.key[l] = a.keys ? a.keys[row] : 0;
-      }
-    }
-    if (!d.nominal) start_episode(d, dr);
-    const bool stochastic = noise || a.rng;
-    V n[4] = {};
-    for (int64_t t = 0; t < T && any; t++) {
-      int64_t steps[L];
-      uint64_t pair[L];
-      for (int l = 0; l < L; l++) {
-        steps[l] = t;
-        pair[l] = static_cast<uint64_t>(t) * a.episodes + episode[l];
-      }
-      step_normals(d, dr, steps, n);
-      observe(d, dr, n, x);
-      V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
-      if (a.rng) {
-        action_normals(noise_key, pair, z);
-      } else if (noise) {
-        for (int m = 0; m < kActionDim; m++)
-          for (int l = 0; l < L; l++) set_lane(z[m], l, live[l] ? noise[((row0 + l) * T + t) * kActionDim + m] : S(0));
-      }
-      policy_step(net, e, w, x, acts, stochastic ? z : nullptr, loc, pre, act);
-      V next[kStateDim], r, cause, zone;
-      drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
-      any = false;
-      for (int l = 0; l < count; l++) {
-        if (!live[l]) continue;
-        const int64_t row = row0 + l, at = row * T + t, state_at = row * (T + 1) + t;
-        if (obs) {
-          for (int k = 0; k < kStateDim; k++) {
-            obs[state_at * kStateDim + k] = lane(dr.s[k], l);
-            obs[(state_at + 1) * kStateDim + k] = lane(next[k], l);
-          }
+      if (!live[l]) continue;
+      const int64_t row = row0 + l, at = row * T + t, state_at = row * (T + 1) + t;
+      if (obs) {
+        for (int k = 0; k < kStateDim; k++) {
+          obs[state_at * kStateDim + k] = lane(dr.s[k], l);
+          obs[(state_at + 1) * kStateDim + k] = lane(next[k], l);
         }
-        if (seen)
-          for (int k = 0; k < in_dim; k++) seen[at * in_dim + k] = lane(x[k], l);
-        if (action) {
-          action[at * kActionDim] = lane(act[0], l);
-          action[at * kActionDim + 1] = lane(act[1], l);
-        }
-        if (saved) {
-          const int64_t r_agent = episode[l] * T + t;
-          for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, layout.x() + k) = lane(x[k], l);
-          for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = lane(acts[k], l);
-          for (int m = 0; m < kActionDim; m++) {
-            slot(agent[l], r_agent, layout.loc() + m) = lane(loc[m], l);
-            slot(agent[l], r_agent, layout.pre() + m) = lane(pre[m], l);
-            slot(agent[l], r_agent, layout.action() + m) = lane(act[m], l);
-          }
-        }
-        const int64_t code = static_cast<int64_t>(lane(cause, l));
-        reward[at] = lane(r, l);
-        a.cause[at] = code;
-        a.length[row] = t + 1;
-        double* stat = a.stats + row * kStats;
-        stat[kReturn] += lane(r, l);
-        stat[kZoneSteps] += lane(zone, l) != 0 && code == 0;
-        stat[kNegative] += (lane(act[0], l) < 0) + (lane(act[1], l) < 0);
-        stat[kLastCause] = code;
-        live[l] = code == 0;
-        any = any || live[l];
       }
-      for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
+      if (seen)
+        for (int k = 0; k < in_dim; k++) seen[at * in_dim + k] = lane(x[k], l);
+      if (action) {
+        action[at * kActionDim] = lane(act[0], l);
+        action[at * kActionDim + 1] = lane(act[1], l);
+      }
+      if (saved) {
+        const int64_t r_agent = episode[l] * T + t;
+        for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, layout.x() + k) = lane(x[k], l);
+        for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = lane(acts[k], l);
+        for (int m = 0; m < kActionDim; m++) {
+          slot(agent[l], r_agent, layout.loc() + m) = lane(loc[m], l);
+          slot(agent[l], r_agent, layout.pre() + m) = lane(pre[m], l);
+          slot(agent[l], r_agent, layout.action() + m) = lane(act[m], l);
+        }
+      }
+      const int64_t code = static_cast<int64_t>(lane(cause, l));
+      reward[at] = lane(r, l);
+      a.cause[at] = code;
+      a.length[row] = t + 1;
+      double* stat = a.stats + row * kStats;
+      stat[kReturn] += lane(r, l);
+      stat[kZoneSteps] += lane(zone, l) != 0 && code == 0;
+      stat[kNegative] += (lane(act[0], l) < 0) + (lane(act[1], l) < 0);
+      stat[kLastCause] = code;
+      live[l] = code == 0;
+      any = any || live[l];
     }
-    // Returns-to-go of each row's episode, last step first (the loss's discounted_returns).
-    for (int l = 0; l < count; l++) {
-      const int64_t row = row0 + l;
-      const S discount = a.gamma[agent[l]];
-      S* out = static_cast<S*>(a.returns) + row * T;
-      S running = 0;
-      for (int64_t t = a.length[row] - 1; t >= 0; t--) {
-        running = reward[row * T + t] + discount * running;
-        out[t] = running;
-        if (saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
-      }
+    for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
+  }
+  // Returns-to-go of each row's episode, last step first (the loss's discounted_returns).
+  for (int l = 0; l < count; l++) {
+    const int64_t row = row0 + l;
+    const S discount = a.gamma[agent[l]];
+    S* out = static_cast<S*>(a.returns) + row * T;
+    S running = 0;
+    for (int64_t t = a.length[row] - 1; t >= 0; t--) {
+      running = reward[row * T + t] + discount * running;
+      out[t] = running;
+      if (saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
     }
   }
 }
@@ -1093,105 +1030,103 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
   const EnvParams<S> env = env_params<S>(a.env, net);
   const int p = net.params, act_w = net.activations > 0 ? net.activations : 1;
   const S eps = sizeof(S) == 4 ? S(1.1920928955078125e-07) : S(2.220446049250313e-16);  // finfo eps
-  {
-    S* out = static_cast<S*>(g.grad) + n * p;
-    g.loss[n] = 0;
-    g.std_mean[n] = 0;
-    g.actions_finite[n] = 1;
-    for (int k = 0; k < p; k++) out[k] = 0;
-    if (!a.active[n]) return;
-    V* saved = static_cast<V*>(a.saved) + n * layout.blocks * layout.width;
-    const int64_t* length = a.length + n * E;
-    // Lane masks of the valid steps, the blocks in use, and the per-agent sums of reinforce_terms.
-    int64_t used = 0, episodes = 0, steps = 0;
-    for (int64_t e = 0; e < E; e++) {
-      if (length[e] > 0) used = (e * T + length[e] + L - 1) / L;
-      episodes += length[e] > 0;
-      steps += length[e];
-    }
-    if (episodes == 0) return;
-    auto valid = [&](int64_t b) {
-      V mask{};
-      for (int l = 0; l < L; l++) {
-        const int64_t r = b * L + l, e = r / T;
-        set_lane(mask, l, e < E && r % T < length[e] ? S(1) : S(0));
-      }
-      return mask;
-    };
-    // Steps past a row's end were never written: zero them so they add nothing (0 * garbage may be NaN).
-    for (int64_t b = 0; b < used; b++) {
-      const V mask = valid(b);
-      for (int k = 0; k < layout.width; k++)
-        saved[b * layout.width + k] = select(mask != S(0), saved[b * layout.width + k], V{});
-    }
-    S mean = 0, std = 0;
-    if (o.baseline_mean || o.normalize_returns) {
-      S total = 0;
-      for (int64_t b = 0; b < used; b++)
-        for (int l = 0; l < L; l++) total += lane(saved[b * layout.width + layout.ret()], l);
-      mean = total / S(steps);
-      if (o.normalize_returns) {
-        S squares = 0;
-        for (int64_t b = 0; b < used; b++) {
-          const V mask = valid(b);
-          const V centred = (saved[b * layout.width + layout.ret()] - mean) * mask;
-          for (int l = 0; l < L; l++) squares += lane(centred, l) * lane(centred, l);
-        }
-        std = std::sqrt(squares / S(steps));
-      }
-    }
-    const S gamma = a.gamma[n], per_episode = S(1) / S(episodes);
-    const S reduce = o.mean_log_prob ? S(1) / S(kActionDim) : S(1);
-    S loss = 0, std_sum = 0;
-    bool finite = true;
-    for (int64_t b = 0; b < used; b++) {
-      const V* blk = saved + b * layout.width;
-      const V mask = valid(b);
-      V w = blk[layout.ret()];
-      if (o.baseline_mean || o.normalize_returns) w = w - mean;
-      if (o.normalize_returns) w = w / (std + eps);
-      if (o.discount_weight) {
-        for (int l = 0; l < L; l++) set_lane(w, l, lane(w, l) * std::pow(gamma, S((b * L + l) % T)));
-      }
-      const V coef = -w * per_episode * mask;  // d loss / d log pi at each step
-      V* d_loc = &heads[b * 2 * kActionDim];
-      V* d_pre = d_loc + kActionDim;
-      V scale[kActionDim];
-      const V log_prob = log_prob_backward(env, blk + layout.loc(), blk + layout.pre(), blk + layout.action(),
-                                           coef * reduce, d_loc, d_pre, scale);
-      for (int m = 0; m < kActionDim; m++)
-        for (int l = 0; l < L; l++) {
-          if (lane(mask, l) == 0) continue;
-          std_sum += lane(scale[m], l);
-          finite = finite && std::isfinite(lane(blk[layout.action() + m], l));
-        }
-      for (int l = 0; l < L; l++) loss += lane(mask, l) != 0 ? lane(coef, l) * reduce * lane(log_prob, l) : S(0);
-      backward_deltas(net, static_cast<const S*>(a.params) + n * p, blk + layout.acts(), d_loc, d_pre,
-                      deltas + b * act_w);
-    }
-    // The weights' gradients, layer by layer, as sums over the blocks (weight_grad), then the lanes.
-    for (int k = 0; k < p; k++) grad[k] = V{};
-    int start = 0;
-    for (int l = 0; l < net.n_hidden + 2; l++) {
-      const int n_out = net.out(l), n_in = net.width[l];
-      const int prev = l < net.n_hidden ? l - 1 : net.n_hidden - 1;
-      const V* input = prev < 0 ? saved + layout.x() : saved + layout.acts() + start;
-      const V* d = l < net.n_hidden ? deltas + start + (l ? net.hidden[l - 1] : 0)
-                                    : heads + (l - net.n_hidden) * kActionDim;
-      const int d_stride = l < net.n_hidden ? act_w : 2 * kActionDim;
-      V* gw = grad + net.offset[l];
-      weight_grad(d, d_stride, input, layout.width, n_out, n_in, used, gw, gw + n_out * n_in);
-      if (l > 0 && l < net.n_hidden) start += net.hidden[l - 1];
-    }
-    for (int k = 0; k < p; k++) {
-      S sum = 0;
-      for (int l = 0; l < L; l++) sum += lane(grad[k], l);
-      out[k] = sum;
-    }
-    g.loss[n] = loss;
-    g.std_mean[n] = std_sum / S(steps * kActionDim);
-    g.actions_finite[n] = finite;
+  S* out = static_cast<S*>(g.grad) + n * p;
+  g.loss[n] = 0;
+  g.std_mean[n] = 0;
+  g.actions_finite[n] = 1;
+  for (int k = 0; k < p; k++) out[k] = 0;
+  if (!a.active[n]) return;
+  V* saved = static_cast<V*>(a.saved) + n * layout.blocks * layout.width;
+  const int64_t* length = a.length + n * E;
+  // Lane masks of the valid steps, the blocks in use, and the per-agent sums of reinforce_terms.
+  int64_t used = 0, episodes = 0, steps = 0;
+  for (int64_t e = 0; e < E; e++) {
+    if (length[e] > 0) used = (e * T + length[e] + L - 1) / L;
+    episodes += length[e] > 0;
+    steps += length[e];
   }
+  if (episodes == 0) return;
+  auto valid = [&](int64_t b) {
+    V mask{};
+    for (int l = 0; l < L; l++) {
+      const int64_t r = b * L + l, e = r / T;
+      set_lane(mask, l, e < E && r % T < length[e] ? S(1) : S(0));
+    }
+    return mask;
+  };
+  // Steps past a row's end were never written: zero them so they add nothing (0 * garbage may be NaN).
+  for (int64_t b = 0; b < used; b++) {
+    const V mask = valid(b);
+    for (int k = 0; k < layout.width; k++)
+      saved[b * layout.width + k] = select(mask != S(0), saved[b * layout.width + k], V{});
+  }
+  S mean = 0, std = 0;
+  if (o.baseline_mean || o.normalize_returns) {
+    S total = 0;
+    for (int64_t b = 0; b < used; b++)
+      for (int l = 0; l < L; l++) total += lane(saved[b * layout.width + layout.ret()], l);
+    mean = total / S(steps);
+    if (o.normalize_returns) {
+      S squares = 0;
+      for (int64_t b = 0; b < used; b++) {
+        const V mask = valid(b);
+        const V centred = (saved[b * layout.width + layout.ret()] - mean) * mask;
+        for (int l = 0; l < L; l++) squares += lane(centred, l) * lane(centred, l);
+      }
+      std = std::sqrt(squares / S(steps));
+    }
+  }
+  const S gamma = a.gamma[n], per_episode = S(1) / S(episodes);
+  const S reduce = o.mean_log_prob ? S(1) / S(kActionDim) : S(1);
+  S loss = 0, std_sum = 0;
+  bool finite = true;
+  for (int64_t b = 0; b < used; b++) {
+    const V* blk = saved + b * layout.width;
+    const V mask = valid(b);
+    V w = blk[layout.ret()];
+    if (o.baseline_mean || o.normalize_returns) w = w - mean;
+    if (o.normalize_returns) w = w / (std + eps);
+    if (o.discount_weight) {
+      for (int l = 0; l < L; l++) set_lane(w, l, lane(w, l) * std::pow(gamma, S((b * L + l) % T)));
+    }
+    const V coef = -w * per_episode * mask;  // d loss / d log pi at each step
+    V* d_loc = &heads[b * 2 * kActionDim];
+    V* d_pre = d_loc + kActionDim;
+    V scale[kActionDim];
+    const V log_prob = log_prob_backward(env, blk + layout.loc(), blk + layout.pre(), blk + layout.action(),
+                                         coef * reduce, d_loc, d_pre, scale);
+    for (int m = 0; m < kActionDim; m++)
+      for (int l = 0; l < L; l++) {
+        if (lane(mask, l) == 0) continue;
+        std_sum += lane(scale[m], l);
+        finite = finite && std::isfinite(lane(blk[layout.action() + m], l));
+      }
+    for (int l = 0; l < L; l++) loss += lane(mask, l) != 0 ? lane(coef, l) * reduce * lane(log_prob, l) : S(0);
+    backward_deltas(net, static_cast<const S*>(a.params) + n * p, blk + layout.acts(), d_loc, d_pre,
+                    deltas + b * act_w);
+  }
+  // The weights' gradients, layer by layer, as sums over the blocks (weight_grad), then the lanes.
+  for (int k = 0; k < p; k++) grad[k] = V{};
+  int start = 0;
+  for (int l = 0; l < net.n_hidden + 2; l++) {
+    const int n_out = net.out(l), n_in = net.width[l];
+    const int prev = l < net.n_hidden ? l - 1 : net.n_hidden - 1;
+    const V* input = prev < 0 ? saved + layout.x() : saved + layout.acts() + start;
+    const V* d = l < net.n_hidden ? deltas + start + (l ? net.out(l - 1) : 0)
+                                  : heads + (l - net.n_hidden) * kActionDim;
+    const int d_stride = l < net.n_hidden ? act_w : 2 * kActionDim;
+    V* gw = grad + net.offset[l];
+    weight_grad(d, d_stride, input, layout.width, n_out, n_in, used, gw, gw + n_out * n_in);
+    if (l > 0 && l < net.n_hidden) start += net.out(l - 1);
+  }
+  for (int k = 0; k < p; k++) {
+    S sum = 0;
+    for (int l = 0; l < L; l++) sum += lane(grad[k], l);
+    out[k] = sum;
+  }
+  g.loss[n] = loss;
+  g.std_mean[n] = std_sum / S(steps * kActionDim);
+  g.actions_finite[n] = finite;
 }
 
 // PPO/A2C's segments: n drones of one agent, `steps` steps each, auto-reset, state carried across
@@ -1199,15 +1134,12 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
 struct SegmentArgs {
   int64_t n, steps, max_steps;
   const void* params;  // [P]
-  // Carried in: state [n, 6], t [n] (< 0: a new episode starts at step 0), key [n], gust [n],
-  // thrust [n, 2], pending [n, delay, 2], issued [n, observed, 2].
+  // Carried in: state [n, 6], t [n] (< 0: a new episode starts at step 0), key [n], and the
+  // internal state: gust [n], thrust [n, 2], pending [n, delay, 2], issued [n, observed, 2].
   const void* state;
   const int64_t* t;
   const int64_t* key;
-  const void* gust;
-  const void* thrust;
-  const void* pending;
-  const void* issued;
+  const void* internal[4];
   const void* noise;           // [n, steps, 2]
   const void* fresh;           // [n, steps, 6]
   const int64_t* fresh_keys;   // [n, steps]; null: the nominal drone
@@ -1226,10 +1158,7 @@ struct SegmentArgs {
   void* state_out;
   int64_t* t_out;
   int64_t* key_out;
-  void* gust_out;
-  void* thrust_out;
-  void* pending_out;
-  void* issued_out;
+  void* internal_out[4];
 };
 
 // Drones b * L .. b * L + L - 1 of dk_segments. Scratch: acts of max(net.activations, 1), x of
@@ -1241,131 +1170,98 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   const S* w = static_cast<const S*>(a.params);  // one agent: every lane reads the same weights
   const EnvParams<S> e = env_params<S>(a.env, net);
   const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
-  const int64_t J = a.steps, in_dim = net.in_dim, delay = d.delay, observed = d.observed;
-  Drone<V> dr{}, fresh{};
+  const int64_t J = a.steps, in_dim = net.in_dim;
+  Drone<V> dr{};
   auto in = [](const void* p, int64_t i) { return static_cast<const S*>(p)[i]; };
   auto out = [](void* p, int64_t i) -> S& { return static_cast<S*>(p)[i]; };
-  {
-    const int64_t row0 = b * L;
-    const int count = static_cast<int>(row0 + L <= a.n ? L : a.n - row0);
-    int64_t row[L], t[L];
-    bool restart[L];
-    for (int l = 0; l < L; l++) {
-      row[l] = row0 + (l < count ? l : 0);
-      const int64_t r = row[l];
-      t[l] = a.t[r];
-      restart[l] = t[l] < 0;
-      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.state, r * kStateDim + k));
-      dr.key[l] = static_cast<uint64_t>(a.key[r]);
-    }
-    if (!d.nominal) {
-      start_episode(d, dr);  // the episode's draws; its internal state is the carried one
+  const int64_t row0 = b * L;
+  const int count = static_cast<int>(row0 + L <= a.n ? L : a.n - row0);
+  int64_t row[L], t[L];
+  bool restart[L];
+  for (int l = 0; l < L; l++) {
+    row[l] = row0 + (l < count ? l : 0);
+    const int64_t r = row[l];
+    t[l] = a.t[r];
+    restart[l] = t[l] < 0;
+    for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.state, r * kStateDim + k));
+    dr.key[l] = static_cast<uint64_t>(a.key[r]);
+  }
+  if (!d.nominal) {
+    start_episode(d, dr);  // the episode's draws; its internal state is the carried one
+    for (int l = 0; l < L; l++)
+      each_internal(d, dr, row[l], [&](int k, int64_t i, V& v) { set_lane(v, l, in(a.internal[k], i)); });
+  }
+  V n[4] = {};
+  bool seen = false;  // x holds the observation at t (the last step's next observation)
+  for (int64_t j = 0; j < J; j++) {
+    bool any_restart = false;
+    for (int l = 0; l < L; l++) any_restart = any_restart || restart[l];
+    if (any_restart) {  // new episodes from step j: start state fresh[., j], key fresh_keys[., j]
       for (int l = 0; l < L; l++) {
-        const int64_t r = row[l];
-        set_lane(dr.gust, l, in(a.gust, r));
-        for (int m = 0; m < kActionDim; m++) {
-          set_lane(dr.thrust[m], l, in(a.thrust, r * kActionDim + m));
-          for (int j = 0; j < delay; j++)
-            set_lane(dr.pending[j][m], l, in(a.pending, (r * delay + j) * kActionDim + m));
-          for (int j = 0; j < observed; j++)
-            set_lane(dr.issued[j][m], l, in(a.issued, (r * observed + j) * kActionDim + m));
-        }
+        if (!restart[l]) continue;
+        t[l] = 0;
+        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.fresh, (row[l] * J + j) * kStateDim + k));
+        if (a.fresh_keys) dr.key[l] = a.fresh_keys[row[l] * J + j];
       }
+      if (!d.nominal) start_episode(d, dr, restart);
+      for (int l = 0; l < L; l++) restart[l] = false;
+      seen = false;
     }
-    V n[4] = {};
-    bool seen = false;  // x holds the observation at t (the last step's next observation)
-    for (int64_t j = 0; j < J; j++) {
-      bool any_restart = false;
-      for (int l = 0; l < L; l++) any_restart = any_restart || restart[l];
-      if (any_restart) {  // new episodes from step j: start state fresh[., j], key fresh_keys[., j]
-        for (int l = 0; l < L; l++) {
-          fresh.key[l] = restart[l] && a.fresh_keys ? a.fresh_keys[row[l] * J + j] : dr.key[l];
-        }
-        if (!d.nominal) start_episode(d, fresh);
-        for (int l = 0; l < L; l++) {
-          if (!restart[l]) continue;
-          t[l] = 0;
-          restart[l] = false;
-          for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.fresh, (row[l] * J + j) * kStateDim + k));
-          dr.key[l] = fresh.key[l];
-          dr.mixed[l] = fresh.mixed[l];
-          set_lane(dr.wind, l, lane(fresh.wind, l));
-          set_lane(dr.mass_ratio, l, lane(fresh.mass_ratio, l));
-          set_lane(dr.gust, l, lane(fresh.gust, l));
-          for (int m = 0; m < kActionDim; m++) {
-            set_lane(dr.gain[m], l, lane(fresh.gain[m], l));
-            set_lane(dr.thrust[m], l, lane(fresh.thrust[m], l));
-            for (int i = 0; i < delay; i++) set_lane(dr.pending[i][m], l, lane(fresh.pending[i][m], l));
-            for (int i = 0; i < observed; i++) set_lane(dr.issued[i][m], l, lane(fresh.issued[i][m], l));
-          }
-        }
-        seen = false;
-      }
-      if (!seen) {
-        step_normals(d, dr, t, n);
-        observe(d, dr, n, x);
-      }
-      V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
-      for (int m = 0; m < kActionDim; m++)
-        for (int l = 0; l < L; l++) set_lane(z[m], l, in(a.noise, (row[l] * J + j) * kActionDim + m));
-      policy_step(net, e, w, x, acts, z, loc, pre, act);
-      for (int l = 0; l < count; l++) {
-        const int64_t at = row[l] * J + j;
-        for (int k = 0; k < in_dim; k++) out(a.obs, at * in_dim + k) = lane(x[k], l);
-        a.step_count[at] = t[l];
-      }
-      V next[kStateDim], r, cause, zone;
-      drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
-      for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
-      for (int l = 0; l < L; l++) t[l] += 1;
-      // What the env returns: the observation of the state after the step, at its step count.
+    if (!seen) {
       step_normals(d, dr, t, n);
       observe(d, dr, n, x);
-      seen = true;
-      for (int l = 0; l < count; l++) {
-        const int64_t at = row[l] * J + j;
-        const int64_t code = static_cast<int64_t>(lane(cause, l));
-        const bool terminated = code != 0, truncated = !terminated && t[l] >= a.max_steps;
-        for (int k = 0; k < in_dim; k++) out(a.next_obs, at * in_dim + k) = lane(x[k], l);
-        for (int m = 0; m < kActionDim; m++) out(a.action, at * kActionDim + m) = lane(act[m], l);
-        out(a.reward, at) = lane(r, l);
-        a.cause[at] = code;
-        a.terminated[at] = terminated;
-        a.truncated[at] = truncated;
-        restart[l] = terminated || truncated;
-      }
     }
+    V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
+    for (int m = 0; m < kActionDim; m++)
+      for (int l = 0; l < L; l++) set_lane(z[m], l, in(a.noise, (row[l] * J + j) * kActionDim + m));
+    policy_step(net, e, w, x, acts, z, loc, pre, act);
     for (int l = 0; l < count; l++) {
-      const int64_t r = row[l];
-      for (int k = 0; k < kStateDim; k++) out(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
-      a.t_out[r] = restart[l] ? -1 : t[l];
-      a.key_out[r] = static_cast<int64_t>(dr.key[l]);
-      out(a.gust_out, r) = d.nominal ? S(0) : lane(dr.gust, l);
-      for (int m = 0; m < kActionDim; m++) {
-        out(a.thrust_out, r * kActionDim + m) = d.nominal ? S(kHover) : lane(dr.thrust[m], l);
-        for (int i = 0; i < delay; i++) out(a.pending_out, (r * delay + i) * kActionDim + m) = lane(dr.pending[i][m], l);
-        for (int i = 0; i < observed; i++)
-          out(a.issued_out, (r * observed + i) * kActionDim + m) = lane(dr.issued[i][m], l);
-      }
+      const int64_t at = row[l] * J + j;
+      for (int k = 0; k < in_dim; k++) out(a.obs, at * in_dim + k) = lane(x[k], l);
+      a.step_count[at] = t[l];
     }
+    V next[kStateDim], r, cause, zone;
+    drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
+    for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
+    for (int l = 0; l < L; l++) t[l] += 1;
+    // What the env returns: the observation of the state after the step, at its step count.
+    step_normals(d, dr, t, n);
+    observe(d, dr, n, x);
+    seen = true;
+    for (int l = 0; l < count; l++) {
+      const int64_t at = row[l] * J + j;
+      const int64_t code = static_cast<int64_t>(lane(cause, l));
+      const bool terminated = code != 0, truncated = !terminated && t[l] >= a.max_steps;
+      for (int k = 0; k < in_dim; k++) out(a.next_obs, at * in_dim + k) = lane(x[k], l);
+      for (int m = 0; m < kActionDim; m++) out(a.action, at * kActionDim + m) = lane(act[m], l);
+      out(a.reward, at) = lane(r, l);
+      a.cause[at] = code;
+      a.terminated[at] = terminated;
+      a.truncated[at] = truncated;
+      restart[l] = terminated || truncated;
+    }
+  }
+  for (int l = 0; l < count; l++) {
+    const int64_t r = row[l];
+    for (int k = 0; k < kStateDim; k++) out(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
+    a.t_out[r] = restart[l] ? -1 : t[l];
+    a.key_out[r] = static_cast<int64_t>(dr.key[l]);
+    // The nominal drone carries nothing: its gust 0 and its thrust the hover command, as at a start.
+    each_internal(d, dr, r, [&](int k, int64_t i, V& v) {
+      out(a.internal_out[k], i) = d.nominal ? S(k == 1 ? kHover : 0) : lane(v, l);
+    });
   }
 }
 
 DK_HD Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation, double min_std,
              double dist_eps) {
   Net net{};
-  net.in_dim = static_cast<int>(in_dim);
-  net.n_hidden = static_cast<int>(n_hidden);
-  net.activation = static_cast<int>(activation);
-  net.min_std = min_std;
-  net.dist_eps = dist_eps;
+  net.in_dim = static_cast<int>(in_dim), net.n_hidden = static_cast<int>(n_hidden);
+  net.activation = static_cast<int>(activation), net.min_std = min_std, net.dist_eps = dist_eps;
   int off = 0, in = net.in_dim;
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n = l < net.n_hidden ? static_cast<int>(hidden[l]) : kActionDim;
-    if (l < net.n_hidden) {
-      net.hidden[l] = n;
-      net.activations += n;
-    }
+    if (l < net.n_hidden) net.activations += n;
     net.offset[l] = off;
     net.width[l] = in;
     off += n * in + n;
@@ -1378,19 +1274,29 @@ DK_HD Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int6
 // max(net.activations, 1): the scratch vectors of a network's hidden outputs.
 DK_HD inline int activation_width(const Net& net) { return net.activations > 0 ? net.activations : 1; }
 
-#if DK_CPU
 // ------------------------------------------------------------------------------------------------
+// The engines. Each runs fly_block over the rows (fly) and reinforce_agent over the agents (grad)
+// of a call. Every entry point below takes what either target needs: the CPU's thread count, the
+// GPU's stream and scratch memory (dk_cuda_scratch_size scalars the caller allocates, so PyTorch's
+// caching allocator owns all device memory); the other target ignores them.
+struct Launch {
+  int64_t threads;
+  void* stream;
+  void* scratch;
+};
+
+#if DK_CPU
 // The CPU engine: threads over blocks of lanes() drones. The scalar engine (-DDK_SCALAR_ENGINE)
 // is the same with one drone per block: the code each CUDA thread runs.
-
 #ifdef DK_SCALAR_ENGINE
 using Lanes = Real;
 #else
-using Lanes = Vec<Real>;
+using Lanes = std::conditional_t<DK_DOUBLE != 0, D, F>;
 #endif
+#define DK_ENTRY(name) dk_##name
 
 template <class Fn>
-void parallel_blocks(int64_t blocks, int threads, Fn fn) {
+void parallel_blocks(int64_t blocks, int64_t threads, Fn fn) {
   if (threads <= 1 || blocks < 2) {
     fn(0, blocks);
     return;
@@ -1417,91 +1323,23 @@ __attribute__((flatten)) void reinforce_agents(const Net& net, const GradArgs& g
   for (int64_t n = first; n < last; n++) reinforce_agent(net, g, n, deltas.data(), heads.data(), grad.data());
 }
 
-}  // namespace
-
-extern "C" {
-
-// The names of the constants the kernels read, in order, each followed by a comma; the observation's width.
-const char* dk_env_constants() { return DK_ENV_CONSTANTS(DK_NAME); }
-const char* dk_disturbance_constants() { return DK_DISTURBANCE_CONSTANTS(DK_NAME); }
-int64_t dk_observation_dim(int64_t observed) { return observation_dim(static_cast<int>(observed)); }
-
-// Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
-// row's episode terminates or `steps` steps. Writes the states ([rows, steps + 1, 6]: before each
-// step, and after the last), the action, the reward, the termination cause and the return-to-go
-// of every step flown, each row's length and its Stat counts, and (seen, when not null) what the
-// policy saw; entries after a row's end are left as they were (the caller zero-fills). Tensors
-// hold Real numbers (the build's precision). in_dim: 6 + 2 * the disturbance's observed_actions.
-void dk_rollout(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
-                double min_std, double dist_eps, int64_t rows, int64_t episodes, int64_t steps, const void* params,
-                const void* start, const void* noise, const int64_t* rng, const int64_t* keys, const uint8_t* active,
-                const double* env, const double* dist, const double* gamma, void* obs, void* action, void* reward,
-                int64_t* cause, int64_t* length, void* returns, double* stats, void* seen) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
-                gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
-  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { fly_blocks(net, a, f, l); });
+int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
+  parallel_blocks(blocks_of(a.rows), on.threads, [&](int64_t f, int64_t l) { fly_blocks(net, a, f, l); });
+  return 0;
 }
 
-// One REINFORCE update's episodes and gradient for every active agent: the rollout of dk_rollout
-// (start states, noise and disturbance keys drawn from rng), then reinforce_agents. options:
-// LossOptions' four flags.
-void dk_reinforce(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
-                  double min_std, double dist_eps, int64_t agents, int64_t episodes, int64_t steps, const void* params,
-                  const int64_t* rng, const uint8_t* active, const double* env, const double* dist,
-                  const double* gamma, const int64_t* options, void* reward, int64_t* cause, int64_t* length,
-                  void* returns, double* stats, void* saved, void* grad, double* loss, double* std_mean,
-                  uint8_t* actions_finite) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  const int64_t rows = agents * episodes;
-  RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
-                gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
-  GradArgs g{a, {options[0], options[1], options[2], options[3]}, grad, loss, std_mean, actions_finite};
-  parallel_blocks(blocks_of(rows), threads, [&](int64_t f, int64_t l) { fly_blocks(net, a, f, l); });
-  parallel_blocks(agents, threads, [&](int64_t first, int64_t last) { reinforce_agents(net, g, first, last); });
+int64_t grad(const Net& net, const GradArgs& g, int64_t agents, const Launch& on) {
+  parallel_blocks(agents, on.threads, [&](int64_t f, int64_t l) { reinforce_agents(net, g, f, l); });
+  return 0;
 }
-
-// The size of dk_reinforce's saved buffer, in scalars.
-int64_t dk_saved_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t agents, int64_t episodes,
-                      int64_t steps) {
-  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
-  const Saved layout = Saved::of(net, episodes, steps, lanes());
-  return agents * layout.blocks * layout.width * lanes();
-}
-
-// `steps` steps of n drones of one agent with auto-reset (ops.segments documents the tensors).
-void dk_segments(int64_t threads, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
-                 double min_std, double dist_eps, int64_t n, int64_t steps, int64_t max_steps, const void* params,
-                 const void* state, const int64_t* t, const int64_t* key, const void* gust, const void* thrust,
-                 const void* pending, const void* issued, const void* noise, const void* fresh,
-                 const int64_t* fresh_keys, const double* env, const double* dist, void* obs, void* action,
-                 void* reward, void* next_obs, int64_t* cause, uint8_t* terminated, uint8_t* truncated,
-                 int64_t* step_count, void* state_out, int64_t* t_out, int64_t* key_out, void* gust_out,
-                 void* thrust_out, void* pending_out, void* issued_out) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  SegmentArgs a{n,          steps,     max_steps, params,     state,      t,          key,        gust,
-                thrust,     pending,   issued,    noise,      fresh,      fresh_keys, env,        dist,
-                obs,        action,    reward,    next_obs,   cause,      terminated, truncated,  step_count,
-                state_out,  t_out,     key_out,   gust_out,   thrust_out, pending_out, issued_out};
-  parallel_blocks(blocks_of(n), threads, [&](int64_t first, int64_t last) {
-    std::vector<Lanes> acts(activation_width(net)), x(net.in_dim);
-    for (int64_t b = first; b < last; b++) segment_block(net, a, b, acts.data(), x.data());
-  });
-}
-
-// 4 (float32) or 8 (float64): the precision of this build's tensors, in bytes.
-int64_t dk_real_bytes() { return sizeof(Real); }
-
-}  // extern "C"
 
 #elif defined(__CUDACC__)
-// ------------------------------------------------------------------------------------------------
-// The CUDA engine: one thread per drone (dk_cuda_rollout: per row; dk_cuda_reinforce: per agent
-// for the gradient), each running the single-source loops with V = Real. Scratch lives in a
-// buffer the caller allocates (dk_cuda_scratch_size), so PyTorch's caching allocator owns all
-// device memory. Launches go on the caller's stream; nothing synchronises.
-
+// The CUDA engine: one thread per drone (fly_kernel: per row; reinforce_kernel: per agent), each
+// running the single-source loops with V = Real. Launches go on the caller's stream; nothing
+// synchronises.
+#define DK_ENTRY(name) dk_cuda_##name
 constexpr int kThreadsPerBlock = 128;
+constexpr int64_t lanes() { return 1; }
 
 __global__ void fly_kernel(Net net, RolloutArgs a, Real* scratch) {
   const int64_t row = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
@@ -1523,15 +1361,101 @@ inline unsigned grid_of(int64_t threads) {
   return static_cast<unsigned>((threads + kThreadsPerBlock - 1) / kThreadsPerBlock);
 }
 
+// The CUDA error code of the launch.
+int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
+  if (a.rows > 0)
+    fly_kernel<<<grid_of(a.rows), kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
+        net, a, static_cast<Real*>(on.scratch));
+  return static_cast<int64_t>(cudaGetLastError());
+}
+
+int64_t grad(const Net& net, const GradArgs& g, int64_t agents, const Launch& on) {
+  if (g.roll.rows > 0)
+    reinforce_kernel<<<grid_of(agents), kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
+        net, g, agents, static_cast<Real*>(on.scratch));
+  return static_cast<int64_t>(cudaGetLastError());
+}
+#endif
+
+#if DK_CPU || defined(__CUDACC__)
 }  // namespace
 
 extern "C" {
 
+// The names of the constants the kernels read, in order, each followed by a comma; the observation's
+// width; the precision of this build's tensors, in bytes: 4 (float32) or 8 (float64).
 const char* dk_env_constants() { return DK_ENV_CONSTANTS(DK_NAME); }
 const char* dk_disturbance_constants() { return DK_DISTURBANCE_CONSTANTS(DK_NAME); }
 int64_t dk_observation_dim(int64_t observed) { return observation_dim(static_cast<int>(observed)); }
 int64_t dk_real_bytes() { return sizeof(Real); }
 
+// Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
+// row's episode terminates or `steps` steps. Writes the states ([rows, steps + 1, 6]: before each
+// step, and after the last), the action, the reward, the termination cause and the return-to-go
+// of every step flown, each row's length and its Stat counts, and (seen, when not null) what the
+// policy saw; entries after a row's end are left as they were (the caller zero-fills). Tensors
+// hold Real numbers (the build's precision). in_dim: 6 + 2 * the disturbance's observed_actions.
+// Returns 0 (on a GPU: the CUDA error code of the launch).
+int64_t DK_ENTRY(rollout)(int64_t threads, void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
+                          int64_t activation, double min_std, double dist_eps, int64_t rows, int64_t episodes,
+                          int64_t steps, const void* params, const void* start, const void* noise, const int64_t* rng,
+                          const int64_t* keys, const uint8_t* active, const double* env, const double* dist,
+                          const double* gamma, void* obs, void* action, void* reward, int64_t* cause, int64_t* length,
+                          void* returns, double* stats, void* seen, void* scratch) {
+  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
+  RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
+                gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
+  return fly(net, a, {threads, stream, scratch});
+}
+
+// One REINFORCE update's episodes and gradient for every active agent: the rollout of dk_rollout
+// (start states, noise and disturbance keys drawn from rng), then reinforce_agent. options (a host
+// pointer, like hidden): LossOptions' four flags.
+int64_t DK_ENTRY(reinforce)(int64_t threads, void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
+                            int64_t activation, double min_std, double dist_eps, int64_t agents, int64_t episodes,
+                            int64_t steps, const void* params, const int64_t* rng, const uint8_t* active,
+                            const double* env, const double* dist, const double* gamma, const int64_t* options,
+                            void* reward, int64_t* cause, int64_t* length, void* returns, double* stats, void* saved,
+                            void* grad_out, double* loss, double* std_mean, uint8_t* actions_finite, void* scratch) {
+  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
+  const int64_t rows = agents * episodes;
+  RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
+                gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
+  GradArgs g{a, {options[0], options[1], options[2], options[3]}, grad_out, loss, std_mean, actions_finite};
+  const Launch on{threads, stream, scratch};
+  const int64_t code = fly(net, a, on);
+  return code != 0 ? code : grad(net, g, agents, on);
+}
+
+// The size of dk_reinforce's saved buffer, in scalars.
+int64_t dk_saved_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t agents, int64_t episodes,
+                      int64_t steps) {
+  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
+  const Saved layout = Saved::of(net, episodes, steps, lanes());
+  return agents * layout.blocks * layout.width * lanes();
+}
+
+#if DK_CPU
+// `steps` steps of n drones of one agent with auto-reset (ops.segments documents the tensors).
+int64_t dk_segments(int64_t threads, void*, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
+                    int64_t activation, double min_std, double dist_eps, int64_t n, int64_t steps, int64_t max_steps,
+                    const void* params, const void* state, const int64_t* t, const int64_t* key, const void* gust,
+                    const void* thrust, const void* pending, const void* issued, const void* noise,
+                    const void* fresh, const int64_t* fresh_keys, const double* env, const double* dist, void* obs,
+                    void* action, void* reward, void* next_obs, int64_t* cause, uint8_t* terminated,
+                    uint8_t* truncated, int64_t* step_count, void* state_out, int64_t* t_out, int64_t* key_out,
+                    void* gust_out, void* thrust_out, void* pending_out, void* issued_out, void*) {
+  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
+  SegmentArgs a{n,     steps, max_steps, params, state, t, key, {gust, thrust, pending, issued}, noise, fresh,
+                fresh_keys, env, dist, obs, action, reward, next_obs, cause, terminated, truncated, step_count,
+                state_out, t_out, key_out, {gust_out, thrust_out, pending_out, issued_out}};
+  parallel_blocks(blocks_of(n), threads, [&](int64_t first, int64_t last) {
+    std::vector<Lanes> acts(activation_width(net)), x(net.in_dim);
+    for (int64_t b = first; b < last; b++) segment_block(net, a, b, acts.data(), x.data());
+  });
+  return 0;
+}
+#else
 // Scratch scalars of dk_cuda_rollout (rows rows) and dk_cuda_reinforce (agents agents).
 int64_t dk_cuda_scratch_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t rows, int64_t agents,
                              int64_t episodes, int64_t steps) {
@@ -1543,51 +1467,9 @@ int64_t dk_cuda_scratch_size(int64_t in_dim, int64_t n_hidden, const int64_t* hi
   return fly > grad ? fly : grad;
 }
 
-// dk_saved_size with one drone per lane block.
-int64_t dk_saved_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t agents, int64_t episodes,
-                      int64_t steps) {
-  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
-  return agents * Saved::of(net, episodes, steps, 1).blocks * Saved::of(net, episodes, steps, 1).width;
-}
-
-// dk_rollout on device pointers (host pointer: hidden), launched on stream; returns the CUDA error code.
-int64_t dk_cuda_rollout(void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
-                        double min_std, double dist_eps, int64_t rows, int64_t episodes, int64_t steps,
-                        const void* params, const void* start, const void* noise, const int64_t* rng,
-                        const int64_t* keys, const uint8_t* active, const double* env, const double* dist,
-                        const double* gamma, void* obs, void* action, void* reward, int64_t* cause, int64_t* length,
-                        void* returns, double* stats, void* seen, void* scratch) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
-                gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
-  if (rows > 0)
-    fly_kernel<<<grid_of(rows), kThreadsPerBlock, 0, static_cast<cudaStream_t>(stream)>>>(
-        net, a, static_cast<Real*>(scratch));
-  return static_cast<int64_t>(cudaGetLastError());
-}
-
-// dk_reinforce on device pointers (host pointers: hidden, options), launched on stream.
-int64_t dk_cuda_reinforce(void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation,
-                          double min_std, double dist_eps, int64_t agents, int64_t episodes, int64_t steps,
-                          const void* params, const int64_t* rng, const uint8_t* active, const double* env,
-                          const double* dist, const double* gamma, const int64_t* options, void* reward,
-                          int64_t* cause, int64_t* length, void* returns, double* stats, void* saved, void* grad,
-                          double* loss, double* std_mean, uint8_t* actions_finite, void* scratch) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  const int64_t rows = agents * episodes;
-  RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
-                gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
-  GradArgs g{a, {options[0], options[1], options[2], options[3]}, grad, loss, std_mean, actions_finite};
-  const cudaStream_t s = static_cast<cudaStream_t>(stream);
-  if (rows > 0) {
-    fly_kernel<<<grid_of(rows), kThreadsPerBlock, 0, s>>>(net, a, static_cast<Real*>(scratch));
-    reinforce_kernel<<<grid_of(agents), kThreadsPerBlock, 0, s>>>(net, g, agents, static_cast<Real*>(scratch));
-  }
-  return static_cast<int64_t>(cudaGetLastError());
-}
-
 // The message of a CUDA error code.
 const char* dk_cuda_error(int64_t code) { return cudaGetErrorString(static_cast<cudaError_t>(code)); }
+#endif
 
 }  // extern "C"
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 
@@ -22,6 +22,7 @@ from drone_torchrl.envs import disturbances, dynamics
 from drone_torchrl.envs.params import DroneParams
 from drone_torchrl.envs.rollout import Episodes
 from drone_torchrl.kernels import ops
+from drone_torchrl.kernels.ops import Carried, Segment
 from drone_torchrl.modules.stacked import StackedThreeNet
 
 #: A disturbance as the modules take it (a :class:`~drone_torchrl.envs.disturbances.Disturbance`, its
@@ -96,14 +97,8 @@ class KernelRollout:
             not self.nominal,
         )  # fmt: skip
         steps = max(int(length.max()), 1)  # the longest episode; the rest of the buffers is zeros
-        return Episodes(
-            states[..., : steps + 1, :],
-            action[..., :steps, :],
-            reward[..., :steps],
-            cause[..., :steps],
-            length,
-            None if self.nominal else seen[..., :steps, :],
-        )
+        cut = (states[..., : steps + 1, :], action[..., :steps, :], reward[..., :steps], cause[..., :steps])
+        return Episodes(*cut, length, None if self.nominal else seen[..., :steps, :])
 
 
 class KernelReinforce:
@@ -134,38 +129,6 @@ class KernelReinforce:
             r.stacked.flat.detach(), keys, active, r.env, gamma, self.options, r.hidden, r.activation,
             r.stacked.min_std, r.max_steps, r.stacked.distribution_eps, r.disturbance,
         )  # fmt: skip
-
-
-class Segment(NamedTuple):
-    """One call's steps of each drone, ``[n, steps, ...]``, keyed as TorchRL's collector keys them.
-
-    The keys are the env's: ``observation``, ``action``, ``step_count`` and ``next``'s
-    ``observation``, ``reward``, ``termination_cause``, ``terminated``, ``truncated``.
-    """
-
-    observation: torch.Tensor
-    action: torch.Tensor
-    reward: torch.Tensor
-    next_observation: torch.Tensor
-    cause: torch.Tensor
-    terminated: torch.Tensor
-    truncated: torch.Tensor
-    step_count: torch.Tensor
-
-
-class Carried(NamedTuple):
-    """What each drone carries from one call to the next.
-
-    See ``ops.segments``. ``t = -1`` where a new episode starts at the next call's first step.
-    """
-
-    state: torch.Tensor
-    t: torch.Tensor
-    key: torch.Tensor
-    gust: torch.Tensor
-    thrust: torch.Tensor
-    pending: torch.Tensor
-    issued: torch.Tensor
 
 
 class KernelSegments:
@@ -211,9 +174,8 @@ class KernelSegments:
         episode at that step (keys: None for the nominal drone).
         """
         r = self.rollout
-        out = ops.segments(
-            r.stacked.flat.detach()[0], *self.carried, noise, fresh, fresh_keys, r.max_steps, r.env,
+        segment, self.carried = ops.segments(
+            r.stacked.flat.detach()[0], self.carried, noise, fresh, fresh_keys, r.max_steps, r.env,
             r.disturbance, r.hidden, r.activation, r.stacked.min_std, r.stacked.distribution_eps,
         )  # fmt: skip
-        self.carried = Carried(*out[len(Segment._fields) :])
-        return Segment(*out[: len(Segment._fields)])
+        return segment

@@ -23,7 +23,7 @@ from __future__ import annotations
 import ctypes
 from collections.abc import Mapping, Sequence
 from dataclasses import fields
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -46,6 +46,7 @@ MAX_WIDTH = 1024
 DTYPES = (torch.float32, torch.float64)
 
 _c64 = ctypes.c_int64
+_dbl = ctypes.c_double
 _ptr = ctypes.c_void_p
 
 
@@ -57,6 +58,11 @@ def _sizes(hidden: Sequence[int]) -> ctypes.Array:
     return (_c64 * max(len(hidden), 1))(*hidden)
 
 
+def _net(in_dim: int, hidden: Sequence[int], activation: int, min_std: float, dist_eps: float) -> list:
+    """The network's arguments of every entry point (the first three: of the size queries too)."""
+    return [_c64(in_dim), _c64(len(hidden)), _sizes(hidden), _c64(activation), _dbl(min_std), _dbl(dist_eps)]
+
+
 def _lib(dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> ctypes.CDLL:
     cuda = device is not None and device.type == "cuda"
     lib = (cuda_library if cuda else library)(double=dtype == torch.float64)
@@ -66,19 +72,20 @@ def _lib(dtype: torch.dtype = torch.float32, device: torch.device | None = None)
     return lib
 
 
-def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, scratch: int) -> None:
+def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, scratch: tuple = ()) -> None:
     """Call ``dk_<function>`` on the CPU, or ``dk_cuda_<function>`` on ``device``.
 
-    On the CPU the thread count goes first; on a GPU, ``device``'s current stream goes first and
-    ``scratch`` scalars of scratch memory (allocated here, PyTorch's) last.
+    Each takes the thread count (the CPU's), ``device``'s current stream, ``args`` and scratch
+    memory (a GPU's: ``dk_cuda_scratch_size(*scratch)`` scalars, allocated here, PyTorch's).
     """
-    if device.type != "cuda":
-        getattr(lib, f"dk_{function}")(_c64(torch.get_num_threads()), *args)
-        return
-    dtype = torch.float64 if lib.dk_real_bytes() == 8 else torch.float32
-    memory = torch.empty(scratch, dtype=dtype, device=device)
-    stream = _ptr(torch.cuda.current_stream(device).cuda_stream)
-    code = getattr(lib, f"dk_cuda_{function}")(stream, *args, _p(memory))
+    cuda = device.type == "cuda"
+    memory, stream = None, None
+    if cuda:
+        dtype = torch.float64 if lib.dk_real_bytes() == 8 else torch.float32
+        memory = torch.empty(lib.dk_cuda_scratch_size(*scratch), dtype=dtype, device=device)
+        stream = torch.cuda.current_stream(device).cuda_stream
+    entry = getattr(lib, f"dk_cuda_{function}" if cuda else f"dk_{function}")
+    code = entry(_c64(torch.get_num_threads()), _ptr(stream), *args, _p(memory))
     if code != 0:
         raise RuntimeError(f"ops.{function} on {device}: {lib.dk_cuda_error(_c64(code)).decode()}")
 
@@ -137,12 +144,13 @@ def disturbance_constants(
     )
 
 
-def _nominal(disturbance: torch.Tensor | None) -> bool:
+def _magnitudes(disturbance: torch.Tensor | None, device: torch.device | None = None) -> torch.Tensor | None:
+    """``disturbance`` as the kernels read it (float64 on ``device``), or None for the nominal drone."""
     if disturbance is None:
-        return True
+        return None
     magnitudes = disturbance.clone()
     magnitudes[_GUST_TIME] = 0.0  # the gusts' time scale alone changes nothing
-    return not bool(magnitudes.any())
+    return _to(disturbance, torch.float64, device) if bool(magnitudes.any()) else None
 
 
 def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
@@ -188,13 +196,11 @@ def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.T
 # they carry no torch.library registration.
 
 
-# The small inputs (constants, keys, flags) follow the parameters to their device.
-def _f64(tensor: torch.Tensor | None, device: torch.device | None = None) -> torch.Tensor | None:
-    return None if tensor is None else tensor.to(device=device, dtype=torch.float64).contiguous()
-
-
-def _i64(tensor: torch.Tensor | None, device: torch.device | None = None) -> torch.Tensor | None:
-    return None if tensor is None else tensor.to(device=device, dtype=torch.int64).contiguous()
+# The inputs follow the parameters to their device (None stays None).
+def _to(
+    x: torch.Tensor | None, dtype: torch.dtype, device: torch.device | None = None
+) -> torch.Tensor | None:
+    return None if x is None else x.to(device=device, dtype=dtype).contiguous()
 
 
 def rollout(
@@ -248,52 +254,31 @@ def rollout(
     saw before each step ``[N, E, steps, D]`` (D: the observation's width) (else an empty tensor); entries after
     an episode's end hold zeros.
     """
-    n, episodes = _rows(start, rng, active)
-    in_dim = _check_net(params, hidden, disturbance)
-    if keys is None and rng is None and not _nominal(disturbance):
-        raise ValueError("ops.rollout under disturbances needs episode keys or rng keys")
-    dtype, device = params.dtype, params.device
-    states = torch.zeros(n, episodes, steps + 1, dynamics.STATE_DIM, dtype=dtype, device=device)
-    action = torch.zeros(n, episodes, steps, dynamics.ACTION_DIM, dtype=dtype, device=device)
-    reward = torch.zeros(n, episodes, steps, dtype=dtype, device=device)
-    cause = torch.zeros(n, episodes, steps, dtype=torch.int64, device=device)
-    length = torch.zeros(n, episodes, dtype=torch.int64, device=device)
-    returns = torch.zeros(n, episodes, steps, dtype=dtype, device=device)
-    stats = torch.empty(n, episodes, STATS, dtype=torch.float64, device=device)
-    seen = params.new_zeros(n, episodes, steps, in_dim) if observations else params.new_zeros(0)
-    params = params.contiguous()
-    start = None if start is None else start.to(device=device, dtype=dtype).contiguous()
-    noise = None if noise is None else noise.to(device=device, dtype=dtype).contiguous()
-    active = active.to(device=device, dtype=torch.uint8).contiguous()
-    # Bound to names: a pointer is only valid while its tensor lives.
-    rng, keys, env, gamma = _i64(rng, device), _i64(keys, device), _f64(env, device), _f64(gamma, device)
-    disturbance = None if _nominal(disturbance) else _f64(disturbance, device)
-    lib, sizes = _lib(dtype, device), _sizes(hidden)
-    args = [_c64(in_dim), _c64(len(hidden)), sizes, _c64(activation), ctypes.c_double(min_std)]
-    args += [ctypes.c_double(dist_eps), _c64(n * episodes), _c64(episodes), _c64(steps)]
-    args += [_p(t) for t in (params, start, noise, rng, keys, active, env, disturbance, gamma)]
-    args += [_p(t) for t in (states, action, reward, cause, length, returns, stats)]
-    args += [_p(seen if observations else None)]
-    scratch = 0
-    if device.type == "cuda":
-        scratch = lib.dk_cuda_scratch_size(
-            args[0], args[1], sizes, _c64(n * episodes), _c64(0), args[7], args[8]
-        )
-    _launch(lib, "rollout", device, args, scratch)
-    return states, action, reward, cause, length, returns, stats, seen
-
-
-def _rows(start: torch.Tensor | None, rng: torch.Tensor | None, active: torch.Tensor) -> tuple[int, int]:
-    """Agents and episodes per agent, ``(N, E)``, from ``start`` or ``rng``.
-
-    ``start`` is ``[N, E, 6]``; ``rng`` is ``[N, E, 2]``, only its shape is read for ``E`` (the
-    keys are per agent).
-    """
-    if start is not None:
-        return start.shape[0], start.shape[1]
-    if rng is None:
+    if start is None and rng is None:
         raise ValueError("ops.rollout needs start states or rng keys")
-    return active.shape[0], rng.shape[1]
+    # rng [N, E, 2]: only its shape is read for E (the keys are per agent).
+    n, episodes = (active.shape[0], rng.shape[1]) if start is None else start.shape[:2]
+    in_dim = _check_net(params, hidden, disturbance)
+    dtype, device = params.dtype, params.device
+    # Bound to names: a pointer is only valid while its tensor lives.
+    disturbance = _magnitudes(disturbance, device)
+    if keys is None and rng is None and disturbance is not None:
+        raise ValueError("ops.rollout under disturbances needs episode keys or rng keys")
+    zeros, i64, shape = params.new_zeros, torch.int64, (n, episodes, steps)
+    states, action = zeros(n, episodes, steps + 1, dynamics.STATE_DIM), zeros(*shape, dynamics.ACTION_DIM)
+    reward, returns, cause = zeros(shape), zeros(shape), zeros(shape, dtype=i64)
+    length, stats = zeros(n, episodes, dtype=i64), params.new_empty(n, episodes, STATS, dtype=torch.float64)
+    seen = zeros(*shape, in_dim) if observations else zeros(0)
+    params, start, noise = params.contiguous(), _to(start, dtype, device), _to(noise, dtype, device)
+    active, rng, keys = _to(active, torch.uint8, device), _to(rng, i64, device), _to(keys, i64, device)
+    env, gamma = _to(env, torch.float64, device), _to(gamma, torch.float64, device)
+    net = _net(in_dim, hidden, activation, min_std, dist_eps)
+    args = [*net, _c64(n * episodes), _c64(episodes), _c64(steps)]
+    args += [_p(t) for t in (params, start, noise, rng, keys, active, env, disturbance, gamma, states)]
+    args += [_p(t) for t in (action, reward, cause, length, returns, stats, seen if observations else None)]
+    scratch = (*net[:3], _c64(n * episodes), _c64(0), _c64(episodes), _c64(steps))
+    _launch(_lib(dtype, device), "rollout", device, args, scratch)
+    return states, action, reward, cause, length, returns, stats, seen
 
 
 #: The loss options ``ops.reinforce`` takes in its order (``LossOptions`` in drone_kernels.cpp).
@@ -339,27 +324,20 @@ def reinforce(
     cause = params.new_empty(chunk, episodes, steps, dtype=torch.int64)
     length = params.new_empty(n, episodes, dtype=torch.int64)
     counts = params.new_empty(n, episodes, STATS, dtype=torch.float64)
-    lib = _lib(dtype, device)
-    sizes = _sizes(hidden)
-    net = (_c64(in_dim), _c64(len(hidden)), sizes)
-    saved = params.new_empty(lib.dk_saved_size(*net, _c64(chunk), _c64(episodes), _c64(steps)))
-    scratch = 0
-    if device.type == "cuda":
-        scratch = lib.dk_cuda_scratch_size(
-            *net, _c64(chunk * episodes), _c64(chunk), _c64(episodes), _c64(steps)
-        )
+    lib, net = _lib(dtype, device), _net(in_dim, hidden, activation, min_std, dist_eps)
+    saved = params.new_empty(lib.dk_saved_size(*net[:3], _c64(chunk), _c64(episodes), _c64(steps)))
     grad = torch.empty_like(params)
     loss = params.new_empty(n, dtype=torch.float64)
     std_mean = torch.empty_like(loss)
     actions_finite = params.new_empty(n, dtype=torch.bool)
-    active = active.to(device=device, dtype=torch.uint8).contiguous()
     flags = torch.tensor(list(options), dtype=torch.int64)  # read on the host
-    params, rng, env, gamma = params.contiguous(), _i64(rng, device), _f64(env, device), _f64(gamma, device)
-    disturbance = None if _nominal(disturbance) else _f64(disturbance, device)
+    params, active, rng = params.contiguous(), _to(active, torch.uint8, device), _to(rng, torch.int64, device)
+    env, gamma = _to(env, torch.float64, device), _to(gamma, torch.float64, device)
+    disturbance = _magnitudes(disturbance, device)
+    scratch = (*net[:3], _c64(chunk * episodes), _c64(chunk), _c64(episodes), _c64(steps))
     for first in range(0, n, chunk):
         rows = slice(first, min(n, first + chunk))
-        args = [*net, _c64(activation), ctypes.c_double(min_std), ctypes.c_double(dist_eps)]
-        args += [_c64(rows.stop - rows.start), _c64(episodes), _c64(steps)]
+        args = [*net, _c64(rows.stop - rows.start), _c64(episodes), _c64(steps)]
         args += [_p(t) for t in (params[rows], rng[rows], active[rows], env, disturbance, gamma[rows], flags)]
         args += [_p(t) for t in (reward, cause, length[rows], returns, counts[rows])]
         args += [_p(t) for t in (saved, grad[rows], loss[rows], std_mean[rows], actions_finite[rows])]
@@ -367,28 +345,47 @@ def reinforce(
     return grad, loss, std_mean, actions_finite, length, counts
 
 
-def _segment_shapes(
-    state: torch.Tensor, noise: torch.Tensor, disturbance: torch.Tensor | None, in_dim: int
-) -> dict[str, tuple[int, ...]]:
-    n, steps = noise.shape[:2]
-    delay, observed = steps_back(disturbance)
-    a, s = dynamics.ACTION_DIM, dynamics.STATE_DIM
-    return {
-        "state": (n, s), "t": (n,), "key": (n,), "gust": (n,), "thrust": (n, a), "pending": (n, delay, a),
-        "issued": (n, observed, a), "noise": (n, steps, a), "fresh": (n, steps, s), "fresh_keys": (n, steps),
-        "obs": (n, steps, in_dim), "action": (n, steps, a), "step": (n, steps),
-    }  # fmt: skip
+class Carried(NamedTuple):
+    """What each drone carries from one :func:`segments` call to the next (``n`` drones).
+
+    ``state`` ``[n, 6]``, its physical state; ``t`` ``[n]`` int64, its episode's step count (``-1``:
+    its episode ended, a new one starts at the next call's step 0; a first call passes ``t = -1``
+    everywhere, and the other values are then not read); ``key`` ``[n]`` int64, its episode key; the
+    disturbances' internal state (:class:`drone_torchrl.envs.disturbances.Internal`): ``gust``
+    ``[n]``, the gust force / nominal weight, ``thrust`` ``[n, 2]``, the motors' thrust fractions in
+    effect (lag), ``pending`` ``[n, action_delay, 2]``, the commands issued but not yet acting,
+    oldest first, ``issued`` ``[n, observed_actions, 2]``, the last commands issued, newest first.
+    """
+
+    state: torch.Tensor
+    t: torch.Tensor
+    key: torch.Tensor
+    gust: torch.Tensor
+    thrust: torch.Tensor
+    pending: torch.Tensor
+    issued: torch.Tensor
+
+
+class Segment(NamedTuple):
+    """One call's steps of each drone, ``[n, steps, ...]``, keyed as TorchRL's collector keys them.
+
+    The keys are the env's: ``observation``, ``action``, ``step_count`` and ``next``'s
+    ``observation``, ``reward``, ``termination_cause``, ``terminated``, ``truncated``.
+    """
+
+    observation: torch.Tensor
+    action: torch.Tensor
+    reward: torch.Tensor
+    next_observation: torch.Tensor
+    cause: torch.Tensor
+    terminated: torch.Tensor
+    truncated: torch.Tensor
+    step_count: torch.Tensor
 
 
 def segments(
     params: torch.Tensor,
-    state: torch.Tensor,
-    t: torch.Tensor,
-    key: torch.Tensor,
-    gust: torch.Tensor,
-    thrust: torch.Tensor,
-    pending: torch.Tensor,
-    issued: torch.Tensor,
+    carried: Carried,
     noise: torch.Tensor,
     fresh: torch.Tensor,
     fresh_keys: torch.Tensor | None,
@@ -399,7 +396,7 @@ def segments(
     activation: int,
     min_std: float,
     dist_eps: float = 0.0,
-) -> tuple[torch.Tensor, ...]:
+) -> tuple[Segment, Carried]:
     """Fly ``n`` drones of one agent ``steps`` steps with auto-reset.
 
     What TorchRL's collector gives over a batched :class:`~drone_torchrl.envs.drone_env.DroneEnv` (``done =
@@ -407,17 +404,7 @@ def segments(
 
     Args:
         params: ``[P]`` the agent's flat parameters.
-        state: ``[n, 6]`` each drone's physical state, carried from the last call (as are the
-            next six: what it returned).
-        t: ``[n]`` int64, its episode's step count (``-1``: its episode ended, a new one starts at
-            this call's step 0). A first call passes ``t = -1`` everywhere (the other carried
-            values are then not read).
-        key: ``[n]`` int64, its episode key.
-        gust: ``[n]``, its gust force / nominal weight (the disturbances' internal state,
-            :class:`drone_torchrl.envs.disturbances.Internal`, as are the next three).
-        thrust: ``[n, 2]``, the motors' thrust fractions in effect (lag).
-        pending: ``[n, action_delay, 2]``, the commands issued but not yet acting, oldest first.
-        issued: ``[n, observed_actions, 2]``, the last commands issued, newest first.
+        carried: what each drone carries from the last call (what it returned).
         noise: ``[n, steps, 2]`` standard normals of the actions.
         fresh: ``[n, steps, 6]`` start states: a drone that starts a new episode at step ``j``
             starts from ``fresh[d, j]``.
@@ -431,60 +418,43 @@ def segments(
         min_std: the std's floor, as for :func:`rollout`.
         dist_eps: the distribution's epsilon, as for :func:`rollout`.
 
-    Returns, per step ``[n, steps, ...]``: the observation the policy saw, the action, the reward,
-    the next observation (what the env returns after the step: at the step count after it, with
-    its noise; after an episode's last step, the terminal state's), the termination cause (int64),
-    terminated and truncated (bool: the step count reached ``max_steps`` without terminating) and
-    the step count before the step (int64); then the carried state after the last step, as the
-    inputs lay it out (``t = -1`` where the last step ended the episode).
+    Returns the steps: per step ``[n, steps, ...]``, the observation the policy saw, the action, the
+    reward, the next observation (what the env returns after the step: at the step count after it,
+    with its noise; after an episode's last step, the terminal state's), the termination cause
+    (int64), terminated and truncated (bool: the step count reached ``max_steps`` without
+    terminating) and the step count before the step (int64). Then what is carried after the last
+    step (``t = -1`` where the last step ended the episode).
     """
     if params.device.type != "cpu":
         raise ValueError(f"ops.segments runs on the CPU only; params are on {params.device}")
     in_dim = _check_net(params, hidden, disturbance)
-    shapes = _segment_shapes(state, noise, disturbance, in_dim)
-    given = {"state": state, "t": t, "key": key, "gust": gust, "thrust": thrust, "pending": pending}
-    given |= {"issued": issued, "fresh": fresh, "fresh_keys": fresh_keys}
-    for name, tensor in given.items():
+    (n, steps), (delay, observed), a = noise.shape[:2], steps_back(disturbance), dynamics.ACTION_DIM
+    shapes = {
+        "state": (n, dynamics.STATE_DIM), "t": (n,), "key": (n,), "gust": (n,), "thrust": (n, a),
+        "pending": (n, delay, a), "issued": (n, observed, a), "fresh": (n, steps, dynamics.STATE_DIM),
+        "fresh_keys": (n, steps),
+    }  # fmt: skip
+    for name, tensor in {**carried._asdict(), "fresh": fresh, "fresh_keys": fresh_keys}.items():
         if tensor is not None and tuple(tensor.shape) != shapes[name]:
             raise ValueError(
                 f"ops.segments: {name} of shape {list(tensor.shape)}; expected {list(shapes[name])}"
             )
-    nominal = _nominal(disturbance)
-    if fresh_keys is None and not nominal:
+    disturbance = _magnitudes(disturbance)
+    if fresh_keys is None and disturbance is not None:
         raise ValueError("ops.segments under disturbances needs fresh_keys")
-    dtype = params.dtype
-    n, steps = shapes["step"]
-    obs = torch.empty(shapes["obs"], dtype=dtype)
-    next_obs = torch.empty_like(obs)
-    action = torch.empty(shapes["action"], dtype=dtype)
-    reward = torch.empty(n, steps, dtype=dtype)
-    cause = torch.empty(n, steps, dtype=torch.int64)
-    terminated = torch.empty(n, steps, dtype=torch.bool)
-    truncated = torch.empty_like(terminated)
-    step_count = torch.empty_like(cause)
-    carried = [torch.empty(shapes[k], dtype=dtype) for k in ("state",)]
-    carried += [torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)]
-    carried += [torch.empty(shapes[k], dtype=dtype) for k in ("gust", "thrust", "pending", "issued")]
+    dtype, i64 = params.dtype, torch.int64
+    kinds = {"t": i64, "key": i64}  # the carried integers; the rest is real
+    # Per step: the observation, the action, the reward and the next observation; the cause,
+    # terminated, truncated and the step count. Then what is carried out.
+    out = [torch.empty(shape, dtype=dtype) for shape in ((n, steps, in_dim), (n, steps, a), (n, steps))]
+    out += [torch.empty(n, steps, in_dim, dtype=dtype)]
+    out += [torch.empty(n, steps, dtype=kind) for kind in (i64, torch.bool, torch.bool, i64)]
+    out += [torch.empty(shapes[k], dtype=kinds.get(k, dtype)) for k in Carried._fields]
     # Bound to names: a pointer is only valid while its tensor lives.
-    state, gust, thrust, pending, issued, noise, fresh = (
-        x.to(dtype).contiguous() for x in (state, gust, thrust, pending, issued, noise, fresh)
-    )
-    params, t, key, fresh_keys, env = params.contiguous(), _i64(t), _i64(key), _i64(fresh_keys), _f64(env)
-    disturbance = None if nominal else _f64(disturbance)
-    _lib(dtype).dk_segments(
-        _c64(torch.get_num_threads()),
-        _c64(in_dim),
-        _c64(len(hidden)),
-        _sizes(hidden),
-        _c64(activation),
-        ctypes.c_double(min_std),
-        ctypes.c_double(dist_eps),
-        _c64(n),
-        _c64(steps),
-        _c64(max_steps),
-        *(_p(x) for x in (params, state, t, key, gust, thrust, pending, issued, noise, fresh, fresh_keys)),
-        _p(env),
-        _p(disturbance),
-        *(_p(x) for x in (obs, action, reward, next_obs, cause, terminated, truncated, step_count, *carried)),
-    )
-    return obs, action, reward, next_obs, cause, terminated, truncated, step_count, *carried
+    carried = [_to(x, kinds.get(k, dtype)) for k, x in zip(Carried._fields, carried, strict=True)]
+    params, noise, fresh = params.contiguous(), _to(noise, dtype), _to(fresh, dtype)
+    fresh_keys, env = _to(fresh_keys, i64), _to(env, torch.float64)
+    args = [*_net(in_dim, hidden, activation, min_std, dist_eps), _c64(n), _c64(steps), _c64(max_steps)]
+    args += [_p(x) for x in (params, *carried, noise, fresh, fresh_keys, env, disturbance, *out)]
+    _launch(_lib(dtype), "segments", params.device, args)
+    return Segment(*out[: len(Segment._fields)]), Carried(*out[len(Segment._fields) :])
