@@ -47,7 +47,21 @@ def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
             f"{unknown[0]} comes after a flag that split the overrides: Hydra reads them as one group, so put "
             f"flags first (e.g. {prog} -m key=a,b)"
         )
+    for word in known.overrides:  # Hydra's own answer to a bare word is its parser's, in several lines
+        if "=" not in word and not word.startswith("~"):
+            raise ConfigError(_not_an_override(prog, word))
     return known
+
+
+def _not_an_override(prog: str, word: str) -> str:
+    """The refusal of an argument that is not ``KEY=VALUE``, with the override it likely meant."""
+    from drone_torchrl import config
+
+    if Path(word).exists():  # a run folder or checkpoint, given without its key
+        hint: str | None = f"{'resume' if prog == 'drone-train' else 'checkpoint'}={word}"
+    else:
+        hint = next((f"{g}={word}" for g in config.group_names() if word in config.group_options(g)), None)
+    return f"{word!r} is not KEY=VALUE; " + (f"did you mean {hint}?" if hint else f"see {prog} --help")
 
 
 def check_flags(prog: str) -> argparse.Namespace:

@@ -466,6 +466,7 @@ TRAIN = [
     (["+algo.lrr=1"], "algo.lr"),  # was accepted silently; the hint names the real key
     (["+foo=1"], "foo"),
     (["algo.lrr=1"], "algo.lr"),
+    (["algoo=ppo"], "did you mean algo=a2c|ppo|"),  # a group misspelt: was "did you mean algo.lr?"
     (["+model.hidden=[8]"], "model.hidden"),
     (["experiment=nope"], "experiment"),
     (["algo=ppo2"], "algo"),
@@ -1126,6 +1127,8 @@ E2E = [
     ("drone-train", ["--bogus"], "--bogus"),  # argparse's usage text and error
     ("drone-train", ["seed=0", "--config-name"], "--config-name"),
     ("drone-train", ["seed=1", "--cfg", "job", "algo.lr=1e-3"], "algo.lr=1e-3"),  # a flag between overrides
+    ("drone-train", ["ppo"], "algo=ppo"),  # a bare word: Hydra's parser error in 4-5 lines
+    ("drone-eval", ["{run}"], "checkpoint="),  # a run folder without its key
     ("drone-report", ["{file}"], "notes.txt"),
     ("drone-report", ["{run}", "--window", "abc"], "--window"),
     ("drone-export", ["checkpoint={run}", "format=zip"], "format"),
@@ -1837,3 +1840,24 @@ def test_a_ppo_run_s_own_keys_are_its_algo_s_on_resume(files, tmp_path, command_
     )
     assert proc.returncode == 0, proc.stderr
     assert load_checkpoint(run / "checkpoints" / "last.pt")["episodes_done"] >= 4
+
+
+@pytest.mark.parametrize(
+    ("prog", "word", "hint"),
+    [
+        ("drone-train", "ppo", "did you mean algo=ppo?"),
+        ("drone-train", "hover_optimal", "did you mean experiment=hover_optimal?"),
+        ("drone-train", "{here}", "did you mean resume={here}?"),
+        ("drone-eval", "{here}", "did you mean checkpoint={here}?"),
+        ("drone-train", "fly", "see drone-train --help"),
+    ],
+)
+def test_a_bare_word_is_refused_with_the_override_it_meant(prog, word, hint, tmp_path):
+    """An argument without ``=`` (Hydra answers with its parser's error in several lines): one line."""
+    from drone_torchrl.command_line import parse_flags
+
+    word, hint = word.format(here=tmp_path), hint.format(here=tmp_path)
+    with pytest.raises(ConfigError) as err:
+        parse_flags(prog, ["seed=1", word])
+    assert str(err.value) == f"{word!r} is not KEY=VALUE; {hint}"
+    assert parse_flags(prog, ["seed=1", "~logger"]).overrides == ["seed=1", "~logger"]  # deletion needs no =

@@ -1,4 +1,4 @@
-"""``drone-train``: REINFORCE on the 2D drone, configured by Hydra (``conf/``).
+"""``drone-train``: train an agent (REINFORCE, REINFORCE+, PPO, A2C or SAC) on the 2D drone, with Hydra (``conf/``).
 
 drone-train                                  # the paper: alpha 1e-4, gamma 0.99, 6000 episodes
 drone-train algo.lr=3e-4 seed=1              # any key from the command line
