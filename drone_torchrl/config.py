@@ -244,7 +244,9 @@ def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     if group:
         hint = f"; did you mean {group[0]}={'|'.join(group_options(group[0]))}?"
     else:
-        hint = f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
+        hint = (
+            f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
+        )
     return ConfigError(f"{key} is not a config key{hint}")
 
 
