@@ -56,6 +56,8 @@ NEVER = 2**62
 LINEAGE_COLUMNS = ("update", "agent", "parent", "seed")
 #: The parent of an agent restarted from fresh weights.
 FRESH = -1
+#: The ``(agent, parent)`` pairs of a search step.
+Pairs = list[tuple[int, int]]
 
 
 @dataclass(frozen=True)
@@ -122,24 +124,17 @@ class PBTSettings:
         :class:`~.checks.ConfigError` (one line, naming ``hydra.launcher.<key>``) for the first that is not
         allowed.
         """
-        every = params.get("every_updates", cls.every_updates)
-        if not (is_number(every) and isinstance(every, int) and every >= 1):
-            raise ConfigError.of("hydra.launcher.every_updates", every, "an integer >= 1")
-        quantile = params.get("quantile", cls.quantile)
-        if not (is_number(quantile) and 0 < quantile <= MAX_QUANTILE):
-            raise ConfigError.of("hydra.launcher.quantile", quantile, f"a number in (0, {MAX_QUANTILE}]")
-        perturb = params.get("perturb", cls.perturb)
+        every = _param(
+            params, cls, "every_updates", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"
+        )
+        quantile = _param(
+            params, cls, "quantile", lambda v: 0 < v <= MAX_QUANTILE, f"a number in (0, {MAX_QUANTILE}]"
+        )
         # A factor past MAX_FACTOR (or below its inverse) sends any value to its range's end in one
         # step: a resample, not a perturbation (and inf or nan would be clipped into a value no agent had).
-        if not (_list(perturb) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in perturb)):
-            raise ConfigError.of(
-                "hydra.launcher.perturb",
-                perturb,
-                f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]",
-            )
-        resample = params.get("resample_probability", cls.resample_probability)
-        if not (is_number(resample) and 0 <= resample <= 1):
-            raise ConfigError.of("hydra.launcher.resample_probability", resample, "a number in [0, 1]")
+        factors = f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]"
+        perturb = _param(params, cls, "perturb", _factors, factors, number=False)
+        resample = _param(params, cls, "resample_probability", lambda v: 0 <= v <= 1, "a number in [0, 1]")
         keys = _searched_keys(params.get("keys", cls.keys), "PBT")
         return cls(
             int(every), float(quantile), tuple(float(f) for f in perturb), float(resample), tuple(keys)
@@ -236,11 +231,8 @@ def complete_lineage(
     for column in LINEAGE_COLUMNS:
         out.setdefault(column, [])
     missing = [key for key in keys if key not in out]
-    if not missing:
-        return out
     now = {key: [float(v) for v in initial[key]] for key in keys}
-    for key in missing:
-        out[key] = []
+    out.update({key: [] for key in missing})
     for row, (agent, parent) in enumerate(zip(out["agent"], out["parent"], strict=True)):
         source = agent if parent == FRESH else parent
         for key in missing:
@@ -359,6 +351,21 @@ def _check_share(
     )
 
 
+def _param(
+    params: Mapping[str, Any], cls: type, key: str, ok: Any, expected: str, number: bool = True
+) -> Any:
+    """``hydra.launcher.<key>`` (default: ``cls``'s), checked by ``ok`` (and as a number where ``number``)."""
+    value = params.get(key, getattr(cls, key))
+    if not ((is_number(value) or not number) and ok(value)):
+        raise ConfigError.of(f"hydra.launcher.{key}", value, expected)
+    return value
+
+
+def _factors(value: Any) -> bool:
+    """Whether ``value`` is a non-empty list of ``hydra.launcher.perturb``'s factors."""
+    return _list(value) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in value)
+
+
 def _list(value: Any) -> bool:
     """Whether ``value`` is a non-empty list (not a string)."""
     return isinstance(value, Sequence) and not isinstance(value, str | bytes) and bool(value)
@@ -438,9 +445,7 @@ class PBT(Search):
         """Whether an exploit-and-explore step is due after ``updates_done`` updates."""
         return updates_done % self.settings.every_updates == 0
 
-    def step(
-        self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
-    ) -> list[tuple[int, int]]:
+    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """One exploit-and-explore step after ``update`` updates; returns ``(agent, parent)`` pairs.
 
         Rewrites rows of ``state`` (the population's stacked state) in place and appends the
@@ -654,33 +659,23 @@ class Replay(Search):
 
     def start(self, state: Any) -> None:
         """Give every agent the replayed line's first values."""
-        self._apply(state, 0)
+        self.step(state, (), (), 0)
 
     def updates_until_due(self, updates_done: int) -> int:
         """Updates from ``updates_done`` until the replayed line's next change of values."""
-        later = [u - updates_done for u in self.steps if u > updates_done]
-        return min(later, default=NEVER)
+        return min((u - updates_done for u in self.steps if u > updates_done), default=NEVER)
 
     def due(self, updates_done: int) -> bool:
         """Whether the replayed line changes its values after ``updates_done`` updates."""
         return updates_done in self.steps and updates_done > 0
 
-    def step(
-        self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
-    ) -> list[tuple[int, int]]:
+    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """Give every agent the line's values from ``update`` on; replaces no agent (returns ``[]``)."""
-        self._apply(state, update)
-        return []
-
-    def _apply(self, state: Any, update: int) -> None:
         everyone = list(range(self.agents))
         self._set(
-            state,
-            update,
-            everyone,
-            everyone,
-            {key: [v] * self.agents for key, v in self.steps[update].items()},
+            state, update, everyone, everyone, {k: [v] * self.agents for k, v in self.steps[update].items()}
         )
+        return []
 
 
 @dataclass(frozen=True)
@@ -704,18 +699,15 @@ class HalvingSettings:
 
         Raises :class:`~.checks.ConfigError` (one line) for the first that is not allowed.
         """
-        rungs = params.get("rungs", cls.rungs)
-        if not (
-            _list(rungs)
-            and all(is_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
-            and list(rungs) == sorted(set(rungs))
-        ):
-            raise ConfigError.of(
-                "hydra.launcher.rungs", rungs, "increasing update counts >= 1, e.g. [500,1500]"
-            )
-        fraction = params.get("fraction", cls.fraction)
-        if not (is_number(fraction) and 0 < fraction < 1):
-            raise ConfigError.of("hydra.launcher.fraction", fraction, "a number in (0, 1)")
+
+        def increasing(rungs: Any) -> bool:
+            counts = _list(rungs) and all(is_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
+            return counts and list(rungs) == sorted(set(rungs))
+
+        rungs = _param(
+            params, cls, "rungs", increasing, "increasing update counts >= 1, e.g. [500,1500]", False
+        )
+        fraction = _param(params, cls, "fraction", lambda v: 0 < v < 1, "a number in (0, 1)")
         keys = _searched_keys(params.get("keys", cls.keys), "successive halving")
         return cls(tuple(int(r) for r in rungs), float(fraction), keys)
 
@@ -791,9 +783,7 @@ class Halving(Search):
         """Whether an agent reaches a rung after ``updates_done`` updates."""
         return any(updates_done - s in self.rung_scores for s in set(self.started))
 
-    def step(
-        self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
-    ) -> list[tuple[int, int]]:
+    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """Restart the agents at a rung that score in its worst ``fraction``; returns ``(agent, FRESH)`` pairs."""
         stopped = []
         for rung, history in self.rung_scores.items():
@@ -806,15 +796,12 @@ class Halving(Search):
             k = int(len(history) * self.settings.fraction)
             threshold = sorted(history)[k] if k else -math.inf
             stopped += [i for i in arrived if score[i] < threshold]
-        if stopped:
-            self._restart(state, update, sorted(stopped))
-        return [(agent, FRESH) for agent in sorted(stopped)]
-
-    def _restart(self, state: Any, update: int, agents: list[int]) -> None:
+        if not stopped:
+            return []
         from drone_torchrl.modules.factory import build_policies
         from drone_torchrl.training.optim import adam_state
 
-        count = len(agents)
+        agents, count = sorted(stopped), len(stopped)
         rng = np.random.default_rng([self.seed, update])
         new = {
             key: np.array(self.space[key])[rng.integers(len(self.space[key]), size=count)]
@@ -833,6 +820,7 @@ class Halving(Search):
         self._set(state, update, agents, [FRESH] * count, new)
         for agent in agents:
             self.started[agent] = update
+        return [(agent, FRESH) for agent in agents]
 
 
 #: What a population run's search is asked for (PBT, successive halving, or a replay of one agent's values).
