@@ -142,11 +142,9 @@ class PBTSettings:
 
     def record(self) -> dict[str, Any]:
         """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
-        record = {"launcher": self.launcher, **asdict(self)}
         # A list-only search records no ranges: its record is the one runs made before ranges existed.
-        for unused in (*self.unused, *(() if self.ranges else ("ranges",))):
-            del record[unused]
-        return record
+        unused = {*self.unused, *(() if self.ranges else ("ranges",))}
+        return {k: v for k, v in {"launcher": self.launcher, **asdict(self)}.items() if k not in unused}
 
     def check(self, cfg: Any, agents: int) -> None:
         """A step inside the budget (``algo.episodes / algo.episodes_per_update`` updates).
@@ -155,11 +153,8 @@ class PBTSettings:
         """
         updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
         if self.every_updates >= updates:
-            raise ConfigError.of(
-                "hydra.launcher.every_updates",
-                self.every_updates,
-                f"fewer than the budget's {updates} updates",
-            )
+            expected = f"fewer than the budget's {updates} updates"
+            raise ConfigError.of("hydra.launcher.every_updates", self.every_updates, expected)
         _check_share(
             "hydra.launcher.quantile", self.quantile, agents, "replaced: no exploit step, an empty lineage"
         )
@@ -171,14 +166,11 @@ class PBTSettings:
         range (:attr:`ranges`) that reaches outside its key's values.
         """
         rules = schema_keys("config", algo=cfg.algo.name, logger=cfg.logger.backend)
-        bounds = {}
-        for key in self.keys:
-            rule = rules.get(key)
-            if rule is None:
-                raise ConfigError.of(
-                    "hydra.launcher.keys", list(self.keys), f"keys that algo={cfg.algo.name} has"
-                )
-            bounds[key] = (float(rule.low), float(rule.high))
+        if not set(self.keys) <= set(rules):
+            raise ConfigError.of(
+                "hydra.launcher.keys", list(self.keys), f"keys that algo={cfg.algo.name} has"
+            )
+        bounds = {key: (float(rules[key].low), float(rules[key].high)) for key in self.keys}
         for span in self.ranges:
             low, high = bounds[span.key]
             if not low <= span.low < span.high <= high:
@@ -202,8 +194,7 @@ class PBTSettings:
                 "neighbouring value of it; perturb multiplies keys searched over interval(low,high)",
                 file=sys.stderr,
             )
-        lineage = None if saved is None else saved["lineage"]
-        return PBT(self, values, bounds, int(values["seed"][0]), lineage)
+        return PBT(self, values, bounds, int(values["seed"][0]), (saved or {}).get("lineage"))
 
 
 def recorded_keys(initial: Mapping[str, Any]) -> tuple[str, ...]:
@@ -281,10 +272,9 @@ class Search:
     ) -> None:
         self.keys = tuple(keys)
         self.recorded = recorded_keys(initial)
-        columns = (*LINEAGE_COLUMNS, *self.recorded)
         # An older checkpoint's lineage may lack the keys that were not searched: filled in.
         complete = complete_lineage(lineage, initial, self.recorded)
-        self.lineage: dict[str, list] = {key: complete[key] for key in columns}
+        self.lineage: dict[str, list] = {key: complete[key] for key in (*LINEAGE_COLUMNS, *self.recorded)}
         # Each agent's value of each recorded key now, exactly (the state holds gamma in the
         # network's precision): the sweep's, then each lineage row's.
         self.current = {
@@ -343,12 +333,8 @@ def _check_share(
         smallest += 1
     fits = 1 / agents < most or (1 / agents == most and not most_open)
     larger = f"at least 1/{agents} for a population of {agents} agents, or " if fits else ""
-    raise ConfigError.of(
-        key,
-        share,
-        f"{larger}a population of at least {smallest} agents (int({agents} x {share:g}) = 0 agents "
-        f"would ever be {outcome})",
-    )
+    expected = f"a population of at least {smallest} agents (int({agents} x {share:g}) = 0 agents would ever"
+    raise ConfigError.of(key, share, f"{larger}{expected} be {outcome})")
 
 
 def _param(
@@ -378,11 +364,8 @@ def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
     for key in keys:
         if not isinstance(key, str) or key not in STATE_KEYS:
             why = "a per-agent key" if key in per_agent_keys() else "not a per-agent key"
-            raise ConfigError.of(
-                "hydra.launcher.keys",
-                list(keys),
-                f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} {search} cannot search)",
-            )
+            expected = f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} {search} cannot search)"
+            raise ConfigError.of("hydra.launcher.keys", list(keys), expected)
     if len(set(keys)) < len(keys):  # one lineage column per key: a repeated one has no meaning
         raise ConfigError.of("hydra.launcher.keys", list(keys), "each key once, e.g. [algo.lr,algo.gamma]")
     return tuple(keys)
@@ -438,8 +421,7 @@ class PBT(Search):
 
     def updates_until_due(self, updates_done: int) -> int:
         """Updates from ``updates_done`` until the next exploit-and-explore step."""
-        every = self.settings.every_updates
-        return every - updates_done % every
+        return self.settings.every_updates - updates_done % self.settings.every_updates
 
     def due(self, updates_done: int) -> bool:
         """Whether an exploit-and-explore step is due after ``updates_done`` updates."""
@@ -472,10 +454,8 @@ class PBT(Search):
 
     def choose(self, step: Exploit) -> dict[str, np.ndarray]:
         """The values the replaced agents train with next (key -> one per agent): each explored from its parent's."""
-        current, rng = self.current, step.rng
-        return {
-            key: self.explore(key, np.array(current[key])[step.parents], rng) for key in self.settings.keys
-        }
+        parents = step.parents
+        return {k: self.explore(k, np.array(self.current[k])[parents], step.rng) for k in self.settings.keys}
 
     def explore(self, key: str, values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The explored values of ``key`` from the parents' ``values``, with ``rng``'s draws.
@@ -486,8 +466,7 @@ class PBT(Search):
         s = self.settings
         count = len(values)
         resampled = rng.random(count) < s.resample_probability
-        if key in self.ranges:
-            span = self.ranges[key]
+        if span := self.ranges.get(key):
             factors = np.array(s.perturb)[rng.integers(len(s.perturb), size=count)]
             moved = np.clip(values * factors, span.low, span.high)
             drawn = span.draw(rng, count)
@@ -533,29 +512,25 @@ class ReplaySettings:
 
         run = params.get("run")
         path = Path(str(run)) / CHECKPOINT_DIR / LAST
+
+        def refused(expected: str) -> ConfigError:
+            return ConfigError.of("hydra.launcher.run", run, expected)
+
         if (too_long := name_too_long(path)) is not None:  # is_file() would raise ENAMETOOLONG
-            raise ConfigError.of(
-                "hydra.launcher.run", run, f"a folder name this file system takes ({too_long})"
-            )
+            raise refused(f"a folder name this file system takes ({too_long})")
         try:
             state = load_checkpoint(path) if run is not None and path.is_file() else None
         except CheckpointError as err:
-            raise ConfigError.of("hydra.launcher.run", run, f"a PBT population run ({err})") from None
+            raise refused(f"a PBT population run ({err})") from None
         search = None if state is None else state.get("search")
         if not search or search["settings"].get("launcher") not in ("pbt", "pb2", "halving"):
-            raise ConfigError.of(
-                "hydra.launcher.run",
-                run,
-                "the folder of a PBT, PB2 or halving run (hydra/launcher=pbt, pb2 or halving)",
-            )
+            raise refused("the folder of a PBT, PB2 or halving run (hydra/launcher=pbt, pb2 or halving)")
         count = len(state["episodes_done"])
         training = sum(f is None and e is None for f, e in zip(state["final"], state["failure"], strict=True))
         if training:  # its lineage and final returns are not yet the run's
-            raise ConfigError.of(
-                "hydra.launcher.run",
-                run,
+            raise refused(
                 f"a finished PBT or halving run ({training} of its {count} agents are still training: "
-                "run its command again to finish it first)",
+                "run its command again to finish it first)"
             )
         agent = params.get("agent")
         if agent is None:  # the best final return
@@ -566,8 +541,7 @@ class ReplaySettings:
                 "hydra.launcher.agent", agent, f"an agent of {run}: an integer 0..{count - 1}"
             )
         steps = schedule(search["lineage"], state["agents"], agent)
-        frozen = tuple((update, tuple(values.items())) for update, values in steps)
-        return cls(str(Path(str(run)).resolve()), agent, frozen)
+        return cls(str(Path(str(run)).resolve()), agent, tuple((u, tuple(v.items())) for u, v in steps))
 
     def record(self) -> dict[str, Any]:
         """What a checkpoint keeps of these settings: the launcher, run and agent, and the schedule."""
