@@ -277,10 +277,8 @@ class Search:
         self.lineage: dict[str, list] = {key: complete[key] for key in (*LINEAGE_COLUMNS, *self.recorded)}
         # Each agent's value of each recorded key now, exactly (the state holds gamma in the
         # network's precision): the sweep's, then each lineage row's.
-        self.current = {
-            key: [float(v) for v in values]
-            for key, values in final_values(self.lineage, initial, self.recorded).items()
-        }
+        final = final_values(self.lineage, initial, self.recorded)
+        self.current = {key: [float(v) for v in values] for key, values in final.items()}
 
     def start(self, state: Any) -> None:
         """A fresh run's state before its first update (a resumed one has its checkpoint's)."""
@@ -294,12 +292,9 @@ class Search:
         (the exploit copied it), or its own after a restart from fresh weights (:data:`FRESH`).
         """
         pairs = list(zip(agents, parents, strict=True))
-        values = {
-            key: [float(v) for v in new[key]]
-            if key in new
-            else [self.current[key][agent if parent == FRESH else parent] for agent, parent in pairs]
-            for key in self.recorded
-        }
+        source = [agent if parent == FRESH else parent for agent, parent in pairs]
+        values = {key: [self.current[key][i] for i in source] for key in self.recorded}
+        values.update({key: [float(v) for v in new[key]] for key in new})
         rows = torch.as_tensor(list(agents))
         for key in self.recorded:
             entry = state[STATE_KEYS[key]]
@@ -560,13 +555,12 @@ class ReplaySettings:
         if [saved.get(key) for key in ("launcher", "run", "agent")] != ["pbt_replay", self.run, self.agent]:
             return  # another search: the caller's comparison names both
         if "schedule" in saved and saved["schedule"] != self.record()["schedule"]:
-            raise ConfigError.of(
-                "hydra.launcher.run",
-                self.run,
+            expected = (
                 f"the run this replay started from, unchanged: agent {self.agent}'s schedule there is "
                 f"now {_schedule_text(self.record()['schedule'])}, this replay follows "
-                f"{_schedule_text(saved['schedule'])}; replay the new run in another hydra.sweep.dir",
+                f"{_schedule_text(saved['schedule'])}; replay the new run in another hydra.sweep.dir"
             )
+            raise ConfigError.of("hydra.launcher.run", self.run, expected)
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Replay:
         """The :class:`Replay` of a population of ``len(values["seed"])`` agents."""
