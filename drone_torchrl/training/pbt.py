@@ -219,8 +219,7 @@ def complete_lineage(
     """
     keys = recorded_keys(initial) if keys is None else tuple(keys)
     out = {column: list(values) for column, values in (lineage or {}).items()}
-    for column in LINEAGE_COLUMNS:
-        out.setdefault(column, [])
+    out.update({column: out.get(column, []) for column in LINEAGE_COLUMNS})
     missing = [key for key in keys if key not in out]
     now = {key: [float(v) for v in initial[key]] for key in keys}
     out.update({key: [] for key in missing})
@@ -429,9 +428,8 @@ class PBT(Search):
         lineage. ``scores``: each agent's running-mean return; ``alive``: the agents that take part.
         The caller copies the agents' own records for the pairs returned.
         """
-        s = self.settings
         candidates = [i for i in range(len(scores)) if alive[i] and not math.isnan(scores[i])]
-        count = int(len(candidates) * s.quantile)
+        count = int(len(candidates) * self.settings.quantile)
         if count < 1:
             return []
         ranked = sorted(candidates, key=lambda i: (scores[i], i))
