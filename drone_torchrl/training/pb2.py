@@ -70,10 +70,10 @@ class PB2Settings(PBTSettings):
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PB2:
         """The search of a population (``saved``: what its checkpoint holds of it, or None)."""
-        bounds = self.bounds(cfg)
-        lineage = None if saved is None else saved["lineage"]
-        data = None if saved is None else saved.get("data")
-        return PB2(self, values, bounds, int(values["seed"][0]), lineage, data)
+        saved = saved or {}
+        return PB2(
+            self, values, self.bounds(cfg), int(values["seed"][0]), saved.get("lineage"), saved.get("data")
+        )
 
 
 class PB2(PBT):
@@ -112,8 +112,7 @@ class PB2(PBT):
 
     def position(self, key: str, value: float) -> float:
         """``value``'s place in ``key``'s searched space, in [0, 1]."""
-        if key in self.ranges:
-            span = self.ranges[key]
+        if span := self.ranges.get(key):
             scale = math.log if span.log else float
             return (scale(value) - scale(span.low)) / (scale(span.high) - scale(span.low))
         space = self.space[key]
@@ -122,11 +121,9 @@ class PB2(PBT):
 
     def value(self, key: str, position: float) -> float:
         """The value at ``position`` of ``key``'s searched space (a list key: a value of the list)."""
-        if key in self.ranges:
-            span = self.ranges[key]
-            if span.log:
-                return math.exp(math.log(span.low) + position * (math.log(span.high) - math.log(span.low)))
-            return span.low + position * (span.high - span.low)
+        if span := self.ranges.get(key):
+            scale, back = (math.log, math.exp) if span.log else (float, float)
+            return back(scale(span.low) + position * (scale(span.high) - scale(span.low)))
         space = self.space[key]
         return space[round(position * (len(space) - 1))]
 
@@ -145,16 +142,12 @@ class PB2(PBT):
     def observe(self, scores: Sequence[float], alive: Sequence[bool], step: int) -> None:
         """Add each taking-part agent's point of the interval that ends at ``step``."""
         before = self.before if self.before is not None else [0.0] * len(scores)
-        rows = [
-            i
-            for i in range(len(scores))
-            if alive[i] and math.isfinite(scores[i]) and before[i] is not None and math.isfinite(before[i])
-        ]
+        finite = [alive[i] and before[i] is not None and math.isfinite(before[i]) for i in range(len(scores))]
+        rows = [i for i in range(len(scores)) if finite[i] and math.isfinite(scores[i])]
         if not rows:
             return
         changes = np.array([scores[i] - before[i] for i in rows])
-        changes -= changes.mean()
-        for i, change in zip(rows, changes.tolist(), strict=True):
+        for i, change in zip(rows, (changes - changes.mean()).tolist(), strict=True):
             self.steps.append(step)
             self.points.append([self.position(key, self.current[key][i]) for key in self.settings.keys])
             self.changes.append(change)
@@ -170,9 +163,7 @@ class PB2(PBT):
         self.before = after
         keys = self.settings.keys
         kept = [
-            i
-            for i in range(len(scores))
-            if step.alive[i] and i not in set(worst.tolist()) and math.isfinite(scores[i])
+            i for i in range(len(scores)) if step.alive[i] and i not in worst and math.isfinite(scores[i])
         ]
         pending = [[self.position(k, self.current[k][i]) for k in keys] for i in kept]
         threads = torch.get_num_threads()
@@ -180,28 +171,17 @@ class PB2(PBT):
         # trainer's were 12x slower on 2 cores (a 350-point fit: 10.5 s on 2 threads, 0.85 s on 1).
         torch.set_num_threads(1)
         try:
-            return self._choose(keys, pending, worst, number, step.rng)
+            model = Model.fit(
+                np.array(self.steps, dtype=np.float64), np.array(self.points), np.array(self.changes)
+            )
+            options = self.candidates(step.rng)
+            chosen = []
+            for _ in worst:
+                score = model.upper_bound(options, number + 1, np.array(pending).reshape(-1, len(keys)))
+                chosen.append(options[int(np.argmax(score))])
+                pending.append(chosen[-1].tolist())
         finally:
             torch.set_num_threads(threads)
-
-    def _choose(
-        self,
-        keys: Sequence[str],
-        pending: list[list[float]],
-        worst: np.ndarray,
-        step: int,
-        rng: np.random.Generator,
-    ) -> dict[str, np.ndarray]:
-        model = Model.fit(
-            np.array(self.steps, dtype=np.float64), np.array(self.points), np.array(self.changes)
-        )
-        options = self.candidates(rng)
-        chosen = []
-        for _ in worst:
-            score = model.upper_bound(options, step + 1, np.array(pending).reshape(-1, len(keys)))
-            best = options[int(np.argmax(score))]
-            chosen.append(best)
-            pending.append(best.tolist())
         return {key: np.array([self.value(key, float(p[j])) for p in chosen]) for j, key in enumerate(keys)}
 
 
@@ -236,13 +216,10 @@ class Model:
             return cls(steps, points.reshape(0, 0), changes, LENGTH_SCALES[0], 0.0, 1.0)
         targets = np.clip((changes - changes.mean()) / (changes.std() + 1e-8), -CLIP, CLIP)
         squared, apart = _distances(steps, points, steps, points)
-        y = torch.as_tensor(targets, dtype=torch.float64)
+        y, eye = torch.as_tensor(targets, dtype=torch.float64), torch.eye(len(targets), dtype=torch.float64)
         best, best_fit = (LENGTH_SCALES[0], EPSILONS[0], NOISES[0]), -math.inf
         for length, epsilon, noise in itertools.product(LENGTH_SCALES, EPSILONS, NOISES):
-            gram = _covariance(squared, apart, length, epsilon) + noise * torch.eye(
-                len(targets), dtype=torch.float64
-            )
-            factor = torch.linalg.cholesky(gram)
+            factor = torch.linalg.cholesky(_covariance(squared, apart, length, epsilon) + noise * eye)
             alpha = torch.linalg.solve_triangular(factor, y[:, None], upper=False)
             fit = float(-0.5 * (alpha**2).sum() - torch.log(torch.diagonal(factor)).sum())
             if fit > best_fit:
@@ -284,12 +261,8 @@ def _distances(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Squared distances of the positions and steps apart, of every pair (a row of ``a``, of ``b``)."""
     ta, tb = (torch.as_tensor(np.asarray(x, dtype=np.float64)) for x in (a, b))
-    squared = ((ta[:, None, :] - tb[None, :, :]) ** 2).sum(dim=-1)
-    apart = (
-        torch.as_tensor(steps_a, dtype=torch.float64)[:, None]
-        - torch.as_tensor(steps_b, dtype=torch.float64)[None, :]
-    ).abs()
-    return squared, apart
+    sa, sb = (torch.as_tensor(x, dtype=torch.float64) for x in (steps_a, steps_b))
+    return ((ta[:, None, :] - tb[None, :, :]) ** 2).sum(dim=-1), (sa[:, None] - sb[None, :]).abs()
 
 
 def _covariance(squared: torch.Tensor, apart: torch.Tensor, length: float, epsilon: float) -> torch.Tensor:

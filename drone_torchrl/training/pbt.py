@@ -56,6 +56,8 @@ NEVER = 2**62
 LINEAGE_COLUMNS = ("update", "agent", "parent", "seed")
 #: The parent of an agent restarted from fresh weights.
 FRESH = -1
+#: The ``(agent, parent)`` pairs of a search step.
+Pairs = list[tuple[int, int]]
 
 
 @dataclass(frozen=True)
@@ -122,24 +124,17 @@ class PBTSettings:
         :class:`~.checks.ConfigError` (one line, naming ``hydra.launcher.<key>``) for the first that is not
         allowed.
         """
-        every = params.get("every_updates", cls.every_updates)
-        if not (is_number(every) and isinstance(every, int) and every >= 1):
-            raise ConfigError.of("hydra.launcher.every_updates", every, "an integer >= 1")
-        quantile = params.get("quantile", cls.quantile)
-        if not (is_number(quantile) and 0 < quantile <= MAX_QUANTILE):
-            raise ConfigError.of("hydra.launcher.quantile", quantile, f"a number in (0, {MAX_QUANTILE}]")
-        perturb = params.get("perturb", cls.perturb)
+        every = _param(
+            params, cls, "every_updates", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"
+        )
+        quantile = _param(
+            params, cls, "quantile", lambda v: 0 < v <= MAX_QUANTILE, f"a number in (0, {MAX_QUANTILE}]"
+        )
         # A factor past MAX_FACTOR (or below its inverse) sends any value to its range's end in one
         # step: a resample, not a perturbation (and inf or nan would be clipped into a value no agent had).
-        if not (_list(perturb) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in perturb)):
-            raise ConfigError.of(
-                "hydra.launcher.perturb",
-                perturb,
-                f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]",
-            )
-        resample = params.get("resample_probability", cls.resample_probability)
-        if not (is_number(resample) and 0 <= resample <= 1):
-            raise ConfigError.of("hydra.launcher.resample_probability", resample, "a number in [0, 1]")
+        factors = f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]"
+        perturb = _param(params, cls, "perturb", _factors, factors, number=False)
+        resample = _param(params, cls, "resample_probability", lambda v: 0 <= v <= 1, "a number in [0, 1]")
         keys = _searched_keys(params.get("keys", cls.keys), "PBT")
         return cls(
             int(every), float(quantile), tuple(float(f) for f in perturb), float(resample), tuple(keys)
@@ -147,11 +142,9 @@ class PBTSettings:
 
     def record(self) -> dict[str, Any]:
         """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
-        record = {"launcher": self.launcher, **asdict(self)}
         # A list-only search records no ranges: its record is the one runs made before ranges existed.
-        for unused in (*self.unused, *(() if self.ranges else ("ranges",))):
-            del record[unused]
-        return record
+        unused = {*self.unused, *(() if self.ranges else ("ranges",))}
+        return {k: v for k, v in {"launcher": self.launcher, **asdict(self)}.items() if k not in unused}
 
     def check(self, cfg: Any, agents: int) -> None:
         """A step inside the budget (``algo.episodes / algo.episodes_per_update`` updates).
@@ -160,11 +153,8 @@ class PBTSettings:
         """
         updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
         if self.every_updates >= updates:
-            raise ConfigError.of(
-                "hydra.launcher.every_updates",
-                self.every_updates,
-                f"fewer than the budget's {updates} updates",
-            )
+            expected = f"fewer than the budget's {updates} updates"
+            raise ConfigError.of("hydra.launcher.every_updates", self.every_updates, expected)
         _check_share(
             "hydra.launcher.quantile", self.quantile, agents, "replaced: no exploit step, an empty lineage"
         )
@@ -176,14 +166,11 @@ class PBTSettings:
         range (:attr:`ranges`) that reaches outside its key's values.
         """
         rules = schema_keys("config", algo=cfg.algo.name, logger=cfg.logger.backend)
-        bounds = {}
-        for key in self.keys:
-            rule = rules.get(key)
-            if rule is None:
-                raise ConfigError.of(
-                    "hydra.launcher.keys", list(self.keys), f"keys that algo={cfg.algo.name} has"
-                )
-            bounds[key] = (float(rule.low), float(rule.high))
+        if not set(self.keys) <= set(rules):
+            raise ConfigError.of(
+                "hydra.launcher.keys", list(self.keys), f"keys that algo={cfg.algo.name} has"
+            )
+        bounds = {key: (float(rules[key].low), float(rules[key].high)) for key in self.keys}
         for span in self.ranges:
             low, high = bounds[span.key]
             if not low <= span.low < span.high <= high:
@@ -207,8 +194,7 @@ class PBTSettings:
                 "neighbouring value of it; perturb multiplies keys searched over interval(low,high)",
                 file=sys.stderr,
             )
-        lineage = None if saved is None else saved["lineage"]
-        return PBT(self, values, bounds, int(values["seed"][0]), lineage)
+        return PBT(self, values, bounds, int(values["seed"][0]), (saved or {}).get("lineage"))
 
 
 def recorded_keys(initial: Mapping[str, Any]) -> tuple[str, ...]:
@@ -233,14 +219,10 @@ def complete_lineage(
     """
     keys = recorded_keys(initial) if keys is None else tuple(keys)
     out = {column: list(values) for column, values in (lineage or {}).items()}
-    for column in LINEAGE_COLUMNS:
-        out.setdefault(column, [])
+    out.update({column: out.get(column, []) for column in LINEAGE_COLUMNS})
     missing = [key for key in keys if key not in out]
-    if not missing:
-        return out
     now = {key: [float(v) for v in initial[key]] for key in keys}
-    for key in missing:
-        out[key] = []
+    out.update({key: [] for key in missing})
     for row, (agent, parent) in enumerate(zip(out["agent"], out["parent"], strict=True)):
         source = agent if parent == FRESH else parent
         for key in missing:
@@ -289,16 +271,13 @@ class Search:
     ) -> None:
         self.keys = tuple(keys)
         self.recorded = recorded_keys(initial)
-        columns = (*LINEAGE_COLUMNS, *self.recorded)
         # An older checkpoint's lineage may lack the keys that were not searched: filled in.
         complete = complete_lineage(lineage, initial, self.recorded)
-        self.lineage: dict[str, list] = {key: complete[key] for key in columns}
+        self.lineage: dict[str, list] = {key: complete[key] for key in (*LINEAGE_COLUMNS, *self.recorded)}
         # Each agent's value of each recorded key now, exactly (the state holds gamma in the
         # network's precision): the sweep's, then each lineage row's.
-        self.current = {
-            key: [float(v) for v in values]
-            for key, values in final_values(self.lineage, initial, self.recorded).items()
-        }
+        final = final_values(self.lineage, initial, self.recorded)
+        self.current = {key: [float(v) for v in values] for key, values in final.items()}
 
     def start(self, state: Any) -> None:
         """A fresh run's state before its first update (a resumed one has its checkpoint's)."""
@@ -312,12 +291,9 @@ class Search:
         (the exploit copied it), or its own after a restart from fresh weights (:data:`FRESH`).
         """
         pairs = list(zip(agents, parents, strict=True))
-        values = {
-            key: [float(v) for v in new[key]]
-            if key in new
-            else [self.current[key][agent if parent == FRESH else parent] for agent, parent in pairs]
-            for key in self.recorded
-        }
+        source = [agent if parent == FRESH else parent for agent, parent in pairs]
+        values = {key: [self.current[key][i] for i in source] for key in self.recorded}
+        values.update({key: [float(v) for v in new[key]] for key in new})
         rows = torch.as_tensor(list(agents))
         for key in self.recorded:
             entry = state[STATE_KEYS[key]]
@@ -351,12 +327,23 @@ def _check_share(
         smallest += 1
     fits = 1 / agents < most or (1 / agents == most and not most_open)
     larger = f"at least 1/{agents} for a population of {agents} agents, or " if fits else ""
-    raise ConfigError.of(
-        key,
-        share,
-        f"{larger}a population of at least {smallest} agents (int({agents} x {share:g}) = 0 agents "
-        f"would ever be {outcome})",
-    )
+    expected = f"a population of at least {smallest} agents (int({agents} x {share:g}) = 0 agents would ever"
+    raise ConfigError.of(key, share, f"{larger}{expected} be {outcome})")
+
+
+def _param(
+    params: Mapping[str, Any], cls: type, key: str, ok: Any, expected: str, number: bool = True
+) -> Any:
+    """``hydra.launcher.<key>`` (default: ``cls``'s), checked by ``ok`` (and as a number where ``number``)."""
+    value = params.get(key, getattr(cls, key))
+    if not ((is_number(value) or not number) and ok(value)):
+        raise ConfigError.of(f"hydra.launcher.{key}", value, expected)
+    return value
+
+
+def _factors(value: Any) -> bool:
+    """Whether ``value`` is a non-empty list of ``hydra.launcher.perturb``'s factors."""
+    return _list(value) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in value)
 
 
 def _list(value: Any) -> bool:
@@ -371,11 +358,8 @@ def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
     for key in keys:
         if not isinstance(key, str) or key not in STATE_KEYS:
             why = "a per-agent key" if key in per_agent_keys() else "not a per-agent key"
-            raise ConfigError.of(
-                "hydra.launcher.keys",
-                list(keys),
-                f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} {search} cannot search)",
-            )
+            expected = f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} {search} cannot search)"
+            raise ConfigError.of("hydra.launcher.keys", list(keys), expected)
     if len(set(keys)) < len(keys):  # one lineage column per key: a repeated one has no meaning
         raise ConfigError.of("hydra.launcher.keys", list(keys), "each key once, e.g. [algo.lr,algo.gamma]")
     return tuple(keys)
@@ -428,25 +412,21 @@ class PBT(Search):
 
     def updates_until_due(self, updates_done: int) -> int:
         """Updates from ``updates_done`` until the next exploit-and-explore step."""
-        every = self.settings.every_updates
-        return every - updates_done % every
+        return self.settings.every_updates - updates_done % self.settings.every_updates
 
     def due(self, updates_done: int) -> bool:
         """Whether an exploit-and-explore step is due after ``updates_done`` updates."""
         return updates_done % self.settings.every_updates == 0
 
-    def step(
-        self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
-    ) -> list[tuple[int, int]]:
+    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """One exploit-and-explore step after ``update`` updates; returns ``(agent, parent)`` pairs.
 
         Rewrites rows of ``state`` (the population's stacked state) in place and appends the
         lineage. ``scores``: each agent's running-mean return; ``alive``: the agents that take part.
         The caller copies the agents' own records for the pairs returned.
         """
-        s = self.settings
         candidates = [i for i in range(len(scores)) if alive[i] and not math.isnan(scores[i])]
-        count = int(len(candidates) * s.quantile)
+        count = int(len(candidates) * self.settings.quantile)
         if count < 1:
             return []
         ranked = sorted(candidates, key=lambda i: (scores[i], i))
@@ -464,10 +444,8 @@ class PBT(Search):
 
     def choose(self, step: Exploit) -> dict[str, np.ndarray]:
         """The values the replaced agents train with next (key -> one per agent): each explored from its parent's."""
-        current, rng = self.current, step.rng
-        return {
-            key: self.explore(key, np.array(current[key])[step.parents], rng) for key in self.settings.keys
-        }
+        parents = step.parents
+        return {k: self.explore(k, np.array(self.current[k])[parents], step.rng) for k in self.settings.keys}
 
     def explore(self, key: str, values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The explored values of ``key`` from the parents' ``values``, with ``rng``'s draws.
@@ -478,8 +456,7 @@ class PBT(Search):
         s = self.settings
         count = len(values)
         resampled = rng.random(count) < s.resample_probability
-        if key in self.ranges:
-            span = self.ranges[key]
+        if span := self.ranges.get(key):
             factors = np.array(s.perturb)[rng.integers(len(s.perturb), size=count)]
             moved = np.clip(values * factors, span.low, span.high)
             drawn = span.draw(rng, count)
@@ -525,29 +502,25 @@ class ReplaySettings:
 
         run = params.get("run")
         path = Path(str(run)) / CHECKPOINT_DIR / LAST
+
+        def refused(expected: str) -> ConfigError:
+            return ConfigError.of("hydra.launcher.run", run, expected)
+
         if (too_long := name_too_long(path)) is not None:  # is_file() would raise ENAMETOOLONG
-            raise ConfigError.of(
-                "hydra.launcher.run", run, f"a folder name this file system takes ({too_long})"
-            )
+            raise refused(f"a folder name this file system takes ({too_long})")
         try:
             state = load_checkpoint(path) if run is not None and path.is_file() else None
         except CheckpointError as err:
-            raise ConfigError.of("hydra.launcher.run", run, f"a PBT population run ({err})") from None
+            raise refused(f"a PBT population run ({err})") from None
         search = None if state is None else state.get("search")
         if not search or search["settings"].get("launcher") not in ("pbt", "pb2", "halving"):
-            raise ConfigError.of(
-                "hydra.launcher.run",
-                run,
-                "the folder of a PBT, PB2 or halving run (hydra/launcher=pbt, pb2 or halving)",
-            )
+            raise refused("the folder of a PBT, PB2 or halving run (hydra/launcher=pbt, pb2 or halving)")
         count = len(state["episodes_done"])
         training = sum(f is None and e is None for f, e in zip(state["final"], state["failure"], strict=True))
         if training:  # its lineage and final returns are not yet the run's
-            raise ConfigError.of(
-                "hydra.launcher.run",
-                run,
+            raise refused(
                 f"a finished PBT or halving run ({training} of its {count} agents are still training: "
-                "run its command again to finish it first)",
+                "run its command again to finish it first)"
             )
         agent = params.get("agent")
         if agent is None:  # the best final return
@@ -558,8 +531,7 @@ class ReplaySettings:
                 "hydra.launcher.agent", agent, f"an agent of {run}: an integer 0..{count - 1}"
             )
         steps = schedule(search["lineage"], state["agents"], agent)
-        frozen = tuple((update, tuple(values.items())) for update, values in steps)
-        return cls(str(Path(str(run)).resolve()), agent, frozen)
+        return cls(str(Path(str(run)).resolve()), agent, tuple((u, tuple(v.items())) for u, v in steps))
 
     def record(self) -> dict[str, Any]:
         """What a checkpoint keeps of these settings: the launcher, run and agent, and the schedule."""
@@ -578,13 +550,12 @@ class ReplaySettings:
         if [saved.get(key) for key in ("launcher", "run", "agent")] != ["pbt_replay", self.run, self.agent]:
             return  # another search: the caller's comparison names both
         if "schedule" in saved and saved["schedule"] != self.record()["schedule"]:
-            raise ConfigError.of(
-                "hydra.launcher.run",
-                self.run,
+            expected = (
                 f"the run this replay started from, unchanged: agent {self.agent}'s schedule there is "
                 f"now {_schedule_text(self.record()['schedule'])}, this replay follows "
-                f"{_schedule_text(saved['schedule'])}; replay the new run in another hydra.sweep.dir",
+                f"{_schedule_text(saved['schedule'])}; replay the new run in another hydra.sweep.dir"
             )
+            raise ConfigError.of("hydra.launcher.run", self.run, expected)
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Replay:
         """The :class:`Replay` of a population of ``len(values["seed"])`` agents."""
@@ -651,33 +622,23 @@ class Replay(Search):
 
     def start(self, state: Any) -> None:
         """Give every agent the replayed line's first values."""
-        self._apply(state, 0)
+        self.step(state, (), (), 0)
 
     def updates_until_due(self, updates_done: int) -> int:
         """Updates from ``updates_done`` until the replayed line's next change of values."""
-        later = [u - updates_done for u in self.steps if u > updates_done]
-        return min(later, default=NEVER)
+        return min((u - updates_done for u in self.steps if u > updates_done), default=NEVER)
 
     def due(self, updates_done: int) -> bool:
         """Whether the replayed line changes its values after ``updates_done`` updates."""
         return updates_done in self.steps and updates_done > 0
 
-    def step(
-        self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
-    ) -> list[tuple[int, int]]:
+    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """Give every agent the line's values from ``update`` on; replaces no agent (returns ``[]``)."""
-        self._apply(state, update)
-        return []
-
-    def _apply(self, state: Any, update: int) -> None:
         everyone = list(range(self.agents))
         self._set(
-            state,
-            update,
-            everyone,
-            everyone,
-            {key: [v] * self.agents for key, v in self.steps[update].items()},
+            state, update, everyone, everyone, {k: [v] * self.agents for k, v in self.steps[update].items()}
         )
+        return []
 
 
 @dataclass(frozen=True)
@@ -701,18 +662,15 @@ class HalvingSettings:
 
         Raises :class:`~.checks.ConfigError` (one line) for the first that is not allowed.
         """
-        rungs = params.get("rungs", cls.rungs)
-        if not (
-            _list(rungs)
-            and all(is_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
-            and list(rungs) == sorted(set(rungs))
-        ):
-            raise ConfigError.of(
-                "hydra.launcher.rungs", rungs, "increasing update counts >= 1, e.g. [500,1500]"
-            )
-        fraction = params.get("fraction", cls.fraction)
-        if not (is_number(fraction) and 0 < fraction < 1):
-            raise ConfigError.of("hydra.launcher.fraction", fraction, "a number in (0, 1)")
+
+        def increasing(rungs: Any) -> bool:
+            counts = _list(rungs) and all(is_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
+            return counts and list(rungs) == sorted(set(rungs))
+
+        rungs = _param(
+            params, cls, "rungs", increasing, "increasing update counts >= 1, e.g. [500,1500]", False
+        )
+        fraction = _param(params, cls, "fraction", lambda v: 0 < v < 1, "a number in (0, 1)")
         keys = _searched_keys(params.get("keys", cls.keys), "successive halving")
         return cls(tuple(int(r) for r in rungs), float(fraction), keys)
 
@@ -788,9 +746,7 @@ class Halving(Search):
         """Whether an agent reaches a rung after ``updates_done`` updates."""
         return any(updates_done - s in self.rung_scores for s in set(self.started))
 
-    def step(
-        self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int
-    ) -> list[tuple[int, int]]:
+    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """Restart the agents at a rung that score in its worst ``fraction``; returns ``(agent, FRESH)`` pairs."""
         stopped = []
         for rung, history in self.rung_scores.items():
@@ -803,15 +759,12 @@ class Halving(Search):
             k = int(len(history) * self.settings.fraction)
             threshold = sorted(history)[k] if k else -math.inf
             stopped += [i for i in arrived if score[i] < threshold]
-        if stopped:
-            self._restart(state, update, sorted(stopped))
-        return [(agent, FRESH) for agent in sorted(stopped)]
-
-    def _restart(self, state: Any, update: int, agents: list[int]) -> None:
+        if not stopped:
+            return []
         from drone_torchrl.modules.factory import build_policies
         from drone_torchrl.training.optim import adam_state
 
-        count = len(agents)
+        agents, count = sorted(stopped), len(stopped)
         rng = np.random.default_rng([self.seed, update])
         new = {
             key: np.array(self.space[key])[rng.integers(len(self.space[key]), size=count)]
@@ -830,6 +783,7 @@ class Halving(Search):
         self._set(state, update, agents, [FRESH] * count, new)
         for agent in agents:
             self.started[agent] = update
+        return [(agent, FRESH) for agent in agents]
 
 
 #: What a population run's search is asked for (PBT, successive halving, or a replay of one agent's values).
