@@ -358,6 +358,7 @@ def complete(cfg: DictConfig | dict, name: str = "config") -> list[str]:
 
 def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
     """The plug-in each plug-in group of ``resolved`` names; one that has no schema is refused."""
+    _discover_plugins()  # a fresh process (a joblib or submitit worker) has imported none of them
     out: dict[str, str] = {}
     for group, rule in schema.plugin_groups(name).items():
         section = resolved.get(group)

@@ -44,3 +44,21 @@ def test_the_evaluator_reads_the_arguments_without_an_env(no_env):
     assert max_return(kwargs) == 2000.0
     optimum = reference_optimum(kwargs)
     assert optimum is not None and 0 < optimum.best_return < 2000.0
+
+
+def test_a_fresh_process_validates_a_composed_config(tmp_path):
+    """A launcher's worker (joblib, submitit) gets the composed config and has imported no plug-in:
+    validating it there found no logger schema ("has no config schema") and failed every job."""
+    import subprocess
+    import sys
+
+    from omegaconf import OmegaConf
+
+    path = tmp_path / "config.yaml"
+    OmegaConf.save(_cfg("algo=ppo", "logger=csv"), path)
+    code = (
+        "import sys; from omegaconf import OmegaConf; from drone_torchrl.config import validate; "
+        "validate(OmegaConf.load(sys.argv[1])); print('valid')"
+    )
+    proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0 and proc.stdout.strip() == "valid", proc.stderr[-2000:]
