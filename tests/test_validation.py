@@ -60,5 +60,7 @@ def test_a_fresh_process_validates_a_composed_config(tmp_path):
         "import sys; from omegaconf import OmegaConf; from drone_torchrl.config import validate; "
         "validate(OmegaConf.load(sys.argv[1])); print('valid')"
     )
-    proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120
+    )
     assert proc.returncode == 0 and proc.stdout.strip() == "valid", proc.stderr[-2000:]
