@@ -347,3 +347,11 @@ def test_a_library_reading_other_constants_or_observations_is_refused_at_load(mo
     monkeypatch.setattr(dynamics, "STATE_NAMES", (*dynamics.STATE_NAMES, "extra"))
     with pytest.raises(OSError, match="sees 6 observation entries with 0 observed commands; drone_torchrl 7"):
         build._load(path, double=False)
+    monkeypatch.undo()
+    # A library built from another version of the source (DRONE_TORCHRL_CUDA_LIBRARY names any file):
+    # its entry points take other arguments, which no constant shows.
+    monkeypatch.setattr(build, "ABI_VERSION", build.ABI_VERSION + 1)
+    with pytest.raises(
+        OSError, match=f"arguments of version {build.ABI_VERSION - 1}, not {build.ABI_VERSION}"
+    ):
+        build._load(path, double=False)

@@ -191,6 +191,8 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
 
 # The functions whose result is an int64 or a name: every build's, then the CPU's or the CUDA one's own.
 _INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim")
+#: The entry points' argument lists the Python side calls (drone_kernels.cpp's ``dk_abi_version``).
+ABI_VERSION = 2
 _NAMES = ("dk_env_constants", "dk_disturbance_constants")
 _CPU_INT64_RESULTS = ("dk_rollout", "dk_reinforce", "dk_segments")
 _CUDA_INT64_RESULTS = ("dk_cuda_scratch_size", "dk_cuda_rollout", "dk_cuda_reinforce")
@@ -199,6 +201,14 @@ _CUDA_NAMES = ("dk_cuda_error",)
 
 def _load(path: Path, double: bool, cuda: bool = False) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(path))
+    try:
+        version = lib.dk_abi_version()
+    except AttributeError:  # built before the entry points were numbered
+        version = 1
+    if version != ABI_VERSION:
+        raise OSError(
+            f"{path} takes the entry points' arguments of version {version}, not {ABI_VERSION}: rebuild it"
+        )
     for function in _INT64_RESULTS + (_CUDA_INT64_RESULTS if cuda else _CPU_INT64_RESULTS):
         getattr(lib, function).restype = ctypes.c_int64
     for function in _NAMES + (_CUDA_NAMES if cuda else ()):

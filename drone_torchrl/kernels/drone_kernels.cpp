@@ -1388,6 +1388,9 @@ const char* dk_env_constants() { return DK_ENV_CONSTANTS(DK_NAME); }
 const char* dk_disturbance_constants() { return DK_DISTURBANCE_CONSTANTS(DK_NAME); }
 int64_t dk_observation_dim(int64_t observed) { return observation_dim(static_cast<int>(observed)); }
 int64_t dk_real_bytes() { return sizeof(Real); }
+// The entry points' argument lists, numbered: a library built from another version of this file
+// (DRONE_TORCHRL_CUDA_LIBRARY names any file) is refused at load instead of called with wrong arguments.
+int64_t dk_abi_version() { return 2; }
 
 // Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
 // row's episode terminates or `steps` steps. Writes the states ([rows, steps + 1, 6]: before each
