@@ -471,7 +471,6 @@ class Progress:
 
     def __init__(self, runs: Sequence[RunRecord], setting: bool | str) -> None:
         show = sys.stderr.isatty() if setting == "auto" else bool(setting)
-        self.runs = runs
         self.bar = tqdm(
             total=sum(r.budget for r in runs),
             initial=sum(r.episodes_done for r in runs),
