@@ -118,6 +118,25 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
     write_atomically(path, buffer.getbuffer())
 
 
+def run_state(
+    backend: str, learner: dict[str, Any], counters: dict[str, Any], config: dict, final: dict | None
+) -> dict[str, Any]:
+    """A run's checkpoint (the layout above): ``learner``'s entries (actor, optimizer, rng...), then the counters."""
+    return {
+        "format_version": FORMAT_VERSION,
+        "backend": backend,
+        **learner,
+        **counters,
+        "config": config,
+        "final": final,
+    }
+
+
+def is_population(checkpoint: Any) -> bool:
+    """Whether ``checkpoint`` is a population run's checkpoint (``kind``)."""
+    return isinstance(checkpoint, dict) and checkpoint.get("kind") == POPULATION
+
+
 def tensors(state: Any, prefix: str = "") -> Iterator[tuple[str, torch.Tensor]]:
     """Every tensor of a checkpoint's nested dicts and lists, with its path, in storage order.
 
@@ -244,7 +263,7 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
     1 and 2 named the implementation ``engine`` (and PPO's ``algo.collector`` in the config), which
     ``backend`` replaced (:mod:`drone_torchrl.migrations`).
     """
-    if isinstance(state, dict) and state.get("kind") == POPULATION:
+    if is_population(state):
         missing = [key for key in POPULATION_KEYS if key not in state]
         if missing or state["format_version"] != FORMAT_VERSION:
             raise CheckpointError(
@@ -255,7 +274,6 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
         raise CheckpointError(f"{path} is not a drone_torchrl checkpoint (no actor or config)")
     version = state.get("format_version", 1)
     if version == 1:
-        state = dict(state)
         state["rng"] = {
             "torch": state.pop("torch_rng", None),
             "env": state.pop("env_rng", None),
@@ -264,7 +282,6 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
         state.setdefault("final", None)
         version = 2
     if version == 2:
-        state = dict(state)
         config = state["config"] if isinstance(state["config"], dict) else {}
         algo = config.get("algo") if isinstance(config.get("algo"), dict) else {}
         state["backend"] = migrations.backend_of(state.pop("engine", None), algo.get("collector"))

@@ -49,24 +49,11 @@ def is_text(fields: Iterable[Any]) -> bool:
     return True
 
 
-def _parse(row: dict[str, str | None]) -> dict[str, object] | None:
-    """A CSV row as numbers (and the cause's name), or None if it is torn or garbled."""
-    try:
-        parsed = {c: row[c] if c in TEXT_COLUMNS else float(row[c]) for c in CSV_COLUMNS}  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        return None
-    numbers = [v for c, v in parsed.items() if c not in TEXT_COLUMNS]
-    if any(not math.isfinite(v) for v in numbers) or any(not parsed[c] for c in TEXT_COLUMNS):
-        return None
-    if None in row:  # more fields than columns: two rows run together
-        return None
-    return parsed
-
-
 def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]]], list[str]]:
     """The parsable rows of ``path`` (parsed, and as written), and a note for each line left out.
 
-    A line is left out when torn, garbled, or not UTF-8.
+    A line is left out when torn, garbled, or not UTF-8. A row is kept as numbers (and the cause's
+    name): each finite, the cause named, and no more fields than columns (two rows run together).
     """
     notes: list[str] = []
     rows = []
@@ -76,10 +63,17 @@ def _read_rows(path: Path) -> tuple[list[tuple[dict[str, object], dict[str, str]
         if missing:
             raise EpisodeCSVError(f"{path} lacks the column(s) {', '.join(missing)}")
         for row in reader:
-            parsed = _parse(row)
+            try:
+                parsed = {c: row[c] if c in TEXT_COLUMNS else float(row[c]) for c in CSV_COLUMNS}  # type: ignore[arg-type]
+            except (TypeError, ValueError):
+                parsed = None
             if not is_text(row.values()):
                 notes.append(f"{path}: line {reader.line_num} is not UTF-8 text; skipped")
-            elif parsed is None:
+            elif (
+                parsed is None
+                or None in row
+                or not all(v if c in TEXT_COLUMNS else math.isfinite(v) for c, v in parsed.items())
+            ):
                 notes.append(f"{path}: line {reader.line_num} is not a complete row; skipped")
             else:
                 rows.append((parsed, row))

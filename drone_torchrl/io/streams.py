@@ -44,17 +44,9 @@ class _AlwaysOn(logging.Logger):
         pass
 
 
-def _always_on(name: str) -> logging.Logger:
-    previous = logging.getLoggerClass()
-    logging.setLoggerClass(_AlwaysOn)
-    try:
-        return logging.getLogger(name)
-    finally:
-        logging.setLoggerClass(previous)
-
-
 #: The logger of the lines a command shows its user (see the module's docstring).
-console = _always_on("drone_torchrl.console")
+console = logging.getLogger("drone_torchrl.console")
+console.__class__ = _AlwaysOn  # the logger made under this name (a logging config may have made it first)
 #: A run folder's log file, Hydra's job log (``${hydra.job.name}.log`` of ``drone-train``).
 RUN_LOG = "train.log"
 #: How a log file's lines look, as in Hydra's default job logging.

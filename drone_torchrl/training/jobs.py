@@ -55,9 +55,9 @@ from drone_torchrl.io import run_lock
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
-    POPULATION,
     CheckpointError,
     is_last_of_its_run,
+    is_population,
     load_checkpoint,
     run_dir_of,
 )
@@ -298,7 +298,7 @@ def job_status(job_dir: Path) -> tuple[str, str]:
         ckpt = load_checkpoint(last)
     except CheckpointError as err:
         return "unfinished", f"unreadable checkpoint: {err}"
-    if ckpt.get("kind") == POPULATION:
+    if is_population(ckpt):
         finished = sum(final is not None for final in ckpt["final"])
         failed = sum(failure is not None for failure in ckpt["failure"])
         detail = f"population of {len(ckpt['final'])} agents: {finished} finished, {failed} failed"

@@ -39,7 +39,15 @@ from drone_torchrl import extras
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import open_checkpoint, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
-from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, FORMAT_VERSION, LAST, POPULATION, load_checkpoint
+from drone_torchrl.io.checkpoint import (
+    CHECKPOINT_DIR,
+    FORMAT_VERSION,
+    LAST,
+    POPULATION,
+    is_population,
+    load_checkpoint,
+    run_state,
+)
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.training.agents import AgentTable
@@ -52,6 +60,8 @@ LINEAGE_TABLE = "lineage.parquet"
 EPISODES_DIR = "episodes"
 # The running-return quantiles the loggers get.
 QUANTILES = (0.1, 0.5, 0.9)
+# The columns of the episode parts.
+_ROW_COLUMNS = ("agent", "episode", "update", *EPISODE_KEYS, "wall_clock_s")
 
 
 def _pyarrow():
@@ -101,8 +111,10 @@ class PopulationAgent(AgentBook):
 
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
         """Book one update's episodes and add them to the population's rows."""
-        first = self.book(episodes["return"], episodes["length"])
-        self.owner.add_rows(self.index, first, self.updates_done, episodes)
+        columns = self.book(episodes)
+        self.owner.columns["agent"].extend([self.index] * len(columns["episode"]))
+        for key, values in columns.items():
+            self.owner.columns[key].extend(values)
 
     def record_eval(self, result: dict[str, float], learner_state: Any = None, actor: Any = None) -> None:
         """Count an evaluation (a population run keeps no best.pt nor videos per agent)."""
@@ -110,9 +122,18 @@ class PopulationAgent(AgentBook):
         self.owner.eval_returns[self.index] = result["return"]
 
     def fail(self, reason: str) -> None:
-        """Mark the agent failed, keep its last finite state, and say so on stderr."""
+        """Mark the agent failed, keep its last finite state, and say so on stderr.
+
+        Its state of the last checkpoint goes into the next ones (none yet: its weights are written
+        with their non-finite values zeroed).
+        """
         self.failure = reason
-        self.owner.keep_last_finite(self.index)
+        path = self.run_dir / CHECKPOINT_DIR / LAST
+        if path.is_file():
+            state = load_checkpoint(path)["state"]
+            self.owner.last_finite[self.index] = {
+                key: value[self.index].clone() for key, value in state.items()
+            }
         console.warning(
             f"{self.run_dir}: agent {self.index} failed: {TrainingDiverged.__name__}: {reason}",
             **about(self.run_dir),
@@ -161,11 +182,11 @@ class PopulationRecord(Record):
             for agent, final, failure in ended:  # a final agent given a larger budget trains on
                 agent.final, agent.failure = (final if agent.finished else None), failure
         self.updates = 0 if checkpoint is None else int(checkpoint["population_updates"])
-        self._columns: dict[str, list] = {}
+        # The buffered episode rows, a list per column.
+        self.columns: dict[str, list] = {key: [] for key in _ROW_COLUMNS}
         # Failed agent -> its rows of the stacked state in the last checkpoint (finite), kept in
         # the checkpoints that follow instead of its diverged weights.
-        self._last_finite: dict[int, dict[str, torch.Tensor]] = {}
-        self._clear()
+        self.last_finite: dict[int, dict[str, torch.Tensor]] = {}
         self.open(cfg, run_dir, backend, None if checkpoint is None else self.step)
         with writing(run_dir / EPISODES_DIR):
             (run_dir / EPISODES_DIR).mkdir(exist_ok=True)
@@ -194,20 +215,6 @@ class PopulationRecord(Record):
         self.search: Search | None = None
 
     # ------------------------------------------------------------------ episodes
-    def _clear(self) -> None:
-        self._columns = {key: [] for key in ("agent", "episode", "update", *EPISODE_KEYS, "wall_clock_s")}
-
-    def add_rows(self, agent: int, first: int, update: int, episodes: dict[str, Sequence]) -> None:
-        """Buffer ``episodes`` (key to one value per episode) of ``agent`` as rows from episode ``first``."""
-        count = len(episodes["return"])
-        cols = self._columns
-        cols["agent"].extend([agent] * count)
-        cols["episode"].extend(range(first, first + count))
-        cols["update"].extend([update] * count)
-        cols["wall_clock_s"].extend([round(self.agents[agent].wall_clock, 3)] * count)
-        for key in EPISODE_KEYS:
-            cols[key].extend(episodes[key])
-
     def _write_table(self, columns: dict[str, list], path: Path) -> None:
         """``columns`` as one Parquet file, written whole or not at all."""
         buffer = io.BytesIO()
@@ -216,7 +223,7 @@ class PopulationRecord(Record):
 
     def write_rows(self) -> None:
         """Write the buffered rows as the next episode part."""
-        cols = self._columns
+        cols = self.columns
         if not cols["agent"]:
             return
         names = np.array([_CAUSE_NAMES[c] for c in sorted(_CAUSE_NAMES)])
@@ -229,7 +236,7 @@ class PopulationRecord(Record):
         table["termination_cause"] = names[np.asarray(cols["termination_cause"], dtype=np.int64)]
         self._write_table(table, self.run_dir / EPISODES_DIR / f"part-{self.parts + 1:06d}.parquet")
         self.parts += 1
-        self._clear()
+        self.columns = {key: [] for key in _ROW_COLUMNS}
 
     # ------------------------------------------------------------------ summaries
     @property
@@ -261,34 +268,16 @@ class PopulationRecord(Record):
             self.logger.log_metrics(metrics, step=self.step)
 
     # ------------------------------------------------------------------ checkpoints
-    def keep_last_finite(self, agent: int) -> None:
-        """Agent ``agent`` diverged: keep its state of the last checkpoint for the next ones.
-
-        None yet: its weights are written with their non-finite values zeroed.
-        """
-        path = self.run_dir / CHECKPOINT_DIR / LAST
-        if path.is_file():
-            state = load_checkpoint(path)["state"]
-            self._last_finite[agent] = {key: value[agent].clone() for key, value in state.items()}
-
-    def save(self, state: dict[str, torch.Tensor]) -> None:
-        """Write ``last.pt`` with every agent's stacked state ``[N, ...]``; at the end, also close.
-
-        The state is ``state``'s stacked tensors, written after the episodes it counts; at the end
-        the final summary is written too.
-        """
-        self.write_last(state)
+    def write_last(self, state: dict[str, torch.Tensor]) -> None:
+        """Write ``last.pt`` with every agent's stacked state ``[N, ...]``, and the search's lineage so far."""
+        super().write_last(state)
         if self.search is not None:  # the lineage as far as the checkpoint: a resume starts there
             self._write_table(self.search.lineage, self.run_dir / LINEAGE_TABLE)
-        for agent in self.agents:
-            agent.book_save()
-        if all(a.failed or a.final is not None for a in self.agents):
-            finals = [a.final["final_return"] for a in self.agents if a.final is not None]
-            if finals:
-                self.logger.log_final_hparams(
-                    self.config, {"final_return_best": max(finals), **self.summary()}
-                )
-            self.close()
+
+    def final_metrics(self) -> dict[str, float] | None:
+        """The final hparams' metrics: the best agent's final return and the :meth:`summary`."""
+        finals = [a.final["final_return"] for a in self.agents if a.final is not None]
+        return {"final_return_best": max(finals), **self.summary()} if finals else None
 
     def checkpoint_state(self, state: dict[str, torch.Tensor]) -> dict[str, Any]:
         """The population's checkpoint: ``state``'s stacked tensors, every agent's counters, the search's record."""
@@ -301,7 +290,7 @@ class PopulationRecord(Record):
                 tensor = tensor.clone()
                 if tensor.is_floating_point():
                     tensor[failed] = torch.nan_to_num(tensor[failed], nan=0.0, posinf=0.0, neginf=0.0)
-                for agent, rows in self._last_finite.items():
+                for agent, rows in self.last_finite.items():
                     tensor[agent] = rows[key]
             stacked[key] = tensor
 
@@ -342,11 +331,6 @@ def _agent_counters(checkpoint: dict[str, Any], i: int) -> dict[str, Any]:
         "recent_returns": checkpoint["recent_returns"][i, :count].tolist(),
         "recent_lengths": checkpoint["recent_lengths"][i, :count].tolist(),
     }
-
-
-def is_population(checkpoint: dict[str, Any]) -> bool:
-    """Whether ``checkpoint`` is a population run's checkpoint."""
-    return isinstance(checkpoint, dict) and checkpoint.get("kind") == POPULATION
 
 
 class PopulationFileError(ValueError):
@@ -419,7 +403,15 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
     :func:`agent_checkpoint`; ``agent`` is for population runs only.
     """
     path, state = open_checkpoint(key, location)
-    if is_population(state) and agent is None and key == "resume":
+    if not is_population(state):
+        if agent is not None:
+            raise ConfigError.of(
+                "agent",
+                agent,
+                f"null: {path} is one run's checkpoint (agent=K picks an agent of a population run)",
+            )
+        return path, state
+    if agent is None and key == "resume":
         # resume= continues one run; a population is continued, or extended, by its sweep's command.
         sweep = Path(path).parent.parent.parent
         raise ConfigError.of(
@@ -429,15 +421,7 @@ def open_agent(key: str, location: Any, agent: Any = None) -> tuple[Path, dict[s
             "alone, as a fork); to train the whole population on, run its sweep's command again with a "
             f"larger algo.episodes and hydra.sweep.dir={sweep}",
         )
-    if is_population(state):
-        return path, agent_checkpoint(state, agent, path)
-    if agent is not None:
-        raise ConfigError.of(
-            "agent",
-            agent,
-            f"null: {path} is one run's checkpoint (agent=K picks an agent of a population run)",
-        )
-    return path, state
+    return path, agent_checkpoint(state, agent, path)
 
 
 def agent_values(state: dict[str, Any], until: int | None = None) -> dict[str, list]:
@@ -478,12 +462,7 @@ def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str,
     with torch.no_grad():  # the weights are a leaf that requires grad
         for key, value in state["state"].items():
             one.state[key].copy_(value[agent : agent + 1])
-    return {
-        "format_version": FORMAT_VERSION,
-        "backend": state["backend"],
-        **one.checkpoint_entries(0),
-        "rng": {"torch": None, "env": None, "agent": None},  # counter-based: the update count is the state
-        **_agent_counters(state, agent),
-        "config": OmegaConf.to_container(cfg, resolve=True),
-        "final": state["final"][agent],
-    }
+    # Counter-based RNG: the update count is the state.
+    learner = {**one.checkpoint_entries(0), "rng": {"torch": None, "env": None, "agent": None}}
+    config = OmegaConf.to_container(cfg, resolve=True)
+    return run_state(state["backend"], learner, _agent_counters(state, agent), config, state["final"][agent])

@@ -32,7 +32,7 @@ from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.episodes import EPISODE_KEYS, RUNNING_MEAN_WINDOW
 from drone_torchrl.io import run_lock
-from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, FORMAT_VERSION, LAST, save_checkpoint
+from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, LAST, run_state, save_checkpoint
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
 from drone_torchrl.io.storage import writing
 from drone_torchrl.io.streams import about, console
@@ -183,14 +183,22 @@ class AgentBook:
         """The running mean of the last ``window`` episodes' lengths."""
         return _mean(self.recent_lengths)
 
-    def book(self, returns: Sequence[float], lengths: Sequence[float]) -> int:
-        """Count one update's finished episodes; returns the number of the first of them."""
-        first = self.episodes_done
+    def book(self, episodes: dict[str, Sequence]) -> dict[str, Sequence]:
+        """Count one update's finished episodes (``EPISODE_KEYS`` -> one value per episode).
+
+        Returns their rows as columns: ``episode``, ``update``, ``wall_clock_s`` and ``EPISODE_KEYS``.
+        """
+        count, first = len(episodes["return"]), self.episodes_done
         self.updates_done += 1
-        self.recent_returns.extend(returns)
-        self.recent_lengths.extend(lengths)
-        self.episodes_done += len(returns)
-        return first
+        self.recent_returns.extend(episodes["return"])
+        self.recent_lengths.extend(episodes["length"])
+        self.episodes_done += count
+        return {
+            "episode": range(first, first + count),
+            "update": [self.updates_done] * count,
+            "wall_clock_s": [round(self.wall_clock, 3)] * count,
+            **{key: episodes[key] for key in EPISODE_KEYS},
+        }
 
     @property
     def eval_due(self) -> bool:
@@ -264,7 +272,8 @@ class Record:
     The one writer interface of both layouts: :class:`RunRecord` (one agent: ``episodes.csv``,
     ``best.pt``, videos) and :class:`~.population_record.PopulationRecord` (N agents: Parquet
     parts, one stacked checkpoint). A subclass sets ``agents``, writes its buffered rows in
-    :meth:`write_rows` and says what its checkpoint holds in :meth:`checkpoint_state`; the files and
+    ``write_rows``, says what its checkpoint holds in ``checkpoint_state`` (the learner's state with
+    the record's counters and config) and its final hparams in ``final_metrics``; the files and
     checkpoint layouts stay each its own (old runs of either kind resume as they did).
     """
 
@@ -286,18 +295,23 @@ class Record:
         self.logger = make_logger(cfg, run_dir, resumed_at)
         self._last_flush = time.perf_counter()
 
-    def write_rows(self) -> None:
-        """Write the buffered episode rows."""
-        raise NotImplementedError
-
-    def checkpoint_state(self, learner: Any) -> dict[str, Any]:
-        """What a checkpoint holds: the learner's state (``learner``) with the record's counters and config."""
-        raise NotImplementedError
-
     def write_last(self, learner: Any) -> None:
         """Write ``checkpoints/last.pt`` of the learner's state, after the rows it counts."""
         self.flush()
         save_checkpoint(self.checkpoint_state(learner), self.run_dir / CHECKPOINT_DIR / LAST)
+
+    def save(self, learner: Any) -> None:
+        """Write ``last.pt`` (:meth:`write_last`); once every agent has ended, the final hparams too, and close.
+
+        The final hparams are ``final_metrics`` (none when no agent finished).
+        """
+        self.write_last(learner)
+        for agent in self.agents:
+            agent.book_save()
+        if all(a.failed or a.final is not None for a in self.agents):
+            if metrics := self.final_metrics():
+                self.logger.log_final_hparams(self.config, metrics)
+            self.close()
 
     def flush_if_due(self) -> None:
         """:meth:`flush` every ``logger.flush_every_s`` seconds."""
@@ -395,14 +409,9 @@ class RunRecord(AgentBook, Record):
         The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished; the
         metrics go to TensorBoard every ``logger.every_updates``.
         """
-        wall = round(self.wall_clock, 3)
-        first = self.book(episodes["return"], episodes["length"])
-        rows = []
-        for n, values in enumerate(zip(*(episodes[k] for k in EPISODE_KEYS), strict=True)):
-            row = dict(zip(EPISODE_KEYS, values, strict=True))
-            row["termination_cause"] = _CAUSE_NAMES[int(row["termination_cause"])]
-            row.update(episode=first + n, update=self.updates_done, wall_clock_s=wall)
-            rows.append(row)
+        columns = self.book(episodes)
+        columns["termination_cause"] = [_CAUSE_NAMES[int(cause)] for cause in columns["termination_cause"]]
+        rows = [dict(zip(columns, values, strict=True)) for values in zip(*columns.values(), strict=True)]
         self.csv.write(rows)
         if self.updates_done % self.every_updates == 0:
             metrics = {
@@ -445,22 +454,11 @@ class RunRecord(AgentBook, Record):
     # ------------------------------------------------------------------ checkpoints
     def checkpoint_state(self, learner: dict[str, Any]) -> dict[str, Any]:
         """A run's checkpoint: ``learner`` (actor, optimizer, RNG streams...), counters, config, final metrics."""
-        return {
-            "format_version": FORMAT_VERSION,
-            "backend": self.backend,
-            **learner,
-            **self.counters(),
-            "config": self.config,
-            "final": self.final,
-        }
+        return run_state(self.backend, learner, self.counters(), self.config, self.final)
 
-    def save(self, learner: dict[str, Any]) -> None:
-        """Write ``last.pt`` (after flushing the CSV); at the end also the final hparams, and close."""
-        self.write_last(learner)
-        self.book_save()
-        if self.finished and self.final is not None:
-            self.logger.log_final_hparams(self.config, self.final)
-            self.close()
+    def final_metrics(self) -> dict[str, float] | None:
+        """The final hparams' metrics: the run's final metrics."""
+        return self.final
 
 
 class Progress:
@@ -473,7 +471,6 @@ class Progress:
 
     def __init__(self, runs: Sequence[RunRecord], setting: bool | str) -> None:
         show = sys.stderr.isatty() if setting == "auto" else bool(setting)
-        self.runs = runs
         self.bar = tqdm(
             total=sum(r.budget for r in runs),
             initial=sum(r.episodes_done for r in runs),
