@@ -4,7 +4,7 @@ The run record (:class:`~drone_torchrl.training.run.RunRecord`) logs through the
 interface only; ``logger.backend`` (set by each ``conf/logger/<option>.yaml``) picks the
 :class:`Backend` that makes one per run. Built in:
 
-- ``logger=tensorboard`` (the default): TensorBoard event files, buffered (:mod:`.tensorboard`).
+- ``logger=tensorboard`` (the default): TensorBoard event files, buffered (:mod:`.tb_logger`).
 - ``logger=csv``: one long-format CSV of scalars per run (:mod:`.csvfile`).
 - ``logger=mlflow``: an MLflow run per run (:mod:`.mlflow_store`, the ``mlflow`` extra).
 - ``logger=wandb``: a Weights & Biases run per run (:mod:`.wandb_run`, the ``wandb`` extra).
@@ -117,11 +117,6 @@ class Backend:
         """Whether the module its :attr:`extra` installs can be imported."""
         return self.needs is None or self.needs.installed
 
-    def missing(self) -> str:
-        """The one line saying what to install for it (:func:`drone_torchrl.extras.missing`'s)."""
-        assert self.needs is not None, "a backend without an extra misses nothing"
-        return extras.missing(f"logger={self.name}", self.needs)
-
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
 
@@ -142,7 +137,7 @@ def check_backend(cfg: Mapping[str, Any]) -> None:
     """
     backend = get(cfg.logger.backend)
     if not backend.installed:
-        raise ConfigError(backend.missing())
+        raise ConfigError(extras.missing(f"logger={backend.name}", backend.needs))
     backend.validate(cfg)
 
 

@@ -61,14 +61,6 @@ KNOWN_SCHEMES = ("", "databricks", "file", "http", "https", "mssql", "mysql", "p
 MODEL_ONLY_SCHEMES = ("uc", "databricks-uc")
 
 
-def _client(tracking_uri: str):
-    try:
-        from mlflow.tracking import MlflowClient
-    except ImportError:
-        raise ConfigError(BACKEND.missing()) from None
-    return MlflowClient(tracking_uri=tracking_uri)
-
-
 def tracking_schemes() -> list[str]:
     """The URI schemes of the tracking stores this MLflow can open (plug-ins included)."""
     try:
@@ -118,8 +110,10 @@ class MLflowLogger(Logger):
         id_file = self.folder / RUN_ID_FILE
         self._buffer: list = []
         self._skip_to = -1  # steps <= this are in the store already
+        from mlflow.tracking import MlflowClient  # installed: check_backend refused the config otherwise
+
         with _first_contact(tracking_uri):  # MlflowClient opens the store, creating its tables
-            self.client = client = _client(tracking_uri)
+            self.client = client = MlflowClient(tracking_uri=tracking_uri)
             if id_file.is_file():
                 self.run_id = id_file.read_text().strip()
                 if resumed_at is not None:
@@ -233,7 +227,7 @@ class MLflowConf(TensorBoardConf):
 
 store_plugin("logger", "mlflow", MLflowConf)
 
-BACKEND = register(
+register(
     Backend(
         "mlflow",
         make,

@@ -1,5 +1,7 @@
 """``logger=tensorboard`` (the default backend): buffered scalars, written in batches, no writer held open.
 
+The files go to ``<run>/<logger.exp_name>``.
+
 TorchRL's ``TensorboardLogger`` keeps a ``SummaryWriter`` (an open event file and a writer thread)
 for the life of a run and sends every scalar through the thread's queue, one by one. A
 population of a thousand runs cannot hold a thousand writers, and at that rate its logging would
@@ -41,7 +43,8 @@ from omegaconf import DictConfig
 
 from drone_torchrl.io.storage import writing
 from drone_torchrl.io.video import gif_bytes
-from drone_torchrl.loggers import Logger, flatten_config
+from drone_torchrl.loggers import Backend, Logger, flatten_config, register
+from drone_torchrl.schema import TensorBoardConf, store_plugin
 
 # TFRecord framing (what tensorboard's RecordWriter writes): a masked CRC32C of the length and of the data.
 _CRC_MASK_DELTA = 0xA282EAD8
@@ -190,3 +193,24 @@ class RunLogger(Logger):
         self._summaries.extend((0, summary) for summary in hparams(flatten_config(cfg), final))
         self.log_metrics(final, step=0)
         self.flush()
+
+
+def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> RunLogger:
+    """The TensorBoard logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from)."""
+    # The checkpoint's own last update and evaluation were logged at its count: TensorBoard drops
+    # events from count + 1 on, those the interrupted process logged after the checkpoint.
+    purge = None if resumed_at is None else resumed_at + 1
+    return RunLogger(cfg.logger.exp_name, run_dir, purge_step=purge)
+
+
+# Its keys are the ones every backend has: drone_torchrl.schema.TensorBoardConf.
+store_plugin("logger", "tensorboard", TensorBoardConf)
+
+register(
+    Backend(
+        "tensorboard",
+        make,
+        resume_rule="events logged after the checkpoint are dropped (TensorBoard's purge_step), the rest kept",
+        summary="TensorBoard event files in `<run>/tensorboard/`: scalars, evaluation videos, hparams (the default)",
+    )
+)
