@@ -52,11 +52,15 @@ STOPPED: RunStatus = "stopped"
 class Logger(Protocol):
     """What the run record calls. Steps are counts of episodes done; values are buffered until :meth:`flush`.
 
-    A backend that subclasses it inherits :meth:`log_metrics`, :meth:`log_frames` and :meth:`close`.
+    A backend that subclasses it inherits :meth:`log_scalars` (into its ``scalars`` list),
+    :meth:`log_metrics`, :meth:`log_frames` and :meth:`close`.
     """
 
+    scalars: list[tuple[str, float, int]]  # what log_scalars buffered, for flush; the backend makes it
+
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
-        """``(tag, value, step)`` triples, as many as come."""
+        """``(tag, value, step)`` triples, as many as come (kept in :attr:`scalars` until :meth:`flush`)."""
+        self.scalars.extend(scalars)
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
         """``{tag: value}`` at one step (as :meth:`log_scalars` triples)."""

@@ -29,7 +29,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -108,7 +108,7 @@ class MLflowLogger(Logger):
     ) -> None:
         self.folder = Path(run_dir) / exp_name
         id_file = self.folder / RUN_ID_FILE
-        self._buffer: list = []
+        self.scalars: list[tuple[str, float, int]] = []
         self._skip_to = -1  # steps <= this are in the store already
         from mlflow.tracking import MlflowClient  # installed: check_backend refused the config otherwise
 
@@ -146,10 +146,6 @@ class MLflowLogger(Logger):
         for start in range(0, len(params), MAX_PARAMS_PER_BATCH):
             self.client.log_batch(self.run_id, params=params[start : start + MAX_PARAMS_PER_BATCH])
 
-    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
-        """Buffer ``(tag, value, step)`` triples as metrics."""
-        self._buffer.extend((tag, float(value), int(step)) for tag, value, step in scalars)
-
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         # MLflow shows params and metrics side by side already; the final metrics under hparam/*,
         # as TensorBoard's HPARAMS tab names them. Step 0, as there.
@@ -160,15 +156,15 @@ class MLflowLogger(Logger):
         """Send the buffered metrics to the store in one batch."""
         from mlflow.entities import Metric
 
-        if not self._buffer:
+        if not self.scalars:
             return
         now = int(time.time() * 1000)
         metrics = [
-            Metric(tag, value, now, step)
-            for tag, value, step in self._buffer
-            if step > self._skip_to or tag.startswith("hparam/")
+            Metric(tag, float(value), now, int(step))
+            for tag, value, step in self.scalars
+            if int(step) > self._skip_to or tag.startswith("hparam/")
         ]
-        self._buffer.clear()
+        self.scalars.clear()
         for start in range(0, len(metrics), MAX_METRICS_PER_BATCH):
             self.client.log_batch(self.run_id, metrics=metrics[start : start + MAX_METRICS_PER_BATCH])
 

@@ -34,7 +34,6 @@ import os
 import socket
 import struct
 import time
-from collections.abc import Iterable
 from pathlib import Path
 
 import google_crc32c
@@ -123,17 +122,13 @@ class RunLogger(Logger):
     def __init__(self, exp_name: str, log_dir: str | Path, purge_step: int | None = None) -> None:
         self.log_dir = Path(log_dir) / exp_name
         self._purge_step = purge_step
-        self._scalars: list[tuple[str, float, int]] = []
+        self.scalars: list[tuple[str, float, int]] = []
         self._summaries: list = []  # (step, a ready-made Summary proto): videos, hparams
         self._events: Path | None = None
 
-    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
-        """``(tag, value, step)`` triples, as many as come."""
-        self._scalars.extend(scalars)
-
     def flush(self) -> None:
         """Append the buffered scalars to this logger's event file (opened only for this)."""
-        if not (self._scalars or self._summaries):
+        if not (self.scalars or self._summaries):
             return
         from tensorboard.compat.proto import event_pb2
 
@@ -157,13 +152,13 @@ class RunLogger(Logger):
             event_pb2.Event(wall_time=now, step=step, summary=summary) for step, summary in self._summaries
         )
         steps: dict[int, list[bytes]] = {}
-        for name, value, step in self._scalars:
+        for name, value, step in self.scalars:
             steps.setdefault(int(step), []).append(scalar_value(name, value))
         data = [record.SerializeToString() for record in records]
         data.extend(scalar_event(now, step, values) for step, values in steps.items())
         with writing(self._events), self._events.open("ab") as f:
             f.write(b"".join(tf_record(d) for d in data))
-        self._scalars.clear()
+        self.scalars.clear()
         self._summaries.clear()
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
