@@ -53,14 +53,6 @@ def make_params(**values: Any) -> DroneParams:
     return DroneParams(**checked)
 
 
-def check_dtype(dtype: object) -> torch.dtype:
-    """The torch dtype of ``dtype`` (``"float32"``, ``"float64"`` or the torch dtype itself)."""
-    for name, value in DTYPES.items():
-        if dtype == name or dtype is value:
-            return value
-    raise ValueError(f"dtype={as_override(dtype)} is not allowed; expected one of {tuple(DTYPES)}")
-
-
 def is_integer(value: object) -> bool:
     """Whether ``value`` is an integer (a bool, though an int to Python, is not)."""
     return isinstance(value, Integral) and not isinstance(value, bool)
@@ -109,7 +101,10 @@ def check_env_args(
     batch_size = torch.Size(batch_size)
     given = {} if params is None else {f.name: getattr(params, f.name) for f in fields(DroneParams)}
     params = make_params(**{**given, **overrides})
-    dtype, disturbance = check_dtype(dtype), disturbances.make(disturbance)
+    torch_dtype = next((value for name, value in DTYPES.items() if dtype == name or dtype is value), None)
+    if torch_dtype is None:
+        raise ValueError(f"dtype={as_override(dtype)} is not allowed; expected one of {tuple(DTYPES)}")
+    dtype, disturbance = torch_dtype, disturbances.make(disturbance)
     if not is_integer(max_steps) or not 1 <= max_steps <= MAX_STEPS:
         raise ValueError(
             f"max_steps={as_override(max_steps)} is not allowed; expected an integer >= 1 and <= {MAX_STEPS}"

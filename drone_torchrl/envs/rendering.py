@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -77,22 +76,20 @@ TERMINATED_TEXT_COLOUR = (160, 0, 0)
 TICK_TEXT_COLOUR = (90, 90, 90)
 
 
-@dataclass(frozen=True)
 class Layout:
-    """Where the world lands in a frame: the domain of ``params`` fitted into the drawing area."""
+    """Where the world lands in a frame: the domain of ``params`` fitted into the drawing area.
 
-    params: DroneParams
+    Attributes:
+        pixels_per_metre: the largest scale at which the whole domain fits.
+        left_px: screen x of the domain's left edge (``x = -x_limit``), centred horizontally.
+    """
 
-    @property
-    def pixels_per_metre(self) -> float:
-        """Screen pixels per metre, the largest scale at which the whole domain fits."""
-        p = self.params
-        return min(DOMAIN_WIDTH_PX / (2 * p.x_limit), DOMAIN_HEIGHT_PX / (p.z_max - p.z_min))
-
-    @property
-    def left_px(self) -> float:
-        """Screen x of the domain's left edge (``x = -x_limit``), centred horizontally."""
-        return MARGIN_LEFT + 0.5 * (DOMAIN_WIDTH_PX - 2 * self.params.x_limit * self.pixels_per_metre)
+    def __init__(self, params: DroneParams) -> None:
+        self.params = params
+        self.pixels_per_metre = min(
+            DOMAIN_WIDTH_PX / (2 * params.x_limit), DOMAIN_HEIGHT_PX / (params.z_max - params.z_min)
+        )
+        self.left_px = MARGIN_LEFT + 0.5 * (DOMAIN_WIDTH_PX - 2 * params.x_limit * self.pixels_per_metre)
 
     def to_pixel(self, x: float, z: float) -> tuple[float, float]:
         """Screen coordinates of the world point ``(x, z)`` (metres); the screen's y axis points down."""
