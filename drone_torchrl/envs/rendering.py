@@ -280,9 +280,7 @@ class DroneRenderer:
         # Row-major RGB bytes (writable): a quarter of the time of surfarray's column-major copy
         # transposed and copied again.
         pixels = bytearray(pygame.image.tobytes(self._canvas, "RGB"))
-        return np.frombuffer(pixels, dtype=np.uint8).reshape(
-            self._canvas.get_height(), self._canvas.get_width(), 3
-        )
+        return np.frombuffer(pixels, dtype=np.uint8).reshape(FRAME_HEIGHT, FRAME_WIDTH, 3)
 
     def close(self) -> None:
         """Close the window (``"human"`` mode); safe to call more than once."""
