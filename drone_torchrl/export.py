@@ -54,7 +54,7 @@ from torchrl.modules import ProbabilisticActor
 from drone_torchrl.config import ConfigError, check_keys, check_networks, check_values, run_config
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.dynamics import ACTION_DIM, HOVER_THRUST, STATE_DIM, clamp_action
-from drone_torchrl.envs.params import ALPHA_LIMIT, X_LIMIT, Z_MAX, Z_MIN, ZONE_Z_CENTRE
+from drone_torchrl.envs.params import DroneParams
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR
 from drone_torchrl.io.storage import name_too_long, unwritable, write_atomically
 from drone_torchrl.modules.factory import build_actor, build_policy
@@ -87,11 +87,12 @@ RUNTIMES = {"pt2": "torch.export", "onnx": "onnxruntime"}
 # of them) at +-CHECK_EXTREME, far outside any state (a tanh trunk saturates).
 CHECK_SEED = 0
 CHECK_RANDOM = 1024
-CHECK_CENTRE = (0.0, 0.0, 0.5 * (Z_MIN + Z_MAX), 0.0, 0.0, 0.0)
-CHECK_SPAN = (2 * X_LIMIT, 10.0, Z_MAX - Z_MIN, 10.0, 2 * ALPHA_LIMIT, 20.0)
+_PAPER = DroneParams()
+CHECK_CENTRE = (0.0, 0.0, 0.5 * (_PAPER.z_min + _PAPER.z_max), 0.0, 0.0, 0.0)
+CHECK_SPAN = (2 * _PAPER.x_limit, 10.0, _PAPER.z_max - _PAPER.z_min, 10.0, 2 * _PAPER.alpha_limit, 20.0)
 CHECK_EXTREME = 1e3
 # Hovering in the zone's centre: one of the checked observations, and the one the latency is timed on.
-HOVER_OBSERVATION = (0.0, 0.0, ZONE_Z_CENTRE, 0.0, 0.0, 0.0)
+HOVER_OBSERVATION = (0.0, 0.0, _PAPER.zone_z_centre, 0.0, 0.0, 0.0)
 
 # Latency: the median over LATENCY_REPEATS repeats of the mean time of LATENCY_CALLS calls, after
 # LATENCY_WARMUP untimed calls; one thread (a controller's one core, and no thread pool to wake).

@@ -147,6 +147,7 @@ def _between(
 # The env's own arguments (free in the schema: the env checks them), with the bounds it documents;
 # the arena's relative to the defaults of the others (x_limit 2, zone_x_limit 0.8, z 0..4, zone
 # 2.2..3.2).
+_PAPER = params.DroneParams()  # the arena's defaults
 ENV_RANGES = {
     "env.mass": _between(params.MIN_MASS, params.MAX_MASS),
     "env.motor_distance": _between(params.MIN_MOTOR_DISTANCE, params.MAX_MOTOR_DISTANCE),
@@ -156,13 +157,13 @@ ENV_RANGES = {
     "env.floor_tolerance": _between(0.0, params.MAX_FLOOR_TOLERANCE),
     "env.max_steps": st.integers(min_value=1, max_value=INT64_MAX),
     "env.reset_mode": st.sampled_from(dynamics.RESET_MODES),
-    "env.x_limit": _between(params.ZONE_X_LIMIT, params.MAX_ARENA),
-    "env.z_min": _between(-params.MAX_ARENA, params.ZONE_Z_MIN),
-    "env.z_max": _between(params.ZONE_Z_MAX, params.MAX_ARENA),
+    "env.x_limit": _between(_PAPER.zone_x_limit, params.MAX_ARENA),
+    "env.z_min": _between(-params.MAX_ARENA, _PAPER.zone_z_min),
+    "env.z_max": _between(_PAPER.zone_z_max, params.MAX_ARENA),
     "env.alpha_limit": _between(0.0, math.pi, low_open=True),
-    "env.zone_x_limit": _between(0.0, params.X_LIMIT, low_open=True),
-    "env.zone_z_min": _between(params.Z_MIN, params.ZONE_Z_MAX, high_open=True),
-    "env.zone_z_max": _between(params.ZONE_Z_MIN, params.Z_MAX, low_open=True),
+    "env.zone_x_limit": _between(0.0, _PAPER.x_limit, low_open=True),
+    "env.zone_z_min": _between(_PAPER.z_min, _PAPER.zone_z_max, high_open=True),
+    "env.zone_z_max": _between(_PAPER.zone_z_min, _PAPER.z_max, low_open=True),
     **{f"env.disturbance.{name}": _between(0.0, high) for name, high in disturbances.MAX_MAGNITUDES.items()},
     "env.disturbance.gust_time": _between(0.0, disturbances.MAX_TIME, low_open=True),
 }

@@ -243,10 +243,8 @@ class _InjectedEnv(DroneEnv):
         self._state = self._state.clone()
         return super()._reset(tensordict, **kwargs)
 
-    def _start_disturbances(self, shape):
-        if not hasattr(self, "fresh_keys"):  # the constructor's: replaced by the first reset
-            return super()._start_disturbances(shape)
-        return disturbances.start(self.disturbance, self.fresh_keys[self.rows, self.j], self.dtype)
+    def _start(self, state, keys, index=None):
+        return super()._start(state, self.fresh_keys[self.rows, self.j], index)
 
 
 def _env_segments(monkeypatch, d, head, dtype, stacked, noise, fresh, fresh_keys, max_steps) -> dict:

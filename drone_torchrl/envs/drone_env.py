@@ -53,40 +53,9 @@ def make_params(**values: Any) -> DroneParams:
     return DroneParams(**checked)
 
 
-def check_dtype(dtype: object) -> torch.dtype:
-    """The torch dtype of ``dtype`` (``"float32"``, ``"float64"`` or the torch dtype itself)."""
-    for name, value in DTYPES.items():
-        if dtype == name or dtype is value:
-            return value
-    raise ValueError(f"dtype={as_override(dtype)} is not allowed; expected one of {tuple(DTYPES)}")
-
-
 def is_integer(value: object) -> bool:
     """Whether ``value`` is an integer (a bool, though an int to Python, is not)."""
     return isinstance(value, Integral) and not isinstance(value, bool)
-
-
-def check_episode_args(max_steps: object, reset_mode: object, render_mode: object) -> None:
-    """Validate the episode arguments shared by both envs."""
-    if not is_integer(max_steps) or not 1 <= max_steps <= MAX_STEPS:
-        raise ValueError(
-            f"max_steps={as_override(max_steps)} is not allowed; expected an integer >= 1 and <= {MAX_STEPS}"
-        )
-    allowed = {"reset_mode": RESET_MODES, "render_mode": RENDER_MODES}
-    for (name, choices), value in zip(allowed.items(), (reset_mode, render_mode), strict=True):
-        if value not in choices:
-            raise ValueError(f"{name}={as_override(value)} is not allowed; expected one of {choices}")
-
-
-def _check_batch_size(batch_size: object) -> torch.Size:
-    batch_size = [batch_size] if is_integer(batch_size) else [] if batch_size is None else batch_size
-    if not isinstance(batch_size, Sequence | torch.Size) or not all(
-        is_integer(n) and n >= 1 for n in batch_size
-    ):
-        raise ValueError(
-            f"batch_size={as_override(batch_size)} is not allowed; expected a list of positive integers, e.g. [] or [64]"
-        )
-    return torch.Size(batch_size)
 
 
 class EnvArgs(NamedTuple):
@@ -122,11 +91,28 @@ def check_env_args(
     (:class:`~drone_torchrl.checks.ConfigError` for a physical or arena argument). The config's
     validation, drone-eval and the evaluator ask this, not an env built to be thrown away.
     """
-    batch_size = _check_batch_size(batch_size)
+    batch_size = [batch_size] if is_integer(batch_size) else [] if batch_size is None else batch_size
+    if not isinstance(batch_size, Sequence | torch.Size) or not all(
+        is_integer(n) and n >= 1 for n in batch_size
+    ):
+        raise ValueError(
+            f"batch_size={as_override(batch_size)} is not allowed; expected a list of positive integers, e.g. [] or [64]"
+        )
+    batch_size = torch.Size(batch_size)
     given = {} if params is None else {f.name: getattr(params, f.name) for f in fields(DroneParams)}
     params = make_params(**{**given, **overrides})
-    dtype, disturbance = check_dtype(dtype), disturbances.make(disturbance)
-    check_episode_args(max_steps, reset_mode, render_mode)
+    torch_dtype = next((value for name, value in DTYPES.items() if dtype == name or dtype is value), None)
+    if torch_dtype is None:
+        raise ValueError(f"dtype={as_override(dtype)} is not allowed; expected one of {tuple(DTYPES)}")
+    dtype, disturbance = torch_dtype, disturbances.make(disturbance)
+    if not is_integer(max_steps) or not 1 <= max_steps <= MAX_STEPS:
+        raise ValueError(
+            f"max_steps={as_override(max_steps)} is not allowed; expected an integer >= 1 and <= {MAX_STEPS}"
+        )
+    allowed = {"reset_mode": RESET_MODES, "render_mode": RENDER_MODES}
+    for (name, choices), value in zip(allowed.items(), (reset_mode, render_mode), strict=True):
+        if value not in choices:
+            raise ValueError(f"{name}={as_override(value)} is not allowed; expected one of {choices}")
     try:
         device = torch.device(device)
     except (RuntimeError, TypeError) as err:
@@ -299,7 +285,9 @@ class DroneEnv(EnvBase):
         # Kept only for the render overlay: the last applied action and the return so far.
         self._last_action = torch.zeros((*shape, ACTION_DIM), device=device, dtype=self.dtype)
         self._episode_return = torch.zeros(shape, device=device, dtype=self.dtype)
-        self._internal = self._start_disturbances(shape) if self._disturbed else None
+        # Drawn for a step before any reset (the generator is reseeded by set_seed before any seeded work).
+        keys = disturbances.episode_keys(self._generator, shape, device)
+        self._internal = disturbances.start(self.disturbance, keys, self.dtype) if self._disturbed else None
 
     __init__.__signature__ = inspect.Signature(  # help(), IDEs and Sphinx show check_env_args' keywords
         [
@@ -355,19 +343,32 @@ class DroneEnv(EnvBase):
             raise ValueError(f"state has shape {tuple(state.shape)}; expected {(*shape, STATE_DIM)}")
         if self._disturbed and (keys is None or tuple(keys.shape) != shape):
             raise ValueError(f"a disturbed env needs int64 episode keys of shape {shape}")
-        self._state = state.to(self.device, self.dtype).clone()
-        self._step_count = torch.zeros_like(self._step_count)
-        self._cause = torch.zeros_like(self._cause)
-        if self._disturbed:
-            self._internal = disturbances.start(self.disturbance, keys.to(self.device), self.dtype)
-        self._episode_return = torch.zeros_like(self._episode_return)
-        self._last_action = torch.zeros_like(self._last_action)
-        return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
+        return self._start(state.to(self.device, self.dtype).clone(), keys)
 
-    def _start_disturbances(self, shape: tuple[int, ...]) -> disturbances.Internal:
-        """Fresh episodes' disturbances: one key per episode, drawn right after its start state."""
-        keys = disturbances.episode_keys(self._generator, shape, self.device)
-        return disturbances.start(self.disturbance, keys, self.dtype)
+    def _start(
+        self, state: torch.Tensor, keys: torch.Tensor | None, index: tuple | None = None
+    ) -> TensorDict:
+        """Start episodes from ``state`` (with disturbance ``keys``): every drone's, or the rows ``index``.
+
+        ``index`` holds a partial reset's integer indices, found once (same rows, same row-major order
+        as boolean-mask writes, which would search the mask again for every tensor). The counters are
+        replaced, never written in place, so :meth:`_output` can hand them out without a copy (the
+        last action may even be the caller's own tensor, see :meth:`_step`).
+        """
+        zero = torch.zeros_like if index is None else lambda t: t.index_put(index, t.new_zeros(()))
+        if index is None:
+            self._state = state
+        else:
+            self._state[index] = state
+        self._step_count, self._cause = zero(self._step_count), zero(self._cause)
+        if self._disturbed:
+            new = disturbances.start(self.disturbance, keys.to(self.device), self.dtype)
+            self._internal = new if index is None else disturbances.replace_rows(self._internal, index, new)
+        if self.render_mode is not None:
+            self._episode_return, self._last_action = zero(self._episode_return), zero(self._last_action)
+        if self.render_mode == "human":
+            self.render()
+        return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
@@ -383,28 +384,12 @@ class DroneEnv(EnvBase):
         n_reset = None if mask is None or self.batch_size == () else int(mask.sum())
         full = n_reset is None or n_reset == mask.numel()
         shape = tuple(self.batch_size) if full else (n_reset,)
-        # A partial reset finds the integer indices once (same rows, same row-major order as
-        # boolean-mask writes, which would search the mask again for every tensor). The counters are
-        # replaced, never written in place, so _output can hand them out without a copy (the last
-        # action may even be the caller's own tensor, see _step).
-        index = None if full else mask.nonzero(as_tuple=True)
-        zero = torch.zeros_like if full else lambda t: t.index_put(index, t.new_zeros(()))
         start = dynamics.initial_state(
             shape, self.reset_mode, self._generator, self.device, self.dtype, self.params
         )
-        if full:
-            self._state = start
-        else:
-            self._state[index] = start
-        self._step_count, self._cause = zero(self._step_count), zero(self._cause)
-        if self._disturbed:
-            fresh = self._start_disturbances(shape)
-            self._internal = fresh if full else disturbances.replace_rows(self._internal, index, fresh)
-        if self.render_mode is not None:
-            self._episode_return, self._last_action = zero(self._episode_return), zero(self._last_action)
-        if self.render_mode == "human":
-            self.render()
-        return self._output(done=torch.zeros_like(self._step_count, dtype=torch.bool))
+        # Each episode's disturbance key is drawn right after its start state.
+        keys = disturbances.episode_keys(self._generator, shape, self.device) if self._disturbed else None
+        return self._start(start, keys, None if full else mask.nonzero(as_tuple=True))
 
     def _output(self, done: torch.Tensor, terminated=None, truncated=None, reward=None) -> TensorDictBase:
         observation = self._state

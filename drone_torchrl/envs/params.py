@@ -15,14 +15,6 @@ import math
 from dataclasses import dataclass, field, fields
 from typing import Any
 
-# Domain and target zone of the paper's Table 2.1 (angles converted to radians): the defaults of
-# DroneParams, whose fields (the env's arguments) the dynamics read.
-X_LIMIT = 2.0
-Z_MIN, Z_MAX = 0.0, 4.0
-ALPHA_LIMIT = math.pi / 3
-ZONE_X_LIMIT = 0.8
-ZONE_Z_MIN, ZONE_Z_MAX = 2.2, 3.2
-ZONE_Z_CENTRE = 0.5 * (ZONE_Z_MIN + ZONE_Z_MAX)
 # The arena's largest extent (|x_limit|, |z_min|, |z_max|, m): a kilometre. float32 positions there
 # still resolve 0.1 mm, far below what a drone moves in one step (dt = 0.02 s); at 1e300 m they are inf.
 MAX_ARENA = 1e3
@@ -103,7 +95,7 @@ class DroneParams:
     checks), :class:`~drone_torchrl.envs.drone_env.DroneEnv`'s keyword arguments, the config
     schema's ``env.*`` keys (their defaults too) and the fast engine's constants
     (:data:`drone_torchrl.kernels.build.ENV_CONSTANTS`). The defaults are the paper's (Table 2.1);
-    the arena is the domain, the target zone and how a state on a bound counts.
+    the arena is the domain, the target zone and how a state on a bound counts (angles in radians).
     """
 
     mass: float = _param(
@@ -125,26 +117,26 @@ class DroneParams:
         0.05, "m below z_min before the floor counts as hit", low=0.0, high=MAX_FLOOR_TOLERANCE
     )
     x_limit: float = _param(
-        X_LIMIT, "m, the domain is |x| <= x_limit", low=_ZERO, high=_ARENA, low_open=True, new=True
+        2.0, "m, the domain is |x| <= x_limit", low=_ZERO, high=_ARENA, low_open=True, new=True
     )
     z_min: float = _param(
-        Z_MIN, 'm, the floor ("floor" resets start here)', low=(f"-{MAX_ARENA:g} m", -MAX_ARENA), high=_ARENA,
+        0.0, 'm, the floor ("floor" resets start here)', low=(f"-{MAX_ARENA:g} m", -MAX_ARENA), high=_ARENA,
         new=True,
     )  # fmt: skip
-    z_max: float = _param(Z_MAX, "m, the ceiling", low="z_min", high=_ARENA, low_open=True, new=True)
+    z_max: float = _param(4.0, "m, the ceiling", low="z_min", high=_ARENA, low_open=True, new=True)
     alpha_limit: float = _param(
-        ALPHA_LIMIT, "rad, the tilt bound of the domain and the zone (pi/3: 60 deg)",
+        math.pi / 3, "rad, the tilt bound of the domain and the zone (pi/3: 60 deg)",
         low=_ZERO, high=("pi", math.pi), low_open=True, new=True,
     )  # fmt: skip
     zone_x_limit: float = _param(
-        ZONE_X_LIMIT, "m, the target zone is |x| <= zone_x_limit", low=_ZERO, high="x_limit", low_open=True,
+        0.8, "m, the target zone is |x| <= zone_x_limit", low=_ZERO, high="x_limit", low_open=True,
         new=True,
     )  # fmt: skip
     zone_z_min: float = _param(
-        ZONE_Z_MIN, "m, the bottom of the target zone", low="z_min", high="z_max", high_open=True, new=True
+        2.2, "m, the bottom of the target zone", low="z_min", high="z_max", high_open=True, new=True
     )
     zone_z_max: float = _param(
-        ZONE_Z_MAX, 'm, the top of the target zone ("air" resets start at the zone\'s centre)',
+        3.2, 'm, the top of the target zone ("air" resets start at the zone\'s centre)',
         low="zone_z_min", high="z_max", low_open=True, new=True,
     )  # fmt: skip
     bounds: str = _param(

@@ -15,13 +15,11 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
 
 import numpy as np
 
 from drone_torchrl.envs.dynamics import ALPHA, DroneParams, TerminationCause, X, Z
 
-RENDER_MODES = ("human", "rgb_array")
 WINDOW_TITLE = "Drone2D"
 
 # ----------------------------------------------------------------------------- layout (pixels)
@@ -78,22 +76,20 @@ TERMINATED_TEXT_COLOUR = (160, 0, 0)
 TICK_TEXT_COLOUR = (90, 90, 90)
 
 
-@dataclass(frozen=True)
 class Layout:
-    """Where the world lands in a frame: the domain of ``params`` fitted into the drawing area."""
+    """Where the world lands in a frame: the domain of ``params`` fitted into the drawing area.
 
-    params: DroneParams
+    Attributes:
+        pixels_per_metre: the largest scale at which the whole domain fits.
+        left_px: screen x of the domain's left edge (``x = -x_limit``), centred horizontally.
+    """
 
-    @property
-    def pixels_per_metre(self) -> float:
-        """Screen pixels per metre, the largest scale at which the whole domain fits."""
-        p = self.params
-        return min(DOMAIN_WIDTH_PX / (2 * p.x_limit), DOMAIN_HEIGHT_PX / (p.z_max - p.z_min))
-
-    @property
-    def left_px(self) -> float:
-        """Screen x of the domain's left edge (``x = -x_limit``), centred horizontally."""
-        return MARGIN_LEFT + 0.5 * (DOMAIN_WIDTH_PX - 2 * self.params.x_limit * self.pixels_per_metre)
+    def __init__(self, params: DroneParams) -> None:
+        self.params = params
+        self.pixels_per_metre = min(
+            DOMAIN_WIDTH_PX / (2 * params.x_limit), DOMAIN_HEIGHT_PX / (params.z_max - params.z_min)
+        )
+        self.left_px = MARGIN_LEFT + 0.5 * (DOMAIN_WIDTH_PX - 2 * params.x_limit * self.pixels_per_metre)
 
     def to_pixel(self, x: float, z: float) -> tuple[float, float]:
         """Screen coordinates of the world point ``(x, z)`` (metres); the screen's y axis points down."""
@@ -122,15 +118,9 @@ class DroneRenderer:
     """
 
     def __init__(self, render_mode: str, params: DroneParams, fps: int) -> None:
-        if render_mode not in RENDER_MODES:
-            raise ValueError(f"render_mode={render_mode!r} is not allowed; expected one of {RENDER_MODES}")
         os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
-        try:
-            import pygame
-        except ImportError as err:
-            raise ImportError(
-                "rendering the drone needs pygame, which is not installed; install it with `pip install pygame`"
-            ) from err
+        import pygame  # a dependency, imported only when something is drawn
+
         self._pygame = pygame
         self.render_mode = render_mode
         self.params = params
@@ -290,9 +280,7 @@ class DroneRenderer:
         # Row-major RGB bytes (writable): a quarter of the time of surfarray's column-major copy
         # transposed and copied again.
         pixels = bytearray(pygame.image.tobytes(self._canvas, "RGB"))
-        return np.frombuffer(pixels, dtype=np.uint8).reshape(
-            self._canvas.get_height(), self._canvas.get_width(), 3
-        )
+        return np.frombuffer(pixels, dtype=np.uint8).reshape(FRAME_HEIGHT, FRAME_WIDTH, 3)
 
     def close(self) -> None:
         """Close the window (``"human"`` mode); safe to call more than once."""

@@ -4,7 +4,7 @@ The run record (:class:`~drone_torchrl.training.run.RunRecord`) logs through the
 interface only; ``logger.backend`` (set by each ``conf/logger/<option>.yaml``) picks the
 :class:`Backend` that makes one per run. Built in:
 
-- ``logger=tensorboard`` (the default): TensorBoard event files, buffered (:mod:`.tensorboard`).
+- ``logger=tensorboard`` (the default): TensorBoard event files, buffered (:mod:`.tb_logger`).
 - ``logger=csv``: one long-format CSV of scalars per run (:mod:`.csvfile`).
 - ``logger=mlflow``: an MLflow run per run (:mod:`.mlflow_store`, the ``mlflow`` extra).
 - ``logger=wandb``: a Weights & Biases run per run (:mod:`.wandb_run`, the ``wandb`` extra).
@@ -52,11 +52,15 @@ STOPPED: RunStatus = "stopped"
 class Logger(Protocol):
     """What the run record calls. Steps are counts of episodes done; values are buffered until :meth:`flush`.
 
-    A backend that subclasses it inherits :meth:`log_metrics`, :meth:`log_frames` and :meth:`close`.
+    A backend that subclasses it inherits :meth:`log_scalars` (into its ``scalars`` list),
+    :meth:`log_metrics`, :meth:`log_frames` and :meth:`close`.
     """
 
+    scalars: list[tuple[str, float, int]]  # what log_scalars buffered, for flush; the backend makes it
+
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
-        """``(tag, value, step)`` triples, as many as come."""
+        """``(tag, value, step)`` triples, as many as come (kept in :attr:`scalars` until :meth:`flush`)."""
+        self.scalars.extend(scalars)
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:
         """``{tag: value}`` at one step (as :meth:`log_scalars` triples)."""
@@ -117,11 +121,6 @@ class Backend:
         """Whether the module its :attr:`extra` installs can be imported."""
         return self.needs is None or self.needs.installed
 
-    def missing(self) -> str:
-        """The one line saying what to install for it (:func:`drone_torchrl.extras.missing`'s)."""
-        assert self.needs is not None, "a backend without an extra misses nothing"
-        return extras.missing(f"logger={self.name}", self.needs)
-
 
 BACKENDS: Registry[Backend] = Registry("logger.backend", __name__, "drone_torchrl.loggers")
 
@@ -142,7 +141,7 @@ def check_backend(cfg: Mapping[str, Any]) -> None:
     """
     backend = get(cfg.logger.backend)
     if not backend.installed:
-        raise ConfigError(backend.missing())
+        raise ConfigError(extras.missing(f"logger={backend.name}", backend.needs))
     backend.validate(cfg)
 
 

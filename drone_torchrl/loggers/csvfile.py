@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -47,13 +47,9 @@ class CSVLogger(Logger):
         self.log_dir = Path(log_dir)
         self.float_format = float_format
         self.path = self.log_dir / SCALARS
-        self._rows: list[tuple[int, str, float]] = []
+        self.scalars: list[tuple[str, float, int]] = []
         if resumed_at is not None and self.path.is_file():
             _keep_until(self.path, resumed_at)
-
-    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
-        """Buffer ``(tag, value, step)`` triples as rows."""
-        self._rows.extend((int(step), tag, value) for tag, value, step in scalars)
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         """Write the flattened config and the final ``metrics`` (as ``hparam/*``) to the hparams file."""
@@ -62,7 +58,7 @@ class CSVLogger(Logger):
 
     def flush(self) -> None:
         """Append the buffered rows to the scalars CSV (with its header when the file is new)."""
-        if not self._rows:
+        if not self.scalars:
             return
         with writing(self.path):
             self.log_dir.mkdir(parents=True, exist_ok=True)
@@ -73,10 +69,10 @@ class CSVLogger(Logger):
                 writer.writerow(HEADER)
             fmt = self.float_format
             writer.writerows(
-                (step, tag, repr(float(value)) if fmt is None else fmt % value)
-                for step, tag, value in self._rows
+                (int(step), tag, repr(float(value)) if fmt is None else fmt % value)
+                for tag, value, step in self.scalars
             )
-        self._rows.clear()
+        self.scalars.clear()
 
 
 def _keep_until(path: Path, step: int) -> None:

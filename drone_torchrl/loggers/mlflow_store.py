@@ -29,7 +29,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -59,14 +59,6 @@ _STATUSES = {FINISHED: "FINISHED", FAILED: "FAILED"}
 # its registry of stores cannot be read; the registry's others ("uc", "databricks-uc") hold models only.
 KNOWN_SCHEMES = ("", "databricks", "file", "http", "https", "mssql", "mysql", "postgresql", "sqlite")
 MODEL_ONLY_SCHEMES = ("uc", "databricks-uc")
-
-
-def _client(tracking_uri: str):
-    try:
-        from mlflow.tracking import MlflowClient
-    except ImportError:
-        raise ConfigError(BACKEND.missing()) from None
-    return MlflowClient(tracking_uri=tracking_uri)
 
 
 def tracking_schemes() -> list[str]:
@@ -101,60 +93,52 @@ def _first_contact(tracking_uri: str) -> contextlib.AbstractContextManager:
 
 
 class MLflowLogger(Logger):
-    """One drone_torchrl run as one MLflow run, buffered (videos are not uploaded).
+    """One drone_torchrl run as one MLflow run, buffered (videos are not uploaded); the backend's ``make``.
 
-    Args:
-        tracking_uri: the MLflow store (a SQLite file, a folder or a server).
-        experiment: the MLflow experiment's name (created if missing).
-        run_dir: the run folder (the MLflow run's name, and where its id is kept).
-        exp_name: the subfolder of ``run_dir`` that keeps the MLflow run's id.
-        resumed_at: on resume, skip the steps the store has already (None: a new or continued run).
+    The store is ``logger.tracking_uri`` (default: ``mlflow.db`` beside the run folder), the
+    experiment ``logger.experiment`` (default: the sweep's name; created if missing), the MLflow
+    run's name the run folder's, its id kept in ``<run_dir>/<logger.exp_name>/run_id``. The
+    flattened config is logged as params when the logger starts (those a continued run has are
+    skipped). ``resumed_at``: on resume, the steps the store has already are skipped.
     """
 
-    def __init__(
-        self, tracking_uri: str, experiment: str, run_dir: Path, exp_name: str, resumed_at: int | None
-    ) -> None:
-        self.folder = Path(run_dir) / exp_name
-        id_file = self.folder / RUN_ID_FILE
-        self._buffer: list = []
+    def __init__(self, cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> None:
+        from mlflow.entities import Param
+        from mlflow.tracking import MlflowClient  # installed: check_backend refused the config otherwise
+
+        # MLflow's store announces creating and migrating its tables at INFO level, once per process.
+        for name in ("mlflow.store.db.utils", "alembic"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+        run_dir = Path(run_dir)
+        uri = cfg.logger.tracking_uri or f"sqlite:///{(run_dir.resolve().parent / STORE_FILE)}"
+        id_file = run_dir / cfg.logger.exp_name / RUN_ID_FILE
+        self.scalars: list[tuple[str, float, int]] = []
         self._skip_to = -1  # steps <= this are in the store already
-        with _first_contact(tracking_uri):  # MlflowClient opens the store, creating its tables
-            self.client = client = _client(tracking_uri)
+        with _first_contact(uri):  # MlflowClient opens the store, creating its tables
+            self.client = client = MlflowClient(tracking_uri=uri)
             if id_file.is_file():
                 self.run_id = id_file.read_text().strip()
                 if resumed_at is not None:
-                    self._skip_to = self._last_step()
+                    keys = client.get_run(self.run_id).data.metrics
+                    steps = [m.step for key in keys for m in client.get_metric_history(self.run_id, key)]
+                    self._skip_to = max(steps, default=-1)
                 client.update_run(self.run_id, status="RUNNING")
-                return
-            found = client.get_experiment_by_name(experiment)
-            experiment_id = found.experiment_id if found else client.create_experiment(experiment)
-            run = client.create_run(
-                experiment_id, run_name=Path(run_dir).name, tags={"run_dir": str(run_dir)}
-            )
-        self.run_id = run.info.run_id
-        write_atomically(id_file, f"{self.run_id}\n".encode())
-
-    def _last_step(self) -> int:
-        keys = self.client.get_run(self.run_id).data.metrics
-        steps = [m.step for key in keys for m in self.client.get_metric_history(self.run_id, key)]
-        return max(steps, default=-1)
-
-    def log_params(self, cfg: DictConfig | dict) -> None:
-        """Log the flattened config as the run's params (those a resumed run has already are skipped)."""
-        from mlflow.entities import Param
-
-        have = self.client.get_run(self.run_id).data.params
+            else:
+                experiment = cfg.logger.experiment or group_name(cfg.sweep_name, run_dir)
+                found = client.get_experiment_by_name(experiment)
+                experiment_id = found.experiment_id if found else client.create_experiment(experiment)
+                tags = {"run_dir": str(run_dir)}
+                self.run_id = client.create_run(experiment_id, run_name=run_dir.name, tags=tags).info.run_id
+        if not id_file.is_file():
+            write_atomically(id_file, f"{self.run_id}\n".encode())
+        have = client.get_run(self.run_id).data.params
         params = [
             Param(key, str(value)[:MAX_PARAM_CHARS])
             for key, value in flatten_config(cfg).items()
-            if key not in have  # params cannot change in MLflow; a resumed run has them already
+            if key not in have  # params cannot change in MLflow; a continued run has them already
         ]
         for start in range(0, len(params), MAX_PARAMS_PER_BATCH):
-            self.client.log_batch(self.run_id, params=params[start : start + MAX_PARAMS_PER_BATCH])
-
-    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
-        """Buffer ``(tag, value, step)`` triples as metrics."""
-        self._buffer.extend((tag, float(value), int(step)) for tag, value, step in scalars)
+            client.log_batch(self.run_id, params=params[start : start + MAX_PARAMS_PER_BATCH])
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         # MLflow shows params and metrics side by side already; the final metrics under hparam/*,
@@ -166,15 +150,15 @@ class MLflowLogger(Logger):
         """Send the buffered metrics to the store in one batch."""
         from mlflow.entities import Metric
 
-        if not self._buffer:
+        if not self.scalars:
             return
         now = int(time.time() * 1000)
         metrics = [
-            Metric(tag, value, now, step)
-            for tag, value, step in self._buffer
-            if step > self._skip_to or tag.startswith("hparam/")
+            Metric(tag, float(value), now, int(step))
+            for tag, value, step in self.scalars
+            if int(step) > self._skip_to or tag.startswith("hparam/")
         ]
-        self._buffer.clear()
+        self.scalars.clear()
         for start in range(0, len(metrics), MAX_METRICS_PER_BATCH):
             self.client.log_batch(self.run_id, metrics=metrics[start : start + MAX_METRICS_PER_BATCH])
 
@@ -210,19 +194,6 @@ def validate(cfg: Mapping[str, Any]) -> None:
         )
 
 
-def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> MLflowLogger:
-    """The MLflow logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from, or None)."""
-    # MLflow's store announces creating and migrating its tables at INFO level, once per process.
-    for name in ("mlflow.store.db.utils", "alembic"):
-        logging.getLogger(name).setLevel(logging.WARNING)
-    run_dir = Path(run_dir)
-    uri = cfg.logger.tracking_uri or f"sqlite:///{(run_dir.resolve().parent / STORE_FILE)}"
-    experiment = cfg.logger.experiment or group_name(cfg.sweep_name, run_dir)
-    logger = MLflowLogger(uri, experiment, run_dir, cfg.logger.exp_name, resumed_at)
-    logger.log_params(cfg)
-    return logger
-
-
 @dataclass
 class MLflowConf(TensorBoardConf):
     """``logger.*`` of ``logger.backend=mlflow``."""
@@ -233,10 +204,10 @@ class MLflowConf(TensorBoardConf):
 
 store_plugin("logger", "mlflow", MLflowConf)
 
-BACKEND = register(
+register(
     Backend(
         "mlflow",
-        make,
+        MLflowLogger,
         resume_rule="continues the same MLflow run and skips the steps it already has (append-only store)",
         summary="an MLflow run per run in a tracking store (SQLite beside the runs by default)",
         validate=validate,

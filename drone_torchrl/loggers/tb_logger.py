@@ -1,5 +1,7 @@
 """``logger=tensorboard`` (the default backend): buffered scalars, written in batches, no writer held open.
 
+The files go to ``<run>/<logger.exp_name>``.
+
 TorchRL's ``TensorboardLogger`` keeps a ``SummaryWriter`` (an open event file and a writer thread)
 for the life of a run and sends every scalar through the thread's queue, one by one. A
 population of a thousand runs cannot hold a thousand writers, and at that rate its logging would
@@ -32,7 +34,6 @@ import os
 import socket
 import struct
 import time
-from collections.abc import Iterable
 from pathlib import Path
 
 import google_crc32c
@@ -41,7 +42,8 @@ from omegaconf import DictConfig
 
 from drone_torchrl.io.storage import writing
 from drone_torchrl.io.video import gif_bytes
-from drone_torchrl.loggers import Logger, flatten_config
+from drone_torchrl.loggers import Backend, Logger, flatten_config, register
+from drone_torchrl.schema import TensorBoardConf, store_plugin
 
 # TFRecord framing (what tensorboard's RecordWriter writes): a masked CRC32C of the length and of the data.
 _CRC_MASK_DELTA = 0xA282EAD8
@@ -120,17 +122,13 @@ class RunLogger(Logger):
     def __init__(self, exp_name: str, log_dir: str | Path, purge_step: int | None = None) -> None:
         self.log_dir = Path(log_dir) / exp_name
         self._purge_step = purge_step
-        self._scalars: list[tuple[str, float, int]] = []
+        self.scalars: list[tuple[str, float, int]] = []
         self._summaries: list = []  # (step, a ready-made Summary proto): videos, hparams
         self._events: Path | None = None
 
-    def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
-        """``(tag, value, step)`` triples, as many as come."""
-        self._scalars.extend(scalars)
-
     def flush(self) -> None:
         """Append the buffered scalars to this logger's event file (opened only for this)."""
-        if not (self._scalars or self._summaries):
+        if not (self.scalars or self._summaries):
             return
         from tensorboard.compat.proto import event_pb2
 
@@ -154,13 +152,13 @@ class RunLogger(Logger):
             event_pb2.Event(wall_time=now, step=step, summary=summary) for step, summary in self._summaries
         )
         steps: dict[int, list[bytes]] = {}
-        for name, value, step in self._scalars:
+        for name, value, step in self.scalars:
             steps.setdefault(int(step), []).append(scalar_value(name, value))
         data = [record.SerializeToString() for record in records]
         data.extend(scalar_event(now, step, values) for step, values in steps.items())
         with writing(self._events), self._events.open("ab") as f:
             f.write(b"".join(tf_record(d) for d in data))
-        self._scalars.clear()
+        self.scalars.clear()
         self._summaries.clear()
 
     def log_frames(self, name: str, frames: np.ndarray, step: int, fps: float) -> None:
@@ -190,3 +188,24 @@ class RunLogger(Logger):
         self._summaries.extend((0, summary) for summary in hparams(flatten_config(cfg), final))
         self.log_metrics(final, step=0)
         self.flush()
+
+
+def make(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> RunLogger:
+    """The TensorBoard logger of the run in ``run_dir`` (``resumed_at``: the count it resumes from)."""
+    # The checkpoint's own last update and evaluation were logged at its count: TensorBoard drops
+    # events from count + 1 on, those the interrupted process logged after the checkpoint.
+    purge = None if resumed_at is None else resumed_at + 1
+    return RunLogger(cfg.logger.exp_name, run_dir, purge_step=purge)
+
+
+# Its keys are the ones every backend has: drone_torchrl.schema.TensorBoardConf.
+store_plugin("logger", "tensorboard", TensorBoardConf)
+
+register(
+    Backend(
+        "tensorboard",
+        make,
+        resume_rule="events logged after the checkpoint are dropped (TensorBoard's purge_step), the rest kept",
+        summary="TensorBoard event files in `<run>/tensorboard/`: scalars, evaluation videos, hparams (the default)",
+    )
+)

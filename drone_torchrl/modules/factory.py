@@ -100,10 +100,7 @@ def build_policies(cfg: DictConfig, seeds: Sequence[int]) -> StackedThreeNet:
             template,
             model.init_std,
             hover_mean(model.distribution, cfg.env.max_thrust),
-            weights={
-                ".".join(key): value
-                for key, value in stacked.params.items(include_nested=True, leaves_only=True)
-            },
+            weights=stacked.params.flatten_keys("."),  # views of stacked.flat: set in place
         )
     return stacked.to(device=cfg.device, dtype=model_dtype(cfg))
 
