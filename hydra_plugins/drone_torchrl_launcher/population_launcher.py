@@ -169,9 +169,7 @@ def train_populations(
             run_lock.hold(folder)  # the job's folder is this process's before anything is written into it
         except (ConfigError, OSError) as err:
             print(f"{folder}: job not started: {err}")
-            ret = _JobReturn(overrides=list(overrides))
-            ret.cfg = sweep_config
-            returns.append(ret)
+            returns.append(_JobReturn(overrides=list(overrides), cfg=sweep_config))
             jobs.append(Outcome(Path(folder), error=err))
             continue
         ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
