@@ -9,8 +9,8 @@ catches installs that bypassed them (``pip install --no-deps``, a cluster's modu
 
 What each one is for:
 
-- :func:`basic_sweeper_class`, :func:`basic_sweeper_conf`: ``hydra/sweeper=population`` wraps and
-  extends Hydra's basic sweeper, which Hydra ships only under ``hydra._internal``.
+- :func:`basic_sweeper_class`, :func:`basic_sweeper_conf`: ``hydra/sweeper=population`` sweeps as
+  Hydra's basic sweeper (its batches, its schema), which Hydra ships only under ``hydra._internal``.
 - :func:`overrides_dirname`: ``hydra.job.override_dirname`` for derived jobs, computed exactly as
   Hydra does (``hydra._internal.config_loader_impl``).
 - :func:`hydra_args_parser`: the parser of a Hydra app's flags (``hydra._internal.utils``), so

@@ -29,6 +29,7 @@ not searched), kept in the checkpoint and written to ``lineage.parquet``
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import zlib
@@ -124,17 +125,14 @@ class PBTSettings:
         :class:`~.checks.ConfigError` (one line, naming ``hydra.launcher.<key>``) for the first that is not
         allowed.
         """
-        every = _param(
-            params, cls, "every_updates", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1"
-        )
-        quantile = _param(
-            params, cls, "quantile", lambda v: 0 < v <= MAX_QUANTILE, f"a number in (0, {MAX_QUANTILE}]"
-        )
+        param = functools.partial(_param, params, cls)
+        every = param("every_updates", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1")
+        quantile = param("quantile", lambda v: 0 < v <= MAX_QUANTILE, f"a number in (0, {MAX_QUANTILE}]")
         # A factor past MAX_FACTOR (or below its inverse) sends any value to its range's end in one
         # step: a resample, not a perturbation (and inf or nan would be clipped into a value no agent had).
         factors = f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]"
-        perturb = _param(params, cls, "perturb", _factors, factors, number=False)
-        resample = _param(params, cls, "resample_probability", lambda v: 0 <= v <= 1, "a number in [0, 1]")
+        perturb = param("perturb", _factors, factors, number=False)
+        resample = param("resample_probability", lambda v: 0 <= v <= 1, "a number in [0, 1]")
         keys = _searched_keys(params.get("keys", cls.keys), "PBT")
         return cls(
             int(every), float(quantile), tuple(float(f) for f in perturb), float(resample), tuple(keys)
@@ -282,13 +280,18 @@ class Search:
     def start(self, state: Any) -> None:
         """A fresh run's state before its first update (a resumed one has its checkpoint's)."""
 
+    def due(self, updates_done: int) -> bool:
+        """Whether the search takes a step after ``updates_done`` (>= 1) updates."""
+        return self.updates_until_due(updates_done - 1) == 1
+
     def _set(
         self, state: Any, update: int, agents: Sequence[int], parents: Sequence[int], new: Mapping[str, Any]
-    ) -> None:
+    ) -> Pairs:
         """Give ``agents`` the ``new`` values (key -> one per agent) in ``state`` and the lineage.
 
         A recorded key that ``new`` leaves out keeps the value the agent's row holds: its parent's
         (the exploit copied it), or its own after a restart from fresh weights (:data:`FRESH`).
+        Returns the ``(agent, parent)`` pairs.
         """
         pairs = list(zip(agents, parents, strict=True))
         source = [agent if parent == FRESH else parent for agent, parent in pairs]
@@ -306,6 +309,7 @@ class Search:
             for key in self.recorded:
                 self.lineage[key].append(values[key][i])
                 self.current[key][agent] = values[key][i]
+        return pairs
 
     def checkpoint(self) -> dict[str, Any]:
         """What a checkpoint keeps of the search: its settings and the lineage."""
@@ -414,10 +418,6 @@ class PBT(Search):
         """Updates from ``updates_done`` until the next exploit-and-explore step."""
         return self.settings.every_updates - updates_done % self.settings.every_updates
 
-    def due(self, updates_done: int) -> bool:
-        """Whether an exploit-and-explore step is due after ``updates_done`` updates."""
-        return updates_done % self.settings.every_updates == 0
-
     def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """One exploit-and-explore step after ``update`` updates; returns ``(agent, parent)`` pairs.
 
@@ -439,8 +439,7 @@ class PBT(Search):
                 if key not in ("seed", "counter"):  # an agent keeps its own noise and update count
                     state[key][rows] = state[key][sources]
         new = self.choose(Exploit(worst, parents, scores, alive, update, rng))
-        self._set(state, update, worst.tolist(), parents.tolist(), new)
-        return list(zip(worst.tolist(), parents.tolist(), strict=True))
+        return self._set(state, update, worst.tolist(), parents.tolist(), new)
 
     def choose(self, step: Exploit) -> dict[str, np.ndarray]:
         """The values the replaced agents train with next (key -> one per agent): each explored from its parent's."""
@@ -628,10 +627,6 @@ class Replay(Search):
         """Updates from ``updates_done`` until the replayed line's next change of values."""
         return min((u - updates_done for u in self.steps if u > updates_done), default=NEVER)
 
-    def due(self, updates_done: int) -> bool:
-        """Whether the replayed line changes its values after ``updates_done`` updates."""
-        return updates_done in self.steps and updates_done > 0
-
     def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """Give every agent the line's values from ``update`` on; replaces no agent (returns ``[]``)."""
         everyone = list(range(self.agents))
@@ -667,10 +662,9 @@ class HalvingSettings:
             counts = _list(rungs) and all(is_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
             return counts and list(rungs) == sorted(set(rungs))
 
-        rungs = _param(
-            params, cls, "rungs", increasing, "increasing update counts >= 1, e.g. [500,1500]", False
-        )
-        fraction = _param(params, cls, "fraction", lambda v: 0 < v < 1, "a number in (0, 1)")
+        param = functools.partial(_param, params, cls)
+        rungs = param("rungs", increasing, "increasing update counts >= 1, e.g. [500,1500]", number=False)
+        fraction = param("fraction", lambda v: 0 < v < 1, "a number in (0, 1)")
         keys = _searched_keys(params.get("keys", cls.keys), "successive halving")
         return cls(tuple(int(r) for r in rungs), float(fraction), keys)
 
@@ -742,10 +736,6 @@ class Halving(Search):
         later = [s + r - updates_done for s in set(self.started) for r in self.settings.rungs]
         return min((d for d in later if d > 0), default=NEVER)
 
-    def due(self, updates_done: int) -> bool:
-        """Whether an agent reaches a rung after ``updates_done`` updates."""
-        return any(updates_done - s in self.rung_scores for s in set(self.started))
-
     def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """Restart the agents at a rung that score in its worst ``fraction``; returns ``(agent, FRESH)`` pairs."""
         stopped = []
@@ -753,8 +743,6 @@ class Halving(Search):
             arrived = [i for i in range(len(scores)) if alive[i] and update - self.started[i] == rung]
             score = {i: -math.inf if math.isnan(scores[i]) else float(scores[i]) for i in arrived}
             history.extend(score[i] for i in arrived)
-            if not arrived:
-                continue
             # The worst `fraction` of every score this rung has seen: below the k-th smallest.
             k = int(len(history) * self.settings.fraction)
             threshold = sorted(history)[k] if k else -math.inf
@@ -762,7 +750,6 @@ class Halving(Search):
         if not stopped:
             return []
         from drone_torchrl.modules.factory import build_policies
-        from drone_torchrl.training.optim import adam_state
 
         agents, count = sorted(stopped), len(stopped)
         rng = np.random.default_rng([self.seed, update])
@@ -774,16 +761,14 @@ class Halving(Search):
         self.next_seed += count
         rows = torch.as_tensor(agents)
         fresh = build_policies(self.cfg, seeds).flat.detach()
-        zero = adam_state(fresh, torch.zeros(count), torch.zeros(count))
         with torch.no_grad():
             state["params"][rows] = fresh.to(state["params"])
-            for key in ("exp_avg", "exp_avg_sq", "adam_steps"):
-                state[key][rows] = zero[key].to(state[key])
+            for key in ("exp_avg", "exp_avg_sq", "adam_steps"):  # a fresh optimizer (optim.adam_state's)
+                state[key][rows] = 0
             state["seed"][rows] = torch.as_tensor(seeds, dtype=state["seed"].dtype)
-        self._set(state, update, agents, [FRESH] * count, new)
         for agent in agents:
             self.started[agent] = update
-        return [(agent, FRESH) for agent in agents]
+        return self._set(state, update, agents, [FRESH] * count, new)
 
 
 #: What a population run's search is asked for (PBT, successive halving, or a replay of one agent's values).

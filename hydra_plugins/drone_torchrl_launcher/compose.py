@@ -81,12 +81,8 @@ def sweep_configs(
                 with read_write(hydra), open_dict(hydra):
                     task = [o for o in parsed if not o.is_hydra_override()]
                     hydra.overrides.task = [o.input_line for o in task]
-                    hydra.job.override_dirname = overrides_dirname(
-                        overrides=task,
-                        kv_sep=dirname.kv_sep,
-                        item_sep=dirname.item_sep,
-                        exclude_keys=dirname.exclude_keys,
-                    )
+                    # Hydra's schema of the node: kv_sep, item_sep, exclude_keys.
+                    hydra.job.override_dirname = overrides_dirname(overrides=task, **dirname)
         else:
             cfg = config_loader.load_sweep_config(master, list(overrides))
             hydra = _take_hydra(cfg)
@@ -154,11 +150,9 @@ def checked(cfg: DictConfig, values: dict[str, list] | None = None) -> None:
 
 def _number(text: str) -> int | float | None:
     """``text`` as Hydra reads it, if it is a plainly written int or float."""
-    if _INT.fullmatch(text):
-        return int(text)
-    if _FLOAT.fullmatch(text):
-        return float(text)
-    return None
+    if not _FLOAT.fullmatch(text):
+        return None
+    return int(text) if _INT.fullmatch(text) else float(text)
 
 
 def _take_hydra(cfg: DictConfig) -> DictConfig:

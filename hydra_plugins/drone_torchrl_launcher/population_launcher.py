@@ -169,9 +169,7 @@ def train_populations(
             run_lock.hold(folder)  # the job's folder is this process's before anything is written into it
         except (ConfigError, OSError) as err:
             print(f"{folder}: job not started: {err}")
-            ret = _JobReturn(overrides=list(overrides))
-            ret.cfg = sweep_config
-            returns.append(ret)
+            returns.append(_JobReturn(overrides=list(overrides), cfg=sweep_config))
             jobs.append(Outcome(Path(folder), error=err))
             continue
         ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
@@ -256,7 +254,7 @@ class PopulationLauncher(Launcher):
             raise plan.refused[0]
         for agents, _ in plan.groups:
             check_population(agents, self.search)
-        self._plans[_jobs(job_overrides)] = plan
+        self._plans[tuple(map(tuple, job_overrides))] = plan
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         from drone_torchrl.training.jobs import sweep_summary
@@ -277,7 +275,7 @@ class PopulationLauncher(Launcher):
             return returns
         sweep_dir = Path(str(self.config.hydra.sweep.dir)).absolute()
         log.info(f"Launching {len(job_overrides)} jobs as population runs in {sweep_dir}")
-        plan = self._plans.pop(_jobs(job_overrides), None)
+        plan = self._plans.pop(tuple(map(tuple, job_overrides)), None)
         try:  # unless checked before: another sweeper than hydra/sweeper=population
             plan = plan or self._plan(job_overrides, initial_job_idx)
         except ConfigError as err:
@@ -320,11 +318,50 @@ class PopulationLauncher(Launcher):
         return returns
 
     def _plan(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> _Plan:
-        """The batch's jobs composed, checked and grouped: one agent table per population run."""
+        """The batch's jobs composed, checked and grouped: one agent table per population run.
+
+        Jobs that differ only in numbers of the per-agent keys, and whose values all pass, are one
+        population from one config (:func:`.compose.agent_columns`), no config per job: each job's
+        ``JobReturn.cfg`` is then the group's config (its own values: ``agents.parquet``). Else each
+        job's config is composed and checked (a bad one's error in the plan's ``errors``), and the
+        jobs are grouped as the fused launcher groups them: one agent table per group.
+        """
+        from drone_torchrl.config import per_agent_keys
+        from drone_torchrl.training.agents import AgentTable
+        from drone_torchrl.training.jobs import group_key
+        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, checked, sweep_configs
+
+        assert self.config is not None and self.hydra_context is not None
+        loader = self.hydra_context.config_loader
         returns: list[JobReturn] = [_JobReturn(overrides=list(overrides)) for overrides in job_overrides]
         errors: list[ConfigError | None] = [None] * len(job_overrides)
-        one_table = self._one_table(job_overrides, returns)
-        hydra_record, groups = one_table or self._tables(job_overrides, returns, errors)
+        table = agent_columns(loader, self.config, job_overrides, per_agent_keys())
+        try:
+            if table is not None:
+                checked(table[0], table[2])
+        except ConfigError:  # the per-job path says which jobs, and trains the others
+            table = None
+        if table is not None:
+            cfg, hydra, values = table
+            for ret in returns:
+                ret.cfg = cfg
+            hydra_record = _hydra_record(hydra)
+            groups = [(AgentTable(cfg, values), list(range(len(job_overrides))))]
+        else:
+            members: dict[str, list[int]] = {}
+            hydra_record = None
+            for position, cfg in enumerate(sweep_configs(loader, self.config, job_overrides)):
+                with read_write(cfg), open_dict(cfg):
+                    hydra_record = hydra_record or _hydra_record(cfg.hydra)
+                    del cfg["hydra"]
+                returns[position].cfg = cfg
+                try:
+                    checked(cfg)
+                except ConfigError as err:
+                    errors[position] = err
+                    continue
+                members.setdefault(group_key(cfg), []).append(position)
+            groups = [(AgentTable.of([returns[i].cfg for i in group]), group) for group in members.values()]
         refused = [
             ConfigError(f"job #{initial_job_idx + i} ({' '.join(job_overrides[i])}): {err}")
             for i, err in enumerate(errors)
@@ -332,58 +369,7 @@ class PopulationLauncher(Launcher):
         ]
         if self.replay:
             _refuse_scheduled_keys(self.search, job_overrides)
-        return _Plan(hydra_record, groups, returns, errors, refused, one_table is not None)
-
-    def _one_table(
-        self, job_overrides: Sequence[Sequence[str]], returns: list[JobReturn]
-    ) -> tuple[dict, list[tuple[AgentTable, list[int]]]] | None:
-        """Jobs that differ only in numbers of the per-agent keys, and whose values all pass: one
-        population from one config (:func:`.compose.agent_columns`), no config per job; else None.
-        Each job's ``JobReturn.cfg`` is then the group's config (its own values: ``agents.parquet``)."""
-        from drone_torchrl.config import per_agent_keys
-        from drone_torchrl.training.agents import AgentTable
-        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, checked
-
-        assert self.config is not None and self.hydra_context is not None
-        table = agent_columns(self.hydra_context.config_loader, self.config, job_overrides, per_agent_keys())
-        if table is None:
-            return None
-        cfg, hydra, values = table
-        try:
-            checked(cfg, values)
-        except ConfigError:  # the per-job path says which jobs, and trains the others
-            return None
-        for ret in returns:
-            ret.cfg = cfg
-        hydra_record = _hydra_record(hydra)
-        return hydra_record, [(AgentTable(cfg, values), list(range(len(job_overrides))))]
-
-    def _tables(
-        self, job_overrides: Sequence[Sequence[str]], returns: list[JobReturn], errors: list
-    ) -> tuple[dict | None, list[tuple[AgentTable, list[int]]]]:
-        """Each job's config composed and checked (a bad one's error in ``errors``), then grouped as the
-        fused launcher groups jobs: one agent table per group."""
-        from drone_torchrl.training.agents import AgentTable
-        from drone_torchrl.training.jobs import group_key
-        from hydra_plugins.drone_torchrl_launcher.compose import checked, sweep_configs
-
-        assert self.config is not None and self.hydra_context is not None
-        groups: dict[str, list[int]] = {}
-        hydra_record: dict | None = None
-        configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
-        for position, cfg in enumerate(configs):
-            with read_write(cfg), open_dict(cfg):
-                hydra_record = hydra_record or _hydra_record(cfg.hydra)
-                del cfg["hydra"]
-            returns[position].cfg = cfg
-            try:
-                checked(cfg)
-            except ConfigError as err:
-                errors[position] = err
-                continue
-            groups.setdefault(group_key(cfg), []).append(position)
-        tables = [(AgentTable.of([returns[i].cfg for i in members]), members) for members in groups.values()]
-        return hydra_record, tables
+        return _Plan(hydra_record, groups, returns, errors, refused, table is not None)
 
 
 class _Plan(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this module outside sys.modules
@@ -398,11 +384,6 @@ class _Plan(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this modu
     errors: list[ConfigError | None]
     refused: list[ConfigError]
     one_config: bool
-
-
-def _jobs(job_overrides: Sequence[Sequence[str]]) -> tuple[tuple[str, ...], ...]:
-    """A batch's jobs as a key."""
-    return tuple(tuple(job) for job in job_overrides)
 
 
 def _settings(search: Any, folders: Any, settings: dict[str, Any]) -> SearchSettings | None:

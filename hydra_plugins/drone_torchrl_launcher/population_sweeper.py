@@ -18,7 +18,8 @@ and going on past failed jobs.
   and the end-of-sweep summary is skipped. Here every batch runs; the summary
   (``SweepSummary``) then lists each job's status and exits non-zero if any failed.
 
-Everything else, grid expansion, batches, ``max_batch_size``, ``params``, is the basic sweeper's.
+Grid expansion and batches are the basic sweeper's (its ``split_arguments``); ``max_batch_size`` and
+``params`` mean what they mean there.
 """
 
 import sys
@@ -27,11 +28,11 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Override, ValueType
-from hydra.core.utils import JobReturn, JobStatus
 from hydra.plugins.sweeper import Sweeper
 from hydra.types import HydraContext, TaskFunction
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from drone_torchrl import launcher_schemas  # noqa: F401  (registers hydra/sweeper=population)
 from drone_torchrl.checks import ConfigError
@@ -40,68 +41,103 @@ from hydra_plugins.drone_torchrl_launcher.population_launcher import PopulationL
 
 
 class PopulationSweeper(Sweeper):
-    """The basic sweeper with a cheaper ``validate_batch_is_legal``.
+    """Hydra's basic sweeper (its grid, batches, ``max_batch_size`` and ``params``), checking each batch
+    cheaply and going on past failed jobs (the module's docstring).
 
-    It wraps rather than subclasses ``BasicSweeper``: Hydra's plugin scan re-executes its core
-    plugin modules, and ``BasicSweeper.__init__`` calls ``super(BasicSweeper, self)`` with the class
-    the module defines now, which a subclass of the class imported earlier is not.
+    It does the basic sweeper's few steps itself rather than subclass ``BasicSweeper``: Hydra's plugin
+    scan re-executes its core plugin modules, and ``BasicSweeper.__init__`` calls ``super(BasicSweeper,
+    self)`` with the class the module defines now, which a subclass of the class imported earlier is not.
     """
 
     config: DictConfig | None = None
     hydra_context: HydraContext | None = None
+    launcher: Any = None
 
     def __init__(self, max_batch_size: int | None = None, params: dict[str, str] | None = None) -> None:
-        self._basic = basic_sweeper_class()(max_batch_size=max_batch_size, params=params)
-        self._basic.validate_batch_is_legal = self.validate_batch_is_legal
-        self._basic.split_arguments = self.split_arguments
+        self.max_batch_size, self.params = max_batch_size, params or {}
 
     def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
+        from hydra.core.plugins import Plugins
+
         self.config, self.hydra_context = config, hydra_context
-        self._basic.setup(hydra_context=hydra_context, task_function=task_function, config=config)
-        self._basic.launcher = _GoOn(self._basic.launcher)
+        self.launcher = Plugins.instance().instantiate_launcher(
+            hydra_context=hydra_context, task_function=task_function, config=config
+        )
 
     def sweep(self, arguments: list[str]) -> Any:
         """The basic sweeper's sweep, with the sweep folder this process's while it runs: the same
         sweep command started again while this one is alive is refused in one line, before Hydra
         writes into the folder (:mod:`drone_torchrl.io.run_lock`; each job folder is also held by the
-        process that trains it, under every launcher)."""
+        process that trains it, under every launcher).
+
+        Every batch runs: a failed job keeps its error (Hydra's callbacks and the job folders say
+        FAILED) but does not stop the sweep. A disk that refuses a write
+        (:class:`~drone_torchrl.io.storage.StorageError`, out of a launcher that trains in this
+        process: ``fused``, ``population``, ``pbt``, ...) does: the jobs after it would fail alike.
+        One line then names the file and the command that continues.
+        """
         from drone_torchrl.config import ConfigError
         from drone_torchrl.io import run_lock
         from drone_torchrl.io.folders import remove_if_untouched
+        from drone_torchrl.io.storage import StorageError
+        from drone_torchrl.training.jobs import this_command
 
-        assert self.config is not None
+        assert self.config is not None and self.hydra_context is not None
         sweep_dir = str(self.config.hydra.sweep.dir)
         try:
             run_lock.hold(sweep_dir)
         except (ConfigError, OSError) as err:
             sys.exit(f"drone-train: error: sweep {err}")
         try:
-            return self._basic.sweep(arguments)
+            parser = OverridesParser.create(config_loader=self.hydra_context.config_loader)
+            params = [f"{key}={value}" for key, value in self.params.items()]
+            batches = self.split_arguments(parser.parse_overrides([*params, *arguments]), self.max_batch_size)
+            Path(sweep_dir).mkdir(parents=True, exist_ok=True)
+            OmegaConf.save(self.config, Path(sweep_dir) / "multirun.yaml")
+            returns, start = [], 0
+            for batch in batches:
+                try:
+                    returns.append(self.launcher.launch(batch, initial_job_idx=start))
+                except StorageError as err:  # checkpoints are replaced whole: the last of each job stands
+                    sys.exit(
+                        f"drone-train: error: {err}; every checkpoint written is intact (each job continues "
+                        f"from its own); continue with: {this_command()}"
+                    )
+                start += len(batch)
+            return returns
         finally:
             run_lock.release(sweep_dir)
             # A sweep refused before its first job leaves no folder (Hydra wrote only its multirun.yaml).
             remove_if_untouched(Path(sweep_dir), also=frozenset({"multirun.yaml"}))
 
     def split_arguments(self, overrides: list[Override], max_batch_size: int | None) -> list[list[list[str]]]:
-        """The basic sweeper's batches of jobs, with each range (``interval``) drawn per job.
+        """The basic sweeper's batches of jobs, with each range (``interval``) drawn per job, each checked.
 
         A range override is taken out of the grid; every job then gets ``key=<value>``, drawn from
         the range with a generator keyed by the job's ``seed`` (the config's where the job sets
         none). A range is refused in one line unless the launcher is ``pbt`` and searches the key.
-        Every batch is then checked (``_check``): Hydra writes the sweep folder after this.
+        Every batch is then checked before the basic sweeper writes the sweep folder (its
+        ``multirun.yaml``): each job's values (:meth:`_check_batch`), then what the launcher refuses
+        of the batch (a population launcher's :meth:`~.population_launcher.PopulationLauncher.check`):
+        a refused command writes nothing. Exits with one line.
         """
-        batches = self._split(overrides, max_batch_size)
-        self._check(batches)
-        return batches
-
-    def _check(self, batches: list[list[list[str]]]) -> None:
-        """Every batch checked before the basic sweeper writes the sweep folder (its ``multirun.yaml``).
-
-        Each job's values (:meth:`_check_batch`), then what the launcher refuses of the batch (a
-        population launcher's :meth:`~.population_launcher.PopulationLauncher.check`): a refused
-        command writes nothing. Exits with one line.
-        """
-        launcher, start = self._launcher(), 0
+        assert self.config is not None
+        launcher = self.launcher
+        ranges = [_range(o, launcher) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
+        grid = [o for o in overrides if o.value_type != ValueType.INTERVAL_SWEEP]
+        batches = basic_sweeper_class().split_arguments(grid, max_batch_size)
+        if ranges:
+            launcher.search = replace(launcher.search, ranges=tuple(ranges))
+            try:  # a range reaching past its key's values: one line before any job is drawn
+                launcher.search.bounds(self.config)
+            except ConfigError as err:
+                sys.exit(f"drone-train: error: {err}")
+            for batch in batches:
+                seeds = [_job_seed(job, int(self.config.seed)) for job in batch]
+                for span in ranges:
+                    for job, value in zip(batch, span.first_values(seeds), strict=True):
+                        job.append(f"{span.key}={value!r}")
+        start = 0
         for batch in batches:
             self._check_batch(batch)
             if isinstance(launcher, PopulationLauncher):
@@ -110,38 +146,7 @@ class PopulationSweeper(Sweeper):
                 except ConfigError as err:
                     sys.exit(f"drone-train: error: {err}")
             start += len(batch)
-        self._checked = {id(batch) for batch in batches}
-
-    def _split(self, overrides: list[Override], max_batch_size: int | None) -> list[list[list[str]]]:
-        """The batches, each range drawn per job (:meth:`split_arguments`)."""
-        ranges = [_range(o, self._launcher()) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
-        grid = [o for o in overrides if o.value_type != ValueType.INTERVAL_SWEEP]
-        batches = basic_sweeper_class().split_arguments(grid, max_batch_size)
-        if not ranges:
-            return batches
-        launcher = self._launcher()
-        launcher.search = replace(launcher.search, ranges=tuple(ranges))
-        assert self.config is not None
-        try:  # a range reaching past its key's values: one line before any job is drawn
-            launcher.search.bounds(self.config)
-        except ConfigError as err:
-            sys.exit(f"drone-train: error: {err}")
-        default_seed = int(self.config.seed)
-        for batch in batches:
-            seeds = [_job_seed(job, default_seed) for job in batch]
-            for span in ranges:
-                for job, value in zip(batch, span.first_values(seeds), strict=True):
-                    job.append(f"{span.key}={value!r}")
         return batches
-
-    def _launcher(self) -> Any:
-        """The launcher the basic sweeper launches with (inside :class:`_GoOn`)."""
-        return self._basic.launcher.launcher
-
-    def validate_batch_is_legal(self, batch: Sequence[Sequence[str]]) -> None:
-        """The basic sweeper's check of a batch before launching it: done for every batch already."""
-        if id(batch) not in getattr(self, "_checked", set()):
-            self._check_batch(batch)
 
     def _check_batch(self, batch: Sequence[Sequence[str]]) -> None:
         """Every job composes, and every job's values pass the config checks: a bad value in a
@@ -210,35 +215,3 @@ def _job_seed(job: Sequence[str], default: int) -> int:
         if key == "seed":
             return int(value)
     return default
-
-
-class _GoOn:
-    """A launcher as the basic sweeper sees it: failed jobs keep their error (Hydra's callbacks and
-    the job folders say FAILED), but do not stop the sweep.
-
-    A disk that refuses a write (:class:`~drone_torchrl.io.storage.StorageError`, out of a launcher
-    that trains in this process: ``fused``, ``population``, ``pbt``, ...) does: the jobs after it
-    would fail alike. One line then names the file and the command that continues.
-    """
-
-    def __init__(self, launcher: Any) -> None:
-        self.launcher = launcher
-
-    def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-        from drone_torchrl.io.storage import StorageError
-        from drone_torchrl.training.jobs import this_command
-
-        try:
-            returns = self.launcher.launch(job_overrides, initial_job_idx=initial_job_idx)
-        except StorageError as err:  # checkpoints are replaced whole: the last of each job stands
-            sys.exit(
-                f"drone-train: error: {err}; every checkpoint written is intact (each job continues from its "
-                f"own); continue with: {this_command()}"
-            )
-        for ret in returns:
-            if ret.status == JobStatus.FAILED:
-                ret.status, ret.return_value = JobStatus.COMPLETED, None
-        return returns
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.launcher, name)

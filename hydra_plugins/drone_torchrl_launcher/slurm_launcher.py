@@ -71,38 +71,53 @@ if _SubmititSlurm is not None:
             """The submitit executor with this launcher's parameters (as Hydra's launcher builds it)."""
             import submitit
 
-            init_keys = {"submitit_folder", "max_num_timeout", "agents_per_job"}
+            cluster, params = submitit_cluster(self), submitit_params(self)
             executor = submitit.AutoExecutor(
-                cluster=submitit_cluster(self),
-                folder=submitit_params(self)["submitit_folder"],
-                **{f"{submitit_cluster(self)}_max_num_timeout": submitit_params(self)["max_num_timeout"]},
+                cluster=cluster,
+                folder=params["submitit_folder"],
+                **{f"{cluster}_max_num_timeout": params["max_num_timeout"]},
             )
+            init_keys = {"submitit_folder", "max_num_timeout", "agents_per_job"}
             base = set(OmegaConf.structured(BaseQueueConf).keys())
             executor.update_parameters(
                 **{
-                    key if key in base else f"{submitit_cluster(self)}_{key}": value
-                    for key, value in submitit_params(self).items()
+                    key if key in base else f"{cluster}_{key}": value
+                    for key, value in params.items()
                     if key not in init_keys
                 }
             )
             return executor
 
         def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
+            from submitit.core.utils import UncompletedJobError
+
             assert self.config is not None
             sweep_dir = Path(str(self.config.hydra.sweep.dir))
             sweep_dir.mkdir(parents=True, exist_ok=True)
+            numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
+            groups, params = self._slurm_jobs(sweep_dir, job_overrides, numbers)
+            returns: list[JobReturn | None] = [None] * len(job_overrides)
+            for job, group in zip(self._submit(params), groups, strict=True):
+                try:
+                    done = job.results()[0]  # slurm: the job's JobReturn; slurm_population: its jobs'
+                except UncompletedJobError:
+                    done = [self._unfinished(job, list(job_overrides[i]), numbers[i]) for i in group]
+                for position, ret in zip(group, done if isinstance(done, list) else [done], strict=True):
+                    returns[position] = ret
+            return returns
+
+        def _slurm_jobs(
+            self, sweep_dir: Path, job_overrides: Sequence[Sequence[str]], numbers: range
+        ) -> tuple[list[list[int]], list[tuple]]:
+            """The SLURM jobs: each one's sweep jobs (by position) and its arguments of ``self``; one each."""
             log.info(f"Submitit '{submitit_cluster(self)}' sweep output dir : {sweep_dir}")
             params = []
-            for idx, overrides in enumerate(job_overrides, initial_job_idx):
+            for idx, overrides in zip(numbers, job_overrides, strict=True):
                 log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
                 params.append(
                     (list(overrides), "hydra.sweep.dir", idx, f"job_id_for_{idx}", Singleton.get_state())
                 )
-            jobs = self._submit(params)
-            return [
-                self._outcome(job, list(overrides), idx)
-                for idx, (job, overrides) in enumerate(zip(jobs, job_overrides, strict=True), initial_job_idx)
-            ]
+            return [[position] for position in range(len(job_overrides))], params
 
         def _submit(self, params: list[tuple]) -> list:
             """One SLURM array task per entry of ``params`` (arguments of ``self``); waits for all."""
@@ -112,14 +127,6 @@ if _SubmititSlurm is not None:
             while not all(job.done() for job in jobs):
                 time.sleep(POLL_S)
             return jobs
-
-        def _outcome(self, job, overrides: list[str], idx: int) -> JobReturn:
-            from submitit.core.utils import UncompletedJobError
-
-            try:
-                return job.results()[0]
-            except UncompletedJobError:
-                return self._unfinished(job, overrides, idx)
 
         def _unfinished(self, job, overrides: list[str], idx: int) -> JobReturn:
             """A FAILED return (and ``FAILED.txt``) for a job whose SLURM job ended before it finished."""
@@ -151,17 +158,15 @@ if _SubmititSlurm is not None:
                     "expected an integer >= 1"
                 )
 
-        def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
-            from submitit.core.utils import UncompletedJobError
-
+        def _slurm_jobs(
+            self, sweep_dir: Path, job_overrides: Sequence[Sequence[str]], numbers: range
+        ) -> tuple[list[list[int]], list[tuple]]:
+            """The SLURM jobs: populations of up to ``agents_per_job`` sweep jobs, with their folders' owners."""
             from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
             from hydra_plugins.drone_torchrl_launcher.population_launcher import job_output_dir
 
             assert self.config is not None and self.hydra_context is not None
             per_job = submitit_params(self)["agents_per_job"]
-            sweep_dir = Path(str(self.config.hydra.sweep.dir))
-            sweep_dir.mkdir(parents=True, exist_ok=True)
-            numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
             configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
             folders = [job_output_dir(cfg, idx) for idx, cfg in zip(numbers, configs, strict=True)]
             groups = population_groups(folders, per_job)
@@ -173,19 +178,7 @@ if _SubmititSlurm is not None:
                 ([list(job_overrides[i]) for i in group], [numbers[i] for i in group], Singleton.get_state())
                 for group in groups
             ]
-            returns: list[JobReturn | None] = [None] * len(job_overrides)
-            for job, group, (overrides, group_numbers, _) in zip(
-                self._submit(params), groups, params, strict=True
-            ):
-                try:
-                    group_returns = job.results()[0]
-                except UncompletedJobError:
-                    group_returns = [
-                        self._unfinished(job, o, idx) for o, idx in zip(overrides, group_numbers, strict=True)
-                    ]
-                for position, ret in zip(group, group_returns, strict=True):
-                    returns[position] = ret
-            return returns
+            return groups, params
 
         def __call__(self, group: list[list[str]], numbers: list[int], singleton_state) -> list[JobReturn]:
             """Inside the SLURM job: the group's folders, then one population (``checkpoint`` requeues it)."""
