@@ -189,18 +189,18 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
     return _once(name, load)
 
 
-# The functions whose result is an int64 or a name: every build's, then the CPU's or the CUDA one's own.
-_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim")
 #: The entry points' argument lists the Python side calls (drone_kernels.cpp's ``dk_abi_version``).
-ABI_VERSION = 2
-_NAMES = ("dk_env_constants", "dk_disturbance_constants")
-_CPU_INT64_RESULTS = ("dk_rollout", "dk_reinforce", "dk_segments")
-_CUDA_INT64_RESULTS = ("dk_cuda_scratch_size", "dk_cuda_rollout", "dk_cuda_reinforce")
-_CUDA_NAMES = ("dk_cuda_error",)
+ABI_VERSION = 3
 
 
-def _load(path: Path, double: bool, cuda: bool = False) -> ctypes.CDLL:
-    lib = ctypes.CDLL(str(path))
+class _Library(ctypes.CDLL):
+    """A kernels library: its functions return an int64 (a size or a code), or a name."""
+
+    _func_restype_ = ctypes.c_int64
+
+
+def _load(path: Path, double: bool) -> ctypes.CDLL:
+    lib = _Library(str(path))
     try:
         version = lib.dk_abi_version()
     except AttributeError:  # built before the entry points were numbered
@@ -209,10 +209,9 @@ def _load(path: Path, double: bool, cuda: bool = False) -> ctypes.CDLL:
         raise OSError(
             f"{path} takes the entry points' arguments of version {version}, not {ABI_VERSION}: rebuild it"
         )
-    for function in _INT64_RESULTS + (_CUDA_INT64_RESULTS if cuda else _CPU_INT64_RESULTS):
-        getattr(lib, function).restype = ctypes.c_int64
-    for function in _NAMES + (_CUDA_NAMES if cuda else ()):
-        getattr(lib, function).restype = ctypes.c_char_p
+    for function in ("dk_env_constants", "dk_disturbance_constants", "dk_cuda_error"):
+        if hasattr(lib, function):  # the last: the CUDA engine's only
+            getattr(lib, function).restype = ctypes.c_char_p
     if lib.dk_real_bytes() != (8 if double else 4):
         raise OSError(f"{path} was built for another precision")
     _check_layout(lib, path)
@@ -277,14 +276,14 @@ def cuda_library(double: bool = False) -> ctypes.CDLL | None:
     def load() -> ctypes.CDLL:
         given = os.environ.get(CUDA_LIBRARY_ENV)
         if given and not double:
-            return _load(Path(given), double, cuda=True)
+            return _load(Path(given), double)
         compiler = nvcc()
         if compiler is None:
             raise OSError(f"no nvcc found and ${CUDA_LIBRARY_ENV} not set")
         path = _cached(name, SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double))
         if not path.is_file() and (why := build_cuda(path, double)) is not None:
             raise OSError(why)
-        return _load(path, double, cuda=True)
+        return _load(path, double)
 
     return _once(name, load)
 

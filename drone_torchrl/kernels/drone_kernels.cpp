@@ -1004,7 +1004,8 @@ struct LossOptions {
 };
 
 struct GradArgs {
-  RolloutArgs roll;
+  RolloutArgs roll;  // rows = agents * episodes
+  int64_t agents;
   LossOptions options;
   void* grad;               // [agents, params]
   double* loss;             // [agents]: each agent's REINFORCE loss (reinforce_terms' loss_per_agent)
@@ -1253,14 +1254,20 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   }
 }
 
-DK_HD Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation, double min_std,
-             double dist_eps) {
+// The network as the entry points take it (ops._net packs it): hidden widths after the first n_hidden unread.
+struct NetSpec {
+  int64_t in_dim, n_hidden, activation;
+  double min_std, dist_eps;
+  int64_t hidden[kMaxLayers];
+};
+
+DK_HD Net make_net(const NetSpec& spec) {
   Net net{};
-  net.in_dim = static_cast<int>(in_dim), net.n_hidden = static_cast<int>(n_hidden);
-  net.activation = static_cast<int>(activation), net.min_std = min_std, net.dist_eps = dist_eps;
+  net.in_dim = static_cast<int>(spec.in_dim), net.n_hidden = static_cast<int>(spec.n_hidden);
+  net.activation = static_cast<int>(spec.activation), net.min_std = spec.min_std, net.dist_eps = spec.dist_eps;
   int off = 0, in = net.in_dim;
   for (int l = 0; l < net.n_hidden + 2; l++) {
-    const int n = l < net.n_hidden ? static_cast<int>(hidden[l]) : kActionDim;
+    const int n = l < net.n_hidden ? static_cast<int>(spec.hidden[l]) : kActionDim;
     if (l < net.n_hidden) net.activations += n;
     net.offset[l] = off;
     net.width[l] = in;
@@ -1276,14 +1283,36 @@ DK_HD inline int activation_width(const Net& net) { return net.activations > 0 ?
 
 // ------------------------------------------------------------------------------------------------
 // The engines. Each runs fly_block over the rows (fly) and reinforce_agent over the agents (grad)
-// of a call. Every entry point below takes what either target needs: the CPU's thread count, the
-// GPU's stream and scratch memory (dk_cuda_scratch_size scalars the caller allocates, so PyTorch's
-// caching allocator owns all device memory); the other target ignores them.
+// of a call. Every entry point reads one array of 8-byte words, a Call field by field (ops._launch
+// packs it): the Launch, what either target needs (the CPU's thread count, the GPU's stream and
+// scratch memory: dk_cuda_scratch_size scalars the caller allocates, so PyTorch's caching allocator
+// owns all device memory; the other target ignores them), the network and the op's arguments.
 struct Launch {
   int64_t threads;
   void* stream;
   void* scratch;
 };
+
+template <class Args>
+struct Call {
+  Launch on;
+  NetSpec spec;
+  Args a;
+};
+
+// What the size queries read: the network, then the rows flown, the agents updated, and their
+// episodes and steps.
+struct Sizes {
+  NetSpec spec;
+  int64_t rows, agents, episodes, steps;
+};
+
+template <class T>
+T unpack(const void* words) {
+  T t;
+  std::memcpy(&t, words, sizeof t);
+  return t;
+}
 
 #if DK_CPU
 // The CPU engine: threads over blocks of lanes() drones. The scalar engine (-DDK_SCALAR_ENGINE)
@@ -1293,7 +1322,6 @@ using Lanes = Real;
 #else
 using Lanes = std::conditional_t<DK_DOUBLE != 0, D, F>;
 #endif
-#define DK_ENTRY(name) dk_##name
 
 template <class Fn>
 void parallel_blocks(int64_t blocks, int64_t threads, Fn fn) {
@@ -1328,8 +1356,8 @@ int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
   return 0;
 }
 
-int64_t grad(const Net& net, const GradArgs& g, int64_t agents, const Launch& on) {
-  parallel_blocks(agents, on.threads, [&](int64_t f, int64_t l) { reinforce_agents(net, g, f, l); });
+int64_t grad(const Net& net, const GradArgs& g, const Launch& on) {
+  parallel_blocks(g.agents, on.threads, [&](int64_t f, int64_t l) { reinforce_agents(net, g, f, l); });
   return 0;
 }
 
@@ -1337,7 +1365,6 @@ int64_t grad(const Net& net, const GradArgs& g, int64_t agents, const Launch& on
 // The CUDA engine: one thread per drone (fly_kernel: per row; reinforce_kernel: per agent), each
 // running the single-source loops with V = Real. Launches go on the caller's stream; nothing
 // synchronises.
-#define DK_ENTRY(name) dk_cuda_##name
 constexpr int kThreadsPerBlock = 128;
 constexpr int64_t lanes() { return 1; }
 
@@ -1348,9 +1375,9 @@ __global__ void fly_kernel(Net net, RolloutArgs a, Real* scratch) {
   fly_block<Real>(net, a, row, nullptr, acts, acts + activation_width(net));
 }
 
-__global__ void reinforce_kernel(Net net, GradArgs g, int64_t agents, Real* scratch) {
+__global__ void reinforce_kernel(Net net, GradArgs g, Real* scratch) {
   const int64_t n = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
-  if (n >= agents) return;
+  if (n >= g.agents) return;
   const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, 1);
   const int64_t deltas = layout.blocks * activation_width(net), heads = layout.blocks * 2 * kActionDim;
   Real* mine = scratch + n * (deltas + heads + net.params);
@@ -1369,10 +1396,10 @@ int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
   return static_cast<int64_t>(cudaGetLastError());
 }
 
-int64_t grad(const Net& net, const GradArgs& g, int64_t agents, const Launch& on) {
+int64_t grad(const Net& net, const GradArgs& g, const Launch& on) {
   if (g.roll.rows > 0)
-    reinforce_kernel<<<grid_of(agents), kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
-        net, g, agents, static_cast<Real*>(on.scratch));
+    reinforce_kernel<<<grid_of(g.agents), kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
+        net, g, static_cast<Real*>(on.scratch));
   return static_cast<int64_t>(cudaGetLastError());
 }
 #endif
@@ -1390,83 +1417,52 @@ int64_t dk_observation_dim(int64_t observed) { return observation_dim(static_cas
 int64_t dk_real_bytes() { return sizeof(Real); }
 // The entry points' argument lists, numbered: a library built from another version of this file
 // (DRONE_TORCHRL_CUDA_LIBRARY names any file) is refused at load instead of called with wrong arguments.
-int64_t dk_abi_version() { return 2; }
+int64_t dk_abi_version() { return 3; }
 
 // Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
-// row's episode terminates or `steps` steps. Writes the states ([rows, steps + 1, 6]: before each
-// step, and after the last), the action, the reward, the termination cause and the return-to-go
-// of every step flown, each row's length and its Stat counts, and (seen, when not null) what the
-// policy saw; entries after a row's end are left as they were (the caller zero-fills). Tensors
-// hold Real numbers (the build's precision). in_dim: 6 + 2 * the disturbance's observed_actions.
-// Returns 0 (on a GPU: the CUDA error code of the launch).
-int64_t DK_ENTRY(rollout)(int64_t threads, void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
-                          int64_t activation, double min_std, double dist_eps, int64_t rows, int64_t episodes,
-                          int64_t steps, const void* params, const void* start, const void* noise, const int64_t* rng,
-                          const int64_t* keys, const uint8_t* active, const double* env, const double* dist,
-                          const double* gamma, void* obs, void* action, void* reward, int64_t* cause, int64_t* length,
-                          void* returns, double* stats, void* seen, void* scratch) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
-                gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
-  return fly(net, a, {threads, stream, scratch});
+// row's episode terminates or `steps` steps (RolloutArgs; entries after a row's end are left as
+// they were: the caller zero-fills). Returns 0 (on a GPU: the CUDA error code of the launch).
+int64_t dk_rollout(const void* call) {
+  const auto c = unpack<Call<RolloutArgs>>(call);
+  return fly(make_net(c.spec), c.a, c.on);
 }
 
 // One REINFORCE update's episodes and gradient for every active agent: the rollout of dk_rollout
-// (start states, noise and disturbance keys drawn from rng), then reinforce_agent. options (a host
-// pointer, like hidden): LossOptions' four flags.
-int64_t DK_ENTRY(reinforce)(int64_t threads, void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
-                            int64_t activation, double min_std, double dist_eps, int64_t agents, int64_t episodes,
-                            int64_t steps, const void* params, const int64_t* rng, const uint8_t* active,
-                            const double* env, const double* dist, const double* gamma, const int64_t* options,
-                            void* reward, int64_t* cause, int64_t* length, void* returns, double* stats, void* saved,
-                            void* grad_out, double* loss, double* std_mean, uint8_t* actions_finite, void* scratch) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  const int64_t rows = agents * episodes;
-  RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
-                gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
-  GradArgs g{a, {options[0], options[1], options[2], options[3]}, grad_out, loss, std_mean, actions_finite};
-  const Launch on{threads, stream, scratch};
-  const int64_t code = fly(net, a, on);
-  return code != 0 ? code : grad(net, g, agents, on);
+// (start states, noise and disturbance keys drawn from rng), then reinforce_agent.
+int64_t dk_reinforce(const void* call) {
+  const auto c = unpack<Call<GradArgs>>(call);
+  const Net net = make_net(c.spec);
+  const int64_t code = fly(net, c.a.roll, c.on);
+  return code != 0 ? code : grad(net, c.a, c.on);
 }
 
 // The size of dk_reinforce's saved buffer, in scalars.
-int64_t dk_saved_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t agents, int64_t episodes,
-                      int64_t steps) {
-  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
-  const Saved layout = Saved::of(net, episodes, steps, lanes());
-  return agents * layout.blocks * layout.width * lanes();
+int64_t dk_saved_size(const void* sizes) {
+  const auto q = unpack<Sizes>(sizes);
+  const Saved layout = Saved::of(make_net(q.spec), q.episodes, q.steps, lanes());
+  return q.agents * layout.blocks * layout.width * lanes();
 }
 
 #if DK_CPU
 // `steps` steps of n drones of one agent with auto-reset (ops.segments documents the tensors).
-int64_t dk_segments(int64_t threads, void*, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
-                    int64_t activation, double min_std, double dist_eps, int64_t n, int64_t steps, int64_t max_steps,
-                    const void* params, const void* state, const int64_t* t, const int64_t* key, const void* gust,
-                    const void* thrust, const void* pending, const void* issued, const void* noise,
-                    const void* fresh, const int64_t* fresh_keys, const double* env, const double* dist, void* obs,
-                    void* action, void* reward, void* next_obs, int64_t* cause, uint8_t* terminated,
-                    uint8_t* truncated, int64_t* step_count, void* state_out, int64_t* t_out, int64_t* key_out,
-                    void* gust_out, void* thrust_out, void* pending_out, void* issued_out, void*) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  SegmentArgs a{n,     steps, max_steps, params, state, t, key, {gust, thrust, pending, issued}, noise, fresh,
-                fresh_keys, env, dist, obs, action, reward, next_obs, cause, terminated, truncated, step_count,
-                state_out, t_out, key_out, {gust_out, thrust_out, pending_out, issued_out}};
-  parallel_blocks(blocks_of(n), threads, [&](int64_t first, int64_t last) {
+int64_t dk_segments(const void* call) {
+  const auto c = unpack<Call<SegmentArgs>>(call);
+  const Net net = make_net(c.spec);
+  parallel_blocks(blocks_of(c.a.n), c.on.threads, [&](int64_t first, int64_t last) {
     std::vector<Lanes> acts(activation_width(net)), x(net.in_dim);
-    for (int64_t b = first; b < last; b++) segment_block(net, a, b, acts.data(), x.data());
+    for (int64_t b = first; b < last; b++) segment_block(net, c.a, b, acts.data(), x.data());
   });
   return 0;
 }
 #else
-// Scratch scalars of dk_cuda_rollout (rows rows) and dk_cuda_reinforce (agents agents).
-int64_t dk_cuda_scratch_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t rows, int64_t agents,
-                             int64_t episodes, int64_t steps) {
-  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
-  const Saved layout = Saved::of(net, episodes, steps, 1);
+// Scratch scalars of dk_rollout (rows rows) and dk_reinforce (agents agents).
+int64_t dk_cuda_scratch_size(const void* sizes) {
+  const auto q = unpack<Sizes>(sizes);
+  const Net net = make_net(q.spec);
+  const Saved layout = Saved::of(net, q.episodes, q.steps, 1);
   const int64_t per_row = activation_width(net) + net.in_dim;
   const int64_t per_agent = layout.blocks * (activation_width(net) + 2 * kActionDim) + net.params;
-  const int64_t fly = rows * per_row, grad = agents * per_agent;
+  const int64_t fly = q.rows * per_row, grad = q.agents * per_agent;
   return fly > grad ? fly : grad;
 }
 
