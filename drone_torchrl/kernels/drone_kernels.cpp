@@ -1323,88 +1323,68 @@ using Lanes = Real;
 using Lanes = std::conditional_t<DK_DOUBLE != 0, D, F>;
 #endif
 
-template <class Fn>
-void parallel_blocks(int64_t blocks, int64_t threads, Fn fn) {
-  if (threads <= 1 || blocks < 2) {
-    fn(0, blocks);
-    return;
+template <class Work>
+__attribute__((flatten)) void run_range(const Work& work, int64_t scratch, int64_t first, int64_t last) {
+  std::vector<Lanes> memory(scratch);
+  for (int64_t i = first; i < last; i++) work(i, memory.data());
+}
+
+// work(i, scratch) for i < count, the items split over the threads, each with `scratch` vectors.
+template <class Work>
+int64_t run(int64_t count, int64_t scratch, const Launch& on, Work work) {
+  const int64_t workers = count < on.threads ? count : on.threads;
+  if (workers <= 1) {
+    run_range(work, scratch, 0, count);
+    return 0;
   }
-  const int64_t workers = blocks < threads ? blocks : threads;
   std::vector<std::thread> pool;
   for (int64_t k = 0; k < workers; k++)
-    pool.emplace_back(fn, blocks * k / workers, blocks * (k + 1) / workers);
+    pool.emplace_back([&, k] { run_range(work, scratch, count * k / workers, count * (k + 1) / workers); });
   for (auto& th : pool) th.join();
-}
-
-constexpr int64_t lanes() { return lanes_of<Lanes>(); }
-constexpr int64_t blocks_of(int64_t rows) { return (rows + lanes() - 1) / lanes(); }
-
-__attribute__((flatten)) void fly_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t last) {
-  std::vector<Lanes> w(net.params), acts(activation_width(net)), x(net.in_dim);
-  for (int64_t b = first; b < last; b++) fly_block(net, a, b, w.data(), acts.data(), x.data());
-}
-
-__attribute__((flatten)) void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t last) {
-  const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, lanes());
-  std::vector<Lanes> deltas(layout.blocks * activation_width(net)), heads(layout.blocks * 2 * kActionDim),
-      grad(net.params);
-  for (int64_t n = first; n < last; n++) reinforce_agent(net, g, n, deltas.data(), heads.data(), grad.data());
-}
-
-int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
-  parallel_blocks(blocks_of(a.rows), on.threads, [&](int64_t f, int64_t l) { fly_blocks(net, a, f, l); });
-  return 0;
-}
-
-int64_t grad(const Net& net, const GradArgs& g, const Launch& on) {
-  parallel_blocks(g.agents, on.threads, [&](int64_t f, int64_t l) { reinforce_agents(net, g, f, l); });
   return 0;
 }
 
 #elif defined(__CUDACC__)
-// The CUDA engine: one thread per drone (fly_kernel: per row; reinforce_kernel: per agent), each
-// running the single-source loops with V = Real. Launches go on the caller's stream; nothing
-// synchronises.
+// The CUDA engine: one thread per item (a row, or an agent), each running the single-source loops
+// with V = Real on its slice of the caller's scratch. Launches go on the caller's stream; nothing
+// synchronises. Returns the CUDA error code of the launch.
+using Lanes = Real;
 constexpr int kThreadsPerBlock = 128;
-constexpr int64_t lanes() { return 1; }
 
-__global__ void fly_kernel(Net net, RolloutArgs a, Real* scratch) {
-  const int64_t row = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
-  if (row >= a.rows) return;
-  Real* acts = scratch + row * (activation_width(net) + net.in_dim);
-  fly_block<Real>(net, a, row, nullptr, acts, acts + activation_width(net));
+template <class Work>
+__global__ void run_kernel(int64_t count, int64_t scratch, Real* memory, Work work) {
+  const int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (i < count) work(i, memory + i * scratch);
 }
 
-__global__ void reinforce_kernel(Net net, GradArgs g, Real* scratch) {
-  const int64_t n = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
-  if (n >= g.agents) return;
-  const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, 1);
-  const int64_t deltas = layout.blocks * activation_width(net), heads = layout.blocks * 2 * kActionDim;
-  Real* mine = scratch + n * (deltas + heads + net.params);
-  reinforce_agent<Real>(net, g, n, mine, mine + deltas, mine + deltas + heads);
-}
-
-inline unsigned grid_of(int64_t threads) {
-  return static_cast<unsigned>((threads + kThreadsPerBlock - 1) / kThreadsPerBlock);
-}
-
-// The CUDA error code of the launch.
-int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
-  if (a.rows > 0)
-    fly_kernel<<<grid_of(a.rows), kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
-        net, a, static_cast<Real*>(on.scratch));
-  return static_cast<int64_t>(cudaGetLastError());
-}
-
-int64_t grad(const Net& net, const GradArgs& g, const Launch& on) {
-  if (g.roll.rows > 0)
-    reinforce_kernel<<<grid_of(g.agents), kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
-        net, g, static_cast<Real*>(on.scratch));
+template <class Work>
+int64_t run(int64_t count, int64_t scratch, const Launch& on, Work work) {
+  const auto grid = static_cast<unsigned>((count + kThreadsPerBlock - 1) / kThreadsPerBlock);
+  if (count > 0)
+    run_kernel<<<grid, kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
+        count, scratch, static_cast<Real*>(on.scratch), work);
   return static_cast<int64_t>(cudaGetLastError());
 }
 #endif
 
 #if DK_CPU || defined(__CUDACC__)
+constexpr int64_t lanes() { return lanes_of<Lanes>(); }
+constexpr int64_t blocks_of(int64_t rows) { return (rows + lanes() - 1) / lanes(); }
+
+// The scratch vectors of a block of rows flown (the lanes' weights, with lanes; the hidden outputs;
+// the inputs) and of an agent's gradient (deltas and heads of every saved block; the gradient).
+int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
+  const int64_t w = lanes() > 1 ? net.params : 0, acts = activation_width(net);
+  return run(blocks_of(a.rows), w + acts + net.in_dim, on,
+             [=] DK_HD(int64_t b, Lanes* s) { fly_block(net, a, b, s, s + w, s + w + acts); });
+}
+
+int64_t grad(const Net& net, const GradArgs& g, const Launch& on) {
+  const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, lanes());
+  const int64_t deltas = layout.blocks * activation_width(net), heads = layout.blocks * 2 * kActionDim;
+  return run(g.agents, deltas + heads + net.params, on,
+             [=] DK_HD(int64_t n, Lanes* s) { reinforce_agent(net, g, n, s, s + deltas, s + deltas + heads); });
+}
 }  // namespace
 
 extern "C" {
@@ -1448,11 +1428,9 @@ int64_t dk_saved_size(const void* sizes) {
 int64_t dk_segments(const void* call) {
   const auto c = unpack<Call<SegmentArgs>>(call);
   const Net net = make_net(c.spec);
-  parallel_blocks(blocks_of(c.a.n), c.on.threads, [&](int64_t first, int64_t last) {
-    std::vector<Lanes> acts(activation_width(net)), x(net.in_dim);
-    for (int64_t b = first; b < last; b++) segment_block(net, c.a, b, acts.data(), x.data());
-  });
-  return 0;
+  const int64_t acts = activation_width(net);
+  return run(blocks_of(c.a.n), acts + net.in_dim, c.on,
+             [&](int64_t b, Lanes* s) { segment_block(net, c.a, b, s, s + acts); });
 }
 #else
 // Scratch scalars of dk_rollout (rows rows) and dk_reinforce (agents agents).

@@ -60,15 +60,8 @@ def _words(*values: torch.Tensor | float | int | None) -> ctypes.Array:
 
 def _net(in_dim: int, hidden: Sequence[int], activation: int, min_std: float, dist_eps: float) -> list:
     """The network's words of every entry point (``NetSpec`` in drone_kernels.cpp)."""
-    return [
-        in_dim,
-        len(hidden),
-        activation,
-        float(min_std),
-        float(dist_eps),
-        *hidden,
-        *[0] * (MAX_LAYERS - len(hidden)),
-    ]
+    pad = [0] * (MAX_LAYERS - len(hidden))
+    return [in_dim, len(hidden), activation, float(min_std), float(dist_eps), *hidden, *pad]
 
 
 def _lib(dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> ctypes.CDLL:
@@ -80,9 +73,7 @@ def _lib(dtype: torch.dtype = torch.float32, device: torch.device | None = None)
     return lib
 
 
-def _launch(
-    lib: ctypes.CDLL, function: str, device: torch.device, net: list, args: tuple, sizes: tuple = ()
-) -> None:
+def _launch(lib: ctypes.CDLL, function: str, device: torch.device, net: list, args: tuple, sizes=()) -> None:
     """Call ``dk_<function>`` with its ``Call`` (drone_kernels.cpp): the launch, ``net`` and ``args``.
 
     The launch: the thread count (the CPU's), ``device``'s current stream and scratch memory (a
@@ -155,11 +146,11 @@ def disturbance_constants(
 
 def _magnitudes(disturbance: torch.Tensor | None, device: torch.device | None = None) -> torch.Tensor | None:
     """``disturbance`` as the kernels read it (float64 on ``device``), or None for the nominal drone."""
-    if disturbance is None:
-        return None
-    magnitudes = disturbance.clone()
-    magnitudes[_GUST_TIME] = 0.0  # the gusts' time scale alone changes nothing
-    return _to(disturbance, torch.float64, device) if bool(magnitudes.any()) else None
+    # The gusts' time scale alone changes nothing.
+    nominal = disturbance is None or not bool(
+        disturbance[:_GUST_TIME].any() or disturbance[_GUST_TIME + 1 :].any()
+    )
+    return None if nominal else _to(disturbance, torch.float64, device)
 
 
 def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
@@ -281,22 +272,8 @@ def rollout(
     params, start, noise = params.contiguous(), _to(start, dtype, device), _to(noise, dtype, device)
     active, rng, keys = _to(active, torch.uint8, device), _to(rng, i64, device), _to(keys, i64, device)
     env, gamma = _to(env, torch.float64, device), _to(gamma, torch.float64, device)
-    args = (
-        n * episodes,
-        episodes,
-        steps,
-        params,
-        start,
-        noise,
-        rng,
-        keys,
-        active,
-        env,
-        disturbance,
-        gamma,
-        states,
-    )
-    args += (action, reward, cause, length, returns, stats, seen if observations else None, None)
+    args = (n * episodes, episodes, steps, params, start, noise, rng, keys, active, env, disturbance, gamma)
+    args += (states, action, reward, cause, length, returns, stats, seen if observations else None, None)
     net = _net(in_dim, hidden, activation, min_std, dist_eps)
     _launch(_lib(dtype, device), "rollout", device, net, args, (n * episodes, 0, episodes, steps))
     return states, action, reward, cause, length, returns, stats, seen
@@ -356,41 +333,11 @@ def reinforce(
     env, gamma = _to(env, torch.float64, device), _to(gamma, torch.float64, device)
     disturbance = _magnitudes(disturbance, device)
     for first in range(0, n, chunk):
-        rows = slice(first, min(n, first + chunk))
-        agents = rows.stop - rows.start
-        args = (
-            agents * episodes,
-            episodes,
-            steps,
-            params[rows],
-            None,
-            None,
-            rng[rows],
-            None,
-            active[rows],
-            env,
-        )
-        args += (
-            disturbance,
-            gamma[rows],
-            None,
-            None,
-            reward,
-            cause,
-            length[rows],
-            returns,
-            counts[rows],
-            None,
-        )
-        args += (
-            saved,
-            agents,
-            *map(int, options),
-            grad[rows],
-            loss[rows],
-            std_mean[rows],
-            actions_finite[rows],
-        )
+        r = slice(first, min(n, first + chunk))
+        k = r.stop - r.start
+        roll = (k * episodes, episodes, steps, params[r], None, None, rng[r], None, active[r], env)
+        roll += (disturbance, gamma[r], None, None, reward, cause, length[r], returns, counts[r], None)
+        args = (*roll, saved, k, *map(int, options), grad[r], loss[r], std_mean[r], actions_finite[r])
         _launch(lib, "reinforce", device, net, args, sizes)
     return grad, loss, std_mean, actions_finite, length, counts
 
@@ -505,5 +452,6 @@ def segments(
     params, noise, fresh = params.contiguous(), _to(noise, dtype), _to(fresh, dtype)
     fresh_keys, env = _to(fresh_keys, i64), _to(env, torch.float64)
     args = (n, steps, max_steps, params, *carried, noise, fresh, fresh_keys, env, disturbance, *out)
-    _launch(_lib(dtype), "segments", params.device, _net(in_dim, hidden, activation, min_std, dist_eps), args)
+    net = _net(in_dim, hidden, activation, min_std, dist_eps)
+    _launch(_lib(dtype), "segments", params.device, net, args)
     return Segment(*out[: len(Segment._fields)]), Carried(*out[len(Segment._fields) :])
