@@ -804,6 +804,12 @@ DK_HD inline V log_prob_backward(const EnvParams<ScalarOf<V>>& e, const V* loc, 
 #endif
 using Real = std::conditional_t<DK_DOUBLE != 0, double, float>;
 
+// Element i of a tensor of S that the C interface passes untyped.
+template <class S>
+DK_HD inline S& ref(const void* p, int64_t i) {
+  return const_cast<S*>(static_cast<const S*>(p))[i];
+}
+
 // The weights of each lane's agent: lane l of w[k] is parameter k of agent[l]. One lane: the
 // agent's own parameters, read where they are.
 template <class V>
@@ -873,18 +879,10 @@ template <class V>
 DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* wbuf, V* acts, V* x) {
   using S = ScalarOf<V>;
   constexpr int L = lanes_of<V>();
-  const S* params = static_cast<const S*>(a.params);
-  const S* start = static_cast<const S*>(a.start);
-  const S* noise = static_cast<const S*>(a.noise);
-  S* obs = static_cast<S*>(a.obs);
-  S* action = static_cast<S*>(a.action);
-  S* reward = static_cast<S*>(a.reward);
-  S* seen = static_cast<S*>(a.seen);
-  S* saved = static_cast<S*>(a.saved);
   const Saved layout = Saved::of(net, a.episodes, a.steps, L);
   // The scalar of vector k of agent n's step r in the saved buffer.
   auto slot = [&](int64_t n, int64_t r, int k) -> S& {
-    return saved[((n * layout.blocks + r / L) * layout.width + k) * L + r % L];
+    return ref<S>(a.saved, ((n * layout.blocks + r / L) * layout.width + k) * L + r % L);
   };
   const EnvParams<S> e = env_params<S>(a.env, net);
   const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
@@ -905,7 +903,7 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
   bool any = false;
   for (int l = 0; l < L; l++) any = any || live[l];
   if (!any) return;
-  const V* w = lane_weights(net, params, agent, wbuf);
+  const V* w = lane_weights(net, static_cast<const S*>(a.params), agent, wbuf);
   // The stream keys of each lane's agent, and the row's episode index within its agent.
   uint64_t noise_key[L], episode[L];
   for (int l = 0; l < L; l++) {
@@ -918,12 +916,12 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
       for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start_component<S>(a.env, start_key, episode[l], k));
       dr.key[l] = a.keys ? a.keys[row] : episode_key(seed, counter, episode[l]);
     } else {
-      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start[row * kStateDim + k]);
+      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.start, row * kStateDim + k));
       dr.key[l] = a.keys ? a.keys[row] : 0;
     }
   }
   if (!d.nominal) start_episode(d, dr);
-  const bool stochastic = noise || a.rng;
+  const bool stochastic = a.noise || a.rng;
   V n[4] = {};
   for (int64_t t = 0; t < T && any; t++) {
     int64_t steps[L];
@@ -937,9 +935,10 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
     V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
     if (a.rng) {
       action_normals(noise_key, pair, z);
-    } else if (noise) {
+    } else if (a.noise) {
       for (int m = 0; m < kActionDim; m++)
-        for (int l = 0; l < L; l++) set_lane(z[m], l, live[l] ? noise[((row0 + l) * T + t) * kActionDim + m] : S(0));
+        for (int l = 0; l < L; l++)
+          set_lane(z[m], l, live[l] ? ref<S>(a.noise, ((row0 + l) * T + t) * kActionDim + m) : S(0));
     }
     policy_step(net, e, w, x, acts, stochastic ? z : nullptr, loc, pre, act);
     V next[kStateDim], r, cause, zone;
@@ -948,19 +947,19 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
     for (int l = 0; l < count; l++) {
       if (!live[l]) continue;
       const int64_t row = row0 + l, at = row * T + t, state_at = row * (T + 1) + t;
-      if (obs) {
+      if (a.obs) {
         for (int k = 0; k < kStateDim; k++) {
-          obs[state_at * kStateDim + k] = lane(dr.s[k], l);
-          obs[(state_at + 1) * kStateDim + k] = lane(next[k], l);
+          ref<S>(a.obs, state_at * kStateDim + k) = lane(dr.s[k], l);
+          ref<S>(a.obs, (state_at + 1) * kStateDim + k) = lane(next[k], l);
         }
       }
-      if (seen)
-        for (int k = 0; k < in_dim; k++) seen[at * in_dim + k] = lane(x[k], l);
-      if (action) {
-        action[at * kActionDim] = lane(act[0], l);
-        action[at * kActionDim + 1] = lane(act[1], l);
+      if (a.seen)
+        for (int k = 0; k < in_dim; k++) ref<S>(a.seen, at * in_dim + k) = lane(x[k], l);
+      if (a.action) {
+        ref<S>(a.action, at * kActionDim) = lane(act[0], l);
+        ref<S>(a.action, at * kActionDim + 1) = lane(act[1], l);
       }
-      if (saved) {
+      if (a.saved) {
         const int64_t r_agent = episode[l] * T + t;
         for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, layout.x() + k) = lane(x[k], l);
         for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = lane(acts[k], l);
@@ -971,7 +970,7 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
         }
       }
       const int64_t code = static_cast<int64_t>(lane(cause, l));
-      reward[at] = lane(r, l);
+      ref<S>(a.reward, at) = lane(r, l);
       a.cause[at] = code;
       a.length[row] = t + 1;
       double* stat = a.stats + row * kStats;
@@ -991,9 +990,9 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
     S* out = static_cast<S*>(a.returns) + row * T;
     S running = 0;
     for (int64_t t = a.length[row] - 1; t >= 0; t--) {
-      running = reward[row * T + t] + discount * running;
+      running = ref<S>(a.reward, row * T + t) + discount * running;
       out[t] = running;
-      if (saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
+      if (a.saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
     }
   }
 }
@@ -1173,8 +1172,6 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
   const int64_t J = a.steps, in_dim = net.in_dim;
   Drone<V> dr{};
-  auto in = [](const void* p, int64_t i) { return static_cast<const S*>(p)[i]; };
-  auto out = [](void* p, int64_t i) -> S& { return static_cast<S*>(p)[i]; };
   const int64_t row0 = b * L;
   const int count = static_cast<int>(row0 + L <= a.n ? L : a.n - row0);
   int64_t row[L], t[L];
@@ -1184,13 +1181,13 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
     const int64_t r = row[l];
     t[l] = a.t[r];
     restart[l] = t[l] < 0;
-    for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.state, r * kStateDim + k));
+    for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.state, r * kStateDim + k));
     dr.key[l] = static_cast<uint64_t>(a.key[r]);
   }
   if (!d.nominal) {
     start_episode(d, dr);  // the episode's draws; its internal state is the carried one
     for (int l = 0; l < L; l++)
-      each_internal(d, dr, row[l], [&](int k, int64_t i, V& v) { set_lane(v, l, in(a.internal[k], i)); });
+      each_internal(d, dr, row[l], [&](int k, int64_t i, V& v) { set_lane(v, l, ref<S>(a.internal[k], i)); });
   }
   V n[4] = {};
   bool seen = false;  // x holds the observation at t (the last step's next observation)
@@ -1201,7 +1198,7 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
       for (int l = 0; l < L; l++) {
         if (!restart[l]) continue;
         t[l] = 0;
-        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.fresh, (row[l] * J + j) * kStateDim + k));
+        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.fresh, (row[l] * J + j) * kStateDim + k));
         if (a.fresh_keys) dr.key[l] = a.fresh_keys[row[l] * J + j];
       }
       if (!d.nominal) start_episode(d, dr, restart);
@@ -1214,11 +1211,11 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
     }
     V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
     for (int m = 0; m < kActionDim; m++)
-      for (int l = 0; l < L; l++) set_lane(z[m], l, in(a.noise, (row[l] * J + j) * kActionDim + m));
+      for (int l = 0; l < L; l++) set_lane(z[m], l, ref<S>(a.noise, (row[l] * J + j) * kActionDim + m));
     policy_step(net, e, w, x, acts, z, loc, pre, act);
     for (int l = 0; l < count; l++) {
       const int64_t at = row[l] * J + j;
-      for (int k = 0; k < in_dim; k++) out(a.obs, at * in_dim + k) = lane(x[k], l);
+      for (int k = 0; k < in_dim; k++) ref<S>(a.obs, at * in_dim + k) = lane(x[k], l);
       a.step_count[at] = t[l];
     }
     V next[kStateDim], r, cause, zone;
@@ -1233,9 +1230,9 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
       const int64_t at = row[l] * J + j;
       const int64_t code = static_cast<int64_t>(lane(cause, l));
       const bool terminated = code != 0, truncated = !terminated && t[l] >= a.max_steps;
-      for (int k = 0; k < in_dim; k++) out(a.next_obs, at * in_dim + k) = lane(x[k], l);
-      for (int m = 0; m < kActionDim; m++) out(a.action, at * kActionDim + m) = lane(act[m], l);
-      out(a.reward, at) = lane(r, l);
+      for (int k = 0; k < in_dim; k++) ref<S>(a.next_obs, at * in_dim + k) = lane(x[k], l);
+      for (int m = 0; m < kActionDim; m++) ref<S>(a.action, at * kActionDim + m) = lane(act[m], l);
+      ref<S>(a.reward, at) = lane(r, l);
       a.cause[at] = code;
       a.terminated[at] = terminated;
       a.truncated[at] = truncated;
@@ -1244,12 +1241,12 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   }
   for (int l = 0; l < count; l++) {
     const int64_t r = row[l];
-    for (int k = 0; k < kStateDim; k++) out(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
+    for (int k = 0; k < kStateDim; k++) ref<S>(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
     a.t_out[r] = restart[l] ? -1 : t[l];
     a.key_out[r] = static_cast<int64_t>(dr.key[l]);
     // The nominal drone carries nothing: its gust 0 and its thrust the hover command, as at a start.
     each_internal(d, dr, r, [&](int k, int64_t i, V& v) {
-      out(a.internal_out[k], i) = d.nominal ? S(k == 1 ? kHover : 0) : lane(v, l);
+      ref<S>(a.internal_out[k], i) = d.nominal ? S(k == 1 ? kHover : 0) : lane(v, l);
     });
   }
 }
