@@ -145,7 +145,7 @@ def _build(compiler: str, target: Path, precision: tuple[str, ...]) -> str | Non
     return why
 
 
-class _Unavailable(Exception):
+class _Unavailable(OSError):
     """Why a library cannot be had, in a message that is the reason as it stands."""
 
 
@@ -156,10 +156,8 @@ def _once(name: str, load: Callable[[], ctypes.CDLL]) -> ctypes.CDLL | None:
             lib, reason = None, None
             try:
                 lib = load()
-            except _Unavailable as err:
-                reason = str(err)
             except (OSError, subprocess.SubprocessError) as err:
-                reason = f"{type(err).__name__}: {err}"
+                reason = str(err) if isinstance(err, _Unavailable) else f"{type(err).__name__}: {err}"
             _state[name], _state["reason"] = lib, reason
         return _state[name]  # type: ignore[return-value]
 
