@@ -852,19 +852,14 @@ struct RolloutArgs {
 struct Saved {
   int in_dim, activations, width;  // width: vectors per block
   int64_t blocks;                  // per agent
-  DK_HD int x() const { return 0; }
-  DK_HD int acts() const { return in_dim; }
+  DK_HD int acts() const { return in_dim; }  // after the observation, at 0
   DK_HD int loc() const { return in_dim + activations; }
   DK_HD int pre() const { return loc() + kActionDim; }
   DK_HD int action() const { return pre() + kActionDim; }
   DK_HD int ret() const { return action() + kActionDim; }
   DK_HD static Saved of(const Net& net, int64_t episodes, int64_t steps, int lanes) {
-    Saved s{};
-    s.in_dim = net.in_dim;
-    s.activations = net.activations;
-    s.width = net.in_dim + net.activations + 3 * kActionDim + 1;
-    s.blocks = (episodes * steps + lanes - 1) / lanes;
-    return s;
+    const int width = net.in_dim + net.activations + 3 * kActionDim + 1;
+    return {net.in_dim, net.activations, width, (episodes * steps + lanes - 1) / lanes};
   }
 };
 
@@ -961,7 +956,7 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
       }
       if (a.saved) {
         const int64_t r_agent = episode[l] * T + t;
-        for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, layout.x() + k) = lane(x[k], l);
+        for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, k) = lane(x[k], l);
         for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = lane(acts[k], l);
         for (int m = 0; m < kActionDim; m++) {
           slot(agent[l], r_agent, layout.loc() + m) = lane(loc[m], l);
@@ -1111,7 +1106,7 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n_out = net.out(l), n_in = net.width[l];
     const int prev = l < net.n_hidden ? l - 1 : net.n_hidden - 1;
-    const V* input = prev < 0 ? saved + layout.x() : saved + layout.acts() + start;
+    const V* input = prev < 0 ? saved : saved + layout.acts() + start;
     const V* d = l < net.n_hidden ? deltas + start + (l ? net.out(l - 1) : 0)
                                   : heads + (l - net.n_hidden) * kActionDim;
     const int d_stride = l < net.n_hidden ? act_w : 2 * kActionDim;
