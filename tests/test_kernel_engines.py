@@ -57,11 +57,11 @@ def test_the_scalar_engine_is_the_one_drone_per_block_build():
     """The saved steps of one 9-step episode: 9 one-drone blocks in the scalar engine, 2 (float32,
     8 lanes) or 3 (float64, 4 lanes) blocks in the vector engine, each block ``lanes`` x the width
     (the inputs, 64 hidden outputs, loc, the std head's pre-activation, the action, the return)."""
-    args = (6, 2, ops._sizes([32, 32]), 1, 1, 9)
+    sizes = ops._words(*ops._net(6, [32, 32], 1, 0.0, 0.0), 9, 1, 1, 9)  # rows, agents, episodes, steps
     width = 6 + 64 + 3 * dynamics.ACTION_DIM + 1
     for double, blocks, lanes in ((False, 2, 8), (True, 3, 4)):
-        assert build.library(double, scalar=True).dk_saved_size(*args) == 9 * width
-        assert build.library(double).dk_saved_size(*args) == blocks * lanes * width
+        assert build.library(double, scalar=True).dk_saved_size(sizes) == 9 * width
+        assert build.library(double).dk_saved_size(sizes) == blocks * lanes * width
 
 
 @pytest.mark.parametrize(("condition", "head", "dtype"), CASES)
@@ -104,7 +104,7 @@ def test_the_cuda_engine_compiles(tmp_path):
     target = tmp_path / "drone_kernels_cuda.so"
     assert build.build_cuda(target) is None
     exports = target.read_bytes()
-    for name in (b"dk_cuda_rollout", b"dk_cuda_reinforce", b"dk_cuda_scratch_size", b"dk_saved_size"):
+    for name in (b"dk_rollout", b"dk_reinforce", b"dk_cuda_scratch_size", b"dk_saved_size"):
         assert name in exports, name
 
 

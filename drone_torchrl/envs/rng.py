@@ -19,17 +19,15 @@ outputs of one pair going to the two motors.
 
 from __future__ import annotations
 
+import ctypes
 import math
 
 import torch
 
-_MASK64 = (1 << 64) - 1
-
 
 def _signed(value: int) -> int:
     """An unsigned 64-bit constant as the int64 with the same bits."""
-    value &= _MASK64
-    return value - (1 << 64) if value >= 1 << 63 else value
+    return ctypes.c_int64(value).value
 
 
 GOLDEN = _signed(0x9E3779B97F4A7C15)

@@ -43,6 +43,7 @@ import subprocess
 import tempfile
 import threading
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 from drone_torchrl.envs.params import PARAM_NAMES
@@ -59,9 +60,10 @@ SCALAR_ENGINE_FLAGS = ("-DDK_SCALAR_ENGINE",)
 CUDA_LIBRARY_ENV = "DRONE_TORCHRL_CUDA_LIBRARY"
 # Ampere and Hopper machine code, and Hopper's PTX for newer GPUs (the driver compiles it on load).
 CUDA_ARCHS = ("-gencode=arch=compute_80,code=sm_80", "-gencode=arch=compute_90,code=[sm_90,compute_90]")
-# -cudart static: the library needs only the driver at run time, not a CUDA toolkit.
+# -cudart static: the library needs only the driver at run time, not a CUDA toolkit;
+# --extended-lambda: the engines hand their work to the kernel as __host__ __device__ lambdas.
 CUDA_FLAGS = ("-x", "cu", "-O3", "-std=c++17", "-shared", "-Xcompiler", "-fPIC", "-cudart", "static",
-              "-diag-suppress", "128,177", *CUDA_ARCHS)  # fmt: skip
+              "--extended-lambda", "-diag-suppress", "128,177", *CUDA_ARCHS)  # fmt: skip
 
 #: The drone's constants in the kernels' order, which :func:`~.ops.env_constants` packs and a
 #: library's ``DK_ENV_CONSTANTS`` must name when it loads: the fields of
@@ -85,12 +87,6 @@ def cache_dir() -> Path:
         return Path(os.environ[CACHE_ENV])
     base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
     return Path(base) / "drone_torchrl"
-
-
-def _cached(name: str, *inputs: str) -> Path:
-    """The cache file of library ``name`` built from ``inputs`` (source, compiler, flags...): their hash."""
-    key = hashlib.sha256("\n".join(inputs).encode()).hexdigest()[:16]
-    return cache_dir() / f"drone_kernels-{name}-{key}.so"
 
 
 def _which(*candidates: str | None) -> str | None:
@@ -149,7 +145,7 @@ def _build(compiler: str, target: Path, precision: tuple[str, ...]) -> str | Non
     return why
 
 
-class _Unavailable(Exception):
+class _Unavailable(OSError):
     """Why a library cannot be had, in a message that is the reason as it stands."""
 
 
@@ -160,12 +156,27 @@ def _once(name: str, load: Callable[[], ctypes.CDLL]) -> ctypes.CDLL | None:
             lib, reason = None, None
             try:
                 lib = load()
-            except _Unavailable as err:
-                reason = str(err)
             except (OSError, subprocess.SubprocessError) as err:
-                reason = f"{type(err).__name__}: {err}"
+                reason = str(err) if isinstance(err, _Unavailable) else f"{type(err).__name__}: {err}"
             _state[name], _state["reason"] = lib, reason
         return _state[name]  # type: ignore[return-value]
+
+
+def _from_cache(
+    name: str, double: bool, compiler: str | None, missing: Exception, build: Callable, *key: str
+) -> ctypes.CDLL:
+    """Library ``name``, built by ``build(path)`` unless cached.
+
+    Its cache file is named by a hash of the source, the compiler's version and ``key`` (flags,
+    CPU...). Raises ``missing`` without a compiler, and a failed build's reason as its type.
+    """
+    if compiler is None:
+        raise missing
+    inputs = "\n".join((SOURCE.read_text(), _version(compiler), *key))
+    path = cache_dir() / f"drone_kernels-{name}-{hashlib.sha256(inputs.encode()).hexdigest()[:16]}.so"
+    if not path.is_file() and (why := build(path)) is not None:
+        raise type(missing)(why)
+    return _load(path, double)
 
 
 def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
@@ -175,32 +186,29 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
     """
     name = ("scalar-" if scalar else "") + ("float64" if double else "float32")
     precision = (f"-DDK_DOUBLE={int(double)}",) + (SCALAR_ENGINE_FLAGS if scalar else ())
+    flags = " ".join(BASE_FLAGS + precision + ARCH_FLAGS)
+    missing = _Unavailable("no C++ compiler found (set CXX, or install g++ or clang++)")
 
     def load() -> ctypes.CDLL:
         compiler = _compiler()
-        if compiler is None:
-            raise _Unavailable("no C++ compiler found (set CXX, or install g++ or clang++)")
-        flags = " ".join(BASE_FLAGS + precision + ARCH_FLAGS)
-        path = _cached(name, SOURCE.read_text(), _version(compiler), flags, _cpu_signature())
-        if not path.is_file() and (why := _build(compiler, path, precision)) is not None:
-            raise _Unavailable(why)
-        return _load(path, double)
+        build = partial(_build, compiler, precision=precision)
+        return _from_cache(name, double, compiler, missing, build, flags, _cpu_signature())
 
     return _once(name, load)
 
 
-# The functions whose result is an int64 or a name: every build's, then the CPU's or the CUDA one's own.
-_INT64_RESULTS = ("dk_saved_size", "dk_real_bytes", "dk_observation_dim")
 #: The entry points' argument lists the Python side calls (drone_kernels.cpp's ``dk_abi_version``).
-ABI_VERSION = 2
-_NAMES = ("dk_env_constants", "dk_disturbance_constants")
-_CPU_INT64_RESULTS = ("dk_rollout", "dk_reinforce", "dk_segments")
-_CUDA_INT64_RESULTS = ("dk_cuda_scratch_size", "dk_cuda_rollout", "dk_cuda_reinforce")
-_CUDA_NAMES = ("dk_cuda_error",)
+ABI_VERSION = 3
 
 
-def _load(path: Path, double: bool, cuda: bool = False) -> ctypes.CDLL:
-    lib = ctypes.CDLL(str(path))
+class _Library(ctypes.CDLL):
+    """A kernels library: its functions return an int64 (a size or a code), or a name."""
+
+    _func_restype_ = ctypes.c_int64
+
+
+def _load(path: Path, double: bool) -> ctypes.CDLL:
+    lib = _Library(str(path))
     try:
         version = lib.dk_abi_version()
     except AttributeError:  # built before the entry points were numbered
@@ -209,10 +217,9 @@ def _load(path: Path, double: bool, cuda: bool = False) -> ctypes.CDLL:
         raise OSError(
             f"{path} takes the entry points' arguments of version {version}, not {ABI_VERSION}: rebuild it"
         )
-    for function in _INT64_RESULTS + (_CUDA_INT64_RESULTS if cuda else _CPU_INT64_RESULTS):
-        getattr(lib, function).restype = ctypes.c_int64
-    for function in _NAMES + (_CUDA_NAMES if cuda else ()):
-        getattr(lib, function).restype = ctypes.c_char_p
+    for function in ("dk_env_constants", "dk_disturbance_constants", "dk_cuda_error"):
+        if hasattr(lib, function):  # the last: the CUDA engine's only
+            getattr(lib, function).restype = ctypes.c_char_p
     if lib.dk_real_bytes() != (8 if double else 4):
         raise OSError(f"{path} was built for another precision")
     _check_layout(lib, path)
@@ -277,14 +284,10 @@ def cuda_library(double: bool = False) -> ctypes.CDLL | None:
     def load() -> ctypes.CDLL:
         given = os.environ.get(CUDA_LIBRARY_ENV)
         if given and not double:
-            return _load(Path(given), double, cuda=True)
-        compiler = nvcc()
-        if compiler is None:
-            raise OSError(f"no nvcc found and ${CUDA_LIBRARY_ENV} not set")
-        path = _cached(name, SOURCE.read_text(), _version(compiler), " ".join(CUDA_FLAGS), str(double))
-        if not path.is_file() and (why := build_cuda(path, double)) is not None:
-            raise OSError(why)
-        return _load(path, double, cuda=True)
+            return _load(Path(given), double)
+        missing = OSError(f"no nvcc found and ${CUDA_LIBRARY_ENV} not set")
+        build = partial(build_cuda, double=double)
+        return _from_cache(name, double, nvcc(), missing, build, " ".join(CUDA_FLAGS), str(double))
 
     return _once(name, load)
 

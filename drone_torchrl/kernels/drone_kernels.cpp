@@ -804,6 +804,12 @@ DK_HD inline V log_prob_backward(const EnvParams<ScalarOf<V>>& e, const V* loc, 
 #endif
 using Real = std::conditional_t<DK_DOUBLE != 0, double, float>;
 
+// Element i of a tensor of S that the C interface passes untyped.
+template <class S>
+DK_HD inline S& ref(const void* p, int64_t i) {
+  return const_cast<S*>(static_cast<const S*>(p))[i];
+}
+
 // The weights of each lane's agent: lane l of w[k] is parameter k of agent[l]. One lane: the
 // agent's own parameters, read where they are.
 template <class V>
@@ -846,19 +852,14 @@ struct RolloutArgs {
 struct Saved {
   int in_dim, activations, width;  // width: vectors per block
   int64_t blocks;                  // per agent
-  DK_HD int x() const { return 0; }
-  DK_HD int acts() const { return in_dim; }
+  DK_HD int acts() const { return in_dim; }  // after the observation, at 0
   DK_HD int loc() const { return in_dim + activations; }
   DK_HD int pre() const { return loc() + kActionDim; }
   DK_HD int action() const { return pre() + kActionDim; }
   DK_HD int ret() const { return action() + kActionDim; }
   DK_HD static Saved of(const Net& net, int64_t episodes, int64_t steps, int lanes) {
-    Saved s{};
-    s.in_dim = net.in_dim;
-    s.activations = net.activations;
-    s.width = net.in_dim + net.activations + 3 * kActionDim + 1;
-    s.blocks = (episodes * steps + lanes - 1) / lanes;
-    return s;
+    const int width = net.in_dim + net.activations + 3 * kActionDim + 1;
+    return {net.in_dim, net.activations, width, (episodes * steps + lanes - 1) / lanes};
   }
 };
 
@@ -873,18 +874,10 @@ template <class V>
 DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* wbuf, V* acts, V* x) {
   using S = ScalarOf<V>;
   constexpr int L = lanes_of<V>();
-  const S* params = static_cast<const S*>(a.params);
-  const S* start = static_cast<const S*>(a.start);
-  const S* noise = static_cast<const S*>(a.noise);
-  S* obs = static_cast<S*>(a.obs);
-  S* action = static_cast<S*>(a.action);
-  S* reward = static_cast<S*>(a.reward);
-  S* seen = static_cast<S*>(a.seen);
-  S* saved = static_cast<S*>(a.saved);
   const Saved layout = Saved::of(net, a.episodes, a.steps, L);
   // The scalar of vector k of agent n's step r in the saved buffer.
   auto slot = [&](int64_t n, int64_t r, int k) -> S& {
-    return saved[((n * layout.blocks + r / L) * layout.width + k) * L + r % L];
+    return ref<S>(a.saved, ((n * layout.blocks + r / L) * layout.width + k) * L + r % L);
   };
   const EnvParams<S> e = env_params<S>(a.env, net);
   const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
@@ -905,7 +898,7 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
   bool any = false;
   for (int l = 0; l < L; l++) any = any || live[l];
   if (!any) return;
-  const V* w = lane_weights(net, params, agent, wbuf);
+  const V* w = lane_weights(net, static_cast<const S*>(a.params), agent, wbuf);
   // The stream keys of each lane's agent, and the row's episode index within its agent.
   uint64_t noise_key[L], episode[L];
   for (int l = 0; l < L; l++) {
@@ -918,12 +911,12 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
       for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start_component<S>(a.env, start_key, episode[l], k));
       dr.key[l] = a.keys ? a.keys[row] : episode_key(seed, counter, episode[l]);
     } else {
-      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start[row * kStateDim + k]);
+      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.start, row * kStateDim + k));
       dr.key[l] = a.keys ? a.keys[row] : 0;
     }
   }
   if (!d.nominal) start_episode(d, dr);
-  const bool stochastic = noise || a.rng;
+  const bool stochastic = a.noise || a.rng;
   V n[4] = {};
   for (int64_t t = 0; t < T && any; t++) {
     int64_t steps[L];
@@ -937,9 +930,10 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
     V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
     if (a.rng) {
       action_normals(noise_key, pair, z);
-    } else if (noise) {
+    } else if (a.noise) {
       for (int m = 0; m < kActionDim; m++)
-        for (int l = 0; l < L; l++) set_lane(z[m], l, live[l] ? noise[((row0 + l) * T + t) * kActionDim + m] : S(0));
+        for (int l = 0; l < L; l++)
+          set_lane(z[m], l, live[l] ? ref<S>(a.noise, ((row0 + l) * T + t) * kActionDim + m) : S(0));
     }
     policy_step(net, e, w, x, acts, stochastic ? z : nullptr, loc, pre, act);
     V next[kStateDim], r, cause, zone;
@@ -948,21 +942,21 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
     for (int l = 0; l < count; l++) {
       if (!live[l]) continue;
       const int64_t row = row0 + l, at = row * T + t, state_at = row * (T + 1) + t;
-      if (obs) {
+      if (a.obs) {
         for (int k = 0; k < kStateDim; k++) {
-          obs[state_at * kStateDim + k] = lane(dr.s[k], l);
-          obs[(state_at + 1) * kStateDim + k] = lane(next[k], l);
+          ref<S>(a.obs, state_at * kStateDim + k) = lane(dr.s[k], l);
+          ref<S>(a.obs, (state_at + 1) * kStateDim + k) = lane(next[k], l);
         }
       }
-      if (seen)
-        for (int k = 0; k < in_dim; k++) seen[at * in_dim + k] = lane(x[k], l);
-      if (action) {
-        action[at * kActionDim] = lane(act[0], l);
-        action[at * kActionDim + 1] = lane(act[1], l);
+      if (a.seen)
+        for (int k = 0; k < in_dim; k++) ref<S>(a.seen, at * in_dim + k) = lane(x[k], l);
+      if (a.action) {
+        ref<S>(a.action, at * kActionDim) = lane(act[0], l);
+        ref<S>(a.action, at * kActionDim + 1) = lane(act[1], l);
       }
-      if (saved) {
+      if (a.saved) {
         const int64_t r_agent = episode[l] * T + t;
-        for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, layout.x() + k) = lane(x[k], l);
+        for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, k) = lane(x[k], l);
         for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = lane(acts[k], l);
         for (int m = 0; m < kActionDim; m++) {
           slot(agent[l], r_agent, layout.loc() + m) = lane(loc[m], l);
@@ -971,7 +965,7 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
         }
       }
       const int64_t code = static_cast<int64_t>(lane(cause, l));
-      reward[at] = lane(r, l);
+      ref<S>(a.reward, at) = lane(r, l);
       a.cause[at] = code;
       a.length[row] = t + 1;
       double* stat = a.stats + row * kStats;
@@ -991,9 +985,9 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
     S* out = static_cast<S*>(a.returns) + row * T;
     S running = 0;
     for (int64_t t = a.length[row] - 1; t >= 0; t--) {
-      running = reward[row * T + t] + discount * running;
+      running = ref<S>(a.reward, row * T + t) + discount * running;
       out[t] = running;
-      if (saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
+      if (a.saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
     }
   }
 }
@@ -1004,7 +998,8 @@ struct LossOptions {
 };
 
 struct GradArgs {
-  RolloutArgs roll;
+  RolloutArgs roll;  // rows = agents * episodes
+  int64_t agents;
   LossOptions options;
   void* grad;               // [agents, params]
   double* loss;             // [agents]: each agent's REINFORCE loss (reinforce_terms' loss_per_agent)
@@ -1111,7 +1106,7 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n_out = net.out(l), n_in = net.width[l];
     const int prev = l < net.n_hidden ? l - 1 : net.n_hidden - 1;
-    const V* input = prev < 0 ? saved + layout.x() : saved + layout.acts() + start;
+    const V* input = prev < 0 ? saved : saved + layout.acts() + start;
     const V* d = l < net.n_hidden ? deltas + start + (l ? net.out(l - 1) : 0)
                                   : heads + (l - net.n_hidden) * kActionDim;
     const int d_stride = l < net.n_hidden ? act_w : 2 * kActionDim;
@@ -1172,8 +1167,6 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
   const int64_t J = a.steps, in_dim = net.in_dim;
   Drone<V> dr{};
-  auto in = [](const void* p, int64_t i) { return static_cast<const S*>(p)[i]; };
-  auto out = [](void* p, int64_t i) -> S& { return static_cast<S*>(p)[i]; };
   const int64_t row0 = b * L;
   const int count = static_cast<int>(row0 + L <= a.n ? L : a.n - row0);
   int64_t row[L], t[L];
@@ -1183,13 +1176,13 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
     const int64_t r = row[l];
     t[l] = a.t[r];
     restart[l] = t[l] < 0;
-    for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.state, r * kStateDim + k));
+    for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.state, r * kStateDim + k));
     dr.key[l] = static_cast<uint64_t>(a.key[r]);
   }
   if (!d.nominal) {
     start_episode(d, dr);  // the episode's draws; its internal state is the carried one
     for (int l = 0; l < L; l++)
-      each_internal(d, dr, row[l], [&](int k, int64_t i, V& v) { set_lane(v, l, in(a.internal[k], i)); });
+      each_internal(d, dr, row[l], [&](int k, int64_t i, V& v) { set_lane(v, l, ref<S>(a.internal[k], i)); });
   }
   V n[4] = {};
   bool seen = false;  // x holds the observation at t (the last step's next observation)
@@ -1200,7 +1193,7 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
       for (int l = 0; l < L; l++) {
         if (!restart[l]) continue;
         t[l] = 0;
-        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, in(a.fresh, (row[l] * J + j) * kStateDim + k));
+        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.fresh, (row[l] * J + j) * kStateDim + k));
         if (a.fresh_keys) dr.key[l] = a.fresh_keys[row[l] * J + j];
       }
       if (!d.nominal) start_episode(d, dr, restart);
@@ -1213,11 +1206,11 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
     }
     V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
     for (int m = 0; m < kActionDim; m++)
-      for (int l = 0; l < L; l++) set_lane(z[m], l, in(a.noise, (row[l] * J + j) * kActionDim + m));
+      for (int l = 0; l < L; l++) set_lane(z[m], l, ref<S>(a.noise, (row[l] * J + j) * kActionDim + m));
     policy_step(net, e, w, x, acts, z, loc, pre, act);
     for (int l = 0; l < count; l++) {
       const int64_t at = row[l] * J + j;
-      for (int k = 0; k < in_dim; k++) out(a.obs, at * in_dim + k) = lane(x[k], l);
+      for (int k = 0; k < in_dim; k++) ref<S>(a.obs, at * in_dim + k) = lane(x[k], l);
       a.step_count[at] = t[l];
     }
     V next[kStateDim], r, cause, zone;
@@ -1232,9 +1225,9 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
       const int64_t at = row[l] * J + j;
       const int64_t code = static_cast<int64_t>(lane(cause, l));
       const bool terminated = code != 0, truncated = !terminated && t[l] >= a.max_steps;
-      for (int k = 0; k < in_dim; k++) out(a.next_obs, at * in_dim + k) = lane(x[k], l);
-      for (int m = 0; m < kActionDim; m++) out(a.action, at * kActionDim + m) = lane(act[m], l);
-      out(a.reward, at) = lane(r, l);
+      for (int k = 0; k < in_dim; k++) ref<S>(a.next_obs, at * in_dim + k) = lane(x[k], l);
+      for (int m = 0; m < kActionDim; m++) ref<S>(a.action, at * kActionDim + m) = lane(act[m], l);
+      ref<S>(a.reward, at) = lane(r, l);
       a.cause[at] = code;
       a.terminated[at] = terminated;
       a.truncated[at] = truncated;
@@ -1243,24 +1236,30 @@ DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b,
   }
   for (int l = 0; l < count; l++) {
     const int64_t r = row[l];
-    for (int k = 0; k < kStateDim; k++) out(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
+    for (int k = 0; k < kStateDim; k++) ref<S>(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
     a.t_out[r] = restart[l] ? -1 : t[l];
     a.key_out[r] = static_cast<int64_t>(dr.key[l]);
     // The nominal drone carries nothing: its gust 0 and its thrust the hover command, as at a start.
     each_internal(d, dr, r, [&](int k, int64_t i, V& v) {
-      out(a.internal_out[k], i) = d.nominal ? S(k == 1 ? kHover : 0) : lane(v, l);
+      ref<S>(a.internal_out[k], i) = d.nominal ? S(k == 1 ? kHover : 0) : lane(v, l);
     });
   }
 }
 
-DK_HD Net make_net(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t activation, double min_std,
-             double dist_eps) {
+// The network as the entry points take it (ops._net packs it): hidden widths after the first n_hidden unread.
+struct NetSpec {
+  int64_t in_dim, n_hidden, activation;
+  double min_std, dist_eps;
+  int64_t hidden[kMaxLayers];
+};
+
+DK_HD Net make_net(const NetSpec& spec) {
   Net net{};
-  net.in_dim = static_cast<int>(in_dim), net.n_hidden = static_cast<int>(n_hidden);
-  net.activation = static_cast<int>(activation), net.min_std = min_std, net.dist_eps = dist_eps;
+  net.in_dim = static_cast<int>(spec.in_dim), net.n_hidden = static_cast<int>(spec.n_hidden);
+  net.activation = static_cast<int>(spec.activation), net.min_std = spec.min_std, net.dist_eps = spec.dist_eps;
   int off = 0, in = net.in_dim;
   for (int l = 0; l < net.n_hidden + 2; l++) {
-    const int n = l < net.n_hidden ? static_cast<int>(hidden[l]) : kActionDim;
+    const int n = l < net.n_hidden ? static_cast<int>(spec.hidden[l]) : kActionDim;
     if (l < net.n_hidden) net.activations += n;
     net.offset[l] = off;
     net.width[l] = in;
@@ -1276,14 +1275,36 @@ DK_HD inline int activation_width(const Net& net) { return net.activations > 0 ?
 
 // ------------------------------------------------------------------------------------------------
 // The engines. Each runs fly_block over the rows (fly) and reinforce_agent over the agents (grad)
-// of a call. Every entry point below takes what either target needs: the CPU's thread count, the
-// GPU's stream and scratch memory (dk_cuda_scratch_size scalars the caller allocates, so PyTorch's
-// caching allocator owns all device memory); the other target ignores them.
+// of a call. Every entry point reads one array of 8-byte words, a Call field by field (ops._launch
+// packs it): the Launch, what either target needs (the CPU's thread count, the GPU's stream and
+// scratch memory: dk_cuda_scratch_size scalars the caller allocates, so PyTorch's caching allocator
+// owns all device memory; the other target ignores them), the network and the op's arguments.
 struct Launch {
   int64_t threads;
   void* stream;
   void* scratch;
 };
+
+template <class Args>
+struct Call {
+  Launch on;
+  NetSpec spec;
+  Args a;
+};
+
+// What the size queries read: the network, then the rows flown, the agents updated, and their
+// episodes and steps.
+struct Sizes {
+  NetSpec spec;
+  int64_t rows, agents, episodes, steps;
+};
+
+template <class T>
+T unpack(const void* words) {
+  T t;
+  std::memcpy(&t, words, sizeof t);
+  return t;
+}
 
 #if DK_CPU
 // The CPU engine: threads over blocks of lanes() drones. The scalar engine (-DDK_SCALAR_ENGINE)
@@ -1293,91 +1314,69 @@ using Lanes = Real;
 #else
 using Lanes = std::conditional_t<DK_DOUBLE != 0, D, F>;
 #endif
-#define DK_ENTRY(name) dk_##name
 
-template <class Fn>
-void parallel_blocks(int64_t blocks, int64_t threads, Fn fn) {
-  if (threads <= 1 || blocks < 2) {
-    fn(0, blocks);
-    return;
+template <class Work>
+__attribute__((flatten)) void run_range(const Work& work, int64_t scratch, int64_t first, int64_t last) {
+  std::vector<Lanes> memory(scratch);
+  for (int64_t i = first; i < last; i++) work(i, memory.data());
+}
+
+// work(i, scratch) for i < count, the items split over the threads, each with `scratch` vectors.
+template <class Work>
+int64_t run(int64_t count, int64_t scratch, const Launch& on, Work work) {
+  const int64_t workers = count < on.threads ? count : on.threads;
+  if (workers <= 1) {
+    run_range(work, scratch, 0, count);
+    return 0;
   }
-  const int64_t workers = blocks < threads ? blocks : threads;
   std::vector<std::thread> pool;
   for (int64_t k = 0; k < workers; k++)
-    pool.emplace_back(fn, blocks * k / workers, blocks * (k + 1) / workers);
+    pool.emplace_back([&, k] { run_range(work, scratch, count * k / workers, count * (k + 1) / workers); });
   for (auto& th : pool) th.join();
-}
-
-constexpr int64_t lanes() { return lanes_of<Lanes>(); }
-constexpr int64_t blocks_of(int64_t rows) { return (rows + lanes() - 1) / lanes(); }
-
-__attribute__((flatten)) void fly_blocks(const Net& net, const RolloutArgs& a, int64_t first, int64_t last) {
-  std::vector<Lanes> w(net.params), acts(activation_width(net)), x(net.in_dim);
-  for (int64_t b = first; b < last; b++) fly_block(net, a, b, w.data(), acts.data(), x.data());
-}
-
-__attribute__((flatten)) void reinforce_agents(const Net& net, const GradArgs& g, int64_t first, int64_t last) {
-  const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, lanes());
-  std::vector<Lanes> deltas(layout.blocks * activation_width(net)), heads(layout.blocks * 2 * kActionDim),
-      grad(net.params);
-  for (int64_t n = first; n < last; n++) reinforce_agent(net, g, n, deltas.data(), heads.data(), grad.data());
-}
-
-int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
-  parallel_blocks(blocks_of(a.rows), on.threads, [&](int64_t f, int64_t l) { fly_blocks(net, a, f, l); });
-  return 0;
-}
-
-int64_t grad(const Net& net, const GradArgs& g, int64_t agents, const Launch& on) {
-  parallel_blocks(agents, on.threads, [&](int64_t f, int64_t l) { reinforce_agents(net, g, f, l); });
   return 0;
 }
 
 #elif defined(__CUDACC__)
-// The CUDA engine: one thread per drone (fly_kernel: per row; reinforce_kernel: per agent), each
-// running the single-source loops with V = Real. Launches go on the caller's stream; nothing
-// synchronises.
-#define DK_ENTRY(name) dk_cuda_##name
+// The CUDA engine: one thread per item (a row, or an agent), each running the single-source loops
+// with V = Real on its slice of the caller's scratch. Launches go on the caller's stream; nothing
+// synchronises. Returns the CUDA error code of the launch.
+using Lanes = Real;
 constexpr int kThreadsPerBlock = 128;
-constexpr int64_t lanes() { return 1; }
 
-__global__ void fly_kernel(Net net, RolloutArgs a, Real* scratch) {
-  const int64_t row = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
-  if (row >= a.rows) return;
-  Real* acts = scratch + row * (activation_width(net) + net.in_dim);
-  fly_block<Real>(net, a, row, nullptr, acts, acts + activation_width(net));
+template <class Work>
+__global__ void run_kernel(int64_t count, int64_t scratch, Real* memory, Work work) {
+  const int64_t i = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
+  if (i < count) work(i, memory + i * scratch);
 }
 
-__global__ void reinforce_kernel(Net net, GradArgs g, int64_t agents, Real* scratch) {
-  const int64_t n = blockIdx.x * static_cast<int64_t>(blockDim.x) + threadIdx.x;
-  if (n >= agents) return;
-  const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, 1);
-  const int64_t deltas = layout.blocks * activation_width(net), heads = layout.blocks * 2 * kActionDim;
-  Real* mine = scratch + n * (deltas + heads + net.params);
-  reinforce_agent<Real>(net, g, n, mine, mine + deltas, mine + deltas + heads);
-}
-
-inline unsigned grid_of(int64_t threads) {
-  return static_cast<unsigned>((threads + kThreadsPerBlock - 1) / kThreadsPerBlock);
-}
-
-// The CUDA error code of the launch.
-int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
-  if (a.rows > 0)
-    fly_kernel<<<grid_of(a.rows), kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
-        net, a, static_cast<Real*>(on.scratch));
-  return static_cast<int64_t>(cudaGetLastError());
-}
-
-int64_t grad(const Net& net, const GradArgs& g, int64_t agents, const Launch& on) {
-  if (g.roll.rows > 0)
-    reinforce_kernel<<<grid_of(agents), kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
-        net, g, agents, static_cast<Real*>(on.scratch));
+template <class Work>
+int64_t run(int64_t count, int64_t scratch, const Launch& on, Work work) {
+  const auto grid = static_cast<unsigned>((count + kThreadsPerBlock - 1) / kThreadsPerBlock);
+  if (count > 0)
+    run_kernel<<<grid, kThreadsPerBlock, 0, static_cast<cudaStream_t>(on.stream)>>>(
+        count, scratch, static_cast<Real*>(on.scratch), work);
   return static_cast<int64_t>(cudaGetLastError());
 }
 #endif
 
 #if DK_CPU || defined(__CUDACC__)
+constexpr int64_t lanes() { return lanes_of<Lanes>(); }
+constexpr int64_t blocks_of(int64_t rows) { return (rows + lanes() - 1) / lanes(); }
+
+// The scratch vectors of a block of rows flown (the lanes' weights, with lanes; the hidden outputs;
+// the inputs) and of an agent's gradient (deltas and heads of every saved block; the gradient).
+int64_t fly(const Net& net, const RolloutArgs& a, const Launch& on) {
+  const int64_t w = lanes() > 1 ? net.params : 0, acts = activation_width(net);
+  return run(blocks_of(a.rows), w + acts + net.in_dim, on,
+             [=] DK_HD(int64_t b, Lanes* s) { fly_block(net, a, b, s, s + w, s + w + acts); });
+}
+
+int64_t grad(const Net& net, const GradArgs& g, const Launch& on) {
+  const Saved layout = Saved::of(net, g.roll.episodes, g.roll.steps, lanes());
+  const int64_t deltas = layout.blocks * activation_width(net), heads = layout.blocks * 2 * kActionDim;
+  return run(g.agents, deltas + heads + net.params, on,
+             [=] DK_HD(int64_t n, Lanes* s) { reinforce_agent(net, g, n, s, s + deltas, s + deltas + heads); });
+}
 }  // namespace
 
 extern "C" {
@@ -1390,83 +1389,50 @@ int64_t dk_observation_dim(int64_t observed) { return observation_dim(static_cas
 int64_t dk_real_bytes() { return sizeof(Real); }
 // The entry points' argument lists, numbered: a library built from another version of this file
 // (DRONE_TORCHRL_CUDA_LIBRARY names any file) is refused at load instead of called with wrong arguments.
-int64_t dk_abi_version() { return 2; }
+int64_t dk_abi_version() { return 3; }
 
 // Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
-// row's episode terminates or `steps` steps. Writes the states ([rows, steps + 1, 6]: before each
-// step, and after the last), the action, the reward, the termination cause and the return-to-go
-// of every step flown, each row's length and its Stat counts, and (seen, when not null) what the
-// policy saw; entries after a row's end are left as they were (the caller zero-fills). Tensors
-// hold Real numbers (the build's precision). in_dim: 6 + 2 * the disturbance's observed_actions.
-// Returns 0 (on a GPU: the CUDA error code of the launch).
-int64_t DK_ENTRY(rollout)(int64_t threads, void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
-                          int64_t activation, double min_std, double dist_eps, int64_t rows, int64_t episodes,
-                          int64_t steps, const void* params, const void* start, const void* noise, const int64_t* rng,
-                          const int64_t* keys, const uint8_t* active, const double* env, const double* dist,
-                          const double* gamma, void* obs, void* action, void* reward, int64_t* cause, int64_t* length,
-                          void* returns, double* stats, void* seen, void* scratch) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  RolloutArgs a{rows,  episodes, steps,  params, start,  noise,  rng,     keys,  active, env,    dist,
-                gamma, obs,      action, reward, cause,  length, returns, stats, seen,   nullptr};
-  return fly(net, a, {threads, stream, scratch});
+// row's episode terminates or `steps` steps (RolloutArgs; entries after a row's end are left as
+// they were: the caller zero-fills). Returns 0 (on a GPU: the CUDA error code of the launch).
+int64_t dk_rollout(const void* call) {
+  const auto c = unpack<Call<RolloutArgs>>(call);
+  return fly(make_net(c.spec), c.a, c.on);
 }
 
 // One REINFORCE update's episodes and gradient for every active agent: the rollout of dk_rollout
-// (start states, noise and disturbance keys drawn from rng), then reinforce_agent. options (a host
-// pointer, like hidden): LossOptions' four flags.
-int64_t DK_ENTRY(reinforce)(int64_t threads, void* stream, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
-                            int64_t activation, double min_std, double dist_eps, int64_t agents, int64_t episodes,
-                            int64_t steps, const void* params, const int64_t* rng, const uint8_t* active,
-                            const double* env, const double* dist, const double* gamma, const int64_t* options,
-                            void* reward, int64_t* cause, int64_t* length, void* returns, double* stats, void* saved,
-                            void* grad_out, double* loss, double* std_mean, uint8_t* actions_finite, void* scratch) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  const int64_t rows = agents * episodes;
-  RolloutArgs a{rows,  episodes, steps,   params, nullptr, nullptr, rng,     nullptr, active,  env,  dist,
-                gamma, nullptr,  nullptr, reward, cause,   length,  returns, stats,   nullptr, saved};
-  GradArgs g{a, {options[0], options[1], options[2], options[3]}, grad_out, loss, std_mean, actions_finite};
-  const Launch on{threads, stream, scratch};
-  const int64_t code = fly(net, a, on);
-  return code != 0 ? code : grad(net, g, agents, on);
+// (start states, noise and disturbance keys drawn from rng), then reinforce_agent.
+int64_t dk_reinforce(const void* call) {
+  const auto c = unpack<Call<GradArgs>>(call);
+  const Net net = make_net(c.spec);
+  const int64_t code = fly(net, c.a.roll, c.on);
+  return code != 0 ? code : grad(net, c.a, c.on);
 }
 
 // The size of dk_reinforce's saved buffer, in scalars.
-int64_t dk_saved_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t agents, int64_t episodes,
-                      int64_t steps) {
-  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
-  const Saved layout = Saved::of(net, episodes, steps, lanes());
-  return agents * layout.blocks * layout.width * lanes();
+int64_t dk_saved_size(const void* sizes) {
+  const auto q = unpack<Sizes>(sizes);
+  const Saved layout = Saved::of(make_net(q.spec), q.episodes, q.steps, lanes());
+  return q.agents * layout.blocks * layout.width * lanes();
 }
 
 #if DK_CPU
 // `steps` steps of n drones of one agent with auto-reset (ops.segments documents the tensors).
-int64_t dk_segments(int64_t threads, void*, int64_t in_dim, int64_t n_hidden, const int64_t* hidden,
-                    int64_t activation, double min_std, double dist_eps, int64_t n, int64_t steps, int64_t max_steps,
-                    const void* params, const void* state, const int64_t* t, const int64_t* key, const void* gust,
-                    const void* thrust, const void* pending, const void* issued, const void* noise,
-                    const void* fresh, const int64_t* fresh_keys, const double* env, const double* dist, void* obs,
-                    void* action, void* reward, void* next_obs, int64_t* cause, uint8_t* terminated,
-                    uint8_t* truncated, int64_t* step_count, void* state_out, int64_t* t_out, int64_t* key_out,
-                    void* gust_out, void* thrust_out, void* pending_out, void* issued_out, void*) {
-  const Net net = make_net(in_dim, n_hidden, hidden, activation, min_std, dist_eps);
-  SegmentArgs a{n,     steps, max_steps, params, state, t, key, {gust, thrust, pending, issued}, noise, fresh,
-                fresh_keys, env, dist, obs, action, reward, next_obs, cause, terminated, truncated, step_count,
-                state_out, t_out, key_out, {gust_out, thrust_out, pending_out, issued_out}};
-  parallel_blocks(blocks_of(n), threads, [&](int64_t first, int64_t last) {
-    std::vector<Lanes> acts(activation_width(net)), x(net.in_dim);
-    for (int64_t b = first; b < last; b++) segment_block(net, a, b, acts.data(), x.data());
-  });
-  return 0;
+int64_t dk_segments(const void* call) {
+  const auto c = unpack<Call<SegmentArgs>>(call);
+  const Net net = make_net(c.spec);
+  const int64_t acts = activation_width(net);
+  return run(blocks_of(c.a.n), acts + net.in_dim, c.on,
+             [&](int64_t b, Lanes* s) { segment_block(net, c.a, b, s, s + acts); });
 }
 #else
-// Scratch scalars of dk_cuda_rollout (rows rows) and dk_cuda_reinforce (agents agents).
-int64_t dk_cuda_scratch_size(int64_t in_dim, int64_t n_hidden, const int64_t* hidden, int64_t rows, int64_t agents,
-                             int64_t episodes, int64_t steps) {
-  const Net net = make_net(in_dim, n_hidden, hidden, kTanh, 0, 0);
-  const Saved layout = Saved::of(net, episodes, steps, 1);
+// Scratch scalars of dk_rollout (rows rows) and dk_reinforce (agents agents).
+int64_t dk_cuda_scratch_size(const void* sizes) {
+  const auto q = unpack<Sizes>(sizes);
+  const Net net = make_net(q.spec);
+  const Saved layout = Saved::of(net, q.episodes, q.steps, 1);
   const int64_t per_row = activation_width(net) + net.in_dim;
   const int64_t per_agent = layout.blocks * (activation_width(net) + 2 * kActionDim) + net.params;
-  const int64_t fly = rows * per_row, grad = agents * per_agent;
+  const int64_t fly = q.rows * per_row, grad = q.agents * per_agent;
   return fly > grad ? fly : grad;
 }
 

@@ -21,6 +21,7 @@ Parameters are each agent's flat vector
 from __future__ import annotations
 
 import ctypes
+import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import fields
 from typing import Any, NamedTuple
@@ -45,22 +46,22 @@ AGENTS_PER_EVALUATION = 1024
 MAX_WIDTH = 1024
 DTYPES = (torch.float32, torch.float64)
 
-_c64 = ctypes.c_int64
-_dbl = ctypes.c_double
-_ptr = ctypes.c_void_p
 
+def _words(*values: torch.Tensor | float | int | None) -> ctypes.Array:
+    """The values as the kernels read them, 8-byte words: a tensor its address, a float its bits, None 0."""
 
-def _p(tensor: torch.Tensor | None) -> ctypes.c_void_p:
-    return _ptr(None if tensor is None else tensor.data_ptr())
+    def word(value: torch.Tensor | float | int | None) -> int:
+        if isinstance(value, torch.Tensor):
+            return value.data_ptr()
+        return struct.unpack("q", struct.pack("d", value))[0] if isinstance(value, float) else value or 0
 
-
-def _sizes(hidden: Sequence[int]) -> ctypes.Array:
-    return (_c64 * max(len(hidden), 1))(*hidden)
+    return (ctypes.c_int64 * len(values))(*map(word, values))
 
 
 def _net(in_dim: int, hidden: Sequence[int], activation: int, min_std: float, dist_eps: float) -> list:
-    """The network's arguments of every entry point (the first three: of the size queries too)."""
-    return [_c64(in_dim), _c64(len(hidden)), _sizes(hidden), _c64(activation), _dbl(min_std), _dbl(dist_eps)]
+    """The network's words of every entry point (``NetSpec`` in drone_kernels.cpp)."""
+    pad = [0] * (MAX_LAYERS - len(hidden))
+    return [in_dim, len(hidden), activation, float(min_std), float(dist_eps), *hidden, *pad]
 
 
 def _lib(dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> ctypes.CDLL:
@@ -72,22 +73,21 @@ def _lib(dtype: torch.dtype = torch.float32, device: torch.device | None = None)
     return lib
 
 
-def _launch(lib: ctypes.CDLL, function: str, device: torch.device, args: list, scratch: tuple = ()) -> None:
-    """Call ``dk_<function>`` on the CPU, or ``dk_cuda_<function>`` on ``device``.
+def _launch(lib: ctypes.CDLL, function: str, device: torch.device, net: list, args: tuple, sizes=()) -> None:
+    """Call ``dk_<function>`` with its ``Call`` (drone_kernels.cpp): the launch, ``net`` and ``args``.
 
-    Each takes the thread count (the CPU's), ``device``'s current stream, ``args`` and scratch
-    memory (a GPU's: ``dk_cuda_scratch_size(*scratch)`` scalars, allocated here, PyTorch's).
+    The launch: the thread count (the CPU's), ``device``'s current stream and scratch memory (a
+    GPU's: ``dk_cuda_scratch_size`` scalars for ``sizes``, allocated here, PyTorch's). The tensors
+    in ``args`` live until the call returns.
     """
-    cuda = device.type == "cuda"
     memory, stream = None, None
-    if cuda:
+    if device.type == "cuda":
         dtype = torch.float64 if lib.dk_real_bytes() == 8 else torch.float32
-        memory = torch.empty(lib.dk_cuda_scratch_size(*scratch), dtype=dtype, device=device)
+        memory = torch.empty(lib.dk_cuda_scratch_size(_words(*net, *sizes)), dtype=dtype, device=device)
         stream = torch.cuda.current_stream(device).cuda_stream
-    entry = getattr(lib, f"dk_cuda_{function}" if cuda else f"dk_{function}")
-    code = entry(_c64(torch.get_num_threads()), _ptr(stream), *args, _p(memory))
+    code = getattr(lib, f"dk_{function}")(_words(torch.get_num_threads(), stream, memory, *net, *args))
     if code != 0:
-        raise RuntimeError(f"ops.{function} on {device}: {lib.dk_cuda_error(_c64(code)).decode()}")
+        raise RuntimeError(f"ops.{function} on {device}: {lib.dk_cuda_error(ctypes.c_int64(code)).decode()}")
 
 
 _CHOICES = {f.name: f.metadata[PARAM].choices for f in fields(DroneParams)}
@@ -146,11 +146,11 @@ def disturbance_constants(
 
 def _magnitudes(disturbance: torch.Tensor | None, device: torch.device | None = None) -> torch.Tensor | None:
     """``disturbance`` as the kernels read it (float64 on ``device``), or None for the nominal drone."""
-    if disturbance is None:
-        return None
-    magnitudes = disturbance.clone()
-    magnitudes[_GUST_TIME] = 0.0  # the gusts' time scale alone changes nothing
-    return _to(disturbance, torch.float64, device) if bool(magnitudes.any()) else None
+    # The gusts' time scale alone changes nothing.
+    nominal = disturbance is None or not bool(
+        disturbance[:_GUST_TIME].any() or disturbance[_GUST_TIME + 1 :].any()
+    )
+    return None if nominal else _to(disturbance, torch.float64, device)
 
 
 def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
@@ -272,12 +272,10 @@ def rollout(
     params, start, noise = params.contiguous(), _to(start, dtype, device), _to(noise, dtype, device)
     active, rng, keys = _to(active, torch.uint8, device), _to(rng, i64, device), _to(keys, i64, device)
     env, gamma = _to(env, torch.float64, device), _to(gamma, torch.float64, device)
+    args = (n * episodes, episodes, steps, params, start, noise, rng, keys, active, env, disturbance, gamma)
+    args += (states, action, reward, cause, length, returns, stats, seen if observations else None, None)
     net = _net(in_dim, hidden, activation, min_std, dist_eps)
-    args = [*net, _c64(n * episodes), _c64(episodes), _c64(steps)]
-    args += [_p(t) for t in (params, start, noise, rng, keys, active, env, disturbance, gamma, states)]
-    args += [_p(t) for t in (action, reward, cause, length, returns, stats, seen if observations else None)]
-    scratch = (*net[:3], _c64(n * episodes), _c64(0), _c64(episodes), _c64(steps))
-    _launch(_lib(dtype, device), "rollout", device, args, scratch)
+    _launch(_lib(dtype, device), "rollout", device, net, args, (n * episodes, 0, episodes, steps))
     return states, action, reward, cause, length, returns, stats, seen
 
 
@@ -325,23 +323,22 @@ def reinforce(
     length = params.new_empty(n, episodes, dtype=torch.int64)
     counts = params.new_empty(n, episodes, STATS, dtype=torch.float64)
     lib, net = _lib(dtype, device), _net(in_dim, hidden, activation, min_std, dist_eps)
-    saved = params.new_empty(lib.dk_saved_size(*net[:3], _c64(chunk), _c64(episodes), _c64(steps)))
+    sizes = (chunk * episodes, chunk, episodes, steps)
+    saved = params.new_empty(lib.dk_saved_size(_words(*net, *sizes)))
     grad = torch.empty_like(params)
     loss = params.new_empty(n, dtype=torch.float64)
     std_mean = torch.empty_like(loss)
     actions_finite = params.new_empty(n, dtype=torch.bool)
-    flags = torch.tensor(list(options), dtype=torch.int64)  # read on the host
     params, active, rng = params.contiguous(), _to(active, torch.uint8, device), _to(rng, torch.int64, device)
     env, gamma = _to(env, torch.float64, device), _to(gamma, torch.float64, device)
     disturbance = _magnitudes(disturbance, device)
-    scratch = (*net[:3], _c64(chunk * episodes), _c64(chunk), _c64(episodes), _c64(steps))
     for first in range(0, n, chunk):
-        rows = slice(first, min(n, first + chunk))
-        args = [*net, _c64(rows.stop - rows.start), _c64(episodes), _c64(steps)]
-        args += [_p(t) for t in (params[rows], rng[rows], active[rows], env, disturbance, gamma[rows], flags)]
-        args += [_p(t) for t in (reward, cause, length[rows], returns, counts[rows])]
-        args += [_p(t) for t in (saved, grad[rows], loss[rows], std_mean[rows], actions_finite[rows])]
-        _launch(lib, "reinforce", device, args, scratch)
+        r = slice(first, min(n, first + chunk))
+        k = r.stop - r.start
+        roll = (k * episodes, episodes, steps, params[r], None, None, rng[r], None, active[r], env)
+        roll += (disturbance, gamma[r], None, None, reward, cause, length[r], returns, counts[r], None)
+        args = (*roll, saved, k, *map(int, options), grad[r], loss[r], std_mean[r], actions_finite[r])
+        _launch(lib, "reinforce", device, net, args, sizes)
     return grad, loss, std_mean, actions_finite, length, counts
 
 
@@ -454,7 +451,7 @@ def segments(
     carried = [_to(x, kinds.get(k, dtype)) for k, x in zip(Carried._fields, carried, strict=True)]
     params, noise, fresh = params.contiguous(), _to(noise, dtype), _to(fresh, dtype)
     fresh_keys, env = _to(fresh_keys, i64), _to(env, torch.float64)
-    args = [*_net(in_dim, hidden, activation, min_std, dist_eps), _c64(n), _c64(steps), _c64(max_steps)]
-    args += [_p(x) for x in (params, *carried, noise, fresh, fresh_keys, env, disturbance, *out)]
-    _launch(_lib(dtype), "segments", params.device, args)
+    args = (n, steps, max_steps, params, *carried, noise, fresh, fresh_keys, env, disturbance, *out)
+    net = _net(in_dim, hidden, activation, min_std, dist_eps)
+    _launch(_lib(dtype), "segments", params.device, net, args)
     return Segment(*out[: len(Segment._fields)]), Carried(*out[len(Segment._fields) :])
