@@ -35,9 +35,7 @@ ENV_ARGS = tuple(f.name for f in dataclasses.fields(schema.EnvConf) if f.name no
 ENV_ADDED = {
     "disturbance": None,  # a section (env.disturbance.*): a config from before it flew the nominal drone
     **{
-        f.name: rule.added
-        for f in dataclasses.fields(schema.EnvConf)
-        if f.name in ENV_ARGS and (rule := f.metadata.get(schema.RULE)) is not None and rule.is_added
+        key: rule.added for key, rule in schema.fields(schema.EnvConf, {}) if "." not in key and rule.is_added
     },
 }
 
@@ -134,7 +132,7 @@ def _every_key(name: str) -> dict[str, Rule]:
 
     Each plug-in's rule of a key the plug-ins share is the same.
     """
-    _discover_plugins()
+    _discover_plugins()  # stored_plugins lists the schemas stored, each when its plug-in is imported
     out: dict[str, Rule] = {}
     for group in schema.plugin_groups(name):
         for plugin in schema.stored_plugins(group):
