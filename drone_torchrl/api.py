@@ -37,13 +37,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import migrations
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.config import (
-    check_default_folder,
-    check_overrides,
-    config_dir,
-    parse_overrides,
-    preset_notes,
-)
+from drone_torchrl.config import check_default_folder, check_overrides, config_dir, preset_notes
 
 # The configs of drone-train and drone-eval (conf/<name>.yaml).
 TRAIN_CONFIG, EVAL_CONFIG = "config", "eval"
@@ -282,10 +276,11 @@ def _compose(name: str, args: list[str]) -> tuple[DictConfig, Path]:
     each bad override is one line. Hydra's node is taken off the config, as a Hydra app gets it.
     """
     from hydra import compose
+    from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
     check_overrides(args, name)
-    for override in parse_overrides(args):
+    for override in OverridesParser.create().parse_overrides(args):
         key = override.key_or_group
         if override.is_sweep_override():
             raise ConfigError(
