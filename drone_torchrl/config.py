@@ -679,15 +679,19 @@ def run_config(saved: dict[str, Any]) -> DictConfig:
     resumed.
     """
     cfg = OmegaConf.create(migrations.migrate_config(saved))
-    plugins = {}
-    for group, rule in schema.plugin_groups().items():
-        key = f"{group}.{rule.plugin_key}"
-        if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:  # from before plug-ins
+
+    def fill(key: str, rule: Rule) -> Any:
+        if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
             OmegaConf.update(cfg, key, rule.added, force_add=True)
-        plugins[group] = OmegaConf.select(cfg, key)
+        return OmegaConf.select(cfg, key)
+
+    # The plug-ins first (a config from before plug-ins gets their added ones), then their keys.
+    plugins = {
+        group: fill(f"{group}.{rule.plugin_key}", rule) for group, rule in schema.plugin_groups().items()
+    }
     for key, rule in schema_keys("config", **plugins).items():
-        if rule.is_added and OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
-            OmegaConf.update(cfg, key, rule.added, force_add=True)
+        if rule.is_added:
+            fill(key, rule)
     return cfg
 
 

@@ -248,22 +248,15 @@ def estimate(
     :class:`~drone_torchrl.registry.Algorithm`'s ``memory``; None: the parts every run has).
     """
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
-    steps = cfg["env"]["max_steps"]
     weights = (ADAM_COPIES + 1) * agents * policy_parameters(cfg) * b
     parts = {"the policy's weights": Part(weights, "lower model.hidden_sizes")}
     if learner is not None:
         parts.update(learner(cfg, agents))
+    episodes = min(agents, AGENTS_PER_EVALUATION) * cfg["eval"]["episodes"]
     video = cfg["logger"]["video_stride"] if cfg["eval"]["video"] else None
-    parts.update(
-        evaluation_parts(
-            b,
-            min(agents, AGENTS_PER_EVALUATION) * cfg["eval"]["episodes"],
-            steps,
-            video,
-            "lower eval.episodes or env.max_steps",
-            "set eval.video=false, raise logger.video_stride or lower env.max_steps",
-        )
-    )
+    advice = "lower eval.episodes or env.max_steps"
+    video_advice = "set eval.video=false, raise logger.video_stride or lower env.max_steps"
+    parts.update(evaluation_parts(b, episodes, cfg["env"]["max_steps"], video, advice, video_advice))
     return MemoryEstimate(parts)
 
 
