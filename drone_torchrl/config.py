@@ -239,12 +239,9 @@ def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     # A group's name misspelt (algoo=ppo) is nearer a group than any key's full dotted name.
     group = difflib.get_close_matches(key, group_names(), n=1, cutoff=0.75) if "." not in key else []
     close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
     if group:
         hint = f"; did you mean {group[0]}={'|'.join(group_options(group[0]))}?"
-    else:
-        hint = (
-            f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
-        )
     return ConfigError(f"{key} is not a config key{hint}")
 
 
