@@ -36,7 +36,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import migrations
-from drone_torchrl.checks import ConfigError
+from drone_torchrl.checks import ConfigError, as_override
 from drone_torchrl.config import check_default_folder, check_overrides, config_dir, preset_notes
 
 # The configs of drone-train and drone-eval (conf/<name>.yaml).
@@ -246,10 +246,8 @@ _AT_END = re.compile(r"(\\+)$")
 
 def _hydra_value(key: str, value: Any) -> str:
     """A Python value as Hydra's override grammar writes it; a string stays a string (quoted)."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
+    if value is None or isinstance(value, bool):
+        return as_override(value)  # null, true, false
     if isinstance(value, numbers.Integral):
         return str(int(value))
     if isinstance(value, numbers.Real):

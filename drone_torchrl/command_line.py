@@ -76,12 +76,8 @@ def check_flags(prog: str) -> argparse.Namespace:
 
 def overrides_of(args: list[str]) -> dict[str, str]:
     """``{key: value}`` of the command line's ``key=value`` overrides (the last one wins, as in Hydra)."""
-    out: dict[str, str] = {}
-    for arg in args:
-        if not arg.startswith("-") and "=" in arg:
-            key, value = arg.split("=", 1)
-            out[key.lstrip("+~")] = value
-    return out
+    pairs = (arg.split("=", 1) for arg in args if not arg.startswith("-") and "=" in arg)
+    return {key.lstrip("+~"): value for key, value in pairs}
 
 
 def check_extras(overrides: dict[str, str]) -> None:

@@ -27,10 +27,11 @@ What each one is for:
 from __future__ import annotations
 
 import importlib
-import re
 from collections.abc import Callable
 from importlib import metadata
 from typing import Any
+
+from packaging.version import Version
 
 # distribution -> (lowest version checked, first version not checked): [low, high).
 CHECKED = {
@@ -42,16 +43,8 @@ CHECKED = {
 
 
 def _release(version: str) -> tuple[int, ...]:
-    """``"2.13.0+cpu"`` -> ``(2, 13, 0)``: the numeric release part of a version string."""
-    parts = []
-    for piece in version.split("+")[0].split("."):
-        digits = re.match(r"\d+", piece)
-        if digits is None:
-            break
-        parts.append(int(digits.group()))
-        if digits.end() < len(piece):  # "0rc1": a pre-release of 0
-            break
-    return tuple(parts)
+    """``"2.13.0+cpu"`` -> ``(2, 13, 0)``: the numeric release part of a version (a pre-release's too)."""
+    return Version(version).release
 
 
 def check_versions(checked: dict[str, tuple[str, str]] = CHECKED) -> None:

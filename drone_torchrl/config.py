@@ -35,9 +35,7 @@ ENV_ARGS = tuple(f.name for f in dataclasses.fields(schema.EnvConf) if f.name no
 ENV_ADDED = {
     "disturbance": None,  # a section (env.disturbance.*): a config from before it flew the nominal drone
     **{
-        f.name: rule.added
-        for f in dataclasses.fields(schema.EnvConf)
-        if f.name in ENV_ARGS and (rule := f.metadata.get(schema.RULE)) is not None and rule.is_added
+        key: rule.added for key, rule in schema.fields(schema.EnvConf, {}) if "." not in key and rule.is_added
     },
 }
 
@@ -134,7 +132,7 @@ def _every_key(name: str) -> dict[str, Rule]:
 
     Each plug-in's rule of a key the plug-ins share is the same.
     """
-    _discover_plugins()
+    _discover_plugins()  # stored_plugins lists the schemas stored, each when its plug-in is imported
     out: dict[str, Rule] = {}
     for group in schema.plugin_groups(name):
         for plugin in schema.stored_plugins(group):
@@ -241,12 +239,9 @@ def _unknown(key: str, known: Iterable[str]) -> ConfigError:
     # A group's name misspelt (algoo=ppo) is nearer a group than any key's full dotted name.
     group = difflib.get_close_matches(key, group_names(), n=1, cutoff=0.75) if "." not in key else []
     close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
+    hint = f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
     if group:
         hint = f"; did you mean {group[0]}={'|'.join(group_options(group[0]))}?"
-    else:
-        hint = (
-            f"; did you mean {close[0]}?" if close else " (see conf/ or drone-train --cfg job for the keys)"
-        )
     return ConfigError(f"{key} is not a config key{hint}")
 
 
@@ -681,15 +676,19 @@ def run_config(saved: dict[str, Any]) -> DictConfig:
     resumed.
     """
     cfg = OmegaConf.create(migrations.migrate_config(saved))
-    plugins = {}
-    for group, rule in schema.plugin_groups().items():
-        key = f"{group}.{rule.plugin_key}"
-        if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:  # from before plug-ins
+
+    def fill(key: str, rule: Rule) -> Any:
+        if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
             OmegaConf.update(cfg, key, rule.added, force_add=True)
-        plugins[group] = OmegaConf.select(cfg, key)
+        return OmegaConf.select(cfg, key)
+
+    # The plug-ins first (a config from before plug-ins gets their added ones), then their keys.
+    plugins = {
+        group: fill(f"{group}.{rule.plugin_key}", rule) for group, rule in schema.plugin_groups().items()
+    }
     for key, rule in schema_keys("config", **plugins).items():
-        if rule.is_added and OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
-            OmegaConf.update(cfg, key, rule.added, force_add=True)
+        if rule.is_added:
+            fill(key, rule)
     return cfg
 
 

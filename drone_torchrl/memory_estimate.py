@@ -32,7 +32,7 @@ agents and ``T`` = ``env.max_steps``. The parts:
   loss's autograd graph through the trunk (:func:`graph_bytes`): the forward pass keeps each
   layer's activation for the backward pass (``H b``), and the backward pass holds, at the widest
   layer ``h``, the gradients of its output, of its pre-activation and of its input (``3 h b``);
-  with the heads' and the distribution's ``LOSS_FLOATS_PER_STEP`` floats.
+  with the heads' and the distribution's 12 floats.
 - **the on-policy batch** (PPO, A2C: F = ``algo.num_envs x algo.steps_per_batch`` frames): a frame
   of the collector's batch holds the observation and the next one, the action, the distribution's
   loc and scale, the log-probability, the reward, and after GAE the value, the next value, the
@@ -77,51 +77,8 @@ FLOAT_BYTES = {"float32": 4, "float64": 8}
 INT64_BYTES = 8
 # Adam's weights, gradient, first and second moments.
 ADAM_COPIES = 4
-# Per drone-step of a rollout: states, actions and rewards in floats (the cause is an int64), in
-# the chunks (with the observations), concatenated (states and observations both), and masked.
-EPISODE_FLOATS = STATE_DIM + ACTION_DIM + 1
-ROLLOUT_FLOATS = 3 * EPISODE_FLOATS + 2 * STATE_DIM
-ROLLOUT_INTS = 3
-# The loss's backward pass at the widest layer: the gradients of its output, pre-activation, input.
-BACKWARD_COPIES = 3
-# Per drone-step of REINFORCE's loss besides the trunk: loc, scale, their pre-activations, the
-# log-probability, its reduction, the returns-to-go, the weights of each step and their gradients.
-LOSS_FLOATS_PER_STEP = 12
-# The C++ engine's update, per drone-step: loc, the std head's input and the action (2 each) and the
-# return-to-go kept for the backward pass (besides the observation and the hidden outputs); the
-# backward pass's gradients of the heads (2 each; and of every hidden output, H more); the rewards
-# and returns-to-go it writes.
-KERNEL_SAVED_FLOATS_PER_STEP = 3 * ACTION_DIM + 1
-KERNEL_FLOATS_PER_STEP = 2 * ACTION_DIM + 2
-# Per frame of an on-policy batch besides the two observations: action, loc, scale (2 each),
-# log-probability, reward, value, next value, advantage, value target and the scaled reward.
-ON_POLICY_FLOATS_PER_FRAME = 3 * ACTION_DIM + 7
-# Per frame: step counts (and the next ones), the collector's trajectory ids (int64), the done,
-# terminated and truncated flags (and the next ones; bools).
-ON_POLICY_INT_BYTES_PER_FRAME = 3 * INT64_BYTES + 6
-# The collector's steps before they are stacked, the batch, the replay buffer's copy.
-BATCH_COPIES = 3
-# A frame of SAC's replay buffer besides the two observations: the action (2) and the reward; and
-# its done and terminated flags (bool).
-SAC_FLOATS_PER_FRAME = ACTION_DIM + 1
-SAC_FLAG_BYTES_PER_FRAME = 2
-# SACLoss's graph per sample: the actor on the observations and the next ones; the two Q-networks on
-# (observation, action), on (observation, new action) and their targets on the next ones.
-SAC_ACTOR_PASSES = 2
-SAC_Q_PASSES = 6
-# Two Q-networks, each with its gradient, Adam's two moments and its target copy.
-SAC_Q_COPIES = 2 * (ADAM_COPIES + 1)
-# GAE's critic pass on the observations and the next ones stacked: their copy, and the widest
-# layer's pre-activation and activation.
-CRITIC_PASS_FRAMES = 2
-CRITIC_PASS_COPIES = 2
-# An evaluation's rollout tensordict: terminated, truncated and done (bool) and the step count and
-# termination cause (int64), per drone-step.
-EVAL_FLAG_BYTES = 3
-EVAL_INT_BYTES = 2 * INT64_BYTES
-# A video frame (RGB bytes) and the share TensorBoard's thinned copy adds.
-FRAME_BYTES = FRAME_WIDTH * FRAME_HEIGHT * 3
-THINNED_COPY = 0.25
+# The per-step and per-frame counts are the module docstring's, each written once, in the function
+# that sizes its part (the comments there say what each number counts).
 
 
 @dataclass(frozen=True)
@@ -175,15 +132,27 @@ def policy_parameters(cfg: Mapping[str, Any]) -> int:
 
 def rollout_bytes(b: int) -> int:
     """A rollout's bytes per drone-step with ``b``-byte floats."""
-    return ROLLOUT_FLOATS * b + ROLLOUT_INTS * INT64_BYTES
+    # States, actions and rewards in floats (the cause is an int64), in the chunks (with the
+    # observations), concatenated (states and observations both), and masked.
+    return (3 * (STATE_DIM + ACTION_DIM + 1) + 2 * STATE_DIM) * b + 3 * INT64_BYTES
 
 
 def graph_bytes(hidden: Sequence[int], b: int) -> int:
     """Bytes of the loss's autograd graph per sample through hidden layers of these widths.
 
-    The graph holds every layer's activation, and the backward pass's gradients at the widest.
+    The graph holds every layer's activation, and the backward pass's gradients at the widest (of
+    its output, its pre-activation and its input).
     """
-    return (sum(hidden) + BACKWARD_COPIES * max(hidden)) * b
+    return (sum(hidden) + 3 * max(hidden)) * b
+
+
+def flown_frame_bytes(d: int, b: int) -> int:
+    """A frame of a flown batch (the on-policy learners', SAC's) with ``d`` observations, ``b``-byte floats."""
+    # The observation and the next one; action, loc, scale (2 each), log-probability, reward, value,
+    # next value, advantage, value target and the scaled reward; step counts (and the next ones)
+    # and the collector's trajectory ids (int64); the done, terminated and truncated flags (and the
+    # next ones; bools).
+    return (2 * d + 3 * ACTION_DIM + 7) * b + 3 * INT64_BYTES + 6
 
 
 def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
@@ -197,15 +166,18 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     hidden = cfg["model"]["hidden_sizes"]
     advice = "lower algo.episodes_per_update, env.max_steps or model.hidden_sizes"
     if cfg["backend"] == "fast":
-        # The kernel's buffers (listed in the module's docstring), for the agents of one kernel call.
+        # The kernel's buffers, for the agents of one kernel call: kept for the backward pass, the
+        # observation, the hidden outputs, loc, the std head's input and the action (2 each) and the
+        # return-to-go; the backward pass's gradients of every hidden output and of the heads (2
+        # each); the rewards and returns-to-go (floats) and causes (int64) it writes.
         steps = steps // agents * min(agents, AGENTS_PER_CALL) if agents else 0
-        saved = observation_dim(cfg) + sum(hidden) + KERNEL_SAVED_FLOATS_PER_STEP
-        backward = sum(hidden) + KERNEL_FLOATS_PER_STEP
+        saved = observation_dim(cfg) + sum(hidden) + 3 * ACTION_DIM + 1
+        backward = sum(hidden) + 2 * ACTION_DIM + 2
         per_step = (saved + backward) * b + INT64_BYTES
     else:
-        per_step = (
-            rollout_bytes(b) + observation_dim(cfg) * b + graph_bytes(hidden, b) + LOSS_FLOATS_PER_STEP * b
-        )
+        # Besides the trunk, the loss's loc, scale, their pre-activations, the log-probability, its
+        # reduction, the returns-to-go, the weights of each step and their gradients: 12 floats.
+        per_step = rollout_bytes(b) + observation_dim(cfg) * b + graph_bytes(hidden, b) + 12 * b
     return {"REINFORCE's update": Part(steps * per_step, advice)}
 
 
@@ -218,10 +190,12 @@ def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     d = observation_dim(cfg)
     value_hidden = list(algo["value_hidden_sizes"])
-    frame = (2 * d + ON_POLICY_FLOATS_PER_FRAME) * b + ON_POLICY_INT_BYTES_PER_FRAME
+    frame = flown_frame_bytes(d, b)
     frames = agents * algo["num_envs"] * algo["steps_per_batch"]
-    critic_pass = CRITIC_PASS_FRAMES * (d + CRITIC_PASS_COPIES * max(value_hidden)) * b
-    batch = frames * (BATCH_COPIES * frame + critic_pass)
+    # Three copies of a frame (the collector's steps before they are stacked, the batch, the replay
+    # buffer's), and GAE's critic pass on the observations and the next ones stacked: their copy,
+    # and the widest layer's pre-activation and activation.
+    batch = frames * (3 * frame + 2 * (d + 2 * max(value_hidden)) * b)
     graph = graph_bytes([*cfg["model"]["hidden_sizes"], *value_hidden], b)
     minibatch = agents * algo["minibatch_size"] * (frame + graph)
     critic = agents * ADAM_COPIES * mlp_parameters([d, *value_hidden, 1]) * b
@@ -243,23 +217,25 @@ def sac_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
     d = observation_dim(cfg)
     q_hidden = list(algo["qvalue_hidden_sizes"])
-    stored = (2 * d + SAC_FLOATS_PER_FRAME) * b + SAC_FLAG_BYTES_PER_FRAME
-    if algo["n_steps"] > 1:  # and each window's length
-        stored += INT64_BYTES
-    flown = (2 * d + ON_POLICY_FLOATS_PER_FRAME) * b + ON_POLICY_INT_BYTES_PER_FRAME
+    # A stored frame: the observation and the next one, the action (2) and the reward; its done and
+    # terminated flags (bool); with n-step returns each window's length (int64) too.
+    stored = (2 * d + ACTION_DIM + 1) * b + 2 + (INT64_BYTES if algo["n_steps"] > 1 else 0)
     frames = agents * algo["num_envs"] * algo["steps_per_batch"]
-    graph = SAC_ACTOR_PASSES * graph_bytes(cfg["model"]["hidden_sizes"], b) + SAC_Q_PASSES * graph_bytes(
-        q_hidden, b
-    )
-    q_weights = mlp_parameters([d + ACTION_DIM, *q_hidden, 1]) * b
+    # SACLoss's graph per sample: the actor on the observations and the next ones; the two
+    # Q-networks on (observation, action), on (observation, new action) and their targets on the next ones.
+    graph = 2 * graph_bytes(cfg["model"]["hidden_sizes"], b) + 6 * graph_bytes(q_hidden, b)
+    # Two Q-networks, each with its gradient, Adam's two moments and its target copy.
+    q_weights = 2 * (ADAM_COPIES + 1) * mlp_parameters([d + ACTION_DIM, *q_hidden, 1]) * b
     return {
         "the replay buffer": Part(agents * algo["buffer_size"] * stored, "lower algo.buffer_size"),
-        "the flown batch": Part(frames * flown, "lower algo.num_envs or algo.steps_per_batch"),
+        "the flown batch": Part(
+            frames * flown_frame_bytes(d, b), "lower algo.num_envs or algo.steps_per_batch"
+        ),
         "a minibatch": Part(
             agents * algo["batch_size"] * (stored + graph),
             "lower algo.batch_size, model.hidden_sizes or algo.qvalue_hidden_sizes",
         ),
-        "the Q-networks' weights": Part(agents * SAC_Q_COPIES * q_weights, "lower algo.qvalue_hidden_sizes"),
+        "the Q-networks' weights": Part(agents * q_weights, "lower algo.qvalue_hidden_sizes"),
     }
 
 
@@ -272,22 +248,15 @@ def estimate(
     :class:`~drone_torchrl.registry.Algorithm`'s ``memory``; None: the parts every run has).
     """
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
-    steps = cfg["env"]["max_steps"]
     weights = (ADAM_COPIES + 1) * agents * policy_parameters(cfg) * b
     parts = {"the policy's weights": Part(weights, "lower model.hidden_sizes")}
     if learner is not None:
         parts.update(learner(cfg, agents))
+    episodes = min(agents, AGENTS_PER_EVALUATION) * cfg["eval"]["episodes"]
     video = cfg["logger"]["video_stride"] if cfg["eval"]["video"] else None
-    parts.update(
-        evaluation_parts(
-            b,
-            min(agents, AGENTS_PER_EVALUATION) * cfg["eval"]["episodes"],
-            steps,
-            video,
-            "lower eval.episodes or env.max_steps",
-            "set eval.video=false, raise logger.video_stride or lower env.max_steps",
-        )
-    )
+    advice = "lower eval.episodes or env.max_steps"
+    video_advice = "set eval.video=false, raise logger.video_stride or lower env.max_steps"
+    parts.update(evaluation_parts(b, episodes, cfg["env"]["max_steps"], video, advice, video_advice))
     return MemoryEstimate(parts)
 
 
@@ -299,16 +268,13 @@ def evaluation_parts(
     The episodes: every agent's, or every policy's that ``drone-eval`` keeps. ``video_stride``: the
     steps drawn (None: no video). ``advice`` and ``video_advice`` name the keys that size them.
     """
-    parts = {
-        "evaluation": Part(
-            episodes * max_steps * (rollout_bytes(b) + EVAL_FLAG_BYTES + EVAL_INT_BYTES), advice
-        )
-    }
-    if video_stride is not None:
+    # Per drone-step, a rollout and its tensordict's terminated, truncated and done flags (bool)
+    # and step count and termination cause (int64).
+    parts = {"evaluation": Part(episodes * max_steps * (rollout_bytes(b) + 3 + 2 * INT64_BYTES), advice)}
+    if video_stride is not None:  # RGB frames, and a quarter more for TensorBoard's thinned copy
         frames = max_steps // video_stride + 1
-        parts["an evaluation video"] = Part(
-            math.ceil(frames * FRAME_BYTES * (1 + THINNED_COPY)), video_advice, host=True
-        )
+        video = math.ceil(frames * (FRAME_WIDTH * FRAME_HEIGHT * 3) * (1 + 0.25))
+        parts["an evaluation video"] = Part(video, video_advice, host=True)
     return parts
 
 

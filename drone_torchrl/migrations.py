@@ -56,19 +56,15 @@ def fixed_refusal(key: str, value: Any) -> str:
 
 
 def _pop(config: dict[str, Any], key: str) -> Any:
-    """Remove dotted ``key`` from nested dicts (and a section it leaves empty); its value, or None."""
-    *sections, leaf = key.split(".")
-    parents, node = [], config
-    for part in sections:
-        if not isinstance(node.get(part), Mapping):
-            return None
-        parents.append((node, part))
-        node[part] = dict(node[part])  # a copy: the caller's config is left as it is
-        node = node[part]
+    """Remove ``section.key`` from nested dicts (and the section, if it leaves it empty); its value, or None."""
+    section, leaf = key.split(".")
+    node = config.get(section)
+    if not isinstance(node, Mapping):
+        return None
+    config[section] = node = dict(node)  # a copy: the caller's config is left as it is
     value = node.pop(leaf, None)
-    for parent, part in reversed(parents):
-        if not parent[part]:
-            del parent[part]
+    if not node:
+        del config[section]
     return value
 
 
@@ -95,13 +91,9 @@ def migrate_config(config: Mapping[str, Any]) -> dict[str, Any]:
             raise ConfigError(
                 f"a saved config's {fixed_refusal(key, value)}: it cannot be continued as it was trained"
             )
-    algo = dict(out.get("algo") or {})
-    collector = algo.pop("collector", None)
-    engine = out.pop("engine", None)
+    collector, engine = _pop(out, "algo.collector"), out.pop("engine", None)
     for key in DROPPED:
         out.pop(key, None)
-    if "algo" in out:
-        out["algo"] = algo
     out.setdefault("backend", backend_of(engine, collector))
     return out
 

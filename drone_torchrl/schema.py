@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -146,35 +146,19 @@ class Rule:
         return field(default=MISSING, metadata={RULE: self})
 
 
-# Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``.
-def a_number(**rule: Any) -> Any:
-    """A config field holding a number, checked by a :class:`Rule` with ``rule``'s bounds."""
-    return Rule("number", **rule).field()
+def _maker(kind: str) -> Callable[..., Any]:
+    """A field maker: a config field holding a ``kind`` value, checked by a :class:`Rule` with its arguments."""
+    return lambda **rule: Rule(kind, **rule).field()
 
 
-def an_integer(**rule: Any) -> Any:
-    """A config field holding an integer, checked by a :class:`Rule` with ``rule``'s bounds."""
-    return Rule("integer", **rule).field()
-
-
-def a_flag(**rule: Any) -> Any:
-    """A config field holding true or false, checked by a :class:`Rule`."""
-    return Rule("flag", **rule).field()
+# Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``. ``free``: a
+# key the code checks itself (the env's arguments, paths, folder names, devices).
+a_number, an_integer, a_flag, a_text, free = map(_maker, ("number", "integer", "flag", "text", "free"))
 
 
 def one_of(choices: tuple, **rule: Any) -> Any:
     """A config field holding one of ``choices``, checked by a :class:`Rule`."""
     return Rule("choice", choices=tuple(choices), **rule).field()
-
-
-def a_text(**rule: Any) -> Any:
-    """A config field holding a string, checked by a :class:`Rule`."""
-    return Rule("text", **rule).field()
-
-
-def free(**rule: Any) -> Any:
-    """A key the code checks itself (the env's arguments, paths, folder names, devices)."""
-    return Rule(**rule).field()
 
 
 # The metadata key of an open section's schema (:func:`open_section`).
