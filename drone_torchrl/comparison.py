@@ -169,9 +169,7 @@ def write_table(out_dir: Path, results: dict[str, dict], settings: dict[str, Any
     rows = []
     for name, r in results.items():
         ends = {f"ends_{cause}": count for cause, count in r["causes"].items()}
-        crashes = sum(
-            count for cause, count in r["causes"].items() if cause != dynamics.TerminationCause.NONE.name
-        )
+        crashes = sum(r["causes"].values()) - r["causes"][dynamics.TerminationCause.NONE.name]
         rows.append(
             {"policy": name, **{k: r[k] for k in TABLE_COLUMNS if k != "crashes"}, "crashes": crashes, **ends}
         )

@@ -248,14 +248,10 @@ _SENTENCE_END = re.compile(r"(?<=\.)(?<!e\.g\.)(?<!i\.e\.)\s+")
 
 def _header(text: str) -> str:
     """The first sentence of a YAML file's opening comment block."""
-    block = []
-    for line in text.splitlines():
-        stripped = line.strip()
-        if not stripped.startswith("#"):
-            break
-        if not stripped.startswith("# @package"):
-            block.append(stripped.lstrip("#").strip())
-    return _first_sentence(block)
+    block = re.match(r"(?:[ \t]*#.*(?:\n|$))*", text)[0].splitlines()  # type: ignore[index]
+    return _first_sentence(
+        [line.strip().lstrip("#").strip() for line in block if not line.strip().startswith("# @package")]
+    )
 
 
 def _summary(path: Path, prefix: str = r"[\w-]+") -> str:
