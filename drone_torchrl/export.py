@@ -32,6 +32,7 @@ once, through a temporary file and a rename: a full or read-only disk is a one-l
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import io
 import itertools
@@ -352,13 +353,9 @@ def load_program(source: str | os.PathLike | bytes, format: str) -> Callable[[to
     The function takes an observation batch in the policy's dtype.
     """
     if format == "pt2":
-        module = torch.export.load(io.BytesIO(source) if isinstance(source, bytes) else source).module()
-
-        def run(observation: torch.Tensor) -> torch.Tensor:
-            with torch.no_grad():
-                return module(observation)
-
-        return run
+        return torch.no_grad()(
+            torch.export.load(io.BytesIO(source) if isinstance(source, bytes) else source).module()
+        )
     session = onnx_session(source)
     return lambda observation: torch.from_numpy(session.run(None, {ONNX_INPUT: observation.numpy()})[0])
 
@@ -470,8 +467,7 @@ def forward_passes(
             session, feed = onnx_session(path), {ONNX_INPUT: observation.numpy()}
             passes[RUNTIMES[format]] = lambda session=session, feed=feed: session.run(None, feed)
         else:
-            module = torch.export.load(path).module()
-            passes[RUNTIMES[format]] = lambda module=module: module(observation)
+            passes[RUNTIMES[format]] = functools.partial(load_program(path, format), observation)
     passes["eager torch"] = lambda: policy(observation)
     return passes
 
