@@ -9,7 +9,6 @@ the same table as :data:`TABLE_NAME` (a CSV, one row per policy: ``pandas.read_c
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Any
 
@@ -53,25 +52,9 @@ PD_NAME = "PD controller"
 TABLE_NAME = "results.csv"
 #: What was flown (checkpoint, episodes, seed, env, ceiling, optimum) and the rows, as JSON.
 SETTINGS_NAME = "results.json"
-#: The table's columns after ``policy``, in the printed line's order; then ``ends_<CAUSE>`` per
-#: termination cause. The percentages are of the ceiling (max), the optimum and the PD controller.
-TABLE_COLUMNS = (
-    "return_mean",
-    "return_std",
-    "return_min",
-    "pct_of_max",
-    "pct_of_optimum",
-    "pct_of_pd",
-    "length_mean",
-    "time_in_zone",
-    "first_zone_step_mean",
-    "first_zone_step_max",
-    "reached_fraction",
-    "thrust_mean",
-    "thrust_max",
-    "negative_thrust_fraction",
-    "crashes",
-)
+#: The summaries' keys (:func:`~drone_torchrl.evaluation.summarize`) the table leaves out; the causes
+#: become its last columns, ``ends_<CAUSE>`` each.
+NOT_IN_TABLE = ("terminated_fraction", "causes")
 
 
 def plot_trajectory(
@@ -161,20 +144,15 @@ def optimum_line(kwargs: dict, optimum: Optimum | None, ceiling: float) -> str:
 def write_table(out_dir: Path, results: dict[str, dict], settings: dict[str, Any]) -> tuple[Path, Path]:
     """Write the table as :data:`TABLE_NAME` and, with the settings, :data:`SETTINGS_NAME`, atomically.
 
-    One row per policy: ``policy``, :data:`TABLE_COLUMNS`, then ``ends_<CAUSE>``; ``crashes`` counts
-    the episodes that terminated (every cause but ``NONE``, the truncated ones). A number that is not
-    one (no optimum, no episode reached the zone) is ``nan`` in the CSV and ``null`` in the JSON
-    (which has no NaN).
+    One row per policy: ``policy``, its :func:`~drone_torchrl.evaluation.summarize` but
+    :data:`NOT_IN_TABLE`, then ``ends_<CAUSE>``. A number that is not one (no optimum, no episode
+    reached the zone) is ``nan`` in the CSV and ``null`` in the JSON (which has no NaN).
     """
-    rows = []
-    for name, r in results.items():
-        ends = {f"ends_{cause}": count for cause, count in r["causes"].items()}
-        crashes = sum(
-            count for cause, count in r["causes"].items() if cause != dynamics.TerminationCause.NONE.name
-        )
-        rows.append(
-            {"policy": name, **{k: r[k] for k in TABLE_COLUMNS if k != "crashes"}, "crashes": crashes, **ends}
-        )
+    rows = [
+        {k: v for k, v in r.items() if k not in NOT_IN_TABLE}
+        | {f"ends_{cause}": count for cause, count in r["causes"].items()}
+        for r in results.values()
+    ]
     table = write_csv(out_dir / TABLE_NAME, list(rows[0]), (list(row.values()) for row in rows))
     # JSON has no NaN: json writes it as NaN, and reading that back as None writes it as null.
     document = json.loads(json.dumps({**settings, "policies": rows}), parse_constant=lambda _: None)
@@ -240,13 +218,11 @@ def run_eval(
     optimum = reference_optimum(kwargs)
     best = None if optimum is None else optimum.best_return
 
-    results, rollouts = {}, {}
+    stats, rollouts = {}, {}
     for name, policy in policies.items():
-        stats, rollouts[name] = evaluate(policy, kwargs, cfg.episodes, cfg.seed, cfg.device)
-        results[name] = {"policy": name, **summarize(stats, ceiling, best)}
-    pd_return = results[PD_NAME]["return_mean"]
-    for r in results.values():
-        r["pct_of_pd"] = 100.0 * r["return_mean"] / pd_return if pd_return else math.nan
+        stats[name], rollouts[name] = evaluate(policy, kwargs, cfg.episodes, cfg.seed, cfg.device)
+    pd_return = float(stats[PD_NAME]["return"].float().mean())  # summarize's return_mean of PD
+    results = {name: {"policy": name, **summarize(s, ceiling, best, pd_return)} for name, s in stats.items()}
     console.info(f"{cfg.episodes} deterministic episodes, seed {cfg.seed}, env {kwargs}")
     console.info(optimum_line(kwargs, optimum, ceiling))
     for name, r in results.items():

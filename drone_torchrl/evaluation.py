@@ -61,37 +61,45 @@ def evaluate(
 
 
 def summarize(
-    stats: dict[str, torch.Tensor], max_return: float, optimum: float | None = None
+    stats: dict[str, torch.Tensor],
+    max_return: float,
+    optimum: float | None = None,
+    pd_return: float | None = None,
 ) -> dict[str, Any]:
-    """Means over the episodes of one policy's stats (1-D tensors).
+    """Means over the episodes of one policy's stats (1-D tensors), in drone-eval's table's order.
 
     ``return_mean``, ``return_std`` (population std), ``return_min``, ``pct_of_max`` (of
     ``max_return``), ``pct_of_optimum`` (of ``optimum``, the best achievable return of each of these
-    episodes, :func:`reference_optimum`; NaN without one), ``length_mean``, ``time_in_zone``,
-    ``negative_thrust_fraction``, ``terminated_fraction``, ``reached_fraction`` (episodes that end a step inside the zone),
-    ``first_zone_step_mean`` / ``_max`` (over those that do; NaN if none), ``thrust_mean`` and
-    ``thrust_max`` (motor commands as fractions of the weight), ``causes``.
+    episodes, :func:`reference_optimum`; NaN without one), ``pct_of_pd`` (of ``pd_return``, the PD
+    controller's mean return; NaN without one or if 0), ``length_mean``, ``time_in_zone``,
+    ``first_zone_step_mean`` / ``_max`` (over the episodes that end a step inside the zone; NaN if
+    none), ``reached_fraction`` (those episodes), ``thrust_mean`` and ``thrust_max`` (motor commands
+    as fractions of the weight), ``negative_thrust_fraction``, ``crashes`` (episodes that
+    terminated), then ``terminated_fraction`` and ``causes`` (:func:`~.episodes.cause_counts`).
     """
     returns = stats["return"].float()
+    mean = float(returns.mean())
     first = stats["first_zone_step"]
     reached = first > 0
-    causes = stats["termination_cause"]
+    terminated = stats["termination_cause"] != int(dynamics.TerminationCause.NONE)
     return {
-        "return_mean": float(returns.mean()),
+        "return_mean": mean,
         "return_std": float(returns.std(correction=0)),
         "return_min": float(returns.min()),
-        "pct_of_max": 100.0 * float(returns.mean()) / max_return,
-        "pct_of_optimum": math.nan if optimum is None else 100.0 * float(returns.mean()) / optimum,
+        "pct_of_max": 100.0 * mean / max_return,
+        "pct_of_optimum": math.nan if optimum is None else 100.0 * mean / optimum,
+        "pct_of_pd": 100.0 * mean / pd_return if pd_return else math.nan,
         "length_mean": float(stats["length"].float().mean()),
         "time_in_zone": float(stats["time_in_zone"].float().mean()),
-        "negative_thrust_fraction": float(stats["negative_thrust_fraction"].float().mean()),
-        "terminated_fraction": float((causes != int(dynamics.TerminationCause.NONE)).float().mean()),
-        "reached_fraction": float(reached.float().mean()),
         "first_zone_step_mean": float(first[reached].float().mean()) if reached.any() else math.nan,
         "first_zone_step_max": float(first[reached].max()) if reached.any() else math.nan,
+        "reached_fraction": float(reached.float().mean()),
         "thrust_mean": float(stats["thrust_mean"].float().mean()),
         "thrust_max": float(stats["thrust_max"].float().max()),
-        "causes": cause_counts(causes),
+        "negative_thrust_fraction": float(stats["negative_thrust_fraction"].float().mean()),
+        "crashes": int(terminated.sum()),
+        "terminated_fraction": float(terminated.float().mean()),
+        "causes": cause_counts(stats["termination_cause"]),
     }
 
 

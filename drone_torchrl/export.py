@@ -32,6 +32,7 @@ once, through a temporary file and a rename: a full or read-only disk is a one-l
 from __future__ import annotations
 
 import contextlib
+import functools
 import importlib.util
 import io
 import itertools
@@ -153,7 +154,6 @@ def resolve_output(format: str | None, output: Any) -> tuple[str, Path | None]:
     :class:`~.checks.ConfigError`. A null format is the suffix's (``pt2`` without an output); a null
     output stays None: the file goes into the checkpoint's run folder (:func:`default_output`).
     """
-    suffixes = {f".{name}": name for name in EXPORT_FORMATS}
     if format is not None and format not in EXPORT_FORMATS:
         raise ConfigError.of(
             "format", format, f"one of {list(EXPORT_FORMATS)}, or null (from the output's suffix)"
@@ -163,23 +163,19 @@ def resolve_output(format: str | None, output: Any) -> tuple[str, Path | None]:
     if not isinstance(output, str | os.PathLike) or not str(output).strip():
         raise ConfigError.of("output", output, "a file path such as policy.pt2 or policy.onnx")
     path = Path(output)
-    too_long = name_too_long(path)
-    if too_long is not None:
-        raise ConfigError.of("output", str(output), f"a file name this file system takes ({too_long})")
-    if path.is_dir():
-        raise ConfigError.of("output", str(output), "a file path such as policy.pt2, not a folder")
-    named = suffixes.get(path.suffix.lower())
-    if format is None and named is None:
-        raise ConfigError.of(
-            "output",
-            str(output),
-            f"a file name ending in {' or '.join(suffixes)} (its suffix names the format)",
-        )
-    if format is not None and named != format:
-        raise ConfigError.of(
-            "output", str(output), f"a file name ending in .{format}, to match format={format}"
-        )
-    return named, path
+    named = path.suffix.lower().removeprefix(".")
+    if (too_long := name_too_long(path)) is not None:
+        expected = f"a file name this file system takes ({too_long})"
+    elif path.is_dir():
+        expected = "a file path such as policy.pt2, not a folder"
+    elif format is None and named not in EXPORT_FORMATS:
+        suffixes = " or ".join(f".{name}" for name in EXPORT_FORMATS)
+        expected = f"a file name ending in {suffixes} (its suffix names the format)"
+    elif format is not None and named != format:
+        expected = f"a file name ending in .{format}, to match format={format}"
+    else:
+        return named, path
+    raise ConfigError.of("output", str(output), expected)
 
 
 def default_output(checkpoint: Path, format: str, agent: int | None = None) -> Path:
@@ -279,40 +275,9 @@ def _observation_names(policy: DeterministicPolicy) -> tuple[str, ...]:
 
 
 # ------------------------------------------------------------------------------- writing
-@contextlib.contextmanager
-def _quiet_onnx_exporter() -> Iterator[None]:
-    """Silence the exporters' noise on drone-export's terminal.
-
-    torch.onnx's exporter logs a warning for each torchvision operator it cannot register and
-    torch.export's pytree warns about its own deprecations.
-    """
-    logger = logging.getLogger("torch.onnx")
-    level = logger.level
-    logger.setLevel(logging.ERROR)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FutureWarning)
-            warnings.simplefilter("ignore", DeprecationWarning)
-            yield
-    finally:
-        logger.setLevel(level)
-
-
 def _dtype(policy: DeterministicPolicy) -> torch.dtype:
     """The policy's dtype: float32, or float64 for a run with ``env.dtype=float64``."""
     return next(policy.parameters()).dtype
-
-
-def _metadata(policy: DeterministicPolicy) -> dict[str, str]:
-    """What the ONNX model says about itself (its metadata_props)."""
-    dtype = str(_dtype(policy)).removeprefix("torch.")
-    return {
-        ONNX_INPUT: f"{dtype} [B, {observation_dim(policy)}]: {', '.join(_observation_names(policy))}",
-        ONNX_OUTPUT: f"{dtype} [B, 2]: left, right motor commands, fractions of the weight",
-        "distribution": policy.distribution,
-        "max_thrust": "none" if policy.max_thrust is None else repr(float(policy.max_thrust)),
-        "written_by": "drone_torchrl drone-export",
-    }
 
 
 def program_bytes(policy: DeterministicPolicy, format: str) -> bytes:
@@ -331,19 +296,39 @@ def program_bytes(policy: DeterministicPolicy, format: str) -> bytes:
         buffer = io.BytesIO()
         torch.export.save(program, buffer)
         return buffer.getvalue()
-    with _quiet_onnx_exporter():
-        onnx_program = torch.onnx.export(
-            program,
-            (example,),
-            dynamo=True,
-            opset_version=ONNX_OPSET,
-            input_names=[ONNX_INPUT],
-            output_names=[ONNX_OUTPUT],
-            external_data=False,
-            verbose=False,
-        )
-    onnx_program.model.doc_string = "drone_torchrl policy: observations [B, 6] -> the motor commands [B, 2] the env applies (deterministic)"
-    onnx_program.model.metadata_props.update(_metadata(policy))
+    # Silence the exporters' noise on drone-export's terminal: torch.onnx logs a warning for each
+    # torchvision operator it cannot register, and torch.export's pytree warns about its deprecations.
+    logger = logging.getLogger("torch.onnx")
+    level = logger.level
+    logger.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            onnx_program = torch.onnx.export(
+                program,
+                (example,),
+                dynamo=True,
+                opset_version=ONNX_OPSET,
+                input_names=[ONNX_INPUT],
+                output_names=[ONNX_OUTPUT],
+                external_data=False,
+                verbose=False,
+            )
+    finally:
+        logger.setLevel(level)
+    model = onnx_program.model
+    model.doc_string = "drone_torchrl policy: observations [B, 6] -> the motor commands [B, 2] the env applies (deterministic)"
+    dtype = str(_dtype(policy)).removeprefix("torch.")
+    model.metadata_props.update(  # what the model says about itself
+        {
+            ONNX_INPUT: f"{dtype} [B, {observation_dim(policy)}]: {', '.join(_observation_names(policy))}",
+            ONNX_OUTPUT: f"{dtype} [B, 2]: left, right motor commands, fractions of the weight",
+            "distribution": policy.distribution,
+            "max_thrust": "none" if policy.max_thrust is None else repr(float(policy.max_thrust)),
+            "written_by": "drone_torchrl drone-export",
+        }
+    )
     data = onnx_program.model_proto.SerializeToString()  # one file: the weights inside
     import onnx
 
@@ -369,13 +354,9 @@ def load_program(source: str | os.PathLike | bytes, format: str) -> Callable[[to
     The function takes an observation batch in the policy's dtype.
     """
     if format == "pt2":
-        module = torch.export.load(io.BytesIO(source) if isinstance(source, bytes) else source).module()
-
-        def run(observation: torch.Tensor) -> torch.Tensor:
-            with torch.no_grad():
-                return module(observation)
-
-        return run
+        return torch.no_grad()(
+            torch.export.load(io.BytesIO(source) if isinstance(source, bytes) else source).module()
+        )
     session = onnx_session(source)
     return lambda observation: torch.from_numpy(session.run(None, {ONNX_INPUT: observation.numpy()})[0])
 
@@ -487,8 +468,7 @@ def forward_passes(
             session, feed = onnx_session(path), {ONNX_INPUT: observation.numpy()}
             passes[RUNTIMES[format]] = lambda session=session, feed=feed: session.run(None, feed)
         else:
-            module = torch.export.load(path).module()
-            passes[RUNTIMES[format]] = lambda module=module: module(observation)
+            passes[RUNTIMES[format]] = functools.partial(load_program(path, format), observation)
     passes["eager torch"] = lambda: policy(observation)
     return passes
 

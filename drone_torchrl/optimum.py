@@ -146,6 +146,17 @@ def _recursion(
     return sparse.vstack([velocity, position], format="csr"), np.concatenate([b_velocity, b_position])
 
 
+def _zone_rows(held: sparse.csr_array, low: sparse.csr_array, high: sparse.csr_array) -> sparse.csr_array:
+    """The rows ``-z_t + low x' <= .`` then ``z_t + high x' <= .`` of the steps ``held`` picks.
+
+    ``x'`` are the variables after ``z`` (:func:`_recursion`'s ``extra``), ``low`` and ``high`` their columns.
+    """
+    zero = sparse.csr_array(held.shape)
+    return sparse.vstack(
+        [sparse.hstack([zero, zero, -held, low]), sparse.hstack([zero, zero, held, high])], format="csr"
+    )
+
+
 def zone_margin(
     params: DroneParams,
     steps: int,
@@ -170,11 +181,8 @@ def zone_margin(
     a_eq, b_eq = _recursion(params, n, start, extra=1)
     # Zone rows for t >= first_zone_step:  -z_t + margin <= -z_min  and  z_t + margin <= z_max.
     held = sparse.eye_array(n, format="csr")[first_zone_step - 1 :]  # picks those z_t
-    zero = sparse.csr_array(held.shape)
     margin = sparse.csr_array(np.ones((held.shape[0], 1)))
-    a_ub = sparse.vstack(
-        [sparse.hstack([zero, zero, -held, margin]), sparse.hstack([zero, zero, held, margin])], format="csr"
-    )
+    a_ub = _zone_rows(held, margin, margin)
     b_ub = np.concatenate(
         [np.full(held.shape[0], -params.zone_z_min), np.full(held.shape[0], params.zone_z_max)]
     )
@@ -224,12 +232,9 @@ def _height_range(params: DroneParams, steps: int, start: Start, cap: float) -> 
     """The lowest and highest ``z`` after each step over all ``c`` in ``[0, cap]`` (``z`` grows with every ``c_t``)."""
 
     def fly(collective: float) -> np.ndarray:
-        z, z_dot, out = start[0], start[1], np.empty(steps)
-        for t in range(steps):
-            z_dot += (collective - 1.0) * params.gravity * params.dt
-            z += z_dot * params.dt
-            out[t] = z
-        return out
+        # np.cumsum adds in order, as the env's recursion does: the same floats.
+        z_dot = np.cumsum([start[1], *[(collective - 1.0) * params.gravity * params.dt] * steps])[1:]
+        return np.cumsum([start[0], *(z_dot * params.dt)])[1:]
 
     return fly(0.0), fly(cap)
 
@@ -253,14 +258,8 @@ def max_zone_steps(params: DroneParams, steps: int, start: Start = FLOOR_START) 
     z_low, z_high = _height_range(params, n, start, cap)
     big_low = np.maximum(params.zone_z_min - z_low, 0.0)  # -z_t + M b_t <= -z_min + M
     big_high = np.maximum(z_high - params.zone_z_max, 0.0)  # z_t + M b_t <= z_max + M
-    eye = sparse.eye_array(n, format="csr")
-    zero = sparse.csr_array((n, n))
-    rows = sparse.vstack(
-        [
-            sparse.hstack([zero, zero, -eye, sparse.diags_array(big_low)]),
-            sparse.hstack([zero, zero, eye, sparse.diags_array(big_high)]),
-        ],
-        format="csr",
+    rows = _zone_rows(
+        sparse.eye_array(n, format="csr"), sparse.diags_array(big_low), sparse.diags_array(big_high)
     )
     upper = np.concatenate([big_low - params.zone_z_min, big_high + params.zone_z_max])
     inf = np.inf

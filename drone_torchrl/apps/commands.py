@@ -8,6 +8,7 @@ run it. Output piped into ``head`` never stops a command, its help page included
 
 from __future__ import annotations
 
+import functools
 import importlib
 
 from drone_torchrl.apps.help import answer_help
@@ -21,16 +22,7 @@ def _command(prog: str, app: str) -> None:
     importlib.import_module(f"drone_torchrl.apps.{app}").run()
 
 
-def train() -> None:
-    """``drone-train`` (:func:`drone_torchrl.apps.train.run`)."""
-    _command("drone-train", "train")
-
-
-def evaluate() -> None:
-    """``drone-eval`` (:func:`drone_torchrl.apps.evaluate.run`)."""
-    _command("drone-eval", "evaluate")
-
-
-def export() -> None:
-    """``drone-export`` (:func:`drone_torchrl.apps.export.run`)."""
-    _command("drone-export", "export")
+# The console scripts: ``drone-train`` runs drone_torchrl.apps.train.run(), and so on.
+train = functools.partial(_command, "drone-train", "train")
+evaluate = functools.partial(_command, "drone-eval", "evaluate")
+export = functools.partial(_command, "drone-export", "export")

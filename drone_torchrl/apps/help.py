@@ -138,13 +138,11 @@ def compose(
     import drone_torchrl.launcher_schemas  # noqa: F401
 
     store = ConfigStore.instance()
-    stored = {n.removesuffix(".yaml") for n in store.list("")}
-    for path in sorted(conf.rglob("*.yaml")):
-        for name in _ROOT_ENTRY.findall(path.read_text(encoding="utf-8")):
-            if name not in stored:  # the real schema, where a process has imported it, stays
-                node = {"env": asdict(DroneParams())} if name in _ENV_SCHEMAS else {}
-                store.store(name=name, node=node, provider="drone_torchrl.apps.help")
-                stored.add(name)
+    named = {name for path in conf.rglob("*.yaml") for name in _ROOT_ENTRY.findall(path.read_text("utf-8"))}
+    # The real schema, where a process has imported it, stays.
+    for name in sorted(named - {n.removesuffix(".yaml") for n in store.list("")}):
+        node = {"env": asdict(DroneParams())} if name in _ENV_SCHEMAS else {}
+        store.store(name=name, node=node, provider="drone_torchrl.apps.help")
     try:
         with initialize_config_dir(str(conf), version_base="1.3", job_name=config):
             cfg = hydra_compose(config, overrides=list(overrides), return_hydra_config=True)
@@ -248,14 +246,10 @@ _SENTENCE_END = re.compile(r"(?<=\.)(?<!e\.g\.)(?<!i\.e\.)\s+")
 
 def _header(text: str) -> str:
     """The first sentence of a YAML file's opening comment block."""
-    block = []
-    for line in text.splitlines():
-        stripped = line.strip()
-        if not stripped.startswith("#"):
-            break
-        if not stripped.startswith("# @package"):
-            block.append(stripped.lstrip("#").strip())
-    return _first_sentence(block)
+    block = re.match(r"(?:[ \t]*#.*(?:\n|$))*", text)[0].splitlines()  # type: ignore[index]
+    return _first_sentence(
+        [line.strip().lstrip("#").strip() for line in block if not line.strip().startswith("# @package")]
+    )
 
 
 def _summary(path: Path, prefix: str = r"[\w-]+") -> str:

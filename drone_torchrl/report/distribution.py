@@ -34,6 +34,7 @@ from drone_torchrl.report.stats import (
     PERCENT,
     ZONE_SHARE,
     aggregate_over_seeds,
+    markdown_table,
     run_curves,
     setting_curve,
     summarize,
@@ -121,24 +122,25 @@ def distribution(setting: Setting, window: int) -> Distribution:
 def format_distributions(distributions: Sequence[Distribution]) -> str:
     """A Markdown table: one row per setting."""
     lo, hi = percentile_tails()
-    lines = [
-        f"| setting | seeds | median final return [{CONFIDENCE:.0%} CI] | IQR | median final length | "
-        f"reach full length | end in the zone | mean of {PAPER_STUDY_SEEDS} seeds ({lo:g}-{hi:g}%) | "
-        "median, % of optimum |",
-        "|---|---|---|---|---|---|---|---|---|",
+    header = (
+        f"setting|seeds|median final return [{CONFIDENCE:.0%} CI]|IQR|median final length|reach full length|"
+        f"end in the zone|mean of {PAPER_STUDY_SEEDS} seeds ({lo:g}-{hi:g}%)|median, % of optimum"
+    ).split("|")
+    rows = [
+        [
+            d.label,
+            f"{d.seeds}",
+            f"{d.median:.0f} [{d.median_ci[0]:.0f}, {d.median_ci[1]:.0f}]",
+            f"{d.quartiles[0]:.0f}-{d.quartiles[1]:.0f}",
+            f"{np.median(d.final_lengths):.0f}",
+            f"{d.reached_full_length}/{d.seeds}",
+            f"{d.in_zone}/{d.seeds}",
+            f"{d.four_seed_band[0]:.0f}-{d.four_seed_band[1]:.0f}",
+            "-" if d.optimum is None else f"{PERCENT * d.median / d.optimum:.1f}% of {d.optimum:g}",
+        ]
+        for d in distributions
     ]
-    for d in distributions:
-        q1, q3 = d.quartiles
-        ci_low, ci_high = d.median_ci
-        band_low, band_high = d.four_seed_band
-        lines.append(
-            f"| {d.label} | {d.seeds} | {d.median:.0f} [{ci_low:.0f}, {ci_high:.0f}] | {q1:.0f}-{q3:.0f} | "
-            f"{np.median(d.final_lengths):.0f} | {d.reached_full_length}/{d.seeds} | {d.in_zone}/{d.seeds} | "
-            f"{band_low:.0f}-{band_high:.0f} | "
-            + ("-" if d.optimum is None else f"{PERCENT * d.median / d.optimum:.1f}% of {d.optimum:g}")
-            + " |"
-        )
-    return "\n".join(lines)
+    return markdown_table(header, rows)
 
 
 def plot_distributions(
@@ -222,19 +224,16 @@ def plot_paper_averaging(settings: Sequence[Setting], window: int, title: str, p
 
 def format_paper_averaging(settings: Sequence[Setting], window: int) -> str:
     """Final values of both averagings (the last point of each curve), one row per setting."""
-    lines = [
-        "| setting (paper's order) | runs pooled | final return: per setting | as the paper averages | "
-        "final length: per setting | as the paper averages |",
-        "|---|---|---|---|---|---|",
-    ]
+    header = "setting (paper's order)|runs pooled|final return: per setting|as the paper averages|"
+    header += "final length: per setting|as the paper averages"
     curves = [
         curves_of(settings, column, window)
         for column in (COL_RETURN, COL_LENGTH)
         for curves_of, _ in AVERAGINGS
     ]
-    runs = 0
-    for k, setting in enumerate(settings):
-        runs += len(setting.runs_with_episodes)
-        finals = " | ".join(f"{c[k][-1]:.0f}" for c in curves)
-        lines.append(f"| {setting.label} | {runs} | {finals} |")
-    return "\n".join(lines)
+    pooled = np.cumsum([len(setting.runs_with_episodes) for setting in settings])
+    rows = [
+        [setting.label, f"{pooled[k]}", *(f"{c[k][-1]:.0f}" for c in curves)]
+        for k, setting in enumerate(settings)
+    ]
+    return markdown_table(header.split("|"), rows)

@@ -226,13 +226,10 @@ def failed_without_episodes(sweep_dir: Path) -> list[tuple[Path, str]]:
 
     Say, a bad value found only in the job, or a full disk. They have no ``episodes.csv``, so no place in a figure.
     """
-    out = []
-    for job in find_jobs(Path(sweep_dir)):
-        if not (job / CSV_NAME).is_file():
-            status, detail = job_status(job)
-            if status == STATUS_FAILED:
-                out.append((job, detail))
-    return out
+    statuses = [
+        (job, job_status(job)) for job in find_jobs(Path(sweep_dir)) if not (job / CSV_NAME).is_file()
+    ]
+    return [(job, detail) for job, (status, detail) in statuses if status == STATUS_FAILED]
 
 
 def load_runs(sweep_dir: Path) -> list[Run]:

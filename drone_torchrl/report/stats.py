@@ -123,6 +123,12 @@ def setting_curve(setting: Setting, column: str, window: int) -> SeedStats:
     return aggregate_over_seeds(run_curves(setting, column, window))
 
 
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """The report's one Markdown table writer: ``header`` and ``rows`` of cells as they are printed."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return "\n".join(lines + ["| " + " | ".join(cells) + " |" for cells in rows])
+
+
 # --------------------------------------------------------------------------------------------------
 # Summary
 

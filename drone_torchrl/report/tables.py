@@ -34,6 +34,7 @@ from drone_torchrl.report.stats import (
     STD_DDOF,
     ZONE_SHARE,
     SweepReport,
+    markdown_table,
     setting_curve,
 )
 
@@ -141,15 +142,11 @@ def format_table(report: SweepReport) -> str:
         "wall-clock total (sum over runs)",
         "notes",
     ]
-    lines = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
-    for s in report.summaries:
-        episodes = (
-            f"{s.episodes_max}" if s.episodes_min == s.episodes_max else f"{s.episodes_min}-{s.episodes_max}"
-        )
-        cells = [
+    rows = [
+        [
             s.label,
             f"{s.seeds_finished}/{s.seeds_total}",
-            episodes,
+            f"{s.episodes_max}" if s.episodes_min == s.episodes_max else f"{s.episodes_min}-{s.episodes_max}",
             s.return_text(),
             "-" if math.isnan(s.final_return_pct) else f"{s.final_return_pct:.1f}%",
             "-"
@@ -162,8 +159,9 @@ def format_table(report: SweepReport) -> str:
             _duration(s.wall_clock_total_s),
             "; ".join(s.notes),
         ]
-        lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+        for s in report.summaries
+    ]
+    return markdown_table(header, rows)
 
 
 def format_report(report: SweepReport, figures: bool = True) -> str:
