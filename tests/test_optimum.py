@@ -23,7 +23,6 @@ import torch
 
 from drone_torchrl.envs import DroneEnv, dynamics
 from drone_torchrl.envs.dynamics import DroneParams
-from drone_torchrl.envs.params import ZONE_Z_MAX, ZONE_Z_MIN
 from drone_torchrl.episodes import episode_stats
 from drone_torchrl.evaluation import evaluate_pd, reference_optimum
 from drone_torchrl.optimum import (
@@ -36,6 +35,7 @@ from drone_torchrl.optimum import (
 )
 
 BOUNDED = DroneParams(max_thrust=1.0)
+ZONE_Z_MIN, ZONE_Z_MAX = BOUNDED.zone_z_min, BOUNDED.zone_z_max  # the zone of the default arena
 STEPS = 300
 EPISODES, SEED = 100, 0  # drone-eval's seeded starts
 UNIT = BOUNDED.gravity * BOUNDED.dt**2  # g dt^2: the height one step of g adds to one step of climb
