@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 from tensordict import TensorDictBase
@@ -51,6 +52,29 @@ class UpdateOutput(NamedTuple):
 
     metrics: dict[str, torch.Tensor]
     episodes: dict[str, torch.Tensor]
+
+
+def one_agent_output(
+    metrics: list[dict[str, float]],
+    episodes: list[dict[str, list]],
+    checks: tuple[str, ...],
+    active: torch.Tensor,
+) -> UpdateOutput:
+    """One agent's ``k`` updates (their ``checks`` metrics, each finite or not) in the contract's layout.
+
+    For a learner whose updates end a varying number of episodes: they come padded, with a
+    ``"valid"`` mask. Float64 holds each value exactly, as ``float()`` gave it.
+    """
+    most = max(1, *(len(e["return"]) for e in episodes))
+    padded = {
+        key: torch.as_tensor(np.array([[e[key] + [0] * (most - len(e[key]))] for e in episodes]))
+        for key in EPISODE_KEYS
+    }
+    valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
+    values = torch.tensor([[[m[name] for name in checks]] for m in metrics], dtype=torch.float64)
+    out = {name: values[..., i] for i, name in enumerate(checks)}
+    out.update(active=active.reshape(1, 1).expand(len(metrics), 1), checks=values.isfinite())
+    return UpdateOutput(out, {**padded, "valid": torch.tensor(valid)})
 
 
 class Gradient(NamedTuple):
