@@ -17,7 +17,7 @@ import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 from drone_torchrl.checks import ConfigError
 
@@ -115,10 +115,11 @@ ALGORITHMS: Registry[Algorithm] = Registry(
 )
 
 
-class Learner:
+class Learner(Protocol):
     """What the training loop (:class:`~drone_torchrl.training.trainer.Trainer`) asks of an algorithm's learner.
 
-    ``learner(jobs)`` trains up to :meth:`max_agents` prepared jobs (their checkpoints restored).
+    An algorithm's learner subclasses it (its defaults: the attributes' values, one agent, no-op
+    hooks). ``learner(jobs)`` trains up to :meth:`max_agents` prepared jobs (their checkpoints restored).
     The loop calls :meth:`update` until every agent is done; after each evaluation
     :meth:`after_evaluation`; at a checkpoint :meth:`checkpoint_entries`; for an evaluation
     :meth:`eval_policy`, and :meth:`actor` for a video.
@@ -148,19 +149,15 @@ class Learner:
 
     def update(self, state: Any, k: int, active: Any) -> tuple[Any, Any]:
         """``k`` updates of the ``active`` agents: ``(state, UpdateOutput)`` (:mod:`drone_torchrl.training.update`)."""
-        raise NotImplementedError
 
     def eval_policy(self) -> Any:
         """The policy the evaluator flies, :attr:`eval_agents` agents at once."""
-        raise NotImplementedError
 
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """The agent's checkpoint entries that the run record does not own."""
-        raise NotImplementedError
 
     def actor(self, agent: int) -> Any:
         """The agent's actor on its own (for videos)."""
-        raise NotImplementedError
 
     def after_evaluation(self, run: Any, best_before: float) -> None:
         """After each evaluation of ``run`` (its best return before it ``best_before``): nothing by default."""
