@@ -492,7 +492,7 @@ def on_policy(name: str, learner: type[OnPolicy], summary: str) -> Algorithm:
 
 @dataclass
 class OnPolicyConf:
-    """``algo.*`` every on-policy algorithm has (the loop of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
+    """``algo.*`` every on-policy algorithm has (the update of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
 
     name: Any = schema.free()
     lr: Any = schema.LR.field()
