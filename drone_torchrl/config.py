@@ -21,7 +21,7 @@ from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.io import folders
-from drone_torchrl.registry import ALGORITHMS, RollbackLearner
+from drone_torchrl.registry import ALGORITHMS
 from drone_torchrl.schema import Rule
 
 # The device kinds the code runs on. Others fail deep inside (mps has no float64 for the
@@ -898,8 +898,8 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             expected = f"null unless eval.every_episodes > 0 ({acts} at a periodic evaluation)"
             raise ConfigError.of(f"eval.{key}", cfg.eval[key], expected)
     drop = cfg.eval.get("rollback_drop")
-    if drop is not None and not issubclass(ALGORITHMS.get(cfg.algo.name).learner, RollbackLearner):
-        takers = [n for n in ALGORITHMS.names() if issubclass(ALGORITHMS.get(n).learner, RollbackLearner)]
+    if drop is not None and not ALGORITHMS.get(cfg.algo.name).learner.takes_rollback_drop:
+        takers = [n for n in ALGORITHMS.names() if ALGORITHMS.get(n).learner.takes_rollback_drop]
         expected = f"null with algo={cfg.algo.name} (taken by algo={'/'.join(takers)})"
         raise ConfigError.of("eval.rollback_drop", drop, expected)
     if training:  # drone-eval reads a finished run's values: its logger is the training's business

@@ -1,7 +1,7 @@
 """Plug-in registries: algorithms and logger backends are found by name the same way.
 
 The algorithms are :mod:`drone_torchrl.algorithms` (the registry :data:`ALGORITHMS`, :class:`Algorithm` and
-the learners' optional capabilities are here, below the config and the training loop that look them
+the :class:`Learner` protocol are here, below the config and the training loop that look them
 up), the logger backends :mod:`drone_torchrl.loggers`.
 
 A plug-in module calls :meth:`Registry.register` when imported. A registry imports the modules of
@@ -14,11 +14,10 @@ from __future__ import annotations
 import importlib
 import pkgutil
 import re
-from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 from drone_torchrl.checks import ConfigError
 
@@ -90,9 +89,7 @@ class Algorithm:
 
     Attributes:
         name: its ``algo.name``.
-        learner: the learner class; ``learner(jobs)`` trains up to ``learner.max_agents`` prepared
-            jobs (None: any number) behind ``update(state, k, active)``, or its own ``train`` (a
-            :class:`LoopLearner`); a :class:`RollbackLearner` takes ``eval.rollback_drop``.
+        learner: the :class:`Learner` subclass the training loop drives.
         validate: raises :class:`~drone_torchrl.checks.ConfigError` (one line) for values of its keys
             that do not go together; each key's own bounds and choices (its schema's) are checked
             before it is called. Gets the resolved config as nested dicts with attribute access.
@@ -105,7 +102,7 @@ class Algorithm:
     """
 
     name: str
-    learner: type
+    learner: type[Learner]
     validate: Callable[[Mapping[str, Any]], None]
     checkpoint_keys: tuple[str, ...] = ()
     summary: str = ""
@@ -118,17 +115,52 @@ ALGORITHMS: Registry[Algorithm] = Registry(
 )
 
 
-class LoopLearner(ABC):
-    """A learner that runs its own loop (PPO's, A2C's) instead of the trainer calling ``update``."""
+class Learner(Protocol):
+    """What the training loop (:class:`~drone_torchrl.training.trainer.Trainer`) asks of an algorithm's learner.
 
-    @abstractmethod
-    def train(self, trainer: Any, stop: Any) -> None:
-        """Train every active agent of ``trainer`` to its budget, or until ``stop`` is signalled."""
+    An algorithm's learner subclasses it (its defaults: the attributes' values, one agent, no-op
+    hooks). ``learner(jobs)`` trains up to :meth:`max_agents` prepared jobs (their checkpoints restored).
+    The loop calls :meth:`update` until every agent is done; after each evaluation
+    :meth:`after_evaluation`; at a checkpoint :meth:`checkpoint_entries`; for an evaluation
+    :meth:`eval_policy`, and :meth:`actor` for a video.
 
+    Attributes:
+        state: the agents' stacked state, handed to :meth:`update` (None: the learner keeps its own).
+        episodes_per_update: the episodes each update ends per agent; None where they vary (the
+            update's episodes then come padded, with a ``"valid"`` mask, one update per call).
+        eval_agents: the agents :meth:`eval_policy` flies at once (None: one, a plain actor).
+        checks: the names of the update's finite checks, in the order of its ``"checks"``.
+        advice: what a divergence's message suggests.
+        takes_rollback_drop: whether :meth:`after_evaluation` acts on ``eval.rollback_drop`` (the
+            key is refused in one line for another learner).
+    """
 
-class RollbackLearner(ABC):
-    """A learner that acts on ``eval.rollback_drop``: it rolls back after an evaluation that dropped."""
+    state: Any = None
+    episodes_per_update: int | None = None
+    eval_agents: int | None = None
+    checks: tuple[str, ...] = ()
+    advice: str = ""
+    takes_rollback_drop: bool = False
 
-    @abstractmethod
+    @staticmethod
+    def max_agents(cfg: Any) -> int | None:
+        """The jobs one learner trains together (None: any number)."""
+        return 1
+
+    def update(self, state: Any, k: int, active: Any) -> tuple[Any, Any]:
+        """``k`` updates of the ``active`` agents: ``(state, UpdateOutput)`` (:mod:`drone_torchrl.training.update`)."""
+
+    def eval_policy(self) -> Any:
+        """The policy the evaluator flies, :attr:`eval_agents` agents at once."""
+
+    def checkpoint_entries(self, agent: int) -> dict[str, Any]:
+        """The agent's checkpoint entries that the run record does not own."""
+
+    def actor(self, agent: int) -> Any:
+        """The agent's actor on its own (for videos)."""
+
     def after_evaluation(self, run: Any, best_before: float) -> None:
-        """Called after each periodic evaluation of ``run``; ``best_before`` is its best return before it."""
+        """After each evaluation of ``run`` (its best return before it ``best_before``): nothing by default."""
+
+    def close(self) -> None:
+        """Let go of what the learner holds (an env's workers): nothing by default."""

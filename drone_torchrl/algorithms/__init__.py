@@ -1,10 +1,9 @@
 """Algorithms as plug-ins: each one is a module here (or in another package) and a YAML in ``conf/algo/``.
 
 A module registers one :class:`~drone_torchrl.registry.Algorithm`: its name (what ``algo.name`` in its YAML says), its
-learner (the class :class:`~drone_torchrl.training.trainer.Trainer` drives through the update
-contract of :mod:`drone_torchrl.training.update`, or its own loop ``train(trainer, stop)`` (a
-:class:`~drone_torchrl.registry.LoopLearner`), as
-:class:`~.ppo.OnPolicy`'s), the checks of its own ``algo.*`` keys and the
+learner (a :class:`~drone_torchrl.registry.Learner`, which the one loop,
+:class:`~drone_torchrl.training.trainer.Trainer`, drives through the update contract of
+:mod:`drone_torchrl.training.update`), the checks of its own ``algo.*`` keys and the
 entries its learner adds to every checkpoint. Everything else a run does (the run record,
 evaluations, checkpoints and resume, divergence, the one-line errors, sweeps and launchers) is
 the shared skeleton's and needs nothing from the algorithm.
@@ -21,15 +20,15 @@ entry-point group, and its YAML in ``conf/algo/`` of a Hydra search path.
 
 Modules are imported when an algorithm is first looked up (:class:`~drone_torchrl.registry.Registry`).
 The registry and :class:`~drone_torchrl.registry.Algorithm` live in :mod:`drone_torchrl.registry`, below the config and the
-training loop that look algorithms up (``from drone_torchrl.algorithms import Algorithm, register``
+training loop that look algorithms up (``from drone_torchrl.algorithms import Algorithm, Learner, register``
 works too).
 """
 
 from __future__ import annotations
 
-from drone_torchrl.registry import ALGORITHMS, Algorithm, LoopLearner, RollbackLearner
+from drone_torchrl.registry import ALGORITHMS, Algorithm, Learner
 
-__all__ = ["ALGORITHMS", "Algorithm", "LoopLearner", "RollbackLearner", "get", "names", "register"]
+__all__ = ["ALGORITHMS", "Algorithm", "Learner", "get", "names", "register"]
 
 
 def register(algorithm: Algorithm) -> Algorithm:

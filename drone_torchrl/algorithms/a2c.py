@@ -1,11 +1,11 @@
-"""A2C on the drone (``algo=a2c``): TorchRL's ``A2CLoss`` on the shared on-policy loop.
+"""A2C on the drone (``algo=a2c``): TorchRL's ``A2CLoss`` on the shared on-policy update.
 
 The synchronous advantage actor-critic of Mnih et al. (2016), as TorchRL's sota-implementations
 run it: ``algo.num_envs`` drones of one batched env fly ``algo.steps_per_batch`` steps, GAE gives
 the advantages (``gae_lambda`` 1 would be plain n-step returns), and one gradient step of the
 policy-gradient, value and entropy losses follows per batch (``epochs: 1``, one minibatch of the
 whole batch; more of either turns it towards PPO without the clipping that makes that safe).
-Everything but the loss (collector, GAE, the loop, checkpoints, resume) is
+Everything but the loss (collector, GAE, the update, checkpoints, resume) is
 :class:`~drone_torchrl.algorithms.ppo.OnPolicy`'s, shared with PPO. Three keys of its own change
 the value loss (``algo.loss_critic_type``), what the loss sees of the batch's advantages
 (``algo.advantage_scaling``) and whether the critic's gradients are clipped on their own
@@ -61,7 +61,7 @@ class A2C(OnPolicy):
         """Clip the actor's and the critic's gradients, apart if configured so; returns the norm of both.
 
         ``algo.max_grad_norm`` on the actor and ``algo.critic_max_grad_norm`` on the critic, each on
-        its own (null: ``max_grad_norm`` on both together, the loop's); books the norm of both.
+        its own (null: ``max_grad_norm`` on both together, OnPolicy's); books the norm of both.
         """
         algo = self.cfg.algo
         if algo.critic_max_grad_norm is None:

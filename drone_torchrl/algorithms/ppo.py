@@ -1,16 +1,19 @@
 """PPO on the drone (``algo=ppo``), as TorchRL's ``sota-implementations/ppo`` runs it.
 
 Top to bottom: :class:`OneRun`, what PPO, A2C and SAC share (one job, ``algo.num_envs`` drones flown
-by one actor); :class:`OnPolicy` builds the critic, the loss (``ClipPPOLoss`` here, ``A2CLoss`` in
-:mod:`.a2c`), TorchRL's :class:`~torchrl.objectives.value.GAE`, one Adam and the collector (one batched,
-auto-resetting :class:`~drone_torchrl.envs.drone_env.DroneEnv`, ``algo.steps_per_batch`` steps a
-batch); :meth:`OnPolicy.train` is the loop, ``for batch in collector``: learn from it
-(``OnPolicy._learn``: GAE, then ``algo.epochs`` passes of minibatch steps: loss, backward, clip,
-step), book it in the :class:`~drone_torchrl.training.run.RunRecord` (``episodes.csv``, TensorBoard),
-evaluate and checkpoint on the schedule, stop on a non-finite loss or gradient, or on SIGTERM with a
-checkpoint. The minibatches and their losses are :class:`Minibatches` (TorchRL's replay buffer and
-the loss module); ``backend=fast`` flies the batches on the C++ engine, steps a fused Adam and, for
-PPO without an entropy bonus, takes :class:`~.ppo_fast.PlainMinibatches` instead (:meth:`PPO.make_minibatches`).
+by one actor, its update: a batch flown, cut at the budget and learned from); :class:`OnPolicy`
+builds the critic, the loss (``ClipPPOLoss`` here, ``A2CLoss`` in :mod:`.a2c`), TorchRL's
+:class:`~torchrl.objectives.value.GAE`, one Adam and the collector (one batched, auto-resetting
+:class:`~drone_torchrl.envs.drone_env.DroneEnv`, ``algo.steps_per_batch`` steps a batch), and learns
+from a batch (``OnPolicy._learn``: GAE, then ``algo.epochs`` passes of minibatch steps: loss,
+backward, clip, step). The loop is every algorithm's
+(:class:`~drone_torchrl.training.trainer.Trainer`): it books each batch in the
+:class:`~drone_torchrl.training.run.RunRecord` (``episodes.csv``, TensorBoard), evaluates (then
+``eval.rollback_drop``: :meth:`OnPolicy.after_evaluation`) and checkpoints on the schedule, stops
+on a non-finite loss or gradient, or on SIGTERM with a checkpoint. The minibatches and their
+losses are :class:`Minibatches` (TorchRL's replay buffer and the loss module); ``backend=fast``
+flies the batches on the C++ engine, steps a fused Adam and, for PPO without an entropy bonus,
+takes :class:`~.ppo_fast.PlainMinibatches` instead (:meth:`PPO.make_minibatches`).
 
 Only the drones' current episodes are not in a checkpoint: a resumed run starts them afresh (they
 were not booked, so no episode is lost or counted twice).
@@ -34,7 +37,7 @@ from torchrl.objectives import ClipPPOLoss, LossModule
 from torchrl.objectives.value import GAE
 
 from drone_torchrl import schema
-from drone_torchrl.algorithms import Algorithm, LoopLearner, RollbackLearner, register
+from drone_torchrl.algorithms import Algorithm, Learner, register
 from drone_torchrl.algorithms.ppo_fast import PlainMinibatches, clip_ppo_losses, pre_image  # noqa: F401
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import env_kwargs
@@ -45,11 +48,10 @@ from drone_torchrl.memory_estimate import on_policy_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
 from drone_torchrl.training.segments import FusedSegments
+from drone_torchrl.training.update import UpdateOutput, one_agent_output
 
 if TYPE_CHECKING:
     from drone_torchrl.training.run import AgentBook
-    from drone_torchrl.training.signals import StopRequest
-    from drone_torchrl.training.trainer import Trainer
 
 # Added to the advantages' standard deviation: a batch whose advantages are all equal stays finite.
 ADVANTAGE_EPS = 1e-8
@@ -88,29 +90,46 @@ def one_env(cfg: Mapping[str, Any]) -> None:
         )
 
 
-class OneRun:
+class OneRun(Learner):
     """What PPO, A2C and SAC share: one job (no population), ``algo.num_envs`` drones flown by one actor.
 
-    A subclass sets ``self.generator``, the drones' random stream, which checkpoints keep.
+    Each update flies one batch, cut at the budget (:func:`within_budget`), books its ended
+    episodes and learns from it (a subclass's :meth:`learn`); the batches end a varying number of
+    episodes, so the loop takes one update per call. A subclass sets ``self.generator``, the
+    drones' random stream, which checkpoints keep, and ``self._batches``, the batches' iterator.
 
     Args:
-        cfg: the job's config.
+        jobs: the one job trained, fresh or resumed.
     """
 
     advice = "lower algo.lr"
-    eval_agents = None
-    state = None  # no stacked state: one agent (OnPolicy's update() is a memory probe's)
 
-    @staticmethod
-    def max_agents(cfg) -> int:
-        """One run per learner: it is a batch of drones already."""
-        return 1
-
-    def __init__(self, cfg) -> None:
-        self.cfg = cfg
+    def __init__(self, jobs) -> None:
+        (job,) = jobs
+        self.cfg = cfg = job.cfg
         self.net = build_policy(cfg, cfg.seed)
         self.actor_module = build_actor(cfg, self.net, return_log_prob=True)
         self.tracker = EpisodeTracker(cfg.algo.num_envs, cfg.device)
+        self.episodes_done = 0 if job.checkpoint is None else job.checkpoint["episodes_done"]
+        # False after a batch cut at the budget: its drones flew on past the cut, unbooked.
+        self.carried_on = True
+
+    def update(self, state: None, k: int, active: torch.Tensor) -> tuple[None, UpdateOutput]:
+        """Run ``k`` updates (fly a batch, cut it at the budget, learn); returns ``state`` and their output."""
+        metrics: list[dict[str, float]] = []
+        episodes: list[dict[str, list]] = []
+        for _ in range(k):
+            flown = next(self._batches)
+            batch = within_budget(flown, self.cfg.algo.episodes - self.episodes_done)
+            self.carried_on = batch.shape[1] == flown.shape[1]
+            episodes.append(self.tracker.update(batch))
+            metrics.append(self.learn(batch))
+            self.episodes_done += len(episodes[-1]["return"])
+        return state, one_agent_output(metrics, episodes, self.checks, active)
+
+    def learn(self, batch: TensorDictBase) -> dict[str, float]:
+        """Learn from one batch; what to book of it, each of :attr:`checks`."""
+        raise NotImplementedError
 
     def actor(self, agent: int):
         """The actor of the run's only agent (for videos)."""
@@ -158,8 +177,8 @@ class Minibatches:
         return self.loss(minibatch)
 
 
-class OnPolicy(OneRun, LoopLearner, RollbackLearner):
-    """One actor-critic run: ``__init__`` builds it, ``train`` is its loop, ``_learn`` one batch's update.
+class OnPolicy(OneRun):
+    """One actor-critic run: ``__init__`` builds it, ``_learn`` is one batch's update.
 
     A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what its loss reports;
     the losses summed and booked are the loss's ``loss_*`` outputs. It may also change what the loss
@@ -174,9 +193,11 @@ class OnPolicy(OneRun, LoopLearner, RollbackLearner):
     #: (A2CLoss reports no entropy without an entropy bonus).
     diagnostics: tuple[str, ...] = ()
 
+    takes_rollback_drop = True
+
     def __init__(self, jobs) -> None:
+        super().__init__(jobs)
         (job,) = jobs
-        super().__init__(job.cfg)
         cfg, algo = self.cfg, self.cfg.algo
         self.critic = build_critic(cfg)
         self.loss = self.make_loss(self.actor_module, self.critic)
@@ -221,31 +242,7 @@ class OnPolicy(OneRun, LoopLearner, RollbackLearner):
         reported = self.loss.out_keys
         self.loss_keys = tuple(k for k in reported if k.startswith("loss_"))
         self.reported = (*self.loss_keys, *(k for k in self.diagnostics if k in reported))
-
-    def train(self, trainer: Trainer, stop: StopRequest) -> None:
-        """The loop, one collector batch at a time, to the budget, a divergence or a stop signal.
-
-        ``trainer`` keeps its run's books: evaluations, checkpoints, progress, ``stop``'s checkpoint.
-        """
-        (run,) = trainer.runs
-        for batch in self._batches:
-            batch = within_budget(batch, run.budget - run.episodes_done)
-            ended = self.tracker.update(batch)
-            metrics = self._learn(batch, run.episodes_done)
-            if failed := [name for name, value in metrics.items() if not math.isfinite(value)]:
-                run.diverged(failed, self.advice)
-            else:
-                run.record(ended, metrics)
-                trainer.progress.update(len(ended["return"]), [run])
-                if run.eval_due:
-                    best_before = run.best_eval
-                    trainer.evaluate([0])
-                    self.after_evaluation(run, best_before)
-                if run.checkpoint_due:
-                    trainer.save([0])
-            trainer.stop_if_asked(stop, [0])
-            if run.finished or run.failed:
-                return
+        self.checks = tuple(f"train/{k}" for k in (*self.reported, "grad_norm"))
 
     def after_evaluation(self, run: AgentBook, best_before: float) -> None:
         """``eval.rollback_drop``: keep the state of the best evaluation; go back to it after a collapse.
@@ -349,11 +346,9 @@ class OnPolicy(OneRun, LoopLearner, RollbackLearner):
             means = {f"train/{k}": (v / steps).item() for k, v in sums.items()}
         return means
 
-    def update(self, state: None, k: int, active: torch.Tensor) -> tuple[None, None]:
-        """``k`` batches learned from, not booked; the loop is :meth:`train`."""
-        for _ in range(k):
-            self._learn(next(self._batches), 0)
-        return state, None
+    def learn(self, batch: TensorDictBase) -> dict[str, float]:
+        """:meth:`_learn` at the episodes trained so far."""
+        return self._learn(batch, self.episodes_done)
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         """The algorithm's TorchRL loss over ``actor`` and ``critic``, from ``self.cfg.algo``."""
@@ -497,7 +492,7 @@ def on_policy(name: str, learner: type[OnPolicy], summary: str) -> Algorithm:
 
 @dataclass
 class OnPolicyConf:
-    """``algo.*`` every on-policy algorithm has (the loop of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
+    """``algo.*`` every on-policy algorithm has (the update of ``drone_torchrl.algorithms.ppo.OnPolicy``)."""
 
     name: Any = schema.free()
     lr: Any = schema.LR.field()

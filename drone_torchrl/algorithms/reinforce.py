@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drone_torchrl import schema
-from drone_torchrl.algorithms import Algorithm, register
+from drone_torchrl.algorithms import Algorithm, Learner, register
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.memory_estimate import reinforce_parts
 from drone_torchrl.migrations import FAST
@@ -27,15 +27,11 @@ from drone_torchrl.training.population import Population
 from drone_torchrl.training.update import CHECKS, ReinforceUpdate
 
 
-class Reinforce:
+class Reinforce(Learner):
     """REINFORCE as the training loop drives it: a group of jobs trained as one population.
 
-    The loop is :class:`~drone_torchrl.training.trainer.Trainer`; the group is the jobs of one
-    :func:`~drone_torchrl.training.jobs.group_key`, on either backend.
-
-    The loop calls :meth:`update` with :attr:`state` and books what it returns; it asks
-    :meth:`eval_policy` (for all :attr:`eval_agents` agents at once), :meth:`checkpoint_entries`
-    and :meth:`actor` (videos) when an evaluation or a checkpoint is due.
+    The group is the jobs of one :func:`~drone_torchrl.training.jobs.group_key`, on either backend;
+    :attr:`state` is the population's, :meth:`eval_policy` flies all :attr:`eval_agents` at once.
     """
 
     # Why an agent stops (UpdateOutput's checks, in order) and what to do about it.

@@ -31,14 +31,12 @@ from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
 
 from drone_torchrl import schema
 from drone_torchrl.algorithms import Algorithm, register
-from drone_torchrl.algorithms.ppo import OneRun, one_env, within_budget
+from drone_torchrl.algorithms.ppo import OneRun, one_env
 from drone_torchrl.checks import ConfigError
-from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.memory_estimate import sac_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_q_value
 from drone_torchrl.training.segments import FusedSegments
-from drone_torchrl.training.update import UpdateOutput
 
 # Clipped double-Q: the target is the smaller of two Q-networks' (SACLoss's default).
 NUM_QVALUE_NETS = 2
@@ -55,24 +53,6 @@ FRAME_KEYS = (
 # (each reaches only its own parameters: SACLoss detaches the others).
 LOSSES = ("loss_actor", "loss_qvalue", "loss_alpha")
 REPORTED = (*LOSSES, "alpha", "entropy")
-
-
-def update_output(
-    metrics: list[dict[str, float]],
-    episodes: list[dict[str, list]],
-    checks: tuple[str, ...],
-    active: torch.Tensor,
-) -> UpdateOutput:
-    """One agent's ``k`` updates in the update contract's layout (episodes padded, a ``"valid"`` mask)."""
-    most = max(1, *(len(e["return"]) for e in episodes))
-    padded = {
-        key: torch.tensor([[e[key] + [0] * (most - len(e[key]))] for e in episodes]) for key in EPISODE_KEYS
-    }
-    valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
-    values = torch.tensor([[[m[name] for name in checks]] for m in metrics], dtype=torch.float64)
-    out = {name: values[..., i] for i, name in enumerate(checks)}
-    out.update(active=active.reshape(1, 1).expand(len(metrics), 1), checks=values.isfinite())
-    return UpdateOutput(out, {**padded, "valid": torch.tensor(valid)})
 
 
 def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
@@ -100,12 +80,11 @@ class SAC(OneRun):
         jobs: the one job trained (SAC trains no population): its ``cfg``.
     """
 
-    episodes_per_update = None  # the episodes a batch finishes vary: one update per call
     checks = tuple(f"train/{k}" for k in REPORTED)
 
     def __init__(self, jobs) -> None:
+        super().__init__(jobs)
         (job,) = jobs
-        super().__init__(job.cfg)
         cfg, algo = self.cfg, self.cfg.algo
         self.loss = SACLoss(
             self.actor_module,
@@ -125,18 +104,15 @@ class SAC(OneRun):
             ],
             lr=algo.lr,
         )
-        self.collector = FusedSegments(cfg, self.actor_module, self.net)
+        self._batches = self.collector = FusedSegments(cfg, self.actor_module, self.net)
         self.generator = self.collector.generator
         self.buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(algo.buffer_size, device=cfg.device),
             sampler=RandomSampler(),
             batch_size=algo.batch_size,
         )
-        # False after a batch cut at the budget: its drones flew on past the cut, unbooked.
-        self.carried_on = True
-        if (checkpoint := job.checkpoint) is not None:
-            self._restore(checkpoint)
-        self.episodes_done = 0 if checkpoint is None else checkpoint["episodes_done"]
+        if job.checkpoint is not None:
+            self._restore(job.checkpoint)
 
     def _restore(self, checkpoint: Mapping[str, Any]) -> None:
         self.actor_module.load_state_dict(checkpoint["actor"])
@@ -155,35 +131,19 @@ class SAC(OneRun):
             self.collector.carry_on(drones["carried"])
             self.tracker.load_state(drones["episodes"])
 
-    def update(self, state: None, k: int, active: torch.Tensor) -> tuple[None, UpdateOutput]:
-        """Run ``k`` updates (fly, store, train); returns ``state`` and their metrics and episodes."""
-        metrics: list[dict[str, float]] = []
-        episodes: list[dict[str, list]] = []
-        for _ in range(k):
-            flown = next(self.collector)
-            batch = within_budget(flown, self.cfg.algo.episodes - self.episodes_done)
-            self.carried_on = batch.shape[1] == flown.shape[1]
-            episodes.append(self.tracker.update(batch))
-            self._store(batch)
-            metrics.append(self._learn())
-            self.episodes_done += len(episodes[-1]["return"])
-        return state, update_output(metrics, episodes, self.checks, active)
+    def learn(self, batch: TensorDictBase) -> dict[str, float]:
+        """The batch stored, then ``algo.updates_per_batch`` gradient steps of the actor, Q-networks and temperature.
 
-    def _store(self, batch: TensorDictBase) -> None:
+        Each step is followed by the targets' soft update. Returns the steps' mean of what SACLoss
+        reports.
+        """
         algo = self.cfg.algo
         frames = batch.select(*FRAME_KEYS)
         frames.set(("next", "reward"), frames.get(("next", "reward")) * algo.reward_scale)
         if algo.n_steps > 1:
             frames = n_step(frames, algo.gamma, algo.n_steps)
         self.buffer.extend(frames.reshape(-1))
-
-    def _learn(self) -> dict[str, float]:
-        """``algo.updates_per_batch`` gradient steps of the actor, Q-networks and temperature.
-
-        Each step is followed by the targets' soft update. Returns the steps' mean of what SACLoss
-        reports.
-        """
-        steps = self.cfg.algo.updates_per_batch
+        steps = algo.updates_per_batch
         sums: dict[str, torch.Tensor] = {}
         for _ in range(steps):
             losses = self.loss(self.buffer.sample())
@@ -215,9 +175,6 @@ class SAC(OneRun):
                 "episodes": self.tracker.state(),
             },
         }
-
-    def close(self) -> None:
-        """Nothing to close: the collector holds no resources."""
 
 
 def validate(cfg: Mapping[str, Any]) -> None:

@@ -1,7 +1,7 @@
-"""The training loop of REINFORCE's populations and SAC, and the books every algorithm's run keeps.
+"""The one training loop, every algorithm's, and the books its runs keep.
 
-PPO and A2C run their own loop (``OnPolicy.train`` in :mod:`drone_torchrl.algorithms.ppo`) on these
-books: records, evaluations, checkpoints, signals. A learner (an algorithm's, see :mod:`drone_torchrl.algorithms`) updates its agents behind one contract,
+A learner (an algorithm's :class:`~drone_torchrl.registry.Learner`, see :mod:`drone_torchrl.algorithms`)
+updates its agents behind one contract,
 ``update(state, k, active) -> (state, UpdateOutput)`` (see :mod:`.update`): ``k`` updates of every
 active agent, their metrics and finished episodes handed back at once. The loop copies them to the
 host in one go (one sync per call) and books them, update by update, in each agent's
@@ -9,7 +9,8 @@ host in one go (one sync per call) and books them, update by update, in each age
 of updates until the next evaluation, checkpoint or end of budget of any agent (at most
 :data:`MAX_UPDATES_PER_CALL`; 1 for a learner whose updates end a varying number of episodes), so
 evaluations and checkpoints fall exactly where a one-update loop would put them. Agents due for an
-evaluation are flown together by the evaluator. A run killed between its last checkpoint and its
+evaluation are flown together by the evaluator, then shown to the learner's ``after_evaluation``
+(PPO's and A2C's ``eval.rollback_drop``). A run killed between its last checkpoint and its
 final evaluation is finished on resume.
 """
 
@@ -35,14 +36,14 @@ from drone_torchrl.io.streams import about, console
 from drone_torchrl.kernels.modules import KernelRollout
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
-from drone_torchrl.registry import ALGORITHMS, LoopLearner
+from drone_torchrl.registry import ALGORITHMS, Learner
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
 from drone_torchrl.training.pbt import FRESH, ReplaySettings, SearchSettings
 from drone_torchrl.training.population_record import PopulationRecord, is_population
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, Record, RunRecord, TrainingDiverged
-from drone_torchrl.training.signals import StopRequest, TrainingStopped, stop_on_signals
+from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
 
 #: The most updates per call of a learner's update; the loop copies a call's metrics and episodes to
 #: the host at once, so this bounds what they hold in memory; results do not depend on it (a call
@@ -86,7 +87,7 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
     return out
 
 
-def learner_class(cfg: DictConfig) -> type:
+def learner_class(cfg: DictConfig) -> type[Learner]:
     """The learner of ``algo.name``, from the algorithm registry (:mod:`drone_torchrl.algorithms`)."""
     return ALGORITHMS.get(cfg.algo.name).learner
 
@@ -184,25 +185,17 @@ class Trainer:
                 ):
                     self.search_step(active)
                 while active := [i for i, run in enumerate(self.runs) if not (run.finished or run.failed)]:
-                    # A learner with its own loop: PPO's, A2C's (algorithms/ppo.py).
-                    if isinstance(self.learner, LoopLearner):
-                        self.learner.train(self, stop)
-                        break
                     self.step(active)
-                    self.stop_if_asked(stop, active)
+                    if stop.signum is not None:  # after the update: a checkpoint of each active agent
+                        active = [i for i in active if not self.runs[i].failed]
+                        self.save(active)
+                        dirs = list(dict.fromkeys(self.runs[i].run_dir for i in active))
+                        raise TrainingStopped(stop.signum, dirs)
         except BaseException:
             self.close(quietly=True)  # the error in flight is the one to report, not a second one
             raise
         self.close()
         return [run.final for run in self.runs]
-
-    def stop_if_asked(self, stop: StopRequest, active: list[int]) -> None:
-        """After an update, on a stop signal: a checkpoint of each active agent, then TrainingStopped."""
-        if stop.signum is None:
-            return
-        active = [i for i in active if not self.runs[i].failed]
-        self.save(active)
-        raise TrainingStopped(stop.signum, list(dict.fromkeys(self.runs[i].run_dir for i in active)))
 
     def step(self, active: list[int], k: int | None = None) -> int:
         """Run ``k`` updates of the ``active`` agents, booked, then the evaluations and checkpoints due.
@@ -300,11 +293,13 @@ class Trainer:
         if self.optimum is not None:
             means["pct_of_optimum"] = [100.0 * r / self.optimum.best_return for r in means["return"]]
         for i in agents:
+            best_before = self.runs[i].best_eval
             self.runs[i].record_eval(
                 {name: values[i] for name, values in means.items()},
                 lambda i=i: learner.checkpoint_entries(i),
                 lambda i=i: learner.actor(i),
             )
+            learner.after_evaluation(self.runs[i], best_before)
         if self.book is not None:
             self.book.after_eval()
 
