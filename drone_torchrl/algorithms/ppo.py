@@ -15,8 +15,9 @@ losses are :class:`Minibatches` (TorchRL's replay buffer and the loss module); `
 flies the batches on the C++ engine, steps a fused Adam and, for PPO without an entropy bonus,
 takes :class:`~.ppo_fast.PlainMinibatches` instead (:meth:`PPO.make_minibatches`).
 
-Only the drones' current episodes are not in a checkpoint: a resumed run starts them afresh (they
-were not booked, so no episode is lost or counted twice).
+On ``backend=fast`` a checkpoint keeps the drones' episodes in flight, so a resumed run flies the
+episodes an uninterrupted one would; on ``backend=reference`` TorchRL's collector starts them afresh
+(they were not booked, so no episode is lost or counted twice).
 """
 
 from __future__ import annotations
@@ -139,6 +140,24 @@ class OneRun(Learner):
         """The policy the evaluator flies: the actor."""
         return self.actor_module
 
+    def drones_entry(self) -> dict[str, Any]:
+        """A checkpoint's ``drones`` entry: the episodes in flight, to fly on from on resume.
+
+        None carried after a batch cut at the budget (its drones flew on past the cut, unbooked).
+        """
+        return {
+            "carried": self.collector.carried() if self.carried_on else None,
+            "episodes": self.tracker.state(),
+        }
+
+    def restore_drones(self, drones: Mapping[str, Any] | None) -> None:
+        """Fly on from a checkpoint's :meth:`drones_entry`; start every drone afresh if it kept none."""
+        if drones is None or drones["carried"] is None:
+            self.collector.restart()
+        else:
+            self.collector.carry_on(drones["carried"])
+            self.tracker.load_state(drones["episodes"])
+
     def rng_entry(self) -> dict[str, Any]:
         """A checkpoint's ``rng`` entry: torch's random state and the drones'."""
         return {"torch": torch.get_rng_state(), "env": self.generator.get_state(), "agent": None}
@@ -226,8 +245,8 @@ class OnPolicy(OneRun):
             self._load_best_state(checkpoint)
             self._restore(checkpoint)
             self.restore_rng(checkpoint["rng"])
-            if self.fused:
-                self.collector.restart()
+            if self.fused:  # a checkpoint written before 2026-12-07 keeps no drones: they start afresh
+                self.restore_drones(checkpoint.get("drones"))
         if not self.fused:  # made after the checkpoint: it resets the env from the restored generator
             self.collector = Collector(
                 self.env,
@@ -383,8 +402,10 @@ class OnPolicy(OneRun):
         return self.collector.eval_policy() if self.fused else self.actor_module
 
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
-        """The checkpoint entries the run record does not own: actor, critic, optimizer, RNG."""
+        """The checkpoint entries the run record does not own: actor, critic, optimizer, RNG, drones in flight."""
         entries = {**self._learner_state(), "rng": self.rng_entry()}
+        if self.fused:  # the reference's TorchRL collector starts its drones afresh on resume
+            entries["drones"] = self.drones_entry()
         if self.rollback_drop is not None:
             entries["rollback"] = {"state": self.best_state, "returned": self.returned_to_best}
         return entries

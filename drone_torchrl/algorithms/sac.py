@@ -124,12 +124,7 @@ class SAC(OneRun):
         if len(frames):
             self.buffer.extend(frames.to(self.cfg.device))
         self.buffer.writer.load_state_dict(saved["writer"])
-        drones = checkpoint["drones"]
-        if drones["carried"] is None:  # its last batch was cut at the budget: start afresh
-            self.collector.restart()
-        else:
-            self.collector.carry_on(drones["carried"])
-            self.tracker.load_state(drones["episodes"])
+        self.restore_drones(checkpoint["drones"])
 
     def learn(self, batch: TensorDictBase) -> dict[str, float]:
         """The batch stored, then ``algo.updates_per_batch`` gradient steps of the actor, Q-networks and temperature.
@@ -170,10 +165,7 @@ class SAC(OneRun):
             "optimizer": self.optimizer.state_dict(),
             "rng": self.rng_entry(),
             "replay_buffer": {"frames": filled.cpu().to_dict(), "writer": self.buffer.writer.state_dict()},
-            "drones": {
-                "carried": self.collector.carried() if self.carried_on else None,
-                "episodes": self.tracker.state(),
-            },
+            "drones": self.drones_entry(),
         }
 
 
