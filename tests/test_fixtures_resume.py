@@ -52,6 +52,19 @@ def _csv(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
+def _sweep_again(drone_train, runs: Path, name: str) -> None:
+    """The sweep's own command again, in its folder: it continues from the checkpoints."""
+    command = [
+        *SWEEPS[name],
+        "algo.episodes=40",
+        "eval.every_episodes=10",
+        *QUIET,
+        f"hydra.sweep.dir={runs / name}",
+    ]
+    proc = drone_train(*command, cwd=runs)
+    assert proc.returncode == 0, proc.stderr
+
+
 @pytest.fixture
 def drone_train(command_here):
     return lambda *args, cwd: command_here(train_app.run, "drone-train", *args, cwd=cwd)
@@ -91,15 +104,7 @@ def test_a_stopped_reference_ppo_run_resumes_with_every_episode_once(runs, drone
 
 def test_a_stopped_fused_sweep_resumes_to_the_uninterrupted_episodes(runs, drone_train):
     sweep = runs / "sweep_fused"
-    proc = drone_train(
-        *SWEEPS["sweep_fused"],
-        "algo.episodes=40",
-        "eval.every_episodes=10",
-        *QUIET,
-        f"hydra.sweep.dir={sweep}",
-        cwd=runs,
-    )
-    assert proc.returncode == 0, proc.stderr
+    _sweep_again(drone_train, runs, "sweep_fused")
     expected = _expected("sweep_fused")
     got = []
     for job in sorted(sweep.glob("*seed=*")):
@@ -114,15 +119,7 @@ def test_a_stopped_population_resumes_to_the_uninterrupted_episodes(runs, drone_
     before = pq.read_table(run / "episodes").num_rows
     expected = _expected(name)
     assert 0 < before < len(expected)
-    proc = drone_train(
-        *SWEEPS[name],
-        "algo.episodes=40",
-        "eval.every_episodes=10",
-        *QUIET,
-        f"hydra.sweep.dir={runs / name}",
-        cwd=runs,
-    )
-    assert proc.returncode == 0, proc.stderr
+    _sweep_again(drone_train, runs, name)
     episodes = sorted(pq.read_table(run / "episodes").to_pylist(), key=lambda r: (r["agent"], r["episode"]))
     assert _rows(episodes, list(expected[0])) == expected
     if (FIXTURES / "expected" / f"{name}_lineage.csv").exists():
