@@ -24,6 +24,7 @@ from drone_torchrl.io.checkpoint import (
     run_dir_of,
 )
 from drone_torchrl.io.folders import check_fork_folder
+from drone_torchrl.io.storage import StorageError
 from drone_torchrl.sweep_folder import SEARCH_LAUNCHERS, SWEEP_RECORD
 
 
@@ -64,14 +65,79 @@ def _not_an_override(prog: str, word: str) -> str:
     return f"{word!r} is not KEY=VALUE; " + (f"did you mean {hint}?" if hint else f"see {prog} --help")
 
 
-def check_flags(prog: str) -> argparse.Namespace:
-    """:func:`parse_flags` on ``sys.argv``; exits with ``<prog>: error: <message>`` on a bad flag."""
+# Each command's config in conf/.
+CONFIGS = {"drone-train": "config", "drone-eval": "eval", "drone-export": "export"}
+
+
+def check(prog: str) -> list[Path]:
+    """Check ``sys.argv`` for ``prog`` (drone-train, drone-eval, drone-export); returns the folders claimed.
+
+    In the order the errors are reported: drone-train's old keys (each with a note naming today's,
+    :func:`~drone_torchrl.migrations.legacy_arguments`), the flags and bare words
+    (:func:`parse_flags`), the overrides (:func:`~drone_torchrl.config.check_overrides`, skipped when
+    the command line picks another config, whose keys ``conf/`` does not describe) and the folder
+    Hydra writes first; then drone-train's own: missing extras, ``-m`` with ``--cfg``, the launcher's
+    keys, a sweep's or a single run's checks, and the claim of the run folder. Exits with
+    ``<prog>: error: <message>`` on a bad input.
+    """
     import sys
 
+    from hydra import compose, initialize_config_dir
+
+    from drone_torchrl import config
+
+    trains = prog == "drone-train"
+    args = sys.argv[1:]
     try:
-        return parse_flags(prog, sys.argv[1:])
-    except ConfigError as err:
+        if trains:  # old keys (engine=, compile=, ...) work, passed on as +legacy.<key>
+            args, notes = migrations.legacy_arguments(args)
+            for note in notes:
+                print(f"{prog}: {note}", file=sys.stderr)
+            sys.argv[1:] = args
+    except ValueError as err:
         sys.exit(f"{prog}: error: {err}")
+    try:
+        flags = parse_flags(prog, args)
+        overrides = overrides_of(args)
+        # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.
+        implied = resumed_plugins(overrides) if trains and not flags.multirun else []
+        config.imply_choices(implied)
+        sys.argv.extend(implied)
+        own_config = flags.config_name is None and flags.config_dir is None
+        if own_config and flags.config_path is None:
+            config.check_overrides([*flags.overrides, *implied], CONFIGS[prog])
+        if trains:
+            check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
+        prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
+        if trains and flags.multirun and (flags.cfg or flags.info):  # Hydra: a ValueError traceback
+            flag = "--cfg" if flags.cfg else "--info"
+            raise ConfigError(
+                f"{flag} and -m are not allowed together: {flag} prints one job's config; drop -m and give "
+                "one value per key"
+            )
+        if not prints and own_config and prog != "drone-export":  # drone-export writes no folder of Hydra's
+            config.check_default_folder(CONFIGS[prog], args)
+        if not trains:
+            return []
+        if own_config:
+            check_launcher_keys(flags.overrides)
+        if flags.multirun:
+            if overrides.get("resume", "null") not in ("null", ""):
+                raise ConfigError(
+                    f"resume={overrides['resume']} continues one run and cannot be swept (-m); to continue a "
+                    "sweep, run the same sweep command again: its finished jobs are skipped and the others resume"
+                )
+            return []
+        check_single_run(flags.overrides, trains=not prints)
+        if flags.cfg in ("job", "all") and own_config:  # refused as when training, not printed as fine
+            with initialize_config_dir(config.config_dir(), version_base="1.3"):
+                cfg = compose("config", overrides=flags.overrides)
+            migrations.apply_legacy(cfg)
+            config.validate(cfg)
+        folder = None if prints else claim_run_folder(overrides)
+    except (ConfigError, StorageError) as err:
+        sys.exit(f"{prog}: error: {err}")
+    return [] if folder is None else [folder]
 
 
 def overrides_of(args: list[str]) -> dict[str, str]:
@@ -108,21 +174,6 @@ def _options(group: str, value: str) -> list[str]:
     from drone_torchrl.config import _override_values
 
     return [v for o in _parsed([f"{group}={value}"]) for v in _override_values(o) if isinstance(v, str)]
-
-
-def check_composed(overrides: list[str]) -> None:
-    """The config ``--cfg job`` would print, composed and validated.
-
-    A bad value is refused as it would be when training, not printed as if it were fine.
-    """
-    from hydra import compose, initialize_config_dir
-
-    from drone_torchrl.config import config_dir, validate
-
-    with initialize_config_dir(config_dir(), version_base="1.3"):
-        cfg = compose("config", overrides=overrides)
-    migrations.apply_legacy(cfg)
-    validate(cfg)
 
 
 _LAUNCHER_KEY = "hydra.launcher."
@@ -196,15 +247,6 @@ def _parsed(args: list[str]) -> list:
     from drone_torchrl.config import parse_overrides
 
     return parse_overrides([a for a in args if not a.startswith("-") and "=" in a], strict=False)
-
-
-def check_multirun(overrides: dict[str, str]) -> None:
-    """Refuse what cannot be swept (``-m``): ``resume=``, with a one-line :class:`~.checks.ConfigError`."""
-    if "resume" in overrides and overrides["resume"] not in ("null", ""):
-        raise ConfigError(
-            f"resume={overrides['resume']} continues one run and cannot be swept (-m); to continue a sweep, "
-            "run the same sweep command again: its finished jobs are skipped and the others resume"
-        )
 
 
 def resumed_plugins(overrides: dict[str, str]) -> list[str]:
