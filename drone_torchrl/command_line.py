@@ -1,4 +1,4 @@
-"""What ``drone-train`` checks and claims before Hydra starts, when nothing has been written yet.
+"""What ``drone-train``, ``drone-eval`` and ``drone-export`` check (and claim) before Hydra writes anything.
 
 Hydra writes ``<run>/.hydra/`` and the job log before our code runs, and reports an argument or an
 override it cannot parse in several lines (argparse's usage, Hydra's grammar hint). So the command
