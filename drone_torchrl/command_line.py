@@ -12,7 +12,7 @@ import argparse
 import contextlib
 from pathlib import Path
 
-from drone_torchrl import extras, migrations
+from drone_torchrl import config, extras, migrations
 from drone_torchrl.checks import ConfigError, dotted
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
@@ -56,8 +56,6 @@ def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
 
 def _not_an_override(prog: str, word: str) -> str:
     """The refusal of an argument that is not ``KEY=VALUE``, with the override it likely meant."""
-    from drone_torchrl import config
-
     if Path(word).exists():  # a run folder or checkpoint, given without its key
         hint: str | None = f"{'resume' if prog == 'drone-train' else 'checkpoint'}={word}"
     else:
@@ -83,8 +81,6 @@ def check(prog: str) -> list[Path]:
     import sys
 
     from hydra import compose, initialize_config_dir
-
-    from drone_torchrl import config
 
     trains = prog == "drone-train"
     args = sys.argv[1:]
@@ -159,11 +155,10 @@ def check_extras(overrides: dict[str, str]) -> None:
     from hydra.errors import HydraException
 
     from drone_torchrl import loggers
-    from drone_torchrl.config import _option_plugins
 
     for option in _options("logger", overrides["logger"]) if "logger" in overrides else []:
         try:  # Hydra composes the option (its file names its backend, or inherits one)
-            needs = loggers.get(_option_plugins("config", (("logger", option),))["logger"]).needs
+            needs = loggers.get(config._option_plugins("config", (("logger", option),))["logger"]).needs
         except (HydraException, ConfigError):  # an option Hydra cannot compose: it says why, later
             continue
         extras.check(f"logger={option}", needs)
@@ -171,9 +166,9 @@ def check_extras(overrides: dict[str, str]) -> None:
 
 def _options(group: str, value: str) -> list[str]:
     """The options of ``group=value`` as Hydra reads them: one, or each of a sweep's."""
-    from drone_torchrl.config import _override_values
-
-    return [v for o in _parsed([f"{group}={value}"]) for v in _override_values(o) if isinstance(v, str)]
+    return [
+        v for o in _parsed([f"{group}={value}"]) for v in config._override_values(o) if isinstance(v, str)
+    ]
 
 
 _LAUNCHER_KEY = "hydra.launcher."
@@ -212,8 +207,6 @@ def check_launcher_keys(args: list[str]) -> None:
     from hydra.errors import HydraException
     from omegaconf import OmegaConf
 
-    from drone_torchrl.config import _composed
-
     parsed = _parsed(args)
     given = [o for o in parsed if o.key_or_group.startswith(_LAUNCHER_KEY)]
     if not given:
@@ -228,7 +221,9 @@ def check_launcher_keys(args: list[str]) -> None:
     options = [None] if launcher is None else _options("hydra/launcher", launcher.input_line.split("=", 1)[1])
     for option in options:
         try:  # the launcher these choices compose (the checks' compositions are cached)
-            cfg = _composed("config", (*choices, *([] if option is None else [f"hydra/launcher={option}"])))
+            cfg = config._composed(
+                "config", (*choices, *([] if option is None else [f"hydra/launcher={option}"]))
+            )
         except HydraException:  # Hydra's own message says why, later
             continue
         name = cfg.hydra.runtime.choices["hydra/launcher"]
@@ -244,9 +239,7 @@ def check_launcher_keys(args: list[str]) -> None:
 
 def _parsed(args: list[str]) -> list:
     """The command line's overrides, parsed by Hydra (those it cannot parse are refused elsewhere)."""
-    from drone_torchrl.config import parse_overrides
-
-    return parse_overrides([a for a in args if not a.startswith("-") and "=" in a], strict=False)
+    return config.parse_overrides([a for a in args if not a.startswith("-") and "=" in a], strict=False)
 
 
 def resumed_plugins(overrides: dict[str, str]) -> list[str]:
@@ -259,25 +252,17 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
     may pick plug-ins themselves.
     """
     from drone_torchrl import schema
-    from drone_torchrl.config import (
-        PRESET_GROUP,
-        _option_plugins,
-        group_names,
-        options_by_plugin,
-        run_config,
-        schema_keys,
-    )
 
     resume = overrides.get("resume")
     if resume in (None, "", "null") or "${" in resume:
         return []
     # Only where they matter (a checkpoint may be GBs): a plug-in's key the default plug-in lacks,
     # or a group choice (the keys it sets are told from the config composed with the run's plug-ins).
-    defaults = _option_plugins("config", ())
-    known = schema_keys("config", **defaults)
+    defaults = config._option_plugins("config", ())
+    known = config.schema_keys("config", **defaults)
     plugin_groups = schema.plugin_groups("config")
-    chosen = {key for key in overrides if key in group_names()}
-    if PRESET_GROUP in chosen or not any(
+    chosen = {key for key in overrides if key in config.group_names()}
+    if config.PRESET_GROUP in chosen or not any(
         key in chosen or (key.split(".")[0] in plugin_groups and key not in known) for key in overrides
     ):
         return []
@@ -287,13 +272,13 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
         return []
     if not isinstance(state, dict) or not isinstance(state.get("config"), dict):
         return []
-    saved = run_config(state["config"])
+    saved = config.run_config(state["config"])
     out = []
     for group, rule in plugin_groups.items():
         plugin = dotted(saved, f"{group}.{rule.plugin_key}")
         if group in chosen or plugin == defaults.get(group):
             continue
-        options = options_by_plugin(group).get(plugin, [])  # composes each option of the group
+        options = config.options_by_plugin(group).get(plugin, [])  # composes each option of the group
         if options:
             out.append(f"{group}={plugin if plugin in options else options[0]}")
     return out
