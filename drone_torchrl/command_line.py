@@ -1,4 +1,4 @@
-"""What ``drone-train`` checks and claims before Hydra starts, when nothing has been written yet.
+"""What ``drone-train``, ``drone-eval`` and ``drone-export`` check (and claim) before Hydra writes anything.
 
 Hydra writes ``<run>/.hydra/`` and the job log before our code runs, and reports an argument or an
 override it cannot parse in several lines (argparse's usage, Hydra's grammar hint). So the command
@@ -12,7 +12,7 @@ import argparse
 import contextlib
 from pathlib import Path
 
-from drone_torchrl import extras, migrations
+from drone_torchrl import config, extras, migrations
 from drone_torchrl.checks import ConfigError, dotted
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
@@ -24,6 +24,7 @@ from drone_torchrl.io.checkpoint import (
     run_dir_of,
 )
 from drone_torchrl.io.folders import check_fork_folder
+from drone_torchrl.io.storage import StorageError
 from drone_torchrl.sweep_folder import SEARCH_LAUNCHERS, SWEEP_RECORD
 
 
@@ -55,8 +56,6 @@ def parse_flags(prog: str, args: list[str]) -> argparse.Namespace:
 
 def _not_an_override(prog: str, word: str) -> str:
     """The refusal of an argument that is not ``KEY=VALUE``, with the override it likely meant."""
-    from drone_torchrl import config
-
     if Path(word).exists():  # a run folder or checkpoint, given without its key
         hint: str | None = f"{'resume' if prog == 'drone-train' else 'checkpoint'}={word}"
     else:
@@ -64,14 +63,77 @@ def _not_an_override(prog: str, word: str) -> str:
     return f"{word!r} is not KEY=VALUE; " + (f"did you mean {hint}?" if hint else f"see {prog} --help")
 
 
-def check_flags(prog: str) -> argparse.Namespace:
-    """:func:`parse_flags` on ``sys.argv``; exits with ``<prog>: error: <message>`` on a bad flag."""
+# Each command's config in conf/.
+CONFIGS = {"drone-train": "config", "drone-eval": "eval", "drone-export": "export"}
+
+
+def check(prog: str) -> list[Path]:
+    """Check ``sys.argv`` for ``prog`` (drone-train, drone-eval, drone-export); returns the folders claimed.
+
+    In the order the errors are reported: drone-train's old keys (each with a note naming today's,
+    :func:`~drone_torchrl.migrations.legacy_arguments`), the flags and bare words
+    (:func:`parse_flags`), the overrides (:func:`~drone_torchrl.config.check_overrides`, skipped when
+    the command line picks another config, whose keys ``conf/`` does not describe) and the folder
+    Hydra writes first; then drone-train's own: missing extras, ``-m`` with ``--cfg``, the launcher's
+    keys, a sweep's or a single run's checks, and the claim of the run folder. Exits with
+    ``<prog>: error: <message>`` on a bad input.
+    """
     import sys
 
+    from hydra import compose, initialize_config_dir
+
+    trains = prog == "drone-train"
+    args = sys.argv[1:]
     try:
-        return parse_flags(prog, sys.argv[1:])
-    except ConfigError as err:
+        if trains:  # old keys (engine=, compile=, ...) work, passed on as +legacy.<key>
+            args, notes = migrations.legacy_arguments(args)
+            for note in notes:
+                print(f"{prog}: {note}", file=sys.stderr)
+            sys.argv[1:] = args
+    except ValueError as err:
         sys.exit(f"{prog}: error: {err}")
+    try:
+        flags = parse_flags(prog, args)
+        overrides = overrides_of(args)
+        # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.
+        implied = resumed_plugins(overrides) if trains and not flags.multirun else []
+        config.imply_choices(implied)
+        sys.argv.extend(implied)
+        own_config = flags.config_name is None and flags.config_dir is None
+        if own_config and flags.config_path is None:
+            config.check_overrides([*flags.overrides, *implied], CONFIGS[prog])
+        if trains:
+            check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
+        prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
+        if trains and flags.multirun and (flags.cfg or flags.info):  # Hydra: a ValueError traceback
+            flag = "--cfg" if flags.cfg else "--info"
+            raise ConfigError(
+                f"{flag} and -m are not allowed together: {flag} prints one job's config; drop -m and give "
+                "one value per key"
+            )
+        if not prints and own_config and prog != "drone-export":  # drone-export writes no folder of Hydra's
+            config.check_default_folder(CONFIGS[prog], args)
+        if not trains:
+            return []
+        if own_config:
+            check_launcher_keys(flags.overrides)
+        if flags.multirun:
+            if overrides.get("resume", "null") not in ("null", ""):
+                raise ConfigError(
+                    f"resume={overrides['resume']} continues one run and cannot be swept (-m); to continue a "
+                    "sweep, run the same sweep command again: its finished jobs are skipped and the others resume"
+                )
+            return []
+        check_single_run(flags.overrides, trains=not prints)
+        if flags.cfg in ("job", "all") and own_config:  # refused as when training, not printed as fine
+            with initialize_config_dir(config.config_dir(), version_base="1.3"):
+                cfg = compose("config", overrides=flags.overrides)
+            migrations.apply_legacy(cfg)
+            config.validate(cfg)
+        folder = None if prints else claim_run_folder(overrides)
+    except (ConfigError, StorageError) as err:
+        sys.exit(f"{prog}: error: {err}")
+    return [] if folder is None else [folder]
 
 
 def overrides_of(args: list[str]) -> dict[str, str]:
@@ -93,11 +155,10 @@ def check_extras(overrides: dict[str, str]) -> None:
     from hydra.errors import HydraException
 
     from drone_torchrl import loggers
-    from drone_torchrl.config import _option_plugins
 
     for option in _options("logger", overrides["logger"]) if "logger" in overrides else []:
         try:  # Hydra composes the option (its file names its backend, or inherits one)
-            needs = loggers.get(_option_plugins("config", (("logger", option),))["logger"]).needs
+            needs = loggers.get(config._option_plugins("config", (("logger", option),))["logger"]).needs
         except (HydraException, ConfigError):  # an option Hydra cannot compose: it says why, later
             continue
         extras.check(f"logger={option}", needs)
@@ -105,24 +166,9 @@ def check_extras(overrides: dict[str, str]) -> None:
 
 def _options(group: str, value: str) -> list[str]:
     """The options of ``group=value`` as Hydra reads them: one, or each of a sweep's."""
-    from drone_torchrl.config import _override_values
-
-    return [v for o in _parsed([f"{group}={value}"]) for v in _override_values(o) if isinstance(v, str)]
-
-
-def check_composed(overrides: list[str]) -> None:
-    """The config ``--cfg job`` would print, composed and validated.
-
-    A bad value is refused as it would be when training, not printed as if it were fine.
-    """
-    from hydra import compose, initialize_config_dir
-
-    from drone_torchrl.config import config_dir, validate
-
-    with initialize_config_dir(config_dir(), version_base="1.3"):
-        cfg = compose("config", overrides=overrides)
-    migrations.apply_legacy(cfg)
-    validate(cfg)
+    return [
+        v for o in _parsed([f"{group}={value}"]) for v in config._override_values(o) if isinstance(v, str)
+    ]
 
 
 _LAUNCHER_KEY = "hydra.launcher."
@@ -161,8 +207,6 @@ def check_launcher_keys(args: list[str]) -> None:
     from hydra.errors import HydraException
     from omegaconf import OmegaConf
 
-    from drone_torchrl.config import _composed
-
     parsed = _parsed(args)
     given = [o for o in parsed if o.key_or_group.startswith(_LAUNCHER_KEY)]
     if not given:
@@ -177,7 +221,9 @@ def check_launcher_keys(args: list[str]) -> None:
     options = [None] if launcher is None else _options("hydra/launcher", launcher.input_line.split("=", 1)[1])
     for option in options:
         try:  # the launcher these choices compose (the checks' compositions are cached)
-            cfg = _composed("config", (*choices, *([] if option is None else [f"hydra/launcher={option}"])))
+            cfg = config._composed(
+                "config", (*choices, *([] if option is None else [f"hydra/launcher={option}"]))
+            )
         except HydraException:  # Hydra's own message says why, later
             continue
         name = cfg.hydra.runtime.choices["hydra/launcher"]
@@ -193,18 +239,7 @@ def check_launcher_keys(args: list[str]) -> None:
 
 def _parsed(args: list[str]) -> list:
     """The command line's overrides, parsed by Hydra (those it cannot parse are refused elsewhere)."""
-    from drone_torchrl.config import parse_overrides
-
-    return parse_overrides([a for a in args if not a.startswith("-") and "=" in a], strict=False)
-
-
-def check_multirun(overrides: dict[str, str]) -> None:
-    """Refuse what cannot be swept (``-m``): ``resume=``, with a one-line :class:`~.checks.ConfigError`."""
-    if "resume" in overrides and overrides["resume"] not in ("null", ""):
-        raise ConfigError(
-            f"resume={overrides['resume']} continues one run and cannot be swept (-m); to continue a sweep, "
-            "run the same sweep command again: its finished jobs are skipped and the others resume"
-        )
+    return config.parse_overrides([a for a in args if not a.startswith("-") and "=" in a], strict=False)
 
 
 def resumed_plugins(overrides: dict[str, str]) -> list[str]:
@@ -217,25 +252,17 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
     may pick plug-ins themselves.
     """
     from drone_torchrl import schema
-    from drone_torchrl.config import (
-        PRESET_GROUP,
-        _option_plugins,
-        group_names,
-        options_by_plugin,
-        run_config,
-        schema_keys,
-    )
 
     resume = overrides.get("resume")
     if resume in (None, "", "null") or "${" in resume:
         return []
     # Only where they matter (a checkpoint may be GBs): a plug-in's key the default plug-in lacks,
     # or a group choice (the keys it sets are told from the config composed with the run's plug-ins).
-    defaults = _option_plugins("config", ())
-    known = schema_keys("config", **defaults)
+    defaults = config._option_plugins("config", ())
+    known = config.schema_keys("config", **defaults)
     plugin_groups = schema.plugin_groups("config")
-    chosen = {key for key in overrides if key in group_names()}
-    if PRESET_GROUP in chosen or not any(
+    chosen = {key for key in overrides if key in config.group_names()}
+    if config.PRESET_GROUP in chosen or not any(
         key in chosen or (key.split(".")[0] in plugin_groups and key not in known) for key in overrides
     ):
         return []
@@ -245,13 +272,13 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
         return []
     if not isinstance(state, dict) or not isinstance(state.get("config"), dict):
         return []
-    saved = run_config(state["config"])
+    saved = config.run_config(state["config"])
     out = []
     for group, rule in plugin_groups.items():
         plugin = dotted(saved, f"{group}.{rule.plugin_key}")
         if group in chosen or plugin == defaults.get(group):
             continue
-        options = options_by_plugin(group).get(plugin, [])  # composes each option of the group
+        options = config.options_by_plugin(group).get(plugin, [])  # composes each option of the group
         if options:
             out.append(f"{group}={plugin if plugin in options else options[0]}")
     return out

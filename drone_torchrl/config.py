@@ -193,13 +193,12 @@ def implied_choices() -> tuple[str, ...]:
     return tuple(_implied)
 
 
-def _options(group: str) -> list[str]:
+def group_options(group: str) -> list[str]:
+    """The options of config group ``group`` (``algo`` -> ``["a2c", "ppo", ...]``: its YAML files), sorted."""
     return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
 
 
-def group_options(group: str) -> list[str]:
-    """The options of config group ``group`` (``algo`` -> ``["a2c", "ppo", ...]``: its YAML files), sorted."""
-    return _options(group)
+_options = group_options
 
 
 def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
@@ -647,23 +646,6 @@ def check_default_folder(name: str, args: Iterable[str]) -> None:
         return  # checked with the other overrides
     node = OmegaConf.to_container(OmegaConf.load(Path(config_dir()) / f"{name}.yaml"), resolve=False)
     _check_folder(key, dotted(node, key))
-
-
-def check_command_line(prog: str, name: str) -> None:
-    """:func:`check_overrides` on ``sys.argv``; exits with ``<prog>: error: <message>`` on a bad one.
-
-    Skipped when the command line picks another config (``--config-name``/``--config-dir``...),
-    whose keys the ``conf/`` files do not describe.
-    """
-    import sys
-
-    args = sys.argv[1:]
-    if any(a.startswith(("--config", "-cn", "-cp", "-cd")) for a in args):
-        return
-    try:
-        check_overrides([a for a in args if not a.startswith("-") and ("=" in a or a.startswith("~"))], name)
-    except ConfigError as err:
-        sys.exit(f"{prog}: error: {err}")
 
 
 def run_config(saved: dict[str, Any]) -> DictConfig:

@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 
 from drone_torchrl import command_line
 from drone_torchrl.apps.help import answer_help
-from drone_torchrl.config import ConfigError, check_command_line, check_default_folder, config_dir
+from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
 from drone_torchrl.io.streams import guard_broken_pipes
@@ -43,15 +43,7 @@ def run() -> None:
     """
     guard_broken_pipes()
     answer_help("drone-eval")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
-    flags = command_line.check_flags("drone-eval")
-    check_command_line("drone-eval", "eval")
-    if not (
-        flags.cfg or flags.info or flags.help or flags.hydra_help or flags.config_name or flags.config_dir
-    ):
-        try:
-            check_default_folder("eval", sys.argv[1:])
-        except ConfigError as err:
-            sys.exit(f"drone-eval: error: {err}")
+    command_line.check("drone-eval")
     main()
 
 

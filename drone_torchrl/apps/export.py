@@ -23,7 +23,7 @@ from omegaconf import DictConfig
 
 from drone_torchrl import command_line
 from drone_torchrl.apps.help import answer_help
-from drone_torchrl.config import ConfigError, check_command_line, config_dir
+from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.io.storage import StorageError
 from drone_torchrl.io.streams import guard_broken_pipes
 from drone_torchrl.training.signals import Interrupted, interrupt_on_signals
@@ -60,8 +60,7 @@ def run() -> None:
     """Console entry point: checks the command line's keys, then runs the Hydra app."""
     guard_broken_pipes()
     answer_help("drone-export")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
-    command_line.check_flags("drone-export")
-    check_command_line("drone-export", "export")
+    command_line.check("drone-export")
     main()
 
 

@@ -17,15 +17,9 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
-from drone_torchrl import migrations
+from drone_torchrl import command_line
 from drone_torchrl.apps.help import answer_help
-from drone_torchrl.config import (
-    ConfigError,
-    check_command_line,
-    check_default_folder,
-    config_dir,
-    imply_choices,
-)
+from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
@@ -93,56 +87,6 @@ def _stopped(stop: TrainingStopped) -> None:
     sys.exit(stop.exit_code)
 
 
-def _before_hydra() -> list[Path]:
-    """Run the command line's one-line checks and claim the run folder before Hydra writes into it.
-
-    The checks are :mod:`drone_torchrl.command_line`'s; returns the folders claimed. Exits with the
-    message on a bad input.
-    """
-    from drone_torchrl import command_line
-
-    try:
-        # Old keys (engine=, compile=, ...) work, each with a note naming today's (drone_torchrl.migrations).
-        args, notes = migrations.legacy_arguments(sys.argv[1:])
-    except ValueError as err:
-        sys.exit(f"drone-train: error: {err}")
-    for note in notes:
-        print(f"drone-train: {note}", file=sys.stderr)
-    sys.argv[1:] = args
-    try:
-        flags = command_line.parse_flags("drone-train", args)
-        overrides = command_line.overrides_of(args)
-        # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.
-        implied = [] if flags.multirun else command_line.resumed_plugins(overrides)
-        imply_choices(implied)
-        sys.argv.extend(implied)
-        check_command_line("drone-train", "config")
-        command_line.check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
-        prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
-        if flags.multirun and (flags.cfg or flags.info):  # Hydra: a ValueError traceback
-            flag = "--cfg" if flags.cfg else "--info"
-            raise ConfigError(
-                f"{flag} and -m are not allowed together: {flag} prints one job's config; drop -m and give "
-                "one value per key"
-            )
-        if not prints and flags.config_name is None and flags.config_dir is None:
-            check_default_folder("config", args)
-        if flags.config_name is None and flags.config_dir is None:
-            command_line.check_launcher_keys(flags.overrides)
-        if flags.multirun:
-            command_line.check_multirun(overrides)
-            return []
-        command_line.check_single_run(flags.overrides, trains=not prints)
-        if flags.cfg in ("job", "all") and flags.config_name is None and flags.config_dir is None:
-            command_line.check_composed([a for a in flags.overrides])
-        if prints:
-            return []
-        folder = command_line.claim_run_folder(overrides)
-    except (ConfigError, StorageError) as err:
-        sys.exit(f"drone-train: error: {err}")
-    return [] if folder is None else [folder]
-
-
 def register_plugins() -> None:
     """Register our Hydra launchers and sweeper with Hydra.
 
@@ -166,7 +110,7 @@ def run() -> None:
     keep_run_logs()  # each run's lines in its train.log, whichever launcher trains it
     answer_help("drone-train")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
     register_plugins()
-    claimed = _before_hydra()
+    claimed = command_line.check("drone-train")  # before Hydra writes anything
     try:
         main()
     except KeyboardInterrupt:  # before Hydra started the run (main() handles it once training runs)
