@@ -146,14 +146,29 @@ class Rule:
         return field(default=MISSING, metadata={RULE: self})
 
 
-def _maker(kind: str) -> Callable[..., Any]:
-    """A field maker: a config field holding a ``kind`` value, checked by a :class:`Rule` with its arguments."""
-    return lambda **rule: Rule(kind, **rule).field()
+def _maker(kind: str, name: str) -> Callable[..., Any]:
+    """A field maker named ``name``: a config field holding a ``kind`` value, checked by a :class:`Rule`."""
+
+    def maker(**rule: Any) -> Any:
+        return Rule(kind, **rule).field()
+
+    maker.__name__ = maker.__qualname__ = name  # the API docs list it under its own name
+    maker.__doc__ = f"A config field holding a {kind} value, checked by a :class:`Rule` of these arguments."
+    return maker
 
 
 # Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``. ``free``: a
 # key the code checks itself (the env's arguments, paths, folder names, devices).
-a_number, an_integer, a_flag, a_text, free = map(_maker, ("number", "integer", "flag", "text", "free"))
+a_number, an_integer, a_flag, a_text, free = (
+    _maker(kind, name)
+    for kind, name in (
+        ("number", "a_number"),
+        ("integer", "an_integer"),
+        ("flag", "a_flag"),
+        ("text", "a_text"),
+        ("free", "free"),
+    )
+)
 
 
 def one_of(choices: tuple, **rule: Any) -> Any:

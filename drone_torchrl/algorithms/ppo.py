@@ -129,7 +129,7 @@ class OneRun(Learner):
         return state, one_agent_output(metrics, episodes, self.checks, active)
 
     def learn(self, batch: TensorDictBase) -> dict[str, float]:
-        """Learn from one batch; what to book of it, each of :attr:`checks`."""
+        """Learn from one batch; what to book of it, each of ``checks``."""
         raise NotImplementedError
 
     def actor(self, agent: int):
@@ -366,7 +366,7 @@ class OnPolicy(OneRun):
         return means
 
     def learn(self, batch: TensorDictBase) -> dict[str, float]:
-        """:meth:`_learn` at the episodes trained so far."""
+        """``_learn`` at the episodes trained so far."""
         return self._learn(batch, self.episodes_done)
 
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:

@@ -31,7 +31,7 @@ class Reinforce(Learner):
     """REINFORCE as the training loop drives it: a group of jobs trained as one population.
 
     The group is the jobs of one :func:`~drone_torchrl.training.jobs.group_key`, on either backend;
-    :attr:`state` is the population's, :meth:`eval_policy` flies all :attr:`eval_agents` at once.
+    ``state`` is the population's, :meth:`eval_policy` flies all ``eval_agents`` at once.
     """
 
     # Why an agent stops (UpdateOutput's checks, in order) and what to do about it.

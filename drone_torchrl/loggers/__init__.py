@@ -59,7 +59,7 @@ class Logger(Protocol):
     scalars: list[tuple[str, float, int]]  # what log_scalars buffered, for flush; the backend makes it
 
     def log_scalars(self, scalars: Iterable[tuple[str, float, int]]) -> None:
-        """``(tag, value, step)`` triples, as many as come (kept in :attr:`scalars` until :meth:`flush`)."""
+        """``(tag, value, step)`` triples, as many as come (kept in ``scalars`` until :meth:`flush`)."""
         self.scalars.extend(scalars)
 
     def log_metrics(self, metrics: dict[str, float], step: int) -> None:

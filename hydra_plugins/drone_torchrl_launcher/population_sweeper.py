@@ -117,7 +117,7 @@ class PopulationSweeper(Sweeper):
         the range with a generator keyed by the job's ``seed`` (the config's where the job sets
         none). A range is refused in one line unless the launcher is ``pbt`` and searches the key.
         Every batch is then checked before the basic sweeper writes the sweep folder (its
-        ``multirun.yaml``): each job's values (:meth:`_check_batch`), then what the launcher refuses
+        ``multirun.yaml``): each job's values (``_check_batch``), then what the launcher refuses
         of the batch (a population launcher's :meth:`~.population_launcher.PopulationLauncher.check`):
         a refused command writes nothing. Exits with one line.
         """
