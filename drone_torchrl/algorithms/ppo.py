@@ -245,7 +245,7 @@ class OnPolicy(OneRun):
             self._load_best_state(checkpoint)
             self._restore(checkpoint)
             self.restore_rng(checkpoint["rng"])
-            if self.fused:  # a checkpoint written before 2026-12-07 keeps no drones: they start afresh
+            if self.fused:  # an older checkpoint keeps no drones: they start afresh
                 self.restore_drones(checkpoint.get("drones"))
         if not self.fused:  # made after the checkpoint: it resets the env from the restored generator
             self.collector = Collector(
