@@ -33,18 +33,18 @@ def test_the_table_has_a_row_per_registered_plugin_and_every_option():
 
 def test_the_algorithms_benchmark_takes_every_algorithm_option(monkeypatch):
     """benchmarks/algorithms.py had its own list of four: an algorithm added as a module and a YAML
-    (here a stand-in option ``sac``) is now benchmarked without an edit there."""
+    (here a stand-in option ``a3c``) is now benchmarked without an edit there."""
     import importlib.util
 
     from drone_torchrl import config
 
+    real = config.group_options
+    monkeypatch.setattr(
+        config, "group_options", lambda group: [*real(group), *(["a3c"] if group == "algo" else [])]
+    )
     path = ROOT / "benchmarks" / "algorithms.py"
     spec = importlib.util.spec_from_file_location("algorithms_benchmark", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    real = config._options
-    monkeypatch.setattr(
-        config, "_options", lambda group: [*real(group), *(["sac"] if group == "algo" else [])]
-    )
-    assert module.parse_args([]).algos == [*real("algo"), "sac"]
+    assert module.parse_args([]).algos == [*real("algo"), "a3c"]
     assert module.parse_args(["--algos", "sac"]).algos == ["sac"]
