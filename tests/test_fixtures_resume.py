@@ -13,7 +13,6 @@ import csv
 import shutil
 from pathlib import Path
 
-import pyarrow.parquet as pq
 import pytest
 
 from drone_torchrl.apps import train as train_app
@@ -115,6 +114,7 @@ def test_a_stopped_fused_sweep_resumes_to_the_uninterrupted_episodes(runs, drone
 
 @pytest.mark.parametrize("name", ["population", "pbt", "halving"])
 def test_a_stopped_population_resumes_to_the_uninterrupted_episodes(runs, drone_train, name):
+    pq = pytest.importorskip("pyarrow.parquet", reason="a population's record needs the population extra")
     run = runs / name / "population_0"
     before = pq.read_table(run / "episodes").num_rows
     expected = _expected(name)
