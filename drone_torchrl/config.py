@@ -198,9 +198,6 @@ def group_options(group: str) -> list[str]:
     return sorted(p.stem for p in (Path(config_dir()) / group).glob("*.yaml"))
 
 
-_options = group_options
-
-
 def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
     """The plug-in each option of plug-in group ``group`` chooses, with the options that choose it.
 
@@ -208,7 +205,7 @@ def options_by_plugin(group: str, name: str = "config") -> dict[str, list[str]]:
     is left out.
     """
     out: dict[str, list[str]] = {}
-    for option in _options(group):
+    for option in group_options(group):
         try:
             plugin = _option_plugins(name, ((group, option),))[group]
         except Exception:  # noqa: BLE001  (a broken option file: Hydra says why when it is used)
@@ -393,8 +390,10 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             # The plug-in comes with its keys, so it is chosen with its group, which sets the key;
             # setting the key alone leaves the other plug-in's keys.
             value = _override_values(override)[0]
-            options = [o for o in _options(group) if _option_plugins(name, ((group, o),)).get(group) == value]
-            how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {_options(group)}"
+            options = [
+                o for o in group_options(group) if _option_plugins(name, ((group, o),)).get(group) == value
+            ]
+            how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {group_options(group)}"
             raise ConfigError(
                 f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, "
                 f"with its plug-in's keys); choose it with {how}"
@@ -413,7 +412,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
             if key in groups and any(k.startswith(f"{key}.") or f".{key}." in k for k in known):
                 raise ConfigError(
                     f"{key} cannot be deleted (~{key}): its keys need values; choose another option: "
-                    f"{key}=<one of {_options(key)}>"
+                    f"{key}=<one of {group_options(key)}>"
                 )
             continue
         values = _override_values(override)
@@ -434,7 +433,7 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                     _check_folder_name(key, value, "a folder name (no '/' or '..'), e.g. lr")
             continue
         if key in groups:
-            options = _options(key)
+            options = group_options(key)
             for value in values:
                 if value not in options:
                     raise ConfigError.of(key, value, f"one of {options}")
@@ -498,7 +497,9 @@ def _check_section(key: str, value: Any, known: Mapping[str, Rule], groups: list
         return
     first = next(k for k in known if k.startswith(f"{key}."))
     group = key.split(".")[-1]
-    preset = f", or a preset: {group}=<one of {_options(group)}>" if group in groups and group != key else ""
+    preset = (
+        f", or a preset: {group}=<one of {group_options(group)}>" if group in groups and group != key else ""
+    )
     raise ConfigError.of(key, value, f"its keys set one by one (e.g. {first}=...){preset}")
 
 
@@ -526,7 +527,7 @@ def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
     for override in parsed:
         group = override.key_or_group
         if group in groups and not override.is_delete():
-            options = [v for v in _override_values(override) if v in _options(group)]
+            options = [v for v in _override_values(override) if v in group_options(group)]
             picks[group] = options or picks.get(group, [])
     known: dict[str, Rule] | None = None
     for combination in itertools.product(*([(g, o) for o in opts] for g, opts in picks.items() if opts)):
@@ -544,7 +545,7 @@ def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
                 continue
             # The presets it builds on: the options of its own group in its defaults list.
             defaults = OmegaConf.load(Path(config_dir()) / PRESET_GROUP / f"{preset}.yaml").get("defaults")
-            bases = [d for d in defaults or [] if isinstance(d, str) and d in _options(PRESET_GROUP)]
+            bases = [d for d in defaults or [] if isinstance(d, str) and d in group_options(PRESET_GROUP)]
             way = (
                 f"{PRESET_GROUP}={bases[0]} {group}={mine}"
                 if bases

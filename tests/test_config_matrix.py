@@ -23,9 +23,9 @@ from drone_torchrl import loggers
 from drone_torchrl.config import (
     ConfigError,
     _option_plugins,
-    _options,
     check_overrides,
     config_dir,
+    group_options,
     preset_notes,
     schema_keys,
     validate,
@@ -98,7 +98,7 @@ def _expected(experiment: str, algo: str, logger: str, disturbance: str) -> str:
 
 
 def _combinations() -> list[tuple[str, ...]]:
-    return list(itertools.product(*(_options(group) for group in GROUPS)))
+    return list(itertools.product(*(group_options(group) for group in GROUPS)))
 
 
 def _compose(combination: tuple[str, ...], *extra: str) -> dict[str, str]:
@@ -114,7 +114,7 @@ def _compose(combination: tuple[str, ...], *extra: str) -> dict[str, str]:
 def test_the_table_covers_every_combination():
     table = {(experiment, algo, disturbance) for experiment, algo, _, disturbance in _combinations()}
     assert set(_table()) == table, "MATRIX needs a row for each experiment and algo option (and only those)"
-    assert set(DISTURBANCES) == set(_options("disturbance"))
+    assert set(DISTURBANCES) == set(group_options("disturbance"))
 
 
 @pytest.mark.slow  # 300 compositions, about 50 s on 2 cores: with the matrix's training below

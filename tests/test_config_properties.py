@@ -25,7 +25,7 @@ from omegaconf.errors import GrammarParseError
 
 from drone_torchrl import loggers, memory_estimate
 from drone_torchrl.checks import FLOAT32_MAX, INT64_MAX, ConfigError
-from drone_torchrl.config import _every_key, _option_plugins, _options, config_dir, schema_keys, validate
+from drone_torchrl.config import _every_key, _option_plugins, config_dir, group_options, schema_keys, validate
 from drone_torchrl.envs import disturbances, dynamics, params
 from drone_torchrl.kernels import ops
 from drone_torchrl.schema import Rule
@@ -42,7 +42,7 @@ def _base(key: str):
         return _composed(KEY_NEEDS[key])
     if group not in ("algo", "logger") or key in schema_keys("config"):
         return _composed(())
-    for option in _options(group):
+    for option in group_options(group):
         if key in schema_keys("config", **_option_plugins("config", ((group, option),))):
             return _composed((*OPTION_NEEDS.get(f"{group}={option}", ()), f"{group}={option}"))
     raise AssertionError(f"no {group} option has {key}")

@@ -84,9 +84,9 @@ def test_paper_code_preset_with_any_algorithm(algo):
     when the run starts. SAC needs bounded thrust (the TanhNormal head), which the public code's
     unbounded drone does not have: refused in one line naming what to type. The options tried are
     every conf/algo option (asserted below)."""
-    from drone_torchrl.config import _options, preset_notes
+    from drone_torchrl.config import group_options, preset_notes
 
-    assert sorted(_options("algo")) == ["a2c", "ppo", "reinforce", "reinforce_plus", "sac"]
+    assert sorted(group_options("algo")) == ["a2c", "ppo", "reinforce", "reinforce_plus", "sac"]
     with initialize_config_dir(config_dir(), version_base="1.3"):
         cfg = compose("config", ["experiment=paper_code", f"algo={algo}"], return_hydra_config=True)
         alone = compose("config", [f"algo={algo}"])
