@@ -35,6 +35,7 @@ update, and the data is in the checkpoint: a killed and resumed run takes the sa
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 from collections.abc import Mapping, Sequence
@@ -44,7 +45,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 
-from drone_torchrl.training.pbt import PBT, Exploit, PBTSettings
+from drone_torchrl.training.pbt import PBT, Exploit, PBTSettings, Table
 
 #: The grid of the model's length scale (in positions in [0, 1]).
 LENGTH_SCALES = (0.05, 0.1, 0.2, 0.5, 1.0, 2.0)
@@ -91,24 +92,22 @@ class PB2(PBT):
     def __init__(
         self,
         settings: PB2Settings,
-        space: Mapping[str, Sequence[float]],
-        bounds: Mapping[str, tuple[float, float]],
+        space: Table,
+        bounds: Mapping,
         seed: int,
-        lineage: Mapping[str, list] | None = None,
-        data: Mapping[str, list] | None = None,
+        lineage: Table | None = None,
+        data: Mapping | None = None,
     ) -> None:
         super().__init__(settings, space, bounds, seed, lineage)
-        saved = dict(data or {})
-        self.steps: list[int] = list(saved.get("steps", []))
-        self.points: list[list[float]] = [list(p) for p in saved.get("points", [])]
-        self.changes: list[float] = list(saved.get("changes", []))
-        # Each agent's running-mean return just after the last step (None before the first).
-        self.before: list[float] | None = saved.get("before")
+        # The model's points (each step, positions and return change) and each agent's running-mean
+        # return just after the last step (None before the first).
+        self.data: dict[str, Any] = copy.deepcopy(
+            {"steps": [], "points": [], "changes": [], "before": None, **(data or {})}
+        )
 
     def checkpoint(self) -> dict[str, Any]:
         """PBT's record and the model's data."""
-        data = {"steps": self.steps, "points": self.points, "changes": self.changes, "before": self.before}
-        return {**super().checkpoint(), "data": data}
+        return {**super().checkpoint(), "data": self.data}
 
     def position(self, key: str, value: float) -> float:
         """``value``'s place in ``key``'s searched space, in [0, 1]."""
@@ -116,8 +115,7 @@ class PB2(PBT):
             scale = math.log if span.log else float
             return (scale(value) - scale(span.low)) / (scale(span.high) - scale(span.low))
         space = self.space[key]
-        place = int(np.abs(np.array(space) - value).argmin())
-        return place / (len(space) - 1) if len(space) > 1 else 0.5
+        return int(np.abs(np.array(space) - value).argmin()) / (len(space) - 1) if len(space) > 1 else 0.5
 
     def value(self, key: str, position: float) -> float:
         """The value at ``position`` of ``key``'s searched space (a list key: a value of the list)."""
@@ -141,30 +139,31 @@ class PB2(PBT):
 
     def observe(self, scores: Sequence[float], alive: Sequence[bool], step: int) -> None:
         """Add each taking-part agent's point of the interval that ends at ``step``."""
-        before = self.before if self.before is not None else [0.0] * len(scores)
-        finite = [alive[i] and before[i] is not None and math.isfinite(before[i]) for i in range(len(scores))]
-        rows = [i for i in range(len(scores)) if finite[i] and math.isfinite(scores[i])]
-        if not rows:
-            return
-        changes = np.array([scores[i] - before[i] for i in rows])
-        for i, change in zip(rows, (changes - changes.mean()).tolist(), strict=True):
-            self.steps.append(step)
-            self.points.append([self.position(key, self.current[key][i]) for key in self.settings.keys])
-            self.changes.append(change)
+        data, before = self.data, self.data["before"] or [0.0] * len(scores)
+        rows = [
+            i
+            for i in range(len(scores))
+            if alive[i] and before[i] is not None and math.isfinite(before[i]) and math.isfinite(scores[i])
+        ]
+        if rows:
+            changes = np.array([scores[i] - before[i] for i in rows])
+            data["steps"] += [step] * len(rows)
+            data["points"] += [
+                [self.position(key, self.current[key][i]) for key in self.settings.keys] for i in rows
+            ]
+            data["changes"] += (changes - changes.mean()).tolist()
 
     def choose(self, step: Exploit) -> dict[str, np.ndarray]:
         """Each replaced agent's next values: the candidate of the highest upper confidence bound."""
-        worst, scores = step.worst, step.scores
+        worst, scores, alive = step.worst, step.scores, step.alive
         number = step.update // self.settings.every_updates
-        self.observe(scores, step.alive, number)
+        self.observe(scores, alive, number)
         after = [float(s) if math.isfinite(s) else math.nan for s in scores]
         for agent, parent in zip(worst.tolist(), step.parents.tolist(), strict=True):
             after[agent] = after[parent]  # the copied window: the agent goes on from its parent's return
-        self.before = after
+        self.data["before"] = after
         keys = self.settings.keys
-        kept = [
-            i for i in range(len(scores)) if step.alive[i] and i not in worst and math.isfinite(scores[i])
-        ]
+        kept = [i for i in range(len(scores)) if alive[i] and i not in worst and math.isfinite(scores[i])]
         pending = [[self.position(k, self.current[k][i]) for k in keys] for i in kept]
         threads = torch.get_num_threads()
         # Matrices of a few hundred rows: one thread is fastest, and several beside a busy
@@ -172,7 +171,7 @@ class PB2(PBT):
         torch.set_num_threads(1)
         try:
             model = Model.fit(
-                np.array(self.steps, dtype=np.float64), np.array(self.points), np.array(self.changes)
+                *(np.array(self.data[k], dtype=np.float64) for k in ("steps", "points", "changes"))
             )
             options = self.candidates(step.rng)
             chosen = []

@@ -30,10 +30,11 @@ not searched), kept in the checkpoint and written to ``lineage.parquet``
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import sys
 import zlib
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar, NamedTuple
@@ -59,6 +60,10 @@ LINEAGE_COLUMNS = ("update", "agent", "parent", "seed")
 FRESH = -1
 #: The ``(agent, parent)`` pairs of a search step.
 Pairs = list[tuple[int, int]]
+#: Columns of values: a lineage (column -> one value per row), or the sweep's (key -> one per agent).
+Table = Mapping[str, Sequence[Any]]
+#: A launcher key's rule: whether a value is allowed, what is expected instead, and the value kept.
+Rule = tuple[Callable[[Any], bool], str, Callable[[Any], Any]]
 
 
 @dataclass(frozen=True)
@@ -93,8 +98,48 @@ class Range:
         return [float(self.draw(np.random.default_rng([int(seed), tag]), 1)[0]) for seed in seeds]
 
 
+class _Settings:
+    """What the settings of every search do: read from the launcher's keys, checked, and recorded."""
+
+    #: The search's name in a checkpoint.
+    launcher: ClassVar[str]
+    #: The settings the search does not use (left out of its record).
+    unused: ClassVar[tuple[str, ...]] = ()
+    #: Each ``hydra.launcher`` key but ``keys``, in the order they are checked -> its :data:`Rule`
+    #: (a key kept as an ``int`` or a ``float`` must be a number).
+    rules: ClassVar[dict[str, Rule]] = {}
+    #: The search, as the refusal of a key it cannot search names it.
+    title: ClassVar[str]
+
+    @classmethod
+    def of(cls, params: Mapping[str, Any]) -> Any:
+        """The settings from the launcher's parameters, each checked.
+
+        :class:`~.checks.ConfigError` (one line, naming ``hydra.launcher.<key>``) for the first that is not
+        allowed.
+        """
+        values = {}
+        for key, (ok, expected, kept) in cls.rules.items():
+            value = params.get(key, getattr(cls, key))
+            if not ((is_number(value) or kept not in (int, float)) and ok(value)):
+                raise ConfigError.of(f"hydra.launcher.{key}", value, expected)
+            values[key] = kept(value)
+        return cls(**values, keys=_searched_keys(params.get("keys", cls.keys), cls.title))  # type: ignore[call-arg]
+
+    def record(self) -> dict[str, Any]:
+        """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
+        # A list-only search records no ranges: its record is the one runs made before ranges existed.
+        unused = {*self.unused, *(() if getattr(self, "ranges", ()) else ("ranges",))}
+        return {k: v for k, v in {"launcher": self.launcher, **asdict(self)}.items() if k not in unused}  # type: ignore[call-overload]
+
+
+def _updates(cfg: Any) -> int:
+    """The budget's updates: ``algo.episodes / algo.episodes_per_update``."""
+    return int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
+
+
 @dataclass(frozen=True)
-class PBTSettings:
+class PBTSettings(_Settings):
     """``hydra/launcher=pbt``'s settings (``hydra.launcher.<field>``).
 
     Attributes:
@@ -114,48 +159,30 @@ class PBTSettings:
     resample_probability: float = 0.25
     keys: tuple[str, ...] = field(default=("algo.lr", "algo.gamma"))
     ranges: tuple[Range, ...] = ()
-    #: The search's name in a checkpoint, and the settings it does not use (left out of its record).
     launcher: ClassVar[str] = "pbt"
-    unused: ClassVar[tuple[str, ...]] = ()
-
-    @classmethod
-    def of(cls, params: Mapping[str, Any]) -> PBTSettings:
-        """The settings from the launcher's parameters, each checked.
-
-        :class:`~.checks.ConfigError` (one line, naming ``hydra.launcher.<key>``) for the first that is not
-        allowed.
-        """
-        param = functools.partial(_param, params, cls)
-        every = param("every_updates", lambda v: isinstance(v, int) and v >= 1, "an integer >= 1")
-        quantile = param("quantile", lambda v: 0 < v <= MAX_QUANTILE, f"a number in (0, {MAX_QUANTILE}]")
+    title: ClassVar[str] = "PBT"
+    rules: ClassVar[dict[str, Rule]] = {
+        "every_updates": (lambda v: isinstance(v, int) and v >= 1, "an integer >= 1", int),
+        "quantile": (lambda v: 0 < v <= MAX_QUANTILE, f"a number in (0, {MAX_QUANTILE}]", float),
         # A factor past MAX_FACTOR (or below its inverse) sends any value to its range's end in one
         # step: a resample, not a perturbation (and inf or nan would be clipped into a value no agent had).
-        factors = f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]"
-        perturb = param("perturb", _factors, factors, number=False)
-        resample = param("resample_probability", lambda v: 0 <= v <= 1, "a number in [0, 1]")
-        keys = _searched_keys(params.get("keys", cls.keys), "PBT")
-        return cls(
-            int(every), float(quantile), tuple(float(f) for f in perturb), float(resample), tuple(keys)
-        )
-
-    def record(self) -> dict[str, Any]:
-        """The settings as the checkpoint keeps them (a resumed run must ask for the same)."""
-        # A list-only search records no ranges: its record is the one runs made before ranges existed.
-        unused = {*self.unused, *(() if self.ranges else ("ranges",))}
-        return {k: v for k, v in {"launcher": self.launcher, **asdict(self)}.items() if k not in unused}
+        "perturb": (
+            lambda v: _list(v) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in v),
+            f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]",
+            lambda v: tuple(float(f) for f in v),
+        ),
+        "resample_probability": (lambda v: 0 <= v <= 1, "a number in [0, 1]", float),
+    }
 
     def check(self, cfg: Any, agents: int) -> None:
         """A step inside the budget (``algo.episodes / algo.episodes_per_update`` updates).
 
         And a population of ``agents`` large enough that the quantile is at least one agent.
         """
-        updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
-        if self.every_updates >= updates:
+        if self.every_updates >= (updates := _updates(cfg)):
             expected = f"fewer than the budget's {updates} updates"
             raise ConfigError.of("hydra.launcher.every_updates", self.every_updates, expected)
-        _check_share(
-            "hydra.launcher.quantile", self.quantile, agents, "replaced: no exploit step, an empty lineage"
-        )
+        _check_share("quantile", self.quantile, agents, "replaced: no exploit step, an empty lineage")
 
     def bounds(self, cfg: Any) -> dict[str, tuple[float, float]]:
         """Each searched key's ``(low, high)``: the values its rule allows under ``cfg``'s algorithm.
@@ -203,10 +230,28 @@ def recorded_keys(initial: Mapping[str, Any]) -> tuple[str, ...]:
     return tuple(key for key in STATE_KEYS if key in initial)
 
 
+def _walk(
+    lineage: Table | None, initial: Table, keys: Sequence[str]
+) -> tuple[dict[str, list], dict[str, list]]:
+    """The lineage with a column for each of ``keys``, and each agent's values of them at its end (floats).
+
+    A missing column's value is the one the agent's row held from that row on (:func:`complete_lineage`).
+    """
+    out = {column: list(values) for column, values in (lineage or {}).items()}
+    out.update({column: out.get(column, []) for column in LINEAGE_COLUMNS})
+    missing = [key for key in keys if key not in out]
+    now = {key: [float(v) for v in initial[key]] for key in keys}
+    out.update({key: [] for key in missing})
+    for row, (agent, parent) in enumerate(zip(out["agent"], out["parent"], strict=True)):
+        for key in missing:
+            out[key].append(now[key][agent if parent == FRESH else parent])
+        for key in keys:
+            now[key][agent] = float(out[key][row])
+    return out, now
+
+
 def complete_lineage(
-    lineage: Mapping[str, list] | None,
-    initial: Mapping[str, Sequence[float]],
-    keys: Sequence[str] | None = None,
+    lineage: Table | None, initial: Table, keys: Sequence[str] | None = None
 ) -> dict[str, list]:
     """The lineage with a column for each of ``keys`` (default: :func:`recorded_keys` of ``initial``).
 
@@ -215,26 +260,10 @@ def complete_lineage(
     exploit copies the parent's whole row; a replay's parent is the agent itself), or the agent's
     own for a restart from fresh weights (:data:`FRESH`: the slot keeps the keys not drawn).
     """
-    keys = recorded_keys(initial) if keys is None else tuple(keys)
-    out = {column: list(values) for column, values in (lineage or {}).items()}
-    out.update({column: out.get(column, []) for column in LINEAGE_COLUMNS})
-    missing = [key for key in keys if key not in out]
-    now = {key: [float(v) for v in initial[key]] for key in keys}
-    out.update({key: [] for key in missing})
-    for row, (agent, parent) in enumerate(zip(out["agent"], out["parent"], strict=True)):
-        source = agent if parent == FRESH else parent
-        for key in missing:
-            out[key].append(now[key][source])
-        for key in keys:
-            now[key][agent] = float(out[key][row])
-    return out
+    return _walk(lineage, initial, recorded_keys(initial) if keys is None else tuple(keys))[0]
 
 
-def final_values(
-    lineage: Mapping[str, list] | None,
-    initial: Mapping[str, Sequence[Any]],
-    keys: Sequence[str] | None = None,
-) -> dict[str, list]:
+def final_values(lineage: Table | None, initial: Table, keys: Sequence[str] | None = None) -> dict[str, list]:
     """Each agent's values at the end of ``lineage``: ``initial``'s, then each lineage row's.
 
     ``keys`` default to :func:`recorded_keys` of ``initial``, and ``seed`` where ``initial`` has it
@@ -250,7 +279,7 @@ def final_values(
 
 
 class Search:
-    """What PBT and its replay share: the lineage and each agent's values now.
+    """What every search shares: the lineage, each agent's values now, and the step that books them.
 
     The lineage records every key of :data:`STATE_KEYS` that ``initial`` names, searched or not:
     an exploit copies the parent's whole row, so a key not searched changes too.
@@ -264,18 +293,14 @@ class Search:
 
     settings: Any
 
-    def __init__(
-        self, keys: Sequence[str], initial: Mapping[str, Sequence[float]], lineage: Mapping[str, list] | None
-    ) -> None:
+    def __init__(self, keys: Sequence[str], initial: Table, lineage: Table | None) -> None:
         self.keys = tuple(keys)
         self.recorded = recorded_keys(initial)
-        # An older checkpoint's lineage may lack the keys that were not searched: filled in.
-        complete = complete_lineage(lineage, initial, self.recorded)
+        # An older checkpoint's lineage may lack the keys that were not searched: filled in. Each
+        # agent's value of each recorded key now is exact (the state holds gamma in the network's
+        # precision): the sweep's, then each lineage row's.
+        complete, self.current = _walk(lineage, initial, self.recorded)
         self.lineage: dict[str, list] = {key: complete[key] for key in (*LINEAGE_COLUMNS, *self.recorded)}
-        # Each agent's value of each recorded key now, exactly (the state holds gamma in the
-        # network's precision): the sweep's, then each lineage row's.
-        final = final_values(self.lineage, initial, self.recorded)
-        self.current = {key: [float(v) for v in values] for key, values in final.items()}
 
     def start(self, state: Any) -> None:
         """A fresh run's state before its first update (a resumed one has its checkpoint's)."""
@@ -284,32 +309,35 @@ class Search:
         """Whether the search takes a step after ``updates_done`` (>= 1) updates."""
         return self.updates_until_due(updates_done - 1) == 1
 
+    def updates_until_due(self, updates_done: int) -> int:
+        """Updates from ``updates_done`` until the search's next step."""
+        raise NotImplementedError
+
     def _set(
-        self, state: Any, update: int, agents: Sequence[int], parents: Sequence[int], new: Mapping[str, Any]
+        self, state: Any, update: int, agents: Sequence[int], parents: Sequence[int], new: Mapping
     ) -> Pairs:
-        """Give ``agents`` the ``new`` values (key -> one per agent) in ``state`` and the lineage.
+        """Give ``agents`` the ``new`` values (key -> one per agent) in ``state`` and book them in the lineage.
 
         A recorded key that ``new`` leaves out keeps the value the agent's row holds: its parent's
         (the exploit copied it), or its own after a restart from fresh weights (:data:`FRESH`).
         Returns the ``(agent, parent)`` pairs.
         """
-        pairs = list(zip(agents, parents, strict=True))
-        source = [agent if parent == FRESH else parent for agent, parent in pairs]
+        source = [agent if parent == FRESH else parent for agent, parent in zip(agents, parents, strict=True)]
         values = {key: [self.current[key][i] for i in source] for key in self.recorded}
         values.update({key: [float(v) for v in new[key]] for key in new})
         rows = torch.as_tensor(list(agents))
-        for key in self.recorded:
-            entry = state[STATE_KEYS[key]]
-            with torch.no_grad():
-                entry[rows] = torch.as_tensor(np.asarray(values[key], dtype=np.float64), dtype=entry.dtype)
-        seeds = state["seed"][rows].tolist()
-        for i, (agent, parent) in enumerate(pairs):
-            for column, value in zip(LINEAGE_COLUMNS, (update, agent, parent, seeds[i]), strict=True):
-                self.lineage[column].append(int(value))
+        with torch.no_grad():
             for key in self.recorded:
-                self.lineage[key].append(values[key][i])
-                self.current[key][agent] = values[key][i]
-        return pairs
+                entry = state[STATE_KEYS[key]]
+                entry[rows] = torch.as_tensor(np.asarray(values[key], dtype=np.float64), dtype=entry.dtype)
+        booked = ([update] * len(source), agents, parents, state["seed"][rows].tolist())
+        for column, column_values in zip(LINEAGE_COLUMNS, booked, strict=True):
+            self.lineage[column] += [int(v) for v in column_values]
+        for key in self.recorded:
+            self.lineage[key] += values[key]
+            for agent, value in zip(agents, values[key], strict=True):
+                self.current[key][agent] = value
+        return list(zip(agents, parents, strict=True))
 
     def checkpoint(self) -> dict[str, Any]:
         """What a checkpoint keeps of the search: its settings and the lineage."""
@@ -321,33 +349,17 @@ def _check_share(
 ) -> None:
     """Refuse a population of ``agents`` whose ``share`` of it rounds down to no agent.
 
-    ``key``: PBT's quantile or halving's fraction; nothing would ever be ``outcome``. ``most``: the
-    largest share the key allows (``most_open``: only below it).
+    ``key``: PBT's quantile or halving's fraction (``hydra.launcher.<key>``); nothing would ever be
+    ``outcome``. ``most``: the largest share the key allows (``most_open``: only below it).
     """
     if int(agents * share) >= 1:
         return
-    smallest = math.ceil(1 / share)
-    while int(smallest * share) < 1:  # 1 / share rounded up may fall short by a rounding error
-        smallest += 1
+    # 1 / share rounded up may fall short by a rounding error
+    smallest = next(n for n in itertools.count(math.ceil(1 / share)) if int(n * share) >= 1)
     fits = 1 / agents < most or (1 / agents == most and not most_open)
     larger = f"at least 1/{agents} for a population of {agents} agents, or " if fits else ""
     expected = f"a population of at least {smallest} agents (int({agents} x {share:g}) = 0 agents would ever"
-    raise ConfigError.of(key, share, f"{larger}{expected} be {outcome})")
-
-
-def _param(
-    params: Mapping[str, Any], cls: type, key: str, ok: Any, expected: str, number: bool = True
-) -> Any:
-    """``hydra.launcher.<key>`` (default: ``cls``'s), checked by ``ok`` (and as a number where ``number``)."""
-    value = params.get(key, getattr(cls, key))
-    if not ((is_number(value) or not number) and ok(value)):
-        raise ConfigError.of(f"hydra.launcher.{key}", value, expected)
-    return value
-
-
-def _factors(value: Any) -> bool:
-    """Whether ``value`` is a non-empty list of ``hydra.launcher.perturb``'s factors."""
-    return _list(value) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in value)
+    raise ConfigError.of(f"hydra.launcher.{key}", share, f"{larger}{expected} be {outcome})")
 
 
 def _list(value: Any) -> bool:
@@ -400,19 +412,12 @@ class PBT(Search):
     """
 
     def __init__(
-        self,
-        settings: PBTSettings,
-        space: Mapping[str, Sequence[float]],
-        bounds: Mapping[str, tuple[float, float]],
-        seed: int,
-        lineage: Mapping[str, list] | None = None,
+        self, settings: PBTSettings, space: Table, bounds: Mapping, seed: int, lineage: Table | None = None
     ) -> None:
         super().__init__(settings.keys, space, lineage)
-        self.settings = settings
+        self.settings, self.bounds, self.seed = settings, dict(bounds), int(seed)
         self.ranges = {r.key: r for r in settings.ranges}
         self.space = {key: sorted(set(space[key])) for key in settings.keys if key not in self.ranges}
-        self.bounds = dict(bounds)
-        self.seed = int(seed)
 
     def updates_until_due(self, updates_done: int) -> int:
         """Updates from ``updates_done`` until the next exploit-and-explore step."""
@@ -433,18 +438,17 @@ class PBT(Search):
         worst, best = np.array(ranked[:count]), np.array(ranked[-count:])
         rng = np.random.default_rng([self.seed, update])
         parents = best[rng.integers(count, size=count)]
-        rows, sources = torch.as_tensor(worst), torch.as_tensor(parents)
+        copied = state.exclude("seed", "counter")  # an agent keeps its own noise and update count
         with torch.no_grad():
-            for key in state.keys():  # noqa: SIM118  (a TensorDict iterates over its rows)
-                if key not in ("seed", "counter"):  # an agent keeps its own noise and update count
-                    state[key][rows] = state[key][sources]
+            copied[torch.as_tensor(worst)] = copied[torch.as_tensor(parents)]
         new = self.choose(Exploit(worst, parents, scores, alive, update, rng))
         return self._set(state, update, worst.tolist(), parents.tolist(), new)
 
     def choose(self, step: Exploit) -> dict[str, np.ndarray]:
         """The values the replaced agents train with next (key -> one per agent): each explored from its parent's."""
-        parents = step.parents
-        return {k: self.explore(k, np.array(self.current[k])[parents], step.rng) for k in self.settings.keys}
+        return {
+            k: self.explore(k, np.array(self.current[k])[step.parents], step.rng) for k in self.settings.keys
+        }
 
     def explore(self, key: str, values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The explored values of ``key`` from the parents' ``values``, with ``rng``'s draws.
@@ -452,26 +456,22 @@ class PBT(Search):
         A list key: a neighbouring value of the sorted list, or a value drawn from the list. A
         range key: the value times a ``perturb`` factor clipped to the range, or a value drawn from it.
         """
-        s = self.settings
-        count = len(values)
+        s, count = self.settings, len(values)
         resampled = rng.random(count) < s.resample_probability
         if span := self.ranges.get(key):
             factors = np.array(s.perturb)[rng.integers(len(s.perturb), size=count)]
             moved = np.clip(values * factors, span.low, span.high)
-            drawn = span.draw(rng, count)
-            return np.clip(np.where(resampled, drawn, moved), *self.bounds[key])
+            return np.clip(np.where(resampled, span.draw(rng, count), moved), *self.bounds[key])
         space = np.array(self.space[key])
         # The parent's place in the list: its nearest value (a run resumed from before lists kept
         # their values may hold one off the list).
         place = np.abs(space[None, :] - values[:, None]).argmin(axis=1)
-        steps = rng.choice(np.array([-1, 1]), size=count)
-        moved = space[np.clip(place + steps, 0, len(space) - 1)]
-        drawn = space[rng.integers(len(space), size=count)]
-        return np.where(resampled, drawn, moved)
+        moved = space[np.clip(place + rng.choice(np.array([-1, 1]), size=count), 0, len(space) - 1)]
+        return np.where(resampled, space[rng.integers(len(space), size=count)], moved)
 
 
 @dataclass(frozen=True)
-class ReplaySettings:
+class ReplaySettings(_Settings):
     """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT run had.
 
     The run may also be a successive halving run; it must have finished (every agent at its budget
@@ -488,6 +488,7 @@ class ReplaySettings:
     run: str
     agent: int
     schedule: tuple[tuple[int, tuple[tuple[str, float], ...]], ...]
+    launcher: ClassVar[str] = "pbt_replay"
 
     @classmethod
     def of(cls, params: Mapping[str, Any]) -> ReplaySettings:
@@ -501,21 +502,18 @@ class ReplaySettings:
 
         run = params.get("run")
         path = Path(str(run)) / CHECKPOINT_DIR / LAST
-
-        def refused(expected: str) -> ConfigError:
-            return ConfigError.of("hydra.launcher.run", run, expected)
-
+        refused = functools.partial(ConfigError.of, "hydra.launcher.run", run)
         if (too_long := name_too_long(path)) is not None:  # is_file() would raise ENAMETOOLONG
             raise refused(f"a folder name this file system takes ({too_long})")
         try:
             state = load_checkpoint(path) if run is not None and path.is_file() else None
         except CheckpointError as err:
             raise refused(f"a PBT population run ({err})") from None
-        search = None if state is None else state.get("search")
+        search = (state or {}).get("search")
         if not search or search["settings"].get("launcher") not in ("pbt", "pb2", "halving"):
             raise refused("the folder of a PBT, PB2 or halving run (hydra/launcher=pbt, pb2 or halving)")
-        count = len(state["episodes_done"])
-        training = sum(f is None and e is None for f, e in zip(state["final"], state["failure"], strict=True))
+        finals, count = state["final"], len(state["episodes_done"])
+        training = sum(f is None and e is None for f, e in zip(finals, state["failure"], strict=True))
         if training:  # its lineage and final returns are not yet the run's
             raise refused(
                 f"a finished PBT or halving run ({training} of its {count} agents are still training: "
@@ -523,8 +521,9 @@ class ReplaySettings:
             )
         agent = params.get("agent")
         if agent is None:  # the best final return
-            finals = [-math.inf if f is None else f["final_return"] for f in state["final"]]
-            agent = max(range(count), key=lambda i: finals[i])
+            agent = max(
+                range(count), key=lambda i: -math.inf if finals[i] is None else finals[i]["final_return"]
+            )
         if isinstance(agent, bool) or not isinstance(agent, int) or not 0 <= agent < count:
             raise ConfigError.of(
                 "hydra.launcher.agent", agent, f"an agent of {run}: an integer 0..{count - 1}"
@@ -534,8 +533,7 @@ class ReplaySettings:
 
     def record(self) -> dict[str, Any]:
         """What a checkpoint keeps of these settings: the launcher, run and agent, and the schedule."""
-        steps = [[update, dict(values)] for update, values in self.schedule]
-        return {"launcher": "pbt_replay", "run": self.run, "agent": self.agent, "schedule": steps}
+        return {**super().record(), "schedule": [[update, dict(values)] for update, values in self.schedule]}
 
     def check(self, cfg: Any, agents: int) -> None:
         """Any budget and population: the last values hold past the PBT run's."""
@@ -570,10 +568,7 @@ def _schedule_text(steps: Sequence[Sequence[Any]]) -> str:
 
 
 def schedule(
-    lineage: Mapping[str, list],
-    initial: Mapping[str, Sequence[float]],
-    agent: int,
-    keys: Sequence[str] | None = None,
+    lineage: Table, initial: Table, agent: int, keys: Sequence[str] | None = None
 ) -> list[tuple[int, dict[str, float]]]:
     """The values ``agent``'s weights were trained with, as ``[(update, values), ...]``.
 
@@ -610,14 +605,12 @@ class Replay(Search):
         lineage: the lineage a resumed run had (None: a new run).
     """
 
-    def __init__(
-        self, settings: ReplaySettings, agents: int, lineage: Mapping[str, list] | None = None
-    ) -> None:
-        self.settings = settings
+    def __init__(self, settings: ReplaySettings, agents: int, lineage: Table | None = None) -> None:
+        self.settings, self.agents = settings, agents
         self.steps = {update: dict(values) for update, values in settings.schedule}
-        keys = tuple(self.steps[0])
-        super().__init__(keys, {key: [self.steps[0][key]] * agents for key in keys}, lineage)
-        self.agents = agents
+        super().__init__(
+            self.steps[0], {key: [value] * agents for key, value in self.steps[0].items()}, lineage
+        )
 
     def start(self, state: Any) -> None:
         """Give every agent the replayed line's first values."""
@@ -637,7 +630,7 @@ class Replay(Search):
 
 
 @dataclass(frozen=True)
-class HalvingSettings:
+class HalvingSettings(_Settings):
     """``hydra/launcher=halving``'s settings: successive halving inside a population run.
 
     Attributes:
@@ -650,44 +643,34 @@ class HalvingSettings:
     rungs: tuple[int, ...] = (500, 1500)
     fraction: float = 0.5
     keys: tuple[str, ...] = ("algo.lr", "algo.gamma")
-
-    @classmethod
-    def of(cls, params: Mapping[str, Any]) -> HalvingSettings:
-        """The settings from the launcher's parameters, each checked.
-
-        Raises :class:`~.checks.ConfigError` (one line) for the first that is not allowed.
-        """
-
-        def increasing(rungs: Any) -> bool:
-            counts = _list(rungs) and all(is_number(r) and isinstance(r, int) and r >= 1 for r in rungs)
-            return counts and list(rungs) == sorted(set(rungs))
-
-        param = functools.partial(_param, params, cls)
-        rungs = param("rungs", increasing, "increasing update counts >= 1, e.g. [500,1500]", number=False)
-        fraction = param("fraction", lambda v: 0 < v < 1, "a number in (0, 1)")
-        keys = _searched_keys(params.get("keys", cls.keys), "successive halving")
-        return cls(tuple(int(r) for r in rungs), float(fraction), keys)
+    launcher: ClassVar[str] = "halving"
+    title: ClassVar[str] = "successive halving"
+    rules: ClassVar[dict[str, Rule]] = {
+        "rungs": (
+            lambda v: (
+                _list(v)
+                and all(is_number(r) and isinstance(r, int) and r >= 1 for r in v)
+                and list(v) == sorted(set(v))
+            ),
+            "increasing update counts >= 1, e.g. [500,1500]",
+            lambda v: tuple(int(r) for r in v),
+        ),
+        "fraction": (lambda v: 0 < v < 1, "a number in (0, 1)", float),
+    }
 
     def check(self, cfg: Any, agents: int) -> None:
         """Every rung inside the budget (``algo.episodes / algo.episodes_per_update`` updates).
 
         And a population of ``agents`` large enough that ``fraction`` of it is at least one agent.
         """
-        updates = int(cfg.algo.episodes) // int(cfg.algo.episodes_per_update)
-        if self.rungs[-1] >= updates:
+        if self.rungs[-1] >= (updates := _updates(cfg)):
             raise ConfigError.of(
                 "hydra.launcher.rungs",
                 list(self.rungs),
                 f"rungs below the budget of {updates} updates (algo.episodes={cfg.algo.episodes} / "
                 f"algo.episodes_per_update={cfg.algo.episodes_per_update})",
             )
-        _check_share(
-            "hydra.launcher.fraction", self.fraction, agents, "stopped at a rung: no halving", 1, True
-        )
-
-    def record(self) -> dict[str, Any]:
-        """What a checkpoint keeps of these settings."""
-        return {"launcher": "halving", **asdict(self)}
+        _check_share("fraction", self.fraction, agents, "stopped at a rung: no halving", 1, True)
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Halving:
         """The :class:`Halving` of a population whose sweep gave ``values``."""
@@ -713,18 +696,18 @@ class Halving(Search):
     """
 
     def __init__(
-        self, settings: HalvingSettings, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None
+        self, settings: HalvingSettings, cfg: Any, values: Table, saved: Mapping[str, Any] | None
     ) -> None:
-        super().__init__(settings.keys, values, None if saved is None else saved["lineage"])
-        self.settings = settings
-        self.cfg = cfg
+        saved = saved or {}
+        super().__init__(settings.keys, values, saved.get("lineage"))
+        self.settings, self.cfg, self.seed = settings, cfg, int(values["seed"][0])
         self.space = {key: sorted(set(values[key])) for key in settings.keys}
-        self.seed = int(values["seed"][0])
         self.next_seed = max([*values["seed"], *self.lineage["seed"]]) + 1
-        self.started = [0] * len(values["seed"])  # the update each agent's configuration started at
-        for update, agent in zip(self.lineage["update"], self.lineage["agent"], strict=True):
-            self.started[agent] = update
-        rungs = {} if saved is None else saved["rung_scores"]
+        started = dict(zip(self.lineage["agent"], self.lineage["update"], strict=True))
+        self.started = [
+            started.get(i, 0) for i in range(len(values["seed"]))
+        ]  # each configuration's first update
+        rungs = saved.get("rung_scores", {})
         self.rung_scores: dict[int, list[float]] = {r: list(rungs.get(r, [])) for r in settings.rungs}
 
     def checkpoint(self) -> dict[str, Any]:
@@ -742,7 +725,7 @@ class Halving(Search):
         for rung, history in self.rung_scores.items():
             arrived = [i for i in range(len(scores)) if alive[i] and update - self.started[i] == rung]
             score = {i: -math.inf if math.isnan(scores[i]) else float(scores[i]) for i in arrived}
-            history.extend(score[i] for i in arrived)
+            history.extend(score.values())
             # The worst `fraction` of every score this rung has seen: below the k-th smallest.
             k = int(len(history) * self.settings.fraction)
             threshold = sorted(history)[k] if k else -math.inf
@@ -760,9 +743,8 @@ class Halving(Search):
         seeds = list(range(self.next_seed, self.next_seed + count))
         self.next_seed += count
         rows = torch.as_tensor(agents)
-        fresh = build_policies(self.cfg, seeds).flat.detach()
         with torch.no_grad():
-            state["params"][rows] = fresh.to(state["params"])
+            state["params"][rows] = build_policies(self.cfg, seeds).flat.detach().to(state["params"])
             for key in ("exp_avg", "exp_avg_sq", "adam_steps"):  # a fresh optimizer (optim.adam_state's)
                 state[key][rows] = 0
             state["seed"][rows] = torch.as_tensor(seeds, dtype=state["seed"].dtype)
