@@ -71,10 +71,8 @@ class PB2Settings(PBTSettings):
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> PB2:
         """The search of a population (``saved``: what its checkpoint holds of it, or None)."""
-        saved = saved or {}
-        return PB2(
-            self, values, self.bounds(cfg), int(values["seed"][0]), saved.get("lineage"), saved.get("data")
-        )
+        lineage, data = ((saved or {}).get(key) for key in ("lineage", "data"))
+        return PB2(self, values, self.bounds(cfg), int(values["seed"][0]), lineage, data)
 
 
 class PB2(PBT):
@@ -101,13 +99,9 @@ class PB2(PBT):
         super().__init__(settings, space, bounds, seed, lineage)
         # The model's points (each step, positions and return change) and each agent's running-mean
         # return just after the last step (None before the first).
-        self.data: dict[str, Any] = copy.deepcopy(
-            {"steps": [], "points": [], "changes": [], "before": None, **(data or {})}
-        )
-
-    def checkpoint(self) -> dict[str, Any]:
-        """PBT's record and the model's data."""
-        return {**super().checkpoint(), "data": self.data}
+        data = {"steps": [], "points": [], "changes": [], "before": None, **(data or {})}
+        self.data: dict[str, Any] = copy.deepcopy(data)
+        self.extra = {"data": self.data}
 
     def position(self, key: str, value: float) -> float:
         """``value``'s place in ``key``'s searched space, in [0, 1]."""
@@ -140,18 +134,17 @@ class PB2(PBT):
     def observe(self, scores: Sequence[float], alive: Sequence[bool], step: int) -> None:
         """Add each taking-part agent's point of the interval that ends at ``step``."""
         data, before = self.data, self.data["before"] or [0.0] * len(scores)
-        rows = [
-            i
-            for i in range(len(scores))
-            if alive[i] and before[i] is not None and math.isfinite(before[i]) and math.isfinite(scores[i])
-        ]
+        finite = [alive[i] and before[i] is not None and math.isfinite(before[i]) for i in range(len(scores))]
+        rows = [i for i in range(len(scores)) if finite[i] and math.isfinite(scores[i])]
         if rows:
             changes = np.array([scores[i] - before[i] for i in rows])
             data["steps"] += [step] * len(rows)
-            data["points"] += [
-                [self.position(key, self.current[key][i]) for key in self.settings.keys] for i in rows
-            ]
+            data["points"] += [self.point(i) for i in rows]
             data["changes"] += (changes - changes.mean()).tolist()
+
+    def point(self, agent: int) -> list[float]:
+        """The agent's values now as a point of the searched space (its position on each key)."""
+        return [self.position(key, self.current[key][agent]) for key in self.settings.keys]
 
     def choose(self, step: Exploit) -> dict[str, np.ndarray]:
         """Each replaced agent's next values: the candidate of the highest upper confidence bound."""
@@ -164,15 +157,14 @@ class PB2(PBT):
         self.data["before"] = after
         keys = self.settings.keys
         kept = [i for i in range(len(scores)) if alive[i] and i not in worst and math.isfinite(scores[i])]
-        pending = [[self.position(k, self.current[k][i]) for k in keys] for i in kept]
+        pending = [self.point(i) for i in kept]
         threads = torch.get_num_threads()
         # Matrices of a few hundred rows: one thread is fastest, and several beside a busy
         # trainer's were 12x slower on 2 cores (a 350-point fit: 10.5 s on 2 threads, 0.85 s on 1).
         torch.set_num_threads(1)
         try:
-            model = Model.fit(
-                *(np.array(self.data[k], dtype=np.float64) for k in ("steps", "points", "changes"))
-            )
+            data = (np.array(self.data[k], dtype=np.float64) for k in ("steps", "points", "changes"))
+            model = Model.fit(*data)
             options = self.candidates(step.rng)
             chosen = []
             for _ in worst:

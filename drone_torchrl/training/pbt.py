@@ -62,6 +62,9 @@ FRESH = -1
 Pairs = list[tuple[int, int]]
 #: Columns of values: a lineage (column -> one value per row), or the sweep's (key -> one per agent).
 Table = Mapping[str, Sequence[Any]]
+FACTORS = f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]"
+#: ``[(update, values), ...]``: the values one agent trained with from each update on (:func:`schedule`).
+Schedule = list[tuple[int, dict[str, float]]]
 #: A launcher key's rule: whether a value is allowed, what is expected instead, and the value kept.
 Rule = tuple[Callable[[Any], bool], str, Callable[[Any], Any]]
 
@@ -96,6 +99,53 @@ class Range:
         """
         tag = zlib.crc32(self.key.encode())
         return [float(self.draw(np.random.default_rng([int(seed), tag]), 1)[0]) for seed in seeds]
+
+
+def _check_share(key: str, share: float, agents: int, outcome: str) -> None:
+    """Refuse a population of ``agents`` whose ``share`` of it rounds down to no agent.
+
+    ``key``: PBT's quantile or halving's fraction (``hydra.launcher.<key>``); nothing would ever be
+    ``outcome``. A larger share is the advice where the key allows 1 / ``agents`` (each allows a half).
+    """
+    if int(agents * share) >= 1:
+        return
+    # 1 / share rounded up may fall short by a rounding error
+    smallest = next(n for n in itertools.count(math.ceil(1 / share)) if int(n * share) >= 1)
+    larger = f"at least 1/{agents} for a population of {agents} agents, or " if agents > 1 else ""
+    expected = f"a population of at least {smallest} agents (int({agents} x {share:g}) = 0 agents would ever"
+    raise ConfigError.of(f"hydra.launcher.{key}", share, f"{larger}{expected} be {outcome})")
+
+
+def _list(value: Any) -> bool:
+    """Whether ``value`` is a non-empty list (not a string)."""
+    return isinstance(value, Sequence) and not isinstance(value, str | bytes) and bool(value)
+
+
+def _factors(value: Any) -> bool:
+    """Whether ``value`` is a non-empty list of ``hydra.launcher.perturb``'s factors."""
+    # A factor past MAX_FACTOR (or below its inverse) sends any value to its range's end in one
+    # step: a resample, not a perturbation (and inf or nan would be clipped into a value no agent had).
+    return _list(value) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in value)
+
+
+def _rungs(value: Any) -> bool:
+    """Whether ``value`` is a list of increasing update counts >= 1 (``hydra.launcher.rungs``)."""
+    counts = _list(value) and all(is_number(r) and isinstance(r, int) and r >= 1 for r in value)
+    return counts and list(value) == sorted(set(value))
+
+
+def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
+    """``hydra.launcher.keys`` checked: per-agent keys that a search can change."""
+    if not _list(keys):
+        raise ConfigError.of("hydra.launcher.keys", keys, f"a non-empty list of {sorted(STATE_KEYS)}")
+    for key in keys:
+        if not isinstance(key, str) or key not in STATE_KEYS:
+            why = "a per-agent key" if key in per_agent_keys() else "not a per-agent key"
+            expected = f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} {search} cannot search)"
+            raise ConfigError.of("hydra.launcher.keys", list(keys), expected)
+    if len(set(keys)) < len(keys):  # one lineage column per key: a repeated one has no meaning
+        raise ConfigError.of("hydra.launcher.keys", list(keys), "each key once, e.g. [algo.lr,algo.gamma]")
+    return tuple(keys)
 
 
 class _Settings:
@@ -164,13 +214,7 @@ class PBTSettings(_Settings):
     rules: ClassVar[dict[str, Rule]] = {
         "every_updates": (lambda v: isinstance(v, int) and v >= 1, "an integer >= 1", int),
         "quantile": (lambda v: 0 < v <= MAX_QUANTILE, f"a number in (0, {MAX_QUANTILE}]", float),
-        # A factor past MAX_FACTOR (or below its inverse) sends any value to its range's end in one
-        # step: a resample, not a perturbation (and inf or nan would be clipped into a value no agent had).
-        "perturb": (
-            lambda v: _list(v) and all(is_number(f) and 1 / MAX_FACTOR <= f <= MAX_FACTOR for f in v),
-            f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]",
-            lambda v: tuple(float(f) for f in v),
-        ),
+        "perturb": (_factors, FACTORS, lambda v: tuple(map(float, v))),
         "resample_probability": (lambda v: 0 <= v <= 1, "a number in [0, 1]", float),
     }
 
@@ -192,9 +236,8 @@ class PBTSettings(_Settings):
         """
         rules = schema_keys("config", algo=cfg.algo.name, logger=cfg.logger.backend)
         if not set(self.keys) <= set(rules):
-            raise ConfigError.of(
-                "hydra.launcher.keys", list(self.keys), f"keys that algo={cfg.algo.name} has"
-            )
+            expected = f"keys that algo={cfg.algo.name} has"
+            raise ConfigError.of("hydra.launcher.keys", list(self.keys), expected)
         bounds = {key: (float(rules[key].low), float(rules[key].high)) for key in self.keys}
         for span in self.ranges:
             low, high = bounds[span.key]
@@ -213,12 +256,9 @@ class PBTSettings(_Settings):
         """
         bounds = self.bounds(cfg)
         if not self.ranges and self.perturb != PBTSettings.perturb:
-            print(
-                f"drone-train: note: hydra.launcher.perturb={list(self.perturb)} is not used: every "
-                f"searched key ({', '.join(self.keys)}) is searched over a list, and moves to a "
-                "neighbouring value of it; perturb multiplies keys searched over interval(low,high)",
-                file=sys.stderr,
-            )
+            keys = ", ".join(self.keys)
+            note = f"hydra.launcher.perturb={list(self.perturb)} is not used: every searched key ({keys}) is searched over a list, and moves to a neighbouring value of it; perturb multiplies keys searched over interval(low,high)"
+            print(f"drone-train: note: {note}", file=sys.stderr)
         return PBT(self, values, bounds, int(values["seed"][0]), (saved or {}).get("lineage"))
 
 
@@ -230,9 +270,7 @@ def recorded_keys(initial: Mapping[str, Any]) -> tuple[str, ...]:
     return tuple(key for key in STATE_KEYS if key in initial)
 
 
-def _walk(
-    lineage: Table | None, initial: Table, keys: Sequence[str]
-) -> tuple[dict[str, list], dict[str, list]]:
+def _walk(lineage: Table | None, initial: Table, keys: Sequence[str]) -> tuple[dict, dict]:
     """The lineage with a column for each of ``keys``, and each agent's values of them at its end (floats).
 
     A missing column's value is the one the agent's row held from that row on (:func:`complete_lineage`).
@@ -250,9 +288,7 @@ def _walk(
     return out, now
 
 
-def complete_lineage(
-    lineage: Table | None, initial: Table, keys: Sequence[str] | None = None
-) -> dict[str, list]:
+def complete_lineage(lineage: Table | None, initial: Table, keys: Sequence[str] | None = None) -> dict:
     """The lineage with a column for each of ``keys`` (default: :func:`recorded_keys` of ``initial``).
 
     A lineage written before it recorded every key has the searched keys' columns only. A missing
@@ -278,6 +314,24 @@ def final_values(lineage: Table | None, initial: Table, keys: Sequence[str] | No
     return out
 
 
+class Exploit(NamedTuple):
+    """One search step, as the search's ``renew`` (and PBT's explore, :meth:`PBT.choose`) sees it.
+
+    ``worst``: the agents replaced; ``parents``: each one's parent (the agent whose rows it copied,
+    or :data:`FRESH`);
+    ``scores``: every agent's running-mean return; ``alive``: whether each agent takes part;
+    ``update``: the updates done; ``rng``: the step's generator (keyed by the first agent's seed and
+    ``update``).
+    """
+
+    worst: np.ndarray
+    parents: np.ndarray
+    scores: Sequence[float]
+    alive: Sequence[bool]
+    update: int
+    rng: np.random.Generator
+
+
 class Search:
     """What every search shares: the lineage, each agent's values now, and the step that books them.
 
@@ -292,6 +346,10 @@ class Search:
     """
 
     settings: Any
+    #: The key of a step's random draws, with the update number.
+    seed = 0
+    #: What else the checkpoint keeps of the search (name -> the search's own record, kept up to date).
+    extra: Mapping[str, Any] = {}
 
     def __init__(self, keys: Sequence[str], initial: Table, lineage: Table | None) -> None:
         self.keys = tuple(keys)
@@ -309,13 +367,22 @@ class Search:
         """Whether the search takes a step after ``updates_done`` (>= 1) updates."""
         return self.updates_until_due(updates_done - 1) == 1
 
-    def updates_until_due(self, updates_done: int) -> int:
-        """Updates from ``updates_done`` until the search's next step."""
-        raise NotImplementedError
+    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
+        """The search's step after ``update`` updates; returns the ``(agent, parent)`` pairs it replaced.
 
-    def _set(
-        self, state: Any, update: int, agents: Sequence[int], parents: Sequence[int], new: Mapping
-    ) -> Pairs:
+        Rewrites rows of ``state`` (the population's stacked state) in place and books them in the
+        lineage. ``scores``: each agent's running-mean return; ``alive``: the agents that take part.
+        The caller copies the agents' own records for the pairs returned. A search tells which agents
+        are replaced (``select``), and gives their rows and values (``renew``).
+        """
+        rng = np.random.default_rng([self.seed, update])
+        agents, parents = self.select(scores, alive, update, rng)
+        if not agents:
+            return []
+        new = self.renew(state, Exploit(np.array(agents), np.array(parents), scores, alive, update, rng))
+        return self._set(state, update, agents, parents, new)
+
+    def _set(self, state: Any, update: int, agents: list[int], parents: list[int], new: Mapping) -> Pairs:
         """Give ``agents`` the ``new`` values (key -> one per agent) in ``state`` and book them in the lineage.
 
         A recorded key that ``new`` leaves out keeps the value the agent's row holds: its parent's
@@ -340,62 +407,8 @@ class Search:
         return list(zip(agents, parents, strict=True))
 
     def checkpoint(self) -> dict[str, Any]:
-        """What a checkpoint keeps of the search: its settings and the lineage."""
-        return {"settings": self.settings.record(), "lineage": self.lineage}
-
-
-def _check_share(
-    key: str, share: float, agents: int, outcome: str, most: float = MAX_QUANTILE, most_open: bool = False
-) -> None:
-    """Refuse a population of ``agents`` whose ``share`` of it rounds down to no agent.
-
-    ``key``: PBT's quantile or halving's fraction (``hydra.launcher.<key>``); nothing would ever be
-    ``outcome``. ``most``: the largest share the key allows (``most_open``: only below it).
-    """
-    if int(agents * share) >= 1:
-        return
-    # 1 / share rounded up may fall short by a rounding error
-    smallest = next(n for n in itertools.count(math.ceil(1 / share)) if int(n * share) >= 1)
-    fits = 1 / agents < most or (1 / agents == most and not most_open)
-    larger = f"at least 1/{agents} for a population of {agents} agents, or " if fits else ""
-    expected = f"a population of at least {smallest} agents (int({agents} x {share:g}) = 0 agents would ever"
-    raise ConfigError.of(f"hydra.launcher.{key}", share, f"{larger}{expected} be {outcome})")
-
-
-def _list(value: Any) -> bool:
-    """Whether ``value`` is a non-empty list (not a string)."""
-    return isinstance(value, Sequence) and not isinstance(value, str | bytes) and bool(value)
-
-
-def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
-    """``hydra.launcher.keys`` checked: per-agent keys that a search can change."""
-    if not _list(keys):
-        raise ConfigError.of("hydra.launcher.keys", keys, f"a non-empty list of {sorted(STATE_KEYS)}")
-    for key in keys:
-        if not isinstance(key, str) or key not in STATE_KEYS:
-            why = "a per-agent key" if key in per_agent_keys() else "not a per-agent key"
-            expected = f"keys among {sorted(STATE_KEYS)} ({key!r} is {why} {search} cannot search)"
-            raise ConfigError.of("hydra.launcher.keys", list(keys), expected)
-    if len(set(keys)) < len(keys):  # one lineage column per key: a repeated one has no meaning
-        raise ConfigError.of("hydra.launcher.keys", list(keys), "each key once, e.g. [algo.lr,algo.gamma]")
-    return tuple(keys)
-
-
-class Exploit(NamedTuple):
-    """One exploit step, as its explore step (:meth:`PBT.choose`) sees it.
-
-    ``worst``: the agents replaced; ``parents``: each one's parent (the agent whose rows it copied);
-    ``scores``: every agent's running-mean return; ``alive``: whether each agent takes part;
-    ``update``: the updates done; ``rng``: the step's generator (keyed by the first agent's seed and
-    ``update``).
-    """
-
-    worst: np.ndarray
-    parents: np.ndarray
-    scores: Sequence[float]
-    alive: Sequence[bool]
-    update: int
-    rng: np.random.Generator
+        """What a checkpoint keeps of the search: its settings, the lineage, and its :attr:`extra`."""
+        return {"settings": self.settings.record(), "lineage": self.lineage, **self.extra}
 
 
 class PBT(Search):
@@ -423,32 +436,25 @@ class PBT(Search):
         """Updates from ``updates_done`` until the next exploit-and-explore step."""
         return self.settings.every_updates - updates_done % self.settings.every_updates
 
-    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
-        """One exploit-and-explore step after ``update`` updates; returns ``(agent, parent)`` pairs.
-
-        Rewrites rows of ``state`` (the population's stacked state) in place and appends the
-        lineage. ``scores``: each agent's running-mean return; ``alive``: the agents that take part.
-        The caller copies the agents' own records for the pairs returned.
-        """
-        candidates = [i for i in range(len(scores)) if alive[i] and not math.isnan(scores[i])]
-        count = int(len(candidates) * self.settings.quantile)
-        if count < 1:
-            return []
+    def select(self, scores: Sequence, alive: Sequence, update: int, rng: Any) -> tuple[list, list]:
+        """The worst ``quantile`` of the agents that take part, and a parent for each drawn from the best."""
+        candidates = [i for i, a in enumerate(alive) if a and not math.isnan(scores[i])]
         ranked = sorted(candidates, key=lambda i: (scores[i], i))
-        worst, best = np.array(ranked[:count]), np.array(ranked[-count:])
-        rng = np.random.default_rng([self.seed, update])
-        parents = best[rng.integers(count, size=count)]
-        copied = state.exclude("seed", "counter")  # an agent keeps its own noise and update count
+        if (count := int(len(ranked) * self.settings.quantile)) < 1:
+            return [], []
+        return ranked[:count], np.array(ranked[-count:])[rng.integers(count, size=count)].tolist()
+
+    def renew(self, state: Any, step: Exploit) -> dict[str, np.ndarray]:
+        """The exploit: the parents' rows copied into the replaced agents' (who keep their own seed and update count)."""
+        copied = state.exclude("seed", "counter")
         with torch.no_grad():
-            copied[torch.as_tensor(worst)] = copied[torch.as_tensor(parents)]
-        new = self.choose(Exploit(worst, parents, scores, alive, update, rng))
-        return self._set(state, update, worst.tolist(), parents.tolist(), new)
+            copied[torch.as_tensor(step.worst)] = copied[torch.as_tensor(step.parents)]
+        return self.choose(step)
 
     def choose(self, step: Exploit) -> dict[str, np.ndarray]:
         """The values the replaced agents train with next (key -> one per agent): each explored from its parent's."""
-        return {
-            k: self.explore(k, np.array(self.current[k])[step.parents], step.rng) for k in self.settings.keys
-        }
+        parents = step.parents
+        return {k: self.explore(k, np.array(self.current[k])[parents], step.rng) for k in self.settings.keys}
 
     def explore(self, key: str, values: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """The explored values of ``key`` from the parents' ``values``, with ``rng``'s draws.
@@ -512,22 +518,19 @@ class ReplaySettings(_Settings):
         search = (state or {}).get("search")
         if not search or search["settings"].get("launcher") not in ("pbt", "pb2", "halving"):
             raise refused("the folder of a PBT, PB2 or halving run (hydra/launcher=pbt, pb2 or halving)")
-        finals, count = state["final"], len(state["episodes_done"])
-        training = sum(f is None and e is None for f, e in zip(finals, state["failure"], strict=True))
+        count = len(state["episodes_done"])
+        training = sum(f is None and e is None for f, e in zip(state["final"], state["failure"], strict=True))
         if training:  # its lineage and final returns are not yet the run's
             raise refused(
-                f"a finished PBT or halving run ({training} of its {count} agents are still training: "
-                "run its command again to finish it first)"
+                f"a finished PBT or halving run ({training} of its {count} agents are still training: run its command again to finish it first)"
             )
         agent = params.get("agent")
         if agent is None:  # the best final return
-            agent = max(
-                range(count), key=lambda i: -math.inf if finals[i] is None else finals[i]["final_return"]
-            )
+            finals = [-math.inf if f is None else f["final_return"] for f in state["final"]]
+            agent = max(range(count), key=finals.__getitem__)
         if isinstance(agent, bool) or not isinstance(agent, int) or not 0 <= agent < count:
-            raise ConfigError.of(
-                "hydra.launcher.agent", agent, f"an agent of {run}: an integer 0..{count - 1}"
-            )
+            expected = f"an agent of {run}: an integer 0..{count - 1}"
+            raise ConfigError.of("hydra.launcher.agent", agent, expected)
         steps = schedule(search["lineage"], state["agents"], agent)
         return cls(str(Path(str(run)).resolve()), agent, tuple((u, tuple(v.items())) for u, v in steps))
 
@@ -567,9 +570,7 @@ def _schedule_text(steps: Sequence[Sequence[Any]]) -> str:
     )
 
 
-def schedule(
-    lineage: Table, initial: Table, agent: int, keys: Sequence[str] | None = None
-) -> list[tuple[int, dict[str, float]]]:
+def schedule(lineage: Table, initial: Table, agent: int, keys: Sequence[str] | None = None) -> Schedule:
     """The values ``agent``'s weights were trained with, as ``[(update, values), ...]``.
 
     The list is ``[(0, the first values), (update, the values from then on), ...]``, following the
@@ -608,9 +609,8 @@ class Replay(Search):
     def __init__(self, settings: ReplaySettings, agents: int, lineage: Table | None = None) -> None:
         self.settings, self.agents = settings, agents
         self.steps = {update: dict(values) for update, values in settings.schedule}
-        super().__init__(
-            self.steps[0], {key: [value] * agents for key, value in self.steps[0].items()}, lineage
-        )
+        first = self.steps[0]
+        super().__init__(first, {key: [value] * agents for key, value in first.items()}, lineage)
 
     def start(self, state: Any) -> None:
         """Give every agent the replayed line's first values."""
@@ -623,9 +623,8 @@ class Replay(Search):
     def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
         """Give every agent the line's values from ``update`` on; replaces no agent (returns ``[]``)."""
         everyone = list(range(self.agents))
-        self._set(
-            state, update, everyone, everyone, {k: [v] * self.agents for k, v in self.steps[update].items()}
-        )
+        new = {key: [value] * self.agents for key, value in self.steps[update].items()}
+        self._set(state, update, everyone, everyone, new)
         return []
 
 
@@ -646,15 +645,7 @@ class HalvingSettings(_Settings):
     launcher: ClassVar[str] = "halving"
     title: ClassVar[str] = "successive halving"
     rules: ClassVar[dict[str, Rule]] = {
-        "rungs": (
-            lambda v: (
-                _list(v)
-                and all(is_number(r) and isinstance(r, int) and r >= 1 for r in v)
-                and list(v) == sorted(set(v))
-            ),
-            "increasing update counts >= 1, e.g. [500,1500]",
-            lambda v: tuple(int(r) for r in v),
-        ),
+        "rungs": (_rungs, "increasing update counts >= 1, e.g. [500,1500]", lambda v: tuple(map(int, v))),
         "fraction": (lambda v: 0 < v < 1, "a number in (0, 1)", float),
     }
 
@@ -664,13 +655,10 @@ class HalvingSettings(_Settings):
         And a population of ``agents`` large enough that ``fraction`` of it is at least one agent.
         """
         if self.rungs[-1] >= (updates := _updates(cfg)):
-            raise ConfigError.of(
-                "hydra.launcher.rungs",
-                list(self.rungs),
-                f"rungs below the budget of {updates} updates (algo.episodes={cfg.algo.episodes} / "
-                f"algo.episodes_per_update={cfg.algo.episodes_per_update})",
-            )
-        _check_share("fraction", self.fraction, agents, "stopped at a rung: no halving", 1, True)
+            algo = cfg.algo
+            expected = f"rungs below the budget of {updates} updates (algo.episodes={algo.episodes} / algo.episodes_per_update={algo.episodes_per_update})"
+            raise ConfigError.of("hydra.launcher.rungs", list(self.rungs), expected)
+        _check_share("fraction", self.fraction, agents, "stopped at a rung: no halving")
 
     def make(self, cfg: Any, values: Mapping[str, list], saved: Mapping[str, Any] | None) -> Halving:
         """The :class:`Halving` of a population whose sweep gave ``values``."""
@@ -704,23 +692,19 @@ class Halving(Search):
         self.space = {key: sorted(set(values[key])) for key in settings.keys}
         self.next_seed = max([*values["seed"], *self.lineage["seed"]]) + 1
         started = dict(zip(self.lineage["agent"], self.lineage["update"], strict=True))
-        self.started = [
-            started.get(i, 0) for i in range(len(values["seed"]))
-        ]  # each configuration's first update
+        # The update each agent's configuration started at.
+        self.started = [started.get(i, 0) for i in range(len(values["seed"]))]
         rungs = saved.get("rung_scores", {})
         self.rung_scores: dict[int, list[float]] = {r: list(rungs.get(r, [])) for r in settings.rungs}
-
-    def checkpoint(self) -> dict[str, Any]:
-        """What a checkpoint keeps of the search: the lineage and the scores at each rung."""
-        return {**super().checkpoint(), "rung_scores": self.rung_scores}
+        self.extra = {"rung_scores": self.rung_scores}
 
     def updates_until_due(self, updates_done: int) -> int:
         """Updates from ``updates_done`` until an agent next reaches a rung."""
         later = [s + r - updates_done for s in set(self.started) for r in self.settings.rungs]
         return min((d for d in later if d > 0), default=NEVER)
 
-    def step(self, state: Any, scores: Sequence[float], alive: Sequence[bool], update: int) -> Pairs:
-        """Restart the agents at a rung that score in its worst ``fraction``; returns ``(agent, FRESH)`` pairs."""
+    def select(self, scores: Sequence, alive: Sequence, update: int, rng: Any) -> tuple[list, list]:
+        """The agents at a rung that score in its worst ``fraction``, each restarted (:data:`FRESH`)."""
         stopped = []
         for rung, history in self.rung_scores.items():
             arrived = [i for i in range(len(scores)) if alive[i] and update - self.started[i] == rung]
@@ -730,27 +714,24 @@ class Halving(Search):
             k = int(len(history) * self.settings.fraction)
             threshold = sorted(history)[k] if k else -math.inf
             stopped += [i for i in arrived if score[i] < threshold]
-        if not stopped:
-            return []
+        return sorted(stopped), [FRESH] * len(stopped)
+
+    def renew(self, state: Any, step: Exploit) -> dict[str, np.ndarray]:
+        """Fresh weights from new seeds and a fresh optimizer in the stopped agents' rows; values drawn from the sweep's."""
         from drone_torchrl.modules.factory import build_policies
 
-        agents, count = sorted(stopped), len(stopped)
-        rng = np.random.default_rng([self.seed, update])
-        new = {
-            key: np.array(self.space[key])[rng.integers(len(self.space[key]), size=count)]
-            for key in self.keys
-        }
+        count, rows = len(step.worst), torch.as_tensor(step.worst)
         seeds = list(range(self.next_seed, self.next_seed + count))
         self.next_seed += count
-        rows = torch.as_tensor(agents)
         with torch.no_grad():
             state["params"][rows] = build_policies(self.cfg, seeds).flat.detach().to(state["params"])
             for key in ("exp_avg", "exp_avg_sq", "adam_steps"):  # a fresh optimizer (optim.adam_state's)
                 state[key][rows] = 0
             state["seed"][rows] = torch.as_tensor(seeds, dtype=state["seed"].dtype)
-        for agent in agents:
-            self.started[agent] = update
-        return self._set(state, update, agents, [FRESH] * count, new)
+        for agent in step.worst.tolist():
+            self.started[agent] = step.update
+        draw = step.rng.integers
+        return {key: np.array(space)[draw(len(space), size=count)] for key, space in self.space.items()}
 
 
 #: What a population run's search is asked for (PBT, successive halving, or a replay of one agent's values).
