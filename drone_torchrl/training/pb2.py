@@ -247,9 +247,7 @@ class Model:
         return torch.linalg.cholesky(self.kernel(steps, points, steps, points) + noise)
 
 
-def _distances(
-    steps_a: np.ndarray, a: np.ndarray, steps_b: np.ndarray, b: np.ndarray
-) -> tuple[torch.Tensor, torch.Tensor]:
+def _distances(steps_a: np.ndarray, a: np.ndarray, steps_b: np.ndarray, b: np.ndarray) -> tuple:
     """Squared distances of the positions and steps apart, of every pair (a row of ``a``, of ``b``)."""
     ta, tb = (torch.as_tensor(np.asarray(x, dtype=np.float64)) for x in (a, b))
     sa, sb = (torch.as_tensor(x, dtype=torch.float64) for x in (steps_a, steps_b))

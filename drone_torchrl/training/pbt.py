@@ -270,21 +270,24 @@ def recorded_keys(initial: Mapping[str, Any]) -> tuple[str, ...]:
     return tuple(key for key in STATE_KEYS if key in initial)
 
 
-def _walk(lineage: Table | None, initial: Table, keys: Sequence[str]) -> tuple[dict, dict]:
-    """The lineage with a column for each of ``keys``, and each agent's values of them at its end (floats).
+def _walk(
+    lineage: Table | None, initial: Table, keys: Sequence[str], cast: Callable = float
+) -> tuple[dict, dict]:
+    """The lineage with a column for each of ``keys``, and each agent's values of them at its end (``cast``).
 
-    A missing column's value is the one the agent's row held from that row on (:func:`complete_lineage`).
+    A missing column's value (a float) is the one the agent's row held from that row on
+    (:func:`complete_lineage`).
     """
     out = {column: list(values) for column, values in (lineage or {}).items()}
     out.update({column: out.get(column, []) for column in LINEAGE_COLUMNS})
     missing = [key for key in keys if key not in out]
-    now = {key: [float(v) for v in initial[key]] for key in keys}
+    now = {key: [cast(v) for v in initial[key]] for key in keys}
     out.update({key: [] for key in missing})
     for row, (agent, parent) in enumerate(zip(out["agent"], out["parent"], strict=True)):
         for key in missing:
-            out[key].append(now[key][agent if parent == FRESH else parent])
+            out[key].append(float(now[key][agent if parent == FRESH else parent]))
         for key in keys:
-            now[key][agent] = float(out[key][row])
+            now[key][agent] = cast(out[key][row])
     return out, now
 
 
@@ -299,19 +302,14 @@ def complete_lineage(lineage: Table | None, initial: Table, keys: Sequence[str] 
     return _walk(lineage, initial, recorded_keys(initial) if keys is None else tuple(keys))[0]
 
 
-def final_values(lineage: Table | None, initial: Table, keys: Sequence[str] | None = None) -> dict[str, list]:
-    """Each agent's values at the end of ``lineage``: ``initial``'s, then each lineage row's.
+def final_values(lineage: Table | None, initial: Table) -> dict[str, list]:
+    """Each agent's values at the end of ``lineage``: ``initial``'s, then each lineage row's (as they are).
 
-    ``keys`` default to :func:`recorded_keys` of ``initial``, and ``seed`` where ``initial`` has it
-    (a restart from fresh weights gives the slot a new seed).
+    Of :func:`recorded_keys` of ``initial``, and ``seed`` where ``initial`` has it (a restart from
+    fresh weights gives the slot a new seed).
     """
-    keys = (*recorded_keys(initial), *(("seed",) if "seed" in initial else ())) if keys is None else keys
-    rows = complete_lineage(lineage, initial, [key for key in keys if key != "seed"])
-    out = {key: list(initial[key]) for key in keys}
-    for row, agent in enumerate(rows["agent"]):
-        for key in keys:
-            out[key][agent] = rows[key][row]
-    return out
+    keys = (*recorded_keys(initial), *(("seed",) if "seed" in initial else ()))
+    return _walk(lineage, initial, keys, lambda value: value)[1]
 
 
 class Exploit(NamedTuple):

@@ -17,6 +17,7 @@ discounts and seeds may differ between agents; everything else is the group's (s
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -46,11 +47,8 @@ class Population:
         params = self.policy.flat
         decays = torch.tensor(agents.values["algo.weight_decay"], dtype=torch.float64)
         decoupled = base.algo.optimizer == "adamw"
-        self.adam = Adam(
-            eps=base.algo.adam_eps,
-            decoupled_weight_decay=decoupled,
-            coupled_decay=not decoupled and bool(decays.any()),
-        )
+        coupled = not decoupled and bool(decays.any())
+        self.adam = Adam(eps=base.algo.adam_eps, decoupled_weight_decay=decoupled, coupled_decay=coupled)
         #: Everything an update reads and writes, batch size ``[N]`` (the module's description lists it).
         self.state = TensorDict(
             {
@@ -62,30 +60,28 @@ class Population:
             },
             batch_size=[len(agents)],
         )
-        max_norm = base.algo.max_grad_norm
-        self.max_grad_norm = math.inf if max_norm is None else float(max_norm)
-        self._actor_layout: dict[str, str | None] | None = None
-        self._actor_extras: dict[str, torch.Tensor] = {}
+        self.max_grad_norm = math.inf if base.algo.max_grad_norm is None else float(base.algo.max_grad_norm)
 
     def __len__(self) -> int:
         return len(self.agents)
 
+    @functools.cached_property
+    def _actor_entries(self) -> dict[str, str | torch.Tensor]:
+        """Each entry of ``make_actor``'s state dict: the agent net's parameter it holds, or a tensor of its own.
+
+        Building a ProbabilisticActor per agent per checkpoint is slow at thousands of agents; its
+        state-dict layout is the same for every agent of the group, so it is learnt once.
+        """
+        net = self.policy.agent_net(0)
+        names = {id(p): name for name, p in net.named_parameters()}
+        entries = build_actor(self.cfg, net).state_dict(keep_vars=True)
+        return {key: names.get(id(value)) or value.detach().clone() for key, value in entries.items()}
+
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """The agent's checkpoint entries: its actor (``make_actor``'s layout) and optimizer (``torch.optim.Adam``'s)."""
-        if self._actor_layout is None:
-            # Building a ProbabilisticActor per agent per checkpoint is slow at thousands of agents; its state-dict
-            # layout is the same for every agent of the group, so learn it once.
-            net = self.policy.agent_net(0)
-            names = {id(p): name for name, p in net.named_parameters()}
-            entries = build_actor(self.cfg, net).state_dict(keep_vars=True)
-            self._actor_layout = {key: names.get(id(value)) for key, value in entries.items()}
-            self._actor_extras = {
-                k: v.detach().clone() for k, v in entries.items() if self._actor_layout[k] is None
-            }
         weights = self.policy.agent_state_dict(agent)
         actor = {
-            key: weights[name] if name is not None else self._actor_extras[key].clone()
-            for key, name in self._actor_layout.items()
+            key: weights[e] if isinstance(e, str) else e.clone() for key, e in self._actor_entries.items()
         }
         optimizer = self.adam.agent_state(self.state, agent, self.policy.names, self.policy.views)
         return {"actor": actor, "optimizer": optimizer}
