@@ -337,7 +337,6 @@ class Search:
     an exploit copies the parent's whole row, so a key not searched changes too.
 
     Args:
-        keys: the searched keys.
         initial: each key -> every agent's value from the sweep (every recorded key: the searched
             keys and the others of :data:`STATE_KEYS`).
         lineage: the rows written so far (a resumed run's, from its checkpoint), column -> values.
@@ -349,8 +348,7 @@ class Search:
     #: What else the checkpoint keeps of the search (name -> the search's own record, kept up to date).
     extra: Mapping[str, Any] = {}
 
-    def __init__(self, keys: Sequence[str], initial: Table, lineage: Table | None) -> None:
-        self.keys = tuple(keys)
+    def __init__(self, initial: Table, lineage: Table | None) -> None:
         self.recorded = recorded_keys(initial)
         # An older checkpoint's lineage may lack the keys that were not searched: filled in. Each
         # agent's value of each recorded key now is exact (the state holds gamma in the network's
@@ -425,7 +423,7 @@ class PBT(Search):
     def __init__(
         self, settings: PBTSettings, space: Table, bounds: Mapping, seed: int, lineage: Table | None = None
     ) -> None:
-        super().__init__(settings.keys, space, lineage)
+        super().__init__(space, lineage)
         self.settings, self.bounds, self.seed = settings, dict(bounds), int(seed)
         self.ranges = {r.key: r for r in settings.ranges}
         self.space = {key: sorted(set(space[key])) for key in settings.keys if key not in self.ranges}
@@ -607,8 +605,7 @@ class Replay(Search):
     def __init__(self, settings: ReplaySettings, agents: int, lineage: Table | None = None) -> None:
         self.settings, self.agents = settings, agents
         self.steps = {update: dict(values) for update, values in settings.schedule}
-        first = self.steps[0]
-        super().__init__(first, {key: [value] * agents for key, value in first.items()}, lineage)
+        super().__init__({key: [value] * agents for key, value in self.steps[0].items()}, lineage)
 
     def start(self, state: Any) -> None:
         """Give every agent the replayed line's first values."""
@@ -685,7 +682,7 @@ class Halving(Search):
         self, settings: HalvingSettings, cfg: Any, values: Table, saved: Mapping[str, Any] | None
     ) -> None:
         saved = saved or {}
-        super().__init__(settings.keys, values, saved.get("lineage"))
+        super().__init__(values, saved.get("lineage"))
         self.settings, self.cfg, self.seed = settings, cfg, int(values["seed"][0])
         self.space = {key: sorted(set(values[key])) for key in settings.keys}
         self.next_seed = max([*values["seed"], *self.lineage["seed"]]) + 1
