@@ -25,6 +25,12 @@ replaced agent to the run's lineage (update, agent, parent and the agent's value
 every key of :data:`STATE_KEYS`, searched or not: the copy gives it the parent's values of the keys
 not searched), kept in the checkpoint and written to ``lineage.parquet``
 (:mod:`.population_record`). An agent that diverged takes no part.
+
+PBT, PB2 (:mod:`.pb2`) and successive halving (:class:`Halving`) take one step (:meth:`Search.step`):
+the search picks the agents replaced and their parents (``select``), rewrites their rows and draws
+their values (``renew``), and the step books them in the state and the lineage; a replay
+(:class:`Replay`) books its schedule's values for every agent. Every search's checkpoint entry is
+its settings' record, the lineage and its own :attr:`Search.extra`.
 """
 
 from __future__ import annotations
