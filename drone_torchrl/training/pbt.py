@@ -276,9 +276,7 @@ def recorded_keys(initial: Mapping[str, Any]) -> tuple[str, ...]:
     return tuple(key for key in STATE_KEYS if key in initial)
 
 
-def _walk(
-    lineage: Table | None, initial: Table, keys: Sequence[str], cast: Callable = float
-) -> tuple[dict, dict]:
+def _walk(lineage: Table | None, initial: Table, keys: Sequence, cast: Callable = float) -> tuple[dict, dict]:
     """The lineage with a column for each of ``keys``, and each agent's values of them at its end (``cast``).
 
     A missing column's value (a float) is the one the agent's row held from that row on
@@ -684,9 +682,7 @@ class Halving(Search):
         saved: the search's checkpoint entry of a resumed run (None: a new run).
     """
 
-    def __init__(
-        self, settings: HalvingSettings, cfg: Any, values: Table, saved: Mapping[str, Any] | None
-    ) -> None:
+    def __init__(self, settings: HalvingSettings, cfg: Any, values: Table, saved: Mapping | None) -> None:
         saved = saved or {}
         super().__init__(values, saved.get("lineage"))
         self.settings, self.cfg, self.seed = settings, cfg, int(values["seed"][0])
