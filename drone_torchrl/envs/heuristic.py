@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import torch
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule
 
 from drone_torchrl.envs.dynamics import STATE_DIM, DroneParams, clamp_action
 
@@ -138,7 +138,7 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
     return clamp_action(action, params.max_thrust)  # only rounding can reach beyond the limit
 
 
-class PDController(TensorDictModuleBase):
+class PDController(TensorDictModule):
     """:func:`pd_action` as a TorchRL policy: reads ``"observation"``, writes ``"action"``.
 
     >>> from drone_torchrl.envs import DroneEnv
@@ -159,18 +159,14 @@ class PDController(TensorDictModuleBase):
         observation_key: str = "observation",
         action_key: str = "action",
     ) -> None:
-        super().__init__()
-        self.params = params
-        self.gains = PDGains() if gains is None else gains
-        self.in_keys = [observation_key]
-        self.out_keys = [action_key]
+        self.params, self.gains = params, PDGains() if gains is None else gains
+        act = partial(_pd_on_state, params=params, gains=self.gains)
+        super().__init__(act, in_keys=[observation_key], out_keys=[action_key])
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Write the PD commands for the observation at ``in_keys[0]`` to ``out_keys[0]``."""
-        observation = tensordict.get(self.in_keys[0])
-        # Past the 6 state entries an observation may carry the last commands (observed_actions).
-        tensordict.set(self.out_keys[0], pd_action(observation[..., :STATE_DIM], self.params, self.gains))
-        return tensordict
+
+def _pd_on_state(observation: torch.Tensor, params: DroneParams, gains: PDGains) -> torch.Tensor:
+    # Past the 6 state entries an observation may carry the last commands (observed_actions).
+    return pd_action(observation[..., :STATE_DIM], params, gains)
 
 
 __all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "min_cos_alpha", "pd_action"]

@@ -11,8 +11,8 @@ What is logged: every scalar as a metric with its step (a count of episodes done
 config as params when the run starts, the final metrics as ``hparam/*`` metrics when it ends, and
 the run's status (``FINISHED`` when it completes, ``FAILED`` when it fails, ``KILLED`` when a signal
 stops it to be continued). Videos are not uploaded: the run folder's
-``videos/`` has them. Metrics are buffered and sent in batches of MLflow's largest size at every
-flush; the store's connection is shared by every run of a process, so a population of 1,024 runs
+``videos/`` has them. Metrics are buffered and sent in one ``log_batch`` (which MLflow splits into
+its largest batches) at every flush; the store's connection is shared by every run of a process, so a population of 1,024 runs
 holds one connection, not 1,024 files.
 
 Resume: MLflow is append-only, so a continued run logs into the same MLflow run (its id is kept in
@@ -47,9 +47,7 @@ RUN_ID_FILE = "run_id"
 STORE_FILE = "mlflow.db"
 # Beside a SQLite store: the lock its first contact takes (<store>.lock).
 LOCK_SUFFIX = ".lock"
-# MLflow's limits per log_batch call (metrics, params) and per param value (characters).
-MAX_METRICS_PER_BATCH = 1000
-MAX_PARAMS_PER_BATCH = 100
+# MLflow's limit per param value (characters); MlflowClient.log_batch splits a batch into its sizes itself.
 MAX_PARAM_CHARS = 6000
 # MLflow's run status for how a run ended; any other (stopped, to be continued) is KILLED.
 _STATUSES = {FINISHED: "FINISHED", FAILED: "FAILED"}
@@ -137,8 +135,7 @@ class MLflowLogger(Logger):
             for key, value in flatten_config(cfg).items()
             if key not in have  # params cannot change in MLflow; a continued run has them already
         ]
-        for start in range(0, len(params), MAX_PARAMS_PER_BATCH):
-            client.log_batch(self.run_id, params=params[start : start + MAX_PARAMS_PER_BATCH])
+        client.log_batch(self.run_id, params=params)
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         # MLflow shows params and metrics side by side already; the final metrics under hparam/*,
@@ -159,8 +156,7 @@ class MLflowLogger(Logger):
             if int(step) > self._skip_to or tag.startswith("hparam/")
         ]
         self.scalars.clear()
-        for start in range(0, len(metrics), MAX_METRICS_PER_BATCH):
-            self.client.log_batch(self.run_id, metrics=metrics[start : start + MAX_METRICS_PER_BATCH])
+        self.client.log_batch(self.run_id, metrics=metrics)
 
     def close(self, status: RunStatus) -> None:
         """Flush, then mark the MLflow run finished, failed or killed by ``status``."""
