@@ -87,7 +87,10 @@ def integrate(
         x_ddot = g * (torch.sin(-alpha) * total + force) / mass_ratio
         z_ddot = g * torch.cos(alpha) * total / mass_ratio - g
         alpha_ddot = (
-            (action[..., 1] - action[..., 0]) * params.weight * params.lever_arm / (params.inertia * mass_ratio)
+            (action[..., 1] - action[..., 0])
+            * params.weight
+            * params.lever_arm
+            / (params.inertia * mass_ratio)
         )
     dt = params.dt
     x, x_dot, z, z_dot, alpha, alpha_dot = state.unbind(-1)
