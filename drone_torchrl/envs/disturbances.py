@@ -246,9 +246,8 @@ def observe(
     if disturbance.noise_position or disturbance.noise_angle:
         n = _normal(internal.key, t, STEP_STREAM, _STEP_NORMALS, state.dtype)
         noise = torch.zeros_like(state)
-        noise[..., X] = disturbance.noise_position * n[..., 1]
-        noise[..., Z] = disturbance.noise_position * n[..., 2]
-        noise[..., ALPHA] = disturbance.noise_angle * n[..., 3]
+        scale = (disturbance.noise_position, disturbance.noise_position, disturbance.noise_angle)
+        noise[..., (X, Z, ALPHA)] = n[..., 1:] * state.new_tensor(scale)
         obs = state + noise
     if disturbance.observed_actions:
         obs = torch.cat((obs, internal.issued.flatten(-2)), -1)

@@ -43,11 +43,6 @@ MIN_COS_ALPHA = 0.1
 MAX_TILT_SHARE = 0.5
 
 
-def min_cos_alpha(params: DroneParams) -> float:
-    """The smallest ``cos(alpha)`` the collective thrust is divided by (see :data:`MIN_COS_ALPHA`)."""
-    return max(math.cos(params.alpha_limit), MIN_COS_ALPHA)
-
-
 @dataclass(frozen=True)
 class PDGains:
     """Targets and gains of :func:`pd_action` (the parameters a Hydra config sets).
@@ -110,7 +105,7 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
     z_target = params.zone_z_centre if gains.z_target is None else gains.z_target
     accel_z = gains.kp_z * (z_target - z) - gains.kd_z * z_dot
     accel_z = accel_z.clamp(-gains.max_accel_z, gains.max_accel_z)
-    cos_alpha = torch.cos(alpha).clamp_min(min_cos_alpha(params))
+    cos_alpha = torch.cos(alpha).clamp_min(max(math.cos(params.alpha_limit), MIN_COS_ALPHA))
     collective = (1.0 + accel_z / params.gravity) / cos_alpha
 
     # 2. Horizontal position -> desired tilt. x_ddot = -sin(alpha) T/m: tilt the opposite way.
@@ -169,4 +164,4 @@ def _pd_on_state(observation: torch.Tensor, params: DroneParams, gains: PDGains)
     return pd_action(observation[..., :STATE_DIM], params, gains)
 
 
-__all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "min_cos_alpha", "pd_action"]
+__all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "pd_action"]

@@ -59,35 +59,11 @@ KNOWN_SCHEMES = ("", "databricks", "file", "http", "https", "mssql", "mysql", "p
 MODEL_ONLY_SCHEMES = ("uc", "databricks-uc")
 
 
-def tracking_schemes() -> list[str]:
-    """The URI schemes of the tracking stores this MLflow can open (plug-ins included)."""
-    try:
-        from mlflow.tracking._tracking_service.utils import _tracking_store_registry
-
-        schemes = set(_tracking_store_registry._registry)
-    except (ImportError, AttributeError):  # a private name: another MLflow version may move it
-        schemes = set(KNOWN_SCHEMES)
-    return sorted(schemes - set(MODEL_ONLY_SCHEMES))
-
-
 def _sqlite_file(tracking_uri: str) -> Path | None:
     """The database file of a ``sqlite:///<path>`` URI (None for another store or in-memory SQLite)."""
     prefix = "sqlite:///"
     path = tracking_uri[len(prefix) :] if tracking_uri.startswith(prefix) else ""
     return Path(path) if path and path != ":memory:" else None
-
-
-def _first_contact(tracking_uri: str) -> contextlib.AbstractContextManager:
-    """Take turns with the other processes that open one SQLite store.
-
-    The first to reach a new store creates its tables (MLflow's migrations; two at once collide,
-    ``duplicate column name: step``, and the second run was lost), and an experiment is created
-    once. Other stores serialise themselves (a server), or are one process's (a folder).
-    """
-    path = _sqlite_file(tracking_uri)
-    if path is None:
-        return contextlib.nullcontext()
-    return run_lock.exclusive(path.with_name(path.name + LOCK_SUFFIX))
 
 
 class MLflowLogger(Logger):
@@ -112,7 +88,17 @@ class MLflowLogger(Logger):
         id_file = run_dir / cfg.logger.exp_name / RUN_ID_FILE
         self.scalars: list[tuple[str, float, int]] = []
         self._skip_to = -1  # steps <= this are in the store already
-        with _first_contact(uri):  # MlflowClient opens the store, creating its tables
+        # Processes that open one SQLite store take turns: the first to reach a new store creates its
+        # tables (MLflow's migrations; two at once collide, ``duplicate column name: step``, and the
+        # second run was lost), and an experiment is created once. Other stores serialise themselves
+        # (a server), or are one process's (a folder).
+        db = _sqlite_file(uri)
+        lock = (
+            contextlib.nullcontext()
+            if db is None
+            else run_lock.exclusive(db.with_name(db.name + LOCK_SUFFIX))
+        )
+        with lock:  # MlflowClient opens the store, creating its tables
             self.client = client = MlflowClient(tracking_uri=uri)
             if id_file.is_file():
                 self.run_id = id_file.read_text().strip()
@@ -175,7 +161,13 @@ def validate(cfg: Mapping[str, Any]) -> None:
         return
     from mlflow.utils.uri import get_uri_scheme
 
-    schemes = tracking_schemes()
+    try:  # the stores this MLflow can open, plug-ins included
+        from mlflow.tracking._tracking_service.utils import _tracking_store_registry
+
+        schemes = set(_tracking_store_registry._registry)
+    except (ImportError, AttributeError):  # a private name: another MLflow version may move it
+        schemes = set(KNOWN_SCHEMES)
+    schemes = sorted(schemes - set(MODEL_ONLY_SCHEMES))
     try:
         scheme = get_uri_scheme(uri)
     except Exception:  # noqa: BLE001  (MLflow refuses e.g. an unknown database engine, sqlitex://)

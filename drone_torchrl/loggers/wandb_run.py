@@ -32,6 +32,7 @@ side by side (``reinit="create_new"``); each holds a stream to W&B's service pro
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections import defaultdict
 from collections.abc import Iterable, Mapping
@@ -76,8 +77,10 @@ class WandbLogger(Logger):
         id_file, self._sent_file = folder / RUN_ID_FILE, folder / SENT_FILE
         resuming = resumed_at is not None and id_file.is_file()
         run_id = id_file.read_text().strip() if resuming else None  # None: W&B names a new run
-        # Steps up to this one are in W&B already (sent by the interrupted process).
-        self._sent = _read_int(self._sent_file) if resuming else 0
+        self._sent = 0  # steps up to this one are in W&B already (sent by the interrupted process)
+        if resuming:
+            with contextlib.suppress(OSError, ValueError):  # absent or torn: nothing known to be sent
+                self._sent = int(self._sent_file.read_text().strip())
         with writing(folder):
             folder.mkdir(parents=True, exist_ok=True)
         self.run = wandb.init(
@@ -143,13 +146,6 @@ class WandbLogger(Logger):
         if status not in (FINISHED, FAILED):
             self.run.mark_preempting()
         self.run.finish(exit_code=1 if status == FAILED else 0)
-
-
-def _read_int(path: Path) -> int:
-    try:
-        return int(path.read_text().strip())
-    except (OSError, ValueError):  # absent or torn: nothing known to be sent
-        return 0
 
 
 def _check_name(key: str, value: Any, optional: bool) -> None:
