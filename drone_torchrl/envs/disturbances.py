@@ -319,8 +319,4 @@ def _normal(
     key: torch.Tensor, t: torch.Tensor | int, stream: int, n: int, dtype: torch.dtype, offset: int = 0
 ) -> torch.Tensor:
     """``n`` standard normals per key (Box-Muller on uniforms ``offset..offset+n`` of the stream)."""
-    u = _uniform(key, t, stream, offset + n, dtype)[..., offset:]
-    u1, u2 = u[..., 0::2], u[..., 1::2]
-    radius = (-2.0 * u1.log()).sqrt()
-    angle = 2.0 * math.pi * u2
-    return torch.stack((radius * angle.cos(), radius * angle.sin()), -1).reshape(*key.shape, n)
+    return rng.box_muller(_uniform(key, t, stream, offset + n, dtype)[..., offset:])

@@ -49,9 +49,7 @@ class TerminationCause(IntEnum):
 
 def clamp_action(action: torch.Tensor, max_thrust: float | None) -> torch.Tensor:
     """Clamp each motor command into ``[0, max_thrust]``; identity when unbounded (the paper)."""
-    if max_thrust is None:
-        return action
-    return action.clamp(0.0, max_thrust)
+    return action if max_thrust is None else action.clamp(0.0, max_thrust)
 
 
 def integrate(

@@ -131,8 +131,7 @@ class DroneRenderer:
         self._tick_font = pygame.font.Font(None, TICK_FONT_SIZE)
         self._canvas = pygame.Surface((FRAME_WIDTH, FRAME_HEIGHT))
         self._background = self._draw_background()
-        self._window = None
-        self._clock = None
+        self._window = self._clock = None
         if render_mode == "human":
             pygame.display.init()
             pygame.display.set_caption(WINDOW_TITLE)
@@ -286,5 +285,4 @@ class DroneRenderer:
         """Close the window (``"human"`` mode); safe to call more than once."""
         if self._window is not None:
             self._pygame.display.quit()
-            self._window = None
-            self._clock = None
+            self._window = self._clock = None

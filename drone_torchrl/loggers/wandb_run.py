@@ -148,28 +148,22 @@ class WandbLogger(Logger):
         self.run.finish(exit_code=1 if status == FAILED else 0)
 
 
-def _check_name(key: str, value: Any, optional: bool) -> None:
-    if value is None and optional:
-        return
-    if (
-        not isinstance(value, str)
-        or not value.strip()
-        or len(value) > MAX_NAME_CHARS
-        or any(c in value for c in FORBIDDEN_CHARS)
-    ):
-        expected = f"a W&B name of 1 to {MAX_NAME_CHARS} characters without any of {FORBIDDEN_CHARS!r}"
-        raise ConfigError.of(key, value, f"null or {expected}" if optional else expected)
-
-
 def validate(cfg: Mapping[str, Any]) -> None:
     """Check names W&B accepts, and credentials for an online run, before any work.
 
     W&B is installed by then: :func:`drone_torchrl.loggers.check_backend` checks the extra first.
     """
     logger = cfg.logger
-    _check_name("logger.project", logger.project, optional=False)
-    _check_name("logger.entity", logger.entity, optional=True)
-    _check_name("logger.group", logger.group, optional=True)
+    for key, optional in (("project", False), ("entity", True), ("group", True)):
+        value = logger[key]
+        if (value is not None or not optional) and (
+            not isinstance(value, str)
+            or not value.strip()
+            or len(value) > MAX_NAME_CHARS
+            or any(c in value for c in FORBIDDEN_CHARS)
+        ):
+            expected = f"a W&B name of 1 to {MAX_NAME_CHARS} characters without any of {FORBIDDEN_CHARS!r}"
+            raise ConfigError.of(f"logger.{key}", value, f"null or {expected}" if optional else expected)
     mode = logger.mode
     if mode is None:
         mode = os.environ.get("WANDB_MODE", "online")
