@@ -234,7 +234,6 @@ class DroneRenderer:
     def _draw_overlay(self, state, action, step: int, episode_return: float, cause: TerminationCause) -> None:
         """Header text: step, return and cause on the first line, thrusts and tilt on the second."""
         self._canvas.fill(HEADER_COLOUR, (0, 0, FRAME_WIDTH, HEADER_HEIGHT))
-        cause = TerminationCause(int(cause))
         ink, alarm = TEXT_COLOUR, TEXT_COLOUR if cause == TerminationCause.NONE else TERMINATED_TEXT_COLOUR
         a_l, a_r = (float(a) for a in action)
         alpha_deg = math.degrees(float(state[ALPHA]))
