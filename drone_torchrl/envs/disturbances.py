@@ -50,7 +50,7 @@ from typing import Any, NamedTuple
 
 import torch
 
-from drone_torchrl.checks import as_override, is_number
+from drone_torchrl.checks import as_override, check_number
 from drone_torchrl.envs import dynamics, params, rng
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, DroneParams, X, Z
 
@@ -85,10 +85,8 @@ class Disturbance:
 
     def __post_init__(self) -> None:
         for name, high in MAX_MAGNITUDES.items():
-            _check(name, getattr(self, name), 0.0, high, low_open=name == "gust_time")
-        # A drone lighter than nothing, or a motor with a negative gain, is not a disturbance.
-        _check("mass", self.mass, 0.0, MAX_MASS_SPREAD)
-        _check("motor_gain", self.motor_gain, 0.0, MAX_GAIN_SPREAD)
+            value = getattr(self, name)
+            check_number(name, value, low=0.0, high=high, low_open=name == "gust_time", dtype_range=False)
         for name in ("action_delay", "observed_actions"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_STEPS_BACK:
@@ -131,19 +129,13 @@ MAX_MAGNITUDES = {
     "motor_lag": MAX_TIME,
     "noise_position": params.MAX_ARENA,
     "noise_angle": math.pi,
+    # A drone lighter than nothing, or a motor with a negative gain, is not a disturbance.
+    "mass": MAX_MASS_SPREAD,
+    "motor_gain": MAX_GAIN_SPREAD,
 }
 FIELDS = tuple(f.name for f in fields(Disturbance))
 # Fields that change what the policy sees, not the physics.
 _LAYOUT = ("observed_actions", "gust_time")
-
-
-def _check(name: str, value: object, low: float, high: float, *, low_open: bool = False) -> None:
-    ok = is_number(value)
-    ok = ok and (isinstance(value, int) or math.isfinite(value))  # an int: isfinite overflows on 10**400
-    ok = ok and (value > low if low_open else value >= low) and value <= high
-    if not ok:
-        bound = f"{'>' if low_open else '>='} {low} and <= {high}"
-        raise ValueError(f"{name}={as_override(value)} is not allowed; expected a finite number {bound}")
 
 
 def make(disturbance: Disturbance | Mapping[str, Any] | None) -> Disturbance:
@@ -254,9 +246,8 @@ def observe(
     if disturbance.noise_position or disturbance.noise_angle:
         n = _normal(internal.key, t, STEP_STREAM, _STEP_NORMALS, state.dtype)
         noise = torch.zeros_like(state)
-        noise[..., X] = disturbance.noise_position * n[..., 1]
-        noise[..., Z] = disturbance.noise_position * n[..., 2]
-        noise[..., ALPHA] = disturbance.noise_angle * n[..., 3]
+        scale = (disturbance.noise_position, disturbance.noise_position, disturbance.noise_angle)
+        noise[..., (X, Z, ALPHA)] = n[..., 1:] * state.new_tensor(scale)
         obs = state + noise
     if disturbance.observed_actions:
         obs = torch.cat((obs, internal.issued.flatten(-2)), -1)
@@ -328,8 +319,4 @@ def _normal(
     key: torch.Tensor, t: torch.Tensor | int, stream: int, n: int, dtype: torch.dtype, offset: int = 0
 ) -> torch.Tensor:
     """``n`` standard normals per key (Box-Muller on uniforms ``offset..offset+n`` of the stream)."""
-    u = _uniform(key, t, stream, offset + n, dtype)[..., offset:]
-    u1, u2 = u[..., 0::2], u[..., 1::2]
-    radius = (-2.0 * u1.log()).sqrt()
-    angle = 2.0 * math.pi * u2
-    return torch.stack((radius * angle.cos(), radius * angle.sin()), -1).reshape(*key.shape, n)
+    return rng.box_muller(_uniform(key, t, stream, offset + n, dtype)[..., offset:])

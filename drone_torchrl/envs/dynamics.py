@@ -49,9 +49,7 @@ class TerminationCause(IntEnum):
 
 def clamp_action(action: torch.Tensor, max_thrust: float | None) -> torch.Tensor:
     """Clamp each motor command into ``[0, max_thrust]``; identity when unbounded (the paper)."""
-    if max_thrust is None:
-        return action
-    return action.clamp(0.0, max_thrust)
+    return action if max_thrust is None else action.clamp(0.0, max_thrust)
 
 
 def integrate(
@@ -68,13 +66,13 @@ def integrate(
 
     Model mismatch (:mod:`.disturbances`): ``force`` ``[*B]`` is a horizontal force as a fraction of
     the nominal weight, ``mass_ratio`` ``[*B]`` the true mass over the nominal one (the inertia
-    follows it, ``I = 2/5 m r^2``). Then ``x'' = g (sin(-alpha) (a_l + a_r) + force) / ratio``,
+    follows it, ``I = 2/5 m r^2``), both given or neither. Then ``x'' = g (sin(-alpha) (a_l + a_r) + force) / ratio``,
     ``z'' = g cos(alpha) (a_l + a_r) / ratio - g`` and ``alpha'' = (a_r - a_l) m0 g r / (I0 ratio)``.
     Without them (the paper's drone) the same equations are computed as the spec writes them, in
     thrusts ``T = a m g`` (the arithmetic the C++ kernels round alike).
     """
     alpha = state[..., ALPHA]
-    if force is None and mass_ratio is None:
+    if mass_ratio is None:
         thrust_left = action[..., 0] * params.weight
         thrust_right = action[..., 1] * params.weight
         total = thrust_left + thrust_right
@@ -83,13 +81,14 @@ def integrate(
         alpha_ddot = (thrust_right - thrust_left) * (params.lever_arm / params.inertia)
     else:
         g = params.gravity
-        ratio = torch.ones_like(alpha) if mass_ratio is None else mass_ratio
-        push = torch.zeros_like(alpha) if force is None else force
         total = action[..., 0] + action[..., 1]
-        x_ddot = g * (torch.sin(-alpha) * total + push) / ratio
-        z_ddot = g * torch.cos(alpha) * total / ratio - g
+        x_ddot = g * (torch.sin(-alpha) * total + force) / mass_ratio
+        z_ddot = g * torch.cos(alpha) * total / mass_ratio - g
         alpha_ddot = (
-            (action[..., 1] - action[..., 0]) * params.weight * params.lever_arm / (params.inertia * ratio)
+            (action[..., 1] - action[..., 0])
+            * params.weight
+            * params.lever_arm
+            / (params.inertia * mass_ratio)
         )
     dt = params.dt
     x, x_dot, z, z_dot, alpha, alpha_dot = state.unbind(-1)

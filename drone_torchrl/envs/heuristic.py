@@ -27,10 +27,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import partial
 
 import torch
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule
 
 from drone_torchrl.envs.dynamics import STATE_DIM, DroneParams, clamp_action
 
@@ -41,11 +41,6 @@ MIN_COS_ALPHA = 0.1
 # The desired tilt stays within this share of the tilt limit (a tighter limit than the paper's
 # 60 deg then tightens gains.max_tilt).
 MAX_TILT_SHARE = 0.5
-
-
-def min_cos_alpha(params: DroneParams) -> float:
-    """The smallest ``cos(alpha)`` the collective thrust is divided by (see :data:`MIN_COS_ALPHA`)."""
-    return max(math.cos(params.alpha_limit), MIN_COS_ALPHA)
 
 
 @dataclass(frozen=True)
@@ -110,7 +105,7 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
     z_target = params.zone_z_centre if gains.z_target is None else gains.z_target
     accel_z = gains.kp_z * (z_target - z) - gains.kd_z * z_dot
     accel_z = accel_z.clamp(-gains.max_accel_z, gains.max_accel_z)
-    cos_alpha = torch.cos(alpha).clamp_min(min_cos_alpha(params))
+    cos_alpha = torch.cos(alpha).clamp_min(max(math.cos(params.alpha_limit), MIN_COS_ALPHA))
     collective = (1.0 + accel_z / params.gravity) / cos_alpha
 
     # 2. Horizontal position -> desired tilt. x_ddot = -sin(alpha) T/m: tilt the opposite way.
@@ -138,7 +133,7 @@ def pd_action(observation: torch.Tensor, params: DroneParams, gains: PDGains | N
     return clamp_action(action, params.max_thrust)  # only rounding can reach beyond the limit
 
 
-class PDController(TensorDictModuleBase):
+class PDController(TensorDictModule):
     """:func:`pd_action` as a TorchRL policy: reads ``"observation"``, writes ``"action"``.
 
     >>> from drone_torchrl.envs import DroneEnv
@@ -159,18 +154,14 @@ class PDController(TensorDictModuleBase):
         observation_key: str = "observation",
         action_key: str = "action",
     ) -> None:
-        super().__init__()
-        self.params = params
-        self.gains = PDGains() if gains is None else gains
-        self.in_keys = [observation_key]
-        self.out_keys = [action_key]
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """Write the PD commands for the observation at ``in_keys[0]`` to ``out_keys[0]``."""
-        observation = tensordict.get(self.in_keys[0])
-        # Past the 6 state entries an observation may carry the last commands (observed_actions).
-        tensordict.set(self.out_keys[0], pd_action(observation[..., :STATE_DIM], self.params, self.gains))
-        return tensordict
+        self.params, self.gains = params, PDGains() if gains is None else gains
+        act = partial(_pd_on_state, params=params, gains=self.gains)
+        super().__init__(act, in_keys=[observation_key], out_keys=[action_key])
 
 
-__all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "min_cos_alpha", "pd_action"]
+def _pd_on_state(observation: torch.Tensor, params: DroneParams, gains: PDGains) -> torch.Tensor:
+    # Past the 6 state entries an observation may carry the last commands (observed_actions).
+    return pd_action(observation[..., :STATE_DIM], params, gains)
+
+
+__all__ = ["MIN_COS_ALPHA", "PDController", "PDGains", "pd_action"]

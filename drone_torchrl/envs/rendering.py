@@ -131,8 +131,7 @@ class DroneRenderer:
         self._tick_font = pygame.font.Font(None, TICK_FONT_SIZE)
         self._canvas = pygame.Surface((FRAME_WIDTH, FRAME_HEIGHT))
         self._background = self._draw_background()
-        self._window = None
-        self._clock = None
+        self._window = self._clock = None
         if render_mode == "human":
             pygame.display.init()
             pygame.display.set_caption(WINDOW_TITLE)
@@ -235,7 +234,6 @@ class DroneRenderer:
     def _draw_overlay(self, state, action, step: int, episode_return: float, cause: TerminationCause) -> None:
         """Header text: step, return and cause on the first line, thrusts and tilt on the second."""
         self._canvas.fill(HEADER_COLOUR, (0, 0, FRAME_WIDTH, HEADER_HEIGHT))
-        cause = TerminationCause(int(cause))
         ink, alarm = TEXT_COLOUR, TEXT_COLOUR if cause == TerminationCause.NONE else TERMINATED_TEXT_COLOUR
         a_l, a_r = (float(a) for a in action)
         alpha_deg = math.degrees(float(state[ALPHA]))
@@ -286,5 +284,4 @@ class DroneRenderer:
         """Close the window (``"human"`` mode); safe to call more than once."""
         if self._window is not None:
             self._pygame.display.quit()
-            self._window = None
-            self._clock = None
+            self._window = self._clock = None

@@ -78,7 +78,11 @@ def normal(seeds: torch.Tensor, counters: torch.Tensor, stream: int, shape: tupl
     """Standard normals, float32 ``[N, *shape]`` with an even last dim (Box-Muller pairs)."""
     if shape[-1] % 2:
         raise ValueError(f"normal() needs an even last dim, got shape {shape}")
-    u = uniform(seeds, counters, stream, (*shape[:-1], shape[-1] // 2, 2))
-    radius = (-2.0 * u[..., 0].log()).sqrt()
-    angle = 2.0 * math.pi * u[..., 1]
-    return torch.stack((radius * angle.cos(), radius * angle.sin()), -1).reshape(-1, *shape)
+    return box_muller(uniform(seeds, counters, stream, shape)).reshape(-1, *shape)
+
+
+def box_muller(u: torch.Tensor) -> torch.Tensor:
+    """Standard normals from uniforms ``[..., 2k]``, two from each consecutive pair, in the uniforms' dtype."""
+    radius = (-2.0 * u[..., 0::2].log()).sqrt()
+    angle = 2.0 * math.pi * u[..., 1::2]
+    return torch.stack((radius * angle.cos(), radius * angle.sin()), -1).flatten(-2)

@@ -101,26 +101,20 @@ class Episodes(NamedTuple):
         batch = [*self.length.shape, n]
         steps = torch.arange(n, device=cause.device).expand(*batch)
         column = lambda x: x.unsqueeze(-1)  # noqa: E731
-        following = TensorDict(
-            {
-                "observation": self.states[..., 1 : n + 1, :],
-                "reward": column(self.reward[..., :n]),
-                "terminated": column(terminated),
-                "truncated": column(truncated),
-                "done": column(terminated | truncated),
-                "termination_cause": column(cause),
-            },
-            batch_size=batch,
-        )
-        return TensorDict(
-            {
-                "observation": self.states[..., :n, :],
-                "action": self.action[..., :n, :],
-                "step_count": column(steps),
-                "next": following,
-            },
-            batch_size=batch,
-        )
+        following = {
+            "observation": self.states[..., 1 : n + 1, :],
+            "reward": column(self.reward[..., :n]),
+            "terminated": column(terminated),
+            "truncated": column(truncated),
+            "done": column(terminated | truncated),
+            "termination_cause": column(cause),
+        }
+        now = {
+            "observation": self.states[..., :n, :],
+            "action": self.action[..., :n, :],
+            "step_count": column(steps),
+        }
+        return TensorDict({**now, "next": following}, batch_size=batch)
 
 
 #: Start states ``[*B, 6]`` (and, under disturbances, episode ``keys`` ``[*B]``) -> whole episodes, one

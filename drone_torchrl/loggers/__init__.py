@@ -150,21 +150,15 @@ def make_logger(cfg: DictConfig, run_dir: Path, resumed_at: int | None) -> Logge
     return get(cfg.logger.backend).make(cfg, Path(run_dir), resumed_at)
 
 
-def flatten_config(cfg: DictConfig | dict) -> dict[str, Any]:
+def flatten_config(cfg: DictConfig | dict, prefix: str = "") -> dict[str, Any]:
     """``{"algo.lr": 1e-4, ...}`` with values every backend accepts (lists and None as strings)."""
     container = OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else cfg
     flat: dict[str, Any] = {}
-
-    def walk(prefix: str, node: Any) -> None:
-        if isinstance(node, dict):
-            for key, value in node.items():
-                walk(f"{prefix}.{key}" if prefix else str(key), value)
-        elif isinstance(node, bool | int | float | str):
-            flat[prefix] = node
+    for key, value in container.items():
+        if isinstance(value, dict):
+            flat.update(flatten_config(value, f"{prefix}{key}."))
         else:
-            flat[prefix] = str(node)
-
-    walk("", container)
+            flat[f"{prefix}{key}"] = value if isinstance(value, bool | int | float | str) else str(value)
     return flat
 
 

@@ -49,7 +49,11 @@ class CSVLogger(Logger):
         self.path = self.log_dir / SCALARS
         self.scalars: list[tuple[str, float, int]] = []
         if resumed_at is not None and self.path.is_file():
-            _keep_until(self.path, resumed_at)
+            # Only the rows up to resumed_at, dropping torn lines (a kill's) and non-UTF-8 rows.
+            with open_csv(self.path) as f:
+                rows = list(csv.reader(f))[1:]
+            good = (row for row in rows if len(row) == len(HEADER) and is_text(row))
+            write_csv(self.path, HEADER, [row for row in good if _step(row[0]) <= resumed_at])
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         """Write the flattened config and the final ``metrics`` (as ``hparam/*``) to the hparams file."""
@@ -73,14 +77,6 @@ class CSVLogger(Logger):
                 for tag, value, step in self.scalars
             )
         self.scalars.clear()
-
-
-def _keep_until(path: Path, step: int) -> None:
-    """Rewrite ``path`` with its rows up to ``step``, dropping torn lines (a kill's) and non-UTF-8 rows."""
-    with open_csv(path) as f:
-        rows = list(csv.reader(f))
-    kept = [row for row in rows[1:] if len(row) == len(HEADER) and is_text(row) and _step(row[0]) <= step]
-    write_csv(path, HEADER, kept)
 
 
 def _step(text: str) -> float:

@@ -11,8 +11,8 @@ What is logged: every scalar as a metric with its step (a count of episodes done
 config as params when the run starts, the final metrics as ``hparam/*`` metrics when it ends, and
 the run's status (``FINISHED`` when it completes, ``FAILED`` when it fails, ``KILLED`` when a signal
 stops it to be continued). Videos are not uploaded: the run folder's
-``videos/`` has them. Metrics are buffered and sent in batches of MLflow's largest size at every
-flush; the store's connection is shared by every run of a process, so a population of 1,024 runs
+``videos/`` has them. Metrics are buffered and sent in one ``log_batch`` (which MLflow splits into
+its largest batches) at every flush; the store's connection is shared by every run of a process, so a population of 1,024 runs
 holds one connection, not 1,024 files.
 
 Resume: MLflow is append-only, so a continued run logs into the same MLflow run (its id is kept in
@@ -47,9 +47,7 @@ RUN_ID_FILE = "run_id"
 STORE_FILE = "mlflow.db"
 # Beside a SQLite store: the lock its first contact takes (<store>.lock).
 LOCK_SUFFIX = ".lock"
-# MLflow's limits per log_batch call (metrics, params) and per param value (characters).
-MAX_METRICS_PER_BATCH = 1000
-MAX_PARAMS_PER_BATCH = 100
+# MLflow's limit per param value (characters); MlflowClient.log_batch splits a batch into its sizes itself.
 MAX_PARAM_CHARS = 6000
 # MLflow's run status for how a run ended; any other (stopped, to be continued) is KILLED.
 _STATUSES = {FINISHED: "FINISHED", FAILED: "FAILED"}
@@ -61,35 +59,11 @@ KNOWN_SCHEMES = ("", "databricks", "file", "http", "https", "mssql", "mysql", "p
 MODEL_ONLY_SCHEMES = ("uc", "databricks-uc")
 
 
-def tracking_schemes() -> list[str]:
-    """The URI schemes of the tracking stores this MLflow can open (plug-ins included)."""
-    try:
-        from mlflow.tracking._tracking_service.utils import _tracking_store_registry
-
-        schemes = set(_tracking_store_registry._registry)
-    except (ImportError, AttributeError):  # a private name: another MLflow version may move it
-        schemes = set(KNOWN_SCHEMES)
-    return sorted(schemes - set(MODEL_ONLY_SCHEMES))
-
-
 def _sqlite_file(tracking_uri: str) -> Path | None:
     """The database file of a ``sqlite:///<path>`` URI (None for another store or in-memory SQLite)."""
     prefix = "sqlite:///"
     path = tracking_uri[len(prefix) :] if tracking_uri.startswith(prefix) else ""
     return Path(path) if path and path != ":memory:" else None
-
-
-def _first_contact(tracking_uri: str) -> contextlib.AbstractContextManager:
-    """Take turns with the other processes that open one SQLite store.
-
-    The first to reach a new store creates its tables (MLflow's migrations; two at once collide,
-    ``duplicate column name: step``, and the second run was lost), and an experiment is created
-    once. Other stores serialise themselves (a server), or are one process's (a folder).
-    """
-    path = _sqlite_file(tracking_uri)
-    if path is None:
-        return contextlib.nullcontext()
-    return run_lock.exclusive(path.with_name(path.name + LOCK_SUFFIX))
 
 
 class MLflowLogger(Logger):
@@ -114,7 +88,17 @@ class MLflowLogger(Logger):
         id_file = run_dir / cfg.logger.exp_name / RUN_ID_FILE
         self.scalars: list[tuple[str, float, int]] = []
         self._skip_to = -1  # steps <= this are in the store already
-        with _first_contact(uri):  # MlflowClient opens the store, creating its tables
+        # Processes that open one SQLite store take turns: the first to reach a new store creates its
+        # tables (MLflow's migrations; two at once collide, ``duplicate column name: step``, and the
+        # second run was lost), and an experiment is created once. Other stores serialise themselves
+        # (a server), or are one process's (a folder).
+        db = _sqlite_file(uri)
+        lock = (
+            contextlib.nullcontext()
+            if db is None
+            else run_lock.exclusive(db.with_name(db.name + LOCK_SUFFIX))
+        )
+        with lock:  # MlflowClient opens the store, creating its tables
             self.client = client = MlflowClient(tracking_uri=uri)
             if id_file.is_file():
                 self.run_id = id_file.read_text().strip()
@@ -137,8 +121,7 @@ class MLflowLogger(Logger):
             for key, value in flatten_config(cfg).items()
             if key not in have  # params cannot change in MLflow; a continued run has them already
         ]
-        for start in range(0, len(params), MAX_PARAMS_PER_BATCH):
-            client.log_batch(self.run_id, params=params[start : start + MAX_PARAMS_PER_BATCH])
+        client.log_batch(self.run_id, params=params)
 
     def log_final_hparams(self, cfg: DictConfig | dict, metrics: dict[str, float]) -> None:
         # MLflow shows params and metrics side by side already; the final metrics under hparam/*,
@@ -159,8 +142,7 @@ class MLflowLogger(Logger):
             if int(step) > self._skip_to or tag.startswith("hparam/")
         ]
         self.scalars.clear()
-        for start in range(0, len(metrics), MAX_METRICS_PER_BATCH):
-            self.client.log_batch(self.run_id, metrics=metrics[start : start + MAX_METRICS_PER_BATCH])
+        self.client.log_batch(self.run_id, metrics=metrics)
 
     def close(self, status: RunStatus) -> None:
         """Flush, then mark the MLflow run finished, failed or killed by ``status``."""
@@ -179,7 +161,13 @@ def validate(cfg: Mapping[str, Any]) -> None:
         return
     from mlflow.utils.uri import get_uri_scheme
 
-    schemes = tracking_schemes()
+    try:  # the stores this MLflow can open, plug-ins included
+        from mlflow.tracking._tracking_service.utils import _tracking_store_registry
+
+        schemes = set(_tracking_store_registry._registry)
+    except (ImportError, AttributeError):  # a private name: another MLflow version may move it
+        schemes = set(KNOWN_SCHEMES)
+    schemes = sorted(schemes - set(MODEL_ONLY_SCHEMES))
     try:
         scheme = get_uri_scheme(uri)
     except Exception:  # noqa: BLE001  (MLflow refuses e.g. an unknown database engine, sqlitex://)

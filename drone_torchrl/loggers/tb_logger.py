@@ -29,6 +29,7 @@ two thousandths of its training either way) would not need it.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import socket
@@ -67,7 +68,6 @@ def tf_record(data: bytes) -> bytes:
 #   Event   { double wall_time = 1; int64 step = 2; Summary summary = 5; }
 #   Summary { repeated Value value = 1; }    Value { string tag = 1; float simple_value = 2; }
 # tests/test_tensorboard.py checks the bytes decode to the Event tensorboard's own classes build.
-_VALUE_HEAD: dict[str, bytes] = {}
 _FLOAT = struct.Struct("<f")
 
 
@@ -85,13 +85,16 @@ def _length_delimited(field_key: bytes, payload: bytes) -> bytes:
     return field_key + _varint(len(payload)) + payload
 
 
+@functools.cache
+def _value_head(tag: str) -> bytes:
+    """The entry's key, length and tag field: the same for every value of ``tag``."""
+    inner = _length_delimited(b"\x0a", tag.encode()) + b"\x15"
+    return b"\x0a" + _varint(len(inner) + _FLOAT.size) + inner
+
+
 def scalar_value(tag: str, value: float) -> bytes:
     """One ``Summary.value`` entry (field 1 of ``Summary``) holding ``simple_value`` for ``tag``."""
-    head = _VALUE_HEAD.get(tag)
-    if head is None:  # the entry's key, length and tag field: the same for every value of this tag
-        inner = _length_delimited(b"\x0a", tag.encode()) + b"\x15"
-        head = _VALUE_HEAD[tag] = b"\x0a" + _varint(len(inner) + _FLOAT.size) + inner
-    value = float(value)
+    head, value = _value_head(tag), float(value)
     try:
         return head + _FLOAT.pack(value)
     except OverflowError:  # beyond float32: infinity, as protobuf stores it

@@ -32,6 +32,7 @@ side by side (``reinit="create_new"``); each holds a stream to W&B's service pro
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections import defaultdict
 from collections.abc import Iterable, Mapping
@@ -76,8 +77,10 @@ class WandbLogger(Logger):
         id_file, self._sent_file = folder / RUN_ID_FILE, folder / SENT_FILE
         resuming = resumed_at is not None and id_file.is_file()
         run_id = id_file.read_text().strip() if resuming else None  # None: W&B names a new run
-        # Steps up to this one are in W&B already (sent by the interrupted process).
-        self._sent = _read_int(self._sent_file) if resuming else 0
+        self._sent = 0  # steps up to this one are in W&B already (sent by the interrupted process)
+        if resuming:
+            with contextlib.suppress(OSError, ValueError):  # absent or torn: nothing known to be sent
+                self._sent = int(self._sent_file.read_text().strip())
         with writing(folder):
             folder.mkdir(parents=True, exist_ok=True)
         self.run = wandb.init(
@@ -145,35 +148,22 @@ class WandbLogger(Logger):
         self.run.finish(exit_code=1 if status == FAILED else 0)
 
 
-def _read_int(path: Path) -> int:
-    try:
-        return int(path.read_text().strip())
-    except (OSError, ValueError):  # absent or torn: nothing known to be sent
-        return 0
-
-
-def _check_name(key: str, value: Any, optional: bool) -> None:
-    if value is None and optional:
-        return
-    if (
-        not isinstance(value, str)
-        or not value.strip()
-        or len(value) > MAX_NAME_CHARS
-        or any(c in value for c in FORBIDDEN_CHARS)
-    ):
-        expected = f"a W&B name of 1 to {MAX_NAME_CHARS} characters without any of {FORBIDDEN_CHARS!r}"
-        raise ConfigError.of(key, value, f"null or {expected}" if optional else expected)
-
-
 def validate(cfg: Mapping[str, Any]) -> None:
     """Check names W&B accepts, and credentials for an online run, before any work.
 
     W&B is installed by then: :func:`drone_torchrl.loggers.check_backend` checks the extra first.
     """
     logger = cfg.logger
-    _check_name("logger.project", logger.project, optional=False)
-    _check_name("logger.entity", logger.entity, optional=True)
-    _check_name("logger.group", logger.group, optional=True)
+    for key, optional in (("project", False), ("entity", True), ("group", True)):
+        value = logger[key]
+        if (value is not None or not optional) and (
+            not isinstance(value, str)
+            or not value.strip()
+            or len(value) > MAX_NAME_CHARS
+            or any(c in value for c in FORBIDDEN_CHARS)
+        ):
+            expected = f"a W&B name of 1 to {MAX_NAME_CHARS} characters without any of {FORBIDDEN_CHARS!r}"
+            raise ConfigError.of(f"logger.{key}", value, f"null or {expected}" if optional else expected)
     mode = logger.mode
     if mode is None:
         mode = os.environ.get("WANDB_MODE", "online")
