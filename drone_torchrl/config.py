@@ -17,7 +17,6 @@ from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import loggers, memory_estimate, migrations, schema, sweep_folder
 from drone_torchrl.checks import ConfigError, dotted, plain_name
-from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.io import folders
@@ -352,8 +351,7 @@ def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
     _discover_plugins()  # a fresh process (a joblib or submitit worker) has imported none of them
     out: dict[str, str] = {}
     for group, rule in schema.plugin_groups(name).items():
-        section = resolved.get(group)
-        plugin = section.get(rule.plugin_key) if isinstance(section, Mapping) else None
+        plugin = dotted(resolved, f"{group}.{rule.plugin_key}")
         if schema.plugin_schema(group, plugin) is None:
             REGISTRIES[group](plugin)  # not a registered plug-in: its registry's one-line error
             raise ConfigError(
@@ -836,12 +834,10 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
     """
     cfg = check_keys(cfg)  # also refuses ??? and interpolations to nothing, in one line
     check_device(cfg.device)
-    kwargs = env_kwargs(cfg)
-    try:  # the env's own checks of its arguments (the schema leaves them to it), no env built
-        check_env_args(device=cfg.device, **kwargs)
+    try:  # the env's own checks of its arguments (the schema leaves them to it; the device: above)
+        env = check_env_args(**env_kwargs(cfg))  # no env built
     except ValueError as err:
-        message = str(err)
-        raise ConfigError(message if message.startswith("device=") else f"env.{message}") from None
+        raise ConfigError(f"env.{err}") from None
     check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
     if cfg.backend == migrations.FAST:
         from drone_torchrl.kernels.coverage import fast_refusal
@@ -851,7 +847,7 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             cfg.model.hidden_sizes,
             cfg.model.activation,
             cfg.env.dtype,
-            disturbances.make(kwargs["disturbance"]),
+            env.disturbance,
             cfg.algo.name,
         )
         if reason is not None:
