@@ -90,9 +90,6 @@ def check(prog: str) -> list[Path]:
             for note in notes:
                 print(f"{prog}: {note}", file=sys.stderr)
             sys.argv[1:] = args
-    except ValueError as err:
-        sys.exit(f"{prog}: error: {err}")
-    try:
         flags = parse_flags(prog, args)
         overrides = overrides_of(args)
         # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.

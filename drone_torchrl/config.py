@@ -17,7 +17,6 @@ from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import loggers, memory_estimate, migrations, schema, sweep_folder
 from drone_torchrl.checks import ConfigError, dotted, plain_name
-from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.io import folders
@@ -352,8 +351,7 @@ def _plugins(resolved: Mapping, name: str) -> dict[str, str]:
     _discover_plugins()  # a fresh process (a joblib or submitit worker) has imported none of them
     out: dict[str, str] = {}
     for group, rule in schema.plugin_groups(name).items():
-        section = resolved.get(group)
-        plugin = section.get(rule.plugin_key) if isinstance(section, Mapping) else None
+        plugin = dotted(resolved, f"{group}.{rule.plugin_key}")
         if schema.plugin_schema(group, plugin) is None:
             REGISTRIES[group](plugin)  # not a registered plug-in: its registry's one-line error
             raise ConfigError(
@@ -384,21 +382,14 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
     parsed = parse_overrides(overrides)
     groups = group_names()
     plugin_keys = {f"{group}.{rule.plugin_key}": group for group, rule in schema.plugin_groups(name).items()}
-    for override in parsed:
-        group = plugin_keys.get(override.key_or_group)
-        if group is not None and not override.is_delete():
-            # The plug-in comes with its keys, so it is chosen with its group, which sets the key;
-            # setting the key alone leaves the other plug-in's keys.
-            value = _override_values(override)[0]
-            options = [
-                o for o in group_options(group) if _option_plugins(name, ((group, o),)).get(group) == value
-            ]
-            how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {group_options(group)}"
-            raise ConfigError(
-                f"{override.key_or_group}={value!r} cannot be set on its own (each {group} option sets it, "
-                f"with its plug-in's keys); choose it with {how}"
-            )
-    known = _override_keys(parsed, name)
+    # The options each group picks: its last override's, every one a sweep names (one that is no
+    # option is refused below, in its turn).
+    picks = {
+        o.key_or_group: [v for v in _override_values(o) if v in group_options(o.key_or_group)]
+        for o in parsed
+        if o.key_or_group in groups and not o.is_delete()
+    }
+    known = _override_keys(picks, name)
     if known is None:  # Hydra cannot compose these group options: its own message says why
         return
     for override in parsed:
@@ -416,31 +407,34 @@ def check_overrides(overrides: Iterable[str], name: str = "config") -> None:
                 )
             continue
         values = _override_values(override)
+        if key in plugin_keys:
+            # The plug-in comes with its keys, so it is chosen with its group, which sets the key;
+            # setting the key alone leaves the other plug-in's keys.
+            group = plugin_keys[key]
+            options = [
+                o for o in group_options(group) if _option_plugins(name, ((group, o),))[group] == values[0]
+            ]
+            how = f"{group}={options[0]}" if options else f"{group}=<option>, one of {group_options(group)}"
+            raise ConfigError(
+                f"{key}={values[0]!r} cannot be set on its own (each {group} option sets it, "
+                f"with its plug-in's keys); choose it with {how}"
+            )
         if key.startswith(f"{migrations.LEGACY}.") and migrations.is_old_key(key.split(".", 1)[1]):
             continue  # an old key, passed on as +legacy.<key> (drone_torchrl.migrations.legacy_arguments)
-        if key.split(".")[0].split("/")[0] == _HYDRA_PREFIX:
+        hydra = key.split(".")[0].split("/")[0] == _HYDRA_PREFIX
+        for value in values:
             if key in ("hydra.run.dir", "hydra.sweep.dir"):
-                for value in values:
-                    _check_folder(key, value)
-            if "/" in key:  # a Hydra group (hydra/launcher): Hydra raises a traceback for null or a list
-                for value in values:
-                    if not isinstance(value, str):
-                        raise ConfigError.of(key, value, f"the name of one of its options, e.g. {key}=basic")
-            continue
-        if key == "sweep_name":  # names the multirun folder, which Hydra makes before any job runs
-            for value in values:
-                if value is not None:  # null: the folder is named by the overrides
-                    _check_folder_name(key, value, "a folder name (no '/' or '..'), e.g. lr")
-            continue
-        if key in groups:
-            options = group_options(key)
-            for value in values:
-                if value not in options:
-                    raise ConfigError.of(key, value, f"one of {options}")
-            continue
-        if section:
-            for value in values:
+                _check_folder(key, value)
+            elif hydra and "/" in key and not isinstance(value, str):  # a Hydra group (hydra/launcher)
+                # Hydra raises a traceback for null or a list.
+                raise ConfigError.of(key, value, f"the name of one of its options, e.g. {key}=basic")
+            elif key == "sweep_name" and value is not None:  # the multirun folder (null: named by overrides)
+                _check_folder_name(key, value, "a folder name (no '/' or '..'), e.g. lr")
+            elif key in groups and value not in group_options(key):
+                raise ConfigError.of(key, value, f"one of {group_options(key)}")
+            elif section and key not in groups:
                 _check_section(key, value, known, groups)
+        if hydra or section or key == "sweep_name" or key in groups:
             continue
         if key in migrations.FIXED:  # on drone-train's command line it was passed on as +legacy.<key>
             raise ConfigError(migrations.fixed_refusal(key, values[0]))
@@ -510,25 +504,17 @@ PRESET_GROUP = "experiment"
 PLUGIN_PRESETS = "presets"
 
 
-def _override_keys(parsed: list, name: str) -> dict[str, Rule] | None:
-    """The keys of ``conf/<name>.yaml`` composed with the group options the overrides pick, or None.
+def _override_keys(picks: Mapping[str, list[str]], name: str) -> dict[str, Rule] | None:
+    """The keys of ``conf/<name>.yaml`` composed with the group options ``picks`` names, or None.
 
-    The options picked are the last plain one of each group, or every option a sweep names; an
-    option of any group may pick the plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``.
-    None if Hydra cannot compose those. Over a sweep, the keys every one of its jobs has. A preset
-    that picks a plug-in given another on the command line is refused, naming the preset it
-    builds on as the way.
+    ``picks``: each group's options (several: a sweep's); an option of any group may pick the
+    plug-in, e.g. ``experiment=hover_optimal`` picks ``algo=ppo``. None if Hydra cannot compose
+    those. Over a sweep, the keys every one of its jobs has. A preset that picks a plug-in given
+    another on the command line is refused, naming the preset it builds on as the way.
     """
     plugin_groups = schema.plugin_groups(name)
     if not plugin_groups:
         return schema_keys(name)
-    picks: dict[str, list[str]] = {}
-    groups = group_names()
-    for override in parsed:
-        group = override.key_or_group
-        if group in groups and not override.is_delete():
-            options = [v for v in _override_values(override) if v in group_options(group)]
-            picks[group] = options or picks.get(group, [])
     known: dict[str, Rule] | None = None
     for combination in itertools.product(*([(g, o) for o in opts] for g, opts in picks.items() if opts)):
         chosen = dict(combination)
@@ -578,16 +564,11 @@ def preset_notes(choices: Mapping[str, Any], name: str = "config") -> list[str]:
     notes = []
     for group in schema.plugin_groups(name):
         option = choices.get(group)
-        folder = Path(config_dir()) / group / PLUGIN_PRESETS
-        if option is None or not folder.is_dir():
+        files = sorted((Path(config_dir()) / group / PLUGIN_PRESETS).glob(f"*/{preset}.yaml"))
+        if option is None or not files:
             continue
-        plugin = _option_plugins(name, ((group, option),))[group]
-        keys = {
-            p.name: leaves(OmegaConf.load(p / f"{preset}.yaml"))
-            for p in sorted(folder.iterdir())
-            if (p / f"{preset}.yaml").is_file()
-        }
-        own = keys.pop(str(plugin), {})
+        keys = {file.parent.name: leaves(OmegaConf.load(file)) for file in files}
+        own = keys.pop(str(_option_plugins(name, ((group, option),))[group]), {})
         dropped = [
             f"{group}.{k}" for k in dict.fromkeys(k for other in keys.values() for k in other) if k not in own
         ]
@@ -690,9 +671,7 @@ def env_kwargs(cfg: DictConfig | Mapping[str, Any]) -> dict[str, Any]:
     """
     env = cfg["env"]
     kwargs = {name: env[name] if name in env else ENV_ADDED[name] for name in ENV_ARGS}
-    if isinstance(kwargs["disturbance"], DictConfig):  # the env takes a plain mapping
-        kwargs["disturbance"] = OmegaConf.to_container(kwargs["disturbance"])
-    if isinstance(kwargs["disturbance"], Mapping):  # the keys an open section leaves out: nominal
+    if isinstance(kwargs["disturbance"], Mapping):  # plain, with the keys an open section leaves out: nominal
         kwargs["disturbance"] = {
             **schema.open_sections(schema.TrainConfig)["env.disturbance"],
             **kwargs["disturbance"],
@@ -855,12 +834,10 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
     """
     cfg = check_keys(cfg)  # also refuses ??? and interpolations to nothing, in one line
     check_device(cfg.device)
-    kwargs = env_kwargs(cfg)
-    try:  # the env's own checks of its arguments (the schema leaves them to it), no env built
-        check_env_args(device=cfg.device, **kwargs)
+    try:  # the env's own checks of its arguments (the schema leaves them to it; the device: above)
+        env = check_env_args(**env_kwargs(cfg))  # no env built
     except ValueError as err:
-        message = str(err)
-        raise ConfigError(message if message.startswith("device=") else f"env.{message}") from None
+        raise ConfigError(f"env.{err}") from None
     check_values(cfg)  # the bounds and choices of every key; what follows relates keys to each other
     if cfg.backend == migrations.FAST:
         from drone_torchrl.kernels.coverage import fast_refusal
@@ -870,7 +847,7 @@ def validate(cfg: DictConfig, training: bool = True) -> None:
             cfg.model.hidden_sizes,
             cfg.model.activation,
             cfg.env.dtype,
-            disturbances.make(kwargs["disturbance"]),
+            env.disturbance,
             cfg.algo.name,
         )
         if reason is not None:

@@ -58,20 +58,12 @@ _RAY = Needs("hydra_plugins.hydra_ray_launcher", "ray", "Hydra's Ray launcher pl
 #: ``hydra/launcher`` options and what each needs. ``fused`` and ``slurm_population`` train their
 #: populations into one folder per job (no Parquet), so they need no pyarrow.
 LAUNCHERS: dict[str, Needs] = {
-    "population": POPULATION,
-    "pbt": POPULATION,
-    "pb2": POPULATION,
-    "halving": POPULATION,
-    "pbt_replay": POPULATION,
-    "local_parallel": _JOBLIB,
-    "joblib": _JOBLIB,
-    "local_submitit": _SUBMITIT,
-    "submitit_local": _SUBMITIT,
-    "submitit_slurm": _SUBMITIT,
-    "slurm": _SUBMITIT,
-    "slurm_population": _SUBMITIT,
-    "ray_local": _RAY,
-    "ray": _RAY,
+    **dict.fromkeys(("population", "pbt", "pb2", "halving", "pbt_replay"), POPULATION),
+    **dict.fromkeys(("local_parallel", "joblib"), _JOBLIB),
+    **dict.fromkeys(
+        ("local_submitit", "submitit_local", "submitit_slurm", "slurm", "slurm_population"), _SUBMITIT
+    ),
+    **dict.fromkeys(("ray_local", "ray"), _RAY),
 }
 
 

@@ -162,7 +162,7 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     autograd graph.
     """
     b = FLOAT_BYTES[cfg["env"]["dtype"]]
-    steps = agents * cfg["algo"]["episodes_per_update"] * cfg["env"]["max_steps"]
+    steps = cfg["algo"]["episodes_per_update"] * cfg["env"]["max_steps"]
     hidden = cfg["model"]["hidden_sizes"]
     advice = "lower algo.episodes_per_update, env.max_steps or model.hidden_sizes"
     if cfg["backend"] == "fast":
@@ -170,13 +170,13 @@ def reinforce_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
         # observation, the hidden outputs, loc, the std head's input and the action (2 each) and the
         # return-to-go; the backward pass's gradients of every hidden output and of the heads (2
         # each); the rewards and returns-to-go (floats) and causes (int64) it writes.
-        steps = steps // agents * min(agents, AGENTS_PER_CALL) if agents else 0
+        steps *= min(agents, AGENTS_PER_CALL)
         saved = observation_dim(cfg) + sum(hidden) + 3 * ACTION_DIM + 1
-        backward = sum(hidden) + 2 * ACTION_DIM + 2
-        per_step = (saved + backward) * b + INT64_BYTES
+        per_step = (saved + sum(hidden) + 2 * ACTION_DIM + 2) * b + INT64_BYTES
     else:
         # Besides the trunk, the loss's loc, scale, their pre-activations, the log-probability, its
         # reduction, the returns-to-go, the weights of each step and their gradients: 12 floats.
+        steps *= agents
         per_step = rollout_bytes(b) + observation_dim(cfg) * b + graph_bytes(hidden, b) + 12 * b
     return {"REINFORCE's update": Part(steps * per_step, advice)}
 
@@ -186,9 +186,7 @@ def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
 
     The batch is ``algo.num_envs x algo.steps_per_batch`` frames.
     """
-    algo = cfg["algo"]
-    b = FLOAT_BYTES[cfg["env"]["dtype"]]
-    d = observation_dim(cfg)
+    algo, b, d = cfg["algo"], FLOAT_BYTES[cfg["env"]["dtype"]], observation_dim(cfg)
     value_hidden = list(algo["value_hidden_sizes"])
     frame = flown_frame_bytes(d, b)
     frames = agents * algo["num_envs"] * algo["steps_per_batch"]
@@ -199,11 +197,10 @@ def on_policy_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
     graph = graph_bytes([*cfg["model"]["hidden_sizes"], *value_hidden], b)
     minibatch = agents * algo["minibatch_size"] * (frame + graph)
     critic = agents * ADAM_COPIES * mlp_parameters([d, *value_hidden, 1]) * b
+    advice = "lower algo.minibatch_size, model.hidden_sizes or algo.value_hidden_sizes"
     return {
         "the on-policy batch": Part(batch, "lower algo.num_envs or algo.steps_per_batch"),
-        "a minibatch": Part(
-            minibatch, "lower algo.minibatch_size, model.hidden_sizes or algo.value_hidden_sizes"
-        ),
+        "a minibatch": Part(minibatch, advice),
         "the critic's weights": Part(critic, "lower algo.value_hidden_sizes"),
     }
 
@@ -213,9 +210,7 @@ def sac_parts(cfg: Mapping[str, Any], agents: int) -> dict[str, Part]:
 
     The replay buffer holds ``algo.buffer_size`` frames.
     """
-    algo = cfg["algo"]
-    b = FLOAT_BYTES[cfg["env"]["dtype"]]
-    d = observation_dim(cfg)
+    algo, b, d = cfg["algo"], FLOAT_BYTES[cfg["env"]["dtype"]], observation_dim(cfg)
     q_hidden = list(algo["qvalue_hidden_sizes"])
     # A stored frame: the observation and the next one, the action (2) and the reward; its done and
     # terminated flags (bool); with n-step returns each window's length (int64) too.

@@ -110,7 +110,7 @@ def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
 
     Each old-key override is ``key=value``; each note is one line, what the key is now. A value the
     old key never took, or a command line that sets both an old key and ``backend`` (which one
-    would win is not obvious), raises ``ValueError``.
+    would win is not obvious), raises :class:`~drone_torchrl.checks.ConfigError`.
     """
     out, notes, replaced = [], [], []
     for arg in args:
@@ -122,7 +122,7 @@ def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
             backend = _AS_BACKEND.get(value.strip())
             if backend is None:
                 choices = " or ".join(f"{old} (backend={new})" for old, new in _AS_BACKEND.items())
-                raise ValueError(f"{key}={value!r} is not allowed; expected {choices}")
+                raise ConfigError(f"{key}={value!r} is not allowed; expected {choices}")
             notes.append(
                 f"note: {key}={value} is now backend={backend} (the key that picks the implementation)"
             )
@@ -133,14 +133,14 @@ def legacy_arguments(args: list[str]) -> tuple[list[str], list[str]]:
                 "(compiled C++, whole episodes per call) replaced"
             )
         elif not _is_fixed_value(key, value):
-            raise ValueError(fixed_refusal(key, value))
+            raise ConfigError(fixed_refusal(key, value))
         else:
             notes.append(
                 f"note: {key}={value} is ignored: the key was removed, every run uses it ({FIXED[key][1]})"
             )
         out.append(f"{_PREFIX}{arg}")
     if replaced and any(a.partition("=")[0].lstrip("+") == "backend" for a in args):
-        raise ValueError(
+        raise ConfigError(
             f"{replaced[0]}= and backend= are both given: backend replaced {replaced[0]}; drop {replaced[0]}="
         )
     return out, notes

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -146,29 +146,31 @@ class Rule:
         return field(default=MISSING, metadata={RULE: self})
 
 
-def _maker(kind: str, name: str) -> Callable[..., Any]:
-    """A field maker named ``name``: a config field holding a ``kind`` value, checked by a :class:`Rule`."""
-
-    def maker(**rule: Any) -> Any:
-        return Rule(kind, **rule).field()
-
-    maker.__name__ = maker.__qualname__ = name  # the API docs list it under its own name
-    maker.__doc__ = f"A config field holding a {kind} value, checked by a :class:`Rule` of these arguments."
-    return maker
+# Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``, each a
+# config field holding a value of its kind, checked by a :class:`Rule` of its arguments.
+def a_number(**rule: Any) -> Any:
+    """A config field holding a number (:class:`Rule` ``number``)."""
+    return Rule("number", **rule).field()
 
 
-# Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``. ``free``: a
-# key the code checks itself (the env's arguments, paths, folder names, devices).
-a_number, an_integer, a_flag, a_text, free = (
-    _maker(kind, name)
-    for kind, name in (
-        ("number", "a_number"),
-        ("integer", "an_integer"),
-        ("flag", "a_flag"),
-        ("text", "a_text"),
-        ("free", "free"),
-    )
-)
+def an_integer(**rule: Any) -> Any:
+    """A config field holding an integer (:class:`Rule` ``integer``)."""
+    return Rule("integer", **rule).field()
+
+
+def a_flag(**rule: Any) -> Any:
+    """A config field holding true or false (:class:`Rule` ``flag``)."""
+    return Rule("flag", **rule).field()
+
+
+def a_text(**rule: Any) -> Any:
+    """A config field holding a non-empty string (:class:`Rule` ``text``)."""
+    return Rule("text", **rule).field()
+
+
+def free(**rule: Any) -> Any:
+    """A config field the code checks itself: the env's arguments, paths, folder names, devices."""
+    return Rule(**rule).field()
 
 
 def one_of(choices: tuple, **rule: Any) -> Any:
