@@ -71,21 +71,16 @@ FORMAT_VERSION = 4
 RUN, POPULATION = "run", "population"
 #: Each agent's counters, as :meth:`~drone_torchrl.training.run.AgentBook.counters` gives them.
 COUNTERS = (
-    "episodes_done",
-    "updates_done",
-    "wall_clock_s",
-    "best_eval_return",
-    "recent_returns",
-    "recent_lengths",
-    "stopped_at_return",
-    "final",
-    "failure",
+    *("episodes_done", "updates_done", "wall_clock_s", "best_eval_return", "recent_returns"),
+    *("recent_lengths", "stopped_at_return", "final", "failure"),
 )
 # The running-mean windows among them: a population's are zero-padded tensors.
 WINDOWS = ("recent_returns", "recent_lengths")
-# Keys every checkpoint of the current format holds: these, the counters, and its kind's.
-REQUIRED_KEYS = ("format_version", "kind", "backend", "config", *COUNTERS)
-KIND_KEYS = {RUN: ("actor", "optimizer", "rng"), POPULATION: ("state", "agents", "parts", "recent_count")}
+# The keys a reader needs of each kind, a run's and a population's (the counters added since format
+# 3 are filled in first: :func:`migrate`).
+REQUIRED_KEYS = ("format_version", "backend", "actor", "optimizer", "rng", "config", *COUNTERS)
+POPULATION_KEYS = ("format_version", "backend", "state", "config", "agents", "parts", "episodes_done")
+POPULATION_KEYS += ("updates_done", "final", "failure")
 # The digest of every tensor of a checkpoint (see the layout above).
 DIGEST_KEY = "tensor_sha256"
 # Counters a checkpoint carries on (integers >= 0).
@@ -296,19 +291,16 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
         config = state["config"] if isinstance(state["config"], dict) else {}
         algo = config.get("algo") if isinstance(config.get("algo"), dict) else {}
         state["backend"] = migrations.backend_of(state.pop("engine", None), algo.get("collector"))
-    if version in (1, 2, 3) and is_population(state):  # one wall clock for all; no stop_return
-        agents = len(state.get("episodes_done", ()))
-        state["wall_clock_s"] = [state.get("wall_clock_s")] * agents
-        state["stopped_at_return"] = [None] * agents
-    elif version in (1, 2, 3):
-        state |= {"kind": RUN, "failure": None, "stopped_at_return": state.get("stopped_at_return")}
-    elif version != FORMAT_VERSION:
+        version = 3
+    elif version not in (3, FORMAT_VERSION):
         raise CheckpointError(
             f"{path} has format_version={version!r}; this version of drone_torchrl reads 1 to {FORMAT_VERSION}"
         )
     state["format_version"] = FORMAT_VERSION
-    missing = [key for key in (*REQUIRED_KEYS, *KIND_KEYS.get(state["kind"], ())) if key not in state]
-    if missing:
+    if not is_population(state):  # format 3 had no kind and no failure (never saved after one)
+        state.update(kind=RUN, failure=state.get("failure"), stopped_at_return=state.get("stopped_at_return"))
+    keys = POPULATION_KEYS if is_population(state) else REQUIRED_KEYS
+    if missing := [key for key in keys if key not in state]:
         raise CheckpointError(f"{path} lacks {', '.join(missing)}: a damaged or foreign checkpoint")
     for key in WHOLE_COUNTERS:
         try:
@@ -316,6 +308,11 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
                 check_number(key, value, low=0, integer=True)
         except (ConfigError, TypeError) as err:
             raise CheckpointError(f"{path}: {err}; a damaged or hand-edited checkpoint") from None
+    if is_population(state):  # format 3 kept one wall clock for all the agents and no stop_return
+        agents = len(state["episodes_done"])
+        if not isinstance(state.get("wall_clock_s"), list):
+            state["wall_clock_s"] = [state.get("wall_clock_s")] * agents
+        state.setdefault("stopped_at_return", [None] * agents)
     for where, tensor in tensors(state):
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
             raise CheckpointError(
