@@ -157,9 +157,7 @@ class PopulationRecord(Record):
         self.search: Search | None = None
 
     # ------------------------------------------------------------------ agents
-    def add_rows(
-        self, agent: AgentBook, columns: dict[str, Sequence], train_metrics: dict[str, float]
-    ) -> None:
+    def add_rows(self, agent: AgentBook, columns: dict[str, Sequence], metrics: dict[str, float]) -> None:
         """Add an agent's update's episode rows to the buffered ones (the summaries are :meth:`after_update`'s)."""
         self.columns["agent"].extend([agent.index] * len(columns["episode"]))
         for key, values in columns.items():

@@ -455,29 +455,21 @@ class RunRecord(AgentBook, Record):
         """Append the buffered rows to ``episodes.csv``."""
         self.csv.flush()
 
-    def add_rows(
-        self, agent: AgentBook, columns: dict[str, Sequence], train_metrics: dict[str, float]
-    ) -> None:
-        """Buffer an update's episode rows; its training metrics go to TensorBoard every ``logger.every_updates``."""
+    def add_rows(self, agent: AgentBook, columns: dict[str, Sequence], metrics: dict[str, float]) -> None:
+        """Buffer an update's episode rows; its training ``metrics`` go to TensorBoard every ``logger.every_updates``."""
         columns["termination_cause"] = [_CAUSE_NAMES[int(cause)] for cause in columns["termination_cause"]]
         rows = [dict(zip(columns, values, strict=True)) for values in zip(*columns.values(), strict=True)]
         self.csv.write(rows)
         if self.updates_done % self.every_updates == 0:
             metrics = {
-                **train_metrics,
+                **metrics,
                 "train/running_mean_return": self.running_return,
                 "train/running_mean_length": self.running_length,
             }
             log_update(self.logger, rows, metrics, step=self.episodes_done)
         self.flush_if_due()
 
-    def log_eval(
-        self,
-        agent: AgentBook,
-        result: dict[str, float],
-        learner_state: Callable[[], dict[str, Any]] | None,
-        actor: Callable[[], Any] | None,
-    ) -> None:
+    def log_eval(self, agent: AgentBook, result: dict[str, float], learner_state: Any, actor: Any) -> None:
         """Log an evaluation: TensorBoard, ``best.pt`` when it is the best so far, and a video.
 
         The video, of ``actor()``, only with ``eval.video``. The video is
