@@ -112,13 +112,8 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
 
 
 def record_state(
-    kind: str,
-    backend: str,
-    learner: dict[str, Any],
-    config: dict,
-    counters: list[dict[str, Any]],
-    window: int,
-) -> dict[str, Any]:
+    kind: str, backend: str, learner: dict, config: dict, counters: list[dict], window: int = 0
+) -> dict:
     """A run record's checkpoint (the layout above): ``learner``'s entries, then its agents' ``counters``.
 
     A run's one agent's as they are; a population's a list per key, the windows zero-padded to ``window``.
@@ -132,14 +127,8 @@ def record_state(
                 [c[key] + [0.0] * (window - len(c[key])) for c in counters], dtype=torch.float64
             )
         stacked["recent_count"] = torch.tensor([len(c["recent_returns"]) for c in counters])
-    return {
-        "format_version": FORMAT_VERSION,
-        "kind": kind,
-        "backend": backend,
-        **learner,
-        "config": config,
-        **stacked,
-    }
+    head = {"format_version": FORMAT_VERSION, "kind": kind, "backend": backend}
+    return {**head, **learner, "config": config, **stacked}
 
 
 def agent_counters(state: dict[str, Any], agent: int = 0) -> dict[str, Any]:

@@ -403,4 +403,4 @@ def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str,
     config = OmegaConf.to_container(cfg, resolve=True)
     # Its failure stays the population's: a fork trains on from the agent's last finite state.
     counters = {**agent_counters(state, agent), "failure": None}
-    return record_state(RUN, state["backend"], learner, config, [counters], 0)
+    return record_state(RUN, state["backend"], learner, config, [counters])
