@@ -104,7 +104,7 @@ def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) 
         return wrapper
 
     originals = {
-        (record_module.PopulationAgent, "record"): record_module.PopulationAgent.record,
+        (record_module.AgentBook, "record"): record_module.AgentBook.record,
         (record_module.PopulationRecord, "after_update"): record_module.PopulationRecord.after_update,
     }
     rss_before = _rss()

@@ -75,7 +75,7 @@ def test_old_runs_resume(runs, drone_train):
         assert proc.returncode == 0, proc.stderr
         assert "continuing from episode 4" in proc.stdout
         state = load_checkpoint(runs / name / "checkpoints" / "last.pt")
-        assert state["format_version"] == 3 and state["episodes_done"] >= budget
+        assert state["format_version"] == 4 and state["episodes_done"] >= budget
         rows, _ = read_episodes(runs / name / "episodes.csv")
         assert rows["episode"].tolist() == list(range(len(rows["episode"])))
         assert len(rows["episode"]) >= budget

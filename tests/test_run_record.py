@@ -334,7 +334,7 @@ def test_checkpoints_are_tensors_and_plain_data(tmp_path, backend):
     run = tmp_path / "run"
     train(_cfg(f"backend={backend}", "algo.episodes=2", *FAST), run_dir=run)
     state = torch.load(run / "checkpoints" / "last.pt", weights_only=True)
-    assert state["format_version"] == FORMAT_VERSION == 3
+    assert state["format_version"] == FORMAT_VERSION == 4
     assert isinstance(state["config"], dict) and state["config"]["seed"] == 0
     assert all(v is None or isinstance(v, torch.Tensor) for v in state["rng"].values())
     # The TorchRL collector samples from torch's RNG and the env's generator; the fast path's
@@ -397,7 +397,7 @@ def test_version_1_checkpoints_are_migrated_and_resume(tmp_path):
 def test_unknown_checkpoint_versions_are_refused_in_one_line(tmp_path):
     path = tmp_path / "future.pt"
     save_checkpoint({"format_version": 99, "actor": {}, "config": {}}, path)
-    with pytest.raises(CheckpointError, match=rf"^{path} has format_version=99; .* reads 1 to 3$"):
+    with pytest.raises(CheckpointError, match=rf"^{path} has format_version=99; .* reads 1 to 4$"):
         load_checkpoint(path)
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"not a checkpoint")

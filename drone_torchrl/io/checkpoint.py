@@ -5,25 +5,35 @@ RNG states as uint8 tensors), so ``torch.load(weights_only=True)`` reads it and 
 cannot run code. ``format_version`` says which layout it has; older layouts are migrated when
 loaded (:func:`migrate`), anything else is refused with a one-line :class:`CheckpointError`.
 
-Layout (``format_version`` 3)::
+Layout (``format_version`` 4), one for every run record: a run's (``kind`` "run") and a population
+run's (``kind`` "population", drone_torchrl.training.population_record)::
 
-    format_version  3
+    format_version  4
+    kind            "run" | "population"
     backend         "fast" | "reference": the backend that wrote it (a run continues with it)
-    actor           state_dict of the ProbabilisticActor (make_actor's layout)
-    optimizer       state_dict of the agent's Adam
-    episodes_done, updates_done, wall_clock_s, best_eval_return
-    recent_returns, recent_lengths   the running-mean windows (lists of floats)
-    rng             {"torch": global RNG, "env": DroneEnv generator, "agent": None}: uint8 tensors
-                    for the TorchRL collector; all None for the vectorised one, whose counter-based
-                    noise needs only the update count (older files may hold a generator state
-                    under "agent"; it is not used)
-    config          the run's resolved config (plain dict)
-    final           None while the run goes on; its final metrics once it finished
-    <algorithm's>   what its learner adds (algo=ppo and a2c: ``critic``, and with eval.rollback_drop
-                    ``rollback``: the best evaluation's return, actor, critic and optimizer, and
-                    whether the run went back to them; see drone_torchrl.algorithms)
+    <learner's>     a run's: actor (ProbabilisticActor state_dict, make_actor's layout), optimizer
+                    (its Adam's), rng ({"torch", "env", "agent"}: uint8 tensors for the TorchRL
+                    collector; all None for the vectorised one, whose counter-based noise needs only
+                    the update count) and what its algorithm adds (algo=ppo and a2c: ``critic``, and
+                    with eval.rollback_drop ``rollback``; see drone_torchrl.algorithms); a
+                    population's: state, every agent's tensors stacked ``[N, ...]``
+    config          the run's resolved config (plain dict; a population's: agent 0's values)
+    episodes_done, updates_done, wall_clock_s, best_eval_return, stopped_at_return,
+    recent_returns, recent_lengths (the running-mean windows),
+    final (None while training; the final metrics once finished), failure (None, or why it diverged)
+                    the counters of each agent (:data:`COUNTERS`): a run's as they are, a
+                    population's a list over its agents, the windows ``[N, window]`` float64,
+                    zero-padded, with ``recent_count`` [N]
+    agents, parts, population_updates, search
+                    a population's only: each agent's name and per-agent values, the episode parts
+                    its counters cover, its updates, its search's record
     tensor_sha256   {"actor/<key>": sha256 of that tensor's dtype, shape and bytes, ...}: every
                     tensor above, written by :func:`save_checkpoint`
+
+Older layouts are upgraded when read (:func:`migrate`): version 3 (a run's without ``kind``,
+``failure`` and perhaps ``stopped_at_return``; a population's with one ``wall_clock_s`` for all its
+agents and no ``stopped_at_return``), version 2 (``engine`` instead of ``backend``), version 1 (no
+``format_version``; RNG states under ``torch_rng``, ``env_rng``, ``agent_rng``; no ``final``).
 
 What is loaded is checked (:func:`load_checkpoint`), since ``torch.load`` reads damaged bytes
 without noticing: each tensor against its digest, every record of the file against the CRC-32
@@ -55,43 +65,26 @@ from drone_torchrl.io.storage import name_too_long, write_atomically
 CHECKPOINT_DIR = "checkpoints"
 LAST = "last.pt"
 BEST = "best.pt"
-#: The checkpoint format written; older ones are migrated to it when read.
-FORMAT_VERSION = 3
-# Keys every checkpoint of the current format holds.
-REQUIRED_KEYS = (
-    "format_version",
-    "backend",
-    "actor",
-    "optimizer",
-    "episodes_done",
-    "updates_done",
-    "wall_clock_s",
-    "best_eval_return",
-    "recent_returns",
-    "recent_lengths",
-    "rng",
-    "config",
-    "final",
+#: The checkpoint format written; older ones are upgraded to it when read.
+FORMAT_VERSION = 4
+# The two kinds of run record (``kind``).
+RUN, POPULATION = "run", "population"
+#: Each agent's counters, as :meth:`~drone_torchrl.training.run.AgentBook.counters` gives them.
+COUNTERS = (
+    *("episodes_done", "updates_done", "wall_clock_s", "best_eval_return", "recent_returns"),
+    *("recent_lengths", "stopped_at_return", "final", "failure"),
 )
-# A population run's checkpoint (``kind``): every agent's state stacked (see
-# drone_torchrl.training.population_record); these keys instead of REQUIRED_KEYS.
-POPULATION = "population"
-POPULATION_KEYS = (
-    "format_version",
-    "backend",
-    "state",
-    "config",
-    "agents",
-    "episodes_done",
-    "updates_done",
-    "final",
-    "failure",
-    "parts",
-)
+# The running-mean windows among them: a population's are zero-padded tensors.
+WINDOWS = ("recent_returns", "recent_lengths")
+# The keys a reader needs of each kind, a run's and a population's (the counters added since format
+# 3 are filled in first: :func:`migrate`).
+REQUIRED_KEYS = ("format_version", "backend", "actor", "optimizer", "rng", "config", *COUNTERS)
+POPULATION_KEYS = ("format_version", "backend", "state", "config", "agents", "parts", "episodes_done")
+POPULATION_KEYS += ("updates_done", "final", "failure")
 # The digest of every tensor of a checkpoint (see the layout above).
 DIGEST_KEY = "tensor_sha256"
 # Counters a checkpoint carries on (integers >= 0).
-COUNTERS = ("episodes_done", "updates_done")
+WHOLE_COUNTERS = ("episodes_done", "updates_done")
 # What a damaged checkpoint's message suggests.
 OTHER_CHECKPOINT = "use another checkpoint (the run's best.pt or last.pt, or a copy)"
 # Bytes read at a time when checking the zip's CRC-32s.
@@ -118,17 +111,33 @@ def save_checkpoint(state: dict[str, Any], path: Path) -> None:
     write_atomically(path, buffer.getbuffer())
 
 
-def run_state(
-    backend: str, learner: dict[str, Any], counters: dict[str, Any], config: dict, final: dict | None
-) -> dict[str, Any]:
-    """A run's checkpoint (the layout above): ``learner``'s entries (actor, optimizer, rng...), then the counters."""
+def record_state(
+    kind: str, backend: str, learner: dict, config: dict, counters: list[dict], window: int = 0
+) -> dict:
+    """A run record's checkpoint (the layout above): ``learner``'s entries, then its agents' ``counters``.
+
+    A run's one agent's as they are; a population's a list per key, the windows zero-padded to ``window``.
+    """
+    if kind == RUN:
+        (stacked,) = counters
+    else:
+        stacked = {key: [c[key] for c in counters] for key in COUNTERS if key not in WINDOWS}
+        for key in WINDOWS:  # each agent's window, zero-padded to [N, window]
+            stacked[key] = torch.tensor(
+                [c[key] + [0.0] * (window - len(c[key])) for c in counters], dtype=torch.float64
+            )
+        stacked["recent_count"] = torch.tensor([len(c["recent_returns"]) for c in counters])
+    head = {"format_version": FORMAT_VERSION, "kind": kind, "backend": backend}
+    return {**head, **learner, "config": config, **stacked}
+
+
+def agent_counters(state: dict[str, Any], agent: int = 0) -> dict[str, Any]:
+    """Agent ``agent``'s counters in a checkpoint (:data:`COUNTERS`; a run's are its one agent's)."""
+    if not is_population(state):
+        return {key: state[key] for key in COUNTERS}
+    count = int(state["recent_count"][agent])
     return {
-        "format_version": FORMAT_VERSION,
-        "backend": backend,
-        **learner,
-        **counters,
-        "config": config,
-        "final": final,
+        key: state[key][agent, :count].tolist() if key in WINDOWS else state[key][agent] for key in COUNTERS
     }
 
 
@@ -256,48 +265,43 @@ def _check_archive(path: Path) -> None:
 
 
 def migrate(state: Any, path: Path) -> dict[str, Any]:
-    """Bring a loaded checkpoint to the current layout, or refuse it.
+    """Bring a loaded checkpoint of any format to the current layout (see the module's docstring), or refuse it.
 
-    Version 1 (no ``format_version`` key; written before it existed) kept the RNG states as
-    ``torch_rng`` / ``env_rng`` / ``agent_rng`` and had no ``final`` key while unfinished. Versions
-    1 and 2 named the implementation ``engine`` (and PPO's ``algo.collector`` in the config), which
-    ``backend`` replaced (:mod:`drone_torchrl.migrations`).
+    Versions 1 and 2 named the implementation ``engine`` (and PPO's ``algo.collector`` in the
+    config), which ``backend`` replaced (:mod:`drone_torchrl.migrations`).
     """
-    if is_population(state):
-        missing = [key for key in POPULATION_KEYS if key not in state]
-        if missing or state["format_version"] != FORMAT_VERSION:
-            raise CheckpointError(
-                f"{path} is a population checkpoint this version does not read: a damaged or foreign file"
-            )
-        return state
-    if not isinstance(state, dict) or "actor" not in state or "config" not in state:
+    if not isinstance(state, dict) or "config" not in state or not ("actor" in state or is_population(state)):
         raise CheckpointError(f"{path} is not a drone_torchrl checkpoint (no actor or config)")
     version = state.get("format_version", 1)
     if version == 1:
-        state["rng"] = {
-            "torch": state.pop("torch_rng", None),
-            "env": state.pop("env_rng", None),
-            "agent": state.pop("agent_rng", None),
-        }
+        state["rng"] = {key: state.pop(f"{key}_rng", None) for key in ("torch", "env", "agent")}
         state.setdefault("final", None)
-        version = 2
-    if version == 2:
+    if version in (1, 2):
         config = state["config"] if isinstance(state["config"], dict) else {}
         algo = config.get("algo") if isinstance(config.get("algo"), dict) else {}
         state["backend"] = migrations.backend_of(state.pop("engine", None), algo.get("collector"))
-        state["format_version"] = version = FORMAT_VERSION
-    if version != FORMAT_VERSION:
+        version = 3
+    elif version not in (3, FORMAT_VERSION):
         raise CheckpointError(
             f"{path} has format_version={version!r}; this version of drone_torchrl reads 1 to {FORMAT_VERSION}"
         )
-    missing = [key for key in REQUIRED_KEYS if key not in state]
-    if missing:
+    state["format_version"] = FORMAT_VERSION
+    if not is_population(state):  # format 3 had no kind and no failure (never saved after one)
+        state.update(kind=RUN, failure=state.get("failure"), stopped_at_return=state.get("stopped_at_return"))
+    keys = POPULATION_KEYS if is_population(state) else REQUIRED_KEYS
+    if missing := [key for key in keys if key not in state]:
         raise CheckpointError(f"{path} lacks {', '.join(missing)}: a damaged or foreign checkpoint")
-    for key in COUNTERS:
+    for key in WHOLE_COUNTERS:
         try:
-            check_number(key, state[key], low=0, integer=True)
-        except ConfigError as err:
+            for value in state[key] if is_population(state) else [state[key]]:
+                check_number(key, value, low=0, integer=True)
+        except (ConfigError, TypeError) as err:
             raise CheckpointError(f"{path}: {err}; a damaged or hand-edited checkpoint") from None
+    if is_population(state):  # format 3 kept one wall clock for all the agents and no stop_return
+        agents = len(state["episodes_done"])
+        if not isinstance(state.get("wall_clock_s"), list):
+            state["wall_clock_s"] = [state.get("wall_clock_s")] * agents
+        state.setdefault("stopped_at_return", [None] * agents)
     for where, tensor in tensors(state):
         if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
             raise CheckpointError(

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import io
 import math
 from collections.abc import Iterable
 from pathlib import Path
@@ -11,7 +10,7 @@ from typing import Any, TextIO
 
 import numpy as np
 
-from drone_torchrl.io.storage import write_atomically, writing
+from drone_torchrl.io.storage import write_csv, writing
 
 CSV_NAME = "episodes.csv"
 CSV_COLUMNS = (
@@ -104,11 +103,8 @@ class EpisodeCSV:
             read, self.notes = _read_rows(source)
             rows = [raw for parsed, raw in read if parsed["episode"] < keep_episodes]
             self.dropped = sum(parsed["episode"] >= keep_episodes for parsed, _ in read)
-        text = io.StringIO()
-        writer = csv.DictWriter(text, fieldnames=CSV_COLUMNS)
-        writer.writeheader()
-        writer.writerows(rows)
-        write_atomically(self.path, text.getvalue().encode())  # a kill leaves the old file whole
+        # Atomically: a kill leaves the old file whole.
+        write_csv(self.path, CSV_COLUMNS, ([row[c] for c in CSV_COLUMNS] for row in rows))
         self._rows: list[dict[str, object]] = []
 
     def write(self, rows: Iterable[dict[str, object]]) -> None:

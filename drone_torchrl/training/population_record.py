@@ -10,15 +10,16 @@ at tens of thousands of agents is most of the time and open files. A population 
                                every finished episode: agent, episode, update, return, length,
                                time_in_zone, negative_thrust_fraction, termination_cause, wall_clock_s;
                                each part written atomically (a kill never leaves a torn one)
-      checkpoints/last.pt      the stacked state of every agent (see :func:`checkpoint_state`)
+      checkpoints/last.pt      the stacked state and counters of every agent (the one checkpoint
+                               layout, :mod:`drone_torchrl.io.checkpoint`)
       lineage.parquet          with population-based training (:mod:`.pbt`): each exploit step's
                                update, agent, parent and new values, as far as the checkpoint
       <logger's files>         population summaries: quantiles of the running-mean return, the best
                                agent, the number alive (not diverged)
       .lock, FAILED.txt        as a run folder's
 
-Each agent keeps its counters in a :class:`PopulationAgent` (:class:`~.run.AgentBook`, as a
-:class:`~.run.RunRecord` does); the files are the :class:`PopulationRecord`'s. The checkpoint names
+Each agent keeps its counters in an :class:`~.run.AgentBook`, as a :class:`~.run.RunRecord` does; the
+files are the :class:`PopulationRecord`'s (the same :class:`~.run.Record` writer interface). The checkpoint names
 how many episode parts it covers: parts written after it (episodes the resumed run trains again)
 are removed on resume, so every agent's episodes appear exactly once.
 """
@@ -41,12 +42,13 @@ from drone_torchrl.config import open_checkpoint, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
-    FORMAT_VERSION,
     LAST,
     POPULATION,
+    RUN,
+    agent_counters,
     is_population,
     load_checkpoint,
-    run_state,
+    record_state,
 )
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.streams import about, console
@@ -87,59 +89,6 @@ def _return_quantiles(returns: np.ndarray, prefix: str) -> dict[str, float]:
     return out | {f"{prefix}/best_return": float(np.nanmax(returns))}
 
 
-class PopulationAgent(AgentBook):
-    """One agent of a population run: its counters; what it books goes to the run's files.
-
-    Args:
-        owner: the population's record, which writes the files.
-        index: the agent's index in the population.
-        cfg: the agent's validated config.
-        counters: what the agent continues from (:meth:`~.run.AgentBook.counters`), or None.
-        schedule: the config's schedule, shared by all the agents.
-    """
-
-    def __init__(
-        self,
-        owner: PopulationRecord,
-        index: int,
-        cfg: DictConfig,
-        counters: dict[str, Any] | None,
-        schedule: Schedule | None = None,
-    ) -> None:
-        super().__init__(cfg, counters, schedule)
-        self.owner, self.index, self.run_dir = owner, index, owner.run_dir
-
-    def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
-        """Book one update's episodes and add them to the population's rows."""
-        columns = self.book(episodes)
-        self.owner.columns["agent"].extend([self.index] * len(columns["episode"]))
-        for key, values in columns.items():
-            self.owner.columns[key].extend(values)
-
-    def record_eval(self, result: dict[str, float], learner_state: Any = None, actor: Any = None) -> None:
-        """Count an evaluation (a population run keeps no best.pt nor videos per agent)."""
-        self.book_eval(result)
-        self.owner.eval_returns[self.index] = result["return"]
-
-    def fail(self, reason: str) -> None:
-        """Mark the agent failed, keep its last finite state, and say so on stderr.
-
-        Its state of the last checkpoint goes into the next ones (none yet: its weights are written
-        with their non-finite values zeroed).
-        """
-        self.failure = reason
-        path = self.run_dir / CHECKPOINT_DIR / LAST
-        if path.is_file():
-            state = load_checkpoint(path)["state"]
-            self.owner.last_finite[self.index] = {
-                key: value[self.index].clone() for key, value in state.items()
-            }
-        console.warning(
-            f"{self.run_dir}: agent {self.index} failed: {TrainingDiverged.__name__}: {reason}",
-            **about(self.run_dir),
-        )
-
-
 class PopulationRecord(Record):
     """The folder and files of a population run (see the module's docstring).
 
@@ -150,6 +99,8 @@ class PopulationRecord(Record):
         backend: the backend that trains it.
         checkpoint: the population checkpoint to continue from, or None.
     """
+
+    kind = POPULATION
 
     def __init__(
         self,
@@ -169,18 +120,9 @@ class PopulationRecord(Record):
         n = len(agents)
         # Every agent's book holds the group's config: the per-agent keys are the table's.
         schedule = Schedule.of(cfg)
-        self.agents = [
-            PopulationAgent(
-                self, i, cfg, None if checkpoint is None else _agent_counters(checkpoint, i), schedule
-            )
-            for i in range(n)
-        ]
+        self.agents = [AgentBook(cfg, checkpoint, schedule, self, i) for i in range(n)]
         self.eval_returns = [math.nan] * n
         self.parts = 0 if checkpoint is None else int(checkpoint["parts"])
-        if checkpoint is not None:
-            ended = zip(self.agents, checkpoint["final"], checkpoint["failure"], strict=True)
-            for agent, final, failure in ended:  # a final agent given a larger budget trains on
-                agent.final, agent.failure = (final if agent.finished else None), failure
         self.updates = 0 if checkpoint is None else int(checkpoint["population_updates"])
         # The buffered episode rows, a list per column.
         self.columns: dict[str, list] = {key: [] for key in _ROW_COLUMNS}
@@ -213,6 +155,32 @@ class PopulationRecord(Record):
         # The run's population-based training (:mod:`.pbt`), set by the trainer: its lineage goes
         # into each checkpoint and lineage.parquet.
         self.search: Search | None = None
+
+    # ------------------------------------------------------------------ agents
+    def add_rows(self, agent: AgentBook, columns: dict[str, Sequence], metrics: dict[str, float]) -> None:
+        """Add an agent's update's episode rows to the buffered ones (the summaries are :meth:`after_update`'s)."""
+        self.columns["agent"].extend([agent.index] * len(columns["episode"]))
+        for key, values in columns.items():
+            self.columns[key].extend(values)
+
+    def log_eval(self, agent: AgentBook, result: dict[str, float], learner_state: Any, actor: Any) -> None:
+        """Keep an agent's evaluation for :meth:`after_eval` (a population run keeps no best.pt nor videos)."""
+        self.eval_returns[agent.index] = result["return"]
+
+    def agent_failed(self, agent: AgentBook) -> None:
+        """Keep the failed agent's last finite state, and say so on stderr.
+
+        Its state of the last checkpoint goes into the next ones (none yet: its weights are written
+        with their non-finite values zeroed).
+        """
+        path = self.run_dir / CHECKPOINT_DIR / LAST
+        if path.is_file():
+            state = load_checkpoint(path)["state"]
+            self.last_finite[agent.index] = {key: value[agent.index].clone() for key, value in state.items()}
+        console.warning(
+            f"{self.run_dir}: agent {agent.index} failed: {TrainingDiverged.__name__}: {agent.failure}",
+            **about(self.run_dir),
+        )
 
     # ------------------------------------------------------------------ episodes
     def _write_table(self, columns: dict[str, list], path: Path) -> None:
@@ -281,7 +249,6 @@ class PopulationRecord(Record):
 
     def checkpoint_state(self, state: dict[str, torch.Tensor]) -> dict[str, Any]:
         """The population's checkpoint: ``state``'s stacked tensors, every agent's counters, the search's record."""
-        window = self.agents[0].window
         failed = torch.tensor([a.failed for a in self.agents])
         stacked = {}
         for key, tensor in state.items():
@@ -293,44 +260,13 @@ class PopulationRecord(Record):
                 for agent, rows in self.last_finite.items():
                     tensor[agent] = rows[key]
             stacked[key] = tensor
-
-        def recent(name: str) -> torch.Tensor:  # each agent's window, zero-padded to [N, window]
-            windows = (list(getattr(agent, name)) for agent in self.agents)
-            return torch.tensor([w + [0.0] * (window - len(w)) for w in windows], dtype=torch.float64)
-
         return {
-            "format_version": FORMAT_VERSION,
-            "kind": POPULATION,
-            "backend": self.backend,
-            "state": stacked,
-            "config": self.config,
+            **super().checkpoint_state({"state": stacked}),
             "agents": {"name": self.names, **self.values},
-            "episodes_done": [a.episodes_done for a in self.agents],
-            "updates_done": [a.updates_done for a in self.agents],
-            "wall_clock_s": self.agents[0].wall_clock,  # all agents train together
-            "best_eval_return": [a.best_eval for a in self.agents],
-            "recent_returns": recent("recent_returns"),
-            "recent_lengths": recent("recent_lengths"),
-            "recent_count": torch.tensor([len(a.recent_returns) for a in self.agents]),
-            "final": [a.final for a in self.agents],
-            "failure": [a.failure for a in self.agents],
             "parts": self.parts,
             "population_updates": self.updates,
             "search": None if self.search is None else self.search.checkpoint(),
         }
-
-
-def _agent_counters(checkpoint: dict[str, Any], i: int) -> dict[str, Any]:
-    """Agent ``i``'s counters in a population checkpoint, as :meth:`AgentBook.counters` writes them."""
-    count = int(checkpoint["recent_count"][i])
-    return {
-        "episodes_done": int(checkpoint["episodes_done"][i]),
-        "updates_done": int(checkpoint["updates_done"][i]),
-        "wall_clock_s": float(checkpoint["wall_clock_s"]),
-        "best_eval_return": float(checkpoint["best_eval_return"][i]),
-        "recent_returns": checkpoint["recent_returns"][i, :count].tolist(),
-        "recent_lengths": checkpoint["recent_lengths"][i, :count].tolist(),
-    }
 
 
 class PopulationFileError(ValueError):
@@ -465,4 +401,6 @@ def agent_checkpoint(state: dict[str, Any], agent: Any, path: Path) -> dict[str,
     # Counter-based RNG: the update count is the state.
     learner = {**one.checkpoint_entries(0), "rng": {"torch": None, "env": None, "agent": None}}
     config = OmegaConf.to_container(cfg, resolve=True)
-    return run_state(state["backend"], learner, _agent_counters(state, agent), config, state["final"][agent])
+    # Its failure stays the population's: a fork trains on from the agent's last finite state.
+    counters = {**agent_counters(state, agent), "failure": None}
+    return record_state(RUN, state["backend"], learner, config, [counters])

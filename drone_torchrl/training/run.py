@@ -32,7 +32,15 @@ from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.dynamics import TerminationCause
 from drone_torchrl.episodes import EPISODE_KEYS, RUNNING_MEAN_WINDOW
 from drone_torchrl.io import run_lock
-from drone_torchrl.io.checkpoint import BEST, CHECKPOINT_DIR, LAST, run_state, save_checkpoint
+from drone_torchrl.io.checkpoint import (
+    BEST,
+    CHECKPOINT_DIR,
+    LAST,
+    RUN,
+    agent_counters,
+    record_state,
+    save_checkpoint,
+)
 from drone_torchrl.io.episodes_csv import CSV_NAME, EpisodeCSV
 from drone_torchrl.io.storage import writing
 from drone_torchrl.io.streams import about, console
@@ -102,21 +110,31 @@ def trained_out(episodes_done: int, budget: int, stopped_at: float | None, stop_
 class AgentBook:
     """One agent's counters: episodes and updates done, running means, schedule and outcome.
 
-    Both homes of an agent's record keep them:
-    :class:`RunRecord` (a run folder of its own) and a population run's agents
+    What it books goes to its record's files (its ``owner``, a :class:`Record`): a
+    :class:`RunRecord` is its own one agent; a population run's record has one per agent
     (:mod:`.population_record`).
 
     Args:
         cfg: the agent's validated config.
-        checkpoint: what the agent continues from (its counters, as :meth:`counters` writes them), or None.
+        checkpoint: the record's checkpoint it continues from (its counters: :func:`agent_counters`), or None.
         schedule: the config's :class:`Schedule`, read once for all the agents of a population
             (None: read from ``cfg``).
+        owner: the record that writes its files (None: itself, a :class:`RunRecord`).
+        index: the agent's index in its record.
     """
 
     def __init__(
-        self, cfg: DictConfig, checkpoint: dict[str, Any] | None = None, schedule: Schedule | None = None
+        self,
+        cfg: DictConfig,
+        checkpoint: dict[str, Any] | None = None,
+        schedule: Schedule | None = None,
+        owner: Record | None = None,
+        index: int = 0,
     ) -> None:
-        self.cfg = cfg
+        self.cfg, self.index = cfg, index
+        self.owner: Record = self if owner is None else owner  # type: ignore[assignment]
+        if owner is not None:
+            self.run_dir = owner.run_dir
         # Read per update by every agent of a population: plain numbers, not OmegaConf lookups;
         # a population reads them once for all its agents.
         s = Schedule.of(cfg) if schedule is None else schedule
@@ -132,12 +150,15 @@ class AgentBook:
         self.failure: str | None = None
         self.stopped_at: float | None = None  # the return of the evaluation that ended it early
         if checkpoint is not None:
-            self.stopped_at = checkpoint.get("stopped_at_return")  # None in checkpoints before the key
-            self.episodes_done, self.updates_done = checkpoint["episodes_done"], checkpoint["updates_done"]
-            self.wall_clock_before = checkpoint["wall_clock_s"]
-            self.best_eval = checkpoint["best_eval_return"]
-            self.recent_returns.extend(checkpoint["recent_returns"])
-            self.recent_lengths.extend(checkpoint["recent_lengths"])
+            counters = agent_counters(checkpoint, index)
+            self.stopped_at = counters["stopped_at_return"]
+            self.episodes_done, self.updates_done = counters["episodes_done"], counters["updates_done"]
+            self.wall_clock_before = counters["wall_clock_s"]
+            self.best_eval = counters["best_eval_return"]
+            self.recent_returns.extend(counters["recent_returns"])
+            self.recent_lengths.extend(counters["recent_lengths"])
+            # A finished agent given a larger budget trains on.
+            self.final, self.failure = (counters["final"] if self.finished else None), counters["failure"]
         self.last_eval_episode: int | None = None
         self.last_eval_return = -math.inf  # this process's last evaluation's mean return
         self.next_checkpoint = self.episodes_done + self.checkpoint_every
@@ -164,9 +185,34 @@ class AgentBook:
         return self.failure is not None
 
     def diverged(self, failed: Sequence[str], advice: str) -> None:
-        """Stop the agent (its ``fail``): its last update left the values named ``failed`` non-finite."""
+        """Stop the agent (:meth:`fail`): its last update left the values named ``failed`` non-finite."""
         what = " and ".join(failed)
         self.fail(f"training diverged at episode {self.episodes_done}: non-finite {what}; {advice}")
+
+    def fail(self, reason: str) -> None:
+        """Stop the agent: it failed for ``reason``; its record keeps its last finite state."""
+        self.failure = reason
+        self.owner.agent_failed(self)
+
+    def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
+        """Book one update: its finished episodes and its training metrics, written by the record.
+
+        The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished.
+        """
+        self.owner.add_rows(self, self.book(episodes), train_metrics)
+
+    def record_eval(
+        self,
+        result: dict[str, float],
+        learner_state: Callable[[], dict[str, Any]] | None = None,
+        actor: Callable[[], Any] | None = None,
+    ) -> None:
+        """Book an evaluation (its ``return``, ``length``, ``time_in_zone`` means), logged by the record.
+
+        ``learner_state`` and ``actor`` give its state and policy, for a record that keeps them.
+        """
+        self.owner.log_eval(self, result, learner_state, actor)
+        self.book_eval(result)
 
     @property
     def wall_clock(self) -> float:
@@ -249,7 +295,7 @@ class AgentBook:
         return self.finished or self.episodes_done >= self.next_checkpoint
 
     def counters(self) -> dict[str, Any]:
-        """What a checkpoint keeps of these counters (what ``checkpoint`` gives back to ``__init__``)."""
+        """What a checkpoint keeps of these counters (:data:`~drone_torchrl.io.checkpoint.COUNTERS`)."""
         return {
             "episodes_done": self.episodes_done,
             "updates_done": self.updates_done,
@@ -258,6 +304,8 @@ class AgentBook:
             "recent_returns": list(self.recent_returns),
             "recent_lengths": list(self.recent_lengths),
             "stopped_at_return": self.stopped_at,
+            "final": self.final,
+            "failure": self.failure,
         }
 
     def book_save(self) -> None:
@@ -267,17 +315,18 @@ class AgentBook:
 
 
 class Record:
-    """A run folder's record, whichever rows it keeps: its config, logger, lock, flushes and close.
+    """A run folder's record, one writer interface for both kinds: its config, logger, lock, rows and checkpoint.
 
-    The one writer interface of both layouts: :class:`RunRecord` (one agent: ``episodes.csv``,
-    ``best.pt``, videos) and :class:`~.population_record.PopulationRecord` (N agents: Parquet
-    parts, one stacked checkpoint). A subclass sets ``agents``, writes its buffered rows in
-    ``write_rows``, says what its checkpoint holds in ``checkpoint_state`` (the learner's state with
-    the record's counters and config) and its final hparams in ``final_metrics``; the files and
-    checkpoint layouts stay each its own (old runs of either kind resume as they did).
+    :class:`RunRecord` (one agent: ``episodes.csv``, TensorBoard, ``best.pt``, videos) and
+    :class:`~.population_record.PopulationRecord` (N agents: Parquet parts, population summaries).
+    Both write ONE checkpoint layout (:func:`~drone_torchrl.io.checkpoint.record_state`: the
+    learner's state, then every agent's counters). A subclass sets ``agents`` and ``kind``, writes
+    its rows (``add_rows``, ``write_rows``), logs evaluations (``log_eval``), says what a failed
+    agent leaves (``agent_failed``) and gives its final hparams (``final_metrics``).
     """
 
     agents: Sequence[AgentBook]
+    kind = RUN
 
     def open(self, cfg: DictConfig, run_dir: Path, backend: str, resumed_at: int | None) -> None:
         """Make the folder (``checkpoints/``, no ``FAILED.txt``), write ``config.yaml``, start the logger."""
@@ -294,6 +343,11 @@ class Record:
         save_yaml(cfg, run_dir / CONFIG_NAME)
         self.logger = make_logger(cfg, run_dir, resumed_at)
         self._last_flush = time.perf_counter()
+
+    def checkpoint_state(self, learner: dict[str, Any]) -> dict[str, Any]:
+        """The record's checkpoint: ``learner``'s state (actor, optimizer, RNG streams...), config, counters."""
+        counters = [agent.counters() for agent in self.agents]
+        return record_state(self.kind, self.backend, learner, self.config, counters, self.agents[0].window)
 
     def write_last(self, learner: Any) -> None:
         """Write ``checkpoints/last.pt`` of the learner's state, after the rows it counts."""
@@ -390,49 +444,35 @@ class RunRecord(AgentBook, Record):
             )
         self.start = self._last_flush = time.perf_counter()
 
-    def fail(self, reason: str) -> None:
-        """Stop this run: ``FAILED.txt`` says why; its last checkpoint (all finite) is kept as it is."""
-        self.failure = reason
+    def agent_failed(self, agent: AgentBook) -> None:
+        """``FAILED.txt`` says why the run stopped; its last checkpoint (all finite) is kept as it is."""
         path = self.run_dir / FAILED_FILE
         with writing(path):
-            path.write_text(f"{TrainingDiverged.__name__}: {reason}\n")
+            path.write_text(f"{TrainingDiverged.__name__}: {self.failure}\n")
         self.close()
 
     def write_rows(self) -> None:
         """Append the buffered rows to ``episodes.csv``."""
         self.csv.flush()
 
-    # ------------------------------------------------------------------ training
-    def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
-        """Book one update: its finished episodes and its training metrics.
-
-        The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished; the
-        metrics go to TensorBoard every ``logger.every_updates``.
-        """
-        columns = self.book(episodes)
+    def add_rows(self, agent: AgentBook, columns: dict[str, Sequence], metrics: dict[str, float]) -> None:
+        """Buffer an update's episode rows; its training ``metrics`` go to TensorBoard every ``logger.every_updates``."""
         columns["termination_cause"] = [_CAUSE_NAMES[int(cause)] for cause in columns["termination_cause"]]
         rows = [dict(zip(columns, values, strict=True)) for values in zip(*columns.values(), strict=True)]
         self.csv.write(rows)
         if self.updates_done % self.every_updates == 0:
             metrics = {
-                **train_metrics,
+                **metrics,
                 "train/running_mean_return": self.running_return,
                 "train/running_mean_length": self.running_length,
             }
             log_update(self.logger, rows, metrics, step=self.episodes_done)
         self.flush_if_due()
 
-    # ------------------------------------------------------------------ evaluation
-    def record_eval(
-        self,
-        result: dict[str, float],
-        learner_state: Callable[[], dict[str, Any]],
-        actor: Callable[[], Any],
-    ) -> None:
-        """Book an evaluation: TensorBoard, ``best.pt`` when it is the best so far, and a video.
+    def log_eval(self, agent: AgentBook, result: dict[str, float], learner_state: Any, actor: Any) -> None:
+        """Log an evaluation: TensorBoard, ``best.pt`` when it is the best so far, and a video.
 
-        The evaluation's numbers are the ``return``, ``length`` and ``time_in_zone`` means; the
-        video, of ``actor()``, only with ``eval.video``. The video is
+        The video, of ``actor()``, only with ``eval.video``. The video is
         ``<run>/videos/episode_<step>.mp4`` and TensorBoard's ``eval/video``: ``logger.video_stride``
         thins the frames (the playback rate is divided alike, so it stays real time) and, for
         TensorBoard only, the pixels (a GIF there, 4x smaller).
@@ -449,12 +489,6 @@ class RunRecord(AgentBook, Record):
             fps = 1 / (cfg.env.dt * stride)
             save_mp4(frames, self.run_dir / VIDEO_DIR / f"episode_{step:06d}.mp4", fps)
             self.logger.log_frames("eval/video", frames[:, ::stride, ::stride], step=step, fps=fps)
-        self.book_eval(result)
-
-    # ------------------------------------------------------------------ checkpoints
-    def checkpoint_state(self, learner: dict[str, Any]) -> dict[str, Any]:
-        """A run's checkpoint: ``learner`` (actor, optimizer, RNG streams...), counters, config, final metrics."""
-        return run_state(self.backend, learner, self.counters(), self.config, self.final)
 
     def final_metrics(self) -> dict[str, float] | None:
         """The final hparams' metrics: the run's final metrics."""
