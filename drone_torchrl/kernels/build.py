@@ -198,7 +198,7 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
 
 
 #: The entry points' argument lists the Python side calls (drone_kernels.cpp's ``dk_abi_version``).
-ABI_VERSION = 3
+ABI_VERSION = 4
 
 
 class _Library(ctypes.CDLL):

@@ -24,6 +24,7 @@ import ctypes
 import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import fields
+from functools import partial
 from typing import Any, NamedTuple
 
 import torch
@@ -196,6 +197,10 @@ def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.T
 # they carry no torch.library registration.
 
 
+#: ``RolloutArgs``' segment fields (drone_kernels.cpp), which only :func:`segments` fills.
+_NO_SEGMENTS = (None,) * 19
+
+
 # The inputs follow the parameters to their device (None stays None).
 def _to(
     x: torch.Tensor | None, dtype: torch.dtype, device: torch.device | None = None
@@ -275,7 +280,8 @@ def rollout(
     args = (n * episodes, episodes, steps, params, start, noise, rng, keys, active, env, disturbance, gamma)
     args += (states, action, reward, cause, length, returns, stats, seen if observations else None, None)
     net = _net(in_dim, hidden, activation, min_std, dist_eps)
-    _launch(_lib(dtype, device), "rollout", device, net, args, (n * episodes, 0, episodes, steps))
+    sizes = (n * episodes, 0, episodes, steps)
+    _launch(_lib(dtype, device), "rollout", device, net, args + _NO_SEGMENTS, sizes)
     return states, action, reward, cause, length, returns, stats, seen
 
 
@@ -336,8 +342,8 @@ def reinforce(
         r = slice(first, min(n, first + chunk))
         k = r.stop - r.start
         roll = (k * episodes, episodes, steps, params[r], None, None, rng[r], None, active[r], env)
-        roll += (disturbance, gamma[r], None, None, reward, cause, length[r], returns, counts[r], None)
-        args = (*roll, saved, k, *map(int, options), grad[r], loss[r], std_mean[r], actions_finite[r])
+        roll += (disturbance, gamma[r], None, None, reward, cause, length[r], returns, counts[r], None, saved)
+        args = (*roll, *_NO_SEGMENTS, k, *map(int, options), grad[r], loss[r], std_mean[r], actions_finite[r])
         _launch(lib, "reinforce", device, net, args, sizes)
     return grad, loss, std_mean, actions_finite, length, counts
 
@@ -441,17 +447,20 @@ def segments(
         raise ValueError("ops.segments under disturbances needs fresh_keys")
     dtype, i64 = params.dtype, torch.int64
     kinds = {"t": i64, "key": i64}  # the carried integers; the rest is real
-    # Per step: the observation, the action, the reward and the next observation; the cause,
-    # terminated, truncated and the step count. Then what is carried out.
-    out = [torch.empty(shape, dtype=dtype) for shape in ((n, steps, in_dim), (n, steps, a), (n, steps))]
-    out += [torch.empty(n, steps, in_dim, dtype=dtype)]
-    out += [torch.empty(n, steps, dtype=kind) for kind in (i64, torch.bool, torch.bool, i64)]
-    out += [torch.empty(shapes[k], dtype=kinds.get(k, dtype)) for k in Carried._fields]
+    per_step = partial(torch.empty, n, steps)
+    seg = Segment(
+        *(per_step(*shape, dtype=dtype) for shape in ((in_dim,), (a,), (), (in_dim,))),
+        *(per_step(dtype=kind) for kind in (i64, torch.bool, torch.bool, i64)),
+    )
+    out = Carried(*(torch.empty(shapes[k], dtype=kinds.get(k, dtype)) for k in Carried._fields))
     # Bound to names: a pointer is only valid while its tensor lives.
-    carried = [_to(x, kinds.get(k, dtype)) for k, x in zip(Carried._fields, carried, strict=True)]
+    state, t, key, *internal = (_to(x, kinds.get(k, dtype)) for k, x in carried._asdict().items())
     params, noise, fresh = params.contiguous(), _to(noise, dtype), _to(fresh, dtype)
-    fresh_keys, env = _to(fresh_keys, i64), _to(env, torch.float64)
-    args = (n, steps, max_steps, params, *carried, noise, fresh, fresh_keys, env, disturbance, *out)
-    net = _net(in_dim, hidden, activation, min_std, dist_eps)
-    _launch(_lib(dtype), "segments", params.device, net, args)
-    return Segment(*out[: len(Segment._fields)]), Carried(*out[len(Segment._fields) :])
+    fresh_keys, env, active = _to(fresh_keys, i64), _to(env, torch.float64), torch.ones(1, dtype=torch.uint8)
+    # RolloutArgs with t: one agent's drones (episodes = rows: every row flies agent 0).
+    args = (n, max(n, 1), steps, params, state, noise, None, key, active, env, disturbance, None, None)
+    args += (seg.action, seg.reward, seg.cause, None, None, None, seg.observation, None, max_steps, t)
+    args += (*internal, fresh, fresh_keys, seg.next_observation, seg.terminated, seg.truncated)
+    args += (seg.step_count, *out)
+    _launch(_lib(dtype), "rollout", params.device, _net(in_dim, hidden, activation, min_std, dist_eps), args)
+    return seg, out
