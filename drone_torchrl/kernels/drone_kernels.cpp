@@ -336,7 +336,8 @@ struct Net {
   int offset[kMaxLayers + 2];
   int width[kMaxLayers + 2];
   int params;
-  int activations;  // hidden outputs of one row
+  int activations;           // hidden outputs of one row
+  int act_offset[kMaxLayers];  // where each hidden layer's outputs start in them
 
   DK_HD int last() const { return width[n_hidden]; }
   DK_HD int out(int l) const { return l < n_hidden ? width[l + 1] : kActionDim; }  // layer l's outputs
@@ -420,11 +421,7 @@ template <class V, class W>
 DK_HD inline void backward_deltas(const Net& net, const W* w, const V* acts, const V* d_loc, const V* d_pre,
                                   V* deltas) {
   if (net.n_hidden == 0) return;
-  int act_offset[kMaxLayers], aoff = 0;
-  for (int l = 0; l < net.n_hidden; l++) {
-    act_offset[l] = aoff;
-    aoff += net.out(l);
-  }
+  const int* act_offset = net.act_offset;
   // d(last hidden output) = Wm^T d_loc + Ws^T d_pre, then through the activation.
   const int top = net.n_hidden - 1, n_top = net.out(top);
   const W* wm = w + net.offset[net.n_hidden];
@@ -814,6 +811,7 @@ DK_HD inline S& ref(const void* p, int64_t i) {
 // until its episode terminates or `steps` steps; or, with t (ops.segments: one agent, episodes =
 // rows), `steps` steps of each drone, its episode carried in and out and a new one started as soon
 // as one ends (DroneEnv under TorchRL's collector). Per step [rows, steps, ...]; null: not written.
+// The caller zero-fills the outputs (length and stats count from there).
 struct RolloutArgs {
   int64_t rows, episodes, steps;
   const void* params;
@@ -908,10 +906,6 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
     one = one && agent[l] == agent[0];
     t[l] = a.t ? a.t[row[l]] : 0;
     restart[l] = t[l] < 0;
-  }
-  for (int l = 0; l < count; l++) {
-    if (a.length) a.length[row[l]] = 0;
-    for (int k = 0; a.stats && k < kStats; k++) a.stats[row[l] * kStats + k] = 0;
   }
   if (!any) return;
   // One agent's weights are read where they are (every lane the same); else lane l of wbuf[k] is
@@ -1057,6 +1051,7 @@ struct GradArgs {
   RolloutArgs roll;  // rows = agents * episodes
   int64_t agents;
   LossOptions options;
+  // The caller fills these with zeros (actions_finite: ones), what an inactive agent gets.
   void* grad;               // [agents, params]
   double* loss;             // [agents]: each agent's REINFORCE loss (reinforce_terms' loss_per_agent)
   double* std_mean;         // [agents]: the policy's mean std over the valid steps and motors
@@ -1082,11 +1077,7 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
   const int p = net.params, act_w = net.activations > 0 ? net.activations : 1;
   const S eps = sizeof(S) == 4 ? S(1.1920928955078125e-07) : S(2.220446049250313e-16);  // finfo eps
   S* out = static_cast<S*>(g.grad) + n * p;
-  g.loss[n] = 0;
-  g.std_mean[n] = 0;
-  g.actions_finite[n] = 1;
-  for (int k = 0; k < p; k++) out[k] = 0;
-  if (!a.active[n]) return;
+  if (!a.active[n]) return;  // its outputs as the caller fills them: 0, and finite actions
   V* saved = static_cast<V*>(a.saved) + n * layout.blocks * layout.width;
   const int64_t* length = a.length + n * E;
   // Lane masks of the valid steps, the blocks in use, and the per-agent sums of reinforce_terms.
@@ -1158,17 +1149,14 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
   }
   // The weights' gradients, layer by layer, as sums over the blocks (weight_grad), then the lanes.
   for (int k = 0; k < p; k++) grad[k] = V{};
-  int start = 0;
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n_out = net.out(l), n_in = net.width[l];
     const int prev = l < net.n_hidden ? l - 1 : net.n_hidden - 1;
-    const V* input = prev < 0 ? saved : saved + layout.acts() + start;
-    const V* d = l < net.n_hidden ? deltas + start + (l ? net.out(l - 1) : 0)
-                                  : heads + (l - net.n_hidden) * kActionDim;
+    const V* input = prev < 0 ? saved : saved + layout.acts() + net.act_offset[prev];
+    const V* d = l < net.n_hidden ? deltas + net.act_offset[l] : heads + (l - net.n_hidden) * kActionDim;
     const int d_stride = l < net.n_hidden ? act_w : 2 * kActionDim;
     V* gw = grad + net.offset[l];
     weight_grad(d, d_stride, input, layout.width, n_out, n_in, used, gw, gw + n_out * n_in);
-    if (l > 0 && l < net.n_hidden) start += net.out(l - 1);
   }
   for (int k = 0; k < p; k++) {
     S sum = 0;
@@ -1194,7 +1182,7 @@ DK_HD Net make_net(const NetSpec& spec) {
   int off = 0, in = net.in_dim;
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n = l < net.n_hidden ? static_cast<int>(spec.hidden[l]) : kActionDim;
-    if (l < net.n_hidden) net.activations += n;
+    if (l < net.n_hidden) net.act_offset[l] = net.activations, net.activations += n;
     net.offset[l] = off;
     net.width[l] = in;
     off += n * in + n;
@@ -1259,10 +1247,6 @@ __attribute__((flatten)) void run_range(const Work& work, int64_t scratch, int64
 template <class Work>
 int64_t run(int64_t count, int64_t scratch, const Launch& on, Work work) {
   const int64_t workers = count < on.threads ? count : on.threads;
-  if (workers <= 1) {
-    run_range(work, scratch, 0, count);
-    return 0;
-  }
   std::vector<std::thread> pool;
   for (int64_t k = 0; k < workers; k++)
     pool.emplace_back([&, k] { run_range(work, scratch, count * k / workers, count * (k + 1) / workers); });
@@ -1326,7 +1310,7 @@ int64_t dk_real_bytes() { return sizeof(Real); }
 int64_t dk_abi_version() { return 4; }
 
 // Whole episodes, or segments (RolloutArgs; entries after an episode's end are left as they were:
-// the caller zero-fills). Returns 0 (on a GPU: the CUDA error code of the launch).
+// zeros). Returns 0 (on a GPU: the CUDA error code of the launch).
 int64_t dk_rollout(const void* call) {
   const auto c = unpack<Call<RolloutArgs>>(call);
   return fly(make_net(c.spec), c.a, c.on);

@@ -87,10 +87,8 @@ class KernelRollout:
         Under disturbances their ``observation`` is what the policy saw.
         """
         flat = self.stacked.flat[self.agents]
-        n = flat.shape[0]
-        if active is None:
-            active = torch.ones(n, dtype=torch.bool)
-        gamma = torch.ones(n, dtype=torch.float64)  # the returns-to-go are not used here
+        active = torch.ones(flat.shape[0], dtype=torch.bool) if active is None else active
+        gamma = torch.ones(flat.shape[0], dtype=torch.float64)  # the returns-to-go are not used here
         states, action, reward, cause, length, _, _, seen = ops.rollout(
             flat.detach(), start, noise, rng, active, self.env, gamma, self.hidden, self.activation,
             self.stacked.min_std, self.max_steps, self.stacked.distribution_eps, self.disturbance, keys,
