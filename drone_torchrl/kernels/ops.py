@@ -323,19 +323,16 @@ def reinforce(
     # time, so that its scratch (every step's rewards and what the backward pass reads) is that
     # many agents' whatever the population's size.
     chunk = max(1, min(n, AGENTS_PER_CALL))
-    reward = params.new_empty(chunk, episodes, steps)
-    returns = torch.empty_like(reward)
-    cause = params.new_empty(chunk, episodes, steps, dtype=torch.int64)
-    length = params.new_zeros(n, episodes, dtype=torch.int64)
-    counts = params.new_zeros(n, episodes, STATS, dtype=torch.float64)
+    empty, zeros, f64, i64 = params.new_empty, params.new_zeros, torch.float64, torch.int64
+    scratch = (chunk, episodes, steps)  # each call's, reused
+    reward, returns, cause = empty(scratch), empty(scratch), empty(scratch, dtype=i64)
+    length, counts = zeros(n, episodes, dtype=i64), zeros(n, episodes, STATS, dtype=f64)
+    grad, loss, std_mean = torch.zeros_like(params), zeros(n, dtype=f64), zeros(n, dtype=f64)
+    actions_finite = params.new_ones(n, dtype=torch.bool)
     lib, net = _lib(dtype, device), _net(in_dim, hidden, activation, min_std, dist_eps)
     sizes = (chunk * episodes, chunk, episodes, steps)
-    saved = params.new_empty(lib.dk_saved_size(_words(*net, *sizes)))
-    grad = torch.zeros_like(params)
-    loss = params.new_zeros(n, dtype=torch.float64)
-    std_mean = torch.zeros_like(loss)
-    actions_finite = params.new_ones(n, dtype=torch.bool)
-    params, active, rng = params.contiguous(), _to(active, torch.uint8, device), _to(rng, torch.int64, device)
+    saved = empty(lib.dk_saved_size(_words(*net, *sizes)))
+    params, active, rng = params.contiguous(), _to(active, torch.uint8, device), _to(rng, i64, device)
     env, gamma = _to(env, torch.float64, device), _to(gamma, torch.float64, device)
     disturbance = _magnitudes(disturbance, device)
     for first in range(0, n, chunk):
