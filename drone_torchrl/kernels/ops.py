@@ -126,8 +126,6 @@ def env_constants(
 
 #: The disturbance's magnitudes in the kernels' order (``DistConst`` in drone_kernels.cpp).
 DISTURBANCE_CONSTANTS = disturbances.FIELDS
-_OBSERVED = DISTURBANCE_CONSTANTS.index("observed_actions")
-_DELAY = DISTURBANCE_CONSTANTS.index("action_delay")
 _GUST_TIME = DISTURBANCE_CONSTANTS.index("gust_time")
 
 
@@ -161,7 +159,8 @@ def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
     """
     if disturbance is None:
         return 0, 0
-    return int(disturbance[_DELAY]), int(disturbance[_OBSERVED])
+    delay, observed = (DISTURBANCE_CONSTANTS.index(k) for k in ("action_delay", "observed_actions"))
+    return int(disturbance[delay]), int(disturbance[observed])
 
 
 def param_count(in_dim: int, hidden: Sequence[int]) -> int:
