@@ -2,7 +2,7 @@
 
 ``drone_kernels.cpp`` is one source for three builds. The vector engine (the CPU default) flies
 8 (float32) or 4 (float64) drones per SIMD register; the CUDA engine runs the same loops
-(``fly_block``, ``reinforce_agent``, ``segment_block``) with one drone per thread; the scalar engine
+(``fly_block``: episodes and segments; ``reinforce_agent``) with one drone per thread; the scalar engine
 is that one-drone-per-block code compiled for the CPU. The scalar engine here passes the equality
 tests of ``test_kernel_disturbances.py`` (the reference: ``disturbances``, ``StackedThreeNet``,
 ``ReinforceLoss`` with autograd, ``DroneEnv`` under TorchRL's auto-reset), so the code each CUDA
@@ -68,8 +68,8 @@ def test_the_scalar_engine_is_the_one_drone_per_block_build():
 def test_the_scalar_engine_flies_the_reference_s_steps(scalar_engine, condition, head, dtype):
     """``test_every_disturbed_step_equals_the_reference`` on the scalar engine.
 
-    Mutation caught: the one-lane weights read from the first agent's row (``agent[0] * p`` ->
-    ``0`` in ``lane_weights``), which the vector engine, packing its lanes, never reads."""
+    Mutation caught: one agent's weights read from the first agent's row (``params + agent[0] *
+    net.params`` -> ``params`` in ``fly_block``)."""
     equality.test_every_disturbed_step_equals_the_reference(condition, head, dtype)
     assert equality.DTYPES[dtype] in scalar_engine
 
@@ -89,7 +89,7 @@ def test_the_scalar_engine_s_segments_equal_drone_env(scalar_engine, monkeypatch
     """``test_segments_equal_drone_env_under_the_collector_s_auto_reset`` on the scalar engine.
 
     Mutation caught: a restarted drone keeping the previous episode's gust (the
-    ``set_lane(dr.gust, ...)`` of ``segment_block``'s restart left out)."""
+    ``start_episode(d, dr, restart)`` of ``fly_block``'s restart left out)."""
     equality.test_segments_equal_drone_env_under_the_collector_s_auto_reset(
         monkeypatch, condition, head, dtype
     )

@@ -198,7 +198,7 @@ def library(double: bool = False, scalar: bool = False) -> ctypes.CDLL | None:
 
 
 #: The entry points' argument lists the Python side calls (drone_kernels.cpp's ``dk_abi_version``).
-ABI_VERSION = 3
+ABI_VERSION = 4
 
 
 class _Library(ctypes.CDLL):
@@ -209,10 +209,7 @@ class _Library(ctypes.CDLL):
 
 def _load(path: Path, double: bool) -> ctypes.CDLL:
     lib = _Library(str(path))
-    try:
-        version = lib.dk_abi_version()
-    except AttributeError:  # built before the entry points were numbered
-        version = 1
+    version = getattr(lib, "dk_abi_version", lambda: 1)()  # 1: built before the entry points were numbered
     if version != ABI_VERSION:
         raise OSError(
             f"{path} takes the entry points' arguments of version {version}, not {ABI_VERSION}: rebuild it"

@@ -336,7 +336,8 @@ struct Net {
   int offset[kMaxLayers + 2];
   int width[kMaxLayers + 2];
   int params;
-  int activations;  // hidden outputs of one row
+  int activations;           // hidden outputs of one row
+  int act_offset[kMaxLayers];  // where each hidden layer's outputs start in them
 
   DK_HD int last() const { return width[n_hidden]; }
   DK_HD int out(int l) const { return l < n_hidden ? width[l + 1] : kActionDim; }  // layer l's outputs
@@ -420,11 +421,7 @@ template <class V, class W>
 DK_HD inline void backward_deltas(const Net& net, const W* w, const V* acts, const V* d_loc, const V* d_pre,
                                   V* deltas) {
   if (net.n_hidden == 0) return;
-  int act_offset[kMaxLayers], aoff = 0;
-  for (int l = 0; l < net.n_hidden; l++) {
-    act_offset[l] = aoff;
-    aoff += net.out(l);
-  }
+  const int* act_offset = net.act_offset;
   // d(last hidden output) = Wm^T d_loc + Ws^T d_pre, then through the activation.
   const int top = net.n_hidden - 1, n_top = net.out(top);
   const W* wm = w + net.offset[net.n_hidden];
@@ -611,7 +608,7 @@ DK_HD inline void start_episode(const DistParams<ScalarOf<V>>& d, Drone<V>& dr, 
 
 // What a drone carries from one segments call to the next besides its state and key
 // (disturbances.Internal): fn(k, i, value) for each value, i its place in row r of carried tensor k
-// (SegmentArgs' internal: gust, thrust, pending, issued).
+// (RolloutArgs' internal: gust, thrust, pending, issued).
 template <class V, class Fn>
 DK_HD inline void each_internal(const DistParams<ScalarOf<V>>& d, Drone<V>& dr, int64_t r, Fn fn) {
   fn(0, r, dr.gust);
@@ -790,8 +787,8 @@ DK_HD inline V log_prob_backward(const EnvParams<ScalarOf<V>>& e, const V* loc, 
 }
 
 // ------------------------------------------------------------------------------------------------
-// The engine's loops, single source as well: fly_block (whole episodes of a block of rows),
-// reinforce_agent (one agent's loss and gradient) and segment_block (PPO/A2C's segments), each on
+// The engine's loops, single source as well: fly_block (a block of rows: whole episodes, or
+// PPO/A2C's auto-resetting segments) and reinforce_agent (one agent's loss and gradient), each on
 // lanes<V>() drones at a time and on scratch memory the caller owns. The CPU engine (below) calls
 // them with V a vector over threads of blocks; the CUDA build (drone_kernels.cu) with V = Real, one
 // thread per row or agent; the scalar engine (-DDK_SCALAR_ENGINE, tested against the CPU engine)
@@ -810,23 +807,15 @@ DK_HD inline S& ref(const void* p, int64_t i) {
   return const_cast<S*>(static_cast<const S*>(p))[i];
 }
 
-// The weights of each lane's agent: lane l of w[k] is parameter k of agent[l]. One lane: the
-// agent's own parameters, read where they are.
-template <class V>
-DK_HD inline const V* lane_weights(const Net& net, const ScalarOf<V>* params, const int64_t* agent, V* w) {
-  const int p = net.params;
-  if (lanes_of<V>() == 1) return reinterpret_cast<const V*>(params + agent[0] * p);
-  for (int l = 0; l < lanes_of<V>(); l++) {
-    const ScalarOf<V>* src = params + agent[l] * p;
-    for (int k = 0; k < p; k++) set_lane(w[k], l, src[k]);
-  }
-  return w;
-}
-
+// What dk_rollout flies: rows = agents * episodes (row r flies agent r / episodes's policy), each
+// until its episode terminates or `steps` steps; or, with t (ops.segments: one agent, episodes =
+// rows), `steps` steps of each drone, its episode carried in and out and a new one started as soon
+// as one ends (DroneEnv under TorchRL's collector). Per step [rows, steps, ...]; null: not written.
+// The caller zero-fills the outputs (length and stats count from there).
 struct RolloutArgs {
   int64_t rows, episodes, steps;
   const void* params;
-  const void* start;
+  const void* start;   // [rows, 6]; segments: the carried state
   const void* noise;   // null: deterministic (the mean action), unless rng is given
   const int64_t* rng;  // [rows, 2]: the row's agent's seed and update counter; start and noise are then drawn here
   const int64_t* keys;  // [rows]: each episode's disturbance key; null: drawn from rng
@@ -834,16 +823,34 @@ struct RolloutArgs {
   const double* env;
   const double* dist;   // the disturbance's magnitudes (DistConst); null: the nominal drone
   const double* gamma;  // [agents]: the discount of each agent's returns-to-go
-  void* obs;
+  void* states;         // [rows, steps + 1, 6]: the true states
   void* action;
   void* reward;
   int64_t* cause;
   int64_t* length;
   void* returns;  // [rows, steps]: sum_{k >= t} gamma^(k - t) reward_k over the row's episode
   double* stats;  // [rows, kStats]
-  void* seen;     // [rows, steps, in_dim]: what the policy saw (null: not kept)
+  void* seen;     // [rows, steps, in_dim]: what the policy saw
   // Optional: what the REINFORCE gradient needs of every step, in lane vectors per agent (Saved).
   void* saved;
+  // Segments. Carried in: t [rows] (< 0: a new episode starts at step 0; null: no segments) and
+  // the internal state: gust [rows], thrust [rows, 2], pending [rows, delay, 2], issued [rows,
+  // observed, 2]. A new episode at step j starts from fresh[., j] with key fresh_keys[., j] (null:
+  // the nominal drone); one truncates at max_steps.
+  int64_t max_steps;
+  const int64_t* t;
+  const void* internal[4];
+  const void* fresh;
+  const int64_t* fresh_keys;
+  void* next_obs;
+  uint8_t* terminated;
+  uint8_t* truncated;
+  int64_t* step_count;
+  // Carried out, laid out as carried in.
+  void* state_out;
+  int64_t* t_out;
+  int64_t* key_out;
+  void* internal_out[4];
 };
 
 // Where the gradient pass finds each step: an agent's steps r = episode * steps + t go in blocks of
@@ -868,8 +875,9 @@ struct Saved {
 // and the termination cause of the last step.
 enum Stat { kReturn, kZoneSteps, kNegative, kLastCause, kStats };
 
-// Rows b * L .. b * L + L - 1 of dk_rollout (L = lanes<V>()). w: scratch of net.params vectors
-// (unused with one lane), acts: of max(net.activations, 1), x: of net.in_dim.
+// Rows b * L .. b * L + L - 1 of dk_rollout (L = lanes<V>()). wbuf: scratch of net.params vectors
+// (the lanes' weights, where they fly different agents), acts: of max(net.activations, 1), x: of
+// net.in_dim.
 template <class V>
 DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* wbuf, V* acts, V* x) {
   using S = ScalarOf<V>;
@@ -881,81 +889,96 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
   };
   const EnvParams<S> e = env_params<S>(a.env, net);
   const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
+  const S* params = static_cast<const S*>(a.params);
   Drone<V> dr{};
-  const int64_t T = a.steps, in_dim = net.in_dim;
-  const int64_t row0 = b * L;
+  const int64_t T = a.steps, in_dim = net.in_dim, row0 = b * L;
   const int count = static_cast<int>(row0 + L <= a.rows ? L : a.rows - row0);
-  int64_t agent[L];
-  bool live[L];
+  // Each lane's row, its agent and the row's episode index within it, its episode's step, whether
+  // it flies on and whether it starts a new episode at the next step.
+  int64_t row[L], agent[L], t[L];
+  uint64_t episode[L], noise_key[L];
+  bool live[L], restart[L], any = false, one = true;
   for (int l = 0; l < L; l++) {
-    agent[l] = (row0 + (l < count ? l : 0)) / a.episodes;
+    row[l] = row0 + (l < count ? l : 0);
+    agent[l] = row[l] / a.episodes, episode[l] = row[l] % a.episodes;
     live[l] = l < count && a.active[agent[l]];
+    any = any || live[l];
+    one = one && agent[l] == agent[0];
+    t[l] = a.t ? a.t[row[l]] : 0;
+    restart[l] = t[l] < 0;
   }
-  for (int l = 0; l < count; l++) {
-    a.length[row0 + l] = 0;
-    for (int k = 0; k < kStats; k++) a.stats[(row0 + l) * kStats + k] = 0;
-  }
-  bool any = false;
-  for (int l = 0; l < L; l++) any = any || live[l];
   if (!any) return;
-  const V* w = lane_weights(net, static_cast<const S*>(a.params), agent, wbuf);
-  // The stream keys of each lane's agent, and the row's episode index within its agent.
-  uint64_t noise_key[L], episode[L];
+  // One agent's weights are read where they are (every lane the same); else lane l of wbuf[k] is
+  // parameter k of agent[l].
+  for (int l = 0; l < L && !one; l++)
+    for (int k = 0; k < net.params; k++) set_lane(wbuf[k], l, params[agent[l] * net.params + k]);
   for (int l = 0; l < L; l++) {
-    const int64_t row = row0 + (l < count ? l : 0);
-    episode[l] = row % a.episodes;
-    if (a.rng) {
-      const uint64_t seed = a.rng[2 * row], counter = a.rng[2 * row + 1];
+    if (a.rng) {  // the stream keys of the lane's agent
+      const uint64_t seed = a.rng[2 * row[l]], counter = a.rng[2 * row[l] + 1];
       noise_key[l] = stream_key(seed, counter, kActionNoise);
       const uint64_t start_key = stream_key(seed, counter, kStartStates);
       for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, start_component<S>(a.env, start_key, episode[l], k));
-      dr.key[l] = a.keys ? a.keys[row] : episode_key(seed, counter, episode[l]);
+      dr.key[l] = a.keys ? a.keys[row[l]] : episode_key(seed, counter, episode[l]);
     } else {
-      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.start, row * kStateDim + k));
-      dr.key[l] = a.keys ? a.keys[row] : 0;
+      for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.start, row[l] * kStateDim + k));
+      dr.key[l] = a.keys ? a.keys[row[l]] : 0;
     }
   }
-  if (!d.nominal) start_episode(d, dr);
+  if (!d.nominal) {
+    start_episode(d, dr);  // the episode's draws; a segment's internal state is the carried one
+    for (int l = 0; l < L && a.t; l++)
+      each_internal(d, dr, row[l], [&](int k, int64_t i, V& v) { set_lane(v, l, ref<S>(a.internal[k], i)); });
+  }
   const bool stochastic = a.noise || a.rng;
   V n[4] = {};
-  for (int64_t t = 0; t < T && any; t++) {
-    int64_t steps[L];
-    uint64_t pair[L];
-    for (int l = 0; l < L; l++) {
-      steps[l] = t;
-      pair[l] = static_cast<uint64_t>(t) * a.episodes + episode[l];
+  for (int64_t j = 0; j < T && any; j++) {
+    bool restarting = false;
+    for (int l = 0; l < L; l++) restarting = restarting || restart[l];
+    if (restarting) {  // new episodes from step j: start state fresh[., j], key fresh_keys[., j]
+      for (int l = 0; l < L; l++) {
+        if (!restart[l]) continue;
+        t[l] = 0;
+        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.fresh, (row[l] * T + j) * kStateDim + k));
+        if (a.fresh_keys) dr.key[l] = a.fresh_keys[row[l] * T + j];
+      }
+      if (!d.nominal) start_episode(d, dr, restart);
+      for (int l = 0; l < L; l++) restart[l] = false;
     }
-    step_normals(d, dr, steps, n);
-    observe(d, dr, n, x);
+    if (j == 0 || restarting) {  // else x holds the last step's next observation
+      step_normals(d, dr, t, n);
+      observe(d, dr, n, x);
+    }
     V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
     if (a.rng) {
+      uint64_t pair[L];
+      for (int l = 0; l < L; l++) pair[l] = static_cast<uint64_t>(j) * a.episodes + episode[l];
       action_normals(noise_key, pair, z);
     } else if (a.noise) {
       for (int m = 0; m < kActionDim; m++)
         for (int l = 0; l < L; l++)
-          set_lane(z[m], l, live[l] ? ref<S>(a.noise, ((row0 + l) * T + t) * kActionDim + m) : S(0));
+          set_lane(z[m], l, live[l] ? ref<S>(a.noise, (row[l] * T + j) * kActionDim + m) : S(0));
     }
-    policy_step(net, e, w, x, acts, stochastic ? z : nullptr, loc, pre, act);
+    V* const noisy = stochastic ? z : nullptr;
+    if (one) policy_step(net, e, params + agent[0] * net.params, x, acts, noisy, loc, pre, act);
+    else policy_step(net, e, static_cast<const V*>(wbuf), x, acts, noisy, loc, pre, act);
     V next[kStateDim], r, cause, zone;
     drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
-    any = false;
     for (int l = 0; l < count; l++) {
       if (!live[l]) continue;
-      const int64_t row = row0 + l, at = row * T + t, state_at = row * (T + 1) + t;
-      if (a.obs) {
+      const int64_t at = row[l] * T + j, state_at = row[l] * (T + 1) + j;
+      const int64_t code = static_cast<int64_t>(lane(cause, l));
+      if (a.states) {
         for (int k = 0; k < kStateDim; k++) {
-          ref<S>(a.obs, state_at * kStateDim + k) = lane(dr.s[k], l);
-          ref<S>(a.obs, (state_at + 1) * kStateDim + k) = lane(next[k], l);
+          ref<S>(a.states, state_at * kStateDim + k) = lane(dr.s[k], l);
+          ref<S>(a.states, (state_at + 1) * kStateDim + k) = lane(next[k], l);
         }
       }
       if (a.seen)
         for (int k = 0; k < in_dim; k++) ref<S>(a.seen, at * in_dim + k) = lane(x[k], l);
-      if (a.action) {
-        ref<S>(a.action, at * kActionDim) = lane(act[0], l);
-        ref<S>(a.action, at * kActionDim + 1) = lane(act[1], l);
-      }
+      if (a.action)
+        for (int m = 0; m < kActionDim; m++) ref<S>(a.action, at * kActionDim + m) = lane(act[m], l);
       if (a.saved) {
-        const int64_t r_agent = episode[l] * T + t;
+        const int64_t r_agent = episode[l] * T + j;
         for (int k = 0; k < in_dim; k++) slot(agent[l], r_agent, k) = lane(x[k], l);
         for (int k = 0; k < net.activations; k++) slot(agent[l], r_agent, layout.acts() + k) = lane(acts[k], l);
         for (int m = 0; m < kActionDim; m++) {
@@ -964,31 +987,58 @@ DK_HD inline void fly_block(const Net& net, const RolloutArgs& a, int64_t b, V* 
           slot(agent[l], r_agent, layout.action() + m) = lane(act[m], l);
         }
       }
-      const int64_t code = static_cast<int64_t>(lane(cause, l));
+      if (a.step_count) a.step_count[at] = t[l];
       ref<S>(a.reward, at) = lane(r, l);
       a.cause[at] = code;
-      a.length[row] = t + 1;
-      double* stat = a.stats + row * kStats;
-      stat[kReturn] += lane(r, l);
-      stat[kZoneSteps] += lane(zone, l) != 0 && code == 0;
-      stat[kNegative] += (lane(act[0], l) < 0) + (lane(act[1], l) < 0);
-      stat[kLastCause] = code;
-      live[l] = code == 0;
-      any = any || live[l];
+      if (a.length) a.length[row[l]] = j + 1;
+      if (a.stats) {
+        double* stat = a.stats + row[l] * kStats;
+        stat[kReturn] += lane(r, l);
+        stat[kZoneSteps] += lane(zone, l) != 0 && code == 0;
+        stat[kNegative] += (lane(act[0], l) < 0) + (lane(act[1], l) < 0);
+        stat[kLastCause] = code;
+      }
     }
     for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
-  }
-  // Returns-to-go of each row's episode, last step first (the loss's discounted_returns).
-  for (int l = 0; l < count; l++) {
-    const int64_t row = row0 + l;
-    const S discount = a.gamma[agent[l]];
-    S* out = static_cast<S*>(a.returns) + row * T;
-    S running = 0;
-    for (int64_t t = a.length[row] - 1; t >= 0; t--) {
-      running = ref<S>(a.reward, row * T + t) + discount * running;
-      out[t] = running;
-      if (a.saved) slot(agent[l], episode[l] * T + t, layout.ret()) = running;
+    for (int l = 0; l < L; l++) t[l] += 1;
+    // What the env returns: the observation of the state after the step, at its step count.
+    step_normals(d, dr, t, n);
+    observe(d, dr, n, x);
+    any = false;
+    for (int l = 0; l < count; l++) {
+      if (!live[l]) continue;
+      const int64_t at = row[l] * T + j, code = static_cast<int64_t>(lane(cause, l));
+      if (a.t) {  // a segment's drone flies on: a new episode at the next step once this one ends
+        restart[l] = code != 0 || t[l] >= a.max_steps;
+        a.terminated[at] = code != 0;
+        a.truncated[at] = code == 0 && restart[l];
+        for (int k = 0; k < in_dim; k++) ref<S>(a.next_obs, at * in_dim + k) = lane(x[k], l);
+      } else {
+        live[l] = code == 0;
+      }
+      any = any || live[l];
     }
+  }
+  for (int l = 0; l < count; l++) {
+    const int64_t r = row[l];
+    if (a.returns) {  // returns-to-go of the row's episode, last step first (the loss's discounted_returns)
+      const S discount = a.gamma[agent[l]];
+      S running = 0;
+      for (int64_t j = a.length[r] - 1; j >= 0; j--) {
+        running = ref<S>(a.reward, r * T + j) + discount * running;
+        ref<S>(a.returns, r * T + j) = running;
+        if (a.saved) slot(agent[l], episode[l] * T + j, layout.ret()) = running;
+      }
+    }
+    if (!a.t) continue;
+    // What a segment's drone carries out. The nominal drone carries nothing: its gust 0 and its
+    // thrust the hover command, as at a start.
+    for (int k = 0; k < kStateDim; k++) ref<S>(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
+    a.t_out[r] = restart[l] ? -1 : t[l];
+    a.key_out[r] = static_cast<int64_t>(dr.key[l]);
+    each_internal(d, dr, r, [&](int k, int64_t i, V& v) {
+      ref<S>(a.internal_out[k], i) = d.nominal ? S(k == 1 ? kHover : 0) : lane(v, l);
+    });
   }
 }
 
@@ -1001,6 +1051,7 @@ struct GradArgs {
   RolloutArgs roll;  // rows = agents * episodes
   int64_t agents;
   LossOptions options;
+  // The caller fills these with zeros (actions_finite: ones), what an inactive agent gets.
   void* grad;               // [agents, params]
   double* loss;             // [agents]: each agent's REINFORCE loss (reinforce_terms' loss_per_agent)
   double* std_mean;         // [agents]: the policy's mean std over the valid steps and motors
@@ -1026,11 +1077,7 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
   const int p = net.params, act_w = net.activations > 0 ? net.activations : 1;
   const S eps = sizeof(S) == 4 ? S(1.1920928955078125e-07) : S(2.220446049250313e-16);  // finfo eps
   S* out = static_cast<S*>(g.grad) + n * p;
-  g.loss[n] = 0;
-  g.std_mean[n] = 0;
-  g.actions_finite[n] = 1;
-  for (int k = 0; k < p; k++) out[k] = 0;
-  if (!a.active[n]) return;
+  if (!a.active[n]) return;  // its outputs as the caller fills them: 0, and finite actions
   V* saved = static_cast<V*>(a.saved) + n * layout.blocks * layout.width;
   const int64_t* length = a.length + n * E;
   // Lane masks of the valid steps, the blocks in use, and the per-agent sums of reinforce_terms.
@@ -1102,17 +1149,14 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
   }
   // The weights' gradients, layer by layer, as sums over the blocks (weight_grad), then the lanes.
   for (int k = 0; k < p; k++) grad[k] = V{};
-  int start = 0;
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n_out = net.out(l), n_in = net.width[l];
     const int prev = l < net.n_hidden ? l - 1 : net.n_hidden - 1;
-    const V* input = prev < 0 ? saved : saved + layout.acts() + start;
-    const V* d = l < net.n_hidden ? deltas + start + (l ? net.out(l - 1) : 0)
-                                  : heads + (l - net.n_hidden) * kActionDim;
+    const V* input = prev < 0 ? saved : saved + layout.acts() + net.act_offset[prev];
+    const V* d = l < net.n_hidden ? deltas + net.act_offset[l] : heads + (l - net.n_hidden) * kActionDim;
     const int d_stride = l < net.n_hidden ? act_w : 2 * kActionDim;
     V* gw = grad + net.offset[l];
     weight_grad(d, d_stride, input, layout.width, n_out, n_in, used, gw, gw + n_out * n_in);
-    if (l > 0 && l < net.n_hidden) start += net.out(l - 1);
   }
   for (int k = 0; k < p; k++) {
     S sum = 0;
@@ -1122,128 +1166,6 @@ DK_HD inline void reinforce_agent(const Net& net, const GradArgs& g, int64_t n, 
   g.loss[n] = loss;
   g.std_mean[n] = std_sum / S(steps * kActionDim);
   g.actions_finite[n] = finite;
-}
-
-// PPO/A2C's segments: n drones of one agent, `steps` steps each, auto-reset, state carried across
-// calls (DroneEnv under TorchRL's collector; see ops.segments).
-struct SegmentArgs {
-  int64_t n, steps, max_steps;
-  const void* params;  // [P]
-  // Carried in: state [n, 6], t [n] (< 0: a new episode starts at step 0), key [n], and the
-  // internal state: gust [n], thrust [n, 2], pending [n, delay, 2], issued [n, observed, 2].
-  const void* state;
-  const int64_t* t;
-  const int64_t* key;
-  const void* internal[4];
-  const void* noise;           // [n, steps, 2]
-  const void* fresh;           // [n, steps, 6]
-  const int64_t* fresh_keys;   // [n, steps]; null: the nominal drone
-  const double* env;
-  const double* dist;
-  // Per step: [n, steps, ...].
-  void* obs;
-  void* action;
-  void* reward;
-  void* next_obs;
-  int64_t* cause;
-  uint8_t* terminated;
-  uint8_t* truncated;
-  int64_t* step_count;
-  // Carried out, laid out as carried in.
-  void* state_out;
-  int64_t* t_out;
-  int64_t* key_out;
-  void* internal_out[4];
-};
-
-// Drones b * L .. b * L + L - 1 of dk_segments. Scratch: acts of max(net.activations, 1), x of
-// net.in_dim vectors.
-template <class V>
-DK_HD inline void segment_block(const Net& net, const SegmentArgs& a, int64_t b, V* acts, V* x) {
-  using S = ScalarOf<V>;
-  constexpr int L = lanes_of<V>();
-  const S* w = static_cast<const S*>(a.params);  // one agent: every lane reads the same weights
-  const EnvParams<S> e = env_params<S>(a.env, net);
-  const DistParams<S> d = dist_params<S>(a.dist, a.env[env_dt]);
-  const int64_t J = a.steps, in_dim = net.in_dim;
-  Drone<V> dr{};
-  const int64_t row0 = b * L;
-  const int count = static_cast<int>(row0 + L <= a.n ? L : a.n - row0);
-  int64_t row[L], t[L];
-  bool restart[L];
-  for (int l = 0; l < L; l++) {
-    row[l] = row0 + (l < count ? l : 0);
-    const int64_t r = row[l];
-    t[l] = a.t[r];
-    restart[l] = t[l] < 0;
-    for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.state, r * kStateDim + k));
-    dr.key[l] = static_cast<uint64_t>(a.key[r]);
-  }
-  if (!d.nominal) {
-    start_episode(d, dr);  // the episode's draws; its internal state is the carried one
-    for (int l = 0; l < L; l++)
-      each_internal(d, dr, row[l], [&](int k, int64_t i, V& v) { set_lane(v, l, ref<S>(a.internal[k], i)); });
-  }
-  V n[4] = {};
-  bool seen = false;  // x holds the observation at t (the last step's next observation)
-  for (int64_t j = 0; j < J; j++) {
-    bool any_restart = false;
-    for (int l = 0; l < L; l++) any_restart = any_restart || restart[l];
-    if (any_restart) {  // new episodes from step j: start state fresh[., j], key fresh_keys[., j]
-      for (int l = 0; l < L; l++) {
-        if (!restart[l]) continue;
-        t[l] = 0;
-        for (int k = 0; k < kStateDim; k++) set_lane(dr.s[k], l, ref<S>(a.fresh, (row[l] * J + j) * kStateDim + k));
-        if (a.fresh_keys) dr.key[l] = a.fresh_keys[row[l] * J + j];
-      }
-      if (!d.nominal) start_episode(d, dr, restart);
-      for (int l = 0; l < L; l++) restart[l] = false;
-      seen = false;
-    }
-    if (!seen) {
-      step_normals(d, dr, t, n);
-      observe(d, dr, n, x);
-    }
-    V z[kActionDim]{}, loc[kActionDim], pre[kActionDim], act[kActionDim];
-    for (int m = 0; m < kActionDim; m++)
-      for (int l = 0; l < L; l++) set_lane(z[m], l, ref<S>(a.noise, (row[l] * J + j) * kActionDim + m));
-    policy_step(net, e, w, x, acts, z, loc, pre, act);
-    for (int l = 0; l < count; l++) {
-      const int64_t at = row[l] * J + j;
-      for (int k = 0; k < in_dim; k++) ref<S>(a.obs, at * in_dim + k) = lane(x[k], l);
-      a.step_count[at] = t[l];
-    }
-    V next[kStateDim], r, cause, zone;
-    drone_step(e, d, dr, act, n[0], next, &r, &cause, &zone);
-    for (int k = 0; k < kStateDim; k++) dr.s[k] = next[k];
-    for (int l = 0; l < L; l++) t[l] += 1;
-    // What the env returns: the observation of the state after the step, at its step count.
-    step_normals(d, dr, t, n);
-    observe(d, dr, n, x);
-    seen = true;
-    for (int l = 0; l < count; l++) {
-      const int64_t at = row[l] * J + j;
-      const int64_t code = static_cast<int64_t>(lane(cause, l));
-      const bool terminated = code != 0, truncated = !terminated && t[l] >= a.max_steps;
-      for (int k = 0; k < in_dim; k++) ref<S>(a.next_obs, at * in_dim + k) = lane(x[k], l);
-      for (int m = 0; m < kActionDim; m++) ref<S>(a.action, at * kActionDim + m) = lane(act[m], l);
-      ref<S>(a.reward, at) = lane(r, l);
-      a.cause[at] = code;
-      a.terminated[at] = terminated;
-      a.truncated[at] = truncated;
-      restart[l] = terminated || truncated;
-    }
-  }
-  for (int l = 0; l < count; l++) {
-    const int64_t r = row[l];
-    for (int k = 0; k < kStateDim; k++) ref<S>(a.state_out, r * kStateDim + k) = lane(dr.s[k], l);
-    a.t_out[r] = restart[l] ? -1 : t[l];
-    a.key_out[r] = static_cast<int64_t>(dr.key[l]);
-    // The nominal drone carries nothing: its gust 0 and its thrust the hover command, as at a start.
-    each_internal(d, dr, r, [&](int k, int64_t i, V& v) {
-      ref<S>(a.internal_out[k], i) = d.nominal ? S(k == 1 ? kHover : 0) : lane(v, l);
-    });
-  }
 }
 
 // The network as the entry points take it (ops._net packs it): hidden widths after the first n_hidden unread.
@@ -1260,7 +1182,7 @@ DK_HD Net make_net(const NetSpec& spec) {
   int off = 0, in = net.in_dim;
   for (int l = 0; l < net.n_hidden + 2; l++) {
     const int n = l < net.n_hidden ? static_cast<int>(spec.hidden[l]) : kActionDim;
-    if (l < net.n_hidden) net.activations += n;
+    if (l < net.n_hidden) net.act_offset[l] = net.activations, net.activations += n;
     net.offset[l] = off;
     net.width[l] = in;
     off += n * in + n;
@@ -1325,10 +1247,6 @@ __attribute__((flatten)) void run_range(const Work& work, int64_t scratch, int64
 template <class Work>
 int64_t run(int64_t count, int64_t scratch, const Launch& on, Work work) {
   const int64_t workers = count < on.threads ? count : on.threads;
-  if (workers <= 1) {
-    run_range(work, scratch, 0, count);
-    return 0;
-  }
   std::vector<std::thread> pool;
   for (int64_t k = 0; k < workers; k++)
     pool.emplace_back([&, k] { run_range(work, scratch, count * k / workers, count * (k + 1) / workers); });
@@ -1389,11 +1307,10 @@ int64_t dk_observation_dim(int64_t observed) { return observation_dim(static_cas
 int64_t dk_real_bytes() { return sizeof(Real); }
 // The entry points' argument lists, numbered: a library built from another version of this file
 // (DRONE_TORCHRL_CUDA_LIBRARY names any file) is refused at load instead of called with wrong arguments.
-int64_t dk_abi_version() { return 3; }
+int64_t dk_abi_version() { return 4; }
 
-// Whole episodes for rows = agents * episodes (row r flies agent r / episodes's policy): until each
-// row's episode terminates or `steps` steps (RolloutArgs; entries after a row's end are left as
-// they were: the caller zero-fills). Returns 0 (on a GPU: the CUDA error code of the launch).
+// Whole episodes, or segments (RolloutArgs; entries after an episode's end are left as they were:
+// zeros). Returns 0 (on a GPU: the CUDA error code of the launch).
 int64_t dk_rollout(const void* call) {
   const auto c = unpack<Call<RolloutArgs>>(call);
   return fly(make_net(c.spec), c.a, c.on);
@@ -1415,16 +1332,7 @@ int64_t dk_saved_size(const void* sizes) {
   return q.agents * layout.blocks * layout.width * lanes();
 }
 
-#if DK_CPU
-// `steps` steps of n drones of one agent with auto-reset (ops.segments documents the tensors).
-int64_t dk_segments(const void* call) {
-  const auto c = unpack<Call<SegmentArgs>>(call);
-  const Net net = make_net(c.spec);
-  const int64_t acts = activation_width(net);
-  return run(blocks_of(c.a.n), acts + net.in_dim, c.on,
-             [&](int64_t b, Lanes* s) { segment_block(net, c.a, b, s, s + acts); });
-}
-#else
+#if !DK_CPU
 // Scratch scalars of dk_rollout (rows rows) and dk_reinforce (agents agents).
 int64_t dk_cuda_scratch_size(const void* sizes) {
   const auto q = unpack<Sizes>(sizes);
@@ -1448,7 +1356,7 @@ const char* dk_cuda_error(int64_t code) { return cudaGetErrorString(static_cast<
 // Instantiating them instantiates every DK_HD function they call (no list of those to keep).
 template <class V>
 void scalar_check() {
-  (void)&fly_block<V>, (void)&reinforce_agent<V>, (void)&segment_block<V>;
+  (void)&fly_block<V>, (void)&reinforce_agent<V>;
 }
 template void scalar_check<float>();
 template void scalar_check<double>();

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Mapping
+from functools import partial
 from typing import Any
 
 import torch
@@ -87,10 +88,8 @@ class KernelRollout:
         Under disturbances their ``observation`` is what the policy saw.
         """
         flat = self.stacked.flat[self.agents]
-        n = flat.shape[0]
-        if active is None:
-            active = torch.ones(n, dtype=torch.bool)
-        gamma = torch.ones(n, dtype=torch.float64)  # the returns-to-go are not used here
+        active = torch.ones(flat.shape[0], dtype=torch.bool) if active is None else active
+        gamma = torch.ones(flat.shape[0], dtype=torch.float64)  # the returns-to-go are not used here
         states, action, reward, cause, length, _, _, seen = ops.rollout(
             flat.detach(), start, noise, rng, active, self.env, gamma, self.hidden, self.activation,
             self.stacked.min_std, self.max_steps, self.stacked.distribution_eps, self.disturbance, keys,
@@ -151,17 +150,13 @@ class KernelSegments:
 
     def restart(self) -> None:
         """Every drone starts a new episode at the next call."""
-        dtype, n, a = self.rollout.stacked.flat.dtype, self.n, dynamics.ACTION_DIM
-        hover = torch.full((n, a), dynamics.HOVER_THRUST, dtype=dtype)
+        dtype, n, a, i64 = self.rollout.stacked.flat.dtype, self.n, dynamics.ACTION_DIM, torch.int64
+        zeros, hover = partial(torch.zeros, dtype=dtype), dynamics.HOVER_THRUST
         self.carried = Carried(
-            torch.zeros(n, dynamics.STATE_DIM, dtype=dtype),
-            torch.full((n,), -1, dtype=torch.int64),
-            torch.zeros(n, dtype=torch.int64),
-            torch.zeros(n, dtype=dtype),
-            hover,
-            hover.unsqueeze(1).expand(n, self.delay, a).clone(),
-            torch.zeros(n, self.observed, a, dtype=dtype),
-        )
+            zeros(n, dynamics.STATE_DIM), torch.full((n,), -1, dtype=i64), torch.zeros(n, dtype=i64), zeros(n),
+            torch.full((n, a), hover, dtype=dtype), torch.full((n, self.delay, a), hover, dtype=dtype),
+            zeros(n, self.observed, a),
+        )  # fmt: skip
 
     @torch.no_grad()
     def __call__(

@@ -24,6 +24,7 @@ import ctypes
 import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import fields
+from functools import partial
 from typing import Any, NamedTuple
 
 import torch
@@ -125,8 +126,6 @@ def env_constants(
 
 #: The disturbance's magnitudes in the kernels' order (``DistConst`` in drone_kernels.cpp).
 DISTURBANCE_CONSTANTS = disturbances.FIELDS
-_OBSERVED = DISTURBANCE_CONSTANTS.index("observed_actions")
-_DELAY = DISTURBANCE_CONSTANTS.index("action_delay")
 _GUST_TIME = DISTURBANCE_CONSTANTS.index("gust_time")
 
 
@@ -160,7 +159,8 @@ def steps_back(disturbance: torch.Tensor | None) -> tuple[int, int]:
     """
     if disturbance is None:
         return 0, 0
-    return int(disturbance[_DELAY]), int(disturbance[_OBSERVED])
+    delay, observed = (DISTURBANCE_CONSTANTS.index(k) for k in ("action_delay", "observed_actions"))
+    return int(disturbance[delay]), int(disturbance[observed])
 
 
 def param_count(in_dim: int, hidden: Sequence[int]) -> int:
@@ -194,6 +194,10 @@ def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.T
 # ---------------------------------------------------------------------------------------- the ops
 # Plain functions over the C interface: the package calls them eagerly (nothing traces them), so
 # they carry no torch.library registration.
+
+
+#: ``RolloutArgs``' segment fields (drone_kernels.cpp), which only :func:`segments` fills.
+_NO_SEGMENTS = (None,) * 19
 
 
 # The inputs follow the parameters to their device (None stays None).
@@ -267,7 +271,7 @@ def rollout(
     zeros, i64, shape = params.new_zeros, torch.int64, (n, episodes, steps)
     states, action = zeros(n, episodes, steps + 1, dynamics.STATE_DIM), zeros(*shape, dynamics.ACTION_DIM)
     reward, returns, cause = zeros(shape), zeros(shape), zeros(shape, dtype=i64)
-    length, stats = zeros(n, episodes, dtype=i64), params.new_empty(n, episodes, STATS, dtype=torch.float64)
+    length, stats = zeros(n, episodes, dtype=i64), zeros(n, episodes, STATS, dtype=torch.float64)
     seen = zeros(*shape, in_dim) if observations else zeros(0)
     params, start, noise = params.contiguous(), _to(start, dtype, device), _to(noise, dtype, device)
     active, rng, keys = _to(active, torch.uint8, device), _to(rng, i64, device), _to(keys, i64, device)
@@ -275,7 +279,8 @@ def rollout(
     args = (n * episodes, episodes, steps, params, start, noise, rng, keys, active, env, disturbance, gamma)
     args += (states, action, reward, cause, length, returns, stats, seen if observations else None, None)
     net = _net(in_dim, hidden, activation, min_std, dist_eps)
-    _launch(_lib(dtype, device), "rollout", device, net, args, (n * episodes, 0, episodes, steps))
+    sizes = (n * episodes, 0, episodes, steps)
+    _launch(_lib(dtype, device), "rollout", device, net, args + _NO_SEGMENTS, sizes)
     return states, action, reward, cause, length, returns, stats, seen
 
 
@@ -317,27 +322,24 @@ def reinforce(
     # time, so that its scratch (every step's rewards and what the backward pass reads) is that
     # many agents' whatever the population's size.
     chunk = max(1, min(n, AGENTS_PER_CALL))
-    reward = params.new_empty(chunk, episodes, steps)
-    returns = torch.empty_like(reward)
-    cause = params.new_empty(chunk, episodes, steps, dtype=torch.int64)
-    length = params.new_empty(n, episodes, dtype=torch.int64)
-    counts = params.new_empty(n, episodes, STATS, dtype=torch.float64)
+    empty, zeros, f64, i64 = params.new_empty, params.new_zeros, torch.float64, torch.int64
+    scratch = (chunk, episodes, steps)  # each call's, reused
+    reward, returns, cause = empty(scratch), empty(scratch), empty(scratch, dtype=i64)
+    length, counts = zeros(n, episodes, dtype=i64), zeros(n, episodes, STATS, dtype=f64)
+    grad, loss, std_mean = torch.zeros_like(params), zeros(n, dtype=f64), zeros(n, dtype=f64)
+    actions_finite = params.new_ones(n, dtype=torch.bool)
     lib, net = _lib(dtype, device), _net(in_dim, hidden, activation, min_std, dist_eps)
     sizes = (chunk * episodes, chunk, episodes, steps)
-    saved = params.new_empty(lib.dk_saved_size(_words(*net, *sizes)))
-    grad = torch.empty_like(params)
-    loss = params.new_empty(n, dtype=torch.float64)
-    std_mean = torch.empty_like(loss)
-    actions_finite = params.new_empty(n, dtype=torch.bool)
-    params, active, rng = params.contiguous(), _to(active, torch.uint8, device), _to(rng, torch.int64, device)
+    saved = empty(lib.dk_saved_size(_words(*net, *sizes)))
+    params, active, rng = params.contiguous(), _to(active, torch.uint8, device), _to(rng, i64, device)
     env, gamma = _to(env, torch.float64, device), _to(gamma, torch.float64, device)
     disturbance = _magnitudes(disturbance, device)
     for first in range(0, n, chunk):
         r = slice(first, min(n, first + chunk))
         k = r.stop - r.start
         roll = (k * episodes, episodes, steps, params[r], None, None, rng[r], None, active[r], env)
-        roll += (disturbance, gamma[r], None, None, reward, cause, length[r], returns, counts[r], None)
-        args = (*roll, saved, k, *map(int, options), grad[r], loss[r], std_mean[r], actions_finite[r])
+        roll += (disturbance, gamma[r], None, None, reward, cause, length[r], returns, counts[r], None, saved)
+        args = (*roll, *_NO_SEGMENTS, k, *map(int, options), grad[r], loss[r], std_mean[r], actions_finite[r])
         _launch(lib, "reinforce", device, net, args, sizes)
     return grad, loss, std_mean, actions_finite, length, counts
 
@@ -441,17 +443,20 @@ def segments(
         raise ValueError("ops.segments under disturbances needs fresh_keys")
     dtype, i64 = params.dtype, torch.int64
     kinds = {"t": i64, "key": i64}  # the carried integers; the rest is real
-    # Per step: the observation, the action, the reward and the next observation; the cause,
-    # terminated, truncated and the step count. Then what is carried out.
-    out = [torch.empty(shape, dtype=dtype) for shape in ((n, steps, in_dim), (n, steps, a), (n, steps))]
-    out += [torch.empty(n, steps, in_dim, dtype=dtype)]
-    out += [torch.empty(n, steps, dtype=kind) for kind in (i64, torch.bool, torch.bool, i64)]
-    out += [torch.empty(shapes[k], dtype=kinds.get(k, dtype)) for k in Carried._fields]
+    per_step = partial(torch.empty, n, steps)
+    seg = Segment(
+        *(per_step(*shape, dtype=dtype) for shape in ((in_dim,), (a,), (), (in_dim,))),
+        *(per_step(dtype=kind) for kind in (i64, torch.bool, torch.bool, i64)),
+    )
+    out = Carried(*(torch.empty(shapes[k], dtype=kinds.get(k, dtype)) for k in Carried._fields))
     # Bound to names: a pointer is only valid while its tensor lives.
-    carried = [_to(x, kinds.get(k, dtype)) for k, x in zip(Carried._fields, carried, strict=True)]
+    state, t, key, *internal = (_to(x, kinds.get(k, dtype)) for k, x in carried._asdict().items())
     params, noise, fresh = params.contiguous(), _to(noise, dtype), _to(fresh, dtype)
-    fresh_keys, env = _to(fresh_keys, i64), _to(env, torch.float64)
-    args = (n, steps, max_steps, params, *carried, noise, fresh, fresh_keys, env, disturbance, *out)
-    net = _net(in_dim, hidden, activation, min_std, dist_eps)
-    _launch(_lib(dtype), "segments", params.device, net, args)
-    return Segment(*out[: len(Segment._fields)]), Carried(*out[len(Segment._fields) :])
+    fresh_keys, env, active = _to(fresh_keys, i64), _to(env, torch.float64), torch.ones(1, dtype=torch.uint8)
+    # RolloutArgs with t: one agent's drones (episodes = rows: every row flies agent 0).
+    args = (n, max(n, 1), steps, params, state, noise, None, key, active, env, disturbance, None, None)
+    args += (seg.action, seg.reward, seg.cause, None, None, None, seg.observation, None, max_steps, t)
+    args += (*internal, fresh, fresh_keys, seg.next_observation, seg.terminated, seg.truncated)
+    args += (seg.step_count, *out)
+    _launch(_lib(dtype), "rollout", params.device, _net(in_dim, hidden, activation, min_std, dist_eps), args)
+    return seg, out
