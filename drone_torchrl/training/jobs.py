@@ -63,7 +63,6 @@ from drone_torchrl.io.checkpoint import (
 )
 from drone_torchrl.io.folders import HYDRA_ENTRIES, check_fork_folder
 from drone_torchrl.io.streams import about, console
-from drone_torchrl.io.yaml_text import to_yaml
 from drone_torchrl.schema import BUDGET, KEPT, PROCESS
 from drone_torchrl.training.population_record import open_agent
 from drone_torchrl.training.run import FAILED_FILE, trained_out
@@ -255,15 +254,8 @@ def group_key(cfg: DictConfig) -> str:
 
     The per-agent keys are the schema's ``per_agent`` ones.
     """
-    container = OmegaConf.to_container(cfg, resolve=True)
-    for dotted in (*per_agent_keys(), "resume", "progress"):
-        node = container
-        *parents, leaf = dotted.split(".")
-        for part in parents:
-            node = node.get(part, {})
-        node.pop(leaf, None)
-    container.pop("hydra", None)
-    return to_yaml(container)
+    skip = {*per_agent_keys(), "resume", "progress"}
+    return repr([(key, value) for key, value in leaves(cfg).items() if key not in skip])
 
 
 # ---------------------------------------------------------------------------------------- job status

@@ -23,6 +23,7 @@ import copy
 import functools
 import re
 from collections.abc import Iterator, Sequence
+from typing import NamedTuple
 
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Override, OverrideType
@@ -146,6 +147,55 @@ def checked(cfg: DictConfig, values: dict[str, list] | None = None) -> None:
     validate(cfg)
     if values is not None:
         check_agent_values(cfg, values)
+
+
+class Batch(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this module outside sys.modules
+    """A batch's jobs composed and checked (:func:`checked_batch`): each job's config without its
+    ``hydra`` node (one config for them all when ``values``, each per-agent key's column, is given)
+    and Hydra's record of the first job's node (what ``.hydra/hydra.yaml`` holds)."""
+
+    configs: list[DictConfig]
+    values: dict[str, list] | None
+    hydra_record: dict
+
+
+def checked_batch(config_loader, master: DictConfig, jobs: Sequence[Sequence[str]]) -> Batch:
+    """Every job of a batch composed (:func:`agent_columns` when the jobs differ only in per-agent
+    numbers, else :func:`sweep_configs`) and checked (:func:`checked`), before any job folder exists.
+
+    Raises :class:`~drone_torchrl.checks.ConfigError` for the first job refused, in one line naming it.
+    """
+    from drone_torchrl.config import AgentValueError, ConfigError, per_agent_keys
+
+    def refused(err: ConfigError, overrides: Sequence[str]) -> ConfigError:
+        return ConfigError(f"{err} (in the sweep's job {' '.join(overrides)}; no job was started)")
+
+    table = agent_columns(config_loader, master, jobs, per_agent_keys())
+    if table is not None:  # one config, checked once
+        cfg, hydra, values = table
+        try:
+            checked(cfg, values)
+        except AgentValueError as err:
+            raise refused(err, jobs[err.agent]) from None
+        except ConfigError as err:
+            raise refused(err, jobs[0]) from None
+        return Batch([cfg] * len(jobs), values, hydra_record(hydra))
+    configs: list[DictConfig] = []
+    record: dict = {}
+    for overrides, cfg in zip(jobs, sweep_configs(config_loader, master, jobs), strict=True):
+        hydra = _take_hydra(cfg)
+        record = record or hydra_record(hydra)
+        try:
+            checked(cfg)
+        except ConfigError as err:
+            raise refused(err, overrides) from None
+        configs.append(cfg)
+    return Batch(configs, None, record)
+
+
+def hydra_record(hydra: DictConfig) -> dict:
+    """What ``.hydra/hydra.yaml`` holds of a job's ``hydra`` node: the node as written, unresolved."""
+    return {"hydra": OmegaConf.to_container(hydra, resolve=False, enum_to_str=True)}
 
 
 def _number(text: str) -> int | float | None:

@@ -37,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 from drone_torchrl import launcher_schemas  # noqa: F401  (registers hydra/sweeper=population)
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import basic_sweeper_class
+from hydra_plugins.drone_torchrl_launcher.compose import checked_batch
 from hydra_plugins.drone_torchrl_launcher.population_launcher import PopulationLauncher
 
 
@@ -117,11 +118,12 @@ class PopulationSweeper(Sweeper):
         the range with a generator keyed by the job's ``seed`` (the config's where the job sets
         none). A range is refused in one line unless the launcher is ``pbt`` and searches the key.
         Every batch is then checked before the basic sweeper writes the sweep folder (its
-        ``multirun.yaml``): each job's values (``_check_batch``), then what the launcher refuses
-        of the batch (a population launcher's :meth:`~.population_launcher.PopulationLauncher.check`):
-        a refused command writes nothing. Exits with one line.
+        ``multirun.yaml``): each job's values (:func:`.compose.checked_batch`), then what the launcher
+        refuses of the batch (a population launcher's
+        :meth:`~.population_launcher.PopulationLauncher.check`, which keeps the composed jobs): a
+        refused command writes nothing. Exits with one line.
         """
-        assert self.config is not None
+        assert self.config is not None and self.hydra_context is not None
         launcher = self.launcher
         ranges = [_range(o, launcher) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
         grid = [o for o in overrides if o.value_type != ValueType.INTERVAL_SWEEP]
@@ -137,48 +139,14 @@ class PopulationSweeper(Sweeper):
                 for span in ranges:
                     for job, value in zip(batch, span.first_values(seeds), strict=True):
                         job.append(f"{span.key}={value!r}")
-        start = 0
         for batch in batches:
-            self._check_batch(batch)
-            if isinstance(launcher, PopulationLauncher):
-                try:
-                    launcher.check(batch, start)
-                except ConfigError as err:
-                    sys.exit(f"drone-train: error: {err}")
-            start += len(batch)
+            try:
+                checked = checked_batch(self.hydra_context.config_loader, self.config, batch)
+                if isinstance(launcher, PopulationLauncher):
+                    launcher.check(batch, checked)
+            except ConfigError as err:
+                sys.exit(f"drone-train: error: {err}")
         return batches
-
-    def _check_batch(self, batch: Sequence[Sequence[str]]) -> None:
-        """Every job composes, and every job's values pass the config checks: a bad value in a
-        sweep is one line before any job folder exists, not a failed job per value."""
-        from drone_torchrl.config import AgentValueError, per_agent_keys
-        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, checked, sweep_configs
-
-        assert self.config is not None and self.hydra_context is not None
-
-        def refuse(err: ConfigError, overrides: Sequence[str]) -> None:
-            sys.exit(
-                f"drone-train: error: {err} (in the sweep's job {' '.join(overrides)}; no job was started)"
-            )
-
-        loader = self.hydra_context.config_loader
-        table = agent_columns(loader, self.config, batch, per_agent_keys())
-        if table is not None:  # jobs that differ only in per-agent numbers: one config, checked once
-            cfg, _, values = table
-            try:
-                checked(cfg, values)
-            except AgentValueError as err:
-                refuse(err, batch[err.agent])
-            except ConfigError as err:
-                refuse(err, batch[0])
-            return
-        for overrides, cfg in zip(
-            batch, sweep_configs(loader, self.config, batch, task_only=True), strict=True
-        ):
-            try:
-                checked(cfg)
-            except ConfigError as err:
-                refuse(err, overrides)
 
 
 def _range(override: Override, launcher: Any) -> Any:
