@@ -15,6 +15,10 @@ a key the config does not have) makes that job fall back to Hydra's full composi
 At tens of thousands of jobs even a copy per job is too slow: when the jobs differ only in numbers
 of the per-agent keys (``seed=0..65535``, ``algo.lr=...``), :func:`agent_columns` gives one config and
 each job's values, read from the override's text without a config or a parser call per job.
+
+:func:`checked_batch` is a batch composed one of these two ways and checked: what
+``hydra/sweeper=population`` checks before any folder, and what the population launcher trains (it
+keeps the sweeper's composition instead of composing the batch again).
 """
 
 from __future__ import annotations
@@ -50,18 +54,13 @@ def _is_plain_value(override: Override, template: DictConfig, groups: set[str]) 
     )
 
 
-def sweep_configs(
-    config_loader, master: DictConfig, jobs: Sequence[Sequence[str]], task_only: bool = False
-) -> Iterator[DictConfig]:
+def sweep_configs(config_loader, master: DictConfig, jobs: Sequence[Sequence[str]]) -> Iterator[DictConfig]:
     """Each job's config in turn, equal to ``config_loader.load_sweep_config(master, overrides)``.
 
     The jobs derived from the first share one ``hydra`` node, rewritten for each job (copying
     Hydra's part is four fifths of the cost of deriving a job): a config's ``hydra`` node is valid
-    until the next config is asked for, and is then taken off it. ``task_only``: the configs
-    without the ``hydra`` node (what the job's task sees; what a sweeper checks before launching).
+    until the next config is asked for, and is then taken off it.
     """
-    if not jobs:
-        return
     # Hydra's grammar is slow per override, and the jobs of a grid repeat most of theirs.
     parse = functools.cache(OverridesParser.create().parse_override)
     first = list(jobs[0])
@@ -78,18 +77,14 @@ def sweep_configs(
             cfg, hydra = copy.deepcopy(template), shared
             for override in changed:
                 OmegaConf.update(cfg, override.key_or_group, override.value(), merge=True)
-            if not task_only:
-                with read_write(hydra), open_dict(hydra):
-                    task = [o for o in parsed if not o.is_hydra_override()]
-                    hydra.overrides.task = [o.input_line for o in task]
-                    # Hydra's schema of the node: kv_sep, item_sep, exclude_keys.
-                    hydra.job.override_dirname = overrides_dirname(overrides=task, **dirname)
+            with read_write(hydra), open_dict(hydra):
+                task = [o for o in parsed if not o.is_hydra_override()]
+                hydra.overrides.task = [o.input_line for o in task]
+                # Hydra's schema of the node: kv_sep, item_sep, exclude_keys.
+                hydra.job.override_dirname = overrides_dirname(overrides=task, **dirname)
         else:
             cfg = config_loader.load_sweep_config(master, list(overrides))
             hydra = _take_hydra(cfg)
-        if task_only:
-            yield cfg
-            continue
         # The node is set without a copy (OmegaConf copies a node it is given, by default).
         with open_dict(cfg), flag_override(cfg, "no_deepcopy_set_nodes", True):
             cfg["hydra"] = hydra
@@ -109,8 +104,6 @@ def agent_columns(
     qualifies when its overrides are the first job's, in the same order, except ``key=number``
     ones of ``keys`` where the first job has the same key as a plain value override.
     """
-    if not jobs:
-        return None
     first = list(jobs[0])
     template = config_loader.load_sweep_config(master, first)
     groups = set(template.hydra.runtime.choices)

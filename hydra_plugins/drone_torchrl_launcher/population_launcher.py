@@ -44,6 +44,7 @@ import logging
 import os
 import sys
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -55,7 +56,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from drone_torchrl.checks import ConfigError, as_override
 from drone_torchrl.io.storage import write_atomically
-from drone_torchrl.io.yaml_text import save_yaml
+from drone_torchrl.io.yaml_text import save_yaml, to_yaml
 from hydra_plugins.drone_torchrl_launcher.compose import Batch, checked_batch, hydra_record, sweep_configs
 
 if TYPE_CHECKING:
@@ -107,11 +108,7 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
     ret.cfg = cfg
     Path(output_dir).mkdir(parents=True, exist_ok=True)
     if output_subdir is not None:
-        record = Path(output_dir) / output_subdir
-        record.mkdir(exist_ok=True)
-        save_yaml(cfg, record / "config.yaml")
-        save_yaml(hydra_cfg, record / "hydra.yaml")
-        save_yaml(ret.overrides, record / "overrides.yaml")
+        _save_record(Path(output_dir) / output_subdir, cfg, hydra_cfg, to_yaml(ret.overrides))
     if log_file is not None:
         Path(log_file).touch()
     return ret, Path(output_dir)
@@ -129,7 +126,6 @@ def train_populations(
     ``slurm_population`` launcher inside each of its SLURM jobs. ``job_numbers``: each job's Hydra
     job number (``hydra.job.num``). ``validated``: the sweeper has validated every job's config on
     this machine (then :func:`~drone_torchrl.training.jobs.prepare` does not again)."""
-    from drone_torchrl.config import ConfigError
     from drone_torchrl.io import run_lock
     from drone_torchrl.training.jobs import prepare, record_failure
     from drone_torchrl.training.trainer import Outcome, train_jobs
@@ -182,6 +178,15 @@ def train_populations(
         _report(ret, outcome)
         hydra_context.callbacks.on_job_end(config=ret.cfg, job_return=ret)
     return returns
+
+
+def _save_record(record: Path, cfg: DictConfig, hydra: dict, overrides: str) -> None:
+    """Hydra's record of a job or population run in ``record`` (its ``.hydra/``): ``config.yaml``,
+    ``hydra.yaml`` and ``overrides.yaml`` (``overrides``: its YAML text)."""
+    record.mkdir(exist_ok=True)
+    save_yaml(cfg, record / "config.yaml")
+    save_yaml(hydra, record / "hydra.yaml")
+    write_atomically(record / "overrides.yaml", overrides.encode("utf-8"))
 
 
 def _report(ret: JobReturn, outcome: Any) -> None:
@@ -264,31 +269,21 @@ class PopulationLauncher(Launcher):
         returns = [
             JobReturn(overrides=list(o), cfg=c) for o, c in zip(job_overrides, batch.configs, strict=True)
         ]
-        outcomes: list = [None] * len(job_overrides)
         refused: list[ConfigError] = []
         for number, (agents, members) in enumerate(groups):
             run_dir = sweep_dir / POPULATION_DIR.format(number)
             names = [" ".join(job_overrides[i]) for i in members]
-
-            def write_record(cfg=agents.cfg, run_dir=run_dir, members=members) -> None:
-                record = run_dir / ".hydra"
-                record.mkdir(exist_ok=True)
-                save_yaml(cfg, record / "config.yaml")
-                save_yaml(batch.hydra_record, record / "hydra.yaml")
-                # One job a line in YAML's flow style (JSON's strings are YAML's): the block style
-                # of save_yaml takes seconds at tens of thousands of jobs.
-                lines = "".join(f"- {json.dumps(list(job_overrides[i]))}\n" for i in members)
-                write_atomically(record / "overrides.yaml", lines.encode("utf-8"))
-
+            # One job a line in YAML's flow style (JSON's strings are YAML's): the block style of
+            # to_yaml takes seconds at tens of thousands of jobs.
+            lines = "".join(f"- {json.dumps(list(job_overrides[i]))}\n" for i in members)
+            record = partial(_save_record, run_dir / ".hydra", agents.cfg, batch.hydra_record, lines)
             try:
-                done = train_population(agents, names, run_dir, write_record, self.search)
+                done = train_population(agents, names, run_dir, record, self.search)
             except ConfigError as err:  # refused before training: the other groups go on
                 done = [Outcome(run_dir, error=err)] * len(members)
                 refused.append(err)
             for i, outcome in zip(members, done, strict=True):
-                outcomes[i] = outcome
-        for ret, outcome in zip(returns, outcomes, strict=True):
-            _report(ret, outcome)
+                _report(returns[i], outcome)
         if refused:  # no folder for the sweep's summary to count: a failure all the same, in one line
             others = (
                 f" ({len(refused) - 1} other population run(s) not started too)" if len(refused) > 1 else ""

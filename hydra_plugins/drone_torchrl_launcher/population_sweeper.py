@@ -2,11 +2,12 @@
 and going on past failed jobs.
 
 - The basic sweeper composes each job's config once to check the batch before launching it (about
-  0.4 s a job here). This one checks it through :func:`.compose.sweep_configs`: the first job is
+  0.4 s a job here). This one checks it through :func:`.compose.checked_batch`: the first job is
   composed fully, jobs that differ from it only in plain ``key=value`` overrides are checked by
   applying them (an unknown key still fails), any other job is composed fully. Each job's values
   then pass :func:`drone_torchrl.config.validate`: a bad value stops the sweep with one line
-  before any job starts.
+  before any job starts. A population launcher is handed the checked batch
+  (:meth:`~.population_launcher.PopulationLauncher.check`) and trains it without composing it again.
 - A key searched by ``hydra/launcher=pbt`` may be given as a range: ``algo.lr=interval(1e-5,1e-2)``
   or ``algo.lr=tag(log,interval(1e-5,1e-2))`` (the basic sweeper refuses an interval). The other
   overrides make the grid of jobs (agents) as usual, and each job gets ``key=<value>`` drawn
@@ -77,7 +78,6 @@ class PopulationSweeper(Sweeper):
         process: ``fused``, ``population``, ``pbt``, ...) does: the jobs after it would fail alike.
         One line then names the file and the command that continues.
         """
-        from drone_torchrl.config import ConfigError
         from drone_torchrl.io import run_lock
         from drone_torchrl.io.folders import remove_if_untouched
         from drone_torchrl.io.storage import StorageError
@@ -125,34 +125,31 @@ class PopulationSweeper(Sweeper):
         """
         assert self.config is not None and self.hydra_context is not None
         launcher = self.launcher
-        ranges = [_range(o, launcher) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
         grid = [o for o in overrides if o.value_type != ValueType.INTERVAL_SWEEP]
         batches = basic_sweeper_class().split_arguments(grid, max_batch_size)
-        if ranges:
-            launcher.search = replace(launcher.search, ranges=tuple(ranges))
-            try:  # a range reaching past its key's values: one line before any job is drawn
-                launcher.search.bounds(self.config)
-            except ConfigError as err:
-                sys.exit(f"drone-train: error: {err}")
+        try:
+            ranges = [_range(o, launcher) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
+            if ranges:
+                launcher.search = replace(launcher.search, ranges=tuple(ranges))
+                launcher.search.bounds(self.config)  # a range reaching past its key's values
             for batch in batches:
                 seeds = [_job_seed(job, int(self.config.seed)) for job in batch]
                 for span in ranges:
                     for job, value in zip(batch, span.first_values(seeds), strict=True):
                         job.append(f"{span.key}={value!r}")
-        for batch in batches:
-            try:
                 checked = checked_batch(self.hydra_context.config_loader, self.config, batch)
                 if isinstance(launcher, PopulationLauncher):
                     launcher.check(batch, checked)
-            except ConfigError as err:
-                sys.exit(f"drone-train: error: {err}")
+        except ConfigError as err:
+            sys.exit(f"drone-train: error: {err}")
         return batches
 
 
 def _range(override: Override, launcher: Any) -> Any:
     """``key=interval(low,high)`` (``tag(log,...)``: log-uniform) as a :class:`.pbt.Range`, checked.
 
-    Exits with one line for a launcher other than ``pbt``, a key it does not search, or bad ends.
+    Raises :class:`~drone_torchrl.checks.ConfigError` (one line) for a launcher other than ``pbt``,
+    a key it does not search, or bad ends.
     """
     from drone_torchrl.training.pbt import PBTSettings, Range
 
@@ -161,18 +158,17 @@ def _range(override: Override, launcher: Any) -> Any:
     text = f"{override.input_line} is not allowed; expected"
     search = getattr(launcher, "search", None)
     if not isinstance(search, PBTSettings):
-        sys.exit(
-            f"drone-train: error: {text} a list of values (e.g. {key}=1e-4,3e-4,1e-3): "
-            "a range is searched only by hydra/launcher=pbt or pb2"
+        raise ConfigError(
+            f"{text} a list of values (e.g. {key}=1e-4,3e-4,1e-3): a range is searched only by hydra/launcher=pbt or pb2"
         )
     if key not in search.keys:
-        sys.exit(
-            f"drone-train: error: {text} a list of values: a range is allowed only for a key "
-            f"PBT searches (hydra.launcher.keys={list(search.keys)})"
+        raise ConfigError(
+            f"{text} a list of values: a range is allowed only for a key PBT searches "
+            f"(hydra.launcher.keys={list(search.keys)})"
         )
     if not (low < high and (low > 0 or not log)):
         allowed = "0 < low < high (a log range)" if log else "low < high"
-        sys.exit(f"drone-train: error: {text} interval(low,high) with {allowed}")
+        raise ConfigError(f"{text} interval(low,high) with {allowed}")
     return Range(key, low, high, log)
 
 
