@@ -170,12 +170,11 @@ def train_populations(
         for run_dir in folders:  # jobs refused before training are let go too
             run_lock.release(run_dir)
     outcomes: list[Outcome] = []
-    for job in jobs:
+    for ret, job in zip(returns, jobs, strict=True):
         outcomes.append(
             outcomes[job] if isinstance(job, int) else job if isinstance(job, Outcome) else next(trained)
         )
-    for ret, outcome in zip(returns, outcomes, strict=True):
-        _report(ret, outcome)
+        _report(ret, outcomes[-1])
         hydra_context.callbacks.on_job_end(config=ret.cfg, job_return=ret)
     return returns
 
