@@ -120,10 +120,7 @@ def agent_columns(
             if line == line_of_first and position not in varying:
                 continue
             key, _, text = line.partition("=")
-            if varying.get(position) != key:
-                return None
-            value = _number(text)
-            if value is None:
+            if varying.get(position) != key or (value := _number(text)) is None:
                 return None
             columns[key].append(value)
     values = {key: columns.get(key) or [OmegaConf.select(template, key)] * len(jobs) for key in keys}

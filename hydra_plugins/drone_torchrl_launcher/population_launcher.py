@@ -80,6 +80,24 @@ class JobFailed(CompactHydraException):
     """A job of a fused sweep that failed: one line (the traceback is in ``<job>/FAILED.txt``)."""
 
 
+class _JobReturn(JobReturn):
+    """A ``JobReturn`` whose ``hydra_cfg`` is built from its plain container when first read: nothing
+    here reads it, and building a ``DictConfig`` of Hydra's node took a third of a job's set-up."""
+
+    _hydra_container: dict | None = None
+    _hydra_cfg: DictConfig | None = None
+
+    @property  # type: ignore[override]
+    def hydra_cfg(self) -> DictConfig | None:
+        if self._hydra_cfg is None and self._hydra_container is not None:
+            self._hydra_cfg = OmegaConf.create(self._hydra_container)
+        return self._hydra_cfg
+
+    @hydra_cfg.setter
+    def hydra_cfg(self, value: DictConfig | None) -> None:
+        self._hydra_cfg = value
+
+
 def job_output_dir(cfg: DictConfig, idx: int) -> str:
     """Job number ``idx``'s folder (``hydra.sweep.dir``/``hydra.sweep.subdir``, absolute); sets the
     job's number and id in ``cfg``'s ``hydra`` node first, as the subdir may name them."""
@@ -100,12 +118,13 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
         cfg.hydra.runtime.output_dir = output_dir
         log_file = OmegaConf.select(cfg, "hydra.job_logging.handlers.file.filename", default=None)
         hydra_cfg = hydra_record(cfg.hydra)
-        # No hydra_cfg: nothing reads it, and a DictConfig of Hydra's node is a third of a job's set-up.
-        ret = JobReturn(list(cfg.hydra.overrides.task), working_dir=os.getcwd(), task_name=cfg.hydra.job.name)
+        ret = _JobReturn(
+            list(cfg.hydra.overrides.task), working_dir=os.getcwd(), task_name=cfg.hydra.job.name
+        )
         output_subdir = cfg.hydra.output_subdir
         hydra_context.callbacks.on_job_start(config=cfg, task_function=None)
         del cfg["hydra"]
-    ret.cfg = cfg
+    ret.cfg, ret._hydra_container = cfg, hydra_cfg
     Path(output_dir).mkdir(parents=True, exist_ok=True)
     if output_subdir is not None:
         _save_record(Path(output_dir) / output_subdir, cfg, hydra_cfg, to_yaml(ret.overrides))
@@ -147,7 +166,7 @@ def train_populations(
             run_lock.hold(folder)  # the job's folder is this process's before anything is written into it
         except (ConfigError, OSError) as err:
             print(f"{folder}: job not started: {err}")
-            returns.append(JobReturn(overrides=list(overrides), cfg=sweep_config))
+            returns.append(_JobReturn(overrides=list(overrides), cfg=sweep_config))
             jobs.append(Outcome(Path(folder), error=err))
             continue
         ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
@@ -210,6 +229,7 @@ class PopulationLauncher(Launcher):
         # configs and groups (None with folders=job: its jobs' configs are composed again, with folders).
         self._checked: dict[tuple[tuple[str, ...], ...], tuple[Batch, list] | None] = {}
         self.replay = search == "replay"
+        self._runs = 0  # population runs of the batches launched so far: the next batch's are numbered on
         try:
             self.search: SearchSettings | None = _settings(search, folders, settings)
         except ConfigError as err:  # Hydra makes it before any job starts: one line, nothing written
@@ -269,7 +289,8 @@ class PopulationLauncher(Launcher):
             JobReturn(overrides=list(o), cfg=c) for o, c in zip(job_overrides, batch.configs, strict=True)
         ]
         refused: list[ConfigError] = []
-        for number, (agents, members) in enumerate(groups):
+        first, self._runs = self._runs, self._runs + len(groups)
+        for number, (agents, members) in enumerate(groups, start=first):
             run_dir = sweep_dir / POPULATION_DIR.format(number)
             names = [" ".join(job_overrides[i]) for i in members]
             # One job a line in YAML's flow style (JSON's strings are YAML's): the block style of
