@@ -174,8 +174,4 @@ def _range(override: Override, launcher: Any) -> Any:
 
 def _job_seed(job: Sequence[str], default: int) -> int:
     """The seed a job's ``seed=N`` override sets, else ``default``."""
-    for line in job:
-        key, _, value = line.partition("=")
-        if key == "seed":
-            return int(value)
-    return default
+    return next((int(line[len("seed=") :]) for line in job if line.startswith("seed=")), default)
