@@ -352,6 +352,20 @@ def test_population_launcher_trains_each_group_in_one_folder(tmp_path, command_h
     assert (tmp_path / "report").is_dir() and any((tmp_path / "report").iterdir())
 
 
+def test_population_runs_are_numbered_on_across_the_sweeper_s_batches(tmp_path, command_here):
+    """hydra.sweeper.max_batch_size=2 hands the population launcher two batches: each is a population
+    run of its own, population_0 and population_1 (the second batch used to find population_0 holding
+    the first batch's agents, and was refused)."""
+    pytest.importorskip("pyarrow")
+    from drone_torchrl.training.population_record import read_agents
+
+    sweep_dir = tmp_path / "sweep"
+    grid = ["hydra/launcher=population", *GRID, "hydra.sweeper.max_batch_size=2"]
+    _multirun(sweep_dir, *grid, cwd=tmp_path, here=command_here)
+    assert [p.name for p in sweep_jobs(sweep_dir)] == ["population_0", "population_1"]
+    assert [read_agents(sweep_dir / f"population_{g}")["seed"] for g in (0, 1)] == [[0, 1], [0, 1]]
+
+
 def test_a_sweep_of_per_agent_values_is_one_config_and_trains_as_each_jobs_own_config(tmp_path, command_here):
     """seed=0,1 x algo.lr=1e-3,1e-4 differ only in per-agent numbers: the launcher reads them from the
     overrides' text into one config and a column per key (no config per job), and the population

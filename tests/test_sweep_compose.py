@@ -8,8 +8,8 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.types import RunMode
 from omegaconf import OmegaConf, open_dict
 
-from drone_torchrl.config import config_dir
-from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+from drone_torchrl.config import ConfigError, config_dir
+from hydra_plugins.drone_torchrl_launcher.compose import checked_batch, sweep_configs
 
 # Job overrides as the basic sweeper produces them: plain values of several types, nested keys,
 # a list, null, and kinds that need the full composition (a config group, +key, ~key).
@@ -55,13 +55,32 @@ def test_derived_configs_equal_full_composition(jobs):
             for key in ("hydra.sweep.dir", "hydra.sweep.subdir"):  # resolved in the job's own config
                 assert OmegaConf.select(cfg, key) == OmegaConf.select(full, key), (key, overrides)
             assert list(cfg.hydra.overrides.task) == list(overrides)
-        # What the sweeper validates: the same without Hydra's node.
-        for overrides, cfg in zip(jobs, sweep_configs(loader, master, jobs, task_only=True), strict=True):
+    finally:
+        GlobalHydra.instance().clear()
+
+
+def test_a_checked_batch_is_each_job_s_config_without_hydra_s_node():
+    """What the sweeper checks and the population launcher trains (``checked_batch``): each job's config
+    without Hydra's node, or one config and a column per per-agent key when only those differ."""
+    loader, master = _loader_and_master()
+    try:
+        jobs = OTHER_KINDS[:2]  # (eval.video=off is refused: what the check is for)
+        batch = checked_batch(loader, master, jobs)
+        assert batch.values is None and len(batch.configs) == len(jobs)
+        for overrides, cfg in zip(jobs, batch.configs, strict=True):
             full = loader.load_sweep_config(master, list(overrides))
             with open_dict(full):
                 del full["hydra"]
             assert "hydra" not in cfg
             assert OmegaConf.to_container(cfg, resolve=False) == OmegaConf.to_container(full, resolve=False)
+        batch = checked_batch(loader, master, JOBS)
+        assert batch.configs == [batch.configs[0]] * len(JOBS)
+        assert (batch.values["seed"], batch.values["algo.lr"]) == ([0, 1, 3, 2], [0.001, 5e-05, 0.0001, 1])
+        assert batch.hydra_record["hydra"]["overrides"]["task"] == JOBS[0]
+        with pytest.raises(
+            ConfigError, match=r"^eval.video='off' is not allowed.*\(in the sweep's job .* eval.video=off;"
+        ):
+            checked_batch(loader, master, OTHER_KINDS)
     finally:
         GlobalHydra.instance().clear()
 

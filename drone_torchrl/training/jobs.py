@@ -22,6 +22,7 @@ Resume rules (:func:`prepare`):
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import shlex
 import sys
@@ -63,7 +64,6 @@ from drone_torchrl.io.checkpoint import (
 )
 from drone_torchrl.io.folders import HYDRA_ENTRIES, check_fork_folder
 from drone_torchrl.io.streams import about, console
-from drone_torchrl.io.yaml_text import to_yaml
 from drone_torchrl.schema import BUDGET, KEPT, PROCESS
 from drone_torchrl.training.population_record import open_agent
 from drone_torchrl.training.run import FAILED_FILE, trained_out
@@ -121,15 +121,14 @@ def prepare(
     """
     job = _prepare(cfg, run_dir, requested, validated)
     run_lock.hold(job.run_dir)
-    if HydraConfig.initialized():
-        for note in preset_notes(HydraConfig.get().runtime.choices):
-            if note not in _noted:  # once per process, not once per job of a sweep
-                _noted.add(note)
-                console.warning(f"note: {note}")
+    for note in preset_notes(HydraConfig.get().runtime.choices) if HydraConfig.initialized() else ():
+        _note(note)
     return job
 
 
-_noted: set[str] = set()
+@functools.cache  # once per process, not once per job of a sweep
+def _note(note: str) -> None:
+    console.warning(f"note: {note}")
 
 
 def _prepare(
@@ -140,7 +139,7 @@ def _prepare(
 ) -> Job:
     migrations.apply_legacy(cfg)  # old keys from the command line, as today's
     complete(cfg)  # env.disturbance's keys left out, nominal: the run and its saved config see them all
-    run_dir = Path(run_dir) if run_dir is not None else None
+    run_dir = Path(run_dir) if run_dir is not None else _hydra_run_dir()
     keys = command_line_keys() if requested is None else {k.split("=", 1)[0].lstrip("+~") for k in requested}
     if keys is not None:  # an old key that picked the implementation asks for a backend
         legacy = {k for k in keys if k.startswith(f"{migrations.LEGACY}.")}
@@ -148,15 +147,13 @@ def _prepare(
         keys = (keys - legacy) | ({"backend"} if picked else set())
     location = cfg.resume
     if location is None:
-        run_dir = run_dir or _hydra_run_dir()
         if run_dir is None:
             raise ConfigError("no run folder: pass run_dir or run inside a Hydra app")
-        if (run_dir / CHECKPOINT_DIR / LAST).is_file():
-            location = run_dir
-    if location is None:
-        if not validated:
-            validate(cfg)
-        return Job(cfg, run_dir)
+        if not (run_dir / CHECKPOINT_DIR / LAST).is_file():
+            if not validated:
+                validate(cfg)
+            return Job(cfg, run_dir)
+        location = run_dir
     path, checkpoint = open_agent("resume", location, cfg.agent)
     # An agent of a population run (open_agent refuses agent=K for any other checkpoint) continues
     # in a folder of its own: a fork of the population.
@@ -184,8 +181,7 @@ def _prepare(
     if is_last_of_its_run(path) and not of_population:
         return Job(saved, run_dir_of(path), checkpoint)
     # A fork: continue from an earlier point of the parent run, in a folder of its own.
-    fork_dir = run_dir or _hydra_run_dir()
-    parent = run_dir_of(path)
+    fork_dir, parent = run_dir, run_dir_of(path)
     if fork_dir is None:
         raise ConfigError(
             f"resume={cfg.resume!r} is not the run's {LAST}: it continues as a fork and needs a new run folder"
@@ -255,15 +251,8 @@ def group_key(cfg: DictConfig) -> str:
 
     The per-agent keys are the schema's ``per_agent`` ones.
     """
-    container = OmegaConf.to_container(cfg, resolve=True)
-    for dotted in (*per_agent_keys(), "resume", "progress"):
-        node = container
-        *parents, leaf = dotted.split(".")
-        for part in parents:
-            node = node.get(part, {})
-        node.pop(leaf, None)
-    container.pop("hydra", None)
-    return to_yaml(container)
+    skip = {*per_agent_keys(), "resume", "progress"}
+    return repr([(key, value) for key, value in leaves(cfg).items() if key not in skip])
 
 
 # ---------------------------------------------------------------------------------------- job status
@@ -332,10 +321,7 @@ def next_steps(folder: Path, sweep: bool = False) -> str:
     paths are relative to the current folder when inside it, quoted for the shell where needed.
     """
     folder = Path(folder).absolute()
-    try:
-        shown = folder.relative_to(Path.cwd())
-    except ValueError:
-        shown = folder
+    shown = folder.relative_to(Path.cwd()) if folder.is_relative_to(Path.cwd()) else folder
     lines = ["next steps:"]
     if sweep:
         lines.append(f"  drone-report {shlex.quote(str(shown))}")

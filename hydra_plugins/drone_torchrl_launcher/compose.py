@@ -15,6 +15,10 @@ a key the config does not have) makes that job fall back to Hydra's full composi
 At tens of thousands of jobs even a copy per job is too slow: when the jobs differ only in numbers
 of the per-agent keys (``seed=0..65535``, ``algo.lr=...``), :func:`agent_columns` gives one config and
 each job's values, read from the override's text without a config or a parser call per job.
+
+:func:`checked_batch` is a batch composed one of these two ways and checked: what
+``hydra/sweeper=population`` checks before any folder, and what the population launcher trains (it
+keeps the sweeper's composition instead of composing the batch again).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import copy
 import functools
 import re
 from collections.abc import Iterator, Sequence
+from typing import NamedTuple
 
 from hydra.core.override_parser.overrides_parser import OverridesParser
 from hydra.core.override_parser.types import Override, OverrideType
@@ -49,18 +54,13 @@ def _is_plain_value(override: Override, template: DictConfig, groups: set[str]) 
     )
 
 
-def sweep_configs(
-    config_loader, master: DictConfig, jobs: Sequence[Sequence[str]], task_only: bool = False
-) -> Iterator[DictConfig]:
+def sweep_configs(config_loader, master: DictConfig, jobs: Sequence[Sequence[str]]) -> Iterator[DictConfig]:
     """Each job's config in turn, equal to ``config_loader.load_sweep_config(master, overrides)``.
 
     The jobs derived from the first share one ``hydra`` node, rewritten for each job (copying
     Hydra's part is four fifths of the cost of deriving a job): a config's ``hydra`` node is valid
-    until the next config is asked for, and is then taken off it. ``task_only``: the configs
-    without the ``hydra`` node (what the job's task sees; what a sweeper checks before launching).
+    until the next config is asked for, and is then taken off it.
     """
-    if not jobs:
-        return
     # Hydra's grammar is slow per override, and the jobs of a grid repeat most of theirs.
     parse = functools.cache(OverridesParser.create().parse_override)
     first = list(jobs[0])
@@ -77,18 +77,14 @@ def sweep_configs(
             cfg, hydra = copy.deepcopy(template), shared
             for override in changed:
                 OmegaConf.update(cfg, override.key_or_group, override.value(), merge=True)
-            if not task_only:
-                with read_write(hydra), open_dict(hydra):
-                    task = [o for o in parsed if not o.is_hydra_override()]
-                    hydra.overrides.task = [o.input_line for o in task]
-                    # Hydra's schema of the node: kv_sep, item_sep, exclude_keys.
-                    hydra.job.override_dirname = overrides_dirname(overrides=task, **dirname)
+            with read_write(hydra), open_dict(hydra):
+                task = [o for o in parsed if not o.is_hydra_override()]
+                hydra.overrides.task = [o.input_line for o in task]
+                # Hydra's schema of the node: kv_sep, item_sep, exclude_keys.
+                hydra.job.override_dirname = overrides_dirname(overrides=task, **dirname)
         else:
             cfg = config_loader.load_sweep_config(master, list(overrides))
             hydra = _take_hydra(cfg)
-        if task_only:
-            yield cfg
-            continue
         # The node is set without a copy (OmegaConf copies a node it is given, by default).
         with open_dict(cfg), flag_override(cfg, "no_deepcopy_set_nodes", True):
             cfg["hydra"] = hydra
@@ -108,8 +104,6 @@ def agent_columns(
     qualifies when its overrides are the first job's, in the same order, except ``key=number``
     ones of ``keys`` where the first job has the same key as a plain value override.
     """
-    if not jobs:
-        return None
     first = list(jobs[0])
     template = config_loader.load_sweep_config(master, first)
     groups = set(template.hydra.runtime.choices)
@@ -126,10 +120,7 @@ def agent_columns(
             if line == line_of_first and position not in varying:
                 continue
             key, _, text = line.partition("=")
-            if varying.get(position) != key:
-                return None
-            value = _number(text)
-            if value is None:
+            if varying.get(position) != key or (value := _number(text)) is None:
                 return None
             columns[key].append(value)
     values = {key: columns.get(key) or [OmegaConf.select(template, key)] * len(jobs) for key in keys}
@@ -146,6 +137,55 @@ def checked(cfg: DictConfig, values: dict[str, list] | None = None) -> None:
     validate(cfg)
     if values is not None:
         check_agent_values(cfg, values)
+
+
+class Batch(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this module outside sys.modules
+    """A batch's jobs composed and checked (:func:`checked_batch`): each job's config without its
+    ``hydra`` node (one config for them all when ``values``, each per-agent key's column, is given)
+    and Hydra's record of the first job's node (what ``.hydra/hydra.yaml`` holds)."""
+
+    configs: list[DictConfig]
+    values: dict[str, list] | None
+    hydra_record: dict
+
+
+def checked_batch(config_loader, master: DictConfig, jobs: Sequence[Sequence[str]]) -> Batch:
+    """Every job of a batch composed (:func:`agent_columns` when the jobs differ only in per-agent
+    numbers, else :func:`sweep_configs`) and checked (:func:`checked`), before any job folder exists.
+
+    Raises :class:`~drone_torchrl.checks.ConfigError` for the first job refused, in one line naming it.
+    """
+    from drone_torchrl.config import AgentValueError, ConfigError, per_agent_keys
+
+    def refused(err: ConfigError, overrides: Sequence[str]) -> ConfigError:
+        return ConfigError(f"{err} (in the sweep's job {' '.join(overrides)}; no job was started)")
+
+    table = agent_columns(config_loader, master, jobs, per_agent_keys())
+    if table is not None:  # one config, checked once
+        cfg, hydra, values = table
+        try:
+            checked(cfg, values)
+        except AgentValueError as err:
+            raise refused(err, jobs[err.agent]) from None
+        except ConfigError as err:
+            raise refused(err, jobs[0]) from None
+        return Batch([cfg] * len(jobs), values, hydra_record(hydra))
+    configs: list[DictConfig] = []
+    record: dict = {}
+    for overrides, cfg in zip(jobs, sweep_configs(config_loader, master, jobs), strict=True):
+        hydra = _take_hydra(cfg)
+        record = record or hydra_record(hydra)
+        try:
+            checked(cfg)
+        except ConfigError as err:
+            raise refused(err, overrides) from None
+        configs.append(cfg)
+    return Batch(configs, None, record)
+
+
+def hydra_record(hydra: DictConfig) -> dict:
+    """What ``.hydra/hydra.yaml`` holds of a job's ``hydra`` node: the node as written, unresolved."""
+    return {"hydra": OmegaConf.to_container(hydra, resolve=False, enum_to_str=True)}
 
 
 def _number(text: str) -> int | float | None:

@@ -44,8 +44,9 @@ import logging
 import os
 import sys
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 from hydra.core.utils import JobReturn, JobStatus, configure_log, filter_overrides, setup_globals
 from hydra.errors import CompactHydraException
@@ -55,7 +56,8 @@ from omegaconf import DictConfig, OmegaConf, open_dict, read_write
 
 from drone_torchrl.checks import ConfigError, as_override
 from drone_torchrl.io.storage import write_atomically
-from drone_torchrl.io.yaml_text import save_yaml
+from drone_torchrl.io.yaml_text import save_yaml, to_yaml
+from hydra_plugins.drone_torchrl_launcher.compose import Batch, checked_batch, hydra_record, sweep_configs
 
 if TYPE_CHECKING:
     from drone_torchrl.training.agents import AgentTable
@@ -115,20 +117,17 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
         output_dir = job_output_dir(cfg, idx)
         cfg.hydra.runtime.output_dir = output_dir
         log_file = OmegaConf.select(cfg, "hydra.job_logging.handlers.file.filename", default=None)
-        hydra_cfg = _hydra_record(cfg.hydra)
-        ret = _JobReturn(overrides=list(cfg.hydra.overrides.task), working_dir=os.getcwd())
-        ret.task_name = cfg.hydra.job.name
+        hydra_cfg = hydra_record(cfg.hydra)
+        ret = _JobReturn(
+            list(cfg.hydra.overrides.task), working_dir=os.getcwd(), task_name=cfg.hydra.job.name
+        )
         output_subdir = cfg.hydra.output_subdir
         hydra_context.callbacks.on_job_start(config=cfg, task_function=None)
         del cfg["hydra"]
     ret.cfg, ret._hydra_container = cfg, hydra_cfg
     Path(output_dir).mkdir(parents=True, exist_ok=True)
     if output_subdir is not None:
-        record = Path(output_dir) / output_subdir
-        record.mkdir(exist_ok=True)
-        save_yaml(cfg, record / "config.yaml")
-        save_yaml(hydra_cfg, record / "hydra.yaml")
-        save_yaml(ret.overrides, record / "overrides.yaml")
+        _save_record(Path(output_dir) / output_subdir, cfg, hydra_cfg, to_yaml(ret.overrides))
     if log_file is not None:
         Path(log_file).touch()
     return ret, Path(output_dir)
@@ -146,11 +145,9 @@ def train_populations(
     ``slurm_population`` launcher inside each of its SLURM jobs. ``job_numbers``: each job's Hydra
     job number (``hydra.job.num``). ``validated``: the sweeper has validated every job's config on
     this machine (then :func:`~drone_torchrl.training.jobs.prepare` does not again)."""
-    from drone_torchrl.config import ConfigError
     from drone_torchrl.io import run_lock
     from drone_torchrl.training.jobs import prepare, record_failure
     from drone_torchrl.training.trainer import Outcome, train_jobs
-    from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
 
     Path(str(config.hydra.sweep.dir)).mkdir(parents=True, exist_ok=True)
     log.info(f"Launching {len(job_overrides)} jobs as populations")
@@ -192,19 +189,22 @@ def train_populations(
         for run_dir in folders:  # jobs refused before training are let go too
             run_lock.release(run_dir)
     outcomes: list[Outcome] = []
-    for job in jobs:
+    for ret, job in zip(returns, jobs, strict=True):
         outcomes.append(
             outcomes[job] if isinstance(job, int) else job if isinstance(job, Outcome) else next(trained)
         )
-    for ret, outcome in zip(returns, outcomes, strict=True):
-        _report(ret, outcome)
+        _report(ret, outcomes[-1])
         hydra_context.callbacks.on_job_end(config=ret.cfg, job_return=ret)
     return returns
 
 
-def _hydra_record(hydra: DictConfig) -> dict:
-    """What ``.hydra/hydra.yaml`` holds of a job's ``hydra`` node: the node as written, unresolved."""
-    return {"hydra": OmegaConf.to_container(hydra, resolve=False, enum_to_str=True)}
+def _save_record(record: Path, cfg: DictConfig, hydra: dict, overrides: str) -> None:
+    """Hydra's record of a job or population run in ``record`` (its ``.hydra/``): ``config.yaml``,
+    ``hydra.yaml`` and ``overrides.yaml`` (``overrides``: its YAML text)."""
+    record.mkdir(exist_ok=True)
+    save_yaml(cfg, record / "config.yaml")
+    save_yaml(hydra, record / "hydra.yaml")
+    write_atomically(record / "overrides.yaml", overrides.encode("utf-8"))
 
 
 def _report(ret: JobReturn, outcome: Any) -> None:
@@ -225,9 +225,11 @@ class PopulationLauncher(Launcher):
 
     def __init__(self, search: str = "none", folders: str = "population", **settings: Any) -> None:
         self.per_job = folders == "job"
-        # The plan of each batch checked before the sweep folder was written (:meth:`check`), by its jobs.
-        self._plans: dict[tuple[tuple[str, ...], ...], _Plan] = {}
+        # Each batch checked before the sweep folder was written (:meth:`check`), by its jobs: its
+        # configs and groups (None with folders=job: its jobs' configs are composed again, with folders).
+        self._checked: dict[tuple[tuple[str, ...], ...], tuple[Batch, list] | None] = {}
         self.replay = search == "replay"
+        self._runs = 0  # population runs of the batches launched so far: the next batch's are numbered on
         try:
             self.search: SearchSettings | None = _settings(search, folders, settings)
         except ConfigError as err:  # Hydra makes it before any job starts: one line, nothing written
@@ -236,25 +238,22 @@ class PopulationLauncher(Launcher):
     def setup(self, *, hydra_context: HydraContext, task_function: TaskFunction, config: DictConfig) -> None:
         self.config, self.hydra_context, self.task_function = config, hydra_context, task_function
 
-    def check(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> None:
-        """Compose, group and check a batch's jobs as :meth:`launch` will train them, before any folder.
+    def check(self, job_overrides: Sequence[Sequence[str]], batch: Batch) -> None:
+        """Group and check a batch's jobs (composed and checked: :func:`.compose.checked_batch`) as
+        :meth:`launch` will train them, before any folder.
 
-        Raises :class:`~drone_torchrl.checks.ConfigError` (one line) for the first job or group refused:
-        a job's values, or what :func:`~drone_torchrl.training.trainer.check_population` refuses
-        (learner, budget, memory, a search the budget or the population cannot hold). The hydra/sweeper
-        =population sweeper calls it for every batch before it writes the sweep folder; the plan is
-        kept for :meth:`launch`. Jobs in folders of their own (``folders=job``) are each checked by the sweeper.
+        Raises :class:`~drone_torchrl.checks.ConfigError` (one line) for the first group refused: what
+        :func:`~drone_torchrl.training.trainer.check_population` refuses (learner, budget, memory, a
+        search the budget or the population cannot hold). The hydra/sweeper=population sweeper calls
+        it for every batch before it writes the sweep folder; :meth:`launch` then trains the groups
+        kept here, and jobs in folders of their own (``folders=job``) are not validated again.
         """
         from drone_torchrl.training.trainer import check_population
 
-        if self.per_job:
-            return
-        plan = self._plan(job_overrides, initial_job_idx)
-        if plan.refused:
-            raise plan.refused[0]
-        for agents, _ in plan.groups:
+        groups = None if self.per_job else self._groups(job_overrides, batch)
+        for agents, _ in groups or ():
             check_population(agents, self.search)
-        self._plans[tuple(map(tuple, job_overrides))] = plan
+        self._checked[tuple(map(tuple, job_overrides))] = None if groups is None else (batch, groups)
 
     def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
         from drone_torchrl.training.jobs import sweep_summary
@@ -263,53 +262,48 @@ class PopulationLauncher(Launcher):
         setup_globals()
         assert self.config is not None and self.hydra_context is not None
         configure_log(self.config.hydra.hydra_logging, self.config.hydra.verbose)
+        key = tuple(map(tuple, job_overrides))
+        validated, checked = key in self._checked, self._checked.pop(key, None)
         if self.per_job:
-            # hydra/sweeper=population validates every job's config before launching its batch, and
-            # prints the end-of-sweep summary itself.
-            validated = str(self.config.hydra.sweeper._target_).endswith("PopulationSweeper")
             numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
             returns = train_populations(self.hydra_context, self.config, job_overrides, numbers, validated)
             if not validated and any(ret.status == JobStatus.FAILED for ret in returns):
-                # Another sweeper stops at the first failed job and skips the end-of-sweep summary.
+                # Another sweeper than hydra/sweeper=population (which prints the end-of-sweep
+                # summary itself) stops at the first failed job and skips the summary.
                 print(sweep_summary(Path(str(self.config.hydra.sweep.dir))))
             return returns
         sweep_dir = Path(str(self.config.hydra.sweep.dir)).absolute()
         log.info(f"Launching {len(job_overrides)} jobs as population runs in {sweep_dir}")
-        plan = self._plans.pop(tuple(map(tuple, job_overrides)), None)
-        try:  # unless checked before: another sweeper than hydra/sweeper=population
-            plan = plan or self._plan(job_overrides, initial_job_idx)
-        except ConfigError as err:
-            sys.exit(f"drone-train: error: {err}")
-        if plan.one_config:
+        if checked is None:  # another sweeper than hydra/sweeper=population
+            try:
+                batch = checked_batch(self.hydra_context.config_loader, self.config, job_overrides)
+                checked = batch, self._groups(job_overrides, batch)
+            except ConfigError as err:
+                sys.exit(f"drone-train: error: {err}")
+        batch, groups = checked
+        if batch.values is not None:
             log.info(
                 f"{len(job_overrides)} jobs differ only in per-agent values: one population from one config"
             )
-        returns = plan.returns
-        outcomes = [None if e is None else Outcome(sweep_dir, error=e) for e in plan.errors]
-        refused = list(plan.refused)
-        for number, (agents, members) in enumerate(plan.groups):
+        returns = [
+            JobReturn(overrides=list(o), cfg=c) for o, c in zip(job_overrides, batch.configs, strict=True)
+        ]
+        refused: list[ConfigError] = []
+        first, self._runs = self._runs, self._runs + len(groups)
+        for number, (agents, members) in enumerate(groups, start=first):
             run_dir = sweep_dir / POPULATION_DIR.format(number)
             names = [" ".join(job_overrides[i]) for i in members]
-
-            def write_record(cfg=agents.cfg, run_dir=run_dir, members=members) -> None:
-                record = run_dir / ".hydra"
-                record.mkdir(exist_ok=True)
-                save_yaml(cfg, record / "config.yaml")
-                save_yaml(plan.hydra_record, record / "hydra.yaml")
-                # One job a line in YAML's flow style (JSON's strings are YAML's): the block style
-                # of save_yaml takes seconds at tens of thousands of jobs.
-                lines = "".join(f"- {json.dumps(list(job_overrides[i]))}\n" for i in members)
-                write_atomically(record / "overrides.yaml", lines.encode("utf-8"))
-
+            # One job a line in YAML's flow style (JSON's strings are YAML's): the block style of
+            # to_yaml takes seconds at tens of thousands of jobs.
+            lines = "".join(f"- {json.dumps(list(job_overrides[i]))}\n" for i in members)
+            record = partial(_save_record, run_dir / ".hydra", agents.cfg, batch.hydra_record, lines)
             try:
-                done = train_population(agents, names, run_dir, write_record, self.search)
+                done = train_population(agents, names, run_dir, record, self.search)
             except ConfigError as err:  # refused before training: the other groups go on
                 done = [Outcome(run_dir, error=err)] * len(members)
                 refused.append(err)
             for i, outcome in zip(members, done, strict=True):
-                outcomes[i] = outcome
-        for ret, outcome in zip(returns, outcomes, strict=True):
-            _report(ret, outcome)
+                _report(returns[i], outcome)
         if refused:  # no folder for the sweep's summary to count: a failure all the same, in one line
             others = (
                 f" ({len(refused) - 1} other population run(s) not started too)" if len(refused) > 1 else ""
@@ -317,73 +311,27 @@ class PopulationLauncher(Launcher):
             sys.exit(f"drone-train: error: {refused[0]}{others}")
         return returns
 
-    def _plan(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> _Plan:
-        """The batch's jobs composed, checked and grouped: one agent table per population run.
+    def _groups(
+        self, job_overrides: Sequence[Sequence[str]], batch: Batch
+    ) -> list[tuple[AgentTable, list[int]]]:
+        """A checked batch's population runs: each an agent table and its jobs' positions.
 
-        Jobs that differ only in numbers of the per-agent keys, and whose values all pass, are one
-        population from one config (:func:`.compose.agent_columns`), no config per job: each job's
-        ``JobReturn.cfg`` is then the group's config (its own values: ``agents.parquet``). Else each
-        job's config is composed and checked (a bad one's error in the plan's ``errors``), and the
-        jobs are grouped as the fused launcher groups them: one agent table per group.
+        Jobs that differ only in per-agent numbers are one population from one config
+        (:func:`.compose.agent_columns`); else the jobs are grouped as the fused launcher groups them
+        (:func:`~drone_torchrl.training.jobs.group_key`). A replay refuses a job that sets a key its
+        schedule sets.
         """
-        from drone_torchrl.config import per_agent_keys
         from drone_torchrl.training.agents import AgentTable
         from drone_torchrl.training.jobs import group_key
-        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, checked, sweep_configs
 
-        assert self.config is not None and self.hydra_context is not None
-        loader = self.hydra_context.config_loader
-        returns: list[JobReturn] = [_JobReturn(overrides=list(overrides)) for overrides in job_overrides]
-        errors: list[ConfigError | None] = [None] * len(job_overrides)
-        table = agent_columns(loader, self.config, job_overrides, per_agent_keys())
-        try:
-            if table is not None:
-                checked(table[0], table[2])
-        except ConfigError:  # the per-job path says which jobs, and trains the others
-            table = None
-        if table is not None:
-            cfg, hydra, values = table
-            for ret in returns:
-                ret.cfg = cfg
-            hydra_record = _hydra_record(hydra)
-            groups = [(AgentTable(cfg, values), list(range(len(job_overrides))))]
-        else:
-            members: dict[str, list[int]] = {}
-            hydra_record = None
-            for position, cfg in enumerate(sweep_configs(loader, self.config, job_overrides)):
-                with read_write(cfg), open_dict(cfg):
-                    hydra_record = hydra_record or _hydra_record(cfg.hydra)
-                    del cfg["hydra"]
-                returns[position].cfg = cfg
-                try:
-                    checked(cfg)
-                except ConfigError as err:
-                    errors[position] = err
-                    continue
-                members.setdefault(group_key(cfg), []).append(position)
-            groups = [(AgentTable.of([returns[i].cfg for i in group]), group) for group in members.values()]
-        refused = [
-            ConfigError(f"job #{initial_job_idx + i} ({' '.join(job_overrides[i])}): {err}")
-            for i, err in enumerate(errors)
-            if err is not None
-        ]
         if self.replay:
             _refuse_scheduled_keys(self.search, job_overrides)
-        return _Plan(hydra_record, groups, returns, errors, refused, table is not None)
-
-
-class _Plan(NamedTuple):  # not a dataclass: Hydra's plug-in scan runs this module outside sys.modules
-    """A batch as :meth:`PopulationLauncher.launch` trains it: Hydra's record, the groups (an agent table
-    and its jobs' positions), each job's ``JobReturn``, each job's refusal (or None), and the refusals
-    as one-line errors naming their jobs; ``one_config``: the jobs differ only in per-agent
-    numbers (one config, :func:`.compose.agent_columns`)."""
-
-    hydra_record: dict | None
-    groups: list[tuple[AgentTable, list[int]]]
-    returns: list[JobReturn]
-    errors: list[ConfigError | None]
-    refused: list[ConfigError]
-    one_config: bool
+        if batch.values is not None:
+            return [(AgentTable(batch.configs[0], batch.values), list(range(len(job_overrides))))]
+        members: dict[str, list[int]] = {}
+        for position, cfg in enumerate(batch.configs):
+            members.setdefault(group_key(cfg), []).append(position)
+        return [(AgentTable.of([batch.configs[i] for i in group]), group) for group in members.values()]
 
 
 def _settings(search: Any, folders: Any, settings: dict[str, Any]) -> SearchSettings | None:

@@ -2,11 +2,12 @@
 and going on past failed jobs.
 
 - The basic sweeper composes each job's config once to check the batch before launching it (about
-  0.4 s a job here). This one checks it through :func:`.compose.sweep_configs`: the first job is
+  0.4 s a job here). This one checks it through :func:`.compose.checked_batch`: the first job is
   composed fully, jobs that differ from it only in plain ``key=value`` overrides are checked by
   applying them (an unknown key still fails), any other job is composed fully. Each job's values
   then pass :func:`drone_torchrl.config.validate`: a bad value stops the sweep with one line
-  before any job starts.
+  before any job starts. A population launcher is handed the checked batch
+  (:meth:`~.population_launcher.PopulationLauncher.check`) and trains it without composing it again.
 - A key searched by ``hydra/launcher=pbt`` may be given as a range: ``algo.lr=interval(1e-5,1e-2)``
   or ``algo.lr=tag(log,interval(1e-5,1e-2))`` (the basic sweeper refuses an interval). The other
   overrides make the grid of jobs (agents) as usual, and each job gets ``key=<value>`` drawn
@@ -37,6 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from drone_torchrl import launcher_schemas  # noqa: F401  (registers hydra/sweeper=population)
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.compat import basic_sweeper_class
+from hydra_plugins.drone_torchrl_launcher.compose import checked_batch
 from hydra_plugins.drone_torchrl_launcher.population_launcher import PopulationLauncher
 
 
@@ -76,7 +78,6 @@ class PopulationSweeper(Sweeper):
         process: ``fused``, ``population``, ``pbt``, ...) does: the jobs after it would fail alike.
         One line then names the file and the command that continues.
         """
-        from drone_torchrl.config import ConfigError
         from drone_torchrl.io import run_lock
         from drone_torchrl.io.folders import remove_if_untouched
         from drone_torchrl.io.storage import StorageError
@@ -117,74 +118,38 @@ class PopulationSweeper(Sweeper):
         the range with a generator keyed by the job's ``seed`` (the config's where the job sets
         none). A range is refused in one line unless the launcher is ``pbt`` and searches the key.
         Every batch is then checked before the basic sweeper writes the sweep folder (its
-        ``multirun.yaml``): each job's values (``_check_batch``), then what the launcher refuses
-        of the batch (a population launcher's :meth:`~.population_launcher.PopulationLauncher.check`):
-        a refused command writes nothing. Exits with one line.
+        ``multirun.yaml``): each job's values (:func:`.compose.checked_batch`), then what the launcher
+        refuses of the batch (a population launcher's
+        :meth:`~.population_launcher.PopulationLauncher.check`, which keeps the composed jobs): a
+        refused command writes nothing. Exits with one line.
         """
-        assert self.config is not None
+        assert self.config is not None and self.hydra_context is not None
         launcher = self.launcher
-        ranges = [_range(o, launcher) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
         grid = [o for o in overrides if o.value_type != ValueType.INTERVAL_SWEEP]
         batches = basic_sweeper_class().split_arguments(grid, max_batch_size)
-        if ranges:
-            launcher.search = replace(launcher.search, ranges=tuple(ranges))
-            try:  # a range reaching past its key's values: one line before any job is drawn
-                launcher.search.bounds(self.config)
-            except ConfigError as err:
-                sys.exit(f"drone-train: error: {err}")
+        try:
+            ranges = [_range(o, launcher) for o in overrides if o.value_type == ValueType.INTERVAL_SWEEP]
+            if ranges:
+                launcher.search = replace(launcher.search, ranges=tuple(ranges))
+                launcher.search.bounds(self.config)  # a range reaching past its key's values
             for batch in batches:
                 seeds = [_job_seed(job, int(self.config.seed)) for job in batch]
                 for span in ranges:
                     for job, value in zip(batch, span.first_values(seeds), strict=True):
                         job.append(f"{span.key}={value!r}")
-        start = 0
-        for batch in batches:
-            self._check_batch(batch)
-            if isinstance(launcher, PopulationLauncher):
-                try:
-                    launcher.check(batch, start)
-                except ConfigError as err:
-                    sys.exit(f"drone-train: error: {err}")
-            start += len(batch)
+                checked = checked_batch(self.hydra_context.config_loader, self.config, batch)
+                if isinstance(launcher, PopulationLauncher):
+                    launcher.check(batch, checked)
+        except ConfigError as err:
+            sys.exit(f"drone-train: error: {err}")
         return batches
-
-    def _check_batch(self, batch: Sequence[Sequence[str]]) -> None:
-        """Every job composes, and every job's values pass the config checks: a bad value in a
-        sweep is one line before any job folder exists, not a failed job per value."""
-        from drone_torchrl.config import AgentValueError, per_agent_keys
-        from hydra_plugins.drone_torchrl_launcher.compose import agent_columns, checked, sweep_configs
-
-        assert self.config is not None and self.hydra_context is not None
-
-        def refuse(err: ConfigError, overrides: Sequence[str]) -> None:
-            sys.exit(
-                f"drone-train: error: {err} (in the sweep's job {' '.join(overrides)}; no job was started)"
-            )
-
-        loader = self.hydra_context.config_loader
-        table = agent_columns(loader, self.config, batch, per_agent_keys())
-        if table is not None:  # jobs that differ only in per-agent numbers: one config, checked once
-            cfg, _, values = table
-            try:
-                checked(cfg, values)
-            except AgentValueError as err:
-                refuse(err, batch[err.agent])
-            except ConfigError as err:
-                refuse(err, batch[0])
-            return
-        for overrides, cfg in zip(
-            batch, sweep_configs(loader, self.config, batch, task_only=True), strict=True
-        ):
-            try:
-                checked(cfg)
-            except ConfigError as err:
-                refuse(err, overrides)
 
 
 def _range(override: Override, launcher: Any) -> Any:
     """``key=interval(low,high)`` (``tag(log,...)``: log-uniform) as a :class:`.pbt.Range`, checked.
 
-    Exits with one line for a launcher other than ``pbt``, a key it does not search, or bad ends.
+    Raises :class:`~drone_torchrl.checks.ConfigError` (one line) for a launcher other than ``pbt``,
+    a key it does not search, or bad ends.
     """
     from drone_torchrl.training.pbt import PBTSettings, Range
 
@@ -193,25 +158,20 @@ def _range(override: Override, launcher: Any) -> Any:
     text = f"{override.input_line} is not allowed; expected"
     search = getattr(launcher, "search", None)
     if not isinstance(search, PBTSettings):
-        sys.exit(
-            f"drone-train: error: {text} a list of values (e.g. {key}=1e-4,3e-4,1e-3): "
-            "a range is searched only by hydra/launcher=pbt or pb2"
+        raise ConfigError(
+            f"{text} a list of values (e.g. {key}=1e-4,3e-4,1e-3): a range is searched only by hydra/launcher=pbt or pb2"
         )
     if key not in search.keys:
-        sys.exit(
-            f"drone-train: error: {text} a list of values: a range is allowed only for a key "
-            f"PBT searches (hydra.launcher.keys={list(search.keys)})"
+        raise ConfigError(
+            f"{text} a list of values: a range is allowed only for a key PBT searches "
+            f"(hydra.launcher.keys={list(search.keys)})"
         )
     if not (low < high and (low > 0 or not log)):
         allowed = "0 < low < high (a log range)" if log else "low < high"
-        sys.exit(f"drone-train: error: {text} interval(low,high) with {allowed}")
+        raise ConfigError(f"{text} interval(low,high) with {allowed}")
     return Range(key, low, high, log)
 
 
 def _job_seed(job: Sequence[str], default: int) -> int:
     """The seed a job's ``seed=N`` override sets, else ``default``."""
-    for line in job:
-        key, _, value = line.partition("=")
-        if key == "seed":
-            return int(value)
-    return default
+    return next((int(line[len("seed=") :]) for line in job if line.startswith("seed=")), default)

@@ -96,8 +96,14 @@ if _SubmititSlurm is not None:
             sweep_dir.mkdir(parents=True, exist_ok=True)
             numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
             groups, params = self._slurm_jobs(sweep_dir, job_overrides, numbers)
+            jobs = self._executor().map_array(self, *zip(*params, strict=True))  # one array task each
+            log.info(
+                f"Submitted SLURM job(s) {', '.join(sorted({job.job_id.split('_')[0] for job in jobs}))}"
+            )
+            while not all(job.done() for job in jobs):
+                time.sleep(POLL_S)
             returns: list[JobReturn | None] = [None] * len(job_overrides)
-            for job, group in zip(self._submit(params), groups, strict=True):
+            for job, group in zip(jobs, groups, strict=True):
                 try:
                     done = job.results()[0]  # slurm: the job's JobReturn; slurm_population: its jobs'
                 except UncompletedJobError:
@@ -118,15 +124,6 @@ if _SubmititSlurm is not None:
                     (list(overrides), "hydra.sweep.dir", idx, f"job_id_for_{idx}", Singleton.get_state())
                 )
             return [[position] for position in range(len(job_overrides))], params
-
-        def _submit(self, params: list[tuple]) -> list:
-            """One SLURM array task per entry of ``params`` (arguments of ``self``); waits for all."""
-            jobs = self._executor().map_array(self, *zip(*params, strict=True))
-            ids = ", ".join(sorted({job.job_id.split("_")[0] for job in jobs}))
-            log.info(f"Submitted SLURM job(s) {ids}")
-            while not all(job.done() for job in jobs):
-                time.sleep(POLL_S)
-            return jobs
 
         def _unfinished(self, job, overrides: list[str], idx: int) -> JobReturn:
             """A FAILED return (and ``FAILED.txt``) for a job whose SLURM job ended before it finished."""
