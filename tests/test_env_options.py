@@ -265,15 +265,13 @@ def _config(*overrides: str):
 def test_the_fast_engine_trains_in_float64_end_to_end():
     """env.dtype=float64: the weights, the flown episodes (states, rewards) and the update's loss
     and gradient are float64 on the C++ engine, with the arena's zone and bounds."""
-    from drone_torchrl.training.collectors import FastCollector
-    from drone_torchrl.training.population import Population
-    from drone_torchrl.training.update import ReinforceUpdate
+    from drone_torchrl.algorithms.reinforce import Reinforce
+    from drone_torchrl.training.agents import AgentTable
 
     cfg = _config("env.dtype=float64", "env.zone_x_limit=0.6", "env.bounds=strict", "backend=fast")
-    population = Population([cfg])
-    collector = FastCollector(cfg, population)
+    update = Reinforce(AgentTable.of([cfg]))
+    population, collector = update.population, update.collector
     assert population.state["params"].dtype == torch.float64
-    update = ReinforceUpdate(cfg, population, collector)
     active = torch.ones(1, dtype=torch.bool)
     update.begin(population.state, 1)
     gradient = update.gradient(population.state, 0, active)

@@ -20,7 +20,7 @@ def _trainer(tmp_path, name, *overrides):
 
 def _loss_and_weights(trainer):
     """One update of the only agent: its episode lengths, loss, weights after the step and gradient."""
-    state, update = trainer.population.state, trainer.learner.update
+    state, update = trainer.population.state, trainer.learner
     active = torch.ones(1, dtype=torch.bool)
     update.begin(state, 1)
     g = update.gradient(state, 0, active)
@@ -125,7 +125,7 @@ def test_paper_code_preset_trains_on_the_fast_engine_as_reinforce_loss_scores_it
 
     trainer = _trainer(tmp_path, "paper_code", "experiment=paper_code")
     assert trainer.population.policy.distribution_eps == 1e-6
-    state, update = trainer.population.state, trainer.learner.update
+    state, update = trainer.population.state, trainer.learner
     active = torch.ones(1, dtype=torch.bool)
     update.begin(state, 1)
     g = update.gradient(state, 0, active)

@@ -6,7 +6,7 @@
 - :class:`FastCollector` (``backend=fast``): any number of agents on the C++ engine
   (:mod:`drone_torchrl.kernels`). It hands out no batches: each update's episodes are flown and
   differentiated inside one kernel call
-  (:class:`~drone_torchrl.kernels.modules.KernelReinforce`, :mod:`.update`), with start states and
+  (:class:`~drone_torchrl.kernels.modules.KernelReinforce`, :meth:`drone_torchrl.algorithms.reinforce.Reinforce.update`), with start states and
   action noise from the counter-based generator of :mod:`.rng` (a function of each agent's seed and
   update count; under disturbances each episode's key too), so an agent's run does not depend on
   which other agents share the batch; the evaluator flies the kernel's deterministic rollout.
@@ -32,7 +32,6 @@ from drone_torchrl.envs.factory import make_env
 from drone_torchrl.kernels.modules import KernelRollout
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor
-from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.modules.stacked import StackedThreeNet
 from drone_torchrl.training.population import Population
 
@@ -71,7 +70,8 @@ class TorchRLCollector:
         self.env = make_env(num_envs=per_worker, num_workers=workers, device=cfg.device, **env_kwargs(cfg))
         self.env.set_seed(cfg.seed)
         self.cfg = cfg
-        self._loss_actor = build_actor(cfg, population.policy)
+        #: The actor that scores ``[1, E, T]`` batches (the agent dim first).
+        self.loss_actor = build_actor(cfg, population.policy)
         self._actor = build_actor(cfg, _OneAgent(population.policy))
         self._stop = (
             {"break_when_all_done": True}
@@ -84,10 +84,6 @@ class TorchRLCollector:
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             rollout = self.env.rollout(self.cfg.env.max_steps, self._actor, **self._stop)
         return rollout.reshape(1, -1, rollout.shape[-1])
-
-    def actor(self) -> ProbabilisticActor:
-        """The actor that scores ``[1, E, T]`` batches (the agent dim first)."""
-        return self._loss_actor
 
     def eval_policy(self) -> ProbabilisticActor:
         """The policy the evaluator flies (the collector's actor)."""
@@ -124,13 +120,7 @@ class FastCollector:
     """
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
-        self.population = population
         self.kernel = kernel_rollout(cfg, population.policy)
-        self._actor = actor_from_net(population.policy, cfg.model.distribution, cfg.env.max_thrust)
-
-    def actor(self) -> ProbabilisticActor:
-        """The agents' nets under the config's distribution head (scores ``[N, ...]`` batches)."""
-        return self._actor
 
     def eval_policy(self) -> KernelRollout:
         """The deterministic episodes of every agent, flown by the kernel (the arithmetic of training)."""

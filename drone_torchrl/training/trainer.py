@@ -20,9 +20,9 @@ import functools
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from itertools import compress
 from pathlib import Path
 
-import numpy as np
 import torch
 from omegaconf import DictConfig
 
@@ -73,18 +73,12 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
 
     In float64, which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such.
     """
-    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu().numpy()
-    out: dict[str, list] = {}
-    start = 0
-    for key, tensor in tensors.items():
-        values = flat[start : start + tensor.numel()].reshape(tensor.shape)
-        start += tensor.numel()
-        if tensor.dtype == torch.bool:
-            values = values.astype(bool)
-        elif not tensor.is_floating_point():
-            values = values.astype(np.int64)
-        out[key] = values.tolist()
-    return out
+    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu()
+    parts = flat.split([t.numel() for t in tensors.values()])
+    return {
+        key: part.reshape(t.shape).to(torch.float64 if t.is_floating_point() else t.dtype).tolist()
+        for (key, t), part in zip(tensors.items(), parts, strict=True)
+    }
 
 
 def learner_class(cfg: DictConfig) -> type[Learner]:
@@ -232,10 +226,7 @@ class Trainer:
                     continue
                 ended = {key: values[j][i] for key, values in episodes.items()}
                 if valid is not None:  # a learner whose updates end different numbers of episodes
-                    ended = {
-                        key: [v for v, ok in zip(values, valid[j][i], strict=True) if ok]
-                        for key, values in ended.items()
-                    }
+                    ended = {key: list(compress(values, valid[j][i])) for key, values in ended.items()}
                 runs[i].record(ended, {key: values[j][i] for key, values in host.items()})
                 steps += sum(ended["length"])
                 booked.append((runs[i], len(ended["length"])))
