@@ -273,8 +273,7 @@ def test_the_fast_engine_trains_in_float64_end_to_end():
     population, collector = update.population, update.collector
     assert population.state["params"].dtype == torch.float64
     active = torch.ones(1, dtype=torch.bool)
-    update.begin(population.state, 1)
-    gradient = update.gradient(population.state, 0, active)
+    gradient = update.gradient(population.state, population.state["counter"].clone(), active)
     assert gradient.grad.dtype == gradient.loss.dtype == torch.float64
     start = dynamics.initial_state((1, 2), "floor", torch.Generator().manual_seed(0), dtype=torch.float64)
     episodes = collector.kernel(start)
@@ -287,7 +286,7 @@ def test_the_reference_flies_float64():
 
     cfg = _config("env.dtype=float64", "backend=reference")
     population = Population([cfg])
-    batch = TorchRLCollector(cfg, population).collect(0, torch.ones(1, dtype=torch.bool))
+    batch = TorchRLCollector(cfg, population).collect(torch.ones(1, dtype=torch.bool))
     for key in ("observation", "action", ("next", "reward"), ("next", "observation")):
         assert batch[key].dtype == torch.float64, key
 

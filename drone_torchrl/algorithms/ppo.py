@@ -29,6 +29,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import nn
@@ -43,13 +44,13 @@ from drone_torchrl.algorithms.ppo_fast import PlainMinibatches, clip_ppo_losses,
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.drone_env import DroneEnv
-from drone_torchrl.episodes import EpisodeTracker
+from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.memory_estimate import on_policy_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
 from drone_torchrl.training.segments import FusedSegments
-from drone_torchrl.training.update import UpdateOutput, one_agent_output
+from drone_torchrl.training.update import UpdateOutput
 
 if TYPE_CHECKING:
     from drone_torchrl.training.run import AgentBook
@@ -152,7 +153,18 @@ class OneRun(Learner):
             episodes.append(self.tracker.update(batch))
             metrics.append(self.learn(batch))
             self.episodes_done += len(episodes[-1]["return"])
-        return state, one_agent_output(metrics, episodes, self.checks, active)
+        # The contract's layout: the updates' episodes padded to the most any ended, with a "valid"
+        # mask; each of ``checks`` in float64, which holds it exactly, as ``float()`` gave it.
+        most = max(1, *(len(e["return"]) for e in episodes))
+        padded = {
+            key: torch.as_tensor(np.array([[e[key] + [0] * (most - len(e[key]))] for e in episodes]))
+            for key in EPISODE_KEYS
+        }
+        valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
+        values = torch.tensor([[[m[name] for name in self.checks]] for m in metrics], dtype=torch.float64)
+        out = {name: values[..., i] for i, name in enumerate(self.checks)}
+        out.update(active=active.reshape(1, 1).expand(k, 1), checks=values.isfinite())
+        return state, UpdateOutput(out, {**padded, "valid": torch.tensor(valid)})
 
     def learn(self, batch: TensorDictBase) -> dict[str, float]:
         """Learn from one batch; what to book of it, each of ``checks``."""

@@ -28,7 +28,7 @@ from drone_torchrl.memory_estimate import reinforce_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS, ReinforceLoss
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.collectors import make_collector
+from drone_torchrl.training.collectors import FastCollector, TorchRLCollector
 from drone_torchrl.training.optim import clip_grad_norms
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.update import UpdateOutput
@@ -78,11 +78,6 @@ class Reinforce(Learner):
         agents = AgentTable.of(jobs)
         cfg, algo = agents.cfg, agents.cfg.algo
         self.population = Population(agents)
-        self.collector = make_collector(cfg, self.population)
-        for i, checkpoint in enumerate(agents.checkpoints):
-            if checkpoint is not None:
-                self.population.load(i, checkpoint)
-                self.collector.set_rng_state(i, checkpoint["rng"], checkpoint["episodes_done"])
         #: The population's stacked state (:attr:`~drone_torchrl.training.population.Population.state`).
         self.state = self.population.state
         self.episodes_per_update = int(algo.episodes_per_update)
@@ -90,6 +85,7 @@ class Reinforce(Learner):
         self.eval_agents = len(jobs)
         self.kernel = self.loss = None
         if cfg.backend == FAST:
+            self.collector = FastCollector(cfg, self.population)
             flags = {
                 "baseline_mean": algo.baseline == "mean",
                 "normalize_returns": algo.normalize_returns,
@@ -97,8 +93,9 @@ class Reinforce(Learner):
                 "mean_log_prob": algo.log_prob_reduction == "mean",
             }
             self.kernel = KernelReinforce(self.collector.kernel, algo.episodes_per_update, flags)
-        else:  # over [N, ...] batches, one discount per agent
-            self.loss = ReinforceLoss(
+        else:
+            self.collector = TorchRLCollector(cfg, self.population)
+            self.loss = ReinforceLoss(  # over [N, ...] batches, one discount per agent
                 self.collector.loss_actor,
                 gamma=self.state["gamma"],
                 agent_dims=1,
@@ -107,25 +104,23 @@ class Reinforce(Learner):
                 baseline=algo.baseline,
                 log_prob_reduction=algo.log_prob_reduction,
             )
+        for i, checkpoint in enumerate(agents.checkpoints):
+            if checkpoint is not None:
+                self.population.load(i, checkpoint)
+                self.collector.set_rng_state(i, checkpoint["rng"], checkpoint["episodes_done"])
 
-    def begin(self, state: TensorDictBase, k: int) -> None:
-        """Before ``k`` updates from ``state``: their random numbers are keyed by its update counters."""
-        self._seeds, self._counters = state["seed"], state["counter"].clone()
-
-    def gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
-        """Update ``j`` (of those announced to :meth:`begin`)'s episodes and gradient, without a step."""
+    def gradient(self, state: TensorDictBase, counters: torch.Tensor, active: torch.Tensor) -> Gradient:
+        """One update's episodes and gradient, without a step; its random numbers keyed by ``counters`` ``[N]``."""
         if self.kernel is None:
-            return self._autograd_gradient(state, j, active)
-        grad, loss, std, finite, length, counts = self.kernel(
-            self._seeds, self._counters + j, state["gamma"], active
-        )
+            return self._autograd_gradient(state, active)
+        grad, loss, std, finite, length, counts = self.kernel(state["seed"], counters, state["gamma"], active)
         return Gradient(
             grad, loss.to(grad.dtype), std.to(grad.dtype), finite, counted_metrics(length, counts)
         )
 
-    def _autograd_gradient(self, state: TensorDictBase, j: int, active: torch.Tensor) -> Gradient:
+    def _autograd_gradient(self, state: TensorDictBase, active: torch.Tensor) -> Gradient:
         """The TorchRL rollout's (``[N, E, T]``) loss terms, episodes and mean policy std, and autograd."""
-        params, batch = state["params"], self.collector.collect(j, active)
+        params, batch = state["params"], self.collector.collect(active)
         terms = self.loss(batch)
         episodes = Episodes.from_rollout(batch)
         valid = episodes.valid().unsqueeze(-1)
@@ -147,11 +142,11 @@ class Reinforce(Learner):
         not finite does not step and drops out of the rest of the call, the others take their Adam step.
         """
         params, counter, adam = state["params"], state["counter"], self.population.adam
-        self.begin(state, k)
+        start = counter.clone()  # the updates' random numbers are keyed by the counters they start from
         metrics: list[dict[str, torch.Tensor]] = []
         stats: list[dict[str, torch.Tensor]] = []
         for j in range(k):
-            g = self.gradient(state, j, active)
+            g = self.gradient(state, start + j, active)
             grad_norms = clip_grad_norms(g.grad, self.population.max_grad_norm)
             checks = torch.stack([g.actions_finite, g.loss.isfinite(), grad_norms.isfinite()])
             adam.step(state, g.grad, active & checks.all(0))

@@ -30,7 +30,6 @@ from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.factory import make_env
 from drone_torchrl.kernels.modules import KernelRollout
-from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor
 from drone_torchrl.modules.stacked import StackedThreeNet
 from drone_torchrl.training.population import Population
@@ -63,8 +62,6 @@ class TorchRLCollector:
     """
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
-        if len(population) != 1:
-            raise ValueError(f"backend='reference' trains one agent at a time, got {len(population)}")
         workers = cfg.env.num_workers
         per_worker = cfg.algo.episodes_per_update // max(workers, 1)
         self.env = make_env(num_envs=per_worker, num_workers=workers, device=cfg.device, **env_kwargs(cfg))
@@ -79,7 +76,7 @@ class TorchRLCollector:
             else {"break_when_any_done": False}
         )
 
-    def collect(self, j: int, active: torch.Tensor) -> TensorDictBase:
+    def collect(self, active: torch.Tensor) -> TensorDictBase:
         """Fly one update's episodes; returns the rollout as a ``[1, E, T]`` tensordict (agent dim first)."""
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             rollout = self.env.rollout(self.cfg.env.max_steps, self._actor, **self._stop)
@@ -154,8 +151,3 @@ def kernel_rollout(cfg: DictConfig, policy: StackedThreeNet) -> KernelRollout:
         cfg.env.reset_mode,
         kwargs["disturbance"],
     )
-
-
-def make_collector(cfg: DictConfig, population: Population) -> TorchRLCollector | FastCollector:
-    """The collector of ``cfg.backend``."""
-    return FastCollector(cfg, population) if cfg.backend == FAST else TorchRLCollector(cfg, population)

@@ -110,7 +110,6 @@ class Trainer:
             keep_freed_memory()
         self.learner = learner_class(cfg)(jobs)
         self.runs: list[AgentBook] = []
-        self.records: list[Record] = []  # a run folder each: the runs', or the population's
         self.book: PopulationRecord | None = None
         self._search_step_pending = False
         try:
@@ -126,7 +125,7 @@ class Trainer:
                     cfg.backend,
                     checkpoint,
                 )
-                self.records, self.runs = [self.book], list(self.book.agents)
+                self.runs = list(self.book.agents)
                 if search is not None:
                     saved = None if checkpoint is None else checkpoint["search"]
                     self.book.search = search.make(cfg, self.book.values, saved)
@@ -141,7 +140,6 @@ class Trainer:
                     )
             for job in jobs if population_dir is None else ():
                 self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
-                self.records.append(self.runs[-1])
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
             self.progress = Progress([], False)
             self.close(quietly=True)
@@ -302,7 +300,9 @@ class Trainer:
         """
         self.progress.close()
         self.learner.close()
-        for record in self.records:
+        # A run folder each: the runs', or the population's.
+        records: list[Record] = self.runs if self.book is None else [self.book]
+        for record in records:
             try:
                 record.close(quietly)
             except Exception:  # noqa: BLE001  (a logger's own error, when another one is reported)
@@ -401,10 +401,8 @@ def train_job(job: Job) -> Outcome:
     Raises the error that stopped it, as :func:`train` does (``drone_torchrl.train`` calls this too).
     """
     (outcome,) = train_jobs([job])
-    if outcome.error is not None:
+    if outcome.error is not None:  # else it finished: train_jobs set its final metrics
         raise outcome.error
-    if outcome.final is None:
-        raise ConfigError(f"{outcome.run_dir}: training ended without final metrics")
     return outcome
 
 
