@@ -36,7 +36,7 @@ from drone_torchrl.io.streams import about, console
 from drone_torchrl.kernels.modules import KernelRollout
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
-from drone_torchrl.registry import ALGORITHMS, Learner
+from drone_torchrl.registry import ALGORITHMS
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
@@ -81,11 +81,6 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
     }
 
 
-def learner_class(cfg: DictConfig) -> type[Learner]:
-    """The learner of ``algo.name``, from the algorithm registry (:mod:`drone_torchrl.algorithms`)."""
-    return ALGORITHMS.get(cfg.algo.name).learner
-
-
 class Trainer:
     """The jobs of one group (see :func:`~.jobs.group_key`) trained together by one learner."""
 
@@ -108,7 +103,7 @@ class Trainer:
         torch.set_num_threads(cfg.threads)
         if torch.device(cfg.device).type == "cpu":
             keep_freed_memory()
-        self.learner = learner_class(cfg)(jobs)
+        self.learner = ALGORITHMS.get(cfg.algo.name).learner(jobs)
         self.runs: list[AgentBook] = []
         self.book: PopulationRecord | None = None
         self._search_step_pending = False
@@ -334,7 +329,7 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     batches = []
     for members in groups.values():
         cfg = jobs[members[0]].cfg
-        size = learner_class(cfg).max_agents(cfg) or len(members)
+        size = ALGORITHMS.get(cfg.algo.name).learner.max_agents(cfg) or len(members)
         batches += [members[start : start + size] for start in range(0, len(members), size)]
     try:
         with stop_on_signals() as stop:
@@ -467,7 +462,7 @@ def check_population(agents: AgentTable, search: SearchSettings | None = None) -
     or the population's size cannot hold (``search.check``).
     """
     cfg = agents.cfg
-    if learner_class(cfg).max_agents(cfg) is not None:
+    if ALGORITHMS.get(cfg.algo.name).learner.max_agents(cfg) is not None:
         raise ConfigError(
             f"algo={cfg.algo.name} is not allowed with hydra/launcher=population (with backend={cfg.backend} it "
             "trains one agent at a time); expected algo=reinforce (or reinforce_plus) with backend=fast, "
