@@ -5,9 +5,9 @@
     python benchmarks/ppo_collectors.py model.hidden_sizes=[32,32]          # Hydra overrides
 
 Times one batch of each collector (``next(...)`` on the learner's own iterator, so the actor's
-log-probabilities are included; the learner's private ``_batches`` and ``_learn`` are the two
+log-probabilities are included; the learner's private ``_batches`` and ``learn`` are the two
 halves of its update) and one learning step on it (GAE and the minibatch epochs of
-``OnPolicy._learn``), medians over ``--repeats`` batches after ``--warmup`` (learning: over
+``OnPolicy.learn``), medians over ``--repeats`` batches after ``--warmup`` (learning: over
 ``--learn-repeats``). The policy is the run's fresh one (short episodes from the floor) or a
 checkpoint's (full-length ones). Prints milliseconds per batch and the fast engine's speed-up over
 TorchRL's collector, timed in the same run.
@@ -74,7 +74,7 @@ def main() -> None:
             batches = learner._batches
             collect = _median_ms(lambda b=batches: next(b), args.warmup, args.repeats)
             batch = next(batches)
-            learn = _median_ms(lambda lr=learner, b=batch: lr._learn(b, 0), 1, args.learn_repeats)
+            learn = _median_ms(lambda lr=learner, b=batch: lr.learn(b), 1, args.learn_repeats)
             done = batch.get(("next", "done")).sum().item()
             rows[collector] = (collect, learn, done)
             learner.close()

@@ -50,7 +50,7 @@ def test_an_a2c_update_moves_the_policy_up_its_advantage_weighted_log_probabilit
             return dist.log_prob(batch.get("action"))
 
         before = log_prob()
-    learner._learn(batch, 0)
+    learner.learn(batch)
     with torch.no_grad():
         change = log_prob() - before
     learner.close()
@@ -105,7 +105,7 @@ def test_the_advantages_are_scaled_as_the_key_says(scaling):
 
 
 def test_the_loop_hands_the_loss_the_scaled_advantages(monkeypatch):
-    """``_learn`` runs GAE, then :meth:`scale_advantage`, then the loss on what it returned."""
+    """``learn`` runs GAE, then :meth:`scale_advantage`, then the loss on what it returned."""
     learner = _learner("algo.advantage_scaling=center")
     seen = {}
     forward = learner.loss.forward
@@ -115,7 +115,7 @@ def test_the_loop_hands_the_loss_the_scaled_advantages(monkeypatch):
         return forward(td)
 
     monkeypatch.setattr(learner.loss, "forward", spy)
-    learner._learn(next(learner._batches), 0)
+    learner.learn(next(learner._batches))
     learner.close()
     assert abs(float(seen["advantage"].mean())) < 1e-5
     assert abs(float(seen["advantage"].std()) - 1) > 1e-3  # centred, not standardised

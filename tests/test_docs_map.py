@@ -86,7 +86,7 @@ def test_every_file_and_function_the_page_names_exists():
     named = NAMED.findall(PAGE.read_text())
     # The four concepts the map promises, on both engines.
     assert {
-        ("drone_torchrl/algorithms/ppo.py", "OnPolicy._learn"),
+        ("drone_torchrl/algorithms/ppo.py", "OnPolicy.learn"),
         ("drone_torchrl/objectives/reinforce.py", "reinforce_terms"),
         ("drone_torchrl/kernels/drone_kernels.cpp", "reinforce_agent"),
         ("drone_torchrl/envs/drone_env.py", "DroneEnv._step"),
@@ -106,8 +106,8 @@ def test_the_checks_catch_what_they_are_for():
     row = "| `drone_torchrl/envs/` | `dynamics.py` the physics · `made_up.py` nothing |\n"
     text = f"{MAP_HEADING}\n\n| folder | module |\n|---|---|\n{row}\n## Next\n"
     assert mapped_modules(text) == ["drone_torchrl/envs/dynamics.py", "drone_torchrl/envs/made_up.py"]
-    assert defines(ROOT / "drone_torchrl/algorithms/ppo.py", "OnPolicy._learn")
+    assert defines(ROOT / "drone_torchrl/algorithms/ppo.py", "OnPolicy.learn")
     assert not defines(ROOT / "drone_torchrl/algorithms/ppo.py", "OnPolicy._no_such_step")
-    assert not defines(ROOT / "drone_torchrl/algorithms/ppo.py", "_learn")  # a method is not top-level
+    assert not defines(ROOT / "drone_torchrl/algorithms/ppo.py", "learn")  # a method is not top-level
     assert defines(ROOT / "drone_torchrl/kernels/drone_kernels.cpp", "drone_step")
     assert not defines(ROOT / "drone_torchrl/kernels/drone_kernels.cpp", "fly_episode")

@@ -265,18 +265,15 @@ def _config(*overrides: str):
 def test_the_fast_engine_trains_in_float64_end_to_end():
     """env.dtype=float64: the weights, the flown episodes (states, rewards) and the update's loss
     and gradient are float64 on the C++ engine, with the arena's zone and bounds."""
-    from drone_torchrl.training.collectors import FastCollector
-    from drone_torchrl.training.population import Population
-    from drone_torchrl.training.update import ReinforceUpdate
+    from drone_torchrl.algorithms.reinforce import Reinforce
+    from drone_torchrl.training.agents import AgentTable
 
     cfg = _config("env.dtype=float64", "env.zone_x_limit=0.6", "env.bounds=strict", "backend=fast")
-    population = Population([cfg])
-    collector = FastCollector(cfg, population)
+    update = Reinforce(AgentTable.of([cfg]))
+    population, collector = update.population, update.collector
     assert population.state["params"].dtype == torch.float64
-    update = ReinforceUpdate(cfg, population, collector)
     active = torch.ones(1, dtype=torch.bool)
-    update.begin(population.state, 1)
-    gradient = update.gradient(population.state, 0, active)
+    gradient = update.gradient(population.state, population.state["counter"].clone(), active)
     assert gradient.grad.dtype == gradient.loss.dtype == torch.float64
     start = dynamics.initial_state((1, 2), "floor", torch.Generator().manual_seed(0), dtype=torch.float64)
     episodes = collector.kernel(start)
@@ -289,7 +286,7 @@ def test_the_reference_flies_float64():
 
     cfg = _config("env.dtype=float64", "backend=reference")
     population = Population([cfg])
-    batch = TorchRLCollector(cfg, population).collect(0, torch.ones(1, dtype=torch.bool))
+    batch = TorchRLCollector(cfg, population).collect(torch.ones(1, dtype=torch.bool))
     for key in ("observation", "action", ("next", "reward"), ("next", "observation")):
         assert batch[key].dtype == torch.float64, key
 

@@ -20,10 +20,9 @@ def _trainer(tmp_path, name, *overrides):
 
 def _loss_and_weights(trainer):
     """One update of the only agent: its episode lengths, loss, weights after the step and gradient."""
-    state, update = trainer.population.state, trainer.learner.update
+    state, update = trainer.population.state, trainer.learner
     active = torch.ones(1, dtype=torch.bool)
-    update.begin(state, 1)
-    g = update.gradient(state, 0, active)
+    g = update.gradient(state, state["counter"].clone(), active)
     views = trainer.population.policy.views
     grads = {k: v.clone() for k, v in views(g.grad).items(True, True)}
     trainer.population.adam.step(state, g.grad, active)
@@ -125,10 +124,9 @@ def test_paper_code_preset_trains_on_the_fast_engine_as_reinforce_loss_scores_it
 
     trainer = _trainer(tmp_path, "paper_code", "experiment=paper_code")
     assert trainer.population.policy.distribution_eps == 1e-6
-    state, update = trainer.population.state, trainer.learner.update
+    state, update = trainer.population.state, trainer.learner
     active = torch.ones(1, dtype=torch.bool)
-    update.begin(state, 1)
-    g = update.gradient(state, 0, active)
+    g = update.gradient(state, state["counter"].clone(), active)
     assert g.grad.dtype == torch.float64
     keys = torch.stack([state["seed"], state["counter"]], -1).unsqueeze(1)
     episodes = trainer.learner.collector.kernel(active=active, rng=keys)

@@ -363,7 +363,7 @@ def test_target_kl_ends_a_batch_s_epochs_at_the_first_minibatch_past_its_margin(
         step = learner.optimizer.step
         learner.minibatches.losses = given_kl
         learner.optimizer.step = lambda *a, step=step, taken=taken, **k: (taken.append(1), step(*a, **k))[1]
-        metrics = learner._learn(next(learner._batches), 0)
+        metrics = learner.learn(next(learner._batches))
         assert len(taken) == expected, (target, kls)
         assert all(np.isfinite(v) for v in metrics.values()) and "train/kl_approx" in metrics
 

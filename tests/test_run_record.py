@@ -286,9 +286,9 @@ def test_population_loss_equals_the_torchrl_actor_loss(tmp_path, preset):
     ]
     cfg = _cfg(*common)
     trainer = Trainer([prepare(cfg, tmp_path / "run")])
-    batch = trainer.learner.collector.collect(0, torch.ones(1, dtype=torch.bool))  # [1, 3, T]
+    batch = trainer.learner.collector.collect(torch.ones(1, dtype=torch.bool))  # [1, 3, T]
     assert batch.shape[:2] == (1, 3)
-    update, policy = trainer.learner.update, trainer.population.policy
+    update, policy = trainer.learner, trainer.population.policy
     loss = update.loss(batch.clone())  # ReinforceLoss through the population's actor
     policy.flat.grad = None
     loss["loss_reinforce"].backward()

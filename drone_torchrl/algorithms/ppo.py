@@ -5,7 +5,7 @@ by one actor, its update: a batch flown, cut at the budget and learned from); :c
 builds the critic, the loss (``ClipPPOLoss`` here, ``A2CLoss`` in :mod:`.a2c`), TorchRL's
 :class:`~torchrl.objectives.value.GAE`, one Adam and the collector (one batched, auto-resetting
 :class:`~drone_torchrl.envs.drone_env.DroneEnv`, ``algo.steps_per_batch`` steps a batch), and learns
-from a batch (``OnPolicy._learn``: GAE, then ``algo.epochs`` passes of minibatch steps: loss,
+from a batch (``OnPolicy.learn``: GAE, then ``algo.epochs`` passes of minibatch steps: loss,
 backward, clip, step). The loop is every algorithm's
 (:class:`~drone_torchrl.training.trainer.Trainer`): it books each batch in the
 :class:`~drone_torchrl.training.run.RunRecord` (``episodes.csv``, TensorBoard), evaluates (then
@@ -29,6 +29,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from torch import nn
@@ -43,13 +44,13 @@ from drone_torchrl.algorithms.ppo_fast import PlainMinibatches, clip_ppo_losses,
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.config import env_kwargs
 from drone_torchrl.envs.drone_env import DroneEnv
-from drone_torchrl.episodes import EpisodeTracker
+from drone_torchrl.episodes import EPISODE_KEYS, EpisodeTracker
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.memory_estimate import on_policy_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
 from drone_torchrl.training.segments import FusedSegments
-from drone_torchrl.training.update import UpdateOutput, one_agent_output
+from drone_torchrl.training.update import UpdateOutput
 
 if TYPE_CHECKING:
     from drone_torchrl.training.run import AgentBook
@@ -96,8 +97,8 @@ class OneRun(Learner):
 
     Each update flies one batch, cut at the budget (:func:`within_budget`), books its ended
     episodes and learns from it (a subclass's :meth:`learn`); the batches end a varying number of
-    episodes, so the loop takes one update per call. A subclass sets ``self.generator``, the
-    drones' random stream, which checkpoints keep, and ``self._batches``, the batches' iterator.
+    episodes, so the loop takes one update per call. A subclass builds its loss and optimizer, names
+    what its checkpoints keep of them in :attr:`parts`, then calls :meth:`start`.
 
     Args:
         jobs: the one job trained, fresh or resumed.
@@ -114,6 +115,32 @@ class OneRun(Learner):
         self.episodes_done = 0 if job.checkpoint is None else job.checkpoint["episodes_done"]
         # False after a batch cut at the budget: its drones flew on past the cut, unbooked.
         self.carried_on = True
+        self.fused = cfg.backend == FAST
+        #: What a checkpoint keeps by ``state_dict()`` (and rollback puts back), by entry.
+        self.parts: dict[str, Any] = {"actor": self.actor_module}
+
+    def start(self, checkpoint: Mapping[str, Any] | None) -> None:
+        """Make the drones' batches (the C++ engine's, or TorchRL's collector over one batched env); resume."""
+        cfg, algo = self.cfg, self.cfg.algo
+        if self.fused:
+            self.collector = FusedSegments(cfg, self.actor_module, self.net)
+            self.generator = self.collector.generator
+        else:
+            self.env = DroneEnv(batch_size=[algo.num_envs], device=cfg.device, **env_kwargs(cfg))
+            self.env.set_seed(cfg.seed)
+            self.generator = self.env._generator
+        if checkpoint is not None:
+            self.restore(checkpoint)
+        if not self.fused:  # made after the checkpoint: it resets the env from the restored generator
+            self.collector = Collector(
+                self.env,
+                self.actor_module,
+                frames_per_batch=algo.num_envs * algo.steps_per_batch,
+                total_frames=-1,
+                device=cfg.device,
+                auto_register_policy_transforms=False,
+            )
+        self._batches = iter(self.collector)
 
     def update(self, state: None, k: int, active: torch.Tensor) -> tuple[None, UpdateOutput]:
         """Run ``k`` updates (fly a batch, cut it at the budget, learn); returns ``state`` and their output."""
@@ -126,7 +153,18 @@ class OneRun(Learner):
             episodes.append(self.tracker.update(batch))
             metrics.append(self.learn(batch))
             self.episodes_done += len(episodes[-1]["return"])
-        return state, one_agent_output(metrics, episodes, self.checks, active)
+        # The contract's layout: the updates' episodes padded to the most any ended, with a "valid"
+        # mask; each of ``checks`` in float64, which holds it exactly, as ``float()`` gave it.
+        most = max(1, *(len(e["return"]) for e in episodes))
+        padded = {
+            key: torch.as_tensor(np.array([[e[key] + [0] * (most - len(e[key]))] for e in episodes]))
+            for key in EPISODE_KEYS
+        }
+        valid = [[[True] * len(e["return"]) + [False] * (most - len(e["return"]))] for e in episodes]
+        values = torch.tensor([[[m[name] for name in self.checks]] for m in metrics], dtype=torch.float64)
+        out = {name: values[..., i] for i, name in enumerate(self.checks)}
+        out.update(active=active.reshape(1, 1).expand(k, 1), checks=values.isfinite())
+        return state, UpdateOutput(out, {**padded, "valid": torch.tensor(valid)})
 
     def learn(self, batch: TensorDictBase) -> dict[str, float]:
         """Learn from one batch; what to book of it, each of ``checks``."""
@@ -140,64 +178,70 @@ class OneRun(Learner):
         """The policy the evaluator flies: the actor."""
         return self.actor_module
 
-    def drones_entry(self) -> dict[str, Any]:
-        """A checkpoint's ``drones`` entry: the episodes in flight, to fly on from on resume.
+    def load_parts(self, state: Mapping[str, Any]) -> None:
+        """Load each of :attr:`parts` from its entry of ``state`` (a checkpoint, or rollback's best state)."""
+        for key, part in self.parts.items():
+            part.load_state_dict(state[key])
 
-        None carried after a batch cut at the budget (its drones flew on past the cut, unbooked).
+    def restore(self, checkpoint: Mapping[str, Any]) -> None:
+        """Resume from ``checkpoint``: the parts, the random states, the drones' episodes in flight.
+
+        On the C++ engine the drones fly on from a checkpoint's ``drones`` entry, or start afresh if
+        it kept none (an older checkpoint, or a batch cut at the budget).
         """
-        return {
-            "carried": self.collector.carried() if self.carried_on else None,
-            "episodes": self.tracker.state(),
-        }
-
-    def restore_drones(self, drones: Mapping[str, Any] | None) -> None:
-        """Fly on from a checkpoint's :meth:`drones_entry`; start every drone afresh if it kept none."""
+        self.load_parts(checkpoint)
+        torch.set_rng_state(checkpoint["rng"]["torch"])
+        self.generator.set_state(checkpoint["rng"]["env"])
+        if not self.fused:
+            return
+        drones = checkpoint.get("drones")
         if drones is None or drones["carried"] is None:
             self.collector.restart()
         else:
             self.collector.carry_on(drones["carried"])
             self.tracker.load_state(drones["episodes"])
 
-    def rng_entry(self) -> dict[str, Any]:
-        """A checkpoint's ``rng`` entry: torch's random state and the drones'."""
-        return {"torch": torch.get_rng_state(), "env": self.generator.get_state(), "agent": None}
+    def checkpoint_entries(self, agent: int) -> dict[str, Any]:
+        """The checkpoint entries the run record does not own: the parts, the random states, the drones.
 
-    def restore_rng(self, rng: Mapping[str, Any]) -> None:
-        """Put back the random states of a checkpoint's ``rng`` entry."""
-        torch.set_rng_state(rng["torch"])
-        self.generator.set_state(rng["env"])
+        The drones' episodes in flight on the C++ engine only (the reference's TorchRL collector starts
+        its drones afresh on resume); none carried after a batch cut at the budget.
+        """
+        entries = {key: part.state_dict() for key, part in self.parts.items()}
+        entries["rng"] = {"torch": torch.get_rng_state(), "env": self.generator.get_state(), "agent": None}
+        if self.fused:
+            carried = self.collector.carried() if self.carried_on else None
+            entries["drones"] = {"carried": carried, "episodes": self.tracker.state()}
+        return entries
+
+    def close(self) -> None:
+        """Shut TorchRL's collector down (the fast engine's batches need none)."""
+        if not self.fused:
+            self.collector.shutdown()
 
 
-class Minibatches:
-    """The reference's minibatches: a batch's frames in TorchRL's replay buffer, scored by ``loss``.
+class Minibatches(ReplayBuffer):
+    """The reference's minibatches: a batch's frames in TorchRL's replay buffer, scored by ``losses``.
 
-    ``frames`` frames at most, drawn without replacement within an epoch. The fast twin, with the
-    same three methods, is :class:`~.ppo_fast.PlainMinibatches`.
+    ``frames`` frames at most, drawn without replacement within an epoch (``sample(size)``). The
+    fast twin, with the same ``hold``, ``sample`` and ``losses``, is :class:`~.ppo_fast.PlainMinibatches`.
     """
 
     def __init__(self, loss: LossModule, frames: int, device: Any) -> None:
-        self.loss = loss
-        self.buffer = ReplayBuffer(
+        super().__init__(
             storage=LazyTensorStorage(frames, device=device), sampler=SamplerWithoutReplacement()
         )
+        self.losses = loss
 
     def hold(self, batch: TensorDictBase) -> int:
         """Keep the batch's frames (``[frames]``) for this update's minibatches; how many there are."""
-        self.buffer.empty()  # a batch cut at the budget is smaller than the storage
-        self.buffer.extend(batch)
-        return len(self.buffer)
-
-    def sample(self, size: int) -> TensorDictBase:
-        """``size`` of the held frames."""
-        return self.buffer.sample(size)
-
-    def losses(self, minibatch: TensorDictBase) -> Mapping[str, torch.Tensor]:
-        """The loss's outputs on one minibatch."""
-        return self.loss(minibatch)
+        self.empty()  # a batch cut at the budget is smaller than the storage
+        self.extend(batch)
+        return len(self)
 
 
 class OnPolicy(OneRun):
-    """One actor-critic run: ``__init__`` builds it, ``_learn`` is one batch's update.
+    """One actor-critic run: ``__init__`` builds it, :meth:`learn` is one batch's update.
 
     A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what its loss reports;
     the losses summed and booked are the loss's ``loss_*`` outputs. It may also change what the loss
@@ -216,52 +260,34 @@ class OnPolicy(OneRun):
 
     def __init__(self, jobs) -> None:
         super().__init__(jobs)
-        (job,) = jobs
         cfg, algo = self.cfg, self.cfg.algo
         self.critic = build_critic(cfg)
         self.loss = self.make_loss(self.actor_module, self.critic)
         self.advantage = GAE(
             gamma=algo.gamma, lmbda=algo.gae_lambda, value_network=self.critic, average_gae=False
         )
-        self.fused = cfg.backend == FAST
         self.eval_agents = 1 if self.fused else None  # the kernel's rows: one agent
         # Listed once: the loss module's parameters() walks its modules on each call.
         self.params = list(self.loss.parameters())
         self.optimizer = torch.optim.Adam(
             self.params, lr=algo.lr, eps=algo.adam_eps, fused=self.fused or None
         )
-        if self.fused:
-            self.collector = FusedSegments(cfg, self.actor_module, self.net)
-            self.generator = self.collector.generator
-        else:
-            self.env = DroneEnv(batch_size=[algo.num_envs], device=cfg.device, **env_kwargs(cfg))
-            self.env.set_seed(cfg.seed)
-            self.generator = self.env._generator
+        self.parts.update(critic=self.critic, optimizer=self.optimizer)
         self.rollback_drop = cfg.eval.get("rollback_drop")
         # eval.rollback_drop's best state (see after_evaluation) and whether it was returned to.
         self.best_state: dict[str, Any] | None = None
         self.returned_to_best = False
-        if (checkpoint := job.checkpoint) is not None:
-            self._load_best_state(checkpoint)
-            self._restore(checkpoint)
-            self.restore_rng(checkpoint["rng"])
-            if self.fused:  # an older checkpoint keeps no drones: they start afresh
-                self.restore_drones(checkpoint.get("drones"))
-        if not self.fused:  # made after the checkpoint: it resets the env from the restored generator
-            self.collector = Collector(
-                self.env,
-                self.actor_module,
-                frames_per_batch=algo.num_envs * algo.steps_per_batch,
-                total_frames=-1,
-                device=cfg.device,
-                auto_register_policy_transforms=False,
-            )
-        self._batches = iter(self.collector)
+        self.start(jobs[0].checkpoint)
         self.minibatches = self.make_minibatches()
         reported = self.loss.out_keys
         self.loss_keys = tuple(k for k in reported if k.startswith("loss_"))
         self.reported = (*self.loss_keys, *(k for k in self.diagnostics if k in reported))
         self.checks = tuple(f"train/{k}" for k in (*self.reported, "grad_norm"))
+
+    def restore(self, checkpoint: Mapping[str, Any]) -> None:
+        """Resume as :meth:`OneRun.restore` does, with ``eval.rollback_drop``'s best state."""
+        self._load_best_state(checkpoint)
+        super().restore(checkpoint)
 
     def after_evaluation(self, run: AgentBook, best_before: float) -> None:
         """``eval.rollback_drop``: keep the state of the best evaluation; go back to it after a collapse.
@@ -276,7 +302,8 @@ class OnPolicy(OneRun):
             return
         last = run.last_eval_return
         if last > best_before:
-            self.best_state = {"return": last, **copy.deepcopy(self._learner_state())}
+            state = {key: part.state_dict() for key, part in self.parts.items()}
+            self.best_state = {"return": last, **copy.deepcopy(state)}
             self.returned_to_best = False
         elif (
             self.best_state is not None
@@ -284,7 +311,7 @@ class OnPolicy(OneRun):
             and not run.finished
             and self.best_state["return"] - last > self.rollback_drop
         ):
-            self._restore(copy.deepcopy(self.best_state))
+            self.load_parts(copy.deepcopy(self.best_state))
             self.returned_to_best = True
             console.info(
                 f"{run.run_dir}: episode {run.episodes_done}: evaluation return {last:.1f} is more than "
@@ -292,18 +319,6 @@ class OnPolicy(OneRun):
                 "training goes on from the best evaluation's policy, critic and optimizer",
                 **about(run.run_dir),
             )
-
-    def _learner_state(self) -> dict[str, Any]:
-        return {
-            "actor": self.actor_module.state_dict(),
-            "critic": self.critic.state_dict(),
-            "optimizer": self.optimizer.state_dict(),
-        }
-
-    def _restore(self, state: Mapping[str, Any]) -> None:
-        self.actor_module.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.optimizer.load_state_dict(state["optimizer"])
 
     def _load_best_state(self, checkpoint: Mapping[str, Any]) -> None:
         """eval.rollback_drop's best state and whether it was returned to, as ``checkpoint`` keeps them.
@@ -323,7 +338,7 @@ class OnPolicy(OneRun):
             self.best_state = {"return": best, **own}
             self.returned_to_best = False
 
-    def _learn(self, batch: TensorDictBase, episodes_done: int) -> dict[str, float]:
+    def learn(self, batch: TensorDictBase) -> dict[str, float]:
         """GAE on the batch, then ``algo.epochs`` passes of minibatch steps; the last pass's ``train/*`` means.
 
         Each step: the minibatch's losses (:attr:`minibatches`), their sum's backward pass, the
@@ -332,7 +347,7 @@ class OnPolicy(OneRun):
         algo = self.cfg.algo
         if algo.anneal_lr:  # linearly to 0 at the budget, as TorchRL's and CleanRL's PPO do (by frames there)
             for group in self.optimizer.param_groups:
-                group["lr"] = algo.lr * max(0.0, 1.0 - episodes_done / algo.episodes)
+                group["lr"] = algo.lr * max(0.0, 1.0 - self.episodes_done / algo.episodes)
         batch = batch.clone(False)
         batch.set(("next", "reward"), batch.get(("next", "reward")) * algo.reward_scale)
         with torch.no_grad():
@@ -365,16 +380,12 @@ class OnPolicy(OneRun):
             means = {f"train/{k}": (v / steps).item() for k, v in sums.items()}
         return means
 
-    def learn(self, batch: TensorDictBase) -> dict[str, float]:
-        """``_learn`` at the episodes trained so far."""
-        return self._learn(batch, self.episodes_done)
-
     def make_loss(self, actor: nn.Module, critic: nn.Module) -> LossModule:
         """The algorithm's TorchRL loss over ``actor`` and ``critic``, from ``self.cfg.algo``."""
         raise NotImplementedError
 
     def make_minibatches(self) -> Minibatches | PlainMinibatches:
-        """Where ``_learn`` keeps a batch's frames and scores its minibatches: :class:`Minibatches`."""
+        """Where :meth:`learn` keeps a batch's frames and scores its minibatches: :class:`Minibatches`."""
         algo = self.cfg.algo
         return Minibatches(self.loss, algo.num_envs * algo.steps_per_batch, self.cfg.device)
 
@@ -402,18 +413,11 @@ class OnPolicy(OneRun):
         return self.collector.eval_policy() if self.fused else self.actor_module
 
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
-        """The checkpoint entries the run record does not own: actor, critic, optimizer, RNG, drones in flight."""
-        entries = {**self._learner_state(), "rng": self.rng_entry()}
-        if self.fused:  # the reference's TorchRL collector starts its drones afresh on resume
-            entries["drones"] = self.drones_entry()
+        """:meth:`OneRun.checkpoint_entries`, with ``eval.rollback_drop``'s best state."""
+        entries = super().checkpoint_entries(agent)
         if self.rollback_drop is not None:
             entries["rollback"] = {"state": self.best_state, "returned": self.returned_to_best}
         return entries
-
-    def close(self) -> None:
-        """Shut the collector down (the fast engine's batches need none)."""
-        if not self.fused:
-            self.collector.shutdown()
 
 
 class DualClipPPOLoss(ClipPPOLoss):

@@ -101,8 +101,6 @@ class PlainMinibatches:
         self.dual_clip = cfg.algo.get("dual_clip")
         k = loss.tensor_keys
         self.frame_keys = ("observation", k.action, k.sample_log_prob, k.advantage, k.value_target)
-        self.held: list[torch.Tensor] = []
-        self.order = torch.empty(0, dtype=torch.long)
 
     def hold(self, batch: TensorDictBase) -> int:
         """Keep the batch's frames (``[frames]``); how many there are."""

@@ -3,7 +3,7 @@
 Both are the same learner (``reinforce_plus`` adds the variance reductions): a group of jobs
 trained as one population, with either engine.
 
-The update itself, the population engine's, is :class:`~drone_torchrl.training.update.ReinforceUpdate`;
+The update itself, the population engine's, is :meth:`Reinforce.update`;
 its loss, in Python, is :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` (the arithmetic in
 :func:`~drone_torchrl.objectives.reinforce.reinforce_terms`), and the fast engine's loss and gradient
 are one call of :class:`~drone_torchrl.kernels.modules.KernelReinforce` (the C++ engine's ``ops.reinforce``).
@@ -13,25 +13,56 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
+
+import torch
+from tensordict import TensorDictBase
 
 from drone_torchrl import schema
 from drone_torchrl.algorithms import Algorithm, Learner, register
 from drone_torchrl.checks import ConfigError
+from drone_torchrl.envs.rollout import Episodes
+from drone_torchrl.episodes import EPISODE_KEYS, counted_metrics, episode_stats
+from drone_torchrl.kernels.modules import KernelReinforce
 from drone_torchrl.memory_estimate import reinforce_parts
 from drone_torchrl.migrations import FAST
-from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS
+from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS, ReinforceLoss
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.collectors import make_collector
+from drone_torchrl.training.collectors import FastCollector, TorchRLCollector
+from drone_torchrl.training.optim import clip_grad_norms
 from drone_torchrl.training.population import Population
-from drone_torchrl.training.update import CHECKS, ReinforceUpdate
+from drone_torchrl.training.update import UpdateOutput
+
+#: What the finite checks test, in their row order (then the weights after the step).
+CHECKS = ("actions", "loss", "gradients", "weights")
+
+
+class Gradient(NamedTuple):
+    """One update's gradient of every agent and what the loop books of it (``[N]`` unless noted)."""
+
+    grad: torch.Tensor  # [N, P]
+    loss: torch.Tensor
+    std: torch.Tensor
+    actions_finite: torch.Tensor
+    episodes: dict[str, torch.Tensor]  # EPISODE_KEYS -> [N, E]
 
 
 class Reinforce(Learner):
     """REINFORCE as the training loop drives it: a group of jobs trained as one population.
 
     The group is the jobs of one :func:`~drone_torchrl.training.jobs.group_key`, on either backend;
-    ``state`` is the population's, :meth:`eval_policy` flies all ``eval_agents`` at once.
+    ``state`` is the population's, :meth:`eval_policy` flies all ``eval_agents`` at once. Its
+    :meth:`update` gets each update's gradient (:meth:`gradient`) two ways, tested equal
+    (tests/test_kernels.py):
+
+    - ``backend=fast``: one ``ops.reinforce`` call flies the episodes and returns every
+      agent's loss and gradient (:class:`~drone_torchrl.kernels.modules.KernelReinforce`);
+    - ``backend=reference``: the collector's ``EnvBase.rollout`` tensordicts, scored by
+      :class:`~drone_torchrl.objectives.reinforce.ReinforceLoss` through the ``ProbabilisticActor``, and
+      autograd.
+
+    Args:
+        jobs: the jobs of one group, or a population's :class:`~drone_torchrl.training.agents.AgentTable`.
     """
 
     # Why an agent stops (UpdateOutput's checks, in order) and what to do about it.
@@ -44,23 +75,97 @@ class Reinforce(Learner):
         return None if cfg.backend == FAST else 1
 
     def __init__(self, jobs) -> None:
-        """``jobs``: the jobs of one group, or a population's :class:`~drone_torchrl.training.agents.AgentTable`."""
         agents = AgentTable.of(jobs)
-        cfg = agents.cfg
+        cfg, algo = agents.cfg, agents.cfg.algo
         self.population = Population(agents)
-        self.collector = make_collector(cfg, self.population)
+        #: The population's stacked state (:attr:`~drone_torchrl.training.population.Population.state`).
+        self.state = self.population.state
+        self.episodes_per_update = int(algo.episodes_per_update)
+        #: The agents :meth:`eval_policy` flies at once: all of them.
+        self.eval_agents = len(jobs)
+        self.kernel = self.loss = None
+        if cfg.backend == FAST:
+            self.collector = FastCollector(cfg, self.population)
+            flags = {
+                "baseline_mean": algo.baseline == "mean",
+                "normalize_returns": algo.normalize_returns,
+                "discount_weight": algo.discount_weight,
+                "mean_log_prob": algo.log_prob_reduction == "mean",
+            }
+            self.kernel = KernelReinforce(self.collector.kernel, algo.episodes_per_update, flags)
+        else:
+            self.collector = TorchRLCollector(cfg, self.population)
+            self.loss = ReinforceLoss(  # over [N, ...] batches, one discount per agent
+                self.collector.loss_actor,
+                gamma=self.state["gamma"],
+                agent_dims=1,
+                discount_weight=algo.discount_weight,
+                normalize_returns=algo.normalize_returns,
+                baseline=algo.baseline,
+                log_prob_reduction=algo.log_prob_reduction,
+            )
         for i, checkpoint in enumerate(agents.checkpoints):
             if checkpoint is not None:
                 self.population.load(i, checkpoint)
                 self.collector.set_rng_state(i, checkpoint["rng"], checkpoint["episodes_done"])
-        #: ``update(state, k, active)``: ``k`` updates of the active agents
-        #: (:mod:`drone_torchrl.training.update`).
-        self.update = ReinforceUpdate(cfg, self.population, self.collector)
-        #: The population's stacked state (:attr:`~drone_torchrl.training.population.Population.state`).
-        self.state = self.population.state
-        self.episodes_per_update = int(cfg.algo.episodes_per_update)
-        #: The agents :meth:`eval_policy` flies at once: all of them.
-        self.eval_agents = len(jobs)
+
+    def gradient(self, state: TensorDictBase, counters: torch.Tensor, active: torch.Tensor) -> Gradient:
+        """One update's episodes and gradient, without a step; its random numbers keyed by ``counters`` ``[N]``."""
+        if self.kernel is None:
+            return self._autograd_gradient(state, active)
+        grad, loss, std, finite, length, counts = self.kernel(state["seed"], counters, state["gamma"], active)
+        return Gradient(
+            grad, loss.to(grad.dtype), std.to(grad.dtype), finite, counted_metrics(length, counts)
+        )
+
+    def _autograd_gradient(self, state: TensorDictBase, active: torch.Tensor) -> Gradient:
+        """The TorchRL rollout's (``[N, E, T]``) loss terms, episodes and mean policy std, and autograd."""
+        params, batch = state["params"], self.collector.collect(active)
+        terms = self.loss(batch)
+        episodes = Episodes.from_rollout(batch)
+        valid = episodes.valid().unsqueeze(-1)
+        scale = batch.get("scale").detach()  # written by the actor while the loss scored the batch
+        std = (scale * valid).sum((1, 2, 3)) / (valid.sum((1, 2, 3)) * scale.shape[-1])
+        params.grad = None
+        terms["loss_reinforce"].backward()
+        grad, params.grad = params.grad, None
+        finite = ~(~episodes.action.isfinite() & valid).flatten(1).any(1)
+        stats = episode_stats(episodes)
+        return Gradient(grad, terms["loss_per_agent"], std, finite, {key: stats[key] for key in EPISODE_KEYS})
+
+    def update(
+        self, state: TensorDictBase, k: int, active: torch.Tensor
+    ) -> tuple[TensorDictBase, UpdateOutput]:
+        """Run ``k`` updates of the ``active`` agents (``[N]`` bool); returns ``state`` and their output.
+
+        Each: every agent's gradient, its norm clipped; an agent whose actions, loss or gradient are
+        not finite does not step and drops out of the rest of the call, the others take their Adam step.
+        """
+        params, counter, adam = state["params"], state["counter"], self.population.adam
+        start = counter.clone()  # the updates' random numbers are keyed by the counters they start from
+        metrics: list[dict[str, torch.Tensor]] = []
+        stats: list[dict[str, torch.Tensor]] = []
+        for j in range(k):
+            g = self.gradient(state, start + j, active)
+            grad_norms = clip_grad_norms(g.grad, self.population.max_grad_norm)
+            checks = torch.stack([g.actions_finite, g.loss.isfinite(), grad_norms.isfinite()])
+            adam.step(state, g.grad, active & checks.all(0))
+            with torch.no_grad():
+                checks = torch.cat([checks, params.isfinite().all(1).unsqueeze(0)])
+            counter += active
+            stats.append(g.episodes)
+            metrics.append(
+                {
+                    "train/loss": g.loss,
+                    "train/grad_norm": grad_norms,
+                    "policy/std_mean": g.std,
+                    "active": active,
+                    "checks": checks.T,
+                }
+            )
+            active = active & checks.all(0)
+        stack = lambda rows: {key: torch.stack([row[key] for row in rows]) for key in rows[0]}  # noqa: E731
+        return state, UpdateOutput(stack(metrics), stack(stats))
 
     def eval_policy(self):
         """The policy that evaluations fly, every agent at once."""

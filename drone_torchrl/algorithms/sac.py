@@ -35,8 +35,7 @@ from drone_torchrl.algorithms.ppo import OneRun, one_env
 from drone_torchrl.checks import ConfigError
 from drone_torchrl.memory_estimate import sac_parts
 from drone_torchrl.migrations import FAST
-from drone_torchrl.modules.factory import build_q_value
-from drone_torchrl.training.segments import FusedSegments
+from drone_torchrl.modules.factory import build_critic
 
 # Clipped double-Q: the target is the smaller of two Q-networks' (SACLoss's default).
 NUM_QVALUE_NETS = 2
@@ -84,11 +83,10 @@ class SAC(OneRun):
 
     def __init__(self, jobs) -> None:
         super().__init__(jobs)
-        (job,) = jobs
         cfg, algo = self.cfg, self.cfg.algo
         self.loss = SACLoss(
             self.actor_module,
-            build_q_value(cfg),
+            build_critic(cfg, q_value=True),
             num_qvalue_nets=NUM_QVALUE_NETS,
             loss_function="l2",
             alpha_init=algo.alpha_init,
@@ -104,27 +102,23 @@ class SAC(OneRun):
             ],
             lr=algo.lr,
         )
-        self._batches = self.collector = FusedSegments(cfg, self.actor_module, self.net)
-        self.generator = self.collector.generator
+        self.parts["optimizer"] = self.optimizer
         self.buffer = TensorDictReplayBuffer(
             storage=LazyTensorStorage(algo.buffer_size, device=cfg.device),
             sampler=RandomSampler(),
             batch_size=algo.batch_size,
         )
-        if job.checkpoint is not None:
-            self._restore(job.checkpoint)
+        self.start(jobs[0].checkpoint)
 
-    def _restore(self, checkpoint: Mapping[str, Any]) -> None:
-        self.actor_module.load_state_dict(checkpoint["actor"])
+    def restore(self, checkpoint: Mapping[str, Any]) -> None:
+        """Resume as :meth:`OneRun.restore` does, with the Q-networks, their targets, the temperature and the buffer."""
+        super().restore(checkpoint)
         self.loss.load_state_dict({**self.loss.state_dict(), **checkpoint["qvalue"]})
-        self.optimizer.load_state_dict(checkpoint["optimizer"])
-        self.restore_rng(checkpoint["rng"])
         saved = checkpoint["replay_buffer"]
         frames = TensorDict(saved["frames"]).auto_batch_size_(batch_dims=1)
         if len(frames):
             self.buffer.extend(frames.to(self.cfg.device))
         self.buffer.writer.load_state_dict(saved["writer"])
-        self.restore_drones(checkpoint["drones"])
 
     def learn(self, batch: TensorDictBase) -> dict[str, float]:
         """The batch stored, then ``algo.updates_per_batch`` gradient steps of the actor, Q-networks and temperature.
@@ -153,19 +147,16 @@ class SAC(OneRun):
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """Everything the next update depends on, as checkpoint entries.
 
-        That is: the networks (``qvalue``: SACLoss's Q-networks, their targets and the temperature),
-        Adam, both generators, the buffer's filled frames and its write cursor, and the drones'
-        running episodes.
+        :meth:`OneRun.checkpoint_entries` (actor, Adam, both generators, the drones' running
+        episodes), ``qvalue`` (SACLoss's Q-networks, their targets and the temperature) and the
+        buffer's filled frames and its write cursor.
         """
         # A copy: the slice is a view, and torch.save writes a view's whole storage (the capacity).
         filled = self.buffer.storage[: len(self.buffer)].clone() if len(self.buffer) else TensorDict()
         return {
-            "actor": self.actor_module.state_dict(),
+            **super().checkpoint_entries(agent),
             "qvalue": {k: v for k, v in self.loss.state_dict().items() if not k.startswith("actor_network")},
-            "optimizer": self.optimizer.state_dict(),
-            "rng": self.rng_entry(),
             "replay_buffer": {"frames": filled.cpu().to_dict(), "writer": self.buffer.writer.state_dict()},
-            "drones": self.drones_entry(),
         }
 
 

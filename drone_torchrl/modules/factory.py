@@ -152,29 +152,23 @@ def hover_mean(distribution: str, max_thrust: float | None) -> float:
     return math.atanh(inside)
 
 
-def _value_mlp(cfg: DictConfig, hidden_sizes: Sequence[int], inputs: int) -> MLP:
-    """A one-output MLP with the policy's activation, made in float32 on ``cfg.device``, then in :func:`model_dtype`."""
+def build_critic(cfg: DictConfig, q_value: bool = False) -> ValueOperator:
+    """PPO's value network (``algo.value_hidden_sizes``): ``"observation"`` in, ``"state_value"`` out.
+
+    ``q_value``: SAC's Q-network (``algo.qvalue_hidden_sizes``), the observation and action in,
+    ``"state_action_value"`` out. A one-output MLP with the policy's activation, made in float32 on
+    ``cfg.device``, then in :func:`model_dtype`.
+    """
+    in_keys = ["observation", "action"] if q_value else ["observation"]
     net = MLP(
-        in_features=inputs,
+        in_features=observation_dim(cfg) + (ACTION_DIM if q_value else 0),
         out_features=1,
-        num_cells=list(hidden_sizes),
+        num_cells=list(cfg.algo.qvalue_hidden_sizes if q_value else cfg.algo.value_hidden_sizes),
         activation_class=ACTIVATIONS[cfg.model.activation],
         device=cfg.device,
     )
-    return net.to(model_dtype(cfg))
-
-
-def build_critic(cfg: DictConfig) -> ValueOperator:
-    """PPO's value network (``algo.value_hidden_sizes``): ``"observation"`` in, ``"state_value"`` out."""
-    return ValueOperator(
-        _value_mlp(cfg, cfg.algo.value_hidden_sizes, observation_dim(cfg)), in_keys=["observation"]
-    )
-
-
-def build_q_value(cfg: DictConfig) -> ValueOperator:
-    """SAC's Q-network (``algo.qvalue_hidden_sizes``): the observation and action in, ``"state_action_value"`` out."""
-    net = _value_mlp(cfg, cfg.algo.qvalue_hidden_sizes, observation_dim(cfg) + ACTION_DIM)
-    return ValueOperator(net, in_keys=["observation", "action"], out_keys=["state_action_value"])
+    out_keys = ["state_action_value" if q_value else "state_value"]
+    return ValueOperator(net.to(model_dtype(cfg)), in_keys=in_keys, out_keys=out_keys)
 
 
 def build_actor(

@@ -143,13 +143,17 @@ def make_actor(
         raise ValueError(
             f"model.activation={activation!r} is not allowed; expected one of {tuple(ACTIVATIONS)}"
         )
-    check_head(distribution, max_thrust)
+    distribution_head(distribution, max_thrust)  # refused before the net is built
     net = ThreeNetPolicy(hidden_sizes, activation, min_std, distribution_eps=distribution_eps).to(device)
     return actor_from_net(net, distribution, max_thrust)
 
 
-def check_head(distribution: str, max_thrust: float | None) -> None:
-    """Raise ``ValueError`` for a distribution head that cannot be built."""
+def distribution_head(distribution: str, max_thrust: float | None) -> tuple[type, dict]:
+    """The TorchRL distribution class and its keyword arguments for the head ``distribution``.
+
+    Called as ``cls(loc, scale, **kwargs)``. What the actor samples from and the losses score with.
+    Raises ``ValueError`` for a head that cannot be built.
+    """
     if distribution not in DISTRIBUTIONS:
         raise ValueError(
             f"model.distribution={distribution!r} is not allowed; expected one of {DISTRIBUTIONS}"
@@ -158,14 +162,6 @@ def check_head(distribution: str, max_thrust: float | None) -> None:
         raise ValueError(
             "model.distribution='tanh_normal' needs a bounded action: set env.max_thrust (e.g. 1.0)"
         )
-
-
-def distribution_head(distribution: str, max_thrust: float | None) -> tuple[type, dict]:
-    """The TorchRL distribution class and its keyword arguments for the head ``distribution``.
-
-    Called as ``cls(loc, scale, **kwargs)``. What the actor samples from and the losses score with.
-    """
-    check_head(distribution, max_thrust)
     if distribution == "normal":
         return IndependentNormal, {}
     # tanh_loc=False keeps the mean head's scale: with True and bounds [0, A] a zero mean maps near A.

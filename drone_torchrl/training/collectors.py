@@ -6,7 +6,7 @@
 - :class:`FastCollector` (``backend=fast``): any number of agents on the C++ engine
   (:mod:`drone_torchrl.kernels`). It hands out no batches: each update's episodes are flown and
   differentiated inside one kernel call
-  (:class:`~drone_torchrl.kernels.modules.KernelReinforce`, :mod:`.update`), with start states and
+  (:class:`~drone_torchrl.kernels.modules.KernelReinforce`, :meth:`drone_torchrl.algorithms.reinforce.Reinforce.update`), with start states and
   action noise from the counter-based generator of :mod:`.rng` (a function of each agent's seed and
   update count; under disturbances each episode's key too), so an agent's run does not depend on
   which other agents share the batch; the evaluator flies the kernel's deterministic rollout.
@@ -30,9 +30,7 @@ from drone_torchrl.config import env_kwargs, physics_params
 from drone_torchrl.envs.drone_env import DroneEnv
 from drone_torchrl.envs.factory import make_env
 from drone_torchrl.kernels.modules import KernelRollout
-from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor
-from drone_torchrl.modules.policy import actor_from_net
 from drone_torchrl.modules.stacked import StackedThreeNet
 from drone_torchrl.training.population import Population
 
@@ -64,14 +62,13 @@ class TorchRLCollector:
     """
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
-        if len(population) != 1:
-            raise ValueError(f"backend='reference' trains one agent at a time, got {len(population)}")
         workers = cfg.env.num_workers
         per_worker = cfg.algo.episodes_per_update // max(workers, 1)
         self.env = make_env(num_envs=per_worker, num_workers=workers, device=cfg.device, **env_kwargs(cfg))
         self.env.set_seed(cfg.seed)
         self.cfg = cfg
-        self._loss_actor = build_actor(cfg, population.policy)
+        #: The actor that scores ``[1, E, T]`` batches (the agent dim first).
+        self.loss_actor = build_actor(cfg, population.policy)
         self._actor = build_actor(cfg, _OneAgent(population.policy))
         self._stop = (
             {"break_when_all_done": True}
@@ -79,15 +76,11 @@ class TorchRLCollector:
             else {"break_when_any_done": False}
         )
 
-    def collect(self, j: int, active: torch.Tensor) -> TensorDictBase:
+    def collect(self, active: torch.Tensor) -> TensorDictBase:
         """Fly one update's episodes; returns the rollout as a ``[1, E, T]`` tensordict (agent dim first)."""
         with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
             rollout = self.env.rollout(self.cfg.env.max_steps, self._actor, **self._stop)
         return rollout.reshape(1, -1, rollout.shape[-1])
-
-    def actor(self) -> ProbabilisticActor:
-        """The actor that scores ``[1, E, T]`` batches (the agent dim first)."""
-        return self._loss_actor
 
     def eval_policy(self) -> ProbabilisticActor:
         """The policy the evaluator flies (the collector's actor)."""
@@ -124,13 +117,7 @@ class FastCollector:
     """
 
     def __init__(self, cfg: DictConfig, population: Population) -> None:
-        self.population = population
         self.kernel = kernel_rollout(cfg, population.policy)
-        self._actor = actor_from_net(population.policy, cfg.model.distribution, cfg.env.max_thrust)
-
-    def actor(self) -> ProbabilisticActor:
-        """The agents' nets under the config's distribution head (scores ``[N, ...]`` batches)."""
-        return self._actor
 
     def eval_policy(self) -> KernelRollout:
         """The deterministic episodes of every agent, flown by the kernel (the arithmetic of training)."""
@@ -164,8 +151,3 @@ def kernel_rollout(cfg: DictConfig, policy: StackedThreeNet) -> KernelRollout:
         cfg.env.reset_mode,
         kwargs["disturbance"],
     )
-
-
-def make_collector(cfg: DictConfig, population: Population) -> TorchRLCollector | FastCollector:
-    """The collector of ``cfg.backend``."""
-    return FastCollector(cfg, population) if cfg.backend == FAST else TorchRLCollector(cfg, population)

@@ -17,6 +17,7 @@ as ``clip_grad_norm_`` does.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -52,6 +53,7 @@ def adam_state(params: torch.Tensor, lr: torch.Tensor, weight_decay: torch.Tenso
     }
 
 
+@dataclass(eq=False)
 class Adam:
     """Adam or AdamW over the ``[N, P]`` ``"params"`` of a population's state.
 
@@ -66,18 +68,11 @@ class Adam:
             that the step does not ask the device (a host sync).
     """
 
-    def __init__(
-        self,
-        betas: tuple[float, float] = (0.9, 0.999),
-        eps: float = 1e-8,
-        decoupled_weight_decay: bool = False,
-        coupled_decay: bool = False,
-    ) -> None:
-        self.betas = betas
-        self.eps = eps
-        self.decoupled_weight_decay = decoupled_weight_decay
-        self.coupled_decay = coupled_decay
-        self._rows: tuple | None = None
+    betas: tuple[float, float] = (0.9, 0.999)
+    eps: float = 1e-8
+    decoupled_weight_decay: bool = False
+    coupled_decay: bool = False
+    _rows: tuple | None = field(default=None, init=False, repr=False)
 
     @torch.no_grad()
     def step(self, state: TensorDictBase, grad: torch.Tensor, agents: torch.Tensor | None = None) -> None:

@@ -20,9 +20,9 @@ import functools
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from itertools import compress
 from pathlib import Path
 
-import numpy as np
 import torch
 from omegaconf import DictConfig
 
@@ -36,7 +36,7 @@ from drone_torchrl.io.streams import about, console
 from drone_torchrl.kernels.modules import KernelRollout
 from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
-from drone_torchrl.registry import ALGORITHMS, Learner
+from drone_torchrl.registry import ALGORITHMS
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
@@ -73,23 +73,12 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
 
     In float64, which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such.
     """
-    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu().numpy()
-    out: dict[str, list] = {}
-    start = 0
-    for key, tensor in tensors.items():
-        values = flat[start : start + tensor.numel()].reshape(tensor.shape)
-        start += tensor.numel()
-        if tensor.dtype == torch.bool:
-            values = values.astype(bool)
-        elif not tensor.is_floating_point():
-            values = values.astype(np.int64)
-        out[key] = values.tolist()
-    return out
-
-
-def learner_class(cfg: DictConfig) -> type[Learner]:
-    """The learner of ``algo.name``, from the algorithm registry (:mod:`drone_torchrl.algorithms`)."""
-    return ALGORITHMS.get(cfg.algo.name).learner
+    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu()
+    parts = flat.split([t.numel() for t in tensors.values()])
+    return {
+        key: part.reshape(t.shape).to(torch.float64 if t.is_floating_point() else t.dtype).tolist()
+        for (key, t), part in zip(tensors.items(), parts, strict=True)
+    }
 
 
 class Trainer:
@@ -114,9 +103,8 @@ class Trainer:
         torch.set_num_threads(cfg.threads)
         if torch.device(cfg.device).type == "cpu":
             keep_freed_memory()
-        self.learner = learner_class(cfg)(jobs)
+        self.learner = ALGORITHMS.get(cfg.algo.name).learner(jobs)
         self.runs: list[AgentBook] = []
-        self.records: list[Record] = []  # a run folder each: the runs', or the population's
         self.book: PopulationRecord | None = None
         self._search_step_pending = False
         try:
@@ -132,7 +120,7 @@ class Trainer:
                     cfg.backend,
                     checkpoint,
                 )
-                self.records, self.runs = [self.book], list(self.book.agents)
+                self.runs = list(self.book.agents)
                 if search is not None:
                     saved = None if checkpoint is None else checkpoint["search"]
                     self.book.search = search.make(cfg, self.book.values, saved)
@@ -147,7 +135,6 @@ class Trainer:
                     )
             for job in jobs if population_dir is None else ():
                 self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
-                self.records.append(self.runs[-1])
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
             self.progress = Progress([], False)
             self.close(quietly=True)
@@ -232,10 +219,7 @@ class Trainer:
                     continue
                 ended = {key: values[j][i] for key, values in episodes.items()}
                 if valid is not None:  # a learner whose updates end different numbers of episodes
-                    ended = {
-                        key: [v for v, ok in zip(values, valid[j][i], strict=True) if ok]
-                        for key, values in ended.items()
-                    }
+                    ended = {key: list(compress(values, valid[j][i])) for key, values in ended.items()}
                 runs[i].record(ended, {key: values[j][i] for key, values in host.items()})
                 steps += sum(ended["length"])
                 booked.append((runs[i], len(ended["length"])))
@@ -311,7 +295,9 @@ class Trainer:
         """
         self.progress.close()
         self.learner.close()
-        for record in self.records:
+        # A run folder each: the runs', or the population's.
+        records: list[Record] = self.runs if self.book is None else [self.book]
+        for record in records:
             try:
                 record.close(quietly)
             except Exception:  # noqa: BLE001  (a logger's own error, when another one is reported)
@@ -343,7 +329,7 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
     batches = []
     for members in groups.values():
         cfg = jobs[members[0]].cfg
-        size = learner_class(cfg).max_agents(cfg) or len(members)
+        size = ALGORITHMS.get(cfg.algo.name).learner.max_agents(cfg) or len(members)
         batches += [members[start : start + size] for start in range(0, len(members), size)]
     try:
         with stop_on_signals() as stop:
@@ -410,10 +396,8 @@ def train_job(job: Job) -> Outcome:
     Raises the error that stopped it, as :func:`train` does (``drone_torchrl.train`` calls this too).
     """
     (outcome,) = train_jobs([job])
-    if outcome.error is not None:
+    if outcome.error is not None:  # else it finished: train_jobs set its final metrics
         raise outcome.error
-    if outcome.final is None:
-        raise ConfigError(f"{outcome.run_dir}: training ended without final metrics")
     return outcome
 
 
@@ -478,7 +462,7 @@ def check_population(agents: AgentTable, search: SearchSettings | None = None) -
     or the population's size cannot hold (``search.check``).
     """
     cfg = agents.cfg
-    if learner_class(cfg).max_agents(cfg) is not None:
+    if ALGORITHMS.get(cfg.algo.name).learner.max_agents(cfg) is not None:
         raise ConfigError(
             f"algo={cfg.algo.name} is not allowed with hydra/launcher=population (with backend={cfg.backend} it "
             "trains one agent at a time); expected algo=reinforce (or reinforce_plus) with backend=fast, "
