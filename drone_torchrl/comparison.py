@@ -161,18 +161,17 @@ def write_table(out_dir: Path, results: dict[str, dict], settings: dict[str, Any
 
 
 def run_eval(
-    cfg: DictConfig, out_dir: Path | None = None, requested: set[str] | None = None, table: bool | None = None
+    cfg: DictConfig, out_dir: Path | None = None, requested: set[str] | None = None
 ) -> dict[str, dict]:
     """Evaluate ``cfg.checkpoint`` (or the PD controller); write the table, the plot and the video.
 
     Returns each policy's :func:`~drone_torchrl.evaluation.summarize` by its name in the table.
     ``out_dir``: where the files go (default: the Hydra job's folder, else the working folder);
-    ``requested``: the keys the caller set (default: those of the Hydra command line); ``table``:
-    write the table as :data:`TABLE_NAME` and :data:`SETTINGS_NAME` (default: when run as
-    ``drone-eval``, a Hydra job; a Python call writes only the plot and video it asks for).
+    ``requested``: the keys the caller set (default: those of the Hydra command line). The table is
+    written as :data:`TABLE_NAME` and :data:`SETTINGS_NAME` when run as ``drone-eval`` (a Hydra job
+    choosing the folder); a Python call writes only the plot and video it asks for.
     """
-    if table is None:
-        table = out_dir is None and HydraConfig.initialized()
+    table = out_dir is None and HydraConfig.initialized()
     if out_dir is None:
         out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
     keys = (command_line_keys() or set()) if requested is None else requested

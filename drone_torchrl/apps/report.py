@@ -9,6 +9,7 @@ drone-report multirun/lr32 multirun/gamma32 --paper-averaging   # also the paper
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from collections.abc import Callable, Sequence
@@ -23,23 +24,16 @@ PROG = "drone-report"
 EXIT_ERROR = 2
 
 
-def _positive_int(text: str) -> int:
-    return _checked(text, int, lambda value: value >= 1, "an integer >= 1")
+def _checked(kind: type, good: Callable[[Any], bool], expected: str) -> Callable[[str], Any]:
+    """An argparse type: ``kind(text)`` if it is ``good``; else argparse's error, in one line."""
 
-
-def _finite(text: str) -> float:
-    return _checked(text, float, math.isfinite, "a finite number")
-
-
-def _checked(text: str, kind: type, good: Callable[[Any], bool], expected: str) -> Any:
-    """``kind(text)`` if it is ``good``; else argparse's error, in one line."""
-    try:
-        value = kind(text)
-    except ValueError:
-        value = None
-    if value is None or not good(value):
+    def parse(text: str) -> Any:
+        with contextlib.suppress(ValueError):
+            if good(value := kind(text)):
+                return value
         raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected {expected}")
-    return value
+
+    return parse
 
 
 def _folder(text: str) -> Path:
@@ -75,12 +69,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--window",
-        type=_positive_int,
+        type=_checked(int, lambda value: value >= 1, "an integer >= 1"),
         help="running-mean window in episodes (default: a run's, the paper's 100)",
     )
     parser.add_argument(
         "--return-threshold",
-        type=_finite,
+        type=_checked(float, math.isfinite, "a finite number"),
         default=DEFAULT_RETURN_THRESHOLD,
         help=f"report the first episode the running-mean return reaches this (default {DEFAULT_RETURN_THRESHOLD:g})",
     )

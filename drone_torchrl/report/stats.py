@@ -2,7 +2,7 @@
 
 That is: running means, statistics over seeds, threshold crossings, the summary of each setting,
 the verdict, the PD controller's reference return, the best achievable return
-(:mod:`drone_torchrl.optimum`), and :class:`SweepReport`, all of one sweep folder.
+(:func:`drone_torchrl.evaluation.reference_optimum`), and :class:`SweepReport`, all of one sweep folder.
 """
 
 from __future__ import annotations
@@ -241,7 +241,7 @@ def summarize(
         return Crossing(threshold, [h for h in hits if h is not None], len(curves))
 
     episodes = [r.episodes for r in setting.runs]
-    best = optimum_reference(env_key(setting.env_kwargs))
+    best = reference_optimum(setting.env_kwargs)  # cached per env setting (optimum.env_optimum)
     return SettingSummary(
         label=setting.label,
         seeds_finished=sum(r.status == STATUS_FINISHED for r in setting.runs),
@@ -303,28 +303,11 @@ def env_key(env_kwargs: dict[str, Any]) -> str:
 
 @functools.cache
 def _pd_return(env_json: str) -> float:
-    return evaluate_pd(json.loads(env_json), episodes=PD_EPISODES, seed=PD_SEED)["return_mean"]
-
-
-def pd_reference(env_kwargs: dict[str, Any]) -> float:
     """Mean return of the PD hover controller (:func:`~.evaluation.evaluate_pd`, 100 episodes, seed 0).
 
-    Computed once per distinct env setting in this process (cached).
+    Computed once per distinct env setting (:func:`env_key`) in this process (cached).
     """
-    return _pd_return(env_key(env_kwargs))
-
-
-# --------------------------------------------------------------------------------------------------
-# The optimum
-
-
-@functools.cache
-def optimum_reference(env_json: str) -> Optimum | None:
-    """The best achievable return of every episode in this env (:func:`env_key`) with bounded thrust, or ``None``.
-
-    Computed by :func:`drone_torchrl.evaluation.reference_optimum`; cached per env setting.
-    """
-    return reference_optimum(json.loads(env_json))
+    return evaluate_pd(json.loads(env_json), episodes=PD_EPISODES, seed=PD_SEED)["return_mean"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -392,7 +375,7 @@ def build_report(
         by_env.setdefault(env_key(s.env_kwargs), []).append(s.label)
     for env_json, labels in by_env.items():
         suffix = "" if len(by_env) == 1 else f" ({LABEL_SEPARATOR.join(labels)})"
-        best = optimum_reference(env_json)
+        best = reference_optimum(json.loads(env_json))
         if best is not None:
             report.optima[OPTIMUM_LABEL + suffix] = best
         if pd:

@@ -70,8 +70,7 @@ def plot_curves(report: SweepReport, column: str, path: Path) -> Path:
                 best.best_return, linestyle="-.", color="darkred", label=f"{name}: {best.best_return:.0f}"
             )
         ylabel, what = "return per episode", "Return"
-    ax.set_xlabel("episode")
-    ax.set_ylabel(f"{ylabel} (running mean over {report.window})")
+    ax.set(xlabel="episode", ylabel=f"{ylabel} (running mean over {report.window})")
     ax.set_title(f"{report.name}: {what.lower()}, mean +- std over seeds")
     ax.grid(alpha=0.2)
     ax.legend(loc="best", fontsize="small")
@@ -92,15 +91,13 @@ def summary_rows(report: SweepReport) -> list[dict[str, Any]]:
             "final_return_std": s.final_return_std,
             "return_ceiling": s.ceiling,
             "final_return_pct_of_ceiling": s.final_return_pct,
-            "optimum_return": "" if s.optimum is None else s.optimum,
-            "final_return_pct_of_optimum": "" if s.optimum is None else s.final_return_pct_of_optimum,
+            "optimum_return": _or_empty(s.optimum),
+            "final_return_pct_of_optimum": _or_empty(s.optimum and s.final_return_pct_of_optimum),
             "max_steps": s.max_steps,
-            "length_cap_episode_mean": "" if s.length_cap.mean is None else s.length_cap.mean,
+            "length_cap_episode_mean": _or_empty(s.length_cap.mean),
             "length_cap_seeds_reached": len(s.length_cap.episodes),
             "return_threshold": report.return_threshold,
-            "return_threshold_episode_mean": ""
-            if s.return_threshold.mean is None
-            else s.return_threshold.mean,
+            "return_threshold_episode_mean": _or_empty(s.return_threshold.mean),
             "return_threshold_seeds_reached": len(s.return_threshold.episodes),
             "final_negative_thrust_fraction": s.final_negative_thrust,
             "wall_clock_mean_s": s.wall_clock_mean_s,
@@ -109,6 +106,10 @@ def summary_rows(report: SweepReport) -> list[dict[str, Any]]:
         }
         for s in report.summaries
     ]
+
+
+def _or_empty(value: float | None) -> float | str:
+    return "" if value is None else value
 
 
 def _common(values: set) -> str:
