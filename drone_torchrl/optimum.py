@@ -371,4 +371,3 @@ def fly_plan(
     dtype = "float64" if start.dtype == torch.float64 else "float32"
     episodes = fly_reference(policy, start, max_steps=max_steps, dtype=dtype, **dataclasses.asdict(params))
     return episodes, plan
-
