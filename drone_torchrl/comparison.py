@@ -57,12 +57,10 @@ SETTINGS_NAME = "results.json"
 NOT_IN_TABLE = ("terminated_fraction", "causes")
 
 
-def plot_trajectory(
-    rollout: TensorDictBase, path: Path, title: str, params: DroneParams | None = None
-) -> Path:
+def plot_trajectory(rollout: TensorDictBase, path: Path, title: str, p: DroneParams) -> Path:
     """Plot the first episode's x-z path over the domain and target zone, and both thrusts over time.
 
-    The domain and zone are those of ``params`` (default: the paper's).
+    The domain and zone are those of ``p``, the env's parameters.
     """
     from matplotlib.patches import Rectangle
 
@@ -70,7 +68,6 @@ def plot_trajectory(
     valid = valid_steps(first.get(("next", "done"))).squeeze(-1)
     states = torch.cat([first.get("observation")[:1], first.get(("next", "observation"))[valid]]).numpy()
     actions = first.get("action")[valid].numpy()
-    p = DroneParams() if params is None else params
     fig = new_figure((11, 4.5))
     ax_path, ax_thrust = fig.subplots(1, 2)
     zone = (-p.zone_x_limit, p.zone_z_min), 2 * p.zone_x_limit, p.zone_z_max - p.zone_z_min

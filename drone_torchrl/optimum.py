@@ -293,22 +293,6 @@ def optimum(params: DroneParams, steps: int, start: Start = FLOOR_START) -> Opti
     return Optimum(steps, zone_steps, first, plan)
 
 
-def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]:
-    """The vertical start states of ``reset_mode``: the floor start or the air box's corners.
-
-    The floor start is at ``params.z_min``; the air box has ``z`` and ``z_dot`` within
-    :data:`dynamics.RESET_NOISE <.dynamics.RESET_NOISE>` of the zone's centre and of rest.
-    """
-    params = DroneParams() if params is None else params
-    if reset_mode == "floor":
-        return [(params.z_min, FLOOR_START[1])]
-    if reset_mode == "air":
-        noise = dynamics.RESET_NOISE
-        centre = params.zone_z_centre
-        return [(centre + dz, dv) for dz in (-noise, noise) for dv in (-noise, noise)]
-    raise ValueError(f"reset_mode={reset_mode!r} is not allowed; expected one of {dynamics.RESET_MODES}")
-
-
 @functools.cache
 def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum | None:
     """The best achievable return of every episode that starts as ``reset_mode`` resets.
@@ -327,9 +311,13 @@ def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum
     """
     if params.max_thrust is not None and params.max_thrust < HOVER_THRUST:
         return None
-    corners = start_box(reset_mode, params)
-    if len(corners) == 1:
-        return optimum(params, max_steps, corners[0])
+    if reset_mode == "floor":
+        return optimum(params, max_steps, (params.z_min, FLOOR_START[1]))
+    if reset_mode != "air":
+        raise ValueError(f"reset_mode={reset_mode!r} is not allowed; expected one of {dynamics.RESET_MODES}")
+    # The air box: z and z_dot within RESET_NOISE of the zone's centre and of rest; its corners.
+    noise, centre = dynamics.RESET_NOISE, params.zone_z_centre
+    corners = [(centre + dz, dv) for dz in (-noise, noise) for dv in (-noise, noise)]
     plans = [zone_margin(params, max_steps, 1, corner) for corner in corners]
     if any(plan is None or plan.margin < -MARGIN_TOLERANCE for plan in plans):
         return None

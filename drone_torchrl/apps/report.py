@@ -121,11 +121,10 @@ def main(argv: Sequence[str] | None = None) -> None:
             if args.paper_averaging:
                 print(format_paper_averaging_section(report))
             print(f"wrote {', '.join(str(p) for p in paths)}\n")
-    except (ReportError, StorageError) as err:  # StorageError: a figure or table the disk refused
-        print(f"{PROG}: error: {err}", file=sys.stderr)
-        sys.exit(EXIT_ERROR)
-    except OSError as err:  # an output folder that cannot be made or written
-        print(f"{PROG}: error: {err.filename}: {err.strerror}", file=sys.stderr)
+    except (ReportError, OSError) as err:  # StorageError: a figure or table the disk refused, in one line
+        # Another OSError: an output folder that cannot be made or written.
+        plain = isinstance(err, OSError) and not isinstance(err, StorageError)
+        print(f"{PROG}: error: {f'{err.filename}: {err.strerror}' if plain else err}", file=sys.stderr)
         sys.exit(EXIT_ERROR)
 
 
