@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from drone_torchrl.report.stats import (
     PERCENT,
     STD_DDOF,
     ZONE_SHARE,
+    SettingSummary,
     SweepReport,
     markdown_table,
     setting_curve,
@@ -116,6 +117,14 @@ def _common(values: set) -> str:
     return f"{next(iter(values)):g}" if len(values) == 1 else "10 x max_steps"
 
 
+def _span(low: int, high: int) -> str:
+    return f"{high}" if low == high else f"{low}-{high}"
+
+
+def _percent(value: float, suffix: str = "") -> str:
+    return "-" if math.isnan(value) else f"{value:.1f}%{suffix}"
+
+
 def _duration(seconds: float) -> str:
     if math.isnan(seconds):
         return "-"
@@ -129,40 +138,26 @@ def format_table(report: SweepReport) -> str:
     """The summary table in Markdown."""
     ceiling = _common({s.ceiling for s in report.summaries})
     cap = _common({s.max_steps for s in report.summaries})
-    header = [
-        "setting",
-        "seeds (finished/total)",
-        "episodes",
-        f"final return (running mean {report.window})",
-        f"% of {ceiling}",
-        "% of optimum",
-        f"length reaches {cap} at episode",
-        f"return reaches {report.return_threshold:g} at episode",
-        "negative thrust",
-        "wall-clock per run",
-        "wall-clock total (sum over runs)",
-        "notes",
+    # Each column: its header and its cell of a setting's summary.
+    columns: list[tuple[str, Callable[[SettingSummary], str]]] = [
+        ("setting", lambda s: s.label),
+        ("seeds (finished/total)", lambda s: f"{s.seeds_finished}/{s.seeds_total}"),
+        ("episodes", lambda s: _span(s.episodes_min, s.episodes_max)),
+        (f"final return (running mean {report.window})", SettingSummary.return_text),
+        (f"% of {ceiling}", lambda s: _percent(s.final_return_pct)),
+        (
+            "% of optimum",
+            lambda s: _percent(s.final_return_pct_of_optimum, f" of {s.optimum:g}" if s.optimum else ""),
+        ),
+        (f"length reaches {cap} at episode", lambda s: s.length_cap.text()),
+        (f"return reaches {report.return_threshold:g} at episode", lambda s: s.return_threshold.text()),
+        ("negative thrust", lambda s: _percent(PERCENT * s.final_negative_thrust)),
+        ("wall-clock per run", lambda s: _duration(s.wall_clock_mean_s)),
+        ("wall-clock total (sum over runs)", lambda s: _duration(s.wall_clock_total_s)),
+        ("notes", lambda s: "; ".join(s.notes)),
     ]
-    rows = [
-        [
-            s.label,
-            f"{s.seeds_finished}/{s.seeds_total}",
-            f"{s.episodes_max}" if s.episodes_min == s.episodes_max else f"{s.episodes_min}-{s.episodes_max}",
-            s.return_text(),
-            "-" if math.isnan(s.final_return_pct) else f"{s.final_return_pct:.1f}%",
-            "-"
-            if math.isnan(s.final_return_pct_of_optimum)
-            else f"{s.final_return_pct_of_optimum:.1f}% of {s.optimum:g}",
-            s.length_cap.text(),
-            s.return_threshold.text(),
-            "-" if math.isnan(s.final_negative_thrust) else f"{PERCENT * s.final_negative_thrust:.1f}%",
-            _duration(s.wall_clock_mean_s),
-            _duration(s.wall_clock_total_s),
-            "; ".join(s.notes),
-        ]
-        for s in report.summaries
-    ]
-    return markdown_table(header, rows)
+    rows = [[cell(s) for _, cell in columns] for s in report.summaries]
+    return markdown_table([header for header, _ in columns], rows)
 
 
 def format_report(report: SweepReport, figures: bool = True) -> str:
