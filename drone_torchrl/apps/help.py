@@ -164,7 +164,7 @@ def compose(
         for path in sorted((conf / group).glob("*.yaml")):
             text = path.read_text(encoding="utf-8")
             package = re.search(r"^# @package (\S+)", text, re.MULTILINE)
-            prefix = (package[1] if package else group.replace("/", ".")).replace("_global_", "").strip(".")
+            prefix = (package[1] if package else group.replace("/", ".")).replace("_global_", "")
             meanings = key_comments(text, prefix) | meanings
     values = OmegaConf.to_container(cfg, resolve=False)
     assert isinstance(values, dict)
@@ -189,8 +189,9 @@ def _one_line(message: str) -> str:
 def key_comments(text: str, package: str = "") -> dict[str, str]:
     """``{"checkpoint.keep_best": "also keep best.pt, ..."}``: each key's comment in a YAML text.
 
-    Each key is put under ``package`` (``checkpoint``: ``checkpoint.keep_best``). A key's comment is the one on its line, else the block of comment lines right above it (no
-    blank line between), up to its first line that ends a sentence. Lines of lists (``- item``) and
+    Each key is put under ``package`` (``checkpoint``: ``checkpoint.keep_best``). A key's comment
+    is the one on its line, else the block of comment lines right above it (no blank line between),
+    up to its first line that ends a sentence. Lines of lists (``- item``) and
     of the ``defaults`` list are skipped.
     """
     out: dict[str, str] = {}
@@ -212,11 +213,11 @@ def key_comments(text: str, package: str = "") -> dict[str, str]:
         indent = len(match["indent"])
         while parents and parents[-1][0] >= indent:
             parents.pop()
-        key = ".".join([package] * bool(package) + [k for _, k in parents] + [match["key"]])
+        key = ".".join([k for _, k in parents] + [match["key"]])
         inline = _INLINE_COMMENT.search(match["rest"] or "")
         comment = inline["comment"].strip() if inline else _first_sentence(block)
         if comment and key != "defaults":
-            out[key] = comment
+            out[f"{package}.{key}".lstrip(".")] = comment
         parents.append((indent, match["key"]))
         block = []
     return out

@@ -93,35 +93,32 @@ def main(argv: Sequence[str] | None = None) -> None:
     guard_broken_pipes()  # output piped into `head` is not an unwritable report
     args = parse_args(argv)
     # Imported once the command line is read: they import torch (seconds), which --help does without.
-    from drone_torchrl.report.distribution import paper_order
-    from drone_torchrl.report.runs import ReportError, failed_without_episodes, group_runs, load_runs
-    from drone_torchrl.report.stats import build_report
-    from drone_torchrl.report.tables import (
-        format_paper_averaging_section,
-        format_report,
-        output_dirs,
-        write_report,
-    )
+    from drone_torchrl.report import distribution, runs, stats, tables
 
     try:
-        runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
-        out_dirs = output_dirs(args.sweeps, args.out)
+        loaded = [runs.load_runs(d) for d in args.sweeps]  # check every folder before any work
+        out_dirs = tables.output_dirs(args.sweeps, args.out)
         for out_dir in out_dirs:  # before any figure is drawn
             if (refused := unwritable(out_dir)) is not None:
-                raise ReportError(f"cannot write the report into {out_dir}: {refused}")
+                raise runs.ReportError(f"cannot write the report into {out_dir}: {refused}")
         if args.paper_averaging:  # every sweep must be one of the paper's grids, before any work
-            for sweep_runs in runs:
-                paper_order(group_runs(sweep_runs))
-        for sweep_dir, sweep_runs, out_dir in zip(args.sweeps, runs, out_dirs, strict=True):
-            report = build_report(sweep_dir, args.window, args.return_threshold, not args.no_pd, sweep_runs)
-            paths = write_report(report, out_dir, args.paper_averaging)
-            print(format_report(report, figures=False))
-            for job, reason in failed_without_episodes(sweep_dir):
+            for sweep_runs in loaded:
+                distribution.paper_order(runs.group_runs(sweep_runs))
+        for sweep_dir, sweep_runs, out_dir in zip(args.sweeps, loaded, out_dirs, strict=True):
+            report = stats.build_report(
+                sweep_dir, args.window, args.return_threshold, not args.no_pd, sweep_runs
+            )
+            paths = tables.write_report(report, out_dir, args.paper_averaging)
+            print(tables.format_report(report, figures=False))
+            for job, reason in runs.failed_without_episodes(sweep_dir):
                 print(f"failed before its first episode (not in the report): {job}: {reason}")
             if args.paper_averaging:
-                print(format_paper_averaging_section(report))
+                print(tables.format_paper_averaging_section(report))
             print(f"wrote {', '.join(str(p) for p in paths)}\n")
-    except (ReportError, OSError) as err:  # StorageError: a figure or table the disk refused, in one line
+    except (
+        runs.ReportError,
+        OSError,
+    ) as err:  # StorageError: a figure or table the disk refused, in one line
         # Another OSError: an output folder that cannot be made or written.
         plain = isinstance(err, OSError) and not isinstance(err, StorageError)
         print(f"{PROG}: error: {f'{err.filename}: {err.strerror}' if plain else err}", file=sys.stderr)

@@ -173,28 +173,16 @@ class SettingSummary:
     wall_clock_mean_s: float
     wall_clock_total_s: float
     notes: list[str]
+    final_return_mean: float
+    """Mean final running-mean return over the seeds (NaN without any)."""
+    final_return_std: float
+    """Standard deviation of the final returns over the seeds (NaN without any)."""
+    final_return_pct: float
+    """The mean final return as a percentage of the highest possible return."""
+    final_return_pct_of_optimum: float
+    """The final return as a percentage of :attr:`optimum` (NaN without one)."""
     optimum: float | None = None
     """The best achievable return of every episode of the setting (bounded thrust; else ``None``)."""
-
-    @property
-    def final_return_mean(self) -> float:
-        """Mean final running-mean return over the seeds (NaN without any)."""
-        return float(np.mean(self.final_returns)) if self.final_returns else math.nan
-
-    @property
-    def final_return_std(self) -> float:
-        """Standard deviation of the final returns over the seeds (NaN without any)."""
-        return float(np.std(self.final_returns, ddof=STD_DDOF)) if self.final_returns else math.nan
-
-    @property
-    def final_return_pct(self) -> float:
-        """The mean final return as a percentage of the highest possible return."""
-        return PERCENT * self.final_return_mean / self.ceiling
-
-    @property
-    def final_return_pct_of_optimum(self) -> float:
-        """The final return as a percentage of :attr:`optimum` (NaN without one)."""
-        return math.nan if self.optimum is None else PERCENT * self.final_return_mean / self.optimum
 
     def return_text(self) -> str:
         """``"2210 +- 150"``."""
@@ -242,6 +230,8 @@ def summarize(
 
     episodes = [r.episodes for r in setting.runs]
     best = reference_optimum(setting.env_kwargs)  # cached per env setting (optimum.env_optimum)
+    finals = [float(c[-1]) for c in returns]
+    mean = float(np.mean(finals)) if finals else math.nan
     return SettingSummary(
         label=setting.label,
         seeds_finished=sum(r.status == STATUS_FINISHED for r in setting.runs),
@@ -250,7 +240,7 @@ def summarize(
         episodes_max=max(episodes),
         max_steps=setting.max_steps,
         ceiling=setting.ceiling,
-        final_returns=[float(c[-1]) for c in returns],
+        final_returns=finals,
         final_lengths=[float(c[-1]) for c in lengths],
         length_cap=crossing(lengths, setting.max_steps),
         return_threshold=crossing(returns, return_threshold),
@@ -258,6 +248,10 @@ def summarize(
         wall_clock_mean_s=float(np.mean(clocks)) if clocks else math.nan,
         wall_clock_total_s=float(np.sum(clocks)) if clocks else math.nan,
         notes=progress_notes(setting),
+        final_return_mean=mean,
+        final_return_std=float(np.std(finals, ddof=STD_DDOF)) if finals else math.nan,
+        final_return_pct=PERCENT * mean / setting.ceiling,
+        final_return_pct_of_optimum=math.nan if best is None else PERCENT * mean / best.best_return,
         optimum=None if best is None else best.best_return,
     )
 
