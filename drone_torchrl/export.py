@@ -193,8 +193,7 @@ def default_output(checkpoint: Path, format: str, agent: int | None = None) -> P
 
 def check_onnx_extra() -> None:
     """format=onnx without the onnx extra: one line naming it (:class:`~.checks.ConfigError`)."""
-    missing = [name for name in ONNX_MODULES if not Needs(name, "onnx").installed]
-    if missing:
+    if missing := [name for name in ONNX_MODULES if not Needs(name, "onnx").installed]:
         raise ConfigError(f"format=onnx needs {', '.join(missing)}, not installed here: {ONNX_EXTRA}")
 
 
@@ -358,8 +357,7 @@ def check_output_folder(output: Path, given: bool = True) -> None:
 
     ``given``: the user named it (``output=``); otherwise it is :func:`default_output`'s.
     """
-    refused = unwritable(output.parent)
-    if refused is None:
+    if (refused := unwritable(output.parent)) is None:
         return
     if given:
         raise ConfigError.of("output", str(output), f"a file in a folder this user can write ({refused})")
@@ -456,9 +454,10 @@ def forward_passes(
     observation = torch.tensor([hover], dtype=_dtype(policy)).expand(batch, len(hover)).contiguous()
     passes: dict[str, Callable[[], Any]] = {}
     for format, path in files.items():
-        if format == "onnx":
-            session, feed = onnx_session(path), {ONNX_INPUT: observation.numpy()}
-            passes[RUNTIMES[format]] = lambda session=session, feed=feed: session.run(None, feed)
+        if format == "onnx":  # the session fed numpy directly: no conversion timed
+            passes[RUNTIMES[format]] = functools.partial(
+                onnx_session(path).run, None, {ONNX_INPUT: observation.numpy()}
+            )
         else:
             passes[RUNTIMES[format]] = functools.partial(load_program(path, format), observation)
     passes["eager torch"] = lambda: policy(observation)

@@ -40,8 +40,7 @@ def _folder(text: str) -> Path:
     # Path("") is the current folder: an empty --out would scatter the report where the command runs.
     if not text.strip():
         raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected a folder path")
-    refused = unwritable(text)  # before the sweeps are read
-    if refused is not None:
+    if (refused := unwritable(text)) is not None:  # before the sweeps are read
         raise argparse.ArgumentTypeError(
             f"{text!r} is not allowed; expected a folder this user can write ({refused})"
         )

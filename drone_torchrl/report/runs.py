@@ -181,7 +181,6 @@ def load_population(run_dir: Path) -> list[Run]:
 
 def load_run(job_dir: Path) -> Run | None:
     """Read one job folder; ``None`` if it has no ``episodes.csv`` (not started, or failed early)."""
-    job_dir = Path(job_dir)
     csv_path = job_dir / CSV_NAME
     if not csv_path.is_file():
         return None
@@ -205,11 +204,8 @@ def find_jobs(sweep_dir: Path) -> list[Path]:
 
     A sweep's job folders are those of :func:`~drone_torchrl.training.jobs.sweep_jobs`.
     """
-    sweep_dir = Path(sweep_dir)
     jobs = sweep_jobs(sweep_dir)
-    if not jobs and (sweep_dir / HYDRA_DIR).is_dir():
-        jobs = [sweep_dir]
-    return jobs
+    return jobs if jobs or not (sweep_dir / HYDRA_DIR).is_dir() else [sweep_dir]
 
 
 def failed_without_episodes(sweep_dir: Path) -> list[tuple[Path, str]]:

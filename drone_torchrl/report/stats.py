@@ -13,7 +13,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -204,8 +203,7 @@ def progress_notes(setting: Setting) -> list[str]:
     notes = []
     total = len(setting.runs)
     for status in (STATUS_UNFINISHED, STATUS_FAILED):  # each status is also its word in the note
-        stopped = [r for r in setting.runs if r.status == status]
-        if stopped:
+        if stopped := [r for r in setting.runs if r.status == status]:
             shortest = min(r.episodes for r in stopped)
             notes.append(f"{len(stopped)} of {total} seeds {status}, shortest at {shortest} episodes")
     for run in setting.runs:
@@ -287,19 +285,11 @@ def verdict(summaries: Sequence[SettingSummary]) -> str:
 # PD reference
 
 
-def env_key(env_kwargs: dict[str, Any]) -> str:
-    """An env setting as a hashable key (JSON); ``json.loads`` gives the arguments back.
-
-    JSON because the arguments hold a mapping (env.disturbance).
-    """
-    return json.dumps(env_kwargs, sort_keys=True)
-
-
 @functools.cache
 def _pd_return(env_json: str) -> float:
     """Mean return of the PD hover controller (:func:`~.evaluation.evaluate_pd`, 100 episodes, seed 0).
 
-    Computed once per distinct env setting (:func:`env_key`) in this process (cached).
+    Computed once per distinct env setting (its arguments as JSON) in this process (cached).
     """
     return evaluate_pd(json.loads(env_json), episodes=PD_EPISODES, seed=PD_SEED)["return_mean"]
 
@@ -366,11 +356,11 @@ def build_report(
     )
     by_env: dict[str, list[str]] = {}
     for s in settings:
-        by_env.setdefault(env_key(s.env_kwargs), []).append(s.label)
+        # JSON: a hashable key (the arguments hold a mapping, env.disturbance) that json.loads gives back.
+        by_env.setdefault(json.dumps(s.env_kwargs, sort_keys=True), []).append(s.label)
     for env_json, labels in by_env.items():
         suffix = "" if len(by_env) == 1 else f" ({LABEL_SEPARATOR.join(labels)})"
-        best = reference_optimum(json.loads(env_json))
-        if best is not None:
+        if (best := reference_optimum(json.loads(env_json))) is not None:
             report.optima[OPTIMUM_LABEL + suffix] = best
         if pd:
             report.pd_returns[PD_LABEL + suffix] = _pd_return(env_json)
