@@ -181,7 +181,7 @@ def run_eval(
             run_cfg.device = cfg.device
             validate(run_cfg, training=False)  # its values; its training's logger and memory are not ours
             check_networks("checkpoint", path, checkpoint, run_cfg)
-            actor = build_actor(run_cfg)
+            actor = build_actor(run_cfg).eval()
             actor.load_state_dict(checkpoint["actor"])
         except ConfigError:
             raise
@@ -190,7 +190,6 @@ def run_eval(
                 f"checkpoint={str(path)!r} cannot be used: {type(err).__name__}: {err}"
             ) from None
         kwargs = _flown_env(cfg, env_kwargs(run_cfg), path, keys)
-        actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:
         kwargs = env_kwargs(cfg)
