@@ -37,6 +37,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import migrations
 from drone_torchrl.checks import ConfigError, as_override
+from drone_torchrl.comparison import PD_NAME, PLOT_NAME, VIDEO_NAME, run_eval
 from drone_torchrl.config import check_default_folder, check_overrides, config_dir, preset_notes
 
 # The configs of drone-train and drone-eval (conf/<name>.yaml).
@@ -107,15 +108,11 @@ class EvalResult:
     @property
     def policy(self) -> dict[str, Any] | None:
         """The checkpoint's row, or None when only the PD controller flew."""
-        from drone_torchrl.comparison import PD_NAME
-
         return next((row for name, row in self.results.items() if name != PD_NAME), None)
 
     @property
     def pd(self) -> dict[str, Any]:
         """The PD hover controller's row, flown on the same seeded episodes."""
-        from drone_torchrl.comparison import PD_NAME
-
         return self.results[PD_NAME]
 
 
@@ -147,7 +144,7 @@ def train(*overrides: str, run_dir: str | os.PathLike | None = None, **values: A
     from drone_torchrl.training.jobs import prepare
     from drone_torchrl.training.trainer import train_job
 
-    args = _arguments("train", overrides, values, RUN_DIR_KEY, run_dir)
+    args = _arguments("train", overrides, values, run_dir)
     try:
         # Old keys (engine=, ...) work, each with a note naming today's (drone_torchrl.migrations).
         args, notes = migrations.legacy_arguments(args)
@@ -184,9 +181,7 @@ def evaluate(*overrides: str, out_dir: str | os.PathLike | None = None, **values
     Raises:
         ConfigError: a bad override or value, or a checkpoint that cannot be flown (one line).
     """
-    from drone_torchrl.comparison import PLOT_NAME, VIDEO_NAME, run_eval
-
-    args = _arguments("evaluate", overrides, values, RUN_DIR_KEY, out_dir)
+    args = _arguments("evaluate", overrides, values, out_dir)
     with _own_hydra():
         cfg, folder = _compose(EVAL_CONFIG, args)
         with _process_state(cfg.device):
@@ -197,10 +192,8 @@ def evaluate(*overrides: str, out_dir: str | os.PathLike | None = None, **values
     )
 
 
-def _arguments(
-    prog: str, overrides: Sequence[Any], values: Mapping[str, Any], folder_key: str, folder: Any
-) -> list[str]:
-    """The command line of a call: the override strings, then ``values`` and the folder as overrides."""
+def _arguments(prog: str, overrides: Sequence[Any], values: Mapping[str, Any], folder: Any) -> list[str]:
+    """The command line of a call: the override strings, then ``values`` and the folder (``hydra.run.dir``)."""
     for override in overrides:
         if not isinstance(override, str):
             raise ConfigError(
@@ -222,9 +215,9 @@ def _arguments(
     if folder is not None:
         if not isinstance(folder, str | os.PathLike):
             raise ConfigError(f"{prog}() takes a folder path (a str or a Path), not {folder!r}")
-        if any(a.split("=", 1)[0].lstrip("+") == folder_key for a in args):
-            raise ConfigError(f"the folder is given twice, as {folder_key}= and as a keyword; give one")
-        args.append(f"{folder_key}={_hydra_value(folder_key, os.fspath(folder))}")
+        if any(a.split("=", 1)[0].lstrip("+") == RUN_DIR_KEY for a in args):
+            raise ConfigError(f"the folder is given twice, as {RUN_DIR_KEY}= and as a keyword; give one")
+        args.append(f"{RUN_DIR_KEY}={_hydra_value(RUN_DIR_KEY, os.fspath(folder))}")
     return args
 
 

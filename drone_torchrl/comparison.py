@@ -57,12 +57,10 @@ SETTINGS_NAME = "results.json"
 NOT_IN_TABLE = ("terminated_fraction", "causes")
 
 
-def plot_trajectory(
-    rollout: TensorDictBase, path: Path, title: str, params: DroneParams | None = None
-) -> Path:
+def plot_trajectory(rollout: TensorDictBase, path: Path, title: str, p: DroneParams) -> Path:
     """Plot the first episode's x-z path over the domain and target zone, and both thrusts over time.
 
-    The domain and zone are those of ``params`` (default: the paper's).
+    The domain and zone are those of ``p``, the env's parameters.
     """
     from matplotlib.patches import Rectangle
 
@@ -70,7 +68,6 @@ def plot_trajectory(
     valid = valid_steps(first.get(("next", "done"))).squeeze(-1)
     states = torch.cat([first.get("observation")[:1], first.get(("next", "observation"))[valid]]).numpy()
     actions = first.get("action")[valid].numpy()
-    p = DroneParams() if params is None else params
     fig = new_figure((11, 4.5))
     ax_path, ax_thrust = fig.subplots(1, 2)
     zone = (-p.zone_x_limit, p.zone_z_min), 2 * p.zone_x_limit, p.zone_z_max - p.zone_z_min
@@ -161,18 +158,17 @@ def write_table(out_dir: Path, results: dict[str, dict], settings: dict[str, Any
 
 
 def run_eval(
-    cfg: DictConfig, out_dir: Path | None = None, requested: set[str] | None = None, table: bool | None = None
+    cfg: DictConfig, out_dir: Path | None = None, requested: set[str] | None = None
 ) -> dict[str, dict]:
     """Evaluate ``cfg.checkpoint`` (or the PD controller); write the table, the plot and the video.
 
     Returns each policy's :func:`~drone_torchrl.evaluation.summarize` by its name in the table.
     ``out_dir``: where the files go (default: the Hydra job's folder, else the working folder);
-    ``requested``: the keys the caller set (default: those of the Hydra command line); ``table``:
-    write the table as :data:`TABLE_NAME` and :data:`SETTINGS_NAME` (default: when run as
-    ``drone-eval``, a Hydra job; a Python call writes only the plot and video it asks for).
+    ``requested``: the keys the caller set (default: those of the Hydra command line). The table is
+    written as :data:`TABLE_NAME` and :data:`SETTINGS_NAME` when run as ``drone-eval`` (a Hydra job
+    choosing the folder); a Python call writes only the plot and video it asks for.
     """
-    if table is None:
-        table = out_dir is None and HydraConfig.initialized()
+    table = out_dir is None and HydraConfig.initialized()
     if out_dir is None:
         out_dir = Path(HydraConfig.get().runtime.output_dir) if HydraConfig.initialized() else Path.cwd()
     keys = (command_line_keys() or set()) if requested is None else requested
@@ -185,7 +181,7 @@ def run_eval(
             run_cfg.device = cfg.device
             validate(run_cfg, training=False)  # its values; its training's logger and memory are not ours
             check_networks("checkpoint", path, checkpoint, run_cfg)
-            actor = build_actor(run_cfg)
+            actor = build_actor(run_cfg).eval()
             actor.load_state_dict(checkpoint["actor"])
         except ConfigError:
             raise
@@ -194,7 +190,6 @@ def run_eval(
                 f"checkpoint={str(path)!r} cannot be used: {type(err).__name__}: {err}"
             ) from None
         kwargs = _flown_env(cfg, env_kwargs(run_cfg), path, keys)
-        actor.eval()
         policies = {f"checkpoint ({path.name}, episode {checkpoint['episodes_done']})": actor}
     else:
         kwargs = env_kwargs(cfg)

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import importlib.util
 import io
 import itertools
 import logging
@@ -56,6 +55,7 @@ from drone_torchrl.config import ConfigError, check_keys, check_networks, check_
 from drone_torchrl.envs import disturbances
 from drone_torchrl.envs.dynamics import ACTION_DIM, HOVER_THRUST, STATE_DIM, clamp_action
 from drone_torchrl.envs.params import DroneParams
+from drone_torchrl.extras import Needs
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR
 from drone_torchrl.io.storage import name_too_long, unwritable, write_atomically
 from drone_torchrl.modules.factory import build_actor, build_policy
@@ -121,14 +121,13 @@ class DeterministicPolicy(nn.Module):
         super().__init__()
         self.net = net
         self.distribution = distribution
-        self.squash = distribution == "tanh_normal"
         self.max_thrust = max_thrust
 
     def forward(self, observation: torch.Tensor) -> torch.Tensor:
         """The motor commands ``[B, 2]`` for observations ``[B, 6]``."""
         loc, _ = self.net(observation)
         # TanhNormal(low=0, high=max_thrust, tanh_loc=False): the mean through tanh onto [0, A].
-        if self.squash:
+        if self.distribution == "tanh_normal":
             loc = (torch.tanh(loc) + 1.0) * (0.5 * self.max_thrust)
         if self.max_thrust is not None:  # what dynamics.clamp_action does in the env
             loc = loc.clamp(0.0, self.max_thrust)
@@ -192,17 +191,9 @@ def default_output(checkpoint: Path, format: str, agent: int | None = None) -> P
     return run / EXPORT_DIR / f"{name}.{format}"
 
 
-def _installed(module: str) -> bool:
-    try:
-        return importlib.util.find_spec(module) is not None
-    except (ImportError, ValueError):
-        return False
-
-
 def check_onnx_extra() -> None:
     """format=onnx without the onnx extra: one line naming it (:class:`~.checks.ConfigError`)."""
-    missing = [name for name in ONNX_MODULES if not _installed(name)]
-    if missing:
+    if missing := [name for name in ONNX_MODULES if not Needs(name, "onnx").installed]:
         raise ConfigError(f"format=onnx needs {', '.join(missing)}, not installed here: {ONNX_EXTRA}")
 
 
@@ -366,8 +357,7 @@ def check_output_folder(output: Path, given: bool = True) -> None:
 
     ``given``: the user named it (``output=``); otherwise it is :func:`default_output`'s.
     """
-    refused = unwritable(output.parent)
-    if refused is None:
+    if (refused := unwritable(output.parent)) is None:
         return
     if given:
         raise ConfigError.of("output", str(output), f"a file in a folder this user can write ({refused})")
@@ -464,9 +454,10 @@ def forward_passes(
     observation = torch.tensor([hover], dtype=_dtype(policy)).expand(batch, len(hover)).contiguous()
     passes: dict[str, Callable[[], Any]] = {}
     for format, path in files.items():
-        if format == "onnx":
-            session, feed = onnx_session(path), {ONNX_INPUT: observation.numpy()}
-            passes[RUNTIMES[format]] = lambda session=session, feed=feed: session.run(None, feed)
+        if format == "onnx":  # the session fed numpy directly: no conversion timed
+            passes[RUNTIMES[format]] = functools.partial(
+                onnx_session(path).run, None, {ONNX_INPUT: observation.numpy()}
+            )
         else:
             passes[RUNTIMES[format]] = functools.partial(load_program(path, format), observation)
     passes["eager torch"] = lambda: policy(observation)

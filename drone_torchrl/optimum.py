@@ -22,6 +22,7 @@ a relaxation: the most zone steps it allows bounds every policy. ``docs/optimum.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import functools
 import math
@@ -31,8 +32,7 @@ import numpy as np
 import torch
 from scipy import sparse
 from scipy.optimize import Bounds, LinearConstraint, linprog, milp
-from tensordict import TensorDictBase
-from tensordict.nn import TensorDictModuleBase
+from tensordict.nn import TensorDictModule
 
 from drone_torchrl.envs import dynamics
 from drone_torchrl.envs.dynamics import ACTION_DIM, ALPHA, HOVER_THRUST, Z_DOT, DroneParams, Z
@@ -210,22 +210,15 @@ def earliest_zone_step(
     more than holding it from ``k + 1``, so the margin never decreases with ``k``.
     """
 
+    @functools.cache
     def holds(k: int) -> VerticalPlan | None:
         plan = zone_margin(params, steps, k, start, thrust_cap)
         return plan if plan is not None and plan.margin >= -MARGIN_TOLERANCE else None
 
-    best = holds(steps)
-    if best is None:
+    if holds(steps) is None:
         return None
-    low, high = 1, steps  # holds(high); find the smallest k that holds
-    while low < high:
-        middle = (low + high) // 2
-        plan = holds(middle)
-        if plan is None:
-            low = middle + 1
-        else:
-            high, best = middle, plan
-    return best
+    # The smallest k in 1..steps that holds (steps does), bisected; each LP is solved once (cached).
+    return holds(bisect.bisect_left(range(steps), True, lo=1, key=lambda k: holds(k) is not None))
 
 
 def _height_range(params: DroneParams, steps: int, start: Start, cap: float) -> tuple[np.ndarray, np.ndarray]:
@@ -300,22 +293,6 @@ def optimum(params: DroneParams, steps: int, start: Start = FLOOR_START) -> Opti
     return Optimum(steps, zone_steps, first, plan)
 
 
-def start_box(reset_mode: str, params: DroneParams | None = None) -> list[Start]:
-    """The vertical start states of ``reset_mode``: the floor start or the air box's corners.
-
-    The floor start is at ``params.z_min``; the air box has ``z`` and ``z_dot`` within
-    :data:`dynamics.RESET_NOISE <.dynamics.RESET_NOISE>` of the zone's centre and of rest.
-    """
-    params = DroneParams() if params is None else params
-    if reset_mode == "floor":
-        return [(params.z_min, FLOOR_START[1])]
-    if reset_mode == "air":
-        noise = dynamics.RESET_NOISE
-        centre = params.zone_z_centre
-        return [(centre + dz, dv) for dz in (-noise, noise) for dv in (-noise, noise)]
-    raise ValueError(f"reset_mode={reset_mode!r} is not allowed; expected one of {dynamics.RESET_MODES}")
-
-
 @functools.cache
 def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum | None:
     """The best achievable return of every episode that starts as ``reset_mode`` resets.
@@ -334,9 +311,13 @@ def env_optimum(params: DroneParams, max_steps: int, reset_mode: str) -> Optimum
     """
     if params.max_thrust is not None and params.max_thrust < HOVER_THRUST:
         return None
-    corners = start_box(reset_mode, params)
-    if len(corners) == 1:
-        return optimum(params, max_steps, corners[0])
+    if reset_mode == "floor":
+        return optimum(params, max_steps, (params.z_min, FLOOR_START[1]))
+    if reset_mode != "air":
+        raise ValueError(f"reset_mode={reset_mode!r} is not allowed; expected one of {dynamics.RESET_MODES}")
+    # The air box: z and z_dot within RESET_NOISE of the zone's centre and of rest; its corners.
+    noise, centre = dynamics.RESET_NOISE, params.zone_z_centre
+    corners = [(centre + dz, dv) for dz in (-noise, noise) for dv in (-noise, noise)]
     plans = [zone_margin(params, max_steps, 1, corner) for corner in corners]
     if any(plan is None or plan.margin < -MARGIN_TOLERANCE for plan in plans):
         return None
@@ -365,29 +346,16 @@ def fly_plan(
     plan = earliest_zone_step(params, max_steps, FLOOR_START, thrust_cap=collective_limit(params, tilt))
     if plan is None:
         raise ValueError("the zone cannot be held from any step with these parameters")
-    policy = _PlanPolicy(torch.as_tensor(plan.collective, dtype=start.dtype), plan.apex_step, params, gains)
+    collective = torch.as_tensor(plan.collective, dtype=start.dtype)
+
+    def act(state: torch.Tensor, step_count: torch.Tensor) -> torch.Tensor:
+        # The plan's commands until the top of its climb, then the PD controller.
+        t = step_count.squeeze(-1)
+        motor = collective[t.clamp_max(len(collective) - 1)] / (ACTION_DIM * torch.cos(state[..., ALPHA]))
+        planned = motor.unsqueeze(-1).expand(*motor.shape, ACTION_DIM)
+        return torch.where((t < plan.apex_step).unsqueeze(-1), planned, pd_action(state, params, gains))
+
+    policy = TensorDictModule(act, in_keys=["observation", "step_count"], out_keys=["action"])
     dtype = "float64" if start.dtype == torch.float64 else "float32"
     episodes = fly_reference(policy, start, max_steps=max_steps, dtype=dtype, **dataclasses.asdict(params))
     return episodes, plan
-
-
-class _PlanPolicy(TensorDictModuleBase):
-    """The plan's commands until its hand-over step, then the PD controller: a TensorDict policy."""
-
-    def __init__(
-        self, collective: torch.Tensor, hand_over: int, params: DroneParams, gains: PDGains | None
-    ) -> None:
-        super().__init__()
-        self.collective, self.hand_over, self.params, self.gains = collective, hand_over, params, gains
-        self.in_keys, self.out_keys = ["observation", "step_count"], ["action"]
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        state = tensordict.get("observation")
-        t = tensordict.get("step_count").squeeze(-1)
-        motor = self.collective[t.clamp_max(len(self.collective) - 1)] / (
-            ACTION_DIM * torch.cos(state[..., ALPHA])
-        )
-        planned = motor.unsqueeze(-1).expand(*motor.shape, ACTION_DIM)
-        pd = pd_action(state, self.params, self.gains)
-        tensordict.set("action", torch.where((t < self.hand_over).unsqueeze(-1), planned, pd))
-        return tensordict

@@ -6,6 +6,7 @@ commands reach past both clamps and the TanhNormal's squashing saturates."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -167,10 +168,10 @@ def test_a_file_that_differs_from_the_actor_is_refused_and_not_written(tmp_path,
 
 def test_format_onnx_without_the_extra_says_which_in_one_line_before_any_work(tmp_path, monkeypatch):
     # onnxruntime missing, onnx and onnxscript there (whether or not this machine has the extra).
-    found = export.importlib.util.find_spec
+    found = importlib.util.find_spec
     present = {"onnx", "onnxscript"}
     monkeypatch.setattr(
-        export.importlib.util,
+        importlib.util,
         "find_spec",
         lambda name, *a: None if name == "onnxruntime" else object() if name in present else found(name, *a),
     )

@@ -15,10 +15,15 @@ from drone_torchrl.apps.help import answer_help
 from drone_torchrl.io.streams import guard_broken_pipes
 
 
+def start(prog: str) -> None:
+    """How each command starts: broken pipes guarded, then ``prog``'s help page if asked for (exits)."""
+    guard_broken_pipes()
+    answer_help(prog)  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
+
+
 def _command(prog: str, app: str) -> None:
     """``prog``: its help page if asked for, else ``drone_torchrl.apps.<app>.run()``."""
-    guard_broken_pipes()
-    answer_help(prog)
+    start(prog)
     importlib.import_module(f"drone_torchrl.apps.{app}").run()
 
 

@@ -16,11 +16,10 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from drone_torchrl import command_line
-from drone_torchrl.apps.help import answer_help
+from drone_torchrl.apps.commands import start
 from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.io.folders import remove_if_untouched
 from drone_torchrl.io.storage import StorageError
-from drone_torchrl.io.streams import guard_broken_pipes
 
 
 @hydra.main(config_path=config_dir(), config_name="eval", version_base="1.3")
@@ -41,8 +40,7 @@ def run() -> None:
 
     The command line's keys and the folder Hydra will write are checked.
     """
-    guard_broken_pipes()
-    answer_help("drone-eval")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
+    start("drone-eval")
     command_line.check("drone-eval")
     main()
 

@@ -22,10 +22,9 @@ import hydra
 from omegaconf import DictConfig
 
 from drone_torchrl import command_line
-from drone_torchrl.apps.help import answer_help
+from drone_torchrl.apps.commands import start
 from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.io.storage import StorageError
-from drone_torchrl.io.streams import guard_broken_pipes
 from drone_torchrl.training.signals import Interrupted, interrupt_on_signals
 
 
@@ -58,8 +57,7 @@ def main(cfg: DictConfig) -> None:
 
 def run() -> None:
     """Console entry point: checks the command line's keys, then runs the Hydra app."""
-    guard_broken_pipes()
-    answer_help("drone-export")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
+    start("drone-export")
     command_line.check("drone-export")
     main()
 

@@ -71,23 +71,18 @@ def answer_help(prog: str, args: Sequence[str] | None = None) -> None:
     args = sys.argv[1:] if args is None else list(args)
     if not any(a in ("--help", "-h") for a in args) or any(a.split("=", 1)[0] in _OTHER_CONFIG for a in args):
         return
-    try:
-        text = page(prog, hydra_args_parser().parse_known_args(args)[0].overrides)
-    except HelpError as err:
-        sys.exit(f"{prog}: error: {err}")
-    print(text)
+    print(page(prog, hydra_args_parser().parse_known_args(args)[0].overrides))
     sys.exit(0)
 
 
-class HelpError(Exception):
-    """The command line's overrides do not compose (Hydra's message, in one line)."""
-
-
 def page(prog: str, overrides: Sequence[str] = ()) -> str:
-    """The ``--help`` page of ``prog`` (``drone-train``...), its config composed with ``overrides``."""
+    """The ``--help`` page of ``prog`` (``drone-train``...), its config composed with ``overrides``.
+
+    Overrides Hydra cannot compose exit 1 with its message in one line.
+    """
     config, extra_groups = APPS[prog]
     conf = conf_folder()
-    groups, keys = compose(conf, config, overrides, extra_groups)
+    groups, keys = compose(conf, config, overrides, extra_groups, prog)
     lines = [
         f"{prog}: {_summary(conf / f'{config}.yaml')}",
         "",
@@ -117,13 +112,13 @@ def page(prog: str, overrides: Sequence[str] = ()) -> str:
 
 
 def compose(
-    conf: Path, config: str, overrides: Sequence[str] = (), extra_groups: Sequence[str] = ()
+    conf: Path, config: str, overrides: Sequence[str], extra_groups: Sequence[str], prog: str
 ) -> tuple[list[tuple[str, list[str], str | None]], list[tuple[str, str, str]]]:
     """Compose ``conf/<config>.yaml`` with Hydra, the schemas stood in for (see the module's docstring).
 
     Returns the groups, each as ``(group, options, chosen)`` (``chosen`` is None for a group of
     ``extra_groups`` the defaults list does not choose), and ``(key, value, meaning)`` of every key,
-    in the config's order.
+    in the config's order. Overrides that do not compose exit 1 with one line naming ``prog``.
     """
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
@@ -154,17 +149,15 @@ def compose(
             names = [g for g in dict.fromkeys(names) if g in choices and "/" not in g] + list(extra_groups)
             groups = [(g, sorted(loader.get_group_options(g)), choices.get(g)) for g in names]
     except (HydraException, OmegaConfBaseException) as err:
-        raise HelpError(_one_line(str(err))) from None
+        sys.exit(f"{prog}: error: {_one_line(str(err))}")
     # The env's physics and arena: DroneParams' meanings, unless a chosen option's comment says more.
     meanings = {f"env.{f.name}": f.metadata[PARAM].describe() for f in fields(DroneParams)}
     for default in defaults:  # in composition order: a later file's comment wins, as its value does
         path = conf / f"{default.config_path}.yaml"
         if default.package is None or default.package.startswith("hydra") or not path.is_file():
             continue
-        prefix = f"{default.package}." if default.package else ""
         text = path.read_text(encoding="utf-8")
-        for key, comment in key_comments(text).items():
-            meanings[prefix + key] = comment
+        meanings.update(key_comments(text, default.package))
         if default.package and not default.is_self:  # a group's option: its header says what it sets
             meanings.setdefault(default.package, _header(text))
     for group in names:  # a key its option leaves uncommented: the same key's comment in another option
@@ -172,8 +165,7 @@ def compose(
             text = path.read_text(encoding="utf-8")
             package = re.search(r"^# @package (\S+)", text, re.MULTILINE)
             prefix = (package[1] if package else group.replace("/", ".")).replace("_global_", "")
-            for key, comment in key_comments(text).items():
-                meanings.setdefault(f"{prefix}.{key}".lstrip("."), comment)
+            meanings = key_comments(text, prefix) | meanings
     values = OmegaConf.to_container(cfg, resolve=False)
     assert isinstance(values, dict)
     values.pop("hydra")
@@ -194,11 +186,12 @@ def _one_line(message: str) -> str:
     return " ".join(f"{p}." if p[-1].isalnum() or p[-1] == "'" else p for p in parts)
 
 
-def key_comments(text: str) -> dict[str, str]:
+def key_comments(text: str, package: str = "") -> dict[str, str]:
     """``{"checkpoint.keep_best": "also keep best.pt, ..."}``: each key's comment in a YAML text.
 
-    A key's comment is the one on its line, else the block of comment lines right above it (no
-    blank line between), up to its first line that ends a sentence. Lines of lists (``- item``) and
+    Each key is put under ``package`` (``checkpoint``: ``checkpoint.keep_best``). A key's comment
+    is the one on its line, else the block of comment lines right above it (no blank line between),
+    up to its first line that ends a sentence. Lines of lists (``- item``) and
     of the ``defaults`` list are skipped.
     """
     out: dict[str, str] = {}
@@ -224,7 +217,7 @@ def key_comments(text: str) -> dict[str, str]:
         inline = _INLINE_COMMENT.search(match["rest"] or "")
         comment = inline["comment"].strip() if inline else _first_sentence(block)
         if comment and key != "defaults":
-            out[key] = comment
+            out[f"{package}.{key}".lstrip(".")] = comment
         parents.append((indent, match["key"]))
         block = []
     return out

@@ -9,6 +9,7 @@ drone-report multirun/lr32 multirun/gamma32 --paper-averaging   # also the paper
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 from collections.abc import Callable, Sequence
@@ -23,31 +24,23 @@ PROG = "drone-report"
 EXIT_ERROR = 2
 
 
-def _positive_int(text: str) -> int:
-    return _checked(text, int, lambda value: value >= 1, "an integer >= 1")
+def _checked(kind: type, good: Callable[[Any], bool], expected: str) -> Callable[[str], Any]:
+    """An argparse type: ``kind(text)`` if it is ``good``; else argparse's error, in one line."""
 
-
-def _finite(text: str) -> float:
-    return _checked(text, float, math.isfinite, "a finite number")
-
-
-def _checked(text: str, kind: type, good: Callable[[Any], bool], expected: str) -> Any:
-    """``kind(text)`` if it is ``good``; else argparse's error, in one line."""
-    try:
-        value = kind(text)
-    except ValueError:
-        value = None
-    if value is None or not good(value):
+    def parse(text: str) -> Any:
+        with contextlib.suppress(ValueError):
+            if good(value := kind(text)):
+                return value
         raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected {expected}")
-    return value
+
+    return parse
 
 
 def _folder(text: str) -> Path:
     # Path("") is the current folder: an empty --out would scatter the report where the command runs.
     if not text.strip():
         raise argparse.ArgumentTypeError(f"{text!r} is not allowed; expected a folder path")
-    refused = unwritable(text)  # before the sweeps are read
-    if refused is not None:
+    if (refused := unwritable(text)) is not None:  # before the sweeps are read
         raise argparse.ArgumentTypeError(
             f"{text!r} is not allowed; expected a folder this user can write ({refused})"
         )
@@ -75,12 +68,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument(
         "--window",
-        type=_positive_int,
+        type=_checked(int, lambda value: value >= 1, "an integer >= 1"),
         help="running-mean window in episodes (default: a run's, the paper's 100)",
     )
     parser.add_argument(
         "--return-threshold",
-        type=_finite,
+        type=_checked(float, math.isfinite, "a finite number"),
         default=DEFAULT_RETURN_THRESHOLD,
         help=f"report the first episode the running-mean return reaches this (default {DEFAULT_RETURN_THRESHOLD:g})",
     )
@@ -99,39 +92,35 @@ def main(argv: Sequence[str] | None = None) -> None:
     guard_broken_pipes()  # output piped into `head` is not an unwritable report
     args = parse_args(argv)
     # Imported once the command line is read: they import torch (seconds), which --help does without.
-    from drone_torchrl.report.distribution import paper_order
-    from drone_torchrl.report.runs import ReportError, failed_without_episodes, group_runs, load_runs
-    from drone_torchrl.report.stats import build_report
-    from drone_torchrl.report.tables import (
-        format_paper_averaging_section,
-        format_report,
-        output_dirs,
-        write_report,
-    )
+    from drone_torchrl.report import distribution, runs, stats, tables
 
     try:
-        runs = [load_runs(d) for d in args.sweeps]  # check every folder before any work
-        out_dirs = output_dirs(args.sweeps, args.out)
+        loaded = [runs.load_runs(d) for d in args.sweeps]  # check every folder before any work
+        out_dirs = tables.output_dirs(args.sweeps, args.out)
         for out_dir in out_dirs:  # before any figure is drawn
             if (refused := unwritable(out_dir)) is not None:
-                raise ReportError(f"cannot write the report into {out_dir}: {refused}")
+                raise runs.ReportError(f"cannot write the report into {out_dir}: {refused}")
         if args.paper_averaging:  # every sweep must be one of the paper's grids, before any work
-            for sweep_runs in runs:
-                paper_order(group_runs(sweep_runs))
-        for sweep_dir, sweep_runs, out_dir in zip(args.sweeps, runs, out_dirs, strict=True):
-            report = build_report(sweep_dir, args.window, args.return_threshold, not args.no_pd, sweep_runs)
-            paths = write_report(report, out_dir, args.paper_averaging)
-            print(format_report(report, figures=False))
-            for job, reason in failed_without_episodes(sweep_dir):
+            for sweep_runs in loaded:
+                distribution.paper_order(runs.group_runs(sweep_runs))
+        for sweep_dir, sweep_runs, out_dir in zip(args.sweeps, loaded, out_dirs, strict=True):
+            report = stats.build_report(
+                sweep_dir, args.window, args.return_threshold, not args.no_pd, sweep_runs
+            )
+            paths = tables.write_report(report, out_dir, args.paper_averaging)
+            print(tables.format_report(report, figures=False))
+            for job, reason in runs.failed_without_episodes(sweep_dir):
                 print(f"failed before its first episode (not in the report): {job}: {reason}")
             if args.paper_averaging:
-                print(format_paper_averaging_section(report))
+                print(tables.format_paper_averaging_section(report))
             print(f"wrote {', '.join(str(p) for p in paths)}\n")
-    except (ReportError, StorageError) as err:  # StorageError: a figure or table the disk refused
-        print(f"{PROG}: error: {err}", file=sys.stderr)
-        sys.exit(EXIT_ERROR)
-    except OSError as err:  # an output folder that cannot be made or written
-        print(f"{PROG}: error: {err.filename}: {err.strerror}", file=sys.stderr)
+    except (
+        runs.ReportError,
+        OSError,
+    ) as err:  # StorageError: a figure or table the disk refused, in one line
+        # Another OSError: an output folder that cannot be made or written.
+        plain = isinstance(err, OSError) and not isinstance(err, StorageError)
+        print(f"{PROG}: error: {f'{err.filename}: {err.strerror}' if plain else err}", file=sys.stderr)
         sys.exit(EXIT_ERROR)
 
 

@@ -18,7 +18,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig
 
 from drone_torchrl import command_line
-from drone_torchrl.apps.help import answer_help
+from drone_torchrl.apps.commands import start
 from drone_torchrl.config import ConfigError, config_dir
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError
 from drone_torchrl.io.folders import remove_if_untouched
@@ -106,9 +106,8 @@ def register_plugins() -> None:
 
 def run() -> None:
     """Console entry point: registers our Hydra plug-ins, then runs the Hydra app."""
-    guard_broken_pipes()  # output piped into `head` never stops training
+    start("drone-train")  # output piped into `head` never stops training
     keep_run_logs()  # each run's lines in its train.log, whichever launcher trains it
-    answer_help("drone-train")  # the page made from conf/ (drone_torchrl/apps/help.py), not Hydra's
     register_plugins()
     claimed = command_line.check("drone-train")  # before Hydra writes anything
     try:

@@ -33,25 +33,21 @@ def record_video(
     """
     env = DroneEnv(batch_size=[], device=device, render_mode="rgb_array", **env_kwargs)
     env.set_seed(seed)
-    # Each frame is copied once into one array sized for the longest episode (a list stacked at the
-    # end holds every frame twice: a training video is 160 MB, and its page faults cost seconds here).
-    frames: np.ndarray | None = None
-    count = 0
-
-    def keep(frame: np.ndarray) -> None:
-        nonlocal frames, count
-        if frames is None:
-            frames = np.empty((env.max_steps // frame_stride + 1, *frame.shape), dtype=frame.dtype)
-        frames[count] = frame
-        count += 1
+    count = 1
 
     def draw(env_: DroneEnv, td: TensorDictBase) -> None:
+        nonlocal count
         if int(td.get(("next", "step_count"), td.get("step_count"))) % frame_stride == 0:
-            keep(env_.render())
+            frames[count] = env_.render()
+            count += 1
 
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         td = env.reset()
-        keep(env.render())
+        first = env.render()
+        # Each frame is copied once into one array sized for the longest episode (a list stacked at the
+        # end holds every frame twice: a training video is 160 MB, and its page faults cost seconds here).
+        frames = np.empty((env.max_steps // frame_stride + 1, *first.shape), dtype=first.dtype)
+        frames[0] = first
         env.rollout(env.max_steps, policy, tensordict=td, auto_reset=False, callback=draw)
     env.close()
     return frames[:count]

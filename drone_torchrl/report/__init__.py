@@ -53,7 +53,7 @@ _LAZY = {
     for module, names in {
         "runs": "ReportError Run Setting group_runs load_runs setting_of",
         "stats": "Crossing SeedStats SettingSummary SweepReport aggregate_over_seeds build_report first_crossing "
-        "pd_reference running_mean setting_curve summarize verdict",
+        "running_mean setting_curve summarize verdict",
         "tables": "format_report format_table write_report",
     }.items()
     for name in names.split()

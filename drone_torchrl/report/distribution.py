@@ -13,7 +13,7 @@ Per setting, :func:`distribution` gives:
 - the band of 4-seed means (bootstrap: 4 seeds drawn without replacement, as a 4-seed study would
   draw them): the spread a paper-sized study sees;
 - with bounded thrust, the median as a share of the best achievable return
-  (:func:`~drone_torchrl.report.stats.optimum_reference`).
+  (:func:`~drone_torchrl.evaluation.reference_optimum`).
 
 :func:`paper_averaged_curves` redraws the paper's figures 4.2 and 4.4 the way its public analysis
 code computes them: the list of runs is never reset between settings, so the curve drawn for the
@@ -59,26 +59,12 @@ class Distribution:
     final_lengths: np.ndarray
     reached_full_length: int
     in_zone: int
+    median: float
+    """Median of the seeds' final returns."""
     median_ci: tuple[float, float]
     four_seed_band: tuple[float, float]
     optimum: float | None = None
     """The best achievable return of the setting's episodes (bounded thrust; else ``None``)."""
-
-    @property
-    def seeds(self) -> int:
-        """Number of seeds (final returns)."""
-        return int(self.final_returns.size)
-
-    @property
-    def median(self) -> float:
-        """Median of the seeds' final returns."""
-        return float(np.median(self.final_returns))
-
-    @property
-    def quartiles(self) -> tuple[float, float]:
-        """First and third quartiles of the seeds' final returns."""
-        q1, q3 = np.percentile(self.final_returns, [25, 75])
-        return float(q1), float(q3)
 
 
 def percentile_tails() -> tuple[float, float]:
@@ -113,6 +99,7 @@ def distribution(setting: Setting, window: int) -> Distribution:
         final_lengths=np.array(summary.final_lengths),
         reached_full_length=len(summary.length_cap.episodes),
         in_zone=int((finals >= ZONE_SHARE * summary.ceiling).sum()),
+        median=float(np.median(finals)),
         median_ci=(float(ci_low), float(ci_high)),
         four_seed_band=small_study_band(finals, rng),
         optimum=summary.optimum,
@@ -129,12 +116,12 @@ def format_distributions(distributions: Sequence[Distribution]) -> str:
     rows = [
         [
             d.label,
-            f"{d.seeds}",
+            f"{d.final_returns.size}",
             f"{d.median:.0f} [{d.median_ci[0]:.0f}, {d.median_ci[1]:.0f}]",
-            f"{d.quartiles[0]:.0f}-{d.quartiles[1]:.0f}",
+            "{:.0f}-{:.0f}".format(*np.percentile(d.final_returns, [25, 75])),
             f"{np.median(d.final_lengths):.0f}",
-            f"{d.reached_full_length}/{d.seeds}",
-            f"{d.in_zone}/{d.seeds}",
+            f"{d.reached_full_length}/{d.final_returns.size}",
+            f"{d.in_zone}/{d.final_returns.size}",
             f"{d.four_seed_band[0]:.0f}-{d.four_seed_band[1]:.0f}",
             "-" if d.optimum is None else f"{PERCENT * d.median / d.optimum:.1f}% of {d.optimum:g}",
         ]
@@ -156,8 +143,10 @@ def plot_distributions(
         ax.scatter(i + jitter.uniform(-0.15, 0.15, values.size), values, s=10, alpha=0.6)
     ax.axhline(zone_return, linestyle="--", color="black", label=f"ends in the zone: >= {zone_return:g}")
     ax.set_xticks(range(1, len(data) + 1), [d.label for d in distributions], rotation=15, fontsize="small")
-    ax.set_ylabel("final return (running mean)")
-    ax.set_title(f"{title}: final return of every seed (box: quartiles, whiskers: range)")
+    ax.set(
+        ylabel="final return (running mean)",
+        title=f"{title}: final return of every seed (box: quartiles, whiskers: range)",
+    )
     ax.grid(alpha=0.2)
     ax.legend(loc="best", fontsize="small")
     fig.tight_layout()
@@ -213,8 +202,7 @@ def plot_paper_averaging(settings: Sequence[Setting], window: int, title: str, p
             for setting, curve in zip(settings, curves_of(settings, column, window), strict=True):
                 ax.plot(np.arange(curve.size), curve, linewidth=1.5, label=setting.label)
             ax.set_title(f"{kind}", fontsize="medium")
-            ax.set_xlabel("episode")
-            ax.set_ylabel(f"{ylabel} (running mean over {window})")
+            ax.set(xlabel="episode", ylabel=f"{ylabel} (running mean over {window})")
             ax.grid(alpha=0.2)
             ax.legend(loc="best", fontsize="small")
     fig.suptitle(f"{title}: settings in the paper's order")

@@ -85,15 +85,14 @@ def landscape(report: SweepReport) -> Landscape | None:
 
 def _cell(summary: SettingSummary) -> tuple[float, float, float, float]:
     finals = np.asarray(summary.final_returns, dtype=np.float64)
-    zone_return = ZONE_SHARE * summary.ceiling
     if finals.size == 0:
         return math.nan, math.nan, math.nan, 0.0
     reached = summary.length_cap.episodes
     episodes = np.array(reached + [math.inf] * (summary.length_cap.runs - len(reached)), dtype=np.float64)
     return (
         float(np.median(finals)),
-        float(np.mean(finals >= zone_return)),
-        float(np.median(episodes)) if episodes.size else math.nan,
+        float(np.mean(finals >= ZONE_SHARE * summary.ceiling)),
+        float(np.median(episodes)),  # one per final: never empty here
         float(finals.size),
     )
 
@@ -138,8 +137,7 @@ def plot_landscape(grid: Landscape, path: Path) -> Path:
             ax.text(col, row, _format(value, kind), ha="center", va="center", fontsize=7, color=text)
         ax.set_xticks(range(len(grid.x_values)), [f"{v:.3g}" for v in grid.x_values], rotation=45)
         ax.set_yticks(range(len(grid.y_values)), [f"{v:.5g}" for v in grid.y_values])
-        ax.set_xlabel(grid.x_key)
-        ax.set_ylabel(grid.y_key)
+        ax.set(xlabel=grid.x_key, ylabel=grid.y_key)
         ax.set_title(title, fontsize="medium")
         if marker is not None:
             ax.plot(*marker, marker="*", color="red", markersize=14, markeredgecolor="white")

@@ -71,7 +71,6 @@ class Run:
     overrides: list[str]
     config: dict[str, Any]
     status: str
-    status_detail: str
     columns: dict[str, np.ndarray]
     """Every ``episodes.csv`` column, ordered by episode."""
     notes: list[str] = field(default_factory=list)
@@ -172,24 +171,16 @@ def load_population(run_dir: Path) -> list[Run]:
                 notes.append(f"agent {k} of {run_dir.name} started as {' '.join(started)}")
         mine = np.flatnonzero(owner == k)
         mine = mine[np.argsort(columns["episode"][mine], kind="stable")]
-        if checkpoint is None:
-            status, detail = STATUS_UNFINISHED, "no checkpoint"
-        elif checkpoint["failure"][k] is not None:
-            status, detail = STATUS_FAILED, checkpoint["failure"][k]
-        elif checkpoint["final"][k] is not None:
-            status, detail = STATUS_FINISHED, f"{checkpoint['episodes_done'][k]} episodes"
-        else:
-            status, detail = STATUS_UNFINISHED, f"{checkpoint['episodes_done'][k]} episodes so far"
+        failed = checkpoint is not None and checkpoint["failure"][k] is not None
+        finished = checkpoint is not None and checkpoint["final"][k] is not None
+        status = STATUS_FAILED if failed else STATUS_FINISHED if finished else STATUS_UNFINISHED
         agent_columns = {key: values[mine] for key, values in columns.items() if key != "agent"}
-        runs.append(
-            Run(run_dir, overrides, OmegaConf.to_container(own), status, detail, agent_columns, notes)
-        )
+        runs.append(Run(run_dir, overrides, OmegaConf.to_container(own), status, agent_columns, notes))
     return runs
 
 
 def load_run(job_dir: Path) -> Run | None:
     """Read one job folder; ``None`` if it has no ``episodes.csv`` (not started, or failed early)."""
-    job_dir = Path(job_dir)
     csv_path = job_dir / CSV_NAME
     if not csv_path.is_file():
         return None
@@ -201,12 +192,11 @@ def load_run(job_dir: Path) -> Run | None:
             break
     else:
         raise ReportError(f"{job_dir} has an {CSV_NAME} but no {CONFIG_FILE}")
-    status, detail = job_status(job_dir)
     try:
         columns, notes = read_episodes(csv_path)
     except EpisodeCSVError as err:
         raise ReportError(str(err)) from None
-    return Run(job_dir, overrides, config, status, detail, columns, notes)
+    return Run(job_dir, overrides, config, job_status(job_dir)[0], columns, notes)
 
 
 def find_jobs(sweep_dir: Path) -> list[Path]:
@@ -214,11 +204,8 @@ def find_jobs(sweep_dir: Path) -> list[Path]:
 
     A sweep's job folders are those of :func:`~drone_torchrl.training.jobs.sweep_jobs`.
     """
-    sweep_dir = Path(sweep_dir)
     jobs = sweep_jobs(sweep_dir)
-    if not jobs and (sweep_dir / HYDRA_DIR).is_dir():
-        jobs = [sweep_dir]
-    return jobs
+    return jobs if jobs or not (sweep_dir / HYDRA_DIR).is_dir() else [sweep_dir]
 
 
 def failed_without_episodes(sweep_dir: Path) -> list[tuple[Path, str]]:

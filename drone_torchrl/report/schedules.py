@@ -60,10 +60,8 @@ def write_schedules(run_dir: Path, out_dir: Path, prefix: str = "") -> list[Path
             width, alpha = (2.5, 1.0) if best else (0.8, 0.6)
             line = {"color": colours(norm(final)), "linewidth": width, "alpha": alpha, "label": label}
             ax.step(updates, [*values, values[-1]], where="post", **line)
-        ax.set_xlabel("update")
-        ax.set_ylabel(key)
         positive = all(v[key] > 0 for _, _, steps in drawn for _, v in steps)
-        ax.set_yscale("log" if key != "algo.gamma" and positive else "linear")
+        ax.set(xlabel="update", ylabel=key, yscale="log" if key != "algo.gamma" and positive else "linear")
     if drawn:
         axes[0][0].legend(fontsize="small")
     fig.colorbar(matplotlib.cm.ScalarMappable(norm, colours), ax=axes[0].tolist(), label="final return")

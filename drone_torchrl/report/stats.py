@@ -2,7 +2,7 @@
 
 That is: running means, statistics over seeds, threshold crossings, the summary of each setting,
 the verdict, the PD controller's reference return, the best achievable return
-(:mod:`drone_torchrl.optimum`), and :class:`SweepReport`, all of one sweep folder.
+(:func:`drone_torchrl.evaluation.reference_optimum`), and :class:`SweepReport`, all of one sweep folder.
 """
 
 from __future__ import annotations
@@ -13,7 +13,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -173,28 +172,16 @@ class SettingSummary:
     wall_clock_mean_s: float
     wall_clock_total_s: float
     notes: list[str]
+    final_return_mean: float
+    """Mean final running-mean return over the seeds (NaN without any)."""
+    final_return_std: float
+    """Standard deviation of the final returns over the seeds (NaN without any)."""
+    final_return_pct: float
+    """The mean final return as a percentage of the highest possible return."""
+    final_return_pct_of_optimum: float
+    """The final return as a percentage of :attr:`optimum` (NaN without one)."""
     optimum: float | None = None
     """The best achievable return of every episode of the setting (bounded thrust; else ``None``)."""
-
-    @property
-    def final_return_mean(self) -> float:
-        """Mean final running-mean return over the seeds (NaN without any)."""
-        return float(np.mean(self.final_returns)) if self.final_returns else math.nan
-
-    @property
-    def final_return_std(self) -> float:
-        """Standard deviation of the final returns over the seeds (NaN without any)."""
-        return float(np.std(self.final_returns, ddof=STD_DDOF)) if self.final_returns else math.nan
-
-    @property
-    def final_return_pct(self) -> float:
-        """The mean final return as a percentage of the highest possible return."""
-        return PERCENT * self.final_return_mean / self.ceiling
-
-    @property
-    def final_return_pct_of_optimum(self) -> float:
-        """The final return as a percentage of :attr:`optimum` (NaN without one)."""
-        return math.nan if self.optimum is None else PERCENT * self.final_return_mean / self.optimum
 
     def return_text(self) -> str:
         """``"2210 +- 150"``."""
@@ -216,8 +203,7 @@ def progress_notes(setting: Setting) -> list[str]:
     notes = []
     total = len(setting.runs)
     for status in (STATUS_UNFINISHED, STATUS_FAILED):  # each status is also its word in the note
-        stopped = [r for r in setting.runs if r.status == status]
-        if stopped:
+        if stopped := [r for r in setting.runs if r.status == status]:
             shortest = min(r.episodes for r in stopped)
             notes.append(f"{len(stopped)} of {total} seeds {status}, shortest at {shortest} episodes")
     for run in setting.runs:
@@ -241,7 +227,9 @@ def summarize(
         return Crossing(threshold, [h for h in hits if h is not None], len(curves))
 
     episodes = [r.episodes for r in setting.runs]
-    best = optimum_reference(env_key(setting.env_kwargs))
+    best = reference_optimum(setting.env_kwargs)  # cached per env setting (optimum.env_optimum)
+    finals = [float(c[-1]) for c in returns]
+    mean = float(np.mean(finals)) if finals else math.nan
     return SettingSummary(
         label=setting.label,
         seeds_finished=sum(r.status == STATUS_FINISHED for r in setting.runs),
@@ -250,7 +238,7 @@ def summarize(
         episodes_max=max(episodes),
         max_steps=setting.max_steps,
         ceiling=setting.ceiling,
-        final_returns=[float(c[-1]) for c in returns],
+        final_returns=finals,
         final_lengths=[float(c[-1]) for c in lengths],
         length_cap=crossing(lengths, setting.max_steps),
         return_threshold=crossing(returns, return_threshold),
@@ -258,6 +246,10 @@ def summarize(
         wall_clock_mean_s=float(np.mean(clocks)) if clocks else math.nan,
         wall_clock_total_s=float(np.sum(clocks)) if clocks else math.nan,
         notes=progress_notes(setting),
+        final_return_mean=mean,
+        final_return_std=float(np.std(finals, ddof=STD_DDOF)) if finals else math.nan,
+        final_return_pct=PERCENT * mean / setting.ceiling,
+        final_return_pct_of_optimum=math.nan if best is None else PERCENT * mean / best.best_return,
         optimum=None if best is None else best.best_return,
     )
 
@@ -293,38 +285,13 @@ def verdict(summaries: Sequence[SettingSummary]) -> str:
 # PD reference
 
 
-def env_key(env_kwargs: dict[str, Any]) -> str:
-    """An env setting as a hashable key (JSON); ``json.loads`` gives the arguments back.
-
-    JSON because the arguments hold a mapping (env.disturbance).
-    """
-    return json.dumps(env_kwargs, sort_keys=True)
-
-
 @functools.cache
 def _pd_return(env_json: str) -> float:
-    return evaluate_pd(json.loads(env_json), episodes=PD_EPISODES, seed=PD_SEED)["return_mean"]
-
-
-def pd_reference(env_kwargs: dict[str, Any]) -> float:
     """Mean return of the PD hover controller (:func:`~.evaluation.evaluate_pd`, 100 episodes, seed 0).
 
-    Computed once per distinct env setting in this process (cached).
+    Computed once per distinct env setting (its arguments as JSON) in this process (cached).
     """
-    return _pd_return(env_key(env_kwargs))
-
-
-# --------------------------------------------------------------------------------------------------
-# The optimum
-
-
-@functools.cache
-def optimum_reference(env_json: str) -> Optimum | None:
-    """The best achievable return of every episode in this env (:func:`env_key`) with bounded thrust, or ``None``.
-
-    Computed by :func:`drone_torchrl.evaluation.reference_optimum`; cached per env setting.
-    """
-    return reference_optimum(json.loads(env_json))
+    return evaluate_pd(json.loads(env_json), episodes=PD_EPISODES, seed=PD_SEED)["return_mean"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -389,11 +356,11 @@ def build_report(
     )
     by_env: dict[str, list[str]] = {}
     for s in settings:
-        by_env.setdefault(env_key(s.env_kwargs), []).append(s.label)
+        # JSON: a hashable key (the arguments hold a mapping, env.disturbance) that json.loads gives back.
+        by_env.setdefault(json.dumps(s.env_kwargs, sort_keys=True), []).append(s.label)
     for env_json, labels in by_env.items():
         suffix = "" if len(by_env) == 1 else f" ({LABEL_SEPARATOR.join(labels)})"
-        best = optimum_reference(env_json)
-        if best is not None:
+        if (best := reference_optimum(json.loads(env_json))) is not None:
             report.optima[OPTIMUM_LABEL + suffix] = best
         if pd:
             report.pd_returns[PD_LABEL + suffix] = _pd_return(env_json)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from drone_torchrl.report.stats import (
     PERCENT,
     STD_DDOF,
     ZONE_SHARE,
+    SettingSummary,
     SweepReport,
     markdown_table,
     setting_curve,
@@ -70,8 +71,7 @@ def plot_curves(report: SweepReport, column: str, path: Path) -> Path:
                 best.best_return, linestyle="-.", color="darkred", label=f"{name}: {best.best_return:.0f}"
             )
         ylabel, what = "return per episode", "Return"
-    ax.set_xlabel("episode")
-    ax.set_ylabel(f"{ylabel} (running mean over {report.window})")
+    ax.set(xlabel="episode", ylabel=f"{ylabel} (running mean over {report.window})")
     ax.set_title(f"{report.name}: {what.lower()}, mean +- std over seeds")
     ax.grid(alpha=0.2)
     ax.legend(loc="best", fontsize="small")
@@ -92,15 +92,13 @@ def summary_rows(report: SweepReport) -> list[dict[str, Any]]:
             "final_return_std": s.final_return_std,
             "return_ceiling": s.ceiling,
             "final_return_pct_of_ceiling": s.final_return_pct,
-            "optimum_return": "" if s.optimum is None else s.optimum,
-            "final_return_pct_of_optimum": "" if s.optimum is None else s.final_return_pct_of_optimum,
+            "optimum_return": _or_empty(s.optimum),
+            "final_return_pct_of_optimum": _or_empty(s.optimum and s.final_return_pct_of_optimum),
             "max_steps": s.max_steps,
-            "length_cap_episode_mean": "" if s.length_cap.mean is None else s.length_cap.mean,
+            "length_cap_episode_mean": _or_empty(s.length_cap.mean),
             "length_cap_seeds_reached": len(s.length_cap.episodes),
             "return_threshold": report.return_threshold,
-            "return_threshold_episode_mean": ""
-            if s.return_threshold.mean is None
-            else s.return_threshold.mean,
+            "return_threshold_episode_mean": _or_empty(s.return_threshold.mean),
             "return_threshold_seeds_reached": len(s.return_threshold.episodes),
             "final_negative_thrust_fraction": s.final_negative_thrust,
             "wall_clock_mean_s": s.wall_clock_mean_s,
@@ -111,8 +109,20 @@ def summary_rows(report: SweepReport) -> list[dict[str, Any]]:
     ]
 
 
+def _or_empty(value: float | None) -> float | str:
+    return "" if value is None else value
+
+
 def _common(values: set) -> str:
     return f"{next(iter(values)):g}" if len(values) == 1 else "10 x max_steps"
+
+
+def _span(low: int, high: int) -> str:
+    return f"{high}" if low == high else f"{low}-{high}"
+
+
+def _percent(value: float, suffix: str = "") -> str:
+    return "-" if math.isnan(value) else f"{value:.1f}%{suffix}"
 
 
 def _duration(seconds: float) -> str:
@@ -128,40 +138,26 @@ def format_table(report: SweepReport) -> str:
     """The summary table in Markdown."""
     ceiling = _common({s.ceiling for s in report.summaries})
     cap = _common({s.max_steps for s in report.summaries})
-    header = [
-        "setting",
-        "seeds (finished/total)",
-        "episodes",
-        f"final return (running mean {report.window})",
-        f"% of {ceiling}",
-        "% of optimum",
-        f"length reaches {cap} at episode",
-        f"return reaches {report.return_threshold:g} at episode",
-        "negative thrust",
-        "wall-clock per run",
-        "wall-clock total (sum over runs)",
-        "notes",
+    # Each column: its header and its cell of a setting's summary.
+    columns: list[tuple[str, Callable[[SettingSummary], str]]] = [
+        ("setting", lambda s: s.label),
+        ("seeds (finished/total)", lambda s: f"{s.seeds_finished}/{s.seeds_total}"),
+        ("episodes", lambda s: _span(s.episodes_min, s.episodes_max)),
+        (f"final return (running mean {report.window})", SettingSummary.return_text),
+        (f"% of {ceiling}", lambda s: _percent(s.final_return_pct)),
+        (
+            "% of optimum",
+            lambda s: _percent(s.final_return_pct_of_optimum, f" of {s.optimum:g}" if s.optimum else ""),
+        ),
+        (f"length reaches {cap} at episode", lambda s: s.length_cap.text()),
+        (f"return reaches {report.return_threshold:g} at episode", lambda s: s.return_threshold.text()),
+        ("negative thrust", lambda s: _percent(PERCENT * s.final_negative_thrust)),
+        ("wall-clock per run", lambda s: _duration(s.wall_clock_mean_s)),
+        ("wall-clock total (sum over runs)", lambda s: _duration(s.wall_clock_total_s)),
+        ("notes", lambda s: "; ".join(s.notes)),
     ]
-    rows = [
-        [
-            s.label,
-            f"{s.seeds_finished}/{s.seeds_total}",
-            f"{s.episodes_max}" if s.episodes_min == s.episodes_max else f"{s.episodes_min}-{s.episodes_max}",
-            s.return_text(),
-            "-" if math.isnan(s.final_return_pct) else f"{s.final_return_pct:.1f}%",
-            "-"
-            if math.isnan(s.final_return_pct_of_optimum)
-            else f"{s.final_return_pct_of_optimum:.1f}% of {s.optimum:g}",
-            s.length_cap.text(),
-            s.return_threshold.text(),
-            "-" if math.isnan(s.final_negative_thrust) else f"{PERCENT * s.final_negative_thrust:.1f}%",
-            _duration(s.wall_clock_mean_s),
-            _duration(s.wall_clock_total_s),
-            "; ".join(s.notes),
-        ]
-        for s in report.summaries
-    ]
-    return markdown_table(header, rows)
+    rows = [[cell(s) for _, cell in columns] for s in report.summaries]
+    return markdown_table([header for header, _ in columns], rows)
 
 
 def format_report(report: SweepReport, figures: bool = True) -> str:
