@@ -41,7 +41,8 @@ from hydra.core.utils import JobReturn, JobStatus, filter_overrides, setup_globa
 from omegaconf import OmegaConf
 
 from drone_torchrl.compat import submitit_cluster, submitit_params
-from hydra_plugins.drone_torchrl_launcher import population_launcher
+from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+from hydra_plugins.drone_torchrl_launcher.population_launcher import JobFailed, job_output_dir
 
 try:
     from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
@@ -75,12 +76,11 @@ if _SubmititSlurm is not None:
 
         def __init__(self, **params: Any) -> None:
             super().__init__(**params)
-            self.per_job = submitit_params(self).get("agents_per_job")
-            if "agents_per_job" in submitit_params(self) and (
-                isinstance(self.per_job, bool) or not isinstance(self.per_job, int) or self.per_job < 1
-            ):  # Hydra instantiates the launcher before any job starts: one line, nothing written.
+            self.per_job = per_job = params.get("agents_per_job")  # slurm_population's key; slurm has none
+            if "agents_per_job" in params and (type(per_job) is not int or per_job < 1):
+                # Hydra instantiates the launcher before any job starts: one line, nothing written.
                 sys.exit(
-                    f"drone-train: error: hydra.launcher.agents_per_job={self.per_job} is not allowed; "
+                    f"drone-train: error: hydra.launcher.agents_per_job={per_job} is not allowed; "
                     "expected an integer >= 1"
                 )
 
@@ -107,23 +107,20 @@ if _SubmititSlurm is not None:
         def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
             from submitit.core.utils import UncompletedJobError
 
-            from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+            from drone_torchrl.training.jobs import record_failure
 
             assert self.config is not None and self.hydra_context is not None
             sweep_dir = Path(str(self.config.hydra.sweep.dir))
             sweep_dir.mkdir(parents=True, exist_ok=True)
             numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
+            configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
+            folders = [job_output_dir(cfg, idx) for idx, cfg in zip(numbers, configs, strict=True)]
             if self.per_job is None:  # one array task per sweep job
                 groups = [[position] for position in range(len(job_overrides))]
                 log.info(f"Submitit 'slurm' sweep output dir : {sweep_dir}")
                 for idx, overrides in zip(numbers, job_overrides, strict=True):
                     log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
             else:  # populations of up to agents_per_job folders, a folder's jobs in one
-                configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
-                folders = [
-                    population_launcher.job_output_dir(cfg, idx)
-                    for idx, cfg in zip(numbers, configs, strict=True)
-                ]
                 groups = population_groups(folders, self.per_job)
                 log.info(
                     f"Submitit 'slurm' sweep output dir : {sweep_dir}: {len(job_overrides)} jobs as "
@@ -143,33 +140,29 @@ if _SubmititSlurm is not None:
             returns: dict[int, JobReturn] = {}  # by the job's position in the sweep
             for job, group in zip(jobs, groups, strict=True):
                 try:
-                    done = job.results()[0]
-                except UncompletedJobError:
-                    done = [self._unfinished(job, list(job_overrides[i]), numbers[i]) for i in group]
-                returns.update(zip(group, done, strict=True))
+                    returns.update(zip(group, job.results()[0], strict=True))
+                except UncompletedJobError:  # each of its jobs FAILED, with FAILED.txt
+                    error = JobFailed(
+                        f"SLURM job {job.job_id} ended {job.state} before the run finished; "
+                        "run the same command again to continue it from its checkpoint"
+                    )
+                    for i in group:
+                        print(f"{folders[i]}: job failed: {record_failure(Path(folders[i]), error)}")
+                        returns[i] = JobReturn(
+                            list(job_overrides[i]), status=JobStatus.FAILED, _return_value=error
+                        )
             return [returns[position] for position in range(len(job_overrides))]
 
         def __call__(self, group: list[list[str]], numbers: list[int], singleton_state) -> list[JobReturn]:
             """Inside the array task: its job as Hydra's launcher runs it, or its jobs as one population
             (:func:`~.population_launcher.train_populations`); ``checkpoint`` requeues it."""
+            from hydra_plugins.drone_torchrl_launcher.population_launcher import train_populations
+
             if self.per_job is None:
                 return [super().__call__(group[0], "hydra.sweep.dir", numbers[0], "", singleton_state)]
             Singleton.set_state(singleton_state)
             setup_globals()
-            return population_launcher.train_populations(self.hydra_context, self.config, group, numbers)
-
-        def _unfinished(self, job, overrides: list[str], idx: int) -> JobReturn:
-            """A FAILED return (and ``FAILED.txt``) for a job whose SLURM job ended before it finished."""
-            from drone_torchrl.training.jobs import record_failure
-
-            cfg = self.hydra_context.config_loader.load_sweep_config(self.config, overrides)
-            run_dir = Path(population_launcher.job_output_dir(cfg, idx))
-            error = population_launcher.JobFailed(
-                f"SLURM job {job.job_id} ended {job.state} before the run finished; "
-                "run the same command again to continue it from its checkpoint"
-            )
-            print(f"{run_dir}: job failed: {record_failure(run_dir, error)}")
-            return JobReturn(overrides=overrides, status=JobStatus.FAILED, _return_value=error)
+            return train_populations(self.hydra_context, self.config, group, numbers)
 
     class SlurmPopulationLauncher(SlurmLauncher):
         """``slurm_population``'s target: :class:`SlurmLauncher` (its ``agents_per_job`` makes the populations)."""
