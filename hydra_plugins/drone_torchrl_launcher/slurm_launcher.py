@@ -10,15 +10,16 @@
   (:func:`population_groups`): two SLURM jobs never write one folder at the same time.
 
 Both are one launcher (:class:`SlurmLauncher`; ``slurm_population``'s schema adds ``agents_per_job``):
-one submission of a job array, one array task per group of sweep jobs (a single job under ``slurm``,
-run by Hydra's submitit launcher's own ``__call__``; a population under ``slurm_population``), the
-executor built as Hydra's submitit launcher builds it. That launcher ends with
-``[job.results()[0] for job in jobs]``: the first job that did not finish (cancelled with ``scancel``,
-out of memory, a node failure) raises while the other jobs are still running, so the sweep stops
-with a traceback and its summary is never printed. This one waits for every array task and reports
-each sweep job of one that did not finish as FAILED: SLURM's state (e.g. ``CANCELLED``) goes into the job's ``FAILED.txt``, the
-end-of-sweep summary lists it, and running the same command again continues it from its
-checkpoint (finished jobs return at once).
+one job array, one array task per group of sweep jobs (a single job under ``slurm``, run by Hydra's
+submitit launcher's own ``__call__``; a population under ``slurm_population``), its executor built
+as that launcher builds it. That launcher ends with ``[job.results()[0] for job in jobs]``: the
+first job that did not finish (cancelled with ``scancel``, out of memory, a node failure) raises
+while the other jobs are still running, so the sweep stops with a traceback and its summary is
+never printed. This one waits for every array task and reports each sweep job of one that did not
+finish as FAILED: SLURM's state (e.g. ``CANCELLED``) goes into the job's ``FAILED.txt`` (the folder
+found at submission, :func:`~.population_launcher.job_output_dir`), the end-of-sweep summary lists
+it, and running the same command again continues it from its checkpoint (finished jobs return at
+once).
 
 A job that reaches its time limit is requeued by submitit (``max_num_timeout`` times; the signal
 comes ``signal_delay_s`` before the limit) and continues from ``<job>/checkpoints/last.pt``.
