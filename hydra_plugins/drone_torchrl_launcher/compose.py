@@ -197,7 +197,5 @@ def _number(text: str) -> int | float | None:
 
 def _take_hydra(cfg: DictConfig) -> DictConfig:
     """Remove and return ``cfg``'s ``hydra`` node."""
-    hydra = cfg.hydra
     with open_dict(cfg):
-        del cfg["hydra"]
-    return hydra
+        return cfg.pop("hydra")

@@ -107,15 +107,14 @@ def job_output_dir(cfg: DictConfig, idx: int) -> str:
     return os.path.abspath(os.path.join(str(cfg.hydra.sweep.dir), subdir))
 
 
-def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple[JobReturn, Path]:
-    """The job's folder with what Hydra's ``run_job`` writes before it calls the task: ``.hydra/``
-    and the (empty) job log; returns the job's ``JobReturn`` and folder. ``cfg`` (this job's own
+def _job_folder(hydra_context: HydraContext, cfg: DictConfig, output_dir: Path) -> JobReturn:
+    """The job's folder (:func:`job_output_dir`) with what Hydra's ``run_job`` writes before it calls
+    the task: ``.hydra/`` and the (empty) job log; returns the job's ``JobReturn``. ``cfg`` (this job's own
     config; its ``hydra`` node may be shared with other jobs) loses its ``hydra`` node: the returned
     ``JobReturn.cfg`` is the job's config. Hydra callbacks' ``on_job_start`` get the job's whole
     config; its ``hydra`` node may be rewritten for the next job afterwards (keep a copy, not it)."""
     with read_write(cfg), open_dict(cfg):
-        output_dir = job_output_dir(cfg, idx)
-        cfg.hydra.runtime.output_dir = output_dir
+        cfg.hydra.runtime.output_dir = str(output_dir)
         log_file = OmegaConf.select(cfg, "hydra.job_logging.handlers.file.filename", default=None)
         hydra_cfg = hydra_record(cfg.hydra)
         ret = _JobReturn(
@@ -125,12 +124,12 @@ def _job_folder(hydra_context: HydraContext, cfg: DictConfig, idx: int) -> tuple
         hydra_context.callbacks.on_job_start(config=cfg, task_function=None)
         del cfg["hydra"]
     ret.cfg, ret._hydra_container = cfg, hydra_cfg
-    Path(output_dir).mkdir(parents=True, exist_ok=True)
+    output_dir.mkdir(parents=True, exist_ok=True)
     if output_subdir is not None:
-        _save_record(Path(output_dir) / output_subdir, cfg, hydra_cfg, to_yaml(ret.overrides))
+        _save_record(output_dir / output_subdir, cfg, hydra_cfg, to_yaml(ret.overrides))
     if log_file is not None:
         Path(log_file).touch()
-    return ret, Path(output_dir)
+    return ret
 
 
 def train_populations(
@@ -161,16 +160,15 @@ def train_populations(
         zip(job_numbers, job_overrides, configs, strict=True)
     ):
         log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
-        folder = job_output_dir(sweep_config, idx)
+        run_dir = Path(job_output_dir(sweep_config, idx))
         try:
-            run_lock.hold(folder)  # the job's folder is this process's before anything is written into it
+            run_lock.hold(run_dir)  # the job's folder is this process's before anything is written into it
         except (ConfigError, OSError) as err:
-            print(f"{folder}: job not started: {err}")
+            print(f"{run_dir}: job not started: {err}")
             returns.append(_JobReturn(overrides=list(overrides), cfg=sweep_config))
-            jobs.append(Outcome(Path(folder), error=err))
+            jobs.append(Outcome(run_dir, error=err))
             continue
-        ret, run_dir = _job_folder(hydra_context, sweep_config, idx)
-        returns.append(ret)
+        returns.append(ret := _job_folder(hydra_context, sweep_config, run_dir))
         if run_dir in folders:
             first = job_numbers[folders[run_dir]]
             print(f"{run_dir}: job #{idx} is job #{first} again (the same folder); trained once")

@@ -9,13 +9,17 @@
   names such as ``threads``) go into the same SLURM job, which trains that folder once
   (:func:`population_groups`): two SLURM jobs never write one folder at the same time.
 
-Hydra's submitit launcher ends with ``[job.results()[0] for job in jobs]``: the first job that did
-not finish (cancelled with ``scancel``, out of memory, a node failure) raises while the other jobs
-are still running, so the sweep stops with a traceback and its summary is never printed. This
-launcher submits exactly as that one does, then waits for every job and reports each one that
-did not finish as FAILED: SLURM's state (e.g. ``CANCELLED``) goes into the job's ``FAILED.txt``, the
-end-of-sweep summary lists it, and running the same command again continues it from its
-checkpoint (finished jobs return at once).
+Both are one launcher (:class:`SlurmLauncher`; ``slurm_population``'s schema adds ``agents_per_job``):
+one job array, one array task per group of sweep jobs (a single job under ``slurm``, run by Hydra's
+submitit launcher's own ``__call__``; a population under ``slurm_population``), its executor built
+as that launcher builds it. That launcher ends with ``[job.results()[0] for job in jobs]``: the
+first job that did not finish (cancelled with ``scancel``, out of memory, a node failure) raises
+while the other jobs are still running, so the sweep stops with a traceback and its summary is
+never printed. This one waits for every array task and reports each sweep job of one that did not
+finish as FAILED: SLURM's state (e.g. ``CANCELLED``) goes into the job's ``FAILED.txt`` (the folder
+found at submission, :func:`~.population_launcher.job_output_dir`), the end-of-sweep summary lists
+it, and running the same command again continues it from its checkpoint (finished jobs return at
+once).
 
 A job that reaches its time limit is requeued by submitit (``max_num_timeout`` times; the signal
 comes ``signal_delay_s`` before the limit) and continues from ``<job>/checkpoints/last.pt``.
@@ -31,12 +35,15 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from hydra.core.singleton import Singleton
-from hydra.core.utils import JobReturn, JobStatus, filter_overrides
-from omegaconf import OmegaConf, open_dict
+from hydra.core.utils import JobReturn, JobStatus, filter_overrides, setup_globals
+from omegaconf import OmegaConf
 
 from drone_torchrl.compat import submitit_cluster, submitit_params
+from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
+from hydra_plugins.drone_torchrl_launcher.population_launcher import JobFailed, job_output_dir
 
 try:
     from hydra_plugins.hydra_submitit_launcher.config import BaseQueueConf
@@ -52,20 +59,31 @@ POLL_S = 2.0
 def population_groups(folders: Sequence[str], per_job: int) -> list[list[int]]:
     """The sweep's jobs (by position) cut into SLURM jobs of up to ``per_job`` distinct folders, in
     order; a job whose folder an earlier job has goes with that job (which trains the folder once)."""
-    groups: list[list[int]] = []
+    groups: dict[int, list[int]] = {}
     owner: dict[str, int] = {}  # folder -> its group: the n-th distinct folder goes to group n // per_job
     for position, folder in enumerate(folders):
-        group = owner.setdefault(folder, len(owner) // per_job)
-        if group == len(groups):
-            groups.append([])
-        groups[group].append(position)
-    return groups
+        groups.setdefault(owner.setdefault(folder, len(owner) // per_job), []).append(position)
+    return list(groups.values())
 
 
 if _SubmititSlurm is not None:
 
     class SlurmLauncher(_SubmititSlurm):
-        """Hydra's submitit SLURM launcher that waits for every job and reports unfinished ones as FAILED."""
+        """Hydra's submitit SLURM launcher that waits for every job and reports unfinished ones as FAILED.
+
+        Each SLURM array task gets a group of sweep jobs: one job, run as Hydra's launcher runs it
+        (``slurm``), or, with ``agents_per_job`` (``slurm_population``'s schema has it), a population.
+        """
+
+        def __init__(self, **params: Any) -> None:
+            super().__init__(**params)
+            self.per_job = per_job = params.get("agents_per_job")  # slurm_population's key; slurm has none
+            if "agents_per_job" in params and (type(per_job) is not int or per_job < 1):
+                # Hydra instantiates the launcher before any job starts: one line, nothing written.
+                sys.exit(
+                    f"drone-train: error: hydra.launcher.agents_per_job={per_job} is not allowed; "
+                    "expected an integer >= 1"
+                )
 
         def _executor(self):
             """The submitit executor with this launcher's parameters (as Hydra's launcher builds it)."""
@@ -77,13 +95,12 @@ if _SubmititSlurm is not None:
                 folder=params["submitit_folder"],
                 **{f"{cluster}_max_num_timeout": params["max_num_timeout"]},
             )
-            init_keys = {"submitit_folder", "max_num_timeout", "agents_per_job"}
             base = set(OmegaConf.structured(BaseQueueConf).keys())
             executor.update_parameters(
                 **{
                     key if key in base else f"{cluster}_{key}": value
                     for key, value in params.items()
-                    if key not in init_keys
+                    if key not in {"submitit_folder", "max_num_timeout", "agents_per_job"}
                 }
             )
             return executor
@@ -91,101 +108,65 @@ if _SubmititSlurm is not None:
         def launch(self, job_overrides: Sequence[Sequence[str]], initial_job_idx: int) -> Sequence[JobReturn]:
             from submitit.core.utils import UncompletedJobError
 
-            assert self.config is not None
+            from drone_torchrl.training.jobs import record_failure
+
+            assert self.config is not None and self.hydra_context is not None
             sweep_dir = Path(str(self.config.hydra.sweep.dir))
             sweep_dir.mkdir(parents=True, exist_ok=True)
             numbers = range(initial_job_idx, initial_job_idx + len(job_overrides))
-            groups, params = self._slurm_jobs(sweep_dir, job_overrides, numbers)
-            jobs = self._executor().map_array(self, *zip(*params, strict=True))  # one array task each
+            configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
+            folders = [job_output_dir(cfg, idx) for idx, cfg in zip(numbers, configs, strict=True)]
+            if self.per_job is None:  # one array task per sweep job
+                groups = [[position] for position in range(len(job_overrides))]
+                log.info(f"Submitit 'slurm' sweep output dir : {sweep_dir}")
+                for idx, overrides in zip(numbers, job_overrides, strict=True):
+                    log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
+            else:  # populations of up to agents_per_job folders, a folder's jobs in one
+                groups = population_groups(folders, self.per_job)
+                log.info(
+                    f"Submitit 'slurm' sweep output dir : {sweep_dir}: {len(job_overrides)} jobs as "
+                    f"{len(groups)} SLURM job(s) of up to {self.per_job} agents"
+                )
+            jobs = self._executor().map_array(  # one array task per group
+                self,
+                [[list(job_overrides[i]) for i in group] for group in groups],
+                [[numbers[i] for i in group] for group in groups],
+                [Singleton.get_state()] * len(groups),
+            )
             log.info(
                 f"Submitted SLURM job(s) {', '.join(sorted({job.job_id.split('_')[0] for job in jobs}))}"
             )
             while not all(job.done() for job in jobs):
                 time.sleep(POLL_S)
-            returns: list[JobReturn | None] = [None] * len(job_overrides)
+            returns: dict[int, JobReturn] = {}  # by the job's position in the sweep
             for job, group in zip(jobs, groups, strict=True):
                 try:
-                    done = job.results()[0]  # slurm: the job's JobReturn; slurm_population: its jobs'
-                except UncompletedJobError:
-                    done = [self._unfinished(job, list(job_overrides[i]), numbers[i]) for i in group]
-                for position, ret in zip(group, done if isinstance(done, list) else [done], strict=True):
-                    returns[position] = ret
-            return returns
-
-        def _slurm_jobs(
-            self, sweep_dir: Path, job_overrides: Sequence[Sequence[str]], numbers: range
-        ) -> tuple[list[list[int]], list[tuple]]:
-            """The SLURM jobs: each one's sweep jobs (by position) and its arguments of ``self``; one each."""
-            log.info(f"Submitit '{submitit_cluster(self)}' sweep output dir : {sweep_dir}")
-            params = []
-            for idx, overrides in zip(numbers, job_overrides, strict=True):
-                log.info(f"\t#{idx} : {' '.join(filter_overrides(overrides))}")
-                params.append(
-                    (list(overrides), "hydra.sweep.dir", idx, f"job_id_for_{idx}", Singleton.get_state())
-                )
-            return [[position] for position in range(len(job_overrides))], params
-
-        def _unfinished(self, job, overrides: list[str], idx: int) -> JobReturn:
-            """A FAILED return (and ``FAILED.txt``) for a job whose SLURM job ended before it finished."""
-            from drone_torchrl.training.jobs import record_failure
-            from hydra_plugins.drone_torchrl_launcher.population_launcher import JobFailed
-
-            state = job.state
-            cfg = self.hydra_context.config_loader.load_sweep_config(self.config, overrides)
-            with open_dict(cfg.hydra.job):
-                cfg.hydra.job.num, cfg.hydra.job.id = idx, job.job_id
-            run_dir = Path(str(cfg.hydra.sweep.dir)) / str(OmegaConf.select(cfg, "hydra.sweep.subdir"))
-            error = JobFailed(
-                f"SLURM job {job.job_id} ended {state} before the run finished; "
-                "run the same command again to continue it from its checkpoint"
-            )
-            print(f"{run_dir}: job failed: {record_failure(run_dir, error)}")
-            return JobReturn(overrides=overrides, status=JobStatus.FAILED, _return_value=error)
-
-    class SlurmPopulationLauncher(SlurmLauncher):
-        """One SLURM job per population of ``agents_per_job`` sweep jobs, trained by the fast engine."""
-
-        def __init__(self, **params) -> None:
-            super().__init__(**params)
-            per_job = submitit_params(self)["agents_per_job"]
-            if isinstance(per_job, bool) or not isinstance(per_job, int) or per_job < 1:
-                # Hydra instantiates the launcher before any job starts: one line, nothing written.
-                sys.exit(
-                    f"drone-train: error: hydra.launcher.agents_per_job={per_job} is not allowed; "
-                    "expected an integer >= 1"
-                )
-
-        def _slurm_jobs(
-            self, sweep_dir: Path, job_overrides: Sequence[Sequence[str]], numbers: range
-        ) -> tuple[list[list[int]], list[tuple]]:
-            """The SLURM jobs: populations of up to ``agents_per_job`` sweep jobs, with their folders' owners."""
-            from hydra_plugins.drone_torchrl_launcher.compose import sweep_configs
-            from hydra_plugins.drone_torchrl_launcher.population_launcher import job_output_dir
-
-            assert self.config is not None and self.hydra_context is not None
-            per_job = submitit_params(self)["agents_per_job"]
-            configs = sweep_configs(self.hydra_context.config_loader, self.config, job_overrides)
-            folders = [job_output_dir(cfg, idx) for idx, cfg in zip(numbers, configs, strict=True)]
-            groups = population_groups(folders, per_job)
-            log.info(
-                f"Submitit 'slurm' sweep output dir : {sweep_dir}: {len(job_overrides)} jobs as "
-                f"{len(groups)} SLURM job(s) of up to {per_job} agents"
-            )
-            params = [
-                ([list(job_overrides[i]) for i in group], [numbers[i] for i in group], Singleton.get_state())
-                for group in groups
-            ]
-            return groups, params
+                    returns.update(zip(group, job.results()[0], strict=True))
+                except UncompletedJobError:  # each of its jobs FAILED, with FAILED.txt
+                    error = JobFailed(
+                        f"SLURM job {job.job_id} ended {job.state} before the run finished; "
+                        "run the same command again to continue it from its checkpoint"
+                    )
+                    for i in group:
+                        print(f"{folders[i]}: job failed: {record_failure(Path(folders[i]), error)}")
+                        returns[i] = JobReturn(
+                            list(job_overrides[i]), status=JobStatus.FAILED, _return_value=error
+                        )
+            return [returns[position] for position in range(len(job_overrides))]
 
         def __call__(self, group: list[list[str]], numbers: list[int], singleton_state) -> list[JobReturn]:
-            """Inside the SLURM job: the group's folders, then one population (``checkpoint`` requeues it)."""
-            from hydra.core.utils import setup_globals
-
+            """Inside the array task: its job as Hydra's launcher runs it, or its jobs as one population
+            (:func:`~.population_launcher.train_populations`); ``checkpoint`` requeues it."""
             from hydra_plugins.drone_torchrl_launcher.population_launcher import train_populations
 
+            if self.per_job is None:
+                return [super().__call__(group[0], "hydra.sweep.dir", numbers[0], "", singleton_state)]
             Singleton.set_state(singleton_state)
             setup_globals()
             return train_populations(self.hydra_context, self.config, group, numbers)
+
+    class SlurmPopulationLauncher(SlurmLauncher):
+        """``slurm_population``'s target: :class:`SlurmLauncher` (its ``agents_per_job`` makes the populations)."""
 
 
 # The launchers this module defines, for drone-train to register: none without the submitit extra.
