@@ -16,13 +16,7 @@ from drone_torchrl import config, extras, migrations
 from drone_torchrl.checks import ConfigError, dotted
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
-from drone_torchrl.io.checkpoint import (
-    CheckpointError,
-    is_last_of_its_run,
-    load_checkpoint,
-    resolve_checkpoint,
-    run_dir_of,
-)
+from drone_torchrl.io.checkpoint import is_last_of_its_run, resolve_checkpoint, run_dir_of
 from drone_torchrl.io.folders import check_fork_folder
 from drone_torchrl.io.storage import StorageError
 from drone_torchrl.sweep_folder import SEARCH_LAUNCHERS, SWEEP_RECORD
@@ -244,9 +238,9 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
 
     The resumed run's plug-ins where they are not the defaults and the command line chooses no
     option of their group: ``resume=<a PPO run> algo.target_kl=...`` is then checked and composed
-    against PPO's keys, as they are keys of the run. None for a checkpoint that cannot be read (the
-    resume refuses it in its own line), nor when the command line chooses a preset, whose options
-    may pick plug-ins themselves.
+    against PPO's keys, as they are keys of the run. None for a checkpoint that
+    :func:`~drone_torchrl.config.open_checkpoint` refuses (the resume refuses it in its own line), nor
+    when the command line chooses a preset, whose options may pick plug-ins themselves.
     """
     from drone_torchrl import schema
 
@@ -264,10 +258,8 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
     ):
         return []
     try:
-        state = load_checkpoint(resolve_checkpoint(resume))
-    except (FileNotFoundError, CheckpointError):
-        return []
-    if not isinstance(state, dict) or not isinstance(state.get("config"), dict):
+        _, state = config.open_checkpoint("resume", resume)
+    except ConfigError:
         return []
     saved = config.run_config(state["config"])
     out = []

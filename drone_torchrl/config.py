@@ -20,6 +20,13 @@ from drone_torchrl.checks import ConfigError, dotted, plain_name
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.io import folders
+from drone_torchrl.io.checkpoint import (
+    CheckpointError,
+    check_weights,
+    is_population,
+    load_checkpoint,
+    resolve_checkpoint,
+)
 from drone_torchrl.registry import ALGORITHMS
 from drone_torchrl.schema import Rule
 
@@ -686,8 +693,6 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
     is not a readable one. A population run's checkpoint comes back as it is (``population_record.open_agent``
     reads one agent of it).
     """
-    from drone_torchrl.io.checkpoint import POPULATION, CheckpointError, load_checkpoint, resolve_checkpoint
-
     if not isinstance(location, str | Path) or not str(location).strip():
         raise ConfigError.of(key, location, "a run folder or a checkpoint file (a path)")
     try:
@@ -696,24 +701,18 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
         raise ConfigError(f"{key}={str(location)!r} is not allowed; {err}") from None
     try:
         state = load_checkpoint(path)
+        if is_population(state):
+            return path, state
+        name = OmegaConf.select(run_config(state["config"]), "algo.name")
+        if name not in ALGORITHMS.names():
+            known = f"known: {list(ALGORITHMS.names())}"
+            raise CheckpointError(f"it was written by algo.name={name!r}, which is not installed ({known})")
+        if missing := [entry for entry in ALGORITHMS.get(name).checkpoint_keys if entry not in state]:
+            raise CheckpointError(
+                f"it lacks {', '.join(missing)} (algo.name={name} writes it): a damaged or foreign checkpoint"
+            )
     except CheckpointError as err:
         raise ConfigError(f"{key}={str(path)!r} cannot be used: {err}") from None
-    if state.get("kind") == POPULATION:
-        return path, state
-    name = OmegaConf.select(run_config(state["config"]), "algo.name")
-    try:
-        algorithm = ALGORITHMS.get(name)
-    except ConfigError:
-        raise ConfigError(
-            f"{key}={str(path)!r} cannot be used: it was written by algo.name={name!r}, which is not installed "
-            f"(known: {list(ALGORITHMS.names())})"
-        ) from None
-    missing = [entry for entry in algorithm.checkpoint_keys if entry not in state]
-    if missing:
-        raise ConfigError(
-            f"{key}={str(path)!r} cannot be used: it lacks {', '.join(missing)} (algo.name={name} writes it): "
-            "a damaged or foreign checkpoint"
-        )
     return path, state
 
 
@@ -727,7 +726,6 @@ def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig)
     """
     import torch
 
-    from drone_torchrl.io.checkpoint import CheckpointError, check_weights
     from drone_torchrl.modules.factory import build_actor, build_critic
 
     meta = copy.deepcopy(cfg)
