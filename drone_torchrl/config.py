@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import difflib
 import functools
@@ -317,7 +316,7 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
         raise ConfigError(f"{missing[0]} is missing (deleted with ~?); every config key needs a value")
     for key in given:
         # A list or dict value (e.g. model.hidden_sizes) may hold any shape of its own.
-        if key not in known and not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
+        if key not in known and not any(key.startswith(f"{k}.") for k in known):
             raise _unknown(key, known)
     return _plain(resolved)
 
@@ -728,8 +727,7 @@ def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig)
 
     from drone_torchrl.modules.factory import build_actor, build_critic
 
-    meta = copy.deepcopy(cfg)
-    meta.device = "meta"
+    meta = OmegaConf.merge(cfg, {"device": "meta"})
     with torch.device("meta"):
         networks = {"actor": build_actor(meta)}
         if "critic" in ALGORITHMS.get(cfg.algo.name).checkpoint_keys:  # PPO's and A2C's value network
