@@ -89,10 +89,12 @@ def check(prog: str) -> list[Path]:
         # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.
         implied = resumed_plugins(overrides) if trains and not flags.multirun else []
         config.imply_choices(implied)
-        sys.argv.extend(implied)
+        flags.overrides[:0] = implied  # beside the others: Hydra reads the overrides after a flag as unknown
+        at = sys.argv.index(flags.overrides[len(implied)]) if implied else 0
+        sys.argv[at:at] = implied
         own_config = flags.config_name is None and flags.config_dir is None
         if own_config and flags.config_path is None:
-            config.check_overrides([*flags.overrides, *implied], CONFIGS[prog])
+            config.check_overrides(flags.overrides, CONFIGS[prog])
         if trains:
             check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
         prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
