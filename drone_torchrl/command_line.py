@@ -85,7 +85,9 @@ def check(prog: str) -> list[Path]:
                 print(f"{prog}: {note}", file=sys.stderr)
             sys.argv[1:] = args
         flags = parse_flags(prog, args)
-        overrides = overrides_of(args)
+        # {key: value} of the key=value overrides (the last one wins, as in Hydra)
+        pairs = (arg.split("=", 1) for arg in args if not arg.startswith("-") and "=" in arg)
+        overrides = {key.lstrip("+~"): value for key, value in pairs}
         # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.
         implied = resumed_plugins(overrides) if trains and not flags.multirun else []
         config.imply_choices(implied)
@@ -127,12 +129,6 @@ def check(prog: str) -> list[Path]:
     except (ConfigError, StorageError) as err:
         sys.exit(f"{prog}: error: {err}")
     return [] if folder is None else [folder]
-
-
-def overrides_of(args: list[str]) -> dict[str, str]:
-    """``{key: value}`` of the command line's ``key=value`` overrides (the last one wins, as in Hydra)."""
-    pairs = (arg.split("=", 1) for arg in args if not arg.startswith("-") and "=" in arg)
-    return {key.lstrip("+~"): value for key, value in pairs}
 
 
 def check_extras(overrides: dict[str, str]) -> None:

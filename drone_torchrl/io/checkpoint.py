@@ -153,12 +153,9 @@ def tensors(state: Any, prefix: str = "") -> Iterator[tuple[str, torch.Tensor]]:
     """
     if isinstance(state, torch.Tensor):
         yield prefix, state
-    elif isinstance(state, Mapping):
-        for key, value in state.items():
+    elif isinstance(state, Mapping | list | tuple):
+        for key, value in state.items() if isinstance(state, Mapping) else enumerate(state):
             yield from tensors(value, f"{prefix}/{key}" if prefix else str(key))
-    elif isinstance(state, list | tuple):
-        for i, value in enumerate(state):
-            yield from tensors(value, f"{prefix}/{i}" if prefix else str(i))
 
 
 def tensor_digests(state: Mapping[str, Any]) -> dict[str, str]:
