@@ -6,11 +6,13 @@ import dataclasses
 import difflib
 import functools
 import itertools
+import os
 from collections.abc import Iterable, Mapping, Sequence
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
@@ -26,6 +28,7 @@ from drone_torchrl.io.checkpoint import (
     load_checkpoint,
     resolve_checkpoint,
 )
+from drone_torchrl.io.storage import name_too_long, unwritable
 from drone_torchrl.registry import ALGORITHMS
 from drone_torchrl.schema import Rule
 
@@ -591,8 +594,6 @@ def _check_folder_name(key: str, value: Any, expected: str, taken: Iterable[str]
     Not one folder (:func:`plain_name`) or a taken name: the message asks for ``expected``. The
     length is the working folder's file system's (where run and sweep folders go by default).
     """
-    from drone_torchrl.io.storage import name_too_long
-
     if not plain_name(value) or value in taken:
         raise ConfigError.of(key, value, expected)
     if (too_long := name_too_long(value)) is not None:
@@ -605,10 +606,6 @@ def _check_folder(key: str, value: Any) -> None:
     It must not be empty or a file, must be a name the file system takes, and must lie under a
     folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`).
     """
-    import os
-
-    from drone_torchrl.io.storage import unwritable
-
     if not isinstance(value, str):
         return
     if not value.strip():
@@ -723,8 +720,6 @@ def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig)
     :class:`~.checks.ConfigError` naming the key, the file and the first tensor that differs;
     the networks are built on the meta device (shapes only: no memory, no time).
     """
-    import torch
-
     from drone_torchrl.modules.factory import build_actor, build_critic
 
     meta = OmegaConf.merge(cfg, {"device": "meta"})
@@ -741,8 +736,6 @@ def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig)
 
 def check_device(device: Any) -> None:
     """Raise :class:`~.checks.ConfigError` for a device torch does not know or this machine does not have."""
-    import torch
-
     try:
         kind = torch.device(device).type
     except (RuntimeError, TypeError, ValueError, OverflowError):  # ValueError: an index past int64
