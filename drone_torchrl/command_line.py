@@ -16,13 +16,7 @@ from drone_torchrl import config, extras, migrations
 from drone_torchrl.checks import ConfigError, dotted
 from drone_torchrl.compat import hydra_args_parser
 from drone_torchrl.io import run_lock
-from drone_torchrl.io.checkpoint import (
-    CheckpointError,
-    is_last_of_its_run,
-    load_checkpoint,
-    resolve_checkpoint,
-    run_dir_of,
-)
+from drone_torchrl.io.checkpoint import is_last_of_its_run, resolve_checkpoint, run_dir_of
 from drone_torchrl.io.folders import check_fork_folder
 from drone_torchrl.io.storage import StorageError
 from drone_torchrl.sweep_folder import SEARCH_LAUNCHERS, SWEEP_RECORD
@@ -91,14 +85,18 @@ def check(prog: str) -> list[Path]:
                 print(f"{prog}: {note}", file=sys.stderr)
             sys.argv[1:] = args
         flags = parse_flags(prog, args)
-        overrides = overrides_of(args)
+        # {key: value} of the key=value overrides (the last one wins, as in Hydra)
+        pairs = (arg.split("=", 1) for arg in args if not arg.startswith("-") and "=" in arg)
+        overrides = {key.lstrip("+~"): value for key, value in pairs}
         # A resumed run's own plug-ins (algo=ppo) where the defaults are others: its keys are theirs.
         implied = resumed_plugins(overrides) if trains and not flags.multirun else []
         config.imply_choices(implied)
-        sys.argv.extend(implied)
+        flags.overrides[:0] = implied  # beside the others: Hydra reads the overrides after a flag as unknown
+        at = sys.argv.index(flags.overrides[len(implied)]) if implied else 0
+        sys.argv[at:at] = implied
         own_config = flags.config_name is None and flags.config_dir is None
         if own_config and flags.config_path is None:
-            config.check_overrides([*flags.overrides, *implied], CONFIGS[prog])
+            config.check_overrides(flags.overrides, CONFIGS[prog])
         if trains:
             check_extras(overrides)  # hydra/launcher=, logger= whose extra is missing
         prints = flags.cfg or flags.info or flags.help or flags.hydra_help  # and trains nothing
@@ -131,12 +129,6 @@ def check(prog: str) -> list[Path]:
     except (ConfigError, StorageError) as err:
         sys.exit(f"{prog}: error: {err}")
     return [] if folder is None else [folder]
-
-
-def overrides_of(args: list[str]) -> dict[str, str]:
-    """``{key: value}`` of the command line's ``key=value`` overrides (the last one wins, as in Hydra)."""
-    pairs = (arg.split("=", 1) for arg in args if not arg.startswith("-") and "=" in arg)
-    return {key.lstrip("+~"): value for key, value in pairs}
 
 
 def check_extras(overrides: dict[str, str]) -> None:
@@ -244,9 +236,9 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
 
     The resumed run's plug-ins where they are not the defaults and the command line chooses no
     option of their group: ``resume=<a PPO run> algo.target_kl=...`` is then checked and composed
-    against PPO's keys, as they are keys of the run. None for a checkpoint that cannot be read (the
-    resume refuses it in its own line), nor when the command line chooses a preset, whose options
-    may pick plug-ins themselves.
+    against PPO's keys, as they are keys of the run. None for a checkpoint that
+    :func:`~drone_torchrl.config.open_checkpoint` refuses (the resume refuses it in its own line), nor
+    when the command line chooses a preset, whose options may pick plug-ins themselves.
     """
     from drone_torchrl import schema
 
@@ -264,10 +256,8 @@ def resumed_plugins(overrides: dict[str, str]) -> list[str]:
     ):
         return []
     try:
-        state = load_checkpoint(resolve_checkpoint(resume))
-    except (FileNotFoundError, CheckpointError):
-        return []
-    if not isinstance(state, dict) or not isinstance(state.get("config"), dict):
+        _, state = config.open_checkpoint("resume", resume)
+    except ConfigError:
         return []
     saved = config.run_config(state["config"])
     out = []

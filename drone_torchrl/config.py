@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import difflib
 import functools
 import itertools
+import os
 from collections.abc import Iterable, Mapping, Sequence
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Any
 
+import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
@@ -20,6 +21,14 @@ from drone_torchrl.checks import ConfigError, dotted, plain_name
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.io import folders
+from drone_torchrl.io.checkpoint import (
+    CheckpointError,
+    check_weights,
+    is_population,
+    load_checkpoint,
+    resolve_checkpoint,
+)
+from drone_torchrl.io.storage import name_too_long, unwritable
 from drone_torchrl.registry import ALGORITHMS
 from drone_torchrl.schema import Rule
 
@@ -310,7 +319,7 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
         raise ConfigError(f"{missing[0]} is missing (deleted with ~?); every config key needs a value")
     for key in given:
         # A list or dict value (e.g. model.hidden_sizes) may hold any shape of its own.
-        if key not in known and not any(key.startswith(f"{k}.") or key.startswith(f"{k}[") for k in known):
+        if key not in known and not any(key.startswith(f"{k}.") for k in known):
             raise _unknown(key, known)
     return _plain(resolved)
 
@@ -585,8 +594,6 @@ def _check_folder_name(key: str, value: Any, expected: str, taken: Iterable[str]
     Not one folder (:func:`plain_name`) or a taken name: the message asks for ``expected``. The
     length is the working folder's file system's (where run and sweep folders go by default).
     """
-    from drone_torchrl.io.storage import name_too_long
-
     if not plain_name(value) or value in taken:
         raise ConfigError.of(key, value, expected)
     if (too_long := name_too_long(value)) is not None:
@@ -599,10 +606,6 @@ def _check_folder(key: str, value: Any) -> None:
     It must not be empty or a file, must be a name the file system takes, and must lie under a
     folder that is writable and not full (:func:`drone_torchrl.io.storage.unwritable`).
     """
-    import os
-
-    from drone_torchrl.io.storage import unwritable
-
     if not isinstance(value, str):
         return
     if not value.strip():
@@ -686,8 +689,6 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
     is not a readable one. A population run's checkpoint comes back as it is (``population_record.open_agent``
     reads one agent of it).
     """
-    from drone_torchrl.io.checkpoint import POPULATION, CheckpointError, load_checkpoint, resolve_checkpoint
-
     if not isinstance(location, str | Path) or not str(location).strip():
         raise ConfigError.of(key, location, "a run folder or a checkpoint file (a path)")
     try:
@@ -696,24 +697,18 @@ def open_checkpoint(key: str, location: Any) -> tuple[Path, dict[str, Any]]:
         raise ConfigError(f"{key}={str(location)!r} is not allowed; {err}") from None
     try:
         state = load_checkpoint(path)
+        if is_population(state):
+            return path, state
+        name = OmegaConf.select(run_config(state["config"]), "algo.name")
+        if name not in ALGORITHMS.names():
+            known = f"known: {list(ALGORITHMS.names())}"
+            raise CheckpointError(f"it was written by algo.name={name!r}, which is not installed ({known})")
+        if missing := [entry for entry in ALGORITHMS.get(name).checkpoint_keys if entry not in state]:
+            raise CheckpointError(
+                f"it lacks {', '.join(missing)} (algo.name={name} writes it): a damaged or foreign checkpoint"
+            )
     except CheckpointError as err:
         raise ConfigError(f"{key}={str(path)!r} cannot be used: {err}") from None
-    if state.get("kind") == POPULATION:
-        return path, state
-    name = OmegaConf.select(run_config(state["config"]), "algo.name")
-    try:
-        algorithm = ALGORITHMS.get(name)
-    except ConfigError:
-        raise ConfigError(
-            f"{key}={str(path)!r} cannot be used: it was written by algo.name={name!r}, which is not installed "
-            f"(known: {list(ALGORITHMS.names())})"
-        ) from None
-    missing = [entry for entry in algorithm.checkpoint_keys if entry not in state]
-    if missing:
-        raise ConfigError(
-            f"{key}={str(path)!r} cannot be used: it lacks {', '.join(missing)} (algo.name={name} writes it): "
-            "a damaged or foreign checkpoint"
-        )
     return path, state
 
 
@@ -725,13 +720,9 @@ def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig)
     :class:`~.checks.ConfigError` naming the key, the file and the first tensor that differs;
     the networks are built on the meta device (shapes only: no memory, no time).
     """
-    import torch
-
-    from drone_torchrl.io.checkpoint import CheckpointError, check_weights
     from drone_torchrl.modules.factory import build_actor, build_critic
 
-    meta = copy.deepcopy(cfg)
-    meta.device = "meta"
+    meta = OmegaConf.merge(cfg, {"device": "meta"})
     with torch.device("meta"):
         networks = {"actor": build_actor(meta)}
         if "critic" in ALGORITHMS.get(cfg.algo.name).checkpoint_keys:  # PPO's and A2C's value network
@@ -745,8 +736,6 @@ def check_networks(key: str, path: Path, state: dict[str, Any], cfg: DictConfig)
 
 def check_device(device: Any) -> None:
     """Raise :class:`~.checks.ConfigError` for a device torch does not know or this machine does not have."""
-    import torch
-
     try:
         kind = torch.device(device).type
     except (RuntimeError, TypeError, ValueError, OverflowError):  # ValueError: an index past int64

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -147,30 +147,13 @@ class Rule:
 
 
 # Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``, each a
-# config field holding a value of its kind, checked by a :class:`Rule` of its arguments.
-def a_number(**rule: Any) -> Any:
-    """A config field holding a number (:class:`Rule` ``number``)."""
-    return Rule("number", **rule).field()
+# config field holding a value of its kind, checked by a :class:`Rule` of its arguments; ``free``: one
+# the code checks itself (the env's arguments, paths, folder names, devices).
+def _field_maker(kind: str) -> Callable[..., Any]:
+    return lambda **rule: Rule(kind, **rule).field()
 
 
-def an_integer(**rule: Any) -> Any:
-    """A config field holding an integer (:class:`Rule` ``integer``)."""
-    return Rule("integer", **rule).field()
-
-
-def a_flag(**rule: Any) -> Any:
-    """A config field holding true or false (:class:`Rule` ``flag``)."""
-    return Rule("flag", **rule).field()
-
-
-def a_text(**rule: Any) -> Any:
-    """A config field holding a non-empty string (:class:`Rule` ``text``)."""
-    return Rule("text", **rule).field()
-
-
-def free(**rule: Any) -> Any:
-    """A config field the code checks itself: the env's arguments, paths, folder names, devices."""
-    return Rule(**rule).field()
+a_number, an_integer, a_flag, a_text, free = map(_field_maker, ("number", "integer", "flag", "text", "free"))
 
 
 def one_of(choices: tuple, **rule: Any) -> Any:

@@ -153,12 +153,9 @@ def tensors(state: Any, prefix: str = "") -> Iterator[tuple[str, torch.Tensor]]:
     """
     if isinstance(state, torch.Tensor):
         yield prefix, state
-    elif isinstance(state, Mapping):
-        for key, value in state.items():
+    elif isinstance(state, Mapping | list | tuple):
+        for key, value in state.items() if isinstance(state, Mapping) else enumerate(state):
             yield from tensors(value, f"{prefix}/{key}" if prefix else str(key))
-    elif isinstance(state, list | tuple):
-        for i, value in enumerate(state):
-            yield from tensors(value, f"{prefix}/{i}" if prefix else str(i))
 
 
 def tensor_digests(state: Mapping[str, Any]) -> dict[str, str]:
@@ -229,12 +226,8 @@ def _check_digest(state: dict[str, Any], path: Path) -> None:
     for where in [*digests, *(w for w in saved if w not in digests)]:
         if digests.get(where) == saved.get(where):
             continue
-        if where not in digests:
-            what = "is missing"
-        elif where not in saved:
-            what = "has no digest"
-        else:
-            what = "does not match the digest written with it"
+        what = "does not match the digest written with it" if where in saved else "has no digest"
+        what = what if where in digests else "is missing"
         raise CheckpointError(f"{path}: the tensor {where} {what}: a damaged file; {OTHER_CHECKPOINT}")
 
 
@@ -270,14 +263,14 @@ def migrate(state: Any, path: Path) -> dict[str, Any]:
     Versions 1 and 2 named the implementation ``engine`` (and PPO's ``algo.collector`` in the
     config), which ``backend`` replaced (:mod:`drone_torchrl.migrations`).
     """
-    if not isinstance(state, dict) or "config" not in state or not ("actor" in state or is_population(state)):
+    config = state.get("config") if isinstance(state, dict) else None
+    if not isinstance(config, dict) or not ("actor" in state or is_population(state)):
         raise CheckpointError(f"{path} is not a drone_torchrl checkpoint (no actor or config)")
     version = state.get("format_version", 1)
     if version == 1:
         state["rng"] = {key: state.pop(f"{key}_rng", None) for key in ("torch", "env", "agent")}
         state.setdefault("final", None)
     if version in (1, 2):
-        config = state["config"] if isinstance(state["config"], dict) else {}
         algo = config.get("algo") if isinstance(config.get("algo"), dict) else {}
         state["backend"] = migrations.backend_of(state.pop("engine", None), algo.get("collector"))
         version = 3
