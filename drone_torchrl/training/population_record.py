@@ -37,7 +37,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from drone_torchrl import extras
-from drone_torchrl.checks import ConfigError
+from drone_torchrl.checks import ConfigError, first_line
 from drone_torchrl.config import open_checkpoint, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io.checkpoint import (
@@ -285,9 +285,7 @@ def _read(path: Path, columns: Sequence[str]) -> Any:
         raise PopulationFileError(f"{path} is missing") from None
     except (pa.ArrowException, OSError) as err:  # pyarrow's for a damaged file: ArrowInvalid, or its IO error
         # pyarrow names the file first ("Could not open Parquet input source '<path>': <why>").
-        reason = (
-            str(err).strip().splitlines()[0].rpartition("': ")[2] if str(err).strip() else type(err).__name__
-        )
+        reason = first_line(err).rpartition("': ")[2]
         raise PopulationFileError(f"{path} is not a readable Parquet file ({reason})") from None
     if missing := [column for column in columns if column not in table.column_names]:
         raise PopulationFileError(f"{path} is not a population run's table: it has no {', '.join(missing)}")

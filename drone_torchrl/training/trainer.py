@@ -2,7 +2,7 @@
 
 A learner (an algorithm's :class:`~drone_torchrl.registry.Learner`, see :mod:`drone_torchrl.algorithms`)
 updates its agents behind one contract,
-``update(state, k, active) -> (state, UpdateOutput)`` (see :mod:`.update`): ``k`` updates of every
+``update(state, k, active) -> (state, UpdateOutput)`` (see :class:`~drone_torchrl.registry.UpdateOutput`): ``k`` updates of every
 active agent, their metrics and finished episodes handed back at once. The loop copies them to the
 host in one go (one sync per call) and books them, update by update, in each agent's
 :class:`~.run.RunRecord`; an agent whose checks fail stops with ``FAILED.txt``. ``k`` is the number
