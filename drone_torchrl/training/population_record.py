@@ -38,13 +38,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from drone_torchrl import extras
 from drone_torchrl.checks import ConfigError, first_line
-from drone_torchrl.config import open_checkpoint, run_config
+from drone_torchrl.config import open_checkpoint, per_agent_keys, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
     POPULATION,
     RUN,
+    CheckpointError,
     agent_counters,
     is_population,
     load_checkpoint,
@@ -53,7 +54,7 @@ from drone_torchrl.io.checkpoint import (
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.pbt import Search, complete_lineage, final_values
+from drone_torchrl.training.pbt import ReplaySettings, Search, SearchSettings, complete_lineage, final_values
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import _CAUSE_NAMES, AgentBook, Record, Schedule, TrainingDiverged
 
@@ -97,7 +98,9 @@ class PopulationRecord(Record):
         names: each agent's name (its job's overrides), for ``agents.parquet``.
         run_dir: the run folder.
         backend: the backend that trains it.
-        checkpoint: the population checkpoint to continue from, or None.
+        checkpoint: the population checkpoint to continue from (its state copied into ``state``), or None.
+        state: the learner's stacked state.
+        search: its population-based training (:mod:`.pbt`), or None.
     """
 
     kind = POPULATION
@@ -109,8 +112,14 @@ class PopulationRecord(Record):
         run_dir: Path,
         backend: str,
         checkpoint: dict[str, Any] | None = None,
+        state: Any = None,
+        search: SearchSettings | None = None,
     ) -> None:
         self.pa = _pyarrow()
+        if checkpoint is not None:
+            with torch.no_grad():  # the weights are a leaf that requires grad
+                for key, value in checkpoint["state"].items():
+                    state[key].copy_(value)
         agents = AgentTable.of(agents)
         self.cfg = cfg = agents.cfg
         self.run_dir = run_dir = Path(run_dir)
@@ -152,9 +161,12 @@ class PopulationRecord(Record):
                 f"{len(past)} episode part(s) written after it removed (those episodes are trained again)",
                 **about(run_dir),
             )
-        # The run's population-based training (:mod:`.pbt`), set by the trainer: its lineage goes
-        # into each checkpoint and lineage.parquet.
+        # Its lineage goes into each checkpoint and lineage.parquet.
         self.search: Search | None = None
+        if search is not None:
+            self.search = search.make(cfg, self.values, None if checkpoint is None else checkpoint["search"])
+            if checkpoint is None:
+                self.search.start(state)
 
     # ------------------------------------------------------------------ agents
     def add_rows(self, agent: AgentBook, columns: dict[str, Sequence], metrics: dict[str, float]) -> None:
@@ -236,6 +248,10 @@ class PopulationRecord(Record):
             self.logger.log_metrics(metrics, step=self.step)
 
     # ------------------------------------------------------------------ checkpoints
+    def learner_state(self, learner: Any, agent: int) -> dict[str, Any]:
+        """Every agent's stacked state, whichever ``agent`` is due."""
+        return dict(learner.state.items())
+
     def write_last(self, state: dict[str, torch.Tensor]) -> None:
         """Write ``last.pt`` with every agent's stacked state ``[N, ...]``, and the search's lineage so far."""
         super().write_last(state)
@@ -267,6 +283,77 @@ class PopulationRecord(Record):
             "population_updates": self.updates,
             "search": None if self.search is None else self.search.checkpoint(),
         }
+
+
+def population_checkpoint(
+    agents: AgentTable, run_dir: Path, search: SearchSettings | None = None
+) -> dict | None:
+    """The population run's last checkpoint, if it has one, checked against the sweep's agents.
+
+    The hyper-parameters are checked too, as a continued run's: only the budget, logging and
+    process settings may change. A :class:`~.checks.ConfigError` (one line) for another run's.
+    """
+    from drone_torchrl.training.jobs import kept_changes  # jobs imports this module
+
+    path = run_dir / CHECKPOINT_DIR / LAST
+    if not path.is_file():
+        return None
+    try:
+        checkpoint = load_checkpoint(path)
+    except CheckpointError as err:
+        raise ConfigError(f"{run_dir} cannot be continued: {err}") from None
+    if not is_population(checkpoint):
+        raise ConfigError(
+            f"{run_dir} holds a single run's checkpoint, not a population's: use another hydra.sweep.dir"
+        )
+    # The agents are their per-agent values, in order. Their names are their jobs' whole overrides,
+    # which hold the budget and process settings too: a raised algo.episodes names them anew
+    # (agents.parquet then does), as the other keys a continued run may change are checked below.
+    saved_values = {key: values for key, values in checkpoint["agents"].items() if key != "name"}
+    if saved_values != agents.values:
+        raise ConfigError(
+            f"{path} holds {len(checkpoint['agents']['name'])} other agents (per-agent values differ "
+            "from this sweep's): run the sweep that wrote it, or use another hydra.sweep.dir"
+        )
+    per_agent = set(per_agent_keys())
+    changed = kept_changes(checkpoint["config"], agents.cfg, lambda key: key not in per_agent)
+    if changed:
+        raise ConfigError(
+            f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued population keeps "
+            "its hyper-parameters: drop those overrides or use another hydra.sweep.dir"
+        )
+    saved_search = checkpoint.get("search")
+    if isinstance(search, ReplaySettings) and saved_search:  # it keeps following its saved schedule
+        search.check_resume(saved_search["settings"])
+    now_search = None if search is None else search.record()
+    if saved_search and now_search and "schedule" not in saved_search["settings"]:
+        now_search.pop("schedule", None)  # a replay from before replays kept their schedule
+    if (saved_search and saved_search["settings"]) != now_search:
+        raise ConfigError(
+            f"resume: {path} was trained with {_search_text(saved_search and saved_search['settings'])}, "
+            f"this command asks for {_search_text(now_search)}; a continued population keeps its search: "
+            "run the command that wrote it, or use another hydra.sweep.dir"
+        )
+    done = max(checkpoint["episodes_done"])
+    if agents.cfg.algo.episodes < done:
+        raise ConfigError.of(
+            "algo.episodes",
+            agents.cfg.algo.episodes,
+            f">= {done}: {path} has already trained {done} episodes",
+        )
+    return checkpoint
+
+
+def _search_text(settings: dict | None) -> str:
+    if settings is None:
+        return "no search (hydra/launcher=population)"
+    launcher = settings["launcher"]
+    values = " ".join(
+        f"hydra.launcher.{key}={value}"
+        for key, value in settings.items()
+        if key not in ("launcher", "schedule")
+    )
+    return f"hydra/launcher={launcher} {values}"
 
 
 class PopulationFileError(ValueError):

@@ -327,6 +327,7 @@ class Record:
 
     agents: Sequence[AgentBook]
     kind = RUN
+    search: Any = None  # a population run's search (:mod:`.pbt`)
 
     def open(self, cfg: DictConfig, run_dir: Path, backend: str, resumed_at: int | None) -> None:
         """Make the folder (``checkpoints/``, no ``FAILED.txt``), write ``config.yaml``, start the logger."""
@@ -343,6 +344,16 @@ class Record:
         save_yaml(cfg, run_dir / CONFIG_NAME)
         self.logger = make_logger(cfg, run_dir, resumed_at)
         self._last_flush = time.perf_counter()
+
+    def learner_state(self, learner: Any, agent: int) -> dict[str, Any]:
+        """What the ``learner`` (training agent ``agent`` of the record's) gives the record's checkpoint."""
+        return learner.checkpoint_entries(agent)
+
+    def after_update(self) -> None:
+        """After an update of the trainer's agents is booked: nothing by default."""
+
+    def after_eval(self) -> None:
+        """After an evaluation of the trainer's agents is booked: nothing by default."""
 
     def checkpoint_state(self, learner: dict[str, Any]) -> dict[str, Any]:
         """The record's checkpoint: ``learner``'s state (actor, optimizer, RNG streams...), config, counters."""
