@@ -347,13 +347,8 @@ def population_checkpoint(
 def _search_text(settings: dict | None) -> str:
     if settings is None:
         return "no search (hydra/launcher=population)"
-    launcher = settings["launcher"]
-    values = " ".join(
-        f"hydra.launcher.{key}={value}"
-        for key, value in settings.items()
-        if key not in ("launcher", "schedule")
-    )
-    return f"hydra/launcher={launcher} {values}"
+    keys = (f"hydra.launcher.{k}={v}" for k, v in settings.items() if k not in ("launcher", "schedule"))
+    return f"hydra/launcher={settings['launcher']} {' '.join(keys)}"
 
 
 class PopulationFileError(ValueError):

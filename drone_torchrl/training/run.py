@@ -184,11 +184,6 @@ class AgentBook:
         """Whether the agent failed (diverged)."""
         return self.failure is not None
 
-    def diverged(self, failed: Sequence[str], advice: str) -> None:
-        """Stop the agent (:meth:`fail`): its last update left the values named ``failed`` non-finite."""
-        what = " and ".join(failed)
-        self.fail(f"training diverged at episode {self.episodes_done}: non-finite {what}; {advice}")
-
     def fail(self, reason: str) -> None:
         """Stop the agent: it failed for ``reason``; its record keeps its last finite state."""
         self.failure = reason
@@ -197,9 +192,21 @@ class AgentBook:
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
         """Book one update: its finished episodes and its training metrics, written by the record.
 
-        The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished.
+        The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished; the
+        record gets their rows as columns: ``episode``, ``update``, ``wall_clock_s`` and ``EPISODE_KEYS``.
         """
-        self.owner.add_rows(self, self.book(episodes), train_metrics)
+        count, first = len(episodes["return"]), self.episodes_done
+        self.updates_done += 1
+        self.recent_returns.extend(episodes["return"])
+        self.recent_lengths.extend(episodes["length"])
+        self.episodes_done += count
+        rows = {
+            "episode": range(first, first + count),
+            "update": [self.updates_done] * count,
+            "wall_clock_s": [round(self.wall_clock, 3)] * count,
+            **{key: episodes[key] for key in EPISODE_KEYS},
+        }
+        self.owner.add_rows(self, rows, train_metrics)
 
     def record_eval(
         self,
@@ -209,10 +216,25 @@ class AgentBook:
     ) -> None:
         """Book an evaluation (its ``return``, ``length``, ``time_in_zone`` means), logged by the record.
 
-        ``learner_state`` and ``actor`` give its state and policy, for a record that keeps them.
+        ``learner_state`` and ``actor`` give its state and policy, for a record that keeps them. The
+        schedule moves on; the final metrics are set at the end.
         """
         self.owner.log_eval(self, result, learner_state, actor)
-        self.book_eval(result)
+        self.last_eval_return = result["return"]
+        self.best_eval = max(self.best_eval, result["return"])
+        if self.stop_return is not None and result["return"] >= self.stop_return:
+            self.stopped_at = result["return"]
+        self.last_eval_episode = step = self.episodes_done
+        if self.next_eval is not None:
+            while self.next_eval <= step:
+                self.next_eval += self.eval_every
+        if self.finished:
+            self.final = {
+                "final_return": self.running_return,
+                "final_length": self.running_length,
+                "eval_return": result["return"],
+                "wall_clock_s": self.wall_clock,
+            }
 
     @property
     def wall_clock(self) -> float:
@@ -229,23 +251,6 @@ class AgentBook:
         """The running mean of the last ``window`` episodes' lengths."""
         return _mean(self.recent_lengths)
 
-    def book(self, episodes: dict[str, Sequence]) -> dict[str, Sequence]:
-        """Count one update's finished episodes (``EPISODE_KEYS`` -> one value per episode).
-
-        Returns their rows as columns: ``episode``, ``update``, ``wall_clock_s`` and ``EPISODE_KEYS``.
-        """
-        count, first = len(episodes["return"]), self.episodes_done
-        self.updates_done += 1
-        self.recent_returns.extend(episodes["return"])
-        self.recent_lengths.extend(episodes["length"])
-        self.episodes_done += count
-        return {
-            "episode": range(first, first + count),
-            "update": [self.updates_done] * count,
-            "wall_clock_s": [round(self.wall_clock, 3)] * count,
-            **{key: episodes[key] for key in EPISODE_KEYS},
-        }
-
     @property
     def eval_due(self) -> bool:
         """Every ``eval.every_episodes`` episodes, and once at the end (not twice when they coincide)."""
@@ -253,30 +258,6 @@ class AgentBook:
             return False
         periodic = self.next_eval is not None and self.episodes_done >= self.next_eval
         return periodic or self.finished
-
-    def book_eval(self, result: dict[str, float]) -> bool:
-        """Count an evaluation; returns whether it is the best so far.
-
-        ``result``: its ``return``, ``length``, ``time_in_zone`` means. The schedule moves on; the
-        final metrics are set at the end.
-        """
-        best = result["return"] > self.best_eval
-        self.last_eval_return = result["return"]
-        self.best_eval = max(self.best_eval, result["return"])
-        if self.stop_return is not None and result["return"] >= self.stop_return:
-            self.stopped_at = result["return"]
-        self.last_eval_episode = step = self.episodes_done
-        if self.next_eval is not None:
-            while self.next_eval <= step:
-                self.next_eval += self.eval_every
-        if self.finished:
-            self.final = {
-                "final_return": self.running_return,
-                "final_length": self.running_length,
-                "eval_return": result["return"],
-                "wall_clock_s": self.wall_clock,
-            }
-        return best
 
     def updates_until_due(self, episodes_per_update: int) -> int:
         """Updates of ``episodes_per_update`` episodes until an evaluation, checkpoint or the end is due.

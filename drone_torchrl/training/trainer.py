@@ -213,7 +213,10 @@ class Trainer:
                     continue
                 failed = [what for what, ok in zip(learner.checks, checks[j][i], strict=True) if not ok]
                 if failed:
-                    runs[i].diverged(failed, learner.advice)
+                    what = " and ".join(failed)
+                    runs[i].fail(
+                        f"training diverged at episode {runs[i].episodes_done}: non-finite {what}; {learner.advice}"
+                    )
                     continue
                 ended = {key: values[j][i] for key, values in episodes.items()}
                 if valid is not None:  # a learner whose updates end different numbers of episodes
