@@ -38,14 +38,13 @@ from omegaconf import DictConfig, OmegaConf
 
 from drone_torchrl import extras
 from drone_torchrl.checks import ConfigError, first_line
-from drone_torchrl.config import open_checkpoint, per_agent_keys, run_config
+from drone_torchrl.config import open_checkpoint, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io.checkpoint import (
     CHECKPOINT_DIR,
     LAST,
     POPULATION,
     RUN,
-    CheckpointError,
     agent_counters,
     is_population,
     load_checkpoint,
@@ -54,7 +53,7 @@ from drone_torchrl.io.checkpoint import (
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.pbt import ReplaySettings, Search, SearchSettings, complete_lineage, final_values
+from drone_torchrl.training.pbt import Search, SearchSettings, complete_lineage, final_values
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import _CAUSE_NAMES, AgentBook, Record, Schedule, TrainingDiverged
 
@@ -125,7 +124,6 @@ class PopulationRecord(Record):
         self.run_dir = run_dir = Path(run_dir)
         self.values = agents.values
         self.names = list(names)
-        self.every_updates = int(cfg.logger.every_updates)
         n = len(agents)
         # Every agent's book holds the group's config: the per-agent keys are the table's.
         schedule = Schedule.of(cfg)
@@ -237,7 +235,7 @@ class PopulationRecord(Record):
     def after_update(self) -> None:
         """One update of the population booked: the summary every ``logger.every_updates``."""
         self.updates += 1
-        if self.updates % self.every_updates == 0:
+        if self.updates % self.agents[0].every_updates == 0:
             self.logger.log_metrics(self.summary(), step=self.step)
         self.flush_if_due()
 
@@ -283,72 +281,6 @@ class PopulationRecord(Record):
             "population_updates": self.updates,
             "search": None if self.search is None else self.search.checkpoint(),
         }
-
-
-def population_checkpoint(
-    agents: AgentTable, run_dir: Path, search: SearchSettings | None = None
-) -> dict | None:
-    """The population run's last checkpoint, if it has one, checked against the sweep's agents.
-
-    The hyper-parameters are checked too, as a continued run's: only the budget, logging and
-    process settings may change. A :class:`~.checks.ConfigError` (one line) for another run's.
-    """
-    from drone_torchrl.training.jobs import kept_changes  # jobs imports this module
-
-    path = run_dir / CHECKPOINT_DIR / LAST
-    if not path.is_file():
-        return None
-    try:
-        checkpoint = load_checkpoint(path)
-    except CheckpointError as err:
-        raise ConfigError(f"{run_dir} cannot be continued: {err}") from None
-    if not is_population(checkpoint):
-        raise ConfigError(
-            f"{run_dir} holds a single run's checkpoint, not a population's: use another hydra.sweep.dir"
-        )
-    # The agents are their per-agent values, in order. Their names are their jobs' whole overrides,
-    # which hold the budget and process settings too: a raised algo.episodes names them anew
-    # (agents.parquet then does), as the other keys a continued run may change are checked below.
-    saved_values = {key: values for key, values in checkpoint["agents"].items() if key != "name"}
-    if saved_values != agents.values:
-        raise ConfigError(
-            f"{path} holds {len(checkpoint['agents']['name'])} other agents (per-agent values differ "
-            "from this sweep's): run the sweep that wrote it, or use another hydra.sweep.dir"
-        )
-    per_agent = set(per_agent_keys())
-    changed = kept_changes(checkpoint["config"], agents.cfg, lambda key: key not in per_agent)
-    if changed:
-        raise ConfigError(
-            f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued population keeps "
-            "its hyper-parameters: drop those overrides or use another hydra.sweep.dir"
-        )
-    saved_search = checkpoint.get("search")
-    if isinstance(search, ReplaySettings) and saved_search:  # it keeps following its saved schedule
-        search.check_resume(saved_search["settings"])
-    now_search = None if search is None else search.record()
-    if saved_search and now_search and "schedule" not in saved_search["settings"]:
-        now_search.pop("schedule", None)  # a replay from before replays kept their schedule
-    if (saved_search and saved_search["settings"]) != now_search:
-        raise ConfigError(
-            f"resume: {path} was trained with {_search_text(saved_search and saved_search['settings'])}, "
-            f"this command asks for {_search_text(now_search)}; a continued population keeps its search: "
-            "run the command that wrote it, or use another hydra.sweep.dir"
-        )
-    done = max(checkpoint["episodes_done"])
-    if agents.cfg.algo.episodes < done:
-        raise ConfigError.of(
-            "algo.episodes",
-            agents.cfg.algo.episodes,
-            f">= {done}: {path} has already trained {done} episodes",
-        )
-    return checkpoint
-
-
-def _search_text(settings: dict | None) -> str:
-    if settings is None:
-        return "no search (hydra/launcher=population)"
-    keys = (f"hydra.launcher.{k}={v}" for k, v in settings.items() if k not in ("launcher", "schedule"))
-    return f"hydra/launcher={settings['launcher']} {' '.join(keys)}"
 
 
 class PopulationFileError(ValueError):

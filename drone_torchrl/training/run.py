@@ -141,24 +141,18 @@ class AgentBook:
         self.budget, self.every_updates, self.window = s.budget, s.every_updates, s.window
         self.checkpoint_every, self.eval_every = s.checkpoint_every, s.eval_every
         self.stop_return = s.stop_return
-        self.recent_returns: deque[float] = deque(maxlen=s.window)
-        self.recent_lengths: deque[float] = deque(maxlen=s.window)
-        self.episodes_done = self.updates_done = 0
-        self.wall_clock_before = 0.0
-        self.best_eval = -math.inf
-        self.final: dict[str, float] | None = None
-        self.failure: str | None = None
-        self.stopped_at: float | None = None  # the return of the evaluation that ended it early
-        if checkpoint is not None:
-            counters = agent_counters(checkpoint, index)
-            self.stopped_at = counters["stopped_at_return"]
-            self.episodes_done, self.updates_done = counters["episodes_done"], counters["updates_done"]
-            self.wall_clock_before = counters["wall_clock_s"]
-            self.best_eval = counters["best_eval_return"]
-            self.recent_returns.extend(counters["recent_returns"])
-            self.recent_lengths.extend(counters["recent_lengths"])
-            # A finished agent given a larger budget trains on.
-            self.final, self.failure = (counters["final"] if self.finished else None), counters["failure"]
+        counters = {} if checkpoint is None else agent_counters(checkpoint, index)  # {}: a fresh agent's
+        self.episodes_done: int = counters.get("episodes_done", 0)
+        self.updates_done: int = counters.get("updates_done", 0)
+        self.wall_clock_before: float = counters.get("wall_clock_s", 0.0)
+        self.best_eval: float = counters.get("best_eval_return", -math.inf)
+        self.recent_returns: deque[float] = deque(counters.get("recent_returns", ()), maxlen=s.window)
+        self.recent_lengths: deque[float] = deque(counters.get("recent_lengths", ()), maxlen=s.window)
+        # The return of the evaluation that ended it early.
+        self.stopped_at: float | None = counters.get("stopped_at_return")
+        # A finished agent given a larger budget trains on.
+        self.final: dict[str, float] | None = counters.get("final") if self.finished else None
+        self.failure: str | None = counters.get("failure")
         self.last_eval_episode: int | None = None
         self.last_eval_return = -math.inf  # this process's last evaluation's mean return
         self.next_checkpoint = self.episodes_done + self.checkpoint_every
@@ -289,11 +283,6 @@ class AgentBook:
             "failure": self.failure,
         }
 
-    def book_save(self) -> None:
-        """A checkpoint was written: the next one falls due ``checkpoint.every_episodes`` later."""
-        while self.next_checkpoint <= self.episodes_done:
-            self.next_checkpoint += self.checkpoint_every
-
 
 class Record:
     """A run folder's record, one writer interface for both kinds: its config, logger, lock, rows and checkpoint.
@@ -352,8 +341,9 @@ class Record:
         The final hparams are ``final_metrics`` (none when no agent finished).
         """
         self.write_last(learner)
-        for agent in self.agents:
-            agent.book_save()
+        for agent in self.agents:  # the next checkpoint falls due checkpoint.every_episodes later
+            while agent.next_checkpoint <= agent.episodes_done:
+                agent.next_checkpoint += agent.checkpoint_every
         if all(a.failed or a.final is not None for a in self.agents):
             if metrics := self.final_metrics():
                 self.logger.log_final_hparams(self.config, metrics)

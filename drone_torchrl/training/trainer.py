@@ -1,11 +1,12 @@
 """The one training loop, every algorithm's, and the books its runs keep.
 
 A learner (an algorithm's :class:`~drone_torchrl.registry.Learner`, see :mod:`drone_torchrl.algorithms`)
-updates its agents behind one contract,
-``update(state, k, active) -> (state, UpdateOutput)`` (see :class:`~drone_torchrl.registry.UpdateOutput`): ``k`` updates of every
-active agent, their metrics and finished episodes handed back at once. The loop copies them to the
-host in one go (one sync per call) and books them, update by update, in each agent's
-:class:`~.run.RunRecord`; an agent whose checks fail stops with ``FAILED.txt``. ``k`` is the number
+updates its agents behind one contract, ``update(state, k, active) -> (state, UpdateOutput)`` (see
+:class:`~drone_torchrl.registry.UpdateOutput`): ``k`` updates of every active agent, their metrics and finished episodes handed back at once. The loop copies them to the
+host in one go (one sync per call) and books them, update by update, in each agent's book of its
+record (:class:`~.run.Record`: a :class:`~.run.RunRecord` per job folder, or one
+:class:`~.population_record.PopulationRecord`; a single run is a population of one, with the same
+hooks); an agent whose checks fail stops (a run with ``FAILED.txt``). ``k`` is the number
 of updates until the next evaluation, checkpoint or end of budget of any agent (at most
 :data:`MAX_UPDATES_PER_CALL`; 1 for a learner whose updates end a varying number of episodes), so
 evaluations and checkpoints fall exactly where a one-update loop would put them. Agents due for an
@@ -26,10 +27,11 @@ from pathlib import Path
 import torch
 from omegaconf import DictConfig
 
-from drone_torchrl.config import ConfigError, check_memory, env_kwargs
+from drone_torchrl.config import ConfigError, check_memory, env_kwargs, per_agent_keys
 from drone_torchrl.episodes import RUNNING_MEAN_WINDOW
 from drone_torchrl.evaluation import evaluate, reference_optimum
 from drone_torchrl.io import run_lock
+from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
 from drone_torchrl.io.storage import StorageError
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.kernels.modules import KernelRollout
@@ -37,10 +39,10 @@ from drone_torchrl.kernels.ops import AGENTS_PER_EVALUATION
 from drone_torchrl.optimum import Optimum
 from drone_torchrl.registry import ALGORITHMS
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.jobs import Job, group_key, next_steps, prepare, record_failure
+from drone_torchrl.training.jobs import Job, group_key, kept_changes, next_steps, prepare, record_failure
 from drone_torchrl.training.memory import keep_freed_memory
-from drone_torchrl.training.pbt import FRESH, SearchSettings
-from drone_torchrl.training.population_record import PopulationRecord, population_checkpoint
+from drone_torchrl.training.pbt import FRESH, ReplaySettings, SearchSettings
+from drone_torchrl.training.population_record import PopulationRecord, is_population
 from drone_torchrl.training.run import FAILED_FILE, AgentBook, Progress, Record, RunRecord, TrainingDiverged
 from drone_torchrl.training.signals import TrainingStopped, stop_on_signals
 
@@ -67,9 +69,9 @@ class Outcome:
         return None if self.final is None else self.final["final_return"]
 
     @classmethod
-    def of(cls, run: AgentBook) -> Outcome:
-        """How a trained agent ended: its final metrics, or its divergence."""
-        return cls(run.run_dir, run.final, None if run.failure is None else TrainingDiverged(run.failure))
+    def of(cls, run_dir: Path, final: dict[str, float] | None, failure: str | None) -> Outcome:
+        """How an agent ended: its ``final`` metrics, or the ``failure`` of its divergence."""
+        return cls(run_dir, final, None if failure is None else TrainingDiverged(failure))
 
 
 def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
@@ -343,7 +345,7 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
                         outcomes[i].error = err
                     continue
                 for i, run in zip(members, trainer.runs, strict=True):
-                    outcomes[i] = Outcome.of(run)
+                    outcomes[i] = Outcome.of(run.run_dir, run.final, run.failure)
                     _report(run, len(jobs) > 1)
     finally:
         for job in jobs:
@@ -422,7 +424,7 @@ def train_population(
     check_population(agents, search)
     run_lock.hold(run_dir)
     try:
-        checkpoint = population_checkpoint(agents, run_dir, search)
+        checkpoint = _population_checkpoint(agents, run_dir, search)
         budget = cfg.algo.episodes
         if checkpoint is not None and all(
             (final is not None and done >= budget) or failure is not None
@@ -435,10 +437,9 @@ def train_population(
                 f"algo.episodes with hydra.sweep.dir={run_dir.parent} trains them on)",
                 **about(run_dir),
             )
-            return [
-                Outcome(run_dir, final, None if failure is None else TrainingDiverged(failure))
-                for final, failure in zip(checkpoint["final"], checkpoint["failure"], strict=True)
-            ]
+            return list(
+                map(functools.partial(Outcome.of, run_dir), checkpoint["final"], checkpoint["failure"])
+            )
         if before_training is not None and checkpoint is None:
             # A folder that holds a run keeps the record of how it was started, as a run folder's
             # .hydra/ does (drone_torchrl.io.folders.record_subdir).
@@ -446,7 +447,7 @@ def train_population(
         trainer = Trainer(agents, run_dir, names, checkpoint, search)
         log.info(f"{run_dir}: {len(agents)} agents set up; training")
         trainer.train()
-        return [Outcome.of(run) for run in trainer.runs]
+        return [Outcome.of(run.run_dir, run.final, run.failure) for run in trainer.runs]
     finally:
         run_lock.release(run_dir)
 
@@ -477,3 +478,67 @@ def check_population(agents: AgentTable, search: SearchSettings | None = None) -
         raise ConfigError(f"{len(agents)} agents trained together in one population run: {err}") from None
     if search is not None:
         search.check(cfg, len(agents))
+
+
+def _population_checkpoint(
+    agents: AgentTable, run_dir: Path, search: SearchSettings | None = None
+) -> dict | None:
+    """The population run's last checkpoint, if it has one, checked against the sweep's agents.
+
+    The hyper-parameters are checked too, as a continued run's: only the budget, logging and
+    process settings may change.
+    """
+    path = run_dir / CHECKPOINT_DIR / LAST
+    if not path.is_file():
+        return None
+    try:
+        checkpoint = load_checkpoint(path)
+    except CheckpointError as err:
+        raise ConfigError(f"{run_dir} cannot be continued: {err}") from None
+    if not is_population(checkpoint):
+        raise ConfigError(
+            f"{run_dir} holds a single run's checkpoint, not a population's: use another hydra.sweep.dir"
+        )
+    # The agents are their per-agent values, in order. Their names are their jobs' whole overrides,
+    # which hold the budget and process settings too: a raised algo.episodes names them anew
+    # (agents.parquet then does), as the other keys a continued run may change are checked below.
+    saved_values = {key: values for key, values in checkpoint["agents"].items() if key != "name"}
+    if saved_values != agents.values:
+        raise ConfigError(
+            f"{path} holds {len(checkpoint['agents']['name'])} other agents (per-agent values differ "
+            "from this sweep's): run the sweep that wrote it, or use another hydra.sweep.dir"
+        )
+    per_agent = set(per_agent_keys())
+    changed = kept_changes(checkpoint["config"], agents.cfg, lambda key: key not in per_agent)
+    if changed:
+        raise ConfigError(
+            f"resume: {path} was trained with other values ({'; '.join(changed)}); a continued population keeps "
+            "its hyper-parameters: drop those overrides or use another hydra.sweep.dir"
+        )
+    saved_search = checkpoint.get("search")
+    if isinstance(search, ReplaySettings) and saved_search:  # it keeps following its saved schedule
+        search.check_resume(saved_search["settings"])
+    now_search = None if search is None else search.record()
+    if saved_search and now_search and "schedule" not in saved_search["settings"]:
+        now_search.pop("schedule", None)  # a replay from before replays kept their schedule
+    if (saved_search and saved_search["settings"]) != now_search:
+        raise ConfigError(
+            f"resume: {path} was trained with {_search_text(saved_search and saved_search['settings'])}, "
+            f"this command asks for {_search_text(now_search)}; a continued population keeps its search: "
+            "run the command that wrote it, or use another hydra.sweep.dir"
+        )
+    done = max(checkpoint["episodes_done"])
+    if agents.cfg.algo.episodes < done:
+        raise ConfigError.of(
+            "algo.episodes",
+            agents.cfg.algo.episodes,
+            f">= {done}: {path} has already trained {done} episodes",
+        )
+    return checkpoint
+
+
+def _search_text(settings: dict | None) -> str:
+    if settings is None:
+        return "no search (hydra/launcher=population)"
+    keys = (f"hydra.launcher.{k}={v}" for k, v in settings.items() if k not in ("launcher", "schedule"))
+    return f"hydra/launcher={settings['launcher']} {' '.join(keys)}"
