@@ -53,7 +53,7 @@ from drone_torchrl.io.checkpoint import (
 from drone_torchrl.io.storage import write_atomically, writing
 from drone_torchrl.io.streams import about, console
 from drone_torchrl.training.agents import AgentTable
-from drone_torchrl.training.pbt import Search, SearchSettings, complete_lineage, final_values
+from drone_torchrl.training.pbt import Search, complete_lineage, final_values
 from drone_torchrl.training.population import Population
 from drone_torchrl.training.run import _CAUSE_NAMES, AgentBook, Record, Schedule, TrainingDiverged
 
@@ -99,7 +99,6 @@ class PopulationRecord(Record):
         backend: the backend that trains it.
         checkpoint: the population checkpoint to continue from (its state copied into ``state``), or None.
         state: the learner's stacked state.
-        search: its population-based training (:mod:`.pbt`), or None.
     """
 
     kind = POPULATION
@@ -112,7 +111,6 @@ class PopulationRecord(Record):
         backend: str,
         checkpoint: dict[str, Any] | None = None,
         state: Any = None,
-        search: SearchSettings | None = None,
     ) -> None:
         self.pa = _pyarrow()
         if checkpoint is not None:
@@ -159,12 +157,8 @@ class PopulationRecord(Record):
                 f"{len(past)} episode part(s) written after it removed (those episodes are trained again)",
                 **about(run_dir),
             )
-        # Its lineage goes into each checkpoint and lineage.parquet.
+        # Its search (:mod:`.pbt`), set by the trainer: its lineage goes into each checkpoint and lineage.parquet.
         self.search: Search | None = None
-        if search is not None:
-            self.search = search.make(cfg, self.values, None if checkpoint is None else checkpoint["search"])
-            if checkpoint is None:
-                self.search.start(state)
 
     # ------------------------------------------------------------------ agents
     def add_rows(self, agent: AgentBook, columns: dict[str, Sequence], metrics: dict[str, float]) -> None:

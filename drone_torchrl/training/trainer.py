@@ -116,9 +116,12 @@ class Trainer:
             if population_dir is not None:
                 names = names or [str(i) for i in range(len(jobs))]
                 state = self.learner.state
-                self.records.append(
-                    PopulationRecord(jobs, names, population_dir, cfg.backend, checkpoint, state, search)
-                )
+                record = PopulationRecord(jobs, names, population_dir, cfg.backend, checkpoint, state)
+                self.records.append(record)
+                if search is not None:
+                    record.search = search.make(cfg, record.values, checkpoint and checkpoint["search"])
+                    if checkpoint is None:
+                        record.search.start(state)
             for job in jobs if population_dir is None else ():
                 self.records.append(
                     RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir)
