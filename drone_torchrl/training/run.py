@@ -292,7 +292,9 @@ class Record:
     Both write ONE checkpoint layout (:func:`~drone_torchrl.io.checkpoint.record_state`: the
     learner's state, then every agent's counters). A subclass sets ``agents`` and ``kind``, writes
     its rows (``add_rows``, ``write_rows``), logs evaluations (``log_eval``), says what a failed
-    agent leaves (``agent_failed``) and gives its final hparams (``final_metrics``).
+    agent leaves (``agent_failed``) and gives its final hparams (``final_metrics``). The trainer
+    calls every record's hooks alike (:meth:`learner_state`, :meth:`after_update`,
+    :meth:`after_eval`: no-ops or a run's one agent where it has nothing more to do).
     """
 
     agents: Sequence[AgentBook]
