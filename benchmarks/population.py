@@ -142,7 +142,7 @@ def time_population(cfg, agents: int, updates: int, warmup: int, per_call: int) 
                 setattr(owner, name, method)
         rss = _rss() - rss_before
         start = time.perf_counter()
-        trainer.book.flush()
+        trainer.records[0].flush()
         trainer.save(everyone)
         checkpoint = time.perf_counter() - start
         trainer.close()

@@ -44,6 +44,12 @@ def as_override(value: Any) -> str:
     return text if len(text) <= SHOWN_CHARS else f"{text[:SHOWN_CHARS]}... ({len(text)} characters)"
 
 
+def first_line(err: BaseException) -> str:
+    """The first line of ``err``'s message, or its type's name when it has none."""
+    text = str(err).strip()
+    return text.splitlines()[0] if text else type(err).__name__
+
+
 def plain_name(name: Any) -> bool:
     """A single folder name: no separators, not ``.`` or ``..``."""
     return isinstance(name, str) and name not in ("", ".", "..") and Path(name).name == name

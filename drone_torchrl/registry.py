@@ -1,7 +1,7 @@
 """Plug-in registries: algorithms and logger backends are found by name the same way.
 
-The algorithms are :mod:`drone_torchrl.algorithms` (the registry :data:`ALGORITHMS`, :class:`Algorithm` and
-the :class:`Learner` protocol are here, below the config and the training loop that look them
+The algorithms are :mod:`drone_torchrl.algorithms` (the registry :data:`ALGORITHMS`, :class:`Algorithm`,
+the :class:`Learner` protocol and its update's :class:`UpdateOutput` are here, below the config and the training loop that look them
 up), the logger backends :mod:`drone_torchrl.loggers`.
 
 A plug-in module calls :meth:`Registry.register` when imported. A registry imports the modules of
@@ -17,9 +17,12 @@ import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from importlib import metadata
-from typing import Any, Generic, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Generic, NamedTuple, Protocol, TypeVar
 
 from drone_torchrl.checks import ConfigError
+
+if TYPE_CHECKING:
+    import torch
 
 #: The type of the plug-ins a :class:`Registry` holds.
 T = TypeVar("T")
@@ -115,6 +118,21 @@ ALGORITHMS: Registry[Algorithm] = Registry(
 )
 
 
+class UpdateOutput(NamedTuple):
+    """``k`` updates of ``N`` agents (:meth:`Learner.update`): their ``metrics`` and finished ``episodes``.
+
+    ``metrics``: ``[k, N]`` each (REINFORCE's ``"train/loss"``, ``"train/grad_norm"``,
+    ``"policy/std_mean"``); ``"active"`` ``[k, N]`` bool, who was trained in each update;
+    ``"checks"`` ``[k, N, C]`` bool, the learner's ``checks`` (REINFORCE's :data:`~drone_torchrl.algorithms.reinforce.CHECKS`).
+    ``episodes``: ``[k, N, E]`` each, :data:`~drone_torchrl.episodes.EPISODE_KEYS`, and where the
+    updates end a varying number of episodes a ``"valid"`` mask (:meth:`~drone_torchrl.algorithms.ppo.OneRun.update`'s).
+    The loop copies them to the host once per call (one sync, however many updates and agents).
+    """
+
+    metrics: dict[str, torch.Tensor]
+    episodes: dict[str, torch.Tensor]
+
+
 class Learner(Protocol):
     """What the training loop (:class:`~drone_torchrl.training.trainer.Trainer`) asks of an algorithm's learner.
 
@@ -148,7 +166,13 @@ class Learner(Protocol):
         return 1
 
     def update(self, state: Any, k: int, active: Any) -> tuple[Any, Any]:
-        """``k`` updates of the ``active`` agents: ``(state, UpdateOutput)`` (:mod:`drone_torchrl.training.update`)."""
+        """``k`` updates of the ``active`` agents: ``(state, UpdateOutput)``.
+
+        ``state``: the population's stacked ``TensorDict`` (batch size ``[N]``), updated in place
+        (None for a learner that keeps its own, PPO's, A2C's, SAC's); ``k``: capped by the loop at
+        the next evaluation, checkpoint or end of budget of any agent, so nothing falls due inside
+        a call; ``active``: ``[N]`` bool, the agents to train (finished and failed ones sit out).
+        """
 
     def eval_policy(self) -> Any:
         """The policy the evaluator flies, :attr:`eval_agents` agents at once."""

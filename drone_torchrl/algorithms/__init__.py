@@ -3,7 +3,7 @@
 A module registers one :class:`~drone_torchrl.registry.Algorithm`: its name (what ``algo.name`` in its YAML says), its
 learner (a :class:`~drone_torchrl.registry.Learner`, which the one loop,
 :class:`~drone_torchrl.training.trainer.Trainer`, drives through the update contract of
-:mod:`drone_torchrl.training.update`), the checks of its own ``algo.*`` keys and the
+:meth:`drone_torchrl.registry.Learner.update`), the checks of its own ``algo.*`` keys and the
 entries its learner adds to every checkpoint. Everything else a run does (the run record,
 evaluations, checkpoints and resume, divergence, the one-line errors, sweeps and launchers) is
 the shared skeleton's and needs nothing from the algorithm.

@@ -49,8 +49,8 @@ from drone_torchrl.io.streams import about, console
 from drone_torchrl.memory_estimate import on_policy_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.modules.factory import build_actor, build_critic, build_policy
+from drone_torchrl.registry import UpdateOutput
 from drone_torchrl.training.segments import FusedSegments
-from drone_torchrl.training.update import UpdateOutput
 
 if TYPE_CHECKING:
     from drone_torchrl.training.run import AgentBook

@@ -27,11 +27,11 @@ from drone_torchrl.kernels.modules import KernelReinforce
 from drone_torchrl.memory_estimate import reinforce_parts
 from drone_torchrl.migrations import FAST
 from drone_torchrl.objectives.reinforce import BASELINES, LOG_PROB_REDUCTIONS, ReinforceLoss
+from drone_torchrl.registry import UpdateOutput
 from drone_torchrl.training.agents import AgentTable
 from drone_torchrl.training.collectors import FastCollector, TorchRLCollector
 from drone_torchrl.training.optim import clip_grad_norms
 from drone_torchrl.training.population import Population
-from drone_torchrl.training.update import UpdateOutput
 
 #: What the finite checks test, in their row order (then the weights after the step).
 CHECKS = ("actions", "loss", "gradients", "weights")

@@ -71,7 +71,7 @@ def n_step(frames: TensorDictBase, gamma: float, n: int) -> TensorDictBase:
 
 
 class SAC(OneRun):
-    """One SAC run behind the update contract (:mod:`drone_torchrl.training.update`).
+    """One SAC run behind the update contract (:meth:`drone_torchrl.registry.Learner.update`).
 
     Each update flies one batch, stores it and takes ``algo.updates_per_batch`` gradient steps.
 

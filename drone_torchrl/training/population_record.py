@@ -37,7 +37,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from drone_torchrl import extras
-from drone_torchrl.checks import ConfigError
+from drone_torchrl.checks import ConfigError, first_line
 from drone_torchrl.config import open_checkpoint, run_config
 from drone_torchrl.episodes import EPISODE_KEYS
 from drone_torchrl.io.checkpoint import (
@@ -97,7 +97,8 @@ class PopulationRecord(Record):
         names: each agent's name (its job's overrides), for ``agents.parquet``.
         run_dir: the run folder.
         backend: the backend that trains it.
-        checkpoint: the population checkpoint to continue from, or None.
+        checkpoint: the population checkpoint to continue from (its state copied into ``state``), or None.
+        state: the learner's stacked state.
     """
 
     kind = POPULATION
@@ -109,14 +110,18 @@ class PopulationRecord(Record):
         run_dir: Path,
         backend: str,
         checkpoint: dict[str, Any] | None = None,
+        state: Any = None,
     ) -> None:
         self.pa = _pyarrow()
+        if checkpoint is not None:
+            with torch.no_grad():  # the weights are a leaf that requires grad
+                for key, value in checkpoint["state"].items():
+                    state[key].copy_(value)
         agents = AgentTable.of(agents)
         self.cfg = cfg = agents.cfg
         self.run_dir = run_dir = Path(run_dir)
         self.values = agents.values
         self.names = list(names)
-        self.every_updates = int(cfg.logger.every_updates)
         n = len(agents)
         # Every agent's book holds the group's config: the per-agent keys are the table's.
         schedule = Schedule.of(cfg)
@@ -152,8 +157,7 @@ class PopulationRecord(Record):
                 f"{len(past)} episode part(s) written after it removed (those episodes are trained again)",
                 **about(run_dir),
             )
-        # The run's population-based training (:mod:`.pbt`), set by the trainer: its lineage goes
-        # into each checkpoint and lineage.parquet.
+        # Its search (:mod:`.pbt`), set by the trainer: its lineage goes into each checkpoint and lineage.parquet.
         self.search: Search | None = None
 
     # ------------------------------------------------------------------ agents
@@ -225,7 +229,7 @@ class PopulationRecord(Record):
     def after_update(self) -> None:
         """One update of the population booked: the summary every ``logger.every_updates``."""
         self.updates += 1
-        if self.updates % self.every_updates == 0:
+        if self.updates % self.agents[0].every_updates == 0:
             self.logger.log_metrics(self.summary(), step=self.step)
         self.flush_if_due()
 
@@ -236,6 +240,10 @@ class PopulationRecord(Record):
             self.logger.log_metrics(metrics, step=self.step)
 
     # ------------------------------------------------------------------ checkpoints
+    def learner_state(self, learner: Any, agent: int) -> dict[str, Any]:
+        """Every agent's stacked state, whichever ``agent`` is due."""
+        return dict(learner.state.items())
+
     def write_last(self, state: dict[str, torch.Tensor]) -> None:
         """Write ``last.pt`` with every agent's stacked state ``[N, ...]``, and the search's lineage so far."""
         super().write_last(state)
@@ -285,9 +293,7 @@ def _read(path: Path, columns: Sequence[str]) -> Any:
         raise PopulationFileError(f"{path} is missing") from None
     except (pa.ArrowException, OSError) as err:  # pyarrow's for a damaged file: ArrowInvalid, or its IO error
         # pyarrow names the file first ("Could not open Parquet input source '<path>': <why>").
-        reason = (
-            str(err).strip().splitlines()[0].rpartition("': ")[2] if str(err).strip() else type(err).__name__
-        )
+        reason = first_line(err).rpartition("': ")[2]
         raise PopulationFileError(f"{path} is not a readable Parquet file ({reason})") from None
     if missing := [column for column in columns if column not in table.column_names]:
         raise PopulationFileError(f"{path} is not a population run's table: it has no {', '.join(missing)}")

@@ -141,24 +141,18 @@ class AgentBook:
         self.budget, self.every_updates, self.window = s.budget, s.every_updates, s.window
         self.checkpoint_every, self.eval_every = s.checkpoint_every, s.eval_every
         self.stop_return = s.stop_return
-        self.recent_returns: deque[float] = deque(maxlen=s.window)
-        self.recent_lengths: deque[float] = deque(maxlen=s.window)
-        self.episodes_done = self.updates_done = 0
-        self.wall_clock_before = 0.0
-        self.best_eval = -math.inf
-        self.final: dict[str, float] | None = None
-        self.failure: str | None = None
-        self.stopped_at: float | None = None  # the return of the evaluation that ended it early
-        if checkpoint is not None:
-            counters = agent_counters(checkpoint, index)
-            self.stopped_at = counters["stopped_at_return"]
-            self.episodes_done, self.updates_done = counters["episodes_done"], counters["updates_done"]
-            self.wall_clock_before = counters["wall_clock_s"]
-            self.best_eval = counters["best_eval_return"]
-            self.recent_returns.extend(counters["recent_returns"])
-            self.recent_lengths.extend(counters["recent_lengths"])
-            # A finished agent given a larger budget trains on.
-            self.final, self.failure = (counters["final"] if self.finished else None), counters["failure"]
+        counters = {} if checkpoint is None else agent_counters(checkpoint, index)  # {}: a fresh agent's
+        self.episodes_done: int = counters.get("episodes_done", 0)
+        self.updates_done: int = counters.get("updates_done", 0)
+        self.wall_clock_before: float = counters.get("wall_clock_s", 0.0)
+        self.best_eval: float = counters.get("best_eval_return", -math.inf)
+        self.recent_returns: deque[float] = deque(counters.get("recent_returns", ()), maxlen=s.window)
+        self.recent_lengths: deque[float] = deque(counters.get("recent_lengths", ()), maxlen=s.window)
+        # The return of the evaluation that ended it early.
+        self.stopped_at: float | None = counters.get("stopped_at_return")
+        # A finished agent given a larger budget trains on.
+        self.final: dict[str, float] | None = counters.get("final") if self.finished else None
+        self.failure: str | None = counters.get("failure")
         self.last_eval_episode: int | None = None
         self.last_eval_return = -math.inf  # this process's last evaluation's mean return
         self.next_checkpoint = self.episodes_done + self.checkpoint_every
@@ -184,11 +178,6 @@ class AgentBook:
         """Whether the agent failed (diverged)."""
         return self.failure is not None
 
-    def diverged(self, failed: Sequence[str], advice: str) -> None:
-        """Stop the agent (:meth:`fail`): its last update left the values named ``failed`` non-finite."""
-        what = " and ".join(failed)
-        self.fail(f"training diverged at episode {self.episodes_done}: non-finite {what}; {advice}")
-
     def fail(self, reason: str) -> None:
         """Stop the agent: it failed for ``reason``; its record keeps its last finite state."""
         self.failure = reason
@@ -197,9 +186,21 @@ class AgentBook:
     def record(self, episodes: dict[str, Sequence], train_metrics: dict[str, float]) -> None:
         """Book one update: its finished episodes and its training metrics, written by the record.
 
-        The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished.
+        The episodes are ``EPISODE_KEYS`` -> one value per episode, in the order they finished; the
+        record gets their rows as columns: ``episode``, ``update``, ``wall_clock_s`` and ``EPISODE_KEYS``.
         """
-        self.owner.add_rows(self, self.book(episodes), train_metrics)
+        count, first = len(episodes["return"]), self.episodes_done
+        self.updates_done += 1
+        self.recent_returns.extend(episodes["return"])
+        self.recent_lengths.extend(episodes["length"])
+        self.episodes_done += count
+        rows = {
+            "episode": range(first, first + count),
+            "update": [self.updates_done] * count,
+            "wall_clock_s": [round(self.wall_clock, 3)] * count,
+            **{key: episodes[key] for key in EPISODE_KEYS},
+        }
+        self.owner.add_rows(self, rows, train_metrics)
 
     def record_eval(
         self,
@@ -209,10 +210,25 @@ class AgentBook:
     ) -> None:
         """Book an evaluation (its ``return``, ``length``, ``time_in_zone`` means), logged by the record.
 
-        ``learner_state`` and ``actor`` give its state and policy, for a record that keeps them.
+        ``learner_state`` and ``actor`` give its state and policy, for a record that keeps them. The
+        schedule moves on; the final metrics are set at the end.
         """
         self.owner.log_eval(self, result, learner_state, actor)
-        self.book_eval(result)
+        self.last_eval_return = result["return"]
+        self.best_eval = max(self.best_eval, result["return"])
+        if self.stop_return is not None and result["return"] >= self.stop_return:
+            self.stopped_at = result["return"]
+        self.last_eval_episode = step = self.episodes_done
+        if self.next_eval is not None:
+            while self.next_eval <= step:
+                self.next_eval += self.eval_every
+        if self.finished:
+            self.final = {
+                "final_return": self.running_return,
+                "final_length": self.running_length,
+                "eval_return": result["return"],
+                "wall_clock_s": self.wall_clock,
+            }
 
     @property
     def wall_clock(self) -> float:
@@ -229,23 +245,6 @@ class AgentBook:
         """The running mean of the last ``window`` episodes' lengths."""
         return _mean(self.recent_lengths)
 
-    def book(self, episodes: dict[str, Sequence]) -> dict[str, Sequence]:
-        """Count one update's finished episodes (``EPISODE_KEYS`` -> one value per episode).
-
-        Returns their rows as columns: ``episode``, ``update``, ``wall_clock_s`` and ``EPISODE_KEYS``.
-        """
-        count, first = len(episodes["return"]), self.episodes_done
-        self.updates_done += 1
-        self.recent_returns.extend(episodes["return"])
-        self.recent_lengths.extend(episodes["length"])
-        self.episodes_done += count
-        return {
-            "episode": range(first, first + count),
-            "update": [self.updates_done] * count,
-            "wall_clock_s": [round(self.wall_clock, 3)] * count,
-            **{key: episodes[key] for key in EPISODE_KEYS},
-        }
-
     @property
     def eval_due(self) -> bool:
         """Every ``eval.every_episodes`` episodes, and once at the end (not twice when they coincide)."""
@@ -253,30 +252,6 @@ class AgentBook:
             return False
         periodic = self.next_eval is not None and self.episodes_done >= self.next_eval
         return periodic or self.finished
-
-    def book_eval(self, result: dict[str, float]) -> bool:
-        """Count an evaluation; returns whether it is the best so far.
-
-        ``result``: its ``return``, ``length``, ``time_in_zone`` means. The schedule moves on; the
-        final metrics are set at the end.
-        """
-        best = result["return"] > self.best_eval
-        self.last_eval_return = result["return"]
-        self.best_eval = max(self.best_eval, result["return"])
-        if self.stop_return is not None and result["return"] >= self.stop_return:
-            self.stopped_at = result["return"]
-        self.last_eval_episode = step = self.episodes_done
-        if self.next_eval is not None:
-            while self.next_eval <= step:
-                self.next_eval += self.eval_every
-        if self.finished:
-            self.final = {
-                "final_return": self.running_return,
-                "final_length": self.running_length,
-                "eval_return": result["return"],
-                "wall_clock_s": self.wall_clock,
-            }
-        return best
 
     def updates_until_due(self, episodes_per_update: int) -> int:
         """Updates of ``episodes_per_update`` episodes until an evaluation, checkpoint or the end is due.
@@ -308,11 +283,6 @@ class AgentBook:
             "failure": self.failure,
         }
 
-    def book_save(self) -> None:
-        """A checkpoint was written: the next one falls due ``checkpoint.every_episodes`` later."""
-        while self.next_checkpoint <= self.episodes_done:
-            self.next_checkpoint += self.checkpoint_every
-
 
 class Record:
     """A run folder's record, one writer interface for both kinds: its config, logger, lock, rows and checkpoint.
@@ -322,11 +292,14 @@ class Record:
     Both write ONE checkpoint layout (:func:`~drone_torchrl.io.checkpoint.record_state`: the
     learner's state, then every agent's counters). A subclass sets ``agents`` and ``kind``, writes
     its rows (``add_rows``, ``write_rows``), logs evaluations (``log_eval``), says what a failed
-    agent leaves (``agent_failed``) and gives its final hparams (``final_metrics``).
+    agent leaves (``agent_failed``) and gives its final hparams (``final_metrics``). The trainer
+    calls every record's hooks alike (:meth:`learner_state`, :meth:`after_update`,
+    :meth:`after_eval`: no-ops or a run's one agent where it has nothing more to do).
     """
 
     agents: Sequence[AgentBook]
     kind = RUN
+    search: Any = None  # a population run's search (:mod:`.pbt`)
 
     def open(self, cfg: DictConfig, run_dir: Path, backend: str, resumed_at: int | None) -> None:
         """Make the folder (``checkpoints/``, no ``FAILED.txt``), write ``config.yaml``, start the logger."""
@@ -344,6 +317,16 @@ class Record:
         self.logger = make_logger(cfg, run_dir, resumed_at)
         self._last_flush = time.perf_counter()
 
+    def learner_state(self, learner: Any, agent: int) -> dict[str, Any]:
+        """What the ``learner`` (training agent ``agent`` of the record's) gives the record's checkpoint."""
+        return learner.checkpoint_entries(agent)
+
+    def after_update(self) -> None:
+        """After an update of the trainer's agents is booked: nothing by default."""
+
+    def after_eval(self) -> None:
+        """After an evaluation of the trainer's agents is booked: nothing by default."""
+
     def checkpoint_state(self, learner: dict[str, Any]) -> dict[str, Any]:
         """The record's checkpoint: ``learner``'s state (actor, optimizer, RNG streams...), config, counters."""
         counters = [agent.counters() for agent in self.agents]
@@ -360,8 +343,9 @@ class Record:
         The final hparams are ``final_metrics`` (none when no agent finished).
         """
         self.write_last(learner)
-        for agent in self.agents:
-            agent.book_save()
+        for agent in self.agents:  # the next checkpoint falls due checkpoint.every_episodes later
+            while agent.next_checkpoint <= agent.episodes_done:
+                agent.next_checkpoint += agent.checkpoint_every
         if all(a.failed or a.final is not None for a in self.agents):
             if metrics := self.final_metrics():
                 self.logger.log_final_hparams(self.config, metrics)

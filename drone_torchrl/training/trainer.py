@@ -1,11 +1,12 @@
 """The one training loop, every algorithm's, and the books its runs keep.
 
 A learner (an algorithm's :class:`~drone_torchrl.registry.Learner`, see :mod:`drone_torchrl.algorithms`)
-updates its agents behind one contract,
-``update(state, k, active) -> (state, UpdateOutput)`` (see :mod:`.update`): ``k`` updates of every
-active agent, their metrics and finished episodes handed back at once. The loop copies them to the
-host in one go (one sync per call) and books them, update by update, in each agent's
-:class:`~.run.RunRecord`; an agent whose checks fail stops with ``FAILED.txt``. ``k`` is the number
+updates its agents behind one contract, ``update(state, k, active) -> (state, UpdateOutput)`` (see
+:class:`~drone_torchrl.registry.UpdateOutput`): ``k`` updates of every active agent, their metrics and finished episodes handed back at once. The loop copies them to the
+host in one go (one sync per call) and books them, update by update, in each agent's book of its
+record (:class:`~.run.Record`: a :class:`~.run.RunRecord` per job folder, or one
+:class:`~.population_record.PopulationRecord`; a single run is a population of one, with the same
+hooks); an agent whose checks fail stops (a run with ``FAILED.txt``). ``k`` is the number
 of updates until the next evaluation, checkpoint or end of budget of any agent (at most
 :data:`MAX_UPDATES_PER_CALL`; 1 for a learner whose updates end a varying number of episodes), so
 evaluations and checkpoints fall exactly where a one-update loop would put them. Agents due for an
@@ -67,6 +68,11 @@ class Outcome:
         """The final running-mean return, or None if the job did not finish."""
         return None if self.final is None else self.final["final_return"]
 
+    @classmethod
+    def of(cls, run_dir: Path, final: dict[str, float] | None, failure: str | None) -> Outcome:
+        """How an agent ended: its ``final`` metrics, or the ``failure`` of its divergence."""
+        return cls(run_dir, final, None if failure is None else TrainingDiverged(failure))
+
 
 def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
     """``tensor.tolist()`` of each tensor, all copied to the host at once (one sync).
@@ -92,11 +98,11 @@ class Trainer:
         checkpoint: dict | None = None,
         search: SearchSettings | None = None,
     ) -> None:
-        """Train the jobs, each in its own run folder, or together as one population run.
+        """Train the jobs, each in its own run folder (a :class:`~.run.RunRecord`), or together as one population run.
 
-        ``population_dir``: the population run's folder (see :mod:`.population_record`; the jobs may
-        be an :class:`~.agents.AgentTable`); ``names``: the agents' names; ``checkpoint``: the
-        population checkpoint to continue from; ``search``: train it with population-based
+        ``population_dir``: the population run's folder (a :class:`~.population_record.PopulationRecord`;
+        the jobs may be an :class:`~.agents.AgentTable`); ``names``: the agents' names; ``checkpoint``:
+        the population checkpoint to continue from; ``search``: train it with population-based
         training (:mod:`.pbt`).
         """
         self.cfg = cfg = jobs.cfg if isinstance(jobs, AgentTable) else jobs[0].cfg
@@ -104,41 +110,39 @@ class Trainer:
         if torch.device(cfg.device).type == "cpu":
             keep_freed_memory()
         self.learner = ALGORITHMS.get(cfg.algo.name).learner(jobs)
-        self.runs: list[AgentBook] = []
-        self.book: PopulationRecord | None = None
-        self._search_step_pending = False
+        #: The run folders' records: a run's per job, or the population run's.
+        self.records: list[Record] = []
         try:
             if population_dir is not None:
-                if checkpoint is not None:
-                    with torch.no_grad():  # the weights are a leaf that requires grad
-                        for key, value in checkpoint["state"].items():
-                            self.learner.state[key].copy_(value)
-                self.book = PopulationRecord(
-                    AgentTable.of(jobs),
-                    names or [str(i) for i in range(len(jobs))],
-                    population_dir,
-                    cfg.backend,
-                    checkpoint,
-                )
-                self.runs = list(self.book.agents)
+                names = names or [str(i) for i in range(len(jobs))]
+                state = self.learner.state
+                record = PopulationRecord(jobs, names, population_dir, cfg.backend, checkpoint, state)
+                self.records.append(record)
                 if search is not None:
-                    saved = None if checkpoint is None else checkpoint["search"]
-                    self.book.search = search.make(cfg, self.book.values, saved)
+                    record.search = search.make(cfg, record.values, checkpoint and checkpoint["search"])
                     if checkpoint is None:
-                        self.book.search.start(self.learner.state)
-                    # A finished run given a larger budget: the step due at its last update was
-                    # skipped (no step at the end of a budget); taken first, the schedule goes on as
-                    # if the run had had the larger budget from the start.
-                    self._search_step_pending = checkpoint is not None and all(
-                        final is not None or failure is not None
-                        for final, failure in zip(checkpoint["final"], checkpoint["failure"], strict=True)
-                    )
+                        record.search.start(state)
             for job in jobs if population_dir is None else ():
-                self.runs.append(RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir))
+                self.records.append(
+                    RunRecord(job.cfg, job.run_dir, cfg.backend, job.checkpoint, job.parent_dir)
+                )
         except BaseException:  # e.g. a logger that cannot start: the runs made so far close their loggers
             self.progress = Progress([], False)
             self.close(quietly=True)
             raise
+        self.runs: list[AgentBook] = [agent for record in self.records for agent in record.agents]
+        self.search = self.records[0].search
+        # A finished search given a larger budget: the step due at its last update was skipped (no
+        # step at the end of a budget); taken first, the schedule goes on as if the run had had the
+        # larger budget from the start.
+        self._search_step_pending = (
+            self.search is not None
+            and checkpoint is not None
+            and all(
+                f is not None or e is not None
+                for f, e in zip(checkpoint["final"], checkpoint["failure"], strict=True)
+            )
+        )
         self.progress = Progress(self.runs, cfg.progress)
 
     @functools.cached_property
@@ -190,9 +194,8 @@ class Trainer:
         ``k`` defaults to as many as nothing falls due in (at most :data:`MAX_UPDATES_PER_CALL`; one
         where the learner cannot tell). Returns the env steps the agents took.
         """
-        runs, learner = self.runs, self.learner
+        runs, learner, search = self.runs, self.learner, self.search
         per_update = learner.episodes_per_update
-        search = None if self.book is None else self.book.search
         if k is None:
             k = (
                 1
@@ -215,7 +218,10 @@ class Trainer:
                     continue
                 failed = [what for what, ok in zip(learner.checks, checks[j][i], strict=True) if not ok]
                 if failed:
-                    runs[i].diverged(failed, learner.advice)
+                    what = " and ".join(failed)
+                    runs[i].fail(
+                        f"training diverged at episode {runs[i].episodes_done}: non-finite {what}; {learner.advice}"
+                    )
                     continue
                 ended = {key: values[j][i] for key, values in episodes.items()}
                 if valid is not None:  # a learner whose updates end different numbers of episodes
@@ -225,8 +231,8 @@ class Trainer:
                 booked.append((runs[i], len(ended["length"])))
             if booked:
                 self.progress.update(sum(n for _, n in booked), [run for run, _ in booked])
-                if self.book is not None:
-                    self.book.after_update()
+                for record in self.records:
+                    record.after_update()
         active = [i for i in active if not runs[i].failed]
         if search is not None and active and not any(runs[i].finished for i in active):
             self.search_step(active)
@@ -238,8 +244,8 @@ class Trainer:
 
     def search_step(self, active: list[int]) -> None:
         """The population's search step (:mod:`.pbt`) if one is due after the ``active`` agents' updates."""
-        assert self.book is not None and self.book.search is not None
-        search, runs = self.book.search, self.runs
+        search, runs = self.search, self.runs
+        assert search is not None
         done = max(runs[i].updates_done for i in active)
         if search.due(done):
             scores = [run.running_return for run in runs]
@@ -247,14 +253,9 @@ class Trainer:
                 runs[agent].take_window(None if parent == FRESH else runs[parent])
 
     def save(self, agents: list[int]) -> None:
-        """A checkpoint of each of ``agents`` (a population run: one of every agent)."""
-        if not agents:
-            return
-        if self.book is not None:
-            self.book.save(dict(self.learner.state.items()))
-            return
-        for i in agents:
-            self.runs[i].save(self.learner.checkpoint_entries(i))
+        """A checkpoint of each of ``agents``' records (a population run's: one of every agent)."""
+        for record, i in {self.runs[i].owner: i for i in agents}.items():
+            record.save(record.learner_state(self.learner, i))
 
     def evaluate(self, agents: list[int]) -> None:
         """Fly the agents' deterministic policies on the evaluation seeds, all at once, and book it."""
@@ -284,8 +285,8 @@ class Trainer:
                 lambda i=i: learner.actor(i),
             )
             learner.after_evaluation(self.runs[i], best_before)
-        if self.book is not None:
-            self.book.after_eval()
+        for record in self.records:
+            record.after_eval()
 
     def close(self, quietly: bool = False) -> None:
         """Flush and close every run.
@@ -295,9 +296,7 @@ class Trainer:
         """
         self.progress.close()
         self.learner.close()
-        # A run folder each: the runs', or the population's.
-        records: list[Record] = self.runs if self.book is None else [self.book]
-        for record in records:
+        for record in self.records:
             try:
                 record.close(quietly)
             except Exception:  # noqa: BLE001  (a logger's own error, when another one is reported)
@@ -349,21 +348,21 @@ def train_jobs(jobs: Sequence[Job]) -> list[Outcome]:
                         outcomes[i].error = err
                     continue
                 for i, run in zip(members, trainer.runs, strict=True):
-                    _report(jobs[i].run_dir, run, outcomes[i], len(jobs) > 1)
+                    outcomes[i] = Outcome.of(run.run_dir, run.final, run.failure)
+                    _report(run, len(jobs) > 1)
     finally:
         for job in jobs:
             run_lock.release(job.run_dir)
     return outcomes
 
 
-def _report(run_dir: Path, run: AgentBook, outcome: Outcome, several: bool) -> None:
-    """Set the run's outcome and say how it ended (a failure only where ``several`` jobs trained)."""
-    if run.final is None:  # the agent diverged (its run record wrote FAILED.txt)
-        outcome.error = TrainingDiverged(run.failure)
+def _report(run: AgentBook, several: bool) -> None:
+    """Say how the run ended (a failure only where ``several`` jobs trained)."""
+    run_dir, final = run.run_dir, run.final
+    if final is None:  # the agent diverged (its run record wrote FAILED.txt)
         if several:
-            console.info(f"{run_dir}: failed: {outcome.error}", **about(run_dir))
+            console.info(f"{run_dir}: failed: {TrainingDiverged(run.failure)}", **about(run_dir))
         return
-    outcome.final = final = run.final
     # Finished short of its budget: an evaluation reached eval.stop_return.
     stopped = (
         "" if run.episodes_done >= run.budget else f" (an evaluation at eval.stop_return={run.stop_return:g})"
@@ -441,15 +440,17 @@ def train_population(
                 f"algo.episodes with hydra.sweep.dir={run_dir.parent} trains them on)",
                 **about(run_dir),
             )
-            return _population_outcomes(run_dir, checkpoint["final"], checkpoint["failure"])
+            return list(
+                map(functools.partial(Outcome.of, run_dir), checkpoint["final"], checkpoint["failure"])
+            )
         if before_training is not None and checkpoint is None:
             # A folder that holds a run keeps the record of how it was started, as a run folder's
             # .hydra/ does (drone_torchrl.io.folders.record_subdir).
             before_training()
         trainer = Trainer(agents, run_dir, names, checkpoint, search)
         log.info(f"{run_dir}: {len(agents)} agents set up; training")
-        finals = trainer.train()
-        return _population_outcomes(run_dir, finals, [run.failure for run in trainer.runs])
+        trainer.train()
+        return [Outcome.of(run.run_dir, run.final, run.failure) for run in trainer.runs]
     finally:
         run_lock.release(run_dir)
 
@@ -480,13 +481,6 @@ def check_population(agents: AgentTable, search: SearchSettings | None = None) -
         raise ConfigError(f"{len(agents)} agents trained together in one population run: {err}") from None
     if search is not None:
         search.check(cfg, len(agents))
-
-
-def _population_outcomes(run_dir: Path, finals: Sequence, failures: Sequence) -> list[Outcome]:
-    return [
-        Outcome(run_dir, final, None if failure is None else TrainingDiverged(failure))
-        for final, failure in zip(finals, failures, strict=True)
-    ]
 
 
 def _population_checkpoint(
@@ -549,10 +543,5 @@ def _population_checkpoint(
 def _search_text(settings: dict | None) -> str:
     if settings is None:
         return "no search (hydra/launcher=population)"
-    launcher = settings["launcher"]
-    values = " ".join(
-        f"hydra.launcher.{key}={value}"
-        for key, value in settings.items()
-        if key not in ("launcher", "schedule")
-    )
-    return f"hydra/launcher={launcher} {values}"
+    keys = (f"hydra.launcher.{k}={v}" for k, v in settings.items() if k not in ("launcher", "schedule"))
+    return f"hydra/launcher={settings['launcher']} {' '.join(keys)}"
