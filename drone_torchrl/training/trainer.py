@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from itertools import compress
 from pathlib import Path
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 
@@ -79,10 +80,14 @@ def _to_host(tensors: dict[str, torch.Tensor]) -> dict[str, list]:
 
     In float64, which holds every float32, int below 2**53 and bool exactly; ints and bools come back as such.
     """
-    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu()
-    parts = flat.split([t.numel() for t in tensors.values()])
+    # numpy on the host: one device sync for the copy, none per tensor.
+    flat = torch.cat([t.detach().reshape(-1).to(torch.float64) for t in tensors.values()]).cpu().numpy()
+    parts = np.split(flat, np.cumsum([t.numel() for t in tensors.values()])[:-1])
+    kind = {torch.bool: bool}
     return {
-        key: part.reshape(t.shape).to(torch.float64 if t.is_floating_point() else t.dtype).tolist()
+        key: part.reshape(t.shape)
+        .astype(float if t.is_floating_point() else kind.get(t.dtype, np.int64))
+        .tolist()
         for (key, t), part in zip(tensors.items(), parts, strict=True)
     }
 
