@@ -149,11 +149,20 @@ class Rule:
 # Field makers: ``lr: Any = a_number(low=0, low_open=True, high=MAX_LR, per_agent=True)``, each a
 # config field holding a value of its kind, checked by a :class:`Rule` of its arguments; ``free``: one
 # the code checks itself (the env's arguments, paths, folder names, devices).
-def _field_maker(kind: str) -> Callable[..., Any]:
-    return lambda **rule: Rule(kind, **rule).field()
+def _field_maker(name: str) -> Callable[..., Any]:
+    kind = name.rpartition("_")[2]
+
+    def maker(**rule: Any) -> Any:
+        return Rule(kind, **rule).field()
+
+    maker.__name__ = maker.__qualname__ = name  # the API docs list it under its own name
+    maker.__doc__ = f"A config field holding a {kind} value, checked by a :class:`Rule` of these arguments."
+    return maker
 
 
-a_number, an_integer, a_flag, a_text, free = map(_field_maker, ("number", "integer", "flag", "text", "free"))
+a_number, an_integer, a_flag, a_text, free = map(
+    _field_maker, ("a_number", "an_integer", "a_flag", "a_text", "free")
+)
 
 
 def one_of(choices: tuple, **rule: Any) -> Any:

@@ -241,7 +241,7 @@ class Minibatches(ReplayBuffer):
 
 
 class OnPolicy(OneRun):
-    """One actor-critic run: ``__init__`` builds it, :meth:`learn` is one batch's update.
+    """One actor-critic run: ``__init__`` builds it, :meth:`OnPolicy.learn` is one batch's update.
 
     A subclass gives :meth:`make_loss` and the :attr:`diagnostics` to book of what its loss reports;
     the losses summed and booked are the loss's ``loss_*`` outputs. It may also change what the loss
@@ -341,7 +341,7 @@ class OnPolicy(OneRun):
     def learn(self, batch: TensorDictBase) -> dict[str, float]:
         """GAE on the batch, then ``algo.epochs`` passes of minibatch steps; the last pass's ``train/*`` means.
 
-        Each step: the minibatch's losses (:attr:`minibatches`), their sum's backward pass, the
+        Each step: the minibatch's losses (``self.minibatches``), their sum's backward pass, the
         gradients clipped (:meth:`clip_gradients`), Adam's step.
         """
         algo = self.cfg.algo

@@ -111,7 +111,7 @@ class SAC(OneRun):
         self.start(jobs[0].checkpoint)
 
     def restore(self, checkpoint: Mapping[str, Any]) -> None:
-        """Resume as :meth:`OneRun.restore` does, with the Q-networks, their targets, the temperature and the buffer."""
+        """Resume as :meth:`~drone_torchrl.algorithms.ppo.OneRun.restore` does, with the Q-networks, their targets, the temperature and the buffer."""
         super().restore(checkpoint)
         self.loss.load_state_dict({**self.loss.state_dict(), **checkpoint["qvalue"]})
         saved = checkpoint["replay_buffer"]
@@ -147,7 +147,7 @@ class SAC(OneRun):
     def checkpoint_entries(self, agent: int) -> dict[str, Any]:
         """Everything the next update depends on, as checkpoint entries.
 
-        :meth:`OneRun.checkpoint_entries` (actor, Adam, both generators, the drones' running
+        :meth:`~drone_torchrl.algorithms.ppo.OneRun.checkpoint_entries` (actor, Adam, both generators, the drones' running
         episodes), ``qvalue`` (SACLoss's Q-networks, their targets and the temperature) and the
         buffer's filled frames and its write cursor.
         """

@@ -84,7 +84,7 @@ class PB2(PBT):
         bounds: each searched key -> the values its rule allows.
         seed: the key of the steps' random draws (with the update number).
         lineage: the rows written so far (a resumed run's), column -> values.
-        data: the model's data so far (a resumed run's, :meth:`checkpoint`'s ``data``).
+        data: the model's data so far (a resumed run's, ``checkpoint()``'s ``data``).
     """
 
     def __init__(

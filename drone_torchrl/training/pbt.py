@@ -66,12 +66,12 @@ LINEAGE_COLUMNS = ("update", "agent", "parent", "seed")
 FRESH = -1
 #: The ``(agent, parent)`` pairs of a search step.
 Pairs = list[tuple[int, int]]
-#: Columns of values: a lineage (column -> one value per row), or the sweep's (key -> one per agent).
+#: Columns of values (a lineage, column -> one value per row, or the sweep's, key -> one per agent).
 Table = Mapping[str, Sequence[Any]]
 FACTORS = f"a non-empty list of factors in [{1 / MAX_FACTOR:g}, {MAX_FACTOR:g}], e.g. [0.8,1.2]"
 #: ``[(update, values), ...]``: the values one agent trained with from each update on (:func:`schedule`).
 Schedule = list[tuple[int, dict[str, float]]]
-#: A launcher key's rule: whether a value is allowed, what is expected instead, and the value kept.
+#: The rule of a launcher key (whether a value is allowed, what is expected instead, the value kept).
 Rule = tuple[Callable[[Any], bool], str, Callable[[Any], Any]]
 
 
@@ -154,7 +154,7 @@ def _searched_keys(keys: Any, search: str) -> tuple[str, ...]:
     return tuple(keys)
 
 
-class _Settings:
+class Settings:
     """What the settings of every search do: read from the launcher's keys, checked, and recorded."""
 
     #: The search's name in a checkpoint.
@@ -195,7 +195,7 @@ def _updates(cfg: Any) -> int:
 
 
 @dataclass(frozen=True)
-class PBTSettings(_Settings):
+class PBTSettings(Settings):
     """``hydra/launcher=pbt``'s settings (``hydra.launcher.<field>``).
 
     Attributes:
@@ -477,7 +477,7 @@ class PBT(Search):
 
 
 @dataclass(frozen=True)
-class ReplaySettings(_Settings):
+class ReplaySettings(Settings):
     """``hydra/launcher=pbt_replay``: every agent follows the values one agent of a PBT run had.
 
     The run may also be a successive halving run; it must have finished (every agent at its budget
@@ -628,7 +628,7 @@ class Replay(Search):
 
 
 @dataclass(frozen=True)
-class HalvingSettings(_Settings):
+class HalvingSettings(Settings):
     """``hydra/launcher=halving``'s settings: successive halving inside a population run.
 
     Attributes:

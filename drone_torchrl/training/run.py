@@ -116,7 +116,7 @@ class AgentBook:
 
     Args:
         cfg: the agent's validated config.
-        checkpoint: the record's checkpoint it continues from (its counters: :func:`agent_counters`), or None.
+        checkpoint: the record's checkpoint it continues from (its counters: :func:`~drone_torchrl.io.checkpoint.agent_counters`), or None.
         schedule: the config's :class:`Schedule`, read once for all the agents of a population
             (None: read from ``cfg``).
         owner: the record that writes its files (None: itself, a :class:`RunRecord`).

@@ -115,7 +115,7 @@ class Trainer:
         if torch.device(cfg.device).type == "cpu":
             keep_freed_memory()
         self.learner = ALGORITHMS.get(cfg.algo.name).learner(jobs)
-        #: The run folders' records: a run's per job, or the population run's.
+        #: The run folders' records (a run's per job, or the population run's).
         self.records: list[Record] = []
         try:
             if population_dir is not None:
