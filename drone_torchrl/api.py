@@ -36,7 +36,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import migrations
-from drone_torchrl.checks import ConfigError, as_override
+from drone_torchrl.checks import ConfigError, as_override, first_line
 from drone_torchrl.comparison import PD_NAME, PLOT_NAME, VIDEO_NAME, run_eval
 from drone_torchrl.config import check_default_folder, check_overrides, config_dir, preset_notes
 
@@ -292,7 +292,7 @@ def _compose(name: str, args: list[str]) -> tuple[DictConfig, Path]:
         folder = OmegaConf.select(cfg, RUN_DIR_KEY)
         choices = OmegaConf.to_container(cfg.hydra.runtime.choices)
     except (HydraException, OmegaConfBaseException) as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        first = first_line(err)
         raise ConfigError(f"Hydra cannot compose conf/{name}.yaml with {' '.join(args)}: {first}") from None
     if not isinstance(folder, str):
         raise ConfigError.of(RUN_DIR_KEY, folder, "a folder path")

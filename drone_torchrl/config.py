@@ -17,7 +17,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 from omegaconf.errors import OmegaConfBaseException
 
 from drone_torchrl import loggers, memory_estimate, migrations, schema, sweep_folder
-from drone_torchrl.checks import ConfigError, dotted, plain_name
+from drone_torchrl.checks import ConfigError, dotted, first_line, plain_name
 from drone_torchrl.envs.drone_env import check_env_args, make_params
 from drone_torchrl.envs.params import PARAM_NAMES, DroneParams
 from drone_torchrl.io import folders
@@ -308,7 +308,7 @@ def check_keys(cfg: DictConfig | Mapping, name: str = "config") -> Mapping:
             resolved[str(key)] = value
     except OmegaConfBaseException as err:  # e.g. algo.lr=${oops}: an interpolation that resolves to nothing
         key = getattr(err, "full_key", None) or "a config value"
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        first = first_line(err)
         raise ConfigError(f"{key} cannot be read: {first}") from None
     known = schema_keys(name, **_plugins(resolved, name))
     for section in complete(resolved, name):  # set to something else than its keys: null, a number...

@@ -1247,6 +1247,10 @@ __attribute__((flatten)) void run_range(const Work& work, int64_t scratch, int64
 template <class Work>
 int64_t run(int64_t count, int64_t scratch, const Launch& on, Work work) {
   const int64_t workers = count < on.threads ? count : on.threads;
+  if (workers <= 1) {  // one worker: this thread (a thread's start and join would cost each call)
+    run_range(work, scratch, 0, count);
+    return 0;
+  }
   std::vector<std::thread> pool;
   for (int64_t k = 0; k < workers; k++)
     pool.emplace_back([&, k] { run_range(work, scratch, count * k / workers, count * (k + 1) / workers); });

@@ -196,7 +196,8 @@ def _check_net(params: torch.Tensor, hidden: Sequence[int], disturbance: torch.T
 # they carry no torch.library registration.
 
 
-#: ``RolloutArgs``' segment fields (drone_kernels.cpp), which only :func:`segments` fills.
+#: ``RolloutArgs``' segment fields (drone_kernels.cpp), which only :func:`segments` fills: their
+#: count must follow that struct (the test of every op against the reference fails on a shift).
 _NO_SEGMENTS = (None,) * 19
 
 

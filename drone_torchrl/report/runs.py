@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from drone_torchrl.checks import first_line
 from drone_torchrl.config import ENV_ADDED, ENV_ARGS, env_kwargs
 from drone_torchrl.envs.dynamics import REWARD_IN_ZONE
 from drone_torchrl.io.checkpoint import CHECKPOINT_DIR, LAST, CheckpointError, load_checkpoint
@@ -120,7 +121,7 @@ def _load_yaml(path: Path, kind: type) -> Any:
     try:
         cfg = OmegaConf.load(path)
     except Exception as err:  # noqa: BLE001  (yaml and OmegaConf raise many kinds for a bad file)
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        first = first_line(err)
         raise ReportError(f"{path} is not a readable YAML file ({first})") from None
     if kind is list and isinstance(cfg, DictConfig) and not cfg:
         return []  # an empty file: no overrides

@@ -164,8 +164,8 @@ class Trainer:
         """The REINFORCE learner's population (its agents' stacked state)."""
         return self.learner.population
 
-    def train(self) -> list[dict[str, float]]:
-        """Run every agent to its own ``algo.episodes``; returns each one's final metrics.
+    def train(self) -> None:
+        """Run every agent to its own ``algo.episodes`` (each run's ``final`` metrics, or its ``failure``).
 
         SIGTERM or SIGUSR1 stop it after the update in flight, with a checkpoint of every active
         agent (:mod:`.signals`).
@@ -191,7 +191,6 @@ class Trainer:
             self.close(quietly=True)  # the error in flight is the one to report, not a second one
             raise
         self.close()
-        return [run.final for run in self.runs]
 
     def step(self, active: list[int], k: int | None = None) -> int:
         """Run ``k`` updates of the ``active`` agents, booked, then the evaluations and checkpoints due.
@@ -400,8 +399,10 @@ def train_job(job: Job) -> Outcome:
     Raises the error that stopped it, as :func:`train` does (``drone_torchrl.train`` calls this too).
     """
     (outcome,) = train_jobs([job])
-    if outcome.error is not None:  # else it finished: train_jobs set its final metrics
+    if outcome.error is not None:
         raise outcome.error
+    if outcome.final is None:  # neither metrics nor a failure: a run that ended and cannot say how
+        raise ConfigError(f"{outcome.run_dir}: training ended without final metrics")
     return outcome
 
 
