@@ -165,7 +165,8 @@ def test_two_processes_on_one_run_folder_then_sigterm_and_resume(tmp_path, comma
     common = [*QUICK, f"hydra.run.dir={run}"]
     owner = _drone_train(*common, "algo.episodes=1000000", cwd=tmp_path, wait=False)
     try:
-        _wait_for_owner(run, owner.pid, owner, also="episodes.csv")
+        # Its first checkpoint too: a folder without one is refused as no run to resume, before its owner.
+        _wait_for_owner(run, owner.pid, owner, also="checkpoints/last.pt")
         second = command_here(train_app.run, "drone-train", *common, "algo.episodes=2", cwd=tmp_path)
         assert second.returncode == 1
         _one_error_line(second.stderr, str(run), f"pid {owner.pid}")
