@@ -164,8 +164,8 @@ class Trainer:
         """The REINFORCE learner's population (its agents' stacked state)."""
         return self.learner.population
 
-    def train(self) -> None:
-        """Run every agent to its own ``algo.episodes`` (each run's ``final`` metrics, or its ``failure``).
+    def train(self) -> list[dict[str, float] | None]:
+        """Run every agent to its own ``algo.episodes``; returns each one's final metrics (None: it failed).
 
         SIGTERM or SIGUSR1 stop it after the update in flight, with a checkpoint of every active
         agent (:mod:`.signals`).
@@ -191,6 +191,7 @@ class Trainer:
             self.close(quietly=True)  # the error in flight is the one to report, not a second one
             raise
         self.close()
+        return [run.final for run in self.runs]
 
     def step(self, active: list[int], k: int | None = None) -> int:
         """Run ``k`` updates of the ``active`` agents, booked, then the evaluations and checkpoints due.
